@@ -1,0 +1,74 @@
+"""The measurement-model contract: z = h(x) + v, v ~ N(0, R), evaluated on full 8-dim states.
+
+Models see full-state rows so that one model serves every motion model; components a motion model
+does not carry are zero there (``core.layout.embed``). Rows flagged in ``angle_mask`` are angles:
+their residuals are wrapped and their sigma-point means are circular.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+
+import numpy as np
+from scipy.linalg import block_diag
+
+from edgepos.core.numerics import wrap_rows
+
+
+class MeasurementModel(ABC):
+    """One measurement block of known dimension, noise and angle rows."""
+
+    @property
+    @abstractmethod
+    def dim(self) -> int:
+        """Number of scalar measurements."""
+
+    @property
+    @abstractmethod
+    def angle_mask(self) -> np.ndarray:
+        """Boolean (dim,) flags of the rows that are angles in radians."""
+
+    @abstractmethod
+    def predict(self, states: np.ndarray) -> np.ndarray:
+        """h applied to each full-state row of ``states`` (n, 8); returns (n, dim)."""
+
+    @abstractmethod
+    def jacobian(self, state: np.ndarray) -> np.ndarray:
+        """dh/dx at one full state (8,); returns (dim, 8)."""
+
+    @abstractmethod
+    def noise_covariance(self) -> np.ndarray:
+        """R, (dim, dim)."""
+
+    def residual(self, observed: np.ndarray, predicted: np.ndarray) -> np.ndarray:
+        """observed - predicted with angle rows wrapped to [-pi, pi)."""
+        return wrap_rows(np.asarray(observed, dtype=float) - predicted, self.angle_mask)
+
+
+class Stacked(MeasurementModel):
+    """Several measurement blocks taken in one joint update (their noises are independent)."""
+
+    def __init__(self, parts: Sequence[MeasurementModel]) -> None:
+        if not parts:
+            raise ValueError("a stacked measurement needs at least one part")
+        self.parts = tuple(parts)
+        self._mask = np.concatenate([part.angle_mask for part in self.parts])
+        self._noise = block_diag(*[part.noise_covariance() for part in self.parts])
+
+    @property
+    def dim(self) -> int:
+        return int(self._mask.size)
+
+    @property
+    def angle_mask(self) -> np.ndarray:
+        return self._mask
+
+    def predict(self, states: np.ndarray) -> np.ndarray:
+        return np.concatenate([part.predict(states) for part in self.parts], axis=1)
+
+    def jacobian(self, state: np.ndarray) -> np.ndarray:
+        return np.vstack([part.jacobian(state) for part in self.parts])
+
+    def noise_covariance(self) -> np.ndarray:
+        return self._noise

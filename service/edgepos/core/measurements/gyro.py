@@ -1,0 +1,53 @@
+"""Gyro yaw rate (RSU + IMU paper, eq. 4, row 3): omega = (xv ya - xa yv) / (xv^2 + yv^2).
+
+The rate of turn of the velocity vector, in rad/s, counter-clockwise positive. It is undefined at
+standstill, so the squared speed in the denominator is floored at ``min_speed``^2.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from edgepos.core import layout
+from edgepos.core.measurements.base import MeasurementModel
+
+
+class GyroYawRate(MeasurementModel):
+    """Yaw rate with noise standard deviation ``std`` (rad/s)."""
+
+    def __init__(self, std: float, min_speed: float = 0.1) -> None:
+        self.std = float(std)
+        self.min_speed_sq = float(min_speed) ** 2
+        self._noise = np.array([[self.std**2]])
+
+    @property
+    def dim(self) -> int:
+        return 1
+
+    @property
+    def angle_mask(self) -> np.ndarray:
+        return np.zeros(1, dtype=bool)
+
+    def predict(self, states: np.ndarray) -> np.ndarray:
+        xv, xa, yv, ya = (states[:, i] for i in (layout.XV, layout.XA, layout.YV, layout.YA))
+        speed_sq = np.maximum(xv * xv + yv * yv, self.min_speed_sq)
+        return ((xv * ya - xa * yv) / speed_sq)[:, None]
+
+    def jacobian(self, state: np.ndarray) -> np.ndarray:
+        xv, xa, yv, ya = (state[i] for i in (layout.XV, layout.XA, layout.YV, layout.YA))
+        jacobian = np.zeros((1, layout.FULL_DIM))
+        raw_speed_sq = xv * xv + yv * yv
+        speed_sq = max(raw_speed_sq, self.min_speed_sq)
+        cross = xv * ya - xa * yv
+        jacobian[0, layout.XA] = -yv / speed_sq
+        jacobian[0, layout.YA] = xv / speed_sq
+        if raw_speed_sq > self.min_speed_sq:
+            jacobian[0, layout.XV] = ya / speed_sq - 2.0 * xv * cross / speed_sq**2
+            jacobian[0, layout.YV] = -xa / speed_sq - 2.0 * yv * cross / speed_sq**2
+        else:
+            jacobian[0, layout.XV] = ya / speed_sq
+            jacobian[0, layout.YV] = -xa / speed_sq
+        return jacobian
+
+    def noise_covariance(self) -> np.ndarray:
+        return self._noise

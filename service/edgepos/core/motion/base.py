@@ -1,0 +1,136 @@
+"""The motion-model contract shared by every filter.
+
+A motion model acts on a sub-state: the components of the 8-dim state (``core.layout``) it uses,
+in full-state order. Filters only ever see these four operations, so any model works in any filter.
+"""
+
+from __future__ import annotations
+
+import functools
+from abc import ABC, abstractmethod
+from typing import Any, ClassVar
+
+import numpy as np
+from scipy.linalg import block_diag, expm
+
+from edgepos.core.errors import ConfigurationError
+
+#: Timestamps are resolved to this step (1 ns) when a discretisation is cached per interval.
+DT_RESOLUTION_DECIMALS = 9
+
+
+class MotionModel(ABC):
+    """Discrete-time state transition x_k = f(x_{k-1}, dt) + w, w ~ N(0, Q(x_{k-1}, dt))."""
+
+    #: Registry name, lower case ("cv", "ca", ...).
+    name: ClassVar[str]
+    #: Full-state indices the model uses, ascending.
+    components: ClassVar[tuple[int, ...]]
+    #: True when f is linear in the state, so that F P F^T + Q is the exact predicted covariance.
+    linear: ClassVar[bool]
+
+    @property
+    def dim(self) -> int:
+        return len(self.components)
+
+    @abstractmethod
+    def propagate(self, points: np.ndarray, dt: float) -> np.ndarray:
+        """Apply f to each row of ``points`` (n, dim); return (n, dim)."""
+
+    @abstractmethod
+    def transition_matrix(self, mean: np.ndarray, dt: float) -> np.ndarray:
+        """F for a linear model; for a nonlinear one the Jacobian of f at ``mean``."""
+
+    @abstractmethod
+    def noise_covariance(self, mean: np.ndarray, dt: float) -> np.ndarray:
+        """Q of the step, evaluated at the prior ``mean`` (state-dependent only for adaptive models)."""
+
+    @abstractmethod
+    def params(self) -> dict[str, float]:
+        """The model's parameters, enough to rebuild it with ``cls(**params)``."""
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "params": self.params()}
+
+
+def check_positive(name: str, value: float) -> float:
+    value = float(value)
+    if not np.isfinite(value) or value <= 0.0:
+        raise ConfigurationError(f"{name} must be a finite positive number, got {value!r}")
+    return value
+
+
+def check_nonnegative(name: str, value: float) -> float:
+    value = float(value)
+    if not np.isfinite(value) or value < 0.0:
+        raise ConfigurationError(f"{name} must be a finite non-negative number, got {value!r}")
+    return value
+
+
+def dt_key(dt: float) -> float:
+    """The interval used for discretisation caches: dt rounded to 1 ns."""
+    return round(float(dt), DT_RESOLUTION_DECIMALS)
+
+
+def van_loan(a: np.ndarray, noise_density: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact discretisation of dx = A x dt + dw with E[dw dw^T] = noise_density dt.
+
+    Van Loan (1978): expm([[-A, Qc], [0, A^T]] dt) holds F^T in its lower-right block and
+    F^{-1} Q in its upper-right block.
+    """
+    n = a.shape[0]
+    block = np.zeros((2 * n, 2 * n))
+    block[:n, :n] = -a
+    block[:n, n:] = noise_density
+    block[n:, n:] = a.T
+    exponential = expm(block * dt)
+    transition = exponential[n:, n:].T
+    noise = transition @ exponential[:n, n:]
+    return transition, 0.5 * (noise + noise.T)
+
+
+class LinearAxisModel(MotionModel):
+    """A linear model whose x and y axes follow the same independent continuous-time SDE.
+
+    Subclasses give the per-axis drift matrix and noise density; F and Q are discretised exactly
+    (Van Loan) and cached per interval.
+    """
+
+    linear: ClassVar[bool] = True
+
+    @abstractmethod
+    def axis_drift(self) -> np.ndarray:
+        """Continuous-time per-axis drift matrix A."""
+
+    @abstractmethod
+    def axis_noise_density(self) -> np.ndarray:
+        """Continuous-time per-axis noise spectral density L q L^T."""
+
+    def discretise(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        return _axis_discretisation(self, dt_key(dt))
+
+    def propagate(self, points: np.ndarray, dt: float) -> np.ndarray:
+        transition, _ = self.discretise(dt)
+        return points @ transition.T
+
+    def transition_matrix(self, mean: np.ndarray, dt: float) -> np.ndarray:
+        return self.discretise(dt)[0]
+
+    def noise_covariance(self, mean: np.ndarray, dt: float) -> np.ndarray:
+        return self.discretise(dt)[1]
+
+    def __hash__(self) -> int:
+        return hash((type(self).__name__, tuple(sorted(self.params().items()))))
+
+    def __eq__(self, other: object) -> bool:
+        return type(other) is type(self) and other.params() == self.params()  # type: ignore[attr-defined]
+
+
+@functools.lru_cache(maxsize=512)
+def _axis_discretisation(model: LinearAxisModel, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    axis_f, axis_q = van_loan(model.axis_drift(), model.axis_noise_density(), dt)
+    transition = block_diag(axis_f, axis_f)
+    noise = block_diag(axis_q, axis_q)
+    transition.setflags(write=False)
+    noise.setflags(write=False)
+    return transition, noise

@@ -1,0 +1,47 @@
+"""Coordinated turn at a fixed, known turn rate on the kinematic states."""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+
+from edgepos.core import layout
+from edgepos.core.errors import ConfigurationError
+from edgepos.core.motion.base import MotionModel, check_positive, dt_key
+from edgepos.core.motion.ca import ConstantAcceleration
+from edgepos.core.motion.turn import turn_matrix
+
+
+class CoordinatedTurn(MotionModel):
+    """Velocity rotates at ``omega`` rad/s (counter-clockwise positive); jerk noise density ``q``."""
+
+    name = "ct"
+    components = layout.KINEMATIC
+    linear = True
+
+    def __init__(self, q: float = 3.5, omega: float = math.radians(20.0)) -> None:
+        self.q = check_positive("q", q)
+        self.omega = float(omega)
+        if not math.isfinite(self.omega):
+            raise ConfigurationError("omega must be finite")
+
+    def params(self) -> dict[str, float]:
+        return {"q": self.q, "omega": self.omega}
+
+    def propagate(self, points: np.ndarray, dt: float) -> np.ndarray:
+        return points @ self.transition_matrix(points[0], dt).T
+
+    def transition_matrix(self, mean: np.ndarray, dt: float) -> np.ndarray:
+        return _turn_matrix_cached(self.omega, dt_key(dt))
+
+    def noise_covariance(self, mean: np.ndarray, dt: float) -> np.ndarray:
+        return ConstantAcceleration(self.q).noise_covariance(mean, dt)
+
+
+@functools.lru_cache(maxsize=256)
+def _turn_matrix_cached(omega: float, dt: float) -> np.ndarray:
+    matrix = turn_matrix(omega, dt)
+    matrix.setflags(write=False)
+    return matrix

@@ -1,0 +1,36 @@
+"""Singer (1970): acceleration as a zero-mean first-order Markov process on the kinematic states."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from edgepos.core import layout
+from edgepos.core.motion.base import LinearAxisModel, check_positive
+
+
+def singer_drift(alpha: float) -> np.ndarray:
+    """Per-axis drift of [p, v, a] with da = -alpha a dt + dw."""
+    return np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, -alpha]])
+
+
+class Singer(LinearAxisModel):
+    """Acceleration with time constant 1/alpha (1/s) and standard deviation sigma (m/s^2).
+
+    The driving noise density is 2 alpha sigma^2, so the stationary acceleration variance is sigma^2.
+    """
+
+    name = "singer"
+    components = layout.KINEMATIC
+
+    def __init__(self, alpha: float = 0.8, sigma: float = 5.0) -> None:
+        self.alpha = check_positive("alpha", alpha)
+        self.sigma = check_positive("sigma", sigma)
+
+    def axis_drift(self) -> np.ndarray:
+        return singer_drift(self.alpha)
+
+    def axis_noise_density(self) -> np.ndarray:
+        return np.diag([0.0, 0.0, 2.0 * self.alpha * self.sigma**2])
+
+    def params(self) -> dict[str, float]:
+        return {"alpha": self.alpha, "sigma": self.sigma}

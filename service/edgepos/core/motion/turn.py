@@ -1,0 +1,86 @@
+"""Coordinated-turn algebra shared by the fixed-rate CT and the adaptive-turn AT models.
+
+The 6-state turn transition on [xp, xv, xa, yp, yv, ya] rotates the velocity at rate omega and
+ties the acceleration to it (a = omega x v): the classic form the RSU + IMU paper relies on but
+does not write out. Its process noise is the white-jerk (CA) form with the same intensity, since
+the paper uses one process-noise gain for CV, CA, CT and AT.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Below this |omega T| the trigonometric ratios are evaluated by their Taylor series.
+_SMALL_TURN = 1e-4
+
+
+def turn_coefficients(omega: np.ndarray, dt: float) -> tuple[np.ndarray, ...]:
+    """sin(wT), cos(wT), sin(wT)/w and (1 - cos(wT))/w, stable as w -> 0 (vectorised)."""
+    omega = np.asarray(omega, dtype=float)
+    angle = omega * dt
+    sin, cos = np.sin(angle), np.cos(angle)
+    small = np.abs(angle) < _SMALL_TURN
+    safe = np.where(small, 1.0, omega)
+    angle2 = angle * angle
+    sin_over = np.where(small, dt * (1.0 - angle2 / 6.0), sin / safe)
+    one_minus_cos_over = np.where(small, 0.5 * angle * dt * (1.0 - angle2 / 12.0), (1.0 - cos) / safe)
+    return sin, cos, sin_over, one_minus_cos_over
+
+
+def turn_propagate(kinematic: np.ndarray, omega: np.ndarray, dt: float) -> np.ndarray:
+    """Apply the turn transition to rows of [xp, xv, xa, yp, yv, ya] with per-row ``omega``."""
+    sin, cos, sin_over, one_minus_cos_over = turn_coefficients(omega, dt)
+    xp, xv, yp, yv = kinematic[:, 0], kinematic[:, 1], kinematic[:, 3], kinematic[:, 4]
+    out = np.empty_like(kinematic)
+    vx_new = cos * xv - sin * yv
+    vy_new = sin * xv + cos * yv
+    out[:, 0] = xp + sin_over * xv - one_minus_cos_over * yv
+    out[:, 1] = vx_new
+    out[:, 2] = -omega * vy_new
+    out[:, 3] = yp + one_minus_cos_over * xv + sin_over * yv
+    out[:, 4] = vy_new
+    out[:, 5] = omega * vx_new
+    return out
+
+
+def turn_matrix(omega: float, dt: float) -> np.ndarray:
+    """The 6x6 turn transition matrix for a fixed turn rate."""
+    sin, cos, sin_over, one_minus_cos_over = (float(v) for v in turn_coefficients(np.array(omega), dt))
+    return np.array(
+        [
+            [1.0, sin_over, 0.0, 0.0, -one_minus_cos_over, 0.0],
+            [0.0, cos, 0.0, 0.0, -sin, 0.0],
+            [0.0, -omega * sin, 0.0, 0.0, -omega * cos, 0.0],
+            [0.0, one_minus_cos_over, 0.0, 1.0, sin_over, 0.0],
+            [0.0, sin, 0.0, 0.0, cos, 0.0],
+            [0.0, omega * cos, 0.0, 0.0, -omega * sin, 0.0],
+        ]
+    )
+
+
+def turn_matrix_omega_derivative(kinematic: np.ndarray, omega: float, dt: float) -> np.ndarray:
+    """d/d(omega) of turn_matrix(omega) @ kinematic, the extra Jacobian column of AT."""
+    angle = omega * dt
+    sin, cos = np.sin(angle), np.cos(angle)
+    if abs(angle) < _SMALL_TURN:
+        d_sin_over = -omega * dt**3 / 3.0
+        d_one_minus_cos_over = 0.5 * dt * dt * (1.0 - angle * angle / 4.0)
+    else:
+        d_sin_over = (dt * cos * omega - sin) / omega**2
+        d_one_minus_cos_over = (dt * sin * omega - (1.0 - cos)) / omega**2
+    xv, yv = kinematic[1], kinematic[4]
+    d_cos, d_sin = -dt * sin, dt * cos
+    d_vx = d_cos * xv - d_sin * yv
+    d_vy = d_sin * xv + d_cos * yv
+    vx_new = cos * xv - sin * yv
+    vy_new = sin * xv + cos * yv
+    return np.array(
+        [
+            d_sin_over * xv - d_one_minus_cos_over * yv,
+            d_vx,
+            -vy_new - omega * d_vy,
+            d_one_minus_cos_over * xv + d_sin_over * yv,
+            d_vy,
+            vx_new + omega * d_vx,
+        ]
+    )

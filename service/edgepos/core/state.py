@@ -1,0 +1,67 @@
+"""Exact, self-describing serialisation of filter state: named float64 arrays plus JSON metadata.
+
+Layout: b"EPST" | version byte | 4-byte little-endian header length | UTF-8 JSON header | the arrays'
+raw little-endian float64 bytes, back to back. The header holds the metadata and each array's name
+and shape. Arrays round-trip bit for bit; JSON numbers round-trip exactly because Python writes the
+shortest repr that reads back to the same double. Non-finite numbers are refused: a state holding
+NaN is a bug to surface, never something to store.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+MAGIC = b"EPST"
+VERSION = 1
+_HEADER = struct.Struct("<4sBI")
+
+
+class StateFormatError(ValueError):
+    """Bytes that are not a state this version of edgepos wrote."""
+
+
+def pack(meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> bytes:
+    """Serialise ``meta`` (JSON-able) and named float64 ``arrays``."""
+    layout = []
+    chunks = []
+    for name, array in arrays.items():
+        data = np.ascontiguousarray(array, dtype="<f8")
+        if not np.all(np.isfinite(data)):
+            raise ValueError(f"state array {name!r} is not finite")
+        layout.append([name, list(data.shape)])
+        chunks.append(data.tobytes())
+    header = json.dumps({"meta": meta, "arrays": layout}, allow_nan=False, separators=(",", ":"))
+    encoded = header.encode()
+    return _HEADER.pack(MAGIC, VERSION, len(encoded)) + encoded + b"".join(chunks)
+
+
+def unpack(blob: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Inverse of :func:`pack`."""
+    if len(blob) < _HEADER.size:
+        raise StateFormatError("state is truncated")
+    magic, version, header_length = _HEADER.unpack_from(blob)
+    if magic != MAGIC or version != VERSION:
+        raise StateFormatError(f"not an edgepos state (magic {magic!r}, version {version})")
+    start = _HEADER.size
+    try:
+        header = json.loads(blob[start : start + header_length])
+    except ValueError as error:
+        raise StateFormatError(f"state header is corrupt: {error}") from None
+    offset = start + header_length
+    arrays: dict[str, np.ndarray] = {}
+    for name, shape in header["arrays"]:
+        count = math.prod(shape)
+        end = offset + 8 * count
+        if end > len(blob):
+            raise StateFormatError("state is truncated")
+        arrays[name] = np.frombuffer(blob, dtype="<f8", count=count, offset=offset).reshape(shape).astype(float)
+        offset = end
+    if offset != len(blob):
+        raise StateFormatError("state has trailing bytes")
+    return header["meta"], arrays

@@ -1,0 +1,175 @@
+"""The contract between pipelines and the service: state bytes + observations -> fixes + state bytes.
+
+A pipeline turns a batch of validated observations into one fix per epoch (observations sharing a
+timestamp). It is pure: the session's state comes in as bytes and the new state goes out as bytes,
+so the service can keep sessions in any store and only write the new state when a whole batch
+succeeded. Pipelines import the estimation core and nothing from the web layer.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Protocol
+
+from edgepos.core.observations import Observation
+
+
+@dataclass(frozen=True)
+class Rsu:
+    """A roadside unit at (x, y) metres in the site frame, with optional per-unit overrides."""
+
+    id: str
+    x: float
+    y: float
+    range_std: float | None = None
+    bearing_std: float | None = None
+    radius: float | None = None
+
+
+class Environment(Protocol):
+    """What a pipeline may look up beyond its own session (the site's RSU registry, ...)."""
+
+    def rsu(self, rsu_id: str) -> Rsu | None: ...
+
+
+@dataclass(frozen=True)
+class StaticEnvironment:
+    """An environment backed by a dict of RSUs: used by evaluation, tests and the simulator."""
+
+    rsus: Mapping[str, Rsu] = field(default_factory=dict)
+
+    def rsu(self, rsu_id: str) -> Rsu | None:
+        return self.rsus.get(rsu_id)
+
+
+@dataclass(frozen=True)
+class InitialState:
+    """A known starting point: position (m) and velocity (m/s) in the site frame, with 1-sigma."""
+
+    x: float
+    y: float
+    vx: float
+    vy: float
+    position_std: float = 1.0
+    velocity_std: float = 1.0
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One reason a request cannot be applied: which observation (index), which field, and why."""
+
+    index: int | None
+    field: str
+    reason: str
+
+
+class PipelineInputError(ValueError):
+    """Options or observations a pipeline refuses; carries every problem found, not just the first."""
+
+    def __init__(self, problems: Sequence[Problem]) -> None:
+        self.problems = list(problems)
+        super().__init__("; ".join(f"[{p.index}] {p.field}: {p.reason}" for p in self.problems))
+
+
+@dataclass(frozen=True)
+class MeasurementUse:
+    """Whether observation ``index`` of the batch entered the filter, and if not, why."""
+
+    index: int
+    kind: str
+    used: bool
+    reason: str | None = None
+
+
+@dataclass(frozen=True)
+class Fix:
+    """The estimate after one epoch, in the site frame (m, m/s, rad, rad/s).
+
+    ``status``: "initialised" (first fix, from this epoch's measurements or the given initial state),
+    "tracking" (measurements were used), "predicted" (no measurement passed: motion model only),
+    "uninitialised" (nothing to start from yet; kinematic fields are None).
+    """
+
+    t: float
+    status: str
+    x: float | None = None
+    y: float | None = None
+    vx: float | None = None
+    vy: float | None = None
+    speed: float | None = None
+    heading: float | None = None
+    yaw_rate: float | None = None
+    position_cov: list[list[float]] | None = None
+    state_components: tuple[str, ...] = ()
+    state: list[float] | None = None
+    state_cov: list[list[float]] | None = None
+    model_probabilities: dict[str, float] = field(default_factory=dict)
+    nis: float | None = None
+    nis_dof: int = 0
+    measurements: list[MeasurementUse] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class OptionSpec:
+    """One pipeline option as documented by ``GET /v1/pipelines``."""
+
+    name: str
+    type: str
+    default: Any
+    description: str
+    minimum: float | None = None
+    maximum: float | None = None
+    choices: tuple[Any, ...] | None = None
+
+
+@dataclass(frozen=True)
+class StateSummary:
+    """What ``GET /v1/sessions/{id}`` shows of a state without running the filter."""
+
+    initialised: bool
+    t: float | None
+    epochs: int
+    model_probabilities: dict[str, float]
+    options: dict[str, Any]
+
+
+class Pipeline(ABC):
+    """A positioning method offered to sessions, registered by ``name``."""
+
+    name: ClassVar[str]
+    description: ClassVar[str]
+    measurement_kinds: ClassVar[tuple[str, ...]]
+
+    @abstractmethod
+    def option_specs(self) -> list[OptionSpec]:
+        """Every option with its default, bounds and meaning."""
+
+    @abstractmethod
+    def resolve_options(self, options: Mapping[str, Any] | None) -> dict[str, Any]:
+        """Validate ``options`` and fill in defaults: the effective configuration.
+
+        Raises :class:`PipelineInputError` naming each bad option (index None, field = option name).
+        """
+
+    @abstractmethod
+    def create(self, options: Mapping[str, Any], initial: InitialState | None) -> bytes:
+        """A new session state for resolved ``options``, started at ``initial`` if given."""
+
+    @abstractmethod
+    def process(
+        self, state: bytes, observations: Sequence[Observation], environment: Environment
+    ) -> tuple[list[Fix], bytes]:
+        """Run a batch: validate it whole (raising :class:`PipelineInputError`), then filter epoch
+        by epoch. The input ``state`` is never modified; the caller stores the returned one.
+        Raises ``core.errors.EstimationError`` if a step cannot be computed."""
+
+    @abstractmethod
+    def summarise(self, state: bytes) -> StateSummary:
+        """The session's state in words and numbers, without filtering."""
+
+
+def is_finite_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
