@@ -33,3 +33,7 @@ def embed(points: np.ndarray, components: tuple[int, ...]) -> np.ndarray:
     full = np.zeros((points.shape[0], FULL_DIM))
     full[:, components] = points
     return full
+
+
+#: Angle flags of the full state (heading only).
+FULL_ANGLE_MASK = angle_mask(ALL)

@@ -1,9 +1,15 @@
-"""The filter contract: every filter predicts with a motion model and updates with a measurement model.
+"""The filter contract: predict one model's Gaussian; update a *bank* of Gaussians at once.
 
-Filters work on a motion model's sub-state (``components``). Measurement models see full 8-dim rows
-with zeros for the components a sub-state lacks. All filters share one Gaussian correction
-(:func:`kalman_correct`), fed with the predicted measurement, its covariance S and the
-state-measurement cross covariance C that each filter computes its own way.
+Prediction works on a motion model's sub-state (its ``components``). Updates work on a batch of B
+Gaussians laid out in the full 8-dim frame (``core.layout``), each with a mask of the components its
+model carries; inactive entries are zero in the mean and covariance. Measurement models see full-state
+rows, so a component a model lacks reads as zero (a CV model predicts zero yaw rate). Batching every
+model of an IMM into one update replaces per-model small-matrix calls by one call on a stack, which
+is where a Python filter spends its time.
+
+All filters share one Gaussian correction (:func:`kalman_correct`), fed with the predicted
+measurement, its covariance S and the state-measurement cross covariance C that each filter
+computes its own way.
 """
 
 from __future__ import annotations
@@ -14,30 +20,28 @@ from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy.linalg import solve_triangular
 
+from edgepos.core import layout
 from edgepos.core.errors import NumericalError
 from edgepos.core.measurements.base import MeasurementModel
 from edgepos.core.motion.base import MotionModel
-from edgepos.core.numerics import require_finite, symmetrize, wrap_rows
+from edgepos.core.numerics import require_finite, wrap_rows
 
 _LOG_TWO_PI = math.log(2.0 * math.pi)
 
 
 @dataclass(frozen=True)
 class UpdateResult:
-    """A posterior and the statistics of the innovation that produced it."""
+    """Posteriors of a batch (B, 8) / (B, 8, 8) and each one's innovation statistics (B,)."""
 
-    mean: np.ndarray
-    cov: np.ndarray
-    innovation: np.ndarray
-    innovation_cov: np.ndarray
-    nis: float
-    log_likelihood: float
+    means: np.ndarray
+    covs: np.ndarray
+    nis: np.ndarray
+    log_likelihood: np.ndarray
 
 
 class GaussianFilter(ABC):
-    """Predict/update on a Gaussian (mean, cov) over a motion model's sub-state."""
+    """Predict a Gaussian with a motion model; update a bank of Gaussians with a measurement."""
 
     name: ClassVar[str]
 
@@ -45,18 +49,13 @@ class GaussianFilter(ABC):
     def predict(
         self, mean: np.ndarray, cov: np.ndarray, motion: MotionModel, dt: float
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Propagate (mean, cov) over ``dt`` seconds with ``motion``."""
+        """Propagate one sub-state (mean, cov) over ``dt`` seconds with ``motion``."""
 
     @abstractmethod
-    def predict_measurement(
-        self,
-        mean: np.ndarray,
-        cov: np.ndarray,
-        components: tuple[int, ...],
-        angle_mask: np.ndarray,
-        measurement: MeasurementModel,
+    def measurement_moments(
+        self, means: np.ndarray, covs: np.ndarray, active: np.ndarray, measurement: MeasurementModel
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Predicted measurement z_hat, its covariance S (R included) and the cross covariance C."""
+        """Predicted measurements (B, p), their covariances S with R (B, p, p), cross covariances C (B, 8, p)."""
 
     def params(self) -> dict[str, Any]:
         """Tuning parameters, enough to rebuild the filter with ``cls(**params)``."""
@@ -64,48 +63,76 @@ class GaussianFilter(ABC):
 
     def update(
         self,
-        mean: np.ndarray,
-        cov: np.ndarray,
-        components: tuple[int, ...],
-        angle_mask: np.ndarray,
+        means: np.ndarray,
+        covs: np.ndarray,
+        active: np.ndarray,
         measurement: MeasurementModel,
         observed: np.ndarray,
     ) -> UpdateResult:
-        """Condition (mean, cov) on ``observed`` = h(x) + v."""
-        predicted, innovation_cov, cross_cov = self.predict_measurement(
-            mean, cov, components, angle_mask, measurement
+        """Condition every Gaussian of the batch on ``observed`` = h(x) + v."""
+        predicted, innovation_cov, cross_cov = self.measurement_moments(means, covs, active, measurement)
+        residuals = measurement.residual(observed, predicted)
+        return kalman_correct(means, covs, residuals, innovation_cov, cross_cov)
+
+    def update_one(
+        self,
+        mean: np.ndarray,
+        cov: np.ndarray,
+        components: tuple[int, ...],
+        measurement: MeasurementModel,
+        observed: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, float, float]:
+        """Update a single sub-state Gaussian: (mean, cov, NIS, log-likelihood)."""
+        means, covs, active = embed_bank([(mean, cov)], [components])
+        result = self.update(means, covs, active, measurement, observed)
+        idx = list(components)
+        return (
+            result.means[0, idx],
+            result.covs[0][np.ix_(idx, idx)],
+            float(result.nis[0]),
+            float(result.log_likelihood[0]),
         )
-        residual = measurement.residual(observed, predicted)
-        return kalman_correct(mean, cov, angle_mask, residual, innovation_cov, cross_cov)
+
+
+def embed_bank(
+    gaussians: list[tuple[np.ndarray, np.ndarray]], components: list[tuple[int, ...]]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Lay sub-state Gaussians out as a padded bank: means (B, 8), covs (B, 8, 8), active (B, 8)."""
+    count = len(gaussians)
+    means = np.zeros((count, layout.FULL_DIM))
+    covs = np.zeros((count, layout.FULL_DIM, layout.FULL_DIM))
+    active = np.zeros((count, layout.FULL_DIM), dtype=bool)
+    for b, ((mean, cov), comps) in enumerate(zip(gaussians, components)):
+        idx = list(comps)
+        means[b, idx] = mean
+        covs[b][np.ix_(idx, idx)] = cov
+        active[b, idx] = True
+    return means, covs, active
 
 
 def kalman_correct(
-    mean: np.ndarray,
-    cov: np.ndarray,
-    angle_mask: np.ndarray,
-    residual: np.ndarray,
+    means: np.ndarray,
+    covs: np.ndarray,
+    residuals: np.ndarray,
     innovation_cov: np.ndarray,
     cross_cov: np.ndarray,
 ) -> UpdateResult:
-    """The Kalman correction through the Cholesky factor L of S.
+    """The Kalman correction of a batch through the Cholesky factor L of each S.
 
     With U = L^-1 C^T and e = L^-1 r: x+ = x + U^T e, P+ = P - U^T U (= P - K S K^T),
-    NIS = e^T e and log|S| = 2 sum(log diag L). One triangular solve, no explicit inverse.
+    NIS = e^T e and log|S| = 2 sum(log diag L). No explicit inverse; one batched solve.
     """
     try:
         chol = np.linalg.cholesky(innovation_cov)
     except np.linalg.LinAlgError:
         raise NumericalError("innovation covariance is not positive definite") from None
-    whitened = solve_triangular(
-        chol, np.column_stack([cross_cov.T, residual]), lower=True, check_finite=False
-    )
-    gain_factor, whitened_residual = whitened[:, :-1], whitened[:, -1]
-    new_mean = wrap_rows(mean + gain_factor.T @ whitened_residual, angle_mask)
-    new_cov = symmetrize(cov - gain_factor.T @ gain_factor)
-    nis = float(whitened_residual @ whitened_residual)
-    log_det = 2.0 * float(np.sum(np.log(np.diag(chol))))
-    log_likelihood = -0.5 * (nis + log_det + residual.size * _LOG_TWO_PI)
-    require_finite("updated state", new_mean, new_cov)
-    if np.any(np.diag(new_cov) <= 0.0):
-        raise NumericalError("updated covariance lost positive variances")
-    return UpdateResult(new_mean, new_cov, residual, innovation_cov, nis, log_likelihood)
+    whitened = np.linalg.solve(chol, np.concatenate([cross_cov.transpose(0, 2, 1), residuals[:, :, None]], axis=2))
+    gain_factor, whitened_residual = whitened[:, :, :-1], whitened[:, :, -1]
+    new_means = wrap_rows(means + np.einsum("bpi,bp->bi", gain_factor, whitened_residual), layout.FULL_ANGLE_MASK)
+    new_covs = covs - gain_factor.transpose(0, 2, 1) @ gain_factor
+    new_covs = 0.5 * (new_covs + new_covs.transpose(0, 2, 1))
+    nis = np.einsum("bp,bp->b", whitened_residual, whitened_residual)
+    log_det = 2.0 * np.log(np.diagonal(chol, axis1=1, axis2=2)).sum(axis=1)
+    log_likelihood = -0.5 * (nis + log_det + residuals.shape[1] * _LOG_TWO_PI)
+    require_finite("updated state", new_means, new_covs, log_likelihood)
+    return UpdateResult(new_means, new_covs, nis, log_likelihood)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from edgepos.core import layout
 from edgepos.core.filters.base import GaussianFilter
 from edgepos.core.measurements.base import MeasurementModel
 from edgepos.core.motion.base import MotionModel
@@ -25,17 +24,11 @@ class ExtendedKalmanFilter(GaussianFilter):
         require_finite("predicted state", new_mean, new_cov)
         return new_mean, new_cov
 
-    def predict_measurement(
-        self,
-        mean: np.ndarray,
-        cov: np.ndarray,
-        components: tuple[int, ...],
-        angle_mask: np.ndarray,
-        measurement: MeasurementModel,
+    def measurement_moments(
+        self, means: np.ndarray, covs: np.ndarray, active: np.ndarray, measurement: MeasurementModel
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        full = layout.embed(mean[None, :], components)
-        predicted = measurement.predict(full)[0]
-        jacobian = measurement.jacobian(full[0])[:, components]
-        cross_cov = cov @ jacobian.T
-        innovation_cov = symmetrize(jacobian @ cross_cov + measurement.noise_covariance())
-        return predicted, innovation_cov, cross_cov
+        predicted = measurement.predict(means)
+        jacobian = measurement.jacobian(means) * active[:, None, :]
+        cross_cov = covs @ jacobian.transpose(0, 2, 1)
+        innovation_cov = jacobian @ cross_cov + measurement.noise_covariance()
+        return predicted, 0.5 * (innovation_cov + innovation_cov.transpose(0, 2, 1)), cross_cov

@@ -1,12 +1,18 @@
 """Sigma-point filters: a deterministic point set carries the Gaussian through f and h.
 
-Subclasses choose the point set (unit directions and weights); the propagation, circular means for
-angles and the moment sums are shared. For a motion model that is linear in the state the point
-sums equal F P F^T + Q exactly, so that closed form is used: identical in exact arithmetic, cheaper.
+Subclasses give the point set for an m-dimensional Gaussian as a spread and weights; propagation,
+circular means for angles and the moment sums are shared. For a motion model that is linear in the
+state the point sums equal F P F^T + Q exactly, so that closed form is used: identical in exact
+arithmetic, cheaper.
+
+In a bank update each Gaussian keeps its own dimension m (the components its model carries): its
+Cholesky factor is taken on the active block (inactive diagonal padded with ones, then those columns
+zeroed), and the directions of inactive components get zero weight.
 """
 
 from __future__ import annotations
 
+import functools
 from abc import abstractmethod
 
 import numpy as np
@@ -15,27 +21,31 @@ from edgepos.core import layout
 from edgepos.core.filters.base import GaussianFilter
 from edgepos.core.measurements.base import MeasurementModel
 from edgepos.core.motion.base import MotionModel
-from edgepos.core.numerics import (
-    require_finite,
-    robust_cholesky,
-    symmetrize,
-    weighted_mean,
-    wrap_rows,
-)
+from edgepos.core.numerics import require_finite, robust_cholesky, symmetrize, weighted_mean, wrap_rows
 
 
 class SigmaPointFilter(GaussianFilter):
     """Predict and update by weighted sums over sigma points."""
 
+    #: True when the point set includes the mean itself as a first point.
+    has_centre_point: bool = False
+
     @abstractmethod
+    def point_weights(self, dim: int) -> tuple[float, float, float, float]:
+        """For dimension m: spread s (points mean +- s L e_i), the weight of each +-point, and the
+        centre point's mean and covariance weights (zero when there is no centre point)."""
+
     def unit_points(self, dim: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Unit offsets (n_points, dim) and mean and covariance weights (n_points,)."""
-
-    def sigma_points(self, mean: np.ndarray, cov: np.ndarray, angle_mask: np.ndarray):
-        """Points mean + L s_r for the Cholesky factor L of cov, with their weights."""
-        offsets, mean_weights, cov_weights = self.unit_points(mean.size)
-        points = mean + offsets @ robust_cholesky(cov).T
-        return points, mean_weights, cov_weights
+        spread, weight, centre_mean, centre_cov = self.point_weights(dim)
+        offsets = spread * np.vstack([np.eye(dim), -np.eye(dim)])
+        mean_weights = np.full(2 * dim, weight)
+        cov_weights = mean_weights.copy()
+        if self.has_centre_point:
+            offsets = np.vstack([np.zeros(dim), offsets])
+            mean_weights = np.concatenate([[centre_mean], mean_weights])
+            cov_weights = np.concatenate([[centre_cov], cov_weights])
+        return offsets, mean_weights, cov_weights
 
     def predict(
         self, mean: np.ndarray, cov: np.ndarray, motion: MotionModel, dt: float
@@ -47,7 +57,8 @@ class SigmaPointFilter(GaussianFilter):
             new_mean = wrap_rows(transition @ mean, mask)
             new_cov = symmetrize(transition @ cov @ transition.T + noise)
         else:
-            points, mean_weights, cov_weights = self.sigma_points(mean, cov, mask)
+            offsets, mean_weights, cov_weights = self.unit_points(mean.size)
+            points = mean + offsets @ robust_cholesky(cov).T
             moved = motion.propagate(points, dt)
             new_mean = weighted_mean(moved, mean_weights, mask)
             deviations = wrap_rows(moved - new_mean, mask)
@@ -55,21 +66,52 @@ class SigmaPointFilter(GaussianFilter):
         require_finite("predicted state", new_mean, new_cov)
         return new_mean, new_cov
 
-    def predict_measurement(
-        self,
-        mean: np.ndarray,
-        cov: np.ndarray,
-        components: tuple[int, ...],
-        angle_mask: np.ndarray,
-        measurement: MeasurementModel,
+    def bank_points(self, means: np.ndarray, covs: np.ndarray, active: np.ndarray):
+        """Sigma points of every Gaussian of a bank: offsets (B, n, 8), mean and cov weights (B, n)."""
+        padded = covs + np.eye(layout.FULL_DIM) * ~active[:, None, :]
+        try:
+            factors = np.linalg.cholesky(padded)
+        except np.linalg.LinAlgError:
+            factors = np.stack([robust_cholesky(c) for c in padded])
+        factors = factors * active[:, None, :]
+        spread, mean_weights, cov_weights = _bank_weights(self, active.tobytes(), active.shape)
+        directions = factors.transpose(0, 2, 1) * spread[:, None, None]  # row i = s * L e_i
+        offsets = np.concatenate([directions, -directions], axis=1)
+        if self.has_centre_point:
+            offsets = np.concatenate([np.zeros((means.shape[0], 1, layout.FULL_DIM)), offsets], axis=1)
+        return offsets, mean_weights, cov_weights
+
+    def measurement_moments(
+        self, means: np.ndarray, covs: np.ndarray, active: np.ndarray, measurement: MeasurementModel
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        points, mean_weights, cov_weights = self.sigma_points(mean, cov, angle_mask)
-        predicted_points = measurement.predict(layout.embed(points, components))
-        measurement_mask = measurement.angle_mask
-        predicted = weighted_mean(predicted_points, mean_weights, measurement_mask)
-        z_dev = wrap_rows(predicted_points - predicted, measurement_mask)
-        x_dev = wrap_rows(points - mean, angle_mask)
-        weighted_z_dev = z_dev.T * cov_weights
-        innovation_cov = symmetrize(weighted_z_dev @ z_dev + measurement.noise_covariance())
-        cross_cov = (x_dev.T * cov_weights) @ z_dev
-        return predicted, innovation_cov, cross_cov
+        offsets, mean_weights, cov_weights = self.bank_points(means, covs, active)
+        count, points = offsets.shape[:2]
+        z = measurement.predict((means[:, None, :] + offsets).reshape(count * points, -1)).reshape(count, points, -1)
+        mask = measurement.angle_mask
+        predicted = np.einsum("bn,bnp->bp", mean_weights, z)
+        if mask.any():
+            angles = z[:, :, mask]
+            predicted[:, mask] = np.arctan2(
+                np.einsum("bn,bnp->bp", mean_weights, np.sin(angles)),
+                np.einsum("bn,bnp->bp", mean_weights, np.cos(angles)),
+            )
+        z_dev = wrap_rows(z - predicted[:, None, :], mask)
+        weighted = z_dev * cov_weights[:, :, None]
+        innovation_cov = weighted.transpose(0, 2, 1) @ z_dev + measurement.noise_covariance()
+        cross_cov = offsets.transpose(0, 2, 1) @ weighted
+        return predicted, 0.5 * (innovation_cov + innovation_cov.transpose(0, 2, 1)), cross_cov
+
+
+@functools.lru_cache(maxsize=256)
+def _bank_weights(filt: SigmaPointFilter, active_key: bytes, shape: tuple[int, int]):
+    """Per-Gaussian spreads and padded weights for a bank's active pattern (cached)."""
+    active = np.frombuffer(active_key, dtype=bool).reshape(shape)
+    spreads, mean_rows, cov_rows = [], [], []
+    for row in active:
+        spread, weight, centre_mean, centre_cov = filt.point_weights(int(row.sum()))
+        side = np.where(row, weight, 0.0)
+        centre = ([centre_mean], [centre_cov]) if filt.has_centre_point else ([], [])
+        spreads.append(spread)
+        mean_rows.append(np.concatenate([centre[0], side, side]))
+        cov_rows.append(np.concatenate([centre[1], side, side]))
+    return np.array(spreads), np.array(mean_rows), np.array(cov_rows)

@@ -34,8 +34,8 @@ class MeasurementModel(ABC):
         """h applied to each full-state row of ``states`` (n, 8); returns (n, dim)."""
 
     @abstractmethod
-    def jacobian(self, state: np.ndarray) -> np.ndarray:
-        """dh/dx at one full state (8,); returns (dim, 8)."""
+    def jacobian(self, states: np.ndarray) -> np.ndarray:
+        """dh/dx at each full-state row of ``states`` (n, 8); returns (n, dim, 8)."""
 
     @abstractmethod
     def noise_covariance(self) -> np.ndarray:
@@ -67,8 +67,8 @@ class Stacked(MeasurementModel):
     def predict(self, states: np.ndarray) -> np.ndarray:
         return np.concatenate([part.predict(states) for part in self.parts], axis=1)
 
-    def jacobian(self, state: np.ndarray) -> np.ndarray:
-        return np.vstack([part.jacobian(state) for part in self.parts])
+    def jacobian(self, states: np.ndarray) -> np.ndarray:
+        return np.concatenate([part.jacobian(states) for part in self.parts], axis=1)
 
     def noise_covariance(self) -> np.ndarray:
         return self._noise

@@ -33,20 +33,17 @@ class GyroYawRate(MeasurementModel):
         speed_sq = np.maximum(xv * xv + yv * yv, self.min_speed_sq)
         return ((xv * ya - xa * yv) / speed_sq)[:, None]
 
-    def jacobian(self, state: np.ndarray) -> np.ndarray:
-        xv, xa, yv, ya = (state[i] for i in (layout.XV, layout.XA, layout.YV, layout.YA))
-        jacobian = np.zeros((1, layout.FULL_DIM))
+    def jacobian(self, states: np.ndarray) -> np.ndarray:
+        xv, xa, yv, ya = (states[:, i] for i in (layout.XV, layout.XA, layout.YV, layout.YA))
         raw_speed_sq = xv * xv + yv * yv
-        speed_sq = max(raw_speed_sq, self.min_speed_sq)
-        cross = xv * ya - xa * yv
-        jacobian[0, layout.XA] = -yv / speed_sq
-        jacobian[0, layout.YA] = xv / speed_sq
-        if raw_speed_sq > self.min_speed_sq:
-            jacobian[0, layout.XV] = ya / speed_sq - 2.0 * xv * cross / speed_sq**2
-            jacobian[0, layout.YV] = -xa / speed_sq - 2.0 * yv * cross / speed_sq**2
-        else:
-            jacobian[0, layout.XV] = ya / speed_sq
-            jacobian[0, layout.YV] = -xa / speed_sq
+        moving = raw_speed_sq > self.min_speed_sq
+        speed_sq = np.where(moving, raw_speed_sq, self.min_speed_sq)
+        cross_term = np.where(moving, 2.0 * (xv * ya - xa * yv) / speed_sq**2, 0.0)
+        jacobian = np.zeros((states.shape[0], 1, layout.FULL_DIM))
+        jacobian[:, 0, layout.XA] = -yv / speed_sq
+        jacobian[:, 0, layout.YA] = xv / speed_sq
+        jacobian[:, 0, layout.XV] = ya / speed_sq - xv * cross_term
+        jacobian[:, 0, layout.YV] = -xa / speed_sq - yv * cross_term
         return jacobian
 
     def noise_covariance(self) -> np.ndarray:

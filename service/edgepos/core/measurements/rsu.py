@@ -44,15 +44,15 @@ class RsuRangeBearing(MeasurementModel):
         out[:, 1::2] = np.arctan2(dy, dx)
         return out
 
-    def jacobian(self, state: np.ndarray) -> np.ndarray:
-        dx = state[layout.XP] - self.positions[:, 0]
-        dy = state[layout.YP] - self.positions[:, 1]
+    def jacobian(self, states: np.ndarray) -> np.ndarray:
+        dx = states[:, layout.XP, None] - self.positions[:, 0]
+        dy = states[:, layout.YP, None] - self.positions[:, 1]
         distance = np.maximum(np.hypot(dx, dy), _MIN_DISTANCE)
-        jacobian = np.zeros((self.dim, layout.FULL_DIM))
-        jacobian[0::2, layout.XP] = dx / distance
-        jacobian[0::2, layout.YP] = dy / distance
-        jacobian[1::2, layout.XP] = -dy / distance**2
-        jacobian[1::2, layout.YP] = dx / distance**2
+        jacobian = np.zeros((states.shape[0], self.dim, layout.FULL_DIM))
+        jacobian[:, 0::2, layout.XP] = dx / distance
+        jacobian[:, 0::2, layout.YP] = dy / distance
+        jacobian[:, 1::2, layout.XP] = -dy / distance**2
+        jacobian[:, 1::2, layout.YP] = dx / distance**2
         return jacobian
 
     def noise_covariance(self) -> np.ndarray:
@@ -81,13 +81,13 @@ class RsuRange(MeasurementModel):
         dy = states[:, layout.YP, None] - self.positions[:, 1]
         return np.hypot(dx, dy)
 
-    def jacobian(self, state: np.ndarray) -> np.ndarray:
-        dx = state[layout.XP] - self.positions[:, 0]
-        dy = state[layout.YP] - self.positions[:, 1]
+    def jacobian(self, states: np.ndarray) -> np.ndarray:
+        dx = states[:, layout.XP, None] - self.positions[:, 0]
+        dy = states[:, layout.YP, None] - self.positions[:, 1]
         distance = np.maximum(np.hypot(dx, dy), _MIN_DISTANCE)
-        jacobian = np.zeros((self.dim, layout.FULL_DIM))
-        jacobian[:, layout.XP] = dx / distance
-        jacobian[:, layout.YP] = dy / distance
+        jacobian = np.zeros((states.shape[0], self.dim, layout.FULL_DIM))
+        jacobian[:, :, layout.XP] = dx / distance
+        jacobian[:, :, layout.YP] = dy / distance
         return jacobian
 
     def noise_covariance(self) -> np.ndarray:

@@ -1,0 +1,127 @@
+"""Bearer authentication: the admin key opens everything, a session token only its own session.
+
+Session tokens look like ``<session_id>.<random>``; the store keeps only their SHA-256, and every
+comparison of secrets uses ``hmac.compare_digest`` on fixed-length digests. 401 means the
+credential is missing or not valid; 403 means it is valid but does not open this resource.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import secrets
+from dataclasses import dataclass
+
+from fastapi import Depends, Path
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from edgepos.api.context import AppContext, get_context
+from edgepos.api.errors import ApiError
+
+bearer_scheme = HTTPBearer(
+    auto_error=False,
+    scheme_name="bearer",
+    description="The admin key (EDGEPOS_ADMIN_KEY) or a session token returned by POST /v1/sessions.",
+)
+
+
+@dataclass(frozen=True)
+class Principal:
+    """Who is calling: the admin, or the holder of one session's token."""
+
+    admin: bool
+    session_id: str | None = None
+
+
+def new_session_id() -> str:
+    return secrets.token_hex(16)
+
+
+def new_session_token(session_id: str) -> str:
+    return f"{session_id}.{secrets.token_urlsafe(32)}"
+
+
+def hash_token(token: str) -> str:
+    """What the store keeps instead of a session token."""
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+def _token_session_id(token: str) -> str | None:
+    session_id, dot, secret = token.partition(".")
+    return session_id if dot and session_id and secret else None
+
+
+def _is_admin(context: AppContext, secret: str) -> bool:
+    return hmac.compare_digest(hashlib.sha256(secret.encode()).digest(), context.admin_key_hash)
+
+
+def _token_matches(secret: str, token_hash: str) -> bool:
+    return hmac.compare_digest(hash_token(secret).encode(), token_hash.encode())
+
+
+async def _valid_session_token(context: AppContext, secret: str) -> bool:
+    session_id = _token_session_id(secret)
+    if session_id is None:
+        return False
+    record = await context.store.get(session_id)
+    return record is not None and _token_matches(secret, record.token_hash)
+
+
+def _secret(credentials: HTTPAuthorizationCredentials | None) -> str:
+    if credentials is None or not credentials.credentials:
+        raise ApiError("unauthorized", "missing credentials: send 'Authorization: Bearer <key or token>'")
+    return credentials.credentials
+
+
+_INVALID = "the bearer credential is not valid (unknown key, or the session's token does not match)"
+
+
+async def require_admin(
+    context: AppContext = Depends(get_context),
+    credentials: HTTPAuthorizationCredentials | None = Depends(bearer_scheme),
+) -> Principal:
+    """Only the admin key passes; a valid session token gets 403."""
+    secret = _secret(credentials)
+    if _is_admin(context, secret):
+        return Principal(admin=True)
+    if await _valid_session_token(context, secret):
+        raise ApiError("forbidden", "this call needs the admin key; a session token does not open it")
+    raise ApiError("unauthorized", _INVALID)
+
+
+async def require_any(
+    context: AppContext = Depends(get_context),
+    credentials: HTTPAuthorizationCredentials | None = Depends(bearer_scheme),
+) -> Principal:
+    """The admin key or any live session's token passes."""
+    secret = _secret(credentials)
+    if _is_admin(context, secret):
+        return Principal(admin=True)
+    session_id = _token_session_id(secret)
+    if session_id is not None and await _valid_session_token(context, secret):
+        return Principal(admin=False, session_id=session_id)
+    raise ApiError("unauthorized", _INVALID)
+
+
+async def require_session(
+    session_id: str = Path(description="Session identifier returned by POST /v1/sessions."),
+    context: AppContext = Depends(get_context),
+    credentials: HTTPAuthorizationCredentials | None = Depends(bearer_scheme),
+) -> Principal:
+    """The admin key, or this session's own token (another session's valid token gets 403)."""
+    secret = _secret(credentials)
+    if _is_admin(context, secret):
+        return Principal(admin=True)
+    token_session = _token_session_id(secret)
+    if token_session is None:
+        raise ApiError("unauthorized", _INVALID)
+    if token_session != session_id:
+        if await _valid_session_token(context, secret):
+            raise ApiError("forbidden", "a session token opens only its own session")
+        raise ApiError("unauthorized", _INVALID)
+    record = await context.store.get(session_id)
+    if record is None:
+        raise ApiError("not_found", f"no session {session_id!r} (it may have expired or been deleted)")
+    if not _token_matches(secret, record.token_hash):
+        raise ApiError("unauthorized", _INVALID)
+    return Principal(admin=False, session_id=session_id)

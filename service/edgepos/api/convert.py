@@ -1,0 +1,70 @@
+"""Between the pipelines' dataclasses and the wire models: no arithmetic beyond unit-free copying,
+except the optional WGS-84 position, which the pure ``edgepos.geo`` module computes."""
+
+from __future__ import annotations
+
+from edgepos.api.schemas import FixOut, MeasurementUseOut, OptionOut, PipelineOut, RsuModel, RsuOut, StateOut
+from edgepos.geo import GeodeticOrigin
+from edgepos.pipelines.base import Fix, Pipeline, Rsu
+
+
+def rsu_from_wire(rsu: RsuModel) -> Rsu:
+    return Rsu(id=rsu.id, x=rsu.x, y=rsu.y, range_std=rsu.range_std, bearing_std=rsu.bearing_std, radius=rsu.radius)
+
+
+def rsu_to_wire(rsu: Rsu) -> RsuOut:
+    return RsuOut(
+        id=rsu.id, x=rsu.x, y=rsu.y, range_std=rsu.range_std, bearing_std=rsu.bearing_std, radius=rsu.radius
+    )
+
+
+def pipeline_to_wire(pipeline: Pipeline) -> PipelineOut:
+    return PipelineOut(
+        name=pipeline.name,
+        description=pipeline.description,
+        measurement_types=list(pipeline.measurement_kinds),
+        options=[
+            OptionOut(
+                name=spec.name,
+                type=spec.type,
+                default=spec.default,
+                description=spec.description,
+                minimum=spec.minimum,
+                maximum=spec.maximum,
+                choices=None if spec.choices is None else list(spec.choices),
+            )
+            for spec in pipeline.option_specs()
+        ],
+    )
+
+
+def fix_to_wire(fix: Fix, include_state: bool, origin: GeodeticOrigin | None) -> FixOut:
+    """The wire fix; ``state`` only when asked for, latitude/longitude only with an origin."""
+    latitude = longitude = None
+    if origin is not None and fix.x is not None and fix.y is not None:
+        latitude, longitude, _ = origin.enu_to_geodetic(fix.x, fix.y, 0.0)
+    state = None
+    if include_state and fix.state is not None and fix.state_cov is not None:
+        state = StateOut(components=list(fix.state_components), mean=fix.state, covariance=fix.state_cov)
+    return FixOut(
+        t=fix.t,
+        status=fix.status,  # type: ignore[arg-type]
+        x=fix.x,
+        y=fix.y,
+        vx=fix.vx,
+        vy=fix.vy,
+        speed=fix.speed,
+        heading=fix.heading,
+        yaw_rate=fix.yaw_rate,
+        latitude=latitude,
+        longitude=longitude,
+        position_covariance=fix.position_cov,
+        state=state,
+        model_probabilities=fix.model_probabilities,
+        nis=fix.nis,
+        nis_dof=fix.nis_dof,
+        measurements=[
+            MeasurementUseOut(index=use.index, type=use.kind, used=use.used, reason=use.reason)
+            for use in fix.measurements
+        ],
+    )

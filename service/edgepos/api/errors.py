@@ -1,0 +1,147 @@
+"""One error body for every failure: ``{"error": {"code", "message", "problems": [...]}}``.
+
+Routes raise :class:`ApiError`; FastAPI's validation errors and Starlette's HTTP errors (unknown
+route, wrong method) are mapped to the same shape. Anything else is a bug: the outermost middleware
+logs it with its traceback and answers a generic 500 that reveals nothing.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import Response
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from edgepos.api.schemas import MEASUREMENT_TYPES, ErrorBody, ErrorDetail, ProblemModel
+from edgepos.pipelines.base import Problem
+
+STATUS_OF_CODE: dict[str, int] = {
+    "invalid_request": 422,
+    "unauthorized": 401,
+    "forbidden": 403,
+    "not_found": 404,
+    "method_not_allowed": 405,
+    "conflict": 409,
+    "payload_too_large": 413,
+    "too_many_sessions": 429,
+    "rate_limited": 429,
+    "estimation_failed": 422,
+    "unavailable": 503,
+    "internal_error": 500,
+}
+
+
+class ApiError(Exception):
+    """A refusal with its machine code, a sentence for humans and the problems found."""
+
+    def __init__(
+        self,
+        code: str,
+        message: str,
+        problems: Iterable[ProblemModel] = (),
+        headers: dict[str, str] | None = None,
+    ) -> None:
+        super().__init__(message)
+        self.code = code
+        self.status = STATUS_OF_CODE[code]
+        self.message = message
+        self.problems = list(problems)
+        self.headers = headers or {}
+
+
+def error_body(code: str, message: str, problems: Sequence[ProblemModel] = ()) -> bytes:
+    """The serialised error body."""
+    detail = ErrorDetail(code=code, message=message, problems=list(problems))  # type: ignore[arg-type]
+    return ErrorBody(error=detail).model_dump_json().encode()
+
+
+def error_response(error: ApiError) -> Response:
+    headers = dict(error.headers)
+    if error.status == 401:
+        headers.setdefault("WWW-Authenticate", "Bearer")
+    return Response(
+        error_body(error.code, error.message, error.problems),
+        status_code=error.status,
+        media_type="application/json",
+        headers=headers,
+    )
+
+
+def pipeline_problems(problems: Iterable[Problem], list_name: str | None = None) -> list[ProblemModel]:
+    """Pipeline problems as wire problems; with ``list_name`` an indexed field becomes
+    ``list_name[index].field`` so it names the request's own path."""
+    out = []
+    for problem in problems:
+        field = problem.field
+        if list_name is not None and problem.index is not None:
+            field = f"{list_name}[{problem.index}].{field}"
+        out.append(ProblemModel(index=problem.index, field=field, reason=problem.reason))
+    return out
+
+
+def validation_problems(errors: Sequence[dict[str, Any]]) -> list[ProblemModel]:
+    """FastAPI/pydantic error entries as wire problems: ``loc`` becomes a dotted path with
+    ``[i]`` for list items, the union tag pydantic inserts is dropped, and items of the
+    ``measurements`` list carry their index."""
+    problems = []
+    for error in errors:
+        loc = list(error.get("loc", ()))
+        if loc and loc[0] in ("body", "path", "query", "header"):
+            loc = loc[1:]
+        index = None
+        if len(loc) >= 2 and loc[0] == "measurements" and isinstance(loc[1], int):
+            index = loc[1]
+            if len(loc) >= 3 and loc[2] in MEASUREMENT_TYPES:
+                del loc[2]
+            if error.get("type") in ("union_tag_invalid", "union_tag_not_found"):
+                loc.append("type")
+        field = ""
+        for part in loc:
+            if isinstance(part, int):
+                field += f"[{part}]"
+            else:
+                field += f".{part}" if field else str(part)
+        reason = str(error.get("msg", "is invalid"))
+        if error.get("type") == "json_invalid":
+            detail = (error.get("ctx") or {}).get("error")
+            reason = f"not valid JSON: {detail}" if detail else "not valid JSON"
+        problems.append(ProblemModel(index=index, field=field or "body", reason=reason))
+    return problems
+
+
+_STATUS_CODES = {404: "not_found", 405: "method_not_allowed", 401: "unauthorized", 403: "forbidden",
+                 409: "conflict", 413: "payload_too_large", 429: "rate_limited", 503: "unavailable"}
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Route every exception through the one error body."""
+
+    @app.exception_handler(ApiError)
+    async def _api_error(request: Request, error: ApiError) -> Response:
+        return error_response(error)
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation_error(request: Request, error: RequestValidationError) -> Response:
+        problems = validation_problems(error.errors())
+        count = len(problems)
+        message = f"the request is invalid ({count} problem{'s' if count != 1 else ''})"
+        return error_response(ApiError("invalid_request", message, problems))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http_error(request: Request, error: StarletteHTTPException) -> Response:
+        code = _STATUS_CODES.get(error.status_code, "invalid_request" if error.status_code < 500 else "internal_error")
+        if error.status_code == 404:
+            message = f"no such resource: {request.url.path}"
+        elif error.status_code == 405:
+            message = f"method {request.method} is not allowed on {request.url.path}"
+        else:
+            message = str(error.detail)
+        response = error_response(ApiError(code, message))
+        response.status_code = error.status_code
+        for key, value in (error.headers or {}).items():
+            response.headers[key] = value
+        return response
+

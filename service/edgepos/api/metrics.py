@@ -1,0 +1,79 @@
+"""Prometheus metrics of one app instance (one registry per app, so tests can run several).
+
+With several workers each process keeps its own counters and a scrape sees the worker that
+answered it; ``edgepos_active_sessions`` is read from the store, so it is the same in all.
+"""
+
+from __future__ import annotations
+
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+
+_LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
+_STEP_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1)
+
+CONTENT_TYPE = CONTENT_TYPE_LATEST
+
+
+class Metrics:
+    """Request counts and latencies by route template and status; session and filter figures."""
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry(auto_describe=True)
+        self.requests = Counter(
+            "edgepos_http_requests",
+            "HTTP requests answered, by method, route template and status.",
+            ["method", "route", "status"],
+            registry=self.registry,
+        )
+        self.latency = Histogram(
+            "edgepos_http_request_duration_seconds",
+            "Time from request start to the end of the response, by method, route template and status.",
+            ["method", "route", "status"],
+            buckets=_LATENCY_BUCKETS,
+            registry=self.registry,
+        )
+        self.active_sessions = Gauge(
+            "edgepos_active_sessions", "Live (unexpired) sessions in the store.", registry=self.registry
+        )
+        self.epochs = Counter(
+            "edgepos_epochs_processed", "Epochs filtered (fixes produced) by applied batches.", registry=self.registry
+        )
+        self.batches = Counter(
+            "edgepos_batches",
+            "Batches by outcome: applied, replayed, rejected, conflict, failed.",
+            ["outcome"],
+            registry=self.registry,
+        )
+        self.filter_step = Histogram(
+            "edgepos_filter_step_seconds",
+            "Mean filter time per epoch of each processed batch (pipeline time / epochs).",
+            buckets=_STEP_BUCKETS,
+            registry=self.registry,
+        )
+        self.pipeline_batch = Histogram(
+            "edgepos_pipeline_batch_seconds",
+            "Time the pipeline took to process one batch (worker thread).",
+            buckets=_LATENCY_BUCKETS,
+            registry=self.registry,
+        )
+        self.store_conflicts = Counter(
+            "edgepos_store_conflicts",
+            "Compare-and-set conflicts on session writes (another worker updated the session first).",
+            registry=self.registry,
+        )
+
+    def observe_request(self, method: str, route: str, status: int, seconds: float) -> None:
+        labels = (method, route, str(status))
+        self.requests.labels(*labels).inc()
+        self.latency.labels(*labels).observe(seconds)
+
+    def observe_batch(self, epochs: int, seconds: float) -> None:
+        self.batches.labels("applied").inc()
+        self.epochs.inc(epochs)
+        self.pipeline_batch.observe(seconds)
+        if epochs:
+            self.filter_step.observe(seconds / epochs)
+
+    def render(self, active_sessions: int) -> bytes:
+        self.active_sessions.set(active_sessions)
+        return generate_latest(self.registry)

@@ -1,0 +1,363 @@
+"""Wire schemas of API v1 (the shapes in docs/service.md and openapi.json).
+
+Conventions for every field: SI units, angles in radians, positions in the site-local east-north
+plane in metres (x east, y north), angles counter-clockwise from +x (east), times in seconds.
+Request models forbid unknown fields, refuse NaN and infinity, and are strict about JSON types.
+Measurements are a union discriminated by ``type``: a new measurement type is one more model here
+(with its ``to_observation``) plus its entry in :data:`MeasurementModel`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from edgepos.core.observations import GyroObservation, Observation, RsuObservation
+
+RSU_ID_PATTERN = r"^[A-Za-z0-9._:+-]{1,64}$"
+VEHICLE_ID_PATTERN = r"^[A-Za-z0-9._:+@/ -]{1,128}$"
+PIPELINE_NAME_PATTERN = r"^[a-z0-9_]{1,64}$"
+MAX_COORDINATE_M = 1.0e6
+MAX_TIME_S = 1.0e10
+MAX_SEQ = 2**53 - 1
+HARD_MAX_BATCH = 100_000
+"""Absolute cap on measurements per batch; the configured EDGEPOS_MAX_BATCH_MEASUREMENTS is lower."""
+MAX_RSUS_PER_REQUEST = 10_000
+
+
+class RequestModel(BaseModel):
+    """Base of request bodies: unknown fields, NaN/Infinity and loose JSON types are refused."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
+
+
+class ResponseModel(BaseModel):
+    """Base of response bodies (floats are always finite)."""
+
+    model_config = ConfigDict(allow_inf_nan=False)
+
+
+# -- errors --------------------------------------------------------------------------------------
+ErrorCode = Literal[
+    "invalid_request",
+    "unauthorized",
+    "forbidden",
+    "not_found",
+    "method_not_allowed",
+    "conflict",
+    "payload_too_large",
+    "too_many_sessions",
+    "rate_limited",
+    "estimation_failed",
+    "unavailable",
+    "internal_error",
+]
+
+
+class ProblemModel(ResponseModel):
+    """One reason a request was refused."""
+
+    index: int | None = Field(
+        None, description="Index of the offending measurement in the batch (0-based), or null when not about one."
+    )
+    field: str = Field(description="Path of the offending field, e.g. 'measurements[3].range' or 'options.filter'.")
+    reason: str = Field(description="Why the value was refused, in words.")
+
+
+class ErrorDetail(ResponseModel):
+    code: ErrorCode = Field(description="Machine-readable error code; the HTTP status is fixed per code.")
+    message: str = Field(description="Human-readable sentence describing the error.")
+    problems: list[ProblemModel] = Field(
+        default_factory=list, description="Every problem found (validation errors list all of them); may be empty."
+    )
+
+
+class ErrorBody(ResponseModel):
+    """The body of every 4xx and 5xx response."""
+
+    error: ErrorDetail
+
+
+# -- RSUs ----------------------------------------------------------------------------------------
+_X_DESCRIPTION = "East coordinate of the RSU antenna in the site frame (m)."
+_Y_DESCRIPTION = "North coordinate of the RSU antenna in the site frame (m)."
+_RANGE_STD = "Range noise standard deviation of this RSU (m); null uses the session's range_std option."
+_BEARING_STD = "Bearing noise standard deviation of this RSU (rad); null uses the session's bearing_std option."
+_RADIUS = "Communication radius of this RSU (m); null uses the session's comm_radius option."
+
+
+class RsuFields(RequestModel):
+    """The RSU's position and optional per-unit noise and radius."""
+
+    x: float = Field(ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M, description=_X_DESCRIPTION)
+    y: float = Field(ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M, description=_Y_DESCRIPTION)
+    range_std: float | None = Field(None, gt=0, le=1.0e4, description=_RANGE_STD)
+    bearing_std: float | None = Field(None, gt=0, le=math.pi, description=_BEARING_STD)
+    radius: float | None = Field(None, gt=0, le=MAX_COORDINATE_M, description=_RADIUS)
+
+
+class RsuModel(RsuFields):
+    """A roadside unit of the site's registry."""
+
+    id: str = Field(pattern=RSU_ID_PATTERN, description="RSU identifier: 1-64 characters of A-Z a-z 0-9 . _ : + -.")
+
+
+class RsuPut(RsuFields):
+    """Body of PUT /v1/rsus/{rsu_id}: the RSU; ``id`` may be left out or must equal the path's."""
+
+    id: str | None = Field(
+        None, pattern=RSU_ID_PATTERN, description="Optional; when given it must equal the rsu_id in the path."
+    )
+
+
+class RsuBulk(RequestModel):
+    """Body of PUT /v1/rsus: RSUs to insert or replace, by id."""
+
+    rsus: list[RsuModel] = Field(
+        max_length=MAX_RSUS_PER_REQUEST, description="RSUs to upsert; ids must be unique within the request."
+    )
+
+
+class RsuOut(ResponseModel):
+    """A roadside unit of the site's registry."""
+
+    id: str = Field(description="RSU identifier.")
+    x: float = Field(description=_X_DESCRIPTION)
+    y: float = Field(description=_Y_DESCRIPTION)
+    range_std: float | None = Field(description=_RANGE_STD)
+    bearing_std: float | None = Field(description=_BEARING_STD)
+    radius: float | None = Field(description=_RADIUS)
+
+
+class RsuList(ResponseModel):
+    rsus: list[RsuOut] = Field(description="Every registered RSU, sorted by id.")
+
+
+class Upserted(ResponseModel):
+    upserted: int = Field(description="How many RSUs were inserted or replaced.")
+
+
+# -- pipelines -----------------------------------------------------------------------------------
+class OptionOut(ResponseModel):
+    """One option of a pipeline, with the value used when a session does not set it."""
+
+    name: str = Field(description="Option name, as a key of the session's options object.")
+    type: str = Field(
+        description="JSON type: number, integer, boolean, string, string[], number[], matrix (list of rows) or object."
+    )
+    default: Any = Field(description="Value used when the option is not set (units as in the description).")
+    description: str = Field(description="What the option does, with its unit.")
+    minimum: float | None = Field(description="Smallest allowed value (numbers), else null.")
+    maximum: float | None = Field(description="Largest allowed value (numbers), else null.")
+    choices: list[Any] | None = Field(description="Allowed values (or list elements), else null.")
+
+
+class PipelineOut(ResponseModel):
+    name: str = Field(description="Pipeline name, used as 'pipeline' when creating a session.")
+    description: str = Field(description="The method in one paragraph.")
+    measurement_types: list[str] = Field(description="Measurement 'type' values this pipeline uses.")
+    options: list[OptionOut] = Field(description="Every option with its default and bounds.")
+
+
+class PipelineList(ResponseModel):
+    pipelines: list[PipelineOut] = Field(description="Every pipeline offered by this server.")
+
+
+# -- sessions ------------------------------------------------------------------------------------
+class InitialStateIn(RequestModel):
+    """A known starting point in the site frame; without it the pipeline initialises itself."""
+
+    x: float = Field(ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M, description="East position (m).")
+    y: float = Field(ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M, description="North position (m).")
+    vx: float = Field(ge=-1000, le=1000, description="East velocity (m/s).")
+    vy: float = Field(ge=-1000, le=1000, description="North velocity (m/s).")
+    position_std: float = Field(1.0, gt=0, le=1.0e4, description="1-sigma of each position component (m).")
+    velocity_std: float = Field(1.0, gt=0, le=1.0e3, description="1-sigma of each velocity component (m/s).")
+
+
+class SessionCreate(RequestModel):
+    """Body of POST /v1/sessions."""
+
+    vehicle_id: str = Field(
+        pattern=VEHICLE_ID_PATTERN,
+        description="The vehicle's own identifier: 1-128 characters of letters, digits, space and . _ : + @ / -.",
+    )
+    pipeline: str = Field(
+        "rsu_imu", pattern=PIPELINE_NAME_PATTERN, description="Name of the pipeline (see GET /v1/pipelines)."
+    )
+    options: dict[str, Any] | None = Field(
+        None,
+        max_length=64,
+        description="Pipeline options by name (see GET /v1/pipelines); unset ones take their defaults.",
+    )
+    initial_state: InitialStateIn | None = Field(
+        None, description="Known initial position and velocity; null lets the pipeline initialise from RSU fixes."
+    )
+
+    @field_validator("options")
+    @classmethod
+    def _finite(cls, value: dict[str, Any] | None) -> dict[str, Any] | None:
+        _reject_non_finite(value, "options")
+        return value
+
+
+def _reject_non_finite(value: Any, path: str) -> None:
+    """Raise if a JSON value holds NaN or infinity anywhere inside it."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ValueError(f"{path} holds a non-finite number")
+    if isinstance(value, dict):
+        for key, item in value.items():
+            _reject_non_finite(item, f"{path}.{key}")
+    elif isinstance(value, list):
+        for number, item in enumerate(value):
+            _reject_non_finite(item, f"{path}[{number}]")
+
+
+class SessionCreated(ResponseModel):
+    """Answer to POST /v1/sessions: keep the token, it is shown only once."""
+
+    session_id: str = Field(description="Identifier of the new session.")
+    token: str = Field(description="Bearer token for this session's calls; shown once, stored only as a hash.")
+    vehicle_id: str = Field(description="The vehicle identifier given.")
+    pipeline: str = Field(description="Pipeline name.")
+    options: dict[str, Any] = Field(description="Effective options: the given ones plus every default.")
+    created_at: float = Field(description="Creation time (Unix seconds, server clock).")
+
+
+# -- fixes ---------------------------------------------------------------------------------------
+class StateOut(ResponseModel):
+    """The filter's full state estimate (combined over the model bank)."""
+
+    components: list[str] = Field(
+        description="Component names: xp, xv, xa (east position m, velocity m/s, acceleration m/s^2), "
+        "yp, yv, ya (north), phi (heading rad, CCW from east), omega (turn rate rad/s, CCW positive)."
+    )
+    mean: list[float] = Field(description="Mean, in the order of components (SI units as above).")
+    covariance: list[list[float]] = Field(description="Covariance matrix, rows/columns in the order of components.")
+
+
+class MeasurementUseOut(ResponseModel):
+    index: int = Field(description="Index of the measurement in the request's measurements list (0-based).")
+    type: str = Field(description="The measurement's type.")
+    used: bool = Field(description="Whether it entered the filter update.")
+    reason: str | None = Field(description="Why it was not used (out of range, failed the gate, ...), else null.")
+
+
+class FixOut(ResponseModel):
+    """The estimate after one epoch (measurements sharing a timestamp), in the site frame."""
+
+    t: float = Field(description="Epoch time (s, the vehicle's clock as sent).")
+    status: Literal["initialised", "tracking", "predicted", "uninitialised"] = Field(
+        description="initialised: first fix; tracking: measurements were used; predicted: motion model only; "
+        "uninitialised: nothing to start from yet (kinematic fields are null)."
+    )
+    x: float | None = Field(description="East position (m).")
+    y: float | None = Field(description="North position (m).")
+    vx: float | None = Field(description="East velocity (m/s).")
+    vy: float | None = Field(description="North velocity (m/s).")
+    speed: float | None = Field(description="Speed over ground (m/s).")
+    heading: float | None = Field(description="Course over ground (rad, CCW from east, in [-pi, pi]).")
+    yaw_rate: float | None = Field(description="Turn rate (rad/s, CCW positive).")
+    latitude: float | None = Field(
+        description="WGS-84 latitude (rad) of (x, y) on the site's tangent plane; null unless the server "
+        "has a WGS-84 origin configured."
+    )
+    longitude: float | None = Field(
+        description="WGS-84 longitude (rad, east positive); null unless the server has a WGS-84 origin configured."
+    )
+    position_covariance: list[list[float]] | None = Field(
+        description="2x2 covariance of (x, y) (m^2), [[xx, xy], [yx, yy]]."
+    )
+    state: StateOut | None = Field(description="Full state estimate; only when the batch asked include_state.")
+    model_probabilities: dict[str, float] = Field(description="Probability of each motion model of the bank.")
+    nis: float | None = Field(
+        description="Normalised innovation squared of the epoch's update (dimensionless); null without an update."
+    )
+    nis_dof: int = Field(description="Degrees of freedom of nis (the measurement dimension used).")
+    measurements: list[MeasurementUseOut] = Field(description="Every measurement of this epoch: used or why not.")
+
+
+class BatchOut(ResponseModel):
+    """Answer to a batch: one fix per epoch, in time order."""
+
+    seq: int = Field(description="The batch's seq.")
+    fixes: list[FixOut] = Field(description="One fix per epoch of the batch, in time order.")
+
+
+class SessionOut(ResponseModel):
+    """A session's configuration, counters and latest estimate."""
+
+    session_id: str = Field(description="Session identifier.")
+    vehicle_id: str = Field(description="The vehicle identifier given at creation.")
+    pipeline: str = Field(description="Pipeline name.")
+    options: dict[str, Any] = Field(description="Effective options.")
+    last_seq: int = Field(description="seq of the last applied batch; 0 before any.")
+    batches: int = Field(description="Batches applied.")
+    epochs: int = Field(description="Epochs filtered (fixes produced).")
+    initialised: bool = Field(description="Whether the filter has a position estimate yet.")
+    t: float | None = Field(description="Time of the last epoch processed (s, vehicle clock), null before any.")
+    model_probabilities: dict[str, float] = Field(description="Current probability of each motion model.")
+    last_fix: FixOut | None = Field(description="The latest fix (without the full state), null before any batch.")
+    created_at: float = Field(description="Creation time (Unix seconds, server clock).")
+    updated_at: float = Field(description="Time of the last applied batch or creation (Unix seconds, server clock).")
+
+
+# -- measurements and batches ----------------------------------------------------------------------
+_T_DESCRIPTION = (
+    "Measurement time (s) on the vehicle's clock (any epoch, monotone per session); "
+    "measurements with equal t form one epoch."
+)
+
+
+class RsuMeasurement(RequestModel):
+    """Range and bearing from one RSU to the vehicle."""
+
+    type: Literal["rsu"] = Field(description="Discriminator: 'rsu'.")
+    t: float = Field(ge=-MAX_TIME_S, le=MAX_TIME_S, description=_T_DESCRIPTION)
+    rsu_id: str = Field(pattern=RSU_ID_PATTERN, description="Id of a registered RSU.")
+    range: float = Field(ge=0, le=MAX_COORDINATE_M, description="Distance from the RSU to the vehicle (m), >= 0.")
+    bearing: float = Field(
+        ge=-math.pi, le=math.pi, description="Direction from the RSU to the vehicle (rad, CCW from east), in [-pi, pi]."
+    )
+
+    def to_observation(self) -> Observation:
+        return RsuObservation(t=self.t, rsu_id=self.rsu_id, range=self.range, bearing=self.bearing)
+
+
+class GyroMeasurement(RequestModel):
+    """Yaw rate from the vehicle's gyro."""
+
+    type: Literal["gyro"] = Field(description="Discriminator: 'gyro'.")
+    t: float = Field(ge=-MAX_TIME_S, le=MAX_TIME_S, description=_T_DESCRIPTION)
+    yaw_rate: float = Field(ge=-100, le=100, description="Yaw rate (rad/s, counter-clockwise positive).")
+
+    def to_observation(self) -> Observation:
+        return GyroObservation(t=self.t, yaw_rate=self.yaw_rate)
+
+
+MeasurementModel = Annotated[RsuMeasurement | GyroMeasurement, Field(discriminator="type")]
+MEASUREMENT_TYPES: tuple[str, ...] = ("rsu", "gyro")
+"""The discriminator values of :data:`MeasurementModel` (used to tidy validation error paths)."""
+
+
+class BatchIn(RequestModel):
+    """Body of POST /v1/sessions/{session_id}/batches."""
+
+    seq: int = Field(ge=1, le=MAX_SEQ, description="Batch number: the session's last_seq + 1 (1 for the first).")
+    measurements: list[MeasurementModel] = Field(
+        min_length=1,
+        max_length=HARD_MAX_BATCH,
+        description="Measurements of one or more epochs; at most EDGEPOS_MAX_BATCH_MEASUREMENTS (default 1000).",
+    )
+    include_state: bool = Field(False, description="Also return each fix's full state mean and covariance.")
+
+
+# -- health --------------------------------------------------------------------------------------
+class Health(ResponseModel):
+    status: Literal["ok"] = Field(description="Always 'ok' while the process serves requests.")
+
+
+class Ready(ResponseModel):
+    status: Literal["ready"] = Field(description="'ready' when the store answers.")

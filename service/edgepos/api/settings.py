@@ -1,0 +1,116 @@
+"""Service configuration from ``EDGEPOS_*`` environment variables (see docs/service.md)."""
+
+from __future__ import annotations
+
+import os
+import secrets
+import sys
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, SecretStr, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from edgepos.geo import GeodeticOrigin
+
+LogLevel = Literal["critical", "error", "warning", "info", "debug"]
+
+
+class Settings(BaseSettings):
+    """Every knob of the service; each field is read from ``EDGEPOS_<FIELD NAME>``."""
+
+    model_config = SettingsConfigDict(env_prefix="EDGEPOS_", extra="ignore", case_sensitive=False)
+
+    host: str = Field("127.0.0.1", description="Address to listen on.")
+    port: int = Field(8000, ge=0, le=65535, description="TCP port to listen on.")
+    workers: int = Field(1, ge=1, le=64, description="Worker processes (>1 needs the SQLite store).")
+    admin_key: SecretStr | None = Field(
+        None,
+        description="Bearer key for RSU writes and admin access to every session. When unset a random "
+        "key is generated at start-up, printed once to stderr and written to admin_key_file.",
+    )
+    admin_key_file: Path = Field(
+        Path("edgepos-admin.key"), description="Where a generated admin key is written (mode 0600)."
+    )
+    store: str = Field(
+        "memory", description="'memory' (one process) or 'sqlite:///path.db' (several workers on one box)."
+    )
+    max_sessions: int = Field(10_000, ge=1, description="Live sessions allowed at once (429 beyond).")
+    session_ttl_s: float = Field(
+        3600.0, gt=0, allow_inf_nan=False, description="Seconds without a batch after which a session expires."
+    )
+    max_batch_measurements: int = Field(
+        1000, ge=1, le=100_000, description="Measurements allowed in one batch (422 beyond)."
+    )
+    max_body_bytes: int = Field(1_048_576, ge=1024, description="Largest request body in bytes (413 beyond).")
+    origin_lat: float | None = Field(
+        None, ge=-90, le=90, allow_inf_nan=False, description="Site origin latitude, WGS-84 decimal degrees."
+    )
+    origin_lon: float | None = Field(
+        None, ge=-180, le=180, allow_inf_nan=False, description="Site origin longitude, WGS-84 decimal degrees."
+    )
+    origin_height: float = Field(
+        0.0, allow_inf_nan=False, description="Site origin ellipsoidal height (m), used with origin_lat/lon."
+    )
+    cors_origins: str = Field(
+        "", description="Comma-separated origins allowed by CORS ('*' for any); empty disables CORS."
+    )
+    log_level: LogLevel = Field("info", description="Log level of the JSON-lines logs.")
+    demo_rsus: bool = Field(False, description="Preload the paper scenario's RSU map at start-up.")
+
+    @field_validator("log_level", mode="before")
+    @classmethod
+    def _lower_level(cls, value: object) -> object:
+        return value.lower() if isinstance(value, str) else value
+
+    @field_validator("store")
+    @classmethod
+    def _check_store(cls, value: str) -> str:
+        if value != "memory" and not (value.startswith("sqlite:///") and len(value) > len("sqlite:///")):
+            raise ValueError("store must be 'memory' or 'sqlite:///path.db'")
+        return value
+
+    @model_validator(mode="after")
+    def _origin_pair(self) -> Settings:
+        if (self.origin_lat is None) != (self.origin_lon is None):
+            raise ValueError("set both origin_lat and origin_lon, or neither")
+        return self
+
+    @property
+    def cors_origin_list(self) -> list[str]:
+        return [origin.strip() for origin in self.cors_origins.split(",") if origin.strip()]
+
+    @property
+    def origin(self) -> GeodeticOrigin | None:
+        if self.origin_lat is None or self.origin_lon is None:
+            return None
+        return GeodeticOrigin.from_degrees(self.origin_lat, self.origin_lon, self.origin_height)
+
+
+def write_secret_file(path: Path, secret: str) -> Path:
+    """Write ``secret`` to ``path`` readable by its owner only (0600), replacing any old file."""
+    path = path.expanduser().resolve()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        os.fchmod(descriptor, 0o600)
+        os.write(descriptor, (secret + "\n").encode())
+    finally:
+        os.close(descriptor)
+    return path
+
+
+def ensure_admin_key(settings: Settings) -> Settings:
+    """Settings with an admin key: the configured one, or a fresh random one that is printed once
+    to stderr and saved (0600) to ``admin_key_file`` so the operator can find it later."""
+    if settings.admin_key is not None and settings.admin_key.get_secret_value():
+        return settings
+    key = secrets.token_urlsafe(32)
+    path = write_secret_file(settings.admin_key_file, key)
+    print(
+        f"edgepos: EDGEPOS_ADMIN_KEY is not set; generated admin key {key} "
+        f"(also saved to {path}, mode 0600; set EDGEPOS_ADMIN_KEY to choose your own)",
+        file=sys.stderr,
+        flush=True,
+    )
+    return settings.model_copy(update={"admin_key": SecretStr(key)})

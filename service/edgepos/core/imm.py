@@ -1,0 +1,233 @@
+"""Interacting multiple models (Blom & Bar-Shalom 1988) and the twice-interacting 2IMM (RSU + IMU
+paper, eqs. 29-38), over motion models that use different state components.
+
+The bank is held padded in the full 8-dim frame: means (B, 8) and covariances (B, 8, 8), zero where
+a model lacks a component. Interaction mixes only the components every model carries (``common``);
+a model's own extra components keep their conditional Gaussian given the common ones
+(x_e + B (x_c' - x_c), B = P_ec P_cc^-1), so the mixed covariance stays positive definite. Outputs
+are moment-matched over ``common``.
+
+Transition matrix convention: ``transition[i, j]`` = P(model j at k | model i at k-1); rows sum to 1.
+Model probabilities are handled in the log domain, so no likelihood underflows to zero.
+
+2IMM: models in the priority set interact first (probabilities renormalised among themselves, eq. 30;
+output combined, eqs. 31-32); that result then competes with the other models using the best
+priority-set likelihood (eqs. 33-37); finally priority probabilities are scaled by the first-stage
+share (eq. 38) so all probabilities sum to 1. With every model in the priority set this is IMM.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from edgepos.core import layout
+from edgepos.core.errors import ConfigurationError, NumericalError
+from edgepos.core.filters.base import GaussianFilter, UpdateResult
+from edgepos.core.motion.base import MotionModel
+from edgepos.core.numerics import require_finite, weighted_mean, wrap_rows
+
+_TINY = 1e-300
+
+
+@dataclass(frozen=True)
+class Gaussian:
+    """A mean and covariance over the full-state ``components`` listed, in that order."""
+
+    components: tuple[int, ...]
+    mean: np.ndarray
+    cov: np.ndarray
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Every model's prior at the new time (padded), predicted probabilities c_j, fused prior."""
+
+    means: np.ndarray
+    covs: np.ndarray
+    predicted_probabilities: np.ndarray
+    output: Gaussian
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """Posteriors (padded), model probabilities, the fused output and per-model innovation stats."""
+
+    means: np.ndarray
+    covs: np.ndarray
+    probabilities: np.ndarray
+    output: Gaussian
+    log_likelihoods: np.ndarray
+    nis: np.ndarray
+
+
+class Correction(ABC):
+    """How a bank's priors become posteriors for one epoch (see ``core.updates``)."""
+
+    @abstractmethod
+    def apply(self, filt: GaussianFilter, means: np.ndarray, covs: np.ndarray, active: np.ndarray) -> UpdateResult:
+        """Posteriors of the padded priors given this epoch's measurements."""
+
+
+class InteractingMultipleModel:
+    """A bank of one filter type over several motion models; one model is plain filtering."""
+
+    def __init__(
+        self,
+        models: Sequence[MotionModel],
+        filt: GaussianFilter,
+        transition: np.ndarray,
+        priority: Sequence[int] | None = None,
+    ) -> None:
+        if not models:
+            raise ConfigurationError("an IMM needs at least one motion model")
+        self.models = tuple(models)
+        self.filter = filt
+        count = len(self.models)
+        self.transition = np.asarray(transition, dtype=float)
+        if self.transition.shape != (count, count):
+            raise ConfigurationError(f"transition matrix must be {count}x{count}")
+        if np.any(self.transition < 0.0) or not np.allclose(self.transition.sum(axis=1), 1.0, atol=1e-9):
+            raise ConfigurationError("transition matrix rows must be probabilities summing to 1")
+        self.common = tuple(sorted(set.intersection(*(set(m.components) for m in self.models))))
+        if not {layout.XP, layout.YP} <= set(self.common):
+            raise ConfigurationError("every model must carry position")
+        self.common_mask = layout.angle_mask(self.common)
+        self._common = np.array(self.common)
+        self._common_block = (slice(None), self._common[:, None], self._common[None, :])
+        self.active = np.zeros((count, layout.FULL_DIM), dtype=bool)
+        for j, model in enumerate(self.models):
+            self.active[j, list(model.components)] = True
+        self._blocks = [np.ix_(m.components, m.components) for m in self.models]
+        self._extras = [
+            (j, np.array([c for c in m.components if c not in self.common]))
+            for j, m in enumerate(self.models)
+            if len(m.components) > len(self.common)
+        ]
+        if priority is None or len(set(priority)) == count:
+            self.priority = np.arange(count)
+        else:
+            self.priority = np.array(sorted(set(int(i) for i in priority)), dtype=int)
+            if self.priority.size < 1 or self.priority.min() < 0 or self.priority.max() >= count:
+                raise ConfigurationError("priority set must name models of the bank")
+        self.others = np.array([i for i in range(count) if i not in set(self.priority.tolist())], dtype=int)
+
+    @property
+    def is_two_stage(self) -> bool:
+        return self.others.size > 0
+
+    def initial(self, mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The padded bank that gives each model its slice of a full 8-dim Gaussian."""
+        means = np.where(self.active, mean, 0.0)
+        covs = np.where(self.active[:, :, None] & self.active[:, None, :], cov, 0.0)
+        return means, covs
+
+    # -- mixtures over the common components --------------------------------------------------
+    def _moments(self, weights: np.ndarray, means: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Moment-matched mean and covariance of a Gaussian mixture (common components only)."""
+        mean = weighted_mean(means, weights, self.common_mask)
+        spread = wrap_rows(means - mean, self.common_mask)
+        cov = np.tensordot(weights, covs, axes=1) + (spread.T * weights) @ spread
+        return mean, 0.5 * (cov + cov.T)
+
+    def combine(self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray) -> Gaussian:
+        """The fused estimate of the bank over the common components."""
+        return Gaussian(self.common, *self._moments(probabilities, means[:, self._common], covs[self._common_block]))
+
+    def mix(self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray):
+        """Interaction (eqs. 11-14): every model's mixed initial condition, and c_j."""
+        predicted = np.maximum(probabilities @ self.transition, _TINY)
+        weights = self.transition * probabilities[:, None] / predicted  # weights[i, j] = mu_{i|j}
+        common_means = means[:, self._common]
+        common_covs = covs[self._common_block]
+        if self.common_mask.any():
+            mixed = np.stack([weighted_mean(common_means, weights[:, j], self.common_mask) for j in range(len(self.models))])
+        else:
+            mixed = weights.T @ common_means
+        spread = wrap_rows(common_means[:, None, :] - mixed[None, :, :], self.common_mask)  # (i, j, c)
+        mixed_covs = np.einsum("ij,ikl->jkl", weights, common_covs) + np.einsum("ij,ijk,ijl->jkl", weights, spread, spread)
+        new_means = means.copy()
+        new_covs = covs.copy()
+        new_means[:, self._common] = mixed
+        new_covs[self._common_block] = mixed_covs
+        for j, extra in self._extras:
+            self._carry_extras(j, extra, means[j], covs[j], new_means[j], new_covs[j])
+        return new_means, 0.5 * (new_covs + new_covs.transpose(0, 2, 1)), predicted / predicted.sum()
+
+    def _carry_extras(self, j, extra, old_mean, old_cov, new_mean, new_cov) -> None:
+        """Model j's extra components follow their conditional given the re-mixed common block."""
+        common = self._common
+        own_cc = old_cov[np.ix_(common, common)]
+        own_ec = old_cov[np.ix_(extra, common)]
+        try:
+            regression = np.linalg.solve(own_cc, own_ec.T).T  # B = P_ec P_cc^-1
+        except np.linalg.LinAlgError:
+            raise NumericalError("common-component covariance is singular during interaction") from None
+        shift = wrap_rows(new_mean[common] - old_mean[common], self.common_mask)
+        new_mean[extra] = old_mean[extra] + regression @ shift
+        wrap_rows(new_mean, layout.FULL_ANGLE_MASK)
+        mixed_cc = new_cov[np.ix_(common, common)]
+        cross = regression @ mixed_cc
+        new_cov[np.ix_(extra, common)] = cross
+        new_cov[np.ix_(common, extra)] = cross.T
+        new_cov[np.ix_(extra, extra)] = old_cov[np.ix_(extra, extra)] - regression @ own_ec.T + cross @ regression.T
+
+    # -- one epoch ---------------------------------------------------------------------------
+    def predict(self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray, dt: float | None) -> Prediction:
+        """Interaction, then each model's prediction over ``dt`` (none when dt is None or 0)."""
+        mixed_means, mixed_covs, predicted = self.mix(means, covs, probabilities)
+        if dt:
+            for j, model in enumerate(self.models):
+                idx, block = list(model.components), self._blocks[j]
+                mean, cov = self.filter.predict(mixed_means[j, idx], mixed_covs[j][block], model, dt)
+                mixed_means[j, idx] = mean
+                mixed_covs[j][block] = cov
+        return Prediction(mixed_means, mixed_covs, predicted, self.combine(mixed_means, mixed_covs, predicted))
+
+    def coast(self, prediction: Prediction) -> StepResult:
+        """An epoch without usable measurements: priors stand, probabilities are c_j."""
+        count = len(self.models)
+        return StepResult(
+            prediction.means, prediction.covs, prediction.predicted_probabilities, prediction.output,
+            np.zeros(count), np.full(count, np.nan),
+        )
+
+    def correct(self, prediction: Prediction, correction: Correction) -> StepResult:
+        """Every model's update at once, then model probabilities and the output (IMM or 2IMM)."""
+        result = correction.apply(self.filter, prediction.means, prediction.covs, self.active)
+        log_likelihoods = result.log_likelihood
+        require_finite("model likelihoods", log_likelihoods)
+        log_predicted = np.log(np.maximum(prediction.predicted_probabilities, _TINY))
+        common_means = result.means[:, self._common]
+        common_covs = result.covs[self._common_block]
+        if not self.is_two_stage:
+            probabilities = _softmax(log_likelihoods + log_predicted)
+            output = Gaussian(self.common, *self._moments(probabilities, common_means, common_covs))
+        else:
+            probabilities, output = self._two_stage(log_likelihoods, log_predicted, common_means, common_covs)
+        return StepResult(result.means, result.covs, probabilities, output, log_likelihoods, result.nis)
+
+    def _two_stage(self, log_likelihoods, log_predicted, means, covs) -> tuple[np.ndarray, Gaussian]:
+        first, second = self.priority, self.others
+        first_probs = _softmax(log_likelihoods[first] + log_predicted[first])  # eq. 30
+        first_mean, first_cov = self._moments(first_probs, means[first], covs[first])  # eqs. 31-32
+        best_first = log_likelihoods[first].max()  # eq. 33
+        log_first_mass = np.log(np.sum(np.exp(log_predicted[first])))
+        second_stage = _softmax(
+            np.concatenate([[best_first + log_first_mass], log_likelihoods[second] + log_predicted[second]])
+        )  # eqs. 34-35: [mu_0, mu_{n+1..N}]
+        stacked_means = np.vstack([first_mean[None, :], means[second]])
+        stacked_covs = np.concatenate([first_cov[None, :, :], covs[second]])
+        output = Gaussian(self.common, *self._moments(second_stage, stacked_means, stacked_covs))  # eqs. 36-37
+        probabilities = np.empty(len(self.models))
+        probabilities[first] = first_probs * second_stage[0]  # eq. 38
+        probabilities[second] = second_stage[1:]
+        return probabilities, output
+
+
+def _softmax(log_weights: np.ndarray) -> np.ndarray:
+    shifted = np.exp(log_weights - log_weights.max())
+    return shifted / shifted.sum()

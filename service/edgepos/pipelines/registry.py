@@ -1,0 +1,13 @@
+"""Every pipeline a session can use, by name: a new pipeline is one module plus one line here."""
+
+from __future__ import annotations
+
+from edgepos.pipelines.base import Pipeline
+from edgepos.pipelines.rsu_imu import RsuImuPipeline
+
+PIPELINES: dict[str, Pipeline] = {pipeline.name: pipeline for pipeline in (RsuImuPipeline(),)}
+
+
+def get_pipeline(name: str) -> Pipeline:
+    """The registered pipeline ``name``; KeyError if there is none."""
+    return PIPELINES[name]

@@ -1,0 +1,509 @@
+"""The RSU + IMU pipeline (Dai, Su, Cui, Wang 2025): RSU range/bearing and gyro yaw rate into an
+IMM or 2IMM bank of EKF/UKF/CKF filters over the 8-dim vehicle state.
+
+Per epoch (observations sharing a timestamp):
+1. RSUs in view: the known RSUs whose measured range is inside their communication radius; the
+   nearest ``max_rsus`` of them by measured range are used, the rest are reported as not used.
+2. Optional Mahalanobis gate of each RSU pair (2 dof) and gyro reading (1 dof) against the bank's
+   predicted output, linearised at the predicted mean.
+3. ``rsu_handling="joint"``: one update with every RSU pair and the gyro stacked.
+   ``"average"``: the paper's reading, one update per RSU (each with the gyro), posteriors averaged.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.stats import chi2
+
+from edgepos.core import layout, state as state_format
+from edgepos.core.filters import FILTERS, make_filter
+from edgepos.core.imm import Gaussian, InteractingMultipleModel, StepResult
+from edgepos.core.measurements import GyroYawRate, RsuRangeBearing, Stacked
+from edgepos.core.motion import MOTION_MODELS, make_motion_model
+from edgepos.core.observations import GyroObservation, Observation, RsuObservation
+from edgepos.core.updates import AveragedCorrection, JointCorrection
+from edgepos.pipelines.base import (
+    Environment,
+    Fix,
+    InitialState,
+    MeasurementUse,
+    OptionSpec,
+    Pipeline,
+    PipelineInputError,
+    Problem,
+    Rsu,
+    StateSummary,
+)
+from edgepos.pipelines.options import resolve_options
+
+#: Standard deviations of the components an initial state does not give (acceleration m/s^2,
+#: heading rad, turn rate rad/s).
+_INITIAL_ACCEL_STD = 3.0
+_INITIAL_HEADING_STD = math.pi
+_INITIAL_TURN_STD = 0.5
+
+OPTION_SPECS: tuple[OptionSpec, ...] = (
+    OptionSpec("filter", "string", "ckf", "Filter inside every model: ekf, ukf or ckf.", choices=tuple(FILTERS)),
+    OptionSpec(
+        "filter_params", "object", {}, "Filter tuning, e.g. {\"alpha\": 1, \"beta\": 2, \"kappa\": null} for the UKF."
+    ),
+    OptionSpec(
+        "models", "string[]", ["ca", "at", "singer"],
+        "Motion models of the bank, in order; one model means plain filtering.", choices=tuple(MOTION_MODELS),
+    ),
+    OptionSpec(
+        "model_params", "object", {},
+        "Per-model parameters by model name, e.g. {\"ct\": {\"omega\": 0.35}}; unset ones take the paper's values.",
+    ),
+    OptionSpec(
+        "priority", "string[]", ["ca", "at"],
+        "2IMM priority set (eqs. 29-38): models that interact first. Empty or all models: plain IMM.",
+        choices=tuple(MOTION_MODELS),
+    ),
+    OptionSpec(
+        "transition_diagonal", "number", 0.98,
+        "Probability of staying in a model per epoch; the rest is shared equally by the others.",
+        minimum=0.0, maximum=1.0,
+    ),
+    OptionSpec(
+        "transition", "matrix", None,
+        "Full model transition matrix, row i = from model i (rows sum to 1); overrides transition_diagonal.",
+    ),
+    OptionSpec("initial_probabilities", "number[]", None, "Initial model probabilities; default uniform."),
+    OptionSpec(
+        "rsu_handling", "string", "joint",
+        "joint: one update with every RSU stacked; average: one update per RSU, estimates averaged (the paper).",
+        choices=("joint", "average"),
+    ),
+    OptionSpec("max_rsus", "integer", 4, "Use at most this many RSUs per epoch, the nearest by range.", 1, 64),
+    OptionSpec("comm_radius", "number", 160.0, "RSU communication radius (m) unless an RSU sets its own.", 1.0, 1e5),
+    OptionSpec("range_std", "number", 0.6, "RSU range noise std (m) unless an RSU sets its own.", 1e-4, 1e4),
+    OptionSpec(
+        "bearing_std", "number", math.radians(0.5), "RSU bearing noise std (rad) unless an RSU sets its own.",
+        1e-6, math.pi,
+    ),
+    OptionSpec("gyro_std", "number", math.radians(0.3), "Gyro yaw-rate noise std (rad/s).", 1e-6, 10.0),
+    OptionSpec(
+        "gate_probability", "number", 0.9999,
+        "Mahalanobis gate: reject a measurement whose squared distance exceeds this chi-square quantile; 0 disables.",
+        0.0, 0.999999999,
+    ),
+    OptionSpec(
+        "init_velocity_std", "number", 15.0,
+        "Velocity std (m/s) when the pipeline initialises itself from RSU measurements.", 0.01, 1000.0,
+    ),
+)
+
+
+@dataclass
+class _SessionState:
+    """The decoded session: the bank's per-model Gaussians, probabilities and the clock."""
+
+    options: dict[str, Any]
+    initialised: bool
+    t: float | None  # time of the last epoch processed (also before initialisation)
+    filter_t: float | None  # time the filter estimates refer to
+    epochs: int
+    probabilities: np.ndarray
+    means: np.ndarray  # (models, 8), zero where a model lacks a component
+    covs: np.ndarray  # (models, 8, 8)
+
+    def to_bytes(self) -> bytes:
+        meta = {
+            "pipeline": RsuImuPipeline.name,
+            "options": self.options,
+            "initialised": self.initialised,
+            "t": self.t,
+            "filter_t": self.filter_t,
+            "epochs": self.epochs,
+        }
+        arrays = {"probabilities": self.probabilities, "means": self.means, "covs": self.covs}
+        return state_format.pack(meta, arrays)
+
+
+class RsuImuPipeline(Pipeline):
+    """RSU range + bearing and gyro yaw rate, IMM/2IMM over EKF, UKF or CKF (default 2IMM-CKF)."""
+
+    name = "rsu_imu"
+    description = (
+        "Roadside-unit range and bearing plus gyro yaw rate, fused by a 2IMM bank of cubature Kalman filters "
+        "over constant-acceleration, adaptive-turn and Singer models (Dai et al. 2025)."
+    )
+    measurement_kinds = (RsuObservation.kind, GyroObservation.kind)
+
+    def option_specs(self) -> list[OptionSpec]:
+        return list(OPTION_SPECS)
+
+    def resolve_options(self, options: Mapping[str, Any] | None) -> dict[str, Any]:
+        resolved = resolve_options(OPTION_SPECS, options)
+        problems = _cross_check(resolved)
+        if problems:
+            raise PipelineInputError(problems)
+        _bank(_options_key(resolved))  # builds models and filter: surfaces bad parameters now
+        return resolved
+
+    def create(self, options: Mapping[str, Any], initial: InitialState | None) -> bytes:
+        options = dict(options)
+        bank = _bank(_options_key(options))
+        probabilities = _initial_probabilities(options, len(bank.models))
+        if initial is None:
+            means, covs = bank.initial(np.zeros(layout.FULL_DIM), np.eye(layout.FULL_DIM))
+            return _SessionState(options, False, None, None, 0, probabilities, means, covs).to_bytes()
+        heading = math.atan2(initial.vy, initial.vx) if math.hypot(initial.vx, initial.vy) > 0 else 0.0
+        mean = np.array([initial.x, initial.vx, 0.0, initial.y, initial.vy, 0.0, heading, 0.0])
+        stds = [
+            initial.position_std, initial.velocity_std, _INITIAL_ACCEL_STD,
+            initial.position_std, initial.velocity_std, _INITIAL_ACCEL_STD,
+            _INITIAL_HEADING_STD, _INITIAL_TURN_STD,
+        ]
+        means, covs = bank.initial(mean, np.diag(np.square(stds)))
+        return _SessionState(options, True, None, None, 0, probabilities, means, covs).to_bytes()
+
+    def summarise(self, state: bytes) -> StateSummary:
+        session = _decode(state)
+        names = session.options["models"]
+        return StateSummary(
+            initialised=session.initialised,
+            t=session.t,
+            epochs=session.epochs,
+            model_probabilities=dict(zip(names, map(float, session.probabilities))),
+            options=session.options,
+        )
+
+    def process(
+        self, state: bytes, observations: Sequence[Observation], environment: Environment
+    ) -> tuple[list[Fix], bytes]:
+        session = _decode(state)
+        rsus = _validate(session, observations, environment)
+        bank = _bank(_options_key(session.options))
+        fixes = []
+        for epoch in _epochs(observations):
+            fixes.append(_step(session, bank, epoch, observations, rsus))
+        return fixes, session.to_bytes()
+
+
+# -- validation and grouping ---------------------------------------------------------------------
+def _cross_check(options: dict[str, Any]) -> list[Problem]:
+    problems = []
+    models = options["models"]
+    if not models:
+        problems.append(Problem(None, "options.models", "must name at least one motion model"))
+    missing = [p for p in options["priority"] if p not in models]
+    if missing:
+        problems.append(Problem(None, "options.priority", f"{missing} are not in options.models"))
+    unknown = [name for name in options["model_params"] if name not in models]
+    if unknown:
+        problems.append(Problem(None, "options.model_params", f"{unknown} are not in options.models"))
+    count = len(models)
+    if options["transition"] is not None:
+        matrix = np.array(options["transition"], dtype=object)
+        if matrix.shape != (count, count):
+            problems.append(Problem(None, "options.transition", f"must be {count}x{count}, one row per model"))
+        elif np.any(np.array(options["transition"]) < 0) or not np.allclose(
+            np.sum(options["transition"], axis=1), 1.0, atol=1e-9
+        ):
+            problems.append(Problem(None, "options.transition", "rows must be non-negative and sum to 1"))
+    initial = options["initial_probabilities"]
+    if initial is not None:
+        if len(initial) != count:
+            problems.append(Problem(None, "options.initial_probabilities", f"must have {count} entries"))
+        elif min(initial) < 0 or not math.isclose(sum(initial), 1.0, abs_tol=1e-9):
+            problems.append(Problem(None, "options.initial_probabilities", "must be non-negative and sum to 1"))
+    for name, params in options["model_params"].items():
+        if not isinstance(params, dict):
+            problems.append(Problem(None, f"options.model_params.{name}", "must be a JSON object"))
+    return problems
+
+
+def _validate(session: _SessionState, observations: Sequence[Observation], environment: Environment) -> list[Rsu | None]:
+    """Check the whole batch before touching the filter; return each observation's RSU (or None)."""
+    problems = []
+    rsus: list[Rsu | None] = []
+    for index, observation in enumerate(observations):
+        rsu = None
+        if not math.isfinite(observation.t):
+            problems.append(Problem(index, "t", "must be finite"))
+        elif session.t is not None and observation.t < session.t:
+            problems.append(
+                Problem(index, "t", f"{observation.t!r} is older than the session's last epoch t={session.t!r}")
+            )
+        if isinstance(observation, RsuObservation):
+            rsu = environment.rsu(observation.rsu_id)
+            if rsu is None:
+                problems.append(Problem(index, "rsu_id", f"unknown RSU {observation.rsu_id!r}"))
+            if not (math.isfinite(observation.range) and observation.range >= 0.0):
+                problems.append(Problem(index, "range", "must be a finite distance >= 0 m"))
+            if not (math.isfinite(observation.bearing) and abs(observation.bearing) <= math.pi + 1e-9):
+                problems.append(Problem(index, "bearing", "must be a finite angle in [-pi, pi] rad"))
+        elif isinstance(observation, GyroObservation):
+            if not math.isfinite(observation.yaw_rate):
+                problems.append(Problem(index, "yaw_rate", "must be finite"))
+        else:
+            problems.append(Problem(index, "type", f"{observation.kind!r} is not used by the rsu_imu pipeline"))
+        rsus.append(rsu)
+    if problems:
+        raise PipelineInputError(problems)
+    return rsus
+
+
+def _epochs(observations: Sequence[Observation]) -> list[list[int]]:
+    """Indices of the observations grouped by timestamp, in time order (stable within an epoch)."""
+    order = sorted(range(len(observations)), key=lambda i: observations[i].t)
+    epochs: list[list[int]] = []
+    for index in order:
+        if epochs and observations[epochs[-1][0]].t == observations[index].t:
+            epochs[-1].append(index)
+        else:
+            epochs.append([index])
+    return epochs
+
+
+# -- the bank ------------------------------------------------------------------------------------
+def _options_key(options: Mapping[str, Any]) -> str:
+    return json.dumps(options, sort_keys=True)
+
+
+@functools.lru_cache(maxsize=128)
+def _bank(options_key: str) -> InteractingMultipleModel:
+    options = json.loads(options_key)
+    models = [make_motion_model(name, **options["model_params"].get(name, {})) for name in options["models"]]
+    filt = make_filter(options["filter"], **options["filter_params"])
+    count = len(models)
+    if options["transition"] is not None:
+        transition = np.array(options["transition"], dtype=float)
+    elif count == 1:
+        transition = np.ones((1, 1))
+    else:
+        stay = options["transition_diagonal"]
+        transition = np.full((count, count), (1.0 - stay) / (count - 1))
+        np.fill_diagonal(transition, stay)
+    priority = [options["models"].index(name) for name in options["priority"]] or None
+    return InteractingMultipleModel(models, filt, transition, priority)
+
+
+def _initial_probabilities(options: Mapping[str, Any], count: int) -> np.ndarray:
+    if options["initial_probabilities"] is None:
+        return np.full(count, 1.0 / count)
+    return np.array(options["initial_probabilities"], dtype=float)
+
+
+def _decode(blob: bytes) -> _SessionState:
+    meta, arrays = state_format.unpack(blob)
+    if meta.get("pipeline") != RsuImuPipeline.name:
+        raise state_format.StateFormatError("state does not belong to the rsu_imu pipeline")
+    return _SessionState(
+        meta["options"], meta["initialised"], meta["t"], meta["filter_t"], meta["epochs"],
+        arrays["probabilities"], arrays["means"], arrays["covs"],
+    )
+
+
+# -- one epoch -----------------------------------------------------------------------------------
+def _step(
+    session: _SessionState,
+    bank: InteractingMultipleModel,
+    epoch: list[int],
+    observations: Sequence[Observation],
+    rsus: list[Rsu | None],
+) -> Fix:
+    options = session.options
+    t = observations[epoch[0]].t
+    session.t = t
+    session.epochs += 1
+    uses: dict[int, MeasurementUse] = {}
+    candidates = _rsus_in_view(epoch, observations, rsus, options, uses)
+    gyros = [i for i in epoch if isinstance(observations[i], GyroObservation)]
+
+    if not session.initialised:
+        if not candidates:
+            for i in epoch:
+                uses[i] = MeasurementUse(i, observations[i].kind, False, "waiting for an RSU measurement to initialise")
+            return Fix(t=t, status="uninitialised", measurements=[uses[i] for i in sorted(uses)])
+        _initialise(session, bank, candidates, gyros, observations, rsus)
+        for i in candidates + gyros:
+            uses[i] = MeasurementUse(i, observations[i].kind, True)
+        output = bank.combine(session.means, session.covs, session.probabilities)
+        return _fix(t, "initialised", output, session, bank, uses, nis=None, dof=0)
+
+    dt = None if session.filter_t is None else t - session.filter_t
+    prediction = bank.predict(session.means, session.covs, session.probabilities, dt)
+    gate = options["gate_probability"]
+    if gate > 0.0:
+        candidates = _gate_rsus(candidates, prediction.output, observations, rsus, options, gate, uses)
+        gyros = _gate_gyros(gyros, prediction.output, observations, options, gate, uses)
+    for i in candidates + gyros:
+        uses[i] = MeasurementUse(i, observations[i].kind, True)
+
+    correction, dof = _correction(candidates, gyros, observations, rsus, options)
+    result: StepResult = bank.coast(prediction) if correction is None else bank.correct(prediction, correction)
+    session.means, session.covs = result.means, result.covs
+    session.probabilities = result.probabilities
+    session.filter_t = t
+    nis = None if correction is None else float(result.probabilities @ result.nis)
+    return _fix(t, "predicted" if correction is None else "tracking", result.output, session, bank, uses, nis, dof)
+
+
+def _rsus_in_view(epoch, observations, rsus, options, uses) -> list[int]:
+    """RSU observations inside their radius, nearest ``max_rsus`` by measured range."""
+    in_radius = []
+    for i in epoch:
+        observation = observations[i]
+        if not isinstance(observation, RsuObservation):
+            continue
+        radius = rsus[i].radius or options["comm_radius"]
+        if observation.range > radius:
+            uses[i] = MeasurementUse(i, observation.kind, False, f"range beyond the {radius:g} m communication radius")
+        else:
+            in_radius.append(i)
+    in_radius.sort(key=lambda i: observations[i].range)
+    for i in in_radius[options["max_rsus"]:]:
+        uses[i] = MeasurementUse(i, "rsu", False, f"not among the nearest {options['max_rsus']} RSUs")
+    return in_radius[: options["max_rsus"]]
+
+
+def _rsu_model(indices, observations, rsus, options) -> tuple[RsuRangeBearing, np.ndarray]:
+    positions = np.array([[rsus[i].x, rsus[i].y] for i in indices])
+    range_std = np.array([rsus[i].range_std or options["range_std"] for i in indices])
+    bearing_std = np.array([rsus[i].bearing_std or options["bearing_std"] for i in indices])
+    observed = np.array([[observations[i].range, observations[i].bearing] for i in indices]).ravel()
+    return RsuRangeBearing(positions, range_std, bearing_std), observed
+
+
+def _gate_rsus(candidates, prior: Gaussian, observations, rsus, options, probability, uses) -> list[int]:
+    threshold = float(chi2.ppf(probability, 2))
+    full_mean, full_cov = _embed_gaussian(prior)
+    kept = []
+    for i in candidates:
+        model, observed = _rsu_model([i], observations, rsus, options)
+        distance = _mahalanobis(model, observed, full_mean, full_cov)
+        if distance > threshold:
+            uses[i] = MeasurementUse(i, "rsu", False, f"failed the gate: d^2 = {distance:.1f} > {threshold:.1f}")
+        else:
+            kept.append(i)
+    return kept
+
+
+def _gate_gyros(gyros, prior: Gaussian, observations, options, probability, uses) -> list[int]:
+    if not {layout.XA, layout.YA} <= set(prior.components):
+        return gyros  # without acceleration in every model, the bank has no yaw-rate prediction to gate on
+    threshold = float(chi2.ppf(probability, 1))
+    full_mean, full_cov = _embed_gaussian(prior)
+    model = GyroYawRate(options["gyro_std"])
+    kept = []
+    for i in gyros:
+        distance = _mahalanobis(model, np.array([observations[i].yaw_rate]), full_mean, full_cov)
+        if distance > threshold:
+            uses[i] = MeasurementUse(i, "gyro", False, f"failed the gate: d^2 = {distance:.1f} > {threshold:.1f}")
+        else:
+            kept.append(i)
+    return kept
+
+
+def _embed_gaussian(estimate: Gaussian) -> tuple[np.ndarray, np.ndarray]:
+    idx = list(estimate.components)
+    mean = np.zeros(layout.FULL_DIM)
+    cov = np.zeros((layout.FULL_DIM, layout.FULL_DIM))
+    mean[idx] = estimate.mean
+    cov[np.ix_(idx, idx)] = estimate.cov
+    return mean, cov
+
+
+def _mahalanobis(model, observed: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> float:
+    jacobian = model.jacobian(mean[None, :])[0]
+    residual = model.residual(observed, model.predict(mean[None, :])[0])
+    innovation_cov = jacobian @ cov @ jacobian.T + model.noise_covariance()
+    return float(residual @ np.linalg.solve(innovation_cov, residual))
+
+
+def _correction(candidates, gyros, observations, rsus, options):
+    """The epoch's correction and its measurement dimension, or (None, 0) when nothing is usable."""
+    gyro_part = None
+    if gyros:
+        gyro_part = (
+            Stacked([GyroYawRate(options["gyro_std"])] * len(gyros)) if len(gyros) > 1 else GyroYawRate(options["gyro_std"]),
+            np.array([observations[i].yaw_rate for i in gyros]),
+        )
+    if not candidates:
+        return (None, 0) if gyro_part is None else (JointCorrection(*gyro_part), len(gyros))
+
+    def joint(indices) -> JointCorrection:
+        model, observed = _rsu_model(indices, observations, rsus, options)
+        if gyro_part is None:
+            return JointCorrection(model, observed)
+        return JointCorrection(Stacked([model, gyro_part[0]]), np.concatenate([observed, gyro_part[1]]))
+
+    if options["rsu_handling"] == "average" and len(candidates) > 1:
+        return AveragedCorrection([joint([i]) for i in candidates]), 2 + len(gyros)
+    return joint(candidates), 2 * len(candidates) + len(gyros)
+
+
+def _initialise(session, bank, candidates, gyros, observations, rsus) -> None:
+    """Start the filter from this epoch: position from the RSU fixes, velocity unknown."""
+    options = session.options
+    points, variances = [], []
+    for i in candidates:
+        observation, rsu = observations[i], rsus[i]
+        points.append(
+            [rsu.x + observation.range * math.cos(observation.bearing),
+             rsu.y + observation.range * math.sin(observation.bearing)]
+        )
+        range_std = rsu.range_std or options["range_std"]
+        bearing_std = rsu.bearing_std or options["bearing_std"]
+        variances.append(range_std**2 + (observation.range * bearing_std) ** 2)
+    x, y = np.mean(points, axis=0)
+    position_var = float(np.mean(variances)) / len(points)
+    yaw_rate = float(np.mean([observations[i].yaw_rate for i in gyros])) if gyros else 0.0
+    velocity_var = options["init_velocity_std"] ** 2
+    mean = np.array([x, 0.0, 0.0, y, 0.0, 0.0, 0.0, yaw_rate])
+    variances8 = [
+        position_var, velocity_var, _INITIAL_ACCEL_STD**2, position_var, velocity_var, _INITIAL_ACCEL_STD**2,
+        _INITIAL_HEADING_STD**2, (options["gyro_std"] if gyros else _INITIAL_TURN_STD) ** 2,
+    ]
+    session.means, session.covs = bank.initial(mean, np.diag(variances8))
+    session.initialised = True
+    session.filter_t = observations[candidates[0]].t
+
+
+def _fix(t, status, output: Gaussian, session, bank, uses, nis, dof) -> Fix:
+    components = list(output.components)
+    value = dict(zip(components, output.mean))
+    vx, vy = float(value[layout.XV]), float(value[layout.YV])
+    position = [components.index(layout.XP), components.index(layout.YP)]
+    return Fix(
+        t=t,
+        status=status,
+        x=float(value[layout.XP]),
+        y=float(value[layout.YP]),
+        vx=vx,
+        vy=vy,
+        speed=math.hypot(vx, vy),
+        heading=math.atan2(vy, vx),
+        yaw_rate=_yaw_rate(value, session, bank),
+        position_cov=output.cov[np.ix_(position, position)].tolist(),
+        state_components=tuple(layout.NAMES[c] for c in components),
+        state=output.mean.tolist(),
+        state_cov=output.cov.tolist(),
+        model_probabilities=dict(zip(session.options["models"], map(float, session.probabilities))),
+        nis=nis,
+        nis_dof=dof,
+        measurements=[uses[i] for i in sorted(uses)],
+    )
+
+
+def _yaw_rate(value: dict[int, float], session: _SessionState, bank: InteractingMultipleModel) -> float | None:
+    """Turn rate of the velocity vector from the fused kinematics, else from models that carry omega."""
+    if layout.XA in value and layout.YA in value:
+        vx, vy, ax, ay = value[layout.XV], value[layout.YV], value[layout.XA], value[layout.YA]
+        return float((vx * ay - ax * vy) / max(vx * vx + vy * vy, 0.01))
+    carriers = [j for j, m in enumerate(bank.models) if layout.OMEGA in m.components]
+    if not carriers:
+        return None
+    weights = session.probabilities[carriers]
+    return float(np.dot(weights, session.means[carriers, layout.OMEGA]) / weights.sum())
+

@@ -1,0 +1,252 @@
+"""A store in one SQLite file (WAL mode), shared by several worker processes on one box.
+
+Each process talks to the file through one connection owned by one background thread, so the
+event loop never blocks on disk. Writers coordinate through SQLite's own locking; session updates
+are compare-and-set on ``version``, so when two workers race on one session exactly one wins and
+the other reloads and retries.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import sqlite3
+import time
+from collections.abc import Callable, Iterable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any, TypeVar
+
+from edgepos.pipelines.base import Rsu
+from edgepos.store.base import Clock, SessionRecord, SessionStore, TooManySessions
+
+T = TypeVar("T")
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS sessions (
+    session_id TEXT PRIMARY KEY,
+    vehicle_id TEXT NOT NULL,
+    pipeline TEXT NOT NULL,
+    options TEXT NOT NULL,
+    token_hash TEXT NOT NULL,
+    state BLOB NOT NULL,
+    created_at REAL NOT NULL,
+    updated_at REAL NOT NULL,
+    last_seq INTEGER NOT NULL,
+    last_request_hash TEXT,
+    last_response BLOB,
+    batches INTEGER NOT NULL,
+    epochs INTEGER NOT NULL,
+    last_fix TEXT,
+    version INTEGER NOT NULL
+);
+CREATE INDEX IF NOT EXISTS sessions_updated_at ON sessions (updated_at);
+CREATE TABLE IF NOT EXISTS rsus (
+    id TEXT PRIMARY KEY,
+    x REAL NOT NULL,
+    y REAL NOT NULL,
+    range_std REAL,
+    bearing_std REAL,
+    radius REAL
+);
+"""
+
+_SESSION_COLUMNS = (
+    "session_id, vehicle_id, pipeline, options, token_hash, state, created_at, updated_at, last_seq, "
+    "last_request_hash, last_response, batches, epochs, last_fix, version"
+)
+
+
+def path_from_url(url: str) -> Path:
+    """``sqlite:///relative.db`` or ``sqlite:////absolute/path.db`` -> the file's path."""
+    prefix = "sqlite:///"
+    if not url.startswith(prefix) or len(url) == len(prefix):
+        raise ValueError(f"not a SQLite store URL (want sqlite:///path.db): {url!r}")
+    return Path(url[len(prefix) :])
+
+
+class SQLiteStore(SessionStore):
+    """Sessions and RSUs in a SQLite database file."""
+
+    def __init__(self, path: str | Path, ttl_s: float, clock: Clock = time.time) -> None:
+        super().__init__(ttl_s, clock)
+        self.path = Path(path)
+        self._executor: ThreadPoolExecutor | None = None
+        self._connection: sqlite3.Connection | None = None
+
+    # plumbing -------------------------------------------------------------------------------
+    def _connect(self) -> sqlite3.Connection:
+        if self._connection is None:
+            if self.path.parent != Path(""):
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+            connection = sqlite3.connect(
+                self.path, timeout=30.0, isolation_level=None, check_same_thread=False
+            )
+            connection.execute("PRAGMA busy_timeout = 30000")
+            connection.execute("PRAGMA journal_mode = WAL")
+            connection.execute("PRAGMA synchronous = NORMAL")
+            connection.executescript(_SCHEMA)
+            self._connection = connection
+        return self._connection
+
+    def _thread(self) -> ThreadPoolExecutor:
+        if self._executor is None:
+            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="edgepos-sqlite")
+        return self._executor
+
+    async def _run(self, fn: Callable[[sqlite3.Connection], T]) -> T:
+        loop = asyncio.get_running_loop()
+        return await loop.run_in_executor(self._thread(), lambda: fn(self._connect()))
+
+    @staticmethod
+    def _record(row: tuple[Any, ...]) -> SessionRecord:
+        (sid, vehicle, pipeline, options, token_hash, state, created, updated, last_seq, req_hash,
+         response, batches, epochs, last_fix, version) = row
+        return SessionRecord(
+            session_id=sid, vehicle_id=vehicle, pipeline=pipeline, options=json.loads(options),
+            token_hash=token_hash, state=bytes(state), created_at=created, updated_at=updated,
+            last_seq=last_seq, last_request_hash=req_hash,
+            last_response=None if response is None else bytes(response), batches=batches,
+            epochs=epochs, last_fix=last_fix, version=version,
+        )
+
+    @staticmethod
+    def _row(record: SessionRecord) -> tuple[Any, ...]:
+        return (
+            record.session_id, record.vehicle_id, record.pipeline,
+            json.dumps(record.options, allow_nan=False), record.token_hash, record.state,
+            record.created_at, record.updated_at, record.last_seq, record.last_request_hash,
+            record.last_response, record.batches, record.epochs, record.last_fix, record.version,
+        )
+
+    def _live_since(self) -> float:
+        return self.clock() - self.ttl_s
+
+    # sessions -------------------------------------------------------------------------------
+    async def create(self, record: SessionRecord, max_sessions: int) -> None:
+        def work(db: sqlite3.Connection) -> None:
+            db.execute("BEGIN IMMEDIATE")
+            try:
+                db.execute("DELETE FROM sessions WHERE updated_at < ?", (self._live_since(),))
+                (count,) = db.execute("SELECT COUNT(*) FROM sessions").fetchone()
+                if count >= max_sessions:
+                    raise TooManySessions(max_sessions)
+                db.execute(
+                    f"INSERT INTO sessions ({_SESSION_COLUMNS}) VALUES ({', '.join('?' * 15)})",
+                    self._row(record),
+                )
+            except BaseException:
+                db.execute("ROLLBACK")
+                raise
+            db.execute("COMMIT")
+
+        await self._run(work)
+
+    async def get(self, session_id: str) -> SessionRecord | None:
+        def work(db: sqlite3.Connection) -> SessionRecord | None:
+            row = db.execute(
+                f"SELECT {_SESSION_COLUMNS} FROM sessions WHERE session_id = ? AND updated_at >= ?",
+                (session_id, self._live_since()),
+            ).fetchone()
+            return None if row is None else self._record(row)
+
+        return await self._run(work)
+
+    async def compare_and_set(self, record: SessionRecord, expected_version: int) -> bool:
+        def work(db: sqlite3.Connection) -> bool:
+            row = self._row(record)
+            cursor = db.execute(
+                "UPDATE sessions SET vehicle_id = ?, pipeline = ?, options = ?, token_hash = ?, "
+                "state = ?, created_at = ?, updated_at = ?, last_seq = ?, last_request_hash = ?, "
+                "last_response = ?, batches = ?, epochs = ?, last_fix = ?, version = ? "
+                "WHERE session_id = ? AND version = ?",
+                (*row[1:14], expected_version + 1, record.session_id, expected_version),
+            )
+            return cursor.rowcount == 1
+
+        return await self._run(work)
+
+    async def delete(self, session_id: str) -> bool:
+        def work(db: sqlite3.Connection) -> bool:
+            return db.execute("DELETE FROM sessions WHERE session_id = ?", (session_id,)).rowcount == 1
+
+        return await self._run(work)
+
+    async def count(self) -> int:
+        def work(db: sqlite3.Connection) -> int:
+            (count,) = db.execute(
+                "SELECT COUNT(*) FROM sessions WHERE updated_at >= ?", (self._live_since(),)
+            ).fetchone()
+            return int(count)
+
+        return await self._run(work)
+
+    async def expire(self) -> int:
+        def work(db: sqlite3.Connection) -> int:
+            return db.execute("DELETE FROM sessions WHERE updated_at < ?", (self._live_since(),)).rowcount
+
+        return await self._run(work)
+
+    # RSUs -----------------------------------------------------------------------------------
+    async def upsert_rsus(self, rsus: Iterable[Rsu]) -> int:
+        rows = [(r.id, r.x, r.y, r.range_std, r.bearing_std, r.radius) for r in rsus]
+
+        def work(db: sqlite3.Connection) -> int:
+            db.execute("BEGIN IMMEDIATE")
+            try:
+                db.executemany("INSERT OR REPLACE INTO rsus VALUES (?, ?, ?, ?, ?, ?)", rows)
+            except BaseException:
+                db.execute("ROLLBACK")
+                raise
+            db.execute("COMMIT")
+            return len(rows)
+
+        return await self._run(work)
+
+    async def get_rsu(self, rsu_id: str) -> Rsu | None:
+        found = await self.get_rsus([rsu_id])
+        return found.get(rsu_id)
+
+    async def get_rsus(self, rsu_ids: Iterable[str]) -> Mapping[str, Rsu]:
+        wanted = sorted(set(rsu_ids))
+
+        def work(db: sqlite3.Connection) -> Mapping[str, Rsu]:
+            found: dict[str, Rsu] = {}
+            for start in range(0, len(wanted), 500):
+                chunk = wanted[start : start + 500]
+                rows = db.execute(
+                    f"SELECT id, x, y, range_std, bearing_std, radius FROM rsus "
+                    f"WHERE id IN ({', '.join('?' * len(chunk))})",
+                    chunk,
+                ).fetchall()
+                found.update({row[0]: Rsu(*row) for row in rows})
+            return found
+
+        return await self._run(work)
+
+    async def list_rsus(self) -> list[Rsu]:
+        def work(db: sqlite3.Connection) -> list[Rsu]:
+            rows = db.execute("SELECT id, x, y, range_std, bearing_std, radius FROM rsus ORDER BY id")
+            return [Rsu(*row) for row in rows.fetchall()]
+
+        return await self._run(work)
+
+    async def delete_rsu(self, rsu_id: str) -> bool:
+        def work(db: sqlite3.Connection) -> bool:
+            return db.execute("DELETE FROM rsus WHERE id = ?", (rsu_id,)).rowcount == 1
+
+        return await self._run(work)
+
+    async def close(self) -> None:
+        """Close the connection and stop the thread; a later call reopens both."""
+        executor, self._executor = self._executor, None
+        if executor is None:
+            return
+
+        def work() -> None:
+            if self._connection is not None:
+                self._connection.close()
+                self._connection = None
+
+        await asyncio.get_running_loop().run_in_executor(executor, work)
+        executor.shutdown(wait=True)
