@@ -64,6 +64,19 @@ class StepResult:
     nis: np.ndarray
 
 
+class _ExtraBlocks:
+    """Index helpers for a model that carries components beyond the common ones."""
+
+    def __init__(self, model: int, common: tuple[int, ...], extra: tuple[int, ...]) -> None:
+        self.model = model
+        self.common = list(common)
+        self.extra = list(extra)
+        self.cc = np.ix_(common, common)
+        self.ec = np.ix_(extra, common)
+        self.ce = np.ix_(common, extra)
+        self.ee = np.ix_(extra, extra)
+
+
 class Correction(ABC):
     """How a bank's priors become posteriors for one epoch (see ``core.updates``)."""
 
@@ -96,14 +109,14 @@ class InteractingMultipleModel:
         if not {layout.XP, layout.YP} <= set(self.common):
             raise ConfigurationError("every model must carry position")
         self.common_mask = layout.angle_mask(self.common)
+        self._common_has_angle = bool(self.common_mask.any())
         self._common = np.array(self.common)
         self._common_block = (slice(None), self._common[:, None], self._common[None, :])
         self.active = np.zeros((count, layout.FULL_DIM), dtype=bool)
         for j, model in enumerate(self.models):
             self.active[j, list(model.components)] = True
-        self._blocks = [np.ix_(m.components, m.components) for m in self.models]
         self._extras = [
-            (j, np.array([c for c in m.components if c not in self.common]))
+            _ExtraBlocks(j, self.common, tuple(c for c in m.components if c not in self.common))
             for j, m in enumerate(self.models)
             if len(m.components) > len(self.common)
         ]
@@ -128,9 +141,14 @@ class InteractingMultipleModel:
     # -- mixtures over the common components --------------------------------------------------
     def _moments(self, weights: np.ndarray, means: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Moment-matched mean and covariance of a Gaussian mixture (common components only)."""
-        mean = weighted_mean(means, weights, self.common_mask)
-        spread = wrap_rows(means - mean, self.common_mask)
-        cov = np.tensordot(weights, covs, axes=1) + (spread.T * weights) @ spread
+        if self._common_has_angle:
+            mean = weighted_mean(means, weights, self.common_mask)
+            spread = wrap_rows(means - mean, self.common_mask)
+        else:
+            mean = weights @ means
+            spread = means - mean
+        size = means.shape[1]
+        cov = (weights @ covs.reshape(len(weights), -1)).reshape(size, size) + (spread.T * weights) @ spread
         return mean, 0.5 * (cov + cov.T)
 
     def combine(self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray) -> Gaussian:
@@ -143,48 +161,47 @@ class InteractingMultipleModel:
         weights = self.transition * probabilities[:, None] / predicted  # weights[i, j] = mu_{i|j}
         common_means = means[:, self._common]
         common_covs = covs[self._common_block]
-        if self.common_mask.any():
-            mixed = np.stack([weighted_mean(common_means, weights[:, j], self.common_mask) for j in range(len(self.models))])
+        count, size = common_means.shape
+        if self._common_has_angle:
+            mixed = np.stack([weighted_mean(common_means, weights[:, j], self.common_mask) for j in range(count)])
+            spread = wrap_rows(common_means[None, :, :] - mixed[:, None, :], self.common_mask)  # (j, i, c)
         else:
             mixed = weights.T @ common_means
-        spread = wrap_rows(common_means[:, None, :] - mixed[None, :, :], self.common_mask)  # (i, j, c)
-        mixed_covs = np.einsum("ij,ikl->jkl", weights, common_covs) + np.einsum("ij,ijk,ijl->jkl", weights, spread, spread)
+            spread = common_means[None, :, :] - mixed[:, None, :]
+        weighted_spread = spread * weights.T[:, :, None]
+        mixed_covs = (weights.T @ common_covs.reshape(count, -1)).reshape(count, size, size)
+        mixed_covs += weighted_spread.transpose(0, 2, 1) @ spread
         new_means = means.copy()
         new_covs = covs.copy()
         new_means[:, self._common] = mixed
         new_covs[self._common_block] = mixed_covs
-        for j, extra in self._extras:
-            self._carry_extras(j, extra, means[j], covs[j], new_means[j], new_covs[j])
+        for blocks in self._extras:
+            j = blocks.model
+            self._carry_extras(blocks, means[j], covs[j], new_means[j], new_covs[j])
         return new_means, 0.5 * (new_covs + new_covs.transpose(0, 2, 1)), predicted / predicted.sum()
 
-    def _carry_extras(self, j, extra, old_mean, old_cov, new_mean, new_cov) -> None:
-        """Model j's extra components follow their conditional given the re-mixed common block."""
-        common = self._common
-        own_cc = old_cov[np.ix_(common, common)]
-        own_ec = old_cov[np.ix_(extra, common)]
+    def _carry_extras(self, blocks: _ExtraBlocks, old_mean, old_cov, new_mean, new_cov) -> None:
+        """A model's extra components follow their conditional given its re-mixed common block."""
+        own_cc = old_cov[blocks.cc]
+        own_ec = old_cov[blocks.ec]
         try:
             regression = np.linalg.solve(own_cc, own_ec.T).T  # B = P_ec P_cc^-1
         except np.linalg.LinAlgError:
             raise NumericalError("common-component covariance is singular during interaction") from None
-        shift = wrap_rows(new_mean[common] - old_mean[common], self.common_mask)
-        new_mean[extra] = old_mean[extra] + regression @ shift
+        shift = wrap_rows(new_mean[blocks.common] - old_mean[blocks.common], self.common_mask)
+        new_mean[blocks.extra] = old_mean[blocks.extra] + regression @ shift
         wrap_rows(new_mean, layout.FULL_ANGLE_MASK)
-        mixed_cc = new_cov[np.ix_(common, common)]
-        cross = regression @ mixed_cc
-        new_cov[np.ix_(extra, common)] = cross
-        new_cov[np.ix_(common, extra)] = cross.T
-        new_cov[np.ix_(extra, extra)] = old_cov[np.ix_(extra, extra)] - regression @ own_ec.T + cross @ regression.T
+        cross = regression @ new_cov[blocks.cc]
+        new_cov[blocks.ec] = cross
+        new_cov[blocks.ce] = cross.T
+        new_cov[blocks.ee] = old_cov[blocks.ee] - regression @ own_ec.T + cross @ regression.T
 
     # -- one epoch ---------------------------------------------------------------------------
     def predict(self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray, dt: float | None) -> Prediction:
         """Interaction, then each model's prediction over ``dt`` (none when dt is None or 0)."""
         mixed_means, mixed_covs, predicted = self.mix(means, covs, probabilities)
         if dt:
-            for j, model in enumerate(self.models):
-                idx, block = list(model.components), self._blocks[j]
-                mean, cov = self.filter.predict(mixed_means[j, idx], mixed_covs[j][block], model, dt)
-                mixed_means[j, idx] = mean
-                mixed_covs[j][block] = cov
+            mixed_means, mixed_covs = self.filter.predict_bank(mixed_means, mixed_covs, self.models, dt)
         return Prediction(mixed_means, mixed_covs, predicted, self.combine(mixed_means, mixed_covs, predicted))
 
     def coast(self, prediction: Prediction) -> StepResult:

@@ -368,57 +368,61 @@ def _rsus_in_view(epoch, observations, rsus, options, uses) -> list[int]:
 
 
 def _rsu_model(indices, observations, rsus, options) -> tuple[RsuRangeBearing, np.ndarray]:
-    positions = np.array([[rsus[i].x, rsus[i].y] for i in indices])
-    range_std = np.array([rsus[i].range_std or options["range_std"] for i in indices])
-    bearing_std = np.array([rsus[i].bearing_std or options["bearing_std"] for i in indices])
+    positions = [[rsus[i].x, rsus[i].y] for i in indices]
+    range_std = [rsus[i].range_std or options["range_std"] for i in indices]
+    bearing_std = [rsus[i].bearing_std or options["bearing_std"] for i in indices]
     observed = np.array([[observations[i].range, observations[i].bearing] for i in indices]).ravel()
     return RsuRangeBearing(positions, range_std, bearing_std), observed
 
 
+@functools.lru_cache(maxsize=64)
+def _gate_threshold(probability: float, dof: int) -> float:
+    """The chi-square quantile a squared Mahalanobis distance is gated at."""
+    return float(chi2.ppf(probability, dof))
+
+
+def _gate(model, observed: np.ndarray, prior: Gaussian, block: int, probability: float) -> tuple[np.ndarray, float]:
+    """Squared Mahalanobis distance of each ``block``-row group of ``observed`` against the prior,
+    linearised at the prior mean, and the gate threshold; one batched computation for all groups."""
+    idx = list(prior.components)
+    mean = np.zeros(layout.FULL_DIM)
+    mean[idx] = prior.mean
+    jacobian = model.jacobian(mean[None, :])[0][:, idx]
+    residual = model.residual(observed, model.predict(mean[None, :])[0])
+    groups = residual.size // block
+    jacobian = jacobian.reshape(groups, block, len(idx))
+    noise = np.diagonal(model.noise_covariance()).reshape(groups, block)
+    innovation_cov = jacobian @ prior.cov @ jacobian.transpose(0, 2, 1) + noise[:, :, None] * np.eye(block)
+    residual = residual.reshape(groups, block, 1)
+    distances = (residual.transpose(0, 2, 1) @ np.linalg.solve(innovation_cov, residual)).ravel()
+    return distances, _gate_threshold(probability, block)
+
+
 def _gate_rsus(candidates, prior: Gaussian, observations, rsus, options, probability, uses) -> list[int]:
-    threshold = float(chi2.ppf(probability, 2))
-    full_mean, full_cov = _embed_gaussian(prior)
-    kept = []
-    for i in candidates:
-        model, observed = _rsu_model([i], observations, rsus, options)
-        distance = _mahalanobis(model, observed, full_mean, full_cov)
-        if distance > threshold:
-            uses[i] = MeasurementUse(i, "rsu", False, f"failed the gate: d^2 = {distance:.1f} > {threshold:.1f}")
-        else:
-            kept.append(i)
-    return kept
+    if not candidates:
+        return candidates
+    model, observed = _rsu_model(candidates, observations, rsus, options)
+    distances, threshold = _gate(model, observed, prior, 2, probability)
+    failed = distances > threshold
+    if failed.sum() * 2 > len(candidates):
+        return candidates  # most RSUs disagree with the prediction: the prediction is what is off
+    for i, distance in zip(np.array(candidates)[failed], distances[failed]):
+        uses[i] = MeasurementUse(int(i), "rsu", False, f"failed the gate: d^2 = {distance:.1f} > {threshold:.1f}")
+    return [i for i, bad in zip(candidates, failed) if not bad]
 
 
 def _gate_gyros(gyros, prior: Gaussian, observations, options, probability, uses) -> list[int]:
-    if not {layout.XA, layout.YA} <= set(prior.components):
+    if not gyros or not {layout.XA, layout.YA} <= set(prior.components):
         return gyros  # without acceleration in every model, the bank has no yaw-rate prediction to gate on
-    threshold = float(chi2.ppf(probability, 1))
-    full_mean, full_cov = _embed_gaussian(prior)
-    model = GyroYawRate(options["gyro_std"])
+    model = Stacked([GyroYawRate(options["gyro_std"])] * len(gyros))
+    distances, threshold = _gate(model, np.array([observations[i].yaw_rate for i in gyros]), prior, 1, probability)
     kept = []
-    for i in gyros:
-        distance = _mahalanobis(model, np.array([observations[i].yaw_rate]), full_mean, full_cov)
+    for i, distance in zip(gyros, distances):
         if distance > threshold:
             uses[i] = MeasurementUse(i, "gyro", False, f"failed the gate: d^2 = {distance:.1f} > {threshold:.1f}")
         else:
             kept.append(i)
     return kept
-
-
-def _embed_gaussian(estimate: Gaussian) -> tuple[np.ndarray, np.ndarray]:
-    idx = list(estimate.components)
-    mean = np.zeros(layout.FULL_DIM)
-    cov = np.zeros((layout.FULL_DIM, layout.FULL_DIM))
-    mean[idx] = estimate.mean
-    cov[np.ix_(idx, idx)] = estimate.cov
-    return mean, cov
-
-
-def _mahalanobis(model, observed: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> float:
-    jacobian = model.jacobian(mean[None, :])[0]
-    residual = model.residual(observed, model.predict(mean[None, :])[0])
-    innovation_cov = jacobian @ cov @ jacobian.T + model.noise_covariance()
-    return float(residual @ np.linalg.solve(innovation_cov, residual))
 
 
 def _correction(candidates, gyros, observations, rsus, options):

@@ -24,8 +24,8 @@ import numpy as np
 from edgepos.core import layout
 from edgepos.core.errors import NumericalError
 from edgepos.core.measurements.base import MeasurementModel
-from edgepos.core.motion.base import MotionModel
-from edgepos.core.numerics import require_finite, wrap_rows
+from edgepos.core.motion.base import MotionModel, padded_linear_step
+from edgepos.core.numerics import require_finite, wrap_angle, wrap_rows
 
 _LOG_TWO_PI = math.log(2.0 * math.pi)
 
@@ -50,6 +50,36 @@ class GaussianFilter(ABC):
         self, mean: np.ndarray, cov: np.ndarray, motion: MotionModel, dt: float
     ) -> tuple[np.ndarray, np.ndarray]:
         """Propagate one sub-state (mean, cov) over ``dt`` seconds with ``motion``."""
+
+    def predict_bank(
+        self, means: np.ndarray, covs: np.ndarray, models: tuple[MotionModel, ...], dt: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Predict every model of a padded bank over ``dt``; returns new (means, covs).
+
+        Models linear in the state are advanced together by F P F^T + Q on their padded matrices,
+        which every Gaussian filter computes exactly; the others go through :meth:`predict`.
+        """
+        new_means, new_covs = means.copy(), covs.copy()
+        linear = [j for j, model in enumerate(models) if model.linear]
+        if linear:
+            linear_models = tuple(models[j] for j in linear)
+            transitions, noises = padded_linear_step(linear_models, dt)
+            if any(model.state_dependent_noise for model in linear_models):
+                noises = noises.copy()
+                for b, (j, model) in enumerate(zip(linear, linear_models)):
+                    if model.state_dependent_noise:
+                        idx = list(model.components)
+                        noises[b][np.ix_(idx, idx)] = model.noise_covariance(means[j, idx], dt)
+            predicted = transitions @ covs[linear] @ transitions.transpose(0, 2, 1) + noises
+            new_covs[linear] = 0.5 * (predicted + predicted.transpose(0, 2, 1))
+            new_means[linear] = wrap_rows((transitions @ means[linear][:, :, None])[:, :, 0], layout.FULL_ANGLE_MASK)
+        for j, model in enumerate(models):
+            if not model.linear:
+                idx = list(model.components)
+                block = np.ix_(idx, idx)
+                new_means[j, idx], new_covs[j][block] = self.predict(means[j, idx], covs[j][block], model, dt)
+        require_finite("predicted state", new_means, new_covs)
+        return new_means, new_covs
 
     @abstractmethod
     def measurement_moments(
@@ -127,11 +157,12 @@ def kalman_correct(
     except np.linalg.LinAlgError:
         raise NumericalError("innovation covariance is not positive definite") from None
     whitened = np.linalg.solve(chol, np.concatenate([cross_cov.transpose(0, 2, 1), residuals[:, :, None]], axis=2))
-    gain_factor, whitened_residual = whitened[:, :, :-1], whitened[:, :, -1]
-    new_means = wrap_rows(means + np.einsum("bpi,bp->bi", gain_factor, whitened_residual), layout.FULL_ANGLE_MASK)
+    gain_factor, whitened_residual = whitened[:, :, :-1], whitened[:, :, -1:]
+    new_means = means + (gain_factor.transpose(0, 2, 1) @ whitened_residual)[:, :, 0]
+    new_means[:, layout.PHI] = wrap_angle(new_means[:, layout.PHI])
     new_covs = covs - gain_factor.transpose(0, 2, 1) @ gain_factor
     new_covs = 0.5 * (new_covs + new_covs.transpose(0, 2, 1))
-    nis = np.einsum("bp,bp->b", whitened_residual, whitened_residual)
+    nis = (whitened_residual * whitened_residual).sum(axis=(1, 2))
     log_det = 2.0 * np.log(np.diagonal(chol, axis1=1, axis2=2)).sum(axis=1)
     log_likelihood = -0.5 * (nis + log_det + residuals.shape[1] * _LOG_TWO_PI)
     require_finite("updated state", new_means, new_covs, log_likelihood)

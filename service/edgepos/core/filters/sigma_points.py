@@ -21,7 +21,14 @@ from edgepos.core import layout
 from edgepos.core.filters.base import GaussianFilter
 from edgepos.core.measurements.base import MeasurementModel
 from edgepos.core.motion.base import MotionModel
-from edgepos.core.numerics import require_finite, robust_cholesky, symmetrize, weighted_mean, wrap_rows
+from edgepos.core.numerics import (
+    require_finite,
+    robust_cholesky,
+    symmetrize,
+    weighted_mean,
+    wrap_angle,
+    wrap_rows,
+)
 
 
 class SigmaPointFilter(GaussianFilter):
@@ -68,14 +75,13 @@ class SigmaPointFilter(GaussianFilter):
 
     def bank_points(self, means: np.ndarray, covs: np.ndarray, active: np.ndarray):
         """Sigma points of every Gaussian of a bank: offsets (B, n, 8), mean and cov weights (B, n)."""
-        padded = covs + np.eye(layout.FULL_DIM) * ~active[:, None, :]
+        pad, column_scale, mean_weights, cov_weights = _bank_weights(self, active.tobytes(), active.shape)
+        padded = covs + pad
         try:
             factors = np.linalg.cholesky(padded)
         except np.linalg.LinAlgError:
             factors = np.stack([robust_cholesky(c) for c in padded])
-        factors = factors * active[:, None, :]
-        spread, mean_weights, cov_weights = _bank_weights(self, active.tobytes(), active.shape)
-        directions = factors.transpose(0, 2, 1) * spread[:, None, None]  # row i = s * L e_i
+        directions = factors.transpose(0, 2, 1) * column_scale  # row i = s * L e_i, zero if inactive
         offsets = np.concatenate([directions, -directions], axis=1)
         if self.has_centre_point:
             offsets = np.concatenate([np.zeros((means.shape[0], 1, layout.FULL_DIM)), offsets], axis=1)
@@ -87,15 +93,17 @@ class SigmaPointFilter(GaussianFilter):
         offsets, mean_weights, cov_weights = self.bank_points(means, covs, active)
         count, points = offsets.shape[:2]
         z = measurement.predict((means[:, None, :] + offsets).reshape(count * points, -1)).reshape(count, points, -1)
-        mask = measurement.angle_mask
-        predicted = np.einsum("bn,bnp->bp", mean_weights, z)
-        if mask.any():
-            angles = z[:, :, mask]
-            predicted[:, mask] = np.arctan2(
-                np.einsum("bn,bnp->bp", mean_weights, np.sin(angles)),
-                np.einsum("bn,bnp->bp", mean_weights, np.cos(angles)),
+        predicted = (mean_weights[:, None, :] @ z)[:, 0, :]
+        angles = measurement.angle_rows
+        if angles.size:
+            angle_points = z[:, :, angles]
+            predicted[:, angles] = np.arctan2(
+                (mean_weights[:, None, :] @ np.sin(angle_points))[:, 0, :],
+                (mean_weights[:, None, :] @ np.cos(angle_points))[:, 0, :],
             )
-        z_dev = wrap_rows(z - predicted[:, None, :], mask)
+        z_dev = z - predicted[:, None, :]
+        if angles.size:
+            z_dev[:, :, angles] = wrap_angle(z_dev[:, :, angles])
         weighted = z_dev * cov_weights[:, :, None]
         innovation_cov = weighted.transpose(0, 2, 1) @ z_dev + measurement.noise_covariance()
         cross_cov = offsets.transpose(0, 2, 1) @ weighted
@@ -104,8 +112,10 @@ class SigmaPointFilter(GaussianFilter):
 
 @functools.lru_cache(maxsize=256)
 def _bank_weights(filt: SigmaPointFilter, active_key: bytes, shape: tuple[int, int]):
-    """Per-Gaussian spreads and padded weights for a bank's active pattern (cached)."""
+    """For a bank's active pattern (cached): the identity padding of inactive diagonals, the spread
+    of each direction (zero for inactive ones), and padded mean and covariance weights."""
     active = np.frombuffer(active_key, dtype=bool).reshape(shape)
+    pad = np.eye(shape[1]) * ~active[:, None, :]
     spreads, mean_rows, cov_rows = [], [], []
     for row in active:
         spread, weight, centre_mean, centre_cov = filt.point_weights(int(row.sum()))
@@ -114,4 +124,5 @@ def _bank_weights(filt: SigmaPointFilter, active_key: bytes, shape: tuple[int, i
         spreads.append(spread)
         mean_rows.append(np.concatenate([centre[0], side, side]))
         cov_rows.append(np.concatenate([centre[1], side, side]))
-    return np.array(spreads), np.array(mean_rows), np.array(cov_rows)
+    column_scale = (np.array(spreads)[:, None] * active)[:, :, None]
+    return pad, column_scale, np.array(mean_rows), np.array(cov_rows)

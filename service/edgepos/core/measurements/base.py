@@ -7,13 +7,13 @@ their residuals are wrapped and their sigma-point means are circular.
 
 from __future__ import annotations
 
+import functools
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.linalg import block_diag
 
-from edgepos.core.numerics import wrap_rows
+from edgepos.core.numerics import wrap_angle
 
 
 class MeasurementModel(ABC):
@@ -41,9 +41,17 @@ class MeasurementModel(ABC):
     def noise_covariance(self) -> np.ndarray:
         """R, (dim, dim)."""
 
+    @functools.cached_property
+    def angle_rows(self) -> np.ndarray:
+        """Indices of the angle rows (empty when there are none)."""
+        return np.flatnonzero(self.angle_mask)
+
     def residual(self, observed: np.ndarray, predicted: np.ndarray) -> np.ndarray:
         """observed - predicted with angle rows wrapped to [-pi, pi)."""
-        return wrap_rows(np.asarray(observed, dtype=float) - predicted, self.angle_mask)
+        residual = np.asarray(observed, dtype=float) - predicted
+        if self.angle_rows.size:
+            residual[..., self.angle_rows] = wrap_angle(residual[..., self.angle_rows])
+        return residual
 
 
 class Stacked(MeasurementModel):
@@ -54,7 +62,12 @@ class Stacked(MeasurementModel):
             raise ValueError("a stacked measurement needs at least one part")
         self.parts = tuple(parts)
         self._mask = np.concatenate([part.angle_mask for part in self.parts])
-        self._noise = block_diag(*[part.noise_covariance() for part in self.parts])
+        self._noise = np.zeros((self._mask.size, self._mask.size))
+        start = 0
+        for part in self.parts:
+            end = start + part.dim
+            self._noise[start:end, start:end] = part.noise_covariance()
+            start = end
 
     @property
     def dim(self) -> int:

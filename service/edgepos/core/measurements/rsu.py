@@ -23,10 +23,12 @@ class RsuRangeBearing(MeasurementModel):
     def __init__(self, positions: np.ndarray, range_std: np.ndarray, bearing_std: np.ndarray) -> None:
         self.positions = np.atleast_2d(np.asarray(positions, dtype=float))
         count = self.positions.shape[0]
-        range_std = np.broadcast_to(np.asarray(range_std, dtype=float), (count,))
-        bearing_std = np.broadcast_to(np.asarray(bearing_std, dtype=float), (count,))
-        self._noise = np.diag(np.column_stack([range_std**2, bearing_std**2]).ravel())
-        self._mask = np.tile([False, True], count)
+        variances = np.empty(2 * count)
+        variances[0::2] = np.square(range_std)
+        variances[1::2] = np.square(bearing_std)
+        self._noise = np.diag(variances)
+        self._mask = np.zeros(2 * count, dtype=bool)
+        self._mask[1::2] = True
 
     @property
     def dim(self) -> int:

@@ -28,6 +28,8 @@ class MotionModel(ABC):
     components: ClassVar[tuple[int, ...]]
     #: True when f is linear in the state, so that F P F^T + Q is the exact predicted covariance.
     linear: ClassVar[bool]
+    #: True when Q depends on the state (adaptive models); otherwise Q depends on dt only.
+    state_dependent_noise: ClassVar[bool] = False
 
     @property
     def dim(self) -> int:
@@ -87,6 +89,32 @@ def van_loan(a: np.ndarray, noise_density: np.ndarray, dt: float) -> tuple[np.nd
     transition = exponential[n:, n:].T
     noise = transition @ exponential[:n, n:]
     return transition, 0.5 * (noise + noise.T)
+
+
+def padded_linear_step(
+    models: tuple[MotionModel, ...], dt: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Transition and noise of linear models as padded 8x8 matrices, stacked (cached per interval).
+
+    Rows and columns of components a model lacks are zero, so a padded covariance stays zero there.
+    Noise of state-dependent models is left zero here; the caller adds it per step.
+    """
+    return _padded_linear_step(models, dt_key(dt))
+
+
+@functools.lru_cache(maxsize=256)
+def _padded_linear_step(models: tuple[MotionModel, ...], dt: float) -> tuple[np.ndarray, np.ndarray]:
+    transitions = np.zeros((len(models), 8, 8))
+    noises = np.zeros((len(models), 8, 8))
+    for b, model in enumerate(models):
+        block = np.ix_(model.components, model.components)
+        zero = np.zeros(model.dim)
+        transitions[b][block] = model.transition_matrix(zero, dt)
+        if not model.state_dependent_noise:
+            noises[b][block] = model.noise_covariance(zero, dt)
+    transitions.setflags(write=False)
+    noises.setflags(write=False)
+    return transitions, noises
 
 
 class LinearAxisModel(MotionModel):

@@ -31,6 +31,7 @@ class CurrentStatistical(MotionModel):
     name = "current_statistical"
     components = layout.KINEMATIC
     linear: ClassVar[bool] = True
+    state_dependent_noise: ClassVar[bool] = True
 
     def __init__(self, alpha: float = 0.8, a_max: float = 5.0, sigma_min: float = 0.1) -> None:
         self.alpha = check_positive("alpha", alpha)

@@ -15,16 +15,15 @@ _SMALL_TURN = 1e-4
 
 
 def turn_coefficients(omega: np.ndarray, dt: float) -> tuple[np.ndarray, ...]:
-    """sin(wT), cos(wT), sin(wT)/w and (1 - cos(wT))/w, stable as w -> 0 (vectorised)."""
+    """sin(wT), cos(wT), sin(wT)/w and (1 - cos(wT))/w, exact and stable as w -> 0 (vectorised).
+
+    With sinc(u) = sin(pi u)/(pi u): sin(wT)/w = T sinc(wT/pi) and (1 - cos(wT))/w =
+    2 sin^2(wT/2)/w = (w T^2 / 2) sinc^2(wT/(2 pi)); numpy's sinc is exact at 0.
+    """
     omega = np.asarray(omega, dtype=float)
     angle = omega * dt
-    sin, cos = np.sin(angle), np.cos(angle)
-    small = np.abs(angle) < _SMALL_TURN
-    safe = np.where(small, 1.0, omega)
-    angle2 = angle * angle
-    sin_over = np.where(small, dt * (1.0 - angle2 / 6.0), sin / safe)
-    one_minus_cos_over = np.where(small, 0.5 * angle * dt * (1.0 - angle2 / 12.0), (1.0 - cos) / safe)
-    return sin, cos, sin_over, one_minus_cos_over
+    half_sinc = np.sinc(angle / (2.0 * np.pi))
+    return np.sin(angle), np.cos(angle), dt * np.sinc(angle / np.pi), 0.5 * angle * dt * half_sinc * half_sinc
 
 
 def turn_propagate(kinematic: np.ndarray, omega: np.ndarray, dt: float) -> np.ndarray:
