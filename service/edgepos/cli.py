@@ -1,7 +1,8 @@
 """The ``edgepos`` command: serve | eval | simulate | loadtest.
 
 Each subcommand lives in its own module exposing ``configure(parser)`` and ``run(args) -> int``;
-this file only wires them together.
+this file only wires them together, importing just the module of the subcommand being run so that
+``edgepos eval`` never loads the web stack and ``edgepos serve`` never loads the evaluation code.
 """
 
 from __future__ import annotations
@@ -20,19 +21,23 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser; only ``command``'s module is imported and configured (none for top-level help)."""
     parser = argparse.ArgumentParser(prog="edgepos", description=__doc__.splitlines()[0])
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (module_name, help_text) in COMMANDS.items():
-        module = importlib.import_module(module_name)
         sub = subparsers.add_parser(name, help=help_text, description=help_text)
-        module.configure(sub)
-        sub.set_defaults(_run=module.run)
+        if command == name:
+            module = importlib.import_module(module_name)
+            module.configure(sub)
+            sub.set_defaults(_run=module.run)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = next((arg for arg in argv if arg in COMMANDS), None)
+    args = build_parser(command).parse_args(argv)
     return int(args._run(args) or 0)
 
 

@@ -157,8 +157,13 @@ class InteractingMultipleModel:
 
     def mix(self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray):
         """Interaction (eqs. 11-14): every model's mixed initial condition, and c_j."""
-        predicted = np.maximum(probabilities @ self.transition, _TINY)
-        weights = self.transition * probabilities[:, None] / predicted  # weights[i, j] = mu_{i|j}
+        joint = self.transition * probabilities[:, None]  # P(model i before, model j now)
+        predicted = joint.sum(axis=0)
+        vanished = predicted < _TINY
+        if vanished.any():  # no probability flows into j: it keeps its own estimate
+            joint[:, vanished] = np.eye(len(self.models))[:, vanished]
+            predicted = np.where(vanished, _TINY, predicted)
+        weights = joint / joint.sum(axis=0)  # weights[i, j] = mu_{i|j}
         common_means = means[:, self._common]
         common_covs = covs[self._common_block]
         count, size = common_means.shape

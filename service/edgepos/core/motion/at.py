@@ -15,8 +15,7 @@ import numpy as np
 
 from edgepos.core import layout
 from edgepos.core.motion.base import MotionModel, check_positive, dt_key, van_loan
-from edgepos.core.motion.ca import ConstantAcceleration
-from edgepos.core.motion.turn import turn_matrix, turn_matrix_omega_derivative, turn_propagate
+from edgepos.core.motion.turn import turn_matrix, turn_matrix_omega_derivative, turn_noise, turn_propagate
 from edgepos.core.numerics import wrap_angle
 
 
@@ -72,7 +71,7 @@ def _turn_rate_block(beta: float, eta: float, dt: float) -> tuple[np.ndarray, np
 @functools.lru_cache(maxsize=256)
 def _at_noise(q: float, beta: float, eta: float, dt: float) -> np.ndarray:
     noise = np.zeros((8, 8))
-    noise[:6, :6] = ConstantAcceleration(q).noise_covariance(np.zeros(6), dt)
+    noise[:6, :6] = turn_noise(q, dt)
     noise[6:, 6:] = _turn_rate_block(beta, eta, dt)[1]
     noise.setflags(write=False)
     return noise

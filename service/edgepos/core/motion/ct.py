@@ -10,12 +10,11 @@ import numpy as np
 from edgepos.core import layout
 from edgepos.core.errors import ConfigurationError
 from edgepos.core.motion.base import MotionModel, check_positive, dt_key
-from edgepos.core.motion.ca import ConstantAcceleration
-from edgepos.core.motion.turn import turn_matrix
+from edgepos.core.motion.turn import turn_matrix, turn_noise
 
 
 class CoordinatedTurn(MotionModel):
-    """Velocity rotates at ``omega`` rad/s (counter-clockwise positive); jerk noise density ``q``."""
+    """Velocity rotates at ``omega`` rad/s (counter-clockwise positive); noise intensity ``q`` (m^2/s^3)."""
 
     name = "ct"
     components = layout.KINEMATIC
@@ -37,7 +36,7 @@ class CoordinatedTurn(MotionModel):
         return _turn_matrix_cached(self.omega, dt_key(dt))
 
     def noise_covariance(self, mean: np.ndarray, dt: float) -> np.ndarray:
-        return ConstantAcceleration(self.q).noise_covariance(mean, dt)
+        return turn_noise(self.q, dt_key(dt))
 
 
 @functools.lru_cache(maxsize=256)

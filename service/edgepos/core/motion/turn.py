@@ -2,11 +2,18 @@
 
 The 6-state turn transition on [xp, xv, xa, yp, yv, ya] rotates the velocity at rate omega and
 ties the acceleration to it (a = omega x v): the classic form the RSU + IMU paper relies on but
-does not write out. Its process noise is the white-jerk (CA) form with the same intensity, since
-the paper uses one process-noise gain for CV, CA, CT and AT.
+does not write out.
+
+Process noise: white acceleration of intensity q (m^2/s^3) on each axis, exactly discretised for
+position and velocity as in CV (q [[T^3/3, T^2/2], [T^2/2, T]]), plus an independent perturbation
+q T of the tied acceleration. The velocity noise is what lets a turn model follow a change of speed
+(the tie leaves no other way); the acceleration term keeps the covariance positive definite, since
+the transition maps acceleration from velocity alone.
 """
 
 from __future__ import annotations
+
+import functools
 
 import numpy as np
 
@@ -24,6 +31,15 @@ def turn_coefficients(omega: np.ndarray, dt: float) -> tuple[np.ndarray, ...]:
     angle = omega * dt
     half_sinc = np.sinc(angle / (2.0 * np.pi))
     return np.sin(angle), np.cos(angle), dt * np.sinc(angle / np.pi), 0.5 * angle * dt * half_sinc * half_sinc
+
+
+@functools.lru_cache(maxsize=256)
+def turn_noise(q: float, dt: float) -> np.ndarray:
+    """Q of the turn models on [xp, xv, xa, yp, yv, ya] for noise intensity ``q``."""
+    axis = q * np.array([[dt**3 / 3.0, dt**2 / 2.0, 0.0], [dt**2 / 2.0, dt, 0.0], [0.0, 0.0, dt]])
+    noise = np.kron(np.eye(2), axis)
+    noise.setflags(write=False)
+    return noise
 
 
 def turn_propagate(kinematic: np.ndarray, omega: np.ndarray, dt: float) -> np.ndarray:

@@ -1,0 +1,81 @@
+"""``edgepos eval rsu-imu``: Monte Carlo of the RSU + IMU paper's sec. 5 beside its Tables 2 and 4.
+
+The algorithms are in :mod:`rsu_imu_algorithms`, the runs and RMSE (eqs. 39-40) in
+:mod:`rsu_imu_montecarlo`, the table, comparisons, JSON and figures in :mod:`rsu_imu_report`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+from pathlib import Path
+
+from edgepos.eval import plots
+from edgepos.eval.progress import Progress
+from edgepos.eval.rsu_imu_algorithms import ALGORITHMS, UnknownAlgorithm, select_algorithms
+from edgepos.eval.rsu_imu_montecarlo import RunFailed, monte_carlo, results
+from edgepos.eval.rsu_imu_report import report, to_json, write_plots
+from edgepos.sim.scenarios import rsu_imu_paper_scenario
+
+PROG = "edgepos eval rsu-imu"
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    """The options specific to this evaluation (the common ones come from commands.py)."""
+    parser.add_argument(
+        "--algorithms", metavar="NAME,NAME...", default=None,
+        help=f"comma-separated subset to run (default: all): {', '.join(ALGORITHMS)}",
+    )
+
+
+def _error(message: str) -> None:
+    print(f"{PROG}: error: {message}", file=sys.stderr)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the evaluation and print the report on stdout: 0 on success, 2 on bad arguments, 1 on failure."""
+    try:
+        algorithms = select_algorithms(args.algorithms)
+        if args.plots is not None:
+            plots.require_matplotlib()
+    except (UnknownAlgorithm, plots.PlotsUnavailable) as exc:
+        _error(str(exc))
+        return 2
+    if args.json is not None and not Path(args.json).resolve().parent.is_dir():
+        _error(f"--json: the directory of {args.json} does not exist")
+        return 2
+    workers = args.workers or os.cpu_count() or 1
+
+    progress = Progress(args.runs, label="runs")
+    try:
+        totals = monte_carlo(algorithms, args.runs, args.seed, workers, progress)
+    except RunFailed as exc:
+        print(file=sys.stderr)
+        _error(str(exc))
+        return 1
+    progress.finish()
+
+    scenario = rsu_imu_paper_scenario()
+    results_by_name = results(algorithms, totals)
+    print(report(results_by_name, args.runs, args.seed, workers))
+    diverged = [
+        name for name, r in results_by_name.items() if not math.isfinite(r.pos_mean + r.vel_mean)
+    ]
+    if diverged:
+        _error(f"non-finite RMSE for {', '.join(diverged)}; nothing written")
+        return 1
+    try:
+        if args.json is not None:
+            document = to_json(results_by_name, scenario, args.runs, args.seed, workers)
+            Path(args.json).write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
+            print(f"\nwrote {args.json}")
+        if args.plots is not None:
+            for path in write_plots(results_by_name, scenario, Path(args.plots)):
+                print(f"wrote {path}")
+    except OSError as exc:
+        _error(str(exc))
+        return 1
+    return 0

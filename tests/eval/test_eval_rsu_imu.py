@@ -1,0 +1,159 @@
+"""``edgepos eval rsu-imu`` run in-process on a short subset: JSON shape, plausible values, errors,
+independence from the worker count, plots; plus the pure helpers (selection, chunking, tables)."""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from edgepos.eval import commands, montecarlo, rsu_imu_algorithms, rsu_imu_montecarlo, rsu_imu_report
+from edgepos.eval.progress import Progress
+
+SUBSET = "2IMM-CKF,CV-CKF/avg"
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def run_eval(*argv: str) -> int:
+    parser = argparse.ArgumentParser(prog="edgepos eval")
+    commands.configure(parser)
+    return commands.run(parser.parse_args(list(argv)))
+
+
+@dataclass
+class Outcome:
+    code: int
+    stdout: str
+    document: dict
+    plots: Path
+
+
+@pytest.fixture(scope="module")
+def one_worker(tmp_path_factory: pytest.TempPathFactory) -> Outcome:
+    """Two runs of the subset on one worker, with --json and --plots (the expensive part, run once)."""
+    directory = tmp_path_factory.mktemp("eval")
+    json_path, plot_dir = directory / "out.json", directory / "plots"
+    stdout = io.StringIO()
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr("sys.stdout", stdout)
+        patch.setattr("sys.stderr", io.StringIO())
+        code = run_eval(
+            "rsu-imu", "--runs", "2", "--seed", "7", "--workers", "1", "--algorithms", SUBSET,
+            "--json", str(json_path), "--plots", str(plot_dir),
+        )
+    return Outcome(code, stdout.getvalue(), json.loads(json_path.read_text()), plot_dir)
+
+
+def test_json_has_exactly_the_documented_shape(one_worker: Outcome) -> None:
+    assert one_worker.code == 0
+    document = one_worker.document
+    assert set(document) <= {"scenario", "runs", "seed", "algorithms", "notes"}
+    assert (document["scenario"], document["runs"], document["seed"]) == ("rsu-imu-paper", 2, 7)
+    assert list(document["algorithms"]) == ["CV-CKF/avg", "2IMM-CKF"]
+    for entry in document["algorithms"].values():
+        assert set(entry) == {"pos_rmse_m", "vel_rmse_mps", "step_us"}
+        assert all(isinstance(value, float) for value in entry.values())
+
+
+def test_values_are_plausible(one_worker: Outcome) -> None:
+    for name, entry in one_worker.document["algorithms"].items():
+        assert 0.02 < entry["pos_rmse_m"] < 1.0, name
+        assert 0.05 < entry["vel_rmse_mps"] < 5.0, name
+        assert entry["step_us"] > 0.0, name
+
+
+def test_report_sets_paper_figures_beside_the_rows(one_worker: Outcome) -> None:
+    lines = one_worker.stdout.splitlines()
+    average_row = next(line for line in lines if line.startswith("CV-CKF/avg "))
+    joint_row = next(line for line in lines if line.startswith("2IMM-CKF "))
+    assert "0.2210" in average_row and "(0.2210)" not in average_row
+    assert "(0.1675)" in joint_row and "(345.1)" in joint_row
+    assert "not the benchmark figure" in one_worker.stdout
+
+
+def test_plots_are_written(one_worker: Outcome) -> None:
+    expected = {
+        "position_rmse_imm_joint.png",
+        "velocity_rmse_imm_joint.png",
+        "model_probabilities_2imm_ckf_joint.png",
+        "position_rmse_single_avg.png",
+        "velocity_rmse_single_avg.png",
+    }
+    assert {path.name for path in one_worker.plots.iterdir()} == expected
+    for name in expected:
+        content = (one_worker.plots / name).read_bytes()
+        assert content.startswith(PNG_MAGIC) and len(content) > 10_000, name
+
+
+def test_results_do_not_depend_on_the_worker_count(one_worker: Outcome, tmp_path: Path, capsys) -> None:
+    json_path = tmp_path / "two.json"
+    code = run_eval(
+        "rsu-imu", "--runs", "2", "--seed", "7", "--workers", "2", "--algorithms", SUBSET,
+        "--json", str(json_path),
+    )
+    assert code == 0
+    two = json.loads(json_path.read_text())["algorithms"]
+    for name, entry in one_worker.document["algorithms"].items():
+        assert two[name]["pos_rmse_m"] == entry["pos_rmse_m"], name
+        assert two[name]["vel_rmse_mps"] == entry["vel_rmse_mps"], name
+
+
+def test_unknown_algorithm_is_a_clear_error(capsys) -> None:
+    code = run_eval("rsu-imu", "--runs", "1", "--workers", "1", "--algorithms", "2IMM-CKF,Kalman-9000")
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "'Kalman-9000'" in err and "2IMM-CKF/avg" in err  # names the culprit and the choices
+
+
+def test_bad_run_count_is_rejected_by_the_parser(capsys) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        run_eval("rsu-imu", "--runs", "0")
+    assert exit_info.value.code == 2
+    assert "--runs" in capsys.readouterr().err
+
+
+# -- pure helpers --------------------------------------------------------------------------------
+def test_selection_is_case_insensitive_and_in_table_order() -> None:
+    chosen = rsu_imu_algorithms.select_algorithms(" 2imm-ckf , cv-ckf/AVG,2IMM-CKF")
+    assert [a.name for a in chosen] == ["CV-CKF/avg", "2IMM-CKF"]
+    assert chosen[0].options["rsu_handling"] == "average" and chosen[1].options["rsu_handling"] == "joint"
+    assert chosen[1].options["priority"] == ["ca", "at"]
+    assert len(rsu_imu_algorithms.select_algorithms(None)) == 18
+
+
+def test_chunks_cover_every_run_once_and_ignore_workers() -> None:
+    for runs in (1, 2, 99, 200, 1001):
+        chunks = montecarlo.chunk_runs(runs)
+        assert [r for chunk in chunks for r in chunk] == list(range(runs))
+
+
+def fake_result(name: str, pos: float, vel: float) -> rsu_imu_montecarlo.Result:
+    algorithm = rsu_imu_algorithms.ALGORITHMS[name]
+    return rsu_imu_montecarlo.Result(algorithm, np.full(5, pos), np.full(5, vel), None, 100.0)
+
+
+def test_comparisons_match_the_papers_percentages() -> None:
+    results = {
+        name: fake_result(name, paper.pos_rmse_m, paper.vel_rmse_mps)
+        for name, paper in rsu_imu_algorithms.PAPER.items()
+    }
+    table = rsu_imu_report.comparisons_table(results)
+    assert table is not None
+    row = next(line for line in table.splitlines() if line.startswith("2IMM-CKF vs IMM-CKF "))
+    assert row.split()[-4:] == ["8.6", "5.9", "8.6", "5.9"]  # ours equal the paper's here
+    row = next(line for line in table.splitlines() if line.startswith("IMM-CKF vs best single"))
+    assert "Singer-CKF" in row and row.split()[-2] == "10.0"  # the paper's 10.0 % against Singer-CKF
+
+
+def test_progress_off_a_terminal_writes_only_the_final_line() -> None:
+    stream = io.StringIO()
+    progress = Progress(3, stream=stream)
+    progress.advance()
+    progress.advance(2)
+    progress.finish()
+    assert stream.getvalue().count("\n") == 1 and "3/3" in stream.getvalue() and "\r" not in stream.getvalue()
