@@ -44,12 +44,12 @@ def robust_cholesky(cov: np.ndarray) -> np.ndarray:
     diagonal) is added; as a last resort negative eigenvalues are clipped. A matrix that is not
     finite, or indefinite well beyond rounding, raises :class:`NumericalError`.
     """
+    if not np.all(np.isfinite(cov)):
+        raise NumericalError("covariance has non-finite entries")
     try:
         return np.linalg.cholesky(cov)
     except np.linalg.LinAlgError:
         pass
-    if not np.all(np.isfinite(cov)):
-        raise NumericalError("covariance has non-finite entries")
     sym = symmetrize(cov)
     scale = max(float(np.max(np.abs(np.diag(sym)))), 1e-300)
     identity = np.eye(sym.shape[0])

@@ -31,7 +31,7 @@ def pack(meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> bytes:
     layout = []
     chunks = []
     for name, array in arrays.items():
-        data = np.ascontiguousarray(array, dtype="<f8")
+        data = np.asarray(array, dtype="<f8")
         if not np.all(np.isfinite(data)):
             raise ValueError(f"state array {name!r} is not finite")
         layout.append([name, list(data.shape)])
@@ -51,11 +51,15 @@ def unpack(blob: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     start = _HEADER.size
     try:
         header = json.loads(blob[start : start + header_length])
-    except ValueError as error:
-        raise StateFormatError(f"state header is corrupt: {error}") from None
+        meta, layout = header["meta"], header["arrays"]
+        shapes = [(str(name), tuple(int(n) for n in shape)) for name, shape in layout]
+    except (ValueError, KeyError, TypeError) as error:
+        raise StateFormatError(f"state header is corrupt: {error!r}") from None
+    if not isinstance(meta, dict) or any(n < 0 for _, shape in shapes for n in shape):
+        raise StateFormatError("state header is corrupt")
     offset = start + header_length
     arrays: dict[str, np.ndarray] = {}
-    for name, shape in header["arrays"]:
+    for name, shape in shapes:
         count = math.prod(shape)
         end = offset + 8 * count
         if end > len(blob):
@@ -64,4 +68,4 @@ def unpack(blob: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
         offset = end
     if offset != len(blob):
         raise StateFormatError("state has trailing bytes")
-    return header["meta"], arrays
+    return meta, arrays

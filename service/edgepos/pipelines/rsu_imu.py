@@ -23,10 +23,12 @@ import numpy as np
 from scipy.stats import chi2
 
 from edgepos.core import layout, state as state_format
-from edgepos.core.filters import FILTERS, make_filter
+from edgepos.core.errors import ConfigurationError
+from edgepos.core.filters import FILTERS, GaussianFilter, make_filter
+from edgepos.core.filters.sigma_points import SigmaPointFilter
 from edgepos.core.imm import Gaussian, InteractingMultipleModel, StepResult
 from edgepos.core.measurements import GyroYawRate, RsuRangeBearing, Stacked
-from edgepos.core.motion import MOTION_MODELS, make_motion_model
+from edgepos.core.motion import MOTION_MODELS, MotionModel, make_motion_model
 from edgepos.core.observations import GyroObservation, Observation, RsuObservation
 from edgepos.core.updates import AveragedCorrection, JointCorrection
 from edgepos.pipelines.base import (
@@ -96,6 +98,11 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         0.0, 0.999999999,
     ),
     OptionSpec(
+        "max_gap", "number", 5.0,
+        "Longest time (s) between epochs the filter predicts across; after a longer gap it starts again "
+        "from the next RSU measurements.", 0.01, 86400.0,
+    ),
+    OptionSpec(
         "init_velocity_std", "number", 15.0,
         "Velocity std (m/s) when the pipeline initialises itself from RSU measurements.", 0.01, 1000.0,
     ),
@@ -146,7 +153,14 @@ class RsuImuPipeline(Pipeline):
         problems = _cross_check(resolved)
         if problems:
             raise PipelineInputError(problems)
-        _bank(_options_key(resolved))  # builds models and filter: surfaces bad parameters now
+        try:  # build models and filter now, so that bad parameters surface here
+            models = _models(resolved)
+        except (ConfigurationError, ValueError, TypeError) as error:
+            raise PipelineInputError([Problem(None, "options.model_params", str(error))]) from None
+        try:
+            _filter(resolved, models)
+        except (ConfigurationError, ValueError, TypeError) as error:
+            raise PipelineInputError([Problem(None, "options.filter_params", str(error))]) from None
         return resolved
 
     def create(self, options: Mapping[str, Any], initial: InitialState | None) -> bytes:
@@ -270,11 +284,24 @@ def _options_key(options: Mapping[str, Any]) -> str:
     return json.dumps(options, sort_keys=True)
 
 
+def _models(options: Mapping[str, Any]) -> list[MotionModel]:
+    return [make_motion_model(name, **options["model_params"].get(name, {})) for name in options["models"]]
+
+
+def _filter(options: Mapping[str, Any], models: Sequence[MotionModel]) -> GaussianFilter:
+    """The configured filter, checked against every model's dimension (a UKF spread can be invalid)."""
+    filt = make_filter(options["filter"], **options["filter_params"])
+    if isinstance(filt, SigmaPointFilter):
+        for model in models:
+            filt.point_weights(model.dim)
+    return filt
+
+
 @functools.lru_cache(maxsize=128)
 def _bank(options_key: str) -> InteractingMultipleModel:
     options = json.loads(options_key)
-    models = [make_motion_model(name, **options["model_params"].get(name, {})) for name in options["models"]]
-    filt = make_filter(options["filter"], **options["filter_params"])
+    models = _models(options)
+    filt = _filter(options, models)
     count = len(models)
     if options["transition"] is not None:
         transition = np.array(options["transition"], dtype=float)
@@ -320,6 +347,8 @@ def _step(
     candidates = _rsus_in_view(epoch, observations, rsus, options, uses)
     gyros = [i for i in epoch if isinstance(observations[i], GyroObservation)]
 
+    if session.initialised and session.filter_t is not None and t - session.filter_t > options["max_gap"]:
+        session.initialised = False  # too long without data: the old estimate says nothing any more
     if not session.initialised:
         if not candidates:
             for i in epoch:

@@ -10,11 +10,12 @@ noise (eqs. 8-9): diag{Q_CT, Q_omega}, Q_omega = 2 beta eta^2 [q_ij].
 from __future__ import annotations
 
 import functools
+from typing import Any
 
 import numpy as np
 
 from edgepos.core import layout
-from edgepos.core.motion.base import MotionModel, check_positive, dt_key, van_loan
+from edgepos.core.motion.base import MotionModel, check_noise_form, check_positive, dt_key, van_loan
 from edgepos.core.motion.turn import turn_matrix, turn_matrix_omega_derivative, turn_noise, turn_propagate
 from edgepos.core.numerics import wrap_angle
 
@@ -26,13 +27,14 @@ class AdaptiveTurn(MotionModel):
     components = layout.ALL
     linear = False
 
-    def __init__(self, q: float = 3.5, beta: float = 0.02, eta: float = 0.17) -> None:
+    def __init__(self, q: float = 3.5, beta: float = 0.02, eta: float = 0.17, noise: str = "discrete") -> None:
         self.q = check_positive("q", q)
+        self.noise = check_noise_form(noise)
         self.beta = check_positive("beta", beta)
         self.eta = check_positive("eta", eta)
 
-    def params(self) -> dict[str, float]:
-        return {"q": self.q, "beta": self.beta, "eta": self.eta}
+    def params(self) -> dict[str, Any]:
+        return {"q": self.q, "beta": self.beta, "eta": self.eta, "noise": self.noise}
 
     def turn_rate_block(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """F_omega (eq. 7) and Q_omega (eq. 9) for [phi, omega], exact for the OU turn rate."""
@@ -56,7 +58,7 @@ class AdaptiveTurn(MotionModel):
         return jacobian
 
     def noise_covariance(self, mean: np.ndarray, dt: float) -> np.ndarray:
-        return _at_noise(self.q, self.beta, self.eta, dt_key(dt))
+        return _at_noise(self.q, self.noise, self.beta, self.eta, dt_key(dt))
 
 
 @functools.lru_cache(maxsize=256)
@@ -69,9 +71,9 @@ def _turn_rate_block(beta: float, eta: float, dt: float) -> tuple[np.ndarray, np
 
 
 @functools.lru_cache(maxsize=256)
-def _at_noise(q: float, beta: float, eta: float, dt: float) -> np.ndarray:
+def _at_noise(q: float, noise_form: str, beta: float, eta: float, dt: float) -> np.ndarray:
     noise = np.zeros((8, 8))
-    noise[:6, :6] = turn_noise(q, dt)
+    noise[:6, :6] = turn_noise(q, noise_form, dt)
     noise[6:, 6:] = _turn_rate_block(beta, eta, dt)[1]
     noise.setflags(write=False)
     return noise

@@ -7,6 +7,7 @@ in full-state order. Filters only ever see these four operations, so any model w
 from __future__ import annotations
 
 import functools
+import math
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
@@ -48,7 +49,7 @@ class MotionModel(ABC):
         """Q of the step, evaluated at the prior ``mean`` (state-dependent only for adaptive models)."""
 
     @abstractmethod
-    def params(self) -> dict[str, float]:
+    def params(self) -> dict[str, Any]:
         """The model's parameters, enough to rebuild it with ``cls(**params)``."""
 
     def describe(self) -> dict[str, Any]:
@@ -69,6 +70,28 @@ def check_nonnegative(name: str, value: float) -> float:
     return value
 
 
+#: How a model's process noise enters between two epochs (see :func:`discrete_noise`).
+NOISE_FORMS = ("discrete", "continuous")
+
+
+def check_noise_form(value: str) -> str:
+    if value not in NOISE_FORMS:
+        raise ConfigurationError(f"noise must be one of {NOISE_FORMS}, got {value!r}")
+    return value
+
+
+def discrete_noise(gain: float, order: int, dt: float) -> np.ndarray:
+    """Per-axis Q = gain^2 G G^T of piecewise-constant noise (Bar-Shalom, Li, Kirubarajan 2001, 6.3).
+
+    ``order`` 2: [p, v] driven by an acceleration held constant over the interval,
+    G = [T^2/2, T] (DWNA). ``order`` 3: [p, v, a] whose acceleration jumps by one draw per
+    interval, G = [T^2/2, T, 1] (DWPA). ``gain`` is the standard deviation of that draw (m/s^2):
+    the "process-noise gain" of the RSU + IMU paper.
+    """
+    column = np.array([dt * dt / 2.0, dt, 1.0][:order])
+    return gain * gain * np.outer(column, column)
+
+
 def dt_key(dt: float) -> float:
     """The interval used for discretisation caches: dt rounded to 1 ns."""
     return round(float(dt), DT_RESOLUTION_DECIMALS)
@@ -77,17 +100,25 @@ def dt_key(dt: float) -> float:
 def van_loan(a: np.ndarray, noise_density: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """Exact discretisation of dx = A x dt + dw with E[dw dw^T] = noise_density dt.
 
-    Van Loan (1978): expm([[-A, Qc], [0, A^T]] dt) holds F^T in its lower-right block and
-    F^{-1} Q in its upper-right block.
+    Van Loan (1978): expm([[-A, Qc], [0, A^T]] h) holds F^T in its lower-right block and
+    F^{-1} Q in its upper-right block. The -A block grows like e^{|A| h}, so the formula is only
+    used on a short step h (|A| h <= 1/2), and the interval is then doubled back up with
+    F(2h) = F(h)^2, Q(2h) = Q(h) + F(h) Q(h) F(h)^T: every term is positive, nothing cancels.
     """
     n = a.shape[0]
+    norm = float(np.max(np.sum(np.abs(a), axis=1))) * dt
+    doublings = max(0, math.ceil(math.log2(norm / 0.5))) if norm > 0.5 else 0
+    step = dt / 2.0**doublings
     block = np.zeros((2 * n, 2 * n))
     block[:n, :n] = -a
     block[:n, n:] = noise_density
     block[n:, n:] = a.T
-    exponential = expm(block * dt)
+    exponential = expm(block * step)
     transition = exponential[n:, n:].T
     noise = transition @ exponential[:n, n:]
+    for _ in range(doublings):
+        noise = noise + transition @ noise @ transition.T
+        transition = transition @ transition
     return transition, 0.5 * (noise + noise.T)
 
 
@@ -134,6 +165,10 @@ class LinearAxisModel(MotionModel):
     def axis_noise_density(self) -> np.ndarray:
         """Continuous-time per-axis noise spectral density L q L^T."""
 
+    def axis_discrete_noise(self, dt: float) -> np.ndarray | None:
+        """Per-axis Q when the model's noise is piecewise constant; None for the continuous form."""
+        return None
+
     def discretise(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
         return _axis_discretisation(self, dt_key(dt))
 
@@ -157,6 +192,9 @@ class LinearAxisModel(MotionModel):
 @functools.lru_cache(maxsize=512)
 def _axis_discretisation(model: LinearAxisModel, dt: float) -> tuple[np.ndarray, np.ndarray]:
     axis_f, axis_q = van_loan(model.axis_drift(), model.axis_noise_density(), dt)
+    discrete = model.axis_discrete_noise(dt)
+    if discrete is not None:
+        axis_q = discrete
     transition = block_diag(axis_f, axis_f)
     noise = block_diag(axis_q, axis_q)
     transition.setflags(write=False)

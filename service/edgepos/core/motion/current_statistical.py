@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -38,7 +38,7 @@ class CurrentStatistical(MotionModel):
         self.a_max = check_positive("a_max", a_max)
         self.sigma_min = check_positive("sigma_min", sigma_min)
 
-    def params(self) -> dict[str, float]:
+    def params(self) -> dict[str, Any]:
         return {"alpha": self.alpha, "a_max": self.a_max, "sigma_min": self.sigma_min}
 
     def acceleration_variance(self, acceleration: float) -> float:

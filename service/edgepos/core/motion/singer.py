@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from edgepos.core import layout
@@ -32,5 +34,5 @@ class Singer(LinearAxisModel):
     def axis_noise_density(self) -> np.ndarray:
         return np.diag([0.0, 0.0, 2.0 * self.alpha * self.sigma**2])
 
-    def params(self) -> dict[str, float]:
+    def params(self) -> dict[str, Any]:
         return {"alpha": self.alpha, "sigma": self.sigma}

@@ -4,11 +4,13 @@ The 6-state turn transition on [xp, xv, xa, yp, yv, ya] rotates the velocity at 
 ties the acceleration to it (a = omega x v): the classic form the RSU + IMU paper relies on but
 does not write out.
 
-Process noise: white acceleration of intensity q (m^2/s^3) on each axis, exactly discretised for
-position and velocity as in CV (q [[T^3/3, T^2/2], [T^2/2, T]]), plus an independent perturbation
-q T of the tied acceleration. The velocity noise is what lets a turn model follow a change of speed
-(the tie leaves no other way); the acceleration term keeps the covariance positive definite, since
-the transition maps acceleration from velocity alone.
+Process noise, per axis (the velocity noise is what lets a turn model follow a change of speed,
+since the tie leaves no other way):
+- "discrete" (default): the paper's gain q (m/s^2) on G = [T^2/2, T, 1], Q = q^2 G G^T: one
+  acceleration draw per interval, as in the CA model (DWPA);
+- "continuous": white acceleration of intensity q (m^2/s^3), exact for position and velocity
+  (q [[T^3/3, T^2/2], [T^2/2, T]]), plus an independent perturbation q T of the tied acceleration,
+  which keeps the covariance positive definite since the transition maps acceleration from velocity.
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ from __future__ import annotations
 import functools
 
 import numpy as np
+
+from edgepos.core.motion.base import discrete_noise
 
 #: Below this |omega T| the trigonometric ratios are evaluated by their Taylor series.
 _SMALL_TURN = 1e-4
@@ -34,9 +38,12 @@ def turn_coefficients(omega: np.ndarray, dt: float) -> tuple[np.ndarray, ...]:
 
 
 @functools.lru_cache(maxsize=256)
-def turn_noise(q: float, dt: float) -> np.ndarray:
-    """Q of the turn models on [xp, xv, xa, yp, yv, ya] for noise intensity ``q``."""
-    axis = q * np.array([[dt**3 / 3.0, dt**2 / 2.0, 0.0], [dt**2 / 2.0, dt, 0.0], [0.0, 0.0, dt]])
+def turn_noise(q: float, noise_form: str, dt: float) -> np.ndarray:
+    """Q of the turn models on [xp, xv, xa, yp, yv, ya] for gain or intensity ``q``."""
+    if noise_form == "discrete":
+        axis = discrete_noise(q, 3, dt)
+    else:
+        axis = q * np.array([[dt * dt * dt / 3.0, dt * dt / 2.0, 0.0], [dt * dt / 2.0, dt, 0.0], [0.0, 0.0, dt]])
     noise = np.kron(np.eye(2), axis)
     noise.setflags(write=False)
     return noise

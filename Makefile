@@ -1,0 +1,34 @@
+# One command to run the service, one to run the tests; both set up .venv themselves.
+#   make serve   install and start the service on its embedded defaults with the demo RSU map
+#   make test    install and run the whole test suite (what .ci/run runs)
+#   make bench   install and run the benchmark scripts
+#   make openapi regenerate openapi.json from the app
+
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+
+.PHONY: serve test bench openapi clean
+
+$(STAMP): pyproject.toml client/pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e ./client -e '.[dev]'
+	touch $(STAMP)
+
+serve: $(STAMP)
+	EDGEPOS_DEMO_RSUS=$${EDGEPOS_DEMO_RSUS:-true} $(BIN)/edgepos serve
+
+test: $(STAMP)
+	$(BIN)/python -m pytest
+
+bench: $(STAMP)
+	$(BIN)/python bench/filter_step.py
+	$(BIN)/python bench/service_load.py
+
+openapi: $(STAMP)
+	$(BIN)/python -m edgepos.api.openapi
+
+clean:
+	rm -rf $(VENV)

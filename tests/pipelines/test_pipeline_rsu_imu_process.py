@@ -1,0 +1,386 @@
+"""rsu_imu processing: batch validation, epochs, statuses, RSU selection, gating, overrides,
+state bytes and determinism."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from edgepos.core import state as state_format
+from edgepos.core.observations import GyroObservation, Observation, RsuObservation
+from edgepos.pipelines.base import Fix, InitialState, PipelineInputError, Rsu, StaticEnvironment
+from edgepos.pipelines.registry import get_pipeline
+
+RSUS = (
+    Rsu("S000", 0.0, -4.0),
+    Rsu("N050", 50.0, 15.0),
+    Rsu("S100", 100.0, -4.0),
+    Rsu("N150", 150.0, 15.0),
+    Rsu("S200", 200.0, -4.0),
+    Rsu("N250", 250.0, 15.0),
+    Rsu("FAR", 2000.0, 0.0),
+)
+ENV = StaticEnvironment({rsu.id: rsu for rsu in RSUS})
+RANGE_STD, BEARING_STD, GYRO_STD = 0.6, math.radians(0.5), math.radians(0.3)
+SPEED, DT = 10.0, 0.1
+
+
+@pytest.fixture(scope="module")
+def pipeline():
+    return get_pipeline("rsu_imu")
+
+
+def true_position(t: float) -> tuple[float, float]:
+    return 20.0 + SPEED * t, 0.0
+
+
+def epoch(t: float, rng: np.random.Generator, env: StaticEnvironment = ENV, ids=None, gyro: bool = True
+          ) -> list[Observation]:
+    """Noisy observations at time t of the vehicle driving east along y = 0."""
+    x, y = true_position(t)
+    out: list[Observation] = []
+    for rsu in env.rsus.values():
+        if ids is not None and rsu.id not in ids:
+            continue
+        dx, dy = x - rsu.x, y - rsu.y
+        out.append(
+            RsuObservation(
+                t=t, rsu_id=rsu.id,
+                range=math.hypot(dx, dy) + RANGE_STD * rng.standard_normal(),
+                bearing=math.remainder(math.atan2(dy, dx) + BEARING_STD * rng.standard_normal(), 2 * math.pi),
+            )
+        )
+    if gyro:
+        out.append(GyroObservation(t=t, yaw_rate=GYRO_STD * rng.standard_normal()))
+    return out
+
+
+def started(pipeline, options=None) -> bytes:
+    x, y = true_position(0.0)
+    return pipeline.create(pipeline.resolve_options(options), InitialState(x, y, SPEED, 0.0, 0.5, 0.5))
+
+
+def run(pipeline, state: bytes, epochs: int, seed: int, start: int = 1, env=ENV, **kw) -> tuple[list[Fix], bytes]:
+    rng = np.random.default_rng(seed)
+    fixes: list[Fix] = []
+    for k in range(start, start + epochs):
+        new, state = pipeline.process(state, epoch(k * DT, rng, env, **kw), env)
+        fixes.extend(new)
+    return fixes, state
+
+
+def position_error(fix: Fix) -> float:
+    x, y = true_position(fix.t)
+    return math.hypot(fix.x - x, fix.y - y)
+
+
+# -- validation -------------------------------------------------------------------------------------
+def test_bad_batch_is_refused_whole_listing_every_bad_index(pipeline) -> None:
+    _, state = run(pipeline, started(pipeline), 5, seed=1)
+    last_t = 5 * DT
+    rng = np.random.default_rng(2)
+    good = epoch(last_t + DT, rng)
+    batch = [
+        good[0],
+        RsuObservation(t=last_t + DT, rsu_id="NOPE", range=10.0, bearing=0.1),  # 1: unknown RSU
+        good[1],
+        RsuObservation(t=last_t + DT, rsu_id="S000", range=-0.5, bearing=0.1),  # 3: negative range
+        GyroObservation(t=last_t - DT, yaw_rate=0.0),  # 4: older than the last epoch
+        RsuObservation(t=last_t - 1.0, rsu_id="ALSO_NOPE", range=-1.0, bearing=0.0),  # 5: three problems
+        good[-1],
+    ]
+    with pytest.raises(PipelineInputError) as caught:
+        pipeline.process(state, batch, ENV)
+    problems = {(p.index, p.field) for p in caught.value.problems}
+    assert problems == {(1, "rsu_id"), (3, "range"), (4, "t"), (5, "t"), (5, "rsu_id"), (5, "range")}
+    assert all(p.reason for p in caught.value.problems)
+    # nothing was applied: the same state accepts the good part and gives what it would have anyway
+    fixes_a, state_a = pipeline.process(state, [o for i, o in enumerate(batch) if i in (0, 2, 6)], ENV)
+    fixes_b, state_b = pipeline.process(state, [good[0], good[1], good[-1]], ENV)
+    assert state_a == state_b and fixes_a == fixes_b
+
+
+@pytest.mark.parametrize(
+    ("observation", "field"),
+    [
+        (RsuObservation(t=float("nan"), rsu_id="S000", range=10.0, bearing=0.0), "t"),
+        (RsuObservation(t=1.0, rsu_id="S000", range=float("inf"), bearing=0.0), "range"),
+        (RsuObservation(t=1.0, rsu_id="S000", range=10.0, bearing=4.0), "bearing"),
+        (RsuObservation(t=1.0, rsu_id="S000", range=10.0, bearing=float("nan")), "bearing"),
+        (GyroObservation(t=1.0, yaw_rate=float("nan")), "yaw_rate"),
+    ],
+)
+def test_non_finite_or_out_of_range_values_are_refused(pipeline, observation: Observation, field: str) -> None:
+    with pytest.raises(PipelineInputError) as caught:
+        pipeline.process(started(pipeline), [observation], ENV)
+    assert [(p.index, p.field) for p in caught.value.problems] == [(0, field)]
+
+
+def test_time_equal_to_the_last_epoch_is_accepted_but_older_is_not(pipeline) -> None:
+    _, state = run(pipeline, started(pipeline), 3, seed=3)
+    last_t = 3 * DT
+    fixes, _ = pipeline.process(state, [GyroObservation(t=last_t, yaw_rate=0.0)], ENV)
+    assert len(fixes) == 1
+    with pytest.raises(PipelineInputError):
+        pipeline.process(state, [GyroObservation(t=math.nextafter(last_t, 0.0), yaw_rate=0.0)], ENV)
+
+
+# -- epochs -----------------------------------------------------------------------------------------
+def test_observations_sharing_a_timestamp_form_one_epoch_and_batches_are_sorted(pipeline) -> None:
+    state = started(pipeline)
+    rng = np.random.default_rng(4)
+    epochs = [epoch(k * DT, rng) for k in range(1, 6)]
+    in_order = [o for e in epochs for o in e]
+    fixes_sorted, state_sorted = pipeline.process(state, in_order, ENV)
+    assert [f.t for f in fixes_sorted] == [k * DT for k in range(1, 6)]
+    shuffled_order = np.random.default_rng(5).permutation(len(in_order))
+    shuffled = [in_order[i] for i in shuffled_order]
+    fixes_shuffled, state_shuffled = pipeline.process(state, shuffled, ENV)
+    assert [f.t for f in fixes_shuffled] == [f.t for f in fixes_sorted]
+    # measurement reports refer to the indices of the list passed in
+    for fix in fixes_shuffled:
+        for use in fix.measurements:
+            assert shuffled[use.index].t == fix.t
+            assert shuffled[use.index].kind == use.kind
+        assert len(fix.measurements) == sum(o.t == fix.t for o in shuffled)
+    # within an epoch only the order of RSUs changes, so the estimates agree closely
+    for a, b in zip(fixes_sorted, fixes_shuffled):
+        assert a.x == pytest.approx(b.x, abs=1e-9) and a.y == pytest.approx(b.y, abs=1e-9)
+
+
+def test_statuses_from_uninitialised_to_tracking(pipeline) -> None:
+    state = pipeline.create(pipeline.resolve_options(None), None)
+    assert pipeline.summarise(state).initialised is False
+    rng = np.random.default_rng(6)
+    fixes, state = pipeline.process(state, [GyroObservation(t=0.1, yaw_rate=0.0)], ENV)
+    assert [f.status for f in fixes] == ["uninitialised"]
+    assert fixes[0].x is None and fixes[0].position_cov is None
+    assert fixes[0].measurements[0].used is False and fixes[0].measurements[0].reason
+    # an RSU beyond its radius cannot initialise either
+    far = RsuObservation(t=0.2, rsu_id="FAR", range=1980.0, bearing=math.pi)
+    fixes, state = pipeline.process(state, [far], ENV)
+    assert fixes[0].status == "uninitialised"
+    fixes, state = pipeline.process(state, epoch(0.3, rng), ENV)
+    assert fixes[0].status == "initialised"
+    assert pipeline.summarise(state).initialised is True
+    assert position_error(fixes[0]) < 3.0
+    fixes, state = pipeline.process(state, epoch(0.4, rng) + epoch(0.5, rng), ENV)
+    assert [f.status for f in fixes] == ["tracking", "tracking"]
+    # an epoch with nothing usable is a prediction
+    fixes, state = pipeline.process(state, [dataclasses.replace(far, t=0.6)], ENV)
+    assert fixes[0].status == "predicted"
+    summary = pipeline.summarise(state)
+    assert summary.epochs == 6 and summary.t == pytest.approx(0.6)
+    assert abs(sum(summary.model_probabilities.values()) - 1.0) < 1e-12
+
+
+def test_self_initialised_session_converges(pipeline) -> None:
+    state = pipeline.create(pipeline.resolve_options(None), None)
+    fixes, _ = run(pipeline, state, 60, seed=7)
+    assert fixes[0].status == "initialised"
+    assert all(f.status == "tracking" for f in fixes[1:])
+    assert max(position_error(f) for f in fixes[30:]) < 1.0
+    assert fixes[-1].speed == pytest.approx(SPEED, abs=1.0)
+
+
+# -- RSU selection, gate, handling, overrides ---------------------------------------------------------
+def test_rsus_beyond_the_radius_and_beyond_max_rsus_are_reported_unused(pipeline) -> None:
+    state = started(pipeline, {"max_rsus": 3})
+    fixes, _ = pipeline.process(state, epoch(DT, np.random.default_rng(8)), ENV)
+    uses = {use.index: use for use in fixes[0].measurements}
+    batch = epoch(DT, np.random.default_rng(8))
+    by_id = {o.rsu_id: i for i, o in enumerate(batch) if isinstance(o, RsuObservation)}
+    beyond = [i for i in by_id.values() if batch[i].range > 160.0]
+    assert {batch[i].rsu_id for i in beyond} == {"FAR", "S200", "N250"}
+    for i in beyond:
+        assert not uses[i].used and "160 m communication radius" in uses[i].reason
+    in_radius = sorted((batch[i].range, i) for i in by_id.values() if batch[i].range <= 160.0)
+    assert len(in_radius) == 4
+    for _, i in in_radius[:3]:
+        assert uses[i].used, uses[i]
+    for _, i in in_radius[3:]:
+        assert not uses[i].used and "nearest 3" in uses[i].reason
+    gyro_index = len(batch) - 1
+    assert uses[gyro_index].used and uses[gyro_index].kind == "gyro"
+    assert fixes[0].nis_dof == 2 * 3 + 1
+
+
+def test_gross_outlier_range_fails_the_gate(pipeline) -> None:
+    _, state = run(pipeline, started(pipeline), 10, seed=9)
+    batch = epoch(11 * DT, np.random.default_rng(10))
+    bad = next(i for i, o in enumerate(batch) if isinstance(o, RsuObservation) and o.rsu_id == "N050")
+    batch[bad] = dataclasses.replace(batch[bad], range=batch[bad].range + 40.0)
+    fixes, _ = pipeline.process(state, batch, ENV)
+    use = next(u for u in fixes[0].measurements if u.index == bad)
+    assert not use.used and "gate" in use.reason
+    assert fixes[0].status == "tracking"
+    assert position_error(fixes[0]) < 1.0
+    # with the gate disabled the outlier goes in and drags the estimate
+    _, state_nogate = run(pipeline, started(pipeline, {"gate_probability": 0.0}), 10, seed=9)
+    fixes_nogate, _ = pipeline.process(state_nogate, batch, ENV)
+    assert next(u for u in fixes_nogate[0].measurements if u.index == bad).used
+    assert position_error(fixes_nogate[0]) > position_error(fixes[0])
+
+
+def test_absurd_gyro_reading_fails_the_gate(pipeline) -> None:
+    _, state = run(pipeline, started(pipeline), 10, seed=11)
+    batch = epoch(11 * DT, np.random.default_rng(12))
+    batch[-1] = GyroObservation(t=batch[-1].t, yaw_rate=3.0)
+    fixes, _ = pipeline.process(state, batch, ENV)
+    use = fixes[0].measurements[-1]
+    assert use.kind == "gyro" and not use.used and "gate" in use.reason
+
+
+@pytest.mark.parametrize("handling", ["joint", "average"])
+@pytest.mark.parametrize("filter_name", ["ckf", "ukf", "ekf"])
+def test_joint_and_average_handling_track_with_every_filter(pipeline, handling: str, filter_name: str) -> None:
+    fixes, _ = run(pipeline, started(pipeline, {"rsu_handling": handling, "filter": filter_name}), 30, seed=13)
+    assert all(f.status == "tracking" for f in fixes)
+    assert max(position_error(f) for f in fixes) < 1.0
+    dof = {f.nis_dof for f in fixes}
+    assert dof == ({2 * 4 + 1} if handling == "joint" else {2 + 1})
+
+
+def test_joint_and_average_give_different_estimates(pipeline) -> None:
+    joint, _ = run(pipeline, started(pipeline, {"rsu_handling": "joint"}), 10, seed=14)
+    average, _ = run(pipeline, started(pipeline, {"rsu_handling": "average"}), 10, seed=14)
+    assert max(abs(a.x - b.x) + abs(a.y - b.y) for a, b in zip(joint, average)) > 1e-6
+
+
+@pytest.mark.parametrize(
+    ("override", "option"),
+    [({"range_std": 2.5}, {"range_std": 2.5}), ({"bearing_std": 0.03}, {"bearing_std": 0.03})],
+)
+def test_per_rsu_noise_overrides_are_honoured(pipeline, override: dict, option: dict) -> None:
+    """RSUs carrying their own noise level behave exactly as if the option said so for all of them."""
+    overridden = StaticEnvironment({k: dataclasses.replace(r, **override) for k, r in ENV.rsus.items()})
+    with_override, _ = run(pipeline, started(pipeline), 8, seed=15, env=overridden)
+    with_option, _ = run(pipeline, started(pipeline, option), 8, seed=15, env=ENV)
+    plain, _ = run(pipeline, started(pipeline), 8, seed=15, env=ENV)
+    for a, b in zip(with_override, with_option):
+        assert (a.x, a.y, a.position_cov, a.model_probabilities) == (b.x, b.y, b.position_cov, b.model_probabilities)
+    assert any(a.position_cov != c.position_cov for a, c in zip(with_override, plain))
+
+
+def test_per_rsu_noise_override_of_one_rsu_changes_its_weight(pipeline) -> None:
+    """A very noisy RSU barely moves the estimate: its outlier is absorbed when its range_std is huge."""
+    noisy = dict(ENV.rsus)
+    noisy["N050"] = dataclasses.replace(noisy["N050"], range_std=50.0, bearing_std=0.5)
+    env = StaticEnvironment(noisy)
+    _, state = run(pipeline, started(pipeline, {"gate_probability": 0.0}), 10, seed=16, env=env)
+    batch = epoch(11 * DT, np.random.default_rng(17), env)
+    bad = next(i for i, o in enumerate(batch) if isinstance(o, RsuObservation) and o.rsu_id == "N050")
+    batch[bad] = dataclasses.replace(batch[bad], range=batch[bad].range + 20.0)
+    fixes, _ = pipeline.process(state, batch, env)
+    assert position_error(fixes[0]) < 0.6
+
+
+def test_per_rsu_radius_override_is_honoured(pipeline) -> None:
+    rsus = dict(ENV.rsus)
+    rsus["S200"] = dataclasses.replace(rsus["S200"], radius=100.0)
+    rsus["FAR"] = dataclasses.replace(rsus["FAR"], radius=5000.0)
+    env = StaticEnvironment(rsus)
+    batch = epoch(DT, np.random.default_rng(18), env)
+    fixes, _ = pipeline.process(started(pipeline, {"max_rsus": 64, "gate_probability": 0.0}), batch, env)
+    uses = {batch[u.index].rsu_id: u for u in fixes[0].measurements if isinstance(batch[u.index], RsuObservation)}
+    assert not uses["S200"].used and "100 m" in uses["S200"].reason  # 179 m away, radius 100 m
+    assert uses["FAR"].used  # 1979 m away, radius 5000 m
+    assert uses["N150"].used  # 132 m, default radius 160 m
+    assert not uses["N250"].used and "160 m" in uses["N250"].reason
+
+
+def test_fix_covariances_are_symmetric_positive_definite(pipeline) -> None:
+    fixes, _ = run(pipeline, started(pipeline), 40, seed=19)
+    for fix in fixes:
+        position_cov = np.array(fix.position_cov)
+        assert position_cov.shape == (2, 2)
+        np.testing.assert_array_equal(position_cov, position_cov.T)
+        assert np.linalg.eigvalsh(position_cov).min() > 0.0
+        state_cov = np.array(fix.state_cov)
+        assert state_cov.shape == (len(fix.state_components),) * 2
+        np.testing.assert_array_equal(state_cov, state_cov.T)
+        assert np.linalg.eigvalsh(state_cov).min() > 0.0
+        assert abs(sum(fix.model_probabilities.values()) - 1.0) < 1e-12
+        assert fix.nis is not None and fix.nis >= 0.0
+
+
+# -- state bytes and determinism ---------------------------------------------------------------------
+def test_state_reencodes_byte_identically(pipeline) -> None:
+    _, state = run(pipeline, started(pipeline), 12, seed=20)
+    meta, arrays = state_format.unpack(state)
+    assert state_format.pack(meta, arrays) == state
+    # an empty batch changes nothing
+    fixes, same = pipeline.process(state, [], ENV)
+    assert fixes == [] and same == state
+
+
+def test_processing_is_deterministic(pipeline) -> None:
+    _, state = run(pipeline, started(pipeline), 12, seed=21)
+    batch = [o for k in range(13, 20) for o in epoch(k * DT, np.random.default_rng(k))]
+    fixes_a, state_a = pipeline.process(state, batch, ENV)
+    fixes_b, state_b = pipeline.process(state, batch, ENV)
+    assert state_a == state_b
+    assert fixes_a == fixes_b
+
+
+def test_one_batch_equals_epoch_by_epoch(pipeline) -> None:
+    """Splitting a stream into batches does not change a single bit of the result."""
+    rng = np.random.default_rng(22)
+    epochs = [epoch(k * DT, rng) for k in range(1, 16)]
+    state = started(pipeline)
+    fixes_one, state_one = pipeline.process(state, [o for e in epochs for o in e], ENV)
+    fixes_many: list[Fix] = []
+    for e in epochs:
+        new, state = pipeline.process(state, e, ENV)
+        fixes_many.extend(new)
+    assert state == state_one
+    for a, b in zip(fixes_one, fixes_many):
+        assert (a.t, a.x, a.y, a.vx, a.vy, a.position_cov, a.state_cov, a.model_probabilities, a.nis) == (
+            b.t, b.x, b.y, b.vx, b.vy, b.position_cov, b.state_cov, b.model_probabilities, b.nis
+        )
+
+
+def test_foreign_or_corrupt_state_is_refused(pipeline) -> None:
+    with pytest.raises(state_format.StateFormatError):
+        pipeline.process(state_format.pack({"pipeline": "other"}, {}), [], ENV)
+    with pytest.raises(state_format.StateFormatError):
+        pipeline.process(started(pipeline)[:-3], [], ENV)
+
+
+# -- gaps in the data ---------------------------------------------------------------------------------
+LONG_ROAD = StaticEnvironment(
+    {f"R{x:04d}": Rsu(f"R{x:04d}", float(x), -4.0 if (x // 50) % 2 == 0 else 15.0) for x in range(0, 2001, 50)}
+)
+
+
+@pytest.mark.parametrize("gap", [25.0, 30.0])
+def test_tracking_resumes_after_a_gap_in_the_data(pipeline, gap: float) -> None:
+    """A vehicle that stops reporting for half a minute (a tunnel, lost link) keeps its session: past
+    max_gap the pipeline starts again from the RSU measurements (no estimation error, which would repeat
+    for ever as the gap only grows) and the estimate re-converges."""
+    _, state = run(pipeline, started(pipeline), 10, seed=23, env=LONG_ROAD)
+    rng = np.random.default_rng(24)
+    fixes: list[Fix] = []
+    for k in range(20):
+        new, state = pipeline.process(state, epoch(1.0 + gap + k * DT, rng, LONG_ROAD), LONG_ROAD)
+        fixes.extend(new)
+    assert fixes[0].status == "initialised"
+    assert all(f.status == "tracking" for f in fixes[1:])
+    assert max(position_error(f) for f in fixes[10:]) < 1.0
+
+
+@pytest.mark.parametrize("gap", [1e3, 1e6, 1e120])
+def test_absurd_gaps_fail_only_with_estimation_errors(pipeline, gap: float) -> None:
+    """Whatever finite times a client sends, processing succeeds or raises EstimationError (422),
+    never another exception (which the service would turn into a 500)."""
+    from edgepos.core.errors import EstimationError
+
+    for filter_name in ("ckf", "ekf"):
+        _, state = run(pipeline, started(pipeline, {"filter": filter_name}), 3, seed=25)
+        try:
+            pipeline.process(state, epoch(0.3 + gap, np.random.default_rng(26)), ENV)
+        except EstimationError:
+            pass
