@@ -11,11 +11,12 @@ import hashlib
 import hmac
 import secrets
 from dataclasses import dataclass
+from typing import Annotated
 
 from fastapi import Depends, Path
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from edgepos.api.context import AppContext, get_context
+from edgepos.api.context import AppContext, Context
 from edgepos.api.errors import ApiError
 
 bearer_scheme = HTTPBearer(
@@ -23,6 +24,7 @@ bearer_scheme = HTTPBearer(
     scheme_name="bearer",
     description="The admin key (EDGEPOS_ADMIN_KEY) or a session token returned by POST /v1/sessions.",
 )
+Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(bearer_scheme)]
 
 
 @dataclass(frozen=True)
@@ -77,8 +79,8 @@ _INVALID = "the bearer credential is not valid (unknown key, or the session's to
 
 
 async def require_admin(
-    context: AppContext = Depends(get_context),
-    credentials: HTTPAuthorizationCredentials | None = Depends(bearer_scheme),
+    context: Context,
+    credentials: Credentials,
 ) -> Principal:
     """Only the admin key passes; a valid session token gets 403."""
     secret = _secret(credentials)
@@ -90,8 +92,8 @@ async def require_admin(
 
 
 async def require_any(
-    context: AppContext = Depends(get_context),
-    credentials: HTTPAuthorizationCredentials | None = Depends(bearer_scheme),
+    context: Context,
+    credentials: Credentials,
 ) -> Principal:
     """The admin key or any live session's token passes."""
     secret = _secret(credentials)
@@ -104,9 +106,9 @@ async def require_any(
 
 
 async def require_session(
-    session_id: str = Path(description="Session identifier returned by POST /v1/sessions."),
-    context: AppContext = Depends(get_context),
-    credentials: HTTPAuthorizationCredentials | None = Depends(bearer_scheme),
+    session_id: Annotated[str, Path(description="Session identifier returned by POST /v1/sessions.")],
+    context: Context,
+    credentials: Credentials,
 ) -> Principal:
     """The admin key, or this session's own token (another session's valid token gets 403)."""
     secret = _secret(credentials)

@@ -5,8 +5,9 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Annotated
 
-from fastapi import Request
+from fastapi import Depends, Request
 
 from edgepos.api.metrics import Metrics
 from edgepos.api.settings import Settings
@@ -35,3 +36,7 @@ def get_context(request: Request) -> AppContext:
     """FastAPI dependency: the app's context."""
     context: AppContext = request.app.state.context
     return context
+
+
+Context = Annotated[AppContext, Depends(get_context)]
+"""Route parameter type that receives the app's context."""

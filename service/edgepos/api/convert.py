@@ -9,7 +9,9 @@ from edgepos.pipelines.base import Fix, Pipeline, Rsu
 
 
 def rsu_from_wire(rsu: RsuModel) -> Rsu:
-    return Rsu(id=rsu.id, x=rsu.x, y=rsu.y, range_std=rsu.range_std, bearing_std=rsu.bearing_std, radius=rsu.radius)
+    return Rsu(
+        id=rsu.id, x=rsu.x, y=rsu.y, range_std=rsu.range_std, bearing_std=rsu.bearing_std, radius=rsu.radius
+    )
 
 
 def rsu_to_wire(rsu: Rsu) -> RsuOut:

@@ -108,12 +108,21 @@ def validation_problems(errors: Sequence[dict[str, Any]]) -> list[ProblemModel]:
         if error.get("type") == "json_invalid":
             detail = (error.get("ctx") or {}).get("error")
             reason = f"not valid JSON: {detail}" if detail else "not valid JSON"
+            loc, index = [], None
         problems.append(ProblemModel(index=index, field=field or "body", reason=reason))
     return problems
 
 
-_STATUS_CODES = {404: "not_found", 405: "method_not_allowed", 401: "unauthorized", 403: "forbidden",
-                 409: "conflict", 413: "payload_too_large", 429: "rate_limited", 503: "unavailable"}
+_STATUS_CODES = {
+    404: "not_found",
+    405: "method_not_allowed",
+    401: "unauthorized",
+    403: "forbidden",
+    409: "conflict",
+    413: "payload_too_large",
+    429: "rate_limited",
+    503: "unavailable",
+}
 
 
 def install_error_handlers(app: FastAPI) -> None:
@@ -132,7 +141,14 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(request: Request, error: StarletteHTTPException) -> Response:
-        code = _STATUS_CODES.get(error.status_code, "invalid_request" if error.status_code < 500 else "internal_error")
+        if error.status_code == 400:  # FastAPI could not decode the body (e.g. not UTF-8)
+            problem = ProblemModel(index=None, field="body", reason=f"cannot be read as JSON: {error.detail}")
+            return error_response(
+                ApiError("invalid_request", "the request body is not valid JSON", [problem])
+            )
+        code = _STATUS_CODES.get(
+            error.status_code, "invalid_request" if error.status_code < 500 else "internal_error"
+        )
         if error.status_code == 404:
             message = f"no such resource: {request.url.path}"
         elif error.status_code == 405:
@@ -143,5 +159,9 @@ def install_error_handlers(app: FastAPI) -> None:
         response.status_code = error.status_code
         for key, value in (error.headers or {}).items():
             response.headers[key] = value
+        template = getattr(request.scope.get("route"), "path", None)
+        allowed = getattr(request.app.state, "allowed_methods", {}).get(template)
+        if error.status_code == 405 and allowed:
+            # Starlette names only the first route of the path; list every route's methods
+            response.headers["Allow"] = ", ".join(sorted(allowed))
         return response
-

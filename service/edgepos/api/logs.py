@@ -12,9 +12,16 @@ import re
 import sys
 from typing import Any
 
-request_id_var: contextvars.ContextVar[str | None] = contextvars.ContextVar("edgepos_request_id", default=None)
+request_id_var: contextvars.ContextVar[str | None] = contextvars.ContextVar(
+    "edgepos_request_id", default=None
+)
 
-_STANDARD_ATTRIBUTES = set(vars(logging.makeLogRecord({}))) | {"message", "asctime", "taskName"}
+_STANDARD_ATTRIBUTES = set(vars(logging.makeLogRecord({}))) | {
+    "message",
+    "asctime",
+    "taskName",
+    "color_message",
+}
 _SECRET_PATTERNS = [
     re.compile(r"(?i)bearer\s+\S+"),
     re.compile(r"\b[0-9a-f]{32}\.[A-Za-z0-9_-]{16,}"),  # session tokens: <session id>.<secret>

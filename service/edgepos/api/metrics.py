@@ -6,7 +6,14 @@ answered it; ``edgepos_active_sessions`` is read from the store, so it is the sa
 
 from __future__ import annotations
 
-from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client import (
+    CONTENT_TYPE_LATEST,
+    CollectorRegistry,
+    Counter,
+    Gauge,
+    Histogram,
+    generate_latest,
+)
 
 _LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
 _STEP_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1)
@@ -36,7 +43,9 @@ class Metrics:
             "edgepos_active_sessions", "Live (unexpired) sessions in the store.", registry=self.registry
         )
         self.epochs = Counter(
-            "edgepos_epochs_processed", "Epochs filtered (fixes produced) by applied batches.", registry=self.registry
+            "edgepos_epochs_processed",
+            "Epochs filtered (fixes produced) by applied batches.",
+            registry=self.registry,
         )
         self.batches = Counter(
             "edgepos_batches",

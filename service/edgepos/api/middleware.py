@@ -78,7 +78,9 @@ class RequestContextMiddleware:
             error_logger.exception("unhandled error", extra={"event": "unhandled_error"})
             status = 500
             if not response_started:
-                await _send_error(send_with_id, 500, "internal_error", "internal server error; the error was logged")
+                await _send_error(
+                    send_with_id, 500, "internal_error", "internal server error; the error was logged"
+                )
         finally:
             elapsed = time.perf_counter() - started
             route = getattr(scope.get("route"), "path", None) or "unmatched"

@@ -60,9 +60,12 @@ class ProblemModel(ResponseModel):
     """One reason a request was refused."""
 
     index: int | None = Field(
-        None, description="Index of the offending measurement in the batch (0-based), or null when not about one."
+        None,
+        description="Index of the offending measurement in the batch (0-based), or null when not about one.",
     )
-    field: str = Field(description="Path of the offending field, e.g. 'measurements[3].range' or 'options.filter'.")
+    field: str = Field(
+        description="Path of the offending field, e.g. 'measurements[3].range' or 'options.filter'."
+    )
     reason: str = Field(description="Why the value was refused, in words.")
 
 
@@ -70,7 +73,8 @@ class ErrorDetail(ResponseModel):
     code: ErrorCode = Field(description="Machine-readable error code; the HTTP status is fixed per code.")
     message: str = Field(description="Human-readable sentence describing the error.")
     problems: list[ProblemModel] = Field(
-        default_factory=list, description="Every problem found (validation errors list all of them); may be empty."
+        default_factory=list,
+        description="Every problem found (validation errors list all of them); may be empty.",
     )
 
 
@@ -84,7 +88,9 @@ class ErrorBody(ResponseModel):
 _X_DESCRIPTION = "East coordinate of the RSU antenna in the site frame (m)."
 _Y_DESCRIPTION = "North coordinate of the RSU antenna in the site frame (m)."
 _RANGE_STD = "Range noise standard deviation of this RSU (m); null uses the session's range_std option."
-_BEARING_STD = "Bearing noise standard deviation of this RSU (rad); null uses the session's bearing_std option."
+_BEARING_STD = (
+    "Bearing noise standard deviation of this RSU (rad); null uses the session's bearing_std option."
+)
 _RADIUS = "Communication radius of this RSU (m); null uses the session's comm_radius option."
 
 
@@ -101,7 +107,9 @@ class RsuFields(RequestModel):
 class RsuModel(RsuFields):
     """A roadside unit of the site's registry."""
 
-    id: str = Field(pattern=RSU_ID_PATTERN, description="RSU identifier: 1-64 characters of A-Z a-z 0-9 . _ : + -.")
+    id: str = Field(
+        pattern=RSU_ID_PATTERN, description="RSU identifier: 1-64 characters of A-Z a-z 0-9 . _ : + -."
+    )
 
 
 class RsuPut(RsuFields):
@@ -145,7 +153,8 @@ class OptionOut(ResponseModel):
 
     name: str = Field(description="Option name, as a key of the session's options object.")
     type: str = Field(
-        description="JSON type: number, integer, boolean, string, string[], number[], matrix (list of rows) or object."
+        description="JSON type: number, integer, boolean, string, string[], number[], "
+        "matrix (list of rows) or object."
     )
     default: Any = Field(description="Value used when the option is not set (units as in the description).")
     description: str = Field(description="What the option does, with its unit.")
@@ -182,7 +191,8 @@ class SessionCreate(RequestModel):
 
     vehicle_id: str = Field(
         pattern=VEHICLE_ID_PATTERN,
-        description="The vehicle's own identifier: 1-128 characters of letters, digits, space and . _ : + @ / -.",
+        description="The vehicle's own identifier: 1-128 characters of letters, digits, "
+        "space and . _ : + @ / -.",
     )
     pipeline: str = Field(
         "rsu_imu", pattern=PIPELINE_NAME_PATTERN, description="Name of the pipeline (see GET /v1/pipelines)."
@@ -193,7 +203,8 @@ class SessionCreate(RequestModel):
         description="Pipeline options by name (see GET /v1/pipelines); unset ones take their defaults.",
     )
     initial_state: InitialStateIn | None = Field(
-        None, description="Known initial position and velocity; null lets the pipeline initialise from RSU fixes."
+        None,
+        description="Known initial position and velocity; null lets the pipeline initialise from RSU fixes.",
     )
 
     @field_validator("options")
@@ -219,7 +230,9 @@ class SessionCreated(ResponseModel):
     """Answer to POST /v1/sessions: keep the token, it is shown only once."""
 
     session_id: str = Field(description="Identifier of the new session.")
-    token: str = Field(description="Bearer token for this session's calls; shown once, stored only as a hash.")
+    token: str = Field(
+        description="Bearer token for this session's calls; shown once, stored only as a hash."
+    )
     vehicle_id: str = Field(description="The vehicle identifier given.")
     pipeline: str = Field(description="Pipeline name.")
     options: dict[str, Any] = Field(description="Effective options: the given ones plus every default.")
@@ -231,18 +244,24 @@ class StateOut(ResponseModel):
     """The filter's full state estimate (combined over the model bank)."""
 
     components: list[str] = Field(
-        description="Component names: xp, xv, xa (east position m, velocity m/s, acceleration m/s^2), "
-        "yp, yv, ya (north), phi (heading rad, CCW from east), omega (turn rate rad/s, CCW positive)."
+        description="Names of the components estimated by every model of the bank, from: xp, xv, xa (east "
+        "position m, velocity m/s, acceleration m/s^2), yp, yv, ya (north), "
+        "phi (heading rad, CCW from east), "
+        "omega (turn rate rad/s, CCW positive)."
     )
     mean: list[float] = Field(description="Mean, in the order of components (SI units as above).")
-    covariance: list[list[float]] = Field(description="Covariance matrix, rows/columns in the order of components.")
+    covariance: list[list[float]] = Field(
+        description="Covariance matrix, rows/columns in the order of components."
+    )
 
 
 class MeasurementUseOut(ResponseModel):
     index: int = Field(description="Index of the measurement in the request's measurements list (0-based).")
     type: str = Field(description="The measurement's type.")
     used: bool = Field(description="Whether it entered the filter update.")
-    reason: str | None = Field(description="Why it was not used (out of range, failed the gate, ...), else null.")
+    reason: str | None = Field(
+        description="Why it was not used (out of range, failed the gate, ...), else null."
+    )
 
 
 class FixOut(ResponseModel):
@@ -265,18 +284,24 @@ class FixOut(ResponseModel):
         "has a WGS-84 origin configured."
     )
     longitude: float | None = Field(
-        description="WGS-84 longitude (rad, east positive); null unless the server has a WGS-84 origin configured."
+        description="WGS-84 longitude (rad, east positive); "
+        "null unless the server has a WGS-84 origin configured."
     )
     position_covariance: list[list[float]] | None = Field(
         description="2x2 covariance of (x, y) (m^2), [[xx, xy], [yx, yy]]."
     )
-    state: StateOut | None = Field(description="Full state estimate; only when the batch asked include_state.")
+    state: StateOut | None = Field(
+        description="Full state estimate; only when the batch asked include_state."
+    )
     model_probabilities: dict[str, float] = Field(description="Probability of each motion model of the bank.")
     nis: float | None = Field(
-        description="Normalised innovation squared of the epoch's update (dimensionless); null without an update."
+        description="Normalised innovation squared of the epoch's update (dimensionless); "
+        "null without an update."
     )
     nis_dof: int = Field(description="Degrees of freedom of nis (the measurement dimension used).")
-    measurements: list[MeasurementUseOut] = Field(description="Every measurement of this epoch: used or why not.")
+    measurements: list[MeasurementUseOut] = Field(
+        description="Every measurement of this epoch: used or why not."
+    )
 
 
 class BatchOut(ResponseModel):
@@ -297,11 +322,17 @@ class SessionOut(ResponseModel):
     batches: int = Field(description="Batches applied.")
     epochs: int = Field(description="Epochs filtered (fixes produced).")
     initialised: bool = Field(description="Whether the filter has a position estimate yet.")
-    t: float | None = Field(description="Time of the last epoch processed (s, vehicle clock), null before any.")
+    t: float | None = Field(
+        description="Time of the last epoch processed (s, vehicle clock), null before any."
+    )
     model_probabilities: dict[str, float] = Field(description="Current probability of each motion model.")
-    last_fix: FixOut | None = Field(description="The latest fix (without the full state), null before any batch.")
+    last_fix: FixOut | None = Field(
+        description="The latest fix (without the full state), null before any batch."
+    )
     created_at: float = Field(description="Creation time (Unix seconds, server clock).")
-    updated_at: float = Field(description="Time of the last applied batch or creation (Unix seconds, server clock).")
+    updated_at: float = Field(
+        description="Time of the last applied batch or creation (Unix seconds, server clock)."
+    )
 
 
 # -- measurements and batches ----------------------------------------------------------------------
@@ -317,9 +348,13 @@ class RsuMeasurement(RequestModel):
     type: Literal["rsu"] = Field(description="Discriminator: 'rsu'.")
     t: float = Field(ge=-MAX_TIME_S, le=MAX_TIME_S, description=_T_DESCRIPTION)
     rsu_id: str = Field(pattern=RSU_ID_PATTERN, description="Id of a registered RSU.")
-    range: float = Field(ge=0, le=MAX_COORDINATE_M, description="Distance from the RSU to the vehicle (m), >= 0.")
+    range: float = Field(
+        ge=0, le=MAX_COORDINATE_M, description="Distance from the RSU to the vehicle (m), >= 0."
+    )
     bearing: float = Field(
-        ge=-math.pi, le=math.pi, description="Direction from the RSU to the vehicle (rad, CCW from east), in [-pi, pi]."
+        ge=-math.pi,
+        le=math.pi,
+        description="Direction from the RSU to the vehicle (rad, CCW from east), in [-pi, pi].",
     )
 
     def to_observation(self) -> Observation:
@@ -345,11 +380,14 @@ MEASUREMENT_TYPES: tuple[str, ...] = ("rsu", "gyro")
 class BatchIn(RequestModel):
     """Body of POST /v1/sessions/{session_id}/batches."""
 
-    seq: int = Field(ge=1, le=MAX_SEQ, description="Batch number: the session's last_seq + 1 (1 for the first).")
+    seq: int = Field(
+        ge=1, le=MAX_SEQ, description="Batch number: the session's last_seq + 1 (1 for the first)."
+    )
     measurements: list[MeasurementModel] = Field(
         min_length=1,
         max_length=HARD_MAX_BATCH,
-        description="Measurements of one or more epochs; at most EDGEPOS_MAX_BATCH_MEASUREMENTS (default 1000).",
+        description="Measurements of one or more epochs; "
+        "at most EDGEPOS_MAX_BATCH_MEASUREMENTS (default 1000).",
     )
     include_state: bool = Field(False, description="Also return each fix's full state mean and covariance.")
 

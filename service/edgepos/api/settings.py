@@ -37,7 +37,10 @@ class Settings(BaseSettings):
     )
     max_sessions: int = Field(10_000, ge=1, description="Live sessions allowed at once (429 beyond).")
     session_ttl_s: float = Field(
-        3600.0, gt=0, allow_inf_nan=False, description="Seconds without a batch after which a session expires."
+        3600.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="Seconds without a batch after which a session expires.",
     )
     max_batch_measurements: int = Field(
         1000, ge=1, le=100_000, description="Measurements allowed in one batch (422 beyond)."
@@ -47,7 +50,11 @@ class Settings(BaseSettings):
         None, ge=-90, le=90, allow_inf_nan=False, description="Site origin latitude, WGS-84 decimal degrees."
     )
     origin_lon: float | None = Field(
-        None, ge=-180, le=180, allow_inf_nan=False, description="Site origin longitude, WGS-84 decimal degrees."
+        None,
+        ge=-180,
+        le=180,
+        allow_inf_nan=False,
+        description="Site origin longitude, WGS-84 decimal degrees.",
     )
     origin_height: float = Field(
         0.0, allow_inf_nan=False, description="Site origin ellipsoidal height (m), used with origin_lat/lon."

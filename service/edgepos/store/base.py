@@ -156,5 +156,5 @@ class SessionStore(ABC):
         return True
 
     async def close(self) -> None:
-        """Release connections and threads."""
-
+        """Release connections and threads (nothing to release by default)."""
+        return None

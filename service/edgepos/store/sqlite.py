@@ -100,23 +100,59 @@ class SQLiteStore(SessionStore):
 
     @staticmethod
     def _record(row: tuple[Any, ...]) -> SessionRecord:
-        (sid, vehicle, pipeline, options, token_hash, state, created, updated, last_seq, req_hash,
-         response, batches, epochs, last_fix, version) = row
+        (
+            sid,
+            vehicle,
+            pipeline,
+            options,
+            token_hash,
+            state,
+            created,
+            updated,
+            last_seq,
+            req_hash,
+            response,
+            batches,
+            epochs,
+            last_fix,
+            version,
+        ) = row
         return SessionRecord(
-            session_id=sid, vehicle_id=vehicle, pipeline=pipeline, options=json.loads(options),
-            token_hash=token_hash, state=bytes(state), created_at=created, updated_at=updated,
-            last_seq=last_seq, last_request_hash=req_hash,
-            last_response=None if response is None else bytes(response), batches=batches,
-            epochs=epochs, last_fix=last_fix, version=version,
+            session_id=sid,
+            vehicle_id=vehicle,
+            pipeline=pipeline,
+            options=json.loads(options),
+            token_hash=token_hash,
+            state=bytes(state),
+            created_at=created,
+            updated_at=updated,
+            last_seq=last_seq,
+            last_request_hash=req_hash,
+            last_response=None if response is None else bytes(response),
+            batches=batches,
+            epochs=epochs,
+            last_fix=last_fix,
+            version=version,
         )
 
     @staticmethod
     def _row(record: SessionRecord) -> tuple[Any, ...]:
         return (
-            record.session_id, record.vehicle_id, record.pipeline,
-            json.dumps(record.options, allow_nan=False), record.token_hash, record.state,
-            record.created_at, record.updated_at, record.last_seq, record.last_request_hash,
-            record.last_response, record.batches, record.epochs, record.last_fix, record.version,
+            record.session_id,
+            record.vehicle_id,
+            record.pipeline,
+            json.dumps(record.options, allow_nan=False),
+            record.token_hash,
+            record.state,
+            record.created_at,
+            record.updated_at,
+            record.last_seq,
+            record.last_request_hash,
+            record.last_response,
+            record.batches,
+            record.epochs,
+            record.last_fix,
+            record.version,
         )
 
     def _live_since(self) -> float:

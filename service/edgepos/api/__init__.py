@@ -1,0 +1,1 @@
+"""The HTTP service: FastAPI app factory (``edgepos.api.app.create_app``), routes, auth, metrics."""

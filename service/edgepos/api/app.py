@@ -1,0 +1,134 @@
+"""The FastAPI application factory: ``create_app(settings)``.
+
+uvicorn calls ``create_app()`` (``--factory``) in each worker, which then reads its settings from
+the ``EDGEPOS_*`` environment. Tests pass settings (and may pass a store or pipelines) directly.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import AsyncIterator, Mapping
+from importlib import resources
+
+from fastapi import FastAPI
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.routing import APIRoute
+from fastapi.staticfiles import StaticFiles
+
+from edgepos import __version__
+from edgepos.api.context import AppContext
+from edgepos.api.errors import install_error_handlers
+from edgepos.api.logs import configure_logging
+from edgepos.api.metrics import Metrics
+from edgepos.api.middleware import BodyLimitMiddleware, RequestContextMiddleware
+from edgepos.api.routes import docs, health, rsus, sessions
+from edgepos.api.routes import pipelines as pipeline_routes
+from edgepos.api.settings import Settings, ensure_admin_key
+from edgepos.pipelines.base import Pipeline, Rsu
+from edgepos.store import SessionStore, open_store
+
+logger = logging.getLogger("edgepos.api")
+
+DESCRIPTION = """\
+Edge positioning service: vehicles open a session, send batches of roadside-unit (RSU) range/bearing
+and gyro measurements, and get one position fix per measurement epoch.
+
+Conventions: SI units and radians everywhere; positions in the site-local east-north plane in metres
+(x east, y north); angles counter-clockwise from east. Authentication is `Authorization: Bearer ...`
+with the admin key (RSU writes, any session) or a session's token (that session only). Every error
+has the body `{"error": {"code", "message", "problems": [{"index", "field", "reason"}]}}`.
+"""
+
+
+def _demo_rsus() -> list[Rsu]:
+    """The RSU map of the paper's scenario (the simulator's layout)."""
+    from edgepos.sim.scenarios import rsu_imu_paper_scenario
+
+    return list(rsu_imu_paper_scenario().rsus)
+
+
+async def _expire_periodically(store: SessionStore, period_s: float) -> None:
+    while True:
+        await asyncio.sleep(period_s)
+        try:
+            removed = await store.expire()
+        except Exception:  # keep sweeping: a transient store error must not end the task
+            logger.exception("session expiry failed", extra={"event": "expiry_failed"})
+            continue
+        if removed:
+            logger.info("sessions expired", extra={"event": "sessions_expired", "count": removed})
+
+
+def create_app(
+    settings: Settings | None = None,
+    *,
+    store: SessionStore | None = None,
+    pipelines: Mapping[str, Pipeline] | None = None,
+) -> FastAPI:
+    """A ready-to-serve app. Without ``settings`` they come from the environment; without an admin
+    key one is generated (printed once to stderr and written to ``admin_key_file``)."""
+    settings = ensure_admin_key(settings if settings is not None else Settings())
+    admin_key = settings.admin_key.get_secret_value() if settings.admin_key is not None else ""
+    configure_logging(settings.log_level, secrets=[admin_key])
+    if pipelines is None:
+        from edgepos.pipelines.registry import PIPELINES
+
+        pipelines = PIPELINES
+    context = AppContext(
+        settings=settings,
+        store=store if store is not None else open_store(settings.store, settings.session_ttl_s),
+        pipelines=dict(pipelines),
+        metrics=Metrics(),
+        origin=settings.origin,
+        admin_key_hash=AppContext.hash_admin_key(admin_key),
+    )
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        if settings.demo_rsus:
+            count = await context.store.upsert_rsus(_demo_rsus())
+            logger.info("demo RSU map loaded", extra={"event": "demo_rsus", "count": count})
+        sweep_period = min(60.0, max(0.5, settings.session_ttl_s / 4.0))
+        sweeper = asyncio.create_task(_expire_periodically(context.store, sweep_period))
+        logger.info("edgepos ready", extra={"event": "startup", "store": settings.store.split(":", 1)[0]})
+        try:
+            yield
+        finally:
+            sweeper.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await sweeper
+            await context.store.close()
+
+    app = FastAPI(
+        title="edgepos",
+        version=__version__,
+        description=DESCRIPTION,
+        docs_url=None,
+        redoc_url=None,
+        lifespan=lifespan,
+    )
+    app.state.context = context
+    install_error_handlers(app)
+    allowed_methods: dict[str, set[str]] = {}
+    for router in (rsus.router, pipeline_routes.router, sessions.router, health.router, docs.router):
+        app.include_router(router)
+        for route in router.routes:
+            if isinstance(route, APIRoute):
+                allowed_methods.setdefault(route.path, set()).update(route.methods)
+    app.state.allowed_methods = allowed_methods
+    static_dir = resources.files("edgepos.api") / "static"
+    app.mount(docs.STATIC_PREFIX, StaticFiles(directory=str(static_dir)), name="static")
+
+    app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
+    if settings.cors_origin_list:
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=settings.cors_origin_list,
+            allow_methods=["GET", "POST", "PUT", "DELETE"],
+            allow_headers=["Authorization", "Content-Type", "X-Request-ID"],
+            expose_headers=["X-Request-ID"],
+        )
+    app.add_middleware(RequestContextMiddleware, metrics=context.metrics)
+    return app

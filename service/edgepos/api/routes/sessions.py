@@ -1,0 +1,71 @@
+"""Vehicle sessions: open one (no credential needed: the answer carries the session's token, and
+EDGEPOS_MAX_SESSIONS bounds how many exist), read it, delete it, and send it batches."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, Response
+
+from edgepos.api import session_service
+from edgepos.api.auth import require_session
+from edgepos.api.context import Context
+from edgepos.api.routes import errors
+from edgepos.api.schemas import BatchIn, BatchOut, SessionCreate, SessionCreated, SessionOut
+
+router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
+
+
+@router.post(
+    "",
+    status_code=201,
+    response_model=SessionCreated,
+    summary="Open a session",
+    responses=errors(413, 422, 429),
+)
+async def create_session(body: SessionCreate, context: Context) -> SessionCreated:
+    """Create a session for a vehicle. Keep the returned token: it is shown once and opens only this
+    session (send it as ``Authorization: Bearer <token>``)."""
+    return await session_service.create_session(context, body)
+
+
+@router.get(
+    "/{session_id}",
+    response_model=SessionOut,
+    summary="Read a session",
+    dependencies=[Depends(require_session)],
+    responses=errors(401, 403, 404, 422),
+)
+async def get_session(session_id: str, context: Context) -> SessionOut:
+    """Options, counters, model probabilities, last seq and the latest fix (session token or admin key)."""
+    return await session_service.describe_session(context, session_id)
+
+
+@router.delete(
+    "/{session_id}",
+    status_code=204,
+    response_class=Response,
+    summary="Delete a session",
+    dependencies=[Depends(require_session)],
+    responses=errors(401, 403, 404, 422),
+)
+async def delete_session(session_id: str, context: Context) -> Response:
+    """End the session and forget its state (session token or admin key)."""
+    await session_service.delete_session(context, session_id)
+    return Response(status_code=204)
+
+
+@router.post(
+    "/{session_id}/batches",
+    response_model=BatchOut,
+    summary="Send a batch of measurements",
+    dependencies=[Depends(require_session)],
+    responses=errors(401, 403, 404, 409, 413, 422, 503),
+)
+async def post_batch(session_id: str, body: BatchIn, context: Context) -> Response:
+    """Filter the batch and return one fix per epoch (measurements sharing t), in time order.
+
+    All or nothing: any problem gives 4xx listing every offending measurement and leaves the session
+    unchanged. ``seq`` must be last_seq + 1; re-sending the last seq with the same content returns
+    the stored response without applying it again; a different body for it, an older seq or a gap
+    is 409."""
+    body_bytes = await session_service.apply_batch(context, session_id, body)
+    return Response(body_bytes, media_type="application/json")

@@ -1,0 +1,98 @@
+"""``edgepos serve``: run the service under uvicorn with the app factory.
+
+Settings come from ``EDGEPOS_*``; --host, --port, --workers and --log-level override them. The
+admin key is settled here, before workers start, so that every worker uses the same one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from pydantic import ValidationError
+
+from edgepos.api.logs import configure_logging
+from edgepos.api.settings import Settings, ensure_admin_key
+
+APP_FACTORY = "edgepos.api.app:create_app"
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--host", default=None, help="address to listen on (default: $EDGEPOS_HOST or 127.0.0.1)"
+    )
+    parser.add_argument("--port", type=int, default=None, help="TCP port (default: $EDGEPOS_PORT or 8000)")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="worker processes (default: $EDGEPOS_WORKERS or 1); more than 1 needs EDGEPOS_STORE=sqlite:///path.db",
+    )
+    parser.add_argument(
+        "--log-level",
+        default=None,
+        choices=["critical", "error", "warning", "info", "debug"],
+        help="log level (default: $EDGEPOS_LOG_LEVEL or info)",
+    )
+
+
+def _settings(args: argparse.Namespace) -> Settings:
+    overrides = {
+        key: value
+        for key, value in (
+            ("host", args.host),
+            ("port", args.port),
+            ("workers", args.workers),
+            ("log_level", args.log_level),
+        )
+        if value is not None
+    }
+    return Settings(**overrides)
+
+
+def run(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    try:
+        settings = _settings(args)
+    except ValidationError as error:
+        print(f"edgepos serve: invalid configuration:\n{error}", file=sys.stderr)
+        return 2
+    if settings.workers > 1 and settings.store == "memory":
+        print(
+            f"edgepos serve: --workers {settings.workers} needs a store shared by the workers; with the "
+            "in-process store each worker would hold a different set of sessions. Set "
+            "EDGEPOS_STORE=sqlite:///path/to/edgepos.db (or run one worker).",
+            file=sys.stderr,
+        )
+        return 2
+    settings = ensure_admin_key(settings)
+    admin_key = settings.admin_key.get_secret_value() if settings.admin_key is not None else ""
+    # The workers build their apps from the environment: hand them the settled values.
+    os.environ["EDGEPOS_ADMIN_KEY"] = admin_key
+    os.environ["EDGEPOS_LOG_LEVEL"] = settings.log_level
+    configure_logging(settings.log_level, secrets=[admin_key])
+    uvicorn.run(
+        APP_FACTORY,
+        factory=True,
+        host=settings.host,
+        port=settings.port,
+        workers=settings.workers,
+        log_config=None,
+        log_level=settings.log_level,
+        access_log=False,
+        server_header=False,
+    )
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m edgepos.api.serve``: the same as ``edgepos serve``."""
+    parser = argparse.ArgumentParser(prog="edgepos serve", description="run the edge positioning service")
+    configure(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,263 @@
+"""Session operations behind the routes: create, describe, delete, and apply a batch.
+
+The batch path is all or nothing. The whole body is validated (pydantic, then the pipeline), the
+filter runs in a worker thread on a copy of the state, and the new state, counters and response
+are written in one compare-and-set on the record's version. A failed batch writes nothing. Within
+a process a per-session lock keeps two requests for one session from interleaving; across worker
+processes a lost compare-and-set reloads the session and starts over.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import hmac
+import logging
+import time
+from typing import Any
+
+from starlette.concurrency import run_in_threadpool
+
+from edgepos.api.auth import hash_token, new_session_id, new_session_token
+from edgepos.api.context import AppContext
+from edgepos.api.convert import fix_to_wire
+from edgepos.api.errors import ApiError, pipeline_problems
+from edgepos.api.schemas import (
+    BatchIn,
+    BatchOut,
+    FixOut,
+    ProblemModel,
+    SessionCreate,
+    SessionCreated,
+    SessionOut,
+)
+from edgepos.core.errors import EstimationError
+from edgepos.core.observations import RsuObservation
+from edgepos.pipelines.base import InitialState, Pipeline, PipelineInputError, Problem, StaticEnvironment
+from edgepos.store.base import SessionRecord, TooManySessions
+
+logger = logging.getLogger("edgepos.api")
+
+MAX_ATTEMPTS = 8
+"""Compare-and-set attempts per batch before answering 503 (only other workers can cause a retry)."""
+
+
+def _pipeline(context: AppContext, name: str) -> Pipeline:
+    pipeline = context.pipelines.get(name)
+    if pipeline is None:
+        raise ApiError("unavailable", f"this server no longer offers the session's pipeline {name!r}")
+    return pipeline
+
+
+def _resolve_and_create(pipeline: Pipeline, body: SessionCreate) -> tuple[dict[str, Any], bytes]:
+    """Effective options and the initial state (runs in a worker thread: it may build filters)."""
+    try:
+        options = pipeline.resolve_options(body.options)
+    except EstimationError as error:  # a parameter the estimation core refuses
+        raise PipelineInputError([_problem("options", str(error))]) from None
+    initial = None
+    if body.initial_state is not None:
+        initial = InitialState(**body.initial_state.model_dump())
+    try:
+        state = pipeline.create(options, initial)
+    except EstimationError as error:
+        raise PipelineInputError([_problem("initial_state", str(error))]) from None
+    return options, state
+
+
+def _problem(field: str, reason: str) -> Problem:
+    return Problem(None, field, reason)
+
+
+async def create_session(context: AppContext, body: SessionCreate) -> SessionCreated:
+    pipeline = context.pipelines.get(body.pipeline)
+    if pipeline is None:
+        known = ", ".join(sorted(context.pipelines))
+        raise ApiError(
+            "invalid_request",
+            f"unknown pipeline {body.pipeline!r}",
+            [ProblemModel(index=None, field="pipeline", reason=f"unknown pipeline; available: {known}")],
+        )
+    try:
+        options, state = await run_in_threadpool(_resolve_and_create, pipeline, body)
+    except PipelineInputError as error:
+        raise ApiError(
+            "invalid_request", "the session options are invalid", pipeline_problems(error.problems)
+        ) from None
+    session_id = new_session_id()
+    token = new_session_token(session_id)
+    now = context.store.clock()
+    record = SessionRecord(
+        session_id=session_id,
+        vehicle_id=body.vehicle_id,
+        pipeline=pipeline.name,
+        options=options,
+        token_hash=hash_token(token),
+        state=state,
+        created_at=now,
+        updated_at=now,
+    )
+    try:
+        await context.store.create(record, context.settings.max_sessions)
+    except TooManySessions as error:
+        raise ApiError(
+            "too_many_sessions",
+            f"the server holds its maximum of {error.limit} sessions (EDGEPOS_MAX_SESSIONS); "
+            "delete idle sessions or retry later",
+        ) from None
+    logger.info("session created", extra={"event": "session_created", "session_id": session_id})
+    return SessionCreated(
+        session_id=session_id,
+        token=token,
+        vehicle_id=body.vehicle_id,
+        pipeline=pipeline.name,
+        options=options,
+        created_at=now,
+    )
+
+
+async def describe_session(context: AppContext, session_id: str) -> SessionOut:
+    record = await context.store.get(session_id)
+    if record is None:
+        raise ApiError("not_found", f"no session {session_id!r} (it may have expired or been deleted)")
+    summary = _pipeline(context, record.pipeline).summarise(record.state)
+    return SessionOut(
+        session_id=record.session_id,
+        vehicle_id=record.vehicle_id,
+        pipeline=record.pipeline,
+        options=record.options,
+        last_seq=record.last_seq,
+        batches=record.batches,
+        epochs=record.epochs,
+        initialised=summary.initialised,
+        t=summary.t,
+        model_probabilities=summary.model_probabilities,
+        last_fix=None if record.last_fix is None else FixOut.model_validate_json(record.last_fix),
+        created_at=record.created_at,
+        updated_at=record.updated_at,
+    )
+
+
+async def delete_session(context: AppContext, session_id: str) -> None:
+    if not await context.store.delete(session_id):
+        raise ApiError("not_found", f"no session {session_id!r} (it may have expired or been deleted)")
+    logger.info("session deleted", extra={"event": "session_deleted", "session_id": session_id})
+
+
+def batch_hash(batch: BatchIn) -> str:
+    """Digest of the batch's content (not its bytes): a retry with other whitespace still matches."""
+    return hashlib.sha256(batch.model_dump_json().encode()).hexdigest()
+
+
+def _replay_or_refuse(record: SessionRecord, batch: BatchIn, digest: str) -> bytes | None:
+    """The stored response for a retried last batch; None for the next seq; 409 otherwise."""
+    expected = record.last_seq + 1
+    if batch.seq == expected:
+        return None
+    if batch.seq == record.last_seq:
+        same = record.last_request_hash is not None and hmac.compare_digest(record.last_request_hash, digest)
+        if same and record.last_response is not None:
+            return record.last_response
+        reason = f"seq {batch.seq} was already applied with a different body; the next seq is {expected}"
+    elif batch.seq < record.last_seq:
+        last = record.last_seq
+        reason = f"seq {batch.seq} is older than the last applied seq {last}; the next seq is {expected}"
+    else:
+        reason = f"seq {batch.seq} skips ahead; the next seq is {expected}"
+    raise ApiError("conflict", reason, [ProblemModel(index=None, field="seq", reason=reason)])
+
+
+def _check_types(pipeline: Pipeline, batch: BatchIn) -> None:
+    problems = [
+        ProblemModel(
+            index=index,
+            field=f"measurements[{index}].type",
+            reason=f"the {pipeline.name} pipeline does not use {measurement.type!r} measurements",
+        )
+        for index, measurement in enumerate(batch.measurements)
+        if measurement.type not in pipeline.measurement_kinds
+    ]
+    if problems:
+        raise ApiError("invalid_request", "the batch has measurements this session cannot use", problems)
+
+
+async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> bytes:
+    """Apply ``batch`` exactly once and return the response body (JSON bytes)."""
+    limit = context.settings.max_batch_measurements
+    if len(batch.measurements) > limit:
+        count = len(batch.measurements)
+        reason = f"at most {limit} measurements per batch (EDGEPOS_MAX_BATCH_MEASUREMENTS), got {count}"
+        problem = ProblemModel(index=None, field="measurements", reason=reason)
+        raise ApiError("invalid_request", "the batch is too large", [problem])
+    digest = batch_hash(batch)
+    observations = [measurement.to_observation() for measurement in batch.measurements]
+    rsu_ids = {o.rsu_id for o in observations if isinstance(o, RsuObservation)}
+    metrics = context.metrics
+    for _attempt in range(MAX_ATTEMPTS):
+        async with context.store.session_lock(session_id):
+            record = await context.store.get(session_id)
+            if record is None:
+                raise ApiError(
+                    "not_found", f"no session {session_id!r} (it may have expired or been deleted)"
+                )
+            try:
+                replay = _replay_or_refuse(record, batch, digest)
+            except ApiError:
+                metrics.batches.labels("conflict").inc()
+                raise
+            if replay is not None:
+                metrics.batches.labels("replayed").inc()
+                return replay
+            pipeline = _pipeline(context, record.pipeline)
+            _check_types(pipeline, batch)
+            environment = StaticEnvironment(dict(await context.store.get_rsus(rsu_ids)))
+            started = time.perf_counter()
+            try:
+                fixes, state = await run_in_threadpool(
+                    pipeline.process, record.state, observations, environment
+                )
+            except PipelineInputError as error:
+                metrics.batches.labels("rejected").inc()
+                count = len(error.problems)
+                raise ApiError(
+                    "invalid_request",
+                    f"the batch was refused ({count} problem{'s' if count != 1 else ''}); "
+                    "the session is unchanged",
+                    pipeline_problems(error.problems, "measurements"),
+                ) from None
+            except EstimationError as error:
+                metrics.batches.labels("failed").inc()
+                logger.warning(
+                    "estimation failed",
+                    extra={"event": "estimation_failed", "session_id": session_id, "error": str(error)},
+                )
+                raise ApiError(
+                    "estimation_failed",
+                    f"the filter could not process this batch: {error}; the session is unchanged",
+                ) from None
+            elapsed = time.perf_counter() - started
+            wire_fixes = [fix_to_wire(fix, batch.include_state, context.origin) for fix in fixes]
+            body = _batch_body(batch.seq, wire_fixes)
+            last_fix = record.last_fix
+            if wire_fixes:
+                last_fix = wire_fixes[-1].model_copy(update={"state": None}).model_dump_json()
+            updated = dataclasses.replace(
+                record,
+                state=state,
+                last_seq=batch.seq,
+                last_request_hash=digest,
+                last_response=body,
+                batches=record.batches + 1,
+                epochs=record.epochs + len(fixes),
+                last_fix=last_fix,
+                updated_at=context.store.clock(),
+            )
+            if await context.store.compare_and_set(updated, record.version):
+                metrics.observe_batch(len(fixes), elapsed)
+                return body
+            metrics.store_conflicts.inc()
+    raise ApiError("unavailable", "the session kept changing under this request; retry the same batch")
+
+
+def _batch_body(seq: int, fixes: list[FixOut]) -> bytes:
+    return BatchOut(seq=seq, fixes=fixes).model_dump_json().encode()

@@ -1,0 +1,97 @@
+"""Shared helpers of the API tests: the paper scenario's RSUs and measurements on the wire."""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from edgepos.api.settings import Settings
+from edgepos.core.observations import GyroObservation, Observation, RsuObservation
+from edgepos.sim.scenarios import Scenario, rsu_imu_paper_scenario
+from edgepos.sim.sensors import rsu_imu_epochs
+
+ADMIN_KEY = "test-admin-key-5b1f0c9e2d7a4e3f"
+ADMIN = {"Authorization": f"Bearer {ADMIN_KEY}"}
+
+
+@functools.lru_cache(maxsize=1)
+def scenario() -> Scenario:
+    return rsu_imu_paper_scenario()
+
+
+@functools.lru_cache(maxsize=4)
+def epochs(seed: int = 7) -> tuple[tuple[Observation, ...], ...]:
+    return tuple(tuple(epoch) for epoch in rsu_imu_epochs(scenario(), np.random.default_rng(seed)))
+
+
+def make_settings(tmp_path: Path, **overrides: Any) -> Settings:
+    """Settings for a test app: a known admin key, and any file it writes inside tmp_path."""
+    values: dict[str, Any] = {"admin_key": ADMIN_KEY, "admin_key_file": tmp_path / "admin.key", **overrides}
+    return Settings(**values)
+
+
+def wire(observation: Observation) -> dict[str, Any]:
+    if isinstance(observation, RsuObservation):
+        return {
+            "type": "rsu",
+            "t": observation.t,
+            "rsu_id": observation.rsu_id,
+            "range": observation.range,
+            "bearing": observation.bearing,
+        }
+    assert isinstance(observation, GyroObservation)
+    return {"type": "gyro", "t": observation.t, "yaw_rate": observation.yaw_rate}
+
+
+def batch_observations(first: int, count: int, seed: int = 7) -> list[Observation]:
+    """Observations of epochs first .. first+count-1 (0-based) of the scenario."""
+    return [o for epoch in epochs(seed)[first : first + count] for o in epoch]
+
+
+def batch_body(seq: int, first: int, count: int, **extra: Any) -> dict[str, Any]:
+    return {"seq": seq, "measurements": [wire(o) for o in batch_observations(first, count)], **extra}
+
+
+def rsu_payload() -> dict[str, Any]:
+    return {
+        "rsus": [
+            {
+                "id": r.id,
+                "x": r.x,
+                "y": r.y,
+                "range_std": r.range_std,
+                "bearing_std": r.bearing_std,
+                "radius": r.radius,
+            }
+            for r in scenario().rsus
+        ]
+    }
+
+
+def bearer(token: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {token}"}
+
+
+def open_session(client: Any, **body: Any) -> tuple[str, dict[str, str]]:
+    """Create a session; returns its id and its Authorization header."""
+    response = client.post("/v1/sessions", json={"vehicle_id": "car-1", **body})
+    assert response.status_code == 201, response.text
+    created = response.json()
+    return created["session_id"], bearer(created["token"])
+
+
+def assert_error(response: Any, status: int, code: str) -> dict[str, Any]:
+    """The response is the standard error body with this status and code; returns its 'error'."""
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"].startswith("application/json")
+    body = response.json()
+    assert set(body) == {"error"}
+    error = body["error"]
+    assert set(error) == {"code", "message", "problems"}
+    assert error["code"] == code
+    assert isinstance(error["message"], str) and error["message"]
+    for problem in error["problems"]:
+        assert set(problem) == {"index", "field", "reason"}
+    return error

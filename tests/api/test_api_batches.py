@@ -1,0 +1,347 @@
+"""The batch path: fixes per epoch, all-or-nothing validation, seq and idempotent replay, limits."""
+
+from __future__ import annotations
+
+import json
+import math
+import threading
+
+import pytest
+from apifakes import FailingPipeline, GatedPipeline, RsuOnlyPipeline
+from apihelp import ADMIN, assert_error, batch_body, make_settings, open_session, rsu_payload, wire
+from edgepos.api.app import create_app
+from edgepos.geo import GeodeticOrigin
+from edgepos.store import MemoryStore
+from fastapi.testclient import TestClient
+
+
+def _record(client, session_id):
+    return client.portal.call(client.app.state.context.store.get, session_id)
+
+
+def _post(client, session_id, body, headers):
+    return client.post(f"/v1/sessions/{session_id}/batches", json=body, headers=headers)
+
+
+def _post_raw(client, session_id, content, headers):
+    return client.post(
+        f"/v1/sessions/{session_id}/batches",
+        content=content,
+        headers={**headers, "content-type": "application/json"},
+    )
+
+
+def test_one_fix_per_epoch_in_time_order(client):
+    session_id, token = open_session(client)
+    body = batch_body(1, 0, 10)
+    response = _post(client, session_id, body, token)
+    assert response.status_code == 200
+    result = response.json()
+    assert result["seq"] == 1
+    fixes = result["fixes"]
+    times = sorted({m["t"] for m in body["measurements"]})
+    assert [f["t"] for f in fixes] == times
+    assert fixes[0]["status"] == "initialised"
+    assert {f["status"] for f in fixes[1:]} == {"tracking"}
+    used = sorted(m["index"] for f in fixes for m in f["measurements"])
+    assert used == list(range(len(body["measurements"])))
+    for fix in fixes:
+        assert fix["state"] is None and fix["latitude"] is None and fix["longitude"] is None
+        assert math.isclose(fix["speed"], math.hypot(fix["vx"], fix["vy"]))
+        assert len(fix["position_covariance"]) == 2
+        assert sum(fix["model_probabilities"].values()) == pytest.approx(1.0)
+    assert fixes[-1]["nis_dof"] > 0 and fixes[-1]["nis"] >= 0.0
+
+
+def test_include_state_returns_the_full_state(client):
+    session_id, token = open_session(client)
+    fixes = _post(client, session_id, batch_body(1, 0, 3, include_state=True), token).json()["fixes"]
+    state = fixes[-1]["state"]
+    names = state["components"]
+    assert names[:6] == ["xp", "xv", "xa", "yp", "yv", "ya"]  # the default bank shares these six
+    assert len(state["mean"]) == len(names) and [len(row) for row in state["covariance"]] == [
+        len(names)
+    ] * len(names)
+    assert (
+        state["mean"][names.index("xp")] == fixes[-1]["x"]
+        and state["mean"][names.index("yp")] == fixes[-1]["y"]
+    )
+    assert state["covariance"][0][0] == fixes[-1]["position_covariance"][0][0]
+
+
+def test_uninitialised_epochs_have_null_kinematics(client):
+    session_id, token = open_session(client)
+    gyro_only = {"seq": 1, "measurements": [{"type": "gyro", "t": 0.5, "yaw_rate": 0.01}]}
+    fix = _post(client, session_id, gyro_only, token).json()["fixes"][0]
+    assert fix["status"] == "uninitialised"
+    assert fix["x"] is None and fix["position_covariance"] is None
+    assert fix["measurements"] == [
+        {"index": 0, "type": "gyro", "used": False, "reason": fix["measurements"][0]["reason"]}
+    ]
+
+
+def test_retried_batch_is_applied_once(client):
+    session_id, token = open_session(client)
+    body = batch_body(1, 0, 5)
+    first = _post(client, session_id, body, token)
+    after_first = _record(client, session_id)
+    # the same content again, serialised differently (key order, spacing): a retry after a lost reply
+    reordered = {"measurements": body["measurements"], "seq": 1}
+    again = _post_raw(client, session_id, json.dumps(reordered, indent=1), token)
+    assert again.status_code == 200
+    assert again.content == first.content
+    assert _record(client, session_id) == after_first
+    info = client.get(f"/v1/sessions/{session_id}", headers=token).json()
+    assert info["batches"] == 1 and info["epochs"] == 5 and info["last_seq"] == 1
+    assert _post(client, session_id, batch_body(2, 5, 5), token).status_code == 200
+    assert client.get(f"/v1/sessions/{session_id}", headers=token).json()["epochs"] == 10
+
+
+@pytest.mark.parametrize(
+    ("seq", "first_epoch", "reason_word"),
+    [(2, 99, "different body"), (1, 0, "older"), (4, 5, "skips ahead")],
+)
+def test_seq_conflicts_are_409_and_change_nothing(client, seq, first_epoch, reason_word):
+    session_id, token = open_session(client)
+    assert _post(client, session_id, batch_body(1, 0, 3), token).status_code == 200
+    assert _post(client, session_id, batch_body(2, 3, 3), token).status_code == 200
+    before = _record(client, session_id)
+    error = assert_error(_post(client, session_id, batch_body(seq, first_epoch, 2), token), 409, "conflict")
+    assert reason_word in error["message"]
+    assert error["problems"][0]["field"] == "seq"
+    assert _record(client, session_id) == before
+
+
+def test_first_batch_must_be_seq_1(client):
+    session_id, token = open_session(client)
+    assert_error(_post(client, session_id, batch_body(2, 0, 1), token), 409, "conflict")
+    assert _record(client, session_id).last_seq == 0
+
+
+def _bad_batches():
+    good = [wire(o) for o in __import__("apihelp").batch_observations(10, 2)]
+    return [
+        (
+            "unknown RSU",
+            {"seq": 2, "measurements": [good[0], {**good[0], "rsu_id": "nowhere"}]},
+            422,
+            [(1, "measurements[1].rsu_id")],
+        ),
+        (
+            "negative range",
+            {"seq": 2, "measurements": [{**good[0], "range": -0.5}]},
+            422,
+            [(0, "measurements[0].range")],
+        ),
+        (
+            "bearing beyond pi",
+            {"seq": 2, "measurements": [{**good[0], "bearing": 3.2}]},
+            422,
+            [(0, "measurements[0].bearing")],
+        ),
+        (
+            "time older than last epoch",
+            {"seq": 2, "measurements": [good[0], {**good[-1], "t": 0.01}]},
+            422,
+            [(1, "measurements[1].t")],
+        ),
+        (
+            "unknown type",
+            {"seq": 2, "measurements": [{"type": "lidar", "t": 3.0}]},
+            422,
+            [(0, "measurements[0].type")],
+        ),
+        (
+            "missing field",
+            {"seq": 2, "measurements": [{"type": "gyro", "t": 3.0}]},
+            422,
+            [(0, "measurements[0].yaw_rate")],
+        ),
+        (
+            "string number",
+            {"seq": 2, "measurements": [{**good[0], "range": "5"}]},
+            422,
+            [(0, "measurements[0].range")],
+        ),
+        ("empty batch", {"seq": 2, "measurements": []}, 422, [(None, "measurements")]),
+        ("seq zero", {"seq": 0, "measurements": good}, 422, [(None, "seq")]),
+        ("unknown field", {"seq": 2, "measurements": good, "priority": 1}, 422, [(None, "priority")]),
+    ]
+
+
+@pytest.mark.parametrize(
+    ("name", "body", "status", "expected"), _bad_batches(), ids=[c[0] for c in _bad_batches()]
+)
+def test_bad_batches_leave_the_session_untouched(client, name, body, status, expected):
+    session_id, token = open_session(client)
+    assert _post(client, session_id, batch_body(1, 0, 10), token).status_code == 200
+    before = _record(client, session_id)
+    error = assert_error(_post(client, session_id, body, token), status, "invalid_request")
+    assert [(p["index"], p["field"]) for p in error["problems"]] == expected
+    assert _record(client, session_id) == before
+
+
+@pytest.mark.parametrize("literal", ["NaN", "Infinity", "-Infinity"])
+def test_non_finite_literals_are_refused(client, literal):
+    session_id, token = open_session(client)
+    before = _record(client, session_id)
+    content = (
+        '{"seq": 1, "measurements": [{"type": "gyro", "t": 1.0, "yaw_rate": 0.1},'
+        ' {"type": "rsu", "t": %s, "rsu_id": "S+000", "range": %s, "bearing": 0.0}]}' % (literal, literal)
+    )
+    error = assert_error(_post_raw(client, session_id, content, token), 422, "invalid_request")
+    assert [(p["index"], p["field"]) for p in error["problems"]] == [
+        (1, "measurements[1].t"),
+        (1, "measurements[1].range"),
+    ]
+    assert _record(client, session_id) == before
+
+
+def test_every_problem_of_a_batch_is_listed(client):
+    session_id, token = open_session(client)
+    good = batch_body(1, 0, 1)["measurements"]
+    bad = [{**good[0], "rsu_id": "x1"}, good[-1], {**good[0], "rsu_id": "x2"}]
+    error = assert_error(
+        _post(client, session_id, {"seq": 1, "measurements": bad}, token), 422, "invalid_request"
+    )
+    assert [(p["index"], p["field"]) for p in error["problems"]] == [
+        (0, "measurements[0].rsu_id"),
+        (2, "measurements[2].rsu_id"),
+    ]
+
+
+def test_invalid_json_is_422(client):
+    session_id, token = open_session(client)
+    error = assert_error(
+        _post_raw(client, session_id, '{"seq": 1, "measurements": [', token), 422, "invalid_request"
+    )
+    assert error["problems"][0]["field"].startswith("body") or error["problems"][0]["index"] is None
+
+
+def test_batch_size_limit_is_422(tmp_path):
+    with TestClient(create_app(make_settings(tmp_path, max_batch_measurements=4))) as client:
+        client.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)
+        session_id, token = open_session(client)
+        body = batch_body(1, 0, 3)
+        assert len(body["measurements"]) > 4
+        error = assert_error(_post(client, session_id, body, token), 422, "invalid_request")
+        assert (
+            error["problems"][0]["field"] == "measurements" and "at most 4" in error["problems"][0]["reason"]
+        )
+        assert _record(client, session_id).last_seq == 0
+
+
+def test_body_size_limit_is_413_before_parsing(tmp_path):
+    with TestClient(create_app(make_settings(tmp_path, max_body_bytes=2048))) as client:
+        client.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)
+        session_id, token = open_session(client)
+        content = json.dumps(batch_body(1, 0, 20))
+        assert len(content) > 2048
+        error = assert_error(_post_raw(client, session_id, content, token), 413, "payload_too_large")
+        assert "2048" in error["message"]
+        # streamed without Content-Length: counted while reading
+        chunks = (content[i : i + 500].encode() for i in range(0, len(content), 500))
+        response = client.post(
+            f"/v1/sessions/{session_id}/batches",
+            content=chunks,
+            headers={**token, "content-type": "application/json"},
+        )
+        assert_error(response, 413, "payload_too_large")
+        # not even valid JSON: refused for its size, never parsed
+        assert_error(_post_raw(client, session_id, "x" * 5000, token), 413, "payload_too_large")
+        assert _record(client, session_id).last_seq == 0
+        small = batch_body(1, 0, 1)
+        assert _post(client, session_id, small, token).status_code == 200
+
+
+def test_estimation_failure_is_422_and_changes_nothing(tmp_path):
+    app = create_app(make_settings(tmp_path), pipelines={"rsu_imu": FailingPipeline()})
+    with TestClient(app) as client:
+        client.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)
+        session_id, token = open_session(client)
+        before = _record(client, session_id)
+        error = assert_error(_post(client, session_id, batch_body(1, 0, 2), token), 422, "estimation_failed")
+        assert "not positive definite" in error["message"]
+        assert _record(client, session_id) == before
+
+
+def test_measurements_the_pipeline_does_not_use_are_refused(tmp_path):
+    with TestClient(create_app(make_settings(tmp_path), pipelines={"rsu_imu": RsuOnlyPipeline()})) as client:
+        client.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)
+        session_id, token = open_session(client)
+        body = batch_body(1, 0, 1)
+        error = assert_error(_post(client, session_id, body, token), 422, "invalid_request")
+        gyro_index = len(body["measurements"]) - 1
+        assert [(p["index"], p["field"]) for p in error["problems"]] == [
+            (gyro_index, f"measurements[{gyro_index}].type")
+        ]
+
+
+def test_fixes_carry_latitude_longitude_with_an_origin(tmp_path):
+    settings = make_settings(tmp_path, origin_lat=48.1375, origin_lon=11.575, origin_height=520.0)
+    with TestClient(create_app(settings)) as client:
+        client.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)
+        session_id, token = open_session(client)
+        fixes = _post(client, session_id, batch_body(1, 0, 4), token).json()["fixes"]
+    origin = GeodeticOrigin.from_degrees(48.1375, 11.575, 520.0)
+    for fix in fixes:
+        latitude, longitude, _ = origin.enu_to_geodetic(fix["x"], fix["y"], 0.0)
+        assert (fix["latitude"], fix["longitude"]) == (latitude, longitude)
+        assert abs(fix["latitude"] - math.radians(48.1375)) < 1e-4
+
+
+def test_requests_for_one_session_never_interleave(tmp_path):
+    pipeline = GatedPipeline()
+    with TestClient(create_app(make_settings(tmp_path), pipelines={"rsu_imu": pipeline})) as client:
+        client.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)
+        session_id, token = open_session(client)
+        pipeline.gate = threading.Event()
+        body = batch_body(1, 0, 5)
+        responses = []
+        threads = [
+            threading.Thread(target=lambda: responses.append(_post(client, session_id, body, token)))
+            for _ in range(2)
+        ]
+        threads[0].start()
+        assert pipeline.entered.wait(10.0)
+        threads[1].start()
+        # while the first is inside the filter, the event loop still serves other requests
+        assert client.get("/healthz").status_code == 200
+        assert client.get(f"/v1/sessions/{session_id}", headers=token).json()["last_seq"] == 0
+        pipeline.gate.set()
+        for thread in threads:
+            thread.join(20.0)
+    assert not pipeline.timed_out
+    assert len(pipeline.calls) == 1  # the second request waited, then found the batch applied: a replay
+    assert [r.status_code for r in responses] == [200, 200]
+    assert responses[0].content == responses[1].content
+
+
+class RacingStore(MemoryStore):
+    """On its first compare-and-set, another worker's identical write lands first."""
+
+    def __init__(self, ttl_s: float) -> None:
+        super().__init__(ttl_s)
+        self.raced = False
+
+    async def compare_and_set(self, record, expected_version):  # type: ignore[no-untyped-def]
+        if not self.raced and record.last_seq > 0:
+            self.raced = True
+            assert await super().compare_and_set(record, expected_version)
+            return False
+        return await super().compare_and_set(record, expected_version)
+
+
+def test_lost_compare_and_set_reloads_and_replays(tmp_path):
+    settings = make_settings(tmp_path)
+    store = RacingStore(settings.session_ttl_s)
+    with TestClient(create_app(settings, store=store)) as client:
+        client.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)
+        session_id, token = open_session(client)
+        response = _post(client, session_id, batch_body(1, 0, 3), token)
+        assert response.status_code == 200 and store.raced
+        record = _record(client, session_id)
+        assert record.last_response == response.content and record.batches == 1 and record.version == 1
+        metrics = client.get("/metrics").text
+    assert "edgepos_store_conflicts_total 1.0" in metrics
+    assert 'edgepos_batches_total{outcome="replayed"} 1.0' in metrics

@@ -1,0 +1,45 @@
+"""The committed openapi.json is the app's schema (regenerate: python -m edgepos.api.openapi)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from edgepos.api.openapi import render, schema
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_openapi_json_is_up_to_date():
+    committed = (ROOT / "openapi.json").read_text(encoding="utf-8")
+    assert committed == render(), "openapi.json is stale: run `python -m edgepos.api.openapi`"
+
+
+def test_schema_documents_every_route_and_error():
+    document = schema()
+    paths = document["paths"]
+    assert set(paths) == {
+        "/v1/rsus",
+        "/v1/rsus/{rsu_id}",
+        "/v1/pipelines",
+        "/v1/sessions",
+        "/v1/sessions/{session_id}",
+        "/v1/sessions/{session_id}/batches",
+        "/healthz",
+        "/readyz",
+        "/metrics",
+    }
+    batches = paths["/v1/sessions/{session_id}/batches"]["post"]
+    assert set(batches["responses"]) == {"200", "401", "403", "404", "409", "413", "422", "503"}
+    assert batches["responses"]["422"]["content"]["application/json"]["schema"]["$ref"].endswith("/ErrorBody")
+    assert document["components"]["securitySchemes"]["bearer"]["scheme"] == "bearer"
+
+
+def test_every_schema_field_is_described():
+    missing = [
+        f"{name}.{field}"
+        for name, model in schema()["components"]["schemas"].items()
+        if name not in {"ErrorBody"}
+        for field, spec in model.get("properties", {}).items()
+        if not spec.get("description") and "$ref" not in spec
+    ]
+    assert missing == []

@@ -1,0 +1,191 @@
+"""Both stores keep the same contract: sessions with compare-and-set, TTL expiry, the session
+limit, and the RSU registry."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from edgepos.pipelines.base import Rsu
+from edgepos.store import MemoryStore, SessionRecord, SessionStore, SQLiteStore, TooManySessions, open_store
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+@pytest.fixture
+def clock() -> Clock:
+    return Clock()
+
+
+@pytest.fixture(params=["memory", "sqlite"])
+def store(request: pytest.FixtureRequest, tmp_path: Path, clock: Clock) -> Iterator[SessionStore]:
+    instance: SessionStore
+    if request.param == "memory":
+        instance = MemoryStore(60.0, clock)
+    else:
+        instance = SQLiteStore(tmp_path / "store.db", 60.0, clock)
+    yield instance
+    asyncio.run(instance.close())
+
+
+def record(session_id: str = "s1", now: float = 1000.0, **changes: object) -> SessionRecord:
+    base = SessionRecord(
+        session_id=session_id,
+        vehicle_id="car",
+        pipeline="rsu_imu",
+        options={"filter": "ckf", "models": ["ca"]},
+        token_hash="ab" * 32,
+        state=b"\x00state\xff",
+        created_at=now,
+        updated_at=now,
+    )
+    return dataclasses.replace(base, **changes)
+
+
+def test_create_get_round_trip(store):
+    async def scenario() -> None:
+        await store.create(record(), max_sessions=10)
+        got = await store.get("s1")
+        assert got == record()
+        assert await store.get("other") is None
+
+    asyncio.run(scenario())
+
+
+def test_compare_and_set_bumps_the_version_once(store):
+    async def scenario() -> None:
+        await store.create(record(), max_sessions=10)
+        current = await store.get("s1")
+        updated = dataclasses.replace(
+            current,
+            state=b"new",
+            last_seq=1,
+            last_request_hash="h",
+            last_response=b'{"seq":1}',
+            batches=1,
+            epochs=3,
+            last_fix='{"t":1.0}',
+            updated_at=1001.0,
+        )
+        assert await store.compare_and_set(updated, expected_version=0)
+        assert await store.get("s1") == dataclasses.replace(updated, version=1)
+        # a second writer holding the old version loses
+        assert not await store.compare_and_set(
+            dataclasses.replace(updated, state=b"lost"), expected_version=0
+        )
+        assert (await store.get("s1")).state == b"new"
+        assert not await store.compare_and_set(record("missing"), expected_version=0)
+
+    asyncio.run(scenario())
+
+
+def test_returned_records_are_copies(store):
+    async def scenario() -> None:
+        await store.create(record(), max_sessions=10)
+        got = await store.get("s1")
+        got.options["filter"] = "ekf"
+        assert (await store.get("s1")).options["filter"] == "ckf"
+
+    asyncio.run(scenario())
+
+
+def test_delete_and_count(store):
+    async def scenario() -> None:
+        for name in ("a", "b", "c"):
+            await store.create(record(name), max_sessions=10)
+        assert await store.count() == 3
+        assert await store.delete("b")
+        assert not await store.delete("b")
+        assert await store.count() == 2
+
+    asyncio.run(scenario())
+
+
+def test_session_limit(store):
+    async def scenario() -> None:
+        await store.create(record("a"), max_sessions=2)
+        await store.create(record("b"), max_sessions=2)
+        with pytest.raises(TooManySessions):
+            await store.create(record("c"), max_sessions=2)
+        assert await store.get("c") is None
+        await store.delete("a")
+        await store.create(record("c"), max_sessions=2)
+
+    asyncio.run(scenario())
+
+
+def test_idle_sessions_expire(store, clock):
+    async def scenario() -> None:
+        await store.create(record("old"), max_sessions=2)
+        clock.now += 30.0
+        await store.create(record("young", now=clock.now), max_sessions=2)
+        clock.now += 31.0  # "old" idle 61 s > ttl 60 s; "young" idle 31 s
+        assert await store.get("old") is None
+        assert await store.count() == 1
+        assert (await store.get("young")) is not None
+        await store.create(record("new", now=clock.now), max_sessions=2)  # the expired one no longer counts
+        clock.now += 100.0
+        assert await store.expire() == 2
+        assert await store.count() == 0
+
+    asyncio.run(scenario())
+
+
+def test_a_write_keeps_a_session_alive(store, clock):
+    async def scenario() -> None:
+        await store.create(record(), max_sessions=2)
+        clock.now += 50.0
+        current = await store.get("s1")
+        assert await store.compare_and_set(dataclasses.replace(current, updated_at=clock.now), 0)
+        clock.now += 50.0
+        assert await store.get("s1") is not None
+
+    asyncio.run(scenario())
+
+
+def test_rsu_registry(store):
+    async def scenario() -> None:
+        rsus = [Rsu("b", 1.0, 2.0), Rsu("a", -5.5, 0.25, range_std=0.5, bearing_std=0.01, radius=150.0)]
+        assert await store.upsert_rsus(rsus) == 2
+        assert await store.list_rsus() == sorted(rsus, key=lambda r: r.id)
+        assert await store.get_rsu("a") == rsus[1]
+        assert await store.get_rsus(["a", "zz", "a"]) == {"a": rsus[1]}
+        assert await store.upsert_rsus([Rsu("a", 9.0, 9.0)]) == 1
+        assert (await store.get_rsu("a")) == Rsu("a", 9.0, 9.0)
+        assert await store.delete_rsu("a")
+        assert not await store.delete_rsu("a")
+        assert await store.get_rsu("a") is None
+
+    asyncio.run(scenario())
+
+
+def test_many_rsu_lookups(store):
+    async def scenario() -> None:
+        await store.upsert_rsus(Rsu(f"r{i:04d}", float(i), 0.0) for i in range(1200))
+        found = await store.get_rsus(f"r{i:04d}" for i in range(0, 1200, 1))
+        assert len(found) == 1200 and found["r0999"].x == 999.0
+
+    asyncio.run(scenario())
+
+
+def test_ping(store):
+    assert asyncio.run(store.ping())
+
+
+def test_open_store_by_url(tmp_path):
+    assert isinstance(open_store("memory", 10.0), MemoryStore)
+    sqlite_store = open_store(f"sqlite:///{tmp_path / 'x.db'}", 10.0)
+    assert isinstance(sqlite_store, SQLiteStore) and sqlite_store.path == tmp_path / "x.db"
+    with pytest.raises(ValueError):
+        open_store("redis://localhost", 10.0)
+    with pytest.raises(ValueError):
+        MemoryStore(0.0)
