@@ -363,9 +363,8 @@ def _step(
     dt = None if session.filter_t is None else t - session.filter_t
     prediction = bank.predict(session.means, session.covs, session.probabilities, dt)
     gate = options["gate_probability"]
-    if gate > 0.0:
-        candidates = _gate_rsus(candidates, prediction.output, observations, rsus, options, gate, uses)
-        gyros = _gate_gyros(gyros, prediction.output, observations, options, gate, uses)
+    if gate > 0.0 and (candidates or gyros):
+        candidates, gyros = _gate(candidates, gyros, prediction.output, observations, rsus, options, gate, uses)
     for i in candidates + gyros:
         uses[i] = MeasurementUse(i, observations[i].kind, True)
 
@@ -410,70 +409,76 @@ def _gate_threshold(probability: float, dof: int) -> float:
     return float(chi2.ppf(probability, dof))
 
 
-def _gate(model, observed: np.ndarray, prior: Gaussian, block: int, probability: float) -> tuple[np.ndarray, float]:
-    """Squared Mahalanobis distance of each ``block``-row group of ``observed`` against the prior,
-    linearised at the prior mean, and the gate threshold; one batched computation for all groups."""
+def _gate(candidates, gyros, prior: Gaussian, observations, rsus, options, probability, uses):
+    """Mahalanobis gate of each RSU pair (2 dof) and gyro reading (1 dof) against the fused prior.
+
+    One linearisation of the stacked measurement at the prior mean; each group's distance uses its
+    own diagonal block of S = H P H^T + R. When most RSUs fail, the prediction is what is off (a lost
+    track): the RSUs are all kept so that the filter can recover. A gyro is only gated when every
+    model carries acceleration, since otherwise the bank has no yaw-rate prediction.
+    """
+    gate_gyros = bool(gyros) and {layout.XA, layout.YA} <= set(prior.components)
+    gyros_gated = gyros if gate_gyros else []
+    model, observed = _measurement(candidates, gyros_gated, observations, rsus, options)
+    if model is None:
+        return candidates, gyros
     idx = list(prior.components)
     mean = np.zeros(layout.FULL_DIM)
     mean[idx] = prior.mean
     jacobian = model.jacobian(mean[None, :])[0][:, idx]
     residual = model.residual(observed, model.predict(mean[None, :])[0])
-    groups = residual.size // block
-    jacobian = jacobian.reshape(groups, block, len(idx))
-    noise = np.diagonal(model.noise_covariance()).reshape(groups, block)
-    innovation_cov = jacobian @ prior.cov @ jacobian.transpose(0, 2, 1) + noise[:, :, None] * np.eye(block)
-    residual = residual.reshape(groups, block, 1)
-    distances = (residual.transpose(0, 2, 1) @ np.linalg.solve(innovation_cov, residual)).ravel()
-    return distances, _gate_threshold(probability, block)
+    innovation_cov = jacobian @ prior.cov @ jacobian.T + model.noise_covariance()
+    pairs = 2 * len(candidates)
+    diagonal, off_diagonal = np.diagonal(innovation_cov), np.diagonal(innovation_cov, 1)
+    s11, s22, s12 = diagonal[0:pairs:2], diagonal[1:pairs:2], off_diagonal[0:pairs:2]  # 2x2 block per RSU
+    r1, r2 = residual[0:pairs:2], residual[1:pairs:2]
+    rsu_distance = (s22 * r1 * r1 - 2.0 * s12 * r1 * r2 + s11 * r2 * r2) / (s11 * s22 - s12 * s12)
+    gyro_distance = residual[pairs:] ** 2 / diagonal[pairs:]
+
+    kept_rsus = candidates
+    threshold = _gate_threshold(probability, 2)
+    failed = rsu_distance > threshold
+    if failed.any() and failed.sum() * 2 <= len(candidates):
+        kept_rsus = [i for i, bad in zip(candidates, failed) if not bad]
+        for i, distance in zip(candidates, rsu_distance):
+            if distance > threshold:
+                uses[i] = MeasurementUse(i, "rsu", False, f"failed the gate: d^2 = {distance:.1f} > {threshold:.1f}")
+    kept_gyros = gyros
+    if gate_gyros:
+        threshold = _gate_threshold(probability, 1)
+        kept_gyros = []
+        for i, distance in zip(gyros, gyro_distance):
+            if distance > threshold:
+                uses[i] = MeasurementUse(i, "gyro", False, f"failed the gate: d^2 = {distance:.1f} > {threshold:.1f}")
+            else:
+                kept_gyros.append(i)
+    return kept_rsus, kept_gyros
 
 
-def _gate_rsus(candidates, prior: Gaussian, observations, rsus, options, probability, uses) -> list[int]:
-    if not candidates:
-        return candidates
-    model, observed = _rsu_model(candidates, observations, rsus, options)
-    distances, threshold = _gate(model, observed, prior, 2, probability)
-    failed = distances > threshold
-    if failed.sum() * 2 > len(candidates):
-        return candidates  # most RSUs disagree with the prediction: the prediction is what is off
-    for i, distance in zip(np.array(candidates)[failed], distances[failed]):
-        uses[i] = MeasurementUse(int(i), "rsu", False, f"failed the gate: d^2 = {distance:.1f} > {threshold:.1f}")
-    return [i for i, bad in zip(candidates, failed) if not bad]
-
-
-def _gate_gyros(gyros, prior: Gaussian, observations, options, probability, uses) -> list[int]:
-    if not gyros or not {layout.XA, layout.YA} <= set(prior.components):
-        return gyros  # without acceleration in every model, the bank has no yaw-rate prediction to gate on
-    model = Stacked([GyroYawRate(options["gyro_std"])] * len(gyros))
-    distances, threshold = _gate(model, np.array([observations[i].yaw_rate for i in gyros]), prior, 1, probability)
-    kept = []
-    for i, distance in zip(gyros, distances):
-        if distance > threshold:
-            uses[i] = MeasurementUse(i, "gyro", False, f"failed the gate: d^2 = {distance:.1f} > {threshold:.1f}")
-        else:
-            kept.append(i)
-    return kept
+def _measurement(candidates, gyros, observations, rsus, options):
+    """The stacked model [RSU pairs..., gyros...] and its observation vector, or (None, None)."""
+    parts, observed = [], []
+    if candidates:
+        model, values = _rsu_model(candidates, observations, rsus, options)
+        parts.append(model)
+        observed.append(values)
+    if gyros:
+        parts.extend([GyroYawRate(options["gyro_std"])] * len(gyros))
+        observed.append(np.array([observations[i].yaw_rate for i in gyros]))
+    if not parts:
+        return None, None
+    return (parts[0] if len(parts) == 1 else Stacked(parts)), np.concatenate(observed)
 
 
 def _correction(candidates, gyros, observations, rsus, options):
     """The epoch's correction and its measurement dimension, or (None, 0) when nothing is usable."""
-    gyro_part = None
-    if gyros:
-        gyro_part = (
-            Stacked([GyroYawRate(options["gyro_std"])] * len(gyros)) if len(gyros) > 1 else GyroYawRate(options["gyro_std"]),
-            np.array([observations[i].yaw_rate for i in gyros]),
-        )
-    if not candidates:
-        return (None, 0) if gyro_part is None else (JointCorrection(*gyro_part), len(gyros))
-
-    def joint(indices) -> JointCorrection:
-        model, observed = _rsu_model(indices, observations, rsus, options)
-        if gyro_part is None:
-            return JointCorrection(model, observed)
-        return JointCorrection(Stacked([model, gyro_part[0]]), np.concatenate([observed, gyro_part[1]]))
-
     if options["rsu_handling"] == "average" and len(candidates) > 1:
-        return AveragedCorrection([joint([i]) for i in candidates]), 2 + len(gyros)
-    return joint(candidates), 2 * len(candidates) + len(gyros)
+        parts = [JointCorrection(*_measurement([i], gyros, observations, rsus, options)) for i in candidates]
+        return AveragedCorrection(parts), 2 + len(gyros)
+    model, observed = _measurement(candidates, gyros, observations, rsus, options)
+    if model is None:
+        return None, 0
+    return JointCorrection(model, observed), model.dim
 
 
 def _initialise(session, bank, candidates, gyros, observations, rsus) -> None:

@@ -43,16 +43,8 @@ class SigmaPointFilter(GaussianFilter):
         centre point's mean and covariance weights (zero when there is no centre point)."""
 
     def unit_points(self, dim: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Unit offsets (n_points, dim) and mean and covariance weights (n_points,)."""
-        spread, weight, centre_mean, centre_cov = self.point_weights(dim)
-        offsets = spread * np.vstack([np.eye(dim), -np.eye(dim)])
-        mean_weights = np.full(2 * dim, weight)
-        cov_weights = mean_weights.copy()
-        if self.has_centre_point:
-            offsets = np.vstack([np.zeros(dim), offsets])
-            mean_weights = np.concatenate([[centre_mean], mean_weights])
-            cov_weights = np.concatenate([[centre_cov], cov_weights])
-        return offsets, mean_weights, cov_weights
+        """Unit offsets (n_points, dim) and mean and covariance weights (n_points,) (cached)."""
+        return _unit_points(self, dim)
 
     def predict(
         self, mean: np.ndarray, cov: np.ndarray, motion: MotionModel, dt: float
@@ -108,6 +100,21 @@ class SigmaPointFilter(GaussianFilter):
         innovation_cov = weighted.transpose(0, 2, 1) @ z_dev + measurement.noise_covariance()
         cross_cov = offsets.transpose(0, 2, 1) @ weighted
         return predicted, 0.5 * (innovation_cov + innovation_cov.transpose(0, 2, 1)), cross_cov
+
+
+@functools.lru_cache(maxsize=64)
+def _unit_points(filt: SigmaPointFilter, dim: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    spread, weight, centre_mean, centre_cov = filt.point_weights(dim)
+    offsets = spread * np.vstack([np.eye(dim), -np.eye(dim)])
+    mean_weights = np.full(2 * dim, weight)
+    cov_weights = mean_weights.copy()
+    if filt.has_centre_point:
+        offsets = np.vstack([np.zeros(dim), offsets])
+        mean_weights = np.concatenate([[centre_mean], mean_weights])
+        cov_weights = np.concatenate([[centre_cov], cov_weights])
+    for array in (offsets, mean_weights, cov_weights):
+        array.setflags(write=False)
+    return offsets, mean_weights, cov_weights
 
 
 @functools.lru_cache(maxsize=256)

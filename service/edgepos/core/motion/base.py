@@ -183,7 +183,12 @@ class LinearAxisModel(MotionModel):
         return self.discretise(dt)[1]
 
     def __hash__(self) -> int:
-        return hash((type(self).__name__, tuple(sorted(self.params().items()))))
+        # Parameters are fixed at construction, so the hash is computed once (it keys the caches).
+        try:
+            return self._hash
+        except AttributeError:
+            self._hash: int = hash((type(self).__name__, tuple(sorted(self.params().items()))))
+            return self._hash
 
     def __eq__(self, other: object) -> bool:
         return type(other) is type(self) and other.params() == self.params()  # type: ignore[attr-defined]

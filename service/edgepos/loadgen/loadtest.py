@@ -1,0 +1,380 @@
+"""``edgepos loadtest``: N simulated vehicles against a server on this machine (loopback only).
+
+Each vehicle opens a session at the paper scenario's start and sends batches of B epochs of its
+measurements (one of a few noise streams), so the server's filter does the real work. With rate R
+(epochs per second of measurement time) a vehicle's batch k is due at its start + k * B / R s of
+wall clock; vehicles' starts are spread over one batch interval. A vehicle never has two batches
+in flight (seq order), so a slow answer delays its next batch. At the end of the scenario a
+vehicle starts a new trip: it deletes its session and opens a fresh one (those calls are counted
+apart from the batches). ``--saturate`` ignores the schedule and sends each batch as soon as the
+previous one is answered: the server's capacity rather than its latency at a given load.
+
+The load generator runs on the same machine as the server, so it reports its own lateness: how
+late each batch left against its schedule, split into waits for the vehicle's previous answer and
+the generator's own delays, and how far its event loop lagged a 10 ms timer.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import httpx
+from edgepos_client import AsyncEdgeposClient, EdgeposError, Session
+
+from edgepos.loadgen import common
+from edgepos.sim.scenarios import Scenario, rsu_imu_paper_scenario
+
+#: Distinct measurement noise streams shared round-robin by the vehicles (keeps set-up cheap).
+NOISE_STREAMS = 8
+#: A batch leaving later than this after its due time counts as late (s).
+LATE_THRESHOLD_S = 0.010
+#: Period of the event-loop lag probe (s).
+LAG_PROBE_S = 0.010
+
+
+@dataclass(frozen=True)
+class LoadConfig:
+    """One load test: vehicles x rate (epochs/s) in batches of ``batch`` epochs for ``duration`` s."""
+
+    url: str
+    vehicles: int
+    rate: float
+    batch: int
+    duration: float
+    admin_key: str | None = None
+    saturate: bool = False
+    timeout: float = 10.0
+    seed: int = 0
+
+    def problems(self) -> list[str]:
+        found = []
+        loopback = common.loopback_problem(self.url)
+        if loopback is not None:
+            found.append(loopback)
+        if self.vehicles < 1:
+            found.append("--vehicles must be >= 1")
+        if not self.rate > 0:
+            found.append("--rate must be > 0")
+        if self.batch < 1:
+            found.append("--batch must be >= 1")
+        if not 0 < self.duration <= 3600:
+            found.append("--duration must be in (0, 3600] s")
+        if not self.timeout > 0:
+            found.append("--timeout must be > 0")
+        return found
+
+    @property
+    def interval_s(self) -> float:
+        """Wall-clock seconds between a vehicle's batches."""
+        return self.batch / self.rate
+
+
+@dataclass
+class Recorder:
+    """What the vehicles observed; only batch requests count in requests, latency and errors."""
+
+    latencies_ms: list[float] = field(default_factory=list)
+    epochs: int = 0
+    requests: int = 0
+    errors: Counter[str] = field(default_factory=Counter)
+    lateness_ms: list[float] = field(default_factory=list)
+    late_waiting_server: int = 0
+    late_generator: int = 0
+    loop_lag_ms: list[float] = field(default_factory=list)
+    trips: int = 0
+    trip_errors: Counter[str] = field(default_factory=Counter)
+    first_send: float | None = None
+    last_answer: float | None = None
+
+
+@dataclass(frozen=True)
+class LoadReport:
+    config: LoadConfig
+    elapsed_s: float
+    recorder: Recorder
+
+    @property
+    def errors(self) -> int:
+        return sum(self.recorder.errors.values())
+
+    @property
+    def epochs_per_s(self) -> float:
+        return self.recorder.epochs / self.elapsed_s if self.elapsed_s > 0 else 0.0
+
+    @property
+    def requests_per_s(self) -> float:
+        return self.recorder.requests / self.elapsed_s if self.elapsed_s > 0 else 0.0
+
+    def latency(self, q: float) -> float | None:
+        return common.percentile(self.recorder.latencies_ms, q)
+
+    def to_json(self) -> dict[str, Any]:
+        r, c = self.recorder, self.config
+        return {
+            "epochs_per_s": self.epochs_per_s,
+            "requests_per_s": self.requests_per_s,
+            "requests": r.requests,
+            "errors": self.errors,
+            "latency_ms": {"p50": self.latency(50), "p95": self.latency(95), "p99": self.latency(99)},
+            "latency_max_ms": max(r.latencies_ms) if r.latencies_ms else None,
+            "epochs": r.epochs,
+            "elapsed_s": self.elapsed_s,
+            "errors_by_code": dict(r.errors),
+            "config": {
+                "vehicles": c.vehicles,
+                "rate_hz": c.rate,
+                "batch_epochs": c.batch,
+                "duration_s": c.duration,
+                "saturate": c.saturate,
+                "offered_epochs_per_s": None if c.saturate else c.vehicles * c.rate,
+            },
+            "lateness": {
+                "late_batches": r.late_waiting_server + r.late_generator,
+                "late_waiting_for_server": r.late_waiting_server,
+                "late_generator": r.late_generator,
+                "threshold_ms": LATE_THRESHOLD_S * 1e3,
+                "p99_ms": common.percentile(r.lateness_ms, 99),
+                "max_ms": max(r.lateness_ms) if r.lateness_ms else None,
+                "loop_lag_p99_ms": common.percentile(r.loop_lag_ms, 99),
+                "loop_lag_max_ms": max(r.loop_lag_ms) if r.loop_lag_ms else None,
+            },
+            "trips": {"started": r.trips, "errors_by_code": dict(r.trip_errors)},
+        }
+
+
+def _noise_batches(scenario: Scenario, config: LoadConfig) -> list[list[list[common.WireMeasurement]]]:
+    streams = min(NOISE_STREAMS, config.vehicles)
+    return [
+        common.wire_batches(common.vehicle_epochs(scenario, config.seed, index), config.batch)
+        for index in range(streams)
+    ]
+
+
+class Vehicle:
+    """One simulated vehicle: sends its batches on schedule, starting a new trip at the scenario's end."""
+
+    def __init__(
+        self,
+        index: int,
+        client: AsyncEdgeposClient,
+        batches: list[list[common.WireMeasurement]],
+        scenario: Scenario,
+        recorder: Recorder,
+    ) -> None:
+        self.vehicle_id = f"load-{index + 1}"
+        self.client = client
+        self.batches = batches
+        self.start_state = common.initial_state(scenario)
+        self.recorder = recorder
+        self.session: Session | None = None
+        self.position = 0
+
+    async def new_trip(self) -> None:
+        """Close the current session (if any) and open a fresh one at the scenario's start."""
+        recorder = self.recorder
+        if self.session is not None:
+            try:
+                await self.client.delete_session(self.session)
+            except EdgeposError as error:
+                recorder.trip_errors[error.code] += 1
+            self.session = None
+        self.session = await self.client.create_session(self.vehicle_id, initial_state=self.start_state)
+        self.position = 0
+        recorder.trips += 1
+
+    async def send_one(self) -> None:
+        """Send the next batch; an error is recorded and the vehicle restarts its trip."""
+        recorder = self.recorder
+        if self.session is None or self.position >= len(self.batches):
+            await self.new_trip()
+        assert self.session is not None
+        batch = self.batches[self.position]
+        started = time.perf_counter()
+        if recorder.first_send is None:
+            recorder.first_send = started
+        try:
+            fixes = await self.client.send_batch(self.session, batch)
+        except EdgeposError as error:
+            recorder.requests += 1
+            recorder.errors[error.code] += 1
+            self.session = None  # resynchronise: the next batch opens a new trip
+            return
+        finished = time.perf_counter()
+        recorder.requests += 1
+        recorder.latencies_ms.append((finished - started) * 1e3)
+        recorder.epochs += len(fixes)
+        recorder.last_answer = finished
+        self.position += 1
+
+    async def run(self, config: LoadConfig, start: float, offset: float) -> None:
+        """Send until ``config.duration`` s after ``start``; batch k is due at start + offset + k * interval."""
+        end = start + config.duration
+        due = start + offset
+        answered = start
+        recorder = self.recorder
+        while True:
+            if config.saturate:
+                if time.perf_counter() >= end:
+                    return
+            else:
+                if due >= end:
+                    return
+                delay = due - time.perf_counter()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                lateness = time.perf_counter() - due
+                recorder.lateness_ms.append(max(0.0, lateness) * 1e3)
+                if lateness > LATE_THRESHOLD_S:
+                    if answered > due:
+                        recorder.late_waiting_server += 1
+                    else:
+                        recorder.late_generator += 1
+                due += config.interval_s
+            try:
+                await self.send_one()
+            except EdgeposError as error:  # opening a trip failed: count it, keep going
+                recorder.trip_errors[error.code] += 1
+                self.session = None
+            answered = time.perf_counter()
+
+
+async def _probe_loop_lag(recorder: Recorder) -> None:
+    loop = asyncio.get_running_loop()
+    while True:
+        planned = loop.time() + LAG_PROBE_S
+        await asyncio.sleep(LAG_PROBE_S)
+        recorder.loop_lag_ms.append(max(0.0, loop.time() - planned) * 1e3)
+
+
+async def _ensure_rsus(client: AsyncEdgeposClient, scenario: Scenario, admin_key: str | None) -> None:
+    """Load the scenario's RSU map (admin key), or check it is there when no key is given."""
+    if admin_key is not None:
+        await client.put_rsus(common.scenario_rsus(scenario))
+        return
+    probe = await client.create_session("load-probe", initial_state=common.initial_state(scenario))
+    try:
+        present = {rsu.id for rsu in await client.list_rsus(probe)}
+    finally:
+        await client.delete_session(probe)
+    missing = sorted({rsu.id for rsu in scenario.rsus} - present)
+    if missing:
+        raise EdgeposError(
+            "missing_rsus",
+            f"the server lacks {len(missing)} RSU(s) of the scenario (e.g. {missing[0]}); pass --admin-key "
+            "to load them, or start the server with EDGEPOS_DEMO_RSUS=true",
+        )
+
+
+async def run_load(config: LoadConfig) -> LoadReport:
+    """Run ``config`` and return what was measured. Raises ValueError for a refused config."""
+    problems = config.problems()
+    if problems:
+        raise ValueError("; ".join(problems))
+    scenario = rsu_imu_paper_scenario()
+    batches = _noise_batches(scenario, config)
+    recorder = Recorder()
+    pool = httpx.Limits(max_connections=config.vehicles + 2, max_keepalive_connections=config.vehicles + 2)
+    async with AsyncEdgeposClient(config.url, config.admin_key, timeout=config.timeout, retries=0, limits=pool) as client:
+        await _ensure_rsus(client, scenario, config.admin_key)
+        vehicles = [Vehicle(i, client, batches[i % len(batches)], scenario, recorder) for i in range(config.vehicles)]
+        await asyncio.gather(*(vehicle.new_trip() for vehicle in vehicles))
+        recorder.trips = 0  # count trips started after the first
+        probe = asyncio.create_task(_probe_loop_lag(recorder))
+        start = time.perf_counter()
+        try:
+            spread = 0.0 if config.saturate else config.interval_s
+            await asyncio.gather(
+                *(vehicle.run(config, start, spread * i / config.vehicles) for i, vehicle in enumerate(vehicles))
+            )
+        finally:
+            probe.cancel()
+        finished = time.perf_counter()
+        await asyncio.gather(
+            *(client.delete_session(v.session) for v in vehicles if v.session is not None), return_exceptions=True
+        )
+    elapsed = max(config.duration, finished - start) if not config.saturate else finished - start
+    return LoadReport(config=config, elapsed_s=elapsed, recorder=recorder)
+
+
+def _ms(value: float | None) -> str:
+    return "-" if value is None else f"{value:.1f} ms"
+
+
+def summary(report: LoadReport) -> str:
+    """The human-readable result."""
+    data = report.to_json()
+    c, late = data["config"], data["lateness"]
+    mode = "saturating (closed loop)" if c["saturate"] else f"offered {c['offered_epochs_per_s']:.0f} epochs/s"
+    lines = [
+        f"loadtest {report.config.url}: {c['vehicles']} vehicles x {c['rate_hz']:g} Hz, batches of {c['batch_epochs']} "
+        f"epochs, {c['duration_s']:g} s, {mode}",
+        f"  epochs/s        {data['epochs_per_s']:.1f}  ({data['epochs']} epochs in {data['elapsed_s']:.1f} s)",
+        f"  requests/s      {data['requests_per_s']:.1f}  ({data['requests']} batch requests)",
+        f"  latency         p50 {_ms(data['latency_ms']['p50'])}, p95 {_ms(data['latency_ms']['p95'])}, "
+        f"p99 {_ms(data['latency_ms']['p99'])}, max {_ms(data['latency_max_ms'])}",
+        f"  errors          {data['errors']}" + (f" {data['errors_by_code']}" if data["errors"] else ""),
+        f"  trips restarted {data['trips']['started']}"
+        + (f", trip errors {data['trips']['errors_by_code']}" if data["trips"]["errors_by_code"] else ""),
+    ]
+    if not c["saturate"]:
+        lines.append(
+            f"  lateness        {late['late_batches']} batch(es) left > {late['threshold_ms']:.0f} ms late "
+            f"({late['late_waiting_for_server']} waiting for the previous answer, {late['late_generator']} "
+            f"generator); p99 {_ms(late['p99_ms'])}, max {_ms(late['max_ms'])}"
+        )
+    lines.append(
+        f"  generator loop  lag p99 {_ms(late['loop_lag_p99_ms'])}, max {_ms(late['loop_lag_max_ms'])} "
+        "(the load generator shares this machine's cores with the server)"
+    )
+    return "\n".join(lines)
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--url", required=True, help="server base URL; loopback hosts only (127.0.0.0/8, localhost, ::1)")
+    parser.add_argument("--vehicles", type=int, required=True, help="concurrent simulated vehicles")
+    parser.add_argument("--rate", type=float, required=True, help="epochs per second of measurement time per vehicle (Hz)")
+    parser.add_argument("--batch", type=int, required=True, help="epochs per batch (a batch every BATCH/RATE s)")
+    parser.add_argument("--duration", type=float, required=True, help="seconds to run (at most 3600)")
+    parser.add_argument("--json", type=Path, default=None, metavar="FILE", help="write the figures as JSON")
+    parser.add_argument("--admin-key", default=None, help="admin key to load the RSU map (default $EDGEPOS_ADMIN_KEY)")
+    parser.add_argument(
+        "--saturate", action="store_true", help="closed loop: send each batch as soon as the previous is answered"
+    )
+    parser.add_argument("--timeout", type=float, default=10.0, help="seconds per request (default 10; no retries)")
+    parser.add_argument("--seed", type=int, default=0, help="measurement noise seed (default 0)")
+
+
+def run(args: argparse.Namespace) -> int:
+    config = LoadConfig(
+        url=args.url,
+        vehicles=args.vehicles,
+        rate=args.rate,
+        batch=args.batch,
+        duration=args.duration,
+        admin_key=common.admin_key(args.admin_key),
+        saturate=args.saturate,
+        timeout=args.timeout,
+        seed=args.seed,
+    )
+    problems = config.problems()
+    if problems:
+        for problem in problems:
+            print(f"edgepos loadtest: {problem}", file=sys.stderr)
+        return 2
+    try:
+        report = asyncio.run(run_load(config))
+    except EdgeposError as error:
+        print(f"edgepos loadtest: {error}", file=sys.stderr)
+        return 1
+    print(summary(report))
+    if args.json is not None:
+        args.json.write_text(json.dumps(report.to_json(), indent=2) + "\n")
+    return 0
