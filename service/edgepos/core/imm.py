@@ -64,17 +64,31 @@ class StepResult:
     nis: np.ndarray
 
 
+def _index(components: tuple[int, ...]) -> slice | list[int]:
+    """A slice when the components are contiguous (indexing then returns views), else a list."""
+    if components == tuple(range(components[0], components[-1] + 1)):
+        return slice(components[0], components[-1] + 1)
+    return list(components)
+
+
+def _block(rows: slice | list[int], cols: slice | list[int]) -> tuple:
+    """Index of the sub-matrix rows x cols."""
+    if isinstance(rows, slice) and isinstance(cols, slice):
+        return rows, cols
+    return np.ix_(np.arange(8)[rows], np.arange(8)[cols])
+
+
 class _ExtraBlocks:
     """Index helpers for a model that carries components beyond the common ones."""
 
     def __init__(self, model: int, common: tuple[int, ...], extra: tuple[int, ...]) -> None:
         self.model = model
-        self.common = list(common)
-        self.extra = list(extra)
-        self.cc = np.ix_(common, common)
-        self.ec = np.ix_(extra, common)
-        self.ce = np.ix_(common, extra)
-        self.ee = np.ix_(extra, extra)
+        self.common = _index(common)
+        self.extra = _index(extra)
+        self.cc = _block(self.common, self.common)
+        self.ec = _block(self.extra, self.common)
+        self.ce = _block(self.common, self.extra)
+        self.ee = _block(self.extra, self.extra)
 
 
 class Correction(ABC):
@@ -110,8 +124,9 @@ class InteractingMultipleModel:
             raise ConfigurationError("every model must carry position")
         self.common_mask = layout.angle_mask(self.common)
         self._common_has_angle = bool(self.common_mask.any())
-        self._common = np.array(self.common)
-        self._common_block = (slice(None), self._common[:, None], self._common[None, :])
+        self._common = _index(self.common)
+        rows, cols = _block(self._common, self._common)
+        self._common_block = (slice(None), rows, cols)
         self.active = np.zeros((count, layout.FULL_DIM), dtype=bool)
         for j, model in enumerate(self.models):
             self.active[j, list(model.components)] = True

@@ -56,28 +56,26 @@ class GaussianFilter(ABC):
     ) -> tuple[np.ndarray, np.ndarray]:
         """Predict every model of a padded bank over ``dt``; returns new (means, covs).
 
-        Models linear in the state are advanced together by F P F^T + Q on their padded matrices,
-        which every Gaussian filter computes exactly; the others go through :meth:`predict`.
+        The whole bank is advanced by one stacked F P F^T + Q, exact for models linear in the state
+        (nonlinear ones carry the identity there); models that are not linear are then predicted by
+        :meth:`predict` and written over their slot.
         """
-        new_means, new_covs = means.copy(), covs.copy()
-        linear = [j for j, model in enumerate(models) if model.linear]
-        if linear:
-            linear_models = tuple(models[j] for j in linear)
-            transitions, noises = padded_linear_step(linear_models, dt)
-            if any(model.state_dependent_noise for model in linear_models):
-                noises = noises.copy()
-                for b, (j, model) in enumerate(zip(linear, linear_models)):
-                    if model.state_dependent_noise:
-                        idx = list(model.components)
-                        noises[b][np.ix_(idx, idx)] = model.noise_covariance(means[j, idx], dt)
-            predicted = transitions @ covs[linear] @ transitions.transpose(0, 2, 1) + noises
-            new_covs[linear] = 0.5 * (predicted + predicted.transpose(0, 2, 1))
-            new_means[linear] = wrap_rows((transitions @ means[linear][:, :, None])[:, :, 0], layout.FULL_ANGLE_MASK)
+        transitions, noises = padded_linear_step(models, dt)
+        if any(model.state_dependent_noise for model in models):
+            noises = noises.copy()
+            for j, model in enumerate(models):
+                if model.state_dependent_noise:
+                    block = np.ix_(model.components, model.components)
+                    noises[j][block] = model.noise_covariance(means[j, list(model.components)], dt)
+        new_covs = transitions @ covs @ transitions.transpose(0, 2, 1) + noises
+        new_covs = 0.5 * (new_covs + new_covs.transpose(0, 2, 1))
+        new_means = (transitions @ means[:, :, None])[:, :, 0]
         for j, model in enumerate(models):
             if not model.linear:
-                idx = list(model.components)
-                block = np.ix_(idx, idx)
+                idx = _index(model.components)
+                block = (idx, idx) if isinstance(idx, slice) else np.ix_(idx, idx)
                 new_means[j, idx], new_covs[j][block] = self.predict(means[j, idx], covs[j][block], model, dt)
+        new_means[:, layout.PHI] = wrap_angle(new_means[:, layout.PHI])
         require_finite("predicted state", new_means, new_covs)
         return new_means, new_covs
 
@@ -122,6 +120,13 @@ class GaussianFilter(ABC):
             float(result.nis[0]),
             float(result.log_likelihood[0]),
         )
+
+
+def _index(components: tuple[int, ...]) -> slice | list[int]:
+    """A slice when the components are contiguous (indexing then gives views), else a list."""
+    if components == tuple(range(components[0], components[-1] + 1)):
+        return slice(components[0], components[-1] + 1)
+    return list(components)
 
 
 def embed_bank(

@@ -122,13 +122,12 @@ def van_loan(a: np.ndarray, noise_density: np.ndarray, dt: float) -> tuple[np.nd
     return transition, 0.5 * (noise + noise.T)
 
 
-def padded_linear_step(
-    models: tuple[MotionModel, ...], dt: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Transition and noise of linear models as padded 8x8 matrices, stacked (cached per interval).
+def padded_linear_step(models: tuple[MotionModel, ...], dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Transitions and noises of a bank's models as padded 8x8 matrices, stacked (cached per interval).
 
     Rows and columns of components a model lacks are zero, so a padded covariance stays zero there.
-    Noise of state-dependent models is left zero here; the caller adds it per step.
+    A nonlinear model gets the identity and zero noise (its filter predicts it separately), and a
+    state-dependent noise is left zero here: the caller adds it per step.
     """
     return _padded_linear_step(models, dt_key(dt))
 
@@ -140,6 +139,9 @@ def _padded_linear_step(models: tuple[MotionModel, ...], dt: float) -> tuple[np.
     for b, model in enumerate(models):
         block = np.ix_(model.components, model.components)
         zero = np.zeros(model.dim)
+        if not model.linear:
+            transitions[b] = np.eye(8)
+            continue
         transitions[b][block] = model.transition_matrix(zero, dt)
         if not model.state_dependent_noise:
             noises[b][block] = model.noise_covariance(zero, dt)
