@@ -36,6 +36,8 @@ from edgepos.sim.scenarios import Scenario, rsu_imu_paper_scenario
 NOISE_STREAMS = 8
 #: A batch leaving later than this after its due time counts as late (s).
 LATE_THRESHOLD_S = 0.010
+#: How many error messages the report keeps as examples.
+MAX_ERROR_SAMPLES = 5
 #: Period of the event-loop lag probe (s).
 LAG_PROBE_S = 0.010
 
@@ -85,6 +87,7 @@ class Recorder:
     epochs: int = 0
     requests: int = 0
     errors: Counter[str] = field(default_factory=Counter)
+    error_samples: list[str] = field(default_factory=list)
     lateness_ms: list[float] = field(default_factory=list)
     late_waiting_server: int = 0
     late_generator: int = 0
@@ -128,6 +131,7 @@ class LoadReport:
             "epochs": r.epochs,
             "elapsed_s": self.elapsed_s,
             "errors_by_code": dict(r.errors),
+            "error_samples": list(r.error_samples),
             "config": {
                 "vehicles": c.vehicles,
                 "rate_hz": c.rate,
@@ -205,7 +209,9 @@ class Vehicle:
         except EdgeposError as error:
             recorder.requests += 1
             recorder.errors[error.code] += 1
-            self.session = None  # resynchronise: the next batch opens a new trip
+            if len(recorder.error_samples) < MAX_ERROR_SAMPLES:
+                recorder.error_samples.append(str(error))
+            self.position = len(self.batches)  # resynchronise: the next batch ends this trip, opens a new one
             return
         finished = time.perf_counter()
         recorder.requests += 1
@@ -282,9 +288,13 @@ async def run_load(config: LoadConfig) -> LoadReport:
     batches = _noise_batches(scenario, config)
     recorder = Recorder()
     pool = httpx.Limits(max_connections=config.vehicles + 2, max_keepalive_connections=config.vehicles + 2)
-    async with AsyncEdgeposClient(config.url, config.admin_key, timeout=config.timeout, retries=0, limits=pool) as client:
+    async with AsyncEdgeposClient(
+        config.url, config.admin_key, timeout=config.timeout, retries=0, limits=pool
+    ) as client:
         await _ensure_rsus(client, scenario, config.admin_key)
-        vehicles = [Vehicle(i, client, batches[i % len(batches)], scenario, recorder) for i in range(config.vehicles)]
+        vehicles = [
+            Vehicle(i, client, batches[i % len(batches)], scenario, recorder) for i in range(config.vehicles)
+        ]
         await asyncio.gather(*(vehicle.new_trip() for vehicle in vehicles))
         recorder.trips = 0  # count trips started after the first
         probe = asyncio.create_task(_probe_loop_lag(recorder))
@@ -292,13 +302,17 @@ async def run_load(config: LoadConfig) -> LoadReport:
         try:
             spread = 0.0 if config.saturate else config.interval_s
             await asyncio.gather(
-                *(vehicle.run(config, start, spread * i / config.vehicles) for i, vehicle in enumerate(vehicles))
+                *(
+                    vehicle.run(config, start, spread * i / config.vehicles)
+                    for i, vehicle in enumerate(vehicles)
+                )
             )
         finally:
             probe.cancel()
         finished = time.perf_counter()
         await asyncio.gather(
-            *(client.delete_session(v.session) for v in vehicles if v.session is not None), return_exceptions=True
+            *(client.delete_session(v.session) for v in vehicles if v.session is not None),
+            return_exceptions=True,
         )
     elapsed = max(config.duration, finished - start) if not config.saturate else finished - start
     return LoadReport(config=config, elapsed_s=elapsed, recorder=recorder)
@@ -312,15 +326,22 @@ def summary(report: LoadReport) -> str:
     """The human-readable result."""
     data = report.to_json()
     c, late = data["config"], data["lateness"]
-    mode = "saturating (closed loop)" if c["saturate"] else f"offered {c['offered_epochs_per_s']:.0f} epochs/s"
+    mode = (
+        "saturating (closed loop)" if c["saturate"] else f"offered {c['offered_epochs_per_s']:.0f} epochs/s"
+    )
     lines = [
-        f"loadtest {report.config.url}: {c['vehicles']} vehicles x {c['rate_hz']:g} Hz, batches of {c['batch_epochs']} "
-        f"epochs, {c['duration_s']:g} s, {mode}",
+        (
+            f"loadtest {report.config.url}: {c['vehicles']} vehicles x {c['rate_hz']:g} Hz, "
+            f"batches of {c['batch_epochs']} epochs, {c['duration_s']:g} s, {mode}"
+        ),
         f"  epochs/s        {data['epochs_per_s']:.1f}  ({data['epochs']} epochs in {data['elapsed_s']:.1f} s)",
         f"  requests/s      {data['requests_per_s']:.1f}  ({data['requests']} batch requests)",
-        f"  latency         p50 {_ms(data['latency_ms']['p50'])}, p95 {_ms(data['latency_ms']['p95'])}, "
-        f"p99 {_ms(data['latency_ms']['p99'])}, max {_ms(data['latency_max_ms'])}",
+        (
+            f"  latency         p50 {_ms(data['latency_ms']['p50'])}, p95 {_ms(data['latency_ms']['p95'])}, "
+            f"p99 {_ms(data['latency_ms']['p99'])}, max {_ms(data['latency_max_ms'])}"
+        ),
         f"  errors          {data['errors']}" + (f" {data['errors_by_code']}" if data["errors"] else ""),
+        *(f"    e.g. {sample}" for sample in data["error_samples"]),
         f"  trips restarted {data['trips']['started']}"
         + (f", trip errors {data['trips']['errors_by_code']}" if data["trips"]["errors_by_code"] else ""),
     ]
@@ -338,17 +359,29 @@ def summary(report: LoadReport) -> str:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--url", required=True, help="server base URL; loopback hosts only (127.0.0.0/8, localhost, ::1)")
+    parser.add_argument(
+        "--url", required=True, help="server base URL; loopback hosts only (127.0.0.0/8, localhost, ::1)"
+    )
     parser.add_argument("--vehicles", type=int, required=True, help="concurrent simulated vehicles")
-    parser.add_argument("--rate", type=float, required=True, help="epochs per second of measurement time per vehicle (Hz)")
-    parser.add_argument("--batch", type=int, required=True, help="epochs per batch (a batch every BATCH/RATE s)")
+    parser.add_argument(
+        "--rate", type=float, required=True, help="epochs per second of measurement time per vehicle (Hz)"
+    )
+    parser.add_argument(
+        "--batch", type=int, required=True, help="epochs per batch (a batch every BATCH/RATE s)"
+    )
     parser.add_argument("--duration", type=float, required=True, help="seconds to run (at most 3600)")
     parser.add_argument("--json", type=Path, default=None, metavar="FILE", help="write the figures as JSON")
-    parser.add_argument("--admin-key", default=None, help="admin key to load the RSU map (default $EDGEPOS_ADMIN_KEY)")
     parser.add_argument(
-        "--saturate", action="store_true", help="closed loop: send each batch as soon as the previous is answered"
+        "--admin-key", default=None, help="admin key to load the RSU map (default $EDGEPOS_ADMIN_KEY)"
     )
-    parser.add_argument("--timeout", type=float, default=10.0, help="seconds per request (default 10; no retries)")
+    parser.add_argument(
+        "--saturate",
+        action="store_true",
+        help="closed loop: send each batch as soon as the previous is answered",
+    )
+    parser.add_argument(
+        "--timeout", type=float, default=10.0, help="seconds per request (default 10; no retries)"
+    )
     parser.add_argument("--seed", type=int, default=0, help="measurement noise seed (default 0)")
 
 

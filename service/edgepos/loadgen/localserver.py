@@ -31,8 +31,16 @@ def free_port() -> int:
 def serve_command(workers: int = 1) -> list[str]:
     """``edgepos serve`` on 127.0.0.1 with the port left as a placeholder."""
     return [
-        sys.executable, "-m", "edgepos.cli", "serve",
-        "--host", "127.0.0.1", "--port", PORT_PLACEHOLDER, "--workers", str(workers),
+        sys.executable,
+        "-m",
+        "edgepos.cli",
+        "serve",
+        "--host",
+        "127.0.0.1",
+        "--port",
+        PORT_PLACEHOLDER,
+        "--workers",
+        str(workers),
     ]
 
 

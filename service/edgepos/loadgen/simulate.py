@@ -76,7 +76,10 @@ class SimulationResult:
                 }
                 for v in self.vehicles
             ],
-            "mean": {"position_rmse_m": self.mean_position_rmse, "velocity_rmse_m_s": self.mean_velocity_rmse},
+            "mean": {
+                "position_rmse_m": self.mean_position_rmse,
+                "velocity_rmse_m_s": self.mean_velocity_rmse,
+            },
         }
 
 
@@ -95,7 +98,7 @@ def rmse(fixes: list[Fix], scenario: Scenario) -> tuple[float | None, float | No
             position.append((fix.x - truth.x[k]) ** 2 + (fix.y - truth.y[k]) ** 2)
         if fix.vx is not None and fix.vy is not None:
             velocity.append((fix.vx - truth.vx[k]) ** 2 + (fix.vy - truth.vy[k]) ** 2)
-    as_rmse = lambda squares: math.sqrt(float(np.mean(squares))) if squares else None  # noqa: E731
+    as_rmse = lambda squares: math.sqrt(float(np.mean(squares))) if squares else None
     return as_rmse(position), as_rmse(velocity)
 
 
@@ -231,8 +234,10 @@ def _format(value: float | None) -> str:
 def report(result: SimulationResult) -> str:
     """The table of each vehicle's RMSE and the mean."""
     lines = [
-        f"scenario {result.scenario}, seed {result.seed}, {result.epochs} epochs per vehicle in batches of "
-        f"{result.batch_epochs}, {result.elapsed_s:.1f} s",
+        (
+            f"scenario {result.scenario}, seed {result.seed}, {result.epochs} epochs per vehicle in batches of "
+            f"{result.batch_epochs}, {result.elapsed_s:.1f} s"
+        ),
         f"{'vehicle':<12} {'fixes':>6} {'position RMSE (m)':>18} {'velocity RMSE (m/s)':>20}  error",
     ]
     for v in result.vehicles:
@@ -250,16 +255,28 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--url", required=True, help="base URL of the server, e.g. http://127.0.0.1:8000")
     parser.add_argument("--vehicles", type=int, default=1, help="simulated vehicles (default 1)")
     parser.add_argument("--scenario", choices=sorted(common.SCENARIOS), default="rsu-imu", help="scenario")
-    parser.add_argument("--admin-key", default=None, help="admin key to load the RSU map (default $EDGEPOS_ADMIN_KEY)")
-    parser.add_argument("--seed", type=int, default=0, help="noise seed; vehicle i uses child i of it (default 0)")
+    parser.add_argument(
+        "--admin-key", default=None, help="admin key to load the RSU map (default $EDGEPOS_ADMIN_KEY)"
+    )
+    parser.add_argument(
+        "--seed", type=int, default=0, help="noise seed; vehicle i uses child i of it (default 0)"
+    )
     parser.add_argument("--batch-epochs", type=int, default=20, help="epochs per batch (default 20)")
     pace = parser.add_mutually_exclusive_group()
-    pace.add_argument("--realtime", dest="realtime", action="store_true", help="pace batches on the scenario's clock")
-    pace.add_argument("--fast", dest="realtime", action="store_false", help="send as fast as answered (default)")
+    pace.add_argument(
+        "--realtime", dest="realtime", action="store_true", help="pace batches on the scenario's clock"
+    )
+    pace.add_argument(
+        "--fast", dest="realtime", action="store_false", help="send as fast as answered (default)"
+    )
     parser.set_defaults(realtime=False)
     parser.add_argument("--epochs", type=int, default=None, help="only the first N epochs of the scenario")
-    parser.add_argument("--timeout", type=float, default=30.0, help="seconds per request attempt (default 30)")
-    parser.add_argument("--json", type=Path, default=None, metavar="FILE", help="also write the results as JSON")
+    parser.add_argument(
+        "--timeout", type=float, default=30.0, help="seconds per request attempt (default 30)"
+    )
+    parser.add_argument(
+        "--json", type=Path, default=None, metavar="FILE", help="also write the results as JSON"
+    )
 
 
 def run(args: argparse.Namespace) -> int:

@@ -1,0 +1,76 @@
+"""Python client of the edgepos edge positioning service (API v1): sync and async, typed.
+
+SI units and radians throughout; positions in the site-local east-north plane (m). See
+:class:`EdgeposClient` and :class:`AsyncEdgeposClient`; every refusal raises an :class:`EdgeposError`.
+"""
+
+from edgepos_client._protocol import RetryPolicy, Session
+from edgepos_client.async_client import AsyncEdgeposClient
+from edgepos_client.errors import (
+    Conflict,
+    EdgeposError,
+    EstimationFailed,
+    Forbidden,
+    InvalidRequest,
+    MethodNotAllowed,
+    NotFound,
+    PayloadTooLarge,
+    RateLimited,
+    ServerError,
+    TooManySessions,
+    TransportError,
+    Unauthorized,
+    Unavailable,
+)
+from edgepos_client.models import (
+    BatchResult,
+    Fix,
+    GyroMeasurement,
+    InitialState,
+    Measurement,
+    MeasurementUse,
+    PipelineInfo,
+    PipelineOption,
+    Problem,
+    Rsu,
+    RsuMeasurement,
+    SessionInfo,
+    StateEstimate,
+)
+from edgepos_client.sync_client import EdgeposClient
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "AsyncEdgeposClient",
+    "BatchResult",
+    "Conflict",
+    "EdgeposClient",
+    "EdgeposError",
+    "EstimationFailed",
+    "Fix",
+    "Forbidden",
+    "GyroMeasurement",
+    "InitialState",
+    "InvalidRequest",
+    "Measurement",
+    "MeasurementUse",
+    "MethodNotAllowed",
+    "NotFound",
+    "PayloadTooLarge",
+    "PipelineInfo",
+    "PipelineOption",
+    "Problem",
+    "RateLimited",
+    "RetryPolicy",
+    "Rsu",
+    "RsuMeasurement",
+    "ServerError",
+    "Session",
+    "SessionInfo",
+    "StateEstimate",
+    "TooManySessions",
+    "TransportError",
+    "Unauthorized",
+    "Unavailable",
+]

@@ -1,0 +1,288 @@
+"""What the sync and async clients share: the session handle, the retry policy, and each call's
+request (method, path, body bytes, credential, what may be retried) and answer parsing.
+
+Keeping this free of I/O lets both clients be thin loops around ``httpx`` that cannot drift apart.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any
+from urllib.parse import quote
+
+import httpx
+
+from edgepos_client.errors import EdgeposError, TransportError, error_from_response
+from edgepos_client.models import (
+    MEASUREMENTS,
+    BatchResult,
+    Fix,
+    GyroMeasurement,
+    InitialState,
+    PipelineInfo,
+    Rsu,
+    RsuMeasurement,
+    SessionCreated,
+    SessionInfo,
+)
+
+MeasurementLike = RsuMeasurement | GyroMeasurement | Mapping[str, Any]
+RsuLike = Rsu | Mapping[str, Any]
+
+
+@dataclass
+class Session:
+    """A handle on one server session: its id, its bearer token, and the last seq it sent.
+
+    ``send_batch`` without an explicit seq sends ``last_seq + 1`` and records it once the server
+    accepted it. To resume a session in another process, build one from the stored id, token and
+    last seq.
+    """
+
+    session_id: str
+    token: str = field(repr=False)
+    vehicle_id: str = ""
+    pipeline: str = ""
+    options: dict[str, Any] = field(default_factory=dict)
+    created_at: float = 0.0
+    last_seq: int = 0
+
+    @classmethod
+    def from_created(cls, created: SessionCreated) -> Session:
+        return cls(
+            session_id=created.session_id,
+            token=created.token,
+            vehicle_id=created.vehicle_id,
+            pipeline=created.pipeline,
+            options=dict(created.options),
+            created_at=created.created_at,
+        )
+
+
+class Retry(Enum):
+    """What a failed attempt of a call may be retried after."""
+
+    NEVER = "never"
+    CONNECT = "connect"
+    """Only when the request surely never reached the server (refused or timed out connecting)."""
+    ALWAYS = "always"
+    """Any transport error or timeout, and 503: the call is idempotent (or, for batches, made so by seq)."""
+
+
+_NOT_SENT = (httpx.ConnectError, httpx.ConnectTimeout, httpx.PoolTimeout)
+
+
+@dataclass(frozen=True)
+class RetryPolicy:
+    """At most ``retries`` further attempts, waiting ``backoff * 2**n`` seconds (capped, with jitter)."""
+
+    retries: int = 3
+    backoff: float = 0.2
+    max_backoff: float = 5.0
+
+    def __post_init__(self) -> None:
+        if self.retries < 0 or self.backoff < 0 or self.max_backoff < 0:
+            raise ValueError("retries, backoff and max_backoff must be >= 0")
+
+    def delay(self, attempt: int) -> float:
+        """Seconds to wait before retry number ``attempt`` (0-based): exponential, 50-100 % jitter."""
+        return min(self.max_backoff, self.backoff * 2.0**attempt) * (0.5 + 0.5 * random.random())
+
+    def may_retry_error(self, call: Call, error: httpx.TransportError, attempt: int) -> bool:
+        if attempt >= self.retries or call.retry is Retry.NEVER:
+            return False
+        return call.retry is Retry.ALWAYS or isinstance(error, _NOT_SENT)
+
+    def may_retry_status(self, call: Call, status: int, attempt: int) -> bool:
+        return attempt < self.retries and call.retry is Retry.ALWAYS and status == 503
+
+
+@dataclass(frozen=True)
+class Call:
+    """One API request, fully encoded, so every attempt sends exactly the same bytes."""
+
+    method: str
+    path: str
+    body: bytes | None = None
+    credential: str | None = None
+    retry: Retry = Retry.ALWAYS
+
+    def headers(self) -> dict[str, str]:
+        headers = {"Accept": "application/json"}
+        if self.body is not None:
+            headers["Content-Type"] = "application/json"
+        if self.credential:
+            headers["Authorization"] = f"Bearer {self.credential}"
+        return headers
+
+
+def transport_failure(call: Call, error: httpx.TransportError, attempts: int) -> TransportError:
+    kind = "timeout" if isinstance(error, httpx.TimeoutException) else "connection_error"
+    return TransportError(
+        kind,
+        f"{call.method} {call.path} got no answer after {attempts} attempt(s): {type(error).__name__}: {error}",
+    )
+
+
+def check(response: httpx.Response) -> httpx.Response:
+    """The response if it is a success, else the matching :class:`EdgeposError` is raised."""
+    if response.is_success:
+        return response
+    raise error_from_response(response)
+
+
+def _segment(value: str) -> str:
+    return quote(value, safe="")
+
+
+def _json(value: Any) -> bytes:
+    return json.dumps(value, allow_nan=False, separators=(",", ":")).encode()
+
+
+def _session_credential(session: Session | str, admin_key: str | None) -> tuple[str, str | None]:
+    """(session id, bearer): a handle uses its own token, a bare id needs the admin key."""
+    if isinstance(session, Session):
+        return session.session_id, session.token
+    return session, admin_key
+
+
+class Calls:
+    """Builds each API call; ``admin_key`` is the bearer of admin calls."""
+
+    def __init__(self, admin_key: str | None) -> None:
+        self.admin_key = admin_key
+
+    # RSU registry
+    def put_rsus(self, rsus: Iterable[RsuLike]) -> Call:
+        items = [rsu if isinstance(rsu, Rsu) else Rsu.model_validate(rsu) for rsu in rsus]
+        body = _json({"rsus": [rsu.model_dump(mode="json") for rsu in items]})
+        return Call("PUT", "/v1/rsus", body, self.admin_key)
+
+    def list_rsus(self, session: Session | None) -> Call:
+        return Call("GET", "/v1/rsus", credential=session.token if session else self.admin_key)
+
+    def get_rsu(self, rsu_id: str, session: Session | None) -> Call:
+        return Call(
+            "GET", f"/v1/rsus/{_segment(rsu_id)}", credential=session.token if session else self.admin_key
+        )
+
+    def put_rsu(self, rsu: RsuLike) -> Call:
+        item = rsu if isinstance(rsu, Rsu) else Rsu.model_validate(rsu)
+        body = _json(item.model_dump(mode="json"))
+        return Call("PUT", f"/v1/rsus/{_segment(item.id)}", body, self.admin_key)
+
+    def delete_rsu(self, rsu_id: str) -> Call:
+        return Call("DELETE", f"/v1/rsus/{_segment(rsu_id)}", credential=self.admin_key, retry=Retry.CONNECT)
+
+    # pipelines
+    def pipelines(self) -> Call:
+        return Call("GET", "/v1/pipelines", credential=self.admin_key)
+
+    # sessions
+    def create_session(
+        self,
+        vehicle_id: str,
+        pipeline: str,
+        options: Mapping[str, Any] | None,
+        initial_state: InitialState | Mapping[str, Any] | None,
+    ) -> Call:
+        initial = None
+        if initial_state is not None:
+            state = (
+                initial_state
+                if isinstance(initial_state, InitialState)
+                else InitialState.model_validate(initial_state)
+            )
+            initial = state.model_dump(mode="json")
+        body = {
+            "vehicle_id": vehicle_id,
+            "pipeline": pipeline,
+            "options": None if options is None else dict(options),
+            "initial_state": initial,
+        }
+        # not idempotent: a retry after a lost reply would open a second session
+        return Call("POST", "/v1/sessions", _json(body), self.admin_key, retry=Retry.CONNECT)
+
+    def get_session(self, session: Session | str) -> Call:
+        session_id, credential = _session_credential(session, self.admin_key)
+        return Call("GET", f"/v1/sessions/{_segment(session_id)}", credential=credential)
+
+    def delete_session(self, session: Session | str) -> Call:
+        session_id, credential = _session_credential(session, self.admin_key)
+        return Call(
+            "DELETE", f"/v1/sessions/{_segment(session_id)}", credential=credential, retry=Retry.CONNECT
+        )
+
+    def batch(
+        self,
+        session: Session | str,
+        measurements: Sequence[MeasurementLike],
+        seq: int,
+        include_state: bool,
+    ) -> Call:
+        """The batch call; retried with the same seq and bytes, which the server answers once."""
+        session_id, credential = _session_credential(session, self.admin_key)
+        if seq < 1:
+            raise ValueError("seq must be >= 1")
+        if all(isinstance(item, (RsuMeasurement, GyroMeasurement)) for item in measurements):
+            items = list(measurements)
+        else:
+            items = MEASUREMENTS.validate_python(list(measurements))
+        body = b"".join(
+            (
+                b'{"seq":',
+                str(int(seq)).encode(),
+                b',"measurements":',
+                MEASUREMENTS.dump_json(items),  # type: ignore[arg-type]
+                b',"include_state":',
+                b"true" if include_state else b"false",
+                b"}",
+            )
+        )
+        return Call("POST", f"/v1/sessions/{_segment(session_id)}/batches", body, credential)
+
+
+def next_seq(session: Session | str, seq: int | None) -> int:
+    if seq is not None:
+        return seq
+    if not isinstance(session, Session):
+        raise TypeError("give seq explicitly when sending to a session id instead of a Session handle")
+    return session.last_seq + 1
+
+
+def batch_fixes(session: Session | str, seq: int, response: httpx.Response) -> list[Fix]:
+    """Parse a batch answer and advance the handle's seq."""
+    result = BatchResult.model_validate_json(response.content)
+    if result.seq != seq:
+        raise EdgeposError("protocol_error", f"sent seq {seq} but the server answered seq {result.seq}")
+    if isinstance(session, Session):
+        session.last_seq = max(session.last_seq, seq)
+    return result.fixes
+
+
+def parse_upserted(response: httpx.Response) -> int:
+    return int(response.json()["upserted"])
+
+
+def parse_rsus(response: httpx.Response) -> list[Rsu]:
+    return [Rsu.model_validate(item) for item in response.json()["rsus"]]
+
+
+def parse_rsu(response: httpx.Response) -> Rsu:
+    return Rsu.model_validate_json(response.content)
+
+
+def parse_pipelines(response: httpx.Response) -> list[PipelineInfo]:
+    return [PipelineInfo.model_validate(item) for item in response.json()["pipelines"]]
+
+
+def parse_session(response: httpx.Response) -> Session:
+    return Session.from_created(SessionCreated.model_validate_json(response.content))
+
+
+def parse_session_info(response: httpx.Response) -> SessionInfo:
+    return SessionInfo.model_validate_json(response.content)

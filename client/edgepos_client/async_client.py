@@ -1,0 +1,125 @@
+"""The asyncio client: :class:`AsyncEdgeposClient` (same methods as the blocking one, awaited)."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any, Self
+
+import httpx
+
+from edgepos_client import _protocol as protocol
+from edgepos_client._protocol import Call, MeasurementLike, RetryPolicy, RsuLike, Session
+from edgepos_client.models import Fix, InitialState, PipelineInfo, Rsu, SessionInfo
+
+
+class AsyncEdgeposClient:
+    """Asyncio client of an edgepos server (API v1); share one instance between tasks (one pool).
+
+    ``admin_key`` is the bearer of admin calls (RSU writes, sessions opened by id); session calls
+    use the :class:`Session` handle's own token. ``timeout`` is per attempt (s); ``retries`` bounds
+    further attempts after a connection error, a timeout or a 503, waiting ``backoff * 2**n`` s.
+    Use as an async context manager, or await :meth:`close`.
+    """
+
+    def __init__(
+        self,
+        base_url: str,
+        admin_key: str | None = None,
+        *,
+        timeout: float = 10.0,
+        retries: int = 3,
+        backoff: float = 0.2,
+        transport: httpx.AsyncBaseTransport | None = None,
+        limits: httpx.Limits | None = None,
+    ) -> None:
+        self.policy = RetryPolicy(retries=retries, backoff=backoff)
+        self._calls = protocol.Calls(admin_key)
+        options: dict[str, Any] = {"base_url": base_url, "timeout": timeout, "transport": transport}
+        if limits is not None:
+            options["limits"] = limits
+        self._http = httpx.AsyncClient(**options)
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        await self.close()
+
+    async def close(self) -> None:
+        await self._http.aclose()
+
+    async def _send(self, call: Call) -> httpx.Response:
+        attempt = 0
+        while True:
+            try:
+                response = await self._http.request(
+                    call.method, call.path, content=call.body, headers=call.headers()
+                )
+            except httpx.TransportError as error:
+                if not self.policy.may_retry_error(call, error, attempt):
+                    raise protocol.transport_failure(call, error, attempt + 1) from error
+            else:
+                if not self.policy.may_retry_status(call, response.status_code, attempt):
+                    return protocol.check(response)
+            await asyncio.sleep(self.policy.delay(attempt))
+            attempt += 1
+
+    # RSU registry
+    async def put_rsus(self, rsus: Iterable[RsuLike]) -> int:
+        """Insert or replace RSUs by id (admin); returns how many were written."""
+        return protocol.parse_upserted(await self._send(self._calls.put_rsus(rsus)))
+
+    async def list_rsus(self, session: Session | None = None) -> list[Rsu]:
+        """Every RSU (with the admin key, or ``session``'s token)."""
+        return protocol.parse_rsus(await self._send(self._calls.list_rsus(session)))
+
+    async def get_rsu(self, rsu_id: str, session: Session | None = None) -> Rsu:
+        return protocol.parse_rsu(await self._send(self._calls.get_rsu(rsu_id, session)))
+
+    async def put_rsu(self, rsu: RsuLike) -> Rsu:
+        """Insert or replace one RSU (admin)."""
+        return protocol.parse_rsu(await self._send(self._calls.put_rsu(rsu)))
+
+    async def delete_rsu(self, rsu_id: str) -> None:
+        await self._send(self._calls.delete_rsu(rsu_id))
+
+    # pipelines
+    async def pipelines(self) -> list[PipelineInfo]:
+        """Every pipeline with its options (defaults, bounds) and measurement types."""
+        return protocol.parse_pipelines(await self._send(self._calls.pipelines()))
+
+    # sessions
+    async def create_session(
+        self,
+        vehicle_id: str,
+        pipeline: str = "rsu_imu",
+        *,
+        options: Mapping[str, Any] | None = None,
+        initial_state: InitialState | Mapping[str, Any] | None = None,
+    ) -> Session:
+        """Open a session; the returned handle carries its id and token and tracks seq."""
+        call = self._calls.create_session(vehicle_id, pipeline, options, initial_state)
+        return protocol.parse_session(await self._send(call))
+
+    async def get_session(self, session: Session | str) -> SessionInfo:
+        return protocol.parse_session_info(await self._send(self._calls.get_session(session)))
+
+    async def delete_session(self, session: Session | str) -> None:
+        await self._send(self._calls.delete_session(session))
+
+    async def send_batch(
+        self,
+        session: Session | str,
+        measurements: Sequence[MeasurementLike],
+        seq: int | None = None,
+        *,
+        include_state: bool = False,
+    ) -> list[Fix]:
+        """Send one batch and return one fix per epoch, in time order.
+
+        ``seq`` defaults to the handle's last seq + 1. After a timeout, a broken connection or a
+        503 the identical bytes are sent again with the same seq; the server applies it once."""
+        number = protocol.next_seq(session, seq)
+        call = self._calls.batch(session, measurements, number, include_state)
+        return protocol.batch_fixes(session, number, await self._send(call))

@@ -1,0 +1,190 @@
+"""Typed models of the edgepos wire contract v1 (the client's own copies, independent of the server).
+
+Units are SI and angles radians throughout; positions are in the site-local east-north plane in
+metres (x east, y north) and angles counter-clockwise from east. Request models refuse NaN and
+infinity (the server would too); response models ignore fields they do not know, so a newer server
+that adds fields keeps working with this client.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
+
+
+class _Request(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+
+class _Response(BaseModel):
+    model_config = ConfigDict(extra="ignore")
+
+
+# -- RSUs -----------------------------------------------------------------------------------------
+class Rsu(BaseModel):
+    """A roadside unit at (x, y) m in the site frame, with optional noise and radius overrides.
+
+    Used both ways (sent by PUT, read by GET), so unknown fields of a newer server are ignored."""
+
+    model_config = ConfigDict(extra="ignore", allow_inf_nan=False, frozen=True)
+
+    id: str = Field(pattern=r"^[A-Za-z0-9._:+-]{1,64}$", description="RSU identifier.")
+    x: float = Field(description="East coordinate (m).")
+    y: float = Field(description="North coordinate (m).")
+    range_std: float | None = Field(None, gt=0, description="Range noise 1-sigma (m); null: session option.")
+    bearing_std: float | None = Field(
+        None, gt=0, description="Bearing noise 1-sigma (rad); null: session option."
+    )
+    radius: float | None = Field(None, gt=0, description="Communication radius (m); null: session option.")
+
+
+# -- measurements ---------------------------------------------------------------------------------
+class RsuMeasurement(_Request):
+    """Range (m) and bearing (rad, from the RSU to the vehicle, CCW from east) reported by one RSU."""
+
+    type: Literal["rsu"] = "rsu"
+    t: float = Field(description="Time (s, vehicle clock); equal t means one epoch.")
+    rsu_id: str = Field(description="Id of a registered RSU.")
+    range: float = Field(ge=0, description="Distance RSU -> vehicle (m).")
+    bearing: float = Field(
+        ge=-math.pi, le=math.pi, description="Direction RSU -> vehicle (rad, CCW from east)."
+    )
+
+
+class GyroMeasurement(_Request):
+    """Yaw rate (rad/s, CCW positive) of the vehicle's gyro."""
+
+    type: Literal["gyro"] = "gyro"
+    t: float = Field(description="Time (s, vehicle clock); equal t means one epoch.")
+    yaw_rate: float = Field(description="Yaw rate (rad/s, counter-clockwise positive).")
+
+
+Measurement = Annotated[RsuMeasurement | GyroMeasurement, Field(discriminator="type")]
+MEASUREMENTS = TypeAdapter(list[Measurement])
+"""Validates and serialises lists of measurements (dicts are accepted and checked)."""
+
+
+class InitialState(_Request):
+    """A known start in the site frame: position (m) and velocity (m/s) with their 1-sigma."""
+
+    x: float
+    y: float
+    vx: float
+    vy: float
+    position_std: float = Field(1.0, gt=0)
+    velocity_std: float = Field(1.0, gt=0)
+
+
+# -- pipelines -------------------------------------------------------------------------------------
+class PipelineOption(_Response):
+    name: str
+    type: str
+    default: Any = None
+    description: str = ""
+    minimum: float | None = None
+    maximum: float | None = None
+    choices: list[Any] | None = None
+
+
+class PipelineInfo(_Response):
+    name: str
+    description: str = ""
+    measurement_types: list[str] = Field(default_factory=list)
+    options: list[PipelineOption] = Field(default_factory=list)
+
+
+# -- fixes -----------------------------------------------------------------------------------------
+class StateEstimate(_Response):
+    """Full state (mean and covariance) in the order of ``components`` (xp, xv, ..., SI units)."""
+
+    components: list[str]
+    mean: list[float]
+    covariance: list[list[float]]
+
+
+class MeasurementUse(_Response):
+    """Whether measurement ``index`` of the batch entered the filter update, and if not, why."""
+
+    index: int
+    type: str
+    used: bool
+    reason: str | None = None
+
+
+FixStatus = Literal["initialised", "tracking", "predicted", "uninitialised"]
+
+
+class Fix(_Response):
+    """The estimate after one epoch: site frame (m, m/s, rad, rad/s); kinematics null if uninitialised."""
+
+    t: float
+    status: FixStatus
+    x: float | None = None
+    y: float | None = None
+    vx: float | None = None
+    vy: float | None = None
+    speed: float | None = None
+    heading: float | None = None
+    yaw_rate: float | None = None
+    latitude: float | None = None
+    longitude: float | None = None
+    position_covariance: list[list[float]] | None = None
+    state: StateEstimate | None = None
+    model_probabilities: dict[str, float] = Field(default_factory=dict)
+    nis: float | None = None
+    nis_dof: int = 0
+    measurements: list[MeasurementUse] = Field(default_factory=list)
+
+
+class BatchResult(_Response):
+    seq: int
+    fixes: list[Fix]
+
+
+# -- sessions --------------------------------------------------------------------------------------
+class SessionCreated(_Response):
+    session_id: str
+    token: str
+    vehicle_id: str
+    pipeline: str
+    options: dict[str, Any] = Field(default_factory=dict)
+    created_at: float
+
+
+class SessionInfo(_Response):
+    """What ``GET /v1/sessions/{id}`` reports: configuration, counters and the latest fix."""
+
+    session_id: str
+    vehicle_id: str
+    pipeline: str
+    options: dict[str, Any] = Field(default_factory=dict)
+    last_seq: int
+    batches: int
+    epochs: int
+    initialised: bool
+    t: float | None = None
+    model_probabilities: dict[str, float] = Field(default_factory=dict)
+    last_fix: Fix | None = None
+    created_at: float
+    updated_at: float
+
+
+# -- errors ----------------------------------------------------------------------------------------
+class Problem(_Response):
+    """One reason the server refused a request: measurement index (or null), field path and why."""
+
+    index: int | None = None
+    field: str = ""
+    reason: str = ""
+
+
+class ErrorDetail(_Response):
+    code: str
+    message: str
+    problems: list[Problem] = Field(default_factory=list)
+
+
+class ErrorBody(_Response):
+    error: ErrorDetail

@@ -1,0 +1,104 @@
+"""``edgepos simulate`` end to end against a real server process, and its fixes equal the
+in-process pipeline's bit for bit on the same observations."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import pytest
+from edgepos.cli import main
+from edgepos.loadgen import common
+from edgepos.loadgen.simulate import run_simulation
+from edgepos.pipelines.base import InitialState
+from edgepos.pipelines.registry import get_pipeline
+from edgepos.sim.scenarios import rsu_imu_paper_scenario
+from edgepos.sim.sensors import environment
+from loadgenhelp import ADMIN_KEY
+
+pytestmark = pytest.mark.slow
+
+
+def test_cli_reports_rmse_per_vehicle(server_url, tmp_path, capsys) -> None:
+    out = tmp_path / "sim.json"
+    argv = [
+        "simulate",
+        "--url",
+        server_url,
+        "--admin-key",
+        ADMIN_KEY,
+        "--epochs",
+        "120",
+        "--batch-epochs",
+        "25",
+        "--seed",
+        "3",
+        "--json",
+        str(out),
+    ]
+    assert main(argv) == 0
+    printed = capsys.readouterr()
+    assert "simulate: 1 vehicle(s), 120/120 epochs (100 %)" in printed.err
+    assert "sim-1" in printed.out and "mean" in printed.out
+    result = json.loads(out.read_text())
+    (vehicle,) = result["vehicles"]
+    assert vehicle["fixes"] == 120 and vehicle["error"] is None
+    assert 0 < vehicle["position_rmse_m"] < 2.0 and 0 < vehicle["velocity_rmse_m_s"] < 3.0
+    assert result["mean"]["position_rmse_m"] == vehicle["position_rmse_m"]
+
+
+def test_cli_needs_the_admin_key(server_url, monkeypatch, capsys) -> None:
+    monkeypatch.delenv("EDGEPOS_ADMIN_KEY", raising=False)
+    assert main(["simulate", "--url", server_url]) == 2
+    assert "--admin-key" in capsys.readouterr().err
+
+
+def test_http_fixes_equal_the_in_process_pipeline(server_url) -> None:
+    epochs, batch_epochs, seed = 90, 20, 11
+    result = asyncio.run(
+        run_simulation(
+            server_url, vehicles=2, admin_key=ADMIN_KEY, seed=seed, batch_epochs=batch_epochs, epochs=epochs
+        )
+    )
+    scenario = rsu_imu_paper_scenario()
+    pipeline = get_pipeline("rsu_imu")
+    start = common.initial_state(scenario)
+    for vehicle in result.vehicles:
+        assert vehicle.error is None
+        observations = common.vehicle_epochs(scenario, seed, vehicle.index)[:epochs]
+        state = pipeline.create(pipeline.resolve_options(None), InitialState(**start.model_dump()))
+        expected = []
+        for first in range(0, epochs, batch_epochs):
+            batch = [o for epoch in observations[first : first + batch_epochs] for o in epoch]
+            fixes, state = pipeline.process(state, batch, environment(scenario))
+            expected.extend(fixes)
+        assert len(vehicle.fixes) == len(expected) == epochs
+        for got, want in zip(vehicle.fixes, expected):
+            assert (
+                got.t,
+                got.status,
+                got.x,
+                got.y,
+                got.vx,
+                got.vy,
+                got.speed,
+                got.heading,
+                got.yaw_rate,
+            ) == (
+                want.t,
+                want.status,
+                want.x,
+                want.y,
+                want.vx,
+                want.vy,
+                want.speed,
+                want.heading,
+                want.yaw_rate,
+            )
+            assert got.position_covariance == want.position_cov
+            assert got.model_probabilities == want.model_probabilities
+            assert (got.nis, got.nis_dof) == (want.nis, want.nis_dof)
+            assert [(m.index, m.type, m.used, m.reason) for m in got.measurements] == [
+                (m.index, m.kind, m.used, m.reason) for m in want.measurements
+            ]
+    assert result.vehicles[0].fixes != result.vehicles[1].fixes  # each vehicle its own noise
