@@ -362,13 +362,17 @@ def _step(
 
     dt = None if session.filter_t is None else t - session.filter_t
     prediction = bank.predict(session.means, session.covs, session.probabilities, dt)
+    measurement = _measurement(candidates, gyros, observations, rsus, options)
     gate = options["gate_probability"]
-    if gate > 0.0 and (candidates or gyros):
-        candidates, gyros = _gate(candidates, gyros, prediction.output, observations, rsus, options, gate, uses)
+    if gate > 0.0 and measurement[0] is not None:
+        kept_rsus, kept_gyros = _gate(candidates, gyros, measurement, prediction.output, gate, uses)
+        if len(kept_rsus) < len(candidates) or len(kept_gyros) < len(gyros):
+            candidates, gyros = kept_rsus, kept_gyros
+            measurement = _measurement(candidates, gyros, observations, rsus, options)
     for i in candidates + gyros:
         uses[i] = MeasurementUse(i, observations[i].kind, True)
 
-    correction, dof = _correction(candidates, gyros, observations, rsus, options)
+    correction, dof = _correction(candidates, gyros, measurement, observations, rsus, options)
     result: StepResult = bank.coast(prediction) if correction is None else bank.correct(prediction, correction)
     session.means, session.covs = result.means, result.covs
     session.probabilities = result.probabilities
@@ -409,19 +413,16 @@ def _gate_threshold(probability: float, dof: int) -> float:
     return float(chi2.ppf(probability, dof))
 
 
-def _gate(candidates, gyros, prior: Gaussian, observations, rsus, options, probability, uses):
+def _gate(candidates, gyros, measurement, prior: Gaussian, probability, uses) -> tuple[list[int], list[int]]:
     """Mahalanobis gate of each RSU pair (2 dof) and gyro reading (1 dof) against the fused prior.
 
-    One linearisation of the stacked measurement at the prior mean; each group's distance uses its
-    own diagonal block of S = H P H^T + R. When most RSUs fail, the prediction is what is off (a lost
-    track): the RSUs are all kept so that the filter can recover. A gyro is only gated when every
-    model carries acceleration, since otherwise the bank has no yaw-rate prediction.
+    ``measurement`` is the epoch's stacked model [RSU pairs..., gyros...] and its observation. One
+    linearisation at the prior mean; each group's distance uses its own diagonal block of
+    S = H P H^T + R. When most RSUs fail, the prediction is what is off (a lost track): the RSUs are
+    all kept so that the filter can recover. A gyro is only gated when every model carries
+    acceleration, since otherwise the bank has no yaw-rate prediction.
     """
-    gate_gyros = bool(gyros) and {layout.XA, layout.YA} <= set(prior.components)
-    gyros_gated = gyros if gate_gyros else []
-    model, observed = _measurement(candidates, gyros_gated, observations, rsus, options)
-    if model is None:
-        return candidates, gyros
+    model, observed = measurement
     idx = list(prior.components)
     mean = np.zeros(layout.FULL_DIM)
     mean[idx] = prior.mean
@@ -433,7 +434,6 @@ def _gate(candidates, gyros, prior: Gaussian, observations, rsus, options, proba
     s11, s22, s12 = diagonal[0:pairs:2], diagonal[1:pairs:2], off_diagonal[0:pairs:2]  # 2x2 block per RSU
     r1, r2 = residual[0:pairs:2], residual[1:pairs:2]
     rsu_distance = (s22 * r1 * r1 - 2.0 * s12 * r1 * r2 + s11 * r2 * r2) / (s11 * s22 - s12 * s12)
-    gyro_distance = residual[pairs:] ** 2 / diagonal[pairs:]
 
     kept_rsus = candidates
     threshold = _gate_threshold(probability, 2)
@@ -443,15 +443,15 @@ def _gate(candidates, gyros, prior: Gaussian, observations, rsus, options, proba
         for i, distance in zip(candidates, rsu_distance):
             if distance > threshold:
                 uses[i] = MeasurementUse(i, "rsu", False, f"failed the gate: d^2 = {distance:.1f} > {threshold:.1f}")
-    kept_gyros = gyros
-    if gate_gyros:
-        threshold = _gate_threshold(probability, 1)
-        kept_gyros = []
-        for i, distance in zip(gyros, gyro_distance):
-            if distance > threshold:
-                uses[i] = MeasurementUse(i, "gyro", False, f"failed the gate: d^2 = {distance:.1f} > {threshold:.1f}")
-            else:
-                kept_gyros.append(i)
+    if not gyros or not {layout.XA, layout.YA} <= set(prior.components):
+        return kept_rsus, gyros
+    threshold = _gate_threshold(probability, 1)
+    kept_gyros = []
+    for i, distance in zip(gyros, residual[pairs:] ** 2 / diagonal[pairs:]):
+        if distance > threshold:
+            uses[i] = MeasurementUse(i, "gyro", False, f"failed the gate: d^2 = {distance:.1f} > {threshold:.1f}")
+        else:
+            kept_gyros.append(i)
     return kept_rsus, kept_gyros
 
 
@@ -470,12 +470,16 @@ def _measurement(candidates, gyros, observations, rsus, options):
     return (parts[0] if len(parts) == 1 else Stacked(parts)), np.concatenate(observed)
 
 
-def _correction(candidates, gyros, observations, rsus, options):
-    """The epoch's correction and its measurement dimension, or (None, 0) when nothing is usable."""
+def _correction(candidates, gyros, measurement, observations, rsus, options):
+    """The epoch's correction and its measurement dimension, or (None, 0) when nothing is usable.
+
+    ``measurement`` is the stacked model of ``candidates`` and ``gyros``, used as is for the joint
+    update; the averaged handling builds one model per RSU instead.
+    """
     if options["rsu_handling"] == "average" and len(candidates) > 1:
         parts = [JointCorrection(*_measurement([i], gyros, observations, rsus, options)) for i in candidates]
         return AveragedCorrection(parts), 2 + len(gyros)
-    model, observed = _measurement(candidates, gyros, observations, rsus, options)
+    model, observed = measurement
     if model is None:
         return None, 0
     return JointCorrection(model, observed), model.dim
