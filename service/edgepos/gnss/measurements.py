@@ -1,0 +1,109 @@
+"""Pseudorange sets with their satellites' transmit-time states, and the atmospheric part of the range model.
+
+This is the seam between the readers/orbits and any estimator: :func:`prepare_epoch` turns an observation
+epoch into a :class:`PseudorangeSet` (what the future ``pseudorange`` measurement carries, satellite position
+and clock included), and :class:`Atmosphere` gives the ionosphere and troposphere delays for a receiver
+position. Estimators (the WLS baseline here, filters elsewhere) only add geometry and clock bias.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from edgepos.gnss.corrections import carrier_frequency, klobuchar_delay, saastamoinen_delay
+from edgepos.gnss.geodesy import ecef_to_geodetic, elevation_azimuth
+from edgepos.gnss.orbits import BroadcastOrbits, group_delay_factors
+from edgepos.gnss.rinex_nav import NavigationData
+from edgepos.gnss.rinex_obs import DEFAULT_CODES, ObservationEpoch
+
+
+@dataclass(frozen=True)
+class PseudorangeSet:
+    """One epoch's usable pseudoranges (n rows) with satellite ECEF positions at transmit time (m, in the
+    transmit-time frame), satellite clock offsets (s; add c * clock to the pseudorange) and carriers (Hz)."""
+
+    gpst: float
+    systems: tuple[str, ...]
+    prns: np.ndarray
+    pseudorange_m: np.ndarray
+    cn0_dbhz: np.ndarray
+    sat_position: np.ndarray
+    sat_clock_s: np.ndarray
+    frequency_hz: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.systems)
+
+    @property
+    def sats(self) -> tuple[str, ...]:
+        """RINEX satellite identifiers per row."""
+        return tuple(f"{s}{int(p):02d}" for s, p in zip(self.systems, self.prns))
+
+    def subset(self, keep: np.ndarray) -> "PseudorangeSet":
+        """Rows where the boolean ``keep`` is true."""
+        rows = np.flatnonzero(keep)
+        return PseudorangeSet(
+            self.gpst, tuple(self.systems[i] for i in rows), self.prns[rows], self.pseudorange_m[rows],
+            self.cn0_dbhz[rows], self.sat_position[rows], self.sat_clock_s[rows], self.frequency_hz[rows],
+        )
+
+
+def prepare_epoch(
+    epoch: ObservationEpoch, orbits: BroadcastOrbits, codes: Mapping[str, tuple[str, str]] | None = None
+) -> tuple[PseudorangeSet, tuple[str, ...]]:
+    """Compute satellite states for an epoch's pseudoranges; return the set and the satellites dropped for
+    lack of a valid ephemeris, of a group-delay rule for their signal, or because ``codes`` omits their
+    system."""
+    chosen = dict(DEFAULT_CODES if codes is None else codes)
+    index = orbits.select(epoch.systems, epoch.prns, epoch.gpst)
+    factors = np.zeros((len(epoch), 2))
+    frequency = np.zeros(len(epoch))
+    usable = index >= 0
+    for row, system in enumerate(epoch.systems):
+        if system not in chosen:
+            usable[row] = False
+            continue
+        code = chosen[system][0]
+        try:
+            factors[row] = group_delay_factors(system, code)
+            frequency[row] = carrier_frequency(system, code)
+        except KeyError:
+            usable[row] = False
+    dropped = tuple(s for s, ok in zip(epoch.sats, usable) if not ok)
+    rows = np.flatnonzero(usable)
+    states = orbits.transmit_states(index[rows], epoch.gpst, epoch.pseudorange_m[rows], factors[rows])
+    prepared = PseudorangeSet(
+        epoch.gpst, tuple(epoch.systems[i] for i in rows), epoch.prns[rows], epoch.pseudorange_m[rows],
+        epoch.cn0_dbhz[rows], states.position, states.clock_s, frequency[rows],
+    )
+    return prepared, dropped
+
+
+@dataclass(frozen=True)
+class Atmosphere:
+    """Broadcast ionosphere (Klobuchar alpha/beta or None to switch it off) and Saastamoinen troposphere."""
+
+    klobuchar: tuple[Sequence[float], Sequence[float]] | None
+    troposphere: bool = True
+
+    @classmethod
+    def from_navigation(cls, nav: NavigationData, troposphere: bool = True) -> "Atmosphere":
+        """The GPS Klobuchar set of a navigation header (None when the header lacks it)."""
+        return cls(nav.klobuchar_gps, troposphere)
+
+    def delays(
+        self, receiver: np.ndarray, prs: PseudorangeSet
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(ionosphere m, troposphere m, elevation rad, azimuth rad) per row for an ECEF receiver position."""
+        lat, lon, height = (float(v) for v in ecef_to_geodetic(receiver))
+        elevation, azimuth = elevation_azimuth(receiver, prs.sat_position)
+        if self.klobuchar is None:
+            iono = np.zeros(len(prs))
+        else:
+            alpha, beta = self.klobuchar
+            iono = klobuchar_delay(alpha, beta, lat, lon, elevation, azimuth, prs.gpst, prs.frequency_hz)
+        tropo = saastamoinen_delay(lat, height, elevation) if self.troposphere else np.zeros(len(prs))
+        return iono, tropo, elevation, azimuth

@@ -1,0 +1,199 @@
+"""Satellite position and clock from broadcast Keplerian ephemerides, vectorised over satellites.
+
+Formulas of IS-GPS-200 (table 20-IV, LNAV user algorithm; clock 20.3.3.3.3), BDS-SIS-ICD (section 5.2.4.12,
+including the GEO satellites' inertial-to-fixed rotation by -5 degrees about x) and the Galileo OS-SIS-ICD
+(identical form). Positions are WGS-84/CGCS2000/GTRF ECEF at the transmit time (the frames agree to
+centimetres); :func:`earth_rotation` and :func:`sagnac_range` carry them into the frame of the reception time.
+Times are continuous GPS seconds; BeiDou's 14 s offset is already folded into ``toe``/``toc`` by the reader.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from edgepos.gnss.rinex_nav import KeplerEphemeris
+
+SPEED_OF_LIGHT = 299792458.0
+"""m/s."""
+OMEGA_EARTH = 7.2921151467e-5
+"""WGS-84 Earth rotation rate (rad/s), used for the signal-travel rotation of every system."""
+GM = {"G": 3.986005e14, "J": 3.986005e14, "C": 3.986004418e14, "E": 3.986004418e14}
+"""Each system's gravitational constant of its ICD (m^3/s^2)."""
+OMEGA_E_ICD = {"G": 7.2921151467e-5, "J": 7.2921151467e-5, "C": 7.292115e-5, "E": 7.2921151467e-5}
+"""Each system's Earth rotation rate of its ICD (rad/s), used inside the orbit formulas."""
+BEIDOU_GEO_PRNS = frozenset({1, 2, 3, 4, 5, 59, 60, 61, 62, 63})
+"""BeiDou geostationary satellites, whose broadcast orbit needs the ICD's special rotation."""
+MAX_AGE_S = {"G": None, "J": None, "E": 4 * 3600.0, "C": 3 * 3600.0}
+"""Largest |t - toe| an ephemeris is used for; None = half the broadcast fit interval (GPS, QZSS)."""
+_GEO_TILT = np.deg2rad(-5.0)
+
+# Frequencies (Hz) for scaling group delays between bands.
+_F_GPS_L1, _F_GPS_L2 = 1575.42e6, 1227.60e6
+_F_GAL_E1, _F_GAL_E5A, _F_GAL_E5B = 1575.42e6, 1176.45e6, 1207.14e6
+GROUP_DELAY_FACTORS: dict[tuple[str, str], tuple[float, float]] = {
+    ("G", "1"): (1.0, 0.0),
+    ("J", "1"): (1.0, 0.0),
+    ("G", "2"): ((_F_GPS_L1 / _F_GPS_L2) ** 2, 0.0),
+    ("C", "2"): (1.0, 0.0),  # B1I: TGD1
+    ("C", "7"): (0.0, 1.0),  # B2I: TGD2
+    ("C", "6"): (0.0, 0.0),  # B3I: the broadcast clock's reference signal
+    ("E", "1"): (1.0, 0.0),  # E1 with I/NAV: BGD(E1, E5b)
+    ("E", "7"): ((_F_GAL_E1 / _F_GAL_E5B) ** 2, 0.0),
+    ("E", "5"): (0.0, (_F_GAL_E1 / _F_GAL_E5A) ** 2),
+}
+"""(system, RINEX band digit) -> (factor on tgd1, factor on tgd2): seconds subtracted from the clock."""
+
+
+def group_delay_factors(system: str, code: str) -> tuple[float, float]:
+    """Factors of (tgd1, tgd2) for a pseudorange code such as ``C1C`` or ``C2I``; KeyError if unsupported."""
+    try:
+        return GROUP_DELAY_FACTORS[(system, code[1])]
+    except KeyError:
+        raise KeyError(f"no broadcast group delay known for system {system} code {code}") from None
+
+
+@dataclass(frozen=True)
+class SatelliteStates:
+    """Satellites at their signal transmit time: ECEF positions (n, 3) in the transmit-time frame (m),
+    clock offsets (s, relativistic term and group delay included; add ``SPEED_OF_LIGHT * clock_s`` to the
+    pseudorange), transmit times (GPS s) and the ephemeris index used per row."""
+
+    position: np.ndarray
+    clock_s: np.ndarray
+    t_transmit: np.ndarray
+    ephemeris_index: np.ndarray
+
+
+class BroadcastOrbits:
+    """All Keplerian ephemerides of a navigation file, stacked as arrays for vectorised evaluation."""
+
+    def __init__(self, ephemerides: Sequence[KeplerEphemeris], healthy_only: bool = True) -> None:
+        kept = [e for e in ephemerides if e.system in GM and (e.health == 0 or not healthy_only)]
+        self.ephemerides: tuple[KeplerEphemeris, ...] = tuple(kept)
+        names = ("toc", "af0", "af1", "af2", "crs", "delta_n", "m0", "cuc", "e", "cus", "sqrt_a", "toe",
+                 "toe_sow", "cic", "omega0", "cis", "i0", "crc", "omega", "omega_dot", "idot", "tgd1", "tgd2")
+        self._a = {n: np.array([getattr(e, n) for e in kept], dtype=float) for n in names}
+        self._gm = np.array([GM[e.system] for e in kept], dtype=float)
+        self._we = np.array([OMEGA_E_ICD[e.system] for e in kept], dtype=float)
+        self._geo = np.array([e.system == "C" and e.prn in BEIDOU_GEO_PRNS for e in kept], dtype=bool)
+        max_age = []
+        for e in kept:
+            limit = MAX_AGE_S[e.system]
+            max_age.append(e.fit_interval_s / 2.0 if limit is None else limit)
+        self._max_age = np.array(max_age, dtype=float)
+        self._by_sat: dict[tuple[str, int], np.ndarray] = {}
+        for index, e in enumerate(kept):
+            self._by_sat.setdefault((e.system, e.prn), np.empty(0, dtype=int))
+            self._by_sat[(e.system, e.prn)] = np.append(self._by_sat[(e.system, e.prn)], index)
+
+    def __len__(self) -> int:
+        return len(self.ephemerides)
+
+    def select(self, systems: Sequence[str], prns: Sequence[int] | np.ndarray, t: float) -> np.ndarray:
+        """Per satellite, the index of the healthy ephemeris whose toe is nearest to ``t`` (GPS s) among those
+        within their validity (|t - toe| <= fit interval / 2, or the system's maximum age); -1 if none."""
+        out = np.full(len(systems), -1, dtype=int)
+        toe = self._a["toe"]
+        for row, (system, prn) in enumerate(zip(systems, prns)):
+            candidates = self._by_sat.get((system, int(prn)))
+            if candidates is None:
+                continue
+            age = np.abs(t - toe[candidates])
+            valid = age <= self._max_age[candidates]
+            if valid.any():
+                # Nearest toe; among equal toes the later record in the file (newest upload) wins.
+                best = np.flatnonzero(valid)
+                order = np.lexsort((-best, age[best]))
+                out[row] = candidates[best[order[0]]]
+        return out
+
+    def clock_polynomial(self, index: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """af0 + af1 dt + af2 dt^2 with dt = t - toc (s), without relativity or group delay."""
+        a = self._a
+        dt = t - a["toc"][index]
+        return a["af0"][index] + dt * (a["af1"][index] + dt * a["af2"][index])
+
+    def position(self, index: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """ECEF positions (n, 3) at GPS times ``t`` and the relativistic clock term (s) per satellite."""
+        a = {k: v[index] for k, v in self._a.items()}
+        gm, we, geo = self._gm[index], self._we[index], self._geo[index]
+        tk = np.asarray(t, dtype=float) - a["toe"]
+        semi_major = a["sqrt_a"] ** 2
+        n = np.sqrt(gm / semi_major**3) + a["delta_n"]
+        mean_anomaly = a["m0"] + n * tk
+        ecc = a["e"]
+        ecc_anomaly = mean_anomaly.copy()
+        for _ in range(30):
+            step = (ecc_anomaly - ecc * np.sin(ecc_anomaly) - mean_anomaly) / (1.0 - ecc * np.cos(ecc_anomaly))
+            ecc_anomaly -= step
+            if np.all(np.abs(step) < 1e-14):
+                break
+        sin_e, cos_e = np.sin(ecc_anomaly), np.cos(ecc_anomaly)
+        true_anomaly = np.arctan2(np.sqrt(1.0 - ecc * ecc) * sin_e, cos_e - ecc)
+        phi = true_anomaly + a["omega"]
+        sin2, cos2 = np.sin(2.0 * phi), np.cos(2.0 * phi)
+        u = phi + a["cus"] * sin2 + a["cuc"] * cos2
+        r = semi_major * (1.0 - ecc * cos_e) + a["crs"] * sin2 + a["crc"] * cos2
+        inc = a["i0"] + a["idot"] * tk + a["cis"] * sin2 + a["cic"] * cos2
+        x_orb, y_orb = r * np.cos(u), r * np.sin(u)
+        node = a["omega0"] + np.where(geo, a["omega_dot"], a["omega_dot"] - we) * tk - we * a["toe_sow"]
+        cos_node, sin_node, cos_i = np.cos(node), np.sin(node), np.cos(inc)
+        x = x_orb * cos_node - y_orb * cos_i * sin_node
+        y = x_orb * sin_node + y_orb * cos_i * cos_node
+        z = y_orb * np.sin(inc)
+        if geo.any():
+            # BDS-SIS-ICD: [X Y Z] = Rz(we tk) Rx(-5 deg) [Xg Yg Zg] for GEO satellites.
+            c5, s5 = np.cos(_GEO_TILT), np.sin(_GEO_TILT)
+            y1 = c5 * y + s5 * z
+            z1 = -s5 * y + c5 * z
+            angle = we * tk
+            ca, sa = np.cos(angle), np.sin(angle)
+            x_geo = ca * x + sa * y1
+            y_geo = -sa * x + ca * y1
+            x, y, z = np.where(geo, x_geo, x), np.where(geo, y_geo, y), np.where(geo, z1, z)
+        relativistic = -2.0 * np.sqrt(gm) / SPEED_OF_LIGHT**2 * ecc * a["sqrt_a"] * sin_e
+        return np.stack([x, y, z], axis=-1), relativistic
+
+    def group_delay(self, index: np.ndarray, factors: np.ndarray) -> np.ndarray:
+        """Broadcast group delay (s) per row, from (n, 2) factors on (tgd1, tgd2)."""
+        return factors[:, 0] * self._a["tgd1"][index] + factors[:, 1] * self._a["tgd2"][index]
+
+    def transmit_states(
+        self, index: np.ndarray, t_receive: float, pseudorange_m: np.ndarray, delay_factors: np.ndarray
+    ) -> SatelliteStates:
+        """Satellite positions and clocks at the true transmit time of each pseudorange.
+
+        The satellite's transmit time in its own clock is t_receive - P/c (the receiver clock error cancels);
+        the satellite clock correction (IS-GPS-200 20.3.3.3.3.1) turns it into system time.
+        """
+        index = np.asarray(index, dtype=int)
+        t_sv = t_receive - np.asarray(pseudorange_m, dtype=float) / SPEED_OF_LIGHT
+        dt = self.clock_polynomial(index, t_sv)
+        dt = self.clock_polynomial(index, t_sv - dt)
+        t_tx = t_sv - dt
+        position, relativistic = self.position(index, t_tx)
+        clock = self.clock_polynomial(index, t_tx) + relativistic - self.group_delay(index, delay_factors)
+        return SatelliteStates(position, clock, t_tx, index)
+
+
+def earth_rotation(position: np.ndarray, travel_time_s: np.ndarray | float) -> np.ndarray:
+    """Rotate ECEF positions (..., 3) of the transmit time into the ECEF frame of the reception time."""
+    angle = OMEGA_EARTH * np.asarray(travel_time_s, dtype=float)
+    c, s = np.cos(angle), np.sin(angle)
+    x, y, z = position[..., 0], position[..., 1], position[..., 2]
+    return np.stack([c * x + s * y, -s * x + c * y, z], axis=-1)
+
+
+def sagnac_range(satellite: np.ndarray, receiver: np.ndarray) -> np.ndarray:
+    """Geometric range (m) from receiver to satellite including the Earth-rotation (Sagnac) term.
+
+    ``satellite`` (..., 3) at transmit time, ``receiver`` (..., 3) at reception time, both ECEF and
+    broadcastable; rho = |s - r| + omega_e (x_s y_r - y_s x_r) / c, good to millimetres for GNSS orbits.
+    """
+    diff = satellite - receiver
+    geometric = np.sqrt(np.sum(diff * diff, axis=-1))
+    sagnac = OMEGA_EARTH * (satellite[..., 0] * receiver[..., 1] - satellite[..., 1] * receiver[..., 0])
+    return geometric + sagnac / SPEED_OF_LIGHT

@@ -1,0 +1,293 @@
+"""Epoch-by-epoch weighted least-squares single-point positioning (the project's "plain WLS baseline").
+
+Unknowns: ECEF position (m) and one receiver clock bias per constellation (m, i.e. c times seconds). The
+measurement model is rho_sagnac + b_sys - c dt_sat + I + T; weights 1 / (a^2 + b^2 / sin^2 el); satellites
+below the elevation mask are dropped once the estimate is near the Earth's surface. After convergence a
+global chi-square test on the weighted residuals decides whether the satellite with the largest standardised
+residual is excluded and the solution recomputed, one at a time.
+
+``python -m edgepos.gnss.spp --obs OBS --nav NAV [--reference CSV]`` solves a recording and prints figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from dataclasses import dataclass, field
+from typing import Iterable, Mapping, Sequence
+
+import numpy as np
+from scipy.stats import chi2
+
+from edgepos.core.errors import EstimationError
+from edgepos.gnss.geodesy import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
+from edgepos.gnss.measurements import Atmosphere, PseudorangeSet, prepare_epoch
+from edgepos.gnss.orbits import SPEED_OF_LIGHT, BroadcastOrbits, sagnac_range
+from edgepos.gnss.rinex_nav import read_navigation
+from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs, read_header
+
+_NEAR_SURFACE_M = (6.0e6, 7.0e6)
+"""Geocentric distances between which the estimate counts as a ground receiver (mask and corrections on)."""
+
+
+class SppError(EstimationError):
+    """An epoch could not be solved (too few satellites, no convergence, singular geometry)."""
+
+
+@dataclass(frozen=True)
+class SppConfig:
+    """Options of the WLS solver. Sigmas in metres, angles in radians."""
+
+    elevation_mask_rad: float = math.radians(10.0)
+    sigma_a_m: float = 1.0
+    """Constant part of the pseudorange standard deviation."""
+    sigma_b_m: float = 1.0
+    """Elevation-dependent part: sigma^2 = a^2 + b^2 / sin^2(elevation)."""
+    min_cn0_dbhz: float | None = None
+    """Drop pseudoranges whose C/N0 is below this (None: keep all)."""
+    max_iterations: int = 15
+    convergence_m: float = 1e-4
+    outlier_probability: float = 0.999
+    """Chi-square test level of the weighted residuals; above it the worst satellite is excluded."""
+    max_exclusions: int = 4
+    ionosphere: bool = True
+    troposphere: bool = True
+
+
+@dataclass(frozen=True)
+class Dop:
+    """Dilution of precision of the unweighted geometry (dimensionless)."""
+
+    gdop: float
+    pdop: float
+    hdop: float
+    vdop: float
+
+
+@dataclass(frozen=True)
+class SppSolution:
+    """One epoch's solution. ``residuals_m``/``elevation_rad`` are per used satellite (order of ``sats``)."""
+
+    gpst: float
+    position: np.ndarray
+    lat: float
+    lon: float
+    height: float
+    clock_bias_m: dict[str, float]
+    dop: Dop
+    sats: tuple[str, ...]
+    residuals_m: np.ndarray
+    elevation_rad: np.ndarray
+    excluded: tuple[str, ...]
+    iterations: int
+    chi2_passed: bool
+    masked: tuple[str, ...] = field(default=())
+
+
+def _weights(elevation: np.ndarray, config: SppConfig) -> np.ndarray:
+    sin_el = np.maximum(np.sin(elevation), 0.05)
+    return 1.0 / (config.sigma_a_m**2 + (config.sigma_b_m / sin_el) ** 2)
+
+
+def _iterate(
+    prs: PseudorangeSet, active: np.ndarray, atmosphere: Atmosphere, config: SppConfig, start: np.ndarray,
+) -> tuple[np.ndarray, dict[str, float], np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """Gauss-Newton on the rows in ``active``; returns position, clocks, and per-row (all rows) residuals,
+    elevations, weights, design matrix (position part), the final used mask and the iteration count."""
+    x = start.astype(float).copy()
+    systems = np.array(prs.systems)
+    clocks: dict[str, float] = {}
+    n = len(prs)
+    corrected = prs.pseudorange_m + SPEED_OF_LIGHT * prs.sat_clock_s
+    for iteration in range(1, config.max_iterations + 1):
+        radius = float(np.linalg.norm(x))
+        if _NEAR_SURFACE_M[0] < radius < _NEAR_SURFACE_M[1]:
+            iono, tropo, elevation, _ = atmosphere.delays(x, prs)
+            used = active & (elevation >= config.elevation_mask_rad)
+        else:
+            iono = tropo = np.zeros(n)
+            elevation = np.full(n, np.pi / 2.0)
+            used = active.copy()
+        present = sorted(set(systems[used]))
+        rho = sagnac_range(prs.sat_position, x)
+        line_of_sight = (x - prs.sat_position) / rho[:, None]
+        clock_vector = np.array([clocks.get(s, 0.0) for s in systems])
+        residual = corrected - (rho + clock_vector + iono + tropo)
+        if used.sum() < 3 + len(present):
+            raise SppError(f"{int(used.sum())} usable pseudoranges for {3 + len(present)} unknowns")
+        design = np.zeros((n, 3 + len(present)))
+        design[:, :3] = line_of_sight
+        for column, system in enumerate(present):
+            design[systems == system, 3 + column] = 1.0
+        weight = _weights(elevation, config)
+        root = np.sqrt(weight[used])
+        step, *_ = np.linalg.lstsq(design[used] * root[:, None], residual[used] * root, rcond=None)
+        if not np.all(np.isfinite(step)):
+            raise SppError("non-finite least-squares step")
+        x += step[:3]
+        clocks = {s: clocks.get(s, 0.0) + float(step[3 + k]) for k, s in enumerate(present)}
+        if np.linalg.norm(step[:3]) < config.convergence_m:
+            clock_vector = np.array([clocks.get(s, 0.0) for s in systems])
+            rho = sagnac_range(prs.sat_position, x)
+            residual = corrected - (rho + clock_vector + iono + tropo)
+            return x, clocks, residual, elevation, weight, design, used, iteration
+    raise SppError(f"no convergence in {config.max_iterations} iterations")
+
+
+def _dop(design: np.ndarray, position: np.ndarray) -> Dop:
+    lat, lon, _ = ecef_to_geodetic(position)
+    enu = design.copy()
+    enu[:, :3] = design[:, :3] @ enu_rotation(float(lat), float(lon)).T
+    cov = np.linalg.inv(enu.T @ enu)
+    diag = np.diag(cov)
+    return Dop(
+        float(np.sqrt(np.trace(cov))), float(np.sqrt(diag[:3].sum())), float(np.sqrt(diag[:2].sum())),
+        float(np.sqrt(diag[2])),
+    )
+
+
+def solve_epoch(
+    prs: PseudorangeSet, atmosphere: Atmosphere, config: SppConfig = SppConfig(), initial: np.ndarray | None = None
+) -> SppSolution:
+    """Solve one epoch; ``initial`` ECEF guess (m), the Earth's centre when None. Raises SppError."""
+    if not config.ionosphere or not config.troposphere:
+        atmosphere = Atmosphere(atmosphere.klobuchar if config.ionosphere else None, config.troposphere)
+    active = np.isfinite(prs.pseudorange_m)
+    if config.min_cn0_dbhz is not None:
+        active &= ~(prs.cn0_dbhz < config.min_cn0_dbhz)
+    start = np.zeros(3) if initial is None else np.asarray(initial, dtype=float)
+    excluded: list[int] = []
+    while True:
+        x, clocks, residual, elevation, weight, design, used, iterations = _iterate(
+            prs, active, atmosphere, config, start
+        )
+        rows = np.flatnonzero(used)
+        h = design[rows][:, : design.shape[1]]
+        h = h[:, np.any(h != 0.0, axis=0)]
+        dof = len(rows) - h.shape[1]
+        normalised = residual[rows] * np.sqrt(weight[rows])
+        statistic = float(normalised @ normalised)
+        passed = dof <= 0 or statistic <= chi2.ppf(config.outlier_probability, dof)
+        if passed or len(excluded) >= config.max_exclusions or dof < 2:
+            break
+        # Standardised residuals: divide by sqrt(1 - leverage) of the weighted design.
+        hw = h * np.sqrt(weight[rows])[:, None]
+        leverage = np.einsum("ij,jk,ik->i", hw, np.linalg.pinv(hw.T @ hw), hw)
+        standardised = np.abs(normalised) / np.sqrt(np.maximum(1.0 - leverage, 1e-6))
+        worst = int(rows[np.argmax(standardised)])
+        excluded.append(worst)
+        active[worst] = False
+        start = x
+    lat, lon, height = (float(v) for v in ecef_to_geodetic(x))
+    sats = prs.sats
+    return SppSolution(
+        gpst=prs.gpst, position=x, lat=lat, lon=lon, height=height, clock_bias_m=clocks,
+        dop=_dop(design[rows][:, np.any(design[rows] != 0.0, axis=0)], x),
+        sats=tuple(sats[i] for i in rows), residuals_m=residual[rows], elevation_rad=elevation[rows],
+        excluded=tuple(sats[i] for i in excluded), iterations=iterations, chi2_passed=passed,
+        masked=tuple(sats[i] for i in np.flatnonzero(active & ~used)),
+    )
+
+
+def solve_recording(
+    obs_path: str, nav_path: str, config: SppConfig = SppConfig(), codes: Mapping[str, tuple[str, str]] | None = None
+) -> list[tuple[float, SppSolution | None, str]]:
+    """Solve every epoch of a RINEX observation file: (GPS time, solution or None, reason when None).
+
+    Each epoch starts from the previous solution (the header's approximate position, else the Earth's
+    centre, for the first); a failed epoch restarts from there, so one bad epoch cannot poison the next.
+    """
+    nav = read_navigation(nav_path)
+    orbits = BroadcastOrbits(nav.ephemerides)
+    atmosphere = Atmosphere.from_navigation(nav)
+    header = read_header(obs_path)
+    fallback = np.asarray(header.approx_position, float) if header.approx_position else np.zeros(3)
+    if not np.all(np.isfinite(fallback)) or np.linalg.norm(fallback) < 1.0:
+        fallback = np.zeros(3)
+    previous: np.ndarray | None = None
+    results: list[tuple[float, SppSolution | None, str]] = []
+    for epoch in read_epochs(obs_path, codes):
+        prs, _ = prepare_epoch(epoch, orbits, codes)
+        try:
+            solution = solve_epoch(prs, atmosphere, config, previous if previous is not None else fallback)
+        except SppError as error:
+            results.append((epoch.gpst, None, str(error)))
+            continue
+        previous = solution.position
+        results.append((epoch.gpst, solution, ""))
+    return results
+
+
+def read_reference(path: str) -> tuple[np.ndarray, np.ndarray]:
+    """Reference CSV (GPS week, seconds of week, latitude deg, longitude deg, height m, ...; ``#`` comments)
+    -> (GPS seconds (n,), ECEF positions (n, 3))."""
+    data = np.loadtxt(path, delimiter=",", comments="#", ndmin=2)
+    if data.shape[1] < 5:
+        raise ValueError(f"{path}: expected at least 5 columns (week, sow, lat, lon, height), got {data.shape[1]}")
+    gpst = data[:, 0] * 604800.0 + data[:, 1]
+    return gpst, geodetic_to_ecef(np.radians(data[:, 2]), np.radians(data[:, 3]), data[:, 4])
+
+
+def horizontal_errors(
+    solutions: Iterable[tuple[float, SppSolution | None, str]], ref_time: np.ndarray, ref_ecef: np.ndarray,
+    tolerance_s: float = 0.05,
+) -> tuple[np.ndarray, int, int]:
+    """Horizontal errors (m) of solved epochs that have a reference within ``tolerance_s``; also the number of
+    reference epochs and how many of them have no solution."""
+    errors: list[float] = []
+    by_time = {round(t, 1): s for t, s, _ in solutions}
+    unsolved = 0
+    for t, truth in zip(ref_time, ref_ecef):
+        solution = by_time.get(round(float(t), 1))
+        if solution is None or abs(solution.gpst - t) > tolerance_s:
+            unsolved += 1
+            continue
+        lat, lon, _ = ecef_to_geodetic(truth)
+        enu = enu_rotation(float(lat), float(lon)) @ (solution.position - truth)
+        errors.append(float(np.hypot(enu[0], enu[1])))
+    return np.asarray(errors), len(ref_time), unsolved
+
+
+def summary(errors: np.ndarray) -> dict[str, float]:
+    """RMS, 95th percentile and maximum (m) of horizontal errors."""
+    if errors.size == 0:
+        return {"horizontal_rms_m": math.nan, "horizontal_p95_m": math.nan, "horizontal_max_m": math.nan}
+    return {
+        "horizontal_rms_m": float(np.sqrt(np.mean(errors**2))),
+        "horizontal_p95_m": float(np.percentile(errors, 95)),
+        "horizontal_max_m": float(errors.max()),
+    }
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Solve a recording; with ``--reference`` print horizontal RMS / p95 against it."""
+    parser = argparse.ArgumentParser(prog="python -m edgepos.gnss.spp", description=__doc__.splitlines()[0])
+    parser.add_argument("--obs", required=True, help="RINEX 3 observation file")
+    parser.add_argument("--nav", required=True, help="RINEX 3 navigation file (GPS/BeiDou/Galileo)")
+    parser.add_argument("--reference", help="reference CSV: week, seconds of week, lat deg, lon deg, height m")
+    parser.add_argument("--systems", default="GC", help="constellations to use, e.g. GC (default) or GCE")
+    parser.add_argument("--mask-deg", type=float, default=10.0, help="elevation mask (degrees)")
+    parser.add_argument("--max-exclusions", type=int, default=SppConfig.max_exclusions,
+                        help="outliers excluded per epoch at most (0: plain WLS without exclusion)")
+    parser.add_argument("--json", action="store_true", help="print the figures as JSON")
+    args = parser.parse_args(argv)
+    codes = {s: DEFAULT_CODES[s] for s in args.systems if s in DEFAULT_CODES}
+    config = SppConfig(elevation_mask_rad=math.radians(args.mask_deg), max_exclusions=args.max_exclusions)
+    results = solve_recording(args.obs, args.nav, config, codes)
+    report: dict[str, object] = {"epochs": len(results), "fixes": sum(s is not None for _, s, _ in results)}
+    if args.reference:
+        ref_time, ref_ecef = read_reference(args.reference)
+        errors, count, unsolved = horizontal_errors(results, ref_time, ref_ecef)
+        report.update({"reference_epochs": count, "reference_epochs_unsolved": unsolved, **summary(errors)})
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        for key, value in report.items():
+            print(f"{key}: {value:.2f}" if isinstance(value, float) else f"{key}: {value}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,124 @@
+"""Broadcast orbits: real ephemerides checked by physics and by each other, and pseudoranges at the reference."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from edgepos.gnss.geodesy import ecef_to_geodetic, geodetic_to_ecef
+from edgepos.gnss.measurements import Atmosphere, prepare_epoch
+from edgepos.gnss.orbits import (
+    OMEGA_EARTH,
+    SPEED_OF_LIGHT,
+    BroadcastOrbits,
+    earth_rotation,
+    sagnac_range,
+)
+from edgepos.gnss.rinex_nav import NavigationData
+from edgepos.gnss.rinex_obs import ObservationEpoch
+
+T0 = 2134 * 604800.0 + 45600.0  # 2020-11-29 12:40:00 GPST, the recording's first epoch
+
+
+def _index(orbits: BroadcastOrbits, sat: str, toe_hour: float) -> int:
+    for i, e in enumerate(orbits.ephemerides):
+        if e.sat == sat and abs((e.toe % 86400.0) / 3600.0 - toe_hour) < 0.01:
+            return i
+    raise LookupError(sat)
+
+
+def _at(orbits: BroadcastOrbits, index: int, t: float) -> np.ndarray:
+    position, _ = orbits.position(np.array([index]), np.array([t]))
+    return position[0]
+
+
+@pytest.mark.parametrize(
+    ("sat", "hour_a", "hour_b"),
+    [("G05", 12.0, 14.0), ("G02", 12.0, 14.0), ("C21", 11.004, 12.004), ("C10", 11.004, 12.004),
+     ("C05", 11.004, 12.004), ("E07", 12.0, 12.5)],
+)
+def test_consecutive_ephemerides_agree(orbits: BroadcastOrbits, sat: str, hour_a: float, hour_b: float) -> None:
+    """Two independent uploads evaluated at the same instant (one forwards, one backwards from its toe) give
+    the same point to metres; a wrong sign or frame in the formulas would separate them by kilometres."""
+    a = _at(orbits, _index(orbits, sat, hour_a), T0)
+    b = _at(orbits, _index(orbits, sat, hour_b), T0)
+    assert np.linalg.norm(a - b) < 3.0
+
+
+def test_orbit_radii_and_geostationary_slot(orbits: BroadcastOrbits, nav: NavigationData) -> None:
+    for sat, hour, low, high in [("G05", 12.0, 26.0e6, 26.9e6), ("C21", 12.004, 27.7e6, 28.1e6),
+                                 ("C10", 12.004, 42.0e6, 42.6e6), ("E07", 12.0, 29.4e6, 29.8e6)]:
+        index = _index(orbits, sat, hour)
+        eph = orbits.ephemerides[index]
+        radius = float(np.linalg.norm(_at(orbits, index, T0)))
+        a = eph.sqrt_a**2
+        assert a * (1 - eph.e) - 2e3 < radius < a * (1 + eph.e) + 2e3
+        assert low < radius < high
+    # C05 is BeiDou's GEO at 58.75 deg E: near the equator, near its slot, and almost fixed in ECEF.
+    geo = _index(orbits, "C05", 12.004)
+    position = _at(orbits, geo, T0)
+    lat, lon, height = ecef_to_geodetic(position)
+    assert abs(math.degrees(float(lat))) < 3.0
+    assert math.degrees(float(lon)) == pytest.approx(58.75, abs=0.5)
+    assert float(np.linalg.norm(position)) == pytest.approx(42164e3, abs=100e3)
+    drift = np.linalg.norm(_at(orbits, geo, T0 + 60.0) - position) / 60.0
+    # m/s in ECEF: a 1.7 deg inclination gives a daily north-south swing of up to ~90 m/s; the MEO formula
+    # applied to a GEO would give ~3 km/s.
+    assert drift < 100.0
+    # The IGSO C10 moves ~1-3 km/s in ECEF, not tens.
+    igso = _index(orbits, "C10", 12.004)
+    speed = np.linalg.norm(_at(orbits, igso, T0 + 1.0) - _at(orbits, igso, T0))
+    assert 300.0 < speed < 4000.0
+
+
+def test_ephemeris_selection(orbits: BroadcastOrbits) -> None:
+    index = orbits.select(["G", "G", "C", "C", "G", "C"], [5, 28, 7, 5, 14, 99], T0)
+    chosen = [orbits.ephemerides[i] if i >= 0 else None for i in index]
+    assert (chosen[0].toe % 86400) == 43200.0  # 12:00 nearer than 14:00
+    assert (chosen[1].toe % 86400) == 50400.0  # only 14:00 exists, within half the 4 h fit interval
+    assert chosen[2].sat == "C07"  # only the 11:00 BDT upload, 1 h 40 min old
+    assert (chosen[3].toe % 86400) == pytest.approx(43214.0)  # 12:00 BDT = 12:00:14 GPST
+    assert chosen[4] is None  # G14 is flagged unhealthy
+    assert chosen[5] is None
+    assert orbits.select(["G"], [5], T0 + 3 * 3600.0)[0] >= 0
+    assert orbits.select(["G"], [5], T0 + 6 * 3600.0)[0] == -1
+
+
+def test_sagnac_rotation_and_closed_form_agree() -> None:
+    satellite = np.array([[15.1e6, -7.9e6, 20.2e6], [21.9e6, 36.0e6, -1.2e6]])
+    receiver = geodetic_to_ecef(math.radians(41.64), math.radians(2.35), 250.0)
+    tau = np.linalg.norm(satellite - receiver, axis=1) / SPEED_OF_LIGHT
+    for _ in range(3):
+        rotated = earth_rotation(satellite, tau)
+        tau = np.linalg.norm(rotated - receiver, axis=1) / SPEED_OF_LIGHT
+    exact = np.linalg.norm(earth_rotation(satellite, tau) - receiver, axis=1)
+    assert sagnac_range(satellite, receiver) == pytest.approx(exact, abs=2e-3)
+    # The correction itself is tens of metres at most for a ground receiver.
+    assert np.all(np.abs(exact - np.linalg.norm(satellite - receiver, axis=1)) < 50.0)
+    assert OMEGA_EARTH * 0.07 * 26e6 > 100.0  # the rotation moves a GPS satellite ~130 m during travel
+
+
+def test_pseudoranges_consistent_at_reference(
+    orbits: BroadcastOrbits, nav: NavigationData, epochs: list[ObservationEpoch]
+) -> None:
+    """At the reference position, measured minus modelled pseudoranges (clock, TGD, relativity, Klobuchar,
+    Saastamoinen, Sagnac) equal one receiver clock per constellation plus metres of noise and multipath."""
+    epoch = epochs[18]  # 12:40:18, the first epoch with the GEO C05's B1I pseudorange
+    assert "C05" in epoch.sats
+    prs, dropped = prepare_epoch(epoch, orbits, {"G": ("C1C", "S1C"), "C": ("C2I", "S2I")})
+    assert all(sat[0] == "E" for sat in dropped)  # every GPS and BeiDou satellite has a valid ephemeris
+    receiver = geodetic_to_ecef(math.radians(41.6425591030), math.radians(2.3540489690), 251.7823)
+    iono, tropo, elevation, _ = Atmosphere.from_navigation(nav).delays(receiver, prs)
+    residual = prs.pseudorange_m + SPEED_OF_LIGHT * prs.sat_clock_s - sagnac_range(prs.sat_position, receiver)
+    residual -= iono + tropo
+    systems = np.array(prs.systems)
+    for system in "GC":
+        rows = (systems == system) & (elevation > math.radians(10.0))
+        centred = residual[rows] - np.median(residual[rows])
+        assert np.all(np.abs(centred) < 15.0), (system, dict(zip(np.array(prs.sats)[rows], centred.round(1))))
+    geo_row = prs.sats.index("C05")
+    assert abs(residual[geo_row] - np.median(residual[systems == "C"])) < 15.0
+    # Without the corrections the same check fails by tens of metres (the test can tell right from wrong).
+    raw = prs.pseudorange_m - np.linalg.norm(prs.sat_position - receiver, axis=1)
+    assert np.ptp(raw[systems == "G"]) > 1000.0
