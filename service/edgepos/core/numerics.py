@@ -75,5 +75,5 @@ def require_finite(name: str, *arrays: np.ndarray) -> None:
     one reduction per array is cheaper than an elementwise test.
     """
     for array in arrays:
-        if not math.isfinite(float(np.sum(array))):
+        if not math.isfinite(float(array.sum())):
             raise NumericalError(f"{name} is not finite")

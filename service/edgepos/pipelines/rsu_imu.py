@@ -516,7 +516,8 @@ def _fix(t, status, output: Gaussian, session, bank, uses, nis, dof) -> Fix:
     components = list(output.components)
     value = dict(zip(components, output.mean))
     vx, vy = float(value[layout.XV]), float(value[layout.YV])
-    position = [components.index(layout.XP), components.index(layout.YP)]
+    x_index, y_index = components.index(layout.XP), components.index(layout.YP)
+    cov = output.cov
     return Fix(
         t=t,
         status=status,
@@ -527,7 +528,8 @@ def _fix(t, status, output: Gaussian, session, bank, uses, nis, dof) -> Fix:
         speed=math.hypot(vx, vy),
         heading=math.atan2(vy, vx),
         yaw_rate=_yaw_rate(value, session, bank),
-        position_cov=output.cov[np.ix_(position, position)].tolist(),
+        position_cov=[[float(cov[x_index, x_index]), float(cov[x_index, y_index])],
+                      [float(cov[y_index, x_index]), float(cov[y_index, y_index])]],
         state_components=tuple(layout.NAMES[c] for c in components),
         state=output.mean.tolist(),
         state_cov=output.cov.tolist(),

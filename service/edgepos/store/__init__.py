@@ -17,4 +17,8 @@ def open_store(url: str, ttl_s: float, clock: Clock = time.time) -> SessionStore
         return MemoryStore(ttl_s, clock)
     if url.startswith("sqlite:"):
         return SQLiteStore(path_from_url(url), ttl_s, clock)
-    raise ValueError(f"unknown store {url!r}: use 'memory' or 'sqlite:///path.db'")
+    if url.startswith(("redis:", "rediss:", "unix:")):
+        from edgepos.store.redis import RedisStore  # redis-py is only imported when configured
+
+        return RedisStore(url, ttl_s, clock)
+    raise ValueError(f"unknown store {url!r}: use 'memory', 'sqlite:///path.db' or 'redis://host:port/db'")

@@ -56,6 +56,11 @@ class TooManySessions(Exception):
         super().__init__(f"the store already holds {limit} sessions")
 
 
+class StoreUnavailable(Exception):
+    """The store did not answer in time or refused service (down, unreachable, loading, read-only).
+    A write may or may not have been applied; retrying is safe (updates are compare-and-set)."""
+
+
 class SessionLocks:
     """One asyncio lock per session id, dropped when nobody holds or awaits it.
 
