@@ -144,7 +144,9 @@ def test_max_sessions_gives_429(tmp_path):
     with TestClient(create_app(make_settings(tmp_path, max_sessions=2))) as client:
         first, token = open_session(client)
         open_session(client)
-        assert_error(client.post("/v1/sessions", json={"vehicle_id": "car"}), 429, "too_many_sessions")
+        refused = client.post("/v1/sessions", json={"vehicle_id": "car"})
+        assert_error(refused, 429, "too_many_sessions")
+        assert int(refused.headers["Retry-After"]) > 0
         assert client.delete(f"/v1/sessions/{first}", headers=token).status_code == 204
         open_session(client)
 

@@ -51,6 +51,10 @@ def _settings(args: argparse.Namespace) -> Settings:
     return Settings(**overrides)
 
 
+KEEP_ALIVE_S = 75
+"""Seconds an idle keep-alive connection stays open."""
+
+
 def run(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -83,6 +87,9 @@ def run(args: argparse.Namespace) -> int:
         log_level=settings.log_level,
         access_log=False,
         server_header=False,
+        # Longer than any client's idle-connection expiry (httpx: 5 s), so that a vehicle never sends
+        # a batch on a connection the server is closing at that moment (a reset, not an answer).
+        timeout_keep_alive=KEEP_ALIVE_S,
     )
     return 0
 

@@ -38,6 +38,9 @@ from edgepos.store.base import SessionRecord, TooManySessions
 
 logger = logging.getLogger("edgepos.api")
 
+TOO_MANY_SESSIONS_RETRY_S = 30
+"""Retry-After (s) sent with 429 too_many_sessions: idle sessions expire and free their slots over time."""
+
 MAX_ATTEMPTS = 8
 """Compare-and-set attempts per batch before answering 503 (only other workers can cause a retry)."""
 
@@ -104,6 +107,7 @@ async def create_session(context: AppContext, body: SessionCreate) -> SessionCre
             "too_many_sessions",
             f"the server holds its maximum of {error.limit} sessions (EDGEPOS_MAX_SESSIONS); "
             "delete idle sessions or retry later",
+            headers={"Retry-After": str(TOO_MANY_SESSIONS_RETRY_S)},
         ) from None
     logger.info("session created", extra={"event": "session_created", "session_id": session_id})
     return SessionCreated(
