@@ -9,7 +9,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: serve test bench openapi clean
+.PHONY: serve test bench openapi clean redis-server
 
 $(STAMP): pyproject.toml client/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -20,8 +20,14 @@ $(STAMP): pyproject.toml client/pyproject.toml
 serve: $(STAMP)
 	EDGEPOS_DEMO_RSUS=$${EDGEPOS_DEMO_RSUS:-true} $(BIN)/edgepos serve
 
-test: $(STAMP)
+test: $(STAMP) redis-server
 	$(BIN)/python -m pytest
+
+# The Redis store's tests start their own redis-server on loopback; install it if the machine lacks it.
+redis-server:
+	@command -v redis-server >/dev/null || { \
+		echo "installing redis-server (Debian package)"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq redis-server >/dev/null; }
 
 bench: $(STAMP)
 	$(BIN)/python bench/filter_step.py

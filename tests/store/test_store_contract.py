@@ -186,6 +186,6 @@ def test_open_store_by_url(tmp_path):
     sqlite_store = open_store(f"sqlite:///{tmp_path / 'x.db'}", 10.0)
     assert isinstance(sqlite_store, SQLiteStore) and sqlite_store.path == tmp_path / "x.db"
     with pytest.raises(ValueError):
-        open_store("redis://localhost", 10.0)
+        open_store("mongodb://localhost", 10.0)
     with pytest.raises(ValueError):
         MemoryStore(0.0)

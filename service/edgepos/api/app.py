@@ -28,6 +28,7 @@ from edgepos.api.routes import pipelines as pipeline_routes
 from edgepos.api.settings import Settings, ensure_admin_key
 from edgepos.pipelines.base import Pipeline, Rsu
 from edgepos.store import SessionStore, open_store
+from edgepos.store.base import StoreUnavailable
 
 logger = logging.getLogger("edgepos.api")
 
@@ -88,8 +89,11 @@ def create_app(
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         if settings.demo_rsus:
-            count = await context.store.upsert_rsus(_demo_rsus())
-            logger.info("demo RSU map loaded", extra={"event": "demo_rsus", "count": count})
+            try:
+                count = await context.store.upsert_rsus(_demo_rsus())
+                logger.info("demo RSU map loaded", extra={"event": "demo_rsus", "count": count})
+            except StoreUnavailable:  # start anyway: /readyz reports the store until it answers
+                logger.warning("demo RSU map not loaded: the store does not answer", extra={"event": "demo_rsus"})
         sweep_period = min(60.0, max(0.5, settings.session_ttl_s / 4.0))
         sweeper = asyncio.create_task(_expire_periodically(context.store, sweep_period))
         logger.info("edgepos ready", extra={"event": "startup", "store": settings.store.split(":", 1)[0]})

@@ -7,6 +7,7 @@ logs it with its traceback and answers a generic 500 that reveals nothing.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterable, Sequence
 from typing import Any
 
@@ -17,6 +18,9 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from edgepos.api.schemas import MEASUREMENT_TYPES, ErrorBody, ErrorDetail, ProblemModel
 from edgepos.pipelines.base import Problem
+from edgepos.store.base import StoreUnavailable
+
+logger = logging.getLogger("edgepos.api")
 
 STATUS_OF_CODE: dict[str, int] = {
     "invalid_request": 422,
@@ -131,6 +135,13 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(ApiError)
     async def _api_error(request: Request, error: ApiError) -> Response:
         return error_response(error)
+
+    @app.exception_handler(StoreUnavailable)
+    async def _store_unavailable(request: Request, error: StoreUnavailable) -> Response:
+        # The store's own message names hosts and ports: log it, answer with a fixed sentence.
+        logger.warning("store unavailable", extra={"event": "store_unavailable", "error": str(error)})
+        message = "the session store does not answer; retry shortly"
+        return error_response(ApiError("unavailable", message, headers={"Retry-After": "1"}))
 
     @app.exception_handler(RequestValidationError)
     async def _validation_error(request: Request, error: RequestValidationError) -> Response:

@@ -23,7 +23,7 @@ class Settings(BaseSettings):
 
     host: str = Field("127.0.0.1", description="Address to listen on.")
     port: int = Field(8000, ge=0, le=65535, description="TCP port to listen on.")
-    workers: int = Field(1, ge=1, le=64, description="Worker processes (>1 needs the SQLite store).")
+    workers: int = Field(1, ge=1, le=64, description="Worker processes (>1 needs a shared store: SQLite or Redis).")
     admin_key: SecretStr | None = Field(
         None,
         description="Bearer key for RSU writes and admin access to every session. When unset a random "
@@ -33,7 +33,9 @@ class Settings(BaseSettings):
         Path("edgepos-admin.key"), description="Where a generated admin key is written (mode 0600)."
     )
     store: str = Field(
-        "memory", description="'memory' (one process) or 'sqlite:///path.db' (several workers on one box)."
+        "memory",
+        description="'memory' (one process), 'sqlite:///path.db' (several workers on one box) or "
+        "'redis://host:port/db' (any worker of any replica; also rediss:// and unix://).",
     )
     max_sessions: int = Field(10_000, ge=1, description="Live sessions allowed at once (429 beyond).")
     session_ttl_s: float = Field(
@@ -73,8 +75,10 @@ class Settings(BaseSettings):
     @field_validator("store")
     @classmethod
     def _check_store(cls, value: str) -> str:
-        if value != "memory" and not (value.startswith("sqlite:///") and len(value) > len("sqlite:///")):
-            raise ValueError("store must be 'memory' or 'sqlite:///path.db'")
+        sqlite = value.startswith("sqlite:///") and len(value) > len("sqlite:///")
+        redis = value.startswith(("redis://", "rediss://", "unix://"))
+        if value != "memory" and not sqlite and not redis:
+            raise ValueError("store must be 'memory', 'sqlite:///path.db' or 'redis://host:port/db'")
         return value
 
     @model_validator(mode="after")

@@ -24,7 +24,7 @@ from contextlib import asynccontextmanager
 from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
 
 from redis import exceptions as redis_errors
-from redis.asyncio import ConnectionPool, Redis
+from redis.asyncio import Redis
 from redis.asyncio.retry import Retry
 from redis.backoff import ExponentialBackoff
 from redis.commands.core import AsyncScript
@@ -90,6 +90,7 @@ _UNAVAILABLE = (
     redis_errors.ConnectionError,  # refused, reset, DNS, auth failures, server still loading
     redis_errors.TimeoutError,
     redis_errors.ReadOnlyError,  # a replica after failover
+    redis_errors.OutOfMemoryError,  # maxmemory reached under the noeviction policy
     redis_errors.ClusterDownError,
     redis_errors.TryAgainError,
     OSError,
@@ -201,22 +202,21 @@ class RedisStore(SessionStore):
         """The client of the running event loop (asyncio connections belong to one loop)."""
         loop = asyncio.get_running_loop()
         if self._client is None or self._loop is not loop:
-            pool = ConnectionPool.from_url(
-                self.url, retry=Retry(ExponentialBackoff(cap=0.2, base=0.05), retries=1)
-            )
-            client = Redis(connection_pool=pool)
+            # One reconnect attempt: replaces a pooled connection that went stale (Redis restarted)
+            # and is safe for writes, which are compare-and-set or idempotent.
+            client = Redis.from_url(self.url, retry=Retry(ExponentialBackoff(cap=0.2, base=0.05), retries=1))
             closer = self._closed_with_loop(client)
-            await anext(closer)
             self._client, self._loop, self._closer = client, loop, closer
             self._scripts = {
                 "create": client.register_script(_CREATE),
                 "cas": client.register_script(_COMPARE_AND_SET),
                 "count": client.register_script(_PURGE_AND_COUNT),
             }
+            await anext(closer)  # started, so the loop's shutdown will close it
         return self._client
 
     @staticmethod
-    async def _closed_with_loop(client: Redis) -> AsyncIterator[None]:
+    async def _closed_with_loop(client: Redis) -> AsyncGenerator[None, None]:
         """Closes ``client`` when closed: by :meth:`close`, or by the event loop's shutdown
         (``asyncio.run`` closes every open async generator of its loop before closing the loop), so
         a store used from several short-lived loops leaves no socket behind."""
@@ -340,7 +340,7 @@ class RedisStore(SessionStore):
             for start in range(0, len(wanted), _CHUNK):
                 chunk = wanted[start : start + _CHUNK]
                 values = await client.hmget(self.rsu_key, chunk)
-                found.update({rid: _rsu(rid, value) for rid, value in zip(chunk, values) if value is not None})
+                found.update({rid: _rsu(rid, value) for rid, value in zip(chunk, values) if value})
         return found
 
     async def list_rsus(self) -> list[Rsu]:

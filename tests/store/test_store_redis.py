@@ -1,0 +1,288 @@
+"""The Redis store against a real redis-server on loopback: the same contract as the other stores,
+no lost update between processes, TTL expiry in Redis itself, sessions surviving a Redis restart
+with the append-only file on, and an unreachable Redis failing fast with StoreUnavailable."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import multiprocessing
+import socket
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import pytest
+import redis
+import test_store_contract as contract
+from edgepos.pipelines.base import Rsu
+from edgepos.store import SessionRecord, TooManySessions, open_store
+from edgepos.store.base import StoreUnavailable
+from edgepos.store.redis import RedisStore
+from test_store_contract import Clock, record
+
+# Every store contract test runs here again, on the Redis store below (only the URL test is about
+# open_store itself). New contract tests are picked up automatically.
+globals().update(
+    {
+        name: test
+        for name, test in vars(contract).items()
+        if name.startswith("test_") and callable(test) and name != "test_open_store_by_url"
+    }
+)
+
+INCREMENTS = 40
+WORKERS = 3
+RedisServer = Any  # tests/store/conftest.py's RedisServer (conftest modules are not importable by name)
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+@pytest.fixture
+def clock() -> Clock:
+    return Clock()
+
+
+@pytest.fixture
+def prefix() -> str:
+    return f"t{uuid.uuid4().hex[:12]}:"
+
+
+@pytest.fixture
+def store(redis_server: RedisServer, prefix: str, clock: Clock) -> Iterator[RedisStore]:
+    instance = RedisStore(redis_server.url(prefix), 60.0, clock)
+    yield instance
+    asyncio.run(instance.close())
+
+
+@pytest.fixture
+def raw(redis_server: RedisServer) -> Iterator[redis.Redis]:
+    """A plain synchronous client to look at what the store wrote."""
+    client = redis.Redis(host="127.0.0.1", port=redis_server.port, db=0)
+    yield client
+    client.close()
+
+
+def test_open_store_selects_redis(redis_server: RedisServer):
+    store = open_store(redis_server.url("site-a:", socket_timeout="2.5"), 10.0)
+    assert isinstance(store, RedisStore)
+    assert store.prefix == "site-a:" and "socket_timeout=2.5" in store.url and "prefix" not in store.url
+    assert RedisStore(redis_server.url(), 10.0).prefix == "edgepos:"
+    with pytest.raises(ValueError):
+        RedisStore(redis_server.url() + "?prefix=", 10.0)
+    with pytest.raises(ValueError):
+        RedisStore("http://127.0.0.1:1/0", 10.0)
+
+
+def test_key_layout_binary_state_and_replay_fields(store: RedisStore, prefix: str, raw: redis.Redis):
+    state = bytes(range(256))
+
+    async def scenario() -> None:
+        await store.create(record(state=state), max_sessions=10)
+        current = await store.get("s1")
+        replayed = dataclasses.replace(
+            current, last_seq=1, last_request_hash="h1", last_response=b'{"seq":1}\x00', last_fix="f"
+        )
+        assert await store.compare_and_set(replayed, 0)
+        assert await store.get("s1") == dataclasses.replace(replayed, version=1)
+        # a later write without replay data clears the old fields rather than keeping them
+        cleared = dataclasses.replace(replayed, last_request_hash=None, last_response=None, last_fix=None)
+        assert await store.compare_and_set(cleared, 1)
+        assert await store.get("s1") == dataclasses.replace(cleared, version=2)
+        await store.upsert_rsus([Rsu("r1", 1.0, 2.0)])
+
+    asyncio.run(scenario())
+    key = f"{prefix}session:s1"
+    assert raw.hget(key, "state") == state  # raw bytes, not base64 or JSON
+    assert raw.hget(key, "version") == b"2"
+    assert not raw.hexists(key, "last_response")
+    assert raw.type(f"{prefix}sessions") == b"zset" and raw.zscore(f"{prefix}sessions", "s1") == 1000.0
+    assert raw.type(f"{prefix}rsus") == b"hash"
+    assert sorted(raw.scan_iter(match=f"{prefix}*")) == sorted(
+        [key.encode(), f"{prefix}sessions".encode(), f"{prefix}rsus".encode()]
+    )
+
+
+def test_prefixes_keep_sites_apart(redis_server: RedisServer, clock: Clock):
+    async def scenario() -> None:
+        first = RedisStore(redis_server.url("site-a:"), 60.0, clock)
+        second = RedisStore(redis_server.url("site-b:"), 60.0, clock)
+        await first.create(record("shared-id"), max_sessions=1)
+        await second.create(record("shared-id", vehicle_id="other"), max_sessions=1)
+        assert (await first.get("shared-id")).vehicle_id == "car"
+        assert await first.count() == 1 and await second.count() == 1
+        await first.upsert_rsus([Rsu("r", 0.0, 0.0)])
+        assert await second.list_rsus() == []
+        for instance in (first, second):
+            await instance.delete("shared-id")
+            await instance.delete_rsu("r")
+            await instance.close()
+
+    asyncio.run(scenario())
+
+
+def test_session_limit_holds_under_concurrent_creates(redis_server: RedisServer, prefix: str):
+    """Two store objects (as two workers would) race 20 creates for 5 places: exactly 5 win."""
+
+    async def scenario() -> tuple[int, int]:
+        stores = [RedisStore(redis_server.url(prefix), 60.0) for _ in range(2)]
+        now = time.time()
+
+        async def attempt(i: int) -> bool:
+            try:
+                await stores[i % 2].create(record(f"s{i}", now=now), max_sessions=5)
+            except TooManySessions:
+                return False
+            return True
+
+        won = await asyncio.gather(*(attempt(i) for i in range(20)))
+        count = await stores[0].count()
+        for instance in stores:
+            await instance.close()
+        return sum(won), count
+
+    assert asyncio.run(scenario()) == (5, 5)
+
+
+def _increment(url: str, session_id: str, count: int) -> int:
+    """A worker process: add 1 to ``batches`` ``count`` times by load + compare-and-set + retry."""
+
+    async def work() -> int:
+        store = RedisStore(url, 3600.0)
+        conflicts = 0
+        for _ in range(count):
+            while True:
+                current = await store.get(session_id)
+                assert current is not None
+                updated = dataclasses.replace(
+                    current, batches=current.batches + 1, state=current.state + b"+", updated_at=time.time()
+                )
+                if await store.compare_and_set(updated, current.version):
+                    break
+                conflicts += 1
+        await store.close()
+        return conflicts
+
+    return asyncio.run(work())
+
+
+def test_concurrent_processes_lose_no_update(redis_server: RedisServer, prefix: str):
+    url = redis_server.url(prefix)
+    store = RedisStore(url, 3600.0)
+    now = time.time()
+    asyncio.run(store.create(SessionRecord("s", "car", "rsu_imu", {}, "h", b"", now, now), 10))
+    context = multiprocessing.get_context("spawn")
+    with context.Pool(WORKERS) as pool:
+        pool.starmap(_increment, [(url, "s", INCREMENTS)] * WORKERS)
+    final = asyncio.run(store.get("s"))
+    asyncio.run(store.close())
+    assert final is not None
+    assert final.batches == WORKERS * INCREMENTS
+    assert final.version == WORKERS * INCREMENTS
+    assert final.state == b"+" * (WORKERS * INCREMENTS)
+
+
+def test_redis_ttl_is_refreshed_by_each_write_and_expires_idle_sessions(
+    redis_server: RedisServer, prefix: str, raw: redis.Redis
+):
+    ttl_s = 0.8
+    key = f"{prefix}session:s1"
+
+    async def scenario() -> None:
+        store = RedisStore(redis_server.url(prefix), ttl_s)
+        await store.create(record(now=time.time()), max_sessions=5)
+        assert 0 < raw.pttl(key) <= 800
+        await asyncio.sleep(0.5)
+        current = await store.get("s1")
+        assert await store.compare_and_set(dataclasses.replace(current, updated_at=time.time()), 0)
+        assert raw.pttl(key) > 600  # refreshed by the write
+        await asyncio.sleep(0.5)  # 1.0 s after creation, 0.5 s after the write
+        assert await store.get("s1") is not None
+        await asyncio.sleep(0.6)  # now idle 1.1 s > ttl: Redis itself dropped the key
+        assert raw.exists(key) == 0
+        assert await store.get("s1") is None
+        assert await store.count() == 0
+        assert raw.zcard(f"{prefix}sessions") == 0
+        await store.close()
+
+    asyncio.run(scenario())
+
+
+def test_sessions_survive_a_redis_kill_and_restart_with_aof(redis_factory: Callable[..., RedisServer]):
+    """SIGKILL redis-server (no shutdown save) with appendonly on: every acknowledged write is back
+    after the restart; while it is down calls fail fast; the same store objects recover by themselves,
+    including one whose pooled connection went stale during the outage without being used."""
+    server = redis_factory("--appendonly", "yes", "--appendfsync", "always", "--save", "")
+    server.start()
+    url = server.url("aof:", socket_timeout="0.5", socket_connect_timeout="0.5")
+
+    async def scenario() -> None:
+        store, idle = RedisStore(url, 3600.0), RedisStore(url, 3600.0)
+        await store.create(record("kept", now=time.time()), max_sessions=10)
+        current = await store.get("kept")
+        updated = dataclasses.replace(current, state=b"after batch 1", last_seq=1, last_response=b"{}")
+        assert await store.compare_and_set(updated, 0)
+        await store.upsert_rsus([Rsu("r1", 3.0, 4.0)])
+        assert await idle.get_rsu("r1") is not None  # leaves a pooled connection behind
+
+        server.kill()
+        started = time.monotonic()
+        with pytest.raises(StoreUnavailable):
+            await store.get("kept")
+        with pytest.raises(StoreUnavailable):
+            await store.ping()
+        assert time.monotonic() - started < 3.0
+
+        server.start()
+        assert await store.ping()
+        assert await store.get("kept") == dataclasses.replace(updated, version=1)
+        assert await idle.get_rsu("r1") == Rsu("r1", 3.0, 4.0)  # stale connection replaced on retry
+        assert await idle.count() == 1
+        await store.close()
+        await idle.close()
+
+    asyncio.run(scenario())
+
+
+@pytest.mark.parametrize("kind", ["refused", "silent"])
+def test_unreachable_redis_is_a_typed_error_within_a_bounded_time(kind: str):
+    """Nobody listening (connection refused) and a peer that accepts but never answers both end
+    in StoreUnavailable quickly, for reads, writes and the readiness ping."""
+    silent = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    if kind == "silent":
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(64)  # the kernel completes handshakes; nothing ever reads or replies
+        port = silent.getsockname()[1]
+    else:
+        port = free_port()
+    url = f"redis://127.0.0.1:{port}/0?socket_timeout=0.3&socket_connect_timeout=0.3"
+    store = RedisStore(url, 60.0)
+    operations = {
+        "get": lambda: store.get("s1"),
+        "create": lambda: store.create(record(), max_sessions=5),
+        "compare_and_set": lambda: store.compare_and_set(record(), 0),
+        "count": store.count,
+        "get_rsus": lambda: store.get_rsus(["a"]),
+        "ping": store.ping,
+    }
+
+    async def scenario() -> dict[str, float]:
+        took: dict[str, float] = {}
+        for name, operation in operations.items():
+            started = time.monotonic()
+            with pytest.raises(StoreUnavailable):
+                await asyncio.wait_for(operation(), 10.0)  # a hang would show as TimeoutError
+            took[name] = time.monotonic() - started
+        await store.close()
+        return took
+
+    try:
+        took = asyncio.run(scenario())
+    finally:
+        silent.close()
+    assert max(took.values()) < 2.0, took
