@@ -39,7 +39,7 @@ def test_environment_variables(monkeypatch):
 @pytest.mark.parametrize(
     "values",
     [
-        {"store": "redis://x"},
+        {"store": "mongodb://x"},
         {"store": "sqlite:///"},
         {"origin_lat": 10.0},
         {"origin_lat": 95.0, "origin_lon": 0.0},

@@ -104,6 +104,7 @@ def create_app(
             with contextlib.suppress(asyncio.CancelledError):
                 await sweeper
             await context.store.close()
+            context.stop_filter_thread()
 
     app = FastAPI(
         title="edgepos",

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import asyncio
+import functools
 import hashlib
-from collections.abc import Mapping
-from dataclasses import dataclass
-from typing import Annotated
+from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Annotated, Any, TypeVar
 
 from fastapi import Depends, Request
 
@@ -16,9 +19,18 @@ from edgepos.pipelines.base import Pipeline
 from edgepos.store.base import SessionStore
 
 
+Result = TypeVar("Result")
+
+
 @dataclass
 class AppContext:
-    """Settings, store, pipelines and metrics of one app instance."""
+    """Settings, store, pipelines and metrics of one app instance.
+
+    Filtering runs on one dedicated thread per process. It is CPU-bound Python that holds the GIL, so
+    more threads would not run it in parallel, only take turns at the GIL; with many batches in
+    flight that convoy cost more than half the throughput. Requests queue for that thread on the event
+    loop, which meanwhile keeps serving everything else. Throughput scales with worker processes.
+    """
 
     settings: Settings
     store: SessionStore
@@ -26,6 +38,20 @@ class AppContext:
     metrics: Metrics
     origin: GeodeticOrigin | None
     admin_key_hash: bytes
+    _filter_executor: ThreadPoolExecutor | None = field(default=None, repr=False)
+
+    async def run_filter(self, function: Callable[..., Result], *args: Any) -> Result:
+        """Run CPU-bound estimation work off the event loop, on the filter thread."""
+        if self._filter_executor is None:
+            self._filter_executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="edgepos-filter")
+        loop = asyncio.get_running_loop()
+        return await loop.run_in_executor(self._filter_executor, functools.partial(function, *args))
+
+    def stop_filter_thread(self) -> None:
+        """Let the filter thread end once its current work is done (app shutdown)."""
+        if self._filter_executor is not None:
+            self._filter_executor.shutdown(wait=False, cancel_futures=True)
+            self._filter_executor = None
 
     @staticmethod
     def hash_admin_key(key: str) -> bytes:

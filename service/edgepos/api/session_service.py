@@ -16,7 +16,6 @@ import logging
 import time
 from typing import Any
 
-from starlette.concurrency import run_in_threadpool
 
 from edgepos.api.auth import hash_token, new_session_id, new_session_token
 from edgepos.api.context import AppContext
@@ -82,7 +81,7 @@ async def create_session(context: AppContext, body: SessionCreate) -> SessionCre
             [ProblemModel(index=None, field="pipeline", reason=f"unknown pipeline; available: {known}")],
         )
     try:
-        options, state = await run_in_threadpool(_resolve_and_create, pipeline, body)
+        options, state = await context.run_filter(_resolve_and_create, pipeline, body)
     except PipelineInputError as error:
         raise ApiError(
             "invalid_request", "the session options are invalid", pipeline_problems(error.problems)
@@ -217,9 +216,7 @@ async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> b
             environment = StaticEnvironment(dict(await context.store.get_rsus(rsu_ids)))
             started = time.perf_counter()
             try:
-                fixes, state = await run_in_threadpool(
-                    pipeline.process, record.state, observations, environment
-                )
+                fixes, state = await context.run_filter(pipeline.process, record.state, observations, environment)
             except PipelineInputError as error:
                 metrics.batches.labels("rejected").inc()
                 count = len(error.problems)
