@@ -13,8 +13,15 @@ import numpy as np
 from edgepos.core import layout
 from edgepos.core.measurements.base import MeasurementModel
 
-#: Below this distance (m) the bearing Jacobian is evaluated at this distance instead.
+#: Below this distance (m) the Jacobians are evaluated at this distance instead.
 _MIN_DISTANCE = 1e-3
+
+
+def _offsets(states: np.ndarray, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Vehicle minus RSU position, (n, K) each, and the distance floored at _MIN_DISTANCE."""
+    dx = states[:, layout.XP, None] - positions[:, 0]
+    dy = states[:, layout.YP, None] - positions[:, 1]
+    return dx, dy, np.maximum(np.hypot(dx, dy), _MIN_DISTANCE)
 
 
 class RsuRangeBearing(MeasurementModel):
@@ -47,9 +54,7 @@ class RsuRangeBearing(MeasurementModel):
         return out
 
     def jacobian(self, states: np.ndarray) -> np.ndarray:
-        dx = states[:, layout.XP, None] - self.positions[:, 0]
-        dy = states[:, layout.YP, None] - self.positions[:, 1]
-        distance = np.maximum(np.hypot(dx, dy), _MIN_DISTANCE)
+        dx, dy, distance = _offsets(states, self.positions)
         jacobian = np.zeros((states.shape[0], self.dim, layout.FULL_DIM))
         jacobian[:, 0::2, layout.XP] = dx / distance
         jacobian[:, 0::2, layout.YP] = dy / distance
@@ -84,9 +89,7 @@ class RsuRange(MeasurementModel):
         return np.hypot(dx, dy)
 
     def jacobian(self, states: np.ndarray) -> np.ndarray:
-        dx = states[:, layout.XP, None] - self.positions[:, 0]
-        dy = states[:, layout.YP, None] - self.positions[:, 1]
-        distance = np.maximum(np.hypot(dx, dy), _MIN_DISTANCE)
+        dx, dy, distance = _offsets(states, self.positions)
         jacobian = np.zeros((states.shape[0], self.dim, layout.FULL_DIM))
         jacobian[:, :, layout.XP] = dx / distance
         jacobian[:, :, layout.YP] = dy / distance
