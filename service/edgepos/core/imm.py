@@ -13,7 +13,9 @@ Model probabilities are handled in the log domain, so no likelihood underflows t
 2IMM: models in the priority set interact first (probabilities renormalised among themselves, eq. 30;
 output combined, eqs. 31-32); that result then competes with the other models using the best
 priority-set likelihood (eqs. 33-37); finally priority probabilities are scaled by the first-stage
-share (eq. 38) so all probabilities sum to 1. With every model in the priority set this is IMM.
+share (eq. 38) so all probabilities sum to 1. The two output stages together equal one moment match
+of every model with the eq. 38 probabilities, which is how the output is computed. With every model
+in the priority set this is IMM.
 """
 
 from __future__ import annotations
@@ -238,31 +240,31 @@ class InteractingMultipleModel:
         log_likelihoods = result.log_likelihood
         require_finite("model likelihoods", log_likelihoods)
         log_predicted = np.log(np.maximum(prediction.predicted_probabilities, _TINY))
-        common_means = result.means[:, self._common]
-        common_covs = result.covs[self._common_block]
-        if not self.is_two_stage:
-            probabilities = _softmax(log_likelihoods + log_predicted)
-            output = Gaussian(self.common, *self._moments(probabilities, common_means, common_covs))
+        if self.is_two_stage:
+            probabilities = self._two_stage_probabilities(log_likelihoods, log_predicted)
         else:
-            probabilities, output = self._two_stage(log_likelihoods, log_predicted, common_means, common_covs)
+            probabilities = _softmax(log_likelihoods + log_predicted)
+        output = self.combine(result.means, result.covs, probabilities)
         return StepResult(result.means, result.covs, probabilities, output, log_likelihoods, result.nis)
 
-    def _two_stage(self, log_likelihoods, log_predicted, means, covs) -> tuple[np.ndarray, Gaussian]:
+    def _two_stage_probabilities(self, log_likelihoods: np.ndarray, log_predicted: np.ndarray) -> np.ndarray:
+        """2IMM model probabilities (eqs. 30 and 33-35, combined by eq. 38).
+
+        The two output interactions (eqs. 31-32, then 36-37) moment-match a mixture of mixtures,
+        which by the law of total variance is the single moment match of all models weighted by
+        these final probabilities; :meth:`combine` does that in one step.
+        """
         first, second = self.priority, self.others
         first_probs = _softmax(log_likelihoods[first] + log_predicted[first])  # eq. 30
-        first_mean, first_cov = self._moments(first_probs, means[first], covs[first])  # eqs. 31-32
         best_first = log_likelihoods[first].max()  # eq. 33
         log_first_mass = np.log(np.sum(np.exp(log_predicted[first])))
         second_stage = _softmax(
             np.concatenate([[best_first + log_first_mass], log_likelihoods[second] + log_predicted[second]])
         )  # eqs. 34-35: [mu_0, mu_{n+1..N}]
-        stacked_means = np.vstack([first_mean[None, :], means[second]])
-        stacked_covs = np.concatenate([first_cov[None, :, :], covs[second]])
-        output = Gaussian(self.common, *self._moments(second_stage, stacked_means, stacked_covs))  # eqs. 36-37
         probabilities = np.empty(len(self.models))
         probabilities[first] = first_probs * second_stage[0]  # eq. 38
         probabilities[second] = second_stage[1:]
-        return probabilities, output
+        return probabilities
 
 
 def _softmax(log_weights: np.ndarray) -> np.ndarray:
