@@ -11,7 +11,6 @@ run so that load on the machine hits all alike; then checks that project and bas
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import platform
 import statistics

@@ -18,7 +18,6 @@ from edgepos.geo import GeodeticOrigin
 from edgepos.pipelines.base import Pipeline
 from edgepos.store.base import SessionStore
 
-
 Result = TypeVar("Result")
 
 

@@ -16,7 +16,6 @@ import logging
 import time
 from typing import Any
 
-
 from edgepos.api.auth import hash_token, new_session_id, new_session_token
 from edgepos.api.context import AppContext
 from edgepos.api.convert import fix_to_wire

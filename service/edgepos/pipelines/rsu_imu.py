@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 from scipy.stats import chi2
 
-from edgepos.core import layout, state as state_format
+from edgepos.core import layout
+from edgepos.core import state as state_format
 from edgepos.core.errors import ConfigurationError
 from edgepos.core.filters import FILTERS, GaussianFilter, make_filter
 from edgepos.core.filters.sigma_points import SigmaPointFilter

@@ -25,7 +25,7 @@ from edgepos.core import layout
 from edgepos.core.errors import NumericalError
 from edgepos.core.measurements.base import MeasurementModel
 from edgepos.core.motion.base import MotionModel, padded_linear_step
-from edgepos.core.numerics import require_finite, wrap_angle, wrap_rows
+from edgepos.core.numerics import require_finite, wrap_angle
 
 _LOG_TWO_PI = math.log(2.0 * math.pi)
 
