@@ -30,4 +30,57 @@ class GyroObservation:
     yaw_rate: float
 
 
-Observation = RsuObservation | GyroObservation
+@dataclass(frozen=True, slots=True)
+class RsuRangeObservation:
+    """Range only (m) from a known ranging node (an RSU) to the vehicle."""
+
+    kind: ClassVar[str] = "rsu_range"
+    t: float
+    rsu_id: str
+    range: float
+
+
+@dataclass(frozen=True, slots=True)
+class GnssFixObservation:
+    """A GNSS receiver's position solution (m, site frame), with its 1-sigma per axis when known."""
+
+    kind: ClassVar[str] = "gnss_fix"
+    t: float
+    x: float
+    y: float
+    std: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class OdometerObservation:
+    """Wheel odometry: distance travelled (m) since the previous odometer reading, or speed (m/s).
+
+    Exactly one of ``distance`` and ``speed`` is set."""
+
+    kind: ClassVar[str] = "odometer"
+    t: float
+    distance: float | None = None
+    speed: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class V2vRangeObservation:
+    """Range to a neighbour vehicle: metres, or one-way time of arrival (s) to be scaled by c.
+
+    Exactly one of ``range`` and ``toa`` is set; ``peer_vehicle_id`` names the neighbour's session."""
+
+    kind: ClassVar[str] = "v2v_range"
+    t: float
+    peer_vehicle_id: str
+    range: float | None = None
+    toa: float | None = None
+
+
+Observation = (
+    RsuObservation
+    | GyroObservation
+    | RsuRangeObservation
+    | GnssFixObservation
+    | OdometerObservation
+    | V2vRangeObservation
+)
