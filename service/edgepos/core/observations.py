@@ -76,6 +76,40 @@ class V2vRangeObservation:
     toa: float | None = None
 
 
+@dataclass(frozen=True, slots=True)
+class PseudorangeObservation:
+    """One satellite's code pseudorange (m) and carrier-to-noise density (dB-Hz).
+
+    ``t`` is the receive time as GPS time of week (s). ``system`` is the RINEX letter ("G" GPS,
+    "C" BeiDou, "E" Galileo). When the client has computed the satellite's state itself,
+    ``sat_position`` is its ECEF (WGS-84) position in metres at transmit time, expressed in the
+    ECEF frame of the transmit epoch (the receiver applies the Earth-rotation correction), and
+    ``sat_clock`` its clock offset in seconds (corrected range = pseudorange + c * sat_clock);
+    otherwise the service computes both from the broadcast ephemerides."""
+
+    kind: ClassVar[str] = "pseudorange"
+    t: float
+    system: str
+    prn: int
+    pseudorange: float
+    cn0: float
+    sat_position: tuple[float, float, float] | None = None
+    sat_clock: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class RissObservation:
+    """Reduced inertial sensor system sample: wheel speed (m/s), forward and lateral specific force
+    (m/s^2, vehicle frame: x forward, y left) and yaw rate (rad/s, counter-clockwise positive)."""
+
+    kind: ClassVar[str] = "riss"
+    t: float
+    wheel_speed: float
+    accel_x: float
+    accel_y: float
+    gyro_z: float
+
+
 Observation = (
     RsuObservation
     | GyroObservation
@@ -83,4 +117,6 @@ Observation = (
     | GnssFixObservation
     | OdometerObservation
     | V2vRangeObservation
+    | PseudorangeObservation
+    | RissObservation
 )

@@ -29,20 +29,59 @@ class Rsu:
     radius: float | None = None
 
 
+@dataclass(frozen=True)
+class TrackPoint:
+    """One published estimate of a vehicle: time (s, that vehicle's session clock), position (m) and
+    velocity (m/s) in the site frame, and the 4x4 covariance of [x, y, vx, vy]."""
+
+    t: float
+    x: float
+    y: float
+    vx: float
+    vy: float
+    cov: tuple[tuple[float, ...], ...]
+
+
+@dataclass(frozen=True)
+class NeighbourTrack:
+    """The recent estimates another vehicle's session has published, oldest first.
+
+    Cooperative pipelines read a neighbour's position at a measurement time from this: predicted
+    forward from the last point, or taken from the history when the measurement is older."""
+
+    vehicle_id: str
+    points: tuple[TrackPoint, ...]
+
+
 class Environment(Protocol):
     """What a pipeline may look up beyond its own session (the site's RSU registry, ...)."""
 
     def rsu(self, rsu_id: str) -> Rsu | None: ...
 
+    @property
+    def vehicle_id(self) -> str | None:
+        """The vehicle whose session is being processed (None outside the service)."""
+        ...
+
+    def neighbour(self, vehicle_id: str) -> NeighbourTrack | None:
+        """Another vehicle's published track, None when it has no session (or published nothing)."""
+        ...
+
 
 @dataclass(frozen=True)
 class StaticEnvironment:
-    """An environment backed by a dict of RSUs: used by evaluation, tests and the simulator."""
+    """An environment backed by dicts of RSUs and neighbour tracks: used by evaluation, tests and the
+    simulator, and by the service with what it loaded for one batch."""
 
     rsus: Mapping[str, Rsu] = field(default_factory=dict)
+    tracks: Mapping[str, NeighbourTrack] = field(default_factory=dict)
+    vehicle_id: str | None = None
 
     def rsu(self, rsu_id: str) -> Rsu | None:
         return self.rsus.get(rsu_id)
+
+    def neighbour(self, vehicle_id: str) -> NeighbourTrack | None:
+        return self.tracks.get(vehicle_id)
 
 
 @dataclass(frozen=True)
