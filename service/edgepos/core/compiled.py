@@ -15,6 +15,7 @@ Set ``EDGEPOS_NUMBA=0`` to run everything on the numpy reference.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import os
@@ -163,14 +164,16 @@ class CompiledBankStepper(BankStepper):
 
 
 def _epoch_arrays(epoch: RsuGyroEpoch) -> tuple:
-    """positions, observed, yaw rates, range and bearing variances, gyro variance: as the kernels take them."""
+    """positions (K, 2), observed (K, 2), yaw rates (G,), range and bearing variances (K,), gyro
+    variance: as the kernels take them."""
+    range_variances, bearing_variances, gyro_variance = epoch.variances
     return (
-        np.ascontiguousarray(epoch.positions, dtype=float).reshape(-1, 2),
-        np.ascontiguousarray(epoch.observed, dtype=float).reshape(-1, 2),
-        np.ascontiguousarray(epoch.yaw_rates, dtype=float).reshape(-1),
-        np.square(np.asarray(epoch.range_std, dtype=float)).reshape(-1),
-        np.square(np.asarray(epoch.bearing_std, dtype=float)).reshape(-1),
-        float(epoch.gyro_std) ** 2,
+        np.ascontiguousarray(epoch.positions, dtype=float),
+        np.ascontiguousarray(epoch.observed, dtype=float),
+        np.ascontiguousarray(epoch.yaw_rates, dtype=float),
+        np.ascontiguousarray(range_variances, dtype=float),
+        np.ascontiguousarray(bearing_variances, dtype=float),
+        float(gyro_variance),
     )
 
 
@@ -218,5 +221,5 @@ def warm_up() -> float:
         prediction = stepper.predict(means, covs, np.full(3, 1.0 / 3.0), 0.05)
         stepper.gate_distances(prediction.output, epoch)
         for averaged in (False, True):
-            stepper.correct(prediction, RsuGyroEpoch(**{**epoch.__dict__, "averaged": averaged}))
+            stepper.correct(prediction, dataclasses.replace(epoch, averaged=averaged))
     return time.perf_counter() - started

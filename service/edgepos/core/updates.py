@@ -12,6 +12,7 @@ as is, and gives the Mahalanobis distances a gate needs.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -78,6 +79,11 @@ class RsuGyroEpoch:
     gyro_std: float
     averaged: bool = False
     gyro_min_speed: float = 0.1
+
+    @functools.cached_property
+    def variances(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """Range variances (K,), bearing variances (K,) and the gyro variance."""
+        return np.square(self.range_std), np.square(self.bearing_std), self.gyro_std**2
 
     @property
     def rsu_count(self) -> int:
