@@ -46,9 +46,9 @@ def _jit(function):
     writable cache directory (next to this file, NUMBA_CACHE_DIR or the user's cache directory):
     the service then compiles at warm-up instead."""
     try:
-        return numba.njit(cache=True, nogil=True)(function)
+        return numba.njit(cache=True, nogil=True, error_model="numpy")(function)
     except RuntimeError:  # "no locator available": nowhere to write the cache
-        return numba.njit(nogil=True)(function)
+        return numba.njit(nogil=True, error_model="numpy")(function)
 
 
 # -- small dense helpers -------------------------------------------------------------------------
