@@ -296,3 +296,16 @@ def test_uncovered_banks_and_the_switch_use_the_numpy_reference(monkeypatch) -> 
 def test_warm_up_compiles_every_kernel_once() -> None:
     assert warm_up() >= 0.0
     assert warm_up() < 1.0  # the second time nothing is left to compile or load
+
+
+def test_kernels_compile_in_memory_when_numba_has_nowhere_to_cache() -> None:
+    """numba refuses cache=True for a function it cannot locate a writable cache for (here one
+    without a source file); the kernels' decorator then compiles without a cache instead."""
+    from edgepos.core import kernels
+
+    namespace: dict = {}
+    exec("def twice(x):\n    return 2.0 * x\n", namespace)  # no file: no cache locator
+    compiled = kernels._jit(namespace["twice"])
+    assert compiled(2.5) == 5.0
+    assert type(compiled._cache).__name__ == "NullCache"
+    assert type(kernels.predict_step._cache).__name__ == "FunctionCache"  # the kernels themselves cache
