@@ -198,7 +198,7 @@ def test_heading_near_plus_minus_pi_agrees(filter_name: str) -> None:
     assert -math.pi <= result.means[2, layout.PHI] < math.pi
 
 
-@pytest.mark.parametrize("dt", [0.0, None, 1e-6, 0.5, 3.0])
+@pytest.mark.parametrize("dt", [0.0, None, 1e-10, 1e-6, 0.5, 3.0])
 def test_other_intervals_agree(dt) -> None:
     bank = make_bank("ckf", "2imm-ca-at-singer")
     rng = np.random.default_rng(13)

@@ -125,8 +125,7 @@ class CompiledBankStepper(BankStepper):
         return np.ascontiguousarray(transitions), np.ascontiguousarray(noises)
 
     def predict(self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray, dt: float | None) -> Prediction:
-        step = dt_key(dt) if dt else 0.0
-        transitions, noises = self._step_matrices(step if step else 1.0)
+        transitions, noises = self._step_matrices(dt_key(dt) if dt else 0.0)  # the reference's rounding of dt
         status, new_means, new_covs, predicted, mean, cov = self._kernels.predict_step(
             np.ascontiguousarray(means, dtype=float), np.ascontiguousarray(covs, dtype=float),
             np.ascontiguousarray(probabilities, dtype=float), self._transition, self._active, self._common,
