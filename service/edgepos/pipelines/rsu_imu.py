@@ -8,6 +8,9 @@ Per epoch (observations sharing a timestamp):
    predicted output, linearised at the predicted mean.
 3. ``rsu_handling="joint"``: one update with every RSU pair and the gyro stacked.
    ``"average"``: the paper's reading, one update per RSU (each with the gyro), posteriors averaged.
+
+The bank steps on the compiled kernels when they cover its filter and models (``core.compiled``),
+else on the numpy reference; both give the same fixes to rounding.
 """
 
 from __future__ import annotations
