@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 from collections.abc import AsyncIterator, Mapping
 from importlib import resources
@@ -98,6 +99,11 @@ def create_app(
         # Compile the filter kernels (or load them from numba's cache) before the first request.
         seconds = await context.run_filter(warm_up_kernels)
         logger.info("filter kernels ready", extra={"event": "warm_up", "seconds": round(seconds, 3)})
+        # The ~150k objects of the imported libraries and compiled kernels live as long as the process:
+        # move them out of the collector's sight, or every full collection walks them all and stalls every
+        # request for 50-100 ms (measured: the p99 latency at 100 vehicles x 20 Hz was those pauses).
+        gc.collect()
+        gc.freeze()
         sweep_period = min(60.0, max(0.5, settings.session_ttl_s / 4.0))
         sweeper = asyncio.create_task(_expire_periodically(context.store, sweep_period))
         logger.info("edgepos ready", extra={"event": "startup", "store": settings.store.split(":", 1)[0]})
