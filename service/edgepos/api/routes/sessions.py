@@ -19,7 +19,7 @@ router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
     status_code=201,
     response_model=SessionCreated,
     summary="Open a session",
-    responses=errors(413, 422, 429),
+    responses=errors(413, 422, 429, 503),
 )
 async def create_session(body: SessionCreate, context: Context) -> SessionCreated:
     """Create a session for a vehicle. Keep the returned token: it is shown once and opens only this
@@ -32,7 +32,7 @@ async def create_session(body: SessionCreate, context: Context) -> SessionCreate
     response_model=SessionOut,
     summary="Read a session",
     dependencies=[Depends(require_session)],
-    responses=errors(401, 403, 404, 422),
+    responses=errors(401, 403, 404, 422, 429, 503),
 )
 async def get_session(session_id: str, context: Context) -> SessionOut:
     """Options, counters, model probabilities, last seq and the latest fix (session token or admin key)."""
@@ -45,7 +45,7 @@ async def get_session(session_id: str, context: Context) -> SessionOut:
     response_class=Response,
     summary="Delete a session",
     dependencies=[Depends(require_session)],
-    responses=errors(401, 403, 404, 422),
+    responses=errors(401, 403, 404, 422, 429, 503),
 )
 async def delete_session(session_id: str, context: Context) -> Response:
     """End the session and forget its state (session token or admin key)."""
@@ -58,7 +58,7 @@ async def delete_session(session_id: str, context: Context) -> Response:
     response_model=BatchOut,
     summary="Send a batch of measurements",
     dependencies=[Depends(require_session)],
-    responses=errors(401, 403, 404, 409, 413, 422, 503),
+    responses=errors(401, 403, 404, 409, 413, 422, 429, 503),
 )
 async def post_batch(session_id: str, body: BatchIn, context: Context) -> Response:
     """Filter the batch and return one fix per epoch (measurements sharing t), in time order.
