@@ -159,7 +159,7 @@ def test_several_workers_need_a_shared_store(monkeypatch, capsys):
     monkeypatch.delenv("EDGEPOS_STORE", raising=False)
     assert serve.run(_serve_args("--workers", "2")) == 2
     message = capsys.readouterr().err
-    assert "EDGEPOS_STORE=sqlite:///" in message
+    assert "EDGEPOS_STORE=redis://" in message and "sqlite:///" in message
 
 
 def test_invalid_configuration_is_reported(monkeypatch, capsys):

@@ -3,12 +3,20 @@
 Session tokens look like ``<session_id>.<random>``; the store keeps only their SHA-256, and every
 comparison of secrets uses ``hmac.compare_digest`` on fixed-length digests. 401 means the
 credential is missing or not valid; 403 means it is valid but does not open this resource.
+
+Every request made with a session token counts against that session's request-rate budget
+(EDGEPOS_RATE_LIMIT_PER_S, bursts of EDGEPOS_RATE_LIMIT_BURST), kept in the store so that it holds
+across workers and replicas; past it the answer is 429 with Retry-After. The budget is charged only
+after the token is verified, so nobody can spend another vehicle's budget. The admin key is not
+limited. There is no switch that turns authentication off: without EDGEPOS_ADMIN_KEY a random key
+is generated.
 """
 
 from __future__ import annotations
 
 import hashlib
 import hmac
+import math
 import secrets
 from dataclasses import dataclass
 from typing import Annotated
@@ -75,6 +83,22 @@ def _secret(credentials: HTTPAuthorizationCredentials | None) -> str:
     return credentials.credentials
 
 
+async def charge_rate_limit(context: AppContext, session_id: str) -> None:
+    """Count one request of this session's token; 429 rate_limited with Retry-After when over."""
+    limit = context.settings.rate_limit
+    if limit is None:
+        return
+    wait_s = await context.store.take_request(f"session:{session_id}", limit)
+    if wait_s > 0:
+        retry_after = max(1, math.ceil(wait_s))
+        raise ApiError(
+            "rate_limited",
+            f"this session's token is over its request rate ({limit.rate_per_s:g}/s, bursts of "
+            f"{limit.burst}; EDGEPOS_RATE_LIMIT_PER_S); retry after {retry_after} s",
+            headers={"Retry-After": str(retry_after)},
+        )
+
+
 _INVALID = "the bearer credential is not valid (unknown key, or the session's token does not match)"
 
 
@@ -101,6 +125,7 @@ async def require_any(
         return Principal(admin=True)
     session_id = _token_session_id(secret)
     if session_id is not None and await _valid_session_token(context, secret):
+        await charge_rate_limit(context, session_id)
         return Principal(admin=False, session_id=session_id)
     raise ApiError("unauthorized", _INVALID)
 
@@ -126,4 +151,5 @@ async def require_session(
         raise ApiError("not_found", f"no session {session_id!r} (it may have expired or been deleted)")
     if not _token_matches(secret, record.token_hash):
         raise ApiError("unauthorized", _INVALID)
+    await charge_rate_limit(context, session_id)
     return Principal(admin=False, session_id=session_id)

@@ -27,7 +27,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--workers",
         type=int,
         default=None,
-        help="worker processes (default: $EDGEPOS_WORKERS or 1); more than 1 needs EDGEPOS_STORE=sqlite:///path.db",
+        help="worker processes (default: $EDGEPOS_WORKERS or 1); more than 1 needs a shared store, EDGEPOS_STORE=redis://... or sqlite:///path.db",
     )
     parser.add_argument(
         "--log-level",
@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"edgepos serve: --workers {settings.workers} needs a store shared by the workers; with the "
             "in-process store each worker would hold a different set of sessions. Set "
-            "EDGEPOS_STORE=sqlite:///path/to/edgepos.db (or run one worker).",
+            "EDGEPOS_STORE=redis://host:6379/0 or sqlite:///path/to/edgepos.db (or run one worker).",
             file=sys.stderr,
         )
         return 2

@@ -12,6 +12,7 @@ from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from edgepos.geo import GeodeticOrigin
+from edgepos.store.ratelimit import RateLimit
 
 LogLevel = Literal["critical", "error", "warning", "info", "debug"]
 
@@ -48,6 +49,16 @@ class Settings(BaseSettings):
         1000, ge=1, le=100_000, description="Measurements allowed in one batch (422 beyond)."
     )
     max_body_bytes: int = Field(1_048_576, ge=1024, description="Largest request body in bytes (413 beyond).")
+    rate_limit_per_s: float = Field(
+        50.0,
+        ge=0,
+        allow_inf_nan=False,
+        description="Requests per second one session's token may make, sustained, counted in the store "
+        "so the limit holds across workers and replicas (429 with Retry-After beyond); 0 turns it off.",
+    )
+    rate_limit_burst: int = Field(
+        100, ge=1, description="Requests a session's token may make at once before the rate applies."
+    )
     origin_lat: float | None = Field(
         None, ge=-90, le=90, allow_inf_nan=False, description="Site origin latitude, WGS-84 decimal degrees."
     )
@@ -86,6 +97,13 @@ class Settings(BaseSettings):
         if (self.origin_lat is None) != (self.origin_lon is None):
             raise ValueError("set both origin_lat and origin_lon, or neither")
         return self
+
+    @property
+    def rate_limit(self) -> RateLimit | None:
+        """The per-session request-rate limit, or None when it is off."""
+        if self.rate_limit_per_s == 0:
+            return None
+        return RateLimit(self.rate_limit_per_s, self.rate_limit_burst)
 
     @property
     def cors_origin_list(self) -> list[str]:

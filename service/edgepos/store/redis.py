@@ -31,6 +31,7 @@ from redis.commands.core import AsyncScript
 
 from edgepos.pipelines.base import Rsu
 from edgepos.store.base import Clock, SessionRecord, SessionStore, StoreUnavailable, TooManySessions
+from edgepos.store.ratelimit import SLACK_S, RateLimit
 
 DEFAULT_PREFIX = "edgepos:"
 DEFAULT_CONNECT_TIMEOUT_S = 0.5
@@ -85,6 +86,20 @@ local purged = purge(KEYS[1], ARGV[1], ARGV[2])
 return {purged, redis.call('ZCARD', KEYS[1])}
 """
 )
+
+# GCRA (edgepos.store.ratelimit.gcra, transcribed). KEYS: the key's TAT. ARGV: now, interval,
+# tolerance, slack (s). Returns the wait in seconds as a string ("0" when allowed, and the TAT is stored
+# with a TTL until the key's whole burst is back).
+_TAKE_REQUEST = """
+local now = tonumber(ARGV[1])
+local tat = tonumber(redis.call('GET', KEYS[1]) or '')
+if (not tat) or tat < now then tat = now end
+local wait = tat - now - tonumber(ARGV[3])
+if wait > tonumber(ARGV[4]) then return string.format('%.17g', wait) end
+tat = tat + tonumber(ARGV[2])
+redis.call('SET', KEYS[1], string.format('%.17g', tat), 'PX', math.ceil((tat - now) * 1000) + 1)
+return '0'
+"""
 
 _UNAVAILABLE = (
     redis_errors.ConnectionError,  # refused, reset, DNS, auth failures, server still loading
@@ -191,6 +206,7 @@ class RedisStore(SessionStore):
         self.session_prefix = f"{self.prefix}session:"
         self.index_key = f"{self.prefix}sessions"
         self.rsu_key = f"{self.prefix}rsus"
+        self.rate_prefix = f"{self.prefix}rate:"
         self._ttl_ms = max(1, math.ceil(self.ttl_s * 1000.0))
         self._client: Redis | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -211,6 +227,7 @@ class RedisStore(SessionStore):
                 "create": client.register_script(_CREATE),
                 "cas": client.register_script(_COMPARE_AND_SET),
                 "count": client.register_script(_PURGE_AND_COUNT),
+                "take": client.register_script(_TAKE_REQUEST),
             }
             await anext(closer)  # started, so the loop's shutdown will close it
         return self._client
@@ -352,6 +369,17 @@ class RedisStore(SessionStore):
     async def delete_rsu(self, rsu_id: str) -> bool:
         async with self._guard():
             return bool(await (await self._redis()).hdel(self.rsu_key, rsu_id))
+
+    # request-rate limits --------------------------------------------------------------------
+    async def take_request(self, key: str, limit: RateLimit) -> float:
+        async with self._guard():
+            client = await self._redis()
+            wait = await self._scripts["take"](
+                keys=[f"{self.rate_prefix}{key}"],
+                args=[repr(float(self.clock())), repr(limit.interval_s), repr(limit.tolerance_s), repr(SLACK_S)],
+                client=client,
+            )
+        return float(wait)
 
     # lifecycle ------------------------------------------------------------------------------
     async def ping(self) -> bool:
