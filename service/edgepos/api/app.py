@@ -106,6 +106,10 @@ def create_app(
         gc.freeze()
         sweep_period = min(60.0, max(0.5, settings.session_ttl_s / 4.0))
         sweeper = asyncio.create_task(_expire_periodically(context.store, sweep_period))
+        if not settings.auth_enabled:
+            logger.warning(
+                "LAB MODE: authentication is off; every request has admin rights", extra={"event": "auth_off"}
+            )
         logger.info("edgepos ready", extra={"event": "startup", "store": settings.store.split(":", 1)[0]})
         try:
             yield

@@ -8,8 +8,9 @@ Every request made with a session token counts against that session's request-ra
 (EDGEPOS_RATE_LIMIT_PER_S, bursts of EDGEPOS_RATE_LIMIT_BURST), kept in the store so that it holds
 across workers and replicas; past it the answer is 429 with Retry-After. The budget is charged only
 after the token is verified, so nobody can spend another vehicle's budget. The admin key is not
-limited. There is no switch that turns authentication off: without EDGEPOS_ADMIN_KEY a random key
-is generated.
+limited. Without EDGEPOS_ADMIN_KEY a random key is generated. Authentication is off only with
+EDGEPOS_AUTH=off, which the settings refuse unless the instance is declared a lab (EDGEPOS_LAB=true,
+``edgepos serve --lab``): then every request is the admin.
 """
 
 from __future__ import annotations
@@ -77,6 +78,14 @@ async def _valid_session_token(context: AppContext, secret: str) -> bool:
     return record is not None and _token_matches(secret, record.token_hash)
 
 
+_LAB = Principal(admin=True)
+
+
+def _auth_off(context: AppContext) -> bool:
+    """True on a lab instance started with EDGEPOS_AUTH=off: every caller is the admin."""
+    return not context.settings.auth_enabled
+
+
 def _secret(credentials: HTTPAuthorizationCredentials | None) -> str:
     if credentials is None or not credentials.credentials:
         raise ApiError("unauthorized", "missing credentials: send 'Authorization: Bearer <key or token>'")
@@ -107,6 +116,8 @@ async def require_admin(
     credentials: Credentials,
 ) -> Principal:
     """Only the admin key passes; a valid session token gets 403."""
+    if _auth_off(context):
+        return _LAB
     secret = _secret(credentials)
     if _is_admin(context, secret):
         return Principal(admin=True)
@@ -120,6 +131,8 @@ async def require_any(
     credentials: Credentials,
 ) -> Principal:
     """The admin key or any live session's token passes."""
+    if _auth_off(context):
+        return _LAB
     secret = _secret(credentials)
     if _is_admin(context, secret):
         return Principal(admin=True)
@@ -136,6 +149,8 @@ async def require_session(
     credentials: Credentials,
 ) -> Principal:
     """The admin key, or this session's own token (another session's valid token gets 403)."""
+    if _auth_off(context):
+        return _LAB
     secret = _secret(credentials)
     if _is_admin(context, secret):
         return Principal(admin=True)

@@ -77,6 +77,16 @@ class Settings(BaseSettings):
     )
     log_level: LogLevel = Field("info", description="Log level of the JSON-lines logs.")
     demo_rsus: bool = Field(False, description="Preload the paper scenario's RSU map at start-up.")
+    auth: Literal["on", "off"] = Field(
+        "on",
+        description="'off' lets every request in with admin rights and no credentials, for a lab bench "
+        "only: refused unless lab is true.",
+    )
+    lab: bool = Field(
+        False,
+        description="Declares this instance a lab (no real vehicles): the only way to start with auth off. "
+        "Also `edgepos serve --lab`.",
+    )
 
     @field_validator("log_level", mode="before")
     @classmethod
@@ -97,6 +107,19 @@ class Settings(BaseSettings):
         if (self.origin_lat is None) != (self.origin_lon is None):
             raise ValueError("set both origin_lat and origin_lon, or neither")
         return self
+
+    @model_validator(mode="after")
+    def _auth_off_only_in_a_lab(self) -> Settings:
+        if self.auth == "off" and not self.lab:
+            raise ValueError(
+                "auth is 'off' (EDGEPOS_AUTH=off), which lets anyone read and write every session and the RSU "
+                "map; refused unless this is declared a lab: set EDGEPOS_LAB=true or pass `edgepos serve --lab`"
+            )
+        return self
+
+    @property
+    def auth_enabled(self) -> bool:
+        return self.auth == "on"
 
     @property
     def rate_limit(self) -> RateLimit | None:
