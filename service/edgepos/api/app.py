@@ -23,7 +23,7 @@ from edgepos.api.context import AppContext
 from edgepos.api.errors import install_error_handlers
 from edgepos.api.logs import configure_logging
 from edgepos.api.metrics import Metrics
-from edgepos.api.middleware import BodyLimitMiddleware, RequestContextMiddleware
+from edgepos.api.middleware import AdmissionMiddleware, BodyLimitMiddleware, RequestContextMiddleware
 from edgepos.api.routes import docs, health, rsus, sessions
 from edgepos.api.routes import pipelines as pipeline_routes
 from edgepos.api.settings import Settings, ensure_admin_key
@@ -149,5 +149,11 @@ def create_app(
             allow_headers=["Authorization", "Content-Type", "X-Request-ID"],
             expose_headers=["X-Request-ID"],
         )
+    app.add_middleware(
+        AdmissionMiddleware,
+        max_inflight=settings.max_inflight,
+        queue_timeout_s=settings.queue_timeout_s,
+        metrics=context.metrics,
+    )
     app.add_middleware(RequestContextMiddleware, metrics=context.metrics)
     return app

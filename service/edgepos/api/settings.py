@@ -49,6 +49,19 @@ class Settings(BaseSettings):
         1000, ge=1, le=100_000, description="Measurements allowed in one batch (422 beyond)."
     )
     max_body_bytes: int = Field(1_048_576, ge=1024, description="Largest request body in bytes (413 beyond).")
+    max_inflight: int = Field(
+        32,
+        ge=1,
+        le=10_000,
+        description="Requests one worker works on at once; more wait in line (before their body is read) "
+        "so that the ones in progress finish quickly and store round trips do not time out under overload.",
+    )
+    queue_timeout_s: float = Field(
+        30.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="Longest a request waits in that line before it is answered 503 with Retry-After.",
+    )
     rate_limit_per_s: float = Field(
         50.0,
         ge=0,
