@@ -519,6 +519,7 @@ def _fix(t, status, output: Gaussian, session, bank, uses, nis, dof) -> Fix:
     vx, vy = float(value[layout.XV]), float(value[layout.YV])
     x_index, y_index = components.index(layout.XP), components.index(layout.YP)
     cov = output.cov
+    kinematic = [x_index, y_index, components.index(layout.XV), components.index(layout.YV)]
     return Fix(
         t=t,
         status=status,
@@ -531,6 +532,7 @@ def _fix(t, status, output: Gaussian, session, bank, uses, nis, dof) -> Fix:
         yaw_rate=_yaw_rate(value, session, bank),
         position_cov=[[float(cov[x_index, x_index]), float(cov[x_index, y_index])],
                       [float(cov[y_index, x_index]), float(cov[y_index, y_index])]],
+        kinematic_cov=cov[np.ix_(kinematic, kinematic)].tolist(),
         state_components=tuple(layout.NAMES[c] for c in components),
         state=output.mean.tolist(),
         state_cov=output.cov.tolist(),
