@@ -15,7 +15,7 @@ from edgepos.core.measurements.odometer import OdometerDistance, dead_reckoning
 from edgepos.core.motion.ct import CoordinatedTurn
 from edgepos.core.motion.current_statistical import CurrentStatistical
 from edgepos.core.observations import GnssFixObservation, GyroObservation, OdometerObservation, V2vRangeObservation
-from edgepos.eval.federated import METHODS, run_method
+from edgepos.eval.federated import METHODS, assisting_tracks, run_method
 from edgepos.pipelines.base import NeighbourTrack, PipelineInputError, StaticEnvironment, TrackPoint
 from edgepos.pipelines.registry import get_pipeline
 from edgepos.pipelines.v2x_federated import RangesToPoints, fuse
@@ -128,8 +128,7 @@ def _session(**options):
 def test_state_round_trips_bit_for_bit_and_processing_is_pure():
     pipeline, state = _session()
     run = make_run(3, 0, "clean", steps=6)
-    env = StaticEnvironment(tracks=run.neighbour_tracks[0], vehicle_id="target")
-    for epoch, tracks in zip(run.observations, run.neighbour_tracks):
+    for epoch, tracks in zip(run.observations, assisting_tracks(run)):
         env = StaticEnvironment(tracks=tracks, vehicle_id="target")
         before = bytes(state)
         fixes, new_state = pipeline.process(state, epoch, env)

@@ -21,7 +21,8 @@ from edgepos.eval import plots
 from edgepos.eval.montecarlo import chunk_runs, run_chunks
 from edgepos.eval.progress import Progress
 from edgepos.eval.tables import format_table, number
-from edgepos.pipelines.base import StaticEnvironment
+from edgepos.pipelines import tracks
+from edgepos.pipelines.base import NeighbourTrack, StaticEnvironment
 from edgepos.pipelines.v2x_federated import V2xFederatedPipeline
 from edgepos.sim.federated import SCENARIOS, STEPS, FederatedRun, make_run
 
@@ -45,8 +46,29 @@ class RunFailed(RuntimeError):
     """A run raised an estimation error: which scenario, run and method."""
 
 
-def run_method(run: FederatedRun, method: str) -> tuple[np.ndarray, float]:
-    """Squared 2-D position errors per epoch (steps,) of one method on one run, and seconds spent."""
+def assisting_tracks(run: FederatedRun) -> list[dict[str, NeighbourTrack]]:
+    """What the server would publish of each assisting vehicle after each epoch: its own
+    ``v2x_federated`` session fed its GNSS fixes, published with :func:`tracks.publish`."""
+    pipeline = V2xFederatedPipeline()
+    options = pipeline.resolve_options(None)
+    states = {vid: pipeline.create(options, None) for vid in run.neighbour_ids}
+    published: dict[str, NeighbourTrack | None] = dict.fromkeys(run.neighbour_ids)
+    per_step = []
+    for step_fixes in run.neighbour_fixes:
+        for vid in run.neighbour_ids:
+            fixes, states[vid] = pipeline.process(states[vid], [step_fixes[vid]], StaticEnvironment(vehicle_id=vid))
+            published[vid] = tracks.publish(vid, published[vid], fixes) or published[vid]
+        per_step.append({vid: track for vid, track in published.items() if track is not None})
+    return per_step
+
+
+def run_method(
+    run: FederatedRun, method: str, neighbours: list[dict[str, NeighbourTrack]] | None = None
+) -> tuple[np.ndarray, float]:
+    """Squared 2-D position errors per epoch (steps,) of one method on one run, and seconds spent
+    in the target's pipeline. ``neighbours``: :func:`assisting_tracks` of the run (computed if None)."""
+    if neighbours is None:
+        neighbours = assisting_tracks(run)
     pipeline = V2xFederatedPipeline()
     options = pipeline.resolve_options({"feedback": method != "GPS/DR/V2X-nofeedback"})
     state = pipeline.create(options, None)
@@ -55,7 +77,7 @@ def run_method(run: FederatedRun, method: str) -> tuple[np.ndarray, float]:
     elapsed = 0.0
     for k, epoch in enumerate(run.observations):
         batch = [obs for obs in epoch if obs.kind in kinds]
-        environment = StaticEnvironment(tracks=run.neighbour_tracks[k], vehicle_id="target")
+        environment = StaticEnvironment(tracks=neighbours[k], vehicle_id="target")
         start = time.perf_counter()
         fixes, state = pipeline.process(state, batch, environment)
         elapsed += time.perf_counter() - start
@@ -86,10 +108,11 @@ def _work(chunk: range) -> Totals:
     for scenario in SCENARIOS:
         for r in chunk:
             run = make_run(_SEED, r, scenario)
+            neighbours = assisting_tracks(run)
             for method in METHODS:
                 key = (scenario, method)
                 try:
-                    squared, seconds = run_method(run, method)
+                    squared, seconds = run_method(run, method, neighbours)
                 except Exception as error:  # an estimation error names its run
                     raise RunFailed(f"{scenario} run {r} {method}: {error}") from error
                 totals.squared[key] = totals.squared.get(key, 0.0) + squared

@@ -2,8 +2,9 @@
 
 A target vehicle drives east at 10 m/s for 300 steps of 0.2 s; its acceleration on each axis is a
 first-order Markov (Singer) process with time constant 1/0.1 s and standard deviation 0.3 m/s^2.
-Four assisting vehicles drive east at the same speed, 30 m apart; their published estimates are
-their true positions with a 1 m 1-sigma error per axis. Sensors: GNSS fixes (1-sigma sqrt(15) m
+Four assisting vehicles drive east at the same speed, 30 m apart; each knows its own position from
+GNSS fixes with a 1 m 1-sigma error per axis (they have the good sky view of the paper's Fig. 1),
+which its own session filters and publishes as the track the target's V2X sub-filter reads. Sensors: GNSS fixes (1-sigma sqrt(15) m
 per axis clean, sqrt(50) m under multipath: see docs/federated.md for that reading), gyro yaw rate
 (0.005 rad/s), odometer distance per step (0.1 m), V2V ranges to every assisting vehicle (3 m).
 """
@@ -18,7 +19,6 @@ import numpy as np
 from edgepos.core.motion.base import van_loan
 from edgepos.core.motion.singer import singer_drift
 from edgepos.core.observations import GnssFixObservation, GyroObservation, Observation, OdometerObservation, V2vRangeObservation
-from edgepos.pipelines.base import NeighbourTrack, TrackPoint
 
 STEP = 0.2
 STEPS = 300
@@ -39,13 +39,13 @@ SCENARIOS = tuple(GPS_STD)
 @dataclass(frozen=True)
 class FederatedRun:
     """One run: the target's truth (steps, 6) [x, vx, ax, y, vy, ay], its observations per step (all
-    kinds, and the subsets each method is fed), and the neighbours' published tracks per step."""
+    kinds; each method is fed a subset), and each assisting vehicle's own GNSS fix per step."""
 
     times: np.ndarray
     truth: np.ndarray
     observations: list[list[Observation]]
     neighbour_ids: tuple[str, ...]
-    neighbour_tracks: list[dict[str, NeighbourTrack]]
+    neighbour_fixes: list[dict[str, GnssFixObservation]]
     neighbour_truth: np.ndarray  # (steps, neighbours, 2)
 
 
@@ -81,8 +81,7 @@ def make_run(seed: int, run: int, scenario: str, steps: int = STEPS) -> Federate
     offsets = np.array(NEIGHBOUR_OFFSETS)
     neighbour_truth = np.array([[SPEED * t, 0.0] + offsets for t in times])
     observations: list[list[Observation]] = []
-    tracks: list[dict[str, NeighbourTrack]] = []
-    cov = tuple(tuple(row) for row in np.diag([NEIGHBOUR_STD**2] * 2 + [0.25] * 2).tolist())
+    neighbour_fixes: list[dict[str, GnssFixObservation]] = []
     for k, t in enumerate(times):
         x, vx, ax, y, vy, ay = truth[k]
         speed_sq = vx * vx + vy * vy
@@ -92,14 +91,12 @@ def make_run(seed: int, run: int, scenario: str, steps: int = STEPS) -> Federate
             GyroObservation(float(t), float(yaw_rate + gyro_noise[k])),
             OdometerObservation(float(t), distance=float(max(STEP * math.sqrt(speed_sq) + odo_noise[k], 0.0))),
         ]
-        step_tracks = {}
+        step_fixes = {}
         for n, vid in enumerate(ids):
-            published = neighbour_truth[k, n] + publish_noise[k, n]
-            step_tracks[vid] = NeighbourTrack(
-                vid, (TrackPoint(float(t), float(published[0]), float(published[1]), SPEED, 0.0, cov),)
-            )
+            known = neighbour_truth[k, n] + publish_noise[k, n]
+            step_fixes[vid] = GnssFixObservation(float(t), float(known[0]), float(known[1]), NEIGHBOUR_STD)
             distance = float(np.hypot(*(neighbour_truth[k, n] - [x, y])))
             epoch.append(V2vRangeObservation(float(t), vid, range=max(distance + range_noise[k, n], 0.0)))
         observations.append(epoch)
-        tracks.append(step_tracks)
-    return FederatedRun(times, truth, observations, ids, tracks, neighbour_truth)
+        neighbour_fixes.append(step_fixes)
+    return FederatedRun(times, truth, observations, ids, neighbour_fixes, neighbour_truth)
