@@ -19,6 +19,7 @@ from typing import Any, TypeVar
 
 from edgepos.pipelines.base import NeighbourTrack, Rsu
 from edgepos.store.base import Clock, SessionRecord, SessionStore, TooManySessions, decode_track, encode_track
+from edgepos.store.ratelimit import RateLimit, gcra
 
 T = TypeVar("T")
 
@@ -53,6 +54,10 @@ CREATE TABLE IF NOT EXISTS tracks (
     vehicle_id TEXT PRIMARY KEY,
     written_at REAL NOT NULL,
     track TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS rate_limits (
+    key TEXT PRIMARY KEY,
+    tat REAL NOT NULL
 );
 """
 
@@ -224,6 +229,7 @@ class SQLiteStore(SessionStore):
 
     async def expire(self) -> int:
         def work(db: sqlite3.Connection) -> int:
+            db.execute("DELETE FROM rate_limits WHERE tat < ?", (self.clock(),))  # budgets full again
             return db.execute("DELETE FROM sessions WHERE updated_at < ?", (self._live_since(),)).rowcount
 
         return await self._run(work)
@@ -309,6 +315,23 @@ class SQLiteStore(SessionStore):
     async def delete_track(self, vehicle_id: str) -> bool:
         def work(db: sqlite3.Connection) -> bool:
             return db.execute("DELETE FROM tracks WHERE vehicle_id = ?", (vehicle_id,)).rowcount == 1
+
+        return await self._run(work)
+
+    # request-rate limits --------------------------------------------------------------------
+    async def take_request(self, key: str, limit: RateLimit) -> float:
+        def work(db: sqlite3.Connection) -> float:
+            db.execute("BEGIN IMMEDIATE")
+            try:
+                row = db.execute("SELECT tat FROM rate_limits WHERE key = ?", (key,)).fetchone()
+                wait, tat = gcra(None if row is None else row[0], self.clock(), limit)
+                if tat is not None:
+                    db.execute("INSERT OR REPLACE INTO rate_limits VALUES (?, ?)", (key, tat))
+            except BaseException:
+                db.execute("ROLLBACK")
+                raise
+            db.execute("COMMIT")
+            return wait
 
         return await self._run(work)
 
