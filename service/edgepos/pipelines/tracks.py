@@ -67,6 +67,7 @@ def position_at(
     max_age: float,
     accel_std: float,
     self_id: str | None = None,
+    peer_id: str | None = None,
 ) -> NeighbourPosition:
     """The neighbour's position at ``t`` from its published ``track``.
 
@@ -74,8 +75,11 @@ def position_at(
     interpolated the same way; exact at a point). Past the last point by ``dt`` <= ``max_age``:
     constant-velocity prediction with covariance F P F^T + Q, Q the white-acceleration noise of
     1-sigma ``accel_std`` (m/s^2) held over the interval. Before the history, past ``max_age``, or
-    the vehicle itself: :class:`NeighbourUnavailable` with the reason.
+    the vehicle itself (``peer_id``, the id the measurement names, or the track's, equal to
+    ``self_id``): :class:`NeighbourUnavailable` with the reason.
     """
+    if self_id is not None and peer_id == self_id:
+        raise NeighbourUnavailable("peer is this vehicle itself")
     if track is None:
         raise NeighbourUnavailable("peer has no live session or has published no estimate yet")
     if self_id is not None and track.vehicle_id == self_id:

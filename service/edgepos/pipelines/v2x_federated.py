@@ -397,7 +397,7 @@ def _v2x_update(means, covs, epoch, observations, options, uses, environment, t)
             try:
                 neighbour = position_at(
                     environment.neighbour(obs.peer_vehicle_id), t, options["max_neighbour_age"],
-                    options["neighbour_accel_std"], environment.vehicle_id,
+                    options["neighbour_accel_std"], environment.vehicle_id, obs.peer_vehicle_id,
                 )
             except NeighbourUnavailable as reason:
                 uses[i] = MeasurementUse(i, obs.kind, False, str(reason))
