@@ -25,17 +25,21 @@ from edgepos_client.errors import (
 from edgepos_client.models import (
     BatchResult,
     Fix,
+    GnssFixMeasurement,
     GyroMeasurement,
     InitialState,
     Measurement,
     MeasurementUse,
+    OdometerMeasurement,
     PipelineInfo,
     PipelineOption,
     Problem,
     Rsu,
     RsuMeasurement,
+    RsuRangeMeasurement,
     SessionInfo,
     StateEstimate,
+    V2vRangeMeasurement,
 )
 from edgepos_client.sync_client import EdgeposClient
 
@@ -50,6 +54,7 @@ __all__ = [
     "EstimationFailed",
     "Fix",
     "Forbidden",
+    "GnssFixMeasurement",
     "GyroMeasurement",
     "InitialState",
     "InvalidRequest",
@@ -57,6 +62,7 @@ __all__ = [
     "MeasurementUse",
     "MethodNotAllowed",
     "NotFound",
+    "OdometerMeasurement",
     "PayloadTooLarge",
     "PipelineInfo",
     "PipelineOption",
@@ -65,6 +71,7 @@ __all__ = [
     "RetryPolicy",
     "Rsu",
     "RsuMeasurement",
+    "RsuRangeMeasurement",
     "ServerError",
     "Session",
     "SessionInfo",
@@ -73,4 +80,5 @@ __all__ = [
     "TransportError",
     "Unauthorized",
     "Unavailable",
+    "V2vRangeMeasurement",
 ]

@@ -37,8 +37,9 @@ async def test_rsu_registry_round_trip(aclient: AsyncEdgeposClient) -> None:
 
 
 async def test_pipelines_list_options(aclient: AsyncEdgeposClient) -> None:
-    (pipeline,) = await aclient.pipelines()
-    assert pipeline.name == "rsu_imu"
+    pipelines = {pipeline.name: pipeline for pipeline in await aclient.pipelines()}
+    assert {"rsu_imu", "v2x_federated"} <= set(pipelines)
+    pipeline = pipelines["rsu_imu"]
     assert set(pipeline.measurement_types) == {"rsu", "gyro"}
     assert "filter" in {option.name for option in pipeline.options}
 

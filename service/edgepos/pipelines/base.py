@@ -130,6 +130,8 @@ class Fix:
     ``status``: "initialised" (first fix, from this epoch's measurements or the given initial state),
     "tracking" (measurements were used), "predicted" (no measurement passed: motion model only),
     "uninitialised" (nothing to start from yet; kinematic fields are None).
+    ``kinematic_cov`` is the 4x4 covariance of [x, y, vx, vy]: with the position and velocity it is
+    what the service publishes as the vehicle's track for cooperative neighbours (None: not published).
     """
 
     t: float
@@ -142,6 +144,7 @@ class Fix:
     heading: float | None = None
     yaw_rate: float | None = None
     position_cov: list[list[float]] | None = None
+    kinematic_cov: list[list[float]] | None = None
     state_components: tuple[str, ...] = ()
     state: list[float] | None = None
     state_cov: list[list[float]] | None = None

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 from edgepos.pipelines.base import Pipeline
 from edgepos.pipelines.rsu_imu import RsuImuPipeline
+from edgepos.pipelines.v2x_federated import V2xFederatedPipeline
 
-PIPELINES: dict[str, Pipeline] = {pipeline.name: pipeline for pipeline in (RsuImuPipeline(),)}
+PIPELINES: dict[str, Pipeline] = {
+    pipeline.name: pipeline for pipeline in (RsuImuPipeline(), V2xFederatedPipeline())
+}
 
 
 def get_pipeline(name: str) -> Pipeline:
