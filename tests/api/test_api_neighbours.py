@@ -4,10 +4,11 @@ deadlock, never see a half-written track and lose no batch."""
 
 from __future__ import annotations
 
+import asyncio
 import math
 from concurrent.futures import ThreadPoolExecutor
 
-from apihelp import open_session
+from apihelp import batch_body, open_session
 
 STEP = 0.2
 BATCHES = 25
@@ -68,3 +69,16 @@ def test_two_vehicles_ranging_to_each_other_update_concurrently(client):
         assert sum(u["used"] for u in ranges) >= BATCHES // 2, [u["reason"] for u in ranges if not u["used"]][:3]
         y = lanes[name][0]
         assert abs(fixes[-1]["y"] - y) < 1.5 and abs(fixes[-1]["x"] - 10.0 * (BATCHES - 1) * STEP) < 3.0
+
+
+def test_sessions_of_non_cooperative_pipelines_publish_no_track(client):
+    plain, plain_auth = open_session(client, vehicle_id="plain", pipeline="rsu_imu")
+    response = client.post(f"/v1/sessions/{plain}/batches", json=batch_body(1, 0, 5), headers=plain_auth)
+    assert response.status_code == 200, response.text
+    store = client.app.state.context.store
+    assert asyncio.run(store.get_tracks(["plain"])) == {}
+    coop, coop_auth = open_session(client, vehicle_id="coop", pipeline="v2x_federated")
+    response = client.post(f"/v1/sessions/{coop}/batches", json={"seq": 1, "measurements": batch(0.0, "plain", 0) + batch(0.0, "plain", 1)}, headers=coop_auth)
+    reasons = [u["reason"] for u in response.json()["fixes"][1]["measurements"] if u["type"] == "v2v_range"]
+    assert reasons and "cooperative pipeline" in reasons[0], reasons
+    assert asyncio.run(store.get_tracks(["coop"]))["coop"].points[-1].t == 0.2

@@ -226,8 +226,10 @@ async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> b
                 return replay
             pipeline = _pipeline(context, record.pipeline)
             _check_types(pipeline, batch)
-            # One read for the peers' tracks and this vehicle's own (extended after the batch).
-            published = dict(await context.store.get_tracks(peer_ids | {record.vehicle_id}))
+            # One read for the peers' tracks and, if this session publishes, its own (extended
+            # after the batch); nothing at all for a batch of a non-cooperative session.
+            wanted = peer_ids | ({record.vehicle_id} if pipeline.publishes_track else set())
+            published = dict(await context.store.get_tracks(wanted)) if wanted else {}
             peers = {vehicle: published[vehicle] for vehicle in peer_ids if vehicle in published}
             rsus = dict(await context.store.get_rsus(rsu_ids)) if rsu_ids else {}
             environment = StaticEnvironment(rsus, peers, record.vehicle_id)
@@ -272,7 +274,8 @@ async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> b
             )
             if await context.store.compare_and_set(updated, record.version):
                 metrics.observe_batch(len(fixes), elapsed)
-                await _publish_track(context, record, published.get(record.vehicle_id), fixes)
+                if pipeline.publishes_track:
+                    await _publish_track(context, record, published.get(record.vehicle_id), fixes)
                 return body
             metrics.store_conflicts.inc()
     raise ApiError("unavailable", "the session kept changing under this request; retry the same batch")

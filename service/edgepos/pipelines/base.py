@@ -184,6 +184,10 @@ class Pipeline(ABC):
     name: ClassVar[str]
     description: ClassVar[str]
     measurement_kinds: ClassVar[tuple[str, ...]]
+    publishes_track: ClassVar[bool] = False
+    """Whether the service publishes a session's estimates as its vehicle's track after each batch,
+    for other vehicles' cooperative pipelines to range against. Cooperative pipelines set it; for
+    the others it would cost two store round trips per batch that nobody reads."""
 
     @abstractmethod
     def option_specs(self) -> list[OptionSpec]:

@@ -188,6 +188,8 @@ def _decode(blob: bytes) -> _SessionState:
 class V2xFederatedPipeline(Pipeline):
     """Federated GPS (KF) / DR (SRUKF) / V2X ranging (SRUKF) filter with fusion-feedback."""
 
+    publishes_track = True
+
     name = "v2x_federated"
     description = (
         "GNSS fixes, gyro + odometer dead reckoning and V2X ranges to RSUs or neighbour vehicles, each in its "
