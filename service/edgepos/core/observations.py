@@ -10,6 +10,10 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 
+SPEED_OF_LIGHT = 299_792_458.0
+"""m/s, exact (SI); converts a one-way time of arrival to metres."""
+
+
 @dataclass(frozen=True, slots=True)
 class RsuObservation:
     """Range (m) and bearing (rad, from the RSU to the vehicle, CCW from +x) measured by one RSU."""
@@ -74,6 +78,11 @@ class V2vRangeObservation:
     peer_vehicle_id: str
     range: float | None = None
     toa: float | None = None
+
+    @property
+    def metres(self) -> float:
+        """The range in metres: ``range``, or ``toa`` times the speed of light in vacuum."""
+        return self.range if self.range is not None else float(self.toa) * SPEED_OF_LIGHT
 
 
 @dataclass(frozen=True, slots=True)

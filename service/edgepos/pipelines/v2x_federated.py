@@ -30,6 +30,7 @@ from edgepos.core.filters.base import GaussianFilter
 from edgepos.core.filters.ekf import ExtendedKalmanFilter
 from edgepos.core.filters.srukf import SquareRootUnscentedKalmanFilter
 from edgepos.core.measurements.base import MeasurementModel, Stacked
+from edgepos.core.measurements.gnss_fix import GnssPosition
 from edgepos.core.measurements.gyro import GyroYawRate
 from edgepos.core.measurements.odometer import OdometerDistance
 from edgepos.core.motion.current_statistical import CurrentStatistical
@@ -53,10 +54,10 @@ from edgepos.pipelines.base import (
     StateSummary,
     is_finite_number,
 )
+from edgepos.pipelines.kinematic import kinematic_fix
 from edgepos.pipelines.options import resolve_options
 from edgepos.pipelines.tracks import NeighbourUnavailable, position_at
 
-SPEED_OF_LIGHT = 299_792_458.0
 SUB_FILTERS = ("gps", "dr", "v2x")
 _KIN = layout.KINEMATIC
 _INITIAL_VELOCITY_STD = 10.0
@@ -89,33 +90,6 @@ class SharedNoiseCurrentStatistical(CurrentStatistical):
 
     def noise_covariance(self, mean: np.ndarray, dt: float) -> np.ndarray:
         return self.noise_scale * super().noise_covariance(mean, dt)
-
-
-class GnssPosition(MeasurementModel):
-    """A position fix: z = [xp, yp] + v, 1-sigma ``std`` (m) per axis (eqs. 3-5)."""
-
-    def __init__(self, std: float) -> None:
-        self._noise = np.eye(2) * float(std) ** 2
-
-    @property
-    def dim(self) -> int:
-        return 2
-
-    @property
-    def angle_mask(self) -> np.ndarray:
-        return np.zeros(2, dtype=bool)
-
-    def predict(self, states: np.ndarray) -> np.ndarray:
-        return states[:, [layout.XP, layout.YP]]
-
-    def jacobian(self, states: np.ndarray) -> np.ndarray:
-        jacobian = np.zeros((states.shape[0], 2, layout.FULL_DIM))
-        jacobian[:, 0, layout.XP] = 1.0
-        jacobian[:, 1, layout.YP] = 1.0
-        return jacobian
-
-    def noise_covariance(self) -> np.ndarray:
-        return self._noise
 
 
 class RangesToPoints(MeasurementModel):
@@ -301,7 +275,7 @@ def _step(session: _SessionState, epoch: list[int], observations: Sequence[Obser
             used = i == fixes[0]
             uses[i] = MeasurementUse(i, observations[i].kind, used, None if used else "the session starts from this epoch's first gnss_fix")
             _note_odometer(session, observations[i])
-        return _fix(t, "initialised", session.means[0], session.covs[0], [uses[i] for i in epoch])
+        return kinematic_fix(t, "initialised", session.means[0], session.covs[0], [uses[i] for i in epoch])
 
     dt = 0.0 if session.t is None else t - session.t
     means, covs = session.means.copy(), session.covs.copy()
@@ -327,7 +301,7 @@ def _step(session: _SessionState, epoch: list[int], observations: Sequence[Obser
     session.t = t
     session.epochs += 1
     status = "tracking" if any(updated) else "predicted"
-    return _fix(t, status, fused_mean, fused_cov, [uses[i] for i in epoch])
+    return kinematic_fix(t, status, fused_mean, fused_cov, [uses[i] for i in epoch])
 
 
 def _note_odometer(session: _SessionState, obs: Observation) -> None:
@@ -405,7 +379,7 @@ def _v2x_update(means, covs, epoch, observations, options, uses, environment, t)
                 uses[i] = MeasurementUse(i, obs.kind, False, str(reason))
                 continue
             point, point_cov, variance = neighbour.position, neighbour.cov, range_var
-            value = obs.range if obs.range is not None else obs.toa * SPEED_OF_LIGHT
+            value = obs.metres
         else:
             continue
         offset = np.array([means[2][0], means[2][3]]) - point
@@ -443,25 +417,3 @@ def fuse(mean_a: np.ndarray, cov_a: np.ndarray, mean_b: np.ndarray, cov_b: np.nd
     if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(cov))):
         raise NumericalError("fused estimate is not finite")
     return mean, cov
-
-
-def _fix(t: float, status: str, mean: np.ndarray, cov: np.ndarray, uses: list[MeasurementUse]) -> Fix:
-    xp, xv, _, yp, yv, _ = (float(v) for v in mean)
-    order = [0, 3, 1, 4]  # [x, y, vx, vy] of the published track
-    kinematic_cov = cov[np.ix_(order, order)]
-    return Fix(
-        t=t,
-        status=status,
-        x=xp,
-        y=yp,
-        vx=xv,
-        vy=yv,
-        speed=math.hypot(xv, yv),
-        heading=math.atan2(yv, xv) if math.hypot(xv, yv) > 0 else None,
-        position_cov=cov[np.ix_([0, 3], [0, 3])].tolist(),
-        kinematic_cov=kinematic_cov.tolist(),
-        state_components=tuple(layout.NAMES[c] for c in _KIN),
-        state=[float(v) for v in mean],
-        state_cov=cov.tolist(),
-        measurements=uses,
-    )
