@@ -152,6 +152,10 @@ class Fix:
     nis: float | None = None
     nis_dof: int = 0
     measurements: list[MeasurementUse] = field(default_factory=list)
+    shared: TrackPoint | None = None
+    """What to publish for neighbours when it differs from the fix itself: a cooperative pipeline
+    shares an estimate its neighbours' ranges did not shape, so that two vehicles do not count each
+    other's information twice (None: publish the fix)."""
 
 
 @dataclass(frozen=True)

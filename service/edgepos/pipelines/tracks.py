@@ -23,9 +23,13 @@ TRACK_HISTORY_POINTS = 20
 
 
 def track_points(fixes: Sequence[Fix]) -> list[TrackPoint]:
-    """The fixes that carry a position, velocity and 4x4 [x, y, vx, vy] covariance, as track points."""
+    """The fixes that carry a position, velocity and 4x4 [x, y, vx, vy] covariance, as track points
+    (a fix's ``shared`` estimate in its place when it has one)."""
     points = []
     for fix in fixes:
+        if fix.shared is not None:
+            points.append(fix.shared)
+            continue
         if fix.kinematic_cov is None or fix.x is None or fix.y is None or fix.vx is None or fix.vy is None:
             continue
         cov = tuple(tuple(float(v) for v in row) for row in fix.kinematic_cov)

@@ -1,0 +1,398 @@
+"""Pipeline ``v2v_coop``: GPS, dead reckoning and V2V time-of-arrival ranging (Qiao & Qu 2021).
+
+State [xp, xv, xa, yp, yv, ya] in the site frame, predicted with nearly constant acceleration
+(the paper's DR model, eq. 2: acceleration noise ``accel_std`` per step). Option ``method``:
+
+* ``gps``: the receiver's fixes as they are (position = fix; velocity from consecutive fixes);
+* ``gps_dr``: Kalman filter on the fixes, with the gyro yaw rate and odometer distance as
+  (linearised) dead-reckoning measurements;
+* ``ukf``: the same plus V2V ranges in a UKF that takes each neighbour's estimate as its exact
+  position (the paper's "traditional UKF", sec. 3.1);
+* ``aug_ukf``: the improved UKF (sec. 3.2, eqs. 8-26): the neighbours' positions and covariances
+  are appended to the state for the range update (``core.augmented``).
+
+A neighbour's position at the range's time is read from its own session's published track
+(``pipelines.tracks.position_at``); a neighbour without one, stale, or the vehicle itself is
+skipped and the fix says why.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from edgepos.core import state as state_format
+from edgepos.core.augmented import augmented_update
+from edgepos.core.filters.ekf import ExtendedKalmanFilter
+from edgepos.core.filters.ukf import UnscentedKalmanFilter
+from edgepos.core.measurements.base import MeasurementModel, Stacked
+from edgepos.core.measurements.gnss_fix import GnssPosition
+from edgepos.core.measurements.gyro import GyroYawRate
+from edgepos.core.measurements.odometer import OdometerDistance
+from edgepos.core.measurements.rsu import RsuRange
+from edgepos.core.motion.ca import ConstantAcceleration
+from edgepos.core.observations import (
+    GnssFixObservation,
+    GyroObservation,
+    Observation,
+    OdometerObservation,
+    V2vRangeObservation,
+)
+from edgepos.pipelines.base import (
+    Environment,
+    Fix,
+    InitialState,
+    MeasurementUse,
+    OptionSpec,
+    Pipeline,
+    PipelineInputError,
+    Problem,
+    StateSummary,
+    is_finite_number,
+)
+from edgepos.pipelines.kinematic import KINEMATIC, kinematic_fix, shared_point
+from edgepos.pipelines.options import resolve_options
+from edgepos.pipelines.tracks import NeighbourUnavailable, position_at
+
+METHODS = ("gps", "gps_dr", "ukf", "aug_ukf")
+_INITIAL_VELOCITY_STD = 30.0
+_INITIAL_ACCEL_STD = 1.0
+
+OPTION_SPECS = (
+    OptionSpec(
+        "method", "string", "aug_ukf",
+        "gps (fixes as they are), gps_dr (Kalman filter with dead reckoning), ukf (plus V2V ranges, "
+        "neighbours' estimates taken as exact) or aug_ukf (neighbours' positions augmented into the state).",
+        choices=METHODS,
+    ),
+    OptionSpec("gps_std", "number", 5.0 / math.sqrt(2.0), "GNSS fix 1-sigma per axis (m) when a fix carries none.", minimum=1e-3),
+    OptionSpec("accel_std", "number", 0.3, "Acceleration change 1-sigma per step (m/s^2), the DR model's noise.", minimum=1e-4),
+    OptionSpec("gyro_std", "number", 0.005, "Gyro yaw-rate 1-sigma (rad/s).", minimum=1e-6),
+    OptionSpec("odometer_std", "number", 0.1, "Odometer distance 1-sigma per reading (m); for speed readings (m/s).", minimum=1e-6),
+    OptionSpec("range_std", "number", 2.0, "V2V range 1-sigma (m); a TOA's 1-sigma times c.", minimum=1e-3),
+    OptionSpec("max_neighbour_age", "number", 1.0, "Oldest usable neighbour estimate (s) past its last point.", minimum=0.0),
+    OptionSpec("neighbour_accel_std", "number", 1.0, "White acceleration (m/s^2) for predicting a neighbour forward.", minimum=0.0),
+)
+
+_KF = ExtendedKalmanFilter()  # exact for the linear motion and fixes; linearises the DR measurements
+# kappa = 0: the centre point's weight stays non-negative for the augmented dimensions (6 + 2N).
+_UKF = UnscentedKalmanFilter(alpha=1.0, beta=2.0, kappa=0.0)
+
+
+@dataclass
+class _SessionState:
+    options: dict[str, Any]
+    initialised: bool
+    t: float | None
+    epochs: int
+    odometer_t: float | None  # time of the last odometer distance reading (start of the next interval)
+    mean: np.ndarray  # (6,) the fix: every measurement this method uses
+    cov: np.ndarray  # (6, 6)
+    own_mean: np.ndarray  # (6,) GNSS + dead reckoning only: what the vehicle shares with its neighbours
+    own_cov: np.ndarray  # (6, 6)
+
+    def to_bytes(self) -> bytes:
+        meta = {
+            "pipeline": V2vCoopPipeline.name,
+            "options": self.options,
+            "initialised": self.initialised,
+            "t": self.t,
+            "epochs": self.epochs,
+            "odometer_t": self.odometer_t,
+        }
+        arrays = {"mean": self.mean, "cov": self.cov, "own_mean": self.own_mean, "own_cov": self.own_cov}
+        return state_format.pack(meta, arrays)
+
+
+def _decode(blob: bytes) -> _SessionState:
+    meta, arrays = state_format.unpack(blob)
+    if meta.get("pipeline") != V2vCoopPipeline.name:
+        raise state_format.StateFormatError(f"state belongs to pipeline {meta.get('pipeline')!r}")
+    return _SessionState(
+        dict(meta["options"]), bool(meta["initialised"]), meta["t"], int(meta["epochs"]), meta["odometer_t"],
+        arrays["mean"], arrays["cov"], arrays["own_mean"], arrays["own_cov"],
+    )
+
+
+class V2vCoopPipeline(Pipeline):
+    """GPS + DR + V2V ranging, with the neighbours' positions taken as exact or augmented."""
+
+    name = "v2v_coop"
+    description = (
+        "GNSS fixes, gyro + odometer dead reckoning and V2V ranges (metres or time of arrival) to neighbour "
+        "vehicles read from their sessions; the improved UKF augments their positions into the state "
+        "(Qiao & Qu 2021)."
+    )
+    measurement_kinds = (GnssFixObservation.kind, GyroObservation.kind, OdometerObservation.kind, V2vRangeObservation.kind)
+    publishes_track = True
+
+    def option_specs(self) -> list[OptionSpec]:
+        return list(OPTION_SPECS)
+
+    def resolve_options(self, options: Mapping[str, Any] | None) -> dict[str, Any]:
+        return resolve_options(OPTION_SPECS, options)
+
+    def create(self, options: Mapping[str, Any], initial: InitialState | None) -> bytes:
+        options = dict(options)
+        if initial is None:
+            return _SessionState(options, False, None, 0, None, np.zeros(6), np.eye(6), np.zeros(6), np.eye(6)).to_bytes()
+        mean = np.array([initial.x, initial.vx, 0.0, initial.y, initial.vy, 0.0])
+        cov = np.diag(np.square([initial.position_std, initial.velocity_std, _INITIAL_ACCEL_STD] * 2))
+        return _SessionState(options, True, None, 0, None, mean, cov, mean.copy(), cov.copy()).to_bytes()
+
+    def summarise(self, state: bytes) -> StateSummary:
+        session = _decode(state)
+        return StateSummary(session.initialised, session.t, session.epochs, {}, session.options)
+
+    def process(
+        self, state: bytes, observations: Sequence[Observation], environment: Environment
+    ) -> tuple[list[Fix], bytes]:
+        session = _decode(state)
+        _validate(session, observations)
+        fixes = [_step(session, epoch, observations, environment) for epoch in _epochs(observations)]
+        return fixes, session.to_bytes()
+
+
+def _validate(session: _SessionState, observations: Sequence[Observation]) -> None:
+    problems: list[Problem] = []
+    kinds = set(V2vCoopPipeline.measurement_kinds)
+    previous = session.t
+    for index, obs in enumerate(observations):
+        if obs.kind not in kinds:
+            problems.append(Problem(index, "kind", f"pipeline v2v_coop takes {sorted(kinds)}, not {obs.kind!r}"))
+            continue
+        if not is_finite_number(obs.t):
+            problems.append(Problem(index, "t", "must be a finite number"))
+            continue
+        if previous is not None and obs.t < previous:
+            problems.append(Problem(index, "t", f"time {obs.t} goes back before {previous} (observations in time order)"))
+        previous = obs.t if previous is None else max(previous, obs.t)
+    if problems:
+        raise PipelineInputError(problems)
+
+
+def _epochs(observations: Sequence[Observation]) -> list[list[int]]:
+    epochs: list[list[int]] = []
+    for index, obs in enumerate(observations):
+        if epochs and observations[epochs[-1][0]].t == obs.t:
+            epochs[-1].append(index)
+        else:
+            epochs.append([index])
+    return epochs
+
+
+def _step(session: _SessionState, epoch: list[int], observations: Sequence[Observation], environment: Environment) -> Fix:
+    options = session.options
+    method = options["method"]
+    t = observations[epoch[0]].t
+    uses: dict[int, MeasurementUse] = {}
+    fixes = [i for i in epoch if isinstance(observations[i], GnssFixObservation)]
+    for i in fixes[1:]:
+        uses[i] = MeasurementUse(i, "gnss_fix", False, "another gnss_fix at the same time was used")
+    if not session.initialised:
+        return _initialise(session, epoch, observations, fixes, uses, t)
+    dt = 0.0 if session.t is None else t - session.t
+    if method == "gps":
+        status = _gps_only(session, epoch, observations, fixes, uses, dt)
+    else:
+        cooperative = method in ("ukf", "aug_ukf")
+        # The fix's filter, and for the cooperative methods the GNSS + DR filter the vehicle shares.
+        gaussians = [(session.mean, session.cov)] + ([(session.own_mean, session.own_cov)] if cooperative else [])
+        updated = []
+        used = False
+        odometer_t = session.odometer_t
+        for mean, cov in gaussians:
+            session.odometer_t = odometer_t
+            if dt > 0.0:
+                mean, cov = _KF.predict(mean, cov, ConstantAcceleration(options["accel_std"]), dt)
+            if fixes:
+                obs = observations[fixes[0]]
+                std = obs.std if obs.std is not None else options["gps_std"]
+                mean, cov, _, _ = _KF.update_one(mean, cov, KINEMATIC, GnssPosition(std), np.array([obs.x, obs.y]))
+                uses[fixes[0]] = MeasurementUse(fixes[0], "gnss_fix", True)
+                used = True
+            mean, cov, dr_used = _dr_update(session, mean, cov, epoch, observations, uses, t)
+            updated.append((mean, cov))
+            used = used or dr_used
+        session.mean, session.cov = updated[0]
+        if cooperative:
+            session.own_mean, session.own_cov = updated[1]
+            used = _range_update(session, epoch, observations, uses, environment, t) or used
+        else:
+            session.own_mean, session.own_cov = session.mean, session.cov
+        status = "tracking" if used else "predicted"
+    for i in epoch:
+        if i not in uses:
+            uses[i] = MeasurementUse(i, observations[i].kind, False, f"method {method} does not use {observations[i].kind}")
+    session.t = t
+    session.epochs += 1
+    fix = kinematic_fix(t, status, session.mean, session.cov, [uses[i] for i in epoch])
+    if method in ("ukf", "aug_ukf"):
+        fix = dataclasses.replace(fix, shared=shared_point(t, session.own_mean, session.own_cov))
+    return fix
+
+
+def _initialise(session, epoch, observations, fixes, uses, t) -> Fix:
+    """Start from the epoch's first GNSS fix, with a wide velocity."""
+    for i in epoch:
+        if isinstance(observations[i], OdometerObservation) and observations[i].distance is not None:
+            session.odometer_t = t
+    session.t = t
+    session.epochs += 1
+    if not fixes:
+        for i in epoch:
+            uses[i] = MeasurementUse(i, observations[i].kind, False, "no estimate yet: waiting for a gnss_fix to start from")
+        return Fix(t, "uninitialised", measurements=[uses[i] for i in epoch])
+    first = observations[fixes[0]]
+    std = first.std if first.std is not None else session.options["gps_std"]
+    session.mean = np.array([first.x, 0.0, 0.0, first.y, 0.0, 0.0])
+    session.cov = np.diag(np.square([std, _INITIAL_VELOCITY_STD, _INITIAL_ACCEL_STD] * 2))
+    session.own_mean, session.own_cov = session.mean.copy(), session.cov.copy()
+    session.initialised = True
+    for i in epoch:
+        if i == fixes[0]:
+            uses[i] = MeasurementUse(i, "gnss_fix", True)
+        elif i not in uses:
+            uses[i] = MeasurementUse(i, observations[i].kind, False, "the session starts from this epoch's first gnss_fix")
+    return kinematic_fix(t, "initialised", session.mean, session.cov, [uses[i] for i in epoch])
+
+
+def _gps_only(session, epoch, observations, fixes, uses, dt) -> str:
+    """The fix as it is; velocity by differencing consecutive fixes (covariance 2R/dt^2)."""
+    if not fixes:
+        _coast(session, dt)
+        return "predicted"
+    obs = observations[fixes[0]]
+    variance = (obs.std if obs.std is not None else session.options["gps_std"]) ** 2
+    previous = session.mean[[0, 3]].copy()
+    mean = np.zeros(6)
+    mean[[0, 3]] = [obs.x, obs.y]
+    cov = np.zeros((6, 6))
+    cov[[0, 3], [0, 3]] = variance
+    if dt > 0.0:
+        mean[[1, 4]] = (mean[[0, 3]] - previous) / dt
+        cov[[1, 4], [1, 4]] = 2.0 * variance / dt**2
+        cov[0, 1] = cov[1, 0] = cov[3, 4] = cov[4, 3] = variance / dt
+    else:
+        mean[[1, 4]] = session.mean[[1, 4]]
+        cov[[1, 4], [1, 4]] = session.cov[[1, 4], [1, 4]]
+    cov[[2, 5], [2, 5]] = _INITIAL_ACCEL_STD**2
+    session.mean, session.cov = mean, cov
+    uses[fixes[0]] = MeasurementUse(fixes[0], "gnss_fix", True)
+    return "tracking"
+
+
+def _coast(session: _SessionState, dt: float) -> None:
+    """Without a fix the gps method moves the last fix on at its differenced velocity."""
+    if dt > 0.0:
+        session.mean, session.cov = _KF.predict(
+            session.mean, session.cov, ConstantAcceleration(session.options["accel_std"]), dt
+        )
+
+
+def _dr_update(session, mean, cov, epoch, observations, uses, t) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Gyro yaw rate and odometer distance (or speed) as one stacked update of (mean, cov)."""
+    options = session.options
+    parts: list[MeasurementModel] = []
+    values: list[float] = []
+    gyros = [i for i in epoch if isinstance(observations[i], GyroObservation)]
+    odos = [i for i in epoch if isinstance(observations[i], OdometerObservation)]
+    for i in gyros[1:]:
+        uses[i] = MeasurementUse(i, "gyro", False, "another gyro reading at the same time was used")
+    for i in odos[1:]:
+        uses[i] = MeasurementUse(i, "odometer", False, "another odometer reading at the same time was used")
+    if not _heading_known(mean, cov):
+        reason = "heading not yet known (speed within 3 sigma of zero): dead reckoning waits for the fixes"
+        for i in gyros[:1] + odos[:1]:
+            uses[i] = MeasurementUse(i, observations[i].kind, False, reason)
+        if odos and observations[odos[0]].distance is not None:
+            session.odometer_t = t
+        return mean, cov, False
+    if gyros:
+        parts.append(GyroYawRate(options["gyro_std"]))
+        values.append(observations[gyros[0]].yaw_rate)
+        uses[gyros[0]] = MeasurementUse(gyros[0], "gyro", True)
+    if odos:
+        obs = observations[odos[0]]
+        if obs.speed is not None:
+            parts.append(OdometerDistance(options["odometer_std"], 1.0))
+            values.append(obs.speed)
+            uses[odos[0]] = MeasurementUse(odos[0], "odometer", True)
+        elif session.odometer_t is None or t <= session.odometer_t:
+            uses[odos[0]] = MeasurementUse(odos[0], "odometer", False, "first distance reading: no previous reading starts its interval")
+        else:
+            parts.append(OdometerDistance(options["odometer_std"], t - session.odometer_t))
+            values.append(obs.distance)
+            uses[odos[0]] = MeasurementUse(odos[0], "odometer", True)
+        if obs.distance is not None:
+            session.odometer_t = t
+    if not parts:
+        return mean, cov, False
+    model = parts[0] if len(parts) == 1 else Stacked(parts)
+    filt = _KF if options["method"] == "gps_dr" else _UKF
+    mean, cov, _, _ = filt.update_one(mean, cov, KINEMATIC, model, np.array(values))
+    return mean, cov, True
+
+
+def _heading_known(mean: np.ndarray, cov: np.ndarray) -> bool:
+    """Whether the direction of travel is established: speed at least 3 sigma of the velocity.
+
+    Yaw rate and distance say nothing about the heading; linearised at a velocity near zero, or in
+    the wrong direction, they pin the speed along an arbitrary axis and hold it there (measured: a
+    vehicle started at rest with its fixes heading north-east tracked east for 8 s, 28 m off)."""
+    velocity = mean[[1, 4]]
+    spread = float(np.linalg.eigvalsh(cov[np.ix_([1, 4], [1, 4])])[-1])
+    return float(velocity @ velocity) >= 9.0 * max(spread, 0.0)
+
+
+def _range_update(session, epoch, observations, uses, environment, t) -> bool:
+    """V2V ranges to the neighbours available at ``t``: exact points (ukf) or augmented (aug_ukf)."""
+    options = session.options
+    points, point_covs, values, used = [], [], [], []
+    for i in epoch:
+        obs = observations[i]
+        if not isinstance(obs, V2vRangeObservation):
+            continue
+        try:
+            neighbour = position_at(
+                environment.neighbour(obs.peer_vehicle_id), t, options["max_neighbour_age"],
+                options["neighbour_accel_std"], environment.vehicle_id, obs.peer_vehicle_id,
+            )
+        except NeighbourUnavailable as reason:
+            uses[i] = MeasurementUse(i, obs.kind, False, str(reason))
+            continue
+        points.append(neighbour.position)
+        point_covs.append(neighbour.cov)
+        values.append(obs.metres)
+        used.append(i)
+    if not used:
+        return False
+    points_array = np.array(points)
+    observed = np.array(values)
+    range_std = options["range_std"]
+    if options["method"] == "ukf":
+        model = RsuRange(points_array, np.full(len(used), range_std))
+        session.mean, session.cov, _, _ = _UKF.update_one(session.mean, session.cov, KINEMATIC, model, observed)
+    else:
+        count = len(used)
+        extra_cov = np.zeros((2 * count, 2 * count))
+        for k, cov in enumerate(point_covs):
+            extra_cov[2 * k : 2 * k + 2, 2 * k : 2 * k + 2] = cov
+
+        def ranges(states: np.ndarray) -> np.ndarray:
+            own = states[:, [0, 3]]
+            peers = states[:, 6:].reshape(states.shape[0], count, 2)
+            return np.linalg.norm(peers - own[:, None, :], axis=2)
+
+        session.mean, session.cov, _, _ = augmented_update(
+            _UKF, session.mean, session.cov, points_array.reshape(-1), extra_cov, ranges,
+            np.eye(count) * range_std**2, observed,
+        )
+    for i in used:
+        uses[i] = MeasurementUse(i, "v2v_range", True)
+    return True
