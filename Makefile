@@ -34,6 +34,7 @@ bench: $(STAMP) redis-server
 	$(BIN)/python bench/service_load.py
 	$(BIN)/python bench/redis_store.py
 	$(BIN)/python bench/federated.py
+	$(BIN)/python bench/cooperative.py
 
 openapi: $(STAMP)
 	$(BIN)/python -m edgepos.api.openapi

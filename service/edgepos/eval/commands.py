@@ -10,7 +10,7 @@ import argparse
 import os
 from collections.abc import Callable
 
-from edgepos.eval import federated, rsu_imu
+from edgepos.eval import federated, rsu_imu, v2v
 
 #: argparse's object returned by ``add_subparsers`` (private type name, so spelled out here).
 Subparsers = argparse._SubParsersAction
@@ -70,8 +70,16 @@ def _federated(subparsers: Subparsers) -> None:
     parser.set_defaults(_evaluation=federated.run)
 
 
+def _v2v(subparsers: Subparsers) -> None:
+    help_text = "V2V TOA cooperative positioning paper, sec. 4: Table 2 (straight and ring)"
+    parser = subparsers.add_parser("v2v", help=help_text, description=help_text)
+    _common_options(parser, runs=200)
+    v2v.configure(parser)
+    parser.set_defaults(_evaluation=v2v.run)
+
+
 #: One function per evaluation, each adding its subcommand.
-EVALUATIONS: tuple[Callable[[Subparsers], None], ...] = (_rsu_imu, _federated)
+EVALUATIONS: tuple[Callable[[Subparsers], None], ...] = (_rsu_imu, _v2v, _federated)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:

@@ -24,7 +24,7 @@ import httpx
 import numpy as np
 from edgepos_client import AsyncEdgeposClient, EdgeposError, Fix, Session
 
-from edgepos.loadgen import common, federated_sim
+from edgepos.loadgen import common, federated_sim, v2v_sim
 from edgepos.sim.scenarios import Scenario
 
 
@@ -255,7 +255,15 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--url", required=True, help="base URL of the server, e.g. http://127.0.0.1:8000")
     parser.add_argument("--vehicles", type=int, default=1, help="simulated vehicles (default 1)")
     parser.add_argument(
-        "--scenario", choices=sorted([*common.SCENARIOS, *federated_sim.SCENARIOS]), default="rsu-imu", help="scenario"
+        "--scenario", choices=sorted([*common.SCENARIOS, *federated_sim.SCENARIOS, *v2v_sim.SCENARIOS]),
+        default="rsu-imu", help="scenario (v2v: --vehicles groups of the paper's four vehicles)",
+    )
+    parser.add_argument(
+        "--layout", choices=("straight", "ring"), default="straight", help="v2v only: the paper's case (default straight)"
+    )
+    parser.add_argument(
+        "--method", choices=("gps", "gps_dr", "ukf", "aug_ukf"), default="aug_ukf",
+        help="v2v only: the v2v_coop method every vehicle uses (default aug_ukf)",
     )
     parser.add_argument(
         "--admin-key", default=None, help="admin key to load the RSU map (default $EDGEPOS_ADMIN_KEY)"
@@ -284,6 +292,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.scenario in federated_sim.SCENARIOS:
         return _run_federated(args)
+    if args.scenario in v2v_sim.SCENARIOS:
+        return _run_v2v(args)
     key = common.admin_key(args.admin_key)
     if key is None:
         print(
@@ -344,3 +354,32 @@ def _run_federated(args: argparse.Namespace) -> int:
         }
         args.json.write_text(json.dumps(document, indent=2) + "\n")
     return 1 if any(v.error for v in targets) else 0
+
+
+def _run_v2v(args: argparse.Namespace) -> int:
+    """--scenario v2v: groups of the paper's four vehicles ranging to each other, no RSU map."""
+    if args.vehicles < 1 or args.batch_epochs < 1 or (args.epochs is not None and args.epochs < 1):
+        print("edgepos simulate: --vehicles, --batch-epochs and --epochs must be >= 1", file=sys.stderr)
+        return 2
+    try:
+        vehicles, elapsed = asyncio.run(
+            v2v_sim.run_v2v(
+                args.url, groups=args.vehicles, seed=args.seed, layout=args.layout, method=args.method,
+                batch_epochs=args.batch_epochs, realtime=args.realtime, epochs=args.epochs, timeout=args.timeout,
+            )
+        )
+    except EdgeposError as error:
+        print(f"edgepos simulate: {error}", file=sys.stderr)
+        return 1
+    print(v2v_sim.report(vehicles, args.seed, args.layout, args.method, elapsed))
+    if args.json is not None:
+        document = {
+            "scenario": "v2v",
+            "layout": args.layout,
+            "method": args.method,
+            "seed": args.seed,
+            "vehicles": [{"vehicle_id": v.vehicle_id, "fixes": len(v.fixes), "position_rmse": v.position_rmse,
+                          "error": v.error} for v in vehicles],
+        }
+        args.json.write_text(json.dumps(document, indent=2) + "\n")
+    return 1 if any(v.error for v in vehicles) else 0

@@ -1,0 +1,206 @@
+"""``edgepos eval v2v``: Monte Carlo of the V2V cooperative-positioning paper's sec. 4 beside its Table 2.
+
+Every vehicle of a run has its own ``v2v_coop`` session with the method under test, fed one epoch
+at a time as a server would be. After each step every vehicle's track is published with the
+service's own rule (``tracks.publish``), and in the next step its neighbours range against it:
+the paper's "transmit the k-1 estimates" (Fig. 3). Position RMSE is over every vehicle and every
+epoch after the first of every run (2-D error), as the paper's mean-RMSE over its four vehicles.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from edgepos.eval import plots
+from edgepos.eval.montecarlo import chunk_runs, run_chunks
+from edgepos.eval.progress import Progress
+from edgepos.eval.tables import format_table, number
+from edgepos.pipelines import tracks
+from edgepos.pipelines.base import NeighbourTrack, StaticEnvironment
+from edgepos.pipelines.v2v_coop import V2vCoopPipeline
+from edgepos.sim.v2v import SCENARIOS, STEP, STEPS, VEHICLE_IDS, V2vRun, make_run
+
+PROG = "edgepos eval v2v"
+#: Table 2's methods and the pipeline's ``method`` option for each.
+METHODS = {"GPS": "gps", "GPS/DR": "gps_dr", "UKF": "ukf", "augUKF": "aug_ukf"}
+#: The paper's mean RMSE (m), sec. 4.1 text and Table 2.
+PAPER = {
+    "straight": {"GPS": 4.99, "GPS/DR": 3.40, "UKF": 2.37, "augUKF": 1.97},
+    "ring": {"GPS": 5.04, "GPS/DR": 3.60, "UKF": 2.92, "augUKF": 2.35},
+}
+#: Table 2's improvement rates (eq. 31) of the augmented UKF over each other method, %.
+PAPER_RATES = {
+    ("straight", "GPS"): 60, ("straight", "GPS/DR"): 42, ("straight", "UKF"): 17,
+    ("ring", "GPS"): 53, ("ring", "GPS/DR"): 35, ("ring", "UKF"): 20,
+}
+
+
+class RunFailed(RuntimeError):
+    """A run raised an estimation error: which scenario, run and method."""
+
+
+def run_method(run: V2vRun, method: str) -> tuple[np.ndarray, float, int]:
+    """Squared 2-D errors per step summed over the vehicles (steps,), seconds in the pipelines and
+    epochs processed, for one Table 2 ``method`` on one run."""
+    pipeline = V2vCoopPipeline()
+    options = pipeline.resolve_options({"method": METHODS[method]})
+    states = {vid: pipeline.create(options, None) for vid in VEHICLE_IDS}
+    published: dict[str, NeighbourTrack] = {}
+    steps = len(run.times)
+    squared = np.zeros(steps)
+    elapsed = 0.0
+    for k in range(steps):
+        snapshot = dict(published)  # every vehicle ranges against the others' estimates of step k-1
+        fixes_now = {}
+        for i, vid in enumerate(VEHICLE_IDS):
+            environment = StaticEnvironment(tracks=snapshot, vehicle_id=vid)
+            started = time.perf_counter()
+            fixes, states[vid] = pipeline.process(states[vid], run.observations[i][k], environment)
+            elapsed += time.perf_counter() - started
+            fix = fixes[-1]
+            squared[k] += (fix.x - run.positions[i, k, 0]) ** 2 + (fix.y - run.positions[i, k, 1]) ** 2
+            fixes_now[vid] = fixes
+        for vid, fixes in fixes_now.items():
+            track = tracks.publish(vid, published.get(vid), fixes)
+            if track is not None:
+                published[vid] = track
+    return squared, elapsed, steps * len(VEHICLE_IDS)
+
+
+@dataclass
+class Totals:
+    """Sums over runs per (scenario, method): squared errors per step, seconds, epochs."""
+
+    squared: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
+    seconds: dict[tuple[str, str], float] = field(default_factory=dict)
+    epochs: dict[tuple[str, str], int] = field(default_factory=dict)
+
+
+_SEED = 1
+
+
+def _init(seed: int) -> None:
+    global _SEED
+    _SEED = seed
+
+
+def _work(chunk: range) -> Totals:
+    totals = Totals()
+    for scenario in SCENARIOS:
+        for r in chunk:
+            run = make_run(_SEED, r, scenario)
+            for method in METHODS:
+                key = (scenario, method)
+                try:
+                    squared, seconds, epochs = run_method(run, method)
+                except Exception as error:  # an estimation error names its run
+                    raise RunFailed(f"{scenario} run {r} {method}: {error}") from error
+                totals.squared[key] = totals.squared.get(key, 0.0) + squared
+                totals.seconds[key] = totals.seconds.get(key, 0.0) + seconds
+                totals.epochs[key] = totals.epochs.get(key, 0) + epochs
+    return totals
+
+
+def _combine(a: Totals, b: Totals) -> Totals:
+    for key in b.squared:
+        a.squared[key] = a.squared.get(key, 0.0) + b.squared[key]
+        a.seconds[key] = a.seconds.get(key, 0.0) + b.seconds[key]
+        a.epochs[key] = a.epochs.get(key, 0) + b.epochs[key]
+    return a
+
+
+def monte_carlo(runs: int, seed: int, workers: int, progress: Progress | None = None) -> Totals:
+    return run_chunks(_work, _combine, chunk_runs(runs), workers, _init, (seed,), progress)
+
+
+def summary(totals: Totals, runs: int) -> dict[str, dict[str, dict[str, float]]]:
+    """{scenario: {method: {pos_rmse_m, step_us}}}: RMSE over vehicles and epochs 1.. of every run."""
+    out: dict[str, dict[str, dict[str, float]]] = {}
+    for (scenario, method), squared in totals.squared.items():
+        rmse = math.sqrt(float(squared[1:].sum()) / (runs * len(VEHICLE_IDS) * (len(squared) - 1)))
+        step_us = totals.seconds[(scenario, method)] / totals.epochs[(scenario, method)] * 1e6
+        out.setdefault(scenario, {})[method] = {"pos_rmse_m": rmse, "step_us": step_us}
+    return out
+
+
+def rate(better: float, worse: float) -> float:
+    """Eq. 31: improvement of ``better`` over ``worse`` in percent."""
+    return (1.0 - better / worse) * 100.0
+
+
+def report(results: dict[str, dict[str, dict[str, float]]], runs: int, seed: int) -> str:
+    lines = [
+        f"V2V cooperative positioning (Qiao & Qu 2021, sec. 4): {runs} runs, seed {seed}, "
+        f"{len(VEHICLE_IDS)} vehicles, {STEPS} epochs of {STEP:g} s",
+        "",
+    ]
+    rows = []
+    for method in METHODS:
+        row = [method]
+        for scenario in SCENARIOS:
+            row += [number(results[scenario][method]["pos_rmse_m"], 2), number(PAPER[scenario][method], 2)]
+        row.append(number(results["straight"][method]["step_us"], 0))
+        rows.append(row)
+    headers = ["method", "straight RMSE m", "paper", "ring RMSE m", "paper", "us/epoch"]
+    lines.append(format_table(headers, rows, [False, True, True, True, True, True]))
+    lines += ["", "Improvement of augUKF (eq. 31), ours vs paper:"]
+    rate_rows = []
+    for scenario in SCENARIOS:
+        for base in ("GPS", "GPS/DR", "UKF"):
+            ours = rate(results[scenario]["augUKF"]["pos_rmse_m"], results[scenario][base]["pos_rmse_m"])
+            paper = PAPER_RATES[(scenario, base)]
+            rate_rows.append([scenario, f"over {base}", f"{ours:.1f}", f"{paper:.0f}", "yes" if ours >= paper - 5 else "NO"])
+    lines.append(format_table(["scenario", "", "ours %", "paper %", ">= paper-5"], rate_rows, [False, False, True, True, False]))
+    return "\n".join(lines)
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    """No options beyond the common ones."""
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.json is not None and not Path(args.json).resolve().parent.is_dir():
+        print(f"{PROG}: error: --json: the directory of {args.json} does not exist", file=sys.stderr)
+        return 2
+    if args.plots is not None:
+        try:
+            plots.require_matplotlib()
+        except plots.PlotsUnavailable as exc:
+            print(f"{PROG}: error: {exc}", file=sys.stderr)
+            return 2
+    progress = Progress(args.runs, label="runs")
+    try:
+        totals = monte_carlo(args.runs, args.seed, args.workers, progress)
+    except RunFailed as exc:
+        print(f"\n{PROG}: error: {exc}", file=sys.stderr)
+        return 1
+    progress.finish()
+    results = summary(totals, args.runs)
+    print(report(results, args.runs, args.seed))
+    try:
+        if args.json is not None:
+            Path(args.json).write_text(json.dumps({"scenarios": results}, indent=2) + "\n", encoding="utf-8")
+            print(f"\nwrote {args.json}")
+        if args.plots is not None:
+            directory = Path(args.plots)
+            directory.mkdir(parents=True, exist_ok=True)
+            t = np.arange(STEPS) * STEP
+            for scenario in SCENARIOS:
+                series = {
+                    m: np.sqrt(totals.squared[(scenario, m)] / (args.runs * len(VEHICLE_IDS))) for m in METHODS
+                }
+                path = plots.line_plot(directory / f"v2v_{scenario}.png", t, series,
+                                       f"Position RMSE, {scenario}", "RMSE (m)", plots.readable_ylim(series))
+                print(f"wrote {path}")
+    except OSError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 1
+    return 0
