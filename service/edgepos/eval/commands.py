@@ -10,7 +10,7 @@ import argparse
 import os
 from collections.abc import Callable
 
-from edgepos.eval import rsu_imu
+from edgepos.eval import gnss_rinex, rsu_imu
 
 #: argparse's object returned by ``add_subparsers`` (private type name, so spelled out here).
 Subparsers = argparse._SubParsersAction
@@ -62,8 +62,15 @@ def _rsu_imu(subparsers: Subparsers) -> None:
     parser.set_defaults(_evaluation=rsu_imu.run)
 
 
+def _gnss_rinex(subparsers: Subparsers) -> None:
+    help_text = "gnss_tight on a real RINEX recording against a reference, beside the WLS baseline"
+    parser = subparsers.add_parser("gnss-rinex", help=help_text, description=help_text)
+    gnss_rinex.configure(parser)
+    parser.set_defaults(_evaluation=gnss_rinex.run)
+
+
 #: One function per evaluation, each adding its subcommand.
-EVALUATIONS: tuple[Callable[[Subparsers], None], ...] = (_rsu_imu,)
+EVALUATIONS: tuple[Callable[[Subparsers], None], ...] = (_rsu_imu, _gnss_rinex)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:

@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 from edgepos.pipelines.base import Pipeline
+from edgepos.pipelines.gnss_tight import GnssTightPipeline
 from edgepos.pipelines.rsu_imu import RsuImuPipeline
 
-PIPELINES: dict[str, Pipeline] = {pipeline.name: pipeline for pipeline in (RsuImuPipeline(),)}
+PIPELINES: dict[str, Pipeline] = {pipeline.name: pipeline for pipeline in (RsuImuPipeline(), GnssTightPipeline())}
 
 
 def get_pipeline(name: str) -> Pipeline:
