@@ -217,23 +217,30 @@ class UnscentedStep:
 
 
 def unscented_step(
-    means: np.ndarray, cov: np.ndarray, model: ParticleModel, dt: float, active: np.ndarray,
+    means: np.ndarray, cov: np.ndarray | None, model: ParticleModel, dt: float, active: np.ndarray,
     angles: np.ndarray, measurement: Measurement | None, weights: SigmaWeights | None = None,
 ) -> UnscentedStep:
     """Eqs. 9-14 for N particles at once: UKF time update of each particle (with covariance ``cov`` of the
-    full state, shared, (D, D)) and, given a measurement, the measurement update that gives the proposal."""
+    full state, shared, (D, D); None for a point) and, given a measurement, the measurement update that
+    gives the proposal."""
     index = np.flatnonzero(active)
     weights = weights or SigmaWeights(len(index))
     wm, wc = weights.mean, weights.cov
     active_angles = angles[index]
     q = model.process_noise(dt)[np.ix_(index, index)]
 
-    chol = batched_cholesky(cov[np.ix_(index, index)])
-    points = model.propagate(sigma_points(means, chol, active, weights), dt)
-    predicted = model.complete(sigma_mean(points, wm, angles))
-    deviation = wrap(points[:, :, index] - predicted[:, None, index], active_angles)
-    predicted_cov = q + np.einsum("s,nsi,nsj->nij", wc, deviation, deviation)
-    prior = points[:, 0, :]
+    if cov is None:
+        # A point prior (the particle itself): the time update is f(x) with covariance Q.
+        prior = model.propagate(means, dt)
+        predicted = prior.copy()
+        predicted_cov = np.broadcast_to(q, (len(means),) + q.shape).copy()
+    else:
+        chol = batched_cholesky(cov[np.ix_(index, index)])
+        points = model.propagate(sigma_points(means, chol, active, weights), dt)
+        predicted = model.complete(sigma_mean(points, wm, angles))
+        deviation = wrap(points[:, :, index] - predicted[:, None, index], active_angles)
+        predicted_cov = q + np.einsum("s,nsi,nsj->nij", wc, deviation, deviation)
+        prior = points[:, 0, :]
     if measurement is None:
         return UnscentedStep(prior, predicted, predicted_cov)
 

@@ -59,7 +59,7 @@ class UnscentedParticleFilter:
             shared = embed(cloud.cov, step.predicted_cov[0], active)
             return _finish(particles, cloud.log_weights, cloud.cov, active, None, self.resample_threshold, rng, shared)
 
-        step = unscented_step(cloud.particles, cloud.cov, model, dt, active, ANGLES, measurement)
+        step = unscented_step(cloud.particles, None, model, dt, active, ANGLES, measurement)
         assert step.posterior is not None and step.posterior_cov is not None and step.z_hat is not None
         proposal_chol = batched_cholesky(step.posterior_cov)
         noise = rng.standard_normal((count, len(index)))
