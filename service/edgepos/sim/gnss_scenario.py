@@ -19,6 +19,9 @@ NANJING_SITE = (math.radians(32.0415), math.radians(118.7845), 15.0)
 #: GPS week 1980 (2017-12-17), Wednesday 02:00 GPST; only the constellation's own epoch matters.
 GPS_WEEK = 1980
 START_TOW_S = 3 * 86400.0 + 2 * 3600.0
+#: The drive starts northbound (heading counter-clockwise from east). See docs/gnss-simulation.md: the
+#: gnss_tight pipeline initialises the RISS azimuth at north, so an eastbound start cannot be recovered.
+START_HEADING = 0.5 * math.pi
 
 
 @dataclass(frozen=True)
@@ -150,7 +153,7 @@ def _scenario(
     if every < 1 or not math.isclose(every * gnss_rate_hz, riss_rate_hz):
         raise ValueError("the RISS rate must be a whole multiple of the GNSS rate")
     segments = short_route() if short else nanjing_route()
-    truth = drive(segments, 1.0 / riss_rate_hz)
+    truth = drive(segments, 1.0 / riss_rate_hz, heading0=START_HEADING)
     return GnssScenario(
         name=name + ("-short" if short else ""),
         site=NANJING_SITE,

@@ -61,9 +61,9 @@ class CityParameters:
     """How the façades along every street are drawn (metres)."""
 
     seed: int = 32
-    width_range: tuple[float, float] = (18.0, 36.0)
-    """Façade-to-façade street width, per street."""
-    height_range: tuple[float, float] = (12.0, 60.0)
+    width_range: tuple[float, float] = (24.0, 45.0)
+    """Façade-to-façade street width, per street (arterial roads with sidewalks)."""
+    height_range: tuple[float, float] = (10.0, 45.0)
     """Building height, per block side."""
     block_range: tuple[float, float] = (80.0, 200.0)
     """Length of a block's frontage."""
