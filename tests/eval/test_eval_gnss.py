@@ -44,7 +44,7 @@ def test_json_shape(urban_document: dict) -> None:
             assert isinstance(figures[key], float) and math.isfinite(figures[key]), (name, key)
         assert 0.0 < figures["horizontal_rms_m"] <= figures["horizontal_max_m"] < 500.0
         assert figures["epoch_ms"] > 0.0
-        assert figures["epochs_without_fix"] == 0
+        assert figures["epochs_without_fix"] == 0 and figures["failed_batches"] == 0
         assert figures["particles"] == (1 if name == "UKF" else 20)
     assert urban_document["algorithms"]["PF"]["paper"] == {"horizontal_rms_m": 4.34, "horizontal_max_m": 12.32}
     assert urban_document["algorithms"]["UPF+fuzzy"]["paper"] == {"horizontal_rms_m": 3.39, "horizontal_max_m": 8.69}

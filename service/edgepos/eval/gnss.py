@@ -68,7 +68,7 @@ def _error(message: str) -> None:
 
 def report(results_by_name: dict[str, Result], totals: Totals, args: argparse.Namespace, scenario: str) -> str:
     headers = [
-        "algorithm", "particles", "RMS (m)", "max (m)", "mean run max (m)", "no fix", "excluded",
+        "algorithm", "particles", "RMS (m)", "max (m)", "mean run max (m)", "no fix", "failed", "excluded",
         "epoch (ms)", "paper RMS (m)", "paper max (m)",
     ]
     rows = []
@@ -78,7 +78,8 @@ def report(results_by_name: dict[str, Result], totals: Totals, args: argparse.Na
             result.algorithm.name,
             str(args.particles) if result.algorithm.uses_particles else "1",
             number(result.rms_m, 2), number(result.max_m, 2), number(result.mean_run_max_m, 2),
-            str(result.missing), f"{100.0 * result.excluded_share:.1f} %", number(result.epoch_ms, 1),
+            str(result.missing), str(len(result.failures)), f"{100.0 * result.excluded_share:.1f} %",
+            number(result.epoch_ms, 1),
             "-" if paper is None else number(paper.rms_m, 2), "-" if paper is None else number(paper.max_m, 2),
         ])
     lines = [
@@ -86,8 +87,14 @@ def report(results_by_name: dict[str, Result], totals: Totals, args: argparse.Na
         f"satellites tracked per epoch (mean): {totals.los / totals.runs:.1f} line of sight, "
         f"{totals.nlos / totals.runs:.1f} reflected only (NLOS)",
         "",
-        format_table(headers, rows, right=[False] + [True] * 9),
+        format_table(headers, rows, right=[False] + [True] * 10),
     ]
+    for result in results_by_name.values():
+        if result.failures:
+            lines.append(
+                f"{result.algorithm.name}: the pipeline raised on {len(result.failures)} batch(es); first: "
+                f"{result.failures[0]}"
+            )
     if "PF" in results_by_name and "UPF+fuzzy" in results_by_name:
         pf, upf = results_by_name["PF"], results_by_name["UPF+fuzzy"]
         change = percent_change(pf.rms_m, upf.rms_m)
@@ -101,7 +108,9 @@ def report(results_by_name: dict[str, Result], totals: Totals, args: argparse.Na
     lines += [
         "",
         "RMS and max over every GNSS epoch of every run; 'mean run max' is one drive's maximum averaged over runs "
-        "(the paper's max is from its single drive). 'excluded': pseudoranges not used (mask, residual test). "
+        "(the paper's max is from its single drive). 'no fix': GNSS epochs without a position. 'failed': batches "
+        "the pipeline raised on (skipped, state kept, as the service would). 'excluded': pseudoranges not used "
+        "(mask, residual test). "
         f"Epoch time: wall time of pipeline.process per GNSS epoch inside the Monte Carlo ({args.workers} worker(s) "
         f"on {os.cpu_count() or 1} core(s)), not the benchmark figure.",
     ]
@@ -118,6 +127,8 @@ def to_json(results_by_name: dict[str, Result], totals: Totals, args: argparse.N
             "epoch_ms": result.epoch_ms,
             "mean_run_max_m": result.mean_run_max_m,
             "epochs_without_fix": result.missing,
+            "failed_batches": len(result.failures),
+            "failures": result.failures[:20],
             "excluded_share": result.excluded_share,
             "particles": args.particles if result.algorithm.uses_particles else 1,
             "options": result.algorithm.options,

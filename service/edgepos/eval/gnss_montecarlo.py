@@ -4,7 +4,8 @@ Run r draws its measurements from ``np.random.default_rng([seed, r])`` (the scen
 constellation are fixed). Each algorithm is a set of ``gnss_tight`` pipeline options; its session is
 created and fed exactly as the service does it: one batch per GNSS epoch (that second's RISS samples and
 the epoch's pseudoranges with ``sat_position``/``sat_clock``), the state bytes carried between batches,
-the site origin in the environment. The particle filters' own seed is drawn from [seed, r, 1], the
+the site origin in the environment. A batch the pipeline raises on is counted and skipped with the
+previous state kept, as the service would (it answers an error and stores nothing). The particle filters' own seed is drawn from [seed, r, 1], the
 same for every algorithm. Errors are horizontal (east, north) at the GNSS epochs, in the site frame.
 """
 
@@ -93,12 +94,15 @@ class Sums:
     pseudoranges: int
     seconds: float
     epochs: int
+    failures: list[str]
+    """Batches the pipeline raised on (run, time, error): the service would answer 500 and keep the
+    session's previous state, so the run goes on from there and those epochs have no fix."""
 
     def __add__(self, other: Sums) -> Sums:
         return Sums(
             self.error_sq + other.error_sq, self.fixes + other.fixes, self.run_max + other.run_max,
             self.run_rms + other.run_rms, self.excluded + other.excluded, self.pseudoranges + other.pseudoranges,
-            self.seconds + other.seconds, self.epochs + other.epochs,
+            self.seconds + other.seconds, self.epochs + other.epochs, self.failures + other.failures,
         )
 
 
@@ -184,27 +188,31 @@ def _run_chunk(chunk: range) -> Totals:
             estimates = np.full((count, 2), np.nan)
             excluded = pseudoranges = 0
             started = time.perf_counter()
-            try:
-                for batch in run_batches:
+            failures: list[str] = []
+            for batch in run_batches:
+                try:
                     fixes, state = context.pipeline.process(state, batch, context.environment)
-                    for fix in fixes:
-                        k = epoch_of.get(round(fix.t, 6))
-                        if k is not None and fix.x is not None and fix.y is not None:
-                            estimates[k] = (fix.x, fix.y)
-                        for use in fix.measurements:
-                            if use.kind == "pseudorange":
-                                pseudoranges += 1
-                                excluded += not use.used
-            except Exception as exc:  # a diverging filter must name itself, not kill the pool silently
-                raise RunFailed(f"{name} failed in run {run_index} (seed {context.seed}): {exc}") from None
+                except Exception as exc:  # noqa: BLE001 - the service would answer 500 and keep the state
+                    failures.append(f"t={batch[-1].t}: {type(exc).__name__}: {exc}")
+                    continue
+                for fix in fixes:
+                    k = epoch_of.get(round(fix.t, 6))
+                    if k is not None and fix.x is not None and fix.y is not None:
+                        estimates[k] = (fix.x, fix.y)
+                    for use in fix.measurements:
+                        if use.kind == "pseudorange":
+                            pseudoranges += 1
+                            excluded += not use.used
             seconds = time.perf_counter() - started
             error = np.hypot(estimates[:, 0] - run.truth_east, estimates[:, 1] - run.truth_north)
             have = np.isfinite(error)
             if not have.any():
-                raise RunFailed(f"{name} gave no position fix in run {run_index}")
+                detail = f" ({failures[0]})" if failures else ""
+                raise RunFailed(f"{name} gave no position fix in run {run_index} (seed {context.seed}){detail}")
             sums[name] = Sums(
                 np.where(have, error, 0.0) ** 2, have.astype(int), [float(np.max(error[have]))],
                 [float(np.sqrt(np.mean(error[have] ** 2)))], excluded, pseudoranges, seconds, count,
+                [f"run {run_index} {message}" for message in failures],
             )
             track[name] = estimates
         run_totals = Totals(
@@ -245,6 +253,7 @@ class Result:
     """Epochs (over all runs) without a position fix."""
     excluded_share: float
     epoch_ms: float
+    failures: list[str]
 
 
 def results(algorithms: list[Algorithm], totals: Totals) -> dict[str, Result]:
@@ -262,5 +271,6 @@ def results(algorithms: list[Algorithm], totals: Totals) -> dict[str, Result]:
             int(sums.fixes.size * totals.runs - fixes),
             sums.excluded / max(sums.pseudoranges, 1),
             sums.seconds / sums.epochs * 1e3,
+            sums.failures,
         )
     return out
