@@ -29,8 +29,20 @@ def run_eval(*argv: str) -> int:
 def urban_document(tmp_path_factory: pytest.TempPathFactory) -> dict:
     directory = tmp_path_factory.mktemp("gnss")
     path = directory / "out.json"
-    code = run_eval("gnss", "--runs", "1", "--short", "--particles", "20", "--workers", "1", "--seed", "3",
-                    "--json", str(path))
+    code = run_eval(
+        "gnss",
+        "--runs",
+        "1",
+        "--short",
+        "--particles",
+        "20",
+        "--workers",
+        "1",
+        "--seed",
+        "3",
+        "--json",
+        str(path),
+    )
     assert code == 0
     return json.loads(path.read_text())
 
@@ -46,15 +58,35 @@ def test_json_shape(urban_document: dict) -> None:
         assert figures["epoch_ms"] > 0.0
         assert figures["epochs_without_fix"] == 0 and figures["failed_batches"] == 0
         assert figures["particles"] == (1 if name == "UKF" else 20)
-    assert urban_document["algorithms"]["PF"]["paper"] == {"horizontal_rms_m": 4.34, "horizontal_max_m": 12.32}
-    assert urban_document["algorithms"]["UPF+fuzzy"]["paper"] == {"horizontal_rms_m": 3.39, "horizontal_max_m": 8.69}
+    assert urban_document["algorithms"]["PF"]["paper"] == {
+        "horizontal_rms_m": 4.34,
+        "horizontal_max_m": 12.32,
+    }
+    assert urban_document["algorithms"]["UPF+fuzzy"]["paper"] == {
+        "horizontal_rms_m": 3.39,
+        "horizontal_max_m": 8.69,
+    }
     assert urban_document["satellites_per_epoch"]["nlos"] > 0.0
 
 
 def test_open_sky_ukf_is_metre_level(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "sky.json"
-    code = run_eval("gnss", "--runs", "1", "--short", "--scenario", "open-sky", "--algorithms", "ukf",
-                    "--workers", "1", "--json", str(path), "--plots", str(tmp_path / "plots"))
+    code = run_eval(
+        "gnss",
+        "--runs",
+        "1",
+        "--short",
+        "--scenario",
+        "open-sky",
+        "--algorithms",
+        "ukf",
+        "--workers",
+        "1",
+        "--json",
+        str(path),
+        "--plots",
+        str(tmp_path / "plots"),
+    )
     assert code == 0
     document = json.loads(path.read_text())
     assert list(document["algorithms"]) == ["UKF"]

@@ -67,7 +67,11 @@ def test_geo_stays_over_its_longitude_and_igso_repeats(constellation) -> None:
     t = np.linspace(0.0, 2.0 * 86400.0, 49) + 1.2e9
     positions = constellation.ecef(t)
     for prn, longitude in BDS_GEO_LONGITUDES_DEG.items():
-        j = next(i for i, (s, p) in enumerate(zip(constellation.systems, constellation.prns)) if s == "C" and p == prn)
+        j = next(
+            i
+            for i, (s, p) in enumerate(zip(constellation.systems, constellation.prns))
+            if s == "C" and p == prn
+        )
         lon = np.degrees(np.arctan2(positions[:, j, 1], positions[:, j, 0])) % 360.0
         np.testing.assert_allclose(lon, longitude, atol=1e-6)
         np.testing.assert_allclose(positions[:, j, 2], 0.0, atol=1e-3)
@@ -98,8 +102,13 @@ def test_open_sky_visibility_at_nanjing(open_sky) -> None:
 
 def test_canyon_cutoff_closed_form() -> None:
     view = StreetView(
-        axis=np.array([0.0]), left=np.array([12.0]), right=np.array([8.0]), left_height=np.array([31.5]),
-        right_height=np.array([21.5]), open_cross=np.array([False]), place=np.array([0]),
+        axis=np.array([0.0]),
+        left=np.array([12.0]),
+        right=np.array([8.0]),
+        left_height=np.array([31.5]),
+        right_height=np.array([21.5]),
+        open_cross=np.array([False]),
+        place=np.array([0]),
     )
     azimuth = np.array([[0.0, math.pi, 0.5 * math.pi, 1.5 * math.pi, math.radians(30.0)]])
     cutoff = view.cutoff(azimuth)[0]
@@ -165,12 +174,19 @@ def test_least_squares_on_open_sky_is_metre_level(open_sky) -> None:
     for k, epoch in enumerate(e for e in run.epochs if len(e) > 1):
         prs = [o for o in epoch if isinstance(o, PseudorangeObservation)]
         batch = PseudorangeSet(
-            open_sky.gps_week * 604800.0 + prs[0].t, tuple(o.system for o in prs), np.array([o.prn for o in prs]),
-            np.array([o.pseudorange for o in prs]), np.array([o.cn0 for o in prs]),
-            np.array([o.sat_position for o in prs]), np.array([o.sat_clock for o in prs]), np.full(len(prs), 1.57542e9),
+            open_sky.gps_week * 604800.0 + prs[0].t,
+            tuple(o.system for o in prs),
+            np.array([o.prn for o in prs]),
+            np.array([o.pseudorange for o in prs]),
+            np.array([o.cn0 for o in prs]),
+            np.array([o.sat_position for o in prs]),
+            np.array([o.sat_clock for o in prs]),
+            np.full(len(prs), 1.57542e9),
         )
         solution = solve_epoch(batch, Atmosphere(None, True))
-        errors.append(np.hypot(*(ecef_to_enu(solution.position, origin) - ecef_to_enu(receivers[k], origin))[:2]))
+        errors.append(
+            np.hypot(*(ecef_to_enu(solution.position, origin) - ecef_to_enu(receivers[k], origin))[:2])
+        )
     assert np.sqrt(np.mean(np.square(errors))) < 2.0
     lat, _, _ = ecef_to_geodetic(receivers[0])
     assert abs(float(lat) - open_sky.site[0]) < 1e-5
@@ -181,12 +197,19 @@ def test_riss_noise_statistics() -> None:
     samples), and the biases are drawn with the configured spread (over 200 runs)."""
     scenario = urban_scenario(short=True)
     truth = build_trajectory([Cruise(2000.0)], speed0=10.0, period=0.1)
-    scenario = type(scenario)(**{**scenario.__dict__, "truth": truth, "gnss_every": 100000,
-                                 "street": _open_view(truth.t.size)})
+    scenario = type(scenario)(
+        **{**scenario.__dict__, "truth": truth, "gnss_every": 100000, "street": _open_view(truth.t.size)}
+    )
     grade = scenario.riss
     run = simulate(scenario, np.random.default_rng(9))
-    samples = np.array([[o.wheel_speed, o.accel_x, o.accel_y, o.gyro_z] for e in run.epochs for o in e
-                        if isinstance(o, RissObservation)])
+    samples = np.array(
+        [
+            [o.wheel_speed, o.accel_x, o.accel_y, o.gyro_z]
+            for e in run.epochs
+            for o in e
+            if isinstance(o, RissObservation)
+        ]
+    )
     wheel = samples[:, 0] - truth.speed
     np.testing.assert_allclose(np.std(wheel - np.mean(wheel)), grade.wheel_noise_mps, rtol=0.1)
     np.testing.assert_allclose(np.std(samples[:, 1]), grade.accel_noise_mps2, rtol=0.1)
@@ -206,7 +229,9 @@ def test_riss_noise_statistics() -> None:
 
 def _open_view(count: int) -> StreetView:
     zeros = np.zeros(count)
-    return StreetView(zeros, zeros + 1.0, zeros + 1.0, zeros, zeros, np.ones(count, bool), np.zeros(count, int))
+    return StreetView(
+        zeros, zeros + 1.0, zeros + 1.0, zeros, zeros, np.ones(count, bool), np.zeros(count, int)
+    )
 
 
 def test_determinism_by_seed(urban) -> None:

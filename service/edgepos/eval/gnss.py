@@ -50,14 +50,20 @@ def _particles(text: str) -> int:
 
 def configure(parser: argparse.ArgumentParser) -> None:
     """The options specific to this evaluation (the common ones come from commands.py)."""
-    parser.add_argument("--particles", type=_particles, default=200, help="particles of PF and UPF (default 200)")
     parser.add_argument(
-        "--scenario", choices=sorted(SCENARIOS), default="urban",
+        "--particles", type=_particles, default=200, help="particles of PF and UPF (default 200)"
+    )
+    parser.add_argument(
+        "--scenario",
+        choices=sorted(SCENARIOS),
+        default="urban",
         help="urban: street canyons with NLOS (default); open-sky: the same drive without buildings",
     )
     parser.add_argument("--short", action="store_true", help="a 70 s route instead of the 6.5 min drive")
     parser.add_argument(
-        "--algorithms", metavar="NAME,NAME...", default=None,
+        "--algorithms",
+        metavar="NAME,NAME...",
+        default=None,
         help=f"comma-separated subset (default: all): {', '.join(ALGORITHMS)}",
     )
 
@@ -66,22 +72,40 @@ def _error(message: str) -> None:
     print(f"{PROG}: error: {message}", file=sys.stderr)
 
 
-def report(results_by_name: dict[str, Result], totals: Totals, args: argparse.Namespace, scenario: str) -> str:
+def report(
+    results_by_name: dict[str, Result], totals: Totals, args: argparse.Namespace, scenario: str
+) -> str:
     headers = [
-        "algorithm", "particles", "RMS (m)", "max (m)", "mean run max (m)", "no fix", "failed", "excluded",
-        "epoch (ms)", "paper RMS (m)", "paper max (m)",
+        "algorithm",
+        "particles",
+        "RMS (m)",
+        "max (m)",
+        "mean run max (m)",
+        "no fix",
+        "failed",
+        "excluded",
+        "epoch (ms)",
+        "paper RMS (m)",
+        "paper max (m)",
     ]
     rows = []
     for result in results_by_name.values():
         paper = result.algorithm.paper
-        rows.append([
-            result.algorithm.name,
-            str(args.particles) if result.algorithm.uses_particles else "1",
-            number(result.rms_m, 2), number(result.max_m, 2), number(result.mean_run_max_m, 2),
-            str(result.missing), str(len(result.failures)), f"{100.0 * result.excluded_share:.1f} %",
-            number(result.epoch_ms, 1),
-            "-" if paper is None else number(paper.rms_m, 2), "-" if paper is None else number(paper.max_m, 2),
-        ])
+        rows.append(
+            [
+                result.algorithm.name,
+                str(args.particles) if result.algorithm.uses_particles else "1",
+                number(result.rms_m, 2),
+                number(result.max_m, 2),
+                number(result.mean_run_max_m, 2),
+                str(result.missing),
+                str(len(result.failures)),
+                f"{100.0 * result.excluded_share:.1f} %",
+                number(result.epoch_ms, 1),
+                "-" if paper is None else number(paper.rms_m, 2),
+                "-" if paper is None else number(paper.max_m, 2),
+            ]
+        )
     lines = [
         f"{PROG}: scenario {scenario}, {args.runs} run(s), seed {args.seed}, {args.particles} particles",
         f"satellites tracked per epoch (mean): {totals.los / totals.runs:.1f} line of sight, "
@@ -107,17 +131,19 @@ def report(results_by_name: dict[str, Result], totals: Totals, args: argparse.Na
         ]
     lines += [
         "",
-        "RMS and max over every GNSS epoch of every run; 'mean run max' is one drive's maximum averaged over runs "
-        "(the paper's max is from its single drive). 'no fix': GNSS epochs without a position. 'failed': batches "
-        "the pipeline raised on (skipped, state kept, as the service would). 'excluded': pseudoranges not used "
-        "(mask, residual test). "
-        f"Epoch time: wall time of pipeline.process per GNSS epoch inside the Monte Carlo ({args.workers} worker(s) "
-        f"on {os.cpu_count() or 1} core(s)), not the benchmark figure.",
+        "RMS and max over every GNSS epoch of every run; 'mean run max' is one drive's maximum averaged "
+        "over runs (the paper's max is from its single drive). 'no fix': GNSS epochs without a position. "
+        "'failed': batches the pipeline raised on (skipped, state kept, as the service would). "
+        "'excluded': pseudoranges not used (mask, residual test). Epoch time: wall time of "
+        f"pipeline.process per GNSS epoch inside the Monte Carlo ({args.workers} worker(s) on "
+        f"{os.cpu_count() or 1} core(s)), not the benchmark figure.",
     ]
     return "\n".join(lines)
 
 
-def to_json(results_by_name: dict[str, Result], totals: Totals, args: argparse.Namespace, scenario: str) -> dict[str, Any]:
+def to_json(
+    results_by_name: dict[str, Result], totals: Totals, args: argparse.Namespace, scenario: str
+) -> dict[str, Any]:
     algorithms = {}
     for name, result in results_by_name.items():
         paper = result.algorithm.paper
@@ -132,7 +158,9 @@ def to_json(results_by_name: dict[str, Result], totals: Totals, args: argparse.N
             "excluded_share": result.excluded_share,
             "particles": args.particles if result.algorithm.uses_particles else 1,
             "options": result.algorithm.options,
-            "paper": None if paper is None else {"horizontal_rms_m": paper.rms_m, "horizontal_max_m": paper.max_m},
+            "paper": None
+            if paper is None
+            else {"horizontal_rms_m": paper.rms_m, "horizontal_max_m": paper.max_m},
         }
     return {
         "scenario": scenario,
@@ -151,8 +179,12 @@ def write_plots(results_by_name: dict[str, Result], totals: Totals, directory: P
     curves = {name: np.nan_to_num(result.curve) for name, result in results_by_name.items()}
     written = [
         plots.line_plot(
-            directory / "gnss_horizontal_error.png", t, curves,
-            "Horizontal error, RMS over runs (cf. Fig. 3)", "horizontal error (m)", plots.readable_ylim(curves),
+            directory / "gnss_horizontal_error.png",
+            t,
+            curves,
+            "Horizontal error, RMS over runs (cf. Fig. 3)",
+            "horizontal error (m)",
+            plots.readable_ylim(curves),
         )
     ]
     if totals.track is not None:
@@ -160,7 +192,11 @@ def write_plots(results_by_name: dict[str, Result], totals: Totals, directory: P
         figure, axes = pyplot.subplots(figsize=(8, 6), dpi=110)
         try:
             for name, track in totals.track.items():
-                style = {"color": "black", "linestyle": "--", "linewidth": 1.4} if name == "truth" else {"linewidth": 1.0}
+                style = (
+                    {"color": "black", "linestyle": "--", "linewidth": 1.4}
+                    if name == "truth"
+                    else {"linewidth": 1.0}
+                )
                 axes.plot(track[:, 0], track[:, 1], label=name, **style)
             axes.set_title("Run 0: tracks in the site frame (cf. Fig. 2)")
             axes.set_xlabel("east (m)")

@@ -5,8 +5,8 @@ constellation are fixed). Each algorithm is a set of ``gnss_tight`` pipeline opt
 created and fed exactly as the service does it: one batch per GNSS epoch (that second's RISS samples and
 the epoch's pseudoranges with ``sat_position``/``sat_clock``), the state bytes carried between batches,
 the site origin in the environment. A batch the pipeline raises on is counted and skipped with the
-previous state kept, as the service would (it answers an error and stores nothing). The particle filters' own seed is drawn from [seed, r, 1], the
-same for every algorithm. Errors are horizontal (east, north) at the GNSS epochs, in the site frame.
+previous state kept, as the service would (it answers an error and stores nothing). The particle
+filters' own seed is drawn from [seed, r, 1], the same for every algorithm. Errors are horizontal (east, north) at the GNSS epochs, in the site frame.
 """
 
 from __future__ import annotations
@@ -50,14 +50,34 @@ class Algorithm:
 ALGORITHMS: dict[str, Algorithm] = {
     a.name: a
     for a in (
-        Algorithm("PF", {"filter": "pf", "fuzzy": False}, True, PaperRow(12.32, 4.34),
-                  "particle filter, prior as proposal, equal pseudorange noise (eq. 19)"),
-        Algorithm("UPF", {"filter": "upf", "fuzzy": False}, True, None,
-                  "unscented particle filter, equal pseudorange noise"),
-        Algorithm("UPF+fuzzy", {"filter": "upf", "fuzzy": True}, True, PaperRow(8.69, 3.39),
-                  "the paper's improved UPF: fuzzy noise from elevation and C/N0 (eq. 20)"),
-        Algorithm("UKF", {"filter": "ukf", "fuzzy": True}, False, None,
-                  "a single UKF with fuzzy noise (the cheap baseline)"),
+        Algorithm(
+            "PF",
+            {"filter": "pf", "fuzzy": False},
+            True,
+            PaperRow(12.32, 4.34),
+            "particle filter, prior as proposal, equal pseudorange noise (eq. 19)",
+        ),
+        Algorithm(
+            "UPF",
+            {"filter": "upf", "fuzzy": False},
+            True,
+            None,
+            "unscented particle filter, equal pseudorange noise",
+        ),
+        Algorithm(
+            "UPF+fuzzy",
+            {"filter": "upf", "fuzzy": True},
+            True,
+            PaperRow(8.69, 3.39),
+            "the paper's improved UPF: fuzzy noise from elevation and C/N0 (eq. 20)",
+        ),
+        Algorithm(
+            "UKF",
+            {"filter": "ukf", "fuzzy": True},
+            False,
+            None,
+            "a single UKF with fuzzy noise (the cheap baseline)",
+        ),
     )
 }
 
@@ -100,9 +120,15 @@ class Sums:
 
     def __add__(self, other: Sums) -> Sums:
         return Sums(
-            self.error_sq + other.error_sq, self.fixes + other.fixes, self.run_max + other.run_max,
-            self.run_rms + other.run_rms, self.excluded + other.excluded, self.pseudoranges + other.pseudoranges,
-            self.seconds + other.seconds, self.epochs + other.epochs, self.failures + other.failures,
+            self.error_sq + other.error_sq,
+            self.fixes + other.fixes,
+            self.run_max + other.run_max,
+            self.run_rms + other.run_rms,
+            self.excluded + other.excluded,
+            self.pseudoranges + other.pseudoranges,
+            self.seconds + other.seconds,
+            self.epochs + other.epochs,
+            self.failures + other.failures,
         )
 
 
@@ -208,15 +234,26 @@ def _run_chunk(chunk: range) -> Totals:
             have = np.isfinite(error)
             if not have.any():
                 detail = f" ({failures[0]})" if failures else ""
-                raise RunFailed(f"{name} gave no position fix in run {run_index} (seed {context.seed}){detail}")
+                raise RunFailed(
+                    f"{name} gave no position fix in run {run_index} (seed {context.seed}){detail}"
+                )
             sums[name] = Sums(
-                np.where(have, error, 0.0) ** 2, have.astype(int), [float(np.max(error[have]))],
-                [float(np.sqrt(np.mean(error[have] ** 2)))], excluded, pseudoranges, seconds, count,
+                np.where(have, error, 0.0) ** 2,
+                have.astype(int),
+                [float(np.max(error[have]))],
+                [float(np.sqrt(np.mean(error[have] ** 2)))],
+                excluded,
+                pseudoranges,
+                seconds,
+                count,
                 [f"run {run_index} {message}" for message in failures],
             )
             track[name] = estimates
         run_totals = Totals(
-            1, sums, float(run.los.sum(axis=1).mean()), float(run.nlos.sum(axis=1).mean()),
+            1,
+            sums,
+            float(run.los.sum(axis=1).mean()),
+            float(run.nlos.sum(axis=1).mean()),
             track if run_index == 0 else None,
         )
         totals = run_totals if totals is None else combine(totals, run_totals)
@@ -225,14 +262,25 @@ def _run_chunk(chunk: range) -> Totals:
 
 
 def monte_carlo(
-    algorithms: list[Algorithm], runs: int, seed: int, workers: int, scenario: str, short: bool, particles: int,
+    algorithms: list[Algorithm],
+    runs: int,
+    seed: int,
+    workers: int,
+    scenario: str,
+    short: bool,
+    particles: int,
     progress: Progress | None = None,
 ) -> Totals:
     """Totals over ``runs`` runs, identical for any ``workers`` (times aside)."""
     names = tuple(algorithm.name for algorithm in algorithms)
     return montecarlo.run_chunks(
-        _run_chunk, combine, montecarlo.chunk_runs(runs), workers, _init_worker,
-        (names, seed, scenario, short, particles), progress,
+        _run_chunk,
+        combine,
+        montecarlo.chunk_runs(runs),
+        workers,
+        _init_worker,
+        (names, seed, scenario, short, particles),
+        progress,
     )
 
 

@@ -106,7 +106,8 @@ class GnssScenario:
 
     name: str
     site: tuple[float, float, float]
-    """Site origin: latitude, longitude (rad), ellipsoidal height (m); x east, y north of its tangent plane."""
+    """Site origin: latitude, longitude (rad), ellipsoidal height (m); x east, y north of its tangent
+    plane."""
     gps_week: int
     start_tow_s: float
     segments: list[Segment]
@@ -131,12 +132,16 @@ class GnssScenario:
         return slice(None, None, self.gnss_every)
 
 
-def urban_scenario(*, short: bool = False, riss_rate_hz: float = 10.0, gnss_rate_hz: float = 1.0) -> GnssScenario:
+def urban_scenario(
+    *, short: bool = False, riss_rate_hz: float = 10.0, gnss_rate_hz: float = 1.0
+) -> GnssScenario:
     """The Nanjing downtown drive (about nine minutes; ``short``: about 70 s) in street canyons."""
     return _scenario("urban-nanjing", short, riss_rate_hz, gnss_rate_hz, CityParameters())
 
 
-def open_sky_scenario(*, short: bool = False, riss_rate_hz: float = 10.0, gnss_rate_hz: float = 1.0) -> GnssScenario:
+def open_sky_scenario(
+    *, short: bool = False, riss_rate_hz: float = 10.0, gnss_rate_hz: float = 1.0
+) -> GnssScenario:
     """The same drive with no buildings and open-sky multipath: the check that the filters are sound."""
     signal = SignalModel(multipath_low_m=1.0, nlos_probability=0.0)
     return _scenario("open-sky-nanjing", short, riss_rate_hz, gnss_rate_hz, None, signal)
@@ -146,7 +151,11 @@ SCENARIOS = {"urban": urban_scenario, "open-sky": open_sky_scenario}
 
 
 def _scenario(
-    name: str, short: bool, riss_rate_hz: float, gnss_rate_hz: float, city: CityParameters | None,
+    name: str,
+    short: bool,
+    riss_rate_hz: float,
+    gnss_rate_hz: float,
+    city: CityParameters | None,
     signal: SignalModel | None = None,
 ) -> GnssScenario:
     every = round(riss_rate_hz / gnss_rate_hz)

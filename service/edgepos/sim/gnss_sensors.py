@@ -121,9 +121,7 @@ def simulate(scenario: GnssScenario, rng: np.random.Generator) -> GnssRun:
     # -- receiver positions and satellite geometry --------------------------------------------------
     lat0, lon0, h0 = scenario.site
     origin = geodetic_to_ecef(lat0, lon0, h0)
-    enu = np.stack(
-        [truth.x[rows], truth.y[rows], np.full(epochs_count, ANTENNA_HEIGHT_M)], axis=-1
-    )
+    enu = np.stack([truth.x[rows], truth.y[rows], np.full(epochs_count, ANTENNA_HEIGHT_M)], axis=-1)
     receiver_ecef = enu @ enu_rotation(lat0, lon0) + origin
     week_start = scenario.gps_week * 604800.0
     tow = scenario.start_tow_s + truth.t[rows]
@@ -172,7 +170,11 @@ def simulate(scenario: GnssScenario, rng: np.random.Generator) -> GnssRun:
     extra = np.where(reflected, specular + nlos_extra[place, columns], 0.0)
 
     frequency = np.array([FREQUENCY_HZ[system] for system in constellation.systems])
-    iono = (iono_vertical + iono_satellite) * klobuchar_obliquity(elevation) * (FREQUENCY_HZ["G"] / frequency) ** 2
+    iono = (
+        (iono_vertical + iono_satellite)
+        * klobuchar_obliquity(elevation)
+        * (FREQUENCY_HZ["G"] / frequency) ** 2
+    )
     tropo = tropo_factor * saastamoinen_delay(lat0, h0 + ANTENNA_HEIGHT_M, elevation)
     error = iono + (tropo_factor - 1.0) / tropo_factor * tropo + sisre + multipath + noise + extra
 
@@ -181,7 +183,15 @@ def simulate(scenario: GnssScenario, rng: np.random.Generator) -> GnssRun:
     receiver_bias = bias[:, None] + inter_system * is_beidou[None, :]
     sat_clock = constellation.clock(gpst[:, None] - tau)
     pseudorange = (
-        geometric + receiver_bias - SPEED_OF_LIGHT * sat_clock + iono + tropo + sisre + multipath + noise + extra
+        geometric
+        + receiver_bias
+        - SPEED_OF_LIGHT * sat_clock
+        + iono
+        + tropo
+        + sisre
+        + multipath
+        + noise
+        + extra
     )
 
     # -- RISS ---------------------------------------------------------------------------------------
@@ -192,7 +202,9 @@ def simulate(scenario: GnssScenario, rng: np.random.Generator) -> GnssRun:
     wheel = np.maximum(truth.speed * (1.0 + wheel_scale) + grade.wheel_noise_mps * riss_noise[:, 0], 0.0)
     accel_x = longitudinal + accel_bias[0] + grade.accel_noise_mps2 * riss_noise[:, 1]
     accel_y = lateral + accel_bias[1] + grade.accel_noise_mps2 * riss_noise[:, 2]
-    instability = grade.gyro_instability_rad_s * _gauss_markov(gyro_instability, dt, grade.gyro_instability_tau_s)
+    instability = grade.gyro_instability_rad_s * _gauss_markov(
+        gyro_instability, dt, grade.gyro_instability_tau_s
+    )
     gyro_white = grade.gyro_arw_rad_sqrt_s / math.sqrt(dt)
     gyro = truth.yaw_rate + gyro_bias + instability + gyro_white * riss_noise[:, 3]
 
@@ -204,8 +216,13 @@ def simulate(scenario: GnssScenario, rng: np.random.Generator) -> GnssRun:
     for sample in range(samples):
         t = float(riss_tow[sample])
         epoch: list[Observation] = [
-            RissObservation(t=t, wheel_speed=float(wheel[sample]), accel_x=float(accel_x[sample]),
-                            accel_y=float(accel_y[sample]), gyro_z=float(gyro[sample]))
+            RissObservation(
+                t=t,
+                wheel_speed=float(wheel[sample]),
+                accel_x=float(accel_x[sample]),
+                accel_y=float(accel_y[sample]),
+                gyro_z=float(gyro[sample]),
+            )
         ]
         k = gnss_index.get(sample)
         if k is not None:
@@ -213,8 +230,12 @@ def simulate(scenario: GnssScenario, rng: np.random.Generator) -> GnssRun:
             for j in np.flatnonzero(tracked[k]):
                 epoch.append(
                     PseudorangeObservation(
-                        t=t, system=names[j], prn=int(prns[j]), pseudorange=float(pseudorange[k, j]),
-                        cn0=float(round(cn0[k, j], 2)), sat_position=tuple(float(v) for v in transmit[k, j]),
+                        t=t,
+                        system=names[j],
+                        prn=int(prns[j]),
+                        pseudorange=float(pseudorange[k, j]),
+                        cn0=float(round(cn0[k, j], 2)),
+                        sat_position=tuple(float(v) for v in transmit[k, j]),
                         sat_clock=float(sat_clock[k, j]),
                     )
                 )
@@ -244,9 +265,12 @@ def _rotate(position: np.ndarray, travel_time: np.ndarray) -> np.ndarray:
 
 def _take_view(view: StreetView, rows: np.ndarray) -> StreetView:
     """The street view at the truth samples ``rows``."""
-    return StreetView(*(getattr(view, name)[rows] for name in (
-        "axis", "left", "right", "left_height", "right_height", "open_cross", "place"
-    )))
+    return StreetView(
+        *(
+            getattr(view, name)[rows]
+            for name in ("axis", "left", "right", "left_height", "right_height", "open_cross", "place")
+        )
+    )
 
 
 def _receiver_clock(
@@ -255,10 +279,12 @@ def _receiver_clock(
     """Bias (m) and drift (m/s) at the GNSS epochs: the exact discretisation of the two-state clock
     (integrated random walks with densities ``clock_bias_psd`` and ``clock_drift_psd``)."""
     q_bias, q_drift = model.clock_bias_psd, model.clock_drift_psd
-    q = np.array([
-        [q_bias * step + q_drift * step**3 / 3.0, q_drift * step**2 / 2.0],
-        [q_drift * step**2 / 2.0, q_drift * step],
-    ])
+    q = np.array(
+        [
+            [q_bias * step + q_drift * step**3 / 3.0, q_drift * step**2 / 2.0],
+            [q_drift * step**2 / 2.0, q_drift * step],
+        ]
+    )
     factor = np.linalg.cholesky(q)
     bias, drift = np.empty(len(walk)), np.empty(len(walk))
     bias[0], drift[0] = bias0, drift0
