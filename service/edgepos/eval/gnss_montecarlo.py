@@ -6,7 +6,8 @@ created and fed exactly as the service does it: one batch per GNSS epoch (that s
 the epoch's pseudoranges with ``sat_position``/``sat_clock``), the state bytes carried between batches,
 the site origin in the environment. A batch the pipeline raises on is counted and skipped with the
 previous state kept, as the service would (it answers an error and stores nothing). The particle
-filters' own seed is drawn from [seed, r, 1], the same for every algorithm. Errors are horizontal (east, north) at the GNSS epochs, in the site frame.
+filters' own seed is drawn from [seed, r, 1], the same for every algorithm. Errors are horizontal
+(east, north) at the GNSS epochs, in the site frame.
 """
 
 from __future__ import annotations
