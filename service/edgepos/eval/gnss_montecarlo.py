@@ -47,7 +47,7 @@ class Algorithm:
 
 
 #: The algorithms compared: the paper's PF and improved UPF, the UPF without the fuzzy logic (the
-#: ablation between them) and the single UKF baseline.
+#: ablation between them) and the single UKF baseline with and without the fuzzy logic.
 ALGORITHMS: dict[str, Algorithm] = {
     a.name: a
     for a in (
@@ -78,6 +78,13 @@ ALGORITHMS: dict[str, Algorithm] = {
             False,
             None,
             "a single UKF with fuzzy noise (the cheap baseline)",
+        ),
+        Algorithm(
+            "UKF-equal",
+            {"filter": "ukf", "fuzzy": False},
+            False,
+            None,
+            "the same UKF with equal pseudorange noise: what the fuzzy logic alone is worth",
         ),
     )
 }
