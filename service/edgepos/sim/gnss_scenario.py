@@ -135,7 +135,7 @@ class GnssScenario:
 def urban_scenario(
     *, short: bool = False, riss_rate_hz: float = 10.0, gnss_rate_hz: float = 1.0
 ) -> GnssScenario:
-    """The Nanjing downtown drive (about nine minutes; ``short``: about 70 s) in street canyons."""
+    """The Nanjing downtown drive (387 s; ``short``: about 70 s) in street canyons."""
     return _scenario("urban-nanjing", short, riss_rate_hz, gnss_rate_hz, CityParameters())
 
 

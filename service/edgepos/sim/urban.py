@@ -111,7 +111,7 @@ def _canyon(relative: np.ndarray, view: StreetView) -> np.ndarray:
 
 
 def nanjing_route() -> list[Segment]:
-    """About nine minutes through a downtown grid: five streets joined by corners, a traffic-light stop,
+    """About 6.5 minutes through a downtown grid: six streets joined by five corners, a traffic-light stop,
     cruising at 10-14 m/s and slowing to 5 m/s for each corner."""
     corner_speed = 5.0
     segments: list[Segment] = [Cruise(2.0)]
