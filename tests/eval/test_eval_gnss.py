@@ -50,14 +50,15 @@ def urban_document(tmp_path_factory: pytest.TempPathFactory) -> dict:
 def test_json_shape(urban_document: dict) -> None:
     assert urban_document["scenario"] == "urban-nanjing-short"
     assert urban_document["runs"] == 1 and urban_document["seed"] == 3 and urban_document["particles"] == 20
-    assert set(urban_document["algorithms"]) == {"PF", "UPF", "UPF+fuzzy", "UKF", "UKF-equal"}
+    assert set(urban_document["algorithms"]) == {"PF", "UPF", "UPF+fuzzy", "UKF", "UKF-equal", "WLS"}
     for name, figures in urban_document["algorithms"].items():
         for key in ("horizontal_rms_m", "horizontal_max_m", "epoch_ms"):
             assert isinstance(figures[key], float) and math.isfinite(figures[key]), (name, key)
         assert 0.0 < figures["horizontal_rms_m"] <= figures["horizontal_max_m"] < 500.0
         assert figures["epoch_ms"] > 0.0
         assert figures["epochs_without_fix"] == 0 and figures["failed_batches"] == 0
-        assert figures["particles"] == (1 if name.startswith("UKF") else 20)
+        expected = None if name == "WLS" else 1 if name.startswith("UKF") else 20
+        assert figures["particles"] == expected
     assert urban_document["algorithms"]["PF"]["paper"] == {
         "horizontal_rms_m": 4.34,
         "horizontal_max_m": 12.32,

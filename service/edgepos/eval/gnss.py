@@ -23,6 +23,7 @@ from edgepos.eval.gnss_montecarlo import (
     Result,
     RunFailed,
     Totals,
+    WLS,
     UnknownAlgorithm,
     build_scenario,
     monte_carlo,
@@ -72,6 +73,18 @@ def _error(message: str) -> None:
     print(f"{PROG}: error: {message}", file=sys.stderr)
 
 
+def _particle_count(result: Result, particles: int) -> int | None:
+    """Particles of a particle filter, 1 for the UKF, None for the least squares (no filter)."""
+    if result.algorithm.name == WLS:
+        return None
+    return particles if result.algorithm.uses_particles else 1
+
+
+def _particle_cell(result: Result, particles: int) -> str:
+    count = _particle_count(result, particles)
+    return "-" if count is None else str(count)
+
+
 def report(
     results_by_name: dict[str, Result], totals: Totals, args: argparse.Namespace, scenario: str
 ) -> str:
@@ -94,7 +107,7 @@ def report(
         rows.append(
             [
                 result.algorithm.name,
-                str(args.particles) if result.algorithm.uses_particles else "1",
+                _particle_cell(result, args.particles),
                 number(result.rms_m, 2),
                 number(result.max_m, 2),
                 number(result.mean_run_max_m, 2),
@@ -156,7 +169,7 @@ def to_json(
             "failed_batches": len(result.failures),
             "failures": result.failures[:20],
             "excluded_share": result.excluded_share,
-            "particles": args.particles if result.algorithm.uses_particles else 1,
+            "particles": _particle_count(result, args.particles),
             "options": result.algorithm.options,
             "paper": None
             if paper is None

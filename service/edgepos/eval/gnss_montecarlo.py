@@ -18,15 +18,20 @@ from typing import Any
 
 import numpy as np
 
-from edgepos.core.observations import Observation
+from edgepos.core.observations import Observation, PseudorangeObservation
 from edgepos.eval import montecarlo
 from edgepos.eval.progress import Progress
+from edgepos.gnss.geodesy import ecef_to_enu, geodetic_to_ecef
+from edgepos.gnss.measurements import Atmosphere, PseudorangeSet
+from edgepos.gnss.spp import SppConfig, solve_epoch
 from edgepos.pipelines.base import Pipeline, StaticEnvironment
 from edgepos.pipelines.registry import get_pipeline
 from edgepos.sim.gnss_scenario import SCENARIOS, GnssScenario
-from edgepos.sim.gnss_sensors import GnssRun, simulate
+from edgepos.sim.gnss_sensors import FREQUENCY_HZ, GnssRun, simulate
 
 PIPELINE = "gnss_tight"
+#: The non-pipeline baseline: the project's single-epoch least squares on the same pseudoranges.
+WLS = "WLS"
 
 
 @dataclass(frozen=True)
@@ -47,7 +52,8 @@ class Algorithm:
 
 
 #: The algorithms compared: the paper's PF and improved UPF, the UPF without the fuzzy logic (the
-#: ablation between them) and the single UKF baseline with and without the fuzzy logic.
+#: ablation between them), the single UKF baseline with and without the fuzzy logic, and the
+#: project's least squares without any filter.
 ALGORITHMS: dict[str, Algorithm] = {
     a.name: a
     for a in (
@@ -85,6 +91,13 @@ ALGORITHMS: dict[str, Algorithm] = {
             False,
             None,
             "the same UKF with equal pseudorange noise: what the fuzzy logic alone is worth",
+        ),
+        Algorithm(
+            WLS,
+            {},
+            False,
+            None,
+            "epoch-by-epoch weighted least squares (gnss/spp.py), no filter: the plain baseline",
         ),
     )
 }
@@ -183,6 +196,9 @@ def _init_worker(names: tuple[str, ...], seed: int, scenario: str, short: bool, 
     pipeline = get_pipeline(PIPELINE)
     algorithms = []
     for name in names:
+        if name == WLS:
+            algorithms.append((name, {}))
+            continue
         options = {**ALGORITHMS[name].options, "particles": particles, "gps_week": built.gps_week}
         algorithms.append((name, pipeline.resolve_options(options)))
     environment = StaticEnvironment(origin=built.site)
@@ -218,25 +234,12 @@ def _run_chunk(chunk: range) -> Totals:
         sums: dict[str, Sums] = {}
         track: dict[str, np.ndarray] = {"truth": np.stack([run.truth_east, run.truth_north], axis=-1)}
         for name, options in context.algorithms:
-            state = context.pipeline.create({**options, "seed": filter_seed}, None)
-            estimates = np.full((count, 2), np.nan)
-            excluded = pseudoranges = 0
             started = time.perf_counter()
-            failures: list[str] = []
-            for batch in run_batches:
-                try:
-                    fixes, state = context.pipeline.process(state, batch, context.environment)
-                except Exception as exc:  # noqa: BLE001 - the service would answer 500 and keep the state
-                    failures.append(f"t={batch[-1].t}: {type(exc).__name__}: {exc}")
-                    continue
-                for fix in fixes:
-                    k = epoch_of.get(round(fix.t, 6))
-                    if k is not None and fix.x is not None and fix.y is not None:
-                        estimates[k] = (fix.x, fix.y)
-                    for use in fix.measurements:
-                        if use.kind == "pseudorange":
-                            pseudoranges += 1
-                            excluded += not use.used
+            if name == WLS:
+                outcome = _least_squares(context, run)
+            else:
+                outcome = _pipeline(context, options, filter_seed, run_batches, epoch_of, count)
+            estimates, excluded, pseudoranges, failures = outcome
             seconds = time.perf_counter() - started
             error = np.hypot(estimates[:, 0] - run.truth_east, estimates[:, 1] - run.truth_north)
             have = np.isfinite(error)
@@ -267,6 +270,72 @@ def _run_chunk(chunk: range) -> Totals:
         totals = run_totals if totals is None else combine(totals, run_totals)
     assert totals is not None
     return totals
+
+
+def _pipeline(
+    context: _Context,
+    options: dict[str, Any],
+    filter_seed: int,
+    run_batches: list[list[Observation]],
+    epoch_of: dict[float, int],
+    count: int,
+) -> tuple[np.ndarray, int, int, list[str]]:
+    """One session of the pipeline over the run's batches: (east, north) per GNSS epoch (NaN without a
+    fix), pseudoranges not used, pseudoranges reported, failed batches."""
+    state = context.pipeline.create({**options, "seed": filter_seed}, None)
+    estimates = np.full((count, 2), np.nan)
+    excluded = pseudoranges = 0
+    failures: list[str] = []
+    for batch in run_batches:
+        try:
+            fixes, state = context.pipeline.process(state, batch, context.environment)
+        except Exception as exc:  # noqa: BLE001 - the service would answer 500 and keep the state
+            failures.append(f"t={batch[-1].t}: {type(exc).__name__}: {exc}")
+            continue
+        for fix in fixes:
+            k = epoch_of.get(round(fix.t, 6))
+            if k is not None and fix.x is not None and fix.y is not None:
+                estimates[k] = (fix.x, fix.y)
+            for use in fix.measurements:
+                if use.kind == "pseudorange":
+                    pseudoranges += 1
+                    excluded += not use.used
+    return estimates, excluded, pseudoranges, failures
+
+
+def _least_squares(context: _Context, run: GnssRun) -> tuple[np.ndarray, int, int, list[str]]:
+    """The project's epoch-by-epoch WLS (gnss/spp.py, default settings) on the same pseudoranges, each
+    epoch started from the previous solution (the first from the Earth's centre, as the pipeline does)."""
+    scenario = context.scenario
+    origin = geodetic_to_ecef(*scenario.site)
+    estimates = np.full((run.gnss_tow.size, 2), np.nan)
+    excluded = pseudoranges = 0
+    failures: list[str] = []
+    previous = None
+    gnss_epochs = (epoch for epoch in run.epochs if any(o.kind == "pseudorange" for o in epoch))
+    for k, epoch in enumerate(gnss_epochs):
+        observed = [o for o in epoch if isinstance(o, PseudorangeObservation)]
+        prs = PseudorangeSet(
+            scenario.gps_week * 604800.0 + observed[0].t,
+            tuple(o.system for o in observed),
+            np.array([o.prn for o in observed]),
+            np.array([o.pseudorange for o in observed]),
+            np.array([o.cn0 for o in observed]),
+            np.array([o.sat_position for o in observed], dtype=float),
+            np.array([o.sat_clock for o in observed], dtype=float),
+            np.array([FREQUENCY_HZ[o.system] for o in observed]),
+        )
+        pseudoranges += len(prs)
+        try:
+            solution = solve_epoch(prs, Atmosphere(None, True), SppConfig(), previous)
+        except Exception as exc:  # noqa: BLE001 - counted like a failed pipeline batch
+            failures.append(f"t={observed[0].t}: {type(exc).__name__}: {exc}")
+            excluded += len(prs)
+            continue
+        previous = solution.position
+        excluded += len(prs) - len(solution.sats)
+        estimates[k] = ecef_to_enu(solution.position, origin)[:2]
+    return estimates, excluded, pseudoranges, failures
 
 
 def monte_carlo(
