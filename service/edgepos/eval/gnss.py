@@ -129,7 +129,7 @@ def report(
     for result in results_by_name.values():
         if result.failures:
             lines.append(
-                f"{result.algorithm.name}: the pipeline raised on {len(result.failures)} batch(es); first: "
+                f"{result.algorithm.name}: {len(result.failures)} failed batch(es); first: "
                 f"{result.failures[0]}"
             )
     if "PF" in results_by_name and "UPF+fuzzy" in results_by_name:
@@ -146,8 +146,9 @@ def report(
         "",
         "RMS and max over every GNSS epoch of every run; 'mean run max' is one drive's maximum averaged "
         "over runs (the paper's max is from its single drive). 'no fix': GNSS epochs without a position. "
-        "'failed': batches the pipeline raised on (skipped, state kept, as the service would). "
-        "'excluded': pseudoranges not used (mask, residual test). Epoch time: wall time of "
+        "'failed': batches the pipeline raised on (skipped, state kept, as the service would; for WLS, "
+        "epochs it could not solve). 'excluded': pseudoranges not used (mask, residual test). Epoch time: "
+        "wall time of "
         f"pipeline.process per GNSS epoch inside the Monte Carlo ({args.workers} worker(s) on "
         f"{os.cpu_count() or 1} core(s)), not the benchmark figure.",
     ]
