@@ -10,7 +10,7 @@ import argparse
 import os
 from collections.abc import Callable
 
-from edgepos.eval import gnss_rinex, rsu_imu
+from edgepos.eval import gnss, gnss_rinex, rsu_imu
 
 #: argparse's object returned by ``add_subparsers`` (private type name, so spelled out here).
 Subparsers = argparse._SubParsersAction
@@ -69,8 +69,16 @@ def _gnss_rinex(subparsers: Subparsers) -> None:
     parser.set_defaults(_evaluation=gnss_rinex.run)
 
 
+def _gnss(subparsers: Subparsers) -> None:
+    help_text = "GNSS + RISS paper (UPF, fuzzy noise): Table 2 on a simulated street-canyon drive"
+    parser = subparsers.add_parser("gnss", help=help_text, description=help_text)
+    _common_options(parser, runs=20)
+    gnss.configure(parser)
+    parser.set_defaults(_evaluation=gnss.run)
+
+
 #: One function per evaluation, each adding its subcommand.
-EVALUATIONS: tuple[Callable[[Subparsers], None], ...] = (_rsu_imu, _gnss_rinex)
+EVALUATIONS: tuple[Callable[[Subparsers], None], ...] = (_rsu_imu, _gnss_rinex, _gnss)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
