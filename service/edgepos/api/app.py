@@ -26,6 +26,7 @@ from edgepos.api.middleware import BodyLimitMiddleware, RequestContextMiddleware
 from edgepos.api.routes import docs, health, rsus, sessions
 from edgepos.api.routes import pipelines as pipeline_routes
 from edgepos.api.settings import Settings, ensure_admin_key
+from edgepos.core.compiled import warm_up as warm_up_kernels
 from edgepos.pipelines.base import Pipeline, Rsu
 from edgepos.store import SessionStore, open_store
 from edgepos.store.base import StoreUnavailable
@@ -94,6 +95,9 @@ def create_app(
                 logger.info("demo RSU map loaded", extra={"event": "demo_rsus", "count": count})
             except StoreUnavailable:  # start anyway: /readyz reports the store until it answers
                 logger.warning("demo RSU map not loaded: the store does not answer", extra={"event": "demo_rsus"})
+        # Compile the filter kernels (or load them from numba's cache) before the first request.
+        seconds = await context.run_filter(warm_up_kernels)
+        logger.info("filter kernels ready", extra={"event": "warm_up", "seconds": round(seconds, 3)})
         sweep_period = min(60.0, max(0.5, settings.session_ttl_s / 4.0))
         sweeper = asyncio.create_task(_expire_periodically(context.store, sweep_period))
         logger.info("edgepos ready", extra={"event": "startup", "store": settings.store.split(":", 1)[0]})

@@ -4,17 +4,24 @@
 IMU paper's reading (sec. 2): one update per RSU (each with the shared gyro) from the same prior,
 posteriors averaged; its model likelihood is the geometric mean of the per-RSU likelihoods, which
 keeps it on the scale of a single update.
+
+``RsuGyroEpoch`` holds one epoch's RSU range/bearing pairs and gyro readings as plain arrays: it
+builds the correction for the numpy reference path, feeds the compiled kernels (``core.compiled``)
+as is, and gives the Mahalanobis distances a gate needs.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
 from edgepos.core import layout
 from edgepos.core.filters.base import GaussianFilter, UpdateResult
-from edgepos.core.imm import Correction
+from edgepos.core.imm import Correction, Gaussian
+from edgepos.core.measurements import GyroYawRate, RsuRangeBearing, Stacked
 from edgepos.core.measurements.base import MeasurementModel
 
 
@@ -52,3 +59,82 @@ class AveragedCorrection(Correction):
             nis=np.mean([r.nis for r in results], axis=0),
             log_likelihood=np.mean([r.log_likelihood for r in results], axis=0),
         )
+
+
+@dataclass(frozen=True)
+class RsuGyroEpoch:
+    """One epoch's RSU range/bearing pairs and gyro yaw rates, as plain arrays.
+
+    ``positions`` (K, 2) RSU east/north (m), ``observed`` (K, 2) range (m) and bearing (rad, from the
+    RSU to the vehicle), their noise standard deviations (K,) each, ``yaw_rates`` (G,) gyro readings
+    (rad/s) with ``gyro_std``. ``averaged``: the paper's one update per RSU, averaged, instead of
+    one joint update (only when K > 1; one RSU is the same either way).
+    """
+
+    positions: np.ndarray
+    observed: np.ndarray
+    range_std: np.ndarray
+    bearing_std: np.ndarray
+    yaw_rates: np.ndarray
+    gyro_std: float
+    averaged: bool = False
+    gyro_min_speed: float = 0.1
+
+    @functools.cached_property
+    def variances(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """Range variances (K,), bearing variances (K,) and the gyro variance."""
+        return np.square(self.range_std), np.square(self.bearing_std), self.gyro_std**2
+
+    @property
+    def rsu_count(self) -> int:
+        return int(self.positions.shape[0])
+
+    @property
+    def dim(self) -> int:
+        """Measurement dimension of one update: every pair stacked, or one pair when averaged."""
+        pairs = 1 if self.averaged and self.rsu_count > 1 else self.rsu_count
+        return 2 * pairs + int(self.yaw_rates.size)
+
+    def measurement(self, rsus: Sequence[int] | None = None) -> tuple[MeasurementModel | None, np.ndarray | None]:
+        """The stacked model [RSU pairs..., gyros...] of ``rsus`` (default all) and its observation."""
+        chosen = range(self.rsu_count) if rsus is None else rsus
+        parts: list[MeasurementModel] = []
+        observed = []
+        if len(chosen):
+            index = list(chosen)
+            parts.append(RsuRangeBearing(self.positions[index], self.range_std[index], self.bearing_std[index]))
+            observed.append(self.observed[index].ravel())
+        if self.yaw_rates.size:
+            parts.extend([GyroYawRate(self.gyro_std, self.gyro_min_speed)] * int(self.yaw_rates.size))
+            observed.append(self.yaw_rates)
+        if not parts:
+            return None, None
+        return (parts[0] if len(parts) == 1 else Stacked(parts)), np.concatenate(observed)
+
+    def correction(self) -> Correction | None:
+        """The correction of the numpy reference path, or None when nothing was measured."""
+        if self.averaged and self.rsu_count > 1:
+            return AveragedCorrection([JointCorrection(*self.measurement([k])) for k in range(self.rsu_count)])
+        model, observed = self.measurement()
+        return None if model is None else JointCorrection(model, observed)
+
+
+def gate_distances(prior: Gaussian, epoch: RsuGyroEpoch) -> tuple[np.ndarray, np.ndarray]:
+    """Squared Mahalanobis distances of each RSU pair (2 dof) and gyro reading (1 dof) from ``prior``.
+
+    One linearisation at the prior mean; each group's distance uses its own diagonal block of
+    S = H P H^T + R.
+    """
+    model, observed = epoch.measurement()
+    idx = list(prior.components)
+    mean = np.zeros(layout.FULL_DIM)
+    mean[idx] = prior.mean
+    jacobian = model.jacobian(mean[None, :])[0][:, idx]
+    residual = model.residual(observed, model.predict(mean[None, :])[0])
+    innovation_cov = jacobian @ prior.cov @ jacobian.T + model.noise_covariance()
+    pairs = 2 * epoch.rsu_count
+    diagonal, off_diagonal = np.diagonal(innovation_cov), np.diagonal(innovation_cov, 1)
+    s11, s22, s12 = diagonal[0:pairs:2], diagonal[1:pairs:2], off_diagonal[0:pairs:2]  # 2x2 block per RSU
+    r1, r2 = residual[0:pairs:2], residual[1:pairs:2]
+    rsu_distance = (s22 * r1 * r1 - 2.0 * s12 * r1 * r2 + s11 * r2 * r2) / (s11 * s22 - s12 * s12)
+    return rsu_distance, residual[pairs:] ** 2 / diagonal[pairs:]

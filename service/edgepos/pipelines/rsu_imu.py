@@ -8,6 +8,9 @@ Per epoch (observations sharing a timestamp):
    predicted output, linearised at the predicted mean.
 3. ``rsu_handling="joint"``: one update with every RSU pair and the gyro stacked.
    ``"average"``: the paper's reading, one update per RSU (each with the gyro), posteriors averaged.
+
+The bank steps on the compiled kernels when they cover its filter and models (``core.compiled``),
+else on the numpy reference; both give the same fixes to rounding.
 """
 
 from __future__ import annotations
@@ -24,14 +27,14 @@ from scipy.stats import chi2
 
 from edgepos.core import layout
 from edgepos.core import state as state_format
+from edgepos.core.compiled import BankStepper, stepper_for
 from edgepos.core.errors import ConfigurationError
 from edgepos.core.filters import FILTERS, GaussianFilter, make_filter
 from edgepos.core.filters.sigma_points import SigmaPointFilter
 from edgepos.core.imm import Gaussian, InteractingMultipleModel, StepResult
-from edgepos.core.measurements import GyroYawRate, RsuRangeBearing, Stacked
 from edgepos.core.motion import MOTION_MODELS, MotionModel, make_motion_model
 from edgepos.core.observations import GyroObservation, Observation, RsuObservation
-from edgepos.core.updates import AveragedCorrection, JointCorrection
+from edgepos.core.updates import RsuGyroEpoch
 from edgepos.pipelines.base import (
     Environment,
     Fix,
@@ -299,6 +302,12 @@ def _filter(options: Mapping[str, Any], models: Sequence[MotionModel]) -> Gaussi
 
 
 @functools.lru_cache(maxsize=128)
+def _stepper(bank: InteractingMultipleModel) -> BankStepper:
+    """The compiled stepper of a bank when the kernels cover it, else the numpy reference."""
+    return stepper_for(bank)
+
+
+@functools.lru_cache(maxsize=128)
 def _bank(options_key: str) -> InteractingMultipleModel:
     options = json.loads(options_key)
     models = _models(options)
@@ -362,24 +371,26 @@ def _step(
         return _fix(t, "initialised", output, session, bank, uses, nis=None, dof=0)
 
     dt = None if session.filter_t is None else t - session.filter_t
-    prediction = bank.predict(session.means, session.covs, session.probabilities, dt)
-    measurement = _measurement(candidates, gyros, observations, rsus, options)
+    stepper = _stepper(bank)
+    prediction = stepper.predict(session.means, session.covs, session.probabilities, dt)
+    measured = _epoch_measurements(candidates, gyros, observations, rsus, options)
     gate = options["gate_probability"]
-    if gate > 0.0 and measurement[0] is not None:
-        kept_rsus, kept_gyros = _gate(candidates, gyros, measurement, prediction.output, gate, uses)
+    if gate > 0.0 and (candidates or gyros):
+        kept_rsus, kept_gyros = _gate(candidates, gyros, measured, prediction.output, gate, uses, stepper)
         if len(kept_rsus) < len(candidates) or len(kept_gyros) < len(gyros):
             candidates, gyros = kept_rsus, kept_gyros
-            measurement = _measurement(candidates, gyros, observations, rsus, options)
+            measured = _epoch_measurements(candidates, gyros, observations, rsus, options)
     for i in candidates + gyros:
         uses[i] = MeasurementUse(i, observations[i].kind, True)
 
-    correction, dof = _correction(candidates, gyros, measurement, observations, rsus, options)
-    result: StepResult = bank.coast(prediction) if correction is None else bank.correct(prediction, correction)
+    result: StepResult = stepper.correct(prediction, measured)
+    coasting = not (candidates or gyros)
     session.means, session.covs = result.means, result.covs
     session.probabilities = result.probabilities
     session.filter_t = t
-    nis = None if correction is None else float(result.probabilities @ result.nis)
-    return _fix(t, "predicted" if correction is None else "tracking", result.output, session, bank, uses, nis, dof)
+    nis = None if coasting else float(result.probabilities @ result.nis)
+    dof = 0 if coasting else measured.dim
+    return _fix(t, "predicted" if coasting else "tracking", result.output, session, bank, uses, nis, dof)
 
 
 def _rsus_in_view(epoch, observations, rsus, options, uses) -> list[int]:
@@ -400,42 +411,22 @@ def _rsus_in_view(epoch, observations, rsus, options, uses) -> list[int]:
     return in_radius[: options["max_rsus"]]
 
 
-def _rsu_model(indices, observations, rsus, options) -> tuple[RsuRangeBearing, np.ndarray]:
-    positions = [[rsus[i].x, rsus[i].y] for i in indices]
-    range_std = [rsus[i].range_std or options["range_std"] for i in indices]
-    bearing_std = [rsus[i].bearing_std or options["bearing_std"] for i in indices]
-    observed = np.array([[observations[i].range, observations[i].bearing] for i in indices]).ravel()
-    return RsuRangeBearing(positions, range_std, bearing_std), observed
-
-
 @functools.lru_cache(maxsize=64)
 def _gate_threshold(probability: float, dof: int) -> float:
     """The chi-square quantile a squared Mahalanobis distance is gated at."""
     return float(chi2.ppf(probability, dof))
 
 
-def _gate(candidates, gyros, measurement, prior: Gaussian, probability, uses) -> tuple[list[int], list[int]]:
+def _gate(candidates, gyros, measured, prior: Gaussian, probability, uses, stepper) -> tuple[list[int], list[int]]:
     """Mahalanobis gate of each RSU pair (2 dof) and gyro reading (1 dof) against the fused prior.
 
-    ``measurement`` is the epoch's stacked model [RSU pairs..., gyros...] and its observation. One
-    linearisation at the prior mean; each group's distance uses its own diagonal block of
-    S = H P H^T + R. When most RSUs fail, the prediction is what is off (a lost track): the RSUs are
-    all kept so that the filter can recover. A gyro is only gated when every model carries
-    acceleration, since otherwise the bank has no yaw-rate prediction.
+    ``measured`` holds the epoch's RSU pairs and gyros; each group's distance uses its own diagonal
+    block of S = H P H^T + R, linearised at the prior mean. When most RSUs fail, the prediction is
+    what is off (a lost track): the RSUs are all kept so that the filter can recover. A gyro is
+    only gated when every model carries acceleration, since otherwise the bank has no yaw-rate
+    prediction.
     """
-    model, observed = measurement
-    idx = list(prior.components)
-    mean = np.zeros(layout.FULL_DIM)
-    mean[idx] = prior.mean
-    jacobian = model.jacobian(mean[None, :])[0][:, idx]
-    residual = model.residual(observed, model.predict(mean[None, :])[0])
-    innovation_cov = jacobian @ prior.cov @ jacobian.T + model.noise_covariance()
-    pairs = 2 * len(candidates)
-    diagonal, off_diagonal = np.diagonal(innovation_cov), np.diagonal(innovation_cov, 1)
-    s11, s22, s12 = diagonal[0:pairs:2], diagonal[1:pairs:2], off_diagonal[0:pairs:2]  # 2x2 block per RSU
-    r1, r2 = residual[0:pairs:2], residual[1:pairs:2]
-    rsu_distance = (s22 * r1 * r1 - 2.0 * s12 * r1 * r2 + s11 * r2 * r2) / (s11 * s22 - s12 * s12)
-
+    rsu_distance, gyro_distance = stepper.gate_distances(prior, measured)
     kept_rsus = candidates
     threshold = _gate_threshold(probability, 2)
     failed = rsu_distance > threshold
@@ -448,7 +439,7 @@ def _gate(candidates, gyros, measurement, prior: Gaussian, probability, uses) ->
         return kept_rsus, gyros
     threshold = _gate_threshold(probability, 1)
     kept_gyros = []
-    for i, distance in zip(gyros, residual[pairs:] ** 2 / diagonal[pairs:]):
+    for i, distance in zip(gyros, gyro_distance):
         if distance > threshold:
             uses[i] = MeasurementUse(i, "gyro", False, f"failed the gate: d^2 = {distance:.1f} > {threshold:.1f}")
         else:
@@ -456,34 +447,23 @@ def _gate(candidates, gyros, measurement, prior: Gaussian, probability, uses) ->
     return kept_rsus, kept_gyros
 
 
-def _measurement(candidates, gyros, observations, rsus, options):
-    """The stacked model [RSU pairs..., gyros...] and its observation vector, or (None, None)."""
-    parts, observed = [], []
-    if candidates:
-        model, values = _rsu_model(candidates, observations, rsus, options)
-        parts.append(model)
-        observed.append(values)
-    if gyros:
-        parts.extend([GyroYawRate(options["gyro_std"])] * len(gyros))
-        observed.append(np.array([observations[i].yaw_rate for i in gyros]))
-    if not parts:
-        return None, None
-    return (parts[0] if len(parts) == 1 else Stacked(parts)), np.concatenate(observed)
-
-
-def _correction(candidates, gyros, measurement, observations, rsus, options):
-    """The epoch's correction and its measurement dimension, or (None, 0) when nothing is usable.
-
-    ``measurement`` is the stacked model of ``candidates`` and ``gyros``, used as is for the joint
-    update; the averaged handling builds one model per RSU instead.
-    """
-    if options["rsu_handling"] == "average" and len(candidates) > 1:
-        parts = [JointCorrection(*_measurement([i], gyros, observations, rsus, options)) for i in candidates]
-        return AveragedCorrection(parts), 2 + len(gyros)
-    model, observed = measurement
-    if model is None:
-        return None, 0
-    return JointCorrection(model, observed), model.dim
+def _epoch_measurements(candidates, gyros, observations, rsus, options) -> RsuGyroEpoch:
+    """The chosen RSU pairs and gyro readings as plain arrays, with their noise and the RSU handling."""
+    count = len(candidates)
+    positions = np.empty((count, 2))
+    observed = np.empty((count, 2))
+    range_std = np.empty(count)
+    bearing_std = np.empty(count)
+    for k, i in enumerate(candidates):
+        rsu, observation = rsus[i], observations[i]
+        positions[k] = rsu.x, rsu.y
+        observed[k] = observation.range, observation.bearing
+        range_std[k] = rsu.range_std or options["range_std"]
+        bearing_std[k] = rsu.bearing_std or options["bearing_std"]
+    return RsuGyroEpoch(
+        positions, observed, range_std, bearing_std, np.array([observations[i].yaw_rate for i in gyros], dtype=float),
+        options["gyro_std"], averaged=options["rsu_handling"] == "average",
+    )
 
 
 def _initialise(session, bank, candidates, gyros, observations, rsus) -> None:
@@ -515,26 +495,27 @@ def _initialise(session, bank, candidates, gyros, observations, rsus) -> None:
 
 def _fix(t, status, output: Gaussian, session, bank, uses, nis, dof) -> Fix:
     components = list(output.components)
-    value = dict(zip(components, output.mean))
-    vx, vy = float(value[layout.XV]), float(value[layout.YV])
+    state = output.mean.tolist()
+    state_cov = output.cov.tolist()
+    value = dict(zip(components, state))
+    vx, vy = value[layout.XV], value[layout.YV]
     x_index, y_index = components.index(layout.XP), components.index(layout.YP)
-    cov = output.cov
     return Fix(
         t=t,
         status=status,
-        x=float(value[layout.XP]),
-        y=float(value[layout.YP]),
+        x=value[layout.XP],
+        y=value[layout.YP],
         vx=vx,
         vy=vy,
         speed=math.hypot(vx, vy),
         heading=math.atan2(vy, vx),
         yaw_rate=_yaw_rate(value, session, bank),
-        position_cov=[[float(cov[x_index, x_index]), float(cov[x_index, y_index])],
-                      [float(cov[y_index, x_index]), float(cov[y_index, y_index])]],
+        position_cov=[[state_cov[x_index][x_index], state_cov[x_index][y_index]],
+                      [state_cov[y_index][x_index], state_cov[y_index][y_index]]],
         state_components=tuple(layout.NAMES[c] for c in components),
-        state=output.mean.tolist(),
-        state_cov=output.cov.tolist(),
-        model_probabilities=dict(zip(session.options["models"], map(float, session.probabilities))),
+        state=state,
+        state_cov=state_cov,
+        model_probabilities=dict(zip(session.options["models"], session.probabilities.tolist())),
         nis=nis,
         nis_dof=dof,
         measurements=[uses[i] for i in sorted(uses)],

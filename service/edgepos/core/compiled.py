@@ -1,0 +1,224 @@
+"""One IMM/2IMM epoch for RSU + gyro measurements: the numpy reference or the compiled kernels.
+
+``BankStepper`` runs a bank (``core.imm``) on an ``RsuGyroEpoch`` with the readable numpy
+reference. ``CompiledBankStepper`` runs the same equations through the numba kernels of
+``core.kernels``, which agree with the reference to rounding (the tests check 1e-12 over every
+filter, model set and option the kernels cover). :func:`stepper_for` picks the compiled one when
+the bank is covered: an EKF, UKF or CKF over models that are linear with a fixed Q per interval
+(CV, CA, CT, Singer) or the adaptive turn (AT). Anything else, and any step where the kernels meet
+a Cholesky factor that does not exist or a non-finite number, runs on the numpy reference, which
+repairs a nearly singular covariance or raises ``NumericalError``: the compiled path never decides
+about bad numbers on its own.
+
+Set ``EDGEPOS_NUMBA=0`` to run everything on the numpy reference.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import logging
+import os
+import time
+
+import numpy as np
+
+from edgepos.core import layout
+from edgepos.core.filters import CubatureKalmanFilter, ExtendedKalmanFilter, UnscentedKalmanFilter
+from edgepos.core.filters.sigma_points import SigmaPointFilter
+from edgepos.core.imm import Gaussian, InteractingMultipleModel, Prediction, StepResult
+from edgepos.core.motion.at import AdaptiveTurn
+from edgepos.core.motion.base import dt_key, padded_linear_step
+from edgepos.core.updates import RsuGyroEpoch, gate_distances
+
+_log = logging.getLogger(__name__)
+
+
+class BankStepper:
+    """The numpy reference: a bank's prediction, correction and gate distances for one epoch."""
+
+    compiled = False
+
+    def __init__(self, bank: InteractingMultipleModel) -> None:
+        self.bank = bank
+
+    def predict(self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray, dt: float | None) -> Prediction:
+        """Interaction and every model's prediction over ``dt`` (none when dt is None or 0)."""
+        return self.bank.predict(means, covs, probabilities, dt)
+
+    def correct(self, prediction: Prediction, epoch: RsuGyroEpoch) -> StepResult:
+        """Every model's update with ``epoch``, model probabilities and output; coasting without data."""
+        correction = epoch.correction()
+        if correction is None:
+            return self.bank.coast(prediction)
+        return self.bank.correct(prediction, correction)
+
+    def gate_distances(self, prior: Gaussian, epoch: RsuGyroEpoch) -> tuple[np.ndarray, np.ndarray]:
+        """Squared Mahalanobis distances of each RSU pair and gyro reading from ``prior``."""
+        return gate_distances(prior, epoch)
+
+
+def _filter_kind(filt) -> int | None:
+    from edgepos.core import kernels
+
+    if type(filt) is ExtendedKalmanFilter:
+        return kernels.EKF
+    if type(filt) in (CubatureKalmanFilter, UnscentedKalmanFilter):
+        return kernels.SIGMA
+    return None
+
+
+def _motion_kind(model) -> int | None:
+    from edgepos.core import kernels
+
+    if isinstance(model, AdaptiveTurn) and model.components == layout.ALL:
+        return kernels.TURN
+    if model.linear and not model.state_dependent_noise:
+        return kernels.LINEAR
+    return None
+
+
+def covered(bank: InteractingMultipleModel) -> bool:
+    """Whether the compiled kernels implement this bank's filter and every one of its models."""
+    return _filter_kind(bank.filter) is not None and all(_motion_kind(m) is not None for m in bank.models)
+
+
+class CompiledBankStepper(BankStepper):
+    """The same epoch through the numba kernels (see the module docstring)."""
+
+    compiled = True
+
+    def __init__(self, bank: InteractingMultipleModel) -> None:
+        from edgepos.core import kernels
+
+        if not covered(bank):
+            raise ValueError("the compiled kernels do not cover this bank")
+        super().__init__(bank)
+        self._kernels = kernels
+        count = len(bank.models)
+        self._active = np.ascontiguousarray(bank.active)
+        self._common = np.array(bank.common, dtype=np.int64)
+        self._phi_slot = bank.common.index(layout.PHI) if layout.PHI in bank.common else -1
+        self._transition = np.ascontiguousarray(bank.transition, dtype=float)
+        self._priority = np.array(bank.priority if bank.is_two_stage else [], dtype=np.int64)
+        self._others = np.array(bank.others, dtype=np.int64)
+        self._kinds = np.array([_motion_kind(m) for m in bank.models], dtype=np.int64)
+        self._filter_kind = _filter_kind(bank.filter)
+        weights = np.zeros((4, count))
+        if isinstance(bank.filter, SigmaPointFilter):
+            for j, model in enumerate(bank.models):
+                weights[:, j] = bank.filter.point_weights(model.dim)
+        self._spreads, self._sides, self._centre_means, self._centre_covs = (np.ascontiguousarray(w) for w in weights)
+        self._has_centre = bool(getattr(bank.filter, "has_centre_point", False))
+
+    @functools.lru_cache(maxsize=64)  # noqa: B019 (steppers live as long as their cached bank)
+    def _step_matrices(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """Padded F and Q of every model for an interval: the linear ones' exact discretisation; for
+        AT its turn-rate block F_omega (the kinematics follow the state's omega) and its Q."""
+        transitions, noises = (np.array(m) for m in padded_linear_step(self.bank.models, dt))
+        zero = np.zeros(layout.FULL_DIM)
+        for j, model in enumerate(self.bank.models):
+            if isinstance(model, AdaptiveTurn):
+                transitions[j] = 0.0
+                transitions[j][6:, 6:] = model.turn_rate_block(dt)[0]
+                noises[j] = model.noise_covariance(zero, dt)
+        return np.ascontiguousarray(transitions), np.ascontiguousarray(noises)
+
+    def predict(self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray, dt: float | None) -> Prediction:
+        transitions, noises = self._step_matrices(dt_key(dt) if dt else 0.0)  # the reference's rounding of dt
+        status, new_means, new_covs, predicted, mean, cov = self._kernels.predict_step(
+            np.ascontiguousarray(means, dtype=float), np.ascontiguousarray(covs, dtype=float),
+            np.ascontiguousarray(probabilities, dtype=float), self._transition, self._active, self._common,
+            self._phi_slot, float(dt) if dt else 0.0, self._kinds, transitions, noises, self._filter_kind,
+            self._spreads, self._sides, self._centre_means, self._centre_covs, self._has_centre,
+        )
+        if status != self._kernels.OK:
+            return super().predict(means, covs, probabilities, dt)  # repairs, or raises NumericalError
+        return Prediction(new_means, new_covs, predicted, Gaussian(self.bank.common, mean, cov))
+
+    def correct(self, prediction: Prediction, epoch: RsuGyroEpoch) -> StepResult:
+        if epoch.rsu_count == 0 and epoch.yaw_rates.size == 0:
+            return self.bank.coast(prediction)
+        status, means, covs, probabilities, log_likelihoods, nis, mean, cov = self._kernels.correct_step(
+            np.ascontiguousarray(prediction.means), np.ascontiguousarray(prediction.covs),
+            np.ascontiguousarray(prediction.predicted_probabilities), self._active, self._common,
+            self._phi_slot, self._priority, self._others, *_epoch_arrays(epoch), epoch.gyro_min_speed**2,
+            bool(epoch.averaged), self._filter_kind, self._spreads, self._sides, self._centre_means,
+            self._centre_covs, self._has_centre,
+        )
+        if status != self._kernels.OK:
+            return super().correct(prediction, epoch)  # repairs, or raises NumericalError
+        return StepResult(means, covs, probabilities, Gaussian(self.bank.common, mean, cov), log_likelihoods, nis)
+
+    def gate_distances(self, prior: Gaussian, epoch: RsuGyroEpoch) -> tuple[np.ndarray, np.ndarray]:
+        mean = np.zeros(layout.FULL_DIM)
+        mean[self._common] = prior.mean
+        rsu = np.empty(epoch.rsu_count)
+        gyro = np.empty(epoch.yaw_rates.size)
+        self._kernels.gate_distances(
+            mean, np.ascontiguousarray(prior.cov), self._common, *_epoch_arrays(epoch),
+            epoch.gyro_min_speed**2, rsu, gyro,
+        )
+        return rsu, gyro
+
+
+def _epoch_arrays(epoch: RsuGyroEpoch) -> tuple:
+    """positions (K, 2), observed (K, 2), yaw rates (G,), range and bearing variances (K,), gyro
+    variance: as the kernels take them."""
+    range_variances, bearing_variances, gyro_variance = epoch.variances
+    return (
+        np.ascontiguousarray(epoch.positions, dtype=float),
+        np.ascontiguousarray(epoch.observed, dtype=float),
+        np.ascontiguousarray(epoch.yaw_rates, dtype=float),
+        np.ascontiguousarray(range_variances, dtype=float),
+        np.ascontiguousarray(bearing_variances, dtype=float),
+        float(gyro_variance),
+    )
+
+
+def compiled_enabled() -> bool:
+    """False when ``EDGEPOS_NUMBA=0`` asks for the numpy reference, or numba cannot be imported."""
+    if os.environ.get("EDGEPOS_NUMBA", "1").strip().lower() in ("0", "false", "no", "off"):
+        return False
+    try:
+        from edgepos.core import kernels  # noqa: F401
+    except ImportError as error:  # pragma: no cover - numba is a dependency; this is a safety net
+        _log.warning("numba unavailable (%s): filtering runs on the numpy reference", error)
+        return False
+    return True
+
+
+def stepper_for(bank: InteractingMultipleModel) -> BankStepper:
+    """The compiled stepper when it is enabled and covers ``bank``, else the numpy reference."""
+    if compiled_enabled() and covered(bank):
+        return CompiledBankStepper(bank)
+    return BankStepper(bank)
+
+
+def warm_up() -> float:
+    """Compile (or load from the on-disk cache) every kernel signature the service uses, so that no
+    request pays it; returns the seconds it took. Runs one epoch of each covered filter kind, with
+    the paper's 2IMM-CKF bank, joint and averaged, and the gate."""
+    started = time.perf_counter()
+    if not compiled_enabled():
+        return 0.0
+    from edgepos.core.filters import make_filter
+    from edgepos.core.motion import make_motion_model
+
+    models = [make_motion_model(name) for name in ("ca", "at", "singer")]
+    transition = np.full((3, 3), 0.01) + np.eye(3) * 0.97
+    epoch = RsuGyroEpoch(
+        positions=np.array([[0.0, -3.875], [50.0, 3.875]]), observed=np.array([[4.0, 1.4], [50.0, -3.0]]),
+        range_std=np.array([0.6, 0.6]), bearing_std=np.array([0.01, 0.01]), yaw_rates=np.array([0.0]),
+        gyro_std=0.005,
+    )
+    mean = np.array([0.5, 10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    for filter_name, priority in (("ckf", [0, 1]), ("ukf", None), ("ekf", None)):
+        bank = InteractingMultipleModel(models, make_filter(filter_name), transition, priority)
+        stepper = CompiledBankStepper(bank)
+        means, covs = bank.initial(mean, np.eye(layout.FULL_DIM))
+        prediction = stepper.predict(means, covs, np.full(3, 1.0 / 3.0), 0.05)
+        stepper.gate_distances(prediction.output, epoch)
+        for averaged in (False, True):
+            stepper.correct(prediction, dataclasses.replace(epoch, averaged=averaged))
+    return time.perf_counter() - started
