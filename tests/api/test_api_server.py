@@ -159,10 +159,36 @@ def test_several_workers_need_a_shared_store(monkeypatch, capsys):
     monkeypatch.delenv("EDGEPOS_STORE", raising=False)
     assert serve.run(_serve_args("--workers", "2")) == 2
     message = capsys.readouterr().err
-    assert "EDGEPOS_STORE=sqlite:///" in message
+    assert "EDGEPOS_STORE=redis://" in message and "sqlite:///" in message
 
 
 def test_invalid_configuration_is_reported(monkeypatch, capsys):
     monkeypatch.setenv("EDGEPOS_MAX_SESSIONS", "-3")
     assert serve.run(_serve_args()) == 2
     assert "max_sessions" in capsys.readouterr().err
+
+
+def test_serve_refuses_auth_off_unless_declared_a_lab(tmp_path):
+    environment = {k: v for k, v in os.environ.items() if not k.startswith("EDGEPOS_")}
+    environment.update({"EDGEPOS_AUTH": "off", "EDGEPOS_ADMIN_KEY_FILE": str(tmp_path / "admin.key")})
+    refused = subprocess.run(
+        [sys.executable, "-m", "edgepos.cli", "serve", "--port", str(_free_port())],
+        env=environment,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=tmp_path,
+    )
+    assert refused.returncode == 2
+    assert "EDGEPOS_LAB=true" in refused.stderr and "--lab" in refused.stderr
+
+
+def test_lab_server_with_auth_off_is_open_and_says_so(tmp_path):
+    with running_server(tmp_path, "--lab", EDGEPOS_AUTH="off") as (url, log_path):
+        with httpx.Client(base_url=url, timeout=10.0) as client:
+            assert client.put("/v1/rsus", json=rsu_payload()).status_code == 200
+            session_id = client.post("/v1/sessions", json={"vehicle_id": "lab-car"}).json()["session_id"]
+            answer = client.post(f"/v1/sessions/{session_id}/batches", json=batch_body(1, 0, 3))
+            assert answer.status_code == 200 and len(answer.json()["fixes"]) == 3
+    log = log_path.read_text()
+    assert "AUTHENTICATION IS OFF" in log and "authentication is off" in log

@@ -51,3 +51,13 @@ def test_environment_variables(monkeypatch):
 def test_invalid_settings_are_refused(values):
     with pytest.raises(ValidationError):
         Settings(**values)
+
+
+def test_auth_off_is_refused_unless_the_instance_is_a_lab(monkeypatch):
+    monkeypatch.setenv("EDGEPOS_AUTH", "off")
+    with pytest.raises(ValidationError, match="EDGEPOS_LAB=true"):
+        Settings()
+    monkeypatch.setenv("EDGEPOS_LAB", "true")
+    settings = Settings()
+    assert not settings.auth_enabled and settings.lab
+    assert Settings(auth="on").auth_enabled

@@ -155,3 +155,25 @@ def test_vehicle_counts_an_error_and_resynchronises() -> None:
         "batch",
     ]  # the failed session is closed
     assert recorder.errors == {"conflict": 1} and recorder.requests == 3 and len(recorder.latencies_ms) == 2
+
+
+def test_a_vehicle_behind_schedule_stops_at_the_end_and_counts_what_it_did_not_send() -> None:
+    """Open loop against a server slower than the offered rate: the run stays bounded by its duration."""
+    import asyncio
+
+    from edgepos.loadgen.loadtest import LoadConfig
+
+    class SlowClient(FakeClient):
+        async def send_batch(self, session, measurements, seq=None, *, include_state=False):
+            await asyncio.sleep(0.1)  # 10 batches/s at most, against 50 offered
+            return await super().send_batch(session, measurements, seq, include_state=include_state)
+
+    client = SlowClient()
+    vehicle, recorder = _vehicle(client, batches=1000)
+    config = LoadConfig(url="http://127.0.0.1:1", vehicles=1, rate=50.0, batch=1, duration=0.5)
+    started = time.perf_counter()
+    asyncio.run(vehicle.run(config, started, 0.0))
+    elapsed = time.perf_counter() - started
+    assert elapsed < 0.75
+    assert 4 <= recorder.requests <= 6
+    assert recorder.requests + recorder.unsent == 25  # every due batch is either sent or counted as unsent

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 from edgepos.pipelines.base import Rsu
 from edgepos.store import MemoryStore, SessionRecord, SessionStore, SQLiteStore, TooManySessions, open_store
+from edgepos.store.ratelimit import RateLimit
 
 
 class Clock:
@@ -175,6 +176,37 @@ def test_many_rsu_lookups(store):
         assert len(found) == 1200 and found["r0999"].x == 999.0
 
     asyncio.run(scenario())
+
+
+def test_rate_limit_allows_a_burst_then_the_rate(store, clock):
+    """5 requests/s with bursts of 3: three at once pass, the fourth waits 0.2 s; budget comes back
+    at the rate, a refused request uses none, and keys are independent."""
+    limit = RateLimit(rate_per_s=5.0, burst=3)
+
+    async def scenario() -> None:
+        assert [await store.take_request("v1", limit) for _ in range(3)] == [0.0, 0.0, 0.0]
+        assert await store.take_request("v1", limit) == pytest.approx(0.2)
+        assert await store.take_request("v1", limit) == pytest.approx(0.2)  # refusals cost nothing
+        assert await store.take_request("v2", limit) == 0.0
+        clock.now += 0.1
+        assert await store.take_request("v1", limit) == pytest.approx(0.1)
+        clock.now += 0.1
+        assert await store.take_request("v1", limit) == 0.0
+        assert await store.take_request("v1", limit) == pytest.approx(0.2)
+        clock.now += 10.0  # idle: the whole burst is back, not more
+        assert [await store.take_request("v1", limit) for _ in range(3)] == [0.0, 0.0, 0.0]
+        assert await store.take_request("v1", limit) > 0
+        await store.expire()  # pruning keeps live budgets
+        assert await store.take_request("v1", limit) > 0
+
+    asyncio.run(scenario())
+
+
+def test_rate_limit_config_is_checked():
+    with pytest.raises(ValueError):
+        RateLimit(rate_per_s=0.0, burst=1)
+    with pytest.raises(ValueError):
+        RateLimit(rate_per_s=1.0, burst=0)
 
 
 def test_ping(store):

@@ -149,6 +149,25 @@ def test_session_limit_holds_under_concurrent_creates(redis_server: RedisServer,
     assert asyncio.run(scenario()) == (5, 5)
 
 
+def test_a_burst_wider_than_the_pool_waits_for_connections(redis_server: RedisServer, prefix: str, raw: redis.Redis):
+    """300 concurrent creates through a pool of 4 connections all succeed (they queue for a
+    connection instead of opening 300 sockets), and the store never holds more than 4."""
+
+    async def scenario() -> tuple[int, int]:
+        name = f"burst{uuid.uuid4().hex[:8]}"
+        instance = RedisStore(redis_server.url(prefix, max_connections="4", client_name=name), 60.0)
+        now = time.time()
+        await asyncio.gather(*(instance.create(record(f"b{i}", now=now), max_sessions=1000) for i in range(300)))
+        opened = sum(1 for client in raw.client_list() if client.get("name") == name)
+        count = await instance.count()
+        await instance.close()
+        return count, opened
+
+    count, opened = asyncio.run(scenario())
+    assert count == 300
+    assert 1 <= opened <= 4
+
+
 def _increment(url: str, session_id: str, count: int) -> int:
     """A worker process: add 1 to ``batches`` ``count`` times by load + compare-and-set + retry."""
 

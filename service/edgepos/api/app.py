@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 from collections.abc import AsyncIterator, Mapping
 from importlib import resources
@@ -22,7 +23,7 @@ from edgepos.api.context import AppContext
 from edgepos.api.errors import install_error_handlers
 from edgepos.api.logs import configure_logging
 from edgepos.api.metrics import Metrics
-from edgepos.api.middleware import BodyLimitMiddleware, RequestContextMiddleware
+from edgepos.api.middleware import AdmissionMiddleware, BodyLimitMiddleware, RequestContextMiddleware
 from edgepos.api.routes import docs, health, rsus, sessions
 from edgepos.api.routes import pipelines as pipeline_routes
 from edgepos.api.settings import Settings, ensure_admin_key
@@ -98,8 +99,17 @@ def create_app(
         # Compile the filter kernels (or load them from numba's cache) before the first request.
         seconds = await context.run_filter(warm_up_kernels)
         logger.info("filter kernels ready", extra={"event": "warm_up", "seconds": round(seconds, 3)})
+        # The ~150k objects of the imported libraries and compiled kernels live as long as the process:
+        # move them out of the collector's sight, or every full collection walks them all and stalls every
+        # request for 50-100 ms (measured: the p99 latency at 100 vehicles x 20 Hz was those pauses).
+        gc.collect()
+        gc.freeze()
         sweep_period = min(60.0, max(0.5, settings.session_ttl_s / 4.0))
         sweeper = asyncio.create_task(_expire_periodically(context.store, sweep_period))
+        if not settings.auth_enabled:
+            logger.warning(
+                "LAB MODE: authentication is off; every request has admin rights", extra={"event": "auth_off"}
+            )
         logger.info("edgepos ready", extra={"event": "startup", "store": settings.store.split(":", 1)[0]})
         try:
             yield
@@ -139,5 +149,11 @@ def create_app(
             allow_headers=["Authorization", "Content-Type", "X-Request-ID"],
             expose_headers=["X-Request-ID"],
         )
+    app.add_middleware(
+        AdmissionMiddleware,
+        max_inflight=settings.max_inflight,
+        queue_timeout_s=settings.queue_timeout_s,
+        metrics=context.metrics,
+    )
     app.add_middleware(RequestContextMiddleware, metrics=context.metrics)
     return app

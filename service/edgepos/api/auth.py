@@ -3,12 +3,21 @@
 Session tokens look like ``<session_id>.<random>``; the store keeps only their SHA-256, and every
 comparison of secrets uses ``hmac.compare_digest`` on fixed-length digests. 401 means the
 credential is missing or not valid; 403 means it is valid but does not open this resource.
+
+Every request made with a session token counts against that session's request-rate budget
+(EDGEPOS_RATE_LIMIT_PER_S, bursts of EDGEPOS_RATE_LIMIT_BURST), kept in the store so that it holds
+across workers and replicas; past it the answer is 429 with Retry-After. The budget is charged only
+after the token is verified, so nobody can spend another vehicle's budget. The admin key is not
+limited. Without EDGEPOS_ADMIN_KEY a random key is generated. Authentication is off only with
+EDGEPOS_AUTH=off, which the settings refuse unless the instance is declared a lab (EDGEPOS_LAB=true,
+``edgepos serve --lab``): then every request is the admin.
 """
 
 from __future__ import annotations
 
 import hashlib
 import hmac
+import math
 import secrets
 from dataclasses import dataclass
 from typing import Annotated
@@ -69,10 +78,34 @@ async def _valid_session_token(context: AppContext, secret: str) -> bool:
     return record is not None and _token_matches(secret, record.token_hash)
 
 
+_LAB = Principal(admin=True)
+
+
+def _auth_off(context: AppContext) -> bool:
+    """True on a lab instance started with EDGEPOS_AUTH=off: every caller is the admin."""
+    return not context.settings.auth_enabled
+
+
 def _secret(credentials: HTTPAuthorizationCredentials | None) -> str:
     if credentials is None or not credentials.credentials:
         raise ApiError("unauthorized", "missing credentials: send 'Authorization: Bearer <key or token>'")
     return credentials.credentials
+
+
+async def charge_rate_limit(context: AppContext, session_id: str) -> None:
+    """Count one request of this session's token; 429 rate_limited with Retry-After when over."""
+    limit = context.settings.rate_limit
+    if limit is None:
+        return
+    wait_s = await context.store.take_request(f"session:{session_id}", limit)
+    if wait_s > 0:
+        retry_after = max(1, math.ceil(wait_s))
+        raise ApiError(
+            "rate_limited",
+            f"this session's token is over its request rate ({limit.rate_per_s:g}/s, bursts of "
+            f"{limit.burst}; EDGEPOS_RATE_LIMIT_PER_S); retry after {retry_after} s",
+            headers={"Retry-After": str(retry_after)},
+        )
 
 
 _INVALID = "the bearer credential is not valid (unknown key, or the session's token does not match)"
@@ -83,6 +116,8 @@ async def require_admin(
     credentials: Credentials,
 ) -> Principal:
     """Only the admin key passes; a valid session token gets 403."""
+    if _auth_off(context):
+        return _LAB
     secret = _secret(credentials)
     if _is_admin(context, secret):
         return Principal(admin=True)
@@ -96,11 +131,14 @@ async def require_any(
     credentials: Credentials,
 ) -> Principal:
     """The admin key or any live session's token passes."""
+    if _auth_off(context):
+        return _LAB
     secret = _secret(credentials)
     if _is_admin(context, secret):
         return Principal(admin=True)
     session_id = _token_session_id(secret)
     if session_id is not None and await _valid_session_token(context, secret):
+        await charge_rate_limit(context, session_id)
         return Principal(admin=False, session_id=session_id)
     raise ApiError("unauthorized", _INVALID)
 
@@ -111,6 +149,8 @@ async def require_session(
     credentials: Credentials,
 ) -> Principal:
     """The admin key, or this session's own token (another session's valid token gets 403)."""
+    if _auth_off(context):
+        return _LAB
     secret = _secret(credentials)
     if _is_admin(context, secret):
         return Principal(admin=True)
@@ -126,4 +166,5 @@ async def require_session(
         raise ApiError("not_found", f"no session {session_id!r} (it may have expired or been deleted)")
     if not _token_matches(secret, record.token_hash):
         raise ApiError("unauthorized", _INVALID)
+    await charge_rate_limit(context, session_id)
     return Principal(admin=False, session_id=session_id)

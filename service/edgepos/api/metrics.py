@@ -65,6 +65,11 @@ class Metrics:
             buckets=_LATENCY_BUCKETS,
             registry=self.registry,
         )
+        self.waiting = Gauge(
+            "edgepos_requests_waiting",
+            "Requests of this worker waiting for a free slot (EDGEPOS_MAX_INFLIGHT) before being worked on.",
+            registry=self.registry,
+        )
         self.store_conflicts = Counter(
             "edgepos_store_conflicts",
             "Compare-and-set conflicts on session writes (another worker updated the session first).",

@@ -1,4 +1,5 @@
-"""ASGI middleware: request ids, access logs, metrics, the last-resort 500, and the body-size limit.
+"""ASGI middleware: request ids, access logs, metrics, the last-resort 500, admission control and
+the body-size limit.
 
 The size limit is enforced before any parsing: a Content-Length above the limit is refused at
 once, and a body streamed without one is counted chunk by chunk and refused as soon as it passes
@@ -7,7 +8,9 @@ the limit. Both answer 413 with the standard error body.
 
 from __future__ import annotations
 
+import asyncio
 import logging
+import math
 import re
 import time
 import uuid
@@ -31,13 +34,19 @@ access_logger = logging.getLogger("edgepos.access")
 error_logger = logging.getLogger("edgepos.api")
 
 
-async def _send_error(send: Send, status: int, code: str, message: str) -> None:
+async def _send_error(
+    send: Send, status: int, code: str, message: str, extra_headers: tuple[tuple[bytes, bytes], ...] = ()
+) -> None:
     body = error_body(code, message)
     await send(
         {
             "type": "http.response.start",
             "status": status,
-            "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())],
+            "headers": [
+                (b"content-type", b"application/json"),
+                (b"content-length", str(len(body)).encode()),
+                *extra_headers,
+            ],
         }
     )
     await send({"type": "http.response.body", "body": body})
@@ -146,3 +155,49 @@ class BodyLimitMiddleware:
             return await receive()
 
         await self.app(scope, replay, send)
+
+
+class AdmissionMiddleware:
+    """At most ``max_inflight`` requests of this worker past this point at once; the rest wait in
+    line, before their body is read, for up to ``queue_timeout_s`` and are then answered 503 with
+    Retry-After.
+
+    Why: under overload an asyncio worker that starts every request at once interleaves them all,
+    so each one's store round trip waits behind everyone else's CPU work and a healthy Redis looks
+    like a timeout. Bounding the work in progress keeps each request short; the waiting costs
+    nothing but latency, which the metrics show. Probes and metrics bypass the line so that an
+    orchestrator does not restart a busy worker.
+    """
+
+    BYPASS = frozenset({"/healthz", "/readyz", "/metrics"})
+
+    def __init__(self, app: ASGIApp, max_inflight: int, queue_timeout_s: float, metrics: Metrics) -> None:
+        self.app = app
+        self.slots = asyncio.Semaphore(max_inflight)
+        self.queue_timeout_s = queue_timeout_s
+        self.metrics = metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["path"] in self.BYPASS:
+            await self.app(scope, receive, send)
+            return
+        self.metrics.waiting.inc()
+        try:
+            await asyncio.wait_for(self.slots.acquire(), self.queue_timeout_s)
+        except TimeoutError:
+            retry_after = str(max(1, math.ceil(self.queue_timeout_s / 10))).encode()
+            await _send_error(
+                send,
+                503,
+                "unavailable",
+                f"this worker is busy: the request waited {self.queue_timeout_s:g} s "
+                "(EDGEPOS_QUEUE_TIMEOUT_S) without a free slot; retry after the Retry-After seconds",
+                ((b"retry-after", retry_after),),
+            )
+            return
+        finally:
+            self.metrics.waiting.dec()
+        try:
+            await self.app(scope, receive, send)
+        finally:
+            self.slots.release()

@@ -27,7 +27,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--workers",
         type=int,
         default=None,
-        help="worker processes (default: $EDGEPOS_WORKERS or 1); more than 1 needs EDGEPOS_STORE=sqlite:///path.db",
+        help="worker processes (default: $EDGEPOS_WORKERS or 1); more than 1 needs a shared store, EDGEPOS_STORE=redis://... or sqlite:///path.db",
+    )
+    parser.add_argument(
+        "--lab",
+        action="store_true",
+        default=None,
+        help="declare this a lab instance: the only way EDGEPOS_AUTH=off is accepted (default: $EDGEPOS_LAB or false)",
     )
     parser.add_argument(
         "--log-level",
@@ -45,6 +51,7 @@ def _settings(args: argparse.Namespace) -> Settings:
             ("port", args.port),
             ("workers", args.workers),
             ("log_level", args.log_level),
+            ("lab", getattr(args, "lab", None)),
         )
         if value is not None
     }
@@ -67,15 +74,22 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"edgepos serve: --workers {settings.workers} needs a store shared by the workers; with the "
             "in-process store each worker would hold a different set of sessions. Set "
-            "EDGEPOS_STORE=sqlite:///path/to/edgepos.db (or run one worker).",
+            "EDGEPOS_STORE=redis://host:6379/0 or sqlite:///path/to/edgepos.db (or run one worker).",
             file=sys.stderr,
         )
         return 2
+    if not settings.auth_enabled:
+        print(
+            "edgepos serve: LAB MODE, AUTHENTICATION IS OFF: anyone who reaches this port can read and write "
+            "every session and the RSU map. Never point real vehicles at this instance.",
+            file=sys.stderr,
+        )
     settings = ensure_admin_key(settings)
     admin_key = settings.admin_key.get_secret_value() if settings.admin_key is not None else ""
     # The workers build their apps from the environment: hand them the settled values.
     os.environ["EDGEPOS_ADMIN_KEY"] = admin_key
     os.environ["EDGEPOS_LOG_LEVEL"] = settings.log_level
+    os.environ["EDGEPOS_LAB"] = "true" if settings.lab else "false"
     configure_logging(settings.log_level, secrets=[admin_key])
     uvicorn.run(
         APP_FACTORY,

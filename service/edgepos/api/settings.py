@@ -12,6 +12,7 @@ from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from edgepos.geo import GeodeticOrigin
+from edgepos.store.ratelimit import RateLimit
 
 LogLevel = Literal["critical", "error", "warning", "info", "debug"]
 
@@ -48,6 +49,29 @@ class Settings(BaseSettings):
         1000, ge=1, le=100_000, description="Measurements allowed in one batch (422 beyond)."
     )
     max_body_bytes: int = Field(1_048_576, ge=1024, description="Largest request body in bytes (413 beyond).")
+    max_inflight: int = Field(
+        32,
+        ge=1,
+        le=10_000,
+        description="Requests one worker works on at once; more wait in line (before their body is read) "
+        "so that the ones in progress finish quickly and store round trips do not time out under overload.",
+    )
+    queue_timeout_s: float = Field(
+        30.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="Longest a request waits in that line before it is answered 503 with Retry-After.",
+    )
+    rate_limit_per_s: float = Field(
+        50.0,
+        ge=0,
+        allow_inf_nan=False,
+        description="Requests per second one session's token may make, sustained, counted in the store "
+        "so the limit holds across workers and replicas (429 with Retry-After beyond); 0 turns it off.",
+    )
+    rate_limit_burst: int = Field(
+        100, ge=1, description="Requests a session's token may make at once before the rate applies."
+    )
     origin_lat: float | None = Field(
         None, ge=-90, le=90, allow_inf_nan=False, description="Site origin latitude, WGS-84 decimal degrees."
     )
@@ -66,6 +90,16 @@ class Settings(BaseSettings):
     )
     log_level: LogLevel = Field("info", description="Log level of the JSON-lines logs.")
     demo_rsus: bool = Field(False, description="Preload the paper scenario's RSU map at start-up.")
+    auth: Literal["on", "off"] = Field(
+        "on",
+        description="'off' lets every request in with admin rights and no credentials, for a lab bench "
+        "only: refused unless lab is true.",
+    )
+    lab: bool = Field(
+        False,
+        description="Declares this instance a lab (no real vehicles): the only way to start with auth off. "
+        "Also `edgepos serve --lab`.",
+    )
 
     @field_validator("log_level", mode="before")
     @classmethod
@@ -86,6 +120,26 @@ class Settings(BaseSettings):
         if (self.origin_lat is None) != (self.origin_lon is None):
             raise ValueError("set both origin_lat and origin_lon, or neither")
         return self
+
+    @model_validator(mode="after")
+    def _auth_off_only_in_a_lab(self) -> Settings:
+        if self.auth == "off" and not self.lab:
+            raise ValueError(
+                "auth is 'off' (EDGEPOS_AUTH=off), which lets anyone read and write every session and the RSU "
+                "map; refused unless this is declared a lab: set EDGEPOS_LAB=true or pass `edgepos serve --lab`"
+            )
+        return self
+
+    @property
+    def auth_enabled(self) -> bool:
+        return self.auth == "on"
+
+    @property
+    def rate_limit(self) -> RateLimit | None:
+        """The per-session request-rate limit, or None when it is off."""
+        if self.rate_limit_per_s == 0:
+            return None
+        return RateLimit(self.rate_limit_per_s, self.rate_limit_burst)
 
     @property
     def cors_origin_list(self) -> list[str]:

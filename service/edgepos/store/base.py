@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from edgepos.pipelines.base import Rsu
+from edgepos.store.ratelimit import RateLimit
 
 Clock = Callable[[], float]
 
@@ -153,6 +154,13 @@ class SessionStore(ABC):
 
     @abstractmethod
     async def delete_rsu(self, rsu_id: str) -> bool: ...
+
+    # request-rate limits
+    @abstractmethod
+    async def take_request(self, key: str, limit: RateLimit) -> float:
+        """Count one request against ``key``'s budget (see edgepos.store.ratelimit): 0.0 when it is
+        allowed, else the seconds until it would be (a refused request uses no budget). Shared by
+        every process that shares the store, so the limit holds across workers."""
 
     # lifecycle
     async def ping(self) -> bool:

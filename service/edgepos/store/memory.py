@@ -10,6 +10,10 @@ from collections.abc import Iterable, Mapping
 
 from edgepos.pipelines.base import Rsu
 from edgepos.store.base import Clock, SessionRecord, SessionStore, TooManySessions
+from edgepos.store.ratelimit import RateLimit, gcra
+
+#: Past this many rate-limit entries, entries whose budget is full again are dropped.
+_RATE_ENTRIES_BEFORE_PRUNING = 4096
 
 
 class MemoryStore(SessionStore):
@@ -20,6 +24,7 @@ class MemoryStore(SessionStore):
         super().__init__(ttl_s, clock)
         self._sessions: dict[str, SessionRecord] = {}
         self._rsus: dict[str, Rsu] = {}
+        self._rate_tats: dict[str, float] = {}
 
     @staticmethod
     def _copy(record: SessionRecord) -> SessionRecord:
@@ -87,3 +92,13 @@ class MemoryStore(SessionStore):
 
     async def delete_rsu(self, rsu_id: str) -> bool:
         return self._rsus.pop(rsu_id, None) is not None
+
+    async def take_request(self, key: str, limit: RateLimit) -> float:
+        now = self.clock()
+        wait, tat = gcra(self._rate_tats.get(key), now, limit)
+        if tat is None:
+            return wait
+        if len(self._rate_tats) >= _RATE_ENTRIES_BEFORE_PRUNING and key not in self._rate_tats:
+            self._rate_tats = {k: v for k, v in self._rate_tats.items() if v > now}
+        self._rate_tats[key] = tat
+        return 0.0

@@ -24,17 +24,24 @@ from contextlib import asynccontextmanager
 from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
 
 from redis import exceptions as redis_errors
-from redis.asyncio import Redis
+from redis.asyncio import BlockingConnectionPool, Redis
 from redis.asyncio.retry import Retry
 from redis.backoff import ExponentialBackoff
 from redis.commands.core import AsyncScript
 
 from edgepos.pipelines.base import Rsu
 from edgepos.store.base import Clock, SessionRecord, SessionStore, StoreUnavailable, TooManySessions
+from edgepos.store.ratelimit import SLACK_S, RateLimit
 
 DEFAULT_PREFIX = "edgepos:"
 DEFAULT_CONNECT_TIMEOUT_S = 0.5
 DEFAULT_SOCKET_TIMEOUT_S = 1.0
+DEFAULT_MAX_CONNECTIONS = 64
+"""Connections per worker process. Requests beyond it wait for a free connection (a Redis
+command takes well under a millisecond) instead of opening more: a thousand vehicles connecting at
+once would otherwise open a thousand sockets, miss the connect timeout and answer 503."""
+DEFAULT_POOL_TIMEOUT_S = 5.0
+"""How long a request waits for a pooled connection before answering 503."""
 _SCHEMES = ("redis", "rediss", "unix")
 _CHUNK = 500
 
@@ -86,6 +93,20 @@ return {purged, redis.call('ZCARD', KEYS[1])}
 """
 )
 
+# GCRA (edgepos.store.ratelimit.gcra, transcribed). KEYS: the key's TAT. ARGV: now, interval,
+# tolerance, slack (s). Returns the wait in seconds as a string ("0" when allowed, and the TAT is stored
+# with a TTL until the key's whole burst is back).
+_TAKE_REQUEST = """
+local now = tonumber(ARGV[1])
+local tat = tonumber(redis.call('GET', KEYS[1]) or '')
+if (not tat) or tat < now then tat = now end
+local wait = tat - now - tonumber(ARGV[3])
+if wait > tonumber(ARGV[4]) then return string.format('%.17g', wait) end
+tat = tat + tonumber(ARGV[2])
+redis.call('SET', KEYS[1], string.format('%.17g', tat), 'PX', math.ceil((tat - now) * 1000) + 1)
+return '0'
+"""
+
 _UNAVAILABLE = (
     redis_errors.ConnectionError,  # refused, reset, DNS, auth failures, server still loading
     redis_errors.TimeoutError,
@@ -114,6 +135,8 @@ def parse_url(url: str) -> tuple[str, str]:
         raise ValueError("the Redis key prefix must not be empty")
     query.setdefault("socket_connect_timeout", str(DEFAULT_CONNECT_TIMEOUT_S))
     query.setdefault("socket_timeout", str(DEFAULT_SOCKET_TIMEOUT_S))
+    query.setdefault("max_connections", str(DEFAULT_MAX_CONNECTIONS))
+    query.setdefault("timeout", str(DEFAULT_POOL_TIMEOUT_S))
     return urlunsplit(parts._replace(query=urlencode(query))), prefix
 
 
@@ -191,6 +214,7 @@ class RedisStore(SessionStore):
         self.session_prefix = f"{self.prefix}session:"
         self.index_key = f"{self.prefix}sessions"
         self.rsu_key = f"{self.prefix}rsus"
+        self.rate_prefix = f"{self.prefix}rate:"
         self._ttl_ms = max(1, math.ceil(self.ttl_s * 1000.0))
         self._client: Redis | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -204,13 +228,17 @@ class RedisStore(SessionStore):
         if self._client is None or self._loop is not loop:
             # One reconnect attempt: replaces a pooled connection that went stale (Redis restarted)
             # and is safe for writes, which are compare-and-set or idempotent.
-            client = Redis.from_url(self.url, retry=Retry(ExponentialBackoff(cap=0.2, base=0.05), retries=1))
+            pool = BlockingConnectionPool.from_url(
+                self.url, retry=Retry(ExponentialBackoff(cap=0.2, base=0.05), retries=1)
+            )
+            client = Redis.from_pool(pool)  # closing the client closes its pool
             closer = self._closed_with_loop(client)
             self._client, self._loop, self._closer = client, loop, closer
             self._scripts = {
                 "create": client.register_script(_CREATE),
                 "cas": client.register_script(_COMPARE_AND_SET),
                 "count": client.register_script(_PURGE_AND_COUNT),
+                "take": client.register_script(_TAKE_REQUEST),
             }
             await anext(closer)  # started, so the loop's shutdown will close it
         return self._client
@@ -352,6 +380,17 @@ class RedisStore(SessionStore):
     async def delete_rsu(self, rsu_id: str) -> bool:
         async with self._guard():
             return bool(await (await self._redis()).hdel(self.rsu_key, rsu_id))
+
+    # request-rate limits --------------------------------------------------------------------
+    async def take_request(self, key: str, limit: RateLimit) -> float:
+        async with self._guard():
+            client = await self._redis()
+            wait = await self._scripts["take"](
+                keys=[f"{self.rate_prefix}{key}"],
+                args=[repr(float(self.clock())), repr(limit.interval_s), repr(limit.tolerance_s), repr(SLACK_S)],
+                client=client,
+            )
+        return float(wait)
 
     # lifecycle ------------------------------------------------------------------------------
     async def ping(self) -> bool:

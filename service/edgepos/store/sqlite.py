@@ -19,6 +19,7 @@ from typing import Any, TypeVar
 
 from edgepos.pipelines.base import Rsu
 from edgepos.store.base import Clock, SessionRecord, SessionStore, TooManySessions
+from edgepos.store.ratelimit import RateLimit, gcra
 
 T = TypeVar("T")
 
@@ -48,6 +49,10 @@ CREATE TABLE IF NOT EXISTS rsus (
     range_std REAL,
     bearing_std REAL,
     radius REAL
+);
+CREATE TABLE IF NOT EXISTS rate_limits (
+    key TEXT PRIMARY KEY,
+    tat REAL NOT NULL
 );
 """
 
@@ -219,6 +224,7 @@ class SQLiteStore(SessionStore):
 
     async def expire(self) -> int:
         def work(db: sqlite3.Connection) -> int:
+            db.execute("DELETE FROM rate_limits WHERE tat < ?", (self.clock(),))  # budgets full again
             return db.execute("DELETE FROM sessions WHERE updated_at < ?", (self._live_since(),)).rowcount
 
         return await self._run(work)
@@ -270,6 +276,23 @@ class SQLiteStore(SessionStore):
     async def delete_rsu(self, rsu_id: str) -> bool:
         def work(db: sqlite3.Connection) -> bool:
             return db.execute("DELETE FROM rsus WHERE id = ?", (rsu_id,)).rowcount == 1
+
+        return await self._run(work)
+
+    # request-rate limits --------------------------------------------------------------------
+    async def take_request(self, key: str, limit: RateLimit) -> float:
+        def work(db: sqlite3.Connection) -> float:
+            db.execute("BEGIN IMMEDIATE")
+            try:
+                row = db.execute("SELECT tat FROM rate_limits WHERE key = ?", (key,)).fetchone()
+                wait, tat = gcra(None if row is None else row[0], self.clock(), limit)
+                if tat is not None:
+                    db.execute("INSERT OR REPLACE INTO rate_limits VALUES (?, ?)", (key, tat))
+            except BaseException:
+                db.execute("ROLLBACK")
+                raise
+            db.execute("COMMIT")
+            return wait
 
         return await self._run(work)
 

@@ -13,8 +13,9 @@ _DESCRIPTIONS = {
     409: "The batch's seq does not follow the session's last applied seq.",
     413: "The request body is larger than EDGEPOS_MAX_BODY_BYTES.",
     422: "The request is invalid; every problem is listed.",
-    429: "Too many sessions (EDGEPOS_MAX_SESSIONS).",
-    503: "Temporarily unavailable; retry.",
+    429: "Too many sessions (EDGEPOS_MAX_SESSIONS), or the session token is over its request rate "
+    "(EDGEPOS_RATE_LIMIT_PER_S); Retry-After says when to retry.",
+    503: "Temporarily unavailable (e.g. the session store does not answer); retry.",
 }
 
 

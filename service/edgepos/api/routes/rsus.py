@@ -37,7 +37,7 @@ RsuId = Annotated[
     response_model=Upserted,
     summary="Insert or replace many RSUs",
     dependencies=[Depends(require_admin)],
-    responses=errors(401, 403, 413, 422),
+    responses=errors(401, 403, 413, 422, 503),
 )
 async def put_rsus(body: RsuBulk, context: Context) -> Upserted:
     """Upsert every RSU of the body by id (admin key). Ids must be unique within one request."""
@@ -58,7 +58,7 @@ async def put_rsus(body: RsuBulk, context: Context) -> Upserted:
     response_model=RsuList,
     summary="List every RSU",
     dependencies=[Depends(require_any)],
-    responses=errors(401),
+    responses=errors(401, 429, 503),
 )
 async def list_rsus(context: Context) -> RsuList:
     """Every registered RSU, sorted by id (admin key or any session token)."""
@@ -70,7 +70,7 @@ async def list_rsus(context: Context) -> RsuList:
     response_model=RsuOut,
     summary="Read one RSU",
     dependencies=[Depends(require_any)],
-    responses=errors(401, 404, 422),
+    responses=errors(401, 404, 422, 429, 503),
 )
 async def get_rsu(rsu_id: RsuId, context: Context) -> RsuOut:
     """One RSU by id (admin key or any session token)."""
@@ -85,7 +85,7 @@ async def get_rsu(rsu_id: RsuId, context: Context) -> RsuOut:
     response_model=RsuOut,
     summary="Insert or replace one RSU",
     dependencies=[Depends(require_admin)],
-    responses=errors(401, 403, 413, 422),
+    responses=errors(401, 403, 413, 422, 503),
 )
 async def put_rsu(body: RsuPut, rsu_id: RsuId, context: Context) -> RsuOut:
     """Upsert the RSU at this id (admin key); a body ``id``, if given, must equal the path's."""
@@ -107,7 +107,7 @@ async def put_rsu(body: RsuPut, rsu_id: RsuId, context: Context) -> RsuOut:
     response_class=Response,
     summary="Delete one RSU",
     dependencies=[Depends(require_admin)],
-    responses=errors(401, 403, 404, 422),
+    responses=errors(401, 403, 404, 422, 503),
 )
 async def delete_rsu(rsu_id: RsuId, context: Context) -> Response:
     """Remove an RSU (admin key). Sessions that later report it get 'unknown RSU'."""

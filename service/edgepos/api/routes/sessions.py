@@ -13,13 +13,37 @@ from edgepos.api.schemas import BatchIn, BatchOut, SessionCreate, SessionCreated
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 
+# OpenAPI links: how a client (and schemathesis' stateful tests) goes from one call to the next.
+_READ, _SEND, _DELETE = (
+    "get_session_v1_sessions__session_id__get",
+    "post_batch_v1_sessions__session_id__batches_post",
+    "delete_session_v1_sessions__session_id__delete",
+)
+
+
+def _links(session_id: str, *targets: tuple[str, str, str]) -> dict[str, object]:
+    return {
+        name: {"operationId": operation, "parameters": {"session_id": session_id}, "description": text}
+        for name, operation, text in targets
+    }
+
+
+_READ_IT = ("ReadSession", _READ, "Read this session (counters, last seq, latest fix).")
+_SEND_TO_IT = ("SendBatch", _SEND, "Send this session a batch of measurements.")
+_DELETE_IT = ("DeleteSession", _DELETE, "End this session.")
+_FROM_BODY = "$response.body#/session_id"
+_FROM_PATH = "$request.path.session_id"
+
 
 @router.post(
     "",
     status_code=201,
     response_model=SessionCreated,
     summary="Open a session",
-    responses=errors(413, 422, 429),
+    responses={
+        **errors(413, 422, 429, 503),
+        201: {"links": _links(_FROM_BODY, _READ_IT, _SEND_TO_IT, _DELETE_IT)},
+    },
 )
 async def create_session(body: SessionCreate, context: Context) -> SessionCreated:
     """Create a session for a vehicle. Keep the returned token: it is shown once and opens only this
@@ -32,7 +56,7 @@ async def create_session(body: SessionCreate, context: Context) -> SessionCreate
     response_model=SessionOut,
     summary="Read a session",
     dependencies=[Depends(require_session)],
-    responses=errors(401, 403, 404, 422),
+    responses={**errors(401, 403, 404, 422, 429, 503), 200: {"links": _links(_FROM_BODY, _SEND_TO_IT, _DELETE_IT)}},
 )
 async def get_session(session_id: str, context: Context) -> SessionOut:
     """Options, counters, model probabilities, last seq and the latest fix (session token or admin key)."""
@@ -45,7 +69,7 @@ async def get_session(session_id: str, context: Context) -> SessionOut:
     response_class=Response,
     summary="Delete a session",
     dependencies=[Depends(require_session)],
-    responses=errors(401, 403, 404, 422),
+    responses=errors(401, 403, 404, 422, 429, 503),
 )
 async def delete_session(session_id: str, context: Context) -> Response:
     """End the session and forget its state (session token or admin key)."""
@@ -58,7 +82,10 @@ async def delete_session(session_id: str, context: Context) -> Response:
     response_model=BatchOut,
     summary="Send a batch of measurements",
     dependencies=[Depends(require_session)],
-    responses=errors(401, 403, 404, 409, 413, 422, 503),
+    responses={
+        **errors(401, 403, 404, 409, 413, 422, 429, 503),
+        200: {"links": _links(_FROM_PATH, _READ_IT, _SEND_TO_IT, _DELETE_IT)},
+    },
 )
 async def post_batch(session_id: str, body: BatchIn, context: Context) -> Response:
     """Filter the batch and return one fix per epoch (measurements sharing t), in time order.

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from edgepos.core import layout
-from edgepos.core.motion.base import MotionModel, check_noise_form, check_positive, dt_key, van_loan
+from edgepos.core.motion.base import MotionModel, check_noise_form, check_positive, dt_key, markov_chain
 from edgepos.core.motion.turn import turn_matrix, turn_matrix_omega_derivative, turn_noise, turn_propagate
 from edgepos.core.numerics import wrap_angle
 
@@ -63,8 +63,7 @@ class AdaptiveTurn(MotionModel):
 
 @functools.lru_cache(maxsize=256)
 def _turn_rate_block(beta: float, eta: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    drift = np.array([[0.0, 1.0], [0.0, -beta]])
-    transition, noise = van_loan(drift, np.diag([0.0, 2.0 * beta * eta * eta]), dt)
+    transition, noise = markov_chain(2, beta, 2.0 * beta * eta * eta, dt)
     transition.setflags(write=False)
     noise.setflags(write=False)
     return transition, noise

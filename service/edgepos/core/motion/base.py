@@ -12,7 +12,7 @@ from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
 import numpy as np
-from scipy.linalg import block_diag, expm
+from scipy.linalg import expm
 
 from edgepos.core.errors import ConfigurationError
 
@@ -97,6 +97,91 @@ def dt_key(dt: float) -> float:
     return round(float(dt), DT_RESOLUTION_DECIMALS)
 
 
+def integrator_chain(order: int, density: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact F and Q of a chain of ``order`` integrators driven by white noise of spectral density
+    ``density`` on its last state (CV: order 2, CA: order 3), in closed form.
+
+    F[i, j] = T^(j-i) / (j-i)!; with m = order - 1 - i and n = order - 1 - j the powers of T that
+    reach states i and j, Q[i, j] = density T^(m+n+1) / (m! n! (m+n+1)). Every term is a positive
+    monomial, so nothing cancels, and it costs a few microseconds where Van Loan costs tens: with
+    timestamps that jitter, every interval is new and misses the per-interval caches.
+    """
+    lag, transition_coefficients, total, noise_coefficients = _chain_tables(order)
+    return dt**lag * transition_coefficients, density * dt**total * noise_coefficients
+
+
+@functools.lru_cache(maxsize=8)
+def _chain_tables(order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The exponents and coefficients of :func:`integrator_chain`, which depend on the order only."""
+    index = np.arange(order)
+    lag = np.maximum(index[None, :] - index[:, None], 0)
+    factorial = np.array([math.factorial(k) for k in range(2 * order)], dtype=float)
+    transition_coefficients = np.where(index[None, :] >= index[:, None], 1.0 / factorial[lag], 0.0)
+    powers = order - 1 - index
+    total = powers[:, None] + powers[None, :] + 1
+    noise_coefficients = 1.0 / (factorial[powers][:, None] * factorial[powers][None, :] * total)
+    return lag, transition_coefficients, total, noise_coefficients
+
+
+def markov_chain(order: int, rate: float, density: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact F and Q of a chain of ``order`` states whose last one is a first-order Markov process,
+    d x_last = -rate x_last dt + dw with E[dw^2] = density dt (Singer: order 3, the AT turn rate:
+    order 2), in closed form; ``rate`` 0 is :func:`integrator_chain`.
+
+    With z = rate T and phi_m(x) = sum_k x^k / (k+m)!, the column that reaches state i from the last
+    is g_i(s) = s^m phi_m(-rate s), m = order - 1 - i: F's last column is g(T) and
+    Q = density int_0^T g g^T ds, a power series in z per entry whose coefficients depend on the
+    order only. The series is summed where z <= 1/2 (a few dozen terms reach the last bit); a longer
+    interval is halved until it is that short, and doubled back with F(2h) = F(h)^2,
+    Q(2h) = Q(h) + F(h) Q(h) F(h)^T (positive terms only), as Van Loan's formula is used in
+    :func:`van_loan`. Costs microseconds, so intervals that jitter do not need a cache hit.
+    """
+    if rate == 0.0:
+        return integrator_chain(order, density, dt)
+    doublings = max(0, math.ceil(math.log2(rate * dt / 0.5))) if rate * dt > 0.5 else 0
+    step = dt / 2.0**doublings
+    lag, transition_coefficients, total, _ = _chain_tables(order)
+    column_series, noise_series = _markov_tables(order)
+    powers = (-rate * step) ** np.arange(_MARKOV_TERMS)
+    transition = step**lag * transition_coefficients
+    reach = order - 1 - np.arange(order)
+    transition[:, -1] = step**reach * (column_series @ powers)
+    noise = density * step**total * (noise_series @ powers)
+    for _ in range(doublings):
+        noise = noise + transition @ noise @ transition.T
+        transition = transition @ transition
+    return transition, 0.5 * (noise + noise.T)
+
+
+_MARKOV_TERMS = 30
+
+
+@functools.lru_cache(maxsize=8)
+def _markov_tables(order: int) -> tuple[np.ndarray, np.ndarray]:
+    """Series coefficients of :func:`markov_chain`: phi_m's for F's last column, (order,  K), and
+    sum_{j<=k} 1 / ((j+m)! (k-j+n)!) / (m+n+k+1) for Q[i, j], (order, order, K)."""
+    terms = _MARKOV_TERMS
+    inverse_factorial = np.array([1.0 / math.factorial(k) for k in range(terms + 2 * order)])
+    reach = order - 1 - np.arange(order)
+    column = np.array([[inverse_factorial[k + m] for k in range(terms)] for m in reach])
+    noise = np.zeros((order, order, terms))
+    for i, m in enumerate(reach):
+        for j, n in enumerate(reach):
+            for k in range(terms):
+                product = sum(inverse_factorial[a + m] * inverse_factorial[k - a + n] for a in range(k + 1))
+                noise[i, j, k] = product / (m + n + k + 1)
+    return column, noise
+
+
+def two_axes(axis: np.ndarray) -> np.ndarray:
+    """The block-diagonal matrix diag(axis, axis) for a model whose x and y axes are alike."""
+    n = axis.shape[0]
+    out = np.zeros((2 * n, 2 * n))
+    out[:n, :n] = axis
+    out[n:, n:] = axis
+    return out
+
+
 def van_loan(a: np.ndarray, noise_density: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """Exact discretisation of dx = A x dt + dw with E[dw dw^T] = noise_density dt.
 
@@ -171,6 +256,10 @@ class LinearAxisModel(MotionModel):
         """Per-axis Q when the model's noise is piecewise constant; None for the continuous form."""
         return None
 
+    def axis_exact(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """Per-axis F and continuous-form Q over ``dt``: Van Loan unless a subclass has a closed form."""
+        return van_loan(self.axis_drift(), self.axis_noise_density(), dt)
+
     def discretise(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
         return _axis_discretisation(self, dt_key(dt))
 
@@ -198,12 +287,12 @@ class LinearAxisModel(MotionModel):
 
 @functools.lru_cache(maxsize=512)
 def _axis_discretisation(model: LinearAxisModel, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    axis_f, axis_q = van_loan(model.axis_drift(), model.axis_noise_density(), dt)
+    axis_f, axis_q = model.axis_exact(dt)
     discrete = model.axis_discrete_noise(dt)
     if discrete is not None:
         axis_q = discrete
-    transition = block_diag(axis_f, axis_f)
-    noise = block_diag(axis_q, axis_q)
+    transition = two_axes(axis_f)
+    noise = two_axes(axis_q)
     transition.setflags(write=False)
     noise.setflags(write=False)
     return transition, noise

@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from edgepos.core import layout
-from edgepos.core.motion.base import LinearAxisModel, check_noise_form, check_positive, discrete_noise
+from edgepos.core.motion.base import LinearAxisModel, check_noise_form, check_positive, discrete_noise, integrator_chain
 
 
 class ConstantVelocity(LinearAxisModel):
@@ -33,6 +33,9 @@ class ConstantVelocity(LinearAxisModel):
 
     def axis_discrete_noise(self, dt: float) -> np.ndarray | None:
         return discrete_noise(self.q, 2, dt) if self.noise == "discrete" else None
+
+    def axis_exact(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        return integrator_chain(2, self.q, dt)
 
     def params(self) -> dict[str, Any]:
         return {"q": self.q, "noise": self.noise}

@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from edgepos.core import layout
-from edgepos.core.motion.base import LinearAxisModel, check_positive
+from edgepos.core.motion.base import LinearAxisModel, check_positive, markov_chain
 
 
 def singer_drift(alpha: float) -> np.ndarray:
@@ -33,6 +33,9 @@ class Singer(LinearAxisModel):
 
     def axis_noise_density(self) -> np.ndarray:
         return np.diag([0.0, 0.0, 2.0 * self.alpha * self.sigma**2])
+
+    def axis_exact(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        return markov_chain(3, self.alpha, 2.0 * self.alpha * self.sigma**2, dt)
 
     def params(self) -> dict[str, Any]:
         return {"alpha": self.alpha, "sigma": self.sigma}

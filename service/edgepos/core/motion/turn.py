@@ -19,7 +19,7 @@ import functools
 
 import numpy as np
 
-from edgepos.core.motion.base import discrete_noise
+from edgepos.core.motion.base import discrete_noise, two_axes
 
 #: Below this |omega T| the trigonometric ratios are evaluated by their Taylor series.
 _SMALL_TURN = 1e-4
@@ -44,7 +44,7 @@ def turn_noise(q: float, noise_form: str, dt: float) -> np.ndarray:
         axis = discrete_noise(q, 3, dt)
     else:
         axis = q * np.array([[dt * dt * dt / 3.0, dt * dt / 2.0, 0.0], [dt * dt / 2.0, dt, 0.0], [0.0, 0.0, dt]])
-    noise = np.kron(np.eye(2), axis)
+    noise = two_axes(axis)
     noise.setflags(write=False)
     return noise
 

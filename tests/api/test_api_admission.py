@@ -1,0 +1,87 @@
+"""Admission control: a worker works on at most EDGEPOS_MAX_INFLIGHT requests at once; the rest
+wait in line and are answered 503 with Retry-After only after EDGEPOS_QUEUE_TIMEOUT_S; probes skip
+the line."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+import httpx
+import pytest
+from edgepos.api.metrics import Metrics
+from edgepos.api.middleware import AdmissionMiddleware
+from edgepos.api.settings import Settings
+
+
+class Gate:
+    """An ASGI app whose requests to /slow hold until ``release`` is set; it counts how many run."""
+
+    def __init__(self) -> None:
+        self.release = asyncio.Event()
+        self.running = 0
+        self.most_running = 0
+
+    async def __call__(self, scope, receive, send) -> None:
+        self.running += 1
+        self.most_running = max(self.most_running, self.running)
+        try:
+            if scope["path"] == "/slow":
+                await self.release.wait()
+            await send({"type": "http.response.start", "status": 200, "headers": []})
+            await send({"type": "http.response.body", "body": b"ok"})
+        finally:
+            self.running -= 1
+
+
+def client_for(app) -> httpx.AsyncClient:
+    return httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://edge")
+
+
+def test_requests_beyond_the_slots_wait_then_all_succeed():
+    async def scenario() -> tuple[list[int], int]:
+        gate = Gate()
+        metrics = Metrics()
+        app = AdmissionMiddleware(gate, max_inflight=2, queue_timeout_s=10.0, metrics=metrics)
+        async with client_for(app) as client:
+            pending = [asyncio.create_task(client.get("/slow")) for _ in range(6)]
+            await asyncio.sleep(0.05)
+            assert gate.running == 2
+            assert metrics.waiting._value.get() == 4
+            gate.release.set()
+            responses = await asyncio.gather(*pending)
+        return [r.status_code for r in responses], gate.most_running
+
+    statuses, most_running = asyncio.run(scenario())
+    assert statuses == [200] * 6
+    assert most_running == 2
+
+
+def test_a_request_that_waits_too_long_gets_503_with_retry_after_and_probes_skip_the_line():
+    async def scenario() -> tuple[httpx.Response, httpx.Response, httpx.Response]:
+        gate = Gate()
+        app = AdmissionMiddleware(gate, max_inflight=1, queue_timeout_s=0.1, metrics=Metrics())
+        async with client_for(app) as client:
+            holder = asyncio.create_task(client.get("/slow"))
+            await asyncio.sleep(0.02)
+            refused = await client.get("/v1/sessions/x")
+            probe = await client.get("/readyz")
+            gate.release.set()
+            await holder
+            after = await client.get("/v1/sessions/x")
+        return refused, probe, after
+
+    refused, probe, after = asyncio.run(scenario())
+    assert refused.status_code == 503
+    assert int(refused.headers["retry-after"]) >= 1
+    body = json.loads(refused.content)
+    assert body["error"]["code"] == "unavailable"
+    assert "EDGEPOS_QUEUE_TIMEOUT_S" in body["error"]["message"]
+    assert probe.status_code == 200
+    assert after.status_code == 200
+
+
+@pytest.mark.parametrize("field,value", [("max_inflight", 0), ("queue_timeout_s", 0), ("queue_timeout_s", "nan")])
+def test_admission_settings_are_bounded(field: str, value: object):
+    with pytest.raises(ValueError, match=field):
+        Settings(**{field: value})
