@@ -277,7 +277,8 @@ def _check_satellites(
     problems = satellite_problems(observations, loaded, systems)
     if problems:
         count = len(problems)
-        what = "no ephemerides are loaded" if loaded is None else "the loaded ephemerides do not cover them"
+        them = "it" if count == 1 else "them"
+        what = "no ephemerides are loaded" if loaded is None else f"the loaded ephemerides do not cover {them}"
         raise ApiError(
             "invalid_request",
             f"{count} pseudorange{'s have' if count != 1 else ' has'} no satellite position: {what}; "
