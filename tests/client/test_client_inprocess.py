@@ -37,10 +37,13 @@ async def test_rsu_registry_round_trip(aclient: AsyncEdgeposClient) -> None:
 
 
 async def test_pipelines_list_options(aclient: AsyncEdgeposClient) -> None:
-    (pipeline,) = await aclient.pipelines()
-    assert pipeline.name == "rsu_imu"
-    assert set(pipeline.measurement_types) == {"rsu", "gyro"}
-    assert "filter" in {option.name for option in pipeline.options}
+    pipelines = {pipeline.name: pipeline for pipeline in await aclient.pipelines()}
+    assert set(pipelines) >= {"rsu_imu", "gnss_tight"}
+    assert set(pipelines["rsu_imu"].measurement_types) == {"rsu", "gyro"}
+    assert "filter" in {option.name for option in pipelines["rsu_imu"].options}
+    assert pipelines["gnss_tight"].measurement_types == ["pseudorange", "riss"]
+    particles = {option.name: option for option in pipelines["gnss_tight"].options}["particles"]
+    assert (particles.default, particles.minimum, particles.maximum) == (200, 10, 5000)
 
 
 async def test_session_lifecycle_tracks_seq(aclient: AsyncEdgeposClient) -> None:
