@@ -36,7 +36,9 @@ from edgepos_client.models import (
 )
 
 _MEASUREMENT_MODELS = (RsuMeasurement, GyroMeasurement, PseudorangeMeasurement, RissMeasurement)
-MeasurementLike = RsuMeasurement | GyroMeasurement | PseudorangeMeasurement | RissMeasurement | Mapping[str, Any]
+MeasurementLike = (
+    RsuMeasurement | GyroMeasurement | PseudorangeMeasurement | RissMeasurement | Mapping[str, Any]
+)
 NavigationLike = str | bytes | os.PathLike[str]
 """A RINEX navigation file: its text, its bytes, or a path to read it from."""
 RsuLike = Rsu | Mapping[str, Any]

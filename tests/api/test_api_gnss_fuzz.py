@@ -18,7 +18,8 @@ FILTERS = [{"filter": "ukf"}, {"filter": "pf", "particles": 10}, {"filter": "upf
 def gnss_client(tmp_path_factory: pytest.TempPathFactory):
     app = create_app(make_settings(tmp_path_factory.mktemp("fuzz"), rate_limit_per_s=0))
     with TestClient(app) as client:
-        response = client.put("/v1/ephemerides", content=nav_text(), headers={**ADMIN, "Content-Type": "text/plain"})
+        headers = {**ADMIN, "Content-Type": "text/plain"}
+        response = client.put("/v1/ephemerides", content=nav_text(), headers=headers)
         assert response.status_code == 200
         yield client
 
@@ -40,7 +41,11 @@ epoch_edit = st.tuples(
 def test_no_batch_of_valid_pseudoranges_gets_a_500(gnss_client, options, fuzzy, edits, skip):
     created = gnss_client.post(
         "/v1/sessions",
-        json={"vehicle_id": "fuzz", "pipeline": "gnss_tight", "options": {**options, "fuzzy": fuzzy, "seed": 3}},
+        json={
+            "vehicle_id": "fuzz",
+            "pipeline": "gnss_tight",
+            "options": {**options, "fuzzy": fuzzy, "seed": 3},
+        },
     )
     assert created.status_code == 201, created.text
     session_id, token = created.json()["session_id"], {"Authorization": f"Bearer {created.json()['token']}"}

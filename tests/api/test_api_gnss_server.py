@@ -44,7 +44,8 @@ def test_gnss_tight_over_a_real_socket_on_two_redis_workers(tmp_path):
                 )
                 assert uploaded.status_code == 200, uploaded.text
                 created = client.post(
-                    "/v1/sessions", json={"vehicle_id": "socket-gnss", "pipeline": "gnss_tight", "options": QUICK}
+                    "/v1/sessions",
+                    json={"vehicle_id": "socket-gnss", "pipeline": "gnss_tight", "options": QUICK},
                 ).json()
             token = {"Authorization": f"Bearer {created['token']}"}
             fixes = []
@@ -57,7 +58,8 @@ def test_gnss_tight_over_a_real_socket_on_two_redis_workers(tmp_path):
                     )
                     assert response.status_code == 200, response.text
                     fixes.extend(response.json()["fixes"])
-                    assert client.get("/v1/ephemerides", headers=token).json()["digest"] == uploaded.json()["digest"]
+                    summary = client.get("/v1/ephemerides", headers=token).json()
+                    assert summary["digest"] == uploaded.json()["digest"]
     assert [fix["status"] for fix in fixes] == ["initialised"] + ["tracking"] * 9
     errors = [e for e in (horizontal_error(fix) for fix in fixes) if e is not None]
     assert len(errors) >= 8 and max(errors) < 10.0, errors

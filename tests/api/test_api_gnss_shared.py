@@ -45,8 +45,9 @@ def test_two_workers_share_the_ephemerides(tmp_path, store_url):
         assert uploaded.status_code == 200, uploaded.text
         assert second.get("/v1/ephemerides", headers=ADMIN).json() == uploaded.json()
 
-        created = first.post("/v1/sessions", json={"vehicle_id": "car", "pipeline": "gnss_tight", "options": QUICK})
-        session_id, token = created.json()["session_id"], {"Authorization": f"Bearer {created.json()['token']}"}
+        body = {"vehicle_id": "car", "pipeline": "gnss_tight", "options": QUICK}
+        created = first.post("/v1/sessions", json=body).json()
+        session_id, token = created["session_id"], {"Authorization": f"Bearer {created['token']}"}
         response = _batch(second, session_id, token, 1, 0)  # parsed by the second worker from the store
         assert response.status_code == 200, response.text
         assert response.json()["fixes"][0]["status"] == "initialised"

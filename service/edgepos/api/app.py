@@ -132,7 +132,9 @@ def create_app(
     app.state.context = context
     install_error_handlers(app)
     allowed_methods: dict[str, set[str]] = {}
-    routers = (rsus.router, ephemerides.router, pipeline_routes.router, sessions.router, health.router, docs.router)
+    routers = (
+        rsus.router, ephemerides.router, pipeline_routes.router, sessions.router, health.router, docs.router
+    )
     for router in routers:
         app.include_router(router)
         for route in router.routes:

@@ -182,9 +182,12 @@ class EphemeridesOut(ResponseModel):
         description="Earliest time at which some healthy ephemeris is valid (its toe minus the fit "
         "interval or maximum age)."
     )
-    valid_until: GpsTimeOut | None = Field(description="Latest time at which some healthy ephemeris is valid.")
+    valid_until: GpsTimeOut | None = Field(
+        description="Latest time at which some healthy ephemeris is valid."
+    )
     ionosphere: list[str] = Field(
-        description="IONOSPHERIC CORR sets in the header (GPSA, GPSB: GPS Klobuchar; BDSA, BDSB; GAL: NeQuick)."
+        description="IONOSPHERIC CORR sets in the header (GPSA, GPSB: GPS Klobuchar; BDSA, BDSB; "
+        "GAL: NeQuick)."
     )
     klobuchar: bool = Field(
         description="Whether the GPS Klobuchar coefficients (GPSA and GPSB) are present: the ionosphere "
@@ -331,9 +334,9 @@ class FixOut(ResponseModel):
     heading: float | None = Field(description="Course over ground (rad, CCW from east, in [-pi, pi]).")
     yaw_rate: float | None = Field(description="Turn rate (rad/s, CCW positive).")
     latitude: float | None = Field(
-        description="WGS-84 latitude (rad): the estimate itself for pipelines that estimate a global position "
-        "(gnss_tight), else (x, y) on the site's tangent plane; null when neither applies (no WGS-84 origin "
-        "configured)."
+        description="WGS-84 latitude (rad): the estimate itself for pipelines that estimate a global "
+        "position (gnss_tight), else (x, y) on the site's tangent plane; null when neither applies (no "
+        "WGS-84 origin configured)."
     )
     longitude: float | None = Field(
         description="WGS-84 longitude (rad, east positive), as latitude; null when latitude is."
@@ -502,7 +505,9 @@ class RissMeasurement(RequestModel):
     type: Literal["riss"] = Field(description="Discriminator: 'riss'.")
     t: float = Field(ge=0.0, lt=SECONDS_PER_WEEK, description=_TOW_DESCRIPTION)
     wheel_speed: float = Field(
-        ge=-100.0, le=100.0, description="Forward speed from the wheel odometer (m/s, negative when reversing)."
+        ge=-100.0,
+        le=100.0,
+        description="Forward speed from the wheel odometer (m/s, negative when reversing).",
     )
     accel_x: float = Field(
         ge=-50.0, le=50.0, description="Forward specific force (m/s^2, vehicle x axis, positive forward)."
@@ -511,12 +516,18 @@ class RissMeasurement(RequestModel):
         ge=-50.0, le=50.0, description="Lateral specific force (m/s^2, vehicle y axis, positive to the left)."
     )
     gyro_z: float = Field(
-        ge=-10.0, le=10.0, description="Yaw rate about the vehicle's up axis (rad/s, counter-clockwise positive)."
+        ge=-10.0,
+        le=10.0,
+        description="Yaw rate about the vehicle's up axis (rad/s, counter-clockwise positive).",
     )
 
     def to_observation(self) -> Observation:
         return RissObservation(
-            t=self.t, wheel_speed=self.wheel_speed, accel_x=self.accel_x, accel_y=self.accel_y, gyro_z=self.gyro_z
+            t=self.t,
+            wheel_speed=self.wheel_speed,
+            accel_x=self.accel_x,
+            accel_y=self.accel_y,
+            gyro_z=self.gyro_z,
         )
 
 

@@ -278,7 +278,9 @@ def _check_satellites(
     if problems:
         count = len(problems)
         them = "it" if count == 1 else "them"
-        what = "no ephemerides are loaded" if loaded is None else f"the loaded ephemerides do not cover {them}"
+        what = "no ephemerides are loaded"
+        if loaded is not None:
+            what = f"the loaded ephemerides do not cover {them}"
         raise ApiError(
             "invalid_request",
             f"{count} pseudorange{'s have' if count != 1 else ' has'} no satellite position: {what}; "

@@ -7,8 +7,9 @@ only if its ``version`` is still the one the writer read (compare-and-set), and 
 TTL, so an idle session disappears by itself after ``ttl_s``. A sorted set of session ids scored by
 ``updated_at`` counts live sessions for the session limit without scanning the keyspace, and lets
 expired entries be purged by score. RSUs live in one hash; the broadcast ephemerides in another
-(digest, text and upload time, written by one HSET so a reader never sees a mix of two uploads). Key layout and the durability of an
-acknowledged write under each persistence setting are in docs/redis.md.
+(digest, text and upload time, written in one transaction so a reader never sees a mix of two
+uploads). Key layout and the durability of an acknowledged write under each persistence setting
+are in docs/redis.md.
 
 Every network failure or timeout surfaces as :class:`StoreUnavailable` after short, bounded
 timeouts (one reconnect attempt), never as a hang.

@@ -50,7 +50,8 @@ async def put_ephemerides(request: Request, context: Context) -> EphemeridesOut:
         where = "" if error.line is None else f" at line {error.line}"
         raise ApiError(
             "invalid_request",
-            f"not a usable RINEX 3 navigation file{where}: {error.reason}; the loaded ephemerides are unchanged",
+            f"not a usable RINEX 3 navigation file{where}: {error.reason}; "
+            "the loaded ephemerides are unchanged",
             [ProblemModel(index=None, field=field, reason=error.reason)],
         ) from None
     await context.store.put_ephemerides(document)
