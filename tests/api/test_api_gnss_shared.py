@@ -61,3 +61,28 @@ def test_two_workers_share_the_ephemerides(tmp_path, store_url):
         # Uploaded again through the other worker: back in use everywhere.
         assert second.put("/v1/ephemerides", content=nav_text(), headers=TEXT).status_code == 200
         assert _batch(first, session_id, token, 3, 2).status_code == 200
+
+
+def test_each_worker_parses_a_file_once(tmp_path, monkeypatch):
+    """Batches reuse the worker's parsed copy: the uploading worker never re-parses, another parses once."""
+    import edgepos.api.ephemerides as ephemerides_module
+
+    calls = []
+    original = ephemerides_module.parse
+
+    def counting(*args):
+        calls.append(args[1])
+        return original(*args)
+
+    monkeypatch.setattr(ephemerides_module, "parse", counting)
+    settings = make_settings(tmp_path, store=f"sqlite:///{tmp_path / 'parse.db'}")
+    with TestClient(create_app(settings)) as first, TestClient(create_app(settings)) as second:
+        digest = first.put("/v1/ephemerides", content=nav_text(), headers=TEXT).json()["digest"]
+        body = {"vehicle_id": "car", "pipeline": "gnss_tight", "options": QUICK}
+        for client in (first, first, second, second, second):
+            created = client.post("/v1/sessions", json=body).json()
+            token = {"Authorization": f"Bearer {created['token']}"}
+            for seq in (1, 2):
+                assert _batch(client, created["session_id"], token, seq, seq - 1).status_code == 200
+        assert second.get("/v1/ephemerides", headers=ADMIN).json()["digest"] == digest
+    assert calls == [digest]  # the second worker's first batch; the first worker kept its upload's parse
