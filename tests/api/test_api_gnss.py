@@ -196,6 +196,9 @@ def test_pseudoranges_without_a_satellite_state_are_refused(client):
     late = [{**m, "t": m["t"] + 3 * 86400.0} for m in items]  # three days after the file's window
     error = assert_error(post(client, session_id, token, 1, late), 422, "invalid_request")
     assert len(error["problems"]) == len(items)
+    error = assert_error(post(client, session_id, token, 1, [*items, items[3]]), 422, "invalid_request")
+    (problem,) = error["problems"]
+    assert problem["field"] == f"measurements[{len(items)}].prn" and "measurements[3]" in problem["reason"]
     half = {**items[0], "sat_position": [1.5e7, 1.5e7, 1.0e7]}
     error = assert_error(post(client, session_id, token, 1, [half]), 422, "invalid_request")
     assert error["problems"][0]["field"] == "measurements[0].sat_clock"

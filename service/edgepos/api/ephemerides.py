@@ -158,15 +158,31 @@ def satellite_problems(
     systems_used: Sequence[str] | None,
 ) -> list[ProblemModel]:
     """Every pseudorange whose satellite state the service cannot know: no sat_position + sat_clock from
-    the client and no ephemeris record of that satellite valid at its time (or none loaded at all).
+    the client and no ephemeris record of that satellite valid at its time (or none loaded at all); and
+    every second pseudorange of one satellite in one epoch (a receiver reports one per signal, and the
+    service uses one signal per constellation).
 
     Pseudoranges of constellations the session does not use (``systems_used``) need nothing. A record that
     exists but is unhealthy is not a problem of the request: the pipeline reports that pseudorange unused."""
     problems: list[ProblemModel] = []
     pending: list[tuple[int, PseudorangeObservation]] = []
+    first_of: dict[tuple[float, str, int], int] = {}
     for index, observation in enumerate(observations):
         if not isinstance(observation, PseudorangeObservation):
             continue
+        key = (observation.t, observation.system, observation.prn)
+        if key in first_of:
+            sat = f"{observation.system}{observation.prn:02d}"
+            problems.append(
+                ProblemModel(
+                    index=index,
+                    field=f"measurements[{index}].prn",
+                    reason=f"{sat} already has a pseudorange at t={observation.t!r} "
+                    f"(measurements[{first_of[key]}]); send one per satellite and epoch",
+                )
+            )
+            continue
+        first_of[key] = index
         if systems_used is not None and observation.system not in systems_used:
             continue
         has_position, has_clock = observation.sat_position is not None, observation.sat_clock is not None
