@@ -15,12 +15,10 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
-
 from edgepos.api.schemas import EphemeridesOut, GpsTimeOut, ProblemModel
 from edgepos.core.observations import Observation, PseudorangeObservation
 from edgepos.gnss.ephemerides import Ephemerides
-from edgepos.gnss.orbits import BroadcastOrbits
+from edgepos.gnss.orbits import MAX_AGE_S
 from edgepos.gnss.rinex_nav import RinexError, parse_navigation
 from edgepos.gnss.timesys import SECONDS_PER_WEEK
 from edgepos.store.base import SessionStore, StoredEphemerides
@@ -32,12 +30,17 @@ CACHE_SIZE = 2
 @dataclass(frozen=True)
 class LoadedEphemerides:
     """A parsed navigation file: what the pipeline uses (healthy records) and, to tell a satellite without
-    any ephemeris from an unhealthy one, every Keplerian record."""
+    any ephemeris from an unhealthy one, the validity windows (GPS s) of every Keplerian record by
+    satellite, healthy or not (the same windows ``BroadcastOrbits.select`` applies)."""
 
     ephemerides: Ephemerides
-    every_record: BroadcastOrbits
+    windows: Mapping[tuple[str, int], tuple[tuple[float, float], ...]]
     size_bytes: int
     uploaded_at: float
+
+    def covers(self, system: str, prn: int, gpst: float) -> bool:
+        """Whether some record of the satellite is valid at ``gpst``."""
+        return any(start <= gpst <= end for start, end in self.windows.get((system, prn), ()))
 
 
 class NavigationFileError(ValueError):
@@ -73,8 +76,15 @@ def parse(text: str, digest: str, uploaded_at: float) -> LoadedEphemerides:
             "no healthy GPS, BeiDou or Galileo ephemeris in the file"
             + (f" (only records of {found}, which are not used)" if found else ""),
         )
-    every = BroadcastOrbits(navigation.ephemerides, healthy_only=False)
-    return LoadedEphemerides(ephemerides, every, len(text.encode()), uploaded_at)
+    windows: dict[tuple[str, int], list[tuple[float, float]]] = {}
+    for record in navigation.ephemerides:
+        limit = MAX_AGE_S.get(record.system)
+        if limit is None and record.system not in MAX_AGE_S:
+            continue  # a system the orbit code does not evaluate (BroadcastOrbits skips it too)
+        half = record.fit_interval_s / 2.0 if limit is None else limit
+        windows.setdefault((record.system, record.prn), []).append((record.toe - half, record.toe + half))
+    frozen = {sat: tuple(spans) for sat, spans in windows.items()}
+    return LoadedEphemerides(ephemerides, frozen, len(text.encode()), uploaded_at)
 
 
 def digest_of(text: str) -> str:
@@ -216,11 +226,8 @@ def satellite_problems(
         by_time.setdefault(observation.t, []).append((index, observation))
     for t, group in by_time.items():
         gpst = ephemerides.gpst(t)
-        found = loaded.every_record.select(
-            [o.system for _, o in group], np.array([o.prn for _, o in group], dtype=int), gpst
-        )
-        for (index, observation), record in zip(group, found):
-            if record < 0:
+        for index, observation in group:
+            if not loaded.covers(observation.system, observation.prn, gpst):
                 sat = f"{observation.system}{observation.prn:02d}"
                 week = int(gpst // SECONDS_PER_WEEK)
                 problems.append(

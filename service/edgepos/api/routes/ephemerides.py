@@ -3,6 +3,8 @@ replica through the store. Writes need the admin key; reads need any valid crede
 
 from __future__ import annotations
 
+import logging
+
 from fastapi import APIRouter, Depends, Request, Response
 
 from edgepos.api.auth import require_admin, require_any
@@ -11,6 +13,8 @@ from edgepos.api.ephemerides import NavigationFileError, decode_upload, parse, s
 from edgepos.api.errors import ApiError
 from edgepos.api.routes import errors
 from edgepos.api.schemas import EphemeridesOut, ProblemModel
+
+logger = logging.getLogger("edgepos.api")
 
 PATH = "/v1/ephemerides"
 router = APIRouter(prefix=PATH, tags=["ephemerides"])
@@ -56,7 +60,17 @@ async def put_ephemerides(request: Request, context: Context) -> EphemeridesOut:
         ) from None
     await context.store.put_ephemerides(document)
     context.ephemerides.remember(loaded)
-    return summary(loaded)
+    answer = summary(loaded)
+    logger.info(
+        "ephemerides loaded",
+        extra={
+            "event": "ephemerides_loaded",
+            "digest": answer.digest,
+            "satellites": answer.satellite_count,
+            "bytes": answer.size_bytes,
+        },
+    )
+    return answer
 
 
 @router.get(
@@ -88,4 +102,5 @@ async def delete_ephemerides(context: Context) -> Response:
     refused until another is loaded."""
     if not await context.store.delete_ephemerides():
         raise ApiError("not_found", "no ephemerides are loaded")
+    logger.info("ephemerides unloaded", extra={"event": "ephemerides_unloaded"})
     return Response(status_code=204)
