@@ -144,7 +144,10 @@ def main() -> int:
                     options = {"filter": filter_name, "seed": 1, "systems": ["G", "C"]}
                     label = filter_name if filter_name == "ukf" else f"{filter_name} 200"
                     api, direct, floor = run(url, options, epochs, text, workdir)
-                    print(f"{name:<8} {label:<10} {api:>13.2f} {direct:>12.2f} {api - direct:>17.2f} {floor:>16.2f}")
+                    print(
+                        f"{name:<8} {label:<10} {api:>13.2f} {direct:>12.2f} {api - direct:>17.2f} "
+                        f"{floor:>16.2f}"
+                    )
         finally:
             if redis is not None:
                 redis.stop()
