@@ -24,6 +24,7 @@ from pathlib import Path
 from fastapi.testclient import TestClient
 
 from edgepos.api.app import create_app
+from edgepos.api.ephemerides import parse, satellite_problems
 from edgepos.api.settings import Settings
 from edgepos.core.observations import PseudorangeObservation
 from edgepos.gnss.ephemerides import Ephemerides
@@ -126,6 +127,15 @@ def main() -> int:
         parses.append(1e3 * (time.perf_counter() - started))
     print(f"parse the navigation file ({len(text.encode())} bytes), once per worker and file: "
           f"{statistics.median(parses):.1f} ms median")
+    loaded = parse(text, "bench", 0.0)
+    first = observations(epochs[0])
+    checks = []
+    for _ in range(2000):
+        started = time.perf_counter()
+        assert not satellite_problems(first, loaded, ["G", "C"])
+        checks.append(1e6 * (time.perf_counter() - started))
+    print(f"per batch: the check that each of {len(first)} pseudoranges has a satellite state: "
+          f"{statistics.median(checks):.0f} us median")
 
     print(f"{'store':<8} {'filter':<10} {'API ms/epoch':>13} {'pipeline ms':>12} {'service share ms':>17} "
           f"{'GET /healthz ms':>16}")
