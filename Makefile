@@ -29,9 +29,11 @@ redis-server:
 		echo "installing redis-server (Debian package)"; \
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq redis-server >/dev/null; }
 
-bench: $(STAMP)
+bench: $(STAMP) redis-server
 	$(BIN)/python bench/filter_step.py
 	$(BIN)/python bench/service_load.py
+	$(BIN)/python bench/redis_store.py
+	$(BIN)/python bench/federated.py
 
 openapi: $(STAMP)
 	$(BIN)/python -m edgepos.api.openapi

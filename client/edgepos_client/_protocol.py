@@ -24,20 +24,41 @@ from edgepos_client.models import (
     BatchResult,
     EphemeridesSummary,
     Fix,
+    GnssFixMeasurement,
     GyroMeasurement,
     InitialState,
+    OdometerMeasurement,
     PipelineInfo,
     PseudorangeMeasurement,
     RissMeasurement,
     Rsu,
     RsuMeasurement,
+    RsuRangeMeasurement,
     SessionCreated,
     SessionInfo,
+    V2vRangeMeasurement,
 )
 
-_MEASUREMENT_MODELS = (RsuMeasurement, GyroMeasurement, PseudorangeMeasurement, RissMeasurement)
+_MEASUREMENT_MODELS = (
+    RsuMeasurement,
+    GyroMeasurement,
+    RsuRangeMeasurement,
+    GnssFixMeasurement,
+    OdometerMeasurement,
+    V2vRangeMeasurement,
+    PseudorangeMeasurement,
+    RissMeasurement,
+)
 MeasurementLike = (
-    RsuMeasurement | GyroMeasurement | PseudorangeMeasurement | RissMeasurement | Mapping[str, Any]
+    RsuMeasurement
+    | GyroMeasurement
+    | RsuRangeMeasurement
+    | GnssFixMeasurement
+    | OdometerMeasurement
+    | V2vRangeMeasurement
+    | PseudorangeMeasurement
+    | RissMeasurement
+    | Mapping[str, Any]
 )
 NavigationLike = str | bytes | os.PathLike[str]
 """A RINEX navigation file: its text, its bytes, or a path to read it from."""

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
 
 class _Request(BaseModel):
@@ -94,8 +94,70 @@ class RissMeasurement(_Request):
     gyro_z: float = Field(ge=-10.0, le=10.0, description="Yaw rate (rad/s, counter-clockwise positive).")
 
 
+def _exactly_one(first: str, first_value: float | None, second: str, second_value: float | None) -> None:
+    if (first_value is None) == (second_value is None):
+        state = "both were given" if first_value is not None else "neither was given"
+        raise ValueError(f"give exactly one of {first} and {second}; {state}")
+
+
+class RsuRangeMeasurement(_Request):
+    """Range only (m, >= 0) from a registered RSU to the vehicle."""
+
+    type: Literal["rsu_range"] = "rsu_range"
+    t: float = Field(description="Time (s, vehicle clock); equal t means one epoch.")
+    rsu_id: str = Field(description="Id of a registered RSU.")
+    range: float = Field(ge=0, description="Distance RSU -> vehicle (m).")
+
+
+class GnssFixMeasurement(_Request):
+    """A GNSS position solution in the site frame (m), with its 1-sigma per axis when known."""
+
+    type: Literal["gnss_fix"] = "gnss_fix"
+    t: float = Field(description="Time (s, vehicle clock); equal t means one epoch.")
+    x: float = Field(description="East position (m).")
+    y: float = Field(description="North position (m).")
+    std: float | None = Field(None, gt=0, description="1-sigma of x and of y (m); null: session option.")
+
+
+class OdometerMeasurement(_Request):
+    """Wheel odometry: exactly one of distance (m since the previous odometer reading) or speed (m/s)."""
+
+    type: Literal["odometer"] = "odometer"
+    t: float = Field(description="Time (s, vehicle clock); equal t means one epoch.")
+    distance: float | None = Field(None, ge=0, description="Distance since the previous reading (m).")
+    speed: float | None = Field(None, ge=0, description="Speed over ground (m/s).")
+
+    @model_validator(mode="after")
+    def _one_of(self) -> OdometerMeasurement:
+        _exactly_one("distance", self.distance, "speed", self.speed)
+        return self
+
+
+class V2vRangeMeasurement(_Request):
+    """Range to a neighbour vehicle, by its vehicle_id: exactly one of range (m) or one-way toa (s)."""
+
+    type: Literal["v2v_range"] = "v2v_range"
+    t: float = Field(description="Time (s, vehicle clock); equal t means one epoch.")
+    peer_vehicle_id: str = Field(description="The neighbour's vehicle_id.")
+    range: float | None = Field(None, ge=0, description="Distance between the vehicles (m).")
+    toa: float | None = Field(None, ge=0, description="One-way time of arrival (s); the server scales it by c.")
+
+    @model_validator(mode="after")
+    def _one_of(self) -> V2vRangeMeasurement:
+        _exactly_one("range", self.range, "toa", self.toa)
+        return self
+
+
 Measurement = Annotated[
-    RsuMeasurement | GyroMeasurement | PseudorangeMeasurement | RissMeasurement, Field(discriminator="type")
+    RsuMeasurement
+    | GyroMeasurement
+    | RsuRangeMeasurement
+    | GnssFixMeasurement
+    | OdometerMeasurement
+    | V2vRangeMeasurement
+    | PseudorangeMeasurement
+    | RissMeasurement,
+    Field(discriminator="type"),
 ]
 MEASUREMENTS = TypeAdapter(list[Measurement])
 """Validates and serialises lists of measurements (dicts are accepted and checked)."""

@@ -38,7 +38,7 @@ async def test_rsu_registry_round_trip(aclient: AsyncEdgeposClient) -> None:
 
 async def test_pipelines_list_options(aclient: AsyncEdgeposClient) -> None:
     pipelines = {pipeline.name: pipeline for pipeline in await aclient.pipelines()}
-    assert set(pipelines) >= {"rsu_imu", "gnss_tight"}
+    assert {"rsu_imu", "gnss_tight", "v2x_federated"} <= set(pipelines)
     assert set(pipelines["rsu_imu"].measurement_types) == {"rsu", "gyro"}
     assert "filter" in {option.name for option in pipelines["rsu_imu"].options}
     assert pipelines["gnss_tight"].measurement_types == ["pseudorange", "riss"]

@@ -9,7 +9,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from edgepos.pipelines.base import Rsu
+from edgepos.pipelines.base import NeighbourTrack, Rsu, TrackPoint
 from edgepos.store import MemoryStore, SessionRecord, SessionStore, SQLiteStore, TooManySessions, open_store
 from edgepos.store.base import StoredEphemerides
 from edgepos.store.ratelimit import RateLimit
@@ -242,3 +242,60 @@ def test_open_store_by_url(tmp_path):
         open_store("mongodb://localhost", 10.0)
     with pytest.raises(ValueError):
         MemoryStore(0.0)
+
+
+# -- neighbour tracks ------------------------------------------------------------------------------
+def track(vehicle_id: str = "car", count: int = 3, t0: float = 10.0) -> NeighbourTrack:
+    cov = tuple(tuple(float(i == j) * (0.1 + i) + 1e-17 * (i + j) for j in range(4)) for i in range(4))
+    points = tuple(TrackPoint(t0 + 0.2 * k, 1.0 / 3.0 + k, -2.5e5, 15.0, -0.1 * k, cov) for k in range(count))
+    return NeighbourTrack(vehicle_id, points)
+
+
+def test_track_round_trips_exactly_and_replaces_whole(store):
+    async def scenario() -> None:
+        assert await store.get_tracks(["car", "bus"]) == {}
+        await store.put_track(track("car", 3))
+        await store.put_track(track("bus", 1))
+        got = await store.get_tracks(["car", "bus", "nobody"])
+        assert got == {"car": track("car", 3), "bus": track("bus", 1)}
+        await store.put_track(track("car", 2, t0=20.0))
+        assert (await store.get_tracks(["car"]))["car"] == track("car", 2, t0=20.0)
+        assert await store.delete_track("car")
+        assert not await store.delete_track("car")
+        assert await store.get_tracks(["car"]) == {}
+
+    asyncio.run(scenario())
+
+
+def test_track_expires_with_the_session_ttl(store, clock):
+    async def scenario() -> None:
+        await store.put_track(track("car"))
+        clock.now += 59.0
+        assert "car" in await store.get_tracks(["car"])
+        clock.now += 2.0
+        assert await store.get_tracks(["car"]) == {}
+
+    asyncio.run(scenario())
+
+
+def test_concurrent_track_writers_never_expose_a_mix(store):
+    """Two vehicles publishing while a third reads: every read is one whole published track."""
+    versions = {vehicle: [track(vehicle, count, t0=float(count)) for count in range(1, 12)] for vehicle in ("a", "b")}
+
+    async def writer(vehicle: str) -> None:
+        for version in versions[vehicle]:
+            await store.put_track(version)
+            await asyncio.sleep(0)
+
+    async def reader(seen: list[NeighbourTrack]) -> None:
+        for _ in range(40):
+            seen.extend((await store.get_tracks(["a", "b"])).values())
+            await asyncio.sleep(0)
+
+    async def scenario() -> list[NeighbourTrack]:
+        seen: list[NeighbourTrack] = []
+        await asyncio.wait_for(asyncio.gather(writer("a"), writer("b"), reader(seen)), timeout=30)
+        return seen
+
+    for got in asyncio.run(scenario()):
+        assert got in versions[got.vehicle_id]

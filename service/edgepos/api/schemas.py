@@ -12,14 +12,18 @@ from __future__ import annotations
 import math
 from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from edgepos.core.observations import (
+    GnssFixObservation,
     GyroObservation,
     Observation,
+    OdometerObservation,
     PseudorangeObservation,
     RissObservation,
     RsuObservation,
+    RsuRangeObservation,
+    V2vRangeObservation,
 )
 
 RSU_ID_PATTERN = r"^[A-Za-z0-9._:+-]{1,64}$"
@@ -531,10 +535,137 @@ class RissMeasurement(RequestModel):
         )
 
 
+SPEED_OF_LIGHT_M_S = 299_792_458.0
+"""c (m/s), by which a v2v_range toa is scaled to metres (the value GNSS uses, exact by definition)."""
+MAX_SPEED_M_S = 200.0
+MAX_ODOMETER_DISTANCE_M = 1.0e4
+MAX_TOA_S = MAX_COORDINATE_M / SPEED_OF_LIGHT_M_S
+
+
+def _exactly_one(value: float | None, info: ValidationInfo, other: str, this: str) -> float | None:
+    """Refuse both or neither of two alternative fields; runs on the later one (``this``), so the
+    error names a field of the measurement. Skipped when ``other`` already failed its own check."""
+    if other not in info.data:
+        return value
+    given = [name for name, v in ((other, info.data[other]), (this, value)) if v is not None]
+    if len(given) != 1:
+        state = "both were given" if given else "neither was given"
+        raise ValueError(f"give exactly one of {other} and {this}; {state}")
+    return value
+
+
+class RsuRangeMeasurement(RequestModel):
+    """Range only from one registered RSU (a ranging node at a known position) to the vehicle."""
+
+    type: Literal["rsu_range"] = Field(description="Discriminator: 'rsu_range'.")
+    t: float = Field(ge=-MAX_TIME_S, le=MAX_TIME_S, description=_T_DESCRIPTION)
+    rsu_id: str = Field(pattern=RSU_ID_PATTERN, description="Id of a registered RSU.")
+    range: float = Field(
+        ge=0, le=MAX_COORDINATE_M, description="Distance from the RSU antenna to the vehicle (m), finite, >= 0."
+    )
+
+    def to_observation(self) -> Observation:
+        return RsuRangeObservation(t=self.t, rsu_id=self.rsu_id, range=self.range)
+
+
+class GnssFixMeasurement(RequestModel):
+    """A GNSS receiver's position solution, already projected into the site frame."""
+
+    type: Literal["gnss_fix"] = Field(description="Discriminator: 'gnss_fix'.")
+    t: float = Field(ge=-MAX_TIME_S, le=MAX_TIME_S, description=_T_DESCRIPTION)
+    x: float = Field(
+        ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M, description="East position in the site frame (m), finite."
+    )
+    y: float = Field(
+        ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M, description="North position in the site frame (m), finite."
+    )
+    std: float | None = Field(
+        None,
+        gt=0,
+        le=1.0e4,
+        description="1-sigma error of each of x and y (m), > 0; null uses the session's GNSS noise option.",
+    )
+
+    def to_observation(self) -> Observation:
+        return GnssFixObservation(t=self.t, x=self.x, y=self.y, std=self.std)
+
+
+class OdometerMeasurement(RequestModel):
+    """Wheel odometry: exactly one of distance (since the previous odometer reading) or speed."""
+
+    type: Literal["odometer"] = Field(description="Discriminator: 'odometer'.")
+    t: float = Field(ge=-MAX_TIME_S, le=MAX_TIME_S, description=_T_DESCRIPTION)
+    distance: float | None = Field(
+        None,
+        ge=0,
+        le=MAX_ODOMETER_DISTANCE_M,
+        description="Distance travelled along the path (m, >= 0) over the interval since this session's "
+        "previous odometer reading; exactly one of distance and speed.",
+    )
+    speed: float | None = Field(
+        None,
+        ge=0,
+        le=MAX_SPEED_M_S,
+        validate_default=True,
+        description="Speed over ground at t (m/s, >= 0, unsigned); exactly one of distance and speed.",
+    )
+
+    @field_validator("speed")
+    @classmethod
+    def _one_of(cls, value: float | None, info: ValidationInfo) -> float | None:
+        return _exactly_one(value, info, "distance", "speed")
+
+    def to_observation(self) -> Observation:
+        return OdometerObservation(t=self.t, distance=self.distance, speed=self.speed)
+
+
+class V2vRangeMeasurement(RequestModel):
+    """Range to a neighbour vehicle (its own session, by vehicle id): metres, or one-way time of arrival."""
+
+    type: Literal["v2v_range"] = Field(description="Discriminator: 'v2v_range'.")
+    t: float = Field(ge=-MAX_TIME_S, le=MAX_TIME_S, description=_T_DESCRIPTION)
+    peer_vehicle_id: str = Field(
+        pattern=VEHICLE_ID_PATTERN,
+        description="vehicle_id of the neighbour ranged to (as its session was created with).",
+    )
+    range: float | None = Field(
+        None,
+        ge=0,
+        le=MAX_COORDINATE_M,
+        description="Distance between the two vehicles' antennas (m, >= 0); exactly one of range and toa.",
+    )
+    toa: float | None = Field(
+        None,
+        ge=0,
+        le=MAX_TOA_S,
+        validate_default=True,
+        description="One-way time of arrival of the ranging signal (s, >= 0); the pipeline multiplies it "
+        f"by c = {SPEED_OF_LIGHT_M_S:.0f} m/s. Exactly one of range and toa.",
+    )
+
+    @field_validator("toa")
+    @classmethod
+    def _one_of(cls, value: float | None, info: ValidationInfo) -> float | None:
+        return _exactly_one(value, info, "range", "toa")
+
+    def to_observation(self) -> Observation:
+        return V2vRangeObservation(t=self.t, peer_vehicle_id=self.peer_vehicle_id, range=self.range, toa=self.toa)
+
+
 MeasurementModel = Annotated[
-    RsuMeasurement | GyroMeasurement | PseudorangeMeasurement | RissMeasurement, Field(discriminator="type")
+    RsuMeasurement
+    | GyroMeasurement
+    | RsuRangeMeasurement
+    | GnssFixMeasurement
+    | OdometerMeasurement
+    | V2vRangeMeasurement
+    | PseudorangeMeasurement
+    | RissMeasurement,
+    Field(discriminator="type"),
 ]
-MEASUREMENT_TYPES: tuple[str, ...] = ("rsu", "gyro", "pseudorange", "riss")
+MEASUREMENT_TYPES: tuple[str, ...] = (
+    "rsu", "gyro", "rsu_range", "gnss_fix", "odometer", "v2v_range", "pseudorange", "riss"
+)
 """The discriminator values of :data:`MeasurementModel` (used to tidy validation error paths)."""
 
 

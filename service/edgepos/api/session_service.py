@@ -31,9 +31,23 @@ from edgepos.api.schemas import (
 )
 from edgepos.core.errors import EstimationError
 from edgepos.api.ephemerides import LoadedEphemerides, satellite_problems
-from edgepos.core.observations import PseudorangeObservation, RsuObservation
-from edgepos.pipelines.base import InitialState, Pipeline, PipelineInputError, Problem, StaticEnvironment
-from edgepos.store.base import SessionRecord, TooManySessions
+from edgepos.core.observations import (
+    PseudorangeObservation,
+    RsuObservation,
+    RsuRangeObservation,
+    V2vRangeObservation,
+)
+from edgepos.pipelines import tracks
+from edgepos.pipelines.base import (
+    Fix,
+    InitialState,
+    NeighbourTrack,
+    Pipeline,
+    PipelineInputError,
+    Problem,
+    StaticEnvironment,
+)
+from edgepos.store.base import SessionRecord, StoreUnavailable, TooManySessions
 
 logger = logging.getLogger("edgepos.api")
 
@@ -142,8 +156,12 @@ async def describe_session(context: AppContext, session_id: str) -> SessionOut:
 
 
 async def delete_session(context: AppContext, session_id: str) -> None:
+    record = await context.store.get(session_id)
     if not await context.store.delete(session_id):
         raise ApiError("not_found", f"no session {session_id!r} (it may have expired or been deleted)")
+    if record is not None:
+        # Neighbours must stop ranging against a vehicle whose session is gone.
+        await context.store.delete_track(record.vehicle_id)
     logger.info("session deleted", extra={"event": "session_deleted", "session_id": session_id})
 
 
@@ -194,7 +212,8 @@ async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> b
         raise ApiError("invalid_request", "the batch is too large", [problem])
     digest = batch_hash(batch)
     observations = [measurement.to_observation() for measurement in batch.measurements]
-    rsu_ids = {o.rsu_id for o in observations if isinstance(o, RsuObservation)}
+    rsu_ids = {o.rsu_id for o in observations if isinstance(o, (RsuObservation, RsuRangeObservation))}
+    peer_ids = {o.peer_vehicle_id for o in observations if isinstance(o, V2vRangeObservation)}
     has_pseudoranges = any(isinstance(o, PseudorangeObservation) for o in observations)
     metrics = context.metrics
     for _attempt in range(MAX_ATTEMPTS):
@@ -214,12 +233,22 @@ async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> b
                 return replay
             pipeline = _pipeline(context, record.pipeline)
             _check_types(pipeline, batch)
+            # One read for the peers' tracks and, if this session publishes, its own (extended
+            # after the batch); nothing at all for a batch of a non-cooperative session.
+            wanted = peer_ids | ({record.vehicle_id} if pipeline.publishes_track else set())
+            published = dict(await context.store.get_tracks(wanted)) if wanted else {}
+            peers = {vehicle: published[vehicle] for vehicle in peer_ids if vehicle in published}
+            rsus = dict(await context.store.get_rsus(rsu_ids)) if rsu_ids else {}
+            # The site's ephemerides only for batches with pseudoranges: one digest read, parsed once
+            # per worker and file.
             loaded: LoadedEphemerides | None = None
             if has_pseudoranges:
                 loaded = await context.ephemerides.current(context.store, context.run_filter)
                 _check_satellites(observations, loaded, record.options.get("systems"))
             environment = StaticEnvironment(
-                dict(await context.store.get_rsus(rsu_ids)) if rsu_ids else {},
+                rsus,
+                peers,
+                record.vehicle_id,
                 navigation=None if loaded is None else loaded.ephemerides,
                 origin=_origin(context),
             )
@@ -264,6 +293,8 @@ async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> b
             )
             if await context.store.compare_and_set(updated, record.version):
                 metrics.observe_batch(len(fixes), elapsed)
+                if pipeline.publishes_track:
+                    await _publish_track(context, record, published.get(record.vehicle_id), fixes)
                 return body
             metrics.store_conflicts.inc()
     raise ApiError("unavailable", "the session kept changing under this request; retry the same batch")
@@ -304,6 +335,26 @@ def _wire_field_namer(batch: BatchIn) -> Any:
         return field
 
     return rename
+
+
+async def _publish_track(
+    context: AppContext, record: SessionRecord, previous: NeighbourTrack | None, fixes: list[Fix]
+) -> None:
+    """Make the vehicle's latest estimates readable by its neighbours' sessions (one atomic value).
+
+    Runs right after the session's own write, under its lock. The batch is already applied, so a
+    store that fails here is logged, not answered with an error: neighbours then see the previous
+    track, which ages out by their max_neighbour_age, and the next batch publishes again."""
+    track = tracks.publish(record.vehicle_id, previous, fixes)
+    if track is None:
+        return
+    try:
+        await context.store.put_track(track)
+    except StoreUnavailable as error:
+        logger.warning(
+            "track not published",
+            extra={"event": "track_not_published", "session_id": record.session_id, "error": str(error)},
+        )
 
 
 def _batch_body(seq: int, fixes: list[FixOut]) -> bytes:

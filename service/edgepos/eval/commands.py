@@ -10,7 +10,7 @@ import argparse
 import os
 from collections.abc import Callable
 
-from edgepos.eval import gnss, gnss_rinex, rsu_imu
+from edgepos.eval import federated, gnss, gnss_rinex, rsu_imu
 
 #: argparse's object returned by ``add_subparsers`` (private type name, so spelled out here).
 Subparsers = argparse._SubParsersAction
@@ -77,8 +77,16 @@ def _gnss(subparsers: Subparsers) -> None:
     parser.set_defaults(_evaluation=gnss.run)
 
 
+def _federated(subparsers: Subparsers) -> None:
+    help_text = "V2X federated GPS/DR/V2X paper, sec. 3: Table 1 and Fig. 5 (feedback on/off)"
+    parser = subparsers.add_parser("federated", help=help_text, description=help_text)
+    _common_options(parser, runs=300)
+    federated.configure(parser)
+    parser.set_defaults(_evaluation=federated.run)
+
+
 #: One function per evaluation, each adding its subcommand.
-EVALUATIONS: tuple[Callable[[Subparsers], None], ...] = (_rsu_imu, _gnss_rinex, _gnss)
+EVALUATIONS: tuple[Callable[[Subparsers], None], ...] = (_rsu_imu, _gnss_rinex, _gnss, _federated)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:

@@ -24,7 +24,7 @@ import httpx
 import numpy as np
 from edgepos_client import AsyncEdgeposClient, EdgeposError, Fix, Session
 
-from edgepos.loadgen import common
+from edgepos.loadgen import common, federated_sim
 from edgepos.sim.scenarios import Scenario
 
 
@@ -254,7 +254,9 @@ def report(result: SimulationResult) -> str:
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--url", required=True, help="base URL of the server, e.g. http://127.0.0.1:8000")
     parser.add_argument("--vehicles", type=int, default=1, help="simulated vehicles (default 1)")
-    parser.add_argument("--scenario", choices=sorted(common.SCENARIOS), default="rsu-imu", help="scenario")
+    parser.add_argument(
+        "--scenario", choices=sorted([*common.SCENARIOS, *federated_sim.SCENARIOS]), default="rsu-imu", help="scenario"
+    )
     parser.add_argument(
         "--admin-key", default=None, help="admin key to load the RSU map (default $EDGEPOS_ADMIN_KEY)"
     )
@@ -280,6 +282,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.scenario in federated_sim.SCENARIOS:
+        return _run_federated(args)
     key = common.admin_key(args.admin_key)
     if key is None:
         print(
@@ -313,3 +317,30 @@ def run(args: argparse.Namespace) -> int:
     if args.json is not None:
         args.json.write_text(json.dumps(result.to_json(), indent=2) + "\n")
     return 1 if any(v.error for v in result.vehicles) else 0
+
+
+def _run_federated(args: argparse.Namespace) -> int:
+    """--scenario federated: target vehicles with their assisting vehicles, no RSU map (no admin key)."""
+    if args.vehicles < 1 or args.batch_epochs < 1 or (args.epochs is not None and args.epochs < 1):
+        print("edgepos simulate: --vehicles, --batch-epochs and --epochs must be >= 1", file=sys.stderr)
+        return 2
+    try:
+        targets, elapsed = asyncio.run(
+            federated_sim.run_federated(
+                args.url, vehicles=args.vehicles, seed=args.seed, batch_epochs=args.batch_epochs,
+                realtime=args.realtime, epochs=args.epochs, timeout=args.timeout,
+            )
+        )
+    except EdgeposError as error:
+        print(f"edgepos simulate: {error}", file=sys.stderr)
+        return 1
+    print(federated_sim.report(targets, args.seed, elapsed))
+    if args.json is not None:
+        document = {
+            "scenario": "federated",
+            "seed": args.seed,
+            "vehicles": [{"vehicle_id": v.vehicle_id, "fixes": len(v.fixes), "position_rmse": v.position_rmse,
+                          "error": v.error} for v in targets],
+        }
+        args.json.write_text(json.dumps(document, indent=2) + "\n")
+    return 1 if any(v.error for v in targets) else 0

@@ -151,6 +151,8 @@ class Fix:
     "uninitialised" (nothing to start from yet; kinematic fields are None).
     ``latitude``/``longitude`` (rad) and ``height`` (m, ellipsoidal) are WGS-84, set by pipelines that
     estimate a global position (gnss_tight); others leave them None.
+    ``kinematic_cov`` is the 4x4 covariance of [x, y, vx, vy]: with the position and velocity it is
+    what the service publishes as the vehicle's track for cooperative neighbours (None: not published).
     """
 
     t: float
@@ -163,6 +165,7 @@ class Fix:
     heading: float | None = None
     yaw_rate: float | None = None
     position_cov: list[list[float]] | None = None
+    kinematic_cov: list[list[float]] | None = None
     state_components: tuple[str, ...] = ()
     state: list[float] | None = None
     state_cov: list[list[float]] | None = None
@@ -205,6 +208,10 @@ class Pipeline(ABC):
     name: ClassVar[str]
     description: ClassVar[str]
     measurement_kinds: ClassVar[tuple[str, ...]]
+    publishes_track: ClassVar[bool] = False
+    """Whether the service publishes a session's estimates as its vehicle's track after each batch,
+    for other vehicles' cooperative pipelines to range against. Cooperative pipelines set it; for
+    the others it would cost two store round trips per batch that nobody reads."""
 
     @abstractmethod
     def option_specs(self) -> list[OptionSpec]:

@@ -5,8 +5,11 @@ from __future__ import annotations
 from edgepos.pipelines.base import Pipeline
 from edgepos.pipelines.gnss_tight import GnssTightPipeline
 from edgepos.pipelines.rsu_imu import RsuImuPipeline
+from edgepos.pipelines.v2x_federated import V2xFederatedPipeline
 
-PIPELINES: dict[str, Pipeline] = {pipeline.name: pipeline for pipeline in (RsuImuPipeline(), GnssTightPipeline())}
+PIPELINES: dict[str, Pipeline] = {
+    pipeline.name: pipeline for pipeline in (RsuImuPipeline(), GnssTightPipeline(), V2xFederatedPipeline())
+}
 
 
 def get_pipeline(name: str) -> Pipeline:

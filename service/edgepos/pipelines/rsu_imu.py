@@ -500,6 +500,7 @@ def _fix(t, status, output: Gaussian, session, bank, uses, nis, dof) -> Fix:
     value = dict(zip(components, state))
     vx, vy = value[layout.XV], value[layout.YV]
     x_index, y_index = components.index(layout.XP), components.index(layout.YP)
+    kinematic = [x_index, y_index, components.index(layout.XV), components.index(layout.YV)]
     return Fix(
         t=t,
         status=status,
@@ -512,6 +513,7 @@ def _fix(t, status, output: Gaussian, session, bank, uses, nis, dof) -> Fix:
         yaw_rate=_yaw_rate(value, session, bank),
         position_cov=[[state_cov[x_index][x_index], state_cov[x_index][y_index]],
                       [state_cov[y_index][x_index], state_cov[y_index][y_index]]],
+        kinematic_cov=[[state_cov[i][j] for j in kinematic] for i in kinematic],
         state_components=tuple(layout.NAMES[c] for c in components),
         state=state,
         state_cov=state_cov,

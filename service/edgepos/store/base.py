@@ -10,6 +10,7 @@ later without touching the routes. Records are immutable values: an update is a 
 from __future__ import annotations
 
 import asyncio
+import json
 import time
 from abc import ABC, abstractmethod
 from collections.abc import AsyncIterator, Callable, Iterable, Mapping
@@ -17,7 +18,7 @@ from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from typing import Any
 
-from edgepos.pipelines.base import Rsu
+from edgepos.pipelines.base import NeighbourTrack, Rsu, TrackPoint
 from edgepos.store.ratelimit import RateLimit
 
 Clock = Callable[[], float]
@@ -59,6 +60,22 @@ class StoredEphemerides:
     digest: str
     text: str
     uploaded_at: float
+
+
+def encode_track(track: NeighbourTrack, written_at: float) -> str:
+    """One track as one JSON text (floats round-trip exactly): stores keep it as a single value, so a
+    reader sees either the whole previous track or the whole new one."""
+    points = [[p.t, p.x, p.y, p.vx, p.vy, [list(row) for row in p.cov]] for p in track.points]
+    return json.dumps({"written_at": written_at, "points": points}, allow_nan=False)
+
+
+def decode_track(vehicle_id: str, text: str | bytes) -> tuple[NeighbourTrack, float]:
+    """The track and the server time it was written (inverse of :func:`encode_track`)."""
+    value = json.loads(text)
+    points = tuple(
+        TrackPoint(t, x, y, vx, vy, tuple(tuple(row) for row in cov)) for t, x, y, vx, vy, cov in value["points"]
+    )
+    return NeighbourTrack(vehicle_id, points), float(value["written_at"])
 
 
 class TooManySessions(Exception):
@@ -183,6 +200,23 @@ class SessionStore(ABC):
     @abstractmethod
     async def delete_ephemerides(self) -> bool:
         """Remove the navigation file; False if there was none."""
+
+    # neighbour tracks: what a vehicle's session publishes for cooperative pipelines of other vehicles
+    def track_is_live(self, written_at: float, now: float) -> bool:
+        """A track lives as long as an idle session would (``ttl_s`` since it was written)."""
+        return now - written_at <= self.ttl_s
+
+    @abstractmethod
+    async def put_track(self, track: NeighbourTrack) -> None:
+        """Replace the track published under ``track.vehicle_id``, as one atomic value."""
+
+    @abstractmethod
+    async def get_tracks(self, vehicle_ids: Iterable[str]) -> Mapping[str, NeighbourTrack]:
+        """The live tracks among ``vehicle_ids`` (unknown or expired ones are absent)."""
+
+    @abstractmethod
+    async def delete_track(self, vehicle_id: str) -> bool:
+        """Remove a vehicle's track; False if there was none."""
 
     # request-rate limits
     @abstractmethod

@@ -8,7 +8,7 @@ import dataclasses
 import time
 from collections.abc import Iterable, Mapping
 
-from edgepos.pipelines.base import Rsu
+from edgepos.pipelines.base import NeighbourTrack, Rsu
 from edgepos.store.base import Clock, SessionRecord, SessionStore, StoredEphemerides, TooManySessions
 from edgepos.store.ratelimit import RateLimit, gcra
 
@@ -24,6 +24,7 @@ class MemoryStore(SessionStore):
         super().__init__(ttl_s, clock)
         self._sessions: dict[str, SessionRecord] = {}
         self._rsus: dict[str, Rsu] = {}
+        self._tracks: dict[str, tuple[NeighbourTrack, float]] = {}
         self._rate_tats: dict[str, float] = {}
         self._ephemerides: StoredEphemerides | None = None
 
@@ -106,6 +107,21 @@ class MemoryStore(SessionStore):
     async def delete_ephemerides(self) -> bool:
         existed, self._ephemerides = self._ephemerides is not None, None
         return existed
+
+    async def put_track(self, track: NeighbourTrack) -> None:
+        self._tracks[track.vehicle_id] = (track, self.clock())
+
+    async def get_tracks(self, vehicle_ids: Iterable[str]) -> Mapping[str, NeighbourTrack]:
+        now = self.clock()
+        found = {}
+        for vehicle_id in set(vehicle_ids):
+            entry = self._tracks.get(vehicle_id)
+            if entry is not None and self.track_is_live(entry[1], now):
+                found[vehicle_id] = entry[0]
+        return found
+
+    async def delete_track(self, vehicle_id: str) -> bool:
+        return self._tracks.pop(vehicle_id, None) is not None
 
     async def take_request(self, key: str, limit: RateLimit) -> float:
         now = self.clock()

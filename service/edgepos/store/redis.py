@@ -31,7 +31,7 @@ from redis.asyncio.retry import Retry
 from redis.backoff import ExponentialBackoff
 from redis.commands.core import AsyncScript
 
-from edgepos.pipelines.base import Rsu
+from edgepos.pipelines.base import NeighbourTrack, Rsu
 from edgepos.store.base import (
     Clock,
     SessionRecord,
@@ -39,6 +39,8 @@ from edgepos.store.base import (
     StoredEphemerides,
     StoreUnavailable,
     TooManySessions,
+    decode_track,
+    encode_track,
 )
 from edgepos.store.ratelimit import SLACK_S, RateLimit
 
@@ -423,6 +425,35 @@ class RedisStore(SessionStore):
     async def delete_ephemerides(self) -> bool:
         async with self._guard():
             return bool(await (await self._redis()).delete(self.ephemerides_key))
+
+    # neighbour tracks: one string key per vehicle, replaced whole by SET (atomic), expiring by itself
+    def _track_key(self, vehicle_id: str) -> str:
+        return f"{self.prefix}track:{vehicle_id}"
+
+    async def put_track(self, track: NeighbourTrack) -> None:
+        value = encode_track(track, self.clock())
+        async with self._guard():
+            await (await self._redis()).set(self._track_key(track.vehicle_id), value, px=self._ttl_ms)
+
+    async def get_tracks(self, vehicle_ids: Iterable[str]) -> Mapping[str, NeighbourTrack]:
+        wanted = sorted(set(vehicle_ids))
+        found: dict[str, NeighbourTrack] = {}
+        now = self.clock()
+        async with self._guard():
+            client = await self._redis()
+            for start in range(0, len(wanted), _CHUNK):
+                chunk = wanted[start : start + _CHUNK]
+                values = await client.mget([self._track_key(vehicle) for vehicle in chunk])
+                for vehicle, value in zip(chunk, values):
+                    if value:
+                        track, written_at = decode_track(vehicle, value)
+                        if self.track_is_live(written_at, now):
+                            found[vehicle] = track
+        return found
+
+    async def delete_track(self, vehicle_id: str) -> bool:
+        async with self._guard():
+            return bool(await (await self._redis()).delete(self._track_key(vehicle_id)))
 
     # request-rate limits --------------------------------------------------------------------
     async def take_request(self, key: str, limit: RateLimit) -> float:

@@ -17,8 +17,16 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, TypeVar
 
-from edgepos.pipelines.base import Rsu
-from edgepos.store.base import Clock, SessionRecord, SessionStore, StoredEphemerides, TooManySessions
+from edgepos.pipelines.base import NeighbourTrack, Rsu
+from edgepos.store.base import (
+    Clock,
+    SessionRecord,
+    SessionStore,
+    StoredEphemerides,
+    TooManySessions,
+    decode_track,
+    encode_track,
+)
 from edgepos.store.ratelimit import RateLimit, gcra
 
 T = TypeVar("T")
@@ -55,6 +63,11 @@ CREATE TABLE IF NOT EXISTS ephemerides (
     digest TEXT NOT NULL,
     text TEXT NOT NULL,
     uploaded_at REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS tracks (
+    vehicle_id TEXT PRIMARY KEY,
+    written_at REAL NOT NULL,
+    track TEXT NOT NULL
 );
 CREATE TABLE IF NOT EXISTS rate_limits (
     key TEXT PRIMARY KEY,
@@ -312,6 +325,40 @@ class SQLiteStore(SessionStore):
     async def delete_ephemerides(self) -> bool:
         def work(db: sqlite3.Connection) -> bool:
             return db.execute("DELETE FROM ephemerides WHERE slot = 0").rowcount == 1
+
+        return await self._run(work)
+
+    # neighbour tracks (one row per vehicle, replaced whole) ---------------------------------
+    async def put_track(self, track: NeighbourTrack) -> None:
+        now = self.clock()
+        row = (track.vehicle_id, now, encode_track(track, now))
+
+        def work(db: sqlite3.Connection) -> None:
+            db.execute("INSERT OR REPLACE INTO tracks (vehicle_id, written_at, track) VALUES (?, ?, ?)", row)
+
+        await self._run(work)
+
+    async def get_tracks(self, vehicle_ids: Iterable[str]) -> Mapping[str, NeighbourTrack]:
+        wanted = sorted(set(vehicle_ids))
+        since = self._live_since()
+
+        def work(db: sqlite3.Connection) -> Mapping[str, NeighbourTrack]:
+            found: dict[str, NeighbourTrack] = {}
+            for start in range(0, len(wanted), 500):
+                chunk = wanted[start : start + 500]
+                rows = db.execute(
+                    f"SELECT vehicle_id, track FROM tracks "
+                    f"WHERE written_at >= ? AND vehicle_id IN ({', '.join('?' * len(chunk))})",
+                    (since, *chunk),
+                ).fetchall()
+                found.update({vehicle: decode_track(vehicle, text)[0] for vehicle, text in rows})
+            return found
+
+        return await self._run(work)
+
+    async def delete_track(self, vehicle_id: str) -> bool:
+        def work(db: sqlite3.Connection) -> bool:
+            return db.execute("DELETE FROM tracks WHERE vehicle_id = ?", (vehicle_id,)).rowcount == 1
 
         return await self._run(work)
 

@@ -8,10 +8,12 @@ from edgepos.core.errors import ConfigurationError
 from edgepos.core.filters.base import GaussianFilter, UpdateResult, kalman_correct
 from edgepos.core.filters.ckf import CubatureKalmanFilter
 from edgepos.core.filters.ekf import ExtendedKalmanFilter
+from edgepos.core.filters.srukf import SquareRootUnscentedKalmanFilter
 from edgepos.core.filters.ukf import UnscentedKalmanFilter
 
 FILTERS: dict[str, type[GaussianFilter]] = {
-    cls.name: cls for cls in (ExtendedKalmanFilter, UnscentedKalmanFilter, CubatureKalmanFilter)
+    cls.name: cls
+    for cls in (ExtendedKalmanFilter, UnscentedKalmanFilter, CubatureKalmanFilter, SquareRootUnscentedKalmanFilter)
 }
 
 

@@ -1,0 +1,219 @@
+"""``edgepos eval federated``: Monte Carlo of the V2X federated paper's sec. 3 beside its Table 1 and Fig. 5.
+
+Every method is the ``v2x_federated`` pipeline fed one batch per epoch, as a server would be: GPS
+with the GNSS fixes only, GPS/DR adding gyro and odometer, GPS/DR/V2X adding the V2V ranges, and the
+same without feedback. Position RMSE is over every epoch after the first of every run (2-D error).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from edgepos.eval import plots
+from edgepos.eval.montecarlo import chunk_runs, run_chunks
+from edgepos.eval.progress import Progress
+from edgepos.eval.tables import format_table, number
+from edgepos.pipelines import tracks
+from edgepos.pipelines.base import NeighbourTrack, StaticEnvironment
+from edgepos.pipelines.v2x_federated import V2xFederatedPipeline
+from edgepos.sim.federated import SCENARIOS, STEPS, FederatedRun, make_run
+
+PROG = "edgepos eval federated"
+METHODS = ("GPS", "GPS/DR", "GPS/DR/V2X", "GPS/DR/V2X-nofeedback")
+_KINDS = {
+    "GPS": {"gnss_fix"},
+    "GPS/DR": {"gnss_fix", "gyro", "odometer"},
+    "GPS/DR/V2X": {"gnss_fix", "gyro", "odometer", "v2v_range"},
+    "GPS/DR/V2X-nofeedback": {"gnss_fix", "gyro", "odometer", "v2v_range"},
+}
+#: The paper's Table 1, mean RMSE in metres.
+PAPER = {
+    "clean": {"GPS": 5.10, "GPS/DR": 3.50, "GPS/DR/V2X": 2.52},
+    "multipath": {"GPS": 12.45, "GPS/DR": 7.02, "GPS/DR/V2X": 4.52},
+}
+PAPER_RATES = {("clean", "GPS"): 51.0, ("clean", "GPS/DR"): 28.0, ("multipath", "GPS"): 64.0, ("multipath", "GPS/DR"): 36.0}
+
+
+class RunFailed(RuntimeError):
+    """A run raised an estimation error: which scenario, run and method."""
+
+
+def assisting_tracks(run: FederatedRun) -> list[dict[str, NeighbourTrack]]:
+    """What the server would publish of each assisting vehicle after each epoch: its own
+    ``v2x_federated`` session fed its GNSS fixes, published with :func:`tracks.publish`."""
+    pipeline = V2xFederatedPipeline()
+    options = pipeline.resolve_options(None)
+    states = {vid: pipeline.create(options, None) for vid in run.neighbour_ids}
+    published: dict[str, NeighbourTrack | None] = dict.fromkeys(run.neighbour_ids)
+    per_step = []
+    for step_fixes in run.neighbour_fixes:
+        for vid in run.neighbour_ids:
+            fixes, states[vid] = pipeline.process(states[vid], [step_fixes[vid]], StaticEnvironment(vehicle_id=vid))
+            published[vid] = tracks.publish(vid, published[vid], fixes) or published[vid]
+        per_step.append({vid: track for vid, track in published.items() if track is not None})
+    return per_step
+
+
+def run_method(
+    run: FederatedRun, method: str, neighbours: list[dict[str, NeighbourTrack]] | None = None
+) -> tuple[np.ndarray, float]:
+    """Squared 2-D position errors per epoch (steps,) of one method on one run, and seconds spent
+    in the target's pipeline. ``neighbours``: :func:`assisting_tracks` of the run (computed if None)."""
+    if neighbours is None:
+        neighbours = assisting_tracks(run)
+    pipeline = V2xFederatedPipeline()
+    options = pipeline.resolve_options({"feedback": method != "GPS/DR/V2X-nofeedback"})
+    state = pipeline.create(options, None)
+    kinds = _KINDS[method]
+    squared = np.zeros(len(run.times))
+    elapsed = 0.0
+    for k, epoch in enumerate(run.observations):
+        batch = [obs for obs in epoch if obs.kind in kinds]
+        environment = StaticEnvironment(tracks=neighbours[k], vehicle_id="target")
+        start = time.perf_counter()
+        fixes, state = pipeline.process(state, batch, environment)
+        elapsed += time.perf_counter() - start
+        fix = fixes[-1]
+        squared[k] = (fix.x - run.truth[k, 0]) ** 2 + (fix.y - run.truth[k, 3]) ** 2
+    return squared, elapsed
+
+
+@dataclass
+class Totals:
+    """Sums over runs per (scenario, method): squared errors per epoch, seconds, epochs."""
+
+    squared: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
+    seconds: dict[tuple[str, str], float] = field(default_factory=dict)
+    epochs: dict[tuple[str, str], int] = field(default_factory=dict)
+
+
+_SEED = 1
+
+
+def _init(seed: int) -> None:
+    global _SEED
+    _SEED = seed
+
+
+def _work(chunk: range) -> Totals:
+    totals = Totals()
+    for scenario in SCENARIOS:
+        for r in chunk:
+            run = make_run(_SEED, r, scenario)
+            neighbours = assisting_tracks(run)
+            for method in METHODS:
+                key = (scenario, method)
+                try:
+                    squared, seconds = run_method(run, method, neighbours)
+                except Exception as error:  # an estimation error names its run
+                    raise RunFailed(f"{scenario} run {r} {method}: {error}") from error
+                totals.squared[key] = totals.squared.get(key, 0.0) + squared
+                totals.seconds[key] = totals.seconds.get(key, 0.0) + seconds
+                totals.epochs[key] = totals.epochs.get(key, 0) + len(squared)
+    return totals
+
+
+def _combine(a: Totals, b: Totals) -> Totals:
+    for key in b.squared:
+        a.squared[key] = a.squared.get(key, 0.0) + b.squared[key]
+        a.seconds[key] = a.seconds.get(key, 0.0) + b.seconds[key]
+        a.epochs[key] = a.epochs.get(key, 0) + b.epochs[key]
+    return a
+
+
+def monte_carlo(runs: int, seed: int, workers: int, progress: Progress | None = None) -> Totals:
+    return run_chunks(_work, _combine, chunk_runs(runs), workers, _init, (seed,), progress)
+
+
+def summary(totals: Totals, runs: int) -> dict[str, dict[str, dict[str, float]]]:
+    """{scenario: {method: {pos_rmse_m, step_us}}}: RMSE over epochs 1.. of every run."""
+    out: dict[str, dict[str, dict[str, float]]] = {}
+    for (scenario, method), squared in totals.squared.items():
+        rmse = math.sqrt(float(squared[1:].sum()) / (runs * (len(squared) - 1)))
+        step_us = totals.seconds[(scenario, method)] / totals.epochs[(scenario, method)] * 1e6
+        out.setdefault(scenario, {})[method] = {"pos_rmse_m": rmse, "step_us": step_us}
+    return out
+
+
+def rate(better: float, worse: float) -> float:
+    """Eq. 17: improvement of ``better`` over ``worse`` in percent."""
+    return (1.0 - better / worse) * 100.0
+
+
+def report(results: dict[str, dict[str, dict[str, float]]], runs: int, seed: int) -> str:
+    lines = [f"V2X federated filter (Wang et al. 2019, sec. 3): {runs} runs, seed {seed}, {STEPS} epochs of 0.2 s", ""]
+    rows = []
+    for method in METHODS:
+        row = [method]
+        for scenario in SCENARIOS:
+            row += [number(results[scenario][method]["pos_rmse_m"], 2), number(PAPER[scenario].get(method), 2)]
+        row.append(number(results["clean"][method]["step_us"], 0))
+        rows.append(row)
+    headers = ["method", "clean RMSE m", "paper", "multipath RMSE m", "paper", "us/epoch"]
+    lines.append(format_table(headers, rows, [False, True, True, True, True, True]))
+    lines += ["", "Improvement of GPS/DR/V2X (eq. 17), ours vs paper:"]
+    rate_rows = []
+    for scenario in SCENARIOS:
+        for base in ("GPS", "GPS/DR"):
+            ours = rate(results[scenario]["GPS/DR/V2X"]["pos_rmse_m"], results[scenario][base]["pos_rmse_m"])
+            paper = PAPER_RATES[(scenario, base)]
+            rate_rows.append([scenario, f"over {base}", f"{ours:.1f}", f"{paper:.0f}", "yes" if ours >= paper - 5 else "NO"])
+    lines.append(format_table(["scenario", "", "ours %", "paper %", ">= paper-5"], rate_rows, [False, False, True, True, False]))
+    lines += ["", "Fig. 5, feedback on vs off (GPS/DR/V2X):"]
+    for scenario in SCENARIOS:
+        on = results[scenario]["GPS/DR/V2X"]["pos_rmse_m"]
+        off = results[scenario]["GPS/DR/V2X-nofeedback"]["pos_rmse_m"]
+        lines.append(f"  {scenario}: feedback {on:.2f} m, no feedback {off:.2f} m ({rate(on, off):.1f} % better with)")
+    return "\n".join(lines)
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    """No options beyond the common ones."""
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.json is not None and not Path(args.json).resolve().parent.is_dir():
+        print(f"{PROG}: error: --json: the directory of {args.json} does not exist", file=sys.stderr)
+        return 2
+    if args.plots is not None:
+        try:
+            plots.require_matplotlib()
+        except plots.PlotsUnavailable as exc:
+            print(f"{PROG}: error: {exc}", file=sys.stderr)
+            return 2
+    progress = Progress(args.runs, label="runs")
+    try:
+        totals = monte_carlo(args.runs, args.seed, args.workers, progress)
+    except RunFailed as exc:
+        print(f"\n{PROG}: error: {exc}", file=sys.stderr)
+        return 1
+    progress.finish()
+    results = summary(totals, args.runs)
+    print(report(results, args.runs, args.seed))
+    try:
+        if args.json is not None:
+            Path(args.json).write_text(json.dumps({"scenarios": results}, indent=2) + "\n", encoding="utf-8")
+            print(f"\nwrote {args.json}")
+        if args.plots is not None:
+            directory = Path(args.plots)
+            directory.mkdir(parents=True, exist_ok=True)
+            t = np.arange(STEPS) * 0.2
+            for scenario in SCENARIOS:
+                series = {
+                    m: np.sqrt(totals.squared[(scenario, m)] / args.runs) for m in METHODS
+                }
+                path = plots.line_plot(directory / f"federated_{scenario}.png", t, series,
+                                       f"Position RMSE, {scenario}", "RMSE (m)", plots.readable_ylim(series))
+                print(f"wrote {path}")
+    except OSError as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,467 @@
+"""Pipeline ``v2x_federated``: the federated GPS / DR / V2X filter of Wang et al. 2019.
+
+Three sub-filters on the paper's state [e, ve, ae, n, vn, an] (the kinematic block of the core
+layout), each predicted with the "current statistical" model:
+
+* GPS: a Kalman filter on ``gnss_fix`` positions (eqs. 3-6);
+* DR: a square-root UKF on gyro yaw rate and odometer distance (eqs. 7-10);
+* V2X: a square-root UKF on ranges to RSUs (``rsu_range``) and to neighbour vehicles
+  (``v2v_range``, their positions read from their sessions' published tracks) (eqs. 11-14).
+
+Each epoch the better of GPS and V2X, by the trace of its covariance, is fused with DR (eq. 15);
+with feedback on, the fused estimate resets all three sub-filters with information-sharing factors
+(eq. 16): P_i = P / beta_i, and each sub-filter's process noise is Q / beta_i (beta_G/V + beta_D = 1).
+With feedback off the sub-filters run independently and the fused estimate is output only.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from edgepos.core import layout
+from edgepos.core import state as state_format
+from edgepos.core.errors import NumericalError
+from edgepos.core.filters.base import GaussianFilter
+from edgepos.core.filters.ekf import ExtendedKalmanFilter
+from edgepos.core.filters.srukf import SquareRootUnscentedKalmanFilter
+from edgepos.core.measurements.base import MeasurementModel, Stacked
+from edgepos.core.measurements.gyro import GyroYawRate
+from edgepos.core.measurements.odometer import OdometerDistance
+from edgepos.core.motion.current_statistical import CurrentStatistical
+from edgepos.core.observations import (
+    GnssFixObservation,
+    GyroObservation,
+    Observation,
+    OdometerObservation,
+    RsuRangeObservation,
+    V2vRangeObservation,
+)
+from edgepos.pipelines.base import (
+    Environment,
+    Fix,
+    InitialState,
+    MeasurementUse,
+    OptionSpec,
+    Pipeline,
+    PipelineInputError,
+    Problem,
+    StateSummary,
+    is_finite_number,
+)
+from edgepos.pipelines.options import resolve_options
+from edgepos.pipelines.tracks import NeighbourUnavailable, position_at
+
+SPEED_OF_LIGHT = 299_792_458.0
+SUB_FILTERS = ("gps", "dr", "v2x")
+_KIN = layout.KINEMATIC
+_INITIAL_VELOCITY_STD = 10.0
+_INITIAL_ACCEL_STD = 1.0
+
+OPTION_SPECS = (
+    OptionSpec("feedback", "boolean", True, "Reset the sub-filters with the fused estimate each epoch (eq. 16)."),
+    OptionSpec(
+        "dr_share", "number", 0.5,
+        "Information-sharing factor beta_D of the DR sub-filter; beta_G/V = 1 - beta_D (eq. 16).",
+        minimum=0.05, maximum=0.95,
+    ),
+    OptionSpec("gps_std", "number", math.sqrt(15.0), "GNSS fix 1-sigma per axis (m) when a fix carries none.", minimum=1e-3),
+    OptionSpec("gyro_std", "number", 0.005, "Gyro yaw-rate 1-sigma (rad/s).", minimum=1e-6),
+    OptionSpec("odometer_std", "number", 0.1, "Odometer distance 1-sigma per reading (m); for speed readings (m/s).", minimum=1e-6),
+    OptionSpec("range_std", "number", 3.0, "Range 1-sigma (m) to RSUs and neighbour vehicles.", minimum=1e-3),
+    OptionSpec("cs_alpha", "number", 0.1, "Current-statistical manoeuvre frequency 1/tau (1/s).", minimum=1e-4),
+    OptionSpec("cs_a_max", "number", 10.0, "Current-statistical maximum manoeuvre acceleration (m/s^2).", minimum=0.1),
+    OptionSpec("max_neighbour_age", "number", 1.0, "Oldest usable neighbour estimate (s) past its last point.", minimum=0.0),
+    OptionSpec("neighbour_accel_std", "number", 1.0, "White acceleration (m/s^2) for predicting a neighbour forward.", minimum=0.0),
+)
+
+
+class SharedNoiseCurrentStatistical(CurrentStatistical):
+    """The current-statistical model with its process noise scaled by 1/beta (eq. 16's Q_i)."""
+
+    def __init__(self, alpha: float, a_max: float, noise_scale: float) -> None:
+        super().__init__(alpha=alpha, a_max=a_max)
+        self.noise_scale = float(noise_scale)
+
+    def noise_covariance(self, mean: np.ndarray, dt: float) -> np.ndarray:
+        return self.noise_scale * super().noise_covariance(mean, dt)
+
+
+class GnssPosition(MeasurementModel):
+    """A position fix: z = [xp, yp] + v, 1-sigma ``std`` (m) per axis (eqs. 3-5)."""
+
+    def __init__(self, std: float) -> None:
+        self._noise = np.eye(2) * float(std) ** 2
+
+    @property
+    def dim(self) -> int:
+        return 2
+
+    @property
+    def angle_mask(self) -> np.ndarray:
+        return np.zeros(2, dtype=bool)
+
+    def predict(self, states: np.ndarray) -> np.ndarray:
+        return states[:, [layout.XP, layout.YP]]
+
+    def jacobian(self, states: np.ndarray) -> np.ndarray:
+        jacobian = np.zeros((states.shape[0], 2, layout.FULL_DIM))
+        jacobian[:, 0, layout.XP] = 1.0
+        jacobian[:, 1, layout.YP] = 1.0
+        return jacobian
+
+    def noise_covariance(self) -> np.ndarray:
+        return self._noise
+
+
+class RangesToPoints(MeasurementModel):
+    """Ranges (m) to known points (eq. 12), with per-range noise variances (m^2)."""
+
+    def __init__(self, points: np.ndarray, variances: np.ndarray) -> None:
+        self.points = np.asarray(points, dtype=float).reshape(-1, 2)
+        self._noise = np.diag(np.asarray(variances, dtype=float))
+
+    @property
+    def dim(self) -> int:
+        return self.points.shape[0]
+
+    @property
+    def angle_mask(self) -> np.ndarray:
+        return np.zeros(self.dim, dtype=bool)
+
+    def predict(self, states: np.ndarray) -> np.ndarray:
+        dx = states[:, None, layout.XP] - self.points[None, :, 0]
+        dy = states[:, None, layout.YP] - self.points[None, :, 1]
+        return np.hypot(dx, dy)
+
+    def jacobian(self, states: np.ndarray) -> np.ndarray:
+        dx = states[:, None, layout.XP] - self.points[None, :, 0]
+        dy = states[:, None, layout.YP] - self.points[None, :, 1]
+        distance = np.maximum(np.hypot(dx, dy), 1e-9)
+        jacobian = np.zeros((states.shape[0], self.dim, layout.FULL_DIM))
+        jacobian[:, :, layout.XP] = dx / distance
+        jacobian[:, :, layout.YP] = dy / distance
+        return jacobian
+
+    def noise_covariance(self) -> np.ndarray:
+        return self._noise
+
+
+@dataclass
+class _SessionState:
+    options: dict[str, Any]
+    initialised: bool
+    t: float | None
+    epochs: int
+    odometer_t: float | None  # time of the last odometer distance reading (start of the next interval)
+    means: np.ndarray  # (3, 6): gps, dr, v2x sub-filter means
+    covs: np.ndarray  # (3, 6, 6)
+    noise_scales: np.ndarray  # (3,): each sub-filter's process-noise factor 1/beta_i (1 without feedback)
+
+    def to_bytes(self) -> bytes:
+        meta = {
+            "pipeline": V2xFederatedPipeline.name,
+            "options": self.options,
+            "initialised": self.initialised,
+            "t": self.t,
+            "epochs": self.epochs,
+            "odometer_t": self.odometer_t,
+        }
+        arrays = {"means": self.means, "covs": self.covs, "noise_scales": self.noise_scales}
+        return state_format.pack(meta, arrays)
+
+
+def _decode(blob: bytes) -> _SessionState:
+    meta, arrays = state_format.unpack(blob)
+    if meta.get("pipeline") != V2xFederatedPipeline.name:
+        raise state_format.StateFormatError(f"state belongs to pipeline {meta.get('pipeline')!r}")
+    return _SessionState(
+        dict(meta["options"]), bool(meta["initialised"]), meta["t"], int(meta["epochs"]), meta["odometer_t"],
+        arrays["means"], arrays["covs"], arrays["noise_scales"],
+    )
+
+
+class V2xFederatedPipeline(Pipeline):
+    """Federated GPS (KF) / DR (SRUKF) / V2X ranging (SRUKF) filter with fusion-feedback."""
+
+    publishes_track = True
+
+    name = "v2x_federated"
+    description = (
+        "GNSS fixes, gyro + odometer dead reckoning and V2X ranges to RSUs or neighbour vehicles, each in its "
+        "own sub-filter; the better of GNSS and V2X fused with DR and fed back (Wang et al. 2019)."
+    )
+    measurement_kinds = (
+        GnssFixObservation.kind, GyroObservation.kind, OdometerObservation.kind,
+        RsuRangeObservation.kind, V2vRangeObservation.kind,
+    )
+
+    def option_specs(self) -> list[OptionSpec]:
+        return list(OPTION_SPECS)
+
+    def resolve_options(self, options: Mapping[str, Any] | None) -> dict[str, Any]:
+        return resolve_options(OPTION_SPECS, options)
+
+    def create(self, options: Mapping[str, Any], initial: InitialState | None) -> bytes:
+        options = dict(options)
+        scales = np.full(3, 1.0)
+        if options["feedback"]:
+            scales = _feedback_scales(options)
+        if initial is None:
+            return _SessionState(options, False, None, 0, None, np.zeros((3, 6)), np.tile(np.eye(6), (3, 1, 1)), scales).to_bytes()
+        mean = np.array([initial.x, initial.vx, 0.0, initial.y, initial.vy, 0.0])
+        stds = [initial.position_std, initial.velocity_std, _INITIAL_ACCEL_STD] * 2
+        cov = np.diag(np.square(stds))
+        return _SessionState(options, True, None, 0, None, np.tile(mean, (3, 1)), np.tile(cov, (3, 1, 1)), scales).to_bytes()
+
+    def summarise(self, state: bytes) -> StateSummary:
+        session = _decode(state)
+        return StateSummary(session.initialised, session.t, session.epochs, {}, session.options)
+
+    def process(
+        self, state: bytes, observations: Sequence[Observation], environment: Environment
+    ) -> tuple[list[Fix], bytes]:
+        session = _decode(state)
+        _validate(session, observations)
+        fixes = [_step(session, epoch, observations, environment) for epoch in _epochs(observations)]
+        return fixes, session.to_bytes()
+
+
+# -- validation ----------------------------------------------------------------------------------
+
+
+def _validate(session: _SessionState, observations: Sequence[Observation]) -> None:
+    problems: list[Problem] = []
+    kinds = set(V2xFederatedPipeline.measurement_kinds)
+    previous = session.t
+    for index, obs in enumerate(observations):
+        if obs.kind not in kinds:
+            problems.append(Problem(index, "kind", f"pipeline v2x_federated takes {sorted(kinds)}, not {obs.kind!r}"))
+            continue
+        if not is_finite_number(obs.t):
+            problems.append(Problem(index, "t", "must be a finite number"))
+            continue
+        if previous is not None and obs.t < previous:
+            problems.append(Problem(index, "t", f"time {obs.t} goes back before {previous} (observations in time order)"))
+        previous = obs.t if previous is None else max(previous, obs.t)
+        if isinstance(obs, OdometerObservation) and obs.distance is not None and obs.distance < 0.0:
+            problems.append(Problem(index, "distance", "must be >= 0"))
+    if problems:
+        raise PipelineInputError(problems)
+
+
+def _epochs(observations: Sequence[Observation]) -> list[list[int]]:
+    epochs: list[list[int]] = []
+    for index, obs in enumerate(observations):
+        if epochs and observations[epochs[-1][0]].t == obs.t:
+            epochs[-1].append(index)
+        else:
+            epochs.append([index])
+    return epochs
+
+
+# -- one epoch -----------------------------------------------------------------------------------
+
+_KF = ExtendedKalmanFilter()  # exact Kalman filter: motion and GNSS fix are linear
+_SRUKF = SquareRootUnscentedKalmanFilter()
+
+
+def _feedback_scales(options: Mapping[str, Any]) -> np.ndarray:
+    beta_d = float(options["dr_share"])
+    return np.array([1.0 / (1.0 - beta_d), 1.0 / beta_d, 1.0 / (1.0 - beta_d)])
+
+
+def _step(session: _SessionState, epoch: list[int], observations: Sequence[Observation], environment: Environment) -> Fix:
+    options = session.options
+    t = observations[epoch[0]].t
+    uses: dict[int, MeasurementUse] = {}
+    if not session.initialised:
+        fixes = [i for i in epoch if isinstance(observations[i], GnssFixObservation)]
+        if not fixes:
+            for i in epoch:
+                uses[i] = MeasurementUse(i, observations[i].kind, False, "no estimate yet: waiting for a gnss_fix to start from")
+                _note_odometer(session, observations[i])
+            session.t = t
+            session.epochs += 1
+            return Fix(t, "uninitialised", measurements=[uses[i] for i in epoch])
+        first = observations[fixes[0]]
+        std = first.std if first.std is not None else options["gps_std"]
+        mean = np.array([first.x, 0.0, 0.0, first.y, 0.0, 0.0])
+        cov = np.diag(np.square([std, _INITIAL_VELOCITY_STD, _INITIAL_ACCEL_STD] * 2))
+        session.means[:] = mean
+        session.covs[:] = cov
+        session.initialised = True
+        session.t = t
+        session.epochs += 1
+        for i in epoch:
+            used = i == fixes[0]
+            uses[i] = MeasurementUse(i, observations[i].kind, used, None if used else "the session starts from this epoch's first gnss_fix")
+            _note_odometer(session, observations[i])
+        return _fix(t, "initialised", session.means[0], session.covs[0], [uses[i] for i in epoch])
+
+    dt = 0.0 if session.t is None else t - session.t
+    means, covs = session.means.copy(), session.covs.copy()
+    if dt > 0.0:
+        for k, filt in enumerate((_KF, _SRUKF, _SRUKF)):
+            model = SharedNoiseCurrentStatistical(options["cs_alpha"], options["cs_a_max"], session.noise_scales[k])
+            means[k], covs[k] = filt.predict(means[k], covs[k], model, dt)
+
+    updated = [False, False, False]
+    gps = _gps_update(means, covs, epoch, observations, options, uses)
+    updated[0] = gps
+    updated[1] = _dr_update(session, means, covs, epoch, observations, options, uses, t)
+    updated[2] = _v2x_update(means, covs, epoch, observations, options, uses, environment, t)
+
+    chosen = 0 if np.trace(covs[0]) <= np.trace(covs[2]) else 2
+    fused_mean, fused_cov = fuse(means[chosen], covs[chosen], means[1], covs[1])
+    if options["feedback"]:
+        scales = _feedback_scales(options)
+        for k in range(3):
+            means[k] = fused_mean
+            covs[k] = fused_cov * scales[k]
+    session.means, session.covs = means, covs
+    session.t = t
+    session.epochs += 1
+    status = "tracking" if any(updated) else "predicted"
+    return _fix(t, status, fused_mean, fused_cov, [uses[i] for i in epoch])
+
+
+def _note_odometer(session: _SessionState, obs: Observation) -> None:
+    if isinstance(obs, OdometerObservation) and obs.distance is not None:
+        session.odometer_t = obs.t
+
+
+def _gps_update(means, covs, epoch, observations, options, uses) -> bool:
+    fixes = [i for i in epoch if isinstance(observations[i], GnssFixObservation)]
+    for i in fixes[1:]:
+        uses[i] = MeasurementUse(i, "gnss_fix", False, "another gnss_fix at the same time was used")
+    if not fixes:
+        return False
+    obs = observations[fixes[0]]
+    std = obs.std if obs.std is not None else options["gps_std"]
+    means[0], covs[0], _, _ = _KF.update_one(means[0], covs[0], _KIN, GnssPosition(std), np.array([obs.x, obs.y]))
+    uses[fixes[0]] = MeasurementUse(fixes[0], "gnss_fix", True)
+    return True
+
+
+def _dr_update(session, means, covs, epoch, observations, options, uses, t) -> bool:
+    parts: list[MeasurementModel] = []
+    values: list[float] = []
+    gyros = [i for i in epoch if isinstance(observations[i], GyroObservation)]
+    odos = [i for i in epoch if isinstance(observations[i], OdometerObservation)]
+    for i in gyros[1:]:
+        uses[i] = MeasurementUse(i, "gyro", False, "another gyro reading at the same time was used")
+    for i in odos[1:]:
+        uses[i] = MeasurementUse(i, "odometer", False, "another odometer reading at the same time was used")
+    if gyros:
+        parts.append(GyroYawRate(options["gyro_std"]))
+        values.append(observations[gyros[0]].yaw_rate)
+        uses[gyros[0]] = MeasurementUse(gyros[0], "gyro", True)
+    if odos:
+        obs = observations[odos[0]]
+        if obs.speed is not None:
+            parts.append(OdometerDistance(options["odometer_std"], 1.0))
+            values.append(obs.speed)
+            uses[odos[0]] = MeasurementUse(odos[0], "odometer", True)
+        elif session.odometer_t is None or t <= session.odometer_t:
+            uses[odos[0]] = MeasurementUse(odos[0], "odometer", False, "first distance reading: no previous reading starts its interval")
+        else:
+            parts.append(OdometerDistance(options["odometer_std"], t - session.odometer_t))
+            values.append(obs.distance)
+            uses[odos[0]] = MeasurementUse(odos[0], "odometer", True)
+        _note_odometer(session, obs)
+    if not parts:
+        return False
+    model = parts[0] if len(parts) == 1 else Stacked(parts)
+    means[1], covs[1], _, _ = _SRUKF.update_one(means[1], covs[1], _KIN, model, np.array(values))
+    return True
+
+
+def _v2x_update(means, covs, epoch, observations, options, uses, environment, t) -> bool:
+    points, variances, used = [], [], []
+    range_var = options["range_std"] ** 2
+    for i in epoch:
+        obs = observations[i]
+        if isinstance(obs, RsuRangeObservation):
+            rsu = environment.rsu(obs.rsu_id)
+            if rsu is None:
+                uses[i] = MeasurementUse(i, obs.kind, False, f"unknown RSU {obs.rsu_id!r}")
+                continue
+            point, point_cov = np.array([rsu.x, rsu.y]), np.zeros((2, 2))
+            std = rsu.range_std if rsu.range_std is not None else options["range_std"]
+            variance = std**2
+            value = obs.range
+        elif isinstance(obs, V2vRangeObservation):
+            try:
+                neighbour = position_at(
+                    environment.neighbour(obs.peer_vehicle_id), t, options["max_neighbour_age"],
+                    options["neighbour_accel_std"], environment.vehicle_id, obs.peer_vehicle_id,
+                )
+            except NeighbourUnavailable as reason:
+                uses[i] = MeasurementUse(i, obs.kind, False, str(reason))
+                continue
+            point, point_cov, variance = neighbour.position, neighbour.cov, range_var
+            value = obs.range if obs.range is not None else obs.toa * SPEED_OF_LIGHT
+        else:
+            continue
+        offset = np.array([means[2][0], means[2][3]]) - point
+        norm = float(np.hypot(*offset))
+        direction = offset / norm if norm > 1e-9 else np.zeros(2)
+        points.append(point)
+        variances.append(variance + float(direction @ point_cov @ direction))  # the node's own uncertainty
+        used.append((i, value))
+    if not used:
+        return False
+    model = RangesToPoints(np.array(points), np.array(variances))
+    means[2], covs[2], _, _ = _SRUKF.update_one(means[2], covs[2], _KIN, model, np.array([v for _, v in used]))
+    for i, _ in used:
+        uses[i] = MeasurementUse(i, observations[i].kind, True)
+    return True
+
+
+def fuse(mean_a: np.ndarray, cov_a: np.ndarray, mean_b: np.ndarray, cov_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 15: P = (Pa^-1 + Pb^-1)^-1, x = P (Pa^-1 xa + Pb^-1 xb), through Cholesky solves."""
+    try:
+        info_a = np.linalg.inv(np.linalg.cholesky(cov_a))
+        info_b = np.linalg.inv(np.linalg.cholesky(cov_b))
+    except np.linalg.LinAlgError:
+        raise NumericalError("a sub-filter covariance is not positive definite; cannot fuse") from None
+    info_a, info_b = info_a.T @ info_a, info_b.T @ info_b
+    information = info_a + info_b
+    try:
+        chol = np.linalg.cholesky(0.5 * (information + information.T))
+    except np.linalg.LinAlgError:
+        raise NumericalError("fused information matrix is not positive definite") from None
+    inverse_factor = np.linalg.inv(chol)
+    cov = inverse_factor.T @ inverse_factor
+    cov = 0.5 * (cov + cov.T)
+    mean = cov @ (info_a @ mean_a + info_b @ mean_b)
+    if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(cov))):
+        raise NumericalError("fused estimate is not finite")
+    return mean, cov
+
+
+def _fix(t: float, status: str, mean: np.ndarray, cov: np.ndarray, uses: list[MeasurementUse]) -> Fix:
+    xp, xv, _, yp, yv, _ = (float(v) for v in mean)
+    order = [0, 3, 1, 4]  # [x, y, vx, vy] of the published track
+    kinematic_cov = cov[np.ix_(order, order)]
+    return Fix(
+        t=t,
+        status=status,
+        x=xp,
+        y=yp,
+        vx=xv,
+        vy=yv,
+        speed=math.hypot(xv, yv),
+        heading=math.atan2(yv, xv) if math.hypot(xv, yv) > 0 else None,
+        position_cov=cov[np.ix_([0, 3], [0, 3])].tolist(),
+        kinematic_cov=kinematic_cov.tolist(),
+        state_components=tuple(layout.NAMES[c] for c in _KIN),
+        state=[float(v) for v in mean],
+        state_cov=cov.tolist(),
+        measurements=uses,
+    )

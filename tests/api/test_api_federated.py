@@ -1,0 +1,44 @@
+"""The v2x_federated pipeline through the API: fixes with per-measurement reasons, bad input as a
+4xx that names the field and leaves the session as it was."""
+
+from __future__ import annotations
+
+from apihelp import assert_error, open_session
+
+
+def _post(client, session_id, auth, seq, measurements):
+    return client.post(f"/v1/sessions/{session_id}/batches", json={"seq": seq, "measurements": measurements}, headers=auth)
+
+
+def test_federated_session_tracks_and_explains(client):
+    session_id, auth = open_session(client, pipeline="v2x_federated", options={"feedback": True})
+    response = _post(client, session_id, auth, 1, [
+        {"type": "gnss_fix", "t": 0.0, "x": 0.0, "y": 0.0},
+        {"type": "gnss_fix", "t": 0.2, "x": 2.0, "y": 0.1},
+        {"type": "gyro", "t": 0.2, "yaw_rate": 0.0},
+        {"type": "odometer", "t": 0.2, "speed": 10.0},
+        {"type": "v2v_range", "t": 0.2, "peer_vehicle_id": "nobody", "range": 30.0},
+    ])
+    assert response.status_code == 200, response.text
+    fixes = response.json()["fixes"]
+    assert [f["status"] for f in fixes] == ["initialised", "tracking"]
+    text = str(fixes[1])
+    assert "no live session" in text
+
+
+def test_federated_bad_input_is_4xx_and_keeps_the_session(client):
+    session_id, auth = open_session(client, pipeline="v2x_federated")
+    assert _post(client, session_id, auth, 1, [{"type": "gnss_fix", "t": 1.0, "x": 0.0, "y": 0.0}]).status_code == 200
+    before = client.get(f"/v1/sessions/{session_id}", headers=auth).json()
+    response = _post(client, session_id, auth, 2, [{"type": "gnss_fix", "t": 0.5, "x": 0.0, "y": 0.0}])
+    assert 400 <= response.status_code < 500
+    assert client.get(f"/v1/sessions/{session_id}", headers=auth).json() == before
+    response = _post(client, session_id, auth, 2, [{"type": "rsu", "t": 2.0, "rsu_id": "R", "range": 1.0, "bearing": 0.0}])
+    assert 400 <= response.status_code < 500
+    assert client.get(f"/v1/sessions/{session_id}", headers=auth).json() == before
+
+
+def test_federated_bad_option_names_the_option(client):
+    response = client.post("/v1/sessions", json={"vehicle_id": "car-1", "pipeline": "v2x_federated", "options": {"dr_share": 2}})
+    error = assert_error(response, 422, "invalid_request")
+    assert error["problems"][0]["field"] == "options.dr_share"
