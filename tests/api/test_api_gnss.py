@@ -320,3 +320,34 @@ def test_pipelines_list_gnss_tight_with_its_options(client):
         "invalid_request",
     )
     assert error["problems"][0]["field"] == "options.particles"
+
+
+def test_served_fixes_equal_the_pipeline_bit_for_bit(client):
+    """The service hands the pipeline the same ephemerides and observations as a direct call: the UPF's
+    fixes over the wire are the in-process pipeline's, float for float (the state bytes too)."""
+    from edgepos.core.observations import PseudorangeObservation
+    from edgepos.pipelines.base import StaticEnvironment
+    from edgepos.pipelines.registry import get_pipeline
+
+    options = {"filter": "upf", "particles": 50, "seed": 11, "systems": ["G", "C"]}
+    assert upload(client).status_code == 200
+    session_id, token = open_session(client, pipeline="gnss_tight", options=options)
+    pipeline = get_pipeline("gnss_tight")
+    environment = StaticEnvironment(navigation=parse_ephemerides(nav_text()))
+    state = pipeline.create(pipeline.resolve_options(options), None)
+    for seq, first in enumerate(range(0, 10, 5), start=1):
+        items = measurements(first, 5)
+        observations = [
+            PseudorangeObservation(m["t"], m["system"], m["prn"], m["pseudorange_m"], m["cn0_dbhz"])
+            for m in items
+        ]
+        expected, state = pipeline.process(state, observations, environment)
+        served = post(client, session_id, token, seq, items, include_state=True).json()["fixes"]
+        assert len(served) == len(expected) == 5
+        for got, fix in zip(served, expected, strict=True):
+            for name in ("t", "x", "y", "vx", "vy", "latitude", "longitude", "height", "nis"):
+                value = getattr(fix, name)
+                assert got[name] == value and (value is None or got[name].hex() == value.hex()), name
+            assert got["state"]["mean"] == fix.state and got["status"] == fix.status
+    stored = client.portal.call(client.app.state.context.store.get, session_id)
+    assert stored.state == state
