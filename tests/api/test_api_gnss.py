@@ -110,6 +110,13 @@ def test_a_malformed_file_is_refused_naming_the_line(client, edit, line, words):
     assert client.get("/v1/ephemerides", headers=ADMIN).json() == loaded  # the loaded file stays
 
 
+def test_a_byte_order_mark_and_crlf_line_ends_are_accepted(client):
+    windows = "\ufeff" + nav_text().replace("\n", "\r\n")
+    response = upload(client, windows.encode("utf-8"))
+    assert response.status_code == 200, response.text
+    assert response.json()["satellite_count"] == 45
+
+
 def test_not_text_and_no_usable_record_are_refused(client):
     error = assert_error(upload(client, b"\xff\xfe binary"), 422, "invalid_request")
     assert error["problems"][0]["field"] == "body.line[1]" and "not text" in error["problems"][0]["reason"]

@@ -53,9 +53,10 @@ class NavigationFileError(ValueError):
 
 
 def decode_upload(body: bytes) -> str:
-    """The body as text: RINEX is ASCII; UTF-8 is accepted (comments may carry names with accents)."""
+    """The body as text: RINEX is ASCII; UTF-8 is accepted (comments may carry names with accents), and
+    a byte-order mark some editors write is dropped."""
     try:
-        return body.decode("utf-8")
+        return body.decode("utf-8").removeprefix("\ufeff")
     except UnicodeDecodeError as error:
         line = body[: error.start].count(b"\n") + 1
         raise NavigationFileError(line, f"byte {error.start} is not text (RINEX is ASCII)") from None

@@ -169,7 +169,10 @@ class GpsTimeOut(ResponseModel):
 class EphemeridesOut(ResponseModel):
     """The site's loaded broadcast navigation file (RINEX 3), summarised."""
 
-    digest: str = Field(description="SHA-256 (hex) of the file as uploaded; every worker caches by it.")
+    digest: str = Field(
+        description="SHA-256 (hex) of the file's text as stored (UTF-8, a leading byte-order mark dropped); "
+        "every worker caches the parsed file by it."
+    )
     size_bytes: int = Field(description="Size of the uploaded file (bytes).")
     uploaded_at: float = Field(description="Upload time (Unix seconds, server clock).")
     systems: list[str] = Field(
