@@ -7,7 +7,9 @@ Keeping this free of I/O lets both clients be thin loops around ``httpx`` that c
 from __future__ import annotations
 
 import json
+import os
 import random
+from pathlib import Path
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
@@ -20,17 +22,46 @@ from edgepos_client.errors import EdgeposError, TransportError, error_from_respo
 from edgepos_client.models import (
     MEASUREMENTS,
     BatchResult,
+    EphemeridesSummary,
     Fix,
+    GnssFixMeasurement,
     GyroMeasurement,
     InitialState,
+    OdometerMeasurement,
     PipelineInfo,
+    PseudorangeMeasurement,
+    RissMeasurement,
     Rsu,
     RsuMeasurement,
+    RsuRangeMeasurement,
     SessionCreated,
     SessionInfo,
+    V2vRangeMeasurement,
 )
 
-MeasurementLike = RsuMeasurement | GyroMeasurement | Mapping[str, Any]
+_MEASUREMENT_MODELS = (
+    RsuMeasurement,
+    GyroMeasurement,
+    RsuRangeMeasurement,
+    GnssFixMeasurement,
+    OdometerMeasurement,
+    V2vRangeMeasurement,
+    PseudorangeMeasurement,
+    RissMeasurement,
+)
+MeasurementLike = (
+    RsuMeasurement
+    | GyroMeasurement
+    | RsuRangeMeasurement
+    | GnssFixMeasurement
+    | OdometerMeasurement
+    | V2vRangeMeasurement
+    | PseudorangeMeasurement
+    | RissMeasurement
+    | Mapping[str, Any]
+)
+NavigationLike = str | bytes | os.PathLike[str]
+"""A RINEX navigation file: its text, its bytes, or a path to read it from."""
 RsuLike = Rsu | Mapping[str, Any]
 
 
@@ -110,11 +141,12 @@ class Call:
     body: bytes | None = None
     credential: str | None = None
     retry: Retry = Retry.ALWAYS
+    content_type: str = "application/json"
 
     def headers(self) -> dict[str, str]:
         headers = {"Accept": "application/json"}
         if self.body is not None:
-            headers["Content-Type"] = "application/json"
+            headers["Content-Type"] = self.content_type
         if self.credential:
             headers["Authorization"] = f"Bearer {self.credential}"
         return headers
@@ -178,6 +210,23 @@ class Calls:
     def delete_rsu(self, rsu_id: str) -> Call:
         return Call("DELETE", f"/v1/rsus/{_segment(rsu_id)}", credential=self.admin_key, retry=Retry.CONNECT)
 
+    # broadcast ephemerides
+    def put_ephemerides(self, navigation: NavigationLike) -> Call:
+        """PUT the navigation file (admin); replacing it with the same file is harmless, so it is retried."""
+        if isinstance(navigation, os.PathLike):
+            body = Path(navigation).read_bytes()
+        elif isinstance(navigation, str):
+            body = navigation.encode()
+        else:
+            body = bytes(navigation)
+        return Call("PUT", "/v1/ephemerides", body, self.admin_key, content_type="text/plain")
+
+    def get_ephemerides(self, session: Session | None) -> Call:
+        return Call("GET", "/v1/ephemerides", credential=session.token if session else self.admin_key)
+
+    def delete_ephemerides(self) -> Call:
+        return Call("DELETE", "/v1/ephemerides", credential=self.admin_key, retry=Retry.CONNECT)
+
     # pipelines
     def pipelines(self) -> Call:
         return Call("GET", "/v1/pipelines", credential=self.admin_key)
@@ -228,7 +277,7 @@ class Calls:
         session_id, credential = _session_credential(session, self.admin_key)
         if seq < 1:
             raise ValueError("seq must be >= 1")
-        if all(isinstance(item, (RsuMeasurement, GyroMeasurement)) for item in measurements):
+        if all(isinstance(item, _MEASUREMENT_MODELS) for item in measurements):
             items = list(measurements)
         else:
             items = MEASUREMENTS.validate_python(list(measurements))
@@ -274,6 +323,10 @@ def parse_rsus(response: httpx.Response) -> list[Rsu]:
 
 def parse_rsu(response: httpx.Response) -> Rsu:
     return Rsu.model_validate_json(response.content)
+
+
+def parse_ephemerides(response: httpx.Response) -> EphemeridesSummary:
+    return EphemeridesSummary.model_validate_json(response.content)
 
 
 def parse_pipelines(response: httpx.Response) -> list[PipelineInfo]:

@@ -9,8 +9,8 @@ from typing import Any, Self
 import httpx
 
 from edgepos_client import _protocol as protocol
-from edgepos_client._protocol import Call, MeasurementLike, RetryPolicy, RsuLike, Session
-from edgepos_client.models import Fix, InitialState, PipelineInfo, Rsu, SessionInfo
+from edgepos_client._protocol import Call, MeasurementLike, NavigationLike, RetryPolicy, RsuLike, Session
+from edgepos_client.models import EphemeridesSummary, Fix, InitialState, PipelineInfo, Rsu, SessionInfo
 
 
 class AsyncEdgeposClient:
@@ -83,6 +83,20 @@ class AsyncEdgeposClient:
 
     async def delete_rsu(self, rsu_id: str) -> None:
         await self._send(self._calls.delete_rsu(rsu_id))
+
+    # broadcast ephemerides
+    async def put_ephemerides(self, navigation: NavigationLike) -> EphemeridesSummary:
+        """Load the site's RINEX 3 navigation file (admin): its text, bytes, or a path to it. Returns what
+        the server loaded; a malformed file raises InvalidRequest naming the line."""
+        return protocol.parse_ephemerides(await self._send(self._calls.put_ephemerides(navigation)))
+
+    async def get_ephemerides(self, session: Session | None = None) -> EphemeridesSummary:
+        """The loaded file's summary (admin key, or ``session``'s token); NotFound when none is loaded."""
+        return protocol.parse_ephemerides(await self._send(self._calls.get_ephemerides(session)))
+
+    async def delete_ephemerides(self) -> None:
+        """Unload the navigation file (admin)."""
+        await self._send(self._calls.delete_ephemerides())
 
     # pipelines
     async def pipelines(self) -> list[PipelineInfo]:

@@ -61,6 +61,39 @@ class GyroMeasurement(_Request):
     yaw_rate: float = Field(description="Yaw rate (rad/s, counter-clockwise positive).")
 
 
+class PseudorangeMeasurement(_Request):
+    """One satellite's code pseudorange and C/N0 for the gnss_tight pipeline.
+
+    ``t`` is the receive time as GPS time of week (s). The server computes the satellite's position and
+    clock from the ephemerides loaded with ``put_ephemerides`` unless both ``sat_position`` (ECEF WGS-84 m
+    at transmit time, in the Earth-fixed frame of the transmit epoch) and ``sat_clock`` (s, corrected
+    range = pseudorange_m + c * sat_clock) are given."""
+
+    type: Literal["pseudorange"] = "pseudorange"
+    t: float = Field(ge=0.0, lt=604800.0, description="GPS time of week (s); equal t means one epoch.")
+    system: Literal["G", "C", "E"] = Field(description="G GPS, C BeiDou, E Galileo (RINEX letters).")
+    prn: int = Field(ge=1, le=63, description="Satellite number (PRN) within its constellation.")
+    pseudorange_m: float = Field(ge=1.0e6, le=1.0e8, description="Code pseudorange as measured (m).")
+    cn0_dbhz: float = Field(ge=0.0, le=100.0, description="Carrier-to-noise density (dB-Hz), 0 if unknown.")
+    sat_position: tuple[float, float, float] | None = Field(
+        None, description="Satellite ECEF position at transmit time (m); send with sat_clock."
+    )
+    sat_clock: float | None = Field(
+        None, ge=-0.01, le=0.01, description="Satellite clock offset (s); send with sat_position."
+    )
+
+
+class RissMeasurement(_Request):
+    """Reduced inertial sample (vehicle frame x forward, y left, z up) for the gnss_tight pipeline."""
+
+    type: Literal["riss"] = "riss"
+    t: float = Field(ge=0.0, lt=604800.0, description="GPS time of week (s).")
+    wheel_speed: float = Field(ge=-100.0, le=100.0, description="Wheel odometer speed (m/s, < 0 reversing).")
+    accel_x: float = Field(ge=-50.0, le=50.0, description="Forward specific force (m/s^2).")
+    accel_y: float = Field(ge=-50.0, le=50.0, description="Lateral specific force, positive left (m/s^2).")
+    gyro_z: float = Field(ge=-10.0, le=10.0, description="Yaw rate (rad/s, counter-clockwise positive).")
+
+
 def _exactly_one(first: str, first_value: float | None, second: str, second_value: float | None) -> None:
     if (first_value is None) == (second_value is None):
         state = "both were given" if first_value is not None else "neither was given"
@@ -121,7 +154,9 @@ Measurement = Annotated[
     | RsuRangeMeasurement
     | GnssFixMeasurement
     | OdometerMeasurement
-    | V2vRangeMeasurement,
+    | V2vRangeMeasurement
+    | PseudorangeMeasurement
+    | RissMeasurement,
     Field(discriminator="type"),
 ]
 MEASUREMENTS = TypeAdapter(list[Measurement])
@@ -155,6 +190,33 @@ class PipelineInfo(_Response):
     description: str = ""
     measurement_types: list[str] = Field(default_factory=list)
     options: list[PipelineOption] = Field(default_factory=list)
+
+
+# -- ephemerides -----------------------------------------------------------------------------------
+class GpsTime(_Response):
+    """A GPS time as week, seconds of week and seconds since 1980-01-06."""
+
+    week: int
+    tow: float
+    gps_seconds: float
+
+
+class EphemeridesSummary(_Response):
+    """What the server loaded from a navigation file (``GET /v1/ephemerides``)."""
+
+    digest: str
+    size_bytes: int
+    uploaded_at: float
+    systems: list[str] = Field(default_factory=list)
+    satellite_count: int = 0
+    satellites: list[str] = Field(default_factory=list)
+    records: dict[str, int] = Field(default_factory=dict)
+    healthy_records: int = 0
+    skipped_records: dict[str, int] = Field(default_factory=dict)
+    valid_from: GpsTime | None = None
+    valid_until: GpsTime | None = None
+    ionosphere: list[str] = Field(default_factory=list)
+    klobuchar: bool = False
 
 
 # -- fixes -----------------------------------------------------------------------------------------
@@ -192,6 +254,7 @@ class Fix(_Response):
     yaw_rate: float | None = None
     latitude: float | None = None
     longitude: float | None = None
+    height: float | None = None
     position_covariance: list[list[float]] | None = None
     state: StateEstimate | None = None
     model_probabilities: dict[str, float] = Field(default_factory=dict)

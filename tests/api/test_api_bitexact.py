@@ -24,6 +24,7 @@ def _expected_wire(fix):
         "yaw_rate": fix.yaw_rate,
         "latitude": None,
         "longitude": None,
+        "height": None,
         "position_covariance": fix.position_cov,
         "state": {"components": list(fix.state_components), "mean": fix.state, "covariance": fix.state_cov},
         "model_probabilities": fix.model_probabilities,

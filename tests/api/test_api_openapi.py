@@ -20,6 +20,7 @@ def test_schema_documents_every_route_and_error():
     assert set(paths) == {
         "/v1/rsus",
         "/v1/rsus/{rsu_id}",
+        "/v1/ephemerides",
         "/v1/pipelines",
         "/v1/sessions",
         "/v1/sessions/{session_id}",
@@ -32,6 +33,9 @@ def test_schema_documents_every_route_and_error():
     assert set(batches["responses"]) == {"200", "401", "403", "404", "409", "413", "422", "429", "503"}
     assert batches["responses"]["422"]["content"]["application/json"]["schema"]["$ref"].endswith("/ErrorBody")
     assert document["components"]["securitySchemes"]["bearer"]["scheme"] == "bearer"
+    upload = paths["/v1/ephemerides"]["put"]["requestBody"]["content"]
+    assert set(upload) == {"text/plain", "application/octet-stream"}
+    assert set(paths["/v1/ephemerides"]) == {"put", "get", "delete"}
 
 
 def test_every_schema_field_is_described():

@@ -38,10 +38,12 @@ async def test_rsu_registry_round_trip(aclient: AsyncEdgeposClient) -> None:
 
 async def test_pipelines_list_options(aclient: AsyncEdgeposClient) -> None:
     pipelines = {pipeline.name: pipeline for pipeline in await aclient.pipelines()}
-    assert {"rsu_imu", "v2x_federated"} <= set(pipelines)
-    pipeline = pipelines["rsu_imu"]
-    assert set(pipeline.measurement_types) == {"rsu", "gyro"}
-    assert "filter" in {option.name for option in pipeline.options}
+    assert {"rsu_imu", "gnss_tight", "v2x_federated"} <= set(pipelines)
+    assert set(pipelines["rsu_imu"].measurement_types) == {"rsu", "gyro"}
+    assert "filter" in {option.name for option in pipelines["rsu_imu"].options}
+    assert pipelines["gnss_tight"].measurement_types == ["pseudorange", "riss"]
+    particles = {option.name: option for option in pipelines["gnss_tight"].options}["particles"]
+    assert (particles.default, particles.minimum, particles.maximum) == (200, 10, 5000)
 
 
 async def test_session_lifecycle_tracks_seq(aclient: AsyncEdgeposClient) -> None:

@@ -62,3 +62,14 @@ def test_saastamoinen_sea_level_zenith() -> None:
         2.0 * float(saastamoinen_delay(0.7, 0.0, math.pi / 2))
     )
     assert float(saastamoinen_delay(0.7, 4.0e5, 0.5)) == 0.0
+
+
+def test_saastamoinen_is_finite_and_falls_with_height_up_to_the_cut_off() -> None:
+    # A least-squares iteration can pass through any height; 38-100 km used to give inf or a complex
+    # pressure (TypeError, a 500 in the service). The delay must stay finite, >= 0 and non-increasing.
+    heights = np.concatenate([np.linspace(-999.0, 1.2e5, 4001), [38417.0, 44330.0, 44331.0, 99999.0]])
+    heights.sort()
+    delays = np.array([float(saastamoinen_delay(0.7, float(h), 0.3)) for h in heights])
+    assert np.all(np.isfinite(delays)) and np.all(delays >= 0.0)
+    assert np.all(np.diff(delays) <= 1e-12)
+    assert float(saastamoinen_delay(0.7, 30_000.0, math.pi / 2)) < 0.02

@@ -101,3 +101,11 @@ def test_module_main_prints_figures(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["--obs", str(OBS), "--nav", str(NAV), "--reference", str(REFERENCE), "--systems", "G"]) == 0
     out = capsys.readouterr().out
     assert "epochs: 300" in out and "horizontal_rms_m:" in out and "reference_epochs: 288" in out
+
+
+def test_singular_geometry_is_an_spp_error_not_a_crash() -> None:
+    from edgepos.gnss.spp import SppError, _dop
+
+    design = np.array([[0.6, 0.0, 0.8, 1.0]] * 5)  # five copies of one line of sight
+    with pytest.raises(SppError, match="geometry"):
+        _dop(design, np.array([4.0e6, 0.0, 4.9e6]))

@@ -1,5 +1,5 @@
 """Both stores keep the same contract: sessions with compare-and-set, TTL expiry, the session
-limit, and the RSU registry."""
+limit, the RSU registry and the broadcast ephemerides."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 from edgepos.pipelines.base import NeighbourTrack, Rsu, TrackPoint
 from edgepos.store import MemoryStore, SessionRecord, SessionStore, SQLiteStore, TooManySessions, open_store
+from edgepos.store.base import StoredEphemerides
 from edgepos.store.ratelimit import RateLimit
 
 
@@ -165,6 +166,26 @@ def test_rsu_registry(store):
         assert await store.delete_rsu("a")
         assert not await store.delete_rsu("a")
         assert await store.get_rsu("a") is None
+
+    asyncio.run(scenario())
+
+
+def test_ephemerides_document(store):
+    async def scenario() -> None:
+        assert await store.get_ephemerides() is None
+        assert await store.ephemerides_digest() is None
+        assert not await store.delete_ephemerides()
+        text = "     3.04           N: GNSS NAV DATA    M: Mixed            RINEX VERSION / TYPE\n\u00b5 \n" * 3
+        first = StoredEphemerides("d1" * 32, text, 1000.5)
+        await store.put_ephemerides(first)
+        assert await store.get_ephemerides() == first
+        assert await store.ephemerides_digest() == first.digest
+        second = StoredEphemerides("e2" * 32, "other", 1001.0)
+        await store.put_ephemerides(second)
+        assert await store.get_ephemerides() == second
+        assert await store.delete_ephemerides()
+        assert await store.get_ephemerides() is None
+        assert await store.ephemerides_digest() is None
 
     asyncio.run(scenario())
 

@@ -24,7 +24,7 @@ from edgepos.api.errors import install_error_handlers
 from edgepos.api.logs import configure_logging
 from edgepos.api.metrics import Metrics
 from edgepos.api.middleware import AdmissionMiddleware, BodyLimitMiddleware, RequestContextMiddleware
-from edgepos.api.routes import docs, health, rsus, sessions
+from edgepos.api.routes import docs, ephemerides, health, rsus, sessions
 from edgepos.api.routes import pipelines as pipeline_routes
 from edgepos.api.settings import Settings, ensure_admin_key
 from edgepos.core.compiled import warm_up as warm_up_kernels
@@ -35,8 +35,9 @@ from edgepos.store.base import StoreUnavailable
 logger = logging.getLogger("edgepos.api")
 
 DESCRIPTION = """\
-Edge positioning service: vehicles open a session, send batches of roadside-unit (RSU) range/bearing
-and gyro measurements, and get one position fix per measurement epoch.
+Edge positioning service: vehicles open a session, send batches of measurements (roadside-unit (RSU)
+range/bearing and gyro; GNSS pseudoranges and reduced inertial samples) and get one position fix per
+measurement epoch. The site's broadcast ephemerides are loaded once with PUT /v1/ephemerides.
 
 Conventions: SI units and radians everywhere; positions in the site-local east-north plane in metres
 (x east, y north); angles counter-clockwise from east. Authentication is `Authorization: Bearer ...`
@@ -131,7 +132,10 @@ def create_app(
     app.state.context = context
     install_error_handlers(app)
     allowed_methods: dict[str, set[str]] = {}
-    for router in (rsus.router, pipeline_routes.router, sessions.router, health.router, docs.router):
+    routers = (
+        rsus.router, ephemerides.router, pipeline_routes.router, sessions.router, health.router, docs.router
+    )
+    for router in routers:
         app.include_router(router)
         for route in router.routes:
             if isinstance(route, APIRoute):
@@ -140,7 +144,11 @@ def create_app(
     static_dir = resources.files("edgepos.api") / "static"
     app.mount(docs.STATIC_PREFIX, StaticFiles(directory=str(static_dir)), name="static")
 
-    app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
+    app.add_middleware(
+        BodyLimitMiddleware,
+        max_bytes=settings.max_body_bytes,
+        path_limits={ephemerides.PATH: (settings.max_ephemerides_bytes, "EDGEPOS_MAX_EPHEMERIDES_BYTES")},
+    )
     if settings.cors_origin_list:
         app.add_middleware(
             CORSMiddleware,

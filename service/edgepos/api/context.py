@@ -12,6 +12,7 @@ from typing import Annotated, Any, TypeVar
 
 from fastapi import Depends, Request
 
+from edgepos.api.ephemerides import EphemeridesCache
 from edgepos.api.metrics import Metrics
 from edgepos.api.settings import Settings
 from edgepos.geo import GeodeticOrigin
@@ -37,6 +38,7 @@ class AppContext:
     metrics: Metrics
     origin: GeodeticOrigin | None
     admin_key_hash: bytes
+    ephemerides: EphemeridesCache = field(default_factory=EphemeridesCache)
     _filter_executor: ThreadPoolExecutor | None = field(default=None, repr=False)
 
     async def run_filter(self, function: Callable[..., Result], *args: Any) -> Result:

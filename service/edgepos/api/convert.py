@@ -41,9 +41,11 @@ def pipeline_to_wire(pipeline: Pipeline) -> PipelineOut:
 
 
 def fix_to_wire(fix: Fix, include_state: bool, origin: GeodeticOrigin | None) -> FixOut:
-    """The wire fix; ``state`` only when asked for, latitude/longitude only with an origin."""
-    latitude = longitude = None
-    if origin is not None and fix.x is not None and fix.y is not None:
+    """The wire fix; ``state`` only when asked for. Latitude, longitude and height are the pipeline's own
+    when it estimates a global position (gnss_tight); otherwise latitude/longitude of (x, y) on the site's
+    tangent plane when an origin is configured."""
+    latitude, longitude, height = fix.latitude, fix.longitude, fix.height
+    if latitude is None and origin is not None and fix.x is not None and fix.y is not None:
         latitude, longitude, _ = origin.enu_to_geodetic(fix.x, fix.y, 0.0)
     state = None
     if include_state and fix.state is not None and fix.state_cov is not None:
@@ -60,6 +62,7 @@ def fix_to_wire(fix: Fix, include_state: bool, origin: GeodeticOrigin | None) ->
         yaw_rate=fix.yaw_rate,
         latitude=latitude,
         longitude=longitude,
+        height=height,
         position_covariance=fix.position_cov,
         state=state,
         model_probabilities=fix.model_probabilities,

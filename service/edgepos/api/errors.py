@@ -8,7 +8,7 @@ logs it with its traceback and answers a generic 500 that reveals nothing.
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -74,13 +74,20 @@ def error_response(error: ApiError) -> Response:
     )
 
 
-def pipeline_problems(problems: Iterable[Problem], list_name: str | None = None) -> list[ProblemModel]:
+def pipeline_problems(
+    problems: Iterable[Problem],
+    list_name: str | None = None,
+    rename: Callable[[int, str], str] | None = None,
+) -> list[ProblemModel]:
     """Pipeline problems as wire problems; with ``list_name`` an indexed field becomes
-    ``list_name[index].field`` so it names the request's own path."""
+    ``list_name[index].field`` so it names the request's own path (``rename`` maps an observation's
+    field to the wire's name for that item, e.g. pseudorange -> pseudorange_m)."""
     out = []
     for problem in problems:
         field = problem.field
         if list_name is not None and problem.index is not None:
+            if rename is not None:
+                field = rename(problem.index, field)
             field = f"{list_name}[{problem.index}].{field}"
         out.append(ProblemModel(index=problem.index, field=field, reason=problem.reason))
     return out

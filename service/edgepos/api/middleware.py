@@ -110,22 +110,25 @@ class RequestContextMiddleware:
 
 class BodyLimitMiddleware:
     """Refuse request bodies above ``max_bytes`` with 413 before the app parses anything; the
-    accepted body is buffered and handed on unchanged."""
+    accepted body is buffered and handed on unchanged. ``path_limits`` gives some paths their own
+    limit (path -> (bytes, name of the setting))."""
 
-    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+    def __init__(
+        self, app: ASGIApp, max_bytes: int, path_limits: dict[str, tuple[int, str]] | None = None
+    ) -> None:
         self.app = app
         self.max_bytes = max_bytes
-
-    def _too_large(self) -> str:
-        return f"the request body exceeds {self.max_bytes} bytes (EDGEPOS_MAX_BODY_BYTES)"
+        self.path_limits = dict(path_limits or {})
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        limit, setting = self.path_limits.get(scope["path"], (self.max_bytes, "EDGEPOS_MAX_BODY_BYTES"))
+        too_large = f"the request body exceeds {limit} bytes ({setting})"
         declared = dict(scope.get("headers") or []).get(b"content-length")
-        if declared is not None and declared.strip().isdigit() and int(declared) > self.max_bytes:
-            await _send_error(send, 413, "payload_too_large", self._too_large())
+        if declared is not None and declared.strip().isdigit() and int(declared) > limit:
+            await _send_error(send, 413, "payload_too_large", too_large)
             return
         chunks: list[bytes] = []
         size = 0
@@ -137,8 +140,8 @@ class BodyLimitMiddleware:
                 break
             chunk = message.get("body", b"")
             size += len(chunk)
-            if size > self.max_bytes:
-                await _send_error(send, 413, "payload_too_large", self._too_large())
+            if size > limit:
+                await _send_error(send, 413, "payload_too_large", too_large)
                 return
             chunks.append(chunk)
             if not message.get("more_body", False):

@@ -10,7 +10,7 @@ Measurements are a union discriminated by ``type``: a new measurement type is on
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
@@ -19,6 +19,8 @@ from edgepos.core.observations import (
     GyroObservation,
     Observation,
     OdometerObservation,
+    PseudorangeObservation,
+    RissObservation,
     RsuObservation,
     RsuRangeObservation,
     V2vRangeObservation,
@@ -155,6 +157,51 @@ class Upserted(ResponseModel):
     upserted: int = Field(description="How many RSUs were inserted or replaced.")
 
 
+# -- broadcast ephemerides -------------------------------------------------------------------------
+class GpsTimeOut(ResponseModel):
+    """A GPS time three ways (GPS time has no leap seconds; BeiDou time = GPS time - 14 s)."""
+
+    week: int = Field(description="GPS week number (continuous, not modulo 1024).")
+    tow: float = Field(description="Seconds of that week, [0, 604800).")
+    gps_seconds: float = Field(description="Seconds since the GPS epoch 1980-01-06 00:00:00 UTC.")
+
+
+class EphemeridesOut(ResponseModel):
+    """The site's loaded broadcast navigation file (RINEX 3), summarised."""
+
+    digest: str = Field(
+        description="SHA-256 (hex) of the file's text as stored (UTF-8, a leading byte-order mark dropped); "
+        "every worker caches the parsed file by it."
+    )
+    size_bytes: int = Field(description="Size of the uploaded file (bytes).")
+    uploaded_at: float = Field(description="Upload time (Unix seconds, server clock).")
+    systems: list[str] = Field(
+        description="Constellations with a healthy ephemeris (RINEX letters: G GPS, C BeiDou, E Galileo)."
+    )
+    satellite_count: int = Field(description="Satellites with at least one healthy ephemeris.")
+    satellites: list[str] = Field(description="Those satellites, e.g. 'G05', 'C19', sorted.")
+    records: dict[str, int] = Field(description="Keplerian ephemeris records read, by system letter.")
+    healthy_records: int = Field(description="Of those, the healthy ones (the only ones used).")
+    skipped_records: dict[str, int] = Field(
+        description="Records of systems without a Keplerian ephemeris (R GLONASS, S SBAS), not used."
+    )
+    valid_from: GpsTimeOut | None = Field(
+        description="Earliest time at which some healthy ephemeris is valid (its toe minus the fit "
+        "interval or maximum age)."
+    )
+    valid_until: GpsTimeOut | None = Field(
+        description="Latest time at which some healthy ephemeris is valid."
+    )
+    ionosphere: list[str] = Field(
+        description="IONOSPHERIC CORR sets in the header (GPSA, GPSB: GPS Klobuchar; BDSA, BDSB; "
+        "GAL: NeQuick)."
+    )
+    klobuchar: bool = Field(
+        description="Whether the GPS Klobuchar coefficients (GPSA and GPSB) are present: the ionosphere "
+        "correction the gnss_tight pipeline applies (options.ionosphere)."
+    )
+
+
 # -- pipelines -----------------------------------------------------------------------------------
 class OptionOut(ResponseModel):
     """One option of a pipeline, with the value used when a session does not set it."""
@@ -252,10 +299,13 @@ class StateOut(ResponseModel):
     """The filter's full state estimate (combined over the model bank)."""
 
     components: list[str] = Field(
-        description="Names of the components estimated by every model of the bank, from: xp, xv, xa (east "
-        "position m, velocity m/s, acceleration m/s^2), yp, yv, ya (north), "
+        description="Names of the components. rsu_imu: those estimated by every model of the bank, from: xp, "
+        "xv, xa (east position m, velocity m/s, acceleration m/s^2), yp, yv, ya (north), "
         "phi (heading rad, CCW from east), "
-        "omega (turn rate rad/s, CCW positive)."
+        "omega (turn rate rad/s, CCW positive). gnss_tight: north, east, up (m: curvilinear offsets of "
+        "latitude, longitude and height from the frame's origin), "
+        "v_east, v_north, v_up (m/s), pitch, roll (rad), azimuth (rad, clockwise from north), clock_gps, "
+        "clock_bds, clock_gal (receiver clock bias per constellation, m), clock_drift (m/s)."
     )
     mean: list[float] = Field(description="Mean, in the order of components (SI units as above).")
     covariance: list[list[float]] = Field(
@@ -280,20 +330,27 @@ class FixOut(ResponseModel):
         description="initialised: first fix; tracking: measurements were used; predicted: motion model only; "
         "uninitialised: nothing to start from yet (kinematic fields are null)."
     )
-    x: float | None = Field(description="East position (m).")
-    y: float | None = Field(description="North position (m).")
+    x: float | None = Field(
+        description="East position (m) in the site frame (gnss_tight: the tangent plane at the configured "
+        "WGS-84 origin, or without one at the session's first fix)."
+    )
+    y: float | None = Field(description="North position (m), same frame as x.")
     vx: float | None = Field(description="East velocity (m/s).")
     vy: float | None = Field(description="North velocity (m/s).")
     speed: float | None = Field(description="Speed over ground (m/s).")
     heading: float | None = Field(description="Course over ground (rad, CCW from east, in [-pi, pi]).")
     yaw_rate: float | None = Field(description="Turn rate (rad/s, CCW positive).")
     latitude: float | None = Field(
-        description="WGS-84 latitude (rad) of (x, y) on the site's tangent plane; null unless the server "
-        "has a WGS-84 origin configured."
+        description="WGS-84 latitude (rad): the estimate itself for pipelines that estimate a global "
+        "position (gnss_tight), else (x, y) on the site's tangent plane; null when neither applies (no "
+        "WGS-84 origin configured)."
     )
     longitude: float | None = Field(
-        description="WGS-84 longitude (rad, east positive); "
-        "null unless the server has a WGS-84 origin configured."
+        description="WGS-84 longitude (rad, east positive), as latitude; null when latitude is."
+    )
+    height: float | None = Field(
+        None,
+        description="WGS-84 ellipsoidal height (m) of pipelines that estimate it (gnss_tight); else null.",
     )
     position_covariance: list[list[float]] | None = Field(
         description="2x2 covariance of (x, y) (m^2), [[xx, xy], [yx, yy]]."
@@ -378,6 +435,107 @@ class GyroMeasurement(RequestModel):
 
     def to_observation(self) -> Observation:
         return GyroObservation(t=self.t, yaw_rate=self.yaw_rate)
+
+
+SECONDS_PER_WEEK = 604800.0
+_TOW_DESCRIPTION = (
+    "Measurement time as GPS time of week (s, [0, 604800)): the receiver's receive time; the week comes from "
+    "the loaded ephemerides (or the session's gps_week option). Measurements with equal t form one epoch."
+)
+MAX_PRN = 63
+GNSS_SYSTEMS = ("G", "C", "E")
+SATELLITE_RADIUS_M = (1.0e7, 5.0e7)
+"""Geocentric distances (m) a client-computed satellite position may have (MEO to GEO/IGSO)."""
+
+
+class PseudorangeMeasurement(RequestModel):
+    """One satellite's code pseudorange and C/N0 (gnss_tight pipeline).
+
+    The satellite's position and clock come from the ephemerides loaded with PUT /v1/ephemerides, unless
+    the client sends both ``sat_position`` and ``sat_clock`` (then no ephemeris is needed)."""
+
+    WIRE_FIELDS: ClassVar[dict[str, str]] = {"pseudorange": "pseudorange_m", "cn0": "cn0_dbhz"}
+    """Core observation field -> wire field, for naming problems found by the pipeline."""
+
+    type: Literal["pseudorange"] = Field(description="Discriminator: 'pseudorange'.")
+    t: float = Field(ge=0.0, lt=SECONDS_PER_WEEK, description=_TOW_DESCRIPTION)
+    system: Literal["G", "C", "E"] = Field(
+        description="Constellation, as the RINEX system letter: G GPS, C BeiDou, E Galileo."
+    )
+    prn: int = Field(ge=1, le=MAX_PRN, description="Satellite number within its constellation (PRN, 1-63).")
+    pseudorange_m: float = Field(
+        ge=1.0e6,
+        le=1.0e8,
+        description="Code pseudorange (m), as the receiver measured it (no corrections applied): GPS L1 C/A, "
+        "BeiDou B1I or Galileo E1 (the signal the service assumes for group delay and ionosphere scaling).",
+    )
+    cn0_dbhz: float = Field(
+        ge=0.0, le=100.0, description="Carrier-to-noise density of the signal (dB-Hz), 0 when not known."
+    )
+    sat_position: list[float] | None = Field(
+        None,
+        min_length=3,
+        max_length=3,
+        description="Optional satellite position at transmit time computed by the client: [x, y, z] ECEF "
+        "WGS-84 (m), expressed in the Earth-fixed frame of the transmit epoch (the service applies the "
+        "Earth-rotation correction), 1e7-5e7 m from the Earth's centre. Send it together with sat_clock.",
+    )
+    sat_clock: float | None = Field(
+        None,
+        ge=-0.01,
+        le=0.01,
+        description="Optional satellite clock offset at transmit time (s), relativity and group delay "
+        "included, so that the corrected range is pseudorange_m + c * sat_clock. Send it with sat_position.",
+    )
+
+    def to_observation(self) -> Observation:
+        position = None if self.sat_position is None else tuple(self.sat_position)
+        return PseudorangeObservation(
+            t=self.t,
+            system=self.system,
+            prn=self.prn,
+            pseudorange=self.pseudorange_m,
+            cn0=self.cn0_dbhz,
+            sat_position=position,  # type: ignore[arg-type]
+            sat_clock=self.sat_clock,
+        )
+
+
+class RissMeasurement(RequestModel):
+    """A reduced inertial sensor sample: wheel speed, two accelerometers and the yaw gyro (gnss_tight).
+
+    Vehicle frame: x forward, y left, z up. The sample drives the motion model until the next one (or
+    until options.riss_timeout); without samples the pipeline runs GNSS-only."""
+
+    WIRE_FIELDS: ClassVar[dict[str, str]] = {}
+
+    type: Literal["riss"] = Field(description="Discriminator: 'riss'.")
+    t: float = Field(ge=0.0, lt=SECONDS_PER_WEEK, description=_TOW_DESCRIPTION)
+    wheel_speed: float = Field(
+        ge=-100.0,
+        le=100.0,
+        description="Forward speed from the wheel odometer (m/s, negative when reversing).",
+    )
+    accel_x: float = Field(
+        ge=-50.0, le=50.0, description="Forward specific force (m/s^2, vehicle x axis, positive forward)."
+    )
+    accel_y: float = Field(
+        ge=-50.0, le=50.0, description="Lateral specific force (m/s^2, vehicle y axis, positive to the left)."
+    )
+    gyro_z: float = Field(
+        ge=-10.0,
+        le=10.0,
+        description="Yaw rate about the vehicle's up axis (rad/s, counter-clockwise positive).",
+    )
+
+    def to_observation(self) -> Observation:
+        return RissObservation(
+            t=self.t,
+            wheel_speed=self.wheel_speed,
+            accel_x=self.accel_x,
+            accel_y=self.accel_y,
+            gyro_z=self.gyro_z,
+        )
 
 
 SPEED_OF_LIGHT_M_S = 299_792_458.0
@@ -503,10 +661,14 @@ MeasurementModel = Annotated[
     | RsuRangeMeasurement
     | GnssFixMeasurement
     | OdometerMeasurement
-    | V2vRangeMeasurement,
+    | V2vRangeMeasurement
+    | PseudorangeMeasurement
+    | RissMeasurement,
     Field(discriminator="type"),
 ]
-MEASUREMENT_TYPES: tuple[str, ...] = ("rsu", "gyro", "rsu_range", "gnss_fix", "odometer", "v2v_range")
+MEASUREMENT_TYPES: tuple[str, ...] = (
+    "rsu", "gyro", "rsu_range", "gnss_fix", "odometer", "v2v_range", "pseudorange", "riss"
+)
 """The discriminator values of :data:`MeasurementModel` (used to tidy validation error paths)."""
 
 

@@ -30,7 +30,13 @@ from edgepos.api.schemas import (
     SessionOut,
 )
 from edgepos.core.errors import EstimationError
-from edgepos.core.observations import RsuObservation, RsuRangeObservation, V2vRangeObservation
+from edgepos.api.ephemerides import LoadedEphemerides, satellite_problems
+from edgepos.core.observations import (
+    PseudorangeObservation,
+    RsuObservation,
+    RsuRangeObservation,
+    V2vRangeObservation,
+)
 from edgepos.pipelines import tracks
 from edgepos.pipelines.base import (
     Fix,
@@ -208,6 +214,7 @@ async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> b
     observations = [measurement.to_observation() for measurement in batch.measurements]
     rsu_ids = {o.rsu_id for o in observations if isinstance(o, (RsuObservation, RsuRangeObservation))}
     peer_ids = {o.peer_vehicle_id for o in observations if isinstance(o, V2vRangeObservation)}
+    has_pseudoranges = any(isinstance(o, PseudorangeObservation) for o in observations)
     metrics = context.metrics
     for _attempt in range(MAX_ATTEMPTS):
         async with context.store.session_lock(session_id):
@@ -232,7 +239,19 @@ async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> b
             published = dict(await context.store.get_tracks(wanted)) if wanted else {}
             peers = {vehicle: published[vehicle] for vehicle in peer_ids if vehicle in published}
             rsus = dict(await context.store.get_rsus(rsu_ids)) if rsu_ids else {}
-            environment = StaticEnvironment(rsus, peers, record.vehicle_id)
+            # The site's ephemerides only for batches with pseudoranges: one digest read, parsed once
+            # per worker and file.
+            loaded: LoadedEphemerides | None = None
+            if has_pseudoranges:
+                loaded = await context.ephemerides.current(context.store, context.run_filter)
+                _check_satellites(observations, loaded, record.options.get("systems"))
+            environment = StaticEnvironment(
+                rsus,
+                peers,
+                record.vehicle_id,
+                navigation=None if loaded is None else loaded.ephemerides,
+                origin=_origin(context),
+            )
             started = time.perf_counter()
             try:
                 fixes, state = await context.run_filter(pipeline.process, record.state, observations, environment)
@@ -243,7 +262,7 @@ async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> b
                     "invalid_request",
                     f"the batch was refused ({count} problem{'s' if count != 1 else ''}); "
                     "the session is unchanged",
-                    pipeline_problems(error.problems, "measurements"),
+                    pipeline_problems(error.problems, "measurements", _wire_field_namer(batch)),
                 ) from None
             except EstimationError as error:
                 metrics.batches.labels("failed").inc()
@@ -279,6 +298,43 @@ async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> b
                 return body
             metrics.store_conflicts.inc()
     raise ApiError("unavailable", "the session kept changing under this request; retry the same batch")
+
+
+def _check_satellites(
+    observations: list[Any], loaded: LoadedEphemerides | None, systems_used: Any
+) -> None:
+    """422 naming each pseudorange whose satellite state is unknown (no ephemeris, none sent)."""
+    systems = [str(s) for s in systems_used] if isinstance(systems_used, list) else None
+    problems = satellite_problems(observations, loaded, systems)
+    if problems:
+        count = len(problems)
+        them = "it" if count == 1 else "them"
+        what = "no ephemerides are loaded"
+        if loaded is not None:
+            what = f"the loaded ephemerides do not cover {them}"
+        raise ApiError(
+            "invalid_request",
+            f"{count} pseudorange{'s have' if count != 1 else ' has'} no satellite position: {what}; "
+            "the session is unchanged",
+            problems,
+        )
+
+
+def _origin(context: AppContext) -> tuple[float, float, float] | None:
+    origin = context.origin
+    return None if origin is None else (origin.lat, origin.lon, origin.height)
+
+
+def _wire_field_namer(batch: BatchIn) -> Any:
+    """Renames a pipeline's observation field to the wire field of that measurement's type."""
+
+    def rename(index: int, field: str) -> str:
+        if 0 <= index < len(batch.measurements):
+            names = getattr(batch.measurements[index], "WIRE_FIELDS", {})
+            return str(names.get(field, field))
+        return field
+
+    return rename
 
 
 async def _publish_track(

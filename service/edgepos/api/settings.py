@@ -49,6 +49,13 @@ class Settings(BaseSettings):
         1000, ge=1, le=100_000, description="Measurements allowed in one batch (422 beyond)."
     )
     max_body_bytes: int = Field(1_048_576, ge=1024, description="Largest request body in bytes (413 beyond).")
+    max_ephemerides_bytes: int = Field(
+        16_777_216,
+        ge=1024,
+        le=1_073_741_824,
+        description="Largest navigation file PUT /v1/ephemerides accepts, in bytes (413 beyond, checked "
+        "before parsing); replaces max_body_bytes on that route.",
+    )
     max_inflight: int = Field(
         32,
         ge=1,

@@ -10,7 +10,7 @@ import argparse
 import os
 from collections.abc import Callable
 
-from edgepos.eval import federated, rsu_imu, v2v
+from edgepos.eval import federated, gnss, gnss_rinex, rsu_imu, v2v
 
 #: argparse's object returned by ``add_subparsers`` (private type name, so spelled out here).
 Subparsers = argparse._SubParsersAction
@@ -62,6 +62,21 @@ def _rsu_imu(subparsers: Subparsers) -> None:
     parser.set_defaults(_evaluation=rsu_imu.run)
 
 
+def _gnss_rinex(subparsers: Subparsers) -> None:
+    help_text = "gnss_tight on a real RINEX recording against a reference, beside the WLS baseline"
+    parser = subparsers.add_parser("gnss-rinex", help=help_text, description=help_text)
+    gnss_rinex.configure(parser)
+    parser.set_defaults(_evaluation=gnss_rinex.run)
+
+
+def _gnss(subparsers: Subparsers) -> None:
+    help_text = "GNSS + RISS paper (UPF, fuzzy noise): Table 2 on a simulated street-canyon drive"
+    parser = subparsers.add_parser("gnss", help=help_text, description=help_text)
+    _common_options(parser, runs=20)
+    gnss.configure(parser)
+    parser.set_defaults(_evaluation=gnss.run)
+
+
 def _federated(subparsers: Subparsers) -> None:
     help_text = "V2X federated GPS/DR/V2X paper, sec. 3: Table 1 and Fig. 5 (feedback on/off)"
     parser = subparsers.add_parser("federated", help=help_text, description=help_text)
@@ -79,7 +94,7 @@ def _v2v(subparsers: Subparsers) -> None:
 
 
 #: One function per evaluation, each adding its subcommand.
-EVALUATIONS: tuple[Callable[[Subparsers], None], ...] = (_rsu_imu, _v2v, _federated)
+EVALUATIONS: tuple[Callable[[Subparsers], None], ...] = (_rsu_imu, _v2v, _federated, _gnss, _gnss_rinex)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:

@@ -80,9 +80,17 @@ def klobuchar_delay(
     return l1 * (F_GPS_L1 / np.asarray(frequency_hz, float)) ** 2
 
 
+ATMOSPHERE_TOP_M = 30_000.0
+"""Heights above this use the standard atmosphere at this height. The model's formulas stop making sense
+higher up (the pressure base 1 - 2.2557e-5 h turns negative at 44.3 km, the temperature falls towards zero
+and the vapour formula divides by zero near 38 km), while the delay left there is a few millimetres. A
+least-squares iteration may pass through such heights on its way to the ground."""
+
+
 def standard_atmosphere(height_m: float, relative_humidity: float = 0.7) -> tuple[float, float, float]:
-    """Pressure (hPa), temperature (K) and water-vapour partial pressure (hPa) at an ellipsoidal height."""
-    h = max(height_m, 0.0)
+    """Pressure (hPa), temperature (K) and water-vapour partial pressure (hPa) at an ellipsoidal height
+    (clamped to [0, ATMOSPHERE_TOP_M])."""
+    h = min(max(height_m, 0.0), ATMOSPHERE_TOP_M)
     pressure = 1013.25 * (1.0 - 2.2557e-5 * h) ** 5.2568
     temperature = 15.0 - 6.5e-3 * h + 273.16
     vapour = 6.108 * relative_humidity * np.exp((17.15 * temperature - 4684.0) / (temperature - 38.45))
@@ -92,7 +100,8 @@ def standard_atmosphere(height_m: float, relative_humidity: float = 0.7) -> tupl
 def saastamoinen_zenith(lat: float, height_m: float, relative_humidity: float = 0.7) -> tuple[float, float]:
     """(hydrostatic, wet) zenith delays (m) of Saastamoinen's model in the standard atmosphere."""
     pressure, temperature, vapour = standard_atmosphere(height_m, relative_humidity)
-    hydrostatic = 0.0022768 * pressure / (1.0 - 0.00266 * np.cos(2.0 * lat) - 0.00028 * max(height_m, 0.0) / 1e3)
+    h = min(max(height_m, 0.0), ATMOSPHERE_TOP_M)
+    hydrostatic = 0.0022768 * pressure / (1.0 - 0.00266 * np.cos(2.0 * lat) - 0.00028 * h / 1e3)
     wet = 0.002277 * (1255.0 / temperature + 0.05) * vapour
     return float(hydrostatic), float(wet)
 

@@ -140,8 +140,13 @@ def _dop(design: np.ndarray, position: np.ndarray) -> Dop:
     lat, lon, _ = ecef_to_geodetic(position)
     enu = design.copy()
     enu[:, :3] = design[:, :3] @ enu_rotation(float(lat), float(lon)).T
-    cov = np.linalg.inv(enu.T @ enu)
+    try:
+        cov = np.linalg.inv(enu.T @ enu)
+    except np.linalg.LinAlgError:
+        raise SppError("singular satellite geometry (no dilution of precision)") from None
     diag = np.diag(cov)
+    if not (np.all(np.isfinite(cov)) and np.all(diag > 0.0)):
+        raise SppError("degenerate satellite geometry (no dilution of precision)")
     return Dop(
         float(np.sqrt(np.trace(cov))), float(np.sqrt(diag[:3].sum())), float(np.sqrt(diag[:2].sum())),
         float(np.sqrt(diag[2])),

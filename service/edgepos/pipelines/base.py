@@ -12,9 +12,12 @@ import math
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Protocol
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 from edgepos.core.observations import Observation
+
+if TYPE_CHECKING:
+    from edgepos.gnss.ephemerides import Ephemerides
 
 
 @dataclass(frozen=True)
@@ -67,6 +70,14 @@ class Environment(Protocol):
         """Another vehicle's published track, None when it has no session (or published nothing)."""
         ...
 
+    def ephemerides(self) -> Ephemerides | None:
+        """The site's broadcast ephemerides (``PUT /v1/ephemerides``), None when none are loaded."""
+        ...
+
+    def site_origin(self) -> tuple[float, float, float] | None:
+        """The site frame's WGS-84 origin (latitude rad, longitude rad, ellipsoidal height m), if configured."""
+        ...
+
 
 @dataclass(frozen=True)
 class StaticEnvironment:
@@ -76,12 +87,20 @@ class StaticEnvironment:
     rsus: Mapping[str, Rsu] = field(default_factory=dict)
     tracks: Mapping[str, NeighbourTrack] = field(default_factory=dict)
     vehicle_id: str | None = None
+    navigation: Ephemerides | None = None
+    origin: tuple[float, float, float] | None = None
 
     def rsu(self, rsu_id: str) -> Rsu | None:
         return self.rsus.get(rsu_id)
 
     def neighbour(self, vehicle_id: str) -> NeighbourTrack | None:
         return self.tracks.get(vehicle_id)
+
+    def ephemerides(self) -> Ephemerides | None:
+        return self.navigation
+
+    def site_origin(self) -> tuple[float, float, float] | None:
+        return self.origin
 
 
 @dataclass(frozen=True)
@@ -130,6 +149,8 @@ class Fix:
     ``status``: "initialised" (first fix, from this epoch's measurements or the given initial state),
     "tracking" (measurements were used), "predicted" (no measurement passed: motion model only),
     "uninitialised" (nothing to start from yet; kinematic fields are None).
+    ``latitude``/``longitude`` (rad) and ``height`` (m, ellipsoidal) are WGS-84, set by pipelines that
+    estimate a global position (gnss_tight); others leave them None.
     ``kinematic_cov`` is the 4x4 covariance of [x, y, vx, vy]: with the position and velocity it is
     what the service publishes as the vehicle's track for cooperative neighbours (None: not published).
     """
@@ -152,6 +173,9 @@ class Fix:
     nis: float | None = None
     nis_dof: int = 0
     measurements: list[MeasurementUse] = field(default_factory=list)
+    latitude: float | None = None
+    longitude: float | None = None
+    height: float | None = None
     shared: TrackPoint | None = None
     """What to publish for neighbours when it differs from the fix itself: a cooperative pipeline
     shares an estimate its neighbours' ranges did not shape, so that two vehicles do not count each

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 from edgepos.pipelines.base import Pipeline
+from edgepos.pipelines.gnss_tight import GnssTightPipeline
 from edgepos.pipelines.rsu_imu import RsuImuPipeline
 from edgepos.pipelines.v2v_coop import V2vCoopPipeline
 from edgepos.pipelines.v2x_federated import V2xFederatedPipeline
 
 PIPELINES: dict[str, Pipeline] = {
-    pipeline.name: pipeline for pipeline in (RsuImuPipeline(), V2vCoopPipeline(), V2xFederatedPipeline())
+    pipeline.name: pipeline
+    for pipeline in (RsuImuPipeline(), V2vCoopPipeline(), V2xFederatedPipeline(), GnssTightPipeline())
 }
 
 

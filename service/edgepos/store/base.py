@@ -1,5 +1,5 @@
-"""The store interface: where sessions (the core's serialised state plus bookkeeping) and the site's
-RSU registry live.
+"""The store interface: where sessions (the core's serialised state plus bookkeeping), the site's
+RSU registry and its broadcast ephemerides live.
 
 The web layer only talks to :class:`SessionStore`, so the same routes run on the in-process store
 (one worker) and on the SQLite store (several workers on one box); a shared network store can come
@@ -48,6 +48,18 @@ class SessionRecord:
     epochs: int = 0
     last_fix: str | None = None
     version: int = 0
+
+
+@dataclass(frozen=True)
+class StoredEphemerides:
+    """The site's broadcast navigation file as uploaded (``PUT /v1/ephemerides``).
+
+    ``text`` is the RINEX navigation text exactly as received; ``digest`` its SHA-256 hex, by which
+    every worker caches the parsed form; ``uploaded_at`` Unix seconds (server clock)."""
+
+    digest: str
+    text: str
+    uploaded_at: float
 
 
 def encode_track(track: NeighbourTrack, written_at: float) -> str:
@@ -171,6 +183,23 @@ class SessionStore(ABC):
 
     @abstractmethod
     async def delete_rsu(self, rsu_id: str) -> bool: ...
+
+    # broadcast ephemerides (one navigation file per site, shared like the RSU registry)
+    @abstractmethod
+    async def put_ephemerides(self, document: StoredEphemerides) -> None:
+        """Store the site's navigation file, replacing any previous one (one atomic write)."""
+
+    @abstractmethod
+    async def get_ephemerides(self) -> StoredEphemerides | None:
+        """The stored navigation file (digest, text and time read together), None when none is."""
+
+    @abstractmethod
+    async def ephemerides_digest(self) -> str | None:
+        """Only the stored file's digest: a cheap check of whether a worker's parsed copy is current."""
+
+    @abstractmethod
+    async def delete_ephemerides(self) -> bool:
+        """Remove the navigation file; False if there was none."""
 
     # neighbour tracks: what a vehicle's session publishes for cooperative pipelines of other vehicles
     def track_is_live(self, written_at: float, now: float) -> bool:

@@ -9,7 +9,7 @@ import time
 from collections.abc import Iterable, Mapping
 
 from edgepos.pipelines.base import NeighbourTrack, Rsu
-from edgepos.store.base import Clock, SessionRecord, SessionStore, TooManySessions
+from edgepos.store.base import Clock, SessionRecord, SessionStore, StoredEphemerides, TooManySessions
 from edgepos.store.ratelimit import RateLimit, gcra
 
 #: Past this many rate-limit entries, entries whose budget is full again are dropped.
@@ -26,6 +26,7 @@ class MemoryStore(SessionStore):
         self._rsus: dict[str, Rsu] = {}
         self._tracks: dict[str, tuple[NeighbourTrack, float]] = {}
         self._rate_tats: dict[str, float] = {}
+        self._ephemerides: StoredEphemerides | None = None
 
     @staticmethod
     def _copy(record: SessionRecord) -> SessionRecord:
@@ -93,6 +94,19 @@ class MemoryStore(SessionStore):
 
     async def delete_rsu(self, rsu_id: str) -> bool:
         return self._rsus.pop(rsu_id, None) is not None
+
+    async def put_ephemerides(self, document: StoredEphemerides) -> None:
+        self._ephemerides = document
+
+    async def get_ephemerides(self) -> StoredEphemerides | None:
+        return self._ephemerides
+
+    async def ephemerides_digest(self) -> str | None:
+        return None if self._ephemerides is None else self._ephemerides.digest
+
+    async def delete_ephemerides(self) -> bool:
+        existed, self._ephemerides = self._ephemerides is not None, None
+        return existed
 
     async def put_track(self, track: NeighbourTrack) -> None:
         self._tracks[track.vehicle_id] = (track, self.clock())

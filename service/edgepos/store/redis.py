@@ -6,8 +6,10 @@ scripts, so each is atomic on the server whichever process sends it: an update r
 only if its ``version`` is still the one the writer read (compare-and-set), and refreshes the key's
 TTL, so an idle session disappears by itself after ``ttl_s``. A sorted set of session ids scored by
 ``updated_at`` counts live sessions for the session limit without scanning the keyspace, and lets
-expired entries be purged by score. RSUs live in one hash. Key layout and the durability of an
-acknowledged write under each persistence setting are in docs/redis.md.
+expired entries be purged by score. RSUs live in one hash; the broadcast ephemerides in another
+(digest, text and upload time, written in one transaction so a reader never sees a mix of two
+uploads). Key layout and the durability of an acknowledged write under each persistence setting
+are in docs/redis.md.
 
 Every network failure or timeout surfaces as :class:`StoreUnavailable` after short, bounded
 timeouts (one reconnect attempt), never as a hang.
@@ -34,6 +36,7 @@ from edgepos.store.base import (
     Clock,
     SessionRecord,
     SessionStore,
+    StoredEphemerides,
     StoreUnavailable,
     TooManySessions,
     decode_track,
@@ -223,6 +226,7 @@ class RedisStore(SessionStore):
         self.index_key = f"{self.prefix}sessions"
         self.rsu_key = f"{self.prefix}rsus"
         self.rate_prefix = f"{self.prefix}rate:"
+        self.ephemerides_key = f"{self.prefix}ephemerides"
         self._ttl_ms = max(1, math.ceil(self.ttl_s * 1000.0))
         self._client: Redis | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -388,6 +392,39 @@ class RedisStore(SessionStore):
     async def delete_rsu(self, rsu_id: str) -> bool:
         async with self._guard():
             return bool(await (await self._redis()).hdel(self.rsu_key, rsu_id))
+
+    # broadcast ephemerides ------------------------------------------------------------------
+    async def put_ephemerides(self, document: StoredEphemerides) -> None:
+        async with self._guard():
+            async with (await self._redis()).pipeline(transaction=True) as pipe:
+                pipe.delete(self.ephemerides_key)
+                pipe.hset(
+                    self.ephemerides_key,
+                    mapping={
+                        "digest": document.digest,
+                        "text": document.text.encode(),
+                        "uploaded_at": repr(float(document.uploaded_at)),
+                    },
+                )
+                await pipe.execute()
+
+    async def get_ephemerides(self) -> StoredEphemerides | None:
+        async with self._guard():
+            raw = await (await self._redis()).hgetall(self.ephemerides_key)
+        if not raw:
+            return None
+        return StoredEphemerides(
+            digest=raw[b"digest"].decode(), text=raw[b"text"].decode(), uploaded_at=float(raw[b"uploaded_at"])
+        )
+
+    async def ephemerides_digest(self) -> str | None:
+        async with self._guard():
+            digest = await (await self._redis()).hget(self.ephemerides_key, "digest")
+        return None if digest is None else bytes(digest).decode()
+
+    async def delete_ephemerides(self) -> bool:
+        async with self._guard():
+            return bool(await (await self._redis()).delete(self.ephemerides_key))
 
     # neighbour tracks: one string key per vehicle, replaced whole by SET (atomic), expiring by itself
     def _track_key(self, vehicle_id: str) -> str:

@@ -18,7 +18,15 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from edgepos.pipelines.base import NeighbourTrack, Rsu
-from edgepos.store.base import Clock, SessionRecord, SessionStore, TooManySessions, decode_track, encode_track
+from edgepos.store.base import (
+    Clock,
+    SessionRecord,
+    SessionStore,
+    StoredEphemerides,
+    TooManySessions,
+    decode_track,
+    encode_track,
+)
 from edgepos.store.ratelimit import RateLimit, gcra
 
 T = TypeVar("T")
@@ -49,6 +57,12 @@ CREATE TABLE IF NOT EXISTS rsus (
     range_std REAL,
     bearing_std REAL,
     radius REAL
+);
+CREATE TABLE IF NOT EXISTS ephemerides (
+    slot INTEGER PRIMARY KEY CHECK (slot = 0),
+    digest TEXT NOT NULL,
+    text TEXT NOT NULL,
+    uploaded_at REAL NOT NULL
 );
 CREATE TABLE IF NOT EXISTS tracks (
     vehicle_id TEXT PRIMARY KEY,
@@ -281,6 +295,36 @@ class SQLiteStore(SessionStore):
     async def delete_rsu(self, rsu_id: str) -> bool:
         def work(db: sqlite3.Connection) -> bool:
             return db.execute("DELETE FROM rsus WHERE id = ?", (rsu_id,)).rowcount == 1
+
+        return await self._run(work)
+
+    # broadcast ephemerides ------------------------------------------------------------------
+    async def put_ephemerides(self, document: StoredEphemerides) -> None:
+        def work(db: sqlite3.Connection) -> None:
+            db.execute(
+                "INSERT OR REPLACE INTO ephemerides VALUES (0, ?, ?, ?)",
+                (document.digest, document.text, document.uploaded_at),
+            )
+
+        await self._run(work)
+
+    async def get_ephemerides(self) -> StoredEphemerides | None:
+        def work(db: sqlite3.Connection) -> StoredEphemerides | None:
+            row = db.execute("SELECT digest, text, uploaded_at FROM ephemerides WHERE slot = 0").fetchone()
+            return None if row is None else StoredEphemerides(*row)
+
+        return await self._run(work)
+
+    async def ephemerides_digest(self) -> str | None:
+        def work(db: sqlite3.Connection) -> str | None:
+            row = db.execute("SELECT digest FROM ephemerides WHERE slot = 0").fetchone()
+            return None if row is None else str(row[0])
+
+        return await self._run(work)
+
+    async def delete_ephemerides(self) -> bool:
+        def work(db: sqlite3.Connection) -> bool:
+            return db.execute("DELETE FROM ephemerides WHERE slot = 0").rowcount == 1
 
         return await self._run(work)
 

@@ -11,7 +11,8 @@ _DESCRIPTIONS = {
     403: "The credential is valid but does not open this resource.",
     404: "No such resource.",
     409: "The batch's seq does not follow the session's last applied seq.",
-    413: "The request body is larger than EDGEPOS_MAX_BODY_BYTES.",
+    413: "The request body is larger than EDGEPOS_MAX_BODY_BYTES (EDGEPOS_MAX_EPHEMERIDES_BYTES for a "
+    "navigation file).",
     422: "The request is invalid; every problem is listed.",
     429: "Too many sessions (EDGEPOS_MAX_SESSIONS), or the session token is over its request rate "
     "(EDGEPOS_RATE_LIMIT_PER_S); Retry-After says when to retry.",

@@ -1,0 +1,280 @@
+"""Shared pieces of the particle filters and the unscented proposal: the cloud, weights, resampling,
+batched Gaussian algebra and the unscented transform vectorised over particles.
+
+States are rows of (N, D) arrays; a motion model (see core/motion/riss.py) propagates any leading axes and
+names its stochastic components (``active``); angle components (``angles``) are wrapped in differences and
+averaged on the circle. Everything is plain numpy with the particle axis first, no Python loop over it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, Protocol
+
+import numpy as np
+
+from edgepos.core.errors import NumericalError
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+class ParticleModel(Protocol):
+    """What the filters need of a motion model."""
+
+    active: np.ndarray
+
+    def propagate(self, states: np.ndarray, dt: float) -> np.ndarray: ...
+
+    def process_noise(self, dt: float) -> np.ndarray: ...
+
+    def complete(self, states: np.ndarray) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """Observed values ``z`` (m,), their noise variances (m,) and the prediction function of states."""
+
+    predict: Callable[[np.ndarray], np.ndarray]
+    z: np.ndarray
+    variances: np.ndarray
+
+
+@dataclass
+class Cloud:
+    """Particles (N, D), their normalised log-weights (N,) and a covariance (D, D): the proposal's
+    posterior covariance shared by all particles (UPF, UKF) or the weighted spread of the cloud (PF)."""
+
+    particles: np.ndarray
+    log_weights: np.ndarray
+    cov: np.ndarray
+
+    @property
+    def weights(self) -> np.ndarray:
+        return np.exp(self.log_weights)
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """A filter step: the new cloud, the estimate (mean, cov), the innovation's normalised squared
+    length (None without a measurement), the effective sample size before resampling, and whether the
+    cloud was resampled."""
+
+    cloud: Cloud
+    mean: np.ndarray
+    cov: np.ndarray
+    nis: float | None
+    ess: float
+    resampled: bool
+
+
+def normalise(log_weights: np.ndarray) -> np.ndarray:
+    """Log-weights shifted so that the weights sum to one; a cloud that lost every particle raises."""
+    top = float(np.max(log_weights))
+    if not math.isfinite(top):
+        raise NumericalError("every particle has zero weight")
+    shifted = log_weights - top
+    return shifted - math.log(float(np.sum(np.exp(shifted))))
+
+
+def effective_sample_size(log_weights: np.ndarray) -> float:
+    """1 / sum(w^2) of normalised weights."""
+    return float(1.0 / np.sum(np.exp(2.0 * log_weights)))
+
+
+def systematic_resample(log_weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Indices of the particles kept by systematic resampling (one uniform draw)."""
+    count = len(log_weights)
+    cumulative = np.cumsum(np.exp(log_weights))
+    cumulative[-1] = 1.0
+    positions = (rng.random() + np.arange(count)) / count
+    return np.searchsorted(cumulative, positions, side="left")
+
+
+def wrap(values: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """Wrap the angle columns (boolean mask over the last axis) of differences to [-pi, pi)."""
+    if angles.any():
+        values = values.copy()
+        values[..., angles] = (values[..., angles] + math.pi) % (2.0 * math.pi) - math.pi
+    return values
+
+
+def weighted_moments(points: np.ndarray, weights: np.ndarray, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and covariance of rows (N, D) with weights (N,) summing to one; circular mean for angles."""
+    mean = weights @ points
+    if angles.any():
+        mean[angles] = np.arctan2(weights @ np.sin(points[:, angles]), weights @ np.cos(points[:, angles]))
+    deviation = wrap(points - mean, angles)
+    cov = (deviation * weights[:, None]).T @ deviation
+    return mean, 0.5 * (cov + cov.T)
+
+
+def batched_cholesky(matrices: np.ndarray) -> np.ndarray:
+    """Lower Cholesky factors of a stack of covariances (..., k, k), repairing nearly singular ones with a
+    growing diagonal jitter; non-finite or clearly indefinite input raises NumericalError."""
+    if not np.all(np.isfinite(matrices)):
+        raise NumericalError("covariance has non-finite entries")
+    try:
+        return np.linalg.cholesky(matrices)
+    except np.linalg.LinAlgError:
+        pass
+    sym = 0.5 * (matrices + np.swapaxes(matrices, -1, -2))
+    scale = np.maximum(np.max(np.abs(np.diagonal(sym, axis1=-2, axis2=-1)), axis=-1), 1e-300)
+    identity = np.eye(sym.shape[-1])
+    for relative in (1e-12, 1e-10, 1e-8, 1e-6):
+        try:
+            return np.linalg.cholesky(sym + (relative * scale)[..., None, None] * identity)
+        except np.linalg.LinAlgError:
+            continue
+    values, vectors = np.linalg.eigh(sym)
+    if np.any(values.min(axis=-1) < -1e-6 * scale):
+        raise NumericalError("covariance is indefinite")
+    clipped = np.maximum(values, 1e-9 * scale[..., None])
+    return np.linalg.cholesky((vectors * clipped[..., None, :]) @ np.swapaxes(vectors, -1, -2))
+
+
+def gaussian_logpdf(deviation: np.ndarray, chol: np.ndarray) -> np.ndarray:
+    """log N(deviation; 0, L L^T) for deviations (..., k) and lower factors (k, k) or (..., k, k)."""
+    if chol.ndim == 2:
+        chol = np.broadcast_to(chol, deviation.shape[:-1] + chol.shape)
+    whitened = np.linalg.solve(chol, deviation[..., None])[..., 0]
+    log_det = np.sum(np.log(np.diagonal(chol, axis1=-2, axis2=-1)), axis=-1)
+    k = deviation.shape[-1]
+    return -0.5 * np.sum(whitened * whitened, axis=-1) - log_det - 0.5 * k * _LOG_2PI
+
+
+def diagonal_logpdf(residual: np.ndarray, variances: np.ndarray) -> np.ndarray:
+    """log N(residual; 0, diag(variances)) over the last axis."""
+    return -0.5 * np.sum(residual * residual / variances + np.log(variances) + _LOG_2PI, axis=-1)
+
+
+@dataclass(frozen=True)
+class SigmaWeights:
+    """Unscented transform weights (eq. 9) for k stochastic dimensions: spread alpha, prior beta, kappa."""
+
+    k: int
+    alpha: float = 1.0
+    beta: float = 2.0
+    kappa: float = 0.0
+
+    @property
+    def lam(self) -> float:
+        return self.alpha**2 * (self.k + self.kappa) - self.k
+
+    @property
+    def mean(self) -> np.ndarray:
+        w = np.full(2 * self.k + 1, 1.0 / (2.0 * (self.k + self.lam)))
+        w[0] = self.lam / (self.k + self.lam)
+        return w
+
+    @property
+    def cov(self) -> np.ndarray:
+        w = self.mean.copy()
+        w[0] += 1.0 - self.alpha**2 + self.beta
+        return w
+
+
+def sigma_points(means: np.ndarray, chols: np.ndarray, active: np.ndarray, weights: SigmaWeights) -> np.ndarray:
+    """Eq. 10 for every particle: (N, 2k+1, D) points around means (N, D) along the columns of
+    sqrt(k + lambda) L, L (k, k) shared or (N, k, k) per particle, in the ``active`` components."""
+    count, dim = means.shape
+    k = weights.k
+    scaled = math.sqrt(k + weights.lam) * chols
+    columns = np.swapaxes(scaled, -1, -2)  # row j = column j of L
+    points = np.repeat(means[:, None, :], 2 * k + 1, axis=1)
+    index = np.flatnonzero(active)
+    block = points[:, :, index]
+    block[:, 1 : k + 1, :] += columns
+    block[:, k + 1 :, :] -= columns
+    points[:, :, index] = block
+    return points
+
+
+def sigma_mean(points: np.ndarray, weights: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """Weighted mean over the sigma axis (N, S, D) -> (N, D); angles averaged as wrapped offsets from the
+    central point."""
+    mean = np.einsum("s,nsd->nd", weights, points)
+    if angles.any():
+        centre = points[:, 0, angles]
+        offsets = wrap(points[:, :, angles] - centre[:, None, :], np.ones(int(angles.sum()), dtype=bool))
+        mean[:, angles] = centre + np.einsum("s,nsd->nd", weights, offsets)
+    return mean
+
+
+@dataclass(frozen=True)
+class UnscentedStep:
+    """Per particle: the deterministic prediction f(x) (N, D), the predicted mean (N, D) and covariance
+    (N, k, k) of the active components, and after the update (when a measurement was given) the posterior
+    mean (N, D) and covariance (N, k, k), the predicted measurement (N, m) and its covariance (N, m, m)."""
+
+    prior: np.ndarray
+    predicted: np.ndarray
+    predicted_cov: np.ndarray
+    posterior: np.ndarray | None = None
+    posterior_cov: np.ndarray | None = None
+    z_hat: np.ndarray | None = None
+    z_cov: np.ndarray | None = None
+
+
+def unscented_step(
+    means: np.ndarray, cov: np.ndarray | None, model: ParticleModel, dt: float, active: np.ndarray,
+    angles: np.ndarray, measurement: Measurement | None, weights: SigmaWeights | None = None,
+) -> UnscentedStep:
+    """Eqs. 9-14 for N particles at once: UKF time update of each particle (with covariance ``cov`` of the
+    full state, shared, (D, D); None for a point) and, given a measurement, the measurement update that
+    gives the proposal."""
+    index = np.flatnonzero(active)
+    weights = weights or SigmaWeights(len(index))
+    wm, wc = weights.mean, weights.cov
+    active_angles = angles[index]
+    q = model.process_noise(dt)[np.ix_(index, index)]
+
+    if cov is None:
+        # A point prior (the particle itself): the time update is f(x) with covariance Q.
+        prior = model.propagate(means, dt)
+        predicted = prior.copy()
+        predicted_cov = np.broadcast_to(q, (len(means),) + q.shape).copy()
+    else:
+        chol = batched_cholesky(cov[np.ix_(index, index)])
+        points = model.propagate(sigma_points(means, chol, active, weights), dt)
+        predicted = model.complete(sigma_mean(points, wm, angles))
+        deviation = wrap(points[:, :, index] - predicted[:, None, index], active_angles)
+        predicted_cov = q + np.einsum("s,nsi,nsj->nij", wc, deviation, deviation)
+        prior = points[:, 0, :]
+    if measurement is None:
+        return UnscentedStep(prior, predicted, predicted_cov)
+
+    # Redraw sigma points around the prediction so that the process noise enters the innovation.
+    redrawn = sigma_points(predicted, batched_cholesky(predicted_cov), active, weights)
+    z_points = measurement.predict(redrawn)
+    z_hat = np.einsum("s,nsm->nm", wm, z_points)
+    dz = z_points - z_hat[:, None, :]
+    dx = wrap(redrawn[:, :, index] - predicted[:, None, index], active_angles)
+    z_cov = np.einsum("s,nsi,nsj->nij", wc, dz, dz) + np.diag(measurement.variances)
+    cross = np.einsum("s,nsi,nsj->nij", wc, dx, dz)
+    gain = np.swapaxes(np.linalg.solve(z_cov, np.swapaxes(cross, -1, -2)), -1, -2)  # (N, k, m)
+    innovation = measurement.z - z_hat
+    posterior = predicted.copy()
+    posterior[:, index] += np.einsum("nkm,nm->nk", gain, innovation)
+    if active_angles.any():
+        posterior[:, index] = wrap(posterior[:, index], active_angles)
+    posterior = model.complete(posterior)
+    posterior_cov = predicted_cov - np.einsum("nkm,nml,njl->nkj", gain, z_cov, gain)
+    posterior_cov = 0.5 * (posterior_cov + np.swapaxes(posterior_cov, -1, -2))
+    return UnscentedStep(prior, predicted, predicted_cov, posterior, posterior_cov, z_hat, z_cov)
+
+
+def embed(previous: np.ndarray, block: np.ndarray, active: np.ndarray) -> np.ndarray:
+    """A (D, D) covariance: ``block`` (k, k) on the active components, ``previous`` on the others,
+    no correlation between the two groups."""
+    cov = previous.copy()
+    index = np.flatnonzero(active)
+    cov[index, :] = 0.0
+    cov[:, index] = 0.0
+    cov[np.ix_(index, index)] = block
+    return cov
+
+
+def nis(innovation: np.ndarray, cov: np.ndarray) -> float:
+    """Normalised innovation squared nu^T S^-1 nu."""
+    return float(innovation @ np.linalg.solve(cov, innovation))

@@ -1,0 +1,163 @@
+"""``edgepos eval gnss-rinex``: the gnss_tight pipeline on a real recording (RINEX 3 observation and
+navigation files) against a reference trajectory, beside the project's epoch-by-epoch WLS baseline.
+
+GNSS-only (a recording has no inertial data). Each epoch's pseudoranges become ``pseudorange``
+observations (GPS time of week, system, PRN, pseudorange, C/N0, no satellite states) and go through
+``GnssTightPipeline.process`` one epoch per batch with the ephemerides in its environment and the state
+serialised in between: the same code path as ``POST /v1/sessions/{id}/batches``.
+Reference CSV: GPS week, seconds of week, latitude (deg), longitude (deg), ellipsoidal height (m), ...
+(``#`` comments), as in tests/data/gnss-rover/README.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from edgepos.core.observations import PseudorangeObservation
+from edgepos.gnss.ephemerides import Ephemerides
+from edgepos.gnss.geodesy import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
+from edgepos.gnss.measurements import prepare_epoch
+from edgepos.gnss.rinex_nav import read_navigation
+from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
+from edgepos.gnss.spp import SppConfig, SppError, read_reference, solve_epoch
+from edgepos.gnss.timesys import SECONDS_PER_WEEK
+from edgepos.pipelines.base import StaticEnvironment
+from edgepos.pipelines.gnss_tight import GnssTightPipeline
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--obs", required=True, help="RINEX 3 observation file")
+    parser.add_argument("--nav", required=True, help="RINEX 3 navigation file (GPS / BeiDou / Galileo)")
+    parser.add_argument("--reference", required=True, help="reference CSV: week, seconds of week, lat deg, lon deg, height m")
+    parser.add_argument("--json", metavar="FILE", default=None, help="also write the figures as JSON to FILE")
+    parser.add_argument("--systems", default="GC", help="constellations to use (default GC: GPS + BeiDou; GCE adds Galileo)")
+    parser.add_argument("--filter", default="upf", choices=("upf", "pf", "ukf"), help="filter (default upf)")
+    parser.add_argument("--particles", type=int, default=200, help="particles of pf / upf (default 200)")
+    parser.add_argument("--no-fuzzy", action="store_true", help="constant pseudorange noise instead of the fuzzy factor")
+    parser.add_argument("--seed", type=int, default=1, help="the filter's random seed (default 1)")
+    parser.add_argument("--max-epochs", type=int, default=None, help="stop after this many epochs")
+    parser.add_argument(
+        "--option", action="append", default=[], metavar="NAME=JSON",
+        help="any other gnss_tight option, e.g. --option pseudorange_std=3 (repeatable)",
+    )
+
+
+def _score(times: Sequence[float], positions: Sequence[np.ndarray | None], reference: tuple[np.ndarray, np.ndarray],
+           epochs: int) -> dict[str, Any]:
+    ref_time, ref_ecef = reference
+    by_time = {round(t, 1): p for t, p in zip(times, positions) if p is not None}
+    errors = []
+    missing = 0
+    for t, truth in zip(ref_time, ref_ecef):
+        position = by_time.get(round(float(t), 1))
+        if position is None:
+            missing += 1
+            continue
+        lat, lon, _ = ecef_to_geodetic(truth)
+        enu = enu_rotation(float(lat), float(lon)) @ (position - truth)
+        errors.append(math.hypot(enu[0], enu[1]))
+    values = np.asarray(errors)
+    empty = values.size == 0
+    return {
+        "epochs": epochs,
+        "fixes": sum(p is not None for p in positions),
+        "reference_epochs": len(ref_time),
+        "reference_epochs_without_fix": missing,
+        "horizontal_rms_m": None if empty else float(np.sqrt(np.mean(values**2))),
+        "horizontal_p95_m": None if empty else float(np.percentile(values, 95)),
+        "horizontal_max_m": None if empty else float(values.max()),
+    }
+
+
+def evaluate(
+    obs_path: str, nav_path: str, reference_path: str, systems: str = "GC", options: Mapping[str, Any] | None = None,
+    max_epochs: int | None = None,
+) -> dict[str, Any]:
+    """Run the pipeline and the WLS baseline over a recording; the figures as a dict."""
+    codes = {s: DEFAULT_CODES[s] for s in systems if s in DEFAULT_CODES}
+    navigation = read_navigation(nav_path)
+    ephemerides = Ephemerides.from_navigation(navigation)
+    environment = StaticEnvironment(navigation=ephemerides)
+    pipeline = GnssTightPipeline()
+    resolved = pipeline.resolve_options({"systems": sorted(codes), **(options or {})})
+    state = pipeline.create(resolved, None)
+    reference = read_reference(reference_path)
+    atmosphere = ephemerides.atmosphere
+    config = SppConfig()
+
+    times: list[float] = []
+    fixes: list[np.ndarray | None] = []
+    baseline: list[np.ndarray | None] = []
+    previous: np.ndarray | None = None
+    pipeline_seconds = 0.0
+    for count, epoch in enumerate(read_epochs(obs_path, codes)):
+        if max_epochs is not None and count >= max_epochs:
+            break
+        tow = epoch.gpst % SECONDS_PER_WEEK
+        batch = [
+            PseudorangeObservation(tow, system, int(prn), float(pr), float(cn0) if math.isfinite(cn0) else 0.0)
+            for system, prn, pr, cn0 in zip(epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz)
+            if math.isfinite(pr) and 1.0e6 <= pr <= 1.0e8
+        ]
+        started = time.perf_counter()
+        epoch_fixes, state = pipeline.process(state, batch, environment)
+        pipeline_seconds += time.perf_counter() - started
+        times.append(epoch.gpst)
+        fix = epoch_fixes[0] if epoch_fixes else None
+        if fix is None or fix.latitude is None or fix.longitude is None or fix.height is None:
+            fixes.append(None)
+        else:
+            fixes.append(geodetic_to_ecef(fix.latitude, fix.longitude, fix.height))
+        prs, _ = prepare_epoch(epoch, ephemerides.orbits, codes)
+        try:
+            solution = solve_epoch(prs, atmosphere, config, previous)
+            previous = solution.position
+            baseline.append(solution.position)
+        except SppError:
+            baseline.append(None)
+    report = _score(times, fixes, reference, len(times))
+    report["filter"] = resolved["filter"]
+    report["particles"] = resolved["particles"] if resolved["filter"] != "ukf" else 1
+    report["fuzzy"] = resolved["fuzzy"]
+    report["systems"] = systems
+    report["seconds_per_epoch"] = pipeline_seconds / max(len(times), 1)
+    report["baseline"] = {"method": "epoch-by-epoch WLS (gnss/spp.py)", **_score(times, baseline, reference, len(times))}
+    return report
+
+
+def _format(value: Any) -> str:
+    return "-" if value is None else (f"{value:.2f}" if isinstance(value, float) else str(value))
+
+
+def run(args: argparse.Namespace) -> int:
+    options: dict[str, Any] = {"filter": args.filter, "particles": args.particles, "fuzzy": not args.no_fuzzy,
+                               "seed": args.seed}
+    for item in args.option:
+        name, _, value = item.partition("=")
+        try:
+            options[name] = json.loads(value)
+        except json.JSONDecodeError:
+            print(f"--option {item!r}: the value must be JSON", file=sys.stderr)
+            return 2
+    report = evaluate(args.obs, args.nav, args.reference, args.systems, options, args.max_epochs)
+    label = f"gnss_tight {report['filter']}" + (f" ({report['particles']} particles" if report["filter"] != "ukf" else " (")
+    label += ", fuzzy)" if report["fuzzy"] else ")"
+    print(f"{'solution':<34} {'epochs':>6} {'fixes':>6} {'ref w/o fix':>11} {'RMS m':>7} {'p95 m':>7} {'max m':>7}")
+    for name, row in ((label, report), ("WLS baseline (gnss/spp.py)", report["baseline"])):
+        print(
+            f"{name:<34} {row['epochs']:>6} {row['fixes']:>6} {row['reference_epochs_without_fix']:>11} "
+            f"{_format(row['horizontal_rms_m']):>7} {_format(row['horizontal_p95_m']):>7} {_format(row['horizontal_max_m']):>7}"
+        )
+    print(f"pipeline time per epoch: {1e3 * report['seconds_per_epoch']:.1f} ms")
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as handle:
+            json.dump(report, handle, indent=2)
+    return 0

@@ -1,0 +1,646 @@
+"""Tightly coupled GNSS + reduced inertial positioning (Jiang & Chen 2018): GPS / BeiDou / Galileo
+pseudoranges and optional RISS input (wheel speed, two accelerometers, yaw gyro) into a particle filter,
+the paper's unscented particle filter, or a single UKF.
+
+Times: ``t`` of every observation is GPS time of week (s); the week comes from the loaded ephemerides (or
+the ``gps_week`` option). Site frame: x east, y north (m) of the local tangent plane at the server's
+configured WGS-84 origin, or, without one, at the session's first fix; fixes also carry WGS-84 latitude,
+longitude (rad) and ellipsoidal height (m).
+
+Per epoch (observations sharing ``t``):
+1. A ``riss`` sample becomes the motion model's input (eq. 2, wheel acceleration from consecutive wheel
+   speeds); without a recent one (``riss_timeout``) the GNSS-only constant-velocity model runs.
+2. Each pseudorange gets its satellite's ECEF position and clock at transmit time: the client's
+   ``sat_position``/``sat_clock`` when sent, else the broadcast ephemerides (Earth rotation, satellite
+   clock with relativity and group delay); then elevation mask, C/N0 floor, Klobuchar and Saastamoinen at
+   the predicted position, and the fuzzy noise factor (Table 1, eq. 20) when ``fuzzy`` is on.
+3. A residual test against the prediction (per constellation, its median removed so a clock error cannot
+   fail every satellite) excludes pseudoranges beyond the ``gate_probability`` quantile; when more than
+   half fail the track is lost and the pipeline starts again from this epoch's least-squares fix.
+4. The filter step; before initialisation, the first epoch with enough satellites initialises the filter
+   from a weighted least-squares fix (gnss/spp.py).
+Every pseudorange appears in the fix's measurement list, used or with the reason it was not.
+"""
+
+from __future__ import annotations
+
+import math
+import secrets
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.stats import chi2
+
+from edgepos.core import state as state_format
+from edgepos.core.errors import EstimationError
+from edgepos.core.fuzzy import FuzzyNoise
+from edgepos.core.measurements.pseudorange import PseudorangeModel
+from edgepos.core.motion import riss as layout
+from edgepos.core.motion.riss import GeodeticAnchor, GnssOnlyModel, RissInput, RissModel
+from edgepos.core.observations import Observation, PseudorangeObservation, RissObservation
+from edgepos.core.particles import PARTICLE_FILTERS, Cloud, Measurement
+from edgepos.core.particles.base import StepResult
+from edgepos.gnss.corrections import carrier_frequency
+from edgepos.gnss.ephemerides import DEFAULT_SIGNAL, Ephemerides
+from edgepos.gnss.geodesy import enu_rotation, geodetic_to_ecef
+from edgepos.gnss.measurements import Atmosphere, PseudorangeSet
+from edgepos.gnss.orbits import SPEED_OF_LIGHT, group_delay_factors, sagnac_range
+from edgepos.gnss.spp import SppConfig, SppError, solve_epoch
+from edgepos.pipelines.base import (
+    Environment,
+    Fix,
+    InitialState,
+    MeasurementUse,
+    OptionSpec,
+    Pipeline,
+    PipelineInputError,
+    Problem,
+    StateSummary,
+    is_finite_number,
+)
+from edgepos.pipelines.options import resolve_options
+
+SYSTEMS = ("G", "C", "E")
+MAX_PRN = 63
+SECONDS_PER_WEEK = 604800.0
+_SAT_RADIUS_M = (1.0e7, 5.0e7)
+"""Geocentric distances a client-sent satellite position must lie between (MEO to GEO/IGSO)."""
+
+OPTION_SPECS: tuple[OptionSpec, ...] = (
+    OptionSpec(
+        "filter", "string", "upf",
+        "upf: the paper's unscented particle filter (a UKF proposal per particle); pf: bootstrap particle "
+        "filter (prior as proposal); ukf: a single unscented Kalman filter (cheap baseline).",
+        choices=tuple(PARTICLE_FILTERS),
+    ),
+    OptionSpec("particles", "integer", 200, "Particles of the pf and upf filters (ignored by ukf).", 10, 5000),
+    OptionSpec(
+        "resample_threshold", "number", 0.5,
+        "Resample when the effective sample size falls below this fraction of the particles.", 0.0, 1.0,
+    ),
+    OptionSpec(
+        "fuzzy", "boolean", True,
+        "Scale each pseudorange's noise by the fuzzy factor of its elevation and C/N0 (Table 1, eq. 20); "
+        "off: every pseudorange has pseudorange_std.",
+    ),
+    OptionSpec("pseudorange_std", "number", 2.0, "R0: pseudorange noise std (m) before the fuzzy factor.", 0.01, 1000.0),
+    OptionSpec(
+        "systems", "string[]", list(SYSTEMS),
+        "Constellations used (RINEX letters G GPS, C BeiDou, E Galileo); others are reported unused.",
+        choices=SYSTEMS,
+    ),
+    OptionSpec("elevation_mask", "number", math.radians(10.0), "Elevation mask (rad).", -0.1, 1.5),
+    OptionSpec("min_cn0", "number", 0.0, "Pseudoranges below this C/N0 (dB-Hz) are not used.", 0.0, 80.0),
+    OptionSpec(
+        "gate_probability", "number", 0.9999,
+        "Residual test: exclude a pseudorange whose normalised residual squared exceeds this chi-square(1) "
+        "quantile; 0 disables.", 0.0, 0.999999999,
+    ),
+    OptionSpec("ionosphere", "boolean", True, "Apply the broadcast Klobuchar ionosphere (needs ephemerides)."),
+    OptionSpec("troposphere", "boolean", True, "Apply the Saastamoinen troposphere."),
+    OptionSpec("accel_std", "number", 1.0, "GNSS-only model: horizontal white-noise acceleration (m/s^2).", 1e-3, 100.0),
+    OptionSpec("vertical_accel_std", "number", 0.3, "GNSS-only model: vertical white-noise acceleration (m/s^2).", 1e-3, 100.0),
+    OptionSpec("wheel_speed_std", "number", 0.1, "RISS model: wheel speed noise (m/s).", 1e-4, 10.0),
+    OptionSpec("accelerometer_std", "number", 0.05, "RISS model: accelerometer noise (m/s^2).", 1e-4, 10.0),
+    OptionSpec("gyro_std", "number", 0.005, "RISS model: yaw gyro noise (rad/s).", 1e-6, 1.0),
+    OptionSpec("clock_bias_psd", "number", 1.0, "Receiver clock bias random-walk density (m^2/s).", 1e-6, 1e6),
+    OptionSpec("clock_drift_psd", "number", 0.1, "Receiver clock drift random-walk density (m^2/s^3).", 1e-8, 1e6),
+    OptionSpec(
+        "riss_timeout", "number", 1.5,
+        "Use the RISS model while the last riss sample is at most this old (s); otherwise GNSS-only.", 0.01, 60.0,
+    ),
+    OptionSpec(
+        "max_gap", "number", 30.0,
+        "Longest time (s) between epochs the filter predicts across; after a longer gap it starts again "
+        "from the next least-squares fix.", 0.1, 86400.0,
+    ),
+    OptionSpec("init_velocity_std", "number", 10.0, "Velocity std (m/s) when initialising from a fix.", 0.01, 1000.0),
+    OptionSpec("gps_week", "integer", None, "GPS week of the times of week when no ephemerides are loaded.", 0, 10000),
+    OptionSpec(
+        "seed", "integer", None,
+        "Random seed of the particle filters; null draws one at session creation (stored in the state, so "
+        "a replay gives the same fixes).", 0, 2**63 - 1,
+    ),
+)
+
+_INITIAL_CLOCK_DRIFT_STD = 5.0
+_INITIAL_ATTITUDE_STD = 0.1
+
+
+@dataclass
+class _Session:
+    options: dict[str, Any]
+    seed: int
+    initialised: bool
+    t: float | None
+    filter_t: float | None
+    epochs: int
+    anchor: GeodeticAnchor | None
+    riss: dict[str, float] | None
+    clock_seen: dict[str, float]
+    cloud: Cloud
+
+    def to_bytes(self) -> bytes:
+        meta = {
+            "pipeline": GnssTightPipeline.name,
+            "options": self.options,
+            "seed": self.seed,
+            "initialised": self.initialised,
+            "t": self.t,
+            "filter_t": self.filter_t,
+            "epochs": self.epochs,
+            "anchor": None if self.anchor is None else [self.anchor.lat, self.anchor.lon, self.anchor.height],
+            "riss": self.riss,
+            "clock_seen": self.clock_seen,
+        }
+        arrays = {
+            "particles": self.cloud.particles,
+            "log_weights": self.cloud.log_weights,
+            "cov": self.cloud.cov,
+        }
+        return state_format.pack(meta, arrays)
+
+
+def _decode(blob: bytes) -> _Session:
+    meta, arrays = state_format.unpack(blob)
+    if meta.get("pipeline") != GnssTightPipeline.name:
+        raise state_format.StateFormatError("state does not belong to the gnss_tight pipeline")
+    anchor = None if meta["anchor"] is None else GeodeticAnchor(*meta["anchor"])
+    cloud = Cloud(arrays["particles"], arrays["log_weights"], arrays["cov"])
+    return _Session(
+        meta["options"], int(meta["seed"]), meta["initialised"], meta["t"], meta["filter_t"], meta["epochs"],
+        anchor, meta["riss"], dict(meta["clock_seen"]), cloud,
+    )
+
+
+def _empty_cloud() -> Cloud:
+    return Cloud(np.zeros((1, layout.DIM)), np.zeros(1), np.eye(layout.DIM))
+
+
+class GnssTightPipeline(Pipeline):
+    """GPS/BeiDou/Galileo pseudoranges (+ RISS input) into a UPF, PF or UKF (default UPF with fuzzy noise)."""
+
+    name = "gnss_tight"
+    description = (
+        "Tightly coupled GNSS pseudoranges (GPS, BeiDou, Galileo) and reduced inertial sensors (wheel speed, "
+        "accelerometers, yaw gyro) fused by an unscented particle filter with fuzzy noise adaptation "
+        "(Jiang & Chen 2018); bootstrap particle filter and UKF as alternatives."
+    )
+    measurement_kinds = (PseudorangeObservation.kind, RissObservation.kind)
+
+    def option_specs(self) -> list[OptionSpec]:
+        return list(OPTION_SPECS)
+
+    def resolve_options(self, options: Mapping[str, Any] | None) -> dict[str, Any]:
+        resolved = resolve_options(OPTION_SPECS, options)
+        if not resolved["systems"]:
+            raise PipelineInputError([Problem(None, "options.systems", "must name at least one constellation")])
+        return resolved
+
+    def create(self, options: Mapping[str, Any], initial: InitialState | None) -> bytes:
+        options = dict(options)
+        seed = options["seed"] if options["seed"] is not None else secrets.randbits(63)
+        if initial is not None:
+            raise PipelineInputError(
+                [Problem(None, "initial", "gnss_tight initialises itself from its first pseudorange epoch")]
+            )
+        return _Session(options, seed, False, None, None, 0, None, None, {}, _empty_cloud()).to_bytes()
+
+    def summarise(self, state: bytes) -> StateSummary:
+        session = _decode(state)
+        return StateSummary(session.initialised, session.t, session.epochs, {}, session.options)
+
+    def process(
+        self, state: bytes, observations: Sequence[Observation], environment: Environment
+    ) -> tuple[list[Fix], bytes]:
+        session = _decode(state)
+        _validate(session, observations)
+        ephemerides = environment.ephemerides()
+        origin = environment.site_origin()
+        fixes = [
+            _step(session, epoch, observations, ephemerides, origin)
+            for epoch in _epochs(observations)
+        ]
+        return fixes, session.to_bytes()
+
+
+# -- validation -----------------------------------------------------------------------------------
+def _validate(session: _Session, observations: Sequence[Observation]) -> None:
+    problems: list[Problem] = []
+    for index, observation in enumerate(observations):
+        if not is_finite_number(observation.t) or not 0.0 <= observation.t < SECONDS_PER_WEEK:
+            problems.append(Problem(index, "t", "must be a GPS time of week in [0, 604800) s"))
+        elif session.t is not None and observation.t < session.t:
+            problems.append(
+                Problem(index, "t", f"{observation.t!r} is older than the session's last epoch t={session.t!r}")
+            )
+        if isinstance(observation, PseudorangeObservation):
+            if observation.system not in SYSTEMS:
+                problems.append(Problem(index, "system", f"must be one of {list(SYSTEMS)}"))
+            if not isinstance(observation.prn, int) or not 1 <= observation.prn <= MAX_PRN:
+                problems.append(Problem(index, "prn", f"must be an integer in [1, {MAX_PRN}]"))
+            if not is_finite_number(observation.pseudorange) or not 1.0e6 <= observation.pseudorange <= 1.0e8:
+                problems.append(Problem(index, "pseudorange", "must be a finite range in [1e6, 1e8] m"))
+            if not is_finite_number(observation.cn0) or not 0.0 <= observation.cn0 <= 100.0:
+                problems.append(Problem(index, "cn0", "must be a finite C/N0 in [0, 100] dB-Hz"))
+            if observation.sat_position is not None:
+                position = observation.sat_position
+                if len(position) != 3 or not all(is_finite_number(v) for v in position):
+                    problems.append(Problem(index, "sat_position", "must be three finite ECEF coordinates (m)"))
+                elif not _SAT_RADIUS_M[0] <= math.hypot(*position) <= _SAT_RADIUS_M[1]:
+                    problems.append(Problem(index, "sat_position", "must lie 1e7..5e7 m from the Earth's centre"))
+            if observation.sat_clock is not None and (
+                not is_finite_number(observation.sat_clock) or abs(observation.sat_clock) > 0.01
+            ):
+                problems.append(Problem(index, "sat_clock", "must be a finite offset within +-0.01 s"))
+        elif isinstance(observation, RissObservation):
+            for name, bound in (("wheel_speed", 100.0), ("accel_x", 50.0), ("accel_y", 50.0), ("gyro_z", 10.0)):
+                value = getattr(observation, name)
+                if not is_finite_number(value) or abs(value) > bound:
+                    problems.append(Problem(index, name, f"must be finite and within +-{bound:g}"))
+        else:
+            problems.append(Problem(index, "type", f"{observation.kind!r} is not used by the gnss_tight pipeline"))
+    if problems:
+        raise PipelineInputError(problems)
+
+
+def _epochs(observations: Sequence[Observation]) -> list[list[int]]:
+    order = sorted(range(len(observations)), key=lambda i: observations[i].t)
+    epochs: list[list[int]] = []
+    for index in order:
+        if epochs and observations[epochs[-1][0]].t == observations[index].t:
+            epochs[-1].append(index)
+        else:
+            epochs.append([index])
+    return epochs
+
+
+# -- satellites ----------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class _Satellites:
+    """The epoch's usable pseudoranges (rows of ``prs``) and the observation index of each row."""
+
+    prs: PseudorangeSet
+    indices: list[int]
+
+
+def _satellites(
+    epoch: list[int], observations: Sequence[Observation], ephemerides: Ephemerides | None, gpst: float,
+    options: Mapping[str, Any], uses: dict[int, MeasurementUse],
+) -> _Satellites:
+    """Satellite states per pseudorange, from the client or the broadcast ephemerides; reasons for the rest."""
+    rows: list[tuple[int, str, int, float, float, np.ndarray, float, float]] = []
+    need_orbit: list[int] = []
+    for i in epoch:
+        observation = observations[i]
+        if not isinstance(observation, PseudorangeObservation):
+            continue
+        if observation.system not in options["systems"]:
+            uses[i] = MeasurementUse(i, observation.kind, False, f"system {observation.system} is not in options.systems")
+            continue
+        if observation.cn0 < options["min_cn0"]:
+            uses[i] = MeasurementUse(i, observation.kind, False, f"C/N0 below options.min_cn0 ({options['min_cn0']:g} dB-Hz)")
+            continue
+        if observation.sat_position is not None and observation.sat_clock is not None:
+            frequency = carrier_frequency(observation.system, DEFAULT_SIGNAL[observation.system])
+            rows.append((i, observation.system, observation.prn, observation.pseudorange, observation.cn0,
+                         np.asarray(observation.sat_position, float), observation.sat_clock, frequency))
+        else:
+            need_orbit.append(i)
+    if need_orbit:
+        if ephemerides is None:
+            for i in need_orbit:
+                uses[i] = MeasurementUse(
+                    i, "pseudorange", False,
+                    "no ephemerides loaded (PUT /v1/ephemerides) and no sat_position/sat_clock sent",
+                )
+        else:
+            observed = [observations[i] for i in need_orbit]
+            systems = [o.system for o in observed]
+            prns = np.array([o.prn for o in observed])
+            ephemeris_index = ephemerides.orbits.select(systems, prns, gpst)
+            have = np.flatnonzero(ephemeris_index >= 0)
+            for row in np.flatnonzero(ephemeris_index < 0):
+                o = observed[row]
+                uses[need_orbit[row]] = MeasurementUse(
+                    need_orbit[row], "pseudorange", False,
+                    f"no valid healthy ephemeris for {o.system}{o.prn:02d} at GPS week {int(gpst // SECONDS_PER_WEEK)} "
+                    f"second {gpst % SECONDS_PER_WEEK:.1f}",
+                )
+            if have.size:
+                factors = np.array([group_delay_factors(systems[r], DEFAULT_SIGNAL[systems[r]]) for r in have])
+                pseudoranges = np.array([observed[r].pseudorange for r in have])
+                states = ephemerides.orbits.transmit_states(ephemeris_index[have], gpst, pseudoranges, factors)
+                for k, r in enumerate(have):
+                    o = observed[r]
+                    position = states.position[k] if o.sat_position is None else np.asarray(o.sat_position, float)
+                    rows.append((need_orbit[r], o.system, o.prn, o.pseudorange, o.cn0, position,
+                                 float(states.clock_s[k]), carrier_frequency(o.system, DEFAULT_SIGNAL[o.system])))
+    rows.sort(key=lambda row: row[0])
+    prs = PseudorangeSet(
+        gpst,
+        tuple(r[1] for r in rows),
+        np.array([r[2] for r in rows], dtype=int),
+        np.array([r[3] for r in rows], dtype=float),
+        np.array([r[4] for r in rows], dtype=float),
+        np.array([r[5] for r in rows], dtype=float).reshape(len(rows), 3),
+        np.array([r[6] for r in rows], dtype=float),
+        np.array([r[7] for r in rows], dtype=float),
+    )
+    return _Satellites(prs, [r[0] for r in rows])
+
+
+def _atmosphere(options: Mapping[str, Any], ephemerides: Ephemerides | None) -> Atmosphere:
+    klobuchar = ephemerides.navigation.klobuchar_gps if (ephemerides is not None and options["ionosphere"]) else None
+    return Atmosphere(klobuchar, options["troposphere"])
+
+
+# -- one epoch -----------------------------------------------------------------------------------
+def _step(
+    session: _Session, epoch: list[int], observations: Sequence[Observation], ephemerides: Ephemerides | None,
+    origin: tuple[float, float, float] | None,
+) -> Fix:
+    options = session.options
+    t = observations[epoch[0]].t
+    session.t = t
+    session.epochs += 1
+    uses: dict[int, MeasurementUse] = {}
+    for i in epoch:
+        if isinstance(observations[i], RissObservation):
+            _take_riss(session, observations[i])  # type: ignore[arg-type]
+            uses[i] = MeasurementUse(i, "riss", True)
+    if ephemerides is not None:
+        gpst = ephemerides.gpst(t)
+    else:
+        gpst = (options["gps_week"] or 0) * SECONDS_PER_WEEK + t
+    satellites = _satellites(epoch, observations, ephemerides, gpst, options, uses)
+    atmosphere = _atmosphere(options, ephemerides)
+    rng = np.random.default_rng([session.seed, session.epochs])
+
+    if session.initialised and session.filter_t is not None and t - session.filter_t > options["max_gap"]:
+        session.initialised = False
+    if not session.initialised:
+        return _initialise(session, t, satellites, atmosphere, origin, uses, rng, "waiting for enough satellites to initialise")
+
+    assert session.anchor is not None
+    dt = t - session.filter_t if session.filter_t is not None else 0.0
+    model = _model(session, t)
+    weights = session.cloud.weights
+    centre = model.propagate((weights @ session.cloud.particles)[None, :], dt)[0]
+    active = model.active.copy()
+    for system, index in layout.CLOCK.items():
+        active[index] = False
+    measurement = None
+    rows: np.ndarray = np.zeros(0, dtype=int)
+    if len(satellites.prs):
+        receiver = session.anchor.ecef(centre)
+        iono, tropo, elevation, _ = atmosphere.delays(receiver, satellites.prs)
+        rows = np.flatnonzero(elevation >= options["elevation_mask"])
+        for row in np.flatnonzero(elevation < options["elevation_mask"]):
+            i = satellites.indices[row]
+            uses[i] = MeasurementUse(i, "pseudorange", False, f"elevation {math.degrees(elevation[row]):.1f} deg below the mask")
+        prs = satellites.prs
+        known = iono + tropo - SPEED_OF_LIGHT * prs.sat_clock_s
+        factor = FuzzyNoise().factor(elevation, prs.cn0_dbhz) if options["fuzzy"] else np.ones(len(prs))
+        std = options["pseudorange_std"] * factor
+        rows, lost = _residual_test(session, centre, prs, known, std, rows, dt, model, satellites.indices, uses)
+        if lost:
+            session.initialised = False
+            return _initialise(session, t, satellites, atmosphere, origin, uses, rng, "track lost; waiting for enough satellites")
+        if rows.size:
+            systems = [prs.systems[r] for r in rows]
+            _reset_unseen_clocks(session, t, systems, centre, prs, known, rows, rng)
+            for system in set(systems):
+                active[layout.CLOCK[system]] = True
+            model_pr = PseudorangeModel.build(session.anchor, prs.sat_position[rows], systems, known[rows], std[rows])
+            measurement = Measurement(model_pr.predict, prs.pseudorange_m[rows], model_pr.variances())
+    filt = _filter(options)
+    result = filt.step(session.cloud, model, dt, active, measurement, rng)
+    session.cloud = result.cloud
+    session.filter_t = t
+    for r in rows:
+        i = satellites.indices[r]
+        uses[i] = MeasurementUse(i, "pseudorange", True)
+    status = "tracking" if measurement is not None else "predicted"
+    return _fix(t, status, session, result.mean, result.cov, result, int(rows.size), uses, origin)
+
+
+def _filter(options: Mapping[str, Any]) -> Any:
+    cls = PARTICLE_FILTERS[options["filter"]]
+    return cls() if options["filter"] == "ukf" else cls(resample_threshold=options["resample_threshold"])
+
+
+def _model(session: _Session, t: float) -> RissModel | GnssOnlyModel:
+    options, anchor = session.options, session.anchor
+    assert anchor is not None
+    riss = session.riss
+    if riss is not None and t - riss["t"] <= options["riss_timeout"]:
+        u = RissInput(riss["wheel_speed"], riss["wheel_accel"], riss["accel_x"], riss["accel_y"], riss["gyro_z"])
+        return RissModel(
+            anchor, u, options["wheel_speed_std"], options["accelerometer_std"], options["gyro_std"],
+            options["clock_bias_psd"], options["clock_drift_psd"],
+        )
+    return GnssOnlyModel(
+        anchor, options["accel_std"], options["vertical_accel_std"], options["clock_bias_psd"], options["clock_drift_psd"]
+    )
+
+
+def _take_riss(session: _Session, observation: RissObservation) -> None:
+    """Store the sample as the model input; the wheel acceleration is the wheel speed's difference quotient."""
+    previous = session.riss
+    accel = 0.0
+    if previous is not None and 0.0 < observation.t - previous["t"] <= session.options["riss_timeout"]:
+        accel = (observation.wheel_speed - previous["wheel_speed"]) / (observation.t - previous["t"])
+    session.riss = {
+        "t": observation.t, "wheel_speed": observation.wheel_speed, "wheel_accel": accel,
+        "accel_x": observation.accel_x, "accel_y": observation.accel_y, "gyro_z": observation.gyro_z,
+    }
+
+
+
+def _residual_test(
+    session: _Session, centre: np.ndarray, prs: PseudorangeSet, known: np.ndarray, std: np.ndarray,
+    rows: np.ndarray, dt: float, model: RissModel | GnssOnlyModel, indices: list[int],
+    uses: dict[int, MeasurementUse],
+) -> tuple[np.ndarray, bool]:
+    """RAIM-like screening of each pseudorange against the predicted state.
+
+    Residual = measured - predicted; per constellation with three or more satellites its median is
+    removed (a clock error moves them all alike), otherwise the clock variance widens the test. The
+    variance is std^2 plus the predicted position variance (trace). Returns the rows kept and whether the
+    prediction is lost (more than half of at least four pseudoranges fail)."""
+    probability = session.options["gate_probability"]
+    if probability <= 0.0 or rows.size == 0:
+        return rows, False
+    assert session.anchor is not None
+    systems = [prs.systems[r] for r in rows]
+    model_pr = PseudorangeModel.build(session.anchor, prs.sat_position[rows], systems, known[rows], std[rows])
+    residual = prs.pseudorange_m[rows] - model_pr.predict(centre)
+    predicted_cov = session.cloud.cov + model.process_noise(dt)
+    variance = std[rows] ** 2 + float(np.trace(predicted_cov[:3, :3]))
+    for system in set(systems):
+        members = np.array([s == system for s in systems])
+        if members.sum() >= 3:
+            residual[members] -= np.median(residual[members])
+        else:
+            clock = layout.CLOCK[system]
+            variance[members] += predicted_cov[clock, clock] if system in session.clock_seen else 1e12
+    score = residual**2 / variance
+    threshold = _chi2_threshold(probability)
+    failed = score > threshold
+    if failed.sum() * 2 > rows.size and rows.size >= 4:
+        return rows, True
+    for r, value in zip(rows[failed], score[failed]):
+        i = indices[r]
+        uses[i] = MeasurementUse(
+            i, "pseudorange", False, f"failed the residual test: {value:.1f} > {threshold:.1f} (chi-square, 1 dof)"
+        )
+    return rows[~failed], False
+
+
+_THRESHOLDS: dict[float, float] = {}
+
+
+def _chi2_threshold(probability: float) -> float:
+    if probability not in _THRESHOLDS:
+        _THRESHOLDS[probability] = float(chi2.ppf(probability, 1))
+    return _THRESHOLDS[probability]
+
+
+def _reset_unseen_clocks(
+    session: _Session, t: float, systems: list[str], centre: np.ndarray, prs: PseudorangeSet, known: np.ndarray,
+    rows: np.ndarray, rng: np.random.Generator,
+) -> None:
+    """A constellation seen for the first time, or again after a while, restarts its clock bias from the
+    median of its pseudoranges' residuals (a bias frozen while it was absent says nothing now)."""
+    assert session.anchor is not None
+    horizon = max(session.options["riss_timeout"], 5.0)
+    cloud = session.cloud
+    for system in sorted(set(systems)):
+        index = layout.CLOCK[system]
+        last = session.clock_seen.get(system)
+        if last is None or t - last > horizon:
+            members = rows[[s == system for s in systems]]
+            receiver = session.anchor.ecef(centre)
+            geometric = sagnac_range(prs.sat_position[members], receiver)
+            bias = float(np.median(prs.pseudorange_m[members] - geometric - known[members]))
+            # Express it at the start of the step: propagation adds drift * dt.
+            bias -= float(centre[index] - (cloud.weights @ cloud.particles)[index])
+            spread = max(3.0 * session.options["pseudorange_std"], 5.0)
+            particles = cloud.particles.copy()
+            particles[:, index] = bias + (spread * rng.standard_normal(len(particles)) if len(particles) > 1 else 0.0)
+            cov = cloud.cov.copy()
+            cov[index, :] = 0.0
+            cov[:, index] = 0.0
+            cov[index, index] = spread**2
+            cloud = Cloud(particles, cloud.log_weights, cov)
+        session.clock_seen[system] = t
+    session.cloud = cloud
+
+
+def _initialise(
+    session: _Session, t: float, satellites: _Satellites, atmosphere: Atmosphere,
+    origin: tuple[float, float, float] | None, uses: dict[int, MeasurementUse], rng: np.random.Generator,
+    waiting: str,
+) -> Fix:
+    """Start the filter from this epoch's weighted least-squares fix, or report why it cannot yet."""
+    options = session.options
+    prs = satellites.prs
+    start = None if session.anchor is None else geodetic_to_ecef(session.anchor.lat, session.anchor.lon, session.anchor.height)
+    solution = None
+    reason = waiting
+    if len(prs) >= 3 + len(set(prs.systems)):
+        try:
+            solution = solve_epoch(prs, atmosphere, SppConfig(elevation_mask_rad=options["elevation_mask"]), start)
+        except SppError as error:
+            reason = f"{waiting} (least squares: {error})"
+    else:
+        reason = f"{waiting} ({len(prs)} usable pseudoranges, {3 + len(set(prs.systems))} needed)"
+    if solution is None or not (6.0e6 < float(np.linalg.norm(solution.position)) < 7.0e6):
+        for i in satellites.indices:
+            uses[i] = MeasurementUse(i, "pseudorange", False, reason)
+        return Fix(t=t, status="uninitialised", measurements=[uses[i] for i in sorted(uses)])
+
+    if session.anchor is None:
+        session.anchor = GeodeticAnchor(*origin) if origin is not None else GeodeticAnchor(
+            solution.lat, solution.lon, solution.height
+        )
+    anchor = session.anchor
+    mean = np.zeros(layout.DIM)
+    mean[[layout.NORTH, layout.EAST, layout.UP]] = anchor.offsets(solution.lat, solution.lon, solution.height)
+    sigma = options["pseudorange_std"]
+    variances = np.zeros(layout.DIM)
+    variances[[layout.NORTH, layout.EAST, layout.UP]] = (sigma * solution.dop.pdop) ** 2 / 3.0 + 1.0
+    variances[[layout.VE, layout.VN, layout.VU]] = options["init_velocity_std"] ** 2
+    variances[[layout.VU]] = min(options["init_velocity_std"], 2.0) ** 2
+    variances[[layout.PITCH, layout.ROLL, layout.AZIMUTH]] = _INITIAL_ATTITUDE_STD**2
+    for system, index in layout.CLOCK.items():
+        mean[index] = solution.clock_bias_m.get(system, 0.0)
+        variances[index] = (sigma * solution.dop.gdop) ** 2
+    variances[layout.DRIFT] = _INITIAL_CLOCK_DRIFT_STD**2
+    cov = np.diag(variances)
+    count = 1 if options["filter"] == "ukf" else options["particles"]
+    particles = np.repeat(mean[None, :], count, axis=0)
+    if count > 1:
+        particles += rng.standard_normal((count, layout.DIM)) * np.sqrt(variances)
+    particles = GnssOnlyModel.complete(particles)
+    session.cloud = Cloud(particles, np.full(count, -math.log(count)), cov)
+    session.initialised = True
+    session.filter_t = t
+    session.clock_seen = {str(system): t for system in solution.clock_bias_m}
+
+    sats = prs.sats
+    row_of = {sat: row for row, sat in enumerate(sats)}
+    for sat in solution.sats:
+        i = satellites.indices[row_of[sat]]
+        uses[i] = MeasurementUse(i, "pseudorange", True)
+    for sat in solution.excluded:
+        i = satellites.indices[row_of[sat]]
+        uses[i] = MeasurementUse(i, "pseudorange", False, "excluded by the least-squares residual test")
+    for sat in solution.masked:
+        i = satellites.indices[row_of[sat]]
+        uses[i] = MeasurementUse(i, "pseudorange", False, "below the elevation mask")
+    weights = session.cloud.weights
+    estimate = weights @ particles if count > 1 else mean
+    return _fix(t, "initialised", session, estimate, cov, None, len(solution.sats), uses, origin)
+
+
+def _fix(
+    t: float, status: str, session: _Session, mean: np.ndarray, cov: np.ndarray, result: StepResult | None,
+    dof: int, uses: dict[int, MeasurementUse], origin: tuple[float, float, float] | None,
+) -> Fix:
+    anchor = session.anchor
+    assert anchor is not None
+    lat, lon, height = (float(v) for v in anchor.geodetic(mean))
+    position = geodetic_to_ecef(lat, lon, height)
+    anchor_ecef = geodetic_to_ecef(anchor.lat, anchor.lon, anchor.height)
+    east, north, _ = enu_rotation(anchor.lat, anchor.lon) @ (position - anchor_ecef)
+    ve, vn = float(mean[layout.VE]), float(mean[layout.VN])
+    riss = session.riss
+    yaw_rate = riss["gyro_z"] if riss is not None and t - riss["t"] <= session.options["riss_timeout"] else None
+    n, e = layout.NORTH, layout.EAST
+    position_cov = [[float(cov[e, e]), float(cov[e, n])], [float(cov[n, e]), float(cov[n, n])]]
+    del origin  # the anchor is the origin when one is configured
+    return Fix(
+        t=t,
+        status=status,
+        x=float(east),
+        y=float(north),
+        vx=ve,
+        vy=vn,
+        speed=math.hypot(ve, vn),
+        heading=math.atan2(vn, ve),
+        yaw_rate=yaw_rate,
+        position_cov=position_cov,
+        state_components=layout.NAMES,
+        state=[float(v) for v in mean],
+        state_cov=cov.tolist(),
+        nis=None if result is None else result.nis,
+        nis_dof=dof if result is not None and result.nis is not None else 0,
+        measurements=[uses[i] for i in sorted(uses)],
+        latitude=lat,
+        longitude=lon,
+        height=height,
+    )

@@ -1,0 +1,77 @@
+"""The real receiver recording of tests/data/gnss-rover on the wire: the navigation file, the first epochs
+of GPS + BeiDou pseudoranges as ``pseudorange`` measurements, and the reference trajectory."""
+
+from __future__ import annotations
+
+import functools
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from edgepos.gnss.geodesy import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
+from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
+from edgepos.gnss.spp import read_reference
+from edgepos.gnss.timesys import SECONDS_PER_WEEK
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "gnss-rover"
+NAV = DATA / "broadcast-nav.rnx"
+OBS = DATA / "rover-0-5min.rnx"
+REFERENCE = DATA / "reference-0-5min.csv"
+QUICK = {"filter": "ukf", "seed": 1, "systems": ["G", "C"]}
+"""Session options that keep a test about the API fast (a single UKF)."""
+
+
+@functools.lru_cache(maxsize=1)
+def nav_text() -> str:
+    return NAV.read_text(encoding="ascii")
+
+
+@functools.lru_cache(maxsize=2)
+def epochs(count: int = 10) -> tuple[tuple[float, tuple[dict[str, Any], ...]], ...]:
+    """The first ``count`` epochs: (GPS seconds, pseudorange measurements of GPS and BeiDou)."""
+    codes = {system: DEFAULT_CODES[system] for system in ("G", "C")}
+    out = []
+    for number, epoch in enumerate(read_epochs(str(OBS), codes)):
+        if number >= count:
+            break
+        tow = epoch.gpst % SECONDS_PER_WEEK
+        measurements = tuple(
+            {
+                "type": "pseudorange",
+                "t": tow,
+                "system": system,
+                "prn": int(prn),
+                "pseudorange_m": float(pr),
+                "cn0_dbhz": float(cn0) if math.isfinite(cn0) else 0.0,
+            }
+            for system, prn, pr, cn0 in zip(epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz)
+            if math.isfinite(pr) and 1.0e6 <= pr <= 1.0e8
+        )
+        out.append((float(epoch.gpst), measurements))
+    return tuple(out)
+
+
+def measurements(first: int, count: int, satellites: set[str] | None = None) -> list[dict[str, Any]]:
+    """Pseudoranges of epochs first .. first+count-1, only of ``satellites`` (e.g. 'G05') when given."""
+    return [
+        m
+        for _, epoch in epochs()[first : first + count]
+        for m in epoch
+        if satellites is None or f"{m['system']}{m['prn']:02d}" in satellites
+    ]
+
+
+def horizontal_error(fix: dict[str, Any]) -> float | None:
+    """Horizontal distance (m) between a wire fix's latitude/longitude/height and the reference at its t;
+    None where the reference has a gap."""
+    ref_time, ref_ecef = read_reference(str(REFERENCE))
+    tow = np.mod(ref_time, SECONDS_PER_WEEK)
+    row = int(np.argmin(np.abs(tow - fix["t"])))
+    if abs(tow[row] - fix["t"]) > 0.05:
+        return None
+    truth = ref_ecef[row]
+    position = geodetic_to_ecef(fix["latitude"], fix["longitude"], fix["height"])
+    lat, lon, _ = ecef_to_geodetic(truth)
+    east, north, _ = enu_rotation(float(lat), float(lon)) @ (np.asarray(position) - truth)
+    return math.hypot(float(east), float(north))

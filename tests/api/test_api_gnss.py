@@ -1,0 +1,360 @@
+"""GNSS on the wire: PUT/GET/DELETE /v1/ephemerides, pseudorange and riss measurements, and gnss_tight fixes
+with latitude, longitude and height, end to end on the real receiver recording of tests/data/gnss-rover."""
+
+from __future__ import annotations
+
+import hashlib
+import math
+
+import numpy as np
+import pytest
+from apihelp import ADMIN, assert_error, make_settings, open_session
+from edgepos.api.app import create_app
+from edgepos.gnss.ephemerides import parse_ephemerides
+from edgepos.gnss.orbits import group_delay_factors
+from edgepos.gnss.ephemerides import DEFAULT_SIGNAL
+from fastapi.testclient import TestClient
+from gnsswire import QUICK, epochs, horizontal_error, measurements, nav_text
+
+TEXT = {"Content-Type": "text/plain"}
+
+
+def upload(client, text: str | bytes | None = None, headers=ADMIN):
+    body = nav_text() if text is None else text
+    return client.put("/v1/ephemerides", content=body, headers={**TEXT, **headers})
+
+
+def post(client, session_id, token, seq, items, **extra):
+    return client.post(
+        f"/v1/sessions/{session_id}/batches", json={"seq": seq, "measurements": items, **extra}, headers=token
+    )
+
+
+def test_ephemerides_put_get_delete(client):
+    assert_error(client.get("/v1/ephemerides", headers=ADMIN), 404, "not_found")
+    response = upload(client)
+    assert response.status_code == 200, response.text
+    summary = response.json()
+    assert summary["digest"] == hashlib.sha256(nav_text().encode()).hexdigest()
+    assert summary["size_bytes"] == len(nav_text().encode())
+    assert summary["systems"] == ["C", "E", "G"]
+    assert summary["satellite_count"] == len(summary["satellites"]) == 45
+    assert {"G05", "C07", "E01"} <= set(summary["satellites"])
+    assert summary["records"] == {"C": 23, "E": 82, "G": 24}
+    assert summary["skipped_records"] == {"R": 44, "S": 71}
+    assert summary["klobuchar"] is True and {"GPSA", "GPSB"} <= set(summary["ionosphere"])
+    start, end = summary["valid_from"], summary["valid_until"]
+    assert start["week"] == 2134 and end["gps_seconds"] > start["gps_seconds"]
+    assert start["gps_seconds"] == start["week"] * 604800 + start["tow"]
+    # The recording (2020-11-29 12:40 GPST, week 2134 second 45600) lies inside the window.
+    assert start["gps_seconds"] < 2134 * 604800 + 45600 < end["gps_seconds"]
+
+    session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
+    assert client.get("/v1/ephemerides", headers=token).json() == summary  # any session token reads
+    assert_error(upload(client, headers=token), 403, "forbidden")
+    assert_error(client.delete("/v1/ephemerides", headers=token), 403, "forbidden")
+    assert_error(client.get("/v1/ephemerides"), 401, "unauthorized")
+    assert_error(upload(client, headers={}), 401, "unauthorized")
+
+    assert client.delete("/v1/ephemerides", headers=ADMIN).status_code == 204
+    assert_error(client.get("/v1/ephemerides", headers=ADMIN), 404, "not_found")
+    assert_error(client.delete("/v1/ephemerides", headers=ADMIN), 404, "not_found")
+
+
+def test_octet_stream_upload_and_replacement(client):
+    first = client.put(
+        "/v1/ephemerides",
+        content=nav_text().encode(),
+        headers={**ADMIN, "Content-Type": "application/octet-stream"},
+    )
+    assert first.status_code == 200, first.text
+    # Only GPS records: a new file replaces the old one whole.
+    lines = nav_text().splitlines(keepends=True)
+    header_end = next(i for i, line in enumerate(lines) if "END OF HEADER" in line) + 1
+    body = lines[:header_end]
+    i = header_end
+    while i < len(lines):
+        if lines[i][0] == "G":
+            body.extend(lines[i : i + 8])
+            i += 8
+        else:
+            i += 1
+    second = upload(client, "".join(body))
+    assert second.status_code == 200, second.text
+    assert second.json()["systems"] == ["G"] and second.json()["digest"] != first.json()["digest"]
+    assert client.get("/v1/ephemerides", headers=ADMIN).json() == second.json()
+
+
+@pytest.mark.parametrize(
+    ("edit", "line", "words"),
+    [
+        (lambda ls: ls.__setitem__(0, ls[0].replace("3.04", "2.11")), 1, "version"),
+        (lambda ls: ls.__setitem__(12, ls[12][:4] + "   x.50000000D+00" + ls[12][19:]), 13, "cannot read number"),
+        (lambda ls: ls.__delitem__(slice(12, 13)), None, "expected"),
+    ],
+)
+def test_a_malformed_file_is_refused_naming_the_line(client, edit, line, words):
+    assert upload(client).status_code == 200
+    loaded = client.get("/v1/ephemerides", headers=ADMIN).json()
+    lines = nav_text().splitlines(keepends=True)
+    header_end = next(i for i, text in enumerate(lines) if "END OF HEADER" in text) + 1
+    assert header_end == 11  # the edits above address the first record (lines 12-19)
+    edit(lines)
+    error = assert_error(upload(client, "".join(lines)), 422, "invalid_request")
+    (problem,) = error["problems"]
+    assert words in problem["reason"]
+    if line is not None:
+        assert problem["field"] == f"body.line[{line}]" and f"line {line}" in error["message"]
+    else:
+        assert problem["field"].startswith("body.line[")
+    assert client.get("/v1/ephemerides", headers=ADMIN).json() == loaded  # the loaded file stays
+
+
+def test_a_byte_order_mark_and_crlf_line_ends_are_accepted(client):
+    windows = "\ufeff" + nav_text().replace("\n", "\r\n")
+    response = upload(client, windows.encode("utf-8"))
+    assert response.status_code == 200, response.text
+    assert response.json()["satellite_count"] == 45
+
+
+def test_not_text_and_no_usable_record_are_refused(client):
+    error = assert_error(upload(client, b"\xff\xfe binary"), 422, "invalid_request")
+    assert error["problems"][0]["field"] == "body.line[1]" and "not text" in error["problems"][0]["reason"]
+    header = "".join(nav_text().splitlines(keepends=True)[:11])
+    error = assert_error(upload(client, header), 422, "invalid_request")
+    assert "no healthy GPS, BeiDou or Galileo ephemeris" in error["problems"][0]["reason"]
+    assert_error(client.get("/v1/ephemerides", headers=ADMIN), 404, "not_found")
+
+
+def test_size_limit_is_its_own_and_checked_before_parsing(tmp_path):
+    size = len(nav_text().encode())
+    small = make_settings(tmp_path, max_body_bytes=4096, max_ephemerides_bytes=size - 1)
+    with TestClient(create_app(small)) as client:
+        error = assert_error(upload(client), 413, "payload_too_large")
+        assert "EDGEPOS_MAX_EPHEMERIDES_BYTES" in error["message"]
+        # Not parsed: garbage of the same size gets the same 413, not a 422.
+        assert_error(upload(client, "x" * size), 413, "payload_too_large")
+    roomy = make_settings(tmp_path, max_body_bytes=4096, max_ephemerides_bytes=size)
+    with TestClient(create_app(roomy)) as client:
+        assert upload(client).status_code == 200  # EDGEPOS_MAX_BODY_BYTES does not apply to this route
+
+
+def test_gnss_tight_on_the_real_recording_end_to_end(client):
+    assert upload(client).status_code == 200
+    session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
+    fixes = []
+    for seq, first in enumerate(range(0, 10, 4), start=1):
+        items = measurements(first, min(4, 10 - first))
+        response = post(client, session_id, token, seq, items)
+        assert response.status_code == 200, response.text
+        batch = response.json()["fixes"]
+        assert len(batch) == min(4, 10 - first)
+        for fix in batch:
+            uses = fix["measurements"]
+            assert all(use["type"] == "pseudorange" for use in uses) and len(uses) == 15
+            assert all(use["used"] or use["reason"] for use in uses)
+        fixes.extend(batch)
+    assert [fix["status"] for fix in fixes] == ["initialised"] + ["tracking"] * 9
+    assert [fix["t"] for fix in fixes] == [t % 604800 for t, _ in epochs()]
+    errors = []
+    for fix in fixes:
+        assert -math.pi / 2 <= fix["latitude"] <= math.pi / 2 and -math.pi <= fix["longitude"] <= math.pi
+        assert math.degrees(fix["latitude"]) == pytest.approx(41.65, abs=0.2)  # ~30 km NNE of Barcelona
+        assert math.degrees(fix["longitude"]) == pytest.approx(2.35, abs=0.3)
+        assert 0.0 < fix["height"] < 1000.0
+        error = horizontal_error(fix)
+        if error is not None:
+            errors.append(error)
+    assert len(errors) >= 8
+    assert max(errors) < 10.0, errors  # a single-point fix here is within a few metres
+    described = client.get(f"/v1/sessions/{session_id}", headers=token).json()
+    assert described["epochs"] == 10 and described["initialised"]
+    assert described["last_fix"]["height"] == fixes[-1]["height"]
+
+
+def test_fixes_are_on_the_configured_site_frame(tmp_path):
+    origin = {"origin_lat": 41.6, "origin_lon": 2.3, "origin_height": 100.0}
+    with TestClient(create_app(make_settings(tmp_path, **origin))) as client:
+        assert upload(client).status_code == 200
+        session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
+        fix = post(client, session_id, token, 1, measurements(0, 1)).json()["fixes"][0]
+    # x east, y north of the configured origin, consistent with the fix's own latitude/longitude.
+    north = (fix["latitude"] - math.radians(41.6)) * 6.37e6
+    east = (fix["longitude"] - math.radians(2.3)) * 6.37e6 * math.cos(math.radians(41.6))
+    assert fix["x"] == pytest.approx(east, rel=0.01, abs=50.0)
+    assert fix["y"] == pytest.approx(north, rel=0.01, abs=50.0)
+
+
+def test_pseudoranges_without_a_satellite_state_are_refused(client):
+    session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
+    items = measurements(0, 1)
+    error = assert_error(post(client, session_id, token, 1, items), 422, "invalid_request")
+    assert "no ephemerides are loaded" in error["message"]
+    assert [p["index"] for p in error["problems"]] == list(range(len(items)))
+    assert error["problems"][0]["field"] == "measurements[0].sat_position"
+    assert "PUT /v1/ephemerides" in error["problems"][0]["reason"]
+
+    assert upload(client).status_code == 200
+    unknown = {**items[0], "system": "C", "prn": 60}  # no BeiDou C60 in the file
+    error = assert_error(post(client, session_id, token, 1, [*items, unknown]), 422, "invalid_request")
+    (problem,) = error["problems"]
+    assert problem["index"] == len(items) and problem["field"] == f"measurements[{len(items)}].prn"
+    assert "C60" in problem["reason"]
+    late = [{**m, "t": m["t"] + 3 * 86400.0} for m in items]  # three days after the file's window
+    error = assert_error(post(client, session_id, token, 1, late), 422, "invalid_request")
+    assert len(error["problems"]) == len(items)
+    error = assert_error(post(client, session_id, token, 1, [*items, items[3]]), 422, "invalid_request")
+    (problem,) = error["problems"]
+    assert problem["field"] == f"measurements[{len(items)}].prn" and "measurements[3]" in problem["reason"]
+    half = {**items[0], "sat_position": [1.5e7, 1.5e7, 1.0e7]}
+    error = assert_error(post(client, session_id, token, 1, [half]), 422, "invalid_request")
+    assert error["problems"][0]["field"] == "measurements[0].sat_clock"
+    described = client.get(f"/v1/sessions/{session_id}", headers=token).json()
+    assert described["last_seq"] == 0 and described["epochs"] == 0  # nothing was applied
+    # A constellation the session does not use needs no ephemeris: reported unused, not refused.
+    galileo = {**items[0], "system": "E", "prn": 36}
+    response = post(client, session_id, token, 1, [*items, galileo])
+    assert response.status_code == 200, response.text
+    (use,) = [u for u in response.json()["fixes"][0]["measurements"] if u["index"] == len(items)]
+    assert not use["used"] and "options.systems" in use["reason"]
+
+
+def test_client_computed_satellite_states_need_no_ephemerides(client):
+    """A client that computes sat_position and sat_clock itself gets the same fix as the service's own."""
+    ephemerides = parse_ephemerides(nav_text())
+    items = measurements(0, 1)
+    gpst = epochs()[0][0]
+    systems = [m["system"] for m in items]
+    index = ephemerides.orbits.select(systems, [m["prn"] for m in items], gpst)
+    factors = np.array([group_delay_factors(s, DEFAULT_SIGNAL[s]) for s in systems])
+    states = ephemerides.orbits.transmit_states(index, gpst, [m["pseudorange_m"] for m in items], factors)
+    sent = [
+        {**m, "sat_position": [float(v) for v in states.position[k]], "sat_clock": float(states.clock_s[k])}
+        for k, m in enumerate(items)
+    ]
+    options = {**QUICK, "gps_week": int(gpst // 604800), "ionosphere": False}
+    session_id, token = open_session(client, pipeline="gnss_tight", options=options)
+    own = post(client, session_id, token, 1, sent)
+    assert own.status_code == 200, own.text
+    assert upload(client).status_code == 200
+    session_id, token = open_session(client, pipeline="gnss_tight", options=options)
+    served = post(client, session_id, token, 1, items).json()["fixes"][0]
+    mine = own.json()["fixes"][0]
+    assert mine["status"] == "initialised"
+    assert mine["latitude"] == pytest.approx(served["latitude"], abs=1e-9)  # ~6 mm
+    assert mine["height"] == pytest.approx(served["height"], abs=0.05)
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        ({"system": "R"}, "measurements[0].system"),
+        ({"prn": 0}, "measurements[0].prn"),
+        ({"prn": 5.0}, "measurements[0].prn"),
+        ({"pseudorange_m": 12.0}, "measurements[0].pseudorange_m"),
+        ({"cn0_dbhz": -1.0}, "measurements[0].cn0_dbhz"),
+        ({"t": 604800.0}, "measurements[0].t"),
+        ({"sat_position": [1.0, 2.0]}, "measurements[0].sat_position"),
+        ({"sat_clock": 0.5}, "measurements[0].sat_clock"),
+        ({"extra": 1}, "measurements[0].extra"),
+    ],
+)
+def test_bad_pseudorange_fields_are_named(client, change, field):
+    session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
+    item = {**measurements(0, 1)[0], **change}
+    error = assert_error(post(client, session_id, token, 1, [item]), 422, "invalid_request")
+    assert field in [p["field"] for p in error["problems"]]
+    assert all(p["index"] == 0 for p in error["problems"])
+
+
+def test_nan_is_refused(client):
+    session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
+    item = measurements(0, 1)[0]
+    raw = (
+        '{"seq": 1, "measurements": [{"type": "pseudorange", "t": %r, "system": "G", "prn": %d, '
+        '"pseudorange_m": NaN, "cn0_dbhz": 40.0}]}' % (item["t"], item["prn"])
+    )
+    response = client.post(
+        f"/v1/sessions/{session_id}/batches",
+        content=raw,
+        headers={**token, "Content-Type": "application/json"},
+    )
+    error = assert_error(response, 422, "invalid_request")
+    assert error["problems"][0]["field"] == "measurements[0].pseudorange_m"
+
+
+def test_riss_samples_drive_the_motion_model(client):
+    assert upload(client).status_code == 200
+    session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
+    t0 = epochs()[0][0] % 604800
+    riss = {"type": "riss", "t": t0, "wheel_speed": 0.5, "accel_x": 0.1, "accel_y": -0.05, "gyro_z": 0.01}
+    response = post(client, session_id, token, 1, [riss, *measurements(0, 1)])
+    assert response.status_code == 200, response.text
+    (fix,) = response.json()["fixes"]
+    assert fix["measurements"][0] == {"index": 0, "type": "riss", "used": True, "reason": None}
+    response = post(client, session_id, token, 2, [{**riss, "t": t0 + 1.0}, *measurements(1, 1)])
+    assert response.status_code == 200, response.text
+    assert response.json()["fixes"][0]["yaw_rate"] == 0.01
+    error = assert_error(post(client, session_id, token, 3, [{**riss, "t": t0 + 2.0, "gyro_z": 11.0}]), 422,
+                         "invalid_request")
+    assert error["problems"][0]["field"] == "measurements[0].gyro_z"
+
+
+def test_measurement_types_are_checked_against_the_pipeline(client):
+    session_id, token = open_session(client)  # rsu_imu
+    error = assert_error(post(client, session_id, token, 1, measurements(0, 1)[:1]), 422, "invalid_request")
+    assert error["problems"][0]["field"] == "measurements[0].type"
+    gnss_id, gnss_token = open_session(client, pipeline="gnss_tight", options=QUICK)
+    gyro = {"type": "gyro", "t": 1.0, "yaw_rate": 0.1}
+    error = assert_error(post(client, gnss_id, gnss_token, 1, [gyro]), 422, "invalid_request")
+    assert error["problems"][0]["field"] == "measurements[0].type"
+
+
+def test_pipelines_list_gnss_tight_with_its_options(client):
+    listed = {p["name"]: p for p in client.get("/v1/pipelines").json()["pipelines"]}
+    gnss = listed["gnss_tight"]
+    assert gnss["measurement_types"] == ["pseudorange", "riss"]
+    options = {o["name"]: o for o in gnss["options"]}
+    assert options["filter"]["default"] == "upf" and set(options["filter"]["choices"]) == {"upf", "pf", "ukf"}
+    assert options["particles"]["minimum"] == 10 and options["particles"]["maximum"] == 5000
+    assert options["systems"]["type"] == "string[]" and options["systems"]["default"] == ["G", "C", "E"]
+    assert all(o["description"] for o in gnss["options"])
+    error = assert_error(
+        client.post(
+            "/v1/sessions", json={"vehicle_id": "c", "pipeline": "gnss_tight", "options": {"particles": 1}}
+        ),
+        422,
+        "invalid_request",
+    )
+    assert error["problems"][0]["field"] == "options.particles"
+
+
+def test_served_fixes_equal_the_pipeline_bit_for_bit(client):
+    """The service hands the pipeline the same ephemerides and observations as a direct call: the UPF's
+    fixes over the wire are the in-process pipeline's, float for float (the state bytes too)."""
+    from edgepos.core.observations import PseudorangeObservation
+    from edgepos.pipelines.base import StaticEnvironment
+    from edgepos.pipelines.registry import get_pipeline
+
+    options = {"filter": "upf", "particles": 50, "seed": 11, "systems": ["G", "C"]}
+    assert upload(client).status_code == 200
+    session_id, token = open_session(client, pipeline="gnss_tight", options=options)
+    pipeline = get_pipeline("gnss_tight")
+    environment = StaticEnvironment(navigation=parse_ephemerides(nav_text()))
+    state = pipeline.create(pipeline.resolve_options(options), None)
+    for seq, first in enumerate(range(0, 10, 5), start=1):
+        items = measurements(first, 5)
+        observations = [
+            PseudorangeObservation(m["t"], m["system"], m["prn"], m["pseudorange_m"], m["cn0_dbhz"])
+            for m in items
+        ]
+        expected, state = pipeline.process(state, observations, environment)
+        served = post(client, session_id, token, seq, items, include_state=True).json()["fixes"]
+        assert len(served) == len(expected) == 5
+        for got, fix in zip(served, expected, strict=True):
+            for name in ("t", "x", "y", "vx", "vy", "latitude", "longitude", "height", "nis"):
+                value = getattr(fix, name)
+                assert got[name] == value and (value is None or got[name].hex() == value.hex()), name
+            assert got["state"]["mean"] == fix.state and got["status"] == fix.status
+    stored = client.portal.call(client.app.state.context.store.get, session_id)
+    assert stored.state == state
