@@ -60,6 +60,7 @@ from edgepos.pipelines.base import (
     StateSummary,
     is_finite_number,
 )
+from edgepos.pipelines.epochs import group_by_time
 from edgepos.pipelines.options import resolve_options
 
 SYSTEMS = ("G", "C", "E")
@@ -221,7 +222,7 @@ class GnssTightPipeline(Pipeline):
         origin = environment.site_origin()
         fixes = [
             _step(session, epoch, observations, ephemerides, origin)
-            for epoch in _epochs(observations)
+            for epoch in group_by_time(observations)
         ]
         return fixes, session.to_bytes()
 
@@ -266,15 +267,6 @@ def _validate(session: _Session, observations: Sequence[Observation]) -> None:
         raise PipelineInputError(problems)
 
 
-def _epochs(observations: Sequence[Observation]) -> list[list[int]]:
-    order = sorted(range(len(observations)), key=lambda i: observations[i].t)
-    epochs: list[list[int]] = []
-    for index in order:
-        if epochs and observations[epochs[-1][0]].t == observations[index].t:
-            epochs[-1].append(index)
-        else:
-            epochs.append([index])
-    return epochs
 
 
 # -- satellites ----------------------------------------------------------------------------------

@@ -1,13 +1,21 @@
-"""What the kinematic pipelines share: the fix of a [xp, xv, xa, yp, yv, ya] Gaussian."""
+"""What the kinematic pipelines share: batch checks, the dead-reckoning update, and the fix of a
+[xp, xv, xa, yp, yv, ya] Gaussian."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
 from edgepos.core import layout
-from edgepos.pipelines.base import Fix, MeasurementUse, TrackPoint
+from edgepos.core.filters.base import GaussianFilter
+from edgepos.core.measurements.base import MeasurementModel, Stacked
+from edgepos.core.measurements.gyro import GyroYawRate
+from edgepos.core.measurements.odometer import OdometerDistance
+from edgepos.core.observations import GyroObservation, Observation, OdometerObservation
+from edgepos.pipelines.base import Fix, MeasurementUse, PipelineInputError, Problem, TrackPoint, is_finite_number
 
 KINEMATIC = layout.KINEMATIC
 _TRACK_ORDER = [0, 3, 1, 4]  # [x, y, vx, vy] of the published track
@@ -43,3 +51,83 @@ def shared_point(t: float, mean: np.ndarray, cov: np.ndarray) -> TrackPoint:
         t, float(mean[0]), float(mean[3]), float(mean[1]), float(mean[4]),
         tuple(tuple(float(v) for v in row) for row in block),
     )
+
+
+def check_batch(pipeline: str, kinds: set[str], last_t: float | None, observations: Sequence[Observation]) -> None:
+    """Refuse, listing every problem: kinds the pipeline does not take, non-finite times, times
+    going back (before the session's last epoch or within the batch), negative odometer distances."""
+    problems: list[Problem] = []
+    previous = last_t
+    for index, obs in enumerate(observations):
+        if obs.kind not in kinds:
+            problems.append(Problem(index, "kind", f"pipeline {pipeline} takes {sorted(kinds)}, not {obs.kind!r}"))
+            continue
+        if not is_finite_number(obs.t):
+            problems.append(Problem(index, "t", "must be a finite number"))
+            continue
+        if previous is not None and obs.t < previous:
+            problems.append(Problem(index, "t", f"time {obs.t} goes back before {previous} (observations in time order)"))
+        previous = obs.t if previous is None else max(previous, obs.t)
+        if isinstance(obs, OdometerObservation) and obs.distance is not None and obs.distance < 0.0:
+            problems.append(Problem(index, "distance", "must be >= 0"))
+    if problems:
+        raise PipelineInputError(problems)
+
+
+@dataclass(frozen=True)
+class DeadReckoning:
+    """The outcome of a dead-reckoning update: the new Gaussian, whether anything was used, and the
+    time of the latest odometer distance reading (which starts the next reading's interval)."""
+
+    mean: np.ndarray
+    cov: np.ndarray
+    used: bool
+    odometer_t: float | None
+
+
+def dead_reckoning_update(
+    filt: GaussianFilter,
+    mean: np.ndarray,
+    cov: np.ndarray,
+    epoch: Sequence[int],
+    observations: Sequence[Observation],
+    uses: dict[int, MeasurementUse],
+    odometer_t: float | None,
+    gyro_std: float,
+    odometer_std: float,
+) -> DeadReckoning:
+    """The epoch's gyro yaw rate and odometer distance (or speed) as one stacked update of (mean, cov)
+    (the federated paper's eq. 8). A distance needs the previous distance reading's time for its
+    interval; the first one is reported unused. Extra readings at the same time are reported unused."""
+    t = observations[epoch[0]].t
+    parts: list[MeasurementModel] = []
+    values: list[float] = []
+    gyros = [i for i in epoch if isinstance(observations[i], GyroObservation)]
+    odos = [i for i in epoch if isinstance(observations[i], OdometerObservation)]
+    for i in gyros[1:]:
+        uses[i] = MeasurementUse(i, "gyro", False, "another gyro reading at the same time was used")
+    for i in odos[1:]:
+        uses[i] = MeasurementUse(i, "odometer", False, "another odometer reading at the same time was used")
+    if gyros:
+        parts.append(GyroYawRate(gyro_std))
+        values.append(observations[gyros[0]].yaw_rate)
+        uses[gyros[0]] = MeasurementUse(gyros[0], "gyro", True)
+    if odos:
+        obs = observations[odos[0]]
+        if obs.speed is not None:
+            parts.append(OdometerDistance(odometer_std, 1.0))
+            values.append(obs.speed)
+            uses[odos[0]] = MeasurementUse(odos[0], "odometer", True)
+        elif odometer_t is None or t <= odometer_t:
+            uses[odos[0]] = MeasurementUse(odos[0], "odometer", False, "first distance reading: no previous reading starts its interval")
+        else:
+            parts.append(OdometerDistance(odometer_std, t - odometer_t))
+            values.append(obs.distance)
+            uses[odos[0]] = MeasurementUse(odos[0], "odometer", True)
+        if obs.distance is not None:
+            odometer_t = t
+    if not parts:
+        return DeadReckoning(mean, cov, False, odometer_t)
+    model = parts[0] if len(parts) == 1 else Stacked(parts)
+    mean, cov, _, _ = filt.update_one(mean, cov, KINEMATIC, model, np.array(values))
+    return DeadReckoning(mean, cov, True, odometer_t)

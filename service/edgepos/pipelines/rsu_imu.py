@@ -47,6 +47,7 @@ from edgepos.pipelines.base import (
     Rsu,
     StateSummary,
 )
+from edgepos.pipelines.epochs import group_by_time
 from edgepos.pipelines.options import resolve_options
 
 #: Standard deviations of the components an initial state does not give (acceleration m/s^2,
@@ -202,7 +203,7 @@ class RsuImuPipeline(Pipeline):
         rsus = _validate(session, observations, environment)
         bank = _bank(_options_key(session.options))
         fixes = []
-        for epoch in _epochs(observations):
+        for epoch in group_by_time(observations):
             fixes.append(_step(session, bank, epoch, observations, rsus))
         return fixes, session.to_bytes()
 
@@ -271,16 +272,6 @@ def _validate(session: _SessionState, observations: Sequence[Observation], envir
     return rsus
 
 
-def _epochs(observations: Sequence[Observation]) -> list[list[int]]:
-    """Indices of the observations grouped by timestamp, in time order (stable within an epoch)."""
-    order = sorted(range(len(observations)), key=lambda i: observations[i].t)
-    epochs: list[list[int]] = []
-    for index in order:
-        if epochs and observations[epochs[-1][0]].t == observations[index].t:
-            epochs[-1].append(index)
-        else:
-            epochs.append([index])
-    return epochs
 
 
 # -- the bank ------------------------------------------------------------------------------------

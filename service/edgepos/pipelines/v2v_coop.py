@@ -30,10 +30,7 @@ from edgepos.core import state as state_format
 from edgepos.core.augmented import augmented_update
 from edgepos.core.filters.ekf import ExtendedKalmanFilter
 from edgepos.core.filters.ukf import UnscentedKalmanFilter
-from edgepos.core.measurements.base import MeasurementModel, Stacked
 from edgepos.core.measurements.gnss_fix import GnssPosition
-from edgepos.core.measurements.gyro import GyroYawRate
-from edgepos.core.measurements.odometer import OdometerDistance
 from edgepos.core.measurements.rsu import RsuRange
 from edgepos.core.motion.ca import ConstantAcceleration
 from edgepos.core.observations import (
@@ -50,12 +47,10 @@ from edgepos.pipelines.base import (
     MeasurementUse,
     OptionSpec,
     Pipeline,
-    PipelineInputError,
-    Problem,
     StateSummary,
-    is_finite_number,
 )
-from edgepos.pipelines.kinematic import KINEMATIC, kinematic_fix, shared_point
+from edgepos.pipelines.kinematic import KINEMATIC, check_batch, dead_reckoning_update, kinematic_fix, shared_point
+from edgepos.pipelines.epochs import group_by_time
 from edgepos.pipelines.options import resolve_options
 from edgepos.pipelines.tracks import NeighbourUnavailable, position_at
 
@@ -154,36 +149,14 @@ class V2vCoopPipeline(Pipeline):
     ) -> tuple[list[Fix], bytes]:
         session = _decode(state)
         _validate(session, observations)
-        fixes = [_step(session, epoch, observations, environment) for epoch in _epochs(observations)]
+        fixes = [_step(session, epoch, observations, environment) for epoch in group_by_time(observations)]
         return fixes, session.to_bytes()
 
 
 def _validate(session: _SessionState, observations: Sequence[Observation]) -> None:
-    problems: list[Problem] = []
-    kinds = set(V2vCoopPipeline.measurement_kinds)
-    previous = session.t
-    for index, obs in enumerate(observations):
-        if obs.kind not in kinds:
-            problems.append(Problem(index, "kind", f"pipeline v2v_coop takes {sorted(kinds)}, not {obs.kind!r}"))
-            continue
-        if not is_finite_number(obs.t):
-            problems.append(Problem(index, "t", "must be a finite number"))
-            continue
-        if previous is not None and obs.t < previous:
-            problems.append(Problem(index, "t", f"time {obs.t} goes back before {previous} (observations in time order)"))
-        previous = obs.t if previous is None else max(previous, obs.t)
-    if problems:
-        raise PipelineInputError(problems)
+    check_batch(V2vCoopPipeline.name, set(V2vCoopPipeline.measurement_kinds), session.t, observations)
 
 
-def _epochs(observations: Sequence[Observation]) -> list[list[int]]:
-    epochs: list[list[int]] = []
-    for index, obs in enumerate(observations):
-        if epochs and observations[epochs[-1][0]].t == obs.t:
-            epochs[-1].append(index)
-        else:
-            epochs.append([index])
-    return epochs
 
 
 def _step(session: _SessionState, epoch: list[int], observations: Sequence[Observation], environment: Environment) -> Fix:
@@ -296,47 +269,27 @@ def _coast(session: _SessionState, dt: float) -> None:
 
 
 def _dr_update(session, mean, cov, epoch, observations, uses, t) -> tuple[np.ndarray, np.ndarray, bool]:
-    """Gyro yaw rate and odometer distance (or speed) as one stacked update of (mean, cov)."""
+    """Gyro and odometer once the heading is known (see _heading_known); the UKF methods update
+    through the UKF, gps_dr through the linearised Kalman filter."""
     options = session.options
-    parts: list[MeasurementModel] = []
-    values: list[float] = []
-    gyros = [i for i in epoch if isinstance(observations[i], GyroObservation)]
-    odos = [i for i in epoch if isinstance(observations[i], OdometerObservation)]
-    for i in gyros[1:]:
-        uses[i] = MeasurementUse(i, "gyro", False, "another gyro reading at the same time was used")
-    for i in odos[1:]:
-        uses[i] = MeasurementUse(i, "odometer", False, "another odometer reading at the same time was used")
     if not _heading_known(mean, cov):
         reason = "heading not yet known (speed within 3 sigma of zero): dead reckoning waits for the fixes"
-        for i in gyros[:1] + odos[:1]:
-            uses[i] = MeasurementUse(i, observations[i].kind, False, reason)
+        for kind in (GyroObservation, OdometerObservation):
+            readings = [i for i in epoch if isinstance(observations[i], kind)]
+            for i in readings[:1]:
+                uses[i] = MeasurementUse(i, observations[i].kind, False, reason)
+            for i in readings[1:]:
+                uses[i] = MeasurementUse(i, observations[i].kind, False, f"another {observations[i].kind} reading at the same time was used")
+        odos = [i for i in epoch if isinstance(observations[i], OdometerObservation)]
         if odos and observations[odos[0]].distance is not None:
             session.odometer_t = t
         return mean, cov, False
-    if gyros:
-        parts.append(GyroYawRate(options["gyro_std"]))
-        values.append(observations[gyros[0]].yaw_rate)
-        uses[gyros[0]] = MeasurementUse(gyros[0], "gyro", True)
-    if odos:
-        obs = observations[odos[0]]
-        if obs.speed is not None:
-            parts.append(OdometerDistance(options["odometer_std"], 1.0))
-            values.append(obs.speed)
-            uses[odos[0]] = MeasurementUse(odos[0], "odometer", True)
-        elif session.odometer_t is None or t <= session.odometer_t:
-            uses[odos[0]] = MeasurementUse(odos[0], "odometer", False, "first distance reading: no previous reading starts its interval")
-        else:
-            parts.append(OdometerDistance(options["odometer_std"], t - session.odometer_t))
-            values.append(obs.distance)
-            uses[odos[0]] = MeasurementUse(odos[0], "odometer", True)
-        if obs.distance is not None:
-            session.odometer_t = t
-    if not parts:
-        return mean, cov, False
-    model = parts[0] if len(parts) == 1 else Stacked(parts)
     filt = _KF if options["method"] == "gps_dr" else _UKF
-    mean, cov, _, _ = filt.update_one(mean, cov, KINEMATIC, model, np.array(values))
-    return mean, cov, True
+    outcome = dead_reckoning_update(
+        filt, mean, cov, epoch, observations, uses, session.odometer_t, options["gyro_std"], options["odometer_std"]
+    )
+    session.odometer_t = outcome.odometer_t
+    return outcome.mean, outcome.cov, outcome.used
 
 
 def _heading_known(mean: np.ndarray, cov: np.ndarray) -> bool:

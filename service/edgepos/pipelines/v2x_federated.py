@@ -26,13 +26,10 @@ import numpy as np
 from edgepos.core import layout
 from edgepos.core import state as state_format
 from edgepos.core.errors import NumericalError
-from edgepos.core.filters.base import GaussianFilter
 from edgepos.core.filters.ekf import ExtendedKalmanFilter
 from edgepos.core.filters.srukf import SquareRootUnscentedKalmanFilter
-from edgepos.core.measurements.base import MeasurementModel, Stacked
+from edgepos.core.measurements.base import MeasurementModel
 from edgepos.core.measurements.gnss_fix import GnssPosition
-from edgepos.core.measurements.gyro import GyroYawRate
-from edgepos.core.measurements.odometer import OdometerDistance
 from edgepos.core.motion.current_statistical import CurrentStatistical
 from edgepos.core.observations import (
     GnssFixObservation,
@@ -49,12 +46,10 @@ from edgepos.pipelines.base import (
     MeasurementUse,
     OptionSpec,
     Pipeline,
-    PipelineInputError,
-    Problem,
     StateSummary,
-    is_finite_number,
 )
-from edgepos.pipelines.kinematic import kinematic_fix
+from edgepos.pipelines.kinematic import check_batch, dead_reckoning_update, kinematic_fix
+from edgepos.pipelines.epochs import group_by_time
 from edgepos.pipelines.options import resolve_options
 from edgepos.pipelines.tracks import NeighbourUnavailable, position_at
 
@@ -201,7 +196,7 @@ class V2xFederatedPipeline(Pipeline):
     ) -> tuple[list[Fix], bytes]:
         session = _decode(state)
         _validate(session, observations)
-        fixes = [_step(session, epoch, observations, environment) for epoch in _epochs(observations)]
+        fixes = [_step(session, epoch, observations, environment) for epoch in group_by_time(observations)]
         return fixes, session.to_bytes()
 
 
@@ -209,33 +204,9 @@ class V2xFederatedPipeline(Pipeline):
 
 
 def _validate(session: _SessionState, observations: Sequence[Observation]) -> None:
-    problems: list[Problem] = []
-    kinds = set(V2xFederatedPipeline.measurement_kinds)
-    previous = session.t
-    for index, obs in enumerate(observations):
-        if obs.kind not in kinds:
-            problems.append(Problem(index, "kind", f"pipeline v2x_federated takes {sorted(kinds)}, not {obs.kind!r}"))
-            continue
-        if not is_finite_number(obs.t):
-            problems.append(Problem(index, "t", "must be a finite number"))
-            continue
-        if previous is not None and obs.t < previous:
-            problems.append(Problem(index, "t", f"time {obs.t} goes back before {previous} (observations in time order)"))
-        previous = obs.t if previous is None else max(previous, obs.t)
-        if isinstance(obs, OdometerObservation) and obs.distance is not None and obs.distance < 0.0:
-            problems.append(Problem(index, "distance", "must be >= 0"))
-    if problems:
-        raise PipelineInputError(problems)
+    check_batch(V2xFederatedPipeline.name, set(V2xFederatedPipeline.measurement_kinds), session.t, observations)
 
 
-def _epochs(observations: Sequence[Observation]) -> list[list[int]]:
-    epochs: list[list[int]] = []
-    for index, obs in enumerate(observations):
-        if epochs and observations[epochs[-1][0]].t == obs.t:
-            epochs[-1].append(index)
-        else:
-            epochs.append([index])
-    return epochs
 
 
 # -- one epoch -----------------------------------------------------------------------------------
@@ -323,36 +294,11 @@ def _gps_update(means, covs, epoch, observations, options, uses) -> bool:
 
 
 def _dr_update(session, means, covs, epoch, observations, options, uses, t) -> bool:
-    parts: list[MeasurementModel] = []
-    values: list[float] = []
-    gyros = [i for i in epoch if isinstance(observations[i], GyroObservation)]
-    odos = [i for i in epoch if isinstance(observations[i], OdometerObservation)]
-    for i in gyros[1:]:
-        uses[i] = MeasurementUse(i, "gyro", False, "another gyro reading at the same time was used")
-    for i in odos[1:]:
-        uses[i] = MeasurementUse(i, "odometer", False, "another odometer reading at the same time was used")
-    if gyros:
-        parts.append(GyroYawRate(options["gyro_std"]))
-        values.append(observations[gyros[0]].yaw_rate)
-        uses[gyros[0]] = MeasurementUse(gyros[0], "gyro", True)
-    if odos:
-        obs = observations[odos[0]]
-        if obs.speed is not None:
-            parts.append(OdometerDistance(options["odometer_std"], 1.0))
-            values.append(obs.speed)
-            uses[odos[0]] = MeasurementUse(odos[0], "odometer", True)
-        elif session.odometer_t is None or t <= session.odometer_t:
-            uses[odos[0]] = MeasurementUse(odos[0], "odometer", False, "first distance reading: no previous reading starts its interval")
-        else:
-            parts.append(OdometerDistance(options["odometer_std"], t - session.odometer_t))
-            values.append(obs.distance)
-            uses[odos[0]] = MeasurementUse(odos[0], "odometer", True)
-        _note_odometer(session, obs)
-    if not parts:
-        return False
-    model = parts[0] if len(parts) == 1 else Stacked(parts)
-    means[1], covs[1], _, _ = _SRUKF.update_one(means[1], covs[1], _KIN, model, np.array(values))
-    return True
+    outcome = dead_reckoning_update(
+        _SRUKF, means[1], covs[1], epoch, observations, uses, session.odometer_t, options["gyro_std"], options["odometer_std"]
+    )
+    means[1], covs[1], session.odometer_t = outcome.mean, outcome.cov, outcome.odometer_t
+    return outcome.used
 
 
 def _v2x_update(means, covs, epoch, observations, options, uses, environment, t) -> bool:
