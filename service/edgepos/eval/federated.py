@@ -8,18 +8,15 @@ same without feedback. Position RMSE is over every epoch after the first of ever
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import sys
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
-from edgepos.eval import plots
 from edgepos.eval.montecarlo import chunk_runs, run_chunks
 from edgepos.eval.progress import Progress
+from edgepos.eval.scenario_command import run_scenario_command
 from edgepos.eval.tables import format_table, number
 from edgepos.pipelines import tracks
 from edgepos.pipelines.base import NeighbourTrack, StaticEnvironment
@@ -179,41 +176,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     """No options beyond the common ones."""
 
 
+def curves(totals: Totals, runs: int) -> dict[str, tuple[np.ndarray, dict[str, np.ndarray]]]:
+    """Per scenario: times and each method's RMSE over time."""
+    t = np.arange(STEPS) * 0.2
+    return {s: (t, {m: np.sqrt(totals.squared[(s, m)] / runs) for m in METHODS}) for s in SCENARIOS}
+
+
 def run(args: argparse.Namespace) -> int:
-    if args.json is not None and not Path(args.json).resolve().parent.is_dir():
-        print(f"{PROG}: error: --json: the directory of {args.json} does not exist", file=sys.stderr)
-        return 2
-    if args.plots is not None:
-        try:
-            plots.require_matplotlib()
-        except plots.PlotsUnavailable as exc:
-            print(f"{PROG}: error: {exc}", file=sys.stderr)
-            return 2
-    progress = Progress(args.runs, label="runs")
-    try:
-        totals = monte_carlo(args.runs, args.seed, args.workers, progress)
-    except RunFailed as exc:
-        print(f"\n{PROG}: error: {exc}", file=sys.stderr)
-        return 1
-    progress.finish()
-    results = summary(totals, args.runs)
-    print(report(results, args.runs, args.seed))
-    try:
-        if args.json is not None:
-            Path(args.json).write_text(json.dumps({"scenarios": results}, indent=2) + "\n", encoding="utf-8")
-            print(f"\nwrote {args.json}")
-        if args.plots is not None:
-            directory = Path(args.plots)
-            directory.mkdir(parents=True, exist_ok=True)
-            t = np.arange(STEPS) * 0.2
-            for scenario in SCENARIOS:
-                series = {
-                    m: np.sqrt(totals.squared[(scenario, m)] / args.runs) for m in METHODS
-                }
-                path = plots.line_plot(directory / f"federated_{scenario}.png", t, series,
-                                       f"Position RMSE, {scenario}", "RMSE (m)", plots.readable_ylim(series))
-                print(f"wrote {path}")
-    except OSError as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return 1
-    return 0
+    return run_scenario_command(args, PROG, monte_carlo, summary, report, curves, "federated", RunFailed)

@@ -1,0 +1,65 @@
+"""The command flow every scenario-table evaluation shares (``eval v2v``, ``eval federated``): check
+the output paths, run the Monte Carlo with a progress line, print the table, write the JSON summary
+and one RMSE-over-time figure per scenario."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from edgepos.eval import plots
+from edgepos.eval.progress import Progress
+
+Summary = dict[str, dict[str, dict[str, float]]]
+
+
+def run_scenario_command(
+    args: argparse.Namespace,
+    prog: str,
+    monte_carlo: Callable[[int, int, int, Progress], Any],
+    summarise: Callable[[Any, int], Summary],
+    report: Callable[[Summary, int, int], str],
+    curves: Callable[[Any, int], Mapping[str, tuple[np.ndarray, dict[str, np.ndarray]]]],
+    plot_prefix: str,
+    failure: type[Exception],
+) -> int:
+    """``curves(totals, runs)``: per scenario, the times and each method's RMSE over time."""
+    if args.json is not None and not Path(args.json).resolve().parent.is_dir():
+        print(f"{prog}: error: --json: the directory of {args.json} does not exist", file=sys.stderr)
+        return 2
+    if args.plots is not None:
+        try:
+            plots.require_matplotlib()
+        except plots.PlotsUnavailable as exc:
+            print(f"{prog}: error: {exc}", file=sys.stderr)
+            return 2
+    progress = Progress(args.runs, label="runs")
+    try:
+        totals = monte_carlo(args.runs, args.seed, args.workers, progress)
+    except failure as exc:
+        print(f"\n{prog}: error: {exc}", file=sys.stderr)
+        return 1
+    progress.finish()
+    results = summarise(totals, args.runs)
+    print(report(results, args.runs, args.seed))
+    try:
+        if args.json is not None:
+            Path(args.json).write_text(json.dumps({"scenarios": results}, indent=2) + "\n", encoding="utf-8")
+            print(f"\nwrote {args.json}")
+        if args.plots is not None:
+            directory = Path(args.plots)
+            directory.mkdir(parents=True, exist_ok=True)
+            for scenario, (times, series) in curves(totals, args.runs).items():
+                path = plots.line_plot(directory / f"{plot_prefix}_{scenario}.png", times, series,
+                                       f"Position RMSE, {scenario}", "RMSE (m)", plots.readable_ylim(series))
+                print(f"wrote {path}")
+    except OSError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 1
+    return 0
