@@ -8,6 +8,7 @@ import argparse
 import json
 import sys
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,27 @@ from edgepos.eval import plots
 from edgepos.eval.progress import Progress
 
 Summary = dict[str, dict[str, dict[str, float]]]
+
+
+@dataclass
+class Totals:
+    """Sums over runs per (scenario, method): squared errors per epoch, seconds, epochs."""
+
+    squared: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
+    seconds: dict[tuple[str, str], float] = field(default_factory=dict)
+    epochs: dict[tuple[str, str], int] = field(default_factory=dict)
+
+    def add(self, key: tuple[str, str], squared: np.ndarray, seconds: float, epochs: int) -> None:
+        self.squared[key] = self.squared.get(key, 0.0) + squared
+        self.seconds[key] = self.seconds.get(key, 0.0) + seconds
+        self.epochs[key] = self.epochs.get(key, 0) + epochs
+
+
+def combine(a: Totals, b: Totals) -> Totals:
+    """``a`` with ``b``'s sums added (the Monte Carlo's reduction over worker chunks)."""
+    for key in b.squared:
+        a.add(key, b.squared[key], b.seconds[key], b.epochs[key])
+    return a
 
 
 def run_scenario_command(

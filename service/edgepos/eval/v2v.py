@@ -12,13 +12,12 @@ from __future__ import annotations
 import argparse
 import math
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from edgepos.eval.montecarlo import chunk_runs, run_chunks
 from edgepos.eval.progress import Progress
-from edgepos.eval.scenario_command import run_scenario_command
+from edgepos.eval.scenario_command import Totals, combine, run_scenario_command
 from edgepos.eval.tables import format_table, number
 from edgepos.pipelines import tracks
 from edgepos.pipelines.base import NeighbourTrack, StaticEnvironment
@@ -72,13 +71,6 @@ def run_method(run: V2vRun, method: str) -> tuple[np.ndarray, float, int]:
     return squared, elapsed, steps * len(VEHICLE_IDS)
 
 
-@dataclass
-class Totals:
-    """Sums over runs per (scenario, method): squared errors per step, seconds, epochs."""
-
-    squared: dict[tuple[str, str], np.ndarray] = field(default_factory=dict)
-    seconds: dict[tuple[str, str], float] = field(default_factory=dict)
-    epochs: dict[tuple[str, str], int] = field(default_factory=dict)
 
 
 _SEED = 1
@@ -100,22 +92,14 @@ def _work(chunk: range) -> Totals:
                     squared, seconds, epochs = run_method(run, method)
                 except Exception as error:  # an estimation error names its run
                     raise RunFailed(f"{scenario} run {r} {method}: {error}") from error
-                totals.squared[key] = totals.squared.get(key, 0.0) + squared
-                totals.seconds[key] = totals.seconds.get(key, 0.0) + seconds
-                totals.epochs[key] = totals.epochs.get(key, 0) + epochs
+                totals.add(key, squared, seconds, epochs)
     return totals
 
 
-def _combine(a: Totals, b: Totals) -> Totals:
-    for key in b.squared:
-        a.squared[key] = a.squared.get(key, 0.0) + b.squared[key]
-        a.seconds[key] = a.seconds.get(key, 0.0) + b.seconds[key]
-        a.epochs[key] = a.epochs.get(key, 0) + b.epochs[key]
-    return a
 
 
 def monte_carlo(runs: int, seed: int, workers: int, progress: Progress | None = None) -> Totals:
-    return run_chunks(_work, _combine, chunk_runs(runs), workers, _init, (seed,), progress)
+    return run_chunks(_work, combine, chunk_runs(runs), workers, _init, (seed,), progress)
 
 
 def summary(totals: Totals, runs: int) -> dict[str, dict[str, dict[str, float]]]:

@@ -10,9 +10,24 @@ from collections.abc import Sequence
 from urllib.parse import urlsplit
 
 import numpy as np
-from edgepos_client import GyroMeasurement, InitialState, Rsu, RsuMeasurement
+from edgepos_client import (
+    GnssFixMeasurement,
+    GyroMeasurement,
+    InitialState,
+    OdometerMeasurement,
+    Rsu,
+    RsuMeasurement,
+    V2vRangeMeasurement,
+)
 
-from edgepos.core.observations import GyroObservation, Observation, RsuObservation
+from edgepos.core.observations import (
+    GnssFixObservation,
+    GyroObservation,
+    Observation,
+    OdometerObservation,
+    RsuObservation,
+    V2vRangeObservation,
+)
 from edgepos.sim.scenarios import Scenario, rsu_imu_paper_scenario
 from edgepos.sim.sensors import rsu_imu_epochs
 
@@ -53,8 +68,18 @@ def vehicle_epochs(scenario: Scenario, seed: int, vehicle: int) -> list[list[Obs
     return rsu_imu_epochs(scenario, vehicle_rng(seed, vehicle))
 
 
-def to_wire(observation: Observation) -> WireMeasurement:
-    """An observation as the client's measurement model (floats copied unchanged)."""
+def to_wire(observation: Observation, peer_prefix: str = "") -> WireMeasurement:
+    """An observation as the client's measurement model (floats copied unchanged); ``peer_prefix``
+    goes before a V2V range's peer id, so that simulated fleets of several runs keep apart."""
+    if isinstance(observation, GnssFixObservation):
+        return GnssFixMeasurement(t=observation.t, x=observation.x, y=observation.y, std=observation.std)
+    if isinstance(observation, OdometerObservation):
+        return OdometerMeasurement(t=observation.t, distance=observation.distance, speed=observation.speed)
+    if isinstance(observation, V2vRangeObservation):
+        return V2vRangeMeasurement(
+            t=observation.t, peer_vehicle_id=f"{peer_prefix}{observation.peer_vehicle_id}",
+            range=observation.range, toa=observation.toa,
+        )
     if isinstance(observation, RsuObservation):
         return RsuMeasurement(
             t=observation.t, rsu_id=observation.rsu_id, range=observation.range, bearing=observation.bearing

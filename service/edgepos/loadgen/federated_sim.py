@@ -21,16 +21,9 @@ import time
 from dataclasses import dataclass, field
 
 import httpx
-from edgepos_client import (
-    AsyncEdgeposClient,
-    EdgeposError,
-    GnssFixMeasurement,
-    GyroMeasurement,
-    OdometerMeasurement,
-    V2vRangeMeasurement,
-)
+from edgepos_client import AsyncEdgeposClient, EdgeposError, GnssFixMeasurement
 
-from edgepos.core.observations import GnssFixObservation, GyroObservation, Observation, OdometerObservation, V2vRangeObservation
+from edgepos.loadgen import common
 from edgepos.sim.federated import STEP, FederatedRun, make_run
 
 SCENARIOS = ("federated",)
@@ -45,18 +38,6 @@ class FederatedVehicle:
     position_rmse: float | None = None
     fixes: list = field(default_factory=list)
     error: str | None = None
-
-
-def _wire(observation: Observation, prefix: str):
-    if isinstance(observation, GnssFixObservation):
-        return GnssFixMeasurement(t=observation.t, x=observation.x, y=observation.y, std=observation.std)
-    if isinstance(observation, GyroObservation):
-        return GyroMeasurement(t=observation.t, yaw_rate=observation.yaw_rate)
-    if isinstance(observation, OdometerObservation):
-        return OdometerMeasurement(t=observation.t, distance=observation.distance, speed=observation.speed)
-    if isinstance(observation, V2vRangeObservation):
-        return V2vRangeMeasurement(t=observation.t, peer_vehicle_id=f"{prefix}{observation.peer_vehicle_id}", range=observation.range)
-    raise TypeError(f"no wire form for {type(observation).__name__}")
 
 
 def _assist_batches(run: FederatedRun, name: str, epochs: int, batch_epochs: int) -> list[list]:
@@ -103,7 +84,7 @@ async def run_federated(
             session = await client.create_session(target.vehicle_id, "v2x_federated")
             sessions.append((client, session))
             batches = [
-                [_wire(o, prefix) for k in range(s, min(s + batch_epochs, count)) for o in run.observations[k]]
+                [common.to_wire(o, prefix) for k in range(s, min(s + batch_epochs, count)) for o in run.observations[k]]
                 for s in range(0, count, batch_epochs)
             ]
             lanes.append((target, client, session, batches))

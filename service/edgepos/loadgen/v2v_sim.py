@@ -17,16 +17,9 @@ import time
 from dataclasses import dataclass, field
 
 import httpx
-from edgepos_client import (
-    AsyncEdgeposClient,
-    EdgeposError,
-    GnssFixMeasurement,
-    GyroMeasurement,
-    OdometerMeasurement,
-    V2vRangeMeasurement,
-)
+from edgepos_client import AsyncEdgeposClient, EdgeposError
 
-from edgepos.core.observations import GnssFixObservation, GyroObservation, Observation, OdometerObservation, V2vRangeObservation
+from edgepos.loadgen import common
 from edgepos.sim.v2v import STEP, VEHICLE_IDS, make_run
 
 SCENARIOS = ("v2v",)
@@ -42,18 +35,6 @@ class V2vVehicle:
     position_rmse: float | None = None
     fixes: list = field(default_factory=list)
     error: str | None = None
-
-
-def _wire(observation: Observation, prefix: str):
-    if isinstance(observation, GnssFixObservation):
-        return GnssFixMeasurement(t=observation.t, x=observation.x, y=observation.y, std=observation.std)
-    if isinstance(observation, GyroObservation):
-        return GyroMeasurement(t=observation.t, yaw_rate=observation.yaw_rate)
-    if isinstance(observation, OdometerObservation):
-        return OdometerMeasurement(t=observation.t, distance=observation.distance, speed=observation.speed)
-    if isinstance(observation, V2vRangeObservation):
-        return V2vRangeMeasurement(t=observation.t, peer_vehicle_id=f"{prefix}{observation.peer_vehicle_id}", toa=observation.toa)
-    raise TypeError(f"no wire form for {type(observation).__name__}")
 
 
 async def run_v2v(
@@ -89,7 +70,7 @@ async def run_v2v(
                 await asyncio.sleep(max(0.0, t0 + stop * STEP - time.perf_counter()))
             await asyncio.gather(*(
                 _send(client, session, vehicle, [
-                    _wire(o, f"v2v{seed}-{vehicle.group + 1}-")
+                    common.to_wire(o, f"v2v{seed}-{vehicle.group + 1}-")
                     for k in range(start, stop) for o in runs[vehicle.group].observations[vehicle.index][k]
                 ])
                 for vehicle, client, session in lanes
