@@ -157,23 +157,63 @@ def test_vehicle_counts_an_error_and_resynchronises() -> None:
     assert recorder.errors == {"conflict": 1} and recorder.requests == 3 and len(recorder.latencies_ms) == 2
 
 
-def test_a_vehicle_behind_schedule_stops_at_the_end_and_counts_what_it_did_not_send() -> None:
-    """Open loop against a server slower than the offered rate: the run stays bounded by its duration."""
+class VirtualClock:
+    """A clock that only moves when someone sleeps: the schedule logic runs the same on a busy machine."""
+
+    def __init__(self) -> None:
+        self.time = 0.0
+
+    def now(self) -> float:
+        return self.time
+
+    async def sleep(self, seconds: float) -> None:
+        import asyncio
+
+        self.time += max(0.0, seconds)
+        await asyncio.sleep(0)
+
+
+def _run_open_loop(service_s: float, rate: float, duration: float, offset: float = 0.0):
+    """One vehicle, 1-epoch batches, against a fake server that takes ``service_s`` per batch."""
     import asyncio
 
     from edgepos.loadgen.loadtest import LoadConfig
 
+    clock = VirtualClock()
+
     class SlowClient(FakeClient):
         async def send_batch(self, session, measurements, seq=None, *, include_state=False):
-            await asyncio.sleep(0.1)  # 10 batches/s at most, against 50 offered
+            await clock.sleep(service_s)
             return await super().send_batch(session, measurements, seq, include_state=include_state)
 
-    client = SlowClient()
-    vehicle, recorder = _vehicle(client, batches=1000)
-    config = LoadConfig(url="http://127.0.0.1:1", vehicles=1, rate=50.0, batch=1, duration=0.5)
-    started = time.perf_counter()
-    asyncio.run(vehicle.run(config, started, 0.0))
-    elapsed = time.perf_counter() - started
-    assert elapsed < 0.75
-    assert 4 <= recorder.requests <= 6
-    assert recorder.requests + recorder.unsent == 25  # every due batch is either sent or counted as unsent
+    vehicle, recorder = _vehicle(SlowClient(), batches=1000)
+    vehicle.clock = clock
+    config = LoadConfig(url="http://127.0.0.1:1", vehicles=1, rate=rate, batch=1, duration=duration)
+    asyncio.run(vehicle.run(config, clock.now(), offset))
+    return clock, recorder
+
+
+def test_a_vehicle_behind_schedule_stops_at_the_end_and_counts_what_it_did_not_send() -> None:
+    """Open loop against a server slower than the offered rate: the run stays bounded by its duration."""
+    clock, recorder = _run_open_loop(service_s=0.1, rate=50.0, duration=0.5)  # 10 batches/s against 50
+    assert clock.now() == pytest.approx(0.5)
+    assert recorder.requests == 5
+    assert recorder.unsent == 20  # every due batch (25) is either sent or counted as unsent
+    assert recorder.late_waiting_server == 4 and recorder.late_generator == 0
+
+
+def test_a_vehicle_on_schedule_sends_every_due_batch_and_nothing_more() -> None:
+    clock, recorder = _run_open_loop(service_s=0.001, rate=50.0, duration=0.5, offset=0.01)
+    assert recorder.requests == 25 and recorder.unsent == 0
+    assert recorder.late_waiting_server == recorder.late_generator == 0
+    assert clock.now() < 0.5
+
+
+@pytest.mark.parametrize(
+    ("duration", "offset", "interval", "due"),
+    [(0.5, 0.0, 0.02, 25), (0.5, 0.1, 0.02, 20), (0.3, 0.0, 0.1, 3), (1.0, 0.0, 0.3, 4), (0.5, 0.5, 0.1, 0)],
+)
+def test_batches_due_counts_a_due_time_on_the_end_as_outside(duration, offset, interval, due) -> None:
+    from edgepos.loadgen.loadtest import batches_due
+
+    assert batches_due(duration, offset, interval) == due

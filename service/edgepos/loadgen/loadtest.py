@@ -187,6 +187,28 @@ def _noise_batches(scenario: Scenario, config: LoadConfig) -> list[list[list[com
     ]
 
 
+class WallClock:
+    """The clock vehicles keep their schedule by; tests substitute a virtual one to stay deterministic."""
+
+    @staticmethod
+    def now() -> float:
+        return time.perf_counter()
+
+    @staticmethod
+    async def sleep(seconds: float) -> None:
+        await asyncio.sleep(seconds)
+
+
+def batches_due(duration: float, offset: float, interval: float) -> int:
+    """How many batches fall due in [offset, duration): batch k is due at offset + k * interval.
+
+    Counted from the index, not by adding intervals up, so that a due time landing on the end
+    (0.5 s / 0.02 s) is not miscounted by accumulated rounding.
+    """
+    span = (duration - offset) / interval
+    return max(0, math.ceil(span - 1e-9 * max(1.0, span)))
+
+
 class Vehicle:
     """One simulated vehicle: sends its batches on schedule, starting a new trip at the scenario's end."""
 
@@ -198,8 +220,10 @@ class Vehicle:
         scenario: Scenario,
         recorder: Recorder,
         verify: bool = False,
+        clock: WallClock = WallClock(),
     ) -> None:
         self.vehicle_id = f"load-{index + 1}"
+        self.clock = clock
         self.client = client
         self.batches = batches
         self.start_state = common.initial_state(scenario)
@@ -257,7 +281,7 @@ class Vehicle:
             await self.new_trip()
         assert self.session is not None
         batch = self.batches[self.position]
-        started = time.perf_counter()
+        started = self.clock.now()
         if recorder.first_send is None:
             recorder.first_send = started
         try:
@@ -270,7 +294,7 @@ class Vehicle:
             self.had_error = True
             self.position = len(self.batches)  # resynchronise: the next batch ends this trip, opens a new one
             return
-        finished = time.perf_counter()
+        finished = self.clock.now()
         recorder.requests += 1
         recorder.latencies_ms.append((finished - started) * 1e3)
         recorder.epochs += len(fixes)
@@ -280,38 +304,45 @@ class Vehicle:
         self.acknowledged_epochs += len(fixes)
 
     async def run(self, config: LoadConfig, start: float, offset: float) -> None:
-        """Send until ``config.duration`` s after ``start``; batch k is due at start + offset + k * interval."""
+        """Send until ``config.duration`` s after ``start``; batch k is due at start + offset + k * interval.
+
+        Open loop: a batch due while the previous one is still unanswered leaves late; what is
+        still due when the run ends is counted as unsent, so every due batch is sent or counted.
+        """
+        clock = self.clock
         end = start + config.duration
-        due = start + offset
+        due_count = batches_due(config.duration, offset, config.interval_s)
         answered = start
         recorder = self.recorder
+        k = 0
         while True:
             if config.saturate:
-                if time.perf_counter() >= end:
+                if clock.now() >= end:
                     return
             else:
-                if due >= end:
+                if k >= due_count:
                     return
-                if time.perf_counter() >= end:  # behind schedule when the test ends: it stays bounded
-                    recorder.unsent += math.ceil((end - due) / config.interval_s)
+                if clock.now() >= end:  # behind schedule when the test ends: it stays bounded
+                    recorder.unsent += due_count - k
                     return
-                delay = due - time.perf_counter()
+                due = start + offset + k * config.interval_s
+                delay = due - clock.now()
                 if delay > 0:
-                    await asyncio.sleep(delay)
-                lateness = time.perf_counter() - due
+                    await clock.sleep(delay)
+                lateness = clock.now() - due
                 recorder.lateness_ms.append(max(0.0, lateness) * 1e3)
                 if lateness > LATE_THRESHOLD_S:
                     if answered > due:
                         recorder.late_waiting_server += 1
                     else:
                         recorder.late_generator += 1
-                due += config.interval_s
+                k += 1
             try:
                 await self.send_one()
             except EdgeposError as error:  # opening a trip failed: count it, keep going
                 recorder.trip_errors[error.code] += 1
                 self.session = None
-            answered = time.perf_counter()
+            answered = clock.now()
 
 
 async def _probe_loop_lag(recorder: Recorder) -> None:
