@@ -2,7 +2,8 @@
 
 Eight vehicles send batches back to back (closed loop, so both workers always have requests in
 flight) through the Python client, which retries a batch with the same seq after a connection
-error. Midway one worker gets SIGKILL. Afterwards: no vehicle saw an error (the requests lost with
+error. Once every vehicle is streaming (a few batches acknowledged each, not a fixed delay, which a
+busy machine can outrun) one worker gets SIGKILL, and the vehicles stream on for a few seconds. Afterwards: no vehicle saw an error (the requests lost with
 the worker were retried and answered by a live worker), uvicorn replaced the dead worker, every
 acknowledged batch is in Redis exactly once (last_seq, batches and epochs agree with what the
 vehicles were told), and each session's stored filter state equals, byte for byte, the in-process
@@ -27,8 +28,12 @@ pytestmark = pytest.mark.slow
 VEHICLES = 8
 STREAMS = 4
 BATCH_EPOCHS = 10
-KILL_AFTER_S = 2.5
-STREAM_FOR_S = 7.0
+#: Batches every vehicle has acknowledged before the kill.
+WARM_UP_BATCHES = 3
+#: How long the vehicles stream on after the kill (s).
+STREAM_AFTER_KILL_S = 4.5
+#: Bound on the warm-up: a server that cannot serve three batches per vehicle by then is broken (s).
+WARM_UP_TIMEOUT_S = 60.0
 
 
 class CountingTransport(httpx.AsyncHTTPTransport):
@@ -44,23 +49,33 @@ class CountingTransport(httpx.AsyncHTTPTransport):
             raise
 
 
-async def _vehicle(url: str, index: int, stop_at: float) -> tuple[str, int, int, list[str]]:
-    """Stream this vehicle's batches until ``stop_at``; returns session id, batches and epochs
+class Progress:
+    """What the vehicles have acknowledged so far, and when they are to stop (set at the kill)."""
+
+    def __init__(self, vehicles: int) -> None:
+        self.acknowledged = [0] * vehicles
+        self.stop_at = float("inf")
+
+
+async def _vehicle(
+    url: str, index: int, batches: tuple, progress: Progress
+) -> tuple[str, int, int, list[str]]:
+    """Stream this vehicle's batches until ``progress.stop_at``; returns session id, batches and epochs
     acknowledged, and any error the client raised (there should be none)."""
-    batches = stream_batches(index % STREAMS, BATCH_EPOCHS)
     async with AsyncEdgeposClient(
         url, timeout=15.0, retries=6, backoff=0.1, transport=CountingTransport()
     ) as client:
         session = await client.create_session(f"kill-{index}", initial_state=start_state())
         acknowledged = epochs = 0
         errors: list[str] = []
-        while time.monotonic() < stop_at and acknowledged < len(batches):
+        while time.monotonic() < progress.stop_at and acknowledged < len(batches):
             try:
                 fixes = await client.send_batch(session, batches[acknowledged])
             except EdgeposError as error:
                 errors.append(f"{type(error).__name__}: {error}")
                 break
             acknowledged += 1
+            progress.acknowledged[index] = acknowledged
             epochs += len(fixes)
         return session.session_id, acknowledged, epochs, errors
 
@@ -73,10 +88,20 @@ def test_killing_a_worker_loses_no_batch_and_fails_no_vehicle(tmp_path, redis_fa
         before = server.worker_pids()
         assert len(before) == 2
 
+        streams = [stream_batches(stream, BATCH_EPOCHS) for stream in range(STREAMS)]
+
         async def drive() -> list[tuple[str, int, int, list[str]]]:
-            stop_at = time.monotonic() + STREAM_FOR_S
-            vehicles = [asyncio.create_task(_vehicle(server.url, i, stop_at)) for i in range(VEHICLES)]
-            await asyncio.sleep(KILL_AFTER_S)
+            progress = Progress(VEHICLES)
+            vehicles = [
+                asyncio.create_task(_vehicle(server.url, i, streams[i % STREAMS], progress))
+                for i in range(VEHICLES)
+            ]
+            warm_up_ends = time.monotonic() + WARM_UP_TIMEOUT_S
+            while min(progress.acknowledged) < WARM_UP_BATCHES:
+                assert time.monotonic() < warm_up_ends, f"vehicles did not get going: {progress.acknowledged}"
+                assert not any(v.done() for v in vehicles), [v.result() for v in vehicles if v.done()]
+                await asyncio.sleep(0.05)
+            progress.stop_at = time.monotonic() + STREAM_AFTER_KILL_S
             held = server.connections_by_worker()
             victim = max(held, key=held.__getitem__)  # the worker serving the most vehicles
             os.kill(victim, signal.SIGKILL)
