@@ -34,6 +34,14 @@ class Gate:
             self.running -= 1
 
 
+async def until(condition, timeout_s: float = 10.0) -> None:
+    """Yield to the loop until ``condition()`` holds: a fixed sleep is outrun on a busy machine."""
+    deadline = asyncio.get_running_loop().time() + timeout_s
+    while not condition():
+        assert asyncio.get_running_loop().time() < deadline, "condition not reached"
+        await asyncio.sleep(0.005)
+
+
 def client_for(app) -> httpx.AsyncClient:
     return httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://edge")
 
@@ -45,7 +53,8 @@ def test_requests_beyond_the_slots_wait_then_all_succeed():
         app = AdmissionMiddleware(gate, max_inflight=2, queue_timeout_s=10.0, metrics=metrics)
         async with client_for(app) as client:
             pending = [asyncio.create_task(client.get("/slow")) for _ in range(6)]
-            await asyncio.sleep(0.05)
+            await until(lambda: metrics.waiting._value.get() == 4)
+            await asyncio.sleep(0.05)  # nothing more gets in while the slots are held
             assert gate.running == 2
             assert metrics.waiting._value.get() == 4
             gate.release.set()
@@ -63,7 +72,7 @@ def test_a_request_that_waits_too_long_gets_503_with_retry_after_and_probes_skip
         app = AdmissionMiddleware(gate, max_inflight=1, queue_timeout_s=0.1, metrics=Metrics())
         async with client_for(app) as client:
             holder = asyncio.create_task(client.get("/slow"))
-            await asyncio.sleep(0.02)
+            await until(lambda: gate.running == 1)
             refused = await client.get("/v1/sessions/x")
             probe = await client.get("/readyz")
             gate.release.set()
