@@ -117,6 +117,45 @@ def test_bad_run_count_is_rejected_by_the_parser(capsys) -> None:
     assert "--runs" in capsys.readouterr().err
 
 
+def test_an_option_override_changes_the_result_and_is_recorded(one_worker: Outcome, tmp_path: Path, capsys) -> None:
+    json_path = tmp_path / "sigma.json"
+    override = '{"singer": {"sigma": 2.0}, "cv": {"q": 1.0}}'
+    code = run_eval(
+        "rsu-imu", "--runs", "2", "--seed", "7", "--workers", "1", "--algorithms", SUBSET,
+        "--option", f"model_params={override}", "--json", str(json_path),
+    )
+    assert code == 0
+    assert '"sigma": 2.0' in capsys.readouterr().out  # the report says the defaults were not used
+    document = json.loads(json_path.read_text())
+    assert document["option_overrides"] == {"model_params": json.loads(override)}
+    for name, entry in document["algorithms"].items():  # both rows ran something else than the defaults
+        assert entry["pos_rmse_m"] != one_worker.document["algorithms"][name]["pos_rmse_m"], name
+
+
+@pytest.mark.parametrize(
+    ("option", "says"),
+    [
+        ("filter=\"ekf\"", "--algorithms"),
+        ("priority=[]", "--algorithms"),
+        ("gate_probability", "NAME=JSON"),
+        ("gate_probability=0.9x", "must be JSON"),
+        ("gate_probability=7", "gate_probability"),
+        ('model_params={"singer": {"sigmaa": 2}}', "sigmaa"),
+    ],
+)
+def test_a_bad_option_override_is_refused_before_any_run(option: str, says: str, capsys) -> None:
+    assert run_eval("rsu-imu", "--runs", "1", "--workers", "1", "--option", option) == 2
+    assert says in capsys.readouterr().err
+
+
+def test_model_params_go_only_to_banks_with_that_model() -> None:
+    chosen = rsu_imu_algorithms.select_algorithms("CV-CKF,Singer-CKF,2IMM-CKF")
+    changed = rsu_imu_algorithms.with_overrides(chosen, {"model_params": {"singer": {"sigma": 2}}, "max_rsus": 3})
+    assert [a.options["model_params"] for a in changed] == [{}, {"singer": {"sigma": 2}}, {"singer": {"sigma": 2}}]
+    assert all(a.options["max_rsus"] == 3 for a in changed)
+    assert all("model_params" not in a.options and "max_rsus" not in a.options for a in chosen)  # not mutated
+
+
 # -- pure helpers --------------------------------------------------------------------------------
 def test_selection_is_case_insensitive_and_in_table_order() -> None:
     chosen = rsu_imu_algorithms.select_algorithms(" 2imm-ckf , cv-ckf/AVG,2IMM-CKF")

@@ -14,10 +14,18 @@ import sys
 from pathlib import Path
 
 from edgepos.eval import plots
+from edgepos.eval.overrides import add_option_argument, parse_overrides
 from edgepos.eval.progress import Progress
-from edgepos.eval.rsu_imu_algorithms import ALGORITHMS, UnknownAlgorithm, select_algorithms
-from edgepos.eval.rsu_imu_montecarlo import RunFailed, monte_carlo, results
+from edgepos.eval.rsu_imu_algorithms import (
+    ALGORITHMS,
+    Algorithm,
+    UnknownAlgorithm,
+    select_algorithms,
+    with_overrides,
+)
+from edgepos.eval.rsu_imu_montecarlo import PIPELINE, RunFailed, initial_state, monte_carlo, results
 from edgepos.eval.rsu_imu_report import report, to_json, write_plots
+from edgepos.pipelines.registry import get_pipeline
 from edgepos.sim.scenarios import rsu_imu_paper_scenario
 
 PROG = "edgepos eval rsu-imu"
@@ -29,19 +37,29 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--algorithms", metavar="NAME,NAME...", default=None,
         help=f"comma-separated subset to run (default: all): {', '.join(ALGORITHMS)}",
     )
+    add_option_argument(parser, 'model_params=\'{"singer": {"sigma": 2}}\'')
 
 
 def _error(message: str) -> None:
     print(f"{PROG}: error: {message}", file=sys.stderr)
 
 
+def _check_options(algorithms: list[Algorithm]) -> None:
+    """Refuse bad --option values here, by name, rather than in a worker process mid-run."""
+    pipeline = get_pipeline(PIPELINE)
+    start = initial_state(rsu_imu_paper_scenario())
+    for algorithm in algorithms:
+        pipeline.create(pipeline.resolve_options(algorithm.options), start)
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the evaluation and print the report on stdout: 0 on success, 2 on bad arguments, 1 on failure."""
     try:
-        algorithms = select_algorithms(args.algorithms)
+        algorithms = with_overrides(select_algorithms(args.algorithms), parse_overrides(args.option))
+        _check_options(algorithms)
         if args.plots is not None:
             plots.require_matplotlib()
-    except (UnknownAlgorithm, plots.PlotsUnavailable) as exc:
+    except (UnknownAlgorithm, plots.PlotsUnavailable, ValueError) as exc:
         _error(str(exc))
         return 2
     if args.json is not None and not Path(args.json).resolve().parent.is_dir():
@@ -61,6 +79,9 @@ def run(args: argparse.Namespace) -> int:
     scenario = rsu_imu_paper_scenario()
     results_by_name = results(algorithms, totals)
     print(report(results_by_name, args.runs, args.seed, workers))
+    overrides = parse_overrides(args.option)
+    if overrides:
+        print(f"\noptions set on every algorithm (not the paper's defaults): {json.dumps(overrides)}")
     diverged = [
         name for name, r in results_by_name.items() if not math.isfinite(r.pos_mean + r.vel_mean)
     ]
@@ -70,6 +91,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.json is not None:
             document = to_json(results_by_name, scenario, args.runs, args.seed, workers)
+            if overrides:
+                document["option_overrides"] = overrides
             Path(args.json).write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
             print(f"\nwrote {args.json}")
         if args.plots is not None:

@@ -8,7 +8,7 @@ therefore comes twice: ``NAME`` (rsu_handling "joint") and ``NAME/avg`` ("averag
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 AVERAGE_SUFFIX = "/avg"
@@ -83,6 +83,29 @@ def _catalogue() -> dict[str, Algorithm]:
 
 #: Every algorithm the command knows, in table order.
 ALGORITHMS: dict[str, Algorithm] = _catalogue()
+
+
+#: Options that say which algorithm a row is; an override may not change them.
+DEFINING_OPTIONS = frozenset({"filter", "models", "priority", "rsu_handling"})
+
+
+def with_overrides(algorithms: list[Algorithm], overrides: dict[str, Any]) -> list[Algorithm]:
+    """The same algorithms with ``overrides`` set on each (a sensitivity run, e.g. another Singer sigma).
+
+    ``model_params`` entries go only to the algorithms whose bank has that model. Raises ValueError for
+    an option that would change which algorithm a row is.
+    """
+    defining = sorted(DEFINING_OPTIONS & overrides.keys())
+    if defining:
+        raise ValueError(f"--option {', '.join(defining)}: choose algorithms with --algorithms instead")
+    changed = []
+    for algorithm in algorithms:
+        options = {**algorithm.options, **overrides}
+        if isinstance(overrides.get("model_params"), dict):
+            models = set(algorithm.options["models"])
+            options["model_params"] = {m: p for m, p in overrides["model_params"].items() if m in models}
+        changed.append(replace(algorithm, options=options))
+    return changed
 
 
 class UnknownAlgorithm(ValueError):

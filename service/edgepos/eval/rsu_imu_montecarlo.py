@@ -16,7 +16,7 @@ import numpy as np
 
 from edgepos.eval import montecarlo
 from edgepos.eval.progress import Progress
-from edgepos.eval.rsu_imu_algorithms import ALGORITHMS, Algorithm
+from edgepos.eval.rsu_imu_algorithms import Algorithm
 from edgepos.pipelines.base import Environment, InitialState, Pipeline
 from edgepos.pipelines.registry import get_pipeline
 from edgepos.sim.scenarios import Scenario, rsu_imu_paper_scenario
@@ -85,11 +85,11 @@ def initial_state(scenario: Scenario) -> InitialState:
     return InitialState(x=xp, y=yp, vx=xv, vy=yv, position_std=1.0, velocity_std=1.0)
 
 
-def _init_worker(names: tuple[str, ...], seed: int) -> None:
+def _init_worker(specs: tuple[tuple[str, dict[str, Any]], ...], seed: int) -> None:
     global _CONTEXT
     scenario = rsu_imu_paper_scenario()
     pipeline = get_pipeline(PIPELINE)
-    algorithms = [(name, pipeline.resolve_options(ALGORITHMS[name].options)) for name in names]
+    algorithms = [(name, pipeline.resolve_options(options)) for name, options in specs]
     _CONTEXT = _Context(
         seed, scenario, environment(scenario), pipeline, algorithms, initial_state(scenario)
     )
@@ -136,9 +136,9 @@ def monte_carlo(
     algorithms: list[Algorithm], runs: int, seed: int, workers: int, progress: Progress | None = None
 ) -> Totals:
     """Sums over ``runs`` runs, identical for any ``workers``."""
-    names = tuple(algorithm.name for algorithm in algorithms)
+    specs = tuple((algorithm.name, algorithm.options) for algorithm in algorithms)
     return montecarlo.run_chunks(
-        _run_chunk, combine, montecarlo.chunk_runs(runs), workers, _init_worker, (names, seed), progress
+        _run_chunk, combine, montecarlo.chunk_runs(runs), workers, _init_worker, (specs, seed), progress
     )
 
 
