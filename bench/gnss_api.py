@@ -7,7 +7,7 @@ data, straight into ``GnssTightPipeline.process``; the difference is the service
 time to parse the navigation file, which a worker pays once per uploaded file. Stores: memory, and
 Redis when redis-server is installed (one extra HGET per batch for the digest).
 
-    python bench/gnss_api.py [--epochs N] [--filters ukf,upf]
+    python bench/gnss_api.py [--epochs N] [--filters ukf,upf] [--systems GC|GCE]
 """
 
 from __future__ import annotations
@@ -39,8 +39,8 @@ KEY = "bench-admin-key-0123456789abcdef"
 ADMIN = {"Authorization": f"Bearer {KEY}"}
 
 
-def load_epochs(count: int) -> list[list[dict]]:
-    codes = {system: DEFAULT_CODES[system] for system in ("G", "C")}
+def load_epochs(count: int, systems: str = "GC") -> list[list[dict]]:
+    codes = {system: DEFAULT_CODES[system] for system in systems}
     out = []
     for number, epoch in enumerate(read_epochs(str(DATA / "rover-0-5min.rnx"), codes)):
         if number >= count:
@@ -114,9 +114,10 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--epochs", type=int, default=60)
     parser.add_argument("--filters", default="ukf,upf")
+    parser.add_argument("--systems", default="GC", help="constellations (GCE adds Galileo: about 18 pseudoranges)")
     args = parser.parse_args()
     text = (DATA / "broadcast-nav.rnx").read_text(encoding="ascii")
-    epochs = load_epochs(args.epochs)
+    epochs = load_epochs(args.epochs, args.systems)
     print(f"python {platform.python_version()} on {platform.machine()}; {len(epochs)} epochs of "
           f"{statistics.median(len(e) for e in epochs):.0f} pseudoranges")
 
@@ -132,7 +133,7 @@ def main() -> int:
     checks = []
     for _ in range(2000):
         started = time.perf_counter()
-        assert not satellite_problems(first, loaded, ["G", "C"])
+        assert not satellite_problems(first, loaded, list(args.systems))
         checks.append(1e6 * (time.perf_counter() - started))
     print(f"per batch: the check that each of {len(first)} pseudoranges has a satellite state: "
           f"{statistics.median(checks):.0f} us median")
@@ -151,7 +152,7 @@ def main() -> int:
         try:
             for name, url in stores.items():
                 for filter_name in args.filters.split(","):
-                    options = {"filter": filter_name, "seed": 1, "systems": ["G", "C"]}
+                    options = {"filter": filter_name, "seed": 1, "systems": list(args.systems)}
                     label = filter_name if filter_name == "ukf" else f"{filter_name} 200"
                     api, direct, floor = run(url, options, epochs, text, workdir)
                     print(

@@ -108,7 +108,11 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
     OptionSpec("max_exclusions", "integer", 4, "Pseudoranges the snapshot test may exclude per epoch.", 0, 30),
     OptionSpec("ionosphere", "boolean", True, "Apply the broadcast Klobuchar ionosphere (needs ephemerides)."),
     OptionSpec("troposphere", "boolean", True, "Apply the Saastamoinen troposphere."),
-    OptionSpec("accel_std", "number", 1.0, "GNSS-only model: horizontal white-noise acceleration (m/s^2).", 1e-3, 100.0),
+    OptionSpec(
+        "accel_std", "number", 3.0,
+        "GNSS-only model: horizontal white-noise acceleration (m/s^2); a car braking, accelerating and "
+        "cornering in town reaches 2-4 m/s^2.", 1e-3, 100.0,
+    ),
     OptionSpec("vertical_accel_std", "number", 0.3, "GNSS-only model: vertical white-noise acceleration (m/s^2).", 1e-3, 100.0),
     OptionSpec("wheel_speed_std", "number", 0.1, "RISS model: wheel speed noise (m/s).", 1e-4, 10.0),
     OptionSpec("accelerometer_std", "number", 0.05, "RISS model: accelerometer noise (m/s^2).", 1e-4, 10.0),

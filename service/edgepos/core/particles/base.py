@@ -193,12 +193,17 @@ def sigma_points(means: np.ndarray, chols: np.ndarray, active: np.ndarray, weigh
 def sigma_mean(points: np.ndarray, weights: np.ndarray, angles: np.ndarray) -> np.ndarray:
     """Weighted mean over the sigma axis (N, S, D) -> (N, D); angles averaged as wrapped offsets from the
     central point."""
-    mean = np.einsum("s,nsd->nd", weights, points)
+    mean = weights @ points
     if angles.any():
         centre = points[:, 0, angles]
         offsets = wrap(points[:, :, angles] - centre[:, None, :], np.ones(int(angles.sum()), dtype=bool))
-        mean[:, angles] = centre + np.einsum("s,nsd->nd", weights, offsets)
+        mean[:, angles] = centre + weights @ offsets
     return mean
+
+
+def weighted_outer(weights: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """sum_s w_s a[n, s, :] b[n, s, :]^T for sigma-point deviations a (N, S, i), b (N, S, j) -> (N, i, j)."""
+    return np.swapaxes(a * weights[:, None], -1, -2) @ b
 
 
 @dataclass(frozen=True)
@@ -244,7 +249,7 @@ def unscented_predict(
     points = model.propagate(sigma_points(means, chol, active, weights), dt)
     predicted = model.complete(sigma_mean(points, weights.mean, angles))
     deviation = wrap(points[:, :, index] - predicted[:, None, index], angles[index])
-    predicted_cov = q + np.einsum("s,nsi,nsj->nij", weights.cov, deviation, deviation)
+    predicted_cov = q + weighted_outer(weights.cov, deviation, deviation)
     return points[:, 0, :], predicted, predicted_cov
 
 
@@ -261,23 +266,22 @@ def unscented_update(
     active_angles = angles[index]
     points = sigma_points(predicted, batched_cholesky(predicted_cov), active, weights)
     z_points = measurement.predict(points)
-    z_hat = np.einsum("s,nsm->nm", wm, z_points)
+    z_hat = wm @ z_points
     dz = z_points - z_hat[:, None, :]
     dx = wrap(points[:, :, index] - predicted[:, None, index], active_angles)
-    z_cov = np.einsum("s,nsi,nsj->nij", wc, dz, dz) + np.diag(measurement.variances)
-    cross = np.einsum("s,nsi,nsj->nij", wc, dx, dz)
+    z_cov = weighted_outer(wc, dz, dz) + np.diag(measurement.variances)
+    cross = weighted_outer(wc, dx, dz)
     try:
         gain = np.swapaxes(np.linalg.solve(z_cov, np.swapaxes(cross, -1, -2)), -1, -2)  # (N, k, m)
     except np.linalg.LinAlgError:
         raise NumericalError("singular innovation covariance") from None
     innovation = measurement.z - z_hat
     posterior = predicted.copy()
-    posterior[:, index] += np.einsum("nkm,nm->nk", gain, innovation)
+    posterior[:, index] += (gain @ innovation[:, :, None])[:, :, 0]
     if active_angles.any():
         posterior[:, index] = wrap(posterior[:, index], active_angles)
     posterior = model.complete(posterior)
-    posterior_cov = np.broadcast_to(predicted_cov, gain.shape[:1] + gain.shape[1:2] * 2)
-    posterior_cov = posterior_cov - np.einsum("nkm,nml,njl->nkj", gain, z_cov, gain)
+    posterior_cov = predicted_cov - gain @ np.swapaxes(cross, -1, -2)  # P - K S K^T with K S = cross
     posterior_cov = 0.5 * (posterior_cov + np.swapaxes(posterior_cov, -1, -2))
     if not (np.all(np.isfinite(posterior)) and np.all(np.isfinite(posterior_cov))):
         raise NumericalError("the measurement update is not finite")

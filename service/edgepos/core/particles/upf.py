@@ -90,7 +90,7 @@ class UnscentedParticleFilter:
         update = unscented_update(centres, prior_cov, model, active, ANGLES, measurement)
         proposal_chol = batched_cholesky(update.posterior_cov)
         sampled = update.posterior.copy()
-        sampled[:, index] += np.einsum("nij,nj->ni", proposal_chol, rng.standard_normal((count, len(index))))
+        sampled[:, index] += (proposal_chol @ rng.standard_normal((count, len(index), 1)))[:, :, 0]
         sampled = model.complete(wrap(sampled, ANGLES))
 
         likelihood = diagonal_logpdf(measurement.z - measurement.predict(sampled), measurement.variances)
@@ -99,7 +99,7 @@ class UnscentedParticleFilter:
         prior_weights = np.exp(cloud.log_weights)
         z_hat = prior_weights @ update.z_hat
         spread = update.z_hat - z_hat
-        z_cov = np.einsum("n,nij->ij", prior_weights, update.z_cov) + (spread * prior_weights[:, None]).T @ spread
+        z_cov = np.tensordot(prior_weights, update.z_cov, axes=1) + (spread * prior_weights[:, None]).T @ spread
         score = nis(measurement.z - z_hat, z_cov)
         log_weights = normalise(cloud.log_weights + likelihood + transition - proposal)
         # The samples carry the posterior's spread; no noise is pending after a measurement.
