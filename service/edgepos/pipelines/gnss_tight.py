@@ -117,6 +117,16 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
     OptionSpec("wheel_speed_std", "number", 0.1, "RISS model: wheel speed noise (m/s).", 1e-4, 10.0),
     OptionSpec("accelerometer_std", "number", 0.05, "RISS model: accelerometer noise (m/s^2).", 1e-4, 10.0),
     OptionSpec("gyro_std", "number", 0.005, "RISS model: yaw gyro noise (rad/s).", 1e-6, 1.0),
+    OptionSpec(
+        "gyro_bias_std", "number", 0.002,
+        "RISS model: initial std of the yaw gyro's bias (rad/s; 0.002 = 0.11 deg/s, a MEMS gyro's turn-on "
+        "bias after start-up calibration), estimated in the state.", 1e-6, 0.1,
+    ),
+    OptionSpec(
+        "gyro_bias_psd", "number", 1e-10,
+        "RISS model: random-walk density of the gyro bias (rad^2/s^3; 1e-10 lets it wander 0.03 deg/s in "
+        "an hour, the bias instability of a 10 deg/h MEMS gyro).", 0.0, 1e-4,
+    ),
     OptionSpec("clock_bias_psd", "number", 1.0, "Receiver clock bias random-walk density (m^2/s).", 1e-6, 1e6),
     OptionSpec("clock_drift_psd", "number", 0.1, "Receiver clock drift random-walk density (m^2/s^3).", 1e-8, 1e6),
     OptionSpec(
@@ -139,7 +149,7 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
 
 _INITIAL_CLOCK_DRIFT_STD = 5.0
 _INITIAL_ATTITUDE_STD = 0.1
-_HEADING_STD_TO_START_RISS = 0.2
+_HEADING_STD_TO_START_RISS = 0.3
 """The RISS model takes over once the azimuth the velocity implies is known to this std (rad)."""
 _MIN_SPEED_FOR_HEADING = 1.0
 """... and both the wheel speed and the estimated speed exceed this (m/s): the heading of a vehicle at rest
@@ -492,7 +502,7 @@ def _model(session: _Session, t: float) -> RissModel | GnssOnlyModel:
         u = RissInput(riss["wheel_speed"], riss["wheel_accel"], riss["accel_x"], riss["accel_y"], riss["gyro_z"])
         return RissModel(
             anchor, u, options["wheel_speed_std"], options["accelerometer_std"], options["gyro_std"],
-            options["clock_bias_psd"], options["clock_drift_psd"],
+            options["clock_bias_psd"], options["clock_drift_psd"], options["gyro_bias_psd"],
         )
     return GnssOnlyModel(
         anchor, options["accel_std"], options["vertical_accel_std"], options["clock_bias_psd"], options["clock_drift_psd"]
@@ -699,6 +709,7 @@ def _initialise(
         mean[index] = solution.clock_bias_m.get(system, 0.0)
         variances[index] = (sigma * solution.dop.gdop) ** 2
     variances[layout.DRIFT] = _INITIAL_CLOCK_DRIFT_STD**2
+    variances[layout.GYRO_BIAS] = options["gyro_bias_std"] ** 2
     cov = np.diag(variances)
     count = 1 if options["filter"] == "ukf" else options["particles"]
     particles = np.repeat(mean[None, :], count, axis=0)

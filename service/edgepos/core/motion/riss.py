@@ -5,7 +5,9 @@ State (13): position as curvilinear offsets from a geodetic anchor - ``north`` =
 latitude, longitude and height that keeps covariances well conditioned) - then east, north and up velocity
 (m/s), pitch, roll, azimuth (rad; azimuth clockwise from north, pitch nose up, roll positive when the left
 side rises), a receiver clock bias per constellation (GPS, BeiDou, Galileo; metres, i.e. c times seconds)
-and one clock drift (m/s) common to all.
+and one clock drift (m/s) common to all, then the yaw gyro's bias (rad/s, same sign as its output): the
+gyro bias left after start-up calibration turns the dead-reckoned azimuth steadily, tens of times faster
+than the gyro's white noise over a minute, so it is estimated rather than covered by process noise.
 
 Models propagate batches of states (any leading axes) and report which components are stochastic
 (``active``): the filters sample and weigh only those; the others follow deterministically.
@@ -22,13 +24,14 @@ from edgepos.gnss.geodesy import WGS84_A, WGS84_E2, geodetic_to_ecef
 
 NAMES = (
     "north", "east", "up", "v_east", "v_north", "v_up", "pitch", "roll", "azimuth",
-    "clock_gps", "clock_bds", "clock_gal", "clock_drift",
+    "clock_gps", "clock_bds", "clock_gal", "clock_drift", "gyro_bias",
 )
 DIM = len(NAMES)
 NORTH, EAST, UP, VE, VN, VU, PITCH, ROLL, AZIMUTH = range(9)
 CLOCK = {"G": 9, "C": 10, "E": 11}
 """State index of each constellation's receiver clock bias (RINEX system letters)."""
 DRIFT = 12
+GYRO_BIAS = 13
 ANGLES = np.zeros(DIM, dtype=bool)
 ANGLES[[PITCH, ROLL, AZIMUTH]] = True
 GRAVITY = 9.80665
@@ -132,6 +135,7 @@ class RissModel:
     gyro_std: float = 0.005
     clock_bias_psd: float = 1.0
     clock_drift_psd: float = 0.1
+    gyro_bias_psd: float = 1e-10
 
     active = np.ones(DIM, dtype=bool)
 
@@ -146,7 +150,7 @@ class RissModel:
         height_prev = anchor.height + states[..., UP]
         azimuth = (
             states[..., AZIMUTH]
-            - u.gyro_z * dt
+            - (u.gyro_z - states[..., GYRO_BIAS]) * dt
             + OMEGA_EARTH * np.sin(lat_prev) * dt
             + states[..., VE] * np.tan(lat_prev) / (normal_radius(lat_prev) + height_prev) * dt
         )
@@ -157,6 +161,7 @@ class RissModel:
         out[..., VU] = u.wheel_speed * math.sin(pitch)
         _move(anchor, states, out, dt)
         _clocks(states, out, dt)
+        out[..., GYRO_BIAS] = states[..., GYRO_BIAS]
         return out
 
     def process_noise(self, dt: float) -> np.ndarray:
@@ -168,6 +173,7 @@ class RissModel:
             q[index, index] = speed_var * dt * dt + 1e-6
         q[PITCH, PITCH] = q[ROLL, ROLL] = (self.accel_std / GRAVITY) ** 2 + 1e-8
         q[AZIMUTH, AZIMUTH] = (self.gyro_std * dt) ** 2 + 1e-10
+        q[GYRO_BIAS, GYRO_BIAS] = self.gyro_bias_psd * dt + 1e-14
         _clock_noise(q, dt, self.clock_bias_psd, self.clock_drift_psd)
         return q
 
@@ -179,7 +185,7 @@ class RissModel:
 class GnssOnlyModel:
     """Constant velocity with white-noise acceleration (horizontal and vertical 1-sigma densities,
     m/s^2) when no RISS input arrives; attitude follows the velocity (azimuth and pitch of the motion,
-    roll held) and is not part of the stochastic state."""
+    roll held) and is not part of the stochastic state; nor is the gyro bias (held)."""
 
     anchor: GeodeticAnchor
     accel_std: float = 1.0
@@ -188,6 +194,7 @@ class GnssOnlyModel:
     clock_drift_psd: float = 0.1
 
     active = np.array([not a for a in ANGLES])
+    active[GYRO_BIAS] = False
 
     def propagate(self, states: np.ndarray, dt: float) -> np.ndarray:
         out = np.empty_like(states)
@@ -195,6 +202,7 @@ class GnssOnlyModel:
         _move(self.anchor, states, out, dt)
         _clocks(states, out, dt)
         out[..., PITCH:AZIMUTH + 1] = states[..., PITCH:AZIMUTH + 1]
+        out[..., GYRO_BIAS] = states[..., GYRO_BIAS]
         return self.complete(out)
 
     def process_noise(self, dt: float) -> np.ndarray:
@@ -207,6 +215,7 @@ class GnssOnlyModel:
         _clock_noise(q, dt, self.clock_bias_psd, self.clock_drift_psd)
         for index in (PITCH, ROLL, AZIMUTH):
             q[index, index] = 1e-8
+        q[GYRO_BIAS, GYRO_BIAS] = 1e-14
         return q
 
     @staticmethod

@@ -271,17 +271,18 @@ def unscented_update(
     dx = wrap(points[:, :, index] - predicted[:, None, index], active_angles)
     z_cov = weighted_outer(wc, dz, dz) + np.diag(measurement.variances)
     cross = weighted_outer(wc, dx, dz)
-    try:
-        gain = np.swapaxes(np.linalg.solve(z_cov, np.swapaxes(cross, -1, -2)), -1, -2)  # (N, k, m)
-    except np.linalg.LinAlgError:
-        raise NumericalError("singular innovation covariance") from None
     innovation = measurement.z - z_hat
     posterior = predicted.copy()
-    posterior[:, index] += (gain @ innovation[:, :, None])[:, :, 0]
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):  # non-finite results raise below
+        try:
+            gain = np.swapaxes(np.linalg.solve(z_cov, np.swapaxes(cross, -1, -2)), -1, -2)  # (N, k, m)
+        except np.linalg.LinAlgError:
+            raise NumericalError("singular innovation covariance") from None
+        posterior[:, index] += (gain @ innovation[:, :, None])[:, :, 0]
+        posterior_cov = predicted_cov - gain @ np.swapaxes(cross, -1, -2)  # P - K S K^T with K S = cross
     if active_angles.any():
         posterior[:, index] = wrap(posterior[:, index], active_angles)
     posterior = model.complete(posterior)
-    posterior_cov = predicted_cov - gain @ np.swapaxes(cross, -1, -2)  # P - K S K^T with K S = cross
     posterior_cov = 0.5 * (posterior_cov + np.swapaxes(posterior_cov, -1, -2))
     if not (np.all(np.isfinite(posterior)) and np.all(np.isfinite(posterior_cov))):
         raise NumericalError("the measurement update is not finite")
