@@ -19,9 +19,10 @@ NANJING_SITE = (math.radians(32.0415), math.radians(118.7845), 15.0)
 #: GPS week 1980 (2017-12-17), Wednesday 02:00 GPST; only the constellation's own epoch matters.
 GPS_WEEK = 1980
 START_TOW_S = 3 * 86400.0 + 2 * 3600.0
-#: The drive starts northbound (heading counter-clockwise from east). See docs/gnss-simulation.md: the
-#: gnss_tight pipeline initialises the RISS azimuth at north, so an eastbound start cannot be recovered.
-START_HEADING = 0.5 * math.pi
+#: The drive starts eastbound (heading counter-clockwise from east), as first designed. It was northbound
+#: for a while only because the gnss_tight pipeline started the RISS azimuth at north and could not recover
+#: an eastbound start; the pipeline now waits for the GNSS velocity to give the azimuth.
+START_HEADING = 0.0
 
 
 @dataclass(frozen=True)
