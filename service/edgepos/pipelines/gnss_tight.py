@@ -127,6 +127,11 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "RISS model: random-walk density of the gyro bias (rad^2/s^3; 1e-10 lets it wander 0.03 deg/s in "
         "an hour, the bias instability of a 10 deg/h MEMS gyro).", 0.0, 1e-4,
     ),
+    OptionSpec(
+        "wheel_scale_std", "number", 0.01,
+        "RISS model: initial std of the wheel speed's scale error (0.01: a tyre's rolling radius known to "
+        "1 %), estimated in the state.", 1e-6, 0.2,
+    ),
     OptionSpec("clock_bias_psd", "number", 1.0, "Receiver clock bias random-walk density (m^2/s).", 1e-6, 1e6),
     OptionSpec("clock_drift_psd", "number", 0.1, "Receiver clock drift random-walk density (m^2/s^3).", 1e-8, 1e6),
     OptionSpec(
@@ -710,6 +715,7 @@ def _initialise(
         variances[index] = (sigma * solution.dop.gdop) ** 2
     variances[layout.DRIFT] = _INITIAL_CLOCK_DRIFT_STD**2
     variances[layout.GYRO_BIAS] = options["gyro_bias_std"] ** 2
+    variances[layout.WHEEL_SCALE] = options["wheel_scale_std"] ** 2
     cov = np.diag(variances)
     count = 1 if options["filter"] == "ukf" else options["particles"]
     particles = np.repeat(mean[None, :], count, axis=0)
