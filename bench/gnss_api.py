@@ -1,4 +1,5 @@
-"""Benchmark: what the service adds to a gnss_tight epoch (real recording, GPS + BeiDou, 15 pseudoranges).
+"""Benchmark: what the service adds to a gnss_tight epoch (real recording; GPS + BeiDou: 15 pseudoranges,
+``--systems GCE`` adds Galileo: 22).
 
 For each filter, one-epoch batches of tests/data/gnss-rover are sent through the app in-process
 (``POST /v1/sessions/{id}/batches``: JSON validation, the satellite check, the ephemerides digest read
@@ -114,7 +115,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--epochs", type=int, default=60)
     parser.add_argument("--filters", default="ukf,upf")
-    parser.add_argument("--systems", default="GC", help="constellations (GCE adds Galileo: about 18 pseudoranges)")
+    parser.add_argument("--systems", default="GC", help="constellations (GCE adds Galileo: 22 pseudoranges)")
     args = parser.parse_args()
     text = (DATA / "broadcast-nav.rnx").read_text(encoding="ascii")
     epochs = load_epochs(args.epochs, args.systems)

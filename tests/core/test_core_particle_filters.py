@@ -108,7 +108,8 @@ def test_kernel_prior_keeps_the_weighted_mean_and_covariance():
     mean, cov = weighted_moments(particles, weights, layout.ANGLES)
     centre_mean, centre_cov = weighted_moments(centres, weights, layout.ANGLES)
     np.testing.assert_allclose(centre_mean[INDEX], mean[INDEX], atol=1e-12)
-    np.testing.assert_allclose(centre_cov[np.ix_(INDEX, INDEX)] + kernel, cov[np.ix_(INDEX, INDEX)], atol=1e-12)
+    block = np.ix_(INDEX, INDEX)
+    np.testing.assert_allclose(centre_cov[block] + kernel, cov[block], atol=1e-12)
     assert np.all(np.linalg.eigvalsh(kernel) > 0.0)
 
 
@@ -131,7 +132,8 @@ def test_upf_weights_are_the_predictive_likelihood_on_a_linear_model():
     predicted = model.propagate(particles, dt)
     centres, kernel = kernel_prior(predicted, log_weights, ACTIVE, layout.ANGLES)
     f = model.transition(dt)
-    prior_cov = f @ pending[np.ix_(INDEX, INDEX)] @ f.T + model.process_noise(dt)[np.ix_(INDEX, INDEX)] + kernel
+    block = np.ix_(INDEX, INDEX)
+    prior_cov = f @ pending[block] @ f.T + model.process_noise(dt)[block] + kernel
     np.testing.assert_allclose(accumulated_noise(cloud, model, dt, ACTIVE), prior_cov - kernel, atol=1e-9)
     s = H @ prior_cov @ H.T + np.diag(r)
     innovation = z - centres[:, INDEX] @ H.T
@@ -193,7 +195,8 @@ def test_singular_and_non_finite_steps_raise_numerical_error():
     means = np.stack([state(0.0, 0.0, 1.0, 1.0)])
     zero = np.zeros((4, 4))
     # Two identical exact measurements of a known state: the innovation covariance is singular.
-    duplicate = Measurement(lambda s: np.stack([s[..., N], s[..., N]], axis=-1), np.array([0.0, 0.0]), np.zeros(2))
+    twice = lambda s: np.stack([s[..., N], s[..., N]], axis=-1)  # noqa: E731
+    duplicate = Measurement(twice, np.array([0.0, 0.0]), np.zeros(2))
     with pytest.raises(NumericalError):
         unscented_update(means, zero, ConstantVelocity(), ACTIVE, layout.ANGLES, duplicate)
     with pytest.raises(NumericalError):

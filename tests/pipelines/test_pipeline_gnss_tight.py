@@ -56,7 +56,8 @@ def test_an_eastbound_start_is_tracked(options: dict) -> None:
 @pytest.fixture(scope="module")
 def recording() -> tuple[list[list[PseudorangeObservation]], StaticEnvironment]:
     codes = {s: DEFAULT_CODES[s] for s in "GC"}
-    environment = StaticEnvironment(navigation=Ephemerides.from_navigation(read_navigation(DATA + "broadcast-nav.rnx")))
+    navigation = Ephemerides.from_navigation(read_navigation(DATA + "broadcast-nav.rnx"))
+    environment = StaticEnvironment(navigation=navigation)
     epochs = []
     for count, epoch in enumerate(read_epochs(DATA + "rover-0-5min.rnx", codes)):
         if count >= 12:

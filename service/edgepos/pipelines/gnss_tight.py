@@ -9,14 +9,19 @@ longitude (rad) and ellipsoidal height (m).
 
 Per epoch (observations sharing ``t``):
 1. A ``riss`` sample becomes the motion model's input (eq. 2, wheel acceleration from consecutive wheel
-   speeds); without a recent one (``riss_timeout``) the GNSS-only constant-velocity model runs.
+   speeds); without a recent one (``riss_timeout``) the GNSS-only constant-velocity model runs. After
+   (re)initialisation the GNSS-only model also runs until its velocity gives the azimuth: the RISS model
+   integrates the gyro from whatever azimuth it starts with, so it must not start from a guess.
 2. Each pseudorange gets its satellite's ECEF position and clock at transmit time: the client's
    ``sat_position``/``sat_clock`` when sent, else the broadcast ephemerides (Earth rotation, satellite
    clock with relativity and group delay); then elevation mask, C/N0 floor, Klobuchar and Saastamoinen at
    the predicted position, and the fuzzy noise factor (Table 1, eq. 20) when ``fuzzy`` is on.
-3. A residual test against the prediction (per constellation, its median removed so a clock error cannot
-   fail every satellite) excludes pseudoranges beyond the ``gate_probability`` quantile; when more than
-   half fail the track is lost and the pipeline starts again from this epoch's least-squares fix.
+3. A snapshot test like the least-squares baseline's (chi-square on this epoch's own least-squares
+   residuals, worst pseudorange excluded while it fails; ``fde_probability``) finds biased (NLOS)
+   pseudoranges whatever the filter believes; then a residual test against the prediction (per
+   constellation, its median removed so a clock error cannot fail every satellite) excludes pseudoranges
+   beyond the ``gate_probability`` quantile; when more than half fail the track is lost and the pipeline
+   starts again from this epoch's least-squares fix.
 4. The filter step; before initialisation, the first epoch with enough satellites initialises the filter
    from a weighted least-squares fix (gnss/spp.py).
 Every pseudorange appears in the fix's measurement list, used or with the reason it was not.
@@ -105,7 +110,9 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "(this level) of the epoch's weighted least-squares residuals, linearised at the prediction, fails, "
         "the pseudorange with the largest standardised residual is excluded; 0 disables.", 0.0, 0.999999999,
     ),
-    OptionSpec("max_exclusions", "integer", 4, "Pseudoranges the snapshot test may exclude per epoch.", 0, 30),
+    OptionSpec(
+        "max_exclusions", "integer", 4, "Pseudoranges the snapshot test may exclude per epoch.", 0, 30
+    ),
     OptionSpec("ionosphere", "boolean", True, "Apply the broadcast Klobuchar ionosphere (needs ephemerides)."),
     OptionSpec("troposphere", "boolean", True, "Apply the Saastamoinen troposphere."),
     OptionSpec(
@@ -432,7 +439,9 @@ def _step(
         known = iono + tropo - SPEED_OF_LIGHT * prs.sat_clock_s
         factor = FuzzyNoise().factor(elevation, prs.cn0_dbhz) if options["fuzzy"] else np.ones(len(prs))
         std = options["pseudorange_std"] * factor
-        rows = _snapshot_test(session, centre, prs, known, _snapshot_std(elevation), rows, satellites.indices, uses)
+        rows = _snapshot_test(
+            session, centre, prs, known, _snapshot_std(elevation), rows, satellites.indices, uses
+        )
         rows, lost = _residual_test(session, centre, prs, known, std, rows, dt, model, satellites.indices, uses)
         if lost:
             session.initialised = False

@@ -77,9 +77,10 @@ class ParticleFilter:
         target = max(self.resample_threshold * count, 1.0)
         remaining = 1.0
         for stage in range(_MAX_STAGES):
-            log_likelihood = diagonal_logpdf(measurement.z - measurement.predict(particles), measurement.variances)
-            alpha = remaining if stage == _MAX_STAGES - 1 else _largest_power(log_weights, log_likelihood, remaining,
-                                                                              target)
+            residual = measurement.z - measurement.predict(particles)
+            log_likelihood = diagonal_logpdf(residual, measurement.variances)
+            last = stage == _MAX_STAGES - 1
+            alpha = remaining if last else _largest_power(log_weights, log_likelihood, remaining, target)
             log_weights = normalise(log_weights + alpha * log_likelihood)
             remaining -= alpha
             if remaining <= 1e-9:
@@ -97,7 +98,9 @@ _MAX_STAGES = 8
 """Most likelihood stages of one progressive correction; the last takes what is left."""
 
 
-def _largest_power(log_weights: np.ndarray, log_likelihood: np.ndarray, remaining: float, target: float) -> float:
+def _largest_power(
+    log_weights: np.ndarray, log_likelihood: np.ndarray, remaining: float, target: float
+) -> float:
     """The largest alpha <= remaining with ESS(weights x likelihood^alpha) >= target (bisection; the ESS
     falls as alpha grows); at least 1 / 64 of what remains so that the stages end."""
     if effective_sample_size(normalise(log_weights + remaining * log_likelihood)) >= target:

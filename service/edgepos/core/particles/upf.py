@@ -80,8 +80,9 @@ class UnscentedParticleFilter:
         if measurement is None:
             # No observation: particles move deterministically; their noise accumulates in the shared P.
             accumulated = embed(cloud.cov, noise, active)
-            result = _finish(particles, cloud.log_weights, accumulated, active, None, self.resample_threshold, rng,
-                             accumulated)
+            threshold = self.resample_threshold
+            pending = accumulated
+            result = _finish(particles, cloud.log_weights, pending, active, None, threshold, rng, pending)
             mean, spread = weighted_moments(particles, np.exp(cloud.log_weights), ANGLES)
             return StepResult(result.cloud, mean, spread + accumulated, None, result.ess, result.resampled)
 
@@ -94,12 +95,16 @@ class UnscentedParticleFilter:
         sampled = model.complete(wrap(sampled, ANGLES))
 
         likelihood = diagonal_logpdf(measurement.z - measurement.predict(sampled), measurement.variances)
-        transition = gaussian_logpdf(wrap(sampled[:, index] - centres[:, index], angles), batched_cholesky(prior_cov))
-        proposal = gaussian_logpdf(wrap(sampled[:, index] - update.posterior[:, index], angles), proposal_chol)
+        prior_chol = batched_cholesky(prior_cov)
+        transition = gaussian_logpdf(wrap(sampled[:, index] - centres[:, index], angles), prior_chol)
+        proposal = gaussian_logpdf(
+            wrap(sampled[:, index] - update.posterior[:, index], angles), proposal_chol
+        )
         prior_weights = np.exp(cloud.log_weights)
         z_hat = prior_weights @ update.z_hat
         spread = update.z_hat - z_hat
-        z_cov = np.tensordot(prior_weights, update.z_cov, axes=1) + (spread * prior_weights[:, None]).T @ spread
+        z_cov = np.tensordot(prior_weights, update.z_cov, axes=1)
+        z_cov = z_cov + (spread * prior_weights[:, None]).T @ spread
         score = nis(measurement.z - z_hat, z_cov)
         log_weights = normalise(cloud.log_weights + likelihood + transition - proposal)
         # The samples carry the posterior's spread; no noise is pending after a measurement.
