@@ -211,6 +211,11 @@ def _decode(blob: bytes) -> _Session:
     if meta.get("pipeline") != GnssTightPipeline.name:
         raise state_format.StateFormatError("state does not belong to the gnss_tight pipeline")
     anchor = None if meta["anchor"] is None else GeodeticAnchor(*meta["anchor"])
+    if arrays["particles"].shape[-1] != layout.DIM or arrays["cov"].shape != (layout.DIM, layout.DIM):
+        # States written before the gyro-bias and wheel-scale components were added (13 components).
+        raise state_format.StateFormatError(
+            f"gnss_tight state has {arrays['particles'].shape[-1]} components; this version uses {layout.DIM}"
+        )
     cloud = Cloud(arrays["particles"], arrays["log_weights"], arrays["cov"])
     return _Session(
         meta["options"], int(meta["seed"]), meta["initialised"], meta["t"], meta["filter_t"], meta["epochs"],
