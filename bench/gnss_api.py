@@ -1,4 +1,5 @@
-"""Benchmark: what the service adds to a gnss_tight epoch (real recording, GPS + BeiDou, 15 pseudoranges).
+"""Benchmark: what the service adds to a gnss_tight epoch (real recording; GPS + BeiDou: 15 pseudoranges,
+``--systems GCE`` adds Galileo: 22).
 
 For each filter, one-epoch batches of tests/data/gnss-rover are sent through the app in-process
 (``POST /v1/sessions/{id}/batches``: JSON validation, the satellite check, the ephemerides digest read
@@ -7,7 +8,7 @@ data, straight into ``GnssTightPipeline.process``; the difference is the service
 time to parse the navigation file, which a worker pays once per uploaded file. Stores: memory, and
 Redis when redis-server is installed (one extra HGET per batch for the digest).
 
-    python bench/gnss_api.py [--epochs N] [--filters ukf,upf]
+    python bench/gnss_api.py [--epochs N] [--filters ukf,upf] [--systems GC|GCE]
 """
 
 from __future__ import annotations
@@ -39,8 +40,8 @@ KEY = "bench-admin-key-0123456789abcdef"
 ADMIN = {"Authorization": f"Bearer {KEY}"}
 
 
-def load_epochs(count: int) -> list[list[dict]]:
-    codes = {system: DEFAULT_CODES[system] for system in ("G", "C")}
+def load_epochs(count: int, systems: str = "GC") -> list[list[dict]]:
+    codes = {system: DEFAULT_CODES[system] for system in systems}
     out = []
     for number, epoch in enumerate(read_epochs(str(DATA / "rover-0-5min.rnx"), codes)):
         if number >= count:
@@ -114,9 +115,10 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--epochs", type=int, default=60)
     parser.add_argument("--filters", default="ukf,upf")
+    parser.add_argument("--systems", default="GC", help="constellations (GCE adds Galileo: 22 pseudoranges)")
     args = parser.parse_args()
     text = (DATA / "broadcast-nav.rnx").read_text(encoding="ascii")
-    epochs = load_epochs(args.epochs)
+    epochs = load_epochs(args.epochs, args.systems)
     print(f"python {platform.python_version()} on {platform.machine()}; {len(epochs)} epochs of "
           f"{statistics.median(len(e) for e in epochs):.0f} pseudoranges")
 
@@ -132,7 +134,7 @@ def main() -> int:
     checks = []
     for _ in range(2000):
         started = time.perf_counter()
-        assert not satellite_problems(first, loaded, ["G", "C"])
+        assert not satellite_problems(first, loaded, list(args.systems))
         checks.append(1e6 * (time.perf_counter() - started))
     print(f"per batch: the check that each of {len(first)} pseudoranges has a satellite state: "
           f"{statistics.median(checks):.0f} us median")
@@ -151,7 +153,7 @@ def main() -> int:
         try:
             for name, url in stores.items():
                 for filter_name in args.filters.split(","):
-                    options = {"filter": filter_name, "seed": 1, "systems": ["G", "C"]}
+                    options = {"filter": filter_name, "seed": 1, "systems": list(args.systems)}
                     label = filter_name if filter_name == "ukf" else f"{filter_name} 200"
                     api, direct, floor = run(url, options, epochs, text, workdir)
                     print(

@@ -9,14 +9,19 @@ longitude (rad) and ellipsoidal height (m).
 
 Per epoch (observations sharing ``t``):
 1. A ``riss`` sample becomes the motion model's input (eq. 2, wheel acceleration from consecutive wheel
-   speeds); without a recent one (``riss_timeout``) the GNSS-only constant-velocity model runs.
+   speeds); without a recent one (``riss_timeout``) the GNSS-only constant-velocity model runs. After
+   (re)initialisation the GNSS-only model also runs until its velocity gives the azimuth: the RISS model
+   integrates the gyro from whatever azimuth it starts with, so it must not start from a guess.
 2. Each pseudorange gets its satellite's ECEF position and clock at transmit time: the client's
    ``sat_position``/``sat_clock`` when sent, else the broadcast ephemerides (Earth rotation, satellite
    clock with relativity and group delay); then elevation mask, C/N0 floor, Klobuchar and Saastamoinen at
    the predicted position, and the fuzzy noise factor (Table 1, eq. 20) when ``fuzzy`` is on.
-3. A residual test against the prediction (per constellation, its median removed so a clock error cannot
-   fail every satellite) excludes pseudoranges beyond the ``gate_probability`` quantile; when more than
-   half fail the track is lost and the pipeline starts again from this epoch's least-squares fix.
+3. A snapshot test like the least-squares baseline's (chi-square on this epoch's own least-squares
+   residuals, worst pseudorange excluded while it fails; ``fde_probability``) finds biased (NLOS)
+   pseudoranges whatever the filter believes; then a residual test against the prediction (per
+   constellation, its median removed so a clock error cannot fail every satellite) excludes pseudoranges
+   beyond the ``gate_probability`` quantile; when more than half fail the track is lost and the pipeline
+   starts again from this epoch's least-squares fix.
 4. The filter step; before initialisation, the first epoch with enough satellites initialises the filter
    from a weighted least-squares fix (gnss/spp.py).
 Every pseudorange appears in the fix's measurement list, used or with the reason it was not.
@@ -34,7 +39,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from edgepos.core import state as state_format
-from edgepos.core.errors import EstimationError
+from edgepos.core.errors import EstimationError, NumericalError
 from edgepos.core.fuzzy import FuzzyNoise
 from edgepos.core.measurements.pseudorange import PseudorangeModel
 from edgepos.core.motion import riss as layout
@@ -99,13 +104,41 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "Residual test: exclude a pseudorange whose normalised residual squared exceeds this chi-square(1) "
         "quantile; 0 disables.", 0.0, 0.999999999,
     ),
+    OptionSpec(
+        "fde_probability", "number", 0.999,
+        "Snapshot fault detection and exclusion, as in the least-squares baseline: while the chi-square test "
+        "(this level) of the epoch's weighted least-squares residuals, linearised at the prediction, fails, "
+        "the pseudorange with the largest standardised residual is excluded; 0 disables.", 0.0, 0.999999999,
+    ),
+    OptionSpec(
+        "max_exclusions", "integer", 4, "Pseudoranges the snapshot test may exclude per epoch.", 0, 30
+    ),
     OptionSpec("ionosphere", "boolean", True, "Apply the broadcast Klobuchar ionosphere (needs ephemerides)."),
     OptionSpec("troposphere", "boolean", True, "Apply the Saastamoinen troposphere."),
-    OptionSpec("accel_std", "number", 1.0, "GNSS-only model: horizontal white-noise acceleration (m/s^2).", 1e-3, 100.0),
+    OptionSpec(
+        "accel_std", "number", 3.0,
+        "GNSS-only model: horizontal white-noise acceleration (m/s^2); a car braking, accelerating and "
+        "cornering in town reaches 2-4 m/s^2.", 1e-3, 100.0,
+    ),
     OptionSpec("vertical_accel_std", "number", 0.3, "GNSS-only model: vertical white-noise acceleration (m/s^2).", 1e-3, 100.0),
     OptionSpec("wheel_speed_std", "number", 0.1, "RISS model: wheel speed noise (m/s).", 1e-4, 10.0),
     OptionSpec("accelerometer_std", "number", 0.05, "RISS model: accelerometer noise (m/s^2).", 1e-4, 10.0),
     OptionSpec("gyro_std", "number", 0.005, "RISS model: yaw gyro noise (rad/s).", 1e-6, 1.0),
+    OptionSpec(
+        "gyro_bias_std", "number", 0.002,
+        "RISS model: initial std of the yaw gyro's bias (rad/s; 0.002 = 0.11 deg/s, a MEMS gyro's turn-on "
+        "bias after start-up calibration), estimated in the state.", 1e-6, 0.1,
+    ),
+    OptionSpec(
+        "gyro_bias_psd", "number", 1e-10,
+        "RISS model: random-walk density of the gyro bias (rad^2/s^3; 1e-10 lets it wander 0.03 deg/s in "
+        "an hour, the bias instability of a 10 deg/h MEMS gyro).", 0.0, 1e-4,
+    ),
+    OptionSpec(
+        "wheel_scale_std", "number", 0.01,
+        "RISS model: initial std of the wheel speed's scale error (0.01: a tyre's rolling radius known to "
+        "1 %), estimated in the state.", 1e-6, 0.2,
+    ),
     OptionSpec("clock_bias_psd", "number", 1.0, "Receiver clock bias random-walk density (m^2/s).", 1e-6, 1e6),
     OptionSpec("clock_drift_psd", "number", 0.1, "Receiver clock drift random-walk density (m^2/s^3).", 1e-8, 1e6),
     OptionSpec(
@@ -128,6 +161,11 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
 
 _INITIAL_CLOCK_DRIFT_STD = 5.0
 _INITIAL_ATTITUDE_STD = 0.1
+_HEADING_STD_TO_START_RISS = 0.3
+"""The RISS model takes over once the azimuth the velocity implies is known to this std (rad)."""
+_MIN_SPEED_FOR_HEADING = 1.0
+"""... and both the wheel speed and the estimated speed exceed this (m/s): the heading of a vehicle at rest
+is unobservable, and the RISS model would freeze a guess."""
 
 
 @dataclass
@@ -142,6 +180,9 @@ class _Session:
     riss: dict[str, float] | None
     clock_seen: dict[str, float]
     cloud: Cloud
+    heading_known: bool = False
+    """Whether the RISS model may run: until the GNSS-only model's velocity gives the azimuth, the RISS
+    input is held back (a wrong initial azimuth is not recoverable once the model integrates the gyro)."""
 
     def to_bytes(self) -> bytes:
         meta = {
@@ -155,6 +196,7 @@ class _Session:
             "anchor": None if self.anchor is None else [self.anchor.lat, self.anchor.lon, self.anchor.height],
             "riss": self.riss,
             "clock_seen": self.clock_seen,
+            "heading_known": self.heading_known,
         }
         arrays = {
             "particles": self.cloud.particles,
@@ -169,10 +211,15 @@ def _decode(blob: bytes) -> _Session:
     if meta.get("pipeline") != GnssTightPipeline.name:
         raise state_format.StateFormatError("state does not belong to the gnss_tight pipeline")
     anchor = None if meta["anchor"] is None else GeodeticAnchor(*meta["anchor"])
+    if arrays["particles"].shape[-1] != layout.DIM or arrays["cov"].shape != (layout.DIM, layout.DIM):
+        # States written before the gyro-bias and wheel-scale components were added (13 components).
+        raise state_format.StateFormatError(
+            f"gnss_tight state has {arrays['particles'].shape[-1]} components; this version uses {layout.DIM}"
+        )
     cloud = Cloud(arrays["particles"], arrays["log_weights"], arrays["cov"])
     return _Session(
         meta["options"], int(meta["seed"]), meta["initialised"], meta["t"], meta["filter_t"], meta["epochs"],
-        anchor, meta["riss"], dict(meta["clock_seen"]), cloud,
+        anchor, meta["riss"], dict(meta["clock_seen"]), cloud, bool(meta.get("heading_known", False)),
     )
 
 
@@ -397,6 +444,9 @@ def _step(
         known = iono + tropo - SPEED_OF_LIGHT * prs.sat_clock_s
         factor = FuzzyNoise().factor(elevation, prs.cn0_dbhz) if options["fuzzy"] else np.ones(len(prs))
         std = options["pseudorange_std"] * factor
+        rows = _snapshot_test(
+            session, centre, prs, known, _snapshot_std(elevation), rows, satellites.indices, uses
+        )
         rows, lost = _residual_test(session, centre, prs, known, std, rows, dt, model, satellites.indices, uses)
         if lost:
             session.initialised = False
@@ -410,13 +460,52 @@ def _step(
             measurement = Measurement(model_pr.predict, prs.pseudorange_m[rows], model_pr.variances())
     filt = _filter(options)
     result = filt.step(session.cloud, model, dt, active, measurement, rng)
+    if not (np.all(np.isfinite(result.mean)) and np.all(np.isfinite(result.cov))
+            and np.all(np.isfinite(result.cloud.particles))):
+        raise NumericalError("the filter step gave a non-finite state")
     session.cloud = result.cloud
     session.filter_t = t
+    if measurement is not None and isinstance(model, GnssOnlyModel):
+        _maybe_start_riss(session, t, result)
     for r in rows:
         i = satellites.indices[r]
         uses[i] = MeasurementUse(i, "pseudorange", True)
     status = "tracking" if measurement is not None else "predicted"
     return _fix(t, status, session, result.mean, result.cov, result, int(rows.size), uses, origin)
+
+
+def _maybe_start_riss(session: _Session, t: float, result: StepResult) -> None:
+    """Let the RISS model take over once the GNSS-only velocity determines the azimuth.
+
+    The azimuth of velocity (v_e, v_n) is atan2(v_e, v_n); its variance is J P_v J^T with
+    J = (v_n, -v_e) / |v|^2. The particles already carry the azimuth of their own velocity (the GNSS-only
+    model derives it); the UKF gets that variance, uncorrelated with the rest."""
+    riss = session.riss
+    if session.heading_known or riss is None or t - riss["t"] > session.options["riss_timeout"]:
+        return
+    mean, cov = result.mean, result.cov
+    ve, vn = float(mean[layout.VE]), float(mean[layout.VN])
+    speed2 = ve * ve + vn * vn
+    if abs(riss["wheel_speed"]) < _MIN_SPEED_FOR_HEADING or speed2 < _MIN_SPEED_FOR_HEADING**2:
+        return
+    jacobian = np.array([vn, -ve]) / speed2
+    velocity_cov = cov[np.ix_([layout.VE, layout.VN], [layout.VE, layout.VN])]
+    variance = float(jacobian @ velocity_cov @ jacobian)
+    if not variance <= _HEADING_STD_TO_START_RISS**2:
+        return
+    session.heading_known = True
+    if session.options["filter"] == "ukf":
+        cov = session.cloud.cov.copy()
+        cov[layout.AZIMUTH, :] = 0.0
+        cov[:, layout.AZIMUTH] = 0.0
+        cov[layout.AZIMUTH, layout.AZIMUTH] = variance
+        session.cloud = Cloud(session.cloud.particles, session.cloud.log_weights, cov)
+
+
+def _covariance(session: _Session) -> np.ndarray:
+    """The state covariance the filter's cloud stands for (the UPF stores only its pending noise)."""
+    filt = _filter(session.options)
+    return filt.covariance(session.cloud) if hasattr(filt, "covariance") else session.cloud.cov
 
 
 def _filter(options: Mapping[str, Any]) -> Any:
@@ -428,11 +517,11 @@ def _model(session: _Session, t: float) -> RissModel | GnssOnlyModel:
     options, anchor = session.options, session.anchor
     assert anchor is not None
     riss = session.riss
-    if riss is not None and t - riss["t"] <= options["riss_timeout"]:
+    if riss is not None and t - riss["t"] <= options["riss_timeout"] and session.heading_known:
         u = RissInput(riss["wheel_speed"], riss["wheel_accel"], riss["accel_x"], riss["accel_y"], riss["gyro_z"])
         return RissModel(
             anchor, u, options["wheel_speed_std"], options["accelerometer_std"], options["gyro_std"],
-            options["clock_bias_psd"], options["clock_drift_psd"],
+            options["clock_bias_psd"], options["clock_drift_psd"], options["gyro_bias_psd"],
         )
     return GnssOnlyModel(
         anchor, options["accel_std"], options["vertical_accel_std"], options["clock_bias_psd"], options["clock_drift_psd"]
@@ -450,6 +539,69 @@ def _take_riss(session: _Session, observation: RissObservation) -> None:
         "accel_x": observation.accel_x, "accel_y": observation.accel_y, "gyro_z": observation.gyro_z,
     }
 
+
+
+def _snapshot_std(elevation: np.ndarray) -> np.ndarray:
+    """The least-squares baseline's pseudorange noise model (gnss/spp.py), sqrt(a^2 + b^2 / sin^2 el): the
+    snapshot test judges residuals as the baseline does, whatever noise the filter assumes."""
+    config = SppConfig()
+    sin_el = np.maximum(np.sin(elevation), 0.05)
+    return np.sqrt(config.sigma_a_m**2 + (config.sigma_b_m / sin_el) ** 2)
+
+
+def _snapshot_test(
+    session: _Session, centre: np.ndarray, prs: PseudorangeSet, known: np.ndarray, std: np.ndarray,
+    rows: np.ndarray, indices: list[int], uses: dict[int, MeasurementUse],
+) -> np.ndarray:
+    """Fault detection and exclusion on this epoch's pseudoranges alone, as the least-squares baseline does.
+
+    Linearised at the predicted position: weighted least squares for a position correction and one clock
+    per constellation; while the chi-square test of the weighted post-fit residuals fails, the pseudorange
+    with the largest standardised residual (divided by sqrt(1 - leverage)) is excluded. Unlike a gate centred
+    on the prediction it does not depend on the filter's history, so a persistent NLOS bias the filter has
+    already followed is still found. Returns the rows kept."""
+    options = session.options
+    probability = options["fde_probability"]
+    if probability <= 0.0 or options["max_exclusions"] <= 0 or rows.size == 0:
+        return rows
+    assert session.anchor is not None
+    receiver = session.anchor.ecef(centre)
+    systems = np.array(prs.systems)
+    geometric = sagnac_range(prs.sat_position, receiver)
+    residual = prs.pseudorange_m - geometric - known
+    line_of_sight = (receiver - prs.sat_position) / geometric[:, None]
+    keep = rows.copy()
+    for _ in range(options["max_exclusions"]):
+        present = sorted(set(systems[keep]))
+        design = np.zeros((keep.size, 3 + len(present)))
+        design[:, :3] = line_of_sight[keep]
+        for column, system in enumerate(present):
+            design[systems[keep] == system, 3 + column] = 1.0
+        dof = keep.size - design.shape[1]
+        if dof < 2:
+            break
+        root = 1.0 / std[keep]
+        weighted = design * root[:, None]
+        normal = weighted.T @ weighted
+        try:
+            inverse = np.linalg.inv(normal)
+        except np.linalg.LinAlgError:
+            break  # singular geometry: nothing to test against
+        normalised = (residual[keep] - design @ (inverse @ (weighted.T @ (residual[keep] * root)))) * root
+        statistic = float(normalised @ normalised)
+        if not math.isfinite(statistic) or statistic <= _chi2_threshold(probability, dof):
+            break
+        leverage = np.einsum("ij,jk,ik->i", weighted, inverse, weighted)
+        standardised = np.abs(normalised) / np.sqrt(np.maximum(1.0 - leverage, 1e-6))
+        worst = int(np.argmax(standardised))
+        i = indices[keep[worst]]
+        uses[i] = MeasurementUse(
+            i, "pseudorange", False,
+            f"excluded by the snapshot test: {statistic:.1f} > {_chi2_threshold(probability, dof):.1f} "
+            f"(chi-square, {dof} dof), largest standardised residual {standardised[worst]:.1f}",
+        )
+        keep = np.delete(keep, worst)
+    return keep
 
 
 def _residual_test(
@@ -470,7 +622,7 @@ def _residual_test(
     systems = [prs.systems[r] for r in rows]
     model_pr = PseudorangeModel.build(session.anchor, prs.sat_position[rows], systems, known[rows], std[rows])
     residual = prs.pseudorange_m[rows] - model_pr.predict(centre)
-    predicted_cov = session.cloud.cov + model.process_noise(dt)
+    predicted_cov = _covariance(session) + model.process_noise(dt)
     variance = std[rows] ** 2 + float(np.trace(predicted_cov[:3, :3]))
     for system in set(systems):
         members = np.array([s == system for s in systems])
@@ -492,13 +644,14 @@ def _residual_test(
     return rows[~failed], False
 
 
-_THRESHOLDS: dict[float, float] = {}
+_THRESHOLDS: dict[tuple[float, int], float] = {}
 
 
-def _chi2_threshold(probability: float) -> float:
-    if probability not in _THRESHOLDS:
-        _THRESHOLDS[probability] = float(chi2.ppf(probability, 1))
-    return _THRESHOLDS[probability]
+def _chi2_threshold(probability: float, dof: int = 1) -> float:
+    key = (probability, dof)
+    if key not in _THRESHOLDS:
+        _THRESHOLDS[key] = float(chi2.ppf(probability, dof))
+    return _THRESHOLDS[key]
 
 
 def _reset_unseen_clocks(
@@ -521,8 +674,11 @@ def _reset_unseen_clocks(
             # Express it at the start of the step: propagation adds drift * dt.
             bias -= float(centre[index] - (cloud.weights @ cloud.particles)[index])
             spread = max(3.0 * session.options["pseudorange_std"], 5.0)
+            # The UPF keeps the new uncertainty in each particle's own prior (its UKF proposal resolves it);
+            # the PF scatters its particles.
+            scatter = len(cloud.particles) > 1 and session.options["filter"] != "upf"
             particles = cloud.particles.copy()
-            particles[:, index] = bias + (spread * rng.standard_normal(len(particles)) if len(particles) > 1 else 0.0)
+            particles[:, index] = bias + (spread * rng.standard_normal(len(particles)) if scatter else 0.0)
             cov = cloud.cov.copy()
             cov[index, :] = 0.0
             cov[:, index] = 0.0
@@ -572,14 +728,19 @@ def _initialise(
         mean[index] = solution.clock_bias_m.get(system, 0.0)
         variances[index] = (sigma * solution.dop.gdop) ** 2
     variances[layout.DRIFT] = _INITIAL_CLOCK_DRIFT_STD**2
+    variances[layout.GYRO_BIAS] = options["gyro_bias_std"] ** 2
+    variances[layout.WHEEL_SCALE] = options["wheel_scale_std"] ** 2
     cov = np.diag(variances)
     count = 1 if options["filter"] == "ukf" else options["particles"]
     particles = np.repeat(mean[None, :], count, axis=0)
-    if count > 1:
+    if options["filter"] == "pf":
         particles += rng.standard_normal((count, layout.DIM)) * np.sqrt(variances)
+    # The UPF starts every particle at the fix with the fix's uncertainty as its own prior: its first
+    # UKF proposals place them (drawing them here instead would only add variance to the weights).
     particles = GnssOnlyModel.complete(particles)
     session.cloud = Cloud(particles, np.full(count, -math.log(count)), cov)
     session.initialised = True
+    session.heading_known = False
     session.filter_t = t
     session.clock_seen = {str(system): t for system in solution.clock_bias_m}
 

@@ -19,9 +19,10 @@ NANJING_SITE = (math.radians(32.0415), math.radians(118.7845), 15.0)
 #: GPS week 1980 (2017-12-17), Wednesday 02:00 GPST; only the constellation's own epoch matters.
 GPS_WEEK = 1980
 START_TOW_S = 3 * 86400.0 + 2 * 3600.0
-#: The drive starts northbound (heading counter-clockwise from east). See docs/gnss-simulation.md: the
-#: gnss_tight pipeline initialises the RISS azimuth at north, so an eastbound start cannot be recovered.
-START_HEADING = 0.5 * math.pi
+#: The drive starts eastbound (heading counter-clockwise from east), as first designed. It was northbound
+#: for a while only because the gnss_tight pipeline started the RISS azimuth at north and could not recover
+#: an eastbound start; the pipeline now waits for the GNSS velocity to give the azimuth.
+START_HEADING = 0.0
 
 
 @dataclass(frozen=True)
@@ -133,18 +134,21 @@ class GnssScenario:
 
 
 def urban_scenario(
-    *, short: bool = False, riss_rate_hz: float = 10.0, gnss_rate_hz: float = 1.0
+    *, short: bool = False, riss_rate_hz: float = 10.0, gnss_rate_hz: float = 1.0,
+    heading0: float = START_HEADING,
 ) -> GnssScenario:
-    """The Nanjing downtown drive (387 s; ``short``: about 70 s) in street canyons."""
-    return _scenario("urban-nanjing", short, riss_rate_hz, gnss_rate_hz, CityParameters())
+    """The Nanjing downtown drive (387 s; ``short``: about 70 s) in street canyons; ``heading0`` is the
+    initial heading (rad, counter-clockwise from east)."""
+    return _scenario("urban-nanjing", short, riss_rate_hz, gnss_rate_hz, CityParameters(), heading0=heading0)
 
 
 def open_sky_scenario(
-    *, short: bool = False, riss_rate_hz: float = 10.0, gnss_rate_hz: float = 1.0
+    *, short: bool = False, riss_rate_hz: float = 10.0, gnss_rate_hz: float = 1.0,
+    heading0: float = START_HEADING,
 ) -> GnssScenario:
     """The same drive with no buildings and open-sky multipath: the check that the filters are sound."""
     signal = SignalModel(multipath_low_m=1.0, nlos_probability=0.0)
-    return _scenario("open-sky-nanjing", short, riss_rate_hz, gnss_rate_hz, None, signal)
+    return _scenario("open-sky-nanjing", short, riss_rate_hz, gnss_rate_hz, None, signal, heading0)
 
 
 SCENARIOS = {"urban": urban_scenario, "open-sky": open_sky_scenario}
@@ -157,12 +161,13 @@ def _scenario(
     gnss_rate_hz: float,
     city: CityParameters | None,
     signal: SignalModel | None = None,
+    heading0: float = START_HEADING,
 ) -> GnssScenario:
     every = round(riss_rate_hz / gnss_rate_hz)
     if every < 1 or not math.isclose(every * gnss_rate_hz, riss_rate_hz):
         raise ValueError("the RISS rate must be a whole multiple of the GNSS rate")
     segments = short_route() if short else nanjing_route()
-    truth = drive(segments, 1.0 / riss_rate_hz, heading0=START_HEADING)
+    truth = drive(segments, 1.0 / riss_rate_hz, heading0=heading0)
     return GnssScenario(
         name=name + ("-short" if short else ""),
         site=NANJING_SITE,

@@ -5,7 +5,11 @@ State (13): position as curvilinear offsets from a geodetic anchor - ``north`` =
 latitude, longitude and height that keeps covariances well conditioned) - then east, north and up velocity
 (m/s), pitch, roll, azimuth (rad; azimuth clockwise from north, pitch nose up, roll positive when the left
 side rises), a receiver clock bias per constellation (GPS, BeiDou, Galileo; metres, i.e. c times seconds)
-and one clock drift (m/s) common to all.
+and one clock drift (m/s) common to all, then the yaw gyro's bias (rad/s, same sign as its output): the
+gyro bias left after start-up calibration turns the dead-reckoned azimuth steadily, tens of times faster
+than the gyro's white noise over a minute, so it is estimated rather than covered by process noise; and
+the wheel speed's scale error (dimensionless, measured = true x (1 + error)), which tyre wear and pressure
+set to about a percent and which pulls the dead reckoning along the track by as much.
 
 Models propagate batches of states (any leading axes) and report which components are stochastic
 (``active``): the filters sample and weigh only those; the others follow deterministically.
@@ -22,13 +26,15 @@ from edgepos.gnss.geodesy import WGS84_A, WGS84_E2, geodetic_to_ecef
 
 NAMES = (
     "north", "east", "up", "v_east", "v_north", "v_up", "pitch", "roll", "azimuth",
-    "clock_gps", "clock_bds", "clock_gal", "clock_drift",
+    "clock_gps", "clock_bds", "clock_gal", "clock_drift", "gyro_bias", "wheel_scale",
 )
 DIM = len(NAMES)
 NORTH, EAST, UP, VE, VN, VU, PITCH, ROLL, AZIMUTH = range(9)
 CLOCK = {"G": 9, "C": 10, "E": 11}
 """State index of each constellation's receiver clock bias (RINEX system letters)."""
 DRIFT = 12
+GYRO_BIAS = 13
+WHEEL_SCALE = 14
 ANGLES = np.zeros(DIM, dtype=bool)
 ANGLES[[PITCH, ROLL, AZIMUTH]] = True
 GRAVITY = 9.80665
@@ -132,6 +138,7 @@ class RissModel:
     gyro_std: float = 0.005
     clock_bias_psd: float = 1.0
     clock_drift_psd: float = 0.1
+    gyro_bias_psd: float = 1e-10
 
     active = np.ones(DIM, dtype=bool)
 
@@ -146,17 +153,20 @@ class RissModel:
         height_prev = anchor.height + states[..., UP]
         azimuth = (
             states[..., AZIMUTH]
-            - u.gyro_z * dt
+            - (u.gyro_z - states[..., GYRO_BIAS]) * dt
             + OMEGA_EARTH * np.sin(lat_prev) * dt
             + states[..., VE] * np.tan(lat_prev) / (normal_radius(lat_prev) + height_prev) * dt
         )
         out[..., AZIMUTH] = (azimuth + math.pi) % (2.0 * math.pi) - math.pi
         cos_pitch = math.cos(pitch)
-        out[..., VE] = u.wheel_speed * np.sin(out[..., AZIMUTH]) * cos_pitch
-        out[..., VN] = u.wheel_speed * np.cos(out[..., AZIMUTH]) * cos_pitch
-        out[..., VU] = u.wheel_speed * math.sin(pitch)
+        speed = u.wheel_speed / (1.0 + states[..., WHEEL_SCALE])
+        out[..., VE] = speed * np.sin(out[..., AZIMUTH]) * cos_pitch
+        out[..., VN] = speed * np.cos(out[..., AZIMUTH]) * cos_pitch
+        out[..., VU] = speed * math.sin(pitch)
         _move(anchor, states, out, dt)
         _clocks(states, out, dt)
+        out[..., GYRO_BIAS] = states[..., GYRO_BIAS]
+        out[..., WHEEL_SCALE] = states[..., WHEEL_SCALE]
         return out
 
     def process_noise(self, dt: float) -> np.ndarray:
@@ -168,6 +178,8 @@ class RissModel:
             q[index, index] = speed_var * dt * dt + 1e-6
         q[PITCH, PITCH] = q[ROLL, ROLL] = (self.accel_std / GRAVITY) ** 2 + 1e-8
         q[AZIMUTH, AZIMUTH] = (self.gyro_std * dt) ** 2 + 1e-10
+        q[GYRO_BIAS, GYRO_BIAS] = self.gyro_bias_psd * dt + 1e-14
+        q[WHEEL_SCALE, WHEEL_SCALE] = 1e-10 * dt + 1e-14  # a tyre's radius changes over hours, not seconds
         _clock_noise(q, dt, self.clock_bias_psd, self.clock_drift_psd)
         return q
 
@@ -179,7 +191,7 @@ class RissModel:
 class GnssOnlyModel:
     """Constant velocity with white-noise acceleration (horizontal and vertical 1-sigma densities,
     m/s^2) when no RISS input arrives; attitude follows the velocity (azimuth and pitch of the motion,
-    roll held) and is not part of the stochastic state."""
+    roll held) and is not part of the stochastic state; nor are the gyro bias and wheel scale (held)."""
 
     anchor: GeodeticAnchor
     accel_std: float = 1.0
@@ -188,6 +200,7 @@ class GnssOnlyModel:
     clock_drift_psd: float = 0.1
 
     active = np.array([not a for a in ANGLES])
+    active[GYRO_BIAS] = active[WHEEL_SCALE] = False
 
     def propagate(self, states: np.ndarray, dt: float) -> np.ndarray:
         out = np.empty_like(states)
@@ -195,6 +208,8 @@ class GnssOnlyModel:
         _move(self.anchor, states, out, dt)
         _clocks(states, out, dt)
         out[..., PITCH:AZIMUTH + 1] = states[..., PITCH:AZIMUTH + 1]
+        out[..., GYRO_BIAS] = states[..., GYRO_BIAS]
+        out[..., WHEEL_SCALE] = states[..., WHEEL_SCALE]
         return self.complete(out)
 
     def process_noise(self, dt: float) -> np.ndarray:
@@ -207,6 +222,7 @@ class GnssOnlyModel:
         _clock_noise(q, dt, self.clock_bias_psd, self.clock_drift_psd)
         for index in (PITCH, ROLL, AZIMUTH):
             q[index, index] = 1e-8
+        q[GYRO_BIAS, GYRO_BIAS] = q[WHEEL_SCALE, WHEEL_SCALE] = 1e-14
         return q
 
     @staticmethod

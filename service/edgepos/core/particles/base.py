@@ -193,12 +193,17 @@ def sigma_points(means: np.ndarray, chols: np.ndarray, active: np.ndarray, weigh
 def sigma_mean(points: np.ndarray, weights: np.ndarray, angles: np.ndarray) -> np.ndarray:
     """Weighted mean over the sigma axis (N, S, D) -> (N, D); angles averaged as wrapped offsets from the
     central point."""
-    mean = np.einsum("s,nsd->nd", weights, points)
+    mean = weights @ points
     if angles.any():
         centre = points[:, 0, angles]
         offsets = wrap(points[:, :, angles] - centre[:, None, :], np.ones(int(angles.sum()), dtype=bool))
-        mean[:, angles] = centre + np.einsum("s,nsd->nd", weights, offsets)
+        mean[:, angles] = centre + weights @ offsets
     return mean
+
+
+def weighted_outer(weights: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """sum_s w_s a[n, s, :] b[n, s, :]^T for sigma-point deviations a (N, S, i), b (N, S, j) -> (N, i, j)."""
+    return np.swapaxes(a * weights[:, None], -1, -2) @ b
 
 
 @dataclass(frozen=True)
@@ -216,52 +221,113 @@ class UnscentedStep:
     z_cov: np.ndarray | None = None
 
 
-def unscented_step(
+@dataclass(frozen=True)
+class UnscentedUpdate:
+    """The measurement update of N Gaussians: posterior means (N, D) and covariances (N, k, k) of the
+    active components, predicted measurements (N, m) and their covariances (N, m, m)."""
+
+    posterior: np.ndarray
+    posterior_cov: np.ndarray
+    z_hat: np.ndarray
+    z_cov: np.ndarray
+
+
+def unscented_predict(
     means: np.ndarray, cov: np.ndarray | None, model: ParticleModel, dt: float, active: np.ndarray,
-    angles: np.ndarray, measurement: Measurement | None, weights: SigmaWeights | None = None,
-) -> UnscentedStep:
-    """Eqs. 9-14 for N particles at once: UKF time update of each particle (with covariance ``cov`` of the
-    full state, shared, (D, D); None for a point) and, given a measurement, the measurement update that
-    gives the proposal."""
+    angles: np.ndarray, weights: SigmaWeights | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """UKF time update (eq. 11) of N Gaussians (means (N, D), full-state covariance ``cov`` (D, D) shared,
+    or None for points): (f of each mean (N, D), predicted means (N, D), covariances (N, k, k))."""
+    index = np.flatnonzero(active)
+    weights = weights or SigmaWeights(len(index))
+    q = model.process_noise(dt)[np.ix_(index, index)]
+    if cov is None or not np.any(cov[np.ix_(index, index)]):
+        # A point prior: the time update is f(x) with covariance Q.
+        prior = model.propagate(means, dt)
+        return prior, prior.copy(), np.broadcast_to(q, (len(means),) + q.shape).copy()
+    chol = batched_cholesky(cov[np.ix_(index, index)])
+    points = model.propagate(sigma_points(means, chol, active, weights), dt)
+    predicted = model.complete(sigma_mean(points, weights.mean, angles))
+    deviation = wrap(points[:, :, index] - predicted[:, None, index], angles[index])
+    predicted_cov = q + weighted_outer(weights.cov, deviation, deviation)
+    return points[:, 0, :], predicted, predicted_cov
+
+
+def unscented_update(
+    predicted: np.ndarray, predicted_cov: np.ndarray, model: ParticleModel, active: np.ndarray,
+    angles: np.ndarray, measurement: Measurement, weights: SigmaWeights | None = None,
+) -> UnscentedUpdate:
+    """UKF measurement update (eqs. 12-14) of N Gaussians: means (N, D), active-block covariances (k, k)
+    shared or (N, k, k). Sigma points are drawn around the prediction, so the process noise enters the
+    innovation. A singular innovation covariance raises NumericalError."""
     index = np.flatnonzero(active)
     weights = weights or SigmaWeights(len(index))
     wm, wc = weights.mean, weights.cov
     active_angles = angles[index]
-    q = model.process_noise(dt)[np.ix_(index, index)]
-
-    if cov is None:
-        # A point prior (the particle itself): the time update is f(x) with covariance Q.
-        prior = model.propagate(means, dt)
-        predicted = prior.copy()
-        predicted_cov = np.broadcast_to(q, (len(means),) + q.shape).copy()
-    else:
-        chol = batched_cholesky(cov[np.ix_(index, index)])
-        points = model.propagate(sigma_points(means, chol, active, weights), dt)
-        predicted = model.complete(sigma_mean(points, wm, angles))
-        deviation = wrap(points[:, :, index] - predicted[:, None, index], active_angles)
-        predicted_cov = q + np.einsum("s,nsi,nsj->nij", wc, deviation, deviation)
-        prior = points[:, 0, :]
-    if measurement is None:
-        return UnscentedStep(prior, predicted, predicted_cov)
-
-    # Redraw sigma points around the prediction so that the process noise enters the innovation.
-    redrawn = sigma_points(predicted, batched_cholesky(predicted_cov), active, weights)
-    z_points = measurement.predict(redrawn)
-    z_hat = np.einsum("s,nsm->nm", wm, z_points)
+    points = sigma_points(predicted, batched_cholesky(predicted_cov), active, weights)
+    z_points = measurement.predict(points)
+    z_hat = wm @ z_points
     dz = z_points - z_hat[:, None, :]
-    dx = wrap(redrawn[:, :, index] - predicted[:, None, index], active_angles)
-    z_cov = np.einsum("s,nsi,nsj->nij", wc, dz, dz) + np.diag(measurement.variances)
-    cross = np.einsum("s,nsi,nsj->nij", wc, dx, dz)
-    gain = np.swapaxes(np.linalg.solve(z_cov, np.swapaxes(cross, -1, -2)), -1, -2)  # (N, k, m)
+    dx = wrap(points[:, :, index] - predicted[:, None, index], active_angles)
+    z_cov = weighted_outer(wc, dz, dz) + np.diag(measurement.variances)
+    cross = weighted_outer(wc, dx, dz)
     innovation = measurement.z - z_hat
     posterior = predicted.copy()
-    posterior[:, index] += np.einsum("nkm,nm->nk", gain, innovation)
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):  # non-finite results raise below
+        try:
+            gain = np.swapaxes(np.linalg.solve(z_cov, np.swapaxes(cross, -1, -2)), -1, -2)  # (N, k, m)
+        except np.linalg.LinAlgError:
+            raise NumericalError("singular innovation covariance") from None
+        posterior[:, index] += (gain @ innovation[:, :, None])[:, :, 0]
+        posterior_cov = predicted_cov - gain @ np.swapaxes(cross, -1, -2)  # P - K S K^T with K S = cross
     if active_angles.any():
         posterior[:, index] = wrap(posterior[:, index], active_angles)
     posterior = model.complete(posterior)
-    posterior_cov = predicted_cov - np.einsum("nkm,nml,njl->nkj", gain, z_cov, gain)
     posterior_cov = 0.5 * (posterior_cov + np.swapaxes(posterior_cov, -1, -2))
-    return UnscentedStep(prior, predicted, predicted_cov, posterior, posterior_cov, z_hat, z_cov)
+    if not (np.all(np.isfinite(posterior)) and np.all(np.isfinite(posterior_cov))):
+        raise NumericalError("the measurement update is not finite")
+    return UnscentedUpdate(posterior, posterior_cov, z_hat, z_cov)
+
+
+def unscented_step(
+    means: np.ndarray, cov: np.ndarray | None, model: ParticleModel, dt: float, active: np.ndarray,
+    angles: np.ndarray, measurement: Measurement | None, weights: SigmaWeights | None = None,
+) -> UnscentedStep:
+    """Eqs. 9-14 for N Gaussians at once: UKF time update of each mean (with covariance ``cov`` of the
+    full state, shared, (D, D); None for a point) and, given a measurement, the measurement update."""
+    prior, predicted, predicted_cov = unscented_predict(means, cov, model, dt, active, angles, weights)
+    if measurement is None:
+        return UnscentedStep(prior, predicted, predicted_cov)
+    update = unscented_update(predicted, predicted_cov, model, active, angles, measurement, weights)
+    return UnscentedStep(
+        prior, predicted, predicted_cov, update.posterior, update.posterior_cov, update.z_hat, update.z_cov
+    )
+
+
+def kernel_bandwidth(count: int, dim: int) -> float:
+    """Optimal Gaussian-kernel bandwidth of a regularised particle filter (Musso, Oudjane & Le Gland
+    2001): h = (4 / (N (d + 2)))^(1 / (d + 4))."""
+    return float((4.0 / (count * (dim + 2.0))) ** (1.0 / (dim + 4.0)))
+
+
+def kernel_prior(
+    particles: np.ndarray, log_weights: np.ndarray, active: np.ndarray, angles: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The weighted cloud as a Gaussian-kernel mixture that keeps its mean and covariance (Liu & West
+    2001): kernel centres a x_i + (1 - a) mean and kernel covariance h^2 Sigma on the active components,
+    a = sqrt(1 - h^2). Sampling from the mixture keeps a resampled cloud from collapsing onto copies of
+    a few particles (regularisation) without inflating it. Returns (centres (N, D), covariance (k, k))."""
+    index = np.flatnonzero(active)
+    count = len(particles)
+    if count < 2:
+        return particles.copy(), np.zeros((len(index), len(index)))
+    h = kernel_bandwidth(count, len(index))
+    mean, spread = weighted_moments(particles, np.exp(log_weights), angles)
+    shrink = math.sqrt(1.0 - h * h)
+    centres = particles.copy()
+    deviation = wrap(particles[:, index] - mean[index], angles[index])
+    centres[:, index] = wrap(mean[index] + shrink * deviation, angles[index])
+    return centres, h * h * spread[np.ix_(index, index)]
 
 
 def embed(previous: np.ndarray, block: np.ndarray, active: np.ndarray) -> np.ndarray:
@@ -276,5 +342,8 @@ def embed(previous: np.ndarray, block: np.ndarray, active: np.ndarray) -> np.nda
 
 
 def nis(innovation: np.ndarray, cov: np.ndarray) -> float:
-    """Normalised innovation squared nu^T S^-1 nu."""
-    return float(innovation @ np.linalg.solve(cov, innovation))
+    """Normalised innovation squared nu^T S^-1 nu; a singular S raises NumericalError."""
+    try:
+        return float(innovation @ np.linalg.solve(cov, innovation))
+    except np.linalg.LinAlgError:
+        raise NumericalError("singular innovation covariance") from None
