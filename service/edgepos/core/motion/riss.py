@@ -194,7 +194,7 @@ class GnssOnlyModel:
     roll held) and is not part of the stochastic state; nor are the gyro bias and wheel scale (held)."""
 
     anchor: GeodeticAnchor
-    accel_std: float = 1.0
+    accel_std: float = 3.0
     vertical_accel_std: float = 0.3
     clock_bias_psd: float = 1.0
     clock_drift_psd: float = 0.1
