@@ -59,8 +59,9 @@ class AppContext:
         return hashlib.sha256(key.encode()).digest()
 
 
-def get_context(request: Request) -> AppContext:
-    """FastAPI dependency: the app's context."""
+async def get_context(request: Request) -> AppContext:
+    """FastAPI dependency: the app's context. A coroutine although it never awaits: FastAPI runs a
+    plain function dependency in its threadpool, a thread hop (and GIL hand-off) per use."""
     context: AppContext = request.app.state.context
     return context
 
