@@ -3,8 +3,9 @@
 A minimal FastAPI app with the same routes the load test uses, parsing the same request schemas
 as the service (imported from ``edgepos.api.schemas``: strict types, the measurement union, bounds)
 and answering every batch with fixed fixes of the same shape and size (one per epoch, each listing
-its measurements), written to JSON by the service's own code (``edgepos.api.convert``). Comparing the service's epochs/s with this app's shows what the filter costs
-beside the HTTP, validation and JSON work every request pays anyway. It keeps no state, so seq
+its measurements), written to JSON by the service's own code (``edgepos.api.convert``). Comparing
+the service's epochs/s with this app's shows what the filter costs beside the HTTP, validation and
+JSON work every request pays anyway. It keeps no state, so seq
 and tokens are not checked.
 
 Run: ``python bench/floor_app.py --port 8001`` (loopback only).
@@ -90,7 +91,9 @@ def create_app() -> FastAPI:
         epochs: dict[float, list[MeasurementUse]] = {}
         for index, measurement in enumerate(body.measurements):
             epochs.setdefault(measurement.t, []).append(MeasurementUse(index, measurement.type, True))
-        fixes = [fix_to_json(_fixed_fix(t, uses), body.include_state, None) for t, uses in sorted(epochs.items())]
+        fixes = [
+            fix_to_json(_fixed_fix(t, uses), body.include_state, None) for t, uses in sorted(epochs.items())
+        ]
         return Response(batch_body(body.seq, fixes), media_type="application/json")
 
     return app

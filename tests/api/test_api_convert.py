@@ -28,7 +28,9 @@ def _fixes() -> list[Fix]:
 
 @pytest.mark.parametrize("include_state", [False, True])
 @pytest.mark.parametrize("origin", [None, GeodeticOrigin(math.radians(48.1), math.radians(11.6), 520.0)])
-def test_batch_body_is_what_the_response_models_write(include_state: bool, origin: GeodeticOrigin | None) -> None:
+def test_batch_body_is_what_the_response_models_write(
+    include_state: bool, origin: GeodeticOrigin | None
+) -> None:
     wire = [fix_to_json(fix, include_state, origin) for fix in _fixes()]
     models = [FixOut.model_validate(fix) for fix in wire]
     assert [model.model_dump(mode="json") for model in models] == wire  # same fields, same order
