@@ -3,8 +3,9 @@
 A minimal FastAPI app with the same routes the load test uses, parsing the same request schemas
 as the service (imported from ``edgepos.api.schemas``: strict types, the measurement union, bounds)
 and answering every batch with fixed fixes of the same shape and size (one per epoch, each listing
-its measurements). Comparing the service's epochs/s with this app's shows what the filter costs
-beside the HTTP, validation and JSON work every request pays anyway. It keeps no state, so seq
+its measurements), written to JSON by the service's own code (``edgepos.api.convert``). Comparing
+the service's epochs/s with this app's shows what the filter costs beside the HTTP, validation and
+JSON work every request pays anyway. It keeps no state, so seq
 and tokens are not checked.
 
 Run: ``python bench/floor_app.py --port 8001`` (loopback only).
@@ -18,26 +19,25 @@ import time
 from pathlib import Path
 
 import uvicorn
+from edgepos.api.convert import batch_body, fix_to_json
 from edgepos.api.schemas import (
     BatchIn,
-    BatchOut,
-    FixOut,
     Health,
-    MeasurementUseOut,
     Ready,
     RsuBulk,
     SessionCreate,
     SessionCreated,
     Upserted,
 )
+from edgepos.pipelines.base import Fix, MeasurementUse
 from fastapi import FastAPI, Response
 
 _COVARIANCE = [[0.04, 0.0], [0.0, 0.04]]
 _PROBABILITIES = {"ca": 0.4, "at": 0.3, "singer": 0.3}
 
 
-def _fixed_fix(t: float, uses: list[MeasurementUseOut]) -> FixOut:
-    return FixOut(
+def _fixed_fix(t: float, uses: list[MeasurementUse]) -> Fix:
+    return Fix(
         t=t,
         status="tracking",
         x=10.0,
@@ -47,10 +47,7 @@ def _fixed_fix(t: float, uses: list[MeasurementUseOut]) -> FixOut:
         speed=10.0,
         heading=0.0,
         yaw_rate=0.0,
-        latitude=None,
-        longitude=None,
-        position_covariance=_COVARIANCE,
-        state=None,
+        position_cov=_COVARIANCE,
         model_probabilities=_PROBABILITIES,
         nis=2.0,
         nis_dof=len(uses) * 2,
@@ -91,13 +88,13 @@ def create_app() -> FastAPI:
 
     @app.post("/v1/sessions/{session_id}/batches")
     async def post_batch(session_id: str, body: BatchIn) -> Response:
-        epochs: dict[float, list[MeasurementUseOut]] = {}
+        epochs: dict[float, list[MeasurementUse]] = {}
         for index, measurement in enumerate(body.measurements):
-            epochs.setdefault(measurement.t, []).append(
-                MeasurementUseOut(index=index, type=measurement.type, used=True, reason=None)
-            )
-        fixes = [_fixed_fix(t, uses) for t, uses in sorted(epochs.items())]
-        return Response(BatchOut(seq=body.seq, fixes=fixes).model_dump_json(), media_type="application/json")
+            epochs.setdefault(measurement.t, []).append(MeasurementUse(index, measurement.type, True))
+        fixes = [
+            fix_to_json(_fixed_fix(t, uses), body.include_state, None) for t, uses in sorted(epochs.items())
+        ]
+        return Response(batch_body(body.seq, fixes), media_type="application/json")
 
     return app
 

@@ -17,7 +17,8 @@ from typing import Any
 
 from apihelp import ADMIN, ADMIN_KEY, bearer, epochs, rsu_payload, scenario, wire
 from edgepos.api.app import create_app
-from edgepos.api.convert import fix_to_wire
+from edgepos.api.convert import fix_to_json
+from edgepos.api.schemas import FixOut
 from edgepos.api.settings import Settings
 from edgepos.pipelines.base import InitialState, StaticEnvironment
 from edgepos.pipelines.registry import get_pipeline
@@ -67,7 +68,7 @@ class Model:
 
 
 def _wire_fix(fix: Any) -> dict[str, Any]:
-    return json.loads(fix_to_wire(fix, False, None).model_dump_json())
+    return json.loads(FixOut.model_validate(fix_to_json(fix, False, None)).model_dump_json())
 
 
 def _measurements(first: int, count: int) -> list[dict[str, Any]]:

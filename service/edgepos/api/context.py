@@ -26,10 +26,12 @@ Result = TypeVar("Result")
 class AppContext:
     """Settings, store, pipelines and metrics of one app instance.
 
-    Filtering runs on one dedicated thread per process. It is CPU-bound Python that holds the GIL, so
-    more threads would not run it in parallel, only take turns at the GIL; with many batches in
-    flight that convoy cost more than half the throughput. Requests queue for that thread on the event
-    loop, which meanwhile keeps serving everything else. Throughput scales with worker processes.
+    Filtering runs on one dedicated thread per process. It is CPU-bound work that holds the GIL
+    (Python, and compiled kernels too short to be worth releasing it), so more threads would not run
+    it in parallel, only take turns at the GIL; with many batches in flight that convoy cost more than half the throughput.
+    Requests queue for that thread on the event loop, which meanwhile keeps serving everything else:
+    CPython makes the filter thread yield the GIL every switch interval (5 ms) when the loop waits
+    for it. Throughput scales with worker processes.
     """
 
     settings: Settings
@@ -59,8 +61,9 @@ class AppContext:
         return hashlib.sha256(key.encode()).digest()
 
 
-def get_context(request: Request) -> AppContext:
-    """FastAPI dependency: the app's context."""
+async def get_context(request: Request) -> AppContext:
+    """FastAPI dependency: the app's context. A coroutine although it never awaits: FastAPI runs a
+    plain function dependency in its threadpool, a thread hop (and GIL hand-off) per use."""
     context: AppContext = request.app.state.context
     return context
 

@@ -18,11 +18,10 @@ from typing import Any
 
 from edgepos.api.auth import hash_token, new_session_id, new_session_token
 from edgepos.api.context import AppContext
-from edgepos.api.convert import fix_to_wire
+from edgepos.api.convert import batch_body, fix_to_json, to_json
 from edgepos.api.errors import ApiError, pipeline_problems
 from edgepos.api.schemas import (
     BatchIn,
-    BatchOut,
     FixOut,
     ProblemModel,
     SessionCreate,
@@ -275,11 +274,11 @@ async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> b
                     f"the filter could not process this batch: {error}; the session is unchanged",
                 ) from None
             elapsed = time.perf_counter() - started
-            wire_fixes = [fix_to_wire(fix, batch.include_state, context.origin) for fix in fixes]
-            body = _batch_body(batch.seq, wire_fixes)
+            wire_fixes = [fix_to_json(fix, batch.include_state, context.origin) for fix in fixes]
+            body = batch_body(batch.seq, wire_fixes)
             last_fix = record.last_fix
             if wire_fixes:
-                last_fix = wire_fixes[-1].model_copy(update={"state": None}).model_dump_json()
+                last_fix = to_json({**wire_fixes[-1], "state": None}).decode()
             updated = dataclasses.replace(
                 record,
                 state=state,
@@ -355,7 +354,3 @@ async def _publish_track(
             "track not published",
             extra={"event": "track_not_published", "session_id": record.session_id, "error": str(error)},
         )
-
-
-def _batch_body(seq: int, fixes: list[FixOut]) -> bytes:
-    return BatchOut(seq=seq, fixes=fixes).model_dump_json().encode()

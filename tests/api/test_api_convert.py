@@ -1,0 +1,44 @@
+"""The batch response is written from plain values, not the response models: it must be the very
+bytes the models would write, for every kind of fix, and refuse non-finite numbers as they do."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+from apihelp import epochs, scenario
+from edgepos.api.convert import batch_body, fix_to_json
+from edgepos.api.schemas import BatchOut, FixOut
+from edgepos.geo import GeodeticOrigin
+from edgepos.pipelines.base import Fix, InitialState, MeasurementUse, StaticEnvironment
+from edgepos.pipelines.registry import get_pipeline
+
+
+def _fixes() -> list[Fix]:
+    """Real rsu_imu fixes (initialised, tracking) and an uninitialised one with null fields."""
+    pipeline = get_pipeline("rsu_imu")
+    environment = StaticEnvironment({rsu.id: rsu for rsu in scenario().rsus})
+    state = pipeline.create(pipeline.resolve_options(None), None)
+    observations = [o for epoch in epochs()[:6] for o in epoch]
+    fixes, _ = pipeline.process(state, observations, environment)
+    waiting = MeasurementUse(0, "gyro", False, "waiting for an RSU measurement to initialise")
+    return [*fixes, Fix(t=1.5, status="uninitialised", measurements=[waiting])]
+
+
+@pytest.mark.parametrize("include_state", [False, True])
+@pytest.mark.parametrize("origin", [None, GeodeticOrigin(math.radians(48.1), math.radians(11.6), 520.0)])
+def test_batch_body_is_what_the_response_models_write(
+    include_state: bool, origin: GeodeticOrigin | None
+) -> None:
+    wire = [fix_to_json(fix, include_state, origin) for fix in _fixes()]
+    models = [FixOut.model_validate(fix) for fix in wire]
+    assert [model.model_dump(mode="json") for model in models] == wire  # same fields, same order
+    assert batch_body(7, wire) == BatchOut(seq=7, fixes=models).model_dump_json().encode()
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
+def test_non_finite_numbers_are_refused(value: float) -> None:
+    fix = dataclasses.replace(_fixes()[-2], nis=value)
+    with pytest.raises(ValueError, match="non-finite"):
+        batch_body(1, [fix_to_json(fix, False, None)])
