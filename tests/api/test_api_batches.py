@@ -345,3 +345,32 @@ def test_lost_compare_and_set_reloads_and_replays(tmp_path):
         metrics = client.get("/metrics").text
     assert "edgepos_store_conflicts_total 1.0" in metrics
     assert 'edgepos_batches_total{outcome="replayed"} 1.0' in metrics
+
+
+@pytest.mark.parametrize("damage", ["truncated", "foreign"])
+def test_a_stored_state_this_server_cannot_read_is_a_409_not_a_500(client, damage):
+    """After an upgrade that changed a pipeline's state layout (or a damaged record), the vehicle is
+    told to start over; the record is left as it was."""
+    import dataclasses
+
+    from edgepos.pipelines.registry import get_pipeline
+
+    session_id, token = open_session(client)
+    assert _post(client, session_id, batch_body(1, 0, 2), token).status_code == 200
+    store = client.app.state.context.store
+    record = _record(client, session_id)
+    if damage == "truncated":
+        unreadable = record.state[: len(record.state) // 2]
+    else:  # a well-formed state of another pipeline under this session's name
+        unreadable = get_pipeline("v2v_coop").create(get_pipeline("v2v_coop").resolve_options({}), None)
+    assert client.portal.call(store.compare_and_set, dataclasses.replace(record, state=unreadable), record.version)
+    damaged = _record(client, session_id)
+
+    for response in (
+        client.get(f"/v1/sessions/{session_id}", headers=token),
+        _post(client, session_id, batch_body(2, 2, 2), token),
+    ):
+        error = assert_error(response, 409, "conflict")
+        assert "open a new one" in error["message"]
+    assert _record(client, session_id) == damaged
+    assert client.delete(f"/v1/sessions/{session_id}", headers=token).status_code == 204

@@ -29,6 +29,7 @@ from edgepos.api.schemas import (
     SessionOut,
 )
 from edgepos.core.errors import EstimationError
+from edgepos.core.state import StateFormatError
 from edgepos.api.ephemerides import LoadedEphemerides, satellite_problems
 from edgepos.core.observations import (
     PseudorangeObservation,
@@ -78,6 +79,19 @@ def _resolve_and_create(pipeline: Pipeline, body: SessionCreate) -> tuple[dict[s
     except EstimationError as error:
         raise PipelineInputError([_problem("initial_state", str(error))]) from None
     return options, state
+
+
+def _unreadable_state(session_id: str, error: StateFormatError) -> ApiError:
+    """A stored state this server cannot read (written by an incompatible version, or damaged): the
+    vehicle is told to start over instead of getting a 500 on every call."""
+    logger.warning(
+        "unreadable session state", extra={"event": "state_unreadable", "session_id": session_id, "error": str(error)}
+    )
+    return ApiError(
+        "conflict",
+        f"this server cannot read the session's stored filter state ({error}); it was probably written by an "
+        "incompatible edgepos version: delete the session and open a new one",
+    )
 
 
 def _problem(field: str, reason: str) -> Problem:
@@ -136,7 +150,10 @@ async def describe_session(context: AppContext, session_id: str) -> SessionOut:
     record = await context.store.get(session_id)
     if record is None:
         raise ApiError("not_found", f"no session {session_id!r} (it may have expired or been deleted)")
-    summary = _pipeline(context, record.pipeline).summarise(record.state)
+    try:
+        summary = _pipeline(context, record.pipeline).summarise(record.state)
+    except StateFormatError as error:
+        raise _unreadable_state(session_id, error) from None
     return SessionOut(
         session_id=record.session_id,
         vehicle_id=record.vehicle_id,
@@ -263,6 +280,9 @@ async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> b
                     "the session is unchanged",
                     pipeline_problems(error.problems, "measurements", _wire_field_namer(batch)),
                 ) from None
+            except StateFormatError as error:
+                metrics.batches.labels("failed").inc()
+                raise _unreadable_state(session_id, error) from None
             except EstimationError as error:
                 metrics.batches.labels("failed").inc()
                 logger.warning(
