@@ -363,7 +363,8 @@ def test_a_stored_state_this_server_cannot_read_is_a_409_not_a_500(client, damag
         unreadable = record.state[: len(record.state) // 2]
     else:  # a well-formed state of another pipeline under this session's name
         unreadable = get_pipeline("v2v_coop").create(get_pipeline("v2v_coop").resolve_options({}), None)
-    assert client.portal.call(store.compare_and_set, dataclasses.replace(record, state=unreadable), record.version)
+    damaged_record = dataclasses.replace(record, state=unreadable)
+    assert client.portal.call(store.compare_and_set, damaged_record, record.version)
     damaged = _record(client, session_id)
 
     for response in (

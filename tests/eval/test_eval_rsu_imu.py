@@ -117,7 +117,9 @@ def test_bad_run_count_is_rejected_by_the_parser(capsys) -> None:
     assert "--runs" in capsys.readouterr().err
 
 
-def test_an_option_override_changes_the_result_and_is_recorded(one_worker: Outcome, tmp_path: Path, capsys) -> None:
+def test_an_option_override_changes_the_result_and_is_recorded(
+    one_worker: Outcome, tmp_path: Path, capsys
+) -> None:
     json_path = tmp_path / "sigma.json"
     override = '{"singer": {"sigma": 2.0}, "cv": {"q": 1.0}}'
     code = run_eval(
@@ -150,8 +152,9 @@ def test_a_bad_option_override_is_refused_before_any_run(option: str, says: str,
 
 def test_model_params_go_only_to_banks_with_that_model() -> None:
     chosen = rsu_imu_algorithms.select_algorithms("CV-CKF,Singer-CKF,2IMM-CKF")
-    changed = rsu_imu_algorithms.with_overrides(chosen, {"model_params": {"singer": {"sigma": 2}}, "max_rsus": 3})
-    assert [a.options["model_params"] for a in changed] == [{}, {"singer": {"sigma": 2}}, {"singer": {"sigma": 2}}]
+    sigma = {"singer": {"sigma": 2}}
+    changed = rsu_imu_algorithms.with_overrides(chosen, {"model_params": sigma, "max_rsus": 3})
+    assert [a.options["model_params"] for a in changed] == [{}, sigma, sigma]
     assert all(a.options["max_rsus"] == 3 for a in changed)
     assert all("model_params" not in a.options and "max_rsus" not in a.options for a in chosen)  # not mutated
 

@@ -1,13 +1,14 @@
 """kill -9 one worker of ``edgepos serve --workers 2`` on Redis while vehicles stream batches.
 
-Eight vehicles send batches back to back (closed loop, so both workers always have requests in
-flight) through the Python client, which retries a batch with the same seq after a connection
-error. Once every vehicle is streaming (a few batches acknowledged each, not a fixed delay, which a
-busy machine can outrun) one worker gets SIGKILL, and the vehicles stream on for a few seconds. Afterwards: no vehicle saw an error (the requests lost with
-the worker were retried and answered by a live worker), uvicorn replaced the dead worker, every
-acknowledged batch is in Redis exactly once (last_seq, batches and epochs agree with what the
-vehicles were told), and each session's stored filter state equals, byte for byte, the in-process
-pipeline's after the same batches: a batch applied twice or skipped would change it.
+Eight vehicles send batches back to back (closed loop, so both workers always have requests in flight)
+through the Python client, which retries a batch with the same seq after a connection error. Once every
+vehicle is streaming (a few batches acknowledged each, not a fixed delay, which a busy machine can
+outrun) one worker gets SIGKILL, and the vehicles stream on for a few seconds. Afterwards: no vehicle
+saw an error (the requests lost with the worker were retried and answered by a live worker), uvicorn
+replaced the dead worker, every acknowledged batch is in Redis exactly once (last_seq, batches and
+epochs agree with what the vehicles were told), and each session's stored filter state equals, byte for
+byte, the in-process pipeline's after the same batches: a batch applied twice or skipped would change
+it.
 """
 
 from __future__ import annotations

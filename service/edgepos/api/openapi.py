@@ -7,6 +7,7 @@ sorted keys, 2-space indent and a trailing newline, so the file changes only whe
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
@@ -32,8 +33,13 @@ def render() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = sys.argv[1:] if argv is None else argv
-    path = Path(args[0]) if args else DEFAULT_PATH
+    parser = argparse.ArgumentParser(
+        prog="python -m edgepos.api.openapi", description="Write the app's OpenAPI schema."
+    )
+    parser.add_argument(
+        "path", nargs="?", type=Path, default=DEFAULT_PATH, help=f"where to write (default {DEFAULT_PATH})"
+    )
+    path = parser.parse_args(argv).path
     path.write_text(render(), encoding="utf-8")
     print(f"wrote {path}")
     return 0

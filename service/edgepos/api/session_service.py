@@ -85,7 +85,8 @@ def _unreadable_state(session_id: str, error: StateFormatError) -> ApiError:
     """A stored state this server cannot read (written by an incompatible version, or damaged): the
     vehicle is told to start over instead of getting a 500 on every call."""
     logger.warning(
-        "unreadable session state", extra={"event": "state_unreadable", "session_id": session_id, "error": str(error)}
+        "unreadable session state",
+        extra={"event": "state_unreadable", "session_id": session_id, "error": str(error)},
     )
     return ApiError(
         "conflict",
