@@ -96,3 +96,18 @@ def test_a_biased_pseudorange_is_excluded_by_the_snapshot_test(recording, filter
     assert not used and reason is not None and "snapshot" in reason
     used, _ = last_use(0.0, 0.0)
     assert used
+
+
+def test_the_cloud_mean_averages_the_azimuth_on_the_circle() -> None:
+    """Particles heading south straddle +-pi: their mean azimuth is south, not the plain average (north)
+    the prediction used to be linearised at."""
+    from edgepos.core.motion import riss as layout
+    from edgepos.core.particles import Cloud
+    from edgepos.pipelines.gnss_tight import _cloud_mean
+
+    particles = np.zeros((4, layout.DIM))
+    particles[:, layout.AZIMUTH] = [math.pi - 0.01, -math.pi + 0.01, math.pi - 0.02, -math.pi + 0.02]
+    particles[:, layout.NORTH] = [1.0, 2.0, 3.0, 4.0]
+    mean = _cloud_mean(Cloud(particles, np.full(4, -math.log(4)), np.eye(layout.DIM)))
+    assert abs(abs(mean[layout.AZIMUTH]) - math.pi) < 1e-9
+    assert mean[layout.NORTH] == pytest.approx(2.5)

@@ -46,7 +46,7 @@ from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GeodeticAnchor, GnssOnlyModel, RissInput, RissModel
 from edgepos.core.observations import Observation, PseudorangeObservation, RissObservation
 from edgepos.core.particles import PARTICLE_FILTERS, Cloud, Measurement
-from edgepos.core.particles.base import StepResult
+from edgepos.core.particles.base import StepResult, weighted_moments
 from edgepos.gnss.corrections import carrier_frequency
 from edgepos.gnss.ephemerides import DEFAULT_SIGNAL, Ephemerides
 from edgepos.gnss.geodesy import enu_rotation, geodetic_to_ecef
@@ -426,8 +426,7 @@ def _step(
     assert session.anchor is not None
     dt = t - session.filter_t if session.filter_t is not None else 0.0
     model = _model(session, t)
-    weights = session.cloud.weights
-    centre = model.propagate((weights @ session.cloud.particles)[None, :], dt)[0]
+    centre = model.propagate(_cloud_mean(session.cloud)[None, :], dt)[0]
     active = model.active.copy()
     for system, index in layout.CLOCK.items():
         active[index] = False
@@ -472,6 +471,14 @@ def _step(
         uses[i] = MeasurementUse(i, "pseudorange", True)
     status = "tracking" if measurement is not None else "predicted"
     return _fix(t, status, session, result.mean, result.cov, result, int(rows.size), uses, origin)
+
+
+def _cloud_mean(cloud: Cloud) -> np.ndarray:
+    """The cloud's weighted mean, the azimuth averaged on the circle: a plain average of particles at
+    +179 and -179 deg (a vehicle heading south) would point north."""
+    if len(cloud.particles) == 1:
+        return cloud.particles[0].copy()
+    return weighted_moments(cloud.particles, cloud.weights, layout.ANGLES)[0]
 
 
 def _maybe_start_riss(session: _Session, t: float, result: StepResult) -> None:
