@@ -93,6 +93,19 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
     ),
     OptionSpec("pseudorange_std", "number", 2.0, "R0: pseudorange noise std (m) before the fuzzy factor.", 0.01, 1000.0),
     OptionSpec(
+        "outlier_probability", "number", 0.1,
+        "PF and UPF: each pseudorange's likelihood in the particle weights is the mixture (1 - p) N(0, "
+        "(R0 x fuzzy factor)^2) + p N(0, outlier_std^2), a heavy tail for reflected (NLOS) signals and other "
+        "errors the Gaussian does not model; the UPF's UKF proposal inflates each range's variance by its "
+        "outlier responsibility. 0.1: one range in ten may be an outlier, a generic robust-likelihood prior "
+        "(not fitted to a scenario). 0: Gaussian. Not used by the UKF.", 0.0, 0.9,
+    ),
+    OptionSpec(
+        "outlier_std", "number", 30.0,
+        "Std (m) of the likelihood's outlier component (see outlier_probability): the size of a reflected "
+        "signal's extra path in a street canyon, tens of metres.", 0.1, 10000.0,
+    ),
+    OptionSpec(
         "systems", "string[]", list(SYSTEMS),
         "Constellations used (RINEX letters G GPS, C BeiDou, E Galileo); others are reported unused.",
         choices=SYSTEMS,
@@ -456,7 +469,11 @@ def _step(
             for system in set(systems):
                 active[layout.CLOCK[system]] = True
             model_pr = PseudorangeModel.build(session.anchor, prs.sat_position[rows], systems, known[rows], std[rows])
-            measurement = Measurement(model_pr.predict, prs.pseudorange_m[rows], model_pr.variances())
+            outlier = float(options.get("outlier_probability", 0.0)) if options["filter"] != "ukf" else 0.0
+            measurement = Measurement(
+                model_pr.predict, prs.pseudorange_m[rows], model_pr.variances(), outlier,
+                float(options.get("outlier_std", 30.0)) ** 2 if outlier > 0.0 else 0.0,
+            )
     filt = _filter(options)
     result = filt.step(session.cloud, model, dt, active, measurement, rng)
     if not (np.all(np.isfinite(result.mean)) and np.all(np.isfinite(result.cov))
