@@ -111,3 +111,17 @@ def test_the_cloud_mean_averages_the_azimuth_on_the_circle() -> None:
     mean = _cloud_mean(Cloud(particles, np.full(4, -math.log(4)), np.eye(layout.DIM)))
     assert abs(abs(mean[layout.AZIMUTH]) - math.pi) < 1e-9
     assert mean[layout.NORTH] == pytest.approx(2.5)
+
+
+def test_outlier_likelihood_options_have_documented_defaults_and_bounds() -> None:
+    from edgepos.pipelines.base import PipelineInputError
+
+    pipeline = GnssTightPipeline()
+    resolved = pipeline.resolve_options({})
+    assert resolved["outlier_probability"] == 0.1
+    assert resolved["outlier_std"] == 30.0
+    assert pipeline.resolve_options({"outlier_probability": 0.0})["outlier_probability"] == 0.0
+    with pytest.raises(PipelineInputError):
+        pipeline.resolve_options({"outlier_probability": 1.0})
+    with pytest.raises(PipelineInputError):
+        pipeline.resolve_options({"outlier_std": 0.0})
