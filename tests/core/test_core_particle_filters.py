@@ -204,3 +204,56 @@ def test_singular_and_non_finite_steps_raise_numerical_error():
     with pytest.raises(NumericalError):
         normalise(np.full(5, -np.inf))
     assert effective_sample_size(normalise(np.zeros(4))) == pytest.approx(4.0)
+
+
+def test_mixture_likelihood_is_the_gaussian_without_outliers_and_heavy_tailed_with_them():
+    from edgepos.core.particles.base import diagonal_logpdf
+
+    residual = np.array([[0.5, -1.0, 30.0], [0.0, 2.0, -3.0]])
+    variances = np.array([1.0, 4.0, 1.0])
+    plain = linear_measurement(np.zeros(3), variances)
+    np.testing.assert_allclose(plain.log_likelihood(residual), diagonal_logpdf(residual, variances))
+    mixture = Measurement(plain.predict, np.zeros(3), variances, 0.1, 900.0)
+    by_hand = np.sum(
+        np.log(
+            0.9 * np.exp(-0.5 * residual**2 / variances) / np.sqrt(2.0 * math.pi * variances)
+            + 0.1 * np.exp(-0.5 * residual**2 / 900.0) / math.sqrt(2.0 * math.pi * 900.0)
+        ),
+        axis=-1,
+    )
+    np.testing.assert_allclose(mixture.log_likelihood(residual), by_hand, rtol=1e-12)
+    # A 30-sigma residual costs the mixture a few nats, the Gaussian hundreds.
+    assert plain.log_likelihood(residual)[0] - plain.log_likelihood(residual)[1] < -400.0
+    assert mixture.log_likelihood(residual)[0] - mixture.log_likelihood(residual)[1] > -10.0
+    # The UPF's Gaussian proposal: a small residual keeps its variance, a large one gets the outlier's.
+    inflated = mixture.proposal_variances(np.array([0.5, -1.0, 30.0]), np.zeros(3))
+    np.testing.assert_allclose(inflated[:2], variances[:2], rtol=0.05)
+    assert inflated[2] == pytest.approx(900.0)
+    np.testing.assert_array_equal(plain.proposal_variances(np.array([0.5, -1.0, 30.0]), np.zeros(3)), variances)
+
+
+@pytest.mark.parametrize("make", [ParticleFilter, UnscentedParticleFilter])
+def test_mixture_likelihood_keeps_a_reflected_range_from_dragging_the_cloud(make) -> None:
+    """Three range-like measurements of a point at the origin, the third 40 m long (a reflection): with the
+    Gaussian likelihood the estimate is pulled metres off, with the mixture it stays within a metre."""
+    model, dt, count = ConstantVelocity(q=1e-6), 1.0, 400
+    prior = np.diag([25.0, 25.0, 1.0, 1.0])
+    r = np.ones(3)
+    z = np.array([0.0, 0.0, 40.0])
+    errors = {}
+    for p in (0.0, 0.1):
+        rng = np.random.default_rng(9)
+        if make is ParticleFilter:
+            particles = np.zeros((count, layout.DIM))
+            particles[:, INDEX] = rng.multivariate_normal(np.zeros(4), prior, count)
+            cov = np.eye(layout.DIM)
+        else:
+            particles = np.zeros((count, layout.DIM))
+            cov = np.zeros((layout.DIM, layout.DIM))
+            cov[np.ix_(INDEX, INDEX)] = prior
+        cloud = Cloud(particles, np.full(count, -math.log(count)), cov)
+        measurement = Measurement(linear_measurement(z, r).predict, z, r, p, 900.0 if p else 0.0)
+        result = make().step(cloud, model, dt, ACTIVE, measurement, rng)
+        errors[p] = math.hypot(*result.mean[[N, E]])
+    assert errors[0.0] > 5.0, errors
+    assert errors[0.1] < 1.0, errors

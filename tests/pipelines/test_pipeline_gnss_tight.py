@@ -96,3 +96,32 @@ def test_a_biased_pseudorange_is_excluded_by_the_snapshot_test(recording, filter
     assert not used and reason is not None and "snapshot" in reason
     used, _ = last_use(0.0, 0.0)
     assert used
+
+
+def test_the_cloud_mean_averages_the_azimuth_on_the_circle() -> None:
+    """Particles heading south straddle +-pi: their mean azimuth is south, not the plain average (north)
+    the prediction used to be linearised at."""
+    from edgepos.core.motion import riss as layout
+    from edgepos.core.particles import Cloud
+    from edgepos.pipelines.gnss_tight import _cloud_mean
+
+    particles = np.zeros((4, layout.DIM))
+    particles[:, layout.AZIMUTH] = [math.pi - 0.01, -math.pi + 0.01, math.pi - 0.02, -math.pi + 0.02]
+    particles[:, layout.NORTH] = [1.0, 2.0, 3.0, 4.0]
+    mean = _cloud_mean(Cloud(particles, np.full(4, -math.log(4)), np.eye(layout.DIM)))
+    assert abs(abs(mean[layout.AZIMUTH]) - math.pi) < 1e-9
+    assert mean[layout.NORTH] == pytest.approx(2.5)
+
+
+def test_outlier_likelihood_options_have_documented_defaults_and_bounds() -> None:
+    from edgepos.pipelines.base import PipelineInputError
+
+    pipeline = GnssTightPipeline()
+    resolved = pipeline.resolve_options({})
+    assert resolved["outlier_probability"] == 0.1
+    assert resolved["outlier_std"] == 30.0
+    assert pipeline.resolve_options({"outlier_probability": 0.0})["outlier_probability"] == 0.0
+    with pytest.raises(PipelineInputError):
+        pipeline.resolve_options({"outlier_probability": 1.0})
+    with pytest.raises(PipelineInputError):
+        pipeline.resolve_options({"outlier_std": 0.0})

@@ -46,7 +46,7 @@ from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GeodeticAnchor, GnssOnlyModel, RissInput, RissModel
 from edgepos.core.observations import Observation, PseudorangeObservation, RissObservation
 from edgepos.core.particles import PARTICLE_FILTERS, Cloud, Measurement
-from edgepos.core.particles.base import StepResult
+from edgepos.core.particles.base import StepResult, weighted_moments
 from edgepos.gnss.corrections import carrier_frequency
 from edgepos.gnss.ephemerides import DEFAULT_SIGNAL, Ephemerides
 from edgepos.gnss.geodesy import enu_rotation, geodetic_to_ecef
@@ -92,6 +92,19 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "off: every pseudorange has pseudorange_std.",
     ),
     OptionSpec("pseudorange_std", "number", 2.0, "R0: pseudorange noise std (m) before the fuzzy factor.", 0.01, 1000.0),
+    OptionSpec(
+        "outlier_probability", "number", 0.1,
+        "PF and UPF: each pseudorange's likelihood in the particle weights is the mixture (1 - p) N(0, "
+        "(R0 x fuzzy factor)^2) + p N(0, outlier_std^2), a heavy tail for reflected (NLOS) signals and other "
+        "errors the Gaussian does not model; the UPF's UKF proposal inflates each range's variance by its "
+        "outlier responsibility. 0.1: one range in ten may be an outlier, a generic robust-likelihood prior "
+        "(not fitted to a scenario). 0: Gaussian. Not used by the UKF.", 0.0, 0.9,
+    ),
+    OptionSpec(
+        "outlier_std", "number", 30.0,
+        "Std (m) of the likelihood's outlier component (see outlier_probability): the size of a reflected "
+        "signal's extra path in a street canyon, tens of metres.", 0.1, 10000.0,
+    ),
     OptionSpec(
         "systems", "string[]", list(SYSTEMS),
         "Constellations used (RINEX letters G GPS, C BeiDou, E Galileo); others are reported unused.",
@@ -426,8 +439,7 @@ def _step(
     assert session.anchor is not None
     dt = t - session.filter_t if session.filter_t is not None else 0.0
     model = _model(session, t)
-    weights = session.cloud.weights
-    centre = model.propagate((weights @ session.cloud.particles)[None, :], dt)[0]
+    centre = model.propagate(_cloud_mean(session.cloud)[None, :], dt)[0]
     active = model.active.copy()
     for system, index in layout.CLOCK.items():
         active[index] = False
@@ -457,7 +469,11 @@ def _step(
             for system in set(systems):
                 active[layout.CLOCK[system]] = True
             model_pr = PseudorangeModel.build(session.anchor, prs.sat_position[rows], systems, known[rows], std[rows])
-            measurement = Measurement(model_pr.predict, prs.pseudorange_m[rows], model_pr.variances())
+            outlier = float(options.get("outlier_probability", 0.0)) if options["filter"] != "ukf" else 0.0
+            measurement = Measurement(
+                model_pr.predict, prs.pseudorange_m[rows], model_pr.variances(), outlier,
+                float(options.get("outlier_std", 30.0)) ** 2 if outlier > 0.0 else 0.0,
+            )
     filt = _filter(options)
     result = filt.step(session.cloud, model, dt, active, measurement, rng)
     if not (np.all(np.isfinite(result.mean)) and np.all(np.isfinite(result.cov))
@@ -472,6 +488,14 @@ def _step(
         uses[i] = MeasurementUse(i, "pseudorange", True)
     status = "tracking" if measurement is not None else "predicted"
     return _fix(t, status, session, result.mean, result.cov, result, int(rows.size), uses, origin)
+
+
+def _cloud_mean(cloud: Cloud) -> np.ndarray:
+    """The cloud's weighted mean, the azimuth averaged on the circle: a plain average of particles at
+    +179 and -179 deg (a vehicle heading south) would point north."""
+    if len(cloud.particles) == 1:
+        return cloud.particles[0].copy()
+    return weighted_moments(cloud.particles, cloud.weights, layout.ANGLES)[0]
 
 
 def _maybe_start_riss(session: _Session, t: float, result: StepResult) -> None:

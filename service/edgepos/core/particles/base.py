@@ -33,11 +33,48 @@ class ParticleModel(Protocol):
 
 @dataclass(frozen=True)
 class Measurement:
-    """Observed values ``z`` (m,), their noise variances (m,) and the prediction function of states."""
+    """Observed values ``z`` (m,), their noise variances (m,) and the prediction function of states.
+
+    ``outlier_probability`` > 0 makes each component's likelihood, in the particle filters' weights, the
+    mixture (1 - p) N(r; 0, variance) + p N(r; 0, ``outlier_variance``): a heavy tail for errors the
+    Gaussian does not model (reflected signals). The unscented updates (UKF, the UPF's proposal) stay
+    Gaussian; the UPF's proposal takes each component's variance from the mixture (``proposal_variances``).
+    """
 
     predict: Callable[[np.ndarray], np.ndarray]
     z: np.ndarray
     variances: np.ndarray
+    outlier_probability: float = 0.0
+    outlier_variance: float = 0.0
+
+    def log_likelihood(self, residual: np.ndarray) -> np.ndarray:
+        """log p(z | x) for residuals z - h(x) (..., m), summed over the last axis."""
+        if self.outlier_probability <= 0.0:
+            return diagonal_logpdf(residual, self.variances)
+        return np.sum(self.component_log_likelihoods(residual), axis=-1)
+
+    def component_log_likelihoods(self, residual: np.ndarray) -> np.ndarray:
+        """log of each component's mixture density (..., m)."""
+        p = self.outlier_probability
+        inlier = math.log1p(-p) - 0.5 * (residual * residual / self.variances + np.log(self.variances) + _LOG_2PI)
+        outlier = math.log(p) - 0.5 * (
+            residual * residual / self.outlier_variance + math.log(self.outlier_variance) + _LOG_2PI
+        )
+        return np.logaddexp(inlier, outlier)
+
+    def proposal_variances(self, residual: np.ndarray, spread: np.ndarray) -> np.ndarray:
+        """Variances for a Gaussian update that approximates the mixture (one EM step): each component's
+        variance divided by the probability that it is an inlier, given the predicted residual (m,) and the
+        prediction's own variance ``spread`` (m,). Without outliers: the variances unchanged."""
+        if self.outlier_probability <= 0.0:
+            return self.variances
+        p = self.outlier_probability
+        inlier_var = self.variances + spread
+        outlier_var = self.outlier_variance + spread
+        log_in = math.log1p(-p) - 0.5 * (residual * residual / inlier_var + np.log(inlier_var))
+        log_out = math.log(p) - 0.5 * (residual * residual / outlier_var + np.log(outlier_var))
+        inlier_probability = np.exp(log_in - np.logaddexp(log_in, log_out))
+        return np.minimum(self.variances / np.maximum(inlier_probability, 1e-12), self.outlier_variance)
 
 
 @dataclass

@@ -20,7 +20,6 @@ from edgepos.core.particles.base import (
     ParticleModel,
     StepResult,
     batched_cholesky,
-    diagonal_logpdf,
     effective_sample_size,
     embed,
     kernel_prior,
@@ -78,7 +77,7 @@ class ParticleFilter:
         remaining = 1.0
         for stage in range(_MAX_STAGES):
             residual = measurement.z - measurement.predict(particles)
-            log_likelihood = diagonal_logpdf(residual, measurement.variances)
+            log_likelihood = measurement.log_likelihood(residual)
             last = stage == _MAX_STAGES - 1
             alpha = remaining if last else _largest_power(log_weights, log_likelihood, remaining, target)
             log_weights = normalise(log_weights + alpha * log_likelihood)

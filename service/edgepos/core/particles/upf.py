@@ -21,7 +21,7 @@ the kernel's samples towards the measurement instead of scattering them blindly.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -32,7 +32,6 @@ from edgepos.core.particles.base import (
     ParticleModel,
     StepResult,
     batched_cholesky,
-    diagonal_logpdf,
     embed,
     gaussian_logpdf,
     kernel_prior,
@@ -88,13 +87,15 @@ class UnscentedParticleFilter:
 
         centres, kernel_cov = kernel_prior(particles, cloud.log_weights, active, ANGLES)
         prior_cov = noise + kernel_cov
-        update = unscented_update(centres, prior_cov, model, active, ANGLES, measurement)
+        update = unscented_update(centres, prior_cov, model, active, ANGLES, _proposal_measurement(
+            measurement, centres, cloud.log_weights
+        ))
         proposal_chol = batched_cholesky(update.posterior_cov)
         sampled = update.posterior.copy()
         sampled[:, index] += (proposal_chol @ rng.standard_normal((count, len(index), 1)))[:, :, 0]
         sampled = model.complete(wrap(sampled, ANGLES))
 
-        likelihood = diagonal_logpdf(measurement.z - measurement.predict(sampled), measurement.variances)
+        likelihood = measurement.log_likelihood(measurement.z - measurement.predict(sampled))
         prior_chol = batched_cholesky(prior_cov)
         transition = gaussian_logpdf(wrap(sampled[:, index] - centres[:, index], angles), prior_chol)
         proposal = gaussian_logpdf(
@@ -110,3 +111,18 @@ class UnscentedParticleFilter:
         # The samples carry the posterior's spread; no noise is pending after a measurement.
         reset = embed(cloud.cov, np.zeros((len(index), len(index))), active)
         return _finish(sampled, log_weights, reset, active, score, self.resample_threshold, rng, reset)
+
+
+def _proposal_measurement(measurement: Measurement, centres: np.ndarray, log_weights: np.ndarray) -> Measurement:
+    """The Gaussian measurement the UKF proposal uses: with a heavy-tailed likelihood, each component's
+    variance inflated by its outlier responsibility at the cloud's predicted residual (see
+    ``Measurement.proposal_variances``), so that a range the mixture discounts does not drag every
+    particle's proposal; the importance weights still use the exact mixture."""
+    if measurement.outlier_probability <= 0.0:
+        return measurement
+    predicted = measurement.predict(centres)
+    weights = np.exp(log_weights)
+    z_hat = weights @ predicted
+    spread = weights @ ((predicted - z_hat) ** 2)
+    variances = measurement.proposal_variances(measurement.z - z_hat, spread)
+    return replace(measurement, variances=variances, outlier_probability=0.0, outlier_variance=0.0)
