@@ -277,7 +277,7 @@ def test_regularised_resample_keeps_the_weighted_mean_and_unbiased_covariance():
 def test_repeated_resampling_does_not_collapse_the_cloud():
     """Weights that carry no information about the particles must not shrink the cloud however often it
     is resampled. Plain (kernel) resampling lost about 1 / ESS + 1 / N of the covariance each time:
-    a 15-dimensional cloud of 200 particles fell to 1e-4 of its variance in 400 resamplings, which is
+    a 15-dimensional cloud of 200 particles fell to 5e-5 of its variance in 400 resamplings, which is
     how the particle filters' gyro bias, wheel scale and cross-track spread collapsed on a drive."""
     rng = np.random.default_rng(12)
     count, dim = 200, layout.DIM
