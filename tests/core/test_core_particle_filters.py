@@ -19,6 +19,7 @@ from edgepos.core.particles.base import (
     effective_sample_size,
     kernel_prior,
     normalise,
+    regularised_resample,
     unscented_update,
     weighted_moments,
 )
@@ -257,3 +258,35 @@ def test_mixture_likelihood_keeps_a_reflected_range_from_dragging_the_cloud(make
         errors[p] = math.hypot(*result.mean[[N, E]])
     assert errors[0.0] > 5.0, errors
     assert errors[0.1] < 1.0, errors
+
+
+def test_regularised_resample_keeps_the_weighted_mean_and_unbiased_covariance():
+    rng = np.random.default_rng(11)
+    particles = np.stack([state(*rng.normal(0.0, [3.0, 1.0, 0.5, 2.0])) for _ in range(200)])
+    log_weights = normalise(rng.normal(0.0, 1.0, 200))
+    weights = np.exp(log_weights)
+    mean, cov = weighted_moments(particles, weights, layout.ANGLES)
+    block = np.ix_(INDEX, INDEX)
+    for kernel in (True, False):
+        resampled = regularised_resample(particles, log_weights, ACTIVE, layout.ANGLES, rng, kernel=kernel)
+        new_mean, new_cov = weighted_moments(resampled, np.full(200, 1 / 200), layout.ANGLES)
+        np.testing.assert_allclose(new_mean[INDEX], mean[INDEX], atol=1e-9)
+        np.testing.assert_allclose(new_cov[block], cov[block] / (1.0 - np.sum(weights**2)), atol=1e-9)
+
+
+def test_repeated_resampling_does_not_collapse_the_cloud():
+    """Weights that carry no information about the particles must not shrink the cloud however often it
+    is resampled. Plain (kernel) resampling lost about 1 / ESS + 1 / N of the covariance each time:
+    a 15-dimensional cloud of 200 particles fell to 5e-5 of its variance in 400 resamplings, which is
+    how the particle filters' gyro bias, wheel scale and cross-track spread collapsed on a drive."""
+    rng = np.random.default_rng(12)
+    count, dim = 200, layout.DIM
+    active = np.ones(dim, dtype=bool)
+    angles = np.zeros(dim, dtype=bool)
+    particles = rng.standard_normal((count, dim))
+    for cycle in range(400):
+        log_weights = normalise(rng.standard_normal(count))
+        particles = regularised_resample(particles, log_weights, active, angles, rng, kernel=cycle % 2 == 0)
+    variance = float(np.mean(np.var(particles, axis=0)))
+    assert 0.05 < variance < 20.0
+

@@ -367,6 +367,51 @@ def kernel_prior(
     return centres, h * h * spread[np.ix_(index, index)]
 
 
+def regularised_resample(
+    particles: np.ndarray, log_weights: np.ndarray, active: np.ndarray, angles: np.ndarray,
+    rng: np.random.Generator, kernel: bool = True,
+) -> np.ndarray:
+    """Resample (systematic) without losing the cloud's spread: N equally weighted particles whose mean
+    and covariance on the active components are exactly those the weighted cloud stands for.
+
+    Resampling alone shrinks the cloud: the weighted covariance about the weighted mean is biased low by
+    the factor 1 - sum(w^2) (about 1 / ESS), and drawing N particles loses another 1 / N in expectation.
+    Once per step that is nothing; compounded over the hundreds of resamplings of a drive (progressive
+    correction resamples several times per epoch) it collapses every component the measurements do not pin
+    - the gyro bias, the wheel scale, the cross-track position - far below the posterior's spread. So the
+    resampled cloud (with the Liu-West kernel when ``kernel``) is mapped affinely onto the weighted cloud's
+    mean and unbiased covariance Sigma_w / (1 - sum(w^2)). Components without spread are left alone."""
+    count = len(particles)
+    weights = np.exp(log_weights)
+    mean, cov = weighted_moments(particles, weights, angles)
+    unbiased = 1.0 - float(np.sum(weights * weights))
+    resampled = particles[systematic_resample(log_weights, rng)]
+    uniform = np.full(count, -math.log(count))
+    index = np.flatnonzero(active)
+    if kernel:
+        centres, kernel_cov = kernel_prior(resampled, uniform, active, angles)
+        resampled = centres
+        resampled[:, index] += rng.standard_normal((count, len(index))) @ batched_cholesky(kernel_cov).T
+        resampled = wrap(resampled, angles)
+    if count < 2 or unbiased <= 0.0:
+        return resampled
+    new_mean, new_cov = weighted_moments(resampled, np.exp(uniform), angles)
+    spread = index[(np.diag(cov)[index] > 0.0) & (np.diag(new_cov)[index] > 0.0)]
+    if spread.size == 0:
+        return resampled
+    block = np.ix_(spread, spread)
+    try:
+        source = np.linalg.cholesky(new_cov[block])
+        target = np.linalg.cholesky(cov[block] / unbiased)
+    except np.linalg.LinAlgError:
+        return resampled  # too few distinct particles to map: keep them as drawn
+    deviation = wrap(resampled[:, spread] - new_mean[spread], angles[spread])
+    whitened = np.linalg.solve(source, deviation.T)
+    out = resampled.copy()
+    out[:, spread] = mean[spread] + (target @ whitened).T
+    return wrap(out, angles)
+
+
 def embed(previous: np.ndarray, block: np.ndarray, active: np.ndarray) -> np.ndarray:
     """A (D, D) covariance: ``block`` (k, k) on the active components, ``previous`` on the others,
     no correlation between the two groups."""
