@@ -214,7 +214,8 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="edgepos-bench-") as tmp:
         workdir = Path(tmp)
         env = clean_environment(
-            EDGEPOS_ADMIN_KEY=ADMIN_KEY, EDGEPOS_ADMIN_KEY_FILE=str(workdir / "admin.key")
+            EDGEPOS_ADMIN_KEY=ADMIN_KEY, EDGEPOS_ADMIN_KEY_FILE=str(workdir / "admin.key"),
+            EDGEPOS_RATE_LIMIT_PER_S="0",  # capacity, not policy: no 429s in the closed loops
         )
         targets = [
             ("service 1w memory", serve_command(1), env),
