@@ -28,10 +28,10 @@ class AppContext:
 
     Filtering runs on one dedicated thread per process. It is CPU-bound work that holds the GIL
     (Python, and compiled kernels too short to be worth releasing it), so more threads would not run
-    it in parallel, only take turns at the GIL; with many batches in flight that convoy cost more than half the throughput.
-    Requests queue for that thread on the event loop, which meanwhile keeps serving everything else:
-    CPython makes the filter thread yield the GIL every switch interval (5 ms) when the loop waits
-    for it. Throughput scales with worker processes.
+    it in parallel, only take turns at the GIL; with many batches in flight that convoy cost more
+    than half the throughput. Requests queue for that thread on the event loop, which meanwhile
+    keeps serving everything else: CPython makes the filter thread yield the GIL every switch
+    interval (5 ms) when the loop waits for it. Throughput scales with worker processes.
     """
 
     settings: Settings
