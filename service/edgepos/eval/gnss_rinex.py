@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from edgepos.core.observations import PseudorangeObservation
+from edgepos.eval.overrides import add_option_argument, parse_overrides
 from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.geodesy import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from edgepos.gnss.measurements import prepare_epoch
@@ -44,10 +45,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-fuzzy", action="store_true", help="constant pseudorange noise instead of the fuzzy factor")
     parser.add_argument("--seed", type=int, default=1, help="the filter's random seed (default 1)")
     parser.add_argument("--max-epochs", type=int, default=None, help="stop after this many epochs")
-    parser.add_argument(
-        "--option", action="append", default=[], metavar="NAME=JSON",
-        help="any other gnss_tight option, e.g. --option pseudorange_std=3 (repeatable)",
-    )
+    add_option_argument(parser, "pseudorange_std=3")
 
 
 def _score(times: Sequence[float], positions: Sequence[np.ndarray | None], reference: tuple[np.ndarray, np.ndarray],
@@ -140,13 +138,11 @@ def _format(value: Any) -> str:
 def run(args: argparse.Namespace) -> int:
     options: dict[str, Any] = {"filter": args.filter, "particles": args.particles, "fuzzy": not args.no_fuzzy,
                                "seed": args.seed}
-    for item in args.option:
-        name, _, value = item.partition("=")
-        try:
-            options[name] = json.loads(value)
-        except json.JSONDecodeError:
-            print(f"--option {item!r}: the value must be JSON", file=sys.stderr)
-            return 2
+    try:
+        options.update(parse_overrides(args.option))
+    except ValueError as error:
+        print(error, file=sys.stderr)
+        return 2
     report = evaluate(args.obs, args.nav, args.reference, args.systems, options, args.max_epochs)
     label = f"gnss_tight {report['filter']}" + (f" ({report['particles']} particles" if report["filter"] != "ukf" else " (")
     label += ", fuzzy)" if report["fuzzy"] else ")"

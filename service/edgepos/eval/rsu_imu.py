@@ -55,7 +55,8 @@ def _check_options(algorithms: list[Algorithm]) -> None:
 def run(args: argparse.Namespace) -> int:
     """Run the evaluation and print the report on stdout: 0 on success, 2 on bad arguments, 1 on failure."""
     try:
-        algorithms = with_overrides(select_algorithms(args.algorithms), parse_overrides(args.option))
+        overrides = parse_overrides(args.option)
+        algorithms = with_overrides(select_algorithms(args.algorithms), overrides)
         _check_options(algorithms)
         if args.plots is not None:
             plots.require_matplotlib()
@@ -79,7 +80,6 @@ def run(args: argparse.Namespace) -> int:
     scenario = rsu_imu_paper_scenario()
     results_by_name = results(algorithms, totals)
     print(report(results_by_name, args.runs, args.seed, workers))
-    overrides = parse_overrides(args.option)
     if overrides:
         print(f"\noptions set on every algorithm (not the paper's defaults): {json.dumps(overrides)}")
     diverged = [
