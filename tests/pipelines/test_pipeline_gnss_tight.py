@@ -125,3 +125,42 @@ def test_outlier_likelihood_options_have_documented_defaults_and_bounds() -> Non
         pipeline.resolve_options({"outlier_probability": 1.0})
     with pytest.raises(PipelineInputError):
         pipeline.resolve_options({"outlier_std": 0.0})
+
+
+def test_upf_spread_fraction_option_reaches_the_filter_and_old_states_keep_their_behaviour() -> None:
+    """The option is validated and passed to the UPF; a state stored before it existed (no spread_fraction
+    in its options) keeps the behaviour it was created with: all of the uncertainty in the particles."""
+    from edgepos.core import state as state_format
+    from edgepos.pipelines.base import PipelineInputError
+    from edgepos.pipelines.gnss_tight import _filter
+
+    pipeline = GnssTightPipeline()
+    assert pipeline.resolve_options({})["spread_fraction"] == 0.02
+    with pytest.raises(PipelineInputError):
+        pipeline.resolve_options({"spread_fraction": 1.5})
+    options = pipeline.resolve_options({"filter": "upf", "spread_fraction": 0.3})
+    assert _filter(options).spread_fraction == 0.3
+
+    old_options = {k: v for k, v in pipeline.resolve_options({"filter": "upf", "seed": 1}).items()
+                   if k != "spread_fraction"}
+    meta, arrays = state_format.unpack(pipeline.create({**old_options, "seed": 1}, None))
+    assert "spread_fraction" not in meta["options"]
+    assert _filter(meta["options"]).spread_fraction == 1.0
+    errors, _ = _replay_short_open_sky(state_format.pack(meta, arrays))
+    assert np.all(np.isfinite(errors[1:]))
+
+
+def _replay_short_open_sky(state: bytes) -> tuple[np.ndarray, bytes]:
+    scenario = open_sky_scenario(short=True)
+    run = simulate(scenario, np.random.default_rng([11, 1]))
+    pipeline = GnssTightPipeline()
+    environment = StaticEnvironment(origin=scenario.site)
+    epoch_of = {round(float(t), 6): k for k, t in enumerate(run.gnss_tow)}
+    errors = np.full(run.gnss_tow.size, np.nan)
+    for batch in batches(run, scenario.gnss_every)[:20]:
+        fixes, state = pipeline.process(state, batch, environment)
+        for fix in fixes:
+            k = epoch_of.get(round(fix.t, 6))
+            if k is not None and fix.x is not None:
+                errors[k] = math.hypot(fix.x - run.truth_east[k], fix.y - run.truth_north[k])
+    return errors[:20], state

@@ -87,6 +87,13 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "Resample when the effective sample size falls below this fraction of the particles.", 0.0, 1.0,
     ),
     OptionSpec(
+        "spread_fraction", "number", 0.02,
+        "upf: the fraction of each particle's UKF proposal covariance the particles carry as their spread; "
+        "each keeps the rest as its own covariance. 1: the particles alone carry the uncertainty; near 0: "
+        "each particle is a UKF. 0.02 measured best on the simulated urban drive (docs/gnss-simulation.md).",
+        0.0, 1.0,
+    ),
+    OptionSpec(
         "fuzzy", "boolean", True,
         "Scale each pseudorange's noise by the fuzzy factor of its elevation and C/N0 (Table 1, eq. 20); "
         "off: every pseudorange has pseudorange_std.",
@@ -96,9 +103,9 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "outlier_probability", "number", 0.1,
         "PF and UPF: each pseudorange's likelihood in the particle weights is the mixture (1 - p) N(0, "
         "(R0 x fuzzy factor)^2) + p N(0, outlier_std^2), a heavy tail for reflected (NLOS) signals and other "
-        "errors the Gaussian does not model; the UPF's UKF proposal inflates each range's variance by its "
-        "outlier responsibility. 0.1: one range in ten may be an outlier, a generic robust-likelihood prior "
-        "(not fitted to a scenario). 0: Gaussian. Not used by the UKF.", 0.0, 0.9,
+        "errors the Gaussian does not model (the UPF's UKF proposal stays Gaussian). 0.1: one range in ten "
+        "may be an outlier, a generic robust-likelihood prior (not fitted to a scenario). 0: Gaussian. Not "
+        "used by the UKF.", 0.0, 0.9,
     ),
     OptionSpec(
         "outlier_std", "number", 30.0,
@@ -503,7 +510,8 @@ def _maybe_start_riss(session: _Session, t: float, result: StepResult) -> None:
 
     The azimuth of velocity (v_e, v_n) is atan2(v_e, v_n); its variance is J P_v J^T with
     J = (v_n, -v_e) / |v|^2. The particles already carry the azimuth of their own velocity (the GNSS-only
-    model derives it); the UKF gets that variance, uncorrelated with the rest."""
+    model derives it); the UKF's covariance, and the UPF particles' own, get that variance from their
+    velocity block, uncorrelated with the rest."""
     riss = session.riss
     if session.heading_known or riss is None or t - riss["t"] > session.options["riss_timeout"]:
         return
@@ -518,7 +526,10 @@ def _maybe_start_riss(session: _Session, t: float, result: StepResult) -> None:
     if not variance <= _HEADING_STD_TO_START_RISS**2:
         return
     session.heading_known = True
-    if session.options["filter"] == "ukf":
+    if session.options["filter"] in _OWN_COVARIANCE_FILTERS:
+        # Their covariance holds the azimuth: until now (GNSS-only) it was derived, not estimated.
+        own_velocity = session.cloud.cov[np.ix_([layout.VE, layout.VN], [layout.VE, layout.VN])]
+        variance = float(jacobian @ own_velocity @ jacobian)
         cov = session.cloud.cov.copy()
         cov[layout.AZIMUTH, :] = 0.0
         cov[:, layout.AZIMUTH] = 0.0
@@ -526,15 +537,27 @@ def _maybe_start_riss(session: _Session, t: float, result: StepResult) -> None:
         session.cloud = Cloud(session.cloud.particles, session.cloud.log_weights, cov)
 
 
+_OWN_COVARIANCE_FILTERS = ("ukf", "upf")
+"""Filters whose particles carry a covariance of their own (``Cloud.cov``); the PF's particles are points."""
+
+
 def _covariance(session: _Session) -> np.ndarray:
-    """The state covariance the filter's cloud stands for (the UPF stores only its pending noise)."""
+    """The state covariance the filter's cloud stands for (for the UPF: the particles' spread plus their own
+    covariance)."""
     filt = _filter(session.options)
     return filt.covariance(session.cloud) if hasattr(filt, "covariance") else session.cloud.cov
 
 
 def _filter(options: Mapping[str, Any]) -> Any:
-    cls = PARTICLE_FILTERS[options["filter"]]
-    return cls() if options["filter"] == "ukf" else cls(resample_threshold=options["resample_threshold"])
+    name = options["filter"]
+    cls = PARTICLE_FILTERS[name]
+    if name == "ukf":
+        return cls()
+    if name == "upf":
+        # States stored before the option existed carry the value that was then built in (1).
+        spread = options.get("spread_fraction", 1.0)
+        return cls(resample_threshold=options["resample_threshold"], spread_fraction=spread)
+    return cls(resample_threshold=options["resample_threshold"])
 
 
 def _model(session: _Session, t: float) -> RissModel | GnssOnlyModel:

@@ -38,7 +38,7 @@ class Measurement:
     ``outlier_probability`` > 0 makes each component's likelihood, in the particle filters' weights, the
     mixture (1 - p) N(r; 0, variance) + p N(r; 0, ``outlier_variance``): a heavy tail for errors the
     Gaussian does not model (reflected signals). The unscented updates (UKF, the UPF's proposal) stay
-    Gaussian; the UPF's proposal takes each component's variance from the mixture (``proposal_variances``).
+    Gaussian.
     """
 
     predict: Callable[[np.ndarray], np.ndarray]
@@ -62,25 +62,11 @@ class Measurement:
         )
         return np.logaddexp(inlier, outlier)
 
-    def proposal_variances(self, residual: np.ndarray, spread: np.ndarray) -> np.ndarray:
-        """Variances for a Gaussian update that approximates the mixture (one EM step): each component's
-        variance divided by the probability that it is an inlier, given the predicted residual (m,) and the
-        prediction's own variance ``spread`` (m,). Without outliers: the variances unchanged."""
-        if self.outlier_probability <= 0.0:
-            return self.variances
-        p = self.outlier_probability
-        inlier_var = self.variances + spread
-        outlier_var = self.outlier_variance + spread
-        log_in = math.log1p(-p) - 0.5 * (residual * residual / inlier_var + np.log(inlier_var))
-        log_out = math.log(p) - 0.5 * (residual * residual / outlier_var + np.log(outlier_var))
-        inlier_probability = np.exp(log_in - np.logaddexp(log_in, log_out))
-        return np.minimum(self.variances / np.maximum(inlier_probability, 1e-12), self.outlier_variance)
-
 
 @dataclass
 class Cloud:
-    """Particles (N, D), their normalised log-weights (N,) and a covariance (D, D): the proposal's
-    posterior covariance shared by all particles (UPF, UKF) or the weighted spread of the cloud (PF)."""
+    """Particles (N, D), their normalised log-weights (N,) and a covariance (D, D): each particle's own
+    covariance, shared by all (UPF, UKF), or the weighted spread of the cloud (PF)."""
 
     particles: np.ndarray
     log_weights: np.ndarray

@@ -1,26 +1,33 @@
 """Unscented particle filter (section 2.2.1, eqs. 8-18), vectorised over particles.
 
-Each particle's prior at a measurement is its own transition density p(x_k | x_i) = N(c_i, P): c_i the
-particle propagated deterministically since the last measurement (shrunk towards the cloud's mean, see
-below) and P the process noise accumulated over that interval plus the regularisation kernel. The UKF
-update of that prior (eqs. 9-14) is the particle's proposal q = N(x_hat_i, P_i) (eq. 15); a sample is drawn
-from it and weighted by likelihood x transition / proposal (eq. 16), which for a linear model equals the
-predictive likelihood N(z; z_hat_i, S_i) whatever the sample: the weights stay well spread. The estimate is
-the weighted mean (eq. 17); the cloud is resampled when the effective sample size is low (eq. 18).
+As in the paper, every particle is a Gaussian: a centre c_i and its own covariance P (one matrix shared by
+all particles, since the RISS model's noise does not depend on the state and the particles lie metres
+apart on orbits 20,000 km away). Between measurements each centre is propagated and P gets the UKF time
+update (eq. 11) at the cloud's mean. At a measurement each particle's UKF update of N(c_i, P) (eqs. 12-14)
+is its proposal q_i = N(x_hat_i, P_i) (eq. 15); a sample x_i ~ q_i is weighted by likelihood x prior /
+proposal (eq. 16), the prior being the particle's own N(c_i, P). For a linear model that weight is the
+predictive likelihood N(z; z_hat_i, S_i) whatever the sample (tested). The estimate is the weighted mean
+(eq. 17); the cloud is resampled when the effective sample size is low (eq. 18).
 
-Why not the paper's literal form (each particle's UKF started from a covariance of metres, and the
-transition density N(f(x), Q) of one 0.1 s step in the weight): the two densities disagree by orders of
-magnitude, so the normalised weights collapse onto one particle at every update. Here the proposal and the
-transition density are built from the same prior.
+What each particle keeps of its proposal: the paper keeps the sample x_i and the proposal covariance P_i
+together, which counts the proposal's spread twice (once in the samples, once in P_i) and, with a
+transition density of one 0.1 s step, gave one particle all the weight at every update. Here a particle
+keeps its proposal mean plus a fraction ``spread_fraction`` f of the sample's deviation (sqrt(f) (x_i -
+x_hat_i)) as its new centre and (1 - f) P_i as its own covariance, so the cloud stands for exactly the
+proposals' mixture. f = 1 puts all the uncertainty in the spread of the particles (a regularised particle
+filter with UKF proposals); f -> 0 carries it analytically, each particle a UKF, and the particles differ
+only as far as the importance weights and resampling have made them. Measured on the urban drive (see
+docs/gnss-simulation.md), f = 0.02 is the default: the more of the uncertainty the particles carry as
+spread, the more the weights select the particles that follow reflected-signal biases, which persist for
+tens of seconds in a street canyon.
 
-The cloud's stored covariance (``Cloud.cov``) is P: the process noise each particle has accumulated since
-the last measurement (zero right after one), shared because the RISS model's noise does not depend on the
-state. The regularisation kernel is the same as the PF's (``kernel_prior``): with the UKF proposal it moves
-the kernel's samples towards the measurement instead of scattering them blindly.
+The proposal is the Gaussian UKF update; a heavy-tailed likelihood (``Measurement.outlier_probability``)
+enters the importance weights only.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -32,97 +39,98 @@ from edgepos.core.particles.base import (
     ParticleModel,
     StepResult,
     batched_cholesky,
+    effective_sample_size,
     embed,
     gaussian_logpdf,
-    kernel_prior,
     nis,
     normalise,
+    regularised_resample,
     unscented_predict,
     unscented_update,
     weighted_moments,
     wrap,
 )
-from edgepos.core.particles.pf import _finish
 
 
-def accumulated_noise(cloud: Cloud, model: ParticleModel, dt: float, active: np.ndarray) -> np.ndarray:
-    """The process noise accumulated since the last measurement, carried over ``dt`` (k, k): the UKF time
-    update of N(weighted mean, cloud.cov) - the dynamics are nearly linear over one interval, so one
+def predicted_own_covariance(cloud: Cloud, model: ParticleModel, dt: float, active: np.ndarray) -> np.ndarray:
+    """The particles' own covariance carried over ``dt`` (k, k): the UKF time update of N(weighted mean,
+    cloud.cov). The dynamics are nearly linear over a step and the particles close together, so one
     linearisation point serves every particle."""
-    weights = np.exp(cloud.log_weights)
-    centre, _ = weighted_moments(cloud.particles, weights, ANGLES)
+    centre, _ = weighted_moments(cloud.particles, cloud.weights, ANGLES)
     _, _, cov = unscented_predict(centre[None, :], cloud.cov, model, dt, active, ANGLES)
     return cov[0]
 
 
 @dataclass(frozen=True)
 class UnscentedParticleFilter:
-    """UKF proposal per particle; ``resample_threshold`` is the ESS fraction that triggers resampling."""
+    """UKF proposal per particle. ``resample_threshold``: the ESS fraction that triggers resampling;
+    ``spread_fraction``: the fraction of each proposal's covariance the particles carry as their spread
+    (the rest stays their own covariance)."""
 
     resample_threshold: float = 0.5
+    spread_fraction: float = 0.02
     name = "upf"
 
     def covariance(self, cloud: Cloud) -> np.ndarray:
-        """The state covariance the cloud stands for: spread of the particles plus their own noise."""
-        _, spread = weighted_moments(cloud.particles, np.exp(cloud.log_weights), ANGLES)
+        """The state covariance the cloud stands for: spread of the centres plus their own covariance."""
+        _, spread = weighted_moments(cloud.particles, cloud.weights, ANGLES)
         return spread + cloud.cov
 
     def step(
-        self, cloud: Cloud, model: ParticleModel, dt: float, active: np.ndarray, measurement: Measurement | None,
-        rng: np.random.Generator,
+        self, cloud: Cloud, model: ParticleModel, dt: float, active: np.ndarray,
+        measurement: Measurement | None, rng: np.random.Generator,
     ) -> StepResult:
         index = np.flatnonzero(active)
         count = len(cloud.particles)
         angles = ANGLES[index]
-        noise = accumulated_noise(cloud, model, dt, active)
-        particles = model.complete(wrap(model.propagate(cloud.particles, dt), ANGLES))
+        predicted_cov = predicted_own_covariance(cloud, model, dt, active)
+        centres = model.complete(wrap(model.propagate(cloud.particles, dt), ANGLES))
         if measurement is None:
-            # No observation: particles move deterministically; their noise accumulates in the shared P.
-            accumulated = embed(cloud.cov, noise, active)
-            threshold = self.resample_threshold
-            pending = accumulated
-            result = _finish(particles, cloud.log_weights, pending, active, None, threshold, rng, pending)
-            mean, spread = weighted_moments(particles, np.exp(cloud.log_weights), ANGLES)
-            return StepResult(result.cloud, mean, spread + accumulated, None, result.ess, result.resampled)
+            own = embed(cloud.cov, predicted_cov, active)
+            mean, spread = weighted_moments(centres, cloud.weights, ANGLES)
+            ess = effective_sample_size(cloud.log_weights)
+            return StepResult(Cloud(centres, cloud.log_weights, own), mean, spread + own, None, ess, False)
 
-        centres, kernel_cov = kernel_prior(particles, cloud.log_weights, active, ANGLES)
-        prior_cov = noise + kernel_cov
-        update = unscented_update(centres, prior_cov, model, active, ANGLES, _proposal_measurement(
-            measurement, centres, cloud.log_weights
-        ))
+        gaussian = replace(measurement, outlier_probability=0.0, outlier_variance=0.0)
+        update = unscented_update(centres, predicted_cov, model, active, ANGLES, gaussian)
         proposal_chol = batched_cholesky(update.posterior_cov)
+        deviation = (proposal_chol @ rng.standard_normal((count, len(index), 1)))[:, :, 0]
         sampled = update.posterior.copy()
-        sampled[:, index] += (proposal_chol @ rng.standard_normal((count, len(index), 1)))[:, :, 0]
+        sampled[:, index] += deviation
         sampled = model.complete(wrap(sampled, ANGLES))
 
         likelihood = measurement.log_likelihood(measurement.z - measurement.predict(sampled))
-        prior_chol = batched_cholesky(prior_cov)
-        transition = gaussian_logpdf(wrap(sampled[:, index] - centres[:, index], angles), prior_chol)
+        prior_chol = batched_cholesky(predicted_cov)
+        prior = gaussian_logpdf(wrap(sampled[:, index] - centres[:, index], angles), prior_chol)
         proposal = gaussian_logpdf(
             wrap(sampled[:, index] - update.posterior[:, index], angles), proposal_chol
         )
-        prior_weights = np.exp(cloud.log_weights)
-        z_hat = prior_weights @ update.z_hat
-        spread = update.z_hat - z_hat
-        z_cov = np.tensordot(prior_weights, update.z_cov, axes=1)
-        z_cov = z_cov + (spread * prior_weights[:, None]).T @ spread
-        score = nis(measurement.z - z_hat, z_cov)
-        log_weights = normalise(cloud.log_weights + likelihood + transition - proposal)
-        # The samples carry the posterior's spread; no noise is pending after a measurement.
-        reset = embed(cloud.cov, np.zeros((len(index), len(index))), active)
-        return _finish(sampled, log_weights, reset, active, score, self.resample_threshold, rng, reset)
+        log_weights = normalise(cloud.log_weights + likelihood + prior - proposal)
+        score = _innovation_score(measurement, cloud.weights, update.z_hat, update.z_cov)
+
+        # Keep sqrt(f) of each sample's deviation as spread and (1 - f) of the proposal covariance as the
+        # particles' own: the cloud's mean and covariance are the weighted proposals' mixture.
+        weights = np.exp(log_weights)
+        fraction = self.spread_fraction
+        particles = update.posterior.copy()
+        particles[:, index] += math.sqrt(fraction) * deviation
+        particles = model.complete(wrap(particles, ANGLES))
+        own = embed(cloud.cov, (1.0 - fraction) * np.tensordot(weights, update.posterior_cov, axes=1), active)
+        mean, spread = weighted_moments(particles, weights, ANGLES)
+        ess = effective_sample_size(log_weights)
+        resampled = ess < self.resample_threshold * count
+        if resampled:
+            particles = model.complete(regularised_resample(particles, log_weights, active, ANGLES, rng))
+            log_weights = np.full(count, -math.log(count))
+        return StepResult(Cloud(particles, log_weights, own), mean, spread + own, score, ess, bool(resampled))
 
 
-def _proposal_measurement(measurement: Measurement, centres: np.ndarray, log_weights: np.ndarray) -> Measurement:
-    """The Gaussian measurement the UKF proposal uses: with a heavy-tailed likelihood, each component's
-    variance inflated by its outlier responsibility at the cloud's predicted residual (see
-    ``Measurement.proposal_variances``), so that a range the mixture discounts does not drag every
-    particle's proposal; the importance weights still use the exact mixture."""
-    if measurement.outlier_probability <= 0.0:
-        return measurement
-    predicted = measurement.predict(centres)
-    weights = np.exp(log_weights)
-    z_hat = weights @ predicted
-    spread = weights @ ((predicted - z_hat) ** 2)
-    variances = measurement.proposal_variances(measurement.z - z_hat, spread)
-    return replace(measurement, variances=variances, outlier_probability=0.0, outlier_variance=0.0)
+def _innovation_score(
+    measurement: Measurement, weights: np.ndarray, z_hat: np.ndarray, z_cov: np.ndarray
+) -> float:
+    """NIS of the measurement against the prior mixture's predicted measurement (the weights before the
+    update)."""
+    mean = weights @ z_hat
+    spread = z_hat - mean
+    cov = np.tensordot(weights, z_cov, axes=1) + (spread * weights[:, None]).T @ spread
+    return nis(measurement.z - mean, cov)
