@@ -119,6 +119,9 @@ def test_batches_are_one_per_gnss_epoch() -> None:
         ("gnss", "--algorithms", "nope"),
         ("gnss", "--particles", "5"),
         ("gnss", "--scenario", "moon"),
+        ("gnss", "--option", "spread_fraction=1.5"),
+        ("gnss", "--option", "no_such_option=1"),
+        ("gnss", "--option", "spread_fraction"),
     ],
 )
 def test_bad_arguments(argv: tuple[str, ...], capsys: pytest.CaptureFixture[str]) -> None:
@@ -128,3 +131,19 @@ def test_bad_arguments(argv: tuple[str, ...], capsys: pytest.CaptureFixture[str]
         code = exc.code
     assert code == 2
     assert capsys.readouterr().err
+
+
+def test_option_overrides_reach_the_pipeline(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--option sets a pipeline option for every filter: the UPF with all of the uncertainty in its particles
+    (spread_fraction 1) gives other fixes than with the default, and the JSON and report record it."""
+    figures = {}
+    for extra in ((), ("--option", "spread_fraction=1")):
+        path = tmp_path / f"upf{len(extra)}.json"
+        code = run_eval("gnss", "--runs", "1", "--short", "--particles", "20", "--workers", "1",
+                        "--algorithms", "UPF+fuzzy", "--json", str(path), *extra)
+        assert code == 0
+        document = json.loads(path.read_text())
+        figures[len(extra)] = document["algorithms"]["UPF+fuzzy"]["horizontal_rms_m"]
+        assert document["option_overrides"] == ({"spread_fraction": 1} if extra else {})
+    assert figures[0] != figures[2]
+    assert "options spread_fraction=1" in capsys.readouterr().out

@@ -20,6 +20,7 @@ import numpy as np
 from edgepos.eval import plots
 from edgepos.eval.gnss_montecarlo import (
     ALGORITHMS,
+    PIPELINE,
     Result,
     RunFailed,
     Totals,
@@ -30,8 +31,10 @@ from edgepos.eval.gnss_montecarlo import (
     results,
     select_algorithms,
 )
+from edgepos.eval.overrides import add_option_argument, parse_overrides
 from edgepos.eval.progress import Progress
 from edgepos.eval.tables import format_table, number, percent_change
+from edgepos.pipelines.registry import get_pipeline
 from edgepos.sim.gnss_scenario import SCENARIOS
 
 PROG = "edgepos eval gnss"
@@ -67,6 +70,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=None,
         help=f"comma-separated subset (default: all): {', '.join(ALGORITHMS)}",
     )
+    add_option_argument(parser, "spread_fraction=0.1")
 
 
 def _error(message: str) -> None:
@@ -120,7 +124,8 @@ def report(
             ]
         )
     lines = [
-        f"{PROG}: scenario {scenario}, {args.runs} run(s), seed {args.seed}, {args.particles} particles",
+        f"{PROG}: scenario {scenario}, {args.runs} run(s), seed {args.seed}, {args.particles} particles"
+        + (f", options {' '.join(args.option)}" if args.option else ""),
         f"satellites tracked per epoch (mean): {totals.los / totals.runs:.1f} line of sight, "
         f"{totals.nlos / totals.runs:.1f} reflected only (NLOS)",
         "",
@@ -181,6 +186,7 @@ def to_json(
         "runs": args.runs,
         "seed": args.seed,
         "particles": args.particles,
+        "option_overrides": parse_overrides(args.option),
         "satellites_per_epoch": {"los": totals.los / totals.runs, "nlos": totals.nlos / totals.runs},
         "algorithms": algorithms,
     }
@@ -239,6 +245,12 @@ def run(args: argparse.Namespace) -> int:
     if args.json is not None and not Path(args.json).resolve().parent.is_dir():
         _error(f"--json: the directory of {args.json} does not exist")
         return 2
+    try:
+        overrides = parse_overrides(args.option)
+        get_pipeline(PIPELINE).resolve_options(overrides)
+    except ValueError as exc:  # a malformed --option, or one the pipeline refuses (PipelineInputError)
+        _error(str(exc))
+        return 2
     workers = args.workers or os.cpu_count() or 1
     args.workers = workers
     scenario = build_scenario(args.scenario, args.short).name
@@ -246,7 +258,8 @@ def run(args: argparse.Namespace) -> int:
     progress = Progress(args.runs, label="runs")
     try:
         totals = monte_carlo(
-            algorithms, args.runs, args.seed, workers, args.scenario, args.short, args.particles, progress
+            algorithms, args.runs, args.seed, workers, args.scenario, args.short, args.particles, progress,
+            overrides,
         )
     except RunFailed as exc:
         print(file=sys.stderr)

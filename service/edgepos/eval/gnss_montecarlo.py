@@ -190,7 +190,10 @@ def build_scenario(name: str, short: bool) -> GnssScenario:
     return SCENARIOS[name](short=short)
 
 
-def _init_worker(names: tuple[str, ...], seed: int, scenario: str, short: bool, particles: int) -> None:
+def _init_worker(
+    names: tuple[str, ...], seed: int, scenario: str, short: bool, particles: int,
+    overrides: dict[str, Any] | None = None,
+) -> None:
     global _CONTEXT
     built = build_scenario(scenario, short)
     pipeline = get_pipeline(PIPELINE)
@@ -199,7 +202,7 @@ def _init_worker(names: tuple[str, ...], seed: int, scenario: str, short: bool, 
         if name == WLS:
             algorithms.append((name, {}))
             continue
-        options = {**ALGORITHMS[name].options, "particles": particles, "gps_week": built.gps_week}
+        options = {**ALGORITHMS[name].options, "particles": particles, "gps_week": built.gps_week, **(overrides or {})}
         algorithms.append((name, pipeline.resolve_options(options)))
     environment = StaticEnvironment(origin=built.site)
     _CONTEXT = _Context(seed, built, pipeline, environment, algorithms)
@@ -347,8 +350,10 @@ def monte_carlo(
     short: bool,
     particles: int,
     progress: Progress | None = None,
+    overrides: dict[str, Any] | None = None,
 ) -> Totals:
-    """Totals over ``runs`` runs, identical for any ``workers`` (times aside)."""
+    """Totals over ``runs`` runs, identical for any ``workers`` (times aside); ``overrides``: pipeline
+    options set for every filter on top of each algorithm's own (``--option``)."""
     names = tuple(algorithm.name for algorithm in algorithms)
     return montecarlo.run_chunks(
         _run_chunk,
@@ -356,7 +361,7 @@ def monte_carlo(
         montecarlo.chunk_runs(runs),
         workers,
         _init_worker,
-        (names, seed, scenario, short, particles),
+        (names, seed, scenario, short, particles, dict(overrides or {})),
         progress,
     )
 
