@@ -202,7 +202,9 @@ def _init_worker(
         if name == WLS:
             algorithms.append((name, {}))
             continue
-        options = {**ALGORITHMS[name].options, "particles": particles, "gps_week": built.gps_week, **(overrides or {})}
+        options = {
+            **ALGORITHMS[name].options, "particles": particles, "gps_week": built.gps_week, **(overrides or {})
+        }
         algorithms.append((name, pipeline.resolve_options(options)))
     environment = StaticEnvironment(origin=built.site)
     _CONTEXT = _Context(seed, built, pipeline, environment, algorithms)

@@ -113,7 +113,7 @@ def _largest_power(
 
 def _finish(
     particles: np.ndarray, log_weights: np.ndarray, previous_cov: np.ndarray, active: np.ndarray,
-    score: float | None, threshold: float, rng: np.random.Generator, shared_cov: np.ndarray | None = None,
+    score: float | None, threshold: float, rng: np.random.Generator,
 ) -> StepResult:
     """Estimate from the weighted cloud (eq. 17), then resample when the ESS is low (eq. 18)."""
     weights = np.exp(log_weights)
@@ -125,5 +125,4 @@ def _finish(
     if resampled:
         particles = particles[systematic_resample(log_weights, rng)]
         log_weights = np.full(len(particles), -np.log(len(particles)))
-    stored = cov if shared_cov is None else shared_cov
-    return StepResult(Cloud(particles, log_weights, stored), mean, cov, score, ess, bool(resampled))
+    return StepResult(Cloud(particles, log_weights, cov), mean, cov, score, ess, bool(resampled))
