@@ -140,10 +140,15 @@ def run(args: argparse.Namespace) -> int:
                                "seed": args.seed}
     try:
         options.update(parse_overrides(args.option))
-    except ValueError as error:
-        print(error, file=sys.stderr)
+        GnssTightPipeline().resolve_options(options)
+    except ValueError as error:  # a malformed --option, or one the pipeline refuses (PipelineInputError)
+        print(f"edgepos eval gnss-rinex: error: {error}", file=sys.stderr)
         return 2
-    report = evaluate(args.obs, args.nav, args.reference, args.systems, options, args.max_epochs)
+    try:
+        report = evaluate(args.obs, args.nav, args.reference, args.systems, options, args.max_epochs)
+    except (OSError, ValueError) as error:  # unreadable or malformed files (RinexError is a ValueError)
+        print(f"edgepos eval gnss-rinex: error: {error}", file=sys.stderr)
+        return 2
     label = f"gnss_tight {report['filter']}" + (f" ({report['particles']} particles" if report["filter"] != "ukf" else " (")
     label += ", fuzzy)" if report["fuzzy"] else ")"
     print(f"{'solution':<34} {'epochs':>6} {'fixes':>6} {'ref w/o fix':>11} {'RMS m':>7} {'p95 m':>7} {'max m':>7}")
