@@ -25,8 +25,10 @@ def run_eval(*argv: str) -> int:
     return commands.run(parser.parse_args(list(argv)))
 
 
-@pytest.mark.parametrize("filter_name", ["upf", "ukf"])
-def test_json_has_the_figures_of_filter_and_baseline(tmp_path: Path, filter_name: str) -> None:
+@pytest.mark.parametrize(("filter_name", "label"), [("upf", "upf (50 particles, fuzzy)"), ("ukf", "ukf (fuzzy)")])
+def test_json_has_the_figures_of_filter_and_baseline(
+    tmp_path: Path, filter_name: str, label: str, capsys: pytest.CaptureFixture[str]
+) -> None:
     path = tmp_path / "rinex.json"
     code = run_eval("gnss-rinex", *FILES, "--filter", filter_name, "--particles", "50", "--max-epochs", "30",
                     "--json", str(path))
@@ -37,6 +39,7 @@ def test_json_has_the_figures_of_filter_and_baseline(tmp_path: Path, filter_name
         assert figures["fixes"] == 30
         assert 0.0 < figures["horizontal_rms_m"] < 15.0
         assert 0.0 < figures["horizontal_p95_m"] < 30.0
+    assert f"gnss_tight {label}" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize(

@@ -149,8 +149,9 @@ def run(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as error:  # unreadable or malformed files (RinexError is a ValueError)
         print(f"edgepos eval gnss-rinex: error: {error}", file=sys.stderr)
         return 2
-    label = f"gnss_tight {report['filter']}" + (f" ({report['particles']} particles" if report["filter"] != "ukf" else " (")
-    label += ", fuzzy)" if report["fuzzy"] else ")"
+    details = [f"{report['particles']} particles"] if report["filter"] != "ukf" else []
+    details += ["fuzzy"] if report["fuzzy"] else []
+    label = f"gnss_tight {report['filter']}" + (f" ({', '.join(details)})" if details else "")
     print(f"{'solution':<34} {'epochs':>6} {'fixes':>6} {'ref w/o fix':>11} {'RMS m':>7} {'p95 m':>7} {'max m':>7}")
     for name, row in ((label, report), ("WLS baseline (gnss/spp.py)", report["baseline"])):
         print(
