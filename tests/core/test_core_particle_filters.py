@@ -151,26 +151,35 @@ def test_upf_weights_are_the_predictive_likelihood_on_a_linear_model():
     assert 0.5 < np.mean(whitened**2) < 1.5
 
 
-def test_upf_without_spread_is_the_kalman_filter_on_a_linear_model():
-    """Particles that start together and keep none of their samples' spread stay one Gaussian: the UPF's
-    estimate must then be the Kalman filter's, mean and covariance, step after step."""
-    model, dt, count = ConstantVelocity(), 1.0, 20
-    rng = np.random.default_rng(11)
+def upf_beside_kalman(fraction: float, count: int, start: np.ndarray, steps: int, seed: int):
+    """Run a UPF whose particles start together with covariance ``start`` (4, 4) and the Kalman filter on the
+    same measurements of a constant-velocity truth; yield (UPF step result, Kalman mean, Kalman covariance)
+    after each update."""
+    model, dt = ConstantVelocity(), 1.0
+    rng = np.random.default_rng(seed)
     f = model.transition(dt)
     block = np.ix_(INDEX, INDEX)
     q = model.process_noise(dt)[block]
-    mean, cov = np.zeros(4), np.diag([4.0, 4.0, 1.0, 1.0])
+    mean, cov = np.zeros(4), start
     own = np.zeros((layout.DIM, layout.DIM))
-    own[block] = cov
+    own[block] = start
     cloud = Cloud(np.zeros((count, layout.DIM)), np.full(count, -math.log(count)), own)
-    upf = UnscentedParticleFilter(spread_fraction=0.0)
+    upf = UnscentedParticleFilter(spread_fraction=fraction)
     truth = np.array([0.0, 0.0, 1.0, -1.0])
-    for _ in range(8):
+    for _ in range(steps):
         truth = f @ truth
         z = H @ truth + rng.normal(0.0, 1.0, 3)
         result = upf.step(cloud, model, dt, ACTIVE, linear_measurement(z, np.ones(3)), rng)
         cloud = result.cloud
         mean, cov, _ = kalman_update(f @ mean, f @ cov @ f.T + q, z, np.ones(3))
+        yield result, mean, cov
+
+
+def test_upf_without_spread_is_the_kalman_filter_on_a_linear_model():
+    """Particles that start together and keep none of their samples' spread stay one Gaussian: the UPF's
+    estimate must then be the Kalman filter's, mean and covariance, step after step."""
+    block = np.ix_(INDEX, INDEX)
+    for result, mean, cov in upf_beside_kalman(0.0, 20, np.diag([4.0, 4.0, 1.0, 1.0]), 8, seed=11):
         np.testing.assert_allclose(result.mean[INDEX], mean, atol=1e-9)
         np.testing.assert_allclose(result.cov[block], cov, atol=1e-9)
 
@@ -179,28 +188,13 @@ def test_upf_without_spread_is_the_kalman_filter_on_a_linear_model():
 def test_upf_cloud_stands_for_the_kalman_posterior_whatever_its_spread(fraction: float) -> None:
     """However the uncertainty is split between the particles' spread and their own covariance, the cloud's
     mean and covariance (spread + own) follow the Kalman posterior of a linear model."""
-    model, dt, count = ConstantVelocity(), 1.0, 2000
-    rng = np.random.default_rng(12)
-    f = model.transition(dt)
     block = np.ix_(INDEX, INDEX)
-    q = model.process_noise(dt)[block]
-    mean, cov = np.zeros(4), np.diag([9.0, 9.0, 1.0, 1.0])
-    own = np.zeros((layout.DIM, layout.DIM))
-    own[block] = cov
-    cloud = Cloud(np.zeros((count, layout.DIM)), np.full(count, -math.log(count)), own)
-    upf = UnscentedParticleFilter(spread_fraction=fraction)
-    truth = np.array([0.0, 0.0, 1.0, -1.0])
-    for _ in range(6):
-        truth = f @ truth
-        z = H @ truth + rng.normal(0.0, 1.0, 3)
-        result = upf.step(cloud, model, dt, ACTIVE, linear_measurement(z, np.ones(3)), rng)
-        cloud = result.cloud
-        mean, cov, _ = kalman_update(f @ mean, f @ cov @ f.T + q, z, np.ones(3))
+    *_, (result, mean, cov) = upf_beside_kalman(fraction, 2000, np.diag([9.0, 9.0, 1.0, 1.0]), 6, seed=12)
     position = np.ix_([0, 1], [0, 1])
     np.testing.assert_allclose(result.mean[INDEX][:2], mean[:2], atol=0.1)
     np.testing.assert_allclose(result.cov[block][position], cov[position], rtol=0.15, atol=0.02)
     if fraction < 1.0:
-        assert np.trace(cloud.cov[block]) > 0.0
+        assert np.trace(result.cloud.cov[block]) > 0.0
 
 
 def test_upf_effective_sample_size_stays_high_when_the_process_noise_is_tiny():
