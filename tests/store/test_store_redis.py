@@ -18,17 +18,18 @@ import redis
 import test_store_contract as contract
 from edgepos.pipelines.base import Rsu
 from edgepos.store import SessionRecord, TooManySessions, open_store
-from edgepos.store.base import StoreUnavailable
+from edgepos.store.base import StoreUnavailable, VehicleRecord
 from edgepos.store.redis import RedisStore
-from test_store_contract import Clock, record
+from test_store_contract import Clock, record, track
 
-# Every store contract test runs here again, on the Redis store below (only the URL test is about
-# open_store itself). New contract tests are picked up automatically.
+# Every store contract test runs here again, on the Redis store below (the URL test is about
+# open_store itself, the upgrade test about SQLite files). New contract tests are picked up automatically.
+_NOT_REDIS = {"test_open_store_by_url", "test_sqlite_file_of_an_earlier_version_is_upgraded"}
 globals().update(
     {
         name: test
         for name, test in vars(contract).items()
-        if name.startswith("test_") and callable(test) and name != "test_open_store_by_url"
+        if name.startswith("test_") and callable(test) and name not in _NOT_REDIS
     }
 )
 
@@ -58,6 +59,17 @@ def store(redis_server: RedisServer, prefix: str, clock: Clock) -> Iterator[Redi
     instance = RedisStore(redis_server.url(prefix), 60.0, clock)
     yield instance
     asyncio.run(instance.close())
+
+
+@pytest.fixture
+def handles(
+    store: RedisStore, redis_server: RedisServer, prefix: str, clock: Clock
+) -> Iterator[list[RedisStore]]:
+    """More store objects on the same prefix, as other workers would hold."""
+    others = [RedisStore(redis_server.url(prefix), 60.0, clock) for _ in range(2)]
+    yield [store, *others]
+    for other in others:
+        asyncio.run(other.close())
 
 
 @pytest.fixture
@@ -103,18 +115,82 @@ def test_key_layout_binary_state_and_replay_fields(store: RedisStore, prefix: st
     assert not raw.hexists(key, "last_response")
     assert raw.type(f"{prefix}sessions") == b"zset" and raw.zscore(f"{prefix}sessions", "s1") == 1000.0
     assert raw.type(f"{prefix}rsus") == b"hash"
+    assert raw.get(f"{prefix}live:v-s1") == b"s1"
     assert sorted(raw.scan_iter(match=f"{prefix}*")) == sorted(
-        [key.encode(), f"{prefix}sessions".encode(), f"{prefix}rsus".encode()]
+        [key.encode(), f"{prefix}sessions".encode(), f"{prefix}rsus".encode(), f"{prefix}live:v-s1".encode()]
     )
+
+
+def test_key_layout_of_vehicles_live_pointers_and_supersessions(
+    store: RedisStore, prefix: str, raw: redis.Redis
+):
+    """The registry is two hashes; a live pointer and a supersession record carry the session TTL,
+    and each write to the session sets the pointer's TTL again."""
+    key_1, key_2 = "k1" * 32, "k2" * 32
+
+    async def scenario() -> None:
+        await store.add_vehicles([VehicleRecord("car", key_1, 1000.1, 1000.2)])
+        await store.create(record("s1", vehicle_id="car"), max_sessions=10, vehicle_key_hash=key_1)
+        assert await store.put_track(track("car"), "s1")
+
+    asyncio.run(scenario())
+    assert raw.type(f"{prefix}vehicles") == b"hash" and raw.type(f"{prefix}vehiclekeys") == b"hash"
+    assert raw.hget(f"{prefix}vehiclekeys", key_1) == b"car"
+    assert raw.get(f"{prefix}live:car") == b"s1"
+    assert 0 < raw.pttl(f"{prefix}live:car") <= 60_000
+    raw.pexpire(f"{prefix}live:car", 5_000)
+
+    async def write_and_supersede() -> None:
+        current = await store.get("s1")
+        assert await store.compare_and_set(dataclasses.replace(current, state=b"next"), 0)
+        assert raw.pttl(f"{prefix}live:car") > 5_000  # refreshed with the session's TTL
+        await store.rotate_vehicle_key("car", key_2, 1100.5)
+        renewed = await store.create(record("s2", vehicle_id="car"), max_sessions=10, vehicle_key_hash=key_2)
+        assert renewed == "s1"
+
+    asyncio.run(write_and_supersede())
+    assert raw.hget(f"{prefix}vehiclekeys", key_1) is None
+    assert raw.hget(f"{prefix}vehiclekeys", key_2) == b"car"
+    assert raw.hgetall(f"{prefix}superseded:s1") == {
+        b"superseded_by": b"s2",
+        b"token_hash": b"ab" * 32,
+        b"at": b"1000.0",
+    }
+    assert 0 < raw.pttl(f"{prefix}superseded:s1") <= 60_000
+    assert raw.exists(f"{prefix}session:s1", f"{prefix}track:car") == 0
+    assert raw.get(f"{prefix}live:car") == b"s2"
+
+    asyncio.run(store.delete_vehicle("car"))  # the registry, pointer, session and index empty out
+    assert list(raw.scan_iter(match=f"{prefix}*")) == [f"{prefix}superseded:s1".encode()]
+
+
+def test_a_pointer_to_a_session_redis_dropped_is_absent(store: RedisStore, prefix: str, raw: redis.Redis):
+    """Redis may expire a session's hash before the pointer naming it (or before the index entry):
+    the vehicle then has no live session, publishes nothing, and its next session supersedes nothing
+    and is not refused by the limit for it."""
+
+    async def scenario() -> None:
+        await store.create(record("s1", vehicle_id="car"), max_sessions=1)
+        raw.delete(f"{prefix}session:s1")
+        assert await store.live_session("car") is None
+        assert not await store.put_track(track("car"), "s1")
+        assert await store.list_sessions() == [] and await store.list_sessions(vehicle_id="car") == []
+        assert await store.create(record("s2", vehicle_id="car"), max_sessions=1) is None
+        assert await store.supersession("s1") is None
+        assert await store.live_session("car") == "s2"
+        assert await store.count() == 1
+
+    asyncio.run(scenario())
 
 
 def test_prefixes_keep_sites_apart(redis_server: RedisServer, clock: Clock):
     async def scenario() -> None:
         first = RedisStore(redis_server.url("site-a:"), 60.0, clock)
         second = RedisStore(redis_server.url("site-b:"), 60.0, clock)
-        await first.create(record("shared-id"), max_sessions=1)
+        await first.create(record("shared-id", vehicle_id="car"), max_sessions=1)
         await second.create(record("shared-id", vehicle_id="other"), max_sessions=1)
         assert (await first.get("shared-id")).vehicle_id == "car"
+        assert await first.live_session("car") == "shared-id" and await second.live_session("car") is None
         assert await first.count() == 1 and await second.count() == 1
         await first.upsert_rsus([Rsu("r", 0.0, 0.0)])
         assert await second.list_rsus() == []

@@ -13,7 +13,7 @@ import asyncio
 import json
 import time
 from abc import ABC, abstractmethod
-from collections.abc import AsyncIterator, Callable, Iterable, Mapping
+from collections.abc import AsyncIterator, Callable, Iterable, Mapping, Sequence
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from typing import Any
@@ -51,6 +51,70 @@ class SessionRecord:
 
 
 @dataclass(frozen=True)
+class SessionSummary:
+    """What an operator's listing shows of a session (``GET /v1/sessions``): no state, no secrets."""
+
+    session_id: str
+    vehicle_id: str
+    pipeline: str
+    created_at: float
+    updated_at: float
+    last_seq: int
+    batches: int
+    epochs: int
+    last_fix: str | None
+
+    @classmethod
+    def of(cls, record: SessionRecord) -> SessionSummary:
+        return cls(
+            record.session_id,
+            record.vehicle_id,
+            record.pipeline,
+            record.created_at,
+            record.updated_at,
+            record.last_seq,
+            record.batches,
+            record.epochs,
+            record.last_fix,
+        )
+
+
+@dataclass(frozen=True)
+class Supersession:
+    """A session ended because a newer one was opened for its vehicle (one live session per vehicle).
+
+    Kept as long as an idle session would be, so the old token is told which session replaced it
+    (409) instead of being answered as if it never existed; ``token_hash`` is the old session's, so
+    only its holder learns that."""
+
+    session_id: str
+    superseded_by: str
+    token_hash: str
+    at: float
+
+
+@dataclass(frozen=True)
+class VehicleRecord:
+    """A registered vehicle: who may open sessions for ``vehicle_id`` with a vehicle key.
+
+    ``key_hash`` is the SHA-256 hex of the vehicle's current key (the key itself is shown once, when
+    it is issued, and never stored); ``key_issued_at`` when that key was issued (Unix s)."""
+
+    vehicle_id: str
+    key_hash: str
+    created_at: float
+    key_issued_at: float
+
+
+@dataclass(frozen=True)
+class Revocation:
+    """What revoking a vehicle ended: ``ended_session`` is its live session's id, None if it had none."""
+
+    vehicle_id: str
+    ended_session: str | None
+
+
+@dataclass(frozen=True)
 class StoredEphemerides:
     """The site's broadcast navigation file as uploaded (``PUT /v1/ephemerides``).
 
@@ -84,6 +148,14 @@ class TooManySessions(Exception):
     def __init__(self, limit: int) -> None:
         self.limit = limit
         super().__init__(f"the store already holds {limit} sessions")
+
+
+class VehicleNotRegistered(Exception):
+    """The vehicle is not registered, or its key is no longer the one given (revoked or rotated)."""
+
+    def __init__(self, vehicle_id: str) -> None:
+        self.vehicle_id = vehicle_id
+        super().__init__(f"vehicle {vehicle_id!r} is not registered with this key")
 
 
 class StoreUnavailable(Exception):
@@ -141,8 +213,37 @@ class SessionStore(ABC):
 
     # sessions
     @abstractmethod
-    async def create(self, record: SessionRecord, max_sessions: int) -> None:
-        """Insert a new session unless ``max_sessions`` live ones exist (raises TooManySessions)."""
+    async def create(
+        self, record: SessionRecord, max_sessions: int, *, vehicle_key_hash: str | None = None
+    ) -> str | None:
+        """Insert a new session as its vehicle's one live session, in one atomic step.
+
+        A live session the vehicle already has is superseded: removed, remembered as a
+        :class:`Supersession` for ``ttl_s``, and its published track deleted. Returns the superseded
+        session's id (None when there was none). Raises TooManySessions when ``max_sessions`` live
+        sessions exist (a superseded one does not count) and, with ``vehicle_key_hash``,
+        VehicleNotRegistered unless the vehicle is registered with exactly that key at this moment
+        (a key revoked or rotated while the request was on its way opens nothing)."""
+
+    @abstractmethod
+    async def live_session(self, vehicle_id: str) -> str | None:
+        """The id of the vehicle's live session, None when it has none."""
+
+    @abstractmethod
+    async def supersession(self, session_id: str) -> Supersession | None:
+        """How ``session_id`` was superseded, if it was (within ``ttl_s``)."""
+
+    @abstractmethod
+    async def list_sessions(
+        self,
+        *,
+        after: str | None = None,
+        limit: int = 100,
+        pipeline: str | None = None,
+        vehicle_id: str | None = None,
+    ) -> list[SessionSummary]:
+        """Live sessions ordered by session id, those with ids greater than ``after``, at most
+        ``limit``, optionally only of one pipeline and/or one vehicle."""
 
     @abstractmethod
     async def get(self, session_id: str) -> SessionRecord | None:
@@ -155,7 +256,8 @@ class SessionStore(ABC):
 
     @abstractmethod
     async def delete(self, session_id: str) -> bool:
-        """Remove a session; False if there was none."""
+        """Remove a session, and with it its vehicle's live-session entry and published track when
+        they are this session's; False if there was none."""
 
     @abstractmethod
     async def count(self) -> int:
@@ -164,6 +266,36 @@ class SessionStore(ABC):
     @abstractmethod
     async def expire(self) -> int:
         """Remove every session idle past the TTL; returns how many went."""
+
+    # vehicle registry
+    @abstractmethod
+    async def add_vehicles(self, vehicles: Sequence[VehicleRecord]) -> list[str]:
+        """Register the vehicles not registered yet (one atomic write); returns the ids added, in the
+        order given. Registered ones are left as they are (their keys are not replaced)."""
+
+    @abstractmethod
+    async def get_vehicle(self, vehicle_id: str) -> VehicleRecord | None: ...
+
+    @abstractmethod
+    async def vehicle_of_key(self, key_hash: str) -> str | None:
+        """The vehicle whose current key has this hash, None when no vehicle's has."""
+
+    @abstractmethod
+    async def list_vehicles(self, *, after: str | None = None, limit: int = 100) -> list[VehicleRecord]:
+        """Registered vehicles ordered by id, those with ids greater than ``after``, at most ``limit``."""
+
+    @abstractmethod
+    async def count_vehicles(self) -> int: ...
+
+    @abstractmethod
+    async def rotate_vehicle_key(self, vehicle_id: str, key_hash: str, now: float) -> VehicleRecord | None:
+        """Replace the vehicle's key (the old one opens nothing from now on); None when the vehicle
+        is not registered. Live sessions keep running: their own tokens are not the vehicle key."""
+
+    @abstractmethod
+    async def delete_vehicle(self, vehicle_id: str) -> Revocation | None:
+        """Revoke the vehicle: remove it and its key, end its live session and delete its track, in
+        one atomic step. None when it was not registered."""
 
     # RSU registry
     @abstractmethod
@@ -207,8 +339,10 @@ class SessionStore(ABC):
         return now - written_at <= self.ttl_s
 
     @abstractmethod
-    async def put_track(self, track: NeighbourTrack) -> None:
-        """Replace the track published under ``track.vehicle_id``, as one atomic value."""
+    async def put_track(self, track: NeighbourTrack, session_id: str) -> bool:
+        """Replace the track published under ``track.vehicle_id``, as one atomic value, if
+        ``session_id`` is still that vehicle's live session (else nothing is written and False is
+        returned): a superseded session's late write can never mix into its successor's track."""
 
     @abstractmethod
     async def get_tracks(self, vehicle_ids: Iterable[str]) -> Mapping[str, NeighbourTrack]:
@@ -224,6 +358,11 @@ class SessionStore(ABC):
         """Count one request against ``key``'s budget (see edgepos.store.ratelimit): 0.0 when it is
         allowed, else the seconds until it would be (a refused request uses no budget). Shared by
         every process that shares the store, so the limit holds across workers."""
+
+    @abstractmethod
+    async def request_wait(self, key: str, limit: RateLimit) -> float:
+        """The seconds until one more request of ``key`` would be allowed (0.0 now), using none of
+        its budget: a look before work that must not even start past the limit."""
 
     # lifecycle
     async def ping(self) -> bool:

@@ -6,10 +6,21 @@ from __future__ import annotations
 import copy
 import dataclasses
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 
 from edgepos.pipelines.base import NeighbourTrack, Rsu
-from edgepos.store.base import Clock, SessionRecord, SessionStore, StoredEphemerides, TooManySessions
+from edgepos.store.base import (
+    Clock,
+    Revocation,
+    SessionRecord,
+    SessionStore,
+    SessionSummary,
+    StoredEphemerides,
+    Supersession,
+    TooManySessions,
+    VehicleNotRegistered,
+    VehicleRecord,
+)
 from edgepos.store.ratelimit import RateLimit, gcra
 
 #: Past this many rate-limit entries, entries whose budget is full again are dropped.
@@ -27,19 +38,90 @@ class MemoryStore(SessionStore):
         self._tracks: dict[str, tuple[NeighbourTrack, float]] = {}
         self._rate_tats: dict[str, float] = {}
         self._ephemerides: StoredEphemerides | None = None
+        self._live: dict[str, str] = {}  # vehicle id -> its live session's id
+        self._superseded: dict[str, Supersession] = {}
+        self._vehicles: dict[str, VehicleRecord] = {}
+        self._vehicle_of_key: dict[str, str] = {}  # key hash -> vehicle id
 
     @staticmethod
     def _copy(record: SessionRecord) -> SessionRecord:
         return dataclasses.replace(record, options=copy.deepcopy(record.options))
 
-    async def create(self, record: SessionRecord, max_sessions: int) -> None:
+    async def create(
+        self, record: SessionRecord, max_sessions: int, *, vehicle_key_hash: str | None = None
+    ) -> str | None:
         if record.session_id in self._sessions:
             raise ValueError(f"session {record.session_id!r} already exists")
-        if len(self._sessions) >= max_sessions:
+        if vehicle_key_hash is not None:
+            vehicle = self._vehicles.get(record.vehicle_id)
+            if vehicle is None or vehicle.key_hash != vehicle_key_hash:
+                raise VehicleNotRegistered(record.vehicle_id)
+        old_id = self._live.get(record.vehicle_id)
+        old = self._sessions.get(old_id) if old_id is not None else None
+        if old is not None and self.is_expired(old, self.clock()):
+            del self._sessions[old.session_id]
+            old = None
+        live = len(self._sessions) - (old is not None)
+        if live >= max_sessions:
             self._expire_now()
-            if len(self._sessions) >= max_sessions:
+            live = len(self._sessions) - (old is not None and old.session_id in self._sessions)
+            if live >= max_sessions:
                 raise TooManySessions(max_sessions)
+        superseded = None
+        if old is not None and old.session_id in self._sessions:
+            del self._sessions[old.session_id]
+            self._superseded[old.session_id] = Supersession(
+                old.session_id, record.session_id, old.token_hash, self.clock()
+            )
+            self._prune_supersessions()
+            superseded = old.session_id
+        self._tracks.pop(record.vehicle_id, None)
+        self._live[record.vehicle_id] = record.session_id
         self._sessions[record.session_id] = self._copy(record)
+        return superseded
+
+    def _prune_supersessions(self) -> None:
+        now = self.clock()
+        stale = [sid for sid, entry in self._superseded.items() if now - entry.at > self.ttl_s]
+        for sid in stale:
+            del self._superseded[sid]
+
+    async def live_session(self, vehicle_id: str) -> str | None:
+        session_id = self._live.get(vehicle_id)
+        if session_id is None or await self.get(session_id) is None:
+            return None
+        return session_id
+
+    async def supersession(self, session_id: str) -> Supersession | None:
+        entry = self._superseded.get(session_id)
+        if entry is None or self.clock() - entry.at > self.ttl_s:
+            return None
+        return entry
+
+    async def list_sessions(
+        self,
+        *,
+        after: str | None = None,
+        limit: int = 100,
+        pipeline: str | None = None,
+        vehicle_id: str | None = None,
+    ) -> list[SessionSummary]:
+        self._expire_now()
+        found: list[SessionSummary] = []
+        if limit < 1:
+            return found
+        for session_id in sorted(self._sessions):
+            record = self._sessions[session_id]
+            if after is not None and session_id <= after:
+                continue
+            if pipeline is not None and record.pipeline != pipeline:
+                continue
+            if vehicle_id is not None and record.vehicle_id != vehicle_id:
+                continue
+            found.append(SessionSummary.of(record))
+            if len(found) >= limit:
+                break
+        return found
 
     async def get(self, session_id: str) -> SessionRecord | None:
         record = self._sessions.get(session_id)
@@ -60,7 +142,13 @@ class MemoryStore(SessionStore):
         return True
 
     async def delete(self, session_id: str) -> bool:
-        return self._sessions.pop(session_id, None) is not None
+        record = self._sessions.pop(session_id, None)
+        if record is None:
+            return False
+        if self._live.get(record.vehicle_id) == session_id:
+            del self._live[record.vehicle_id]
+            self._tracks.pop(record.vehicle_id, None)
+        return True
 
     async def count(self) -> int:
         self._expire_now()
@@ -73,8 +161,63 @@ class MemoryStore(SessionStore):
         now = self.clock()
         stale = [sid for sid, record in self._sessions.items() if self.is_expired(record, now)]
         for sid in stale:
-            del self._sessions[sid]
+            record = self._sessions.pop(sid)
+            if self._live.get(record.vehicle_id) == sid:
+                del self._live[record.vehicle_id]
+        self._prune_supersessions()
         return len(stale)
+
+    async def add_vehicles(self, vehicles: Sequence[VehicleRecord]) -> list[str]:
+        new = [v for v in vehicles if v.vehicle_id not in self._vehicles]
+        taken = any(self._vehicle_of_key.get(v.key_hash, v.vehicle_id) != v.vehicle_id for v in new)
+        if taken or len({v.key_hash for v in new}) != len(new):
+            raise ValueError("a key hash given is already another vehicle's")
+        added = []
+        for vehicle in vehicles:
+            if vehicle.vehicle_id in self._vehicles:
+                continue
+            self._vehicles[vehicle.vehicle_id] = vehicle
+            self._vehicle_of_key[vehicle.key_hash] = vehicle.vehicle_id
+            added.append(vehicle.vehicle_id)
+        return added
+
+    async def get_vehicle(self, vehicle_id: str) -> VehicleRecord | None:
+        return self._vehicles.get(vehicle_id)
+
+    async def vehicle_of_key(self, key_hash: str) -> str | None:
+        return self._vehicle_of_key.get(key_hash)
+
+    async def list_vehicles(self, *, after: str | None = None, limit: int = 100) -> list[VehicleRecord]:
+        ids = sorted(vid for vid in self._vehicles if after is None or vid > after)
+        return [self._vehicles[vid] for vid in ids[:limit]]
+
+    async def count_vehicles(self) -> int:
+        return len(self._vehicles)
+
+    async def rotate_vehicle_key(self, vehicle_id: str, key_hash: str, now: float) -> VehicleRecord | None:
+        vehicle = self._vehicles.get(vehicle_id)
+        if vehicle is None:
+            return None
+        if self._vehicle_of_key.get(key_hash, vehicle_id) != vehicle_id:
+            raise ValueError("that key hash is already another vehicle's")
+        self._vehicle_of_key.pop(vehicle.key_hash, None)
+        rotated = dataclasses.replace(vehicle, key_hash=key_hash, key_issued_at=now)
+        self._vehicles[vehicle_id] = rotated
+        self._vehicle_of_key[key_hash] = vehicle_id
+        return rotated
+
+    async def delete_vehicle(self, vehicle_id: str) -> Revocation | None:
+        vehicle = self._vehicles.pop(vehicle_id, None)
+        if vehicle is None:
+            return None
+        self._vehicle_of_key.pop(vehicle.key_hash, None)
+        session_id = self._live.pop(vehicle_id, None)
+        ended = None
+        record = self._sessions.pop(session_id, None) if session_id is not None else None
+        if record is not None and not self.is_expired(record, self.clock()):
+            ended = session_id
+        self._tracks.pop(vehicle_id, None)
+        return Revocation(vehicle_id, ended)
 
     async def upsert_rsus(self, rsus: Iterable[Rsu]) -> int:
         written = 0
@@ -108,8 +251,13 @@ class MemoryStore(SessionStore):
         existed, self._ephemerides = self._ephemerides is not None, None
         return existed
 
-    async def put_track(self, track: NeighbourTrack) -> None:
+    async def put_track(self, track: NeighbourTrack, session_id: str) -> bool:
+        record = self._sessions.get(session_id)
+        live = self._live.get(track.vehicle_id) == session_id
+        if not live or record is None or self.is_expired(record, self.clock()):
+            return False
         self._tracks[track.vehicle_id] = (track, self.clock())
+        return True
 
     async def get_tracks(self, vehicle_ids: Iterable[str]) -> Mapping[str, NeighbourTrack]:
         now = self.clock()
@@ -132,3 +280,6 @@ class MemoryStore(SessionStore):
             self._rate_tats = {k: v for k, v in self._rate_tats.items() if v > now}
         self._rate_tats[key] = tat
         return 0.0
+
+    async def request_wait(self, key: str, limit: RateLimit) -> float:
+        return gcra(self._rate_tats.get(key), self.clock(), limit)[0]

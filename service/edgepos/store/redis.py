@@ -8,8 +8,12 @@ TTL, so an idle session disappears by itself after ``ttl_s``. A sorted set of se
 ``updated_at`` counts live sessions for the session limit without scanning the keyspace, and lets
 expired entries be purged by score. RSUs live in one hash; the broadcast ephemerides in another
 (digest, text and upload time, written in one transaction so a reader never sees a mix of two
-uploads). Key layout and the durability of an acknowledged write under each persistence setting
-are in docs/redis.md.
+uploads). Registered vehicles live in one hash with a second hash indexing them by key hash; each
+vehicle's live session is named by a pointer key that carries its session's TTL. Every write that
+touches several keys (creating a session, which may supersede the vehicle's previous one; deleting
+a session; publishing a track; registering, re-keying or revoking vehicles) is one Lua script. Key
+layout and the durability of an acknowledged write under each persistence setting are in
+docs/redis.md.
 
 Every network failure or timeout surfaces as :class:`StoreUnavailable` after short, bounded
 timeouts (one reconnect attempt), never as a hang.
@@ -21,7 +25,7 @@ import asyncio
 import json
 import math
 import time
-from collections.abc import AsyncGenerator, AsyncIterator, Iterable, Mapping
+from collections.abc import AsyncGenerator, AsyncIterator, Iterable, Mapping, Sequence
 from contextlib import asynccontextmanager
 from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
 
@@ -34,15 +38,20 @@ from redis.commands.core import AsyncScript
 from edgepos.pipelines.base import NeighbourTrack, Rsu
 from edgepos.store.base import (
     Clock,
+    Revocation,
     SessionRecord,
     SessionStore,
+    SessionSummary,
     StoredEphemerides,
     StoreUnavailable,
+    Supersession,
     TooManySessions,
+    VehicleNotRegistered,
+    VehicleRecord,
     decode_track,
     encode_track,
 )
-from edgepos.store.ratelimit import SLACK_S, RateLimit
+from edgepos.store.ratelimit import SLACK_S, RateLimit, gcra
 
 DEFAULT_PREFIX = "edgepos:"
 DEFAULT_CONNECT_TIMEOUT_S = 0.5
@@ -57,6 +66,10 @@ _SCHEMES = ("redis", "rediss", "unix")
 _CHUNK = 500
 
 # Remove index entries scored below ARGV[1] (exclusive) and their session hashes (prefix ARGV[2]).
+# Live-session pointers are not touched here (an expired session's hash may already be gone, so its
+# vehicle is unknown): every reader treats a pointer to a missing or expired session as absent, and a
+# pointer carries its session's TTL (set by create, refreshed by each compare-and-set), so it goes by
+# itself.
 _PURGE = """
 local function purge(index, cutoff, prefix)
   local stale = redis.call('ZRANGEBYSCORE', index, '-inf', '(' .. cutoff)
@@ -70,21 +83,52 @@ local function purge(index, cutoff, prefix)
 end
 """
 
-# KEYS: session hash, index. ARGV: cutoff, session-key prefix, limit, ttl ms, score, id, fields...
+# KEYS: session hash, index, vehicles, the vehicle's live pointer, the vehicle's track.
+# ARGV: cutoff, session-key prefix, limit, ttl ms, score, id, vehicle id, key hash ('' = no registry
+# check), supersession-key prefix, now, fields...
+# Returns {1, superseded id or ''}, or {-1} (id taken), {-2} (too many sessions), {-3} (the vehicle is
+# not registered with this key). Nothing is written unless it returns 1.
 _CREATE = (
     _PURGE
     + """
+if ARGV[8] ~= '' then
+  local vehicle = redis.call('HGET', KEYS[3], ARGV[7])
+  if (not vehicle) or cjson.decode(vehicle)[1] ~= ARGV[8] then return {-3} end
+end
 purge(KEYS[2], ARGV[1], ARGV[2])
-if redis.call('EXISTS', KEYS[1]) == 1 then return -1 end
-if redis.call('ZCARD', KEYS[2]) >= tonumber(ARGV[3]) then return -2 end
-redis.call('HSET', KEYS[1], unpack(ARGV, 7))
+if redis.call('EXISTS', KEYS[1]) == 1 then return {-1} end
+local old = redis.call('GET', KEYS[4])
+local old_token = false
+if old then
+  -- after the purge an existing session hash is a live session
+  old_token = redis.call('HGET', ARGV[2] .. old, 'token_hash')
+  if not old_token then
+    redis.call('ZREM', KEYS[2], old)
+    old = false
+  end
+end
+local live = redis.call('ZCARD', KEYS[2])
+if old then live = live - 1 end  -- the superseded session makes room for its successor
+if live >= tonumber(ARGV[3]) then return {-2} end
+if old then
+  redis.call('DEL', ARGV[2] .. old)
+  redis.call('ZREM', KEYS[2], old)
+  local superseded = ARGV[9] .. old
+  redis.call('DEL', superseded)
+  redis.call('HSET', superseded, 'superseded_by', ARGV[6], 'token_hash', old_token, 'at', ARGV[10])
+  redis.call('PEXPIRE', superseded, ARGV[4])
+end
+redis.call('DEL', KEYS[5])
+redis.call('HSET', KEYS[1], unpack(ARGV, 11))
 redis.call('PEXPIRE', KEYS[1], ARGV[4])
 redis.call('ZADD', KEYS[2], ARGV[5], ARGV[6])
-return 1
+redis.call('SET', KEYS[4], ARGV[6], 'PX', ARGV[4])
+return {1, old or ''}
 """
 )
 
-# KEYS: session hash, index. ARGV: expected version, ttl ms, score, id, fields...
+# KEYS: session hash, index, the vehicle's live pointer. ARGV: expected version, ttl ms, score, id,
+# fields... The pointer's TTL is refreshed with the session's while it names this session.
 _COMPARE_AND_SET = """
 local version = redis.call('HGET', KEYS[1], 'version')
 if (not version) or version ~= ARGV[1] then return 0 end
@@ -92,7 +136,95 @@ redis.call('DEL', KEYS[1])
 redis.call('HSET', KEYS[1], unpack(ARGV, 5))
 redis.call('PEXPIRE', KEYS[1], ARGV[2])
 redis.call('ZADD', KEYS[2], ARGV[3], ARGV[4])
+if redis.call('GET', KEYS[3]) == ARGV[4] then redis.call('PEXPIRE', KEYS[3], ARGV[2]) end
 return 1
+"""
+
+# KEYS: session hash, index. ARGV: id, live-pointer prefix, track prefix. Removes the session and,
+# when the vehicle's pointer names it, the pointer and the vehicle's track. Returns 1 if it existed.
+_DELETE = """
+local vehicle = redis.call('HGET', KEYS[1], 'vehicle_id')
+local removed = redis.call('DEL', KEYS[1])
+redis.call('ZREM', KEYS[2], ARGV[1])
+if vehicle then
+  local pointer = ARGV[2] .. vehicle
+  if redis.call('GET', pointer) == ARGV[1] then
+    redis.call('DEL', pointer)
+    redis.call('DEL', ARGV[3] .. vehicle)
+  end
+end
+return removed
+"""
+
+# KEYS: the vehicle's live pointer, the session hash, index, the vehicle's track. ARGV: session id,
+# cutoff, track value, ttl ms. Writes the track only while that session is the vehicle's live one.
+_PUT_TRACK = """
+if redis.call('GET', KEYS[1]) ~= ARGV[1] then return 0 end
+if redis.call('EXISTS', KEYS[2]) == 0 then return 0 end
+local score = redis.call('ZSCORE', KEYS[3], ARGV[1])
+if (not score) or tonumber(score) < tonumber(ARGV[2]) then return 0 end
+redis.call('SET', KEYS[4], ARGV[3], 'PX', ARGV[4])
+return 1
+"""
+
+# KEYS: vehicles, vehicle keys. ARGV: (vehicle id, key hash, JSON value) triples. Adds the vehicles not
+# registered yet; returns their ids, or {-1} (and writes nothing) when a key hash to add is already
+# another vehicle's or appears twice.
+_ADD_VEHICLES = """
+local fresh, ids, keys = {}, {}, {}
+for i = 1, #ARGV, 3 do
+  local vehicle, key = ARGV[i], ARGV[i + 1]
+  if (not ids[vehicle]) and redis.call('HEXISTS', KEYS[1], vehicle) == 0 then
+    if keys[key] or redis.call('HEXISTS', KEYS[2], key) == 1 then return {-1} end
+    ids[vehicle], keys[key] = true, true
+    fresh[#fresh + 1] = i
+  end
+end
+local added = {}
+for _, i in ipairs(fresh) do
+  redis.call('HSET', KEYS[1], ARGV[i], ARGV[i + 2])
+  redis.call('HSET', KEYS[2], ARGV[i + 1], ARGV[i])
+  added[#added + 1] = ARGV[i]
+end
+return added
+"""
+
+# KEYS: vehicles, vehicle keys. ARGV: vehicle id, new key hash, now (repr). Returns the new JSON value,
+# 0 when the vehicle is not registered, -1 when the key hash is another vehicle's. Numbers are
+# rewritten with 17 significant digits, which round-trips a double exactly.
+_ROTATE_VEHICLE_KEY = """
+local value = redis.call('HGET', KEYS[1], ARGV[1])
+if not value then return 0 end
+local owner = redis.call('HGET', KEYS[2], ARGV[2])
+if owner and owner ~= ARGV[1] then return -1 end
+local vehicle = cjson.decode(value)
+if redis.call('HGET', KEYS[2], vehicle[1]) == ARGV[1] then redis.call('HDEL', KEYS[2], vehicle[1]) end
+local rotated = '[' .. cjson.encode(ARGV[2]) .. ',' .. string.format('%.17g', vehicle[2]) .. ','
+  .. ARGV[3] .. ']'
+redis.call('HSET', KEYS[1], ARGV[1], rotated)
+redis.call('HSET', KEYS[2], ARGV[2], ARGV[1])
+return rotated
+"""
+
+# KEYS: vehicles, vehicle keys, the vehicle's live pointer, the vehicle's track, index. ARGV: vehicle
+# id, session-key prefix, cutoff. Returns {0} when not registered, else {1, ended session id or ''}.
+_DELETE_VEHICLE = """
+local value = redis.call('HGET', KEYS[1], ARGV[1])
+if not value then return {0} end
+local key = cjson.decode(value)[1]
+redis.call('HDEL', KEYS[1], ARGV[1])
+if redis.call('HGET', KEYS[2], key) == ARGV[1] then redis.call('HDEL', KEYS[2], key) end
+local ended = ''
+local sid = redis.call('GET', KEYS[3])
+if sid then
+  local score = redis.call('ZSCORE', KEYS[5], sid)
+  local existed = redis.call('DEL', ARGV[2] .. sid)
+  redis.call('ZREM', KEYS[5], sid)
+  if existed == 1 and score and tonumber(score) >= tonumber(ARGV[3]) then ended = sid end
+  redis.call('DEL', KEYS[3])
+end
+redis.call('DEL', KEYS[4])
+return {1, ended}
 """
 
 # KEYS: index. ARGV: cutoff, session-key prefix. Returns {purged, remaining}.
@@ -207,6 +339,38 @@ def _record(session_id: str, raw: Mapping[bytes, bytes]) -> SessionRecord:
     )
 
 
+_SUMMARY_FIELDS = (
+    "vehicle_id", "pipeline", "created_at", "updated_at", "last_seq", "batches", "epochs", "last_fix"
+)  # fmt: skip
+
+
+def _summary(session_id: str, values: Sequence[bytes | None]) -> SessionSummary | None:
+    """A summary from HMGET of :data:`_SUMMARY_FIELDS`; None when the session hash is gone."""
+    vehicle, pipeline, created, updated, last_seq, batches, epochs, last_fix = values
+    if vehicle is None or pipeline is None or created is None or updated is None:
+        return None
+    return SessionSummary(
+        session_id=session_id,
+        vehicle_id=vehicle.decode(),
+        pipeline=pipeline.decode(),
+        created_at=float(created),
+        updated_at=float(updated),
+        last_seq=int(last_seq or 0),
+        batches=int(batches or 0),
+        epochs=int(epochs or 0),
+        last_fix=None if last_fix is None else last_fix.decode(),
+    )
+
+
+def _vehicle_value(vehicle: VehicleRecord) -> str:
+    return json.dumps([vehicle.key_hash, float(vehicle.created_at), float(vehicle.key_issued_at)])
+
+
+def _vehicle(vehicle_id: str, value: bytes | str) -> VehicleRecord:
+    key_hash, created_at, key_issued_at = json.loads(value)
+    return VehicleRecord(vehicle_id, key_hash, float(created_at), float(key_issued_at))
+
+
 def _rsu_value(rsu: Rsu) -> str:
     return json.dumps([rsu.x, rsu.y, rsu.range_std, rsu.bearing_std, rsu.radius])
 
@@ -227,6 +391,11 @@ class RedisStore(SessionStore):
         self.rsu_key = f"{self.prefix}rsus"
         self.rate_prefix = f"{self.prefix}rate:"
         self.ephemerides_key = f"{self.prefix}ephemerides"
+        self.vehicles_key = f"{self.prefix}vehicles"
+        self.vehicle_keys_key = f"{self.prefix}vehiclekeys"
+        self.live_prefix = f"{self.prefix}live:"
+        self.superseded_prefix = f"{self.prefix}superseded:"
+        self.track_prefix = f"{self.prefix}track:"
         self._ttl_ms = max(1, math.ceil(self.ttl_s * 1000.0))
         self._client: Redis | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -251,6 +420,11 @@ class RedisStore(SessionStore):
                 "cas": client.register_script(_COMPARE_AND_SET),
                 "count": client.register_script(_PURGE_AND_COUNT),
                 "take": client.register_script(_TAKE_REQUEST),
+                "delete": client.register_script(_DELETE),
+                "put_track": client.register_script(_PUT_TRACK),
+                "add_vehicles": client.register_script(_ADD_VEHICLES),
+                "rotate": client.register_script(_ROTATE_VEHICLE_KEY),
+                "delete_vehicle": client.register_script(_DELETE_VEHICLE),
             }
             await anext(closer)  # started, so the loop's shutdown will close it
         return self._client
@@ -282,16 +456,27 @@ class RedisStore(SessionStore):
     def _session_key(self, session_id: str) -> str:
         return f"{self.session_prefix}{session_id}"
 
+    def _live_key(self, vehicle_id: str) -> str:
+        return f"{self.live_prefix}{vehicle_id}"
+
     def _cutoff(self) -> str:
         return repr(float(self.clock() - self.ttl_s))
 
     # sessions -------------------------------------------------------------------------------
-    async def create(self, record: SessionRecord, max_sessions: int) -> None:
+    async def create(
+        self, record: SessionRecord, max_sessions: int, *, vehicle_key_hash: str | None = None
+    ) -> str | None:
         key = self._session_key(record.session_id)
         async with self._guard():
             client = await self._redis()
             outcome = await self._scripts["create"](
-                keys=[key, self.index_key],
+                keys=[
+                    key,
+                    self.index_key,
+                    self.vehicles_key,
+                    self._live_key(record.vehicle_id),
+                    self._track_key(record.vehicle_id),
+                ],
                 args=[
                     self._cutoff(),
                     self.session_prefix,
@@ -299,16 +484,92 @@ class RedisStore(SessionStore):
                     self._ttl_ms,
                     repr(float(record.updated_at)),
                     record.session_id,
+                    record.vehicle_id,
+                    "" if vehicle_key_hash is None else vehicle_key_hash,
+                    self.superseded_prefix,
+                    repr(float(self.clock())),
                     *_fields(record, record.version),
                 ],
                 client=client,
             )
-            # A reconnect retry may resend a create that had already been applied: that one is ours.
-            ours = outcome == -1 and await client.hgetall(key) == dict(_pairs(record, record.version))
-        if outcome == -2:
+            code = int(outcome[0])
+            # A reconnect retry may resend a create that had already been applied: that one is ours
+            # (which session it superseded, if any, is then not known any more).
+            ours = code == -1 and await client.hgetall(key) == dict(_pairs(record, record.version))
+        if code == -3:
+            raise VehicleNotRegistered(record.vehicle_id)
+        if code == -2:
             raise TooManySessions(max_sessions)
-        if outcome == -1 and not ours:
+        if code == -1:
+            if ours:
+                return None
             raise ValueError(f"session {record.session_id!r} already exists")
+        superseded = bytes(outcome[1]).decode()
+        return superseded or None
+
+    async def live_session(self, vehicle_id: str) -> str | None:
+        async with self._guard():
+            client = await self._redis()
+            pointer = await client.get(self._live_key(vehicle_id))
+            if pointer is None:
+                return None
+            session_id = bytes(pointer).decode()
+            updated = await client.hget(self._session_key(session_id), "updated_at")
+        if updated is None or self.clock() - float(updated) > self.ttl_s:
+            return None
+        return session_id
+
+    async def supersession(self, session_id: str) -> Supersession | None:
+        async with self._guard():
+            client = await self._redis()
+            by, token_hash, at = await client.hmget(
+                f"{self.superseded_prefix}{session_id}", ["superseded_by", "token_hash", "at"]
+            )
+        if by is None or token_hash is None or at is None or self.clock() - float(at) > self.ttl_s:
+            return None
+        return Supersession(session_id, bytes(by).decode(), bytes(token_hash).decode(), float(at))
+
+    async def list_sessions(
+        self,
+        *,
+        after: str | None = None,
+        limit: int = 100,
+        pipeline: str | None = None,
+        vehicle_id: str | None = None,
+    ) -> list[SessionSummary]:
+        if limit <= 0:
+            return []
+        found: list[SessionSummary] = []
+        now = self.clock()
+        async with self._guard():
+            client = await self._redis()
+            if vehicle_id is not None:  # a vehicle has at most one session: its live one
+                pointer = await client.get(self._live_key(vehicle_id))
+                candidates = [] if pointer is None else [bytes(pointer).decode()]
+            else:
+                members = await client.zrangebyscore(self.index_key, self._cutoff(), "+inf")
+                candidates = sorted(bytes(member).decode() for member in members)
+            if after is not None:
+                candidates = [sid for sid in candidates if sid > after]
+            step = max(limit, 50)
+            for start in range(0, len(candidates), step):
+                chunk = candidates[start : start + step]
+                async with client.pipeline(transaction=False) as pipe:
+                    for sid in chunk:
+                        pipe.hmget(self._session_key(sid), list(_SUMMARY_FIELDS))
+                    replies = await pipe.execute()
+                for sid, values in zip(chunk, replies):
+                    summary = _summary(sid, values)
+                    if summary is None or now - summary.updated_at > self.ttl_s:
+                        continue  # vanished or expired since the index was read
+                    if pipeline is not None and summary.pipeline != pipeline:
+                        continue
+                    if vehicle_id is not None and summary.vehicle_id != vehicle_id:
+                        continue
+                    found.append(summary)
+                    if len(found) >= limit:
+                        return found
+        return found
 
     async def get(self, session_id: str) -> SessionRecord | None:
         async with self._guard():
@@ -322,7 +583,11 @@ class RedisStore(SessionStore):
         async with self._guard():
             client = await self._redis()
             applied = await self._scripts["cas"](
-                keys=[self._session_key(record.session_id), self.index_key],
+                keys=[
+                    self._session_key(record.session_id),
+                    self.index_key,
+                    self._live_key(record.vehicle_id),
+                ],
                 args=[
                     str(int(expected_version)),
                     self._ttl_ms,
@@ -336,10 +601,12 @@ class RedisStore(SessionStore):
 
     async def delete(self, session_id: str) -> bool:
         async with self._guard():
-            async with (await self._redis()).pipeline(transaction=True) as pipe:
-                pipe.delete(self._session_key(session_id))
-                pipe.zrem(self.index_key, session_id)
-                removed, _ = await pipe.execute()
+            client = await self._redis()
+            removed = await self._scripts["delete"](
+                keys=[self._session_key(session_id), self.index_key],
+                args=[session_id, self.live_prefix, self.track_prefix],
+                client=client,
+            )
         return bool(removed)
 
     async def _purge_and_count(self) -> tuple[int, int]:
@@ -354,7 +621,77 @@ class RedisStore(SessionStore):
         return (await self._purge_and_count())[1]
 
     async def expire(self) -> int:
+        # Supersession records and live pointers carry TTLs of their own: Redis drops them.
         return (await self._purge_and_count())[0]
+
+    # vehicle registry -----------------------------------------------------------------------
+    async def add_vehicles(self, vehicles: Sequence[VehicleRecord]) -> list[str]:
+        args = [item for v in vehicles for item in (v.vehicle_id, v.key_hash, _vehicle_value(v))]
+        if not args:
+            return []
+        async with self._guard():
+            client = await self._redis()
+            added = await self._scripts["add_vehicles"](
+                keys=[self.vehicles_key, self.vehicle_keys_key], args=args, client=client
+            )
+        if added and not isinstance(added[0], bytes):
+            raise ValueError("a vehicle key hash is already another vehicle's; nothing was added")
+        return [bytes(vehicle_id).decode() for vehicle_id in added]
+
+    async def get_vehicle(self, vehicle_id: str) -> VehicleRecord | None:
+        async with self._guard():
+            value = await (await self._redis()).hget(self.vehicles_key, vehicle_id)
+        return None if value is None else _vehicle(vehicle_id, value)
+
+    async def vehicle_of_key(self, key_hash: str) -> str | None:
+        async with self._guard():
+            vehicle_id = await (await self._redis()).hget(self.vehicle_keys_key, key_hash)
+        return None if vehicle_id is None else bytes(vehicle_id).decode()
+
+    async def list_vehicles(self, *, after: str | None = None, limit: int = 100) -> list[VehicleRecord]:
+        async with self._guard():
+            raw = await (await self._redis()).hgetall(self.vehicles_key)
+        ids = sorted(key.decode() for key in raw)
+        if after is not None:
+            ids = [vehicle_id for vehicle_id in ids if vehicle_id > after]
+        return [_vehicle(vehicle_id, raw[vehicle_id.encode()]) for vehicle_id in ids[: max(0, limit)]]
+
+    async def count_vehicles(self) -> int:
+        async with self._guard():
+            return int(await (await self._redis()).hlen(self.vehicles_key))
+
+    async def rotate_vehicle_key(self, vehicle_id: str, key_hash: str, now: float) -> VehicleRecord | None:
+        async with self._guard():
+            client = await self._redis()
+            rotated = await self._scripts["rotate"](
+                keys=[self.vehicles_key, self.vehicle_keys_key],
+                args=[vehicle_id, key_hash, repr(float(now))],
+                client=client,
+            )
+        if rotated == 0:
+            return None
+        if rotated == -1:
+            raise ValueError("the new key hash is already another vehicle's; the key was not rotated")
+        return _vehicle(vehicle_id, rotated)
+
+    async def delete_vehicle(self, vehicle_id: str) -> Revocation | None:
+        async with self._guard():
+            client = await self._redis()
+            outcome = await self._scripts["delete_vehicle"](
+                keys=[
+                    self.vehicles_key,
+                    self.vehicle_keys_key,
+                    self._live_key(vehicle_id),
+                    self._track_key(vehicle_id),
+                    self.index_key,
+                ],
+                args=[vehicle_id, self.session_prefix, self._cutoff()],
+                client=client,
+            )
+        if int(outcome[0]) == 0:
+            return None
+        ended = bytes(outcome[1]).decode()
+        return Revocation(vehicle_id, ended or None)
 
     # RSUs -----------------------------------------------------------------------------------
     async def upsert_rsus(self, rsus: Iterable[Rsu]) -> int:
@@ -428,12 +765,23 @@ class RedisStore(SessionStore):
 
     # neighbour tracks: one string key per vehicle, replaced whole by SET (atomic), expiring by itself
     def _track_key(self, vehicle_id: str) -> str:
-        return f"{self.prefix}track:{vehicle_id}"
+        return f"{self.track_prefix}{vehicle_id}"
 
-    async def put_track(self, track: NeighbourTrack) -> None:
-        value = encode_track(track, self.clock())
+    async def put_track(self, track: NeighbourTrack, session_id: str) -> bool:
+        now = self.clock()
         async with self._guard():
-            await (await self._redis()).set(self._track_key(track.vehicle_id), value, px=self._ttl_ms)
+            client = await self._redis()
+            written = await self._scripts["put_track"](
+                keys=[
+                    self._live_key(track.vehicle_id),
+                    self._session_key(session_id),
+                    self.index_key,
+                    self._track_key(track.vehicle_id),
+                ],
+                args=[session_id, repr(float(now - self.ttl_s)), encode_track(track, now), self._ttl_ms],
+                client=client,
+            )
+        return written == 1
 
     async def get_tracks(self, vehicle_ids: Iterable[str]) -> Mapping[str, NeighbourTrack]:
         wanted = sorted(set(vehicle_ids))
@@ -465,6 +813,11 @@ class RedisStore(SessionStore):
                 client=client,
             )
         return float(wait)
+
+    async def request_wait(self, key: str, limit: RateLimit) -> float:
+        async with self._guard():
+            tat = await (await self._redis()).get(f"{self.rate_prefix}{key}")
+        return gcra(None if tat is None else float(tat), self.clock(), limit)[0]
 
     # lifecycle ------------------------------------------------------------------------------
     async def ping(self) -> bool:
