@@ -91,7 +91,7 @@ def run(
         headers = {**ADMIN, "Content-Type": "text/plain"}
         assert client.put("/v1/ephemerides", content=text, headers=headers).is_success
         body = {"vehicle_id": "bench", "pipeline": "gnss_tight", "options": options}
-        created = client.post("/v1/sessions", json=body).json()
+        created = client.post("/v1/sessions", json=body, headers=ADMIN).json()
         session_id, token = created["session_id"], {"Authorization": f"Bearer {created['token']}"}
         for seq, items in enumerate(epochs, start=1):
             started = time.perf_counter()

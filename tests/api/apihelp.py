@@ -74,9 +74,10 @@ def bearer(token: str) -> dict[str, str]:
     return {"Authorization": f"Bearer {token}"}
 
 
-def open_session(client: Any, **body: Any) -> tuple[str, dict[str, str]]:
-    """Create a session; returns its id and its Authorization header."""
-    response = client.post("/v1/sessions", json={"vehicle_id": "car-1", **body})
+def open_session(client: Any, credential: dict[str, str] = ADMIN, **body: Any) -> tuple[str, dict[str, str]]:
+    """Create a session (with the admin key unless another ``credential`` header is given); returns its
+    id and its Authorization header. A vehicle has one live session: give distinct vehicle ids."""
+    response = client.post("/v1/sessions", json={"vehicle_id": "car-1", **body}, headers=credential)
     assert response.status_code == 201, response.text
     created = response.json()
     return created["session_id"], bearer(created["token"])

@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from apihelp import assert_error, open_session
+from apihelp import ADMIN, assert_error, open_session
 
 
 def _post(client, session_id, auth, seq, measurements):
@@ -39,6 +39,10 @@ def test_federated_bad_input_is_4xx_and_keeps_the_session(client):
 
 
 def test_federated_bad_option_names_the_option(client):
-    response = client.post("/v1/sessions", json={"vehicle_id": "car-1", "pipeline": "v2x_federated", "options": {"dr_share": 2}})
+    response = client.post(
+        "/v1/sessions",
+        json={"vehicle_id": "car-1", "pipeline": "v2x_federated", "options": {"dr_share": 2}},
+        headers=ADMIN,
+    )
     error = assert_error(response, 422, "invalid_request")
     assert error["problems"][0]["field"] == "options.dr_share"

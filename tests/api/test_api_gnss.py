@@ -322,7 +322,7 @@ def test_pipelines_list_gnss_tight_with_its_options(client):
     error = assert_error(
         client.post(
             "/v1/sessions", json={"vehicle_id": "c", "pipeline": "gnss_tight", "options": {"particles": 1}}
-        ),
+        , headers=ADMIN),
         422,
         "invalid_request",
     )

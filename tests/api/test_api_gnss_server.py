@@ -46,6 +46,7 @@ def test_gnss_tight_over_a_real_socket_on_two_redis_workers(tmp_path):
                 created = client.post(
                     "/v1/sessions",
                     json={"vehicle_id": "socket-gnss", "pipeline": "gnss_tight", "options": QUICK},
+                    headers=admin,
                 ).json()
             token = {"Authorization": f"Bearer {created['token']}"}
             fixes = []

@@ -46,7 +46,7 @@ def test_two_workers_share_the_ephemerides(tmp_path, store_url):
         assert second.get("/v1/ephemerides", headers=ADMIN).json() == uploaded.json()
 
         body = {"vehicle_id": "car", "pipeline": "gnss_tight", "options": QUICK}
-        created = first.post("/v1/sessions", json=body).json()
+        created = first.post("/v1/sessions", json=body, headers=ADMIN).json()
         session_id, token = created["session_id"], {"Authorization": f"Bearer {created['token']}"}
         response = _batch(second, session_id, token, 1, 0)  # parsed by the second worker from the store
         assert response.status_code == 200, response.text
@@ -80,7 +80,7 @@ def test_each_worker_parses_a_file_once(tmp_path, monkeypatch):
         digest = first.put("/v1/ephemerides", content=nav_text(), headers=TEXT).json()["digest"]
         body = {"vehicle_id": "car", "pipeline": "gnss_tight", "options": QUICK}
         for client in (first, first, second, second, second):
-            created = client.post("/v1/sessions", json=body).json()
+            created = client.post("/v1/sessions", json=body, headers=ADMIN).json()
             token = {"Authorization": f"Bearer {created['token']}"}
             for seq in (1, 2):
                 assert _batch(client, created["session_id"], token, seq, seq - 1).status_code == 200

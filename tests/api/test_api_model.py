@@ -3,7 +3,8 @@
 Rules open sessions (various filters, with or without a known start), send the next epochs of the
 paper scenario's measurements, retry the last batch, send every kind of bad request (malformed
 JSON, wrong types, huge numbers, NaN, unicode ids, unknown RSUs, stale timestamps, seq gaps and
-reuse, over-long and over-size batches) and delete sessions. After every step, for every session:
+reuse, over-long and over-size batches) and delete sessions. Opening a session for a vehicle that has
+one supersedes the old one, whose token then gets 409 superseded. After every step, for every session:
 the served fixes were the reference's bit for bit, refused requests got a 4xx with the standard
 error body and changed nothing, and the stored counters and latest fix equal the model's.
 """
@@ -57,6 +58,7 @@ class Model:
 
     session_id: str
     token: str
+    vehicle_id: str
     state: bytes
     last_seq: int = 0
     epochs: int = 0
@@ -65,6 +67,11 @@ class Model:
     last_body: dict[str, Any] | None = None
     last_response: bytes | None = None
     deleted: bool = field(default=False)
+    superseded_by: str | None = None
+
+    @property
+    def live(self) -> bool:
+        return not self.deleted and self.superseded_by is None
 
 
 def _wire_fix(fix: Any) -> dict[str, Any]:
@@ -119,18 +126,27 @@ class ApiBesideReference(RuleBasedStateMachine):
         body: dict[str, Any] = {"vehicle_id": vehicle, "options": {"filter": filter_name}}
         if known_start:
             body["initial_state"] = START
-        response = CLIENT.post("/v1/sessions", json=body)
+        response = CLIENT.post("/v1/sessions", json=body, headers=ADMIN)
         if response.status_code == 422:  # a vehicle id the schema refuses (e.g. control characters)
             assert response.json()["error"]["problems"][0]["field"] == "vehicle_id"
             body["vehicle_id"] = "car"
-            response = CLIENT.post("/v1/sessions", json=body)
+            response = CLIENT.post("/v1/sessions", json=body, headers=ADMIN)
         assert response.status_code == 201, response.text
         created = response.json()
         initial = InitialState(**START) if known_start else None
         state = PIPELINE.create(PIPELINE.resolve_options({"filter": filter_name}), initial)
-        model = Model(created["session_id"], created["token"], state)
+        model = Model(created["session_id"], created["token"], body["vehicle_id"], state)
+        replaced = [old for old in self.models if old.live and old.vehicle_id == model.vehicle_id]
+        assert created["superseded"] == (replaced[0].session_id if replaced else None)
+        for old in replaced:
+            old.superseded_by = model.session_id
         self.models.append(model)
         return model
+
+    def _assert_superseded(self, model: Model, response: Any) -> None:
+        assert response.status_code == 409, response.text
+        error = response.json()["error"]
+        assert error["code"] == "superseded" and model.superseded_by in error["message"]
 
     def _post(self, model: Model, content: bytes | str, token: str | None = None) -> Any:
         return CLIENT.post(
@@ -144,6 +160,9 @@ class ApiBesideReference(RuleBasedStateMachine):
         if model.deleted or model.next_epoch + count > len(EPOCHS):
             return
         body = {"seq": model.last_seq + 1, "measurements": _measurements(model.next_epoch, count)}
+        if model.superseded_by is not None:
+            self._assert_superseded(model, self._post(model, json.dumps(body)))
+            return
         observations = [o for epoch in EPOCHS[model.next_epoch : model.next_epoch + count] for o in epoch]
         fixes, state = PIPELINE.process(model.state, observations, ENVIRONMENT)
         response = self._post(model, json.dumps(body))
@@ -159,7 +178,7 @@ class ApiBesideReference(RuleBasedStateMachine):
 
     @rule(model=sessions, spaced=st.booleans())
     def retry_last_batch(self, model: Model, spaced: bool) -> None:
-        if model.deleted or model.last_body is None:
+        if not model.live or model.last_body is None:
             return
         content = json.dumps(model.last_body, indent=2 if spaced else None)  # other bytes, same content
         response = self._post(model, content)
@@ -167,7 +186,7 @@ class ApiBesideReference(RuleBasedStateMachine):
 
     @rule(model=sessions, kind=st.sampled_from(BAD_KINDS), salt=st.text(max_size=8))
     def send_bad_request(self, model: Model, kind: str, salt: str) -> None:
-        if model.deleted:
+        if not model.live:
             return
         seq = model.last_seq + 1
         first = min(model.next_epoch, len(EPOCHS) - 2)
@@ -227,7 +246,7 @@ class ApiBesideReference(RuleBasedStateMachine):
 
     @rule(model=sessions, other=sessions)
     def use_another_sessions_token(self, model: Model, other: Model) -> None:
-        if model.deleted or other.deleted or other is model:
+        if not model.live or not other.live or other is model:
             return
         response = CLIENT.get(f"/v1/sessions/{model.session_id}", headers=bearer(other.token))
         assert response.status_code == 403
@@ -237,6 +256,9 @@ class ApiBesideReference(RuleBasedStateMachine):
         if model.deleted:
             return
         response = CLIENT.delete(f"/v1/sessions/{model.session_id}", headers=bearer(model.token))
+        if model.superseded_by is not None:
+            self._assert_superseded(model, response)
+            return
         assert response.status_code == 204
         model.deleted = True
         assert CLIENT.get(f"/v1/sessions/{model.session_id}", headers=ADMIN).status_code == 404
@@ -249,6 +271,12 @@ class ApiBesideReference(RuleBasedStateMachine):
                 assert response.status_code == 404
                 self.models.remove(model)  # checked once more after the delete; gone for good
                 continue
+            if model.superseded_by is not None:
+                self._assert_superseded(model, response)
+                own = CLIENT.get(f"/v1/sessions/{model.session_id}", headers=bearer(model.token))
+                self._assert_superseded(model, own)
+                self.models.remove(model)  # checked once; it can never come back
+                continue
             assert response.status_code == 200, response.text
             info = response.json()
             assert (info["last_seq"], info["batches"], info["epochs"]) == (model.last_seq, model.last_seq, model.epochs)
@@ -258,7 +286,7 @@ class ApiBesideReference(RuleBasedStateMachine):
 
     def teardown(self) -> None:
         for model in list(self.models):
-            if not model.deleted:
+            if model.live:
                 CLIENT.delete(f"/v1/sessions/{model.session_id}", headers=ADMIN)
 
 

@@ -25,6 +25,10 @@ def test_schema_documents_every_route_and_error():
         "/v1/sessions",
         "/v1/sessions/{session_id}",
         "/v1/sessions/{session_id}/batches",
+        "/v1/vehicles",
+        "/v1/vehicles/bulk",
+        "/v1/vehicles/{vehicle_id}",
+        "/v1/vehicles/{vehicle_id}/key",
         "/healthz",
         "/readyz",
         "/metrics",
@@ -36,6 +40,10 @@ def test_schema_documents_every_route_and_error():
     upload = paths["/v1/ephemerides"]["put"]["requestBody"]["content"]
     assert set(upload) == {"text/plain", "application/octet-stream"}
     assert set(paths["/v1/ephemerides"]) == {"put", "get", "delete"}
+    assert set(paths["/v1/sessions"]) == {"post", "get"}
+    assert {"401", "403", "429"} <= set(paths["/v1/sessions"]["post"]["responses"])
+    assert set(paths["/v1/vehicles"]) == {"post", "get"}
+    assert set(paths["/v1/vehicles/{vehicle_id}"]) == {"get", "delete"}
 
 
 def test_every_schema_field_is_described():

@@ -27,7 +27,7 @@ def test_a_burst_then_429_with_retry_after(tmp_path):
     with TestClient(create_app(limited(tmp_path))) as client:
         client.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)
         session_id, token = open_session(client)
-        other_id, other_token = open_session(client)
+        other_id, other_token = open_session(client, vehicle_id="car-2")
         wrong = bearer(f"{session_id}.not-the-secret")
         for _ in range(10):  # invalid credentials spend nothing
             assert_error(client.get(f"/v1/sessions/{session_id}", headers=wrong), 401, "unauthorized")

@@ -41,7 +41,7 @@ def test_every_operation_conforms_to_the_schema(case):
 def test_fuzzed_batches_on_a_live_session(case):
     """Schema-valid batches aimed at a real session (seq 1, known RSU ids), so they reach the
     filter: every answer is 200 or a documented 4xx, and a refused batch changes nothing."""
-    created = client.post("/v1/sessions", json={"vehicle_id": "fuzz"}).json()
+    created = client.post("/v1/sessions", json={"vehicle_id": "fuzz"}, headers=ADMIN).json()
     session_id = created["session_id"]
     case.path_parameters = {"session_id": session_id}
     if isinstance(case.body, dict):

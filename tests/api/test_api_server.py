@@ -73,7 +73,7 @@ def test_real_server_with_generated_admin_key(tmp_path):
             assert client.put("/v1/rsus", json=rsu_payload(), headers=admin).json() == {
                 "upserted": len(rsu_payload()["rsus"])
             }
-            created = client.post("/v1/sessions", json={"vehicle_id": "socket-car"})
+            created = client.post("/v1/sessions", json={"vehicle_id": "socket-car"}, headers=admin)
             assert created.status_code == 201
             session_id = created.json()["session_id"]
             token = {"Authorization": f"Bearer {created.json()['token']}"}
@@ -111,7 +111,7 @@ def test_two_workers_share_sessions_through_sqlite(tmp_path):
     ) as (url, _):
         with httpx.Client(base_url=url, timeout=10.0) as client:
             client.put("/v1/rsus", json=rsu_payload(), headers=admin)
-            created = client.post("/v1/sessions", json={"vehicle_id": "shared"}).json()
+            created = client.post("/v1/sessions", json={"vehicle_id": "shared"}, headers=admin).json()
         session_id = created["session_id"]
         token = {"Authorization": f"Bearer {created['token']}"}
         bodies = {seq: batch_body(seq, 2 * (seq - 1), 2) for seq in range(1, batches + 1)}

@@ -56,7 +56,7 @@ def test_a_bug_gives_a_generic_500_that_reveals_nothing(tmp_path, capfd):
 def test_logs_are_json_lines_without_keys_or_tokens(tmp_path, capfd):
     with TestClient(create_app(make_settings(tmp_path))) as client:
         client.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)
-        created = client.post("/v1/sessions", json={"vehicle_id": "car"}).json()
+        created = client.post("/v1/sessions", json={"vehicle_id": "car"}, headers=ADMIN).json()
         token = created["token"]
         session_id = created["session_id"]
         client.post(f"/v1/sessions/{session_id}/batches", json=batch_body(1, 0, 2), headers=bearer(token))
@@ -86,7 +86,7 @@ def test_generated_admin_key_is_printed_once_and_saved_privately(tmp_path, capfd
         assert len(key) >= 40
         assert stat.S_IMODE(os.stat(key_file).st_mode) == 0o600
         assert client.put("/v1/rsus", json=rsu_payload(), headers=bearer(key)).status_code == 200
-        session_id, token = open_session(client)
+        session_id, token = open_session(client, bearer(key))
         client.post(f"/v1/sessions/{session_id}/batches", json=batch_body(1, 0, 1), headers=token)
         client.get("/v1/rsus", headers=bearer(key))
     err = capfd.readouterr().err
@@ -98,7 +98,7 @@ def test_metrics_count_requests_epochs_and_sessions(client):
     session_id, token = open_session(client)
     client.post(f"/v1/sessions/{session_id}/batches", json=batch_body(1, 0, 6), headers=token)
     client.post(f"/v1/sessions/{session_id}/batches", json=batch_body(1, 0, 6), headers=token)
-    open_session(client)
+    open_session(client, vehicle_id="car-2")
     response = client.get("/metrics")
     assert response.status_code == 200
     assert response.headers["content-type"].startswith("text/plain")

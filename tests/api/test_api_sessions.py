@@ -12,10 +12,11 @@ from fastapi.testclient import TestClient
 
 
 def test_create_returns_token_and_effective_options(client):
-    response = client.post("/v1/sessions", json={"vehicle_id": "car-7", "options": {"filter": "ukf"}})
+    response = client.post("/v1/sessions", json={"vehicle_id": "car-7", "options": {"filter": "ukf"}}, headers=ADMIN)
     assert response.status_code == 201
     body = response.json()
-    assert set(body) == {"session_id", "token", "vehicle_id", "pipeline", "options", "created_at"}
+    assert set(body) == {"session_id", "token", "vehicle_id", "pipeline", "options", "created_at", "superseded"}
+    assert body["superseded"] is None
     assert body["vehicle_id"] == "car-7" and body["pipeline"] == "rsu_imu"
     assert body["options"] == get_pipeline("rsu_imu").resolve_options({"filter": "ukf"})
     assert body["token"].startswith(body["session_id"] + ".")
@@ -59,7 +60,7 @@ def test_session_counts_batches_and_keeps_the_last_fix(client):
     ],
 )
 def test_bad_option_is_refused(client, options, field):
-    response = client.post("/v1/sessions", json={"vehicle_id": "car", "options": options})
+    response = client.post("/v1/sessions", json={"vehicle_id": "car", "options": options}, headers=ADMIN)
     error = assert_error(response, 422, "invalid_request")
     assert field in {p["field"] for p in error["problems"]}
     assert all(p["index"] is None for p in error["problems"])
@@ -67,7 +68,7 @@ def test_bad_option_is_refused(client, options, field):
 
 def test_non_finite_option_is_refused(client):
     content = '{"vehicle_id": "car", "options": {"transition_diagonal": NaN}}'
-    response = client.post("/v1/sessions", content=content, headers={"content-type": "application/json"})
+    response = client.post("/v1/sessions", content=content, headers={**ADMIN, "content-type": "application/json"})
     error = assert_error(response, 422, "invalid_request")
     assert error["problems"][0]["field"] == "options"
 
@@ -88,7 +89,7 @@ def test_non_finite_option_is_refused(client):
     ],
 )
 def test_bad_session_body_is_refused(client, body, field):
-    error = assert_error(client.post("/v1/sessions", json=body), 422, "invalid_request")
+    error = assert_error(client.post("/v1/sessions", json=body, headers=ADMIN), 422, "invalid_request")
     assert field in {p["field"] for p in error["problems"]}
 
 
@@ -110,7 +111,7 @@ def test_admin_key_opens_any_session(client):
 
 def test_a_session_token_opens_only_its_session(client):
     first, first_token = open_session(client)
-    second, second_token = open_session(client)
+    second, second_token = open_session(client, vehicle_id="car-2")
     for method, path, body in (
         ("GET", f"/v1/sessions/{second}", None),
         ("DELETE", f"/v1/sessions/{second}", None),
@@ -143,8 +144,8 @@ def test_unknown_session_is_404_for_admin(client):
 def test_max_sessions_gives_429(tmp_path):
     with TestClient(create_app(make_settings(tmp_path, max_sessions=2))) as client:
         first, token = open_session(client)
-        open_session(client)
-        refused = client.post("/v1/sessions", json={"vehicle_id": "car"})
+        open_session(client, vehicle_id="car-2")
+        refused = client.post("/v1/sessions", json={"vehicle_id": "car"}, headers=ADMIN)
         assert_error(refused, 429, "too_many_sessions")
         assert int(refused.headers["Retry-After"]) > 0
         assert client.delete(f"/v1/sessions/{first}", headers=token).status_code == 204
@@ -168,7 +169,7 @@ def test_idle_sessions_expire_after_the_ttl(tmp_path):
         session_id, token = open_session(client)
         clock.now += 50.0
         assert client.get(f"/v1/sessions/{session_id}", headers=token).status_code == 200
-        assert_error(client.post("/v1/sessions", json={"vehicle_id": "car"}), 429, "too_many_sessions")
+        assert_error(client.post("/v1/sessions", json={"vehicle_id": "car"}, headers=ADMIN), 429, "too_many_sessions")
         clock.now += 11.0
         assert_error(client.get(f"/v1/sessions/{session_id}", headers=ADMIN), 404, "not_found")
         open_session(client)  # the expired one no longer counts
@@ -198,6 +199,6 @@ def test_a_batch_keeps_a_session_alive(tmp_path):
 def test_estimation_core_refusals_at_creation_are_422(tmp_path, pipeline, field):
     with TestClient(create_app(make_settings(tmp_path), pipelines={"rsu_imu": pipeline})) as client:
         body = {"vehicle_id": "car", "initial_state": {"x": 0.0, "y": 0.0, "vx": 1.0, "vy": 0.0}}
-        error = assert_error(client.post("/v1/sessions", json=body), 422, "invalid_request")
+        error = assert_error(client.post("/v1/sessions", json=body, headers=ADMIN), 422, "invalid_request")
         assert [p["field"] for p in error["problems"]] == [field]
         assert "edgepos_active_sessions 0.0" in client.get("/metrics").text  # nothing was created

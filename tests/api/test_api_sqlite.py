@@ -18,7 +18,7 @@ def test_racing_instances_apply_a_batch_once(tmp_path):
     app_b = create_app(make_settings(tmp_path, store=url))
     with TestClient(app_a) as a, TestClient(app_b) as b:
         a.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)
-        created = b.post("/v1/sessions", json={"vehicle_id": "car"}).json()
+        created = b.post("/v1/sessions", json={"vehicle_id": "car"}, headers=ADMIN).json()
         session_id, token = created["session_id"], {"Authorization": f"Bearer {created['token']}"}
         path = f"/v1/sessions/{session_id}/batches"
         body = batch_body(1, 0, 4)
@@ -52,7 +52,7 @@ def test_concurrent_batches_through_two_instances(tmp_path):
         sessions = []
         for index in range(2):
             created = (
-                (a if index == 0 else b).post("/v1/sessions", json={"vehicle_id": f"car-{index}"}).json()
+                (a if index == 0 else b).post("/v1/sessions", json={"vehicle_id": f"car-{index}"}, headers=ADMIN).json()
             )
             sessions.append((created["session_id"], {"Authorization": f"Bearer {created['token']}"}))
         errors: list[str] = []

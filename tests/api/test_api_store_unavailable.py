@@ -23,7 +23,7 @@ def test_unreachable_redis_gives_503_and_a_failing_readiness(tmp_path):
     app = create_app(make_settings(tmp_path, store=store, demo_rsus=True))
     with TestClient(app) as client:  # starts although the demo RSUs cannot be loaded
         started = time.monotonic()
-        response = client.post("/v1/sessions", json={"vehicle_id": "car-1"})
+        response = client.post("/v1/sessions", json={"vehicle_id": "car-1"}, headers=ADMIN)
         assert time.monotonic() - started < 5.0
         assert response.status_code == 503
         assert response.json()["error"]["code"] == "unavailable"

@@ -3,7 +3,7 @@ left as it was, and the pipeline listed with its methods."""
 
 from __future__ import annotations
 
-from apihelp import assert_error, open_session
+from apihelp import ADMIN, assert_error, open_session
 
 
 def test_v2v_session_fixes_and_refusals(client):
@@ -37,6 +37,10 @@ def test_v2v_pipeline_is_listed_with_its_methods(client):
 
 
 def test_bad_v2v_option_names_the_option(client):
-    response = client.post("/v1/sessions", json={"vehicle_id": "car-1", "pipeline": "v2v_coop", "options": {"range_std": 0}})
+    response = client.post(
+        "/v1/sessions",
+        json={"vehicle_id": "car-1", "pipeline": "v2v_coop", "options": {"range_std": 0}},
+        headers=ADMIN,
+    )
     error = assert_error(response, 422, "invalid_request")
     assert error["problems"][0]["field"] == "options.range_std"

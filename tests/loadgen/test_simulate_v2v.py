@@ -11,12 +11,13 @@ import math
 from edgepos.eval.v2v import run_method
 from edgepos.loadgen.v2v_sim import run_v2v
 from edgepos.sim.v2v import VEHICLE_IDS, make_run
+from loadgenhelp import ADMIN_KEY
 
 EPOCHS = 60
 
 
 def test_v2v_over_http_matches_in_process(server_url):
-    vehicles, _ = asyncio.run(run_v2v(server_url, groups=2, seed=3, layout="ring", batch_epochs=1, epochs=EPOCHS))
+    vehicles, _ = asyncio.run(run_v2v(server_url, groups=2, seed=3, layout="ring", batch_epochs=1, epochs=EPOCHS, admin_key=ADMIN_KEY))
     assert all(v.error is None and len(v.fixes) == EPOCHS for v in vehicles), [v.error for v in vehicles]
     for group in range(2):
         members = [v for v in vehicles if v.group == group]

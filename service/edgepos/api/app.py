@@ -24,9 +24,10 @@ from edgepos.api.errors import install_error_handlers
 from edgepos.api.logs import configure_logging
 from edgepos.api.metrics import Metrics
 from edgepos.api.middleware import AdmissionMiddleware, BodyLimitMiddleware, RequestContextMiddleware
-from edgepos.api.routes import docs, ephemerides, health, rsus, sessions
+from edgepos.api.routes import docs, ephemerides, health, rsus, sessions, vehicles
 from edgepos.api.routes import pipelines as pipeline_routes
 from edgepos.api.settings import Settings, ensure_admin_key
+from edgepos.api.vehicle_jwt import load_vehicle_jwks
 from edgepos.core.compiled import warm_up as warm_up_kernels
 from edgepos.pipelines.base import Pipeline, Rsu
 from edgepos.store import SessionStore, open_store
@@ -41,8 +42,10 @@ measurement epoch. The site's broadcast ephemerides are loaded once with PUT /v1
 
 Conventions: SI units and radians everywhere; positions in the site-local east-north plane in metres
 (x east, y north); angles counter-clockwise from east. Authentication is `Authorization: Bearer ...`
-with the admin key (RSU writes, any session) or a session's token (that session only). Every error
-has the body `{"error": {"code", "message", "problems": [{"index", "field", "reason"}]}}`.
+with the admin key (the registries, any session), a vehicle's credential (its key from
+POST /v1/vehicles, or a fleet-signed token: opens sessions for that vehicle only), or a session's
+token (that session only). A vehicle has one live session: opening another supersedes the old one.
+Every error has the body `{"error": {"code", "message", "problems": [{"index", "field", "reason"}]}}`.
 """
 
 
@@ -80,7 +83,11 @@ def create_app(
         from edgepos.pipelines.registry import PIPELINES
 
         pipelines = PIPELINES
+    vehicle_keys = None
+    if settings.vehicle_auth == "jwt" and settings.vehicle_jwks is not None:
+        vehicle_keys = load_vehicle_jwks(settings.vehicle_jwks)  # JwksError stops the start, naming the file
     context = AppContext(
+        vehicle_keys=vehicle_keys,
         settings=settings,
         store=store if store is not None else open_store(settings.store, settings.session_ttl_s),
         pipelines=dict(pipelines),
@@ -133,7 +140,13 @@ def create_app(
     install_error_handlers(app)
     allowed_methods: dict[str, set[str]] = {}
     routers = (
-        rsus.router, ephemerides.router, pipeline_routes.router, sessions.router, health.router, docs.router
+        rsus.router,
+        ephemerides.router,
+        pipeline_routes.router,
+        sessions.router,
+        vehicles.router,
+        health.router,
+        docs.router,
     )
     for router in routers:
         app.include_router(router)

@@ -1,47 +1,75 @@
-"""Bearer authentication: the admin key opens everything, a session token only its own session.
+"""Bearer authentication: who is calling, and what their credential opens.
 
-Session tokens look like ``<session_id>.<random>``; the store keeps only their SHA-256, and every
-comparison of secrets uses ``hmac.compare_digest`` on fixed-length digests. 401 means the
-credential is missing or not valid; 403 means it is valid but does not open this resource.
+Three kinds of credential reach the service:
 
-Every request made with a session token counts against that session's request-rate budget
-(EDGEPOS_RATE_LIMIT_PER_S, bursts of EDGEPOS_RATE_LIMIT_BURST), kept in the store so that it holds
-across workers and replicas; past it the answer is 429 with Retry-After. The budget is charged only
-after the token is verified, so nobody can spend another vehicle's budget. The admin key is not
-limited. Without EDGEPOS_ADMIN_KEY a random key is generated. Authentication is off only with
-EDGEPOS_AUTH=off, which the settings refuse unless the instance is declared a lab (EDGEPOS_LAB=true,
-``edgepos serve --lab``): then every request is the admin.
+- the **admin key** (EDGEPOS_ADMIN_KEY) opens everything, including sessions for any vehicle;
+- a **vehicle credential** opens a session for its own vehicle only (POST /v1/sessions): the vehicle's
+  key from the registry (EDGEPOS_VEHICLE_AUTH=key, the default) or a token signed by the fleet
+  operator (``jwt``); with ``open`` no credential is needed (a lab or a loopback bench);
+- a **session token** ``<session_id>.<random>`` opens only its own session.
+
+The store keeps only SHA-256 digests of keys and tokens, and every comparison of secrets uses
+``hmac.compare_digest`` on fixed-length digests (the keys are 256-bit random values, so a fast hash
+is enough: there is nothing to guess). 401 means the credential is missing or not valid, with one
+message whatever the cause; 403 means it is valid but does not open this resource.
+
+Abuse limits: every failed authentication is counted against the client's address and against the
+credential presented (EDGEPOS_AUTH_FAILURE_RATE_PER_S, bursts of EDGEPOS_AUTH_FAILURE_BURST); past
+either, the answer is 429 with Retry-After instead of 401, and opening a session from that address
+is refused before any credential is checked. Failures are counted in the metrics and logged with the
+address and the reason, never the credential. Every request made with a session token counts
+against that session's request-rate budget (EDGEPOS_RATE_LIMIT_PER_S). All budgets live in the store,
+so they hold across workers and replicas. Authentication is off only with EDGEPOS_AUTH=off, which the
+settings refuse unless the instance is declared a lab: then every request is the admin.
 """
 
 from __future__ import annotations
 
 import hashlib
 import hmac
+import logging
 import math
 import secrets
 from dataclasses import dataclass
 from typing import Annotated
 
-from fastapi import Depends, Path
+from fastapi import Depends, Path, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from edgepos.api.context import AppContext, Context
 from edgepos.api.errors import ApiError
+from edgepos.api.vehicle_jwt import InvalidVehicleToken
+from edgepos.store.ratelimit import RateLimit
+
+logger = logging.getLogger("edgepos.api")
 
 bearer_scheme = HTTPBearer(
     auto_error=False,
     scheme_name="bearer",
-    description="The admin key (EDGEPOS_ADMIN_KEY) or a session token returned by POST /v1/sessions.",
+    description="The admin key (EDGEPOS_ADMIN_KEY), a vehicle credential (the vehicle's key from "
+    "POST /v1/vehicles, or a fleet-signed token with EDGEPOS_VEHICLE_AUTH=jwt: opens sessions for that "
+    "vehicle only), or a session token returned by POST /v1/sessions (that session only).",
 )
 Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(bearer_scheme)]
+
+VEHICLE_KEY_PREFIX = "evk_"
+"""Vehicle keys start with this, so a leaked one is recognisable (secret scanners, logs)."""
 
 
 @dataclass(frozen=True)
 class Principal:
-    """Who is calling: the admin, or the holder of one session's token."""
+    """Who is calling: the admin, the holder of one session's token, or a vehicle.
+
+    ``vehicle_id`` is set for a vehicle credential: it may open sessions for that vehicle only.
+    ``vehicle_key_hash`` is set when that credential is a registry key, so that the store can check,
+    in the same atomic step that creates the session, that the key is still the vehicle's.
+    ``anonymous`` is a caller without credential where EDGEPOS_VEHICLE_AUTH=open allows one."""
 
     admin: bool
     session_id: str | None = None
+    vehicle_id: str | None = None
+    vehicle_key_hash: str | None = None
+    anonymous: bool = False
 
 
 def new_session_id() -> str:
@@ -52,8 +80,13 @@ def new_session_token(session_id: str) -> str:
     return f"{session_id}.{secrets.token_urlsafe(32)}"
 
 
+def new_vehicle_key() -> str:
+    """A fresh vehicle key: 256 random bits, shown to the operator once."""
+    return VEHICLE_KEY_PREFIX + secrets.token_urlsafe(32)
+
+
 def hash_token(token: str) -> str:
-    """What the store keeps instead of a session token."""
+    """What the store keeps instead of a session token or a vehicle key (SHA-256 hex)."""
     return hashlib.sha256(token.encode()).hexdigest()
 
 
@@ -79,6 +112,7 @@ async def _valid_session_token(context: AppContext, secret: str) -> bool:
 
 
 _LAB = Principal(admin=True)
+_INVALID = "the bearer credential is not valid (unknown, revoked or expired key or token)"
 
 
 def _auth_off(context: AppContext) -> bool:
@@ -86,10 +120,52 @@ def _auth_off(context: AppContext) -> bool:
     return not context.settings.auth_enabled
 
 
-def _secret(credentials: HTTPAuthorizationCredentials | None) -> str:
-    if credentials is None or not credentials.credentials:
-        raise ApiError("unauthorized", "missing credentials: send 'Authorization: Bearer <key or token>'")
-    return credentials.credentials
+def client_address(request: Request) -> str:
+    """The caller's address as the server sees it (behind a reverse proxy, uvicorn's
+    --forwarded-allow-ips decides whether X-Forwarded-For is believed)."""
+    return request.client.host if request.client is not None else "unknown"
+
+
+def _retry_after(wait_s: float) -> str:
+    return str(max(1, math.ceil(wait_s)))
+
+
+def _limited(message: str, wait_s: float) -> ApiError:
+    retry_after = _retry_after(wait_s)
+    return ApiError("rate_limited", f"{message}; retry after {retry_after} s", headers={"Retry-After": retry_after})
+
+
+async def _refuse(
+    context: AppContext, request: Request, secret: str | None, reason: str, error: ApiError
+) -> ApiError:
+    """Count a failed authentication (address and credential budgets, metrics, a log line without
+    the credential) and return the error to raise: ``error``, or 429 once a budget is spent."""
+    context.metrics.auth_failures.labels(reason).inc()
+    address = client_address(request)
+    logger.warning(
+        "authentication failed",
+        extra={"event": "auth_failed", "reason": reason, "client": address, "path": request.url.path},
+    )
+    limit = context.settings.auth_failure_limit
+    waits = [await context.store.take_request(f"authfail:addr:{address}", limit)]
+    if secret:
+        waits.append(await context.store.take_request(f"authfail:cred:{hash_token(secret)}", limit))
+    wait_s = max(waits)
+    if wait_s > 0:
+        context.metrics.rate_limited.labels("auth_failures").inc()
+        return _limited(
+            "too many failed authentications from this address or with this credential "
+            f"({limit.rate_per_s:g}/s, bursts of {limit.burst}; EDGEPOS_AUTH_FAILURE_RATE_PER_S)",
+            wait_s,
+        )
+    return error
+
+
+def _unauthorized(message: str = _INVALID) -> ApiError:
+    return ApiError("unauthorized", message)
+
+
+_MISSING = "missing credentials: send 'Authorization: Bearer <key or token>'"
 
 
 async def charge_rate_limit(context: AppContext, session_id: str) -> None:
@@ -99,72 +175,167 @@ async def charge_rate_limit(context: AppContext, session_id: str) -> None:
         return
     wait_s = await context.store.take_request(f"session:{session_id}", limit)
     if wait_s > 0:
-        retry_after = max(1, math.ceil(wait_s))
-        raise ApiError(
-            "rate_limited",
+        context.metrics.rate_limited.labels("session_requests").inc()
+        raise _limited(
             f"this session's token is over its request rate ({limit.rate_per_s:g}/s, bursts of "
-            f"{limit.burst}; EDGEPOS_RATE_LIMIT_PER_S); retry after {retry_after} s",
-            headers={"Retry-After": str(retry_after)},
+            f"{limit.burst}; EDGEPOS_RATE_LIMIT_PER_S)",
+            wait_s,
         )
 
 
-_INVALID = "the bearer credential is not valid (unknown key, or the session's token does not match)"
+async def _vehicle(context: AppContext, secret: str) -> Principal | None:
+    """The vehicle a vehicle credential stands for, None when it is not one (or not valid)."""
+    mode = context.settings.vehicle_auth
+    if mode == "key":
+        if not secret.startswith(VEHICLE_KEY_PREFIX):
+            return None
+        key_hash = hash_token(secret)
+        vehicle_id = await context.store.vehicle_of_key(key_hash)
+        return None if vehicle_id is None else Principal(False, vehicle_id=vehicle_id, vehicle_key_hash=key_hash)
+    if mode == "jwt" and context.vehicle_keys is not None and secret.count(".") == 2:
+        try:
+            vehicle_id = context.vehicle_keys.verify(secret, context.settings.vehicle_jwt_audience)
+        except InvalidVehicleToken as error:
+            logger.debug("vehicle token refused", extra={"event": "vehicle_token_refused", "cause": error.cause})
+            return None
+        return Principal(False, vehicle_id=vehicle_id)
+    return None
 
 
-async def require_admin(
-    context: Context,
-    credentials: Credentials,
-) -> Principal:
-    """Only the admin key passes; a valid session token gets 403."""
+async def require_admin(request: Request, context: Context, credentials: Credentials) -> Principal:
+    """Only the admin key passes; a valid session token or vehicle credential gets 403."""
     if _auth_off(context):
         return _LAB
-    secret = _secret(credentials)
+    secret = None if credentials is None else credentials.credentials
+    if not secret:
+        raise await _refuse(context, request, None, "missing", _unauthorized(_MISSING))
     if _is_admin(context, secret):
         return Principal(admin=True)
-    if await _valid_session_token(context, secret):
-        raise ApiError("forbidden", "this call needs the admin key; a session token does not open it")
-    raise ApiError("unauthorized", _INVALID)
+    if await _valid_session_token(context, secret) or await _vehicle(context, secret) is not None:
+        raise await _refuse(
+            context,
+            request,
+            secret,
+            "forbidden",
+            ApiError("forbidden", "this call needs the admin key; a session token or vehicle credential does not open it"),
+        )
+    raise await _refuse(context, request, secret, "invalid", _unauthorized())
 
 
-async def require_any(
-    context: Context,
-    credentials: Credentials,
-) -> Principal:
+async def require_any(request: Request, context: Context, credentials: Credentials) -> Principal:
     """The admin key or any live session's token passes."""
     if _auth_off(context):
         return _LAB
-    secret = _secret(credentials)
+    secret = None if credentials is None else credentials.credentials
+    if not secret:
+        raise await _refuse(context, request, None, "missing", _unauthorized(_MISSING))
     if _is_admin(context, secret):
         return Principal(admin=True)
     session_id = _token_session_id(secret)
     if session_id is not None and await _valid_session_token(context, secret):
         await charge_rate_limit(context, session_id)
         return Principal(admin=False, session_id=session_id)
-    raise ApiError("unauthorized", _INVALID)
+    raise await _refuse(context, request, secret, "invalid", _unauthorized())
+
+
+async def require_vehicle(request: Request, context: Context, credentials: Credentials) -> Principal:
+    """Who may open a session: the admin key (any vehicle) or a vehicle credential (its own vehicle;
+    the route checks the body's vehicle_id against it), or nobody in particular with
+    EDGEPOS_VEHICLE_AUTH=open. A client address past its failure budget is refused first."""
+    if _auth_off(context):
+        return _LAB
+    address = client_address(request)
+    wait_s = await context.store.request_wait(f"authfail:addr:{address}", context.settings.auth_failure_limit)
+    if wait_s > 0:
+        context.metrics.rate_limited.labels("auth_failures").inc()
+        raise _limited("too many failed authentications from this address (EDGEPOS_AUTH_FAILURE_RATE_PER_S)", wait_s)
+    secret = None if credentials is None else credentials.credentials
+    if secret and _is_admin(context, secret):
+        return Principal(admin=True)
+    if context.settings.vehicle_auth == "open":
+        return Principal(admin=False, anonymous=True)
+    if not secret:
+        raise await _refuse(context, request, None, "missing", _unauthorized(_MISSING))
+    vehicle = await _vehicle(context, secret)
+    if vehicle is None:
+        raise await _refuse(context, request, secret, "invalid", _unauthorized())
+    return vehicle
+
+
+async def authorise_session_creation(
+    request: Request, context: AppContext, principal: Principal, vehicle_id: str
+) -> None:
+    """403 when a vehicle credential names another vehicle; 429 when the credential or the address
+    opens sessions faster than its budget. The admin key is not limited."""
+    if principal.admin:
+        return
+    if principal.vehicle_id is not None and principal.vehicle_id != vehicle_id:
+        raise await _refuse(
+            context,
+            request,
+            None,
+            "wrong_vehicle",
+            ApiError(
+                "forbidden",
+                f"this vehicle credential opens sessions for its own vehicle only, not for {vehicle_id!r}",
+            ),
+        )
+    settings = context.settings
+    budgets: list[tuple[str, RateLimit, str]] = [
+        (f"create:addr:{client_address(request)}", settings.session_create_address_limit, "this address"),
+    ]
+    if principal.vehicle_id is not None:
+        budgets.append((f"create:vehicle:{vehicle_id}", settings.session_create_limit, "this vehicle"))
+    for key, limit, whose in budgets:
+        wait_s = await context.store.take_request(key, limit)
+        if wait_s > 0:
+            context.metrics.rate_limited.labels("session_creations").inc()
+            raise _limited(
+                f"{whose} opens sessions faster than allowed ({limit.rate_per_s:g}/s, bursts of {limit.burst}; "
+                "EDGEPOS_SESSION_CREATE_RATE_PER_S and EDGEPOS_SESSION_CREATE_ADDRESS_RATE_PER_S)",
+                wait_s,
+            )
 
 
 async def require_session(
+    request: Request,
     session_id: Annotated[str, Path(description="Session identifier returned by POST /v1/sessions.")],
     context: Context,
     credentials: Credentials,
 ) -> Principal:
-    """The admin key, or this session's own token (another session's valid token gets 403)."""
+    """The admin key, or this session's own token (another session's valid token gets 403).
+
+    A token of a session that a newer session of its vehicle replaced gets 409 naming the newer one."""
     if _auth_off(context):
         return _LAB
-    secret = _secret(credentials)
+    secret = None if credentials is None else credentials.credentials
+    if not secret:
+        raise await _refuse(context, request, None, "missing", _unauthorized(_MISSING))
     if _is_admin(context, secret):
         return Principal(admin=True)
     token_session = _token_session_id(secret)
     if token_session is None:
-        raise ApiError("unauthorized", _INVALID)
+        raise await _refuse(context, request, secret, "invalid", _unauthorized())
     if token_session != session_id:
         if await _valid_session_token(context, secret):
             raise ApiError("forbidden", "a session token opens only its own session")
-        raise ApiError("unauthorized", _INVALID)
+        raise await _refuse(context, request, secret, "invalid", _unauthorized())
     record = await context.store.get(session_id)
     if record is None:
+        superseded = await context.store.supersession(session_id)
+        if superseded is not None and _token_matches(secret, superseded.token_hash):
+            raise superseded_error(session_id, superseded.superseded_by)
         raise ApiError("not_found", f"no session {session_id!r} (it may have expired or been deleted)")
     if not _token_matches(secret, record.token_hash):
-        raise ApiError("unauthorized", _INVALID)
+        raise await _refuse(context, request, secret, "invalid", _unauthorized())
     await charge_rate_limit(context, session_id)
     return Principal(admin=False, session_id=session_id)
+
+
+def superseded_error(session_id: str, newer: str) -> ApiError:
+    """409 superseded: the vehicle opened a newer session, which is now its only live one."""
+    return ApiError(
+        "superseded",
+        f"session {session_id!r} was superseded by session {newer!r}, opened later for the same vehicle "
+        "(a vehicle has one live session); this session's token opens nothing any more, use the newer session",
+    )

@@ -15,6 +15,7 @@ from fastapi import Depends, Request
 from edgepos.api.ephemerides import EphemeridesCache
 from edgepos.api.metrics import Metrics
 from edgepos.api.settings import Settings
+from edgepos.api.vehicle_jwt import VehicleKeySet
 from edgepos.geo import GeodeticOrigin
 from edgepos.pipelines.base import Pipeline
 from edgepos.store.base import SessionStore
@@ -41,6 +42,8 @@ class AppContext:
     origin: GeodeticOrigin | None
     admin_key_hash: bytes
     ephemerides: EphemeridesCache = field(default_factory=EphemeridesCache)
+    vehicle_keys: VehicleKeySet | None = None
+    """The fleet operator's public keys (EDGEPOS_VEHICLE_AUTH=jwt), loaded once at start-up."""
     _filter_executor: ThreadPoolExecutor | None = field(default=None, repr=False)
 
     async def run_filter(self, function: Callable[..., Result], *args: Any) -> Result:

@@ -29,6 +29,7 @@ STATUS_OF_CODE: dict[str, int] = {
     "not_found": 404,
     "method_not_allowed": 405,
     "conflict": 409,
+    "superseded": 409,
     "payload_too_large": 413,
     "too_many_sessions": 429,
     "rate_limited": 429,

@@ -76,6 +76,30 @@ class Metrics:
             registry=self.registry,
         )
 
+        self.auth_failures = Counter(
+            "edgepos_auth_failures",
+            "Refused authentications by reason: missing, invalid, forbidden, wrong_vehicle.",
+            ["reason"],
+            registry=self.registry,
+        )
+        self.rate_limited = Counter(
+            "edgepos_rate_limited",
+            "Requests answered 429 by the budget they exceeded: session_requests, auth_failures, "
+            "session_creations.",
+            ["limit"],
+            registry=self.registry,
+        )
+        self.sessions_superseded = Counter(
+            "edgepos_sessions_superseded",
+            "Sessions ended because a newer session was opened for the same vehicle.",
+            registry=self.registry,
+        )
+        self.vehicles_revoked = Counter(
+            "edgepos_vehicles_revoked",
+            "Vehicles removed from the registry (DELETE /v1/vehicles/{id}).",
+            registry=self.registry,
+        )
+
     def observe_request(self, method: str, route: str, status: int, seconds: float) -> None:
         labels = (method, route, str(status))
         self.requests.labels(*labels).inc()

@@ -57,6 +57,7 @@ ErrorCode = Literal[
     "not_found",
     "method_not_allowed",
     "conflict",
+    "superseded",
     "payload_too_large",
     "too_many_sessions",
     "rate_limited",
@@ -292,6 +293,118 @@ class SessionCreated(ResponseModel):
     pipeline: str = Field(description="Pipeline name.")
     options: dict[str, Any] = Field(description="Effective options: the given ones plus every default.")
     created_at: float = Field(description="Creation time (Unix seconds, server clock).")
+    superseded: str | None = Field(
+        None,
+        description="The vehicle's previous live session, which this one replaced (its token now gets 409 "
+        "superseded), or null when it had none. A vehicle has one live session at a time.",
+    )
+
+
+class SessionListItem(ResponseModel):
+    """One live session as an operator's listing shows it."""
+
+    session_id: str = Field(description="Session identifier.")
+    vehicle_id: str = Field(description="The vehicle the session speaks for.")
+    pipeline: str = Field(description="Pipeline name.")
+    created_at: float = Field(description="Creation time (Unix seconds, server clock).")
+    updated_at: float = Field(description="Time of the last applied batch, or of creation (Unix seconds).")
+    last_seq: int = Field(description="seq of the last applied batch; 0 before any.")
+    batches: int = Field(description="Batches applied.")
+    epochs: int = Field(description="Epochs filtered (fixes produced).")
+    last_fix_t: float | None = Field(
+        None, description="t of the latest fix (the vehicle's measurement clock, s); null before the first fix."
+    )
+    status: Literal["new", "initialised", "tracking", "predicted", "uninitialised"] = Field(
+        description="The latest fix's status, or 'new' before the first batch with a fix."
+    )
+
+
+class SessionList(ResponseModel):
+    """A page of GET /v1/sessions, ordered by session id."""
+
+    sessions: list[SessionListItem] = Field(description="Live sessions of this page.")
+    next_after: str | None = Field(
+        description="Pass as ?after= for the next page; null on the last page."
+    )
+
+
+# -- vehicle registry ------------------------------------------------------------------------------
+class VehicleCreate(RequestModel):
+    """Body of POST /v1/vehicles: the vehicle to register."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [{"vehicle_id": "bus-42"}]})
+
+    vehicle_id: str = Field(
+        pattern=VEHICLE_ID_PATTERN,
+        description="The vehicle's identifier, as its sessions will name it: 1-128 characters of letters, "
+        "digits, space and . _ : + @ / -.",
+    )
+
+
+MAX_VEHICLES_PER_IMPORT = 5_000
+
+
+class VehicleImport(RequestModel):
+    """Body of POST /v1/vehicles/bulk: many vehicles at once (each id once)."""
+
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"vehicles": [{"vehicle_id": "bus-41"}, {"vehicle_id": "bus-42"}]}]}
+    )
+
+    vehicles: list[VehicleCreate] = Field(
+        min_length=1,
+        max_length=MAX_VEHICLES_PER_IMPORT,
+        description=f"1-{MAX_VEHICLES_PER_IMPORT} vehicles, no id twice.",
+    )
+
+    @field_validator("vehicles")
+    @classmethod
+    def _distinct(cls, value: list[VehicleCreate]) -> list[VehicleCreate]:
+        seen: set[str] = set()
+        for number, vehicle in enumerate(value):
+            if vehicle.vehicle_id in seen:
+                raise ValueError(f"vehicles[{number}].vehicle_id {vehicle.vehicle_id!r} is listed twice")
+            seen.add(vehicle.vehicle_id)
+        return value
+
+
+class VehicleOut(ResponseModel):
+    """A registered vehicle (never its key)."""
+
+    vehicle_id: str = Field(description="The vehicle's identifier.")
+    created_at: float = Field(description="Registration time (Unix seconds, server clock).")
+    key_issued_at: float = Field(description="When its current key was issued (Unix seconds, server clock).")
+
+
+class VehicleKeyIssued(VehicleOut):
+    """A vehicle with its new key: shown once, stored only as a hash. Give it to the vehicle; it opens
+    sessions for this vehicle only (``Authorization: Bearer <key>`` on POST /v1/sessions)."""
+
+    key: str = Field(description="The vehicle's key (starts with 'evk_'); shown once.")
+
+
+class VehicleImported(ResponseModel):
+    """Answer to POST /v1/vehicles/bulk."""
+
+    registered: list[VehicleKeyIssued] = Field(description="Vehicles registered now, each with its key.")
+    already_registered: list[str] = Field(
+        description="Ids that were registered before and were left as they are (their keys unchanged)."
+    )
+
+
+class VehicleList(ResponseModel):
+    """A page of GET /v1/vehicles, ordered by vehicle id."""
+
+    vehicles: list[VehicleOut] = Field(description="Registered vehicles of this page.")
+    total: int = Field(description="Registered vehicles in all.")
+    next_after: str | None = Field(description="Pass as ?after= for the next page; null on the last page.")
+
+
+class VehicleRevoked(ResponseModel):
+    """Answer to DELETE /v1/vehicles/{vehicle_id}."""
+
+    vehicle_id: str = Field(description="The vehicle removed from the registry; its key opens nothing now.")
+    ended_session: str | None = Field(description="Its live session, ended with it; null when it had none.")
 
 
 # -- fixes ---------------------------------------------------------------------------------------

@@ -33,7 +33,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--lab",
         action="store_true",
         default=None,
-        help="declare this a lab instance: the only way EDGEPOS_AUTH=off is accepted (default: $EDGEPOS_LAB or false)",
+        help="declare this a lab instance: the only way EDGEPOS_AUTH=off, or EDGEPOS_VEHICLE_AUTH=open on a "
+        "non-loopback address, is accepted (default: $EDGEPOS_LAB or false)",
     )
     parser.add_argument(
         "--log-level",
@@ -78,6 +79,20 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
+    if settings.vehicle_auth == "jwt" and settings.vehicle_jwks is not None:
+        from edgepos.api.vehicle_jwt import JwksError, load_vehicle_jwks
+
+        try:
+            load_vehicle_jwks(settings.vehicle_jwks)
+        except JwksError as error:
+            print(f"edgepos serve: EDGEPOS_VEHICLE_JWKS: {error}", file=sys.stderr)
+            return 2
+    if settings.vehicle_auth == "open" and settings.auth_enabled:
+        print(
+            "edgepos serve: EDGEPOS_VEHICLE_AUTH=open: anyone who reaches this port can open a session as any "
+            "vehicle (allowed on loopback or in a lab only).",
+            file=sys.stderr,
+        )
     if not settings.auth_enabled:
         print(
             "edgepos serve: LAB MODE, AUTHENTICATION IS OFF: anyone who reaches this port can read and write "

@@ -12,11 +12,12 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import hmac
+import json
 import logging
 import time
 from typing import Any
 
-from edgepos.api.auth import hash_token, new_session_id, new_session_token
+from edgepos.api.auth import hash_token, new_session_id, new_session_token, superseded_error
 from edgepos.api.context import AppContext
 from edgepos.api.convert import batch_body, fix_to_json, to_json
 from edgepos.api.errors import ApiError, pipeline_problems
@@ -26,6 +27,8 @@ from edgepos.api.schemas import (
     ProblemModel,
     SessionCreate,
     SessionCreated,
+    SessionList,
+    SessionListItem,
     SessionOut,
 )
 from edgepos.core.errors import EstimationError
@@ -47,7 +50,13 @@ from edgepos.pipelines.base import (
     Problem,
     StaticEnvironment,
 )
-from edgepos.store.base import SessionRecord, StoreUnavailable, TooManySessions
+from edgepos.store.base import (
+    SessionRecord,
+    SessionSummary,
+    StoreUnavailable,
+    TooManySessions,
+    VehicleNotRegistered,
+)
 
 logger = logging.getLogger("edgepos.api")
 
@@ -99,7 +108,12 @@ def _problem(field: str, reason: str) -> Problem:
     return Problem(None, field, reason)
 
 
-async def create_session(context: AppContext, body: SessionCreate) -> SessionCreated:
+async def create_session(
+    context: AppContext, body: SessionCreate, vehicle_key_hash: str | None = None
+) -> SessionCreated:
+    """Open the vehicle's one live session, superseding any older one. With ``vehicle_key_hash`` (a
+    registry key opened it) the store re-checks that the key is still the vehicle's in the same atomic
+    step, so a key revoked or rotated meanwhile opens nothing."""
     pipeline = context.pipelines.get(body.pipeline)
     if pipeline is None:
         known = ", ".join(sorted(context.pipelines))
@@ -128,7 +142,11 @@ async def create_session(context: AppContext, body: SessionCreate) -> SessionCre
         updated_at=now,
     )
     try:
-        await context.store.create(record, context.settings.max_sessions)
+        superseded = await context.store.create(
+            record, context.settings.max_sessions, vehicle_key_hash=vehicle_key_hash
+        )
+    except VehicleNotRegistered:
+        raise ApiError("unauthorized", "the bearer credential is not valid (unknown, revoked or expired key or token)") from None
     except TooManySessions as error:
         raise ApiError(
             "too_many_sessions",
@@ -136,8 +154,15 @@ async def create_session(context: AppContext, body: SessionCreate) -> SessionCre
             "delete idle sessions or retry later",
             headers={"Retry-After": str(TOO_MANY_SESSIONS_RETRY_S)},
         ) from None
+    if superseded is not None:
+        context.metrics.sessions_superseded.inc()
+        logger.info(
+            "session superseded",
+            extra={"event": "session_superseded", "session_id": superseded, "superseded_by": session_id},
+        )
     logger.info("session created", extra={"event": "session_created", "session_id": session_id})
     return SessionCreated(
+        superseded=superseded,
         session_id=session_id,
         token=token,
         vehicle_id=body.vehicle_id,
@@ -147,10 +172,51 @@ async def create_session(context: AppContext, body: SessionCreate) -> SessionCre
     )
 
 
+async def _session_gone(context: AppContext, session_id: str) -> ApiError:
+    """409 superseded when a newer session of the vehicle replaced this one, else 404."""
+    superseded = await context.store.supersession(session_id)
+    if superseded is not None:
+        return superseded_error(session_id, superseded.superseded_by)
+    return ApiError("not_found", f"no session {session_id!r} (it may have expired or been deleted)")
+
+
+def _list_item(summary: SessionSummary) -> SessionListItem:
+    last_fix_t, status = None, "new"
+    if summary.last_fix is not None:
+        fix = json.loads(summary.last_fix)
+        last_fix_t, status = fix.get("t"), fix.get("status", "new")
+    return SessionListItem(
+        session_id=summary.session_id,
+        vehicle_id=summary.vehicle_id,
+        pipeline=summary.pipeline,
+        created_at=summary.created_at,
+        updated_at=summary.updated_at,
+        last_seq=summary.last_seq,
+        batches=summary.batches,
+        epochs=summary.epochs,
+        last_fix_t=last_fix_t,
+        status=status,
+    )
+
+
+async def list_sessions(
+    context: AppContext, after: str | None, limit: int, pipeline: str | None, vehicle_id: str | None
+) -> SessionList:
+    page = await context.store.list_sessions(
+        after=after, limit=limit + 1, pipeline=pipeline, vehicle_id=vehicle_id
+    )
+    more = len(page) > limit
+    page = page[:limit]
+    return SessionList(
+        sessions=[_list_item(summary) for summary in page],
+        next_after=page[-1].session_id if more else None,
+    )
+
+
 async def describe_session(context: AppContext, session_id: str) -> SessionOut:
     record = await context.store.get(session_id)
     if record is None:
-        raise ApiError("not_found", f"no session {session_id!r} (it may have expired or been deleted)")
+        raise await _session_gone(context, session_id)
     try:
         summary = _pipeline(context, record.pipeline).summarise(record.state)
     except StateFormatError as error:
@@ -173,12 +239,9 @@ async def describe_session(context: AppContext, session_id: str) -> SessionOut:
 
 
 async def delete_session(context: AppContext, session_id: str) -> None:
-    record = await context.store.get(session_id)
+    # The store withdraws the vehicle's published track with it: neighbours stop ranging against it.
     if not await context.store.delete(session_id):
-        raise ApiError("not_found", f"no session {session_id!r} (it may have expired or been deleted)")
-    if record is not None:
-        # Neighbours must stop ranging against a vehicle whose session is gone.
-        await context.store.delete_track(record.vehicle_id)
+        raise await _session_gone(context, session_id)
     logger.info("session deleted", extra={"event": "session_deleted", "session_id": session_id})
 
 
@@ -237,9 +300,7 @@ async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> b
         async with context.store.session_lock(session_id):
             record = await context.store.get(session_id)
             if record is None:
-                raise ApiError(
-                    "not_found", f"no session {session_id!r} (it may have expired or been deleted)"
-                )
+                raise await _session_gone(context, session_id)
             try:
                 replay = _replay_or_refuse(record, batch, digest)
             except ApiError:
@@ -369,7 +430,9 @@ async def _publish_track(
     if track is None:
         return
     try:
-        await context.store.put_track(track)
+        # Written only while this session is still the vehicle's live one: a superseded session's
+        # late batch never mixes into its successor's track.
+        await context.store.put_track(track, record.session_id)
     except StoreUnavailable as error:
         logger.warning(
             "track not published",

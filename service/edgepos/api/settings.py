@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ipaddress
 import os
 import secrets
 import sys
@@ -104,8 +105,54 @@ class Settings(BaseSettings):
     )
     lab: bool = Field(
         False,
-        description="Declares this instance a lab (no real vehicles): the only way to start with auth off. "
-        "Also `edgepos serve --lab`.",
+        description="Declares this instance a lab (no real vehicles): the only way to start with auth off, "
+        "or with vehicle_auth 'open' on a non-loopback address. Also `edgepos serve --lab`.",
+    )
+    vehicle_auth: Literal["key", "jwt", "open"] = Field(
+        "key",
+        description="What opening a session takes besides the admin key (which opens one for any vehicle). "
+        "'key': the vehicle's own key from the registry (POST /v1/vehicles), for its own vehicle_id only. "
+        "'jwt': a token signed by the fleet operator (ES256 or RS256, keys from vehicle_jwks, sub = vehicle "
+        "id, aud = vehicle_jwt_audience, exp required), checked without a registry read. 'open': no "
+        "credential (anyone may open a session as any vehicle); refused on a non-loopback host unless lab.",
+    )
+    vehicle_jwks: Path | None = Field(
+        None,
+        description="JWKS file with the fleet operator's public keys (needed with vehicle_auth 'jwt'); a file "
+        "that does not parse stops the service at start-up.",
+    )
+    vehicle_jwt_audience: str = Field(
+        "edgepos", min_length=1, description="The 'aud' a vehicle token must carry (vehicle_auth 'jwt')."
+    )
+    auth_failure_rate_per_s: float = Field(
+        0.2,
+        gt=0,
+        allow_inf_nan=False,
+        description="Failed authentications allowed per second, sustained, per client address and per "
+        "credential presented (429 with Retry-After beyond, counted in the store across workers).",
+    )
+    auth_failure_burst: int = Field(
+        20, ge=1, description="Failed authentications a client address or credential may make at once."
+    )
+    session_create_rate_per_s: float = Field(
+        0.2,
+        gt=0,
+        allow_inf_nan=False,
+        description="Sessions one vehicle credential may open per second, sustained (429 beyond); the admin "
+        "key is not limited.",
+    )
+    session_create_burst: int = Field(
+        10, ge=1, description="Sessions one vehicle credential may open at once before that rate applies."
+    )
+    session_create_address_rate_per_s: float = Field(
+        20.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="Sessions opened per second, sustained, from one client address with vehicle "
+        "credentials (or none, with vehicle_auth 'open'); generous because a fleet may share one NAT address.",
+    )
+    session_create_address_burst: int = Field(
+        200, ge=1, description="Sessions one client address may open at once before that rate applies."
     )
 
     @field_validator("log_level", mode="before")
@@ -137,6 +184,22 @@ class Settings(BaseSettings):
             )
         return self
 
+    @model_validator(mode="after")
+    def _vehicle_auth_settings(self) -> Settings:
+        if self.vehicle_auth == "jwt" and self.vehicle_jwks is None:
+            raise ValueError(
+                "vehicle_auth is 'jwt' (EDGEPOS_VEHICLE_AUTH=jwt) but no key set is given: set EDGEPOS_VEHICLE_JWKS "
+                "to the fleet operator's JWKS file"
+            )
+        if self.vehicle_auth == "open" and not self.lab and not is_loopback(self.host):
+            raise ValueError(
+                f"vehicle_auth is 'open' (EDGEPOS_VEHICLE_AUTH=open) on {self.host!r}, a non-loopback address: anyone "
+                "who reaches it could open a session as any vehicle and feed its neighbours a false track; refused "
+                "unless this is declared a lab (EDGEPOS_LAB=true or `edgepos serve --lab`). Register vehicles "
+                "(POST /v1/vehicles) and keep the default 'key', or use 'jwt'"
+            )
+        return self
+
     @property
     def auth_enabled(self) -> bool:
         return self.auth == "on"
@@ -149,6 +212,21 @@ class Settings(BaseSettings):
         return RateLimit(self.rate_limit_per_s, self.rate_limit_burst)
 
     @property
+    def auth_failure_limit(self) -> RateLimit:
+        """Failed authentications per client address and per credential."""
+        return RateLimit(self.auth_failure_rate_per_s, self.auth_failure_burst)
+
+    @property
+    def session_create_limit(self) -> RateLimit:
+        """Session creations per vehicle credential."""
+        return RateLimit(self.session_create_rate_per_s, self.session_create_burst)
+
+    @property
+    def session_create_address_limit(self) -> RateLimit:
+        """Session creations per client address (vehicle credentials or none)."""
+        return RateLimit(self.session_create_address_rate_per_s, self.session_create_address_burst)
+
+    @property
     def cors_origin_list(self) -> list[str]:
         return [origin.strip() for origin in self.cors_origins.split(",") if origin.strip()]
 
@@ -157,6 +235,16 @@ class Settings(BaseSettings):
         if self.origin_lat is None or self.origin_lon is None:
             return None
         return GeodeticOrigin.from_degrees(self.origin_lat, self.origin_lon, self.origin_height)
+
+
+def is_loopback(host: str) -> bool:
+    """True for an address only this machine can reach (127.0.0.0/8, ::1, localhost)."""
+    if host.strip().lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
 
 
 def write_secret_file(path: Path, secret: str) -> Path:

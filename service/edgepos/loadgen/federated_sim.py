@@ -60,6 +60,7 @@ async def run_federated(
     realtime: bool = False,
     epochs: int | None = None,
     timeout: float = 30.0,
+    admin_key: str | None = None,
 ) -> tuple[list[FederatedVehicle], float]:
     """Drive ``vehicles`` targets (and their assisting vehicles) through ``url``; per-target RMSE."""
     runs = [make_run(seed, i, "clean") for i in range(vehicles)]
@@ -74,12 +75,12 @@ async def run_federated(
         for target, run in zip(targets, runs):
             prefix = f"{target.vehicle_id}-"
             for name in run.neighbour_ids:
-                client = AsyncEdgeposClient(url, timeout=timeout, limits=limits)
+                client = AsyncEdgeposClient(url, admin_key, timeout=timeout, limits=limits)
                 clients.append(client)
                 session = await client.create_session(prefix + name, "v2x_federated")
                 sessions.append((client, session))
                 lanes.append((None, client, session, _assist_batches(run, name, count, batch_epochs)))
-            client = AsyncEdgeposClient(url, timeout=timeout, limits=limits)
+            client = AsyncEdgeposClient(url, admin_key, timeout=timeout, limits=limits)
             clients.append(client)
             session = await client.create_session(target.vehicle_id, "v2x_federated")
             sessions.append((client, session))

@@ -80,6 +80,11 @@ class LoadConfig:
             found.append("--duration must be in (0, 3600] s")
         if not self.timeout > 0:
             found.append("--timeout must be > 0")
+        if not self.admin_key:
+            found.append(
+                "the admin key is needed to open the simulated vehicles' sessions and load the RSU map: pass "
+                "--admin-key or set EDGEPOS_ADMIN_KEY"
+            )
         return found
 
     @property
@@ -353,23 +358,9 @@ async def _probe_loop_lag(recorder: Recorder) -> None:
         recorder.loop_lag_ms.append(max(0.0, loop.time() - planned) * 1e3)
 
 
-async def _ensure_rsus(client: AsyncEdgeposClient, scenario: Scenario, admin_key: str | None) -> None:
-    """Load the scenario's RSU map (admin key), or check it is there when no key is given."""
-    if admin_key is not None:
-        await client.put_rsus(common.scenario_rsus(scenario))
-        return
-    probe = await client.create_session("load-probe", initial_state=common.initial_state(scenario))
-    try:
-        present = {rsu.id for rsu in await client.list_rsus(probe)}
-    finally:
-        await client.delete_session(probe)
-    missing = sorted({rsu.id for rsu in scenario.rsus} - present)
-    if missing:
-        raise EdgeposError(
-            "missing_rsus",
-            f"the server lacks {len(missing)} RSU(s) of the scenario (e.g. {missing[0]}); pass --admin-key "
-            "to load them, or start the server with EDGEPOS_DEMO_RSUS=true",
-        )
+async def _ensure_rsus(client: AsyncEdgeposClient, scenario: Scenario) -> None:
+    """Load the scenario's RSU map (admin key)."""
+    await client.put_rsus(common.scenario_rsus(scenario))
 
 
 async def run_load(config: LoadConfig) -> LoadReport:
@@ -388,7 +379,7 @@ async def run_load(config: LoadConfig) -> LoadReport:
         admin = await stack.enter_async_context(
             AsyncEdgeposClient(config.url, config.admin_key, timeout=config.timeout, retries=0)
         )
-        await _ensure_rsus(admin, scenario, config.admin_key)
+        await _ensure_rsus(admin, scenario)
         vehicles = []
         for i in range(config.vehicles):
             client = await stack.enter_async_context(
@@ -489,7 +480,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, required=True, help="seconds to run (at most 3600)")
     parser.add_argument("--json", type=Path, default=None, metavar="FILE", help="write the figures as JSON")
     parser.add_argument(
-        "--admin-key", default=None, help="admin key to load the RSU map (default $EDGEPOS_ADMIN_KEY)"
+        "--admin-key",
+        default=None,
+        help="admin key: opens the vehicles' sessions and loads the RSU map (default $EDGEPOS_ADMIN_KEY)",
     )
     parser.add_argument(
         "--saturate",

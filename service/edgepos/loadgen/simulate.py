@@ -266,7 +266,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="v2v only: the v2v_coop method every vehicle uses (default aug_ukf)",
     )
     parser.add_argument(
-        "--admin-key", default=None, help="admin key to load the RSU map (default $EDGEPOS_ADMIN_KEY)"
+        "--admin-key",
+        default=None,
+        help="admin key: opens the simulated vehicles' sessions and loads the RSU map (default $EDGEPOS_ADMIN_KEY)",
     )
     parser.add_argument(
         "--seed", type=int, default=0, help="noise seed; vehicle i uses child i of it (default 0)"
@@ -290,18 +292,20 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    key = common.admin_key(args.admin_key)
+    if key is None:
+        print(
+            "edgepos simulate: opening the simulated vehicles' sessions (and loading the RSU map) needs the admin "
+            "key: pass --admin-key or set EDGEPOS_ADMIN_KEY (a server that generated its key printed it and saved "
+            "it to edgepos-admin.key)",
+            file=sys.stderr,
+        )
+        return 2
+    args.admin_key = key
     if args.scenario in federated_sim.SCENARIOS:
         return _run_federated(args)
     if args.scenario in v2v_sim.SCENARIOS:
         return _run_v2v(args)
-    key = common.admin_key(args.admin_key)
-    if key is None:
-        print(
-            "edgepos simulate: loading the RSU map needs the admin key: pass --admin-key or set "
-            "EDGEPOS_ADMIN_KEY (a server that generated its key printed it and saved it to edgepos-admin.key)",
-            file=sys.stderr,
-        )
-        return 2
     if args.vehicles < 1 or args.batch_epochs < 1 or (args.epochs is not None and args.epochs < 1):
         print("edgepos simulate: --vehicles, --batch-epochs and --epochs must be >= 1", file=sys.stderr)
         return 2
@@ -330,7 +334,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_federated(args: argparse.Namespace) -> int:
-    """--scenario federated: target vehicles with their assisting vehicles, no RSU map (no admin key)."""
+    """--scenario federated: target vehicles with their assisting vehicles, no RSU map."""
     if args.vehicles < 1 or args.batch_epochs < 1 or (args.epochs is not None and args.epochs < 1):
         print("edgepos simulate: --vehicles, --batch-epochs and --epochs must be >= 1", file=sys.stderr)
         return 2
@@ -338,7 +342,7 @@ def _run_federated(args: argparse.Namespace) -> int:
         targets, elapsed = asyncio.run(
             federated_sim.run_federated(
                 args.url, vehicles=args.vehicles, seed=args.seed, batch_epochs=args.batch_epochs,
-                realtime=args.realtime, epochs=args.epochs, timeout=args.timeout,
+                realtime=args.realtime, epochs=args.epochs, timeout=args.timeout, admin_key=args.admin_key,
             )
         )
     except EdgeposError as error:
@@ -366,6 +370,7 @@ def _run_v2v(args: argparse.Namespace) -> int:
             v2v_sim.run_v2v(
                 args.url, groups=args.vehicles, seed=args.seed, layout=args.layout, method=args.method,
                 batch_epochs=args.batch_epochs, realtime=args.realtime, epochs=args.epochs, timeout=args.timeout,
+                admin_key=args.admin_key,
             )
         )
     except EdgeposError as error:

@@ -48,6 +48,7 @@ async def run_v2v(
     realtime: bool = False,
     epochs: int | None = None,
     timeout: float = 30.0,
+    admin_key: str | None = None,
 ) -> tuple[list[V2vVehicle], float]:
     """Drive ``groups`` x 4 vehicles through ``url``; each vehicle's position RMSE over epochs 1.."""
     runs = [make_run(seed, g, layout) for g in range(groups)]
@@ -60,7 +61,7 @@ async def run_v2v(
     lanes = []
     try:
         for vehicle in vehicles:
-            client = AsyncEdgeposClient(url, timeout=timeout, limits=limits)
+            client = AsyncEdgeposClient(url, admin_key, timeout=timeout, limits=limits)
             lanes.append([vehicle, client, None])
             lanes[-1][2] = await client.create_session(vehicle.vehicle_id, "v2v_coop", options={"method": method})
         t0 = time.perf_counter()

@@ -1,15 +1,26 @@
-"""Vehicle sessions: open one (no credential needed: the answer carries the session's token, and
-EDGEPOS_MAX_SESSIONS bounds how many exist), read it, delete it, and send it batches."""
+"""Vehicle sessions: open one (with the vehicle's credential or the admin key; the answer carries
+the session's token), list them (admin), read one, delete it, and send it batches."""
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends, Response
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Query, Request, Response
 
 from edgepos.api import session_service
-from edgepos.api.auth import require_session
+from edgepos.api.auth import Principal, authorise_session_creation, require_admin, require_session, require_vehicle
 from edgepos.api.context import Context
 from edgepos.api.routes import errors
-from edgepos.api.schemas import BatchIn, BatchOut, SessionCreate, SessionCreated, SessionOut
+from edgepos.api.schemas import (
+    PIPELINE_NAME_PATTERN,
+    VEHICLE_ID_PATTERN,
+    BatchIn,
+    BatchOut,
+    SessionCreate,
+    SessionCreated,
+    SessionList,
+    SessionOut,
+)
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 
@@ -41,14 +52,50 @@ _FROM_PATH = "$request.path.session_id"
     response_model=SessionCreated,
     summary="Open a session",
     responses={
-        **errors(413, 422, 429, 503),
+        **errors(401, 403, 413, 422, 429, 503),
         201: {"links": _links(_FROM_BODY, _READ_IT, _SEND_TO_IT, _DELETE_IT)},
     },
 )
-async def create_session(body: SessionCreate, context: Context) -> SessionCreated:
-    """Create a session for a vehicle. Keep the returned token: it is shown once and opens only this
-    session (send it as ``Authorization: Bearer <token>``)."""
-    return await session_service.create_session(context, body)
+async def create_session(
+    request: Request,
+    body: SessionCreate,
+    context: Context,
+    principal: Annotated[Principal, Depends(require_vehicle)],
+) -> SessionCreated:
+    """Open a session for a vehicle, with that vehicle's credential (its key from POST /v1/vehicles, or a
+    fleet-signed token with EDGEPOS_VEHICLE_AUTH=jwt) or the admin key (any vehicle). A vehicle has one
+    live session: opening another supersedes the old one, whose token then gets 409 superseded.
+
+    Keep the returned token: it is shown once and opens only this session (send it as
+    ``Authorization: Bearer <token>``)."""
+    await authorise_session_creation(request, context, principal, body.vehicle_id)
+    return await session_service.create_session(context, body, principal.vehicle_key_hash)
+
+
+@router.get(
+    "",
+    response_model=SessionList,
+    summary="List live sessions",
+    dependencies=[Depends(require_admin)],
+    responses=errors(401, 403, 422, 429, 503),
+)
+async def list_sessions(
+    context: Context,
+    after: Annotated[
+        str | None,
+        Query(max_length=64, description="Only sessions with ids after this one (the previous page's next_after)."),
+    ] = None,
+    limit: Annotated[int, Query(ge=1, le=1000, description="Sessions per page.")] = 100,
+    pipeline: Annotated[
+        str | None, Query(pattern=PIPELINE_NAME_PATTERN, description="Only sessions of this pipeline.")
+    ] = None,
+    vehicle_id: Annotated[
+        str | None, Query(pattern=VEHICLE_ID_PATTERN, description="Only this vehicle's session.")
+    ] = None,
+) -> SessionList:
+    """Live sessions in session-id order, a page at a time, with their vehicle, pipeline, counters and
+    the latest fix's time and status (admin key; a vehicle or session credential gets 403)."""
+    return await session_service.list_sessions(context, after, limit, pipeline, vehicle_id)
 
 
 @router.get(
