@@ -7,7 +7,7 @@ import time
 
 from fastapi.testclient import TestClient
 
-from apihelp import ADMIN_KEY, make_settings
+from apihelp import ADMIN, ADMIN_KEY, make_settings
 from edgepos.api.app import create_app
 
 

@@ -190,6 +190,8 @@ def test_the_operator_lists_live_sessions_with_filters_and_pages(client):
     assert [len(p) for p in pages] == [4, 2]
     assert [s["session_id"] for p in pages for s in p] == [s["session_id"] for s in everything]
     assert_error(client.get("/v1/sessions", params={"limit": 0}, headers=ADMIN), 422, "invalid_request")
+    misspelt = assert_error(client.get("/v1/sessions", params={"pipline": "gnss_tight"}, headers=ADMIN), 422, "invalid_request")
+    assert [p["field"] for p in misspelt["problems"]] == ["pipline"]
 
 
 def test_only_the_admin_key_lists_sessions(client):

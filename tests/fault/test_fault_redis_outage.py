@@ -17,7 +17,7 @@ import time
 import httpx
 import pytest
 from edgepos_client import AsyncEdgeposClient, EdgeposClient
-from faulthelp import serve, start_state, stream_batches
+from faulthelp import ADMIN_KEY, serve, start_state, stream_batches
 
 pytestmark = pytest.mark.slow
 
@@ -31,7 +31,7 @@ def test_redis_restart_with_aof_keeps_sessions_and_the_service_recovers_by_itsel
     store_url = redis.url("outage:", socket_timeout="0.5", socket_connect_timeout="0.5")
     batches = stream_batches(0, BATCH_EPOCHS)
     with serve(tmp_path, 1, EDGEPOS_STORE=store_url, EDGEPOS_DEMO_RSUS="true") as server:
-        with EdgeposClient(server.url, retries=0) as client:
+        with EdgeposClient(server.url, ADMIN_KEY, retries=0) as client:
             sessions = [client.create_session(f"aof-{i}", initial_state=start_state()) for i in range(3)]
             for number, session in enumerate(sessions):
                 for k in range(number + 2):
@@ -42,7 +42,7 @@ def test_redis_restart_with_aof_keeps_sessions_and_the_service_recovers_by_itsel
 
         def ride() -> None:
             async def go() -> None:
-                async with AsyncEdgeposClient(server.url, timeout=5.0, retries=8, backoff=0.25) as rider:
+                async with AsyncEdgeposClient(server.url, ADMIN_KEY, timeout=5.0, retries=8, backoff=0.25) as rider:
                     session = await rider.create_session("rider", initial_state=start_state())
                     sent = 0
                     deadline = time.monotonic() + OUTAGE_S + 6.0
@@ -91,7 +91,7 @@ def test_redis_restart_with_aof_keeps_sessions_and_the_service_recovers_by_itsel
             time.sleep(0.1)
         assert server.process.poll() is None  # never restarted
 
-        with EdgeposClient(server.url, retries=0) as client:
+        with EdgeposClient(server.url, ADMIN_KEY, retries=0) as client:
             for number, session in enumerate(sessions):
                 info = client.get_session(session)
                 assert (info.last_seq, info.batches) == (number + 2, number + 2)  # survived the kill

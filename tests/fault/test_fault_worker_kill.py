@@ -64,7 +64,7 @@ async def _vehicle(
     """Stream this vehicle's batches until ``progress.stop_at``; returns session id, batches and epochs
     acknowledged, and any error the client raised (there should be none)."""
     async with AsyncEdgeposClient(
-        url, timeout=15.0, retries=6, backoff=0.1, transport=CountingTransport()
+        url, ADMIN_KEY, timeout=15.0, retries=6, backoff=0.1, transport=CountingTransport()
     ) as client:
         session = await client.create_session(f"kill-{index}", initial_state=start_state())
         acknowledged = epochs = 0

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
-from edgepos.api.schemas import ErrorBody
+from fastapi import Request
+
+from edgepos.api.errors import ApiError
+from edgepos.api.schemas import ErrorBody, ProblemModel
 
 _DESCRIPTIONS = {
     401: "Missing or invalid bearer credential.",
@@ -23,3 +27,21 @@ _DESCRIPTIONS = {
 def errors(*statuses: int) -> dict[int | str, dict[str, Any]]:
     """OpenAPI ``responses`` entries for error statuses, all with the standard error body."""
     return {status: {"model": ErrorBody, "description": _DESCRIPTIONS[status]} for status in statuses}
+
+
+def known_query_parameters(*names: str) -> Callable[[Request], None]:
+    """A dependency refusing query parameters other than ``names`` (422 naming each): a misspelt
+    filter such as ``?pipline=gnss_tight`` would otherwise be ignored and answer everything."""
+    allowed = frozenset(names)
+
+    def check(request: Request) -> None:
+        unknown = sorted({name for name in request.query_params if name not in allowed})
+        if unknown:
+            known = ", ".join(sorted(allowed))
+            raise ApiError(
+                "invalid_request",
+                f"unknown query parameter{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))}",
+                [ProblemModel(index=None, field=name, reason=f"unknown query parameter; known: {known}") for name in unknown],
+            )
+
+    return check

@@ -10,7 +10,7 @@ from fastapi import APIRouter, Depends, Query, Request, Response
 from edgepos.api import session_service
 from edgepos.api.auth import Principal, authorise_session_creation, require_admin, require_session, require_vehicle
 from edgepos.api.context import Context
-from edgepos.api.routes import errors
+from edgepos.api.routes import errors, known_query_parameters
 from edgepos.api.schemas import (
     PIPELINE_NAME_PATTERN,
     VEHICLE_ID_PATTERN,
@@ -76,7 +76,7 @@ async def create_session(
     "",
     response_model=SessionList,
     summary="List live sessions",
-    dependencies=[Depends(require_admin)],
+    dependencies=[Depends(require_admin), Depends(known_query_parameters("after", "limit", "pipeline", "vehicle_id"))],
     responses=errors(401, 403, 422, 429, 503),
 )
 async def list_sessions(

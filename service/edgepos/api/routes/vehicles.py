@@ -16,7 +16,7 @@ from fastapi import APIRouter, Depends, Path, Query
 from edgepos.api.auth import hash_token, new_vehicle_key, require_admin
 from edgepos.api.context import AppContext, Context
 from edgepos.api.errors import ApiError
-from edgepos.api.routes import errors
+from edgepos.api.routes import errors, known_query_parameters
 from edgepos.api.schemas import (
     VEHICLE_ID_PATTERN,
     ProblemModel,
@@ -108,6 +108,7 @@ async def import_vehicles(body: VehicleImport, context: Context) -> VehicleImpor
     "",
     response_model=VehicleList,
     summary="List registered vehicles",
+    dependencies=[Depends(known_query_parameters("after", "limit"))],
     responses=errors(401, 403, 422, 429, 503),
 )
 async def list_vehicles(
