@@ -15,9 +15,11 @@ message whatever the cause; 403 means it is valid but does not open this resourc
 
 Abuse limits: every failed authentication is counted against the client's address and against the
 credential presented (EDGEPOS_AUTH_FAILURE_RATE_PER_S, bursts of EDGEPOS_AUTH_FAILURE_BURST); past
-either, the answer is 429 with Retry-After instead of 401, and opening a session from that address
-is refused before any credential is checked. Failures are counted in the metrics and logged with the
-address and the reason, never the credential. Every request made with a session token counts
+either, the failure is answered 429 with Retry-After instead of 401, and a credential past its own
+budget is refused before it is even looked up. A valid credential from an address past its budget
+still works: the keys are 256-bit random values that no rate of guessing can find, and a fleet behind
+one NAT address must not be locked out by a stranger's failures. Failures are counted in the metrics
+and logged with the address and the reason, never the credential. Every request made with a session token counts
 against that session's request-rate budget (EDGEPOS_RATE_LIMIT_PER_S). All budgets live in the store,
 so they hold across workers and replicas. Authentication is off only with EDGEPOS_AUTH=off, which the
 settings refuse unless the instance is declared a lab: then every request is the admin.
@@ -149,7 +151,7 @@ async def _refuse(
     limit = context.settings.auth_failure_limit
     waits = [await context.store.take_request(f"authfail:addr:{address}", limit)]
     if secret:
-        waits.append(await context.store.take_request(f"authfail:cred:{hash_token(secret)}", limit))
+        waits.append(await context.store.take_request(_credential_key(secret), limit))
     wait_s = max(waits)
     if wait_s > 0:
         context.metrics.rate_limited.labels("auth_failures").inc()
@@ -159,6 +161,11 @@ async def _refuse(
             wait_s,
         )
     return error
+
+
+def _credential_key(secret: str) -> str:
+    """The failure budget of one presented credential (by digest: the store never sees a secret)."""
+    return f"authfail:cred:{hash_token(secret)}"
 
 
 def _unauthorized(message: str = _INVALID) -> ApiError:
@@ -223,7 +230,8 @@ async def require_admin(request: Request, context: Context, credentials: Credent
 
 
 async def require_any(request: Request, context: Context, credentials: Credentials) -> Principal:
-    """The admin key or any live session's token passes."""
+    """The admin key, any live session's token, or a vehicle credential passes (the site's shared,
+    read-only information: a vehicle may read the RSU map before it opens its session)."""
     if _auth_off(context):
         return _LAB
     secret = None if credentials is None else credentials.credentials
@@ -235,6 +243,9 @@ async def require_any(request: Request, context: Context, credentials: Credentia
     if session_id is not None and await _valid_session_token(context, secret):
         await charge_rate_limit(context, session_id)
         return Principal(admin=False, session_id=session_id)
+    vehicle = await _vehicle(context, secret)
+    if vehicle is not None:
+        return vehicle
     raise await _refuse(context, request, secret, "invalid", _unauthorized())
 
 
@@ -244,11 +255,6 @@ async def require_vehicle(request: Request, context: Context, credentials: Crede
     EDGEPOS_VEHICLE_AUTH=open. A client address past its failure budget is refused first."""
     if _auth_off(context):
         return _LAB
-    address = client_address(request)
-    wait_s = await context.store.request_wait(f"authfail:addr:{address}", context.settings.auth_failure_limit)
-    if wait_s > 0:
-        context.metrics.rate_limited.labels("auth_failures").inc()
-        raise _limited("too many failed authentications from this address (EDGEPOS_AUTH_FAILURE_RATE_PER_S)", wait_s)
     secret = None if credentials is None else credentials.credentials
     if secret and _is_admin(context, secret):
         return Principal(admin=True)
@@ -256,6 +262,10 @@ async def require_vehicle(request: Request, context: Context, credentials: Crede
         return Principal(admin=False, anonymous=True)
     if not secret:
         raise await _refuse(context, request, None, "missing", _unauthorized(_MISSING))
+    wait_s = await context.store.request_wait(_credential_key(secret), context.settings.auth_failure_limit)
+    if wait_s > 0:  # a credential that keeps failing (a revoked key in a loop) is not even looked up
+        context.metrics.rate_limited.labels("auth_failures").inc()
+        raise _limited("this credential failed too often (EDGEPOS_AUTH_FAILURE_RATE_PER_S)", wait_s)
     vehicle = await _vehicle(context, secret)
     if vehicle is None:
         raise await _refuse(context, request, secret, "invalid", _unauthorized())

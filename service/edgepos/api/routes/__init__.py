@@ -14,12 +14,15 @@ _DESCRIPTIONS = {
     401: "Missing or invalid bearer credential.",
     403: "The credential is valid but does not open this resource.",
     404: "No such resource.",
-    409: "The batch's seq does not follow the session's last applied seq.",
+    409: "A conflict: the batch's seq does not follow the session's last applied seq, the vehicle is "
+    "already registered, or (code superseded) a newer session of the same vehicle replaced this one.",
     413: "The request body is larger than EDGEPOS_MAX_BODY_BYTES (EDGEPOS_MAX_EPHEMERIDES_BYTES for a "
     "navigation file).",
     422: "The request is invalid; every problem is listed.",
-    429: "Too many sessions (EDGEPOS_MAX_SESSIONS), or the session token is over its request rate "
-    "(EDGEPOS_RATE_LIMIT_PER_S); Retry-After says when to retry.",
+    429: "Too many sessions (EDGEPOS_MAX_SESSIONS), the session token over its request rate "
+    "(EDGEPOS_RATE_LIMIT_PER_S), too many failed authentications from this address or with this credential "
+    "(EDGEPOS_AUTH_FAILURE_RATE_PER_S), or sessions opened too fast (EDGEPOS_SESSION_CREATE_RATE_PER_S); "
+    "Retry-After says when to retry.",
     503: "Temporarily unavailable (e.g. the session store does not answer); retry.",
 }
 

@@ -81,8 +81,8 @@ async def put_ephemerides(request: Request, context: Context) -> EphemeridesOut:
     responses=errors(401, 404, 429, 503),
 )
 async def get_ephemerides(context: Context) -> EphemeridesOut:
-    """Systems, satellites, validity window and ionosphere sets of the loaded file (admin key or any
-    session token); 404 when none is loaded."""
+    """Systems, satellites, validity window and ionosphere sets of the loaded file (admin key, any
+    session token or a vehicle credential); 404 when none is loaded."""
     loaded = await context.ephemerides.current(context.store, context.run_filter)
     if loaded is None:
         raise ApiError("not_found", "no ephemerides are loaded (PUT /v1/ephemerides with the admin key)")

@@ -1,5 +1,5 @@
 """The site's RSU registry. Writes need the admin key; reads need any valid credential (the admin
-key or a live session's token)."""
+key, a live session's token or a vehicle credential)."""
 
 from __future__ import annotations
 
@@ -61,7 +61,7 @@ async def put_rsus(body: RsuBulk, context: Context) -> Upserted:
     responses=errors(401, 429, 503),
 )
 async def list_rsus(context: Context) -> RsuList:
-    """Every registered RSU, sorted by id (admin key or any session token)."""
+    """Every registered RSU, sorted by id (admin key, any session token or a vehicle credential)."""
     return RsuList(rsus=[rsu_to_wire(rsu) for rsu in await context.store.list_rsus()])
 
 
@@ -73,7 +73,7 @@ async def list_rsus(context: Context) -> RsuList:
     responses=errors(401, 404, 422, 429, 503),
 )
 async def get_rsu(rsu_id: RsuId, context: Context) -> RsuOut:
-    """One RSU by id (admin key or any session token)."""
+    """One RSU by id (admin key, any session token or a vehicle credential)."""
     rsu = await context.store.get_rsu(rsu_id)
     if rsu is None:
         raise ApiError("not_found", f"no RSU {rsu_id!r}")

@@ -103,7 +103,10 @@ async def list_sessions(
     response_model=SessionOut,
     summary="Read a session",
     dependencies=[Depends(require_session)],
-    responses={**errors(401, 403, 404, 422, 429, 503), 200: {"links": _links(_FROM_BODY, _SEND_TO_IT, _DELETE_IT)}},
+    responses={
+        **errors(401, 403, 404, 409, 422, 429, 503),
+        200: {"links": _links(_FROM_BODY, _SEND_TO_IT, _DELETE_IT)},
+    },
 )
 async def get_session(session_id: str, context: Context) -> SessionOut:
     """Options, counters, model probabilities, last seq and the latest fix (session token or admin key)."""
@@ -116,7 +119,7 @@ async def get_session(session_id: str, context: Context) -> SessionOut:
     response_class=Response,
     summary="Delete a session",
     dependencies=[Depends(require_session)],
-    responses=errors(401, 403, 404, 422, 429, 503),
+    responses=errors(401, 403, 404, 409, 422, 429, 503),
 )
 async def delete_session(session_id: str, context: Context) -> Response:
     """End the session and forget its state (session token or admin key)."""
