@@ -2,9 +2,11 @@
 
 SI units and radians throughout; positions in the site-local east-north plane (m). See
 :class:`EdgeposClient` and :class:`AsyncEdgeposClient`; every refusal raises an :class:`EdgeposError`.
+A vehicle opens its sessions with its own key from the registry (``vehicle_key=``) or a fleet-signed
+token (``vehicle_token=``); the operator manages the registry with the admin key.
 """
 
-from edgepos_client._protocol import RetryPolicy, Session
+from edgepos_client._protocol import MAX_VEHICLES_PER_IMPORT, RetryPolicy, Session
 from edgepos_client.async_client import AsyncEdgeposClient
 from edgepos_client.errors import (
     Conflict,
@@ -17,12 +19,14 @@ from edgepos_client.errors import (
     PayloadTooLarge,
     RateLimited,
     ServerError,
+    Superseded,
     TooManySessions,
     TransportError,
     Unauthorized,
     Unavailable,
 )
 from edgepos_client.models import (
+    VEHICLE_ID_PATTERN,
     BatchResult,
     EphemeridesSummary,
     Fix,
@@ -37,19 +41,28 @@ from edgepos_client.models import (
     PipelineOption,
     Problem,
     PseudorangeMeasurement,
+    Revocation,
     RissMeasurement,
     Rsu,
     RsuMeasurement,
     RsuRangeMeasurement,
     SessionInfo,
+    SessionPage,
+    SessionSummary,
     StateEstimate,
     V2vRangeMeasurement,
+    Vehicle,
+    VehicleImport,
+    VehicleKey,
+    VehiclePage,
 )
 from edgepos_client.sync_client import EdgeposClient
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "MAX_VEHICLES_PER_IMPORT",
+    "VEHICLE_ID_PATTERN",
     "AsyncEdgeposClient",
     "BatchResult",
     "Conflict",
@@ -76,6 +89,7 @@ __all__ = [
     "PseudorangeMeasurement",
     "RateLimited",
     "RetryPolicy",
+    "Revocation",
     "RissMeasurement",
     "Rsu",
     "RsuMeasurement",
@@ -83,10 +97,17 @@ __all__ = [
     "ServerError",
     "Session",
     "SessionInfo",
+    "SessionPage",
+    "SessionSummary",
     "StateEstimate",
+    "Superseded",
     "TooManySessions",
     "TransportError",
     "Unauthorized",
     "Unavailable",
     "V2vRangeMeasurement",
+    "Vehicle",
+    "VehicleImport",
+    "VehicleKey",
+    "VehiclePage",
 ]

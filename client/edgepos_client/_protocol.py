@@ -9,18 +9,20 @@ from __future__ import annotations
 import json
 import os
 import random
-from pathlib import Path
+import re
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
+from pathlib import Path
 from typing import Any
-from urllib.parse import quote
+from urllib.parse import quote, urlencode
 
 import httpx
 
 from edgepos_client.errors import EdgeposError, TransportError, error_from_response
 from edgepos_client.models import (
     MEASUREMENTS,
+    VEHICLE_ID_PATTERN,
     BatchResult,
     EphemeridesSummary,
     Fix,
@@ -30,13 +32,19 @@ from edgepos_client.models import (
     OdometerMeasurement,
     PipelineInfo,
     PseudorangeMeasurement,
+    Revocation,
     RissMeasurement,
     Rsu,
     RsuMeasurement,
     RsuRangeMeasurement,
     SessionCreated,
     SessionInfo,
+    SessionPage,
     V2vRangeMeasurement,
+    Vehicle,
+    VehicleImport,
+    VehicleKey,
+    VehiclePage,
 )
 
 _MEASUREMENT_MODELS = (
@@ -64,6 +72,10 @@ NavigationLike = str | bytes | os.PathLike[str]
 """A RINEX navigation file: its text, its bytes, or a path to read it from."""
 RsuLike = Rsu | Mapping[str, Any]
 
+MAX_VEHICLES_PER_IMPORT = 5_000
+"""The server registers at most this many vehicles per request; larger imports are sent in chunks."""
+_VEHICLE_ID = re.compile(VEHICLE_ID_PATTERN)
+
 
 @dataclass
 class Session:
@@ -81,6 +93,8 @@ class Session:
     options: dict[str, Any] = field(default_factory=dict)
     created_at: float = 0.0
     last_seq: int = 0
+    superseded: str | None = None
+    """The vehicle's previous live session, which opening this one replaced (None if it had none)."""
 
     @classmethod
     def from_created(cls, created: SessionCreated) -> Session:
@@ -91,6 +105,7 @@ class Session:
             pipeline=created.pipeline,
             options=dict(created.options),
             created_at=created.created_at,
+            superseded=created.superseded,
         )
 
 
@@ -175,6 +190,75 @@ def _json(value: Any) -> bytes:
     return json.dumps(value, allow_nan=False, separators=(",", ":")).encode()
 
 
+def _query(path: str, **params: str | int | None) -> str:
+    """``path`` with the parameters that are not None as its query string (percent-encoded)."""
+    given = {name: value for name, value in params.items() if value is not None}
+    return f"{path}?{urlencode(given, quote_via=quote)}" if given else path
+
+
+def vehicle_id_problem(vehicle_id: object) -> str | None:
+    """Why the server would refuse ``vehicle_id`` as a vehicle id, or None if it is valid."""
+    if not isinstance(vehicle_id, str):
+        return f"a vehicle id must be a string, not {type(vehicle_id).__name__}"
+    if not 1 <= len(vehicle_id) <= 128:
+        return f"vehicle id {vehicle_id[:40]!r} is {len(vehicle_id)} characters long (1-128 allowed)"
+    if _VEHICLE_ID.fullmatch(vehicle_id) is None:
+        bad = "".join(sorted({c for c in vehicle_id if _VEHICLE_ID.fullmatch(c) is None}))
+        return (
+            f"vehicle id {vehicle_id!r} has characters {bad!r}; only letters, digits, space and "
+            ". _ : + @ / - are allowed"
+        )
+    return None
+
+
+def check_vehicle_ids(vehicle_ids: Iterable[str]) -> list[str]:
+    """The ids as a list, after checking each one and that none repeats (ValueError otherwise), so that
+    an import in several chunks is refused before anything is sent rather than half-way through."""
+    if isinstance(vehicle_ids, str):
+        raise TypeError("give an iterable of vehicle ids, not one string (it would be read letter by letter)")
+    ids = list(vehicle_ids)
+    seen: dict[str, int] = {}
+    for number, vehicle_id in enumerate(ids):
+        problem = vehicle_id_problem(vehicle_id)
+        if problem is not None:
+            raise ValueError(f"vehicle_ids[{number}]: {problem}")
+        if vehicle_id in seen:
+            first = seen[vehicle_id]
+            raise ValueError(f"vehicle_ids[{number}]: {vehicle_id!r} is listed twice (first at [{first}])")
+        seen[vehicle_id] = number
+    return ids
+
+
+def vehicle_chunks(vehicle_ids: Iterable[str]) -> list[list[str]]:
+    """Checked ids in chunks the server takes in one request (one atomic write each)."""
+    ids = check_vehicle_ids(vehicle_ids)
+    size = MAX_VEHICLES_PER_IMPORT
+    return [ids[start : start + size] for start in range(0, len(ids), size)]
+
+
+def merge_imports(results: Iterable[VehicleImport]) -> VehicleImport:
+    """One result from those of several chunks, in the order they were sent."""
+    registered: list[VehicleKey] = []
+    already: list[str] = []
+    for result in results:
+        registered.extend(result.registered)
+        already.extend(result.already_registered)
+    return VehicleImport(registered=registered, already_registered=already)
+
+
+def vehicle_credential(vehicle_key: str | None, vehicle_token: str | None) -> str | None:
+    """The one vehicle credential given (a registry key or a fleet-signed token), or None."""
+    if vehicle_key is not None and vehicle_token is not None:
+        raise ValueError(
+            "give vehicle_key (the key from the vehicle registry) or vehicle_token (a fleet-signed token), "
+            "not both: a session is opened with one credential"
+        )
+    credential = vehicle_key if vehicle_key is not None else vehicle_token
+    if credential is not None and not credential.strip():
+        raise ValueError("the vehicle credential is empty")
+    return credential
+
+
 def _session_credential(session: Session | str, admin_key: str | None) -> tuple[str, str | None]:
     """(session id, bearer): a handle uses its own token, a bare id needs the admin key."""
     if isinstance(session, Session):
@@ -183,10 +267,12 @@ def _session_credential(session: Session | str, admin_key: str | None) -> tuple[
 
 
 class Calls:
-    """Builds each API call; ``admin_key`` is the bearer of admin calls."""
+    """Builds each API call; ``admin_key`` is the bearer of admin calls, ``vehicle_credential`` (a
+    vehicle's registry key or a fleet-signed token) the bearer of session creation when given."""
 
-    def __init__(self, admin_key: str | None) -> None:
+    def __init__(self, admin_key: str | None, vehicle_credential: str | None = None) -> None:
         self.admin_key = admin_key
+        self.vehicle_credential = vehicle_credential
 
     # RSU registry
     def put_rsus(self, rsus: Iterable[RsuLike]) -> Call:
@@ -231,6 +317,37 @@ class Calls:
     def pipelines(self) -> Call:
         return Call("GET", "/v1/pipelines", credential=self.admin_key)
 
+    # vehicle registry (admin)
+    def register_vehicle(self, vehicle_id: str) -> Call:
+        problem = vehicle_id_problem(vehicle_id)
+        if problem is not None:
+            raise ValueError(problem)
+        # not idempotent: a retry after a lost reply would get 409 and lose the issued key
+        body = _json({"vehicle_id": vehicle_id})
+        return Call("POST", "/v1/vehicles", body, self.admin_key, retry=Retry.CONNECT)
+
+    def import_vehicles(self, chunk: Sequence[str]) -> Call:
+        """One chunk (checked ids, at most MAX_VEHICLES_PER_IMPORT) of an import."""
+        body = _json({"vehicles": [{"vehicle_id": vehicle_id} for vehicle_id in chunk]})
+        return Call("POST", "/v1/vehicles/bulk", body, self.admin_key, retry=Retry.CONNECT)
+
+    def list_vehicles(self, after: str | None, limit: int) -> Call:
+        return Call("GET", _query("/v1/vehicles", after=after, limit=limit), credential=self.admin_key)
+
+    def get_vehicle(self, vehicle_id: str) -> Call:
+        return Call("GET", f"/v1/vehicles/{_segment(vehicle_id)}", credential=self.admin_key)
+
+    def revoke_vehicle(self, vehicle_id: str) -> Call:
+        return Call(
+            "DELETE", f"/v1/vehicles/{_segment(vehicle_id)}", credential=self.admin_key, retry=Retry.CONNECT
+        )
+
+    def rotate_vehicle_key(self, vehicle_id: str) -> Call:
+        # not idempotent: each attempt issues a new key and voids the one before
+        return Call(
+            "POST", f"/v1/vehicles/{_segment(vehicle_id)}/key", credential=self.admin_key, retry=Retry.CONNECT
+        )
+
     # sessions
     def create_session(
         self,
@@ -253,8 +370,15 @@ class Calls:
             "options": None if options is None else dict(options),
             "initial_state": initial,
         }
-        # not idempotent: a retry after a lost reply would open a second session
-        return Call("POST", "/v1/sessions", _json(body), self.admin_key, retry=Retry.CONNECT)
+        # not idempotent: a retry after a lost reply would open a second session (superseding the first)
+        credential = self.vehicle_credential if self.vehicle_credential is not None else self.admin_key
+        return Call("POST", "/v1/sessions", _json(body), credential, retry=Retry.CONNECT)
+
+    def list_sessions(
+        self, after: str | None, limit: int, pipeline: str | None, vehicle_id: str | None
+    ) -> Call:
+        path = _query("/v1/sessions", after=after, limit=limit, pipeline=pipeline, vehicle_id=vehicle_id)
+        return Call("GET", path, credential=self.admin_key)
 
     def get_session(self, session: Session | str) -> Call:
         session_id, credential = _session_credential(session, self.admin_key)
@@ -339,3 +463,27 @@ def parse_session(response: httpx.Response) -> Session:
 
 def parse_session_info(response: httpx.Response) -> SessionInfo:
     return SessionInfo.model_validate_json(response.content)
+
+
+def parse_vehicle_key(response: httpx.Response) -> VehicleKey:
+    return VehicleKey.model_validate_json(response.content)
+
+
+def parse_vehicle_import(response: httpx.Response) -> VehicleImport:
+    return VehicleImport.model_validate_json(response.content)
+
+
+def parse_vehicle_page(response: httpx.Response) -> VehiclePage:
+    return VehiclePage.model_validate_json(response.content)
+
+
+def parse_vehicle(response: httpx.Response) -> Vehicle:
+    return Vehicle.model_validate_json(response.content)
+
+
+def parse_revocation(response: httpx.Response) -> Revocation:
+    return Revocation.model_validate_json(response.content)
+
+
+def parse_session_page(response: httpx.Response) -> SessionPage:
+    return SessionPage.model_validate_json(response.content)

@@ -57,7 +57,7 @@ class EstimationFailed(EdgeposError):
 
 
 class Unauthorized(EdgeposError):
-    """401: missing or invalid bearer credential."""
+    """401: missing or invalid bearer credential (unknown, revoked or rotated key, expired token)."""
 
 
 class Forbidden(EdgeposError):
@@ -73,7 +73,13 @@ class MethodNotAllowed(EdgeposError):
 
 
 class Conflict(EdgeposError):
-    """409: the batch's seq does not follow the session's last applied seq (or reuses it with a new body)."""
+    """409: the batch's seq does not follow the session's last applied seq (or reuses it with a new body),
+    or the vehicle is already registered."""
+
+
+class Superseded(Conflict):
+    """409 superseded: the vehicle opened a newer session, its only live one now; this session's token
+    opens nothing any more (the message names the newer session)."""
 
 
 class PayloadTooLarge(EdgeposError):
@@ -81,7 +87,8 @@ class PayloadTooLarge(EdgeposError):
 
 
 class RateLimited(EdgeposError):
-    """429: slow down; ``retry_after`` is the server's Retry-After in seconds when it sent one."""
+    """429: slow down (too many requests, failed authentications or sessions opened); ``retry_after`` is
+    the server's Retry-After in seconds when it sent one."""
 
     def __init__(
         self, code: str, message: str, *, retry_after: float | None = None, **kwargs: object
@@ -114,6 +121,7 @@ ERROR_CLASSES: Mapping[str, type[EdgeposError]] = {
     "not_found": NotFound,
     "method_not_allowed": MethodNotAllowed,
     "conflict": Conflict,
+    "superseded": Superseded,
     "payload_too_large": PayloadTooLarge,
     "too_many_sessions": TooManySessions,
     "rate_limited": RateLimited,

@@ -270,12 +270,16 @@ class BatchResult(_Response):
 
 # -- sessions --------------------------------------------------------------------------------------
 class SessionCreated(_Response):
+    """Answer to opening a session; ``superseded`` is the vehicle's previous live session, which this
+    one replaced (its token now gets 409 superseded), or None."""
+
     session_id: str
-    token: str
+    token: str = Field(repr=False)
     vehicle_id: str
     pipeline: str
     options: dict[str, Any] = Field(default_factory=dict)
     created_at: float
+    superseded: str | None = None
 
 
 class SessionInfo(_Response):
@@ -294,6 +298,75 @@ class SessionInfo(_Response):
     last_fix: Fix | None = None
     created_at: float
     updated_at: float
+
+
+class SessionSummary(_Response):
+    """One live session as ``GET /v1/sessions`` lists it (admin): counters and the latest fix's time
+    and status (``"new"`` before the first fix)."""
+
+    session_id: str
+    vehicle_id: str
+    pipeline: str
+    created_at: float
+    updated_at: float
+    last_seq: int = 0
+    batches: int = 0
+    epochs: int = 0
+    last_fix_t: float | None = None
+    status: str = "new"
+
+
+class SessionPage(_Response):
+    """A page of live sessions in session-id order; pass ``next_after`` as ``after`` for the next one
+    (None on the last page)."""
+
+    sessions: list[SessionSummary] = Field(default_factory=list)
+    next_after: str | None = None
+
+
+# -- vehicle registry ------------------------------------------------------------------------------
+VEHICLE_ID_PATTERN = r"^[A-Za-z0-9._:+@/ -]{1,128}$"
+"""What the server accepts as a vehicle id: 1-128 letters, digits, space and . _ : + @ / -."""
+
+
+class Vehicle(_Response):
+    """A registered vehicle (never its key); times are Unix seconds on the server's clock."""
+
+    vehicle_id: str
+    created_at: float
+    key_issued_at: float
+
+
+class VehicleKey(Vehicle):
+    """A vehicle with its newly issued key (starts with ``evk_``): the server shows it once and keeps
+    only a hash. Hand it to the vehicle; it opens sessions for that vehicle only."""
+
+    key: str = Field(repr=False)
+
+
+class VehicleImport(_Response):
+    """Result of importing vehicles: those registered now (each with its key) and the ids that were
+    registered before, left unchanged (their keys too)."""
+
+    registered: list[VehicleKey] = Field(default_factory=list)
+    already_registered: list[str] = Field(default_factory=list)
+
+
+class VehiclePage(_Response):
+    """A page of registered vehicles in id order; ``total`` counts all of them; pass ``next_after`` as
+    ``after`` for the next page (None on the last page)."""
+
+    vehicles: list[Vehicle] = Field(default_factory=list)
+    total: int = 0
+    next_after: str | None = None
+
+
+class Revocation(_Response):
+    """Answer to revoking a vehicle: its key opens nothing any more, and ``ended_session`` is the live
+    session that ended with it (None when it had none)."""
+
+    vehicle_id: str
+    ended_session: str | None = None
 
 
 # -- errors ----------------------------------------------------------------------------------------

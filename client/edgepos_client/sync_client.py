@@ -3,23 +3,39 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from typing import Any, Self
 
 import httpx
 
 from edgepos_client import _protocol as protocol
 from edgepos_client._protocol import Call, MeasurementLike, NavigationLike, RetryPolicy, RsuLike, Session
-from edgepos_client.models import EphemeridesSummary, Fix, InitialState, PipelineInfo, Rsu, SessionInfo
+from edgepos_client.models import (
+    EphemeridesSummary,
+    Fix,
+    InitialState,
+    PipelineInfo,
+    Revocation,
+    Rsu,
+    SessionInfo,
+    SessionPage,
+    Vehicle,
+    VehicleImport,
+    VehicleKey,
+    VehiclePage,
+)
 
 
 class EdgeposClient:
     """Blocking client of an edgepos server (API v1).
 
-    ``admin_key`` is the bearer of admin calls (RSU writes, sessions opened by id); session calls
-    use the :class:`Session` handle's own token. ``timeout`` is per attempt (s); ``retries`` bounds
-    further attempts after a connection error, a timeout or a 503, waiting ``backoff * 2**n`` s.
-    Use as a context manager, or call :meth:`close`.
+    ``admin_key`` is the bearer of admin calls (RSU writes, the vehicle registry, sessions opened by
+    id). A vehicle gives its own credential instead, ``vehicle_key`` (its key from the registry) or
+    ``vehicle_token`` (a fleet-signed token), which opens sessions for that vehicle only; without one,
+    :meth:`create_session` uses the admin key. Session calls use the :class:`Session` handle's own
+    token. ``timeout`` is per attempt (s); ``retries`` bounds further attempts after a connection
+    error, a timeout or a 503, waiting ``backoff * 2**n`` s. Use as a context manager, or call
+    :meth:`close`.
     """
 
     def __init__(
@@ -27,6 +43,8 @@ class EdgeposClient:
         base_url: str,
         admin_key: str | None = None,
         *,
+        vehicle_key: str | None = None,
+        vehicle_token: str | None = None,
         timeout: float = 10.0,
         retries: int = 3,
         backoff: float = 0.2,
@@ -34,7 +52,7 @@ class EdgeposClient:
         limits: httpx.Limits | None = None,
     ) -> None:
         self.policy = RetryPolicy(retries=retries, backoff=backoff)
-        self._calls = protocol.Calls(admin_key)
+        self._calls = protocol.Calls(admin_key, protocol.vehicle_credential(vehicle_key, vehicle_token))
         options: dict[str, Any] = {"base_url": base_url, "timeout": timeout, "transport": transport}
         if limits is not None:
             options["limits"] = limits
@@ -103,6 +121,53 @@ class EdgeposClient:
         """Every pipeline with its options (defaults, bounds) and measurement types."""
         return protocol.parse_pipelines(self._send(self._calls.pipelines()))
 
+    # vehicle registry (admin)
+    def register_vehicle(self, vehicle_id: str) -> VehicleKey:
+        """Register a vehicle and return its key, shown this once (Conflict if already registered:
+        :meth:`rotate_vehicle_key` issues a new key). Not retried once the request may have arrived."""
+        return protocol.parse_vehicle_key(self._send(self._calls.register_vehicle(vehicle_id)))
+
+    def import_vehicle_chunks(self, vehicle_ids: Iterable[str]) -> Iterator[VehicleImport]:
+        """Register many vehicles, yielding each chunk's result (with its keys) as soon as the server
+        registered it. Every id is checked and duplicates refused (ValueError) before anything is sent;
+        each chunk of at most 5,000 ids is one atomic write, so if one fails the chunks yielded before it
+        stay registered: save their keys as they come (``edgepos vehicles import`` does)."""
+        for chunk in protocol.vehicle_chunks(vehicle_ids):
+            yield protocol.parse_vehicle_import(self._send(self._calls.import_vehicles(chunk)))
+
+    def import_vehicles(self, vehicle_ids: Iterable[str]) -> VehicleImport:
+        """Register many vehicles (in chunks of 5,000): those registered now with their keys, shown this
+        once, and the ids registered before, left unchanged. See :meth:`import_vehicle_chunks` for
+        keeping the keys of the chunks sent before a failure."""
+        return protocol.merge_imports(self.import_vehicle_chunks(vehicle_ids))
+
+    def list_vehicles(self, after: str | None = None, limit: int = 100) -> VehiclePage:
+        """One page of registered vehicles in id order, after the id ``after`` (1 <= limit <= 1000)."""
+        return protocol.parse_vehicle_page(self._send(self._calls.list_vehicles(after, limit)))
+
+    def iter_vehicles(self, limit: int = 100) -> Iterator[Vehicle]:
+        """Every registered vehicle in id order, fetching pages of ``limit`` as they are needed."""
+        after: str | None = None
+        while True:
+            page = self.list_vehicles(after, limit)
+            yield from page.vehicles
+            if page.next_after is None:
+                return
+            after = page.next_after
+
+    def get_vehicle(self, vehicle_id: str) -> Vehicle:
+        """A registered vehicle (NotFound if it is not)."""
+        return protocol.parse_vehicle(self._send(self._calls.get_vehicle(vehicle_id)))
+
+    def revoke_vehicle(self, vehicle_id: str) -> Revocation:
+        """Remove a vehicle from the registry: its key opens nothing and its live session ends."""
+        return protocol.parse_revocation(self._send(self._calls.revoke_vehicle(vehicle_id)))
+
+    def rotate_vehicle_key(self, vehicle_id: str) -> VehicleKey:
+        """Issue the vehicle a new key, shown this once; the old key opens nothing from now on (its
+        live session keeps running). Not retried once the request may have arrived."""
+        return protocol.parse_vehicle_key(self._send(self._calls.rotate_vehicle_key(vehicle_id)))
+
     # sessions
     def create_session(
         self,
@@ -112,9 +177,24 @@ class EdgeposClient:
         options: Mapping[str, Any] | None = None,
         initial_state: InitialState | Mapping[str, Any] | None = None,
     ) -> Session:
-        """Open a session; the returned handle carries its id and token and tracks seq."""
+        """Open a session (with the vehicle credential if given, else the admin key); the returned
+        handle carries its id and token and tracks seq. A vehicle has one live session: this one
+        supersedes the vehicle's previous session (named by ``superseded``), whose token then gets
+        :class:`Superseded`."""
         call = self._calls.create_session(vehicle_id, pipeline, options, initial_state)
         return protocol.parse_session(self._send(call))
+
+    def list_sessions(
+        self,
+        after: str | None = None,
+        limit: int = 100,
+        *,
+        pipeline: str | None = None,
+        vehicle_id: str | None = None,
+    ) -> SessionPage:
+        """One page of live sessions in session-id order (admin), optionally of one pipeline or vehicle."""
+        call = self._calls.list_sessions(after, limit, pipeline, vehicle_id)
+        return protocol.parse_session_page(self._send(call))
 
     def get_session(self, session: Session | str) -> SessionInfo:
         return protocol.parse_session_info(self._send(self._calls.get_session(session)))

@@ -1,4 +1,4 @@
-"""The ``edgepos`` command: serve | eval | simulate | loadtest.
+"""The ``edgepos`` command: serve | eval | simulate | loadtest | vehicles.
 
 Each subcommand lives in its own module exposing ``configure(parser)`` and ``run(args) -> int``;
 this file only wires them together, importing just the module of the subcommand being run so that
@@ -18,6 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("edgepos.eval.commands", "Monte Carlo evaluations beside the papers' tables"),
     "simulate": ("edgepos.loadgen.simulate", "drive a running server with simulated vehicles"),
     "loadtest": ("edgepos.loadgen.loadtest", "load-test a running server (loopback only)"),
+    "vehicles": ("edgepos.cli_vehicles", "manage a running server's vehicle registry (admin key)"),
 }
 
 

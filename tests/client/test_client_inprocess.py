@@ -100,7 +100,10 @@ async def test_credentials_errors(tmp_path) -> None:
         with pytest.raises(Unauthorized) as caught:
             await stranger.put_rsus(scenario_rsus())
         assert caught.value.status == 401 and "bearer credential is not valid" in caught.value.message
-        session = await stranger.create_session("car-4")  # opening a session needs no credential
+        with pytest.raises(Unauthorized):
+            await stranger.create_session("car-4")  # opening a session needs a credential too
+    async with AsyncEdgeposClient("http://edgepos.test", ADMIN_KEY, transport=transport) as admin:
+        session = await admin.create_session("car-4")
     async with AsyncEdgeposClient("http://edgepos.test", session.token, transport=transport) as vehicle:
         with pytest.raises(Forbidden) as forbidden:
             await vehicle.put_rsus(scenario_rsus())
