@@ -1,6 +1,7 @@
 # One command to run the service, one to run the tests; both set up .venv themselves.
 #   make serve   install and start the service on its embedded defaults with the demo RSU map
 #   make test    install and run the whole test suite (what .ci/run runs)
+#   make test-under-load  the whole suite 10 times in a row with every CPU core busy (must pass 10 of 10)
 #   make bench   install and run the benchmark scripts
 #   make openapi regenerate openapi.json from the app
 
@@ -9,7 +10,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: serve test bench openapi clean redis-server
+.PHONY: serve test test-under-load bench openapi clean redis-server
 
 $(STAMP): pyproject.toml client/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -22,6 +23,11 @@ serve: $(STAMP)
 
 test: $(STAMP) redis-server
 	$(BIN)/python -m pytest
+
+# A test that leans on a quiet machine (fixed sleeps, wall-clock deadlines, unsynchronised threads)
+# fails here: one busy-loop process per core, the suite run 10 times with CI=true (bench/suite_under_load.py).
+test-under-load: $(STAMP) redis-server
+	$(BIN)/python bench/suite_under_load.py --runs 10
 
 # The Redis store's tests start their own redis-server on loopback; install it if the machine lacks it.
 redis-server:

@@ -45,7 +45,9 @@ def running_server(tmp_path: Path, *args: str, **env: str) -> Iterator[tuple[str
         )
     url = f"http://127.0.0.1:{port}"
     try:
-        deadline = time.monotonic() + 60.0
+        # A worker compiles the filter kernels at start-up unless numba's cache has them: over a minute
+        # on a busy 2-core machine from a fresh clone.
+        deadline = time.monotonic() + 300.0
         while True:
             assert process.poll() is None, log_path.read_text()
             with contextlib.suppress(httpx.HTTPError):

@@ -45,5 +45,7 @@ def server_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     environment = clean_environment(
         EDGEPOS_ADMIN_KEY=ADMIN_KEY, EDGEPOS_ADMIN_KEY_FILE=str(workdir / "admin.key")
     )
-    with running(serve_command(1), environment, workdir / "server.log") as url:
+    # ready_timeout_s: the server compiles the filter kernels at start-up unless numba's cache has them
+    # (over a minute on a busy machine from a fresh clone)
+    with running(serve_command(1), environment, workdir / "server.log", ready_timeout_s=300.0) as url:
         yield url

@@ -23,6 +23,10 @@ from edgepos_client import InitialState as WireInitialState
 
 ADMIN_KEY = "fault-admin-key-9c1e7a53b2d04f68"
 ADMIN = {"Authorization": f"Bearer {ADMIN_KEY}"}
+#: How long a server (or a replacement worker) may take to be ready (s). Each worker compiles the filter
+#: kernels at start-up unless numba's cache has them: over a minute on a busy 2-core machine from a
+#: fresh clone, with two workers compiling at once.
+SERVER_READY_S = 300.0
 
 
 @dataclass
@@ -102,7 +106,7 @@ def serve(tmp_path: Path, workers: int, **env: str) -> Iterator[Server]:
         )
     server = Server(f"http://127.0.0.1:{port}", process, log_path)
     try:
-        wait_ready(server, 60.0, workers)
+        wait_ready(server, SERVER_READY_S, workers)
         yield server
     finally:
         process.terminate()

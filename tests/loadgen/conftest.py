@@ -18,5 +18,7 @@ def server_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
         EDGEPOS_ADMIN_KEY_FILE=str(workdir / "admin.key"),
         EDGEPOS_LOG_LEVEL="warning",
     )
-    with running(serve_command(1), environment, workdir / "server.log") as url:
+    # ready_timeout_s: the server compiles the filter kernels at start-up unless numba's cache has them
+    # (over a minute on a busy machine from a fresh clone)
+    with running(serve_command(1), environment, workdir / "server.log", ready_timeout_s=300.0) as url:
         yield url

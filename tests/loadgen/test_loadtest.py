@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import socket
 import time
 
 import pytest
@@ -10,13 +11,31 @@ from edgepos.cli import main
 from loadgenhelp import ADMIN_KEY
 
 
+@pytest.fixture
+def connection_attempts(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """Every attempt to resolve a host name or open a connection, refused and recorded."""
+    attempts: list[str] = []
+
+    def refuse(what: str):  # type: ignore[no-untyped-def]
+        def refused(*args, **kwargs):  # type: ignore[no-untyped-def]
+            attempts.append(f"{what}{args[-1:]!r}")
+            raise ConnectionRefusedError(f"test: no {what} allowed")
+
+        return refused
+
+    for name in ("connect", "connect_ex"):
+        monkeypatch.setattr(socket.socket, name, refuse(f"socket.{name}"))
+    monkeypatch.setattr(socket, "create_connection", refuse("create_connection"))
+    monkeypatch.setattr(socket, "getaddrinfo", refuse("getaddrinfo"))
+    return attempts
+
+
 @pytest.mark.parametrize("url", ["http://192.168.1.10:8000", "http://example.com", "http://0.0.0.0:8000"])
-def test_refuses_non_loopback_urls(url: str, capsys) -> None:
+def test_refuses_non_loopback_urls(url: str, capsys, connection_attempts: list[str]) -> None:
     argv = ["loadtest", "--url", url, "--vehicles", "1", "--rate", "20", "--batch", "20", "--duration", "1"]
-    started = time.perf_counter()
     assert main(argv) == 2
     assert "not loopback" in capsys.readouterr().err
-    assert time.perf_counter() - started < 5.0  # refused before any connection attempt
+    assert connection_attempts == []  # refused before any look-up or connection attempt
 
 
 def test_refuses_unbounded_or_empty_runs(capsys) -> None:
@@ -60,12 +79,18 @@ def test_tiny_bounded_load_has_no_errors(server_url: str, tmp_path, capsys) -> N
     ]
     started = time.perf_counter()
     assert main(argv) == 0
-    assert time.perf_counter() - started < 20.0
+    # Bounded: 3 s of sending, then at most the one batch in flight per vehicle (10 s request timeout)
+    # and the sessions' set-up and clean-up; a generous margin for a busy machine on top.
+    assert time.perf_counter() - started < 60.0
     report = json.loads(out.read_text())
     assert {"epochs_per_s", "requests_per_s", "requests", "errors", "latency_ms"} <= set(report)
     assert set(report["latency_ms"]) == {"p50", "p95", "p99"}
     assert report["errors"] == 0
-    assert 8 <= report["requests"] <= 14  # 2 vehicles x one batch per 0.5 s x 3 s
+    # 2 vehicles x one batch per 0.5 s x 3 s are due; each is sent or, when a busy machine made the
+    # vehicle fall behind its schedule, counted as unsent (the schedule itself is checked exactly
+    # against a virtual clock below).
+    assert report["requests"] + report["lateness"]["unsent_batches"] == 12
+    assert report["requests"] >= 2
     assert report["epochs"] == 10 * report["requests"]
     assert 0 < report["latency_ms"]["p50"] <= report["latency_ms"]["p95"] <= report["latency_ms"]["p99"]
     assert report["epochs_per_s"] == pytest.approx(report["epochs"] / report["elapsed_s"])

@@ -14,6 +14,14 @@ from edgepos.sim.v2v import VEHICLE_IDS, make_run
 from loadgenhelp import ADMIN_KEY
 
 EPOCHS = 60
+#: How far the RMSE over HTTP may fall below / rise above the in-process one, as a fraction of it.
+#: The in-process evaluation ranges against every neighbour's estimate of step k-1; over HTTP a
+#: neighbour whose batch of step k the server happened to apply first is seen at step k, which is
+#: fresher and lowers the error. Which requests go first is up to the scheduler (a busy machine
+#: serialises them in random order): in-process replays of seed 3's two groups with ~150 such
+#: orderings (one after another in random order, or a random mix of step k and k-1 estimates) fell
+#: by up to 10.2 % and rose by at most 2.0 %; the margin below is twice that, the one above unchanged.
+BELOW, ABOVE = 0.2, 0.1
 
 
 def test_v2v_over_http_matches_in_process(server_url):
@@ -27,4 +35,5 @@ def test_v2v_over_http_matches_in_process(server_url):
         # The draws depend on the run's length: the simulator sends the first EPOCHS of the full run.
         squared, _, _ = run_method(make_run(3, group, "ring"), "augUKF")
         in_process = math.sqrt(float(squared[1:EPOCHS].sum()) / (len(VEHICLE_IDS) * (EPOCHS - 1)))
-        assert abs(over_http - in_process) < 0.1 * in_process, (over_http, in_process)
+        difference = over_http - in_process
+        assert -BELOW * in_process < difference < ABOVE * in_process, (over_http, in_process)
