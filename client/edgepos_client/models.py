@@ -237,7 +237,7 @@ class MeasurementUse(_Response):
     reason: str | None = None
 
 
-FixStatus = Literal["initialised", "tracking", "predicted", "uninitialised"]
+FixStatus = Literal["initialised", "tracking", "predicted", "uninitialised", "diverged"]
 
 
 class Fix(_Response):
@@ -245,6 +245,9 @@ class Fix(_Response):
 
     t: float
     status: FixStatus
+    divergence: str | None = None
+    """With status "diverged": which physical bound the estimate broke and what the server did (by
+    default the session was reset: keep sending measurements; do not use this fix's position)."""
     x: float | None = None
     y: float | None = None
     vx: float | None = None

@@ -15,6 +15,7 @@ def _expected_wire(fix):
     return {
         "t": fix.t,
         "status": fix.status,
+        "divergence": fix.divergence,
         "x": fix.x,
         "y": fix.y,
         "vx": fix.vx,

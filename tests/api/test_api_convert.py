@@ -16,14 +16,17 @@ from edgepos.pipelines.registry import get_pipeline
 
 
 def _fixes() -> list[Fix]:
-    """Real rsu_imu fixes (initialised, tracking) and an uninitialised one with null fields."""
+    """Real rsu_imu fixes (initialised, tracking), a diverged one and an uninitialised one with null fields."""
     pipeline = get_pipeline("rsu_imu")
     environment = StaticEnvironment({rsu.id: rsu for rsu in scenario().rsus})
     state = pipeline.create(pipeline.resolve_options(None), None)
     observations = [o for epoch in epochs()[:6] for o in epoch]
     fixes, _ = pipeline.process(state, observations, environment)
     waiting = MeasurementUse(0, "gyro", False, "waiting for an RSU measurement to initialise")
-    return [*fixes, Fix(t=1.5, status="uninitialised", measurements=[waiting])]
+    diverged = dataclasses.replace(
+        fixes[-1], t=1.4, status="diverged", divergence="speed 3.4e+04 m/s exceeds max_speed_mps 150 m/s; reset"
+    )
+    return [*fixes, diverged, Fix(t=1.5, status="uninitialised", measurements=[waiting])]
 
 
 @pytest.mark.parametrize("include_state", [False, True])

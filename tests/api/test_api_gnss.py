@@ -316,7 +316,7 @@ def test_pipelines_list_gnss_tight_with_its_options(client):
     assert gnss["measurement_types"] == ["pseudorange", "riss"]
     options = {o["name"]: o for o in gnss["options"]}
     assert options["filter"]["default"] == "upf" and set(options["filter"]["choices"]) == {"upf", "pf", "ukf"}
-    assert options["particles"]["minimum"] == 10 and options["particles"]["maximum"] == 5000
+    assert options["particles"]["minimum"] == 10 and options["particles"]["maximum"] == 700
     assert options["systems"]["type"] == "string[]" and options["systems"]["default"] == ["G", "C", "E"]
     assert all(o["description"] for o in gnss["options"])
     error = assert_error(

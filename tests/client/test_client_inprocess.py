@@ -43,7 +43,7 @@ async def test_pipelines_list_options(aclient: AsyncEdgeposClient) -> None:
     assert "filter" in {option.name for option in pipelines["rsu_imu"].options}
     assert pipelines["gnss_tight"].measurement_types == ["pseudorange", "riss"]
     particles = {option.name: option for option in pipelines["gnss_tight"].options}["particles"]
-    assert (particles.default, particles.minimum, particles.maximum) == (200, 10, 5000)
+    assert (particles.default, particles.minimum, particles.maximum) == (200, 10, 700)
 
 
 async def test_session_lifecycle_tracks_seq(aclient: AsyncEdgeposClient) -> None:
@@ -64,7 +64,9 @@ async def test_session_lifecycle_tracks_seq(aclient: AsyncEdgeposClient) -> None
     assert admin_view.session_id == session.session_id
     await aclient.delete_session(session)
     with pytest.raises(NotFound):
-        await aclient.get_session(session)
+        await aclient.get_session(session.session_id)  # the admin key learns it is gone
+    with pytest.raises(Unauthorized):
+        await aclient.get_session(session)  # its token opens nothing any more
 
 
 async def test_refused_batch_raises_with_every_problem(aclient: AsyncEdgeposClient) -> None:

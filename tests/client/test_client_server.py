@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 from clienthelp import ADMIN_KEY, INITIAL_STATE, batch, scenario_rsus
-from edgepos_client import Conflict, EdgeposClient, NotFound
+from edgepos_client import Conflict, EdgeposClient, NotFound, Unauthorized
 
 pytestmark = pytest.mark.slow
 
@@ -27,4 +27,6 @@ def test_session_driven_over_a_socket(server_url: str) -> None:
             client.send_batch(session, batch(0, 20), seq=2)
         client.delete_session(session)
         with pytest.raises(NotFound):
-            client.delete_session(session)
+            client.delete_session(session.session_id)  # with the admin key: gone
+        with pytest.raises(Unauthorized):
+            client.delete_session(session)  # with its own token: the token opens nothing any more

@@ -138,7 +138,7 @@ def test_vehicle_key_opens_its_own_vehicle_only(admin: EdgeposClient, transport:
         car.create_session(ODD)
     assert gone.value.status == 401
     with pytest.raises(NotFound):
-        admin.get_session(newer)  # the revocation ended it
+        admin.get_session(newer.session_id)  # the revocation ended it
 
 
 def test_no_vehicle_credential_means_the_admin_key(transport: Recording) -> None:

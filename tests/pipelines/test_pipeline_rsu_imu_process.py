@@ -309,9 +309,13 @@ def test_fix_covariances_are_symmetric_positive_definite(pipeline) -> None:
 
 # -- state bytes and determinism ---------------------------------------------------------------------
 def test_state_reencodes_byte_identically(pipeline) -> None:
+    from edgepos.pipelines.plausibility import unwrap, wrap
+
     _, state = run(pipeline, started(pipeline), 12, seed=20)
-    meta, arrays = state_format.unpack(state)
-    assert state_format.pack(meta, arrays) == state
+    envelope, inner = unwrap(state)  # the registry's pipelines wrap the state (plausibility checks)
+    assert wrap(envelope, inner) == state
+    meta, arrays = state_format.unpack(inner)
+    assert state_format.pack(meta, arrays) == inner
     # an empty batch changes nothing
     fixes, same = pipeline.process(state, [], ENV)
     assert fixes == [] and same == state
@@ -374,13 +378,15 @@ def test_tracking_resumes_after_a_gap_in_the_data(pipeline, gap: float) -> None:
 
 @pytest.mark.parametrize("gap", [1e3, 1e6, 1e120])
 def test_absurd_gaps_fail_only_with_estimation_errors(pipeline, gap: float) -> None:
-    """Whatever finite times a client sends, processing succeeds or raises EstimationError (422),
-    never another exception (which the service would turn into a 500)."""
+    """Whatever finite times a client sends, processing succeeds or raises EstimationError or
+    PipelineInputError (both 422; a jump beyond max_time_jump_s is refused), never another exception
+    (which the service would turn into a 500)."""
     from edgepos.core.errors import EstimationError
 
     for filter_name in ("ckf", "ekf"):
-        _, state = run(pipeline, started(pipeline, {"filter": filter_name}), 3, seed=25)
-        try:
-            pipeline.process(state, epoch(0.3 + gap, np.random.default_rng(26)), ENV)
-        except EstimationError:
-            pass
+        for which in (pipeline, pipeline.inner):  # the registry's, and the filter without the time bound
+            _, state = run(which, started(which, {"filter": filter_name}), 3, seed=25)
+            try:
+                which.process(state, epoch(0.3 + gap, np.random.default_rng(26)), ENV)
+            except (EstimationError, PipelineInputError):
+                pass

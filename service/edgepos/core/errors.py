@@ -12,4 +12,14 @@ class NumericalError(EstimationError):
 
 
 class ConfigurationError(EstimationError, ValueError):
-    """A model, filter or pipeline was configured with values outside their domain."""
+    """A model, filter or pipeline was configured with values outside their domain.
+
+    ``parameter``: the name of the offending parameter when one is to blame (None otherwise)."""
+
+    def __init__(self, message: str, parameter: str | None = None) -> None:
+        super().__init__(message)
+        self.parameter = parameter
+
+    def __reduce__(self) -> tuple[type[ConfigurationError], tuple[str, str | None]]:
+        # Pickled whole (heavy batches run in worker processes): the default keeps only the message.
+        return (type(self), (str(self), self.parameter))

@@ -268,5 +268,13 @@ class InteractingMultipleModel:
 
 
 def _softmax(log_weights: np.ndarray) -> np.ndarray:
-    shifted = np.exp(log_weights - log_weights.max())
-    return shifted / shifted.sum()
+    """Probabilities proportional to exp(log_weights); NumericalError when they cannot be normalised
+    (a NaN or infinite log weight: the largest shifted weight is then not exactly 1)."""
+    top = log_weights.max()
+    if not np.isfinite(top):
+        raise NumericalError("model log-probabilities are not finite")
+    shifted = np.exp(log_weights - top)
+    total = shifted.sum()
+    if not (np.isfinite(total) and total >= 1.0):
+        raise NumericalError("model probabilities cannot be normalised")
+    return shifted / total

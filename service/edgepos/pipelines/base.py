@@ -131,6 +131,10 @@ class PipelineInputError(ValueError):
         self.problems = list(problems)
         super().__init__("; ".join(f"[{p.index}] {p.field}: {p.reason}" for p in self.problems))
 
+    def __reduce__(self) -> tuple[type[PipelineInputError], tuple[list[Problem]]]:
+        # Pickled with its problems (heavy batches run in worker processes), not as a bare message.
+        return (type(self), (self.problems,))
+
 
 @dataclass(frozen=True)
 class MeasurementUse:
@@ -148,7 +152,8 @@ class Fix:
 
     ``status``: "initialised" (first fix, from this epoch's measurements or the given initial state),
     "tracking" (measurements were used), "predicted" (no measurement passed: motion model only),
-    "uninitialised" (nothing to start from yet; kinematic fields are None).
+    "uninitialised" (nothing to start from yet; kinematic fields are None), "diverged" (physically
+    implausible: see ``divergence``; set by ``pipelines.plausibility``, never published as a track).
     ``latitude``/``longitude`` (rad) and ``height`` (m, ellipsoidal) are WGS-84, set by pipelines that
     estimate a global position (gnss_tight); others leave them None.
     ``kinematic_cov`` is the 4x4 covariance of [x, y, vx, vy]: with the position and velocity it is
@@ -180,6 +185,9 @@ class Fix:
     """What to publish for neighbours when it differs from the fix itself: a cooperative pipeline
     shares an estimate its neighbours' ranges did not shape, so that two vehicles do not count each
     other's information twice (None: publish the fix)."""
+    divergence: str | None = None
+    """Set with status "diverged" (``pipelines.plausibility``): which physical bound the estimate broke
+    and what was done (the session reset, or only reported); None otherwise."""
 
 
 @dataclass(frozen=True)
@@ -247,3 +255,48 @@ class Pipeline(ABC):
 
 def is_finite_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+_FIX_NUMBERS = (
+    "x", "y", "vx", "vy", "speed", "heading", "yaw_rate", "nis", "latitude", "longitude", "height",
+)
+_FIX_ARRAYS = ("position_cov", "kinematic_cov", "state", "state_cov")
+
+
+def ensure_finite_fixes(fixes: Sequence[Fix]) -> list[Fix]:
+    """``fixes`` as a list, after checking that no number in them is NaN or infinite; otherwise raises
+    ``core.errors.NumericalError`` naming the epoch and the field, so that the batch is refused (422
+    estimation_failed, the session unchanged) instead of answering a non-finite number."""
+    from edgepos.core.errors import NumericalError
+
+    for fix in fixes:
+        bad = _non_finite_field(fix)
+        if bad is not None:
+            raise NumericalError(f"the estimate at t={fix.t!r} has a non-finite {bad}")
+    return list(fixes)
+
+
+def _non_finite_field(fix: Fix) -> str | None:
+    """The first field of ``fix`` holding NaN or infinity, or None. Sums first (one float addition per
+    number); only a sum that is not finite is looked at element by element (it may just overflow)."""
+    if not math.isfinite(fix.t):
+        return "t"
+    for name in _FIX_NUMBERS:
+        value = getattr(fix, name)
+        if value is not None and not math.isfinite(value):
+            return name
+    for name in _FIX_ARRAYS:
+        value = getattr(fix, name)
+        if value is None:
+            continue
+        rows = value if value and isinstance(value[0], list) else [value]
+        if not math.isfinite(sum(map(sum, rows))) and not all(math.isfinite(v) for row in rows for v in row):
+            return name
+    if any(not math.isfinite(p) for p in fix.model_probabilities.values()):
+        return "model_probabilities"
+    if fix.shared is not None:
+        point = fix.shared
+        values = [point.t, point.x, point.y, point.vx, point.vy, *(v for row in point.cov for v in row)]
+        if not all(math.isfinite(v) for v in values):
+            return "shared track point"
+    return None

@@ -63,6 +63,7 @@ from edgepos.pipelines.base import (
     PipelineInputError,
     Problem,
     StateSummary,
+    ensure_finite_fixes,
     is_finite_number,
 )
 from edgepos.pipelines.epochs import group_by_time
@@ -81,7 +82,15 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "filter (prior as proposal); ukf: a single unscented Kalman filter (cheap baseline).",
         choices=tuple(PARTICLE_FILTERS),
     ),
-    OptionSpec("particles", "integer", 200, "Particles of the pf and upf filters (ignored by ukf).", 10, 5000),
+    OptionSpec(
+        "particles", "integer", 200,
+        "Particles of the pf and upf filters (ignored by ukf). The maximum keeps one epoch of the most "
+        "pseudoranges accepted (40) within the default CPU budget per batch (EDGEPOS_BATCH_CPU_BUDGET_MS, "
+        "50 ms) for the pf; the upf costs about twice as much per particle, and a session whose options "
+        "would not fit one such epoch in the server's budget (about 350 upf particles at 50 ms) is refused "
+        "with 422 saying how many fit.",
+        10, 700,
+    ),
     OptionSpec(
         "resample_threshold", "number", 0.5,
         "Resample when the effective sample size falls below this fraction of the particles.", 0.0, 1.0,
@@ -291,7 +300,7 @@ class GnssTightPipeline(Pipeline):
             _step(session, epoch, observations, ephemerides, origin)
             for epoch in group_by_time(observations)
         ]
-        return fixes, session.to_bytes()
+        return ensure_finite_fixes(fixes), session.to_bytes()
 
 
 # -- validation -----------------------------------------------------------------------------------

@@ -1,7 +1,8 @@
 """Validation of pipeline options against their specs: types, bounds, choices, unknown names.
 
 Types: "number", "integer", "boolean", "string", "string[]", "number[]", "matrix" (list of lists of
-numbers) and "object" (a JSON object). A spec whose default is None accepts null.
+numbers) and "object" (a JSON object). A spec whose default is None accepts null. A spec's minimum and
+maximum bound a number, or each element of a number[] or matrix.
 """
 
 from __future__ import annotations
@@ -65,14 +66,24 @@ def _check(spec: OptionSpec, value: Any) -> str | None:
     elif kind == "number[]":
         if not isinstance(value, list) or not all(is_finite_number(v) for v in value):
             return "must be a list of finite numbers"
+        return _element_bounds(spec, value)
     elif kind == "matrix":
         if not isinstance(value, list) or not all(
             isinstance(row, list) and all(is_finite_number(v) for v in row) for row in value
         ):
             return "must be a list of rows of finite numbers"
+        return _element_bounds(spec, [v for row in value for v in row])
     elif kind == "object":
         if not isinstance(value, dict):
             return "must be a JSON object"
     if spec.choices is not None and value not in spec.choices:
         return f"must be one of {list(spec.choices)}"
+    return None
+
+
+def _element_bounds(spec: OptionSpec, values: list[Any]) -> str | None:
+    if spec.minimum is not None and any(v < spec.minimum for v in values):
+        return f"every element must be >= {spec.minimum}"
+    if spec.maximum is not None and any(v > spec.maximum for v in values):
+        return f"every element must be <= {spec.maximum}"
     return None

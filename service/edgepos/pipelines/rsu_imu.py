@@ -28,7 +28,7 @@ from scipy.stats import chi2
 from edgepos.core import layout
 from edgepos.core import state as state_format
 from edgepos.core.compiled import BankStepper, stepper_for
-from edgepos.core.errors import ConfigurationError
+from edgepos.core.errors import ConfigurationError, NumericalError
 from edgepos.core.filters import FILTERS, GaussianFilter, make_filter
 from edgepos.core.filters.sigma_points import SigmaPointFilter
 from edgepos.core.imm import Gaussian, InteractingMultipleModel, StepResult
@@ -46,6 +46,7 @@ from edgepos.pipelines.base import (
     Problem,
     Rsu,
     StateSummary,
+    ensure_finite_fixes,
 )
 from edgepos.pipelines.epochs import group_by_time
 from edgepos.pipelines.options import resolve_options
@@ -56,10 +57,23 @@ _INITIAL_ACCEL_STD = 3.0
 _INITIAL_HEADING_STD = math.pi
 _INITIAL_TURN_STD = 0.5
 
+
+def _parameters_text(owners: Mapping[str, Any]) -> str:
+    """The settable parameters of each model or filter with their bounds, for the option descriptions."""
+    return "; ".join(
+        f"{name}: " + (", ".join(spec.describe() for spec in cls.parameters) or "none")
+        for name, cls in owners.items()
+    )
+
+
 OPTION_SPECS: tuple[OptionSpec, ...] = (
-    OptionSpec("filter", "string", "ckf", "Filter inside every model: ekf, ukf or ckf.", choices=tuple(FILTERS)),
     OptionSpec(
-        "filter_params", "object", {}, "Filter tuning, e.g. {\"alpha\": 1, \"beta\": 2, \"kappa\": null} for the UKF."
+        "filter", "string", "ckf", "Filter inside every model: ekf, ukf, ckf or srukf.", choices=tuple(FILTERS)
+    ),
+    OptionSpec(
+        "filter_params", "object", {},
+        "Filter tuning, e.g. {\"alpha\": 1, \"beta\": 2, \"kappa\": null} for the UKF. Parameters by filter, "
+        f"with their bounds: {_parameters_text(FILTERS)}.",
     ),
     OptionSpec(
         "models", "string[]", ["ca", "at", "singer"],
@@ -67,7 +81,8 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
     ),
     OptionSpec(
         "model_params", "object", {},
-        "Per-model parameters by model name, e.g. {\"ct\": {\"omega\": 0.35}}; unset ones take the paper's values.",
+        "Per-model parameters by model name, e.g. {\"ct\": {\"omega\": 0.35}}; unset ones take the paper's values. "
+        f"Parameters by model, with their bounds: {_parameters_text(MOTION_MODELS)}.",
     ),
     OptionSpec(
         "priority", "string[]", ["ca", "at"],
@@ -82,8 +97,12 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
     OptionSpec(
         "transition", "matrix", None,
         "Full model transition matrix, row i = from model i (rows sum to 1); overrides transition_diagonal.",
+        minimum=0.0, maximum=1.0,
     ),
-    OptionSpec("initial_probabilities", "number[]", None, "Initial model probabilities; default uniform."),
+    OptionSpec(
+        "initial_probabilities", "number[]", None, "Initial model probabilities, one per model (sum 1); default uniform.",
+        minimum=0.0, maximum=1.0,
+    ),
     OptionSpec(
         "rsu_handling", "string", "joint",
         "joint: one update with every RSU stacked; average: one update per RSU, estimates averaged (the paper).",
@@ -158,14 +177,9 @@ class RsuImuPipeline(Pipeline):
         problems = _cross_check(resolved)
         if problems:
             raise PipelineInputError(problems)
-        try:  # build models and filter now, so that bad parameters surface here
-            models = _models(resolved)
-        except (ConfigurationError, ValueError, TypeError) as error:
-            raise PipelineInputError([Problem(None, "options.model_params", str(error))]) from None
-        try:
-            _filter(resolved, models)
-        except (ConfigurationError, ValueError, TypeError) as error:
-            raise PipelineInputError([Problem(None, "options.filter_params", str(error))]) from None
+        problems = _parameter_problems(resolved)  # build models and filter now, so bad parameters surface here
+        if problems:
+            raise PipelineInputError(problems)
         return resolved
 
     def create(self, options: Mapping[str, Any], initial: InitialState | None) -> bytes:
@@ -205,7 +219,7 @@ class RsuImuPipeline(Pipeline):
         fixes = []
         for epoch in group_by_time(observations):
             fixes.append(_step(session, bank, epoch, observations, rsus))
-        return fixes, session.to_bytes()
+        return ensure_finite_fixes(fixes), session.to_bytes()
 
 
 # -- validation and grouping ---------------------------------------------------------------------
@@ -230,7 +244,7 @@ def _cross_check(options: dict[str, Any]) -> list[Problem]:
         ):
             problems.append(Problem(None, "options.transition", "rows must be non-negative and sum to 1"))
     initial = options["initial_probabilities"]
-    if initial is not None:
+    if initial is not None and count:  # without models, options.models is the problem
         if len(initial) != count:
             problems.append(Problem(None, "options.initial_probabilities", f"must have {count} entries"))
         elif min(initial) < 0 or not math.isclose(sum(initial), 1.0, abs_tol=1e-9):
@@ -239,6 +253,31 @@ def _cross_check(options: dict[str, Any]) -> list[Problem]:
         if not isinstance(params, dict):
             problems.append(Problem(None, f"options.model_params.{name}", "must be a JSON object"))
     return problems
+
+
+def _parameter_problems(options: dict[str, Any]) -> list[Problem]:
+    """Every model and filter parameter the core refuses (unknown, wrong type, out of its bounds), named
+    by its field: ``options.model_params.singer.sigma``, ``options.filter_params.alpha``."""
+    problems = []
+    models = []
+    for name in options["models"]:
+        try:
+            models.append(make_motion_model(name, **options["model_params"].get(name, {})))
+        except (ConfigurationError, ValueError, TypeError) as error:
+            problems.append(Problem(None, _parameter_field(f"options.model_params.{name}", error), str(error)))
+    try:
+        filt = make_filter(options["filter"], **options["filter_params"])
+        if isinstance(filt, SigmaPointFilter):
+            for model in models:
+                filt.point_weights(model.dim)  # a UKF spread can be invalid for a model's dimension
+    except (ConfigurationError, ValueError, TypeError) as error:
+        problems.append(Problem(None, _parameter_field("options.filter_params", error), str(error)))
+    return problems
+
+
+def _parameter_field(prefix: str, error: Exception) -> str:
+    parameter = getattr(error, "parameter", None)
+    return prefix if parameter is None else f"{prefix}.{parameter}"
 
 
 def _validate(session: _SessionState, observations: Sequence[Observation], environment: Environment) -> list[Rsu | None]:
@@ -516,7 +555,11 @@ def _fix(t, status, output: Gaussian, session, bank, uses, nis, dof) -> Fix:
 
 
 def _yaw_rate(value: dict[int, float], session: _SessionState, bank: InteractingMultipleModel) -> float | None:
-    """Turn rate of the velocity vector from the fused kinematics, else from models that carry omega."""
+    """Turn rate of the velocity vector from the fused kinematics, else from models that carry omega.
+
+    None when no model carries omega, or when those that do have no probability left: their
+    probabilities can underflow to exactly 0 when the others explain the measurements far better
+    (measured: all six models and a 1e4 m initial position std), and 0/0 is no turn rate."""
     if layout.XA in value and layout.YA in value:
         vx, vy, ax, ay = value[layout.XV], value[layout.YV], value[layout.XA], value[layout.YA]
         return float((vx * ay - ax * vy) / max(vx * vx + vy * vy, 0.01))
@@ -524,5 +567,10 @@ def _yaw_rate(value: dict[int, float], session: _SessionState, bank: Interacting
     if not carriers:
         return None
     weights = session.probabilities[carriers]
-    return float(np.dot(weights, session.means[carriers, layout.OMEGA]) / weights.sum())
+    total = float(weights.sum())
+    if not math.isfinite(total):
+        raise NumericalError("model probabilities are not finite")
+    if total <= 0.0:
+        return None
+    return float(np.dot(weights, session.means[carriers, layout.OMEGA]) / total)
 

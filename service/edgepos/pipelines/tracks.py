@@ -24,9 +24,12 @@ TRACK_HISTORY_POINTS = 20
 
 def track_points(fixes: Sequence[Fix]) -> list[TrackPoint]:
     """The fixes that carry a position, velocity and 4x4 [x, y, vx, vy] covariance, as track points
-    (a fix's ``shared`` estimate in its place when it has one)."""
+    (a fix's ``shared`` estimate in its place when it has one). A "diverged" fix is never shared: its
+    estimate is physically implausible (``pipelines.plausibility``)."""
     points = []
     for fix in fixes:
+        if fix.status == "diverged":
+            continue
         if fix.shared is not None:
             points.append(fix.shared)
             continue

@@ -48,6 +48,7 @@ from edgepos.pipelines.base import (
     OptionSpec,
     Pipeline,
     StateSummary,
+    ensure_finite_fixes,
 )
 from edgepos.pipelines.kinematic import KINEMATIC, check_batch, dead_reckoning_update, kinematic_fix, shared_point
 from edgepos.pipelines.epochs import group_by_time
@@ -65,13 +66,30 @@ OPTION_SPECS = (
         "neighbours' estimates taken as exact) or aug_ukf (neighbours' positions augmented into the state).",
         choices=METHODS,
     ),
-    OptionSpec("gps_std", "number", 5.0 / math.sqrt(2.0), "GNSS fix 1-sigma per axis (m) when a fix carries none.", minimum=1e-3),
-    OptionSpec("accel_std", "number", 0.3, "Acceleration change 1-sigma per step (m/s^2), the DR model's noise.", minimum=1e-4),
-    OptionSpec("gyro_std", "number", 0.005, "Gyro yaw-rate 1-sigma (rad/s).", minimum=1e-6),
-    OptionSpec("odometer_std", "number", 0.1, "Odometer distance 1-sigma per reading (m); for speed readings (m/s).", minimum=1e-6),
-    OptionSpec("range_std", "number", 2.0, "V2V range 1-sigma (m); a TOA's 1-sigma times c.", minimum=1e-3),
-    OptionSpec("max_neighbour_age", "number", 1.0, "Oldest usable neighbour estimate (s) past its last point.", minimum=0.0),
-    OptionSpec("neighbour_accel_std", "number", 1.0, "White acceleration (m/s^2) for predicting a neighbour forward.", minimum=0.0),
+    OptionSpec(
+        "gps_std", "number", 5.0 / math.sqrt(2.0), "GNSS fix 1-sigma per axis (m) when a fix carries none.",
+        minimum=1e-3, maximum=1e4,
+    ),
+    OptionSpec(
+        "accel_std", "number", 0.3, "Acceleration change 1-sigma per step (m/s^2), the DR model's noise.",
+        minimum=1e-4, maximum=100.0,
+    ),
+    OptionSpec("gyro_std", "number", 0.005, "Gyro yaw-rate 1-sigma (rad/s).", minimum=1e-6, maximum=10.0),
+    OptionSpec(
+        "odometer_std", "number", 0.1, "Odometer distance 1-sigma per reading (m); for speed readings (m/s).",
+        minimum=1e-6, maximum=1e3,
+    ),
+    OptionSpec(
+        "range_std", "number", 2.0, "V2V range 1-sigma (m); a TOA's 1-sigma times c.", minimum=1e-3, maximum=1e4
+    ),
+    OptionSpec(
+        "max_neighbour_age", "number", 1.0, "Oldest usable neighbour estimate (s) past its last point.",
+        minimum=0.0, maximum=60.0,
+    ),
+    OptionSpec(
+        "neighbour_accel_std", "number", 1.0, "White acceleration (m/s^2) for predicting a neighbour forward.",
+        minimum=0.0, maximum=100.0,
+    ),
 )
 
 _KF = ExtendedKalmanFilter()  # exact for the linear motion and fixes; linearises the DR measurements
@@ -150,7 +168,7 @@ class V2vCoopPipeline(Pipeline):
         session = _decode(state)
         _validate(session, observations)
         fixes = [_step(session, epoch, observations, environment) for epoch in group_by_time(observations)]
-        return fixes, session.to_bytes()
+        return ensure_finite_fixes(fixes), session.to_bytes()
 
 
 def _validate(session: _SessionState, observations: Sequence[Observation]) -> None:

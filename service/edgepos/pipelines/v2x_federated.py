@@ -47,6 +47,7 @@ from edgepos.pipelines.base import (
     OptionSpec,
     Pipeline,
     StateSummary,
+    ensure_finite_fixes,
 )
 from edgepos.pipelines.kinematic import check_batch, dead_reckoning_update, kinematic_fix
 from edgepos.pipelines.epochs import group_by_time
@@ -65,14 +66,33 @@ OPTION_SPECS = (
         "Information-sharing factor beta_D of the DR sub-filter; beta_G/V = 1 - beta_D (eq. 16).",
         minimum=0.05, maximum=0.95,
     ),
-    OptionSpec("gps_std", "number", math.sqrt(15.0), "GNSS fix 1-sigma per axis (m) when a fix carries none.", minimum=1e-3),
-    OptionSpec("gyro_std", "number", 0.005, "Gyro yaw-rate 1-sigma (rad/s).", minimum=1e-6),
-    OptionSpec("odometer_std", "number", 0.1, "Odometer distance 1-sigma per reading (m); for speed readings (m/s).", minimum=1e-6),
-    OptionSpec("range_std", "number", 3.0, "Range 1-sigma (m) to RSUs and neighbour vehicles.", minimum=1e-3),
-    OptionSpec("cs_alpha", "number", 0.1, "Current-statistical manoeuvre frequency 1/tau (1/s).", minimum=1e-4),
-    OptionSpec("cs_a_max", "number", 10.0, "Current-statistical maximum manoeuvre acceleration (m/s^2).", minimum=0.1),
-    OptionSpec("max_neighbour_age", "number", 1.0, "Oldest usable neighbour estimate (s) past its last point.", minimum=0.0),
-    OptionSpec("neighbour_accel_std", "number", 1.0, "White acceleration (m/s^2) for predicting a neighbour forward.", minimum=0.0),
+    OptionSpec(
+        "gps_std", "number", math.sqrt(15.0), "GNSS fix 1-sigma per axis (m) when a fix carries none.",
+        minimum=1e-3, maximum=1e4,
+    ),
+    OptionSpec("gyro_std", "number", 0.005, "Gyro yaw-rate 1-sigma (rad/s).", minimum=1e-6, maximum=10.0),
+    OptionSpec(
+        "odometer_std", "number", 0.1, "Odometer distance 1-sigma per reading (m); for speed readings (m/s).",
+        minimum=1e-6, maximum=1e3,
+    ),
+    OptionSpec(
+        "range_std", "number", 3.0, "Range 1-sigma (m) to RSUs and neighbour vehicles.", minimum=1e-3, maximum=1e4
+    ),
+    OptionSpec(
+        "cs_alpha", "number", 0.1, "Current-statistical manoeuvre frequency 1/tau (1/s).", minimum=1e-4, maximum=100.0
+    ),
+    OptionSpec(
+        "cs_a_max", "number", 10.0, "Current-statistical maximum manoeuvre acceleration (m/s^2).",
+        minimum=0.1, maximum=100.0,
+    ),
+    OptionSpec(
+        "max_neighbour_age", "number", 1.0, "Oldest usable neighbour estimate (s) past its last point.",
+        minimum=0.0, maximum=60.0,
+    ),
+    OptionSpec(
+        "neighbour_accel_std", "number", 1.0, "White acceleration (m/s^2) for predicting a neighbour forward.",
+        minimum=0.0, maximum=100.0,
+    ),
 )
 
 
@@ -197,7 +217,7 @@ class V2xFederatedPipeline(Pipeline):
         session = _decode(state)
         _validate(session, observations)
         fixes = [_step(session, epoch, observations, environment) for epoch in group_by_time(observations)]
-        return fixes, session.to_bytes()
+        return ensure_finite_fixes(fixes), session.to_bytes()
 
 
 # -- validation ----------------------------------------------------------------------------------

@@ -10,6 +10,7 @@ from edgepos.core.filters.ckf import CubatureKalmanFilter
 from edgepos.core.filters.ekf import ExtendedKalmanFilter
 from edgepos.core.filters.srukf import SquareRootUnscentedKalmanFilter
 from edgepos.core.filters.ukf import UnscentedKalmanFilter
+from edgepos.core.parameters import check_parameters
 
 FILTERS: dict[str, type[GaussianFilter]] = {
     cls.name: cls
@@ -18,11 +19,13 @@ FILTERS: dict[str, type[GaussianFilter]] = {
 
 
 def make_filter(name: str, **params: Any) -> GaussianFilter:
-    """Build a registered filter by name."""
+    """Build a registered filter by name, its parameters checked against the filter's ``parameters``
+    (``core.parameters``): a bad one is a ConfigurationError whose ``parameter`` names it."""
     try:
         cls = FILTERS[name]
     except KeyError:
         raise ConfigurationError(f"unknown filter {name!r}; known: {sorted(FILTERS)}") from None
+    params = check_parameters(f"filter {name!r}", cls.parameters, params)
     try:
         return cls(**params)
     except TypeError as error:

@@ -26,6 +26,7 @@ from edgepos.core.errors import NumericalError
 from edgepos.core.measurements.base import MeasurementModel
 from edgepos.core.motion.base import MotionModel, padded_linear_step
 from edgepos.core.numerics import require_finite, wrap_angle
+from edgepos.core.parameters import ParameterSpec
 
 _LOG_TWO_PI = math.log(2.0 * math.pi)
 
@@ -44,6 +45,8 @@ class GaussianFilter(ABC):
     """Predict a Gaussian with a motion model; update a bank of Gaussians with a measurement."""
 
     name: ClassVar[str]
+    #: The constructor's parameters a client may set by name, with the bounds the service accepts.
+    parameters: ClassVar[tuple[ParameterSpec, ...]] = ()
 
     @abstractmethod
     def predict(

@@ -15,6 +15,7 @@ import numpy as np
 
 from edgepos.core.errors import ConfigurationError
 from edgepos.core.filters.sigma_points import SigmaPointFilter
+from edgepos.core.parameters import ParameterSpec
 
 
 class UnscentedKalmanFilter(SigmaPointFilter):
@@ -22,6 +23,11 @@ class UnscentedKalmanFilter(SigmaPointFilter):
 
     name = "ukf"
     has_centre_point = True
+    parameters = (
+        ParameterSpec("alpha", "sigma-point spread", 1e-3, 1.0),
+        ParameterSpec("beta", "prior-distribution weight of the centre point (2: Gaussian)", 0.0, 10.0),
+        ParameterSpec("kappa", "secondary spread; null: 3 - state dimension", -10.0, 100.0, nullable=True),
+    )
 
     def __init__(self, alpha: float = 1.0, beta: float = 2.0, kappa: float | None = None) -> None:
         if not (np.isfinite(alpha) and alpha > 0.0) or not np.isfinite(beta):

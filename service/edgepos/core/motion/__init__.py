@@ -12,6 +12,7 @@ from edgepos.core.motion.ct import CoordinatedTurn
 from edgepos.core.motion.current_statistical import CurrentStatistical
 from edgepos.core.motion.cv import ConstantVelocity
 from edgepos.core.motion.singer import Singer
+from edgepos.core.parameters import check_parameters
 
 MOTION_MODELS: dict[str, type[MotionModel]] = {
     model.name: model
@@ -27,11 +28,15 @@ MOTION_MODELS: dict[str, type[MotionModel]] = {
 
 
 def make_motion_model(name: str, **params: Any) -> MotionModel:
-    """Build a registered motion model by name with keyword parameters (defaults for the rest)."""
+    """Build a registered motion model by name with keyword parameters (defaults for the rest).
+
+    The parameters are checked against the model's ``parameters`` (names, types and the service's
+    bounds, ``core.parameters``): a bad one is a ConfigurationError whose ``parameter`` names it."""
     try:
         cls = MOTION_MODELS[name]
     except KeyError:
         raise ConfigurationError(f"unknown motion model {name!r}; known: {sorted(MOTION_MODELS)}") from None
+    params = check_parameters(f"motion model {name!r}", cls.parameters, params)
     try:
         return cls(**params)
     except TypeError as error:

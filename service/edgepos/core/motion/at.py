@@ -15,7 +15,16 @@ from typing import Any
 import numpy as np
 
 from edgepos.core import layout
-from edgepos.core.motion.base import MotionModel, check_noise_form, check_positive, dt_key, markov_chain
+from edgepos.core.motion.base import (
+    NOISE_PARAMETER,
+    Q_PARAMETER,
+    MotionModel,
+    check_noise_form,
+    check_positive,
+    dt_key,
+    markov_chain,
+)
+from edgepos.core.parameters import ParameterSpec
 from edgepos.core.motion.turn import turn_matrix, turn_matrix_omega_derivative, turn_noise, turn_propagate
 from edgepos.core.numerics import wrap_angle
 
@@ -26,6 +35,12 @@ class AdaptiveTurn(MotionModel):
     name = "at"
     components = layout.ALL
     linear = False
+    parameters = (
+        Q_PARAMETER,
+        ParameterSpec("beta", "turn-rate manoeuvre frequency, 1/s", 1e-4, 100.0),
+        ParameterSpec("eta", "turn-rate std, rad/s", 1e-6, 10.0),
+        NOISE_PARAMETER,
+    )
 
     def __init__(self, q: float = 3.5, beta: float = 0.02, eta: float = 0.17, noise: str = "discrete") -> None:
         self.q = check_positive("q", q)

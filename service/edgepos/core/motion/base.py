@@ -15,6 +15,7 @@ import numpy as np
 from scipy.linalg import expm
 
 from edgepos.core.errors import ConfigurationError
+from edgepos.core.parameters import ParameterSpec
 
 #: Timestamps are resolved to this step (1 ns) when a discretisation is cached per interval.
 DT_RESOLUTION_DECIMALS = 9
@@ -31,6 +32,8 @@ class MotionModel(ABC):
     linear: ClassVar[bool]
     #: True when Q depends on the state (adaptive models); otherwise Q depends on dt only.
     state_dependent_noise: ClassVar[bool] = False
+    #: The constructor's parameters a client may set by name, with the bounds the service accepts.
+    parameters: ClassVar[tuple[ParameterSpec, ...]] = ()
 
     @property
     def dim(self) -> int:
@@ -72,6 +75,13 @@ def check_nonnegative(name: str, value: float) -> float:
 
 #: How a model's process noise enters between two epochs (see :func:`discrete_noise`).
 NOISE_FORMS = ("discrete", "continuous")
+
+
+#: The parameters several models share (see ``core.parameters``).
+Q_PARAMETER = ParameterSpec(
+    "q", "process-noise gain, m/s^2 per axis; with noise continuous the spectral density", 1e-6, 100.0
+)
+NOISE_PARAMETER = ParameterSpec("noise", "how the process noise enters between epochs", choices=NOISE_FORMS)
 
 
 def check_noise_form(value: str) -> str:

@@ -10,7 +10,15 @@ import numpy as np
 
 from edgepos.core import layout
 from edgepos.core.errors import ConfigurationError
-from edgepos.core.motion.base import MotionModel, check_noise_form, check_positive, dt_key
+from edgepos.core.motion.base import (
+    NOISE_PARAMETER,
+    Q_PARAMETER,
+    MotionModel,
+    check_noise_form,
+    check_positive,
+    dt_key,
+)
+from edgepos.core.parameters import ParameterSpec
 from edgepos.core.motion.turn import turn_matrix, turn_noise
 
 
@@ -20,6 +28,11 @@ class CoordinatedTurn(MotionModel):
     name = "ct"
     components = layout.KINEMATIC
     linear = True
+    parameters = (
+        Q_PARAMETER,
+        ParameterSpec("omega", "turn rate, rad/s, counter-clockwise positive", -2.0 * math.pi, 2.0 * math.pi),
+        NOISE_PARAMETER,
+    )
 
     def __init__(self, q: float = 3.5, omega: float = math.radians(20.0), noise: str = "discrete") -> None:
         self.q = check_positive("q", q)

@@ -19,6 +19,7 @@ import numpy as np
 
 from edgepos.core import layout
 from edgepos.core.motion.base import MotionModel, check_positive, dt_key, van_loan
+from edgepos.core.parameters import ParameterSpec
 from edgepos.core.motion.singer import singer_drift
 
 _CA_DRIFT = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0]])
@@ -32,6 +33,11 @@ class CurrentStatistical(MotionModel):
     components = layout.KINEMATIC
     linear: ClassVar[bool] = True
     state_dependent_noise: ClassVar[bool] = True
+    parameters = (
+        ParameterSpec("alpha", "manoeuvre frequency 1/tau, 1/s", 1e-4, 100.0),
+        ParameterSpec("a_max", "largest manoeuvre acceleration, m/s^2", 0.1, 100.0),
+        ParameterSpec("sigma_min", "smallest acceleration std, m/s^2", 1e-4, 100.0),
+    )
 
     def __init__(self, alpha: float = 0.8, a_max: float = 5.0, sigma_min: float = 0.1) -> None:
         self.alpha = check_positive("alpha", alpha)

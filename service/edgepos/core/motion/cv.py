@@ -7,7 +7,15 @@ from typing import Any
 import numpy as np
 
 from edgepos.core import layout
-from edgepos.core.motion.base import LinearAxisModel, check_noise_form, check_positive, discrete_noise, integrator_chain
+from edgepos.core.motion.base import (
+    NOISE_PARAMETER,
+    Q_PARAMETER,
+    LinearAxisModel,
+    check_noise_form,
+    check_positive,
+    discrete_noise,
+    integrator_chain,
+)
 
 
 class ConstantVelocity(LinearAxisModel):
@@ -20,6 +28,7 @@ class ConstantVelocity(LinearAxisModel):
 
     name = "cv"
     components = layout.POSITION_VELOCITY
+    parameters = (Q_PARAMETER, NOISE_PARAMETER)
 
     def __init__(self, q: float = 3.5, noise: str = "discrete") -> None:
         self.q = check_positive("q", q)

@@ -93,8 +93,15 @@ def _clocks(states: np.ndarray, out: np.ndarray, dt: float) -> None:
 
 
 def _clock_noise(q: np.ndarray, dt: float, bias_psd: float, drift_psd: float) -> None:
-    """Integrated random walk of bias and drift: the usual two-state clock model."""
-    for index in CLOCK.values():
+    """Integrated random walk of bias and drift: the usual two-state clock model, per constellation.
+
+    Every constellation's bias integrates the one drift state, so the drift's share of their noise
+    (drift_psd dt^3 / 3) is common to all of them; only the bias random walk is their own. Without
+    those cross terms the noise is indefinite as soon as bias_psd < 5/12 drift_psd dt^2 (three
+    biases tied to one drift), and the particle filters could not draw from it."""
+    clocks = list(CLOCK.values())
+    q[np.ix_(clocks, clocks)] = drift_psd * dt**3 / 3.0
+    for index in clocks:
         q[index, index] = bias_psd * dt + drift_psd * dt**3 / 3.0
         q[index, DRIFT] = q[DRIFT, index] = drift_psd * dt**2 / 2.0
     q[DRIFT, DRIFT] = drift_psd * dt

@@ -8,6 +8,7 @@ import numpy as np
 
 from edgepos.core import layout
 from edgepos.core.motion.base import LinearAxisModel, check_positive, markov_chain
+from edgepos.core.parameters import ParameterSpec
 
 
 def singer_drift(alpha: float) -> np.ndarray:
@@ -23,6 +24,10 @@ class Singer(LinearAxisModel):
 
     name = "singer"
     components = layout.KINEMATIC
+    parameters = (
+        ParameterSpec("alpha", "manoeuvre frequency 1/tau, 1/s", 1e-4, 100.0),
+        ParameterSpec("sigma", "acceleration std, m/s^2", 1e-4, 100.0),
+    )
 
     def __init__(self, alpha: float = 0.8, sigma: float = 5.0) -> None:
         self.alpha = check_positive("alpha", alpha)
