@@ -295,6 +295,21 @@ def test_requests_for_one_session_never_interleave(tmp_path):
     with TestClient(create_app(make_settings(tmp_path), pipelines={"rsu_imu": pipeline})) as client:
         client.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)
         session_id, token = open_session(client)
+        # The gate opens only once the second request waits on the session's lock: opened any earlier
+        # (the second thread not scheduled yet, as on a busy machine), the two requests would not
+        # overlap at all and the test would prove nothing.
+        store = client.app.state.context.store
+        hold = store.session_lock
+        arrived: list[str] = []
+        second_waits = threading.Event()
+
+        def observed_lock(locked_id: str):  # type: ignore[no-untyped-def]
+            arrived.append(locked_id)
+            if len(arrived) == 2:
+                second_waits.set()
+            return hold(locked_id)
+
+        store.session_lock = observed_lock
         pipeline.gate = threading.Event()
         body = batch_body(1, 0, 5)
         responses = []
@@ -305,6 +320,7 @@ def test_requests_for_one_session_never_interleave(tmp_path):
         threads[0].start()
         assert pipeline.entered.wait(10.0)
         threads[1].start()
+        assert second_waits.wait(10.0), "the second request never reached the session lock"
         # while the first is inside the filter, the event loop still serves other requests
         assert client.get("/healthz").status_code == 200
         assert client.get(f"/v1/sessions/{session_id}", headers=token).json()["last_seq"] == 0
@@ -313,6 +329,7 @@ def test_requests_for_one_session_never_interleave(tmp_path):
             thread.join(20.0)
     assert not pipeline.timed_out
     assert len(pipeline.calls) == 1  # the second request waited, then found the batch applied: a replay
+    assert arrived == [session_id, session_id]  # each took the lock once: no lost compare-and-set either
     assert [r.status_code for r in responses] == [200, 200]
     assert responses[0].content == responses[1].content
 
@@ -375,3 +392,30 @@ def test_a_stored_state_this_server_cannot_read_is_a_409_not_a_500(client, damag
         assert "open a new one" in error["message"]
     assert _record(client, session_id) == damaged
     assert client.delete(f"/v1/sessions/{session_id}", headers=token).status_code == 204
+
+
+@pytest.mark.parametrize(
+    "content_type",
+    [None, "text/plain", "application/x-www-form-urlencoded", "application/json; charset=utf-16", "multipart/form-data"],
+)
+def test_a_body_that_is_not_declared_json_is_415_and_changes_nothing(client, content_type):
+    session_id, token = open_session(client)
+    content = json.dumps(batch_body(1, 0, 2))
+    headers = {**token, **({"content-type": content_type} if content_type else {})}
+    if content_type and "utf-16" in content_type:
+        content = content.encode("utf-16")
+    response = client.post(f"/v1/sessions/{session_id}/batches", content=content, headers=headers)
+    error = assert_error(response, 415, "unsupported_media_type")
+    assert error["problems"][0]["field"] == "Content-Type"
+    assert client.get(f"/v1/sessions/{session_id}", headers=ADMIN).json()["last_seq"] == 0
+    plain_json = {**token, "content-type": "application/json; charset=UTF-8"}
+    assert client.post(f"/v1/sessions/{session_id}/batches", content=json.dumps(batch_body(1, 0, 2)), headers=plain_json).status_code == 200
+
+
+def test_a_json_syntax_error_names_line_and_column(client):
+    session_id, token = open_session(client)
+    content = '{\n  "seq": 1,\n  "measurements": [\n    {"type": "gyro" "t": 0.1}\n  ]\n}'
+    error = assert_error(_post_raw(client, session_id, content, token), 422, "invalid_request")
+    [problem] = error["problems"]
+    assert problem["field"] == "body"
+    assert "line 4, column 21" in problem["reason"], problem["reason"]

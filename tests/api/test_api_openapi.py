@@ -34,7 +34,7 @@ def test_schema_documents_every_route_and_error():
         "/metrics",
     }
     batches = paths["/v1/sessions/{session_id}/batches"]["post"]
-    assert set(batches["responses"]) == {"200", "401", "403", "404", "409", "413", "422", "429", "503"}
+    assert set(batches["responses"]) == {"200", "401", "403", "404", "409", "413", "415", "422", "429", "503"}
     assert batches["responses"]["422"]["content"]["application/json"]["schema"]["$ref"].endswith("/ErrorBody")
     assert document["components"]["securitySchemes"]["bearer"]["scheme"] == "bearer"
     upload = paths["/v1/ephemerides"]["put"]["requestBody"]["content"]

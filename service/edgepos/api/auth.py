@@ -335,7 +335,9 @@ async def require_session(
         superseded = await context.store.supersession(session_id)
         if superseded is not None and _token_matches(secret, superseded.token_hash):
             raise superseded_error(session_id, superseded.superseded_by)
-        raise ApiError("not_found", f"no session {session_id!r} (it may have expired or been deleted)")
+        # A token of a session that does not exist (never did, expired, deleted, revoked) is answered
+        # exactly as a wrong token of one that does: a stranger learns nothing by probing ids.
+        raise await _refuse(context, request, secret, "invalid", _unauthorized())
     if not _token_matches(secret, record.token_hash):
         raise await _refuse(context, request, secret, "invalid", _unauthorized())
     await charge_rate_limit(context, session_id)

@@ -2,11 +2,8 @@
 
 from __future__ import annotations
 
-import asyncio
-import functools
 import hashlib
 from collections.abc import Callable, Mapping
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Annotated, Any, TypeVar
 
@@ -14,6 +11,7 @@ from fastapi import Depends, Request
 
 from edgepos.api.ephemerides import EphemeridesCache
 from edgepos.api.metrics import Metrics
+from edgepos.api.scheduler import FairScheduler
 from edgepos.api.settings import Settings
 from edgepos.api.vehicle_jwt import VehicleKeySet
 from edgepos.geo import GeodeticOrigin
@@ -25,14 +23,12 @@ Result = TypeVar("Result")
 
 @dataclass
 class AppContext:
-    """Settings, store, pipelines and metrics of one app instance.
+    """Settings, store, pipelines, metrics and the estimation scheduler of one app instance.
 
-    Filtering runs on one dedicated thread per process. It is CPU-bound work that holds the GIL
-    (Python, and compiled kernels too short to be worth releasing it), so more threads would not run
-    it in parallel, only take turns at the GIL; with many batches in flight that convoy cost more
-    than half the throughput. Requests queue for that thread on the event loop, which meanwhile
-    keeps serving everything else: CPython makes the filter thread yield the GIL every switch
-    interval (5 ms) when the loop waits for it. Throughput scales with worker processes.
+    Estimation is CPU-bound work that holds the interpreter lock, so it never runs on the event loop:
+    the scheduler (``api.scheduler``) runs it on this process's filter thread, or in worker processes
+    when a batch is predicted to be heavy, serving vehicles in turn. Requests queue for it on the event
+    loop, which meanwhile keeps serving everything else. Throughput scales with worker processes.
     """
 
     settings: Settings
@@ -44,20 +40,29 @@ class AppContext:
     ephemerides: EphemeridesCache = field(default_factory=EphemeridesCache)
     vehicle_keys: VehicleKeySet | None = None
     """The fleet operator's public keys (EDGEPOS_VEHICLE_AUTH=jwt), loaded once at start-up."""
-    _filter_executor: ThreadPoolExecutor | None = field(default=None, repr=False)
+    _scheduler: FairScheduler | None = field(default=None, repr=False)
+
+    @property
+    def scheduler(self) -> FairScheduler:
+        if self._scheduler is None:
+            self._scheduler = FairScheduler(
+                self.metrics,
+                slice_s=self.settings.scheduler_slice_ms / 1000.0,
+                heavy_workers=self.settings.heavy_workers,
+                max_queued_per_key=self.settings.max_queued_per_vehicle,
+            )
+        return self._scheduler
 
     async def run_filter(self, function: Callable[..., Result], *args: Any) -> Result:
-        """Run CPU-bound estimation work off the event loop, on the filter thread."""
-        if self._filter_executor is None:
-            self._filter_executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="edgepos-filter")
-        loop = asyncio.get_running_loop()
-        return await loop.run_in_executor(self._filter_executor, functools.partial(function, *args))
+        """Run the site's own CPU work (parsing ephemerides, warming the kernels) off the event loop, on
+        the filter thread, in turn with the vehicles' batches."""
+        return await self.scheduler.run("site", 0.0, "site", function, *args)
 
     def stop_filter_thread(self) -> None:
-        """Let the filter thread end once its current work is done (app shutdown)."""
-        if self._filter_executor is not None:
-            self._filter_executor.shutdown(wait=False, cancel_futures=True)
-            self._filter_executor = None
+        """Let the scheduler's thread and worker processes end once their current work is done."""
+        if self._scheduler is not None:
+            self._scheduler.shutdown()
+            self._scheduler = None
 
     @staticmethod
     def hash_admin_key(key: str) -> bytes:

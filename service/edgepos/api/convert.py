@@ -60,6 +60,7 @@ def fix_to_json(fix: Fix, include_state: bool, origin: GeodeticOrigin | None) ->
     return {
         "t": fix.t,
         "status": fix.status,
+        "divergence": fix.divergence,
         "x": fix.x,
         "y": fix.y,
         "vx": fix.vx,

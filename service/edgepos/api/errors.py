@@ -31,6 +31,7 @@ STATUS_OF_CODE: dict[str, int] = {
     "conflict": 409,
     "superseded": 409,
     "payload_too_large": 413,
+    "unsupported_media_type": 415,
     "too_many_sessions": 429,
     "rate_limited": 429,
     "estimation_failed": 422,
@@ -94,12 +95,30 @@ def pipeline_problems(
     return out
 
 
-def validation_problems(errors: Sequence[dict[str, Any]]) -> list[ProblemModel]:
+def _line_and_column(document: Any, position: int) -> tuple[int, int]:
+    """1-based line and column of character ``position`` in the request body (as the JSON decoder saw it)."""
+    text = document.decode("utf-8", "replace") if isinstance(document, (bytes, bytearray)) else str(document)
+    before = text[: max(0, position)]
+    line = before.count("\n") + 1
+    return line, position - (before.rfind("\n") + 1) + 1
+
+
+def validation_problems(errors: Sequence[dict[str, Any]], document: Any = None) -> list[ProblemModel]:
     """FastAPI/pydantic error entries as wire problems: ``loc`` becomes a dotted path with
     ``[i]`` for list items, the union tag pydantic inserts is dropped, and items of the
-    ``measurements`` list carry their index."""
+    ``measurements`` list carry their index. A body that is not JSON at all is named as ``body`` with
+    the line and column of the syntax error (``document``: the body as the decoder read it)."""
     problems = []
     for error in errors:
+        if error.get("type") == "json_invalid":
+            detail = (error.get("ctx") or {}).get("error") or "syntax error"
+            where = ""
+            position = (error.get("loc") or (None, None))[-1]
+            if document is not None and isinstance(position, int):
+                line, column = _line_and_column(document, position)
+                where = f" at line {line}, column {column}"
+            problems.append(ProblemModel(index=None, field="body", reason=f"not valid JSON{where}: {detail}"))
+            continue
         loc = list(error.get("loc", ()))
         if loc and loc[0] in ("body", "path", "query", "header"):
             loc = loc[1:]
@@ -117,10 +136,6 @@ def validation_problems(errors: Sequence[dict[str, Any]]) -> list[ProblemModel]:
             else:
                 field += f".{part}" if field else str(part)
         reason = str(error.get("msg", "is invalid"))
-        if error.get("type") == "json_invalid":
-            detail = (error.get("ctx") or {}).get("error")
-            reason = f"not valid JSON: {detail}" if detail else "not valid JSON"
-            loc, index = [], None
         problems.append(ProblemModel(index=index, field=field or "body", reason=reason))
     return problems
 
@@ -132,6 +147,7 @@ _STATUS_CODES = {
     403: "forbidden",
     409: "conflict",
     413: "payload_too_large",
+    415: "unsupported_media_type",
     429: "rate_limited",
     503: "unavailable",
 }
@@ -153,7 +169,7 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def _validation_error(request: Request, error: RequestValidationError) -> Response:
-        problems = validation_problems(error.errors())
+        problems = validation_problems(error.errors(), error.body)
         count = len(problems)
         message = f"the request is invalid ({count} problem{'s' if count != 1 else ''})"
         return error_response(ApiError("invalid_request", message, problems))

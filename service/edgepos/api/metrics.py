@@ -100,6 +100,27 @@ class Metrics:
             registry=self.registry,
         )
 
+        self.queue_depth = Gauge(
+            "edgepos_scheduler_queue_depth",
+            "Estimation jobs waiting for their turn, by lane (light: this process's filter thread; heavy: "
+            "the worker processes).",
+            ["lane"],
+            registry=self.registry,
+        )
+        self.queue_wait = Histogram(
+            "edgepos_scheduler_wait_seconds",
+            "Time an estimation job waited for its turn, by lane.",
+            ["lane"],
+            buckets=_LATENCY_BUCKETS,
+            registry=self.registry,
+        )
+        self.pipeline_cpu = Counter(
+            "edgepos_pipeline_cpu_seconds",
+            "CPU seconds spent filtering, by pipeline (session creation and batches).",
+            ["pipeline"],
+            registry=self.registry,
+        )
+
     def observe_request(self, method: str, route: str, status: int, seconds: float) -> None:
         labels = (method, route, str(status))
         self.requests.labels(*labels).inc()

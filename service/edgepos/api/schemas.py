@@ -59,6 +59,7 @@ ErrorCode = Literal[
     "conflict",
     "superseded",
     "payload_too_large",
+    "unsupported_media_type",
     "too_many_sessions",
     "rate_limited",
     "estimation_failed",
@@ -110,8 +111,8 @@ class RsuFields(RequestModel):
 
     x: float = Field(ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M, description=_X_DESCRIPTION)
     y: float = Field(ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M, description=_Y_DESCRIPTION)
-    range_std: float | None = Field(None, gt=0, le=1.0e4, description=_RANGE_STD)
-    bearing_std: float | None = Field(None, gt=0, le=math.pi, description=_BEARING_STD)
+    range_std: float | None = Field(None, ge=1.0e-4, le=1.0e4, description=_RANGE_STD)
+    bearing_std: float | None = Field(None, ge=1.0e-6, le=math.pi, description=_BEARING_STD)
     radius: float | None = Field(None, gt=0, le=MAX_COORDINATE_M, description=_RADIUS)
 
 
@@ -214,8 +215,12 @@ class OptionOut(ResponseModel):
     )
     default: Any = Field(description="Value used when the option is not set (units as in the description).")
     description: str = Field(description="What the option does, with its unit.")
-    minimum: float | None = Field(description="Smallest allowed value (numbers), else null.")
-    maximum: float | None = Field(description="Largest allowed value (numbers), else null.")
+    minimum: float | None = Field(
+        description="Smallest allowed value (numbers; of every element for number[] and matrix), else null."
+    )
+    maximum: float | None = Field(
+        description="Largest allowed value (numbers; of every element for number[] and matrix), else null."
+    )
     choices: list[Any] | None = Field(description="Allowed values (or list elements), else null.")
 
 
@@ -238,8 +243,12 @@ class InitialStateIn(RequestModel):
     y: float = Field(ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M, description="North position (m).")
     vx: float = Field(ge=-1000, le=1000, description="East velocity (m/s).")
     vy: float = Field(ge=-1000, le=1000, description="North velocity (m/s).")
-    position_std: float = Field(1.0, gt=0, le=1.0e4, description="1-sigma of each position component (m).")
-    velocity_std: float = Field(1.0, gt=0, le=1.0e3, description="1-sigma of each velocity component (m/s).")
+    position_std: float = Field(
+        1.0, ge=1.0e-3, le=1.0e4, description="1-sigma of each position component (m), 0.001-10000."
+    )
+    velocity_std: float = Field(
+        1.0, ge=1.0e-3, le=1.0e3, description="1-sigma of each velocity component (m/s), 0.001-1000."
+    )
 
 
 class SessionCreate(RequestModel):
@@ -314,7 +323,7 @@ class SessionListItem(ResponseModel):
     last_fix_t: float | None = Field(
         None, description="t of the latest fix (the vehicle's measurement clock, s); null before the first fix."
     )
-    status: Literal["new", "initialised", "tracking", "predicted", "uninitialised"] = Field(
+    status: Literal["new", "initialised", "tracking", "predicted", "uninitialised", "diverged"] = Field(
         description="The latest fix's status, or 'new' before the first batch with a fix."
     )
 
@@ -439,9 +448,20 @@ class FixOut(ResponseModel):
     """The estimate after one epoch (measurements sharing a timestamp), in the site frame."""
 
     t: float = Field(description="Epoch time (s, the vehicle's clock as sent).")
-    status: Literal["initialised", "tracking", "predicted", "uninitialised"] = Field(
+    status: Literal["initialised", "tracking", "predicted", "uninitialised", "diverged"] = Field(
         description="initialised: first fix; tracking: measurements were used; predicted: motion model only; "
-        "uninitialised: nothing to start from yet (kinematic fields are null)."
+        "uninitialised: nothing to start from yet (kinematic fields are null); diverged: the estimate broke a "
+        "physical bound (the session's max_speed_mps, max_acceleration_mps2 or site_radius_m options), see "
+        "divergence: do not use its position or velocity."
+    )
+    divergence: str | None = Field(
+        None,
+        description="Only with status diverged, else null: which bound the estimate broke, by how much (m, m/s, "
+        "m/s^2, s), and what the server did. With the session option on_divergence=reset (the default) the "
+        "session was reset: the following fixes are uninitialised until the pipeline starts again from its "
+        "next measurements, and the client should keep sending them (an initial_state needs a new session). "
+        "With on_divergence=report the filter went on from this estimate: treat the following fixes with "
+        "suspicion, or open a new session.",
     )
     x: float | None = Field(
         description="East position (m) in the site frame (gnss_tight: the tangent plane at the configured "
@@ -697,9 +717,10 @@ class GnssFixMeasurement(RequestModel):
     )
     std: float | None = Field(
         None,
-        gt=0,
+        ge=1.0e-3,
         le=1.0e4,
-        description="1-sigma error of each of x and y (m), > 0; null uses the session's GNSS noise option.",
+        description="1-sigma error of each of x and y (m), 1e-3 to 1e4 (a smaller one would make the filter's "
+        "covariance singular); null uses the session's GNSS noise option.",
     )
 
     def to_observation(self) -> Observation:

@@ -15,6 +15,7 @@ import hmac
 import json
 import logging
 import time
+from collections.abc import Mapping
 from typing import Any
 
 from edgepos.api.auth import hash_token, new_session_id, new_session_token, superseded_error
@@ -40,7 +41,7 @@ from edgepos.core.observations import (
     RsuRangeObservation,
     V2vRangeObservation,
 )
-from edgepos.pipelines import tracks
+from edgepos.pipelines import cost, tracks
 from edgepos.pipelines.base import (
     Fix,
     InitialState,
@@ -74,12 +75,17 @@ def _pipeline(context: AppContext, name: str) -> Pipeline:
     return pipeline
 
 
-def _resolve_and_create(pipeline: Pipeline, body: SessionCreate) -> tuple[dict[str, Any], bytes]:
-    """Effective options and the initial state (runs in a worker thread: it may build filters)."""
+def _resolve_and_create(pipeline: Pipeline, body: SessionCreate, budget_s: float) -> tuple[dict[str, Any], bytes]:
+    """Effective options and the initial state (runs in the scheduler's lane: it may build filters).
+    Options under which one epoch of the most measurements a batch may carry per epoch would cost
+    more CPU than ``budget_s`` are refused before anything is built."""
     try:
         options = pipeline.resolve_options(body.options)
     except EstimationError as error:  # a parameter the estimation core refuses
         raise PipelineInputError([_problem("options", str(error))]) from None
+    epoch_s = cost.epoch_cost_s(pipeline.name, options)
+    if epoch_s > budget_s:
+        raise PipelineInputError([_problem("options", _too_heavy_options(pipeline.name, options, epoch_s, budget_s))])
     initial = None
     if body.initial_state is not None:
         initial = InitialState(**body.initial_state.model_dump())
@@ -88,6 +94,21 @@ def _resolve_and_create(pipeline: Pipeline, body: SessionCreate) -> tuple[dict[s
     except EstimationError as error:
         raise PipelineInputError([_problem("initial_state", str(error))]) from None
     return options, state
+
+
+def _too_heavy_options(pipeline: str, options: Mapping[str, Any], epoch_s: float, budget_s: float) -> str:
+    counts = ", ".join(f"{count} {kind}" for kind, count in cost.MAX_PER_EPOCH[pipeline].items())
+    reason = (
+        f"one epoch of the most measurements a batch may carry ({counts}) would cost about "
+        f"{epoch_s * 1e3:.0f} ms of CPU under these options, over the server's budget of {budget_s * 1e3:g} ms "
+        "per batch (EDGEPOS_BATCH_CPU_BUDGET_MS)"
+    )
+    if pipeline == "gnss_tight" and options.get("filter") in ("pf", "upf"):
+        most = cost.max_particles(str(options["filter"]), budget_s)
+        reason += f"; with filter {options['filter']!r} use at most {most} particles"
+    else:
+        reason += "; choose a lighter filter or fewer motion models"
+    return reason
 
 
 def _unreadable_state(session_id: str, error: StateFormatError) -> ApiError:
@@ -122,8 +143,12 @@ async def create_session(
             f"unknown pipeline {body.pipeline!r}",
             [ProblemModel(index=None, field="pipeline", reason=f"unknown pipeline; available: {known}")],
         )
+    budget_s = context.settings.batch_cpu_budget_s
     try:
-        options, state = await context.run_filter(_resolve_and_create, pipeline, body)
+        async with context.scheduler.hold(f"vehicle:{body.vehicle_id}"):
+            options, state = await context.scheduler.run(
+                body.vehicle_id, 0.0, pipeline.name, _resolve_and_create, pipeline, body, budget_s
+            )
     except PipelineInputError as error:
         raise ApiError(
             "invalid_request", "the session options are invalid", pipeline_problems(error.problems)
@@ -295,6 +320,22 @@ async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> b
     rsu_ids = {o.rsu_id for o in observations if isinstance(o, (RsuObservation, RsuRangeObservation))}
     peer_ids = {o.peer_vehicle_id for o in observations if isinstance(o, V2vRangeObservation)}
     has_pseudoranges = any(isinstance(o, PseudorangeObservation) for o in observations)
+    # One place in the vehicle's line for the whole request: a vehicle that sends batches in parallel
+    # gets 429 instead of holding the worker's admission slots while it waits for its own session.
+    async with context.scheduler.hold(f"session:{session_id}"):
+        return await _apply_in_turn(context, session_id, batch, digest, observations, rsu_ids, peer_ids, has_pseudoranges)
+
+
+async def _apply_in_turn(
+    context: AppContext,
+    session_id: str,
+    batch: BatchIn,
+    digest: str,
+    observations: list[Any],
+    rsu_ids: set[str],
+    peer_ids: set[str],
+    has_pseudoranges: bool,
+) -> bytes:
     metrics = context.metrics
     for _attempt in range(MAX_ATTEMPTS):
         async with context.store.session_lock(session_id):
@@ -311,6 +352,7 @@ async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> b
                 return replay
             pipeline = _pipeline(context, record.pipeline)
             _check_types(pipeline, batch)
+            cost_s = _admit(context, pipeline, record.options, observations)
             # One read for the peers' tracks and, if this session publishes, its own (extended
             # after the batch); nothing at all for a batch of a non-cooperative session.
             wanted = peer_ids | ({record.vehicle_id} if pipeline.publishes_track else set())
@@ -332,7 +374,9 @@ async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> b
             )
             started = time.perf_counter()
             try:
-                fixes, state = await context.run_filter(pipeline.process, record.state, observations, environment)
+                fixes, state = await context.scheduler.run(
+                    record.vehicle_id, cost_s, pipeline.name, pipeline.process, record.state, observations, environment
+                )
             except PipelineInputError as error:
                 metrics.batches.labels("rejected").inc()
                 count = len(error.problems)
@@ -379,6 +423,31 @@ async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> b
                 return body
             metrics.store_conflicts.inc()
     raise ApiError("unavailable", "the session kept changing under this request; retry the same batch")
+
+
+def _admit(context: AppContext, pipeline: Pipeline, options: Mapping[str, Any], observations: list[Any]) -> float:
+    """The batch's predicted CPU seconds, after refusing (422) an epoch with more measurements of a kind
+    than the pipeline accepts per epoch, or a batch predicted to cost more than the budget."""
+    violations = cost.epoch_bound_violations(pipeline.name, observations)
+    if violations:
+        problems = [ProblemModel(index=None, field="measurements", reason=v.reason) for v in violations[:20]]
+        raise ApiError("invalid_request", "the batch has epochs with too many measurements; the session is unchanged", problems)
+    predicted = cost.batch_cost_s(pipeline.name, options, observations)
+    budget_s = context.settings.batch_cpu_budget_s
+    if predicted > budget_s:
+        epochs = len({o.t for o in observations})
+        fit = max(1, int(budget_s / (predicted / epochs))) if epochs else 0
+        reason = (
+            f"this batch would cost about {predicted * 1e3:.0f} ms of CPU ({epochs} epochs), over the server's "
+            f"budget of {budget_s * 1e3:g} ms per batch (EDGEPOS_BATCH_CPU_BUDGET_MS): send at most about {fit} "
+            "epochs like these per batch"
+        )
+        raise ApiError(
+            "invalid_request",
+            "the batch is too costly to filter at once; the session is unchanged",
+            [ProblemModel(index=None, field="measurements", reason=reason)],
+        )
+    return predicted
 
 
 def _check_satellites(

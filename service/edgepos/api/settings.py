@@ -70,6 +70,38 @@ class Settings(BaseSettings):
         allow_inf_nan=False,
         description="Longest a request waits in that line before it is answered 503 with Retry-After.",
     )
+    batch_cpu_budget_ms: float = Field(
+        50.0,
+        ge=1.0,
+        le=10_000.0,
+        allow_inf_nan=False,
+        description="Most CPU one batch (or one session's creation) may cost on this server, as the pipelines' "
+        "cost models predict it (ms): a session whose options could not fit one epoch in it, or a batch "
+        "predicted to cost more, is refused with 422 naming the bound. Keeps one vehicle from taking the CPU "
+        "that every other vehicle on the worker needs.",
+    )
+    scheduler_slice_ms: float = Field(
+        10.0,
+        ge=0.0,
+        le=10_000.0,
+        allow_inf_nan=False,
+        description="Batches predicted to cost more CPU than this (ms) are filtered in the heavy lane (worker "
+        "processes), the rest on this process's filter thread, so a heavy batch never delays a light one.",
+    )
+    heavy_workers: int = Field(
+        1,
+        ge=0,
+        le=64,
+        description="Worker processes of the heavy lane, per service worker (started on the first heavy batch); "
+        "0 runs heavy batches on a second thread instead (sharing the interpreter lock with the light lane).",
+    )
+    max_queued_per_vehicle: int = Field(
+        2,
+        ge=1,
+        le=64,
+        description="Requests one session (one vehicle) may have waiting for or in the filter at once; beyond "
+        "it 429 with Retry-After. A vehicle's batches are applied one at a time in seq order anyway.",
+    )
     rate_limit_per_s: float = Field(
         50.0,
         ge=0,
@@ -210,6 +242,10 @@ class Settings(BaseSettings):
         if self.rate_limit_per_s == 0:
             return None
         return RateLimit(self.rate_limit_per_s, self.rate_limit_burst)
+
+    @property
+    def batch_cpu_budget_s(self) -> float:
+        return self.batch_cpu_budget_ms / 1000.0
 
     @property
     def auth_failure_limit(self) -> RateLimit:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import email.message
 from collections.abc import Callable
 from typing import Any
 
@@ -16,6 +17,7 @@ _DESCRIPTIONS = {
     404: "No such resource.",
     409: "A conflict: the batch's seq does not follow the session's last applied seq, the vehicle is "
     "already registered, or (code superseded) a newer session of the same vehicle replaced this one.",
+    415: "The request body is not JSON: send 'Content-Type: application/json' (UTF-8).",
     413: "The request body is larger than EDGEPOS_MAX_BODY_BYTES (EDGEPOS_MAX_EPHEMERIDES_BYTES for a "
     "navigation file).",
     422: "The request is invalid; every problem is listed.",
@@ -48,3 +50,23 @@ def known_query_parameters(*names: str) -> Callable[[Request], None]:
             )
 
     return check
+
+
+def json_body(request: Request) -> None:
+    """A dependency refusing a request body that is not declared JSON (415): a text/plain, form-encoded
+    or UTF-16 body is not read as JSON by guesswork. ``application/json`` and ``application/*+json``
+    in UTF-8 (no charset, or charset=utf-8) pass."""
+    declared = request.headers.get("content-type")
+    message = email.message.Message()
+    message["content-type"] = declared or ""
+    subtype = message.get_content_subtype()
+    charset = (message.get_param("charset") or "utf-8") if declared else "utf-8"
+    json_type = message.get_content_maintype() == "application" and (subtype == "json" or subtype.endswith("+json"))
+    if declared and json_type and str(charset).lower() in ("utf-8", "utf8"):
+        return
+    what = f"Content-Type {declared!r}" if declared else "no Content-Type"
+    raise ApiError(
+        "unsupported_media_type",
+        f"the request body must be JSON in UTF-8 with 'Content-Type: application/json'; it came with {what}",
+        [ProblemModel(index=None, field="Content-Type", reason="must be application/json (UTF-8)")],
+    )

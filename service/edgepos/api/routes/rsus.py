@@ -12,7 +12,7 @@ from edgepos.api.auth import require_admin, require_any
 from edgepos.api.context import Context
 from edgepos.api.convert import rsu_from_wire, rsu_to_wire
 from edgepos.api.errors import ApiError
-from edgepos.api.routes import errors
+from edgepos.api.routes import errors, json_body
 from edgepos.api.schemas import (
     RSU_ID_PATTERN,
     ProblemModel,
@@ -36,8 +36,8 @@ RsuId = Annotated[
     "",
     response_model=Upserted,
     summary="Insert or replace many RSUs",
-    dependencies=[Depends(require_admin)],
-    responses=errors(401, 403, 413, 422, 503),
+    dependencies=[Depends(require_admin), Depends(json_body)],
+    responses=errors(401, 403, 413, 415, 422, 503),
 )
 async def put_rsus(body: RsuBulk, context: Context) -> Upserted:
     """Upsert every RSU of the body by id (admin key). Ids must be unique within one request."""
@@ -84,8 +84,8 @@ async def get_rsu(rsu_id: RsuId, context: Context) -> RsuOut:
     "/{rsu_id}",
     response_model=RsuOut,
     summary="Insert or replace one RSU",
-    dependencies=[Depends(require_admin)],
-    responses=errors(401, 403, 413, 422, 503),
+    dependencies=[Depends(require_admin), Depends(json_body)],
+    responses=errors(401, 403, 413, 415, 422, 503),
 )
 async def put_rsu(body: RsuPut, rsu_id: RsuId, context: Context) -> RsuOut:
     """Upsert the RSU at this id (admin key); a body ``id``, if given, must equal the path's."""

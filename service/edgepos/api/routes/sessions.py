@@ -10,7 +10,7 @@ from fastapi import APIRouter, Depends, Query, Request, Response
 from edgepos.api import session_service
 from edgepos.api.auth import Principal, authorise_session_creation, require_admin, require_session, require_vehicle
 from edgepos.api.context import Context
-from edgepos.api.routes import errors, known_query_parameters
+from edgepos.api.routes import errors, json_body, known_query_parameters
 from edgepos.api.schemas import (
     PIPELINE_NAME_PATTERN,
     VEHICLE_ID_PATTERN,
@@ -52,7 +52,7 @@ _FROM_PATH = "$request.path.session_id"
     response_model=SessionCreated,
     summary="Open a session",
     responses={
-        **errors(401, 403, 413, 422, 429, 503),
+        **errors(401, 403, 413, 415, 422, 429, 503),
         201: {"links": _links(_FROM_BODY, _READ_IT, _SEND_TO_IT, _DELETE_IT)},
     },
 )
@@ -61,6 +61,7 @@ async def create_session(
     body: SessionCreate,
     context: Context,
     principal: Annotated[Principal, Depends(require_vehicle)],
+    _json: Annotated[None, Depends(json_body)],
 ) -> SessionCreated:
     """Open a session for a vehicle, with that vehicle's credential (its key from POST /v1/vehicles, or a
     fleet-signed token with EDGEPOS_VEHICLE_AUTH=jwt) or the admin key (any vehicle). A vehicle has one
@@ -131,9 +132,9 @@ async def delete_session(session_id: str, context: Context) -> Response:
     "/{session_id}/batches",
     response_model=BatchOut,
     summary="Send a batch of measurements",
-    dependencies=[Depends(require_session)],
+    dependencies=[Depends(require_session), Depends(json_body)],
     responses={
-        **errors(401, 403, 404, 409, 413, 422, 429, 503),
+        **errors(401, 403, 404, 409, 413, 415, 422, 429, 503),
         200: {"links": _links(_FROM_PATH, _READ_IT, _SEND_TO_IT, _DELETE_IT)},
     },
 )

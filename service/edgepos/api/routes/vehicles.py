@@ -16,7 +16,7 @@ from fastapi import APIRouter, Depends, Path, Query
 from edgepos.api.auth import hash_token, new_vehicle_key, require_admin
 from edgepos.api.context import AppContext, Context
 from edgepos.api.errors import ApiError
-from edgepos.api.routes import errors, known_query_parameters
+from edgepos.api.routes import errors, json_body, known_query_parameters
 from edgepos.api.schemas import (
     VEHICLE_ID_PATTERN,
     ProblemModel,
@@ -69,7 +69,8 @@ def _not_registered(vehicle_id: str) -> ApiError:
     status_code=201,
     response_model=VehicleKeyIssued,
     summary="Register a vehicle",
-    responses=errors(401, 403, 409, 413, 422, 429, 503),
+    dependencies=[Depends(json_body)],
+    responses=errors(401, 403, 409, 413, 415, 422, 429, 503),
 )
 async def register_vehicle(body: VehicleCreate, context: Context) -> VehicleKeyIssued:
     """Register a vehicle and issue its key (shown once: hand it to the vehicle). A vehicle already
@@ -90,7 +91,8 @@ async def register_vehicle(body: VehicleCreate, context: Context) -> VehicleKeyI
     "/bulk",
     response_model=VehicleImported,
     summary="Register many vehicles",
-    responses=errors(401, 403, 413, 422, 429, 503),
+    dependencies=[Depends(json_body)],
+    responses=errors(401, 403, 413, 415, 422, 429, 503),
 )
 async def import_vehicles(body: VehicleImport, context: Context) -> VehicleImported:
     """Register up to 5,000 vehicles in one atomic write (``edgepos vehicles import`` sends a CSV in such

@@ -1,0 +1,122 @@
+"""The fair scheduler: vehicles served in turn, a bounded line per vehicle, heavy jobs in a worker
+process that cannot hold this interpreter's lock, and a worker that dies replaced by a fresh one.
+
+Orders are checked with events, never with sleeps or timings: a job that must not start yet waits
+on an event the test sets."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import threading
+
+import pytest
+from edgepos.api.errors import ApiError
+from edgepos.api.metrics import Metrics
+from edgepos.api.scheduler import FairScheduler
+
+
+def _record(order: list[str], name: str, gate: threading.Event | None = None) -> str:
+    if gate is not None:
+        assert gate.wait(30), "the test never opened the gate"
+    order.append(name)
+    return name
+
+
+def test_vehicles_are_served_in_turn_not_in_arrival_order() -> None:
+    """While the lane is busy, A queues three jobs and then B one: B's runs second, not fourth."""
+
+    async def scenario() -> list[str]:
+        scheduler = FairScheduler(Metrics(), heavy_workers=0)
+        order: list[str] = []
+        gate = threading.Event()
+        blocker = asyncio.ensure_future(scheduler.run("Z", 0.0, "test", _record, order, "Z", gate))
+        await asyncio.sleep(0)
+        jobs = [asyncio.ensure_future(scheduler.run("A", 0.0, "test", _record, order, f"A{n}")) for n in (1, 2, 3)]
+        jobs.append(asyncio.ensure_future(scheduler.run("B", 0.0, "test", _record, order, "B1")))
+        await asyncio.sleep(0)
+        gate.set()
+        await asyncio.gather(blocker, *jobs)
+        scheduler.shutdown()
+        return order
+
+    assert asyncio.run(scenario()) == ["Z", "A1", "B1", "A2", "A3"]
+
+
+def test_a_vehicle_holds_a_bounded_number_of_places() -> None:
+    async def scenario() -> None:
+        metrics = Metrics()
+        scheduler = FairScheduler(metrics, max_queued_per_key=2, heavy_workers=0)
+        async with scheduler.hold("car"), scheduler.hold("car"):
+            with pytest.raises(ApiError) as refused:
+                async with scheduler.hold("car"):
+                    pass
+            assert refused.value.status == 429 and refused.value.headers["Retry-After"] == "1"
+            assert "EDGEPOS_MAX_QUEUED_PER_VEHICLE" in refused.value.message
+            async with scheduler.hold("bus"):  # another vehicle has its own line
+                assert scheduler.held("bus") == 1
+        assert scheduler.held("car") == 0
+        async with scheduler.hold("car"):  # places come back when requests end
+            pass
+        scheduler.shutdown()
+
+    asyncio.run(scenario())
+
+
+def test_light_and_heavy_jobs_take_separate_lanes() -> None:
+    """A heavy job stuck in its lane does not hold up a light one (both lanes threads here)."""
+
+    async def scenario() -> list[str]:
+        scheduler = FairScheduler(Metrics(), slice_s=0.010, heavy_workers=0)
+        assert scheduler.lane_for(0.010) == "light" and scheduler.lane_for(0.011) == "heavy"
+        order: list[str] = []
+        gate = threading.Event()
+        heavy = asyncio.ensure_future(scheduler.run("truck", 1.0, "test", _record, order, "heavy", gate))
+        light = await scheduler.run("car", 0.001, "test", _record, order, "light")
+        gate.set()
+        await heavy
+        scheduler.shutdown()
+        assert light == "light"
+        return order
+
+    assert asyncio.run(scenario()) == ["light", "heavy"]
+
+
+def test_heavy_jobs_run_in_a_worker_process_and_count_their_cpu() -> None:
+    async def scenario() -> tuple[int, int, float]:
+        metrics = Metrics()
+        scheduler = FairScheduler(metrics, slice_s=0.0, heavy_workers=1)
+        heavy_pid = await scheduler.run("truck", 1.0, "gnss_tight", os.getpid)
+        light_pid = await scheduler.run("car", 0.0, "rsu_imu", os.getpid)
+        scheduler.shutdown()
+        cpu = metrics.pipeline_cpu.labels("gnss_tight")._value.get()  # noqa: SLF001 - reading the counter back
+        return heavy_pid, light_pid, cpu
+
+    heavy_pid, light_pid, cpu = asyncio.run(scenario())
+    assert heavy_pid != os.getpid()
+    assert light_pid == os.getpid()
+    assert cpu >= 0.0
+
+
+def test_a_worker_that_dies_fails_its_job_with_503_and_is_replaced() -> None:
+    async def scenario() -> int:
+        scheduler = FairScheduler(Metrics(), slice_s=0.0, heavy_workers=1)
+        with pytest.raises(ApiError) as failed:
+            await scheduler.run("truck", 1.0, "test", os._exit, 3)
+        assert failed.value.status == 503
+        pid = await scheduler.run("truck", 1.0, "test", os.getpid)  # a fresh pool answers
+        scheduler.shutdown()
+        return pid
+
+    assert asyncio.run(scenario()) != os.getpid()
+
+
+def test_an_error_in_a_job_reaches_the_caller_unchanged() -> None:
+    async def scenario() -> None:
+        scheduler = FairScheduler(Metrics(), heavy_workers=0)
+        with pytest.raises(ZeroDivisionError):
+            await scheduler.run("car", 0.0, "test", divmod, 1, 0)
+        assert await scheduler.run("car", 0.0, "test", divmod, 7, 2) == (3, 1)  # the lane goes on
+        scheduler.shutdown()
+
+    asyncio.run(scenario())
