@@ -8,6 +8,8 @@ by the end of the run, its latency (from each batch's scheduled time, so latenes
 p99, and the heavy vehicles' batches per second; with the machine's load average.
 
 Configurations, started one after another on loopback:
+  * 1 worker, in-process store, every batch on the one filter thread as before the scheduler's lanes
+    (EDGEPOS_SCHEDULER_SLICE_MS=10000, EDGEPOS_HEAVY_WORKERS=0; vehicles still served in turn);
   * 1 worker, in-process store, heavy batches on a second thread (EDGEPOS_HEAVY_WORKERS=0);
   * 1 worker, in-process store, heavy batches in a worker process (the default);
   * 2 workers on Redis (when redis-server is installed), the default lanes.
@@ -244,19 +246,31 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--duration", type=float, default=15.0, help="seconds of load per configuration (default 15)")
     parser.add_argument("--json", type=Path, default=None, help="write the figures as JSON")
+    parser.add_argument(
+        "--budget-ms", type=float, default=50.0,
+        help="EDGEPOS_BATCH_CPU_BUDGET_MS of every server (default 50, the service's); a larger budget admits "
+        "heavier batches and shows what the heavy lane's processes buy",
+    )
     args = parser.parse_args(argv)
+    budget = {"EDGEPOS_BATCH_CPU_BUDGET_MS": f"{args.budget_ms:g}"}
     rows = []
+    before = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="edgepos-fairness-") as tmp:
         workdir = Path(tmp)
-        rows.append(run_target("1 worker, heavy on a thread", 1, "memory", {"EDGEPOS_HEAVY_WORKERS": "0"}, args.duration, workdir))
-        rows.append(run_target("1 worker, heavy in a process", 1, "memory", {}, args.duration, workdir))
+        one_lane = {**budget, "EDGEPOS_HEAVY_WORKERS": "0", "EDGEPOS_SCHEDULER_SLICE_MS": "10000"}
+        rows.append(run_target("1 worker, one lane (as before)", 1, "memory", one_lane, args.duration, workdir))
+        rows.append(
+            run_target("1 worker, heavy on a thread", 1, "memory", {**budget, "EDGEPOS_HEAVY_WORKERS": "0"}, args.duration, workdir)
+        )
+        rows.append(run_target("1 worker, heavy in a process", 1, "memory", budget, args.duration, workdir))
         binary = redis_binary()
         if binary is not None:
             with RedisServer(binary, workdir / "redis", "--save", "", "--appendonly", "yes", "--appendfsync", "everysec") as redis:
-                rows.append(run_target("2 workers on Redis", 2, redis.url("fair:"), {}, args.duration, workdir))
+                rows.append(run_target("2 workers on Redis", 2, redis.url("fair:"), budget, args.duration, workdir))
         else:
             print("redis-server is not installed: the 2-worker row is skipped", file=sys.stderr)
     print(f"machine: {os.cpu_count()} cores, {platform.python_implementation()} {platform.python_version()}")
+    print(f"CPU budget per batch: {args.budget_ms:g} ms; load average before: {before[0]:.2f}")
     print(f"heavy vehicles: {HEAVY_VEHICLES} x UPF {rows[0]['particles']} particles, {rows[0]['epochs_per_heavy_batch']} "
           f"epochs ({rows[0]['pseudoranges_per_heavy_batch']} pseudoranges) per batch, back to back; "
           f"light vehicle: one-epoch rsu_imu batches at {LIGHT_RATE_HZ:g} Hz for {args.duration:g} s")

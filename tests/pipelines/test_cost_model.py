@@ -346,3 +346,13 @@ def test_epoch_counts_group_by_time_and_every_route_agrees() -> None:
         assert weighed == pytest.approx(direct)
 
 
+
+
+def test_admission_in_one_pass_agrees_with_the_two_functions() -> None:
+    """What the service computes per batch (``admit``) is exactly the cost and the bound violations."""
+    batch = _pseudorange_epochs(3, 41)
+    options = get_pipeline("gnss_tight").resolve_options({"filter": "upf"})
+    predicted, violations = cost.admit("gnss_tight", options, batch)
+    assert predicted == cost.batch_cost_s("gnss_tight", options, batch)
+    assert violations == cost.epoch_bound_violations("gnss_tight", batch)
+    assert violations and all(v.count == 41 and v.bound == 40 for v in violations)

@@ -428,11 +428,10 @@ async def _apply_in_turn(
 def _admit(context: AppContext, pipeline: Pipeline, options: Mapping[str, Any], observations: list[Any]) -> float:
     """The batch's predicted CPU seconds, after refusing (422) an epoch with more measurements of a kind
     than the pipeline accepts per epoch, or a batch predicted to cost more than the budget."""
-    violations = cost.epoch_bound_violations(pipeline.name, observations)
+    predicted, violations = cost.admit(pipeline.name, options, observations)
     if violations:
         problems = [ProblemModel(index=None, field="measurements", reason=v.reason) for v in violations[:20]]
         raise ApiError("invalid_request", "the batch has epochs with too many measurements; the session is unchanged", problems)
-    predicted = cost.batch_cost_s(pipeline.name, options, observations)
     budget_s = context.settings.batch_cpu_budget_s
     if predicted > budget_s:
         epochs = len({o.t for o in observations})

@@ -270,10 +270,28 @@ def ensure_finite_fixes(fixes: Sequence[Fix]) -> list[Fix]:
     from edgepos.core.errors import NumericalError
 
     for fix in fixes:
+        if _finite_sum(fix):
+            continue  # the common case: one sum of every number is finite (NaN and infinity propagate)
         bad = _non_finite_field(fix)
         if bad is not None:
             raise NumericalError(f"the estimate at t={fix.t!r} has a non-finite {bad}")
     return list(fixes)
+
+
+def _finite_sum(fix: Fix) -> bool:
+    """Whether the sum of the fix's scalars and covariances is finite: then none of them is NaN or
+    infinite. (A sum that is not finite may be an overflow of finite numbers: the field-by-field look
+    decides.) Runs for every fix the service answers, so it avoids a call per field."""
+    total = fix.t + sum(fix.model_probabilities.values())
+    for value in (fix.x, fix.y, fix.vx, fix.vy, fix.speed, fix.heading, fix.yaw_rate, fix.nis):
+        if value is not None:
+            total += value
+    for rows in (fix.position_cov, fix.kinematic_cov):
+        if rows is not None:
+            total += sum(map(sum, rows))
+    if fix.latitude is not None or fix.state is not None or fix.shared is not None or fix.state_cov is not None:
+        return False  # rarer fields: the field-by-field look covers them
+    return math.isfinite(total)
 
 
 def _non_finite_field(fix: Fix) -> str | None:

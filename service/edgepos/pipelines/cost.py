@@ -480,6 +480,28 @@ def epoch_bound_violations(pipeline_name: str, observations: Iterable[Observatio
     ]
 
 
+def admit(
+    pipeline_name: str, options: Mapping[str, Any] | None, observations: Iterable[Observation]
+) -> tuple[float, list[EpochBoundViolation]]:
+    """:func:`batch_cost_s` and :func:`epoch_bound_violations` in one pass over the batch: what the service
+    computes for every batch on its event loop before queueing it."""
+    by_time: dict[float, dict[str, int]] = {}
+    for observation in observations:
+        counts = by_time.get(observation.t)
+        if counts is None:
+            counts = by_time[observation.t] = {}
+        kind = observation.kind
+        counts[kind] = counts.get(kind, 0) + 1
+    bounds = MAX_PER_EPOCH[pipeline_name]
+    violations = [
+        EpochBoundViolation(t, kind, count, bounds[kind])
+        for t, counts in by_time.items()
+        for kind, count in counts.items()
+        if kind in bounds and count > bounds[kind]
+    ]
+    return batch_cost_from_counts_s(pipeline_name, options, list(by_time.values())), violations
+
+
 def max_particles(
     filter_name: str,
     budget_s: float = DEFAULT_BUDGET_S,

@@ -282,7 +282,7 @@ class Plausible(Pipeline):
         if not envelope.known:  # a state from before this wrapper: its clock is the inner pipeline's
             envelope.t = self.inner.summarise(inner_state).t
             envelope.known = True
-        _check_times(envelope, observations)
+        latest = _check_times(envelope, observations)
         judge = _Judge(self.inner, envelope, observations, environment)
         try:
             fixes, new_inner = self.inner.process(inner_state, observations, environment)
@@ -295,9 +295,8 @@ class Plausible(Pipeline):
             if not fixes and new_inner == inner_state:
                 return fixes, state  # nothing happened (an empty batch): the very same bytes
             fixes, new_inner = judge.run(fixes, new_inner)
-        times = [o.t for o in observations if is_finite_number(o.t)]
-        if times:
-            envelope.t = max(times) if envelope.t is None else max(envelope.t, *times)
+        if latest is not None:
+            envelope.t = latest if envelope.t is None else max(envelope.t, latest)
         return fixes, wrap(envelope, new_inner)
 
 
@@ -319,9 +318,10 @@ def _initial_problems(initial: InitialState, options: Mapping[str, Any]) -> list
     return problems
 
 
-def _check_times(envelope: _Envelope, observations: Sequence[Observation]) -> None:
+def _check_times(envelope: _Envelope, observations: Sequence[Observation]) -> float | None:
     """Refuse epochs more than max_time_jump_s after the previous one, and (after a reset left the
-    inner pipeline without a clock) observations older than the session's last epoch."""
+    inner pipeline without a clock) observations older than the session's last epoch. Returns the
+    batch's latest (finite) time, None for an empty batch."""
     bound = envelope.options["max_time_jump_s"]
     last = envelope.t
     problems: list[Problem] = []
@@ -332,8 +332,9 @@ def _check_times(envelope: _Envelope, observations: Sequence[Observation]) -> No
                     Problem(index, "t", f"{observation.t!r} is older than the session's last epoch t={last!r}")
                 )
     times = sorted({t for t in {o.t for o in observations} if is_finite_number(t)})
+    latest = times[-1] if times else None
     if not problems and (not times or (times[-1] - times[0] <= bound and (last is None or times[-1] - last <= bound))):
-        return  # the usual batch: no gap can be longer than the bound
+        return latest  # the usual batch: no gap can be longer than the bound
     jumps: dict[float, tuple[float, str]] = {}
     previous, where = last, "the session's last epoch"
     for t in times:
@@ -351,6 +352,7 @@ def _check_times(envelope: _Envelope, observations: Sequence[Observation]) -> No
             )))
     if problems:
         raise PipelineInputError(sorted(problems, key=lambda p: p.index if p.index is not None else -1))
+    return latest
 
 
 # -- checks of the fixes ----------------------------------------------------------------------------

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import email.message
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import Any
 
 from fastapi import Request
@@ -34,12 +34,12 @@ def errors(*statuses: int) -> dict[int | str, dict[str, Any]]:
     return {status: {"model": ErrorBody, "description": _DESCRIPTIONS[status]} for status in statuses}
 
 
-def known_query_parameters(*names: str) -> Callable[[Request], None]:
+def known_query_parameters(*names: str) -> Callable[[Request], Awaitable[None]]:
     """A dependency refusing query parameters other than ``names`` (422 naming each): a misspelt
     filter such as ``?pipline=gnss_tight`` would otherwise be ignored and answer everything."""
     allowed = frozenset(names)
 
-    def check(request: Request) -> None:
+    async def check(request: Request) -> None:  # a coroutine: FastAPI runs a plain function in its threadpool
         unknown = sorted({name for name in request.query_params if name not in allowed})
         if unknown:
             known = ", ".join(sorted(allowed))
@@ -52,11 +52,14 @@ def known_query_parameters(*names: str) -> Callable[[Request], None]:
     return check
 
 
-def json_body(request: Request) -> None:
-    """A dependency refusing a request body that is not declared JSON (415): a text/plain, form-encoded
+async def json_body(request: Request) -> None:
+    """A dependency (a coroutine although it never awaits: FastAPI would run a plain function in its
+    threadpool, a thread hop and an interpreter-lock hand-off per request) refusing a request body that is not declared JSON (415): a text/plain, form-encoded
     or UTF-16 body is not read as JSON by guesswork. ``application/json`` and ``application/*+json``
     in UTF-8 (no charset, or charset=utf-8) pass."""
     declared = request.headers.get("content-type")
+    if declared == "application/json":  # what every client sends: no parsing
+        return
     message = email.message.Message()
     message["content-type"] = declared or ""
     subtype = message.get_content_subtype()
