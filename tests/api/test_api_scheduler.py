@@ -120,3 +120,39 @@ def test_an_error_in_a_job_reaches_the_caller_unchanged() -> None:
         scheduler.shutdown()
 
     asyncio.run(scenario())
+
+
+def _heavy_worker_pid() -> int:
+    """Start a scheduler with a heavy worker in this (child) process, print the worker's pid, then
+    die without any shutdown, as a SIGKILLed service would."""
+    async def scenario() -> int:
+        scheduler = FairScheduler(Metrics(), slice_s=0.0, heavy_workers=1)
+        return await scheduler.run("truck", 1.0, "test", os.getpid)
+
+    pid = asyncio.run(scenario())
+    print(pid, flush=True)
+    os._exit(0)
+
+
+def test_a_heavy_worker_does_not_outlive_a_killed_service() -> None:
+    """The worker process notices its parent is gone and exits by itself (checked every second)."""
+    import subprocess
+    import sys
+    import time
+
+    code = "import test_api_scheduler as t; t._heavy_worker_pid()"
+    here = os.path.dirname(os.path.abspath(__file__))
+    child = subprocess.run(
+        [sys.executable, "-c", code], cwd=here, capture_output=True, text=True, timeout=300,
+        env={**os.environ, "PYTHONPATH": here + os.pathsep + os.environ.get("PYTHONPATH", "")},
+    )
+    worker = int(child.stdout.strip().splitlines()[-1])
+    deadline = time.monotonic() + 60.0  # a bounded wait for a condition, not a timing assertion
+    while time.monotonic() < deadline:
+        try:
+            os.kill(worker, 0)
+        except ProcessLookupError:
+            return
+        time.sleep(0.2)
+    os.kill(worker, 9)
+    raise AssertionError(f"heavy worker {worker} outlived its service by 60 s")

@@ -25,6 +25,8 @@ import contextlib
 import functools
 import logging
 import multiprocessing
+import os
+import threading
 import time
 from collections.abc import AsyncIterator, Callable
 from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
@@ -49,9 +51,23 @@ def _timed(function: Callable[..., Result], *args: Any) -> tuple[Result, float]:
     return result, time.thread_time() - started
 
 
-def _warm_worker() -> None:
-    """Heavy-lane worker start-up: compile (or load from numba's cache) the filter kernels now,
-    not in the first heavy batch."""
+ORPHAN_CHECK_S = 1.0
+"""How often a heavy-lane worker checks that the process that started it is still there."""
+
+
+def _exit_when_orphaned(parent: int) -> None:
+    """A heavy-lane worker whose service process died (SIGKILL, a crash: no shutdown told it) exits
+    instead of lingering with its few hundred MB."""
+    while True:
+        time.sleep(ORPHAN_CHECK_S)
+        if os.getppid() != parent:
+            os._exit(0)
+
+
+def _warm_worker(parent: int) -> None:
+    """Heavy-lane worker start-up: watch the parent, and compile (or load from numba's cache) the filter
+    kernels now, not in the first heavy batch."""
+    threading.Thread(target=_exit_when_orphaned, args=(parent,), daemon=True, name="edgepos-orphan-watch").start()
     from edgepos.core.compiled import warm_up
 
     warm_up()
@@ -115,7 +131,9 @@ class FairScheduler:
         # spawn, not fork: the parent runs threads (the light lane, the store's), which fork would copy
         # in whatever state they were in.
         context = multiprocessing.get_context("spawn")
-        return ProcessPoolExecutor(self.heavy_workers, mp_context=context, initializer=_warm_worker)
+        return ProcessPoolExecutor(
+            self.heavy_workers, mp_context=context, initializer=_warm_worker, initargs=(os.getpid(),)
+        )
 
     def lane_for(self, cost_s: float) -> LaneName:
         return "light" if cost_s <= self.slice_s else "heavy"
@@ -212,8 +230,9 @@ class FairScheduler:
         return self._per_key.get(key, 0)
 
     def shutdown(self) -> None:
-        """Stop the lanes once their current work is done (app shutdown)."""
+        """Stop the lanes once their current work is done (app shutdown). Worker processes are waited
+        for (a heavy batch is bounded by the CPU budget), so none outlives the service."""
         for lane in self._lanes.values():
             if lane.executor is not None:
-                lane.executor.shutdown(wait=False, cancel_futures=True)
+                lane.executor.shutdown(wait=isinstance(lane.executor, ProcessPoolExecutor), cancel_futures=True)
                 lane.executor = None
