@@ -38,7 +38,6 @@ import httpx
 import numpy as np
 
 from edgepos.core.observations import PseudorangeObservation
-from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
 from edgepos.loadgen import common
 from edgepos.loadgen.localredis import RedisServer, redis_binary
 from edgepos.loadgen.localserver import clean_environment, running, serve_command
@@ -46,6 +45,7 @@ from edgepos.pipelines import cost
 from edgepos.pipelines.gnss_tight import OPTION_SPECS as GNSS_OPTIONS
 from edgepos.sim.scenarios import rsu_imu_paper_scenario
 from edgepos.sim.sensors import rsu_imu_epochs
+from gnss_api import load_epochs  # the GNSS bench's reading of the recording (bench/ is on sys.path)
 
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "gnss-rover"
 ADMIN_KEY = "bench-admin-key-" + os.urandom(8).hex()
@@ -64,24 +64,7 @@ def _max_particles(budget_s: float) -> int:
 
 def gnss_epochs() -> list[list[dict[str, Any]]]:
     """Every epoch of the rover recording as pseudorange measurements (GPS + BeiDou)."""
-    codes = {system: DEFAULT_CODES[system] for system in ("G", "C")}
-    out = []
-    for epoch in read_epochs(str(DATA / "rover-0-5min.rnx"), codes):
-        out.append(
-            [
-                {
-                    "type": "pseudorange",
-                    "t": epoch.gpst % 604800.0,
-                    "system": system,
-                    "prn": int(prn),
-                    "pseudorange_m": float(pr),
-                    "cn0_dbhz": float(cn0) if math.isfinite(cn0) else 0.0,
-                }
-                for system, prn, pr, cn0 in zip(epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz)
-                if math.isfinite(pr) and 1.0e6 <= pr <= 1.0e8
-            ]
-        )
-    return out
+    return load_epochs(10**6, "GC")
 
 
 def heaviest_epochs(options: dict[str, Any], epochs: list[list[dict[str, Any]]], budget_s: float) -> int:

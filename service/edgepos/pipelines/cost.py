@@ -365,8 +365,8 @@ def cost_model(pipeline_name: str) -> CostModel:
 
 
 # -- batches -------------------------------------------------------------------------------------
-def epoch_counts(observations: Iterable[Observation]) -> list[dict[str, int]]:
-    """Observations per kind of each epoch (distinct ``t``), in order of first appearance."""
+def _counts_by_time(observations: Iterable[Observation]) -> dict[float, dict[str, int]]:
+    """Observations per kind of each epoch, by the epoch's ``t``, in order of first appearance."""
     by_time: dict[float, dict[str, int]] = {}
     for observation in observations:
         counts = by_time.get(observation.t)
@@ -374,7 +374,12 @@ def epoch_counts(observations: Iterable[Observation]) -> list[dict[str, int]]:
             counts = by_time[observation.t] = {}
         kind = observation.kind
         counts[kind] = counts.get(kind, 0) + 1
-    return list(by_time.values())
+    return by_time
+
+
+def epoch_counts(observations: Iterable[Observation]) -> list[dict[str, int]]:
+    """Observations per kind of each epoch (distinct ``t``), in order of first appearance."""
+    return list(_counts_by_time(observations).values())
 
 
 def batch_features(
@@ -467,11 +472,11 @@ class EpochBoundViolation:
 
 def epoch_bound_violations(pipeline_name: str, observations: Iterable[Observation]) -> list[EpochBoundViolation]:
     """Every (epoch, kind) whose count exceeds :data:`MAX_PER_EPOCH`; empty when the batch is within."""
+    return _violations(pipeline_name, _counts_by_time(observations))
+
+
+def _violations(pipeline_name: str, by_time: Mapping[float, Mapping[str, int]]) -> list[EpochBoundViolation]:
     bounds = MAX_PER_EPOCH[pipeline_name]
-    by_time: dict[float, dict[str, int]] = {}
-    for observation in observations:
-        counts = by_time.setdefault(observation.t, {})
-        counts[observation.kind] = counts.get(observation.kind, 0) + 1
     return [
         EpochBoundViolation(t, kind, count, bounds[kind])
         for t, counts in by_time.items()
@@ -485,20 +490,8 @@ def admit(
 ) -> tuple[float, list[EpochBoundViolation]]:
     """:func:`batch_cost_s` and :func:`epoch_bound_violations` in one pass over the batch: what the service
     computes for every batch on its event loop before queueing it."""
-    by_time: dict[float, dict[str, int]] = {}
-    for observation in observations:
-        counts = by_time.get(observation.t)
-        if counts is None:
-            counts = by_time[observation.t] = {}
-        kind = observation.kind
-        counts[kind] = counts.get(kind, 0) + 1
-    bounds = MAX_PER_EPOCH[pipeline_name]
-    violations = [
-        EpochBoundViolation(t, kind, count, bounds[kind])
-        for t, counts in by_time.items()
-        for kind, count in counts.items()
-        if kind in bounds and count > bounds[kind]
-    ]
+    by_time = _counts_by_time(observations)
+    violations = _violations(pipeline_name, by_time)
     return batch_cost_from_counts_s(pipeline_name, options, list(by_time.values())), violations
 
 
