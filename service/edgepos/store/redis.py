@@ -51,6 +51,7 @@ from edgepos.store.base import (
     decode_track,
     encode_track,
 )
+from edgepos.store import redis_scripts as scripts
 from edgepos.store.ratelimit import SLACK_S, RateLimit, gcra
 
 DEFAULT_PREFIX = "edgepos:"
@@ -64,191 +65,6 @@ DEFAULT_POOL_TIMEOUT_S = 5.0
 """How long a request waits for a pooled connection before answering 503."""
 _SCHEMES = ("redis", "rediss", "unix")
 _CHUNK = 500
-
-# Remove index entries scored below ARGV[1] (exclusive) and their session hashes (prefix ARGV[2]).
-# Live-session pointers are not touched here (an expired session's hash may already be gone, so its
-# vehicle is unknown): every reader treats a pointer to a missing or expired session as absent, and a
-# pointer carries its session's TTL (set by create, refreshed by each compare-and-set), so it goes by
-# itself.
-_PURGE = """
-local function purge(index, cutoff, prefix)
-  local stale = redis.call('ZRANGEBYSCORE', index, '-inf', '(' .. cutoff)
-  for _, sid in ipairs(stale) do
-    redis.call('DEL', prefix .. sid)
-  end
-  if #stale > 0 then
-    redis.call('ZREMRANGEBYSCORE', index, '-inf', '(' .. cutoff)
-  end
-  return #stale
-end
-"""
-
-# KEYS: session hash, index, vehicles, the vehicle's live pointer, the vehicle's track.
-# ARGV: cutoff, session-key prefix, limit, ttl ms, score, id, vehicle id, key hash ('' = no registry
-# check), supersession-key prefix, now, fields...
-# Returns {1, superseded id or ''}, or {-1} (id taken), {-2} (too many sessions), {-3} (the vehicle is
-# not registered with this key). Nothing is written unless it returns 1.
-_CREATE = (
-    _PURGE
-    + """
-if ARGV[8] ~= '' then
-  local vehicle = redis.call('HGET', KEYS[3], ARGV[7])
-  if (not vehicle) or cjson.decode(vehicle)[1] ~= ARGV[8] then return {-3} end
-end
-purge(KEYS[2], ARGV[1], ARGV[2])
-if redis.call('EXISTS', KEYS[1]) == 1 then return {-1} end
-local old = redis.call('GET', KEYS[4])
-local old_token = false
-if old then
-  -- after the purge an existing session hash is a live session
-  old_token = redis.call('HGET', ARGV[2] .. old, 'token_hash')
-  if not old_token then
-    redis.call('ZREM', KEYS[2], old)
-    old = false
-  end
-end
-local live = redis.call('ZCARD', KEYS[2])
-if old then live = live - 1 end  -- the superseded session makes room for its successor
-if live >= tonumber(ARGV[3]) then return {-2} end
-if old then
-  redis.call('DEL', ARGV[2] .. old)
-  redis.call('ZREM', KEYS[2], old)
-  local superseded = ARGV[9] .. old
-  redis.call('DEL', superseded)
-  redis.call('HSET', superseded, 'superseded_by', ARGV[6], 'token_hash', old_token, 'at', ARGV[10])
-  redis.call('PEXPIRE', superseded, ARGV[4])
-end
-redis.call('DEL', KEYS[5])
-redis.call('HSET', KEYS[1], unpack(ARGV, 11))
-redis.call('PEXPIRE', KEYS[1], ARGV[4])
-redis.call('ZADD', KEYS[2], ARGV[5], ARGV[6])
-redis.call('SET', KEYS[4], ARGV[6], 'PX', ARGV[4])
-return {1, old or ''}
-"""
-)
-
-# KEYS: session hash, index, the vehicle's live pointer. ARGV: expected version, ttl ms, score, id,
-# fields... The pointer's TTL is refreshed with the session's while it names this session.
-_COMPARE_AND_SET = """
-local version = redis.call('HGET', KEYS[1], 'version')
-if (not version) or version ~= ARGV[1] then return 0 end
-redis.call('DEL', KEYS[1])
-redis.call('HSET', KEYS[1], unpack(ARGV, 5))
-redis.call('PEXPIRE', KEYS[1], ARGV[2])
-redis.call('ZADD', KEYS[2], ARGV[3], ARGV[4])
-if redis.call('GET', KEYS[3]) == ARGV[4] then redis.call('PEXPIRE', KEYS[3], ARGV[2]) end
-return 1
-"""
-
-# KEYS: session hash, index. ARGV: id, live-pointer prefix, track prefix. Removes the session and,
-# when the vehicle's pointer names it, the pointer and the vehicle's track. Returns 1 if it existed.
-_DELETE = """
-local vehicle = redis.call('HGET', KEYS[1], 'vehicle_id')
-local removed = redis.call('DEL', KEYS[1])
-redis.call('ZREM', KEYS[2], ARGV[1])
-if vehicle then
-  local pointer = ARGV[2] .. vehicle
-  if redis.call('GET', pointer) == ARGV[1] then
-    redis.call('DEL', pointer)
-    redis.call('DEL', ARGV[3] .. vehicle)
-  end
-end
-return removed
-"""
-
-# KEYS: the vehicle's live pointer, the session hash, index, the vehicle's track. ARGV: session id,
-# cutoff, track value, ttl ms. Writes the track only while that session is the vehicle's live one.
-_PUT_TRACK = """
-if redis.call('GET', KEYS[1]) ~= ARGV[1] then return 0 end
-if redis.call('EXISTS', KEYS[2]) == 0 then return 0 end
-local score = redis.call('ZSCORE', KEYS[3], ARGV[1])
-if (not score) or tonumber(score) < tonumber(ARGV[2]) then return 0 end
-redis.call('SET', KEYS[4], ARGV[3], 'PX', ARGV[4])
-return 1
-"""
-
-# KEYS: vehicles, vehicle keys. ARGV: (vehicle id, key hash, JSON value) triples. Adds the vehicles not
-# registered yet; returns their ids, or {-1} (and writes nothing) when a key hash to add is already
-# another vehicle's or appears twice.
-_ADD_VEHICLES = """
-local fresh, ids, keys = {}, {}, {}
-for i = 1, #ARGV, 3 do
-  local vehicle, key = ARGV[i], ARGV[i + 1]
-  if (not ids[vehicle]) and redis.call('HEXISTS', KEYS[1], vehicle) == 0 then
-    if keys[key] or redis.call('HEXISTS', KEYS[2], key) == 1 then return {-1} end
-    ids[vehicle], keys[key] = true, true
-    fresh[#fresh + 1] = i
-  end
-end
-local added = {}
-for _, i in ipairs(fresh) do
-  redis.call('HSET', KEYS[1], ARGV[i], ARGV[i + 2])
-  redis.call('HSET', KEYS[2], ARGV[i + 1], ARGV[i])
-  added[#added + 1] = ARGV[i]
-end
-return added
-"""
-
-# KEYS: vehicles, vehicle keys. ARGV: vehicle id, new key hash, now (repr). Returns the new JSON value,
-# 0 when the vehicle is not registered, -1 when the key hash is another vehicle's. Numbers are
-# rewritten with 17 significant digits, which round-trips a double exactly.
-_ROTATE_VEHICLE_KEY = """
-local value = redis.call('HGET', KEYS[1], ARGV[1])
-if not value then return 0 end
-local owner = redis.call('HGET', KEYS[2], ARGV[2])
-if owner and owner ~= ARGV[1] then return -1 end
-local vehicle = cjson.decode(value)
-if redis.call('HGET', KEYS[2], vehicle[1]) == ARGV[1] then redis.call('HDEL', KEYS[2], vehicle[1]) end
-local rotated = '[' .. cjson.encode(ARGV[2]) .. ',' .. string.format('%.17g', vehicle[2]) .. ','
-  .. ARGV[3] .. ']'
-redis.call('HSET', KEYS[1], ARGV[1], rotated)
-redis.call('HSET', KEYS[2], ARGV[2], ARGV[1])
-return rotated
-"""
-
-# KEYS: vehicles, vehicle keys, the vehicle's live pointer, the vehicle's track, index. ARGV: vehicle
-# id, session-key prefix, cutoff. Returns {0} when not registered, else {1, ended session id or ''}.
-_DELETE_VEHICLE = """
-local value = redis.call('HGET', KEYS[1], ARGV[1])
-if not value then return {0} end
-local key = cjson.decode(value)[1]
-redis.call('HDEL', KEYS[1], ARGV[1])
-if redis.call('HGET', KEYS[2], key) == ARGV[1] then redis.call('HDEL', KEYS[2], key) end
-local ended = ''
-local sid = redis.call('GET', KEYS[3])
-if sid then
-  local score = redis.call('ZSCORE', KEYS[5], sid)
-  local existed = redis.call('DEL', ARGV[2] .. sid)
-  redis.call('ZREM', KEYS[5], sid)
-  if existed == 1 and score and tonumber(score) >= tonumber(ARGV[3]) then ended = sid end
-  redis.call('DEL', KEYS[3])
-end
-redis.call('DEL', KEYS[4])
-return {1, ended}
-"""
-
-# KEYS: index. ARGV: cutoff, session-key prefix. Returns {purged, remaining}.
-_PURGE_AND_COUNT = (
-    _PURGE
-    + """
-local purged = purge(KEYS[1], ARGV[1], ARGV[2])
-return {purged, redis.call('ZCARD', KEYS[1])}
-"""
-)
-
-# GCRA (edgepos.store.ratelimit.gcra, transcribed). KEYS: the key's TAT. ARGV: now, interval,
-# tolerance, slack (s). Returns the wait in seconds as a string ("0" when allowed, and the TAT is stored
-# with a TTL until the key's whole burst is back).
-_TAKE_REQUEST = """
-local now = tonumber(ARGV[1])
-local tat = tonumber(redis.call('GET', KEYS[1]) or '')
-if (not tat) or tat < now then tat = now end
-local wait = tat - now - tonumber(ARGV[3])
-if wait > tonumber(ARGV[4]) then return string.format('%.17g', wait) end
-tat = tat + tonumber(ARGV[2])
-redis.call('SET', KEYS[1], string.format('%.17g', tat), 'PX', math.ceil((tat - now) * 1000) + 1)
-return '0'
-"""
 
 _UNAVAILABLE = (
     redis_errors.ConnectionError,  # refused, reset, DNS, auth failures, server still loading
@@ -416,15 +232,15 @@ class RedisStore(SessionStore):
             closer = self._closed_with_loop(client)
             self._client, self._loop, self._closer = client, loop, closer
             self._scripts = {
-                "create": client.register_script(_CREATE),
-                "cas": client.register_script(_COMPARE_AND_SET),
-                "count": client.register_script(_PURGE_AND_COUNT),
-                "take": client.register_script(_TAKE_REQUEST),
-                "delete": client.register_script(_DELETE),
-                "put_track": client.register_script(_PUT_TRACK),
-                "add_vehicles": client.register_script(_ADD_VEHICLES),
-                "rotate": client.register_script(_ROTATE_VEHICLE_KEY),
-                "delete_vehicle": client.register_script(_DELETE_VEHICLE),
+                "create": client.register_script(scripts.CREATE),
+                "cas": client.register_script(scripts.COMPARE_AND_SET),
+                "count": client.register_script(scripts.PURGE_AND_COUNT),
+                "take": client.register_script(scripts.TAKE_REQUEST),
+                "delete": client.register_script(scripts.DELETE),
+                "put_track": client.register_script(scripts.PUT_TRACK),
+                "add_vehicles": client.register_script(scripts.ADD_VEHICLES),
+                "rotate": client.register_script(scripts.ROTATE_VEHICLE_KEY),
+                "delete_vehicle": client.register_script(scripts.DELETE_VEHICLE),
             }
             await anext(closer)  # started, so the loop's shutdown will close it
         return self._client
