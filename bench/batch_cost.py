@@ -31,8 +31,6 @@ about four minutes on the 2-core box under load; ``--quick`` about a quarter of 
 
 from __future__ import annotations
 
-import edgepos  # noqa: F401  (first: pins BLAS to one thread before numpy loads)
-
 import argparse
 import contextlib
 import dataclasses
@@ -49,8 +47,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import edgepos  # noqa: F401  (first: pins BLAS to one thread before numpy loads)
 import numpy as np
-
 from edgepos.core.compiled import warm_up
 from edgepos.core.observations import (
     GyroObservation,
@@ -537,9 +535,8 @@ def fit(rows: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
     """Per pipeline, the constants of the tightest upper envelope of the measured medians: a linear
     programme, minimise the sum of predicted / measured with every row predicted >= measured and every
     constant >= 0. Features no row exercises are reported (they would fit to 0)."""
-    from scipy.optimize import linprog
-
     from edgepos.pipelines import cost
+    from scipy.optimize import linprog
 
     out: dict[str, dict[str, float]] = {}
     for name in dict.fromkeys(row["pipeline"] for row in rows):

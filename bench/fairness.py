@@ -36,7 +36,6 @@ from typing import Any
 
 import httpx
 import numpy as np
-
 from edgepos.core.observations import PseudorangeObservation
 from edgepos.loadgen import common
 from edgepos.loadgen.localredis import RedisServer, redis_binary

@@ -27,7 +27,6 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import baseline_2imm_ckf  # noqa: E402
-
 from edgepos.core.compiled import BankStepper, CompiledBankStepper, warm_up  # noqa: E402
 from edgepos.core.measurements import GyroYawRate, RsuRangeBearing, Stacked  # noqa: E402
 from edgepos.core.updates import RsuGyroEpoch  # noqa: E402
@@ -37,7 +36,6 @@ from edgepos.pipelines.registry import get_pipeline  # noqa: E402
 from edgepos.pipelines.rsu_imu import _bank, _decode, _options_key  # noqa: E402
 from edgepos.sim.scenarios import rsu_imu_paper_scenario  # noqa: E402
 from edgepos.sim.sensors import environment, rsu_imu_epochs  # noqa: E402
-
 
 TARGET_US = 150.0
 

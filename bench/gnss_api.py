@@ -22,8 +22,6 @@ import tempfile
 import time
 from pathlib import Path
 
-from fastapi.testclient import TestClient
-
 from edgepos.api.app import create_app
 from edgepos.api.ephemerides import parse, satellite_problems
 from edgepos.api.settings import Settings
@@ -34,6 +32,7 @@ from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
 from edgepos.loadgen.localredis import RedisServer
 from edgepos.pipelines.base import StaticEnvironment
 from edgepos.pipelines.gnss_tight import GnssTightPipeline
+from fastapi.testclient import TestClient
 
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "gnss-rover"
 KEY = "bench-admin-key-0123456789abcdef"

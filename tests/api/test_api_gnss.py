@@ -10,9 +10,8 @@ import numpy as np
 import pytest
 from apihelp import ADMIN, assert_error, make_settings, open_session
 from edgepos.api.app import create_app
-from edgepos.gnss.ephemerides import parse_ephemerides
+from edgepos.gnss.ephemerides import DEFAULT_SIGNAL, parse_ephemerides
 from edgepos.gnss.orbits import group_delay_factors
-from edgepos.gnss.ephemerides import DEFAULT_SIGNAL
 from fastapi.testclient import TestClient
 from gnsswire import QUICK, epochs, horizontal_error, measurements, nav_text
 

@@ -124,7 +124,7 @@ def fuzz_client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient
 
 
 # -- strategies from the published schema --------------------------------------------------------
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def bounded_floats(low: float, high: float) -> st.SearchStrategy[float]:
     """Floats in [low, high]: the bounds, their neighbours, uniform, and (for positive ranges spanning
     decades) log-uniform draws. (Strategies are cached: building them costs more than drawing.)"""
@@ -139,7 +139,7 @@ def bounded_floats(low: float, high: float) -> st.SearchStrategy[float]:
     return st.one_of(*strategies)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def bounded_integers(low: int, high: int) -> st.SearchStrategy[int]:
     """Integers in [low, high], mostly near the low end (particles: the cost of a case grows with them),
     the bounds themselves always reachable."""
@@ -147,7 +147,7 @@ def bounded_integers(low: int, high: int) -> st.SearchStrategy[int]:
     return st.one_of(small, small, small, st.sampled_from([low, high]), st.integers(low, high))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def probability_vectors(size: int) -> st.SearchStrategy[list[float]]:
     """Non-negative vectors summing to 1: one-hot, uniform, or normalised draws (exact zeros included)."""
     if size == 0:
@@ -159,12 +159,12 @@ def probability_vectors(size: int) -> st.SearchStrategy[list[float]]:
     return st.one_of(one_hot, st.just([1.0 / size] * size), normalised)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def stochastic_matrices(size: int) -> st.SearchStrategy[list[list[float]]]:
     return st.lists(probability_vectors(size), min_size=size, max_size=size)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def parameter_values(owner: str) -> st.SearchStrategy[dict[str, Any]]:
     """A subset of a motion model's or filter's parameters (``core.parameters`` tables, as the option
     descriptions list them), each within its bounds."""
@@ -179,7 +179,7 @@ def parameter_values(owner: str) -> st.SearchStrategy[dict[str, Any]]:
     return st.fixed_dictionaries({}, optional=entries)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def subsets(values: tuple[str, ...]) -> st.SearchStrategy[list[str]]:
     return st.lists(st.sampled_from(values), unique=True) if values else st.just([])
 
@@ -188,7 +188,7 @@ _SHAPED = ("matrix", "number[]", "object")
 """Option types whose shape follows other options (transition and model_params by models): drawn last."""
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _independent_options(pipeline: str) -> st.SearchStrategy[dict[str, Any]]:
     """Any subset of the pipeline's other options, each value within what GET /v1/pipelines publishes."""
     optional = {}

@@ -5,10 +5,9 @@ from __future__ import annotations
 import socket
 import time
 
-from fastapi.testclient import TestClient
-
 from apihelp import ADMIN, ADMIN_KEY, make_settings
 from edgepos.api.app import create_app
+from fastapi.testclient import TestClient
 
 
 def closed_port() -> int:

@@ -15,8 +15,8 @@ from pathlib import Path
 import jwt
 import pytest
 from apihelp import ADMIN, assert_error, batch_body, bearer, make_settings, open_session, rsu_payload
-from edgepos.api.app import create_app
 from cryptography.hazmat.primitives.asymmetric import ec
+from edgepos.api.app import create_app
 from edgepos.api.settings import Settings
 from edgepos.api.vehicle_jwt import JwksError
 from edgepos.loadgen.localredis import RedisServer, redis_binary

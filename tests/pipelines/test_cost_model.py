@@ -28,7 +28,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from edgepos.core.compiled import warm_up
 from edgepos.core.observations import GyroObservation, PseudorangeObservation, V2vRangeObservation
 from edgepos.pipelines import cost, tracks

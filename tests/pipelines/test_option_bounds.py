@@ -14,7 +14,13 @@ import pytest
 from edgepos.core.errors import NumericalError
 from edgepos.core.observations import GnssFixObservation, GyroObservation
 from edgepos.pipelines import rsu_imu, v2v_coop, v2x_federated
-from edgepos.pipelines.base import Fix, InitialState, PipelineInputError, StaticEnvironment, ensure_finite_fixes
+from edgepos.pipelines.base import (
+    Fix,
+    InitialState,
+    PipelineInputError,
+    StaticEnvironment,
+    ensure_finite_fixes,
+)
 from edgepos.pipelines.registry import PIPELINES
 from edgepos.sim.scenarios import rsu_imu_paper_scenario
 from edgepos.sim.sensors import rsu_imu_epochs

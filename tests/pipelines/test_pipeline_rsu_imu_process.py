@@ -8,7 +8,6 @@ import math
 
 import numpy as np
 import pytest
-
 from edgepos.core import state as state_format
 from edgepos.core.observations import GyroObservation, Observation, RsuObservation
 from edgepos.pipelines.base import Fix, InitialState, PipelineInputError, Rsu, StaticEnvironment

@@ -12,7 +12,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-
 from edgepos.core.errors import NumericalError
 from edgepos.core.observations import GnssFixObservation, GyroObservation, Observation
 from edgepos.core.state import StateFormatError

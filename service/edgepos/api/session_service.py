@@ -21,6 +21,7 @@ from typing import Any
 from edgepos.api.auth import hash_token, new_session_id, new_session_token, superseded_error
 from edgepos.api.context import AppContext
 from edgepos.api.convert import batch_body, fix_to_json, to_json
+from edgepos.api.ephemerides import LoadedEphemerides, satellite_problems
 from edgepos.api.errors import ApiError, pipeline_problems
 from edgepos.api.schemas import (
     BatchIn,
@@ -33,14 +34,13 @@ from edgepos.api.schemas import (
     SessionOut,
 )
 from edgepos.core.errors import EstimationError
-from edgepos.core.state import StateFormatError
-from edgepos.api.ephemerides import LoadedEphemerides, satellite_problems
 from edgepos.core.observations import (
     PseudorangeObservation,
     RsuObservation,
     RsuRangeObservation,
     V2vRangeObservation,
 )
+from edgepos.core.state import StateFormatError
 from edgepos.pipelines import cost, tracks
 from edgepos.pipelines.base import (
     Fix,

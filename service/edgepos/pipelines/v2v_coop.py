@@ -50,8 +50,14 @@ from edgepos.pipelines.base import (
     StateSummary,
     ensure_finite_fixes,
 )
-from edgepos.pipelines.kinematic import KINEMATIC, check_batch, dead_reckoning_update, kinematic_fix, shared_point
 from edgepos.pipelines.epochs import group_by_time
+from edgepos.pipelines.kinematic import (
+    KINEMATIC,
+    check_batch,
+    dead_reckoning_update,
+    kinematic_fix,
+    shared_point,
+)
 from edgepos.pipelines.options import resolve_options
 from edgepos.pipelines.tracks import NeighbourUnavailable, position_at
 

@@ -49,8 +49,8 @@ from edgepos.pipelines.base import (
     StateSummary,
     ensure_finite_fixes,
 )
-from edgepos.pipelines.kinematic import check_batch, dead_reckoning_update, kinematic_fix
 from edgepos.pipelines.epochs import group_by_time
+from edgepos.pipelines.kinematic import check_batch, dead_reckoning_update, kinematic_fix
 from edgepos.pipelines.options import resolve_options
 from edgepos.pipelines.tracks import NeighbourUnavailable, position_at
 

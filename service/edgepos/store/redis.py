@@ -36,6 +36,7 @@ from redis.backoff import ExponentialBackoff
 from redis.commands.core import AsyncScript
 
 from edgepos.pipelines.base import NeighbourTrack, Rsu
+from edgepos.store import redis_scripts as scripts
 from edgepos.store.base import (
     Clock,
     Revocation,
@@ -51,7 +52,6 @@ from edgepos.store.base import (
     decode_track,
     encode_track,
 )
-from edgepos.store import redis_scripts as scripts
 from edgepos.store.ratelimit import SLACK_S, RateLimit, gcra
 
 DEFAULT_PREFIX = "edgepos:"

@@ -8,7 +8,13 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Query, Request, Response
 
 from edgepos.api import session_service
-from edgepos.api.auth import Principal, authorise_session_creation, require_admin, require_session, require_vehicle
+from edgepos.api.auth import (
+    Principal,
+    authorise_session_creation,
+    require_admin,
+    require_session,
+    require_vehicle,
+)
 from edgepos.api.context import Context
 from edgepos.api.routes import errors, json_body, known_query_parameters
 from edgepos.api.schemas import (

@@ -24,9 +24,9 @@ from edgepos.core.motion.base import (
     dt_key,
     markov_chain,
 )
-from edgepos.core.parameters import ParameterSpec
 from edgepos.core.motion.turn import turn_matrix, turn_matrix_omega_derivative, turn_noise, turn_propagate
 from edgepos.core.numerics import wrap_angle
+from edgepos.core.parameters import ParameterSpec
 
 
 class AdaptiveTurn(MotionModel):

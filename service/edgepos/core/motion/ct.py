@@ -18,8 +18,8 @@ from edgepos.core.motion.base import (
     check_positive,
     dt_key,
 )
-from edgepos.core.parameters import ParameterSpec
 from edgepos.core.motion.turn import turn_matrix, turn_noise
+from edgepos.core.parameters import ParameterSpec
 
 
 class CoordinatedTurn(MotionModel):

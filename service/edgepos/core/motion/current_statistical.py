@@ -19,8 +19,8 @@ import numpy as np
 
 from edgepos.core import layout
 from edgepos.core.motion.base import MotionModel, check_positive, dt_key, van_loan
-from edgepos.core.parameters import ParameterSpec
 from edgepos.core.motion.singer import singer_drift
+from edgepos.core.parameters import ParameterSpec
 
 _CA_DRIFT = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0]])
 _RAYLEIGH_FACTOR = (4.0 - math.pi) / math.pi
