@@ -42,6 +42,7 @@ def pipeline_to_wire(pipeline: Pipeline) -> PipelineOut:
             )
             for spec in pipeline.option_specs()
         ],
+        smoother=pipeline.smoother,
     )
 
 
@@ -60,6 +61,7 @@ def fix_to_json(fix: Fix, include_state: bool, origin: GeodeticOrigin | None) ->
     return {
         "t": fix.t,
         "status": fix.status,
+        "revised": fix.revised,
         "divergence": fix.divergence,
         "x": fix.x,
         "y": fix.y,

@@ -229,6 +229,9 @@ class PipelineOut(ResponseModel):
     description: str = Field(description="The method in one paragraph.")
     measurement_types: list[str] = Field(description="Measurement 'type' values this pipeline uses.")
     options: list[OptionOut] = Field(description="Every option with its default and bounds.")
+    smoother: bool = Field(
+        False, description="Whether GET /v1/sessions/{id}/track?smoothed=true is available for its sessions."
+    )
 
 
 class PipelineList(ResponseModel):
@@ -454,6 +457,12 @@ class FixOut(ResponseModel):
         "physical bound (the session's max_speed_mps, max_acceleration_mps2 or site_radius_m options), see "
         "divergence: do not use its position or velocity."
     )
+    revised: bool = Field(
+        False,
+        description="true: this epoch was answered before and late measurements (the session's lag window, "
+        "option max_delay_s) changed its estimate; this fix replaces the earlier one of the same t. A client "
+        "keeps the last fix it received for each t.",
+    )
     divergence: str | None = Field(
         None,
         description="Only with status diverged, else null: which bound the estimate broke, by how much (m, m/s, "
@@ -498,7 +507,9 @@ class FixOut(ResponseModel):
     )
     nis_dof: int = Field(description="Degrees of freedom of nis (the measurement dimension used).")
     measurements: list[MeasurementUseOut] = Field(
-        description="Every measurement of this epoch: used or why not."
+        description="The batch's measurements of this epoch: used or why not (a revised fix lists only the "
+        "late measurements this batch brought to its epoch). Measurements older than the lag window are "
+        "listed in the batch's newest fix, used false, with how late they were."
     )
 
 
@@ -506,7 +517,28 @@ class BatchOut(ResponseModel):
     """Answer to a batch: one fix per epoch, in time order."""
 
     seq: int = Field(description="The batch's seq.")
-    fixes: list[FixOut] = Field(description="One fix per epoch of the batch, in time order.")
+    fixes: list[FixOut] = Field(
+        description="One fix per epoch of the batch and, when late measurements arrived, a revised fix for "
+        "each earlier epoch they changed (revised true), all in time order."
+    )
+
+
+class TrackOut(ResponseModel):
+    """The estimates of a session's lag window, one per epoch, oldest first."""
+
+    session_id: str = Field(description="Session identifier.")
+    pipeline: str = Field(description="Pipeline name.")
+    smoothed: bool = Field(
+        description="false: filtered estimates (each from the data up to its t); true: fixed-interval "
+        "smoothed over the window (Rauch-Tung-Striebel; an IMM smoother for rsu_imu): each from every "
+        "measurement in the window, so the oldest epochs gain the most."
+    )
+    max_delay_s: float = Field(description="The session's lag window (s).")
+    start_t: float | None = Field(description="The window's oldest epoch (s, vehicle clock), null when empty.")
+    end_t: float | None = Field(description="The session's newest epoch (s), null before any.")
+    fixes: list[FixOut] = Field(
+        description="One estimate per epoch of the window, in time order (measurements lists are empty)."
+    )
 
 
 class SessionOut(ResponseModel):

@@ -32,6 +32,7 @@ from edgepos.api.schemas import (
     SessionList,
     SessionListItem,
     SessionOut,
+    TrackOut,
 )
 from edgepos.core.errors import EstimationError
 from edgepos.core.observations import (
@@ -50,6 +51,7 @@ from edgepos.pipelines.base import (
     PipelineInputError,
     Problem,
     StaticEnvironment,
+    ensure_finite_fixes,
 )
 from edgepos.store.base import (
     SessionRecord,
@@ -317,8 +319,8 @@ async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> b
         raise ApiError("invalid_request", "the batch is too large", [problem])
     digest = batch_hash(batch)
     observations = [measurement.to_observation() for measurement in batch.measurements]
-    rsu_ids = {o.rsu_id for o in observations if isinstance(o, (RsuObservation, RsuRangeObservation))}
-    peer_ids = {o.peer_vehicle_id for o in observations if isinstance(o, V2vRangeObservation)}
+    rsu_ids = _rsu_ids(observations)
+    peer_ids = _peer_ids(observations)
     has_pseudoranges = any(isinstance(o, PseudorangeObservation) for o in observations)
     # One place in the vehicle's line for the whole request: a vehicle that sends batches in parallel
     # gets 429 instead of holding the worker's admission slots while it waits for its own session.
@@ -352,7 +354,16 @@ async def _apply_in_turn(
                 return replay
             pipeline = _pipeline(context, record.pipeline)
             _check_types(pipeline, batch)
-            cost_s = _admit(context, pipeline, record.options, observations)
+            try:
+                # Late measurements make the lag window filter some stored ones again: their RSUs and
+                # neighbours are looked up too, and their cost counts against the budget.
+                replayed = pipeline.replayed_observations(record.state, observations)
+            except StateFormatError as error:
+                raise _unreadable_state(session_id, error) from None
+            cost_s = _admit(context, pipeline, record.options, observations, replayed)
+            if replayed:
+                rsu_ids = rsu_ids | _rsu_ids(replayed)
+                peer_ids = peer_ids | _peer_ids(replayed)
             # One read for the peers' tracks and, if this session publishes, its own (extended
             # after the batch); nothing at all for a batch of a non-cooperative session.
             wanted = peer_ids | ({record.vehicle_id} if pipeline.publishes_track else set())
@@ -412,7 +423,7 @@ async def _apply_in_turn(
                 last_request_hash=digest,
                 last_response=body,
                 batches=record.batches + 1,
-                epochs=record.epochs + len(fixes),
+                epochs=record.epochs + sum(not fix.revised for fix in fixes),
                 last_fix=last_fix,
                 updated_at=context.store.clock(),
             )
@@ -425,19 +436,37 @@ async def _apply_in_turn(
     raise ApiError("unavailable", "the session kept changing under this request; retry the same batch")
 
 
-def _admit(context: AppContext, pipeline: Pipeline, options: Mapping[str, Any], observations: list[Any]) -> float:
-    """The batch's predicted CPU seconds, after refusing (422) an epoch with more measurements of a kind
-    than the pipeline accepts per epoch, or a batch predicted to cost more than the budget."""
+def _rsu_ids(observations: list[Any]) -> set[str]:
+    return {o.rsu_id for o in observations if isinstance(o, (RsuObservation, RsuRangeObservation))}
+
+
+def _peer_ids(observations: list[Any]) -> set[str]:
+    return {o.peer_vehicle_id for o in observations if isinstance(o, V2vRangeObservation)}
+
+
+def _admit(
+    context: AppContext,
+    pipeline: Pipeline,
+    options: Mapping[str, Any],
+    observations: list[Any],
+    replayed: list[Any] | None = None,
+) -> float:
+    """The batch's predicted CPU seconds (with the stored observations a late measurement makes the lag
+    window filter again), after refusing (422) an epoch with more measurements of a kind than the
+    pipeline accepts per epoch, or a batch predicted to cost more than the budget."""
     predicted, violations = cost.admit(pipeline.name, options, observations)
+    if replayed:
+        predicted += cost.batch_cost_s(pipeline.name, options, replayed)
     if violations:
         problems = [ProblemModel(index=None, field="measurements", reason=v.reason) for v in violations[:20]]
         raise ApiError("invalid_request", "the batch has epochs with too many measurements; the session is unchanged", problems)
     budget_s = context.settings.batch_cpu_budget_s
     if predicted > budget_s:
-        epochs = len({o.t for o in observations})
+        epochs = len({o.t for o in observations} | {o.t for o in replayed or ()})
         fit = max(1, int(budget_s / (predicted / epochs))) if epochs else 0
+        again = f", {len({o.t for o in replayed})} of them filtered again for late measurements" if replayed else ""
         reason = (
-            f"this batch would cost about {predicted * 1e3:.0f} ms of CPU ({epochs} epochs), over the server's "
+            f"this batch would cost about {predicted * 1e3:.0f} ms of CPU ({epochs} epochs{again}), over the server's "
             f"budget of {budget_s * 1e3:g} ms per batch (EDGEPOS_BATCH_CPU_BUDGET_MS): send at most about {fit} "
             "epochs like these per batch"
         )
@@ -506,3 +535,55 @@ async def _publish_track(
             "track not published",
             extra={"event": "track_not_published", "session_id": record.session_id, "error": str(error)},
         )
+
+
+async def session_track(context: AppContext, session_id: str, smoothed: bool) -> TrackOut:
+    """The estimates of the session's lag window, filtered again from the window's start, or smoothed."""
+    record = await context.store.get(session_id)
+    if record is None:
+        raise await _session_gone(context, session_id)
+    pipeline = _pipeline(context, record.pipeline)
+    if smoothed and not pipeline.smoother:
+        smoothing = sorted(name for name, p in context.pipelines.items() if p.smoother)
+        reason = f"the {pipeline.name} pipeline has no smoother (pipelines with one: {', '.join(smoothing)})"
+        raise ApiError("invalid_request", reason, [ProblemModel(index=None, field="smoothed", reason=reason)])
+    try:
+        observations = pipeline.replayed_observations(record.state, None)
+        start_t, end_t, window = pipeline.window_bounds(record.state)
+    except StateFormatError as error:
+        raise _unreadable_state(session_id, error) from None
+    rsus = dict(await context.store.get_rsus(_rsu_ids(observations))) if observations else {}
+    peer_ids = _peer_ids(observations)
+    peers = dict(await context.store.get_tracks(peer_ids)) if peer_ids else {}
+    loaded = None
+    if any(isinstance(o, PseudorangeObservation) for o in observations):
+        loaded = await context.ephemerides.current(context.store, context.run_filter)
+    environment = StaticEnvironment(
+        rsus, peers, record.vehicle_id, navigation=None if loaded is None else loaded.ephemerides,
+        origin=_origin(context),
+    )
+    # A smoother filters forwards and then runs backwards: about twice a replay of the window.
+    cost_s = (2.0 if smoothed else 1.0) * cost.batch_cost_s(pipeline.name, record.options, observations)
+    try:
+        fixes = await context.scheduler.run(
+            record.vehicle_id, cost_s, pipeline.name, _track_fixes, pipeline, record.state, environment, smoothed
+        )
+    except (PipelineInputError, EstimationError) as error:
+        raise ApiError(
+            "estimation_failed", f"the window's track could not be computed now: {error}"
+        ) from None
+    origin = context.origin
+    return TrackOut.model_validate({
+        "session_id": session_id,
+        "pipeline": pipeline.name,
+        "smoothed": smoothed,
+        "max_delay_s": window.get("max_delay_s", 0.0),
+        "start_t": start_t,
+        "end_t": end_t,
+        "fixes": [fix_to_json(fix, True, origin) for fix in fixes],
+    })
+
+
+def _track_fixes(pipeline: Pipeline, state: bytes, environment: StaticEnvironment, smoothed: bool) -> list[Fix]:
+    """Runs in the scheduler's lane: the window's fixes, each checked finite."""
+    return ensure_finite_fixes(pipeline.track(state, environment, smoothed))

@@ -185,6 +185,9 @@ class Fix:
     """What to publish for neighbours when it differs from the fix itself: a cooperative pipeline
     shares an estimate its neighbours' ranges did not shape, so that two vehicles do not count each
     other's information twice (None: publish the fix)."""
+    revised: bool = False
+    """True for a fix of an epoch answered before, filtered again because late measurements arrived
+    (``pipelines.lag``): it replaces the earlier fix of the same ``t``."""
     divergence: str | None = None
     """Set with status "diverged" (``pipelines.plausibility``): which physical bound the estimate broke
     and what was done (the session reset, or only reported); None otherwise."""
@@ -225,6 +228,17 @@ class Pipeline(ABC):
     for other vehicles' cooperative pipelines to range against. Cooperative pipelines set it; for
     the others it would cost two store round trips per batch that nobody reads."""
 
+    smoother: ClassVar[bool] = False
+    """Whether :meth:`smooth` is available: the session's track can be served smoothed."""
+
+    def smooth(
+        self, state: bytes, observations: Sequence[Observation], environment: Environment, lag_s: float | None = None
+    ) -> list[Fix]:
+        """Filter ``observations`` from ``state`` as :meth:`process` does, then smooth backwards: one
+        smoothed fix per epoch (``lag_s`` None: each with all the data; else with the data up to
+        ``t + lag_s``). Only pipelines with ``smoother = True`` override it; callers check that flag."""
+        raise TypeError(f"the {self.name} pipeline has no smoother")
+
     @abstractmethod
     def option_specs(self) -> list[OptionSpec]:
         """Every option with its default, bounds and meaning."""
@@ -251,6 +265,22 @@ class Pipeline(ABC):
     @abstractmethod
     def summarise(self, state: bytes) -> StateSummary:
         """The session's state in words and numbers, without filtering."""
+
+    def replayed_observations(self, state: bytes, observations: Sequence[Observation] | None) -> list[Observation]:
+        """Stored observations that applying ``observations`` would filter again (``pipelines.lag``), or
+        with None all that the session keeps: what the caller must look up and budget for beyond the
+        batch. A pipeline that keeps no measurements keeps none."""
+        return []
+
+    def window_bounds(self, state: bytes) -> tuple[float | None, float | None, dict[str, Any]]:
+        """The oldest and newest epoch the session keeps (None: none) and its window options; without a
+        lag window only the newest epoch is known."""
+        return None, self.summarise(state).t, {}
+
+    def track(self, state: bytes, environment: Environment, smoothed: bool) -> list[Fix]:
+        """The estimates of the epochs the session keeps, oldest first (``pipelines.lag``); a pipeline that
+        keeps no measurements has none to give."""
+        return []
 
 
 def is_finite_number(value: Any) -> bool:
@@ -286,10 +316,12 @@ def _finite_sum(fix: Fix) -> bool:
     for value in (fix.x, fix.y, fix.vx, fix.vy, fix.speed, fix.heading, fix.yaw_rate, fix.nis):
         if value is not None:
             total += value
-    for rows in (fix.position_cov, fix.kinematic_cov):
+    for rows in (fix.position_cov, fix.kinematic_cov, fix.state_cov):
         if rows is not None:
             total += sum(map(sum, rows))
-    if fix.latitude is not None or fix.state is not None or fix.shared is not None or fix.state_cov is not None:
+    if fix.state is not None:
+        total += sum(fix.state)
+    if fix.latitude is not None or fix.shared is not None:
         return False  # rarer fields: the field-by-field look covers them
     return math.isfinite(total)
 

@@ -216,6 +216,7 @@ class Plausible(Pipeline):
         self.description = inner.description  # type: ignore[misc]
         self.measurement_kinds = inner.measurement_kinds  # type: ignore[misc]
         self.publishes_track = inner.publishes_track  # type: ignore[misc]
+        self.smoother = inner.smoother  # type: ignore[misc]
 
     def __repr__(self) -> str:
         return f"Plausible({self.inner!r})"
@@ -273,6 +274,13 @@ class Plausible(Pipeline):
             t=summary.t if summary.t is not None else envelope.t,
             options={**summary.options, **envelope.options},
         )
+
+    def smooth(
+        self, state: bytes, observations: Sequence[Observation], environment: Environment, lag_s: float | None = None
+    ) -> list[Fix]:
+        """The inner pipeline's smoothed fixes (not judged: a smoother runs over fixes already judged)."""
+        _, inner_state = unwrap(state)
+        return self.inner.smooth(inner_state, observations, environment, lag_s)
 
     # -- batches -----------------------------------------------------------------------------------
     def process(

@@ -20,7 +20,7 @@ import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from scipy.stats import chi2
@@ -220,6 +220,23 @@ class RsuImuPipeline(Pipeline):
         for epoch in group_by_time(observations):
             fixes.append(_step(session, bank, epoch, observations, rsus))
         return ensure_finite_fixes(fixes), session.to_bytes()
+
+    smoother: ClassVar[bool] = True
+
+    def smooth(
+        self, state: bytes, observations: Sequence[Observation], environment: Environment, lag_s: float | None = None
+    ) -> list[Fix]:
+        """Filter ``observations`` from ``state`` exactly as process() does (same validation, same fixes'
+        t/status/measurements), recording what the backward pass needs, then smooth backwards: one
+        smoothed fix per epoch, in time order. lag_s None: fixed-interval (every epoch smoothed with all
+        the given data). lag_s = L: fixed-lag, each epoch's estimate uses only the data up to t + L (what
+        a live track with a window of L seconds shows for its oldest point).
+
+        Kim's IMM smoother (``core.smoothing``); segments and recording: ``pipelines.rsu_imu_smoothing``.
+        The returned state of the forward pass is not kept: smoothing never advances a session."""
+        from edgepos.pipelines import rsu_imu_smoothing  # it builds on this module's helpers
+
+        return rsu_imu_smoothing.smooth(state, observations, environment, lag_s)
 
 
 # -- validation and grouping ---------------------------------------------------------------------

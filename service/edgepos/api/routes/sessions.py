@@ -26,6 +26,7 @@ from edgepos.api.schemas import (
     SessionCreated,
     SessionList,
     SessionOut,
+    TrackOut,
 )
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
@@ -118,6 +119,29 @@ async def list_sessions(
 async def get_session(session_id: str, context: Context) -> SessionOut:
     """Options, counters, model probabilities, last seq and the latest fix (session token or admin key)."""
     return await session_service.describe_session(context, session_id)
+
+
+@router.get(
+    "/{session_id}/track",
+    response_model=TrackOut,
+    summary="Read the session's recent track",
+    dependencies=[Depends(require_session), Depends(known_query_parameters("smoothed"))],
+    responses=errors(401, 403, 404, 409, 422, 429, 503),
+)
+async def get_track(
+    session_id: str,
+    context: Context,
+    smoothed: Annotated[
+        bool,
+        Query(description="false: the filtered estimates; true: smoothed over the window (pipelines with a "
+              "smoother: GET /v1/pipelines lists smoother true)."),
+    ] = False,
+) -> TrackOut:
+    """The estimates of the session's lag window (the last max_delay_s seconds), one per epoch, oldest
+    first: filtered again from the window's start with the RSU registry and neighbour tracks as they are
+    now, or with ``smoothed=true`` fixed-interval smoothed over the window, for mapping and analytics
+    (session token or admin key). The state covariance is included (``state``)."""
+    return await session_service.session_track(context, session_id, smoothed)
 
 
 @router.delete(

@@ -1,0 +1,630 @@
+"""Late and out-of-order measurements: a lag window around every pipeline (history replay).
+
+Over a radio link measurements arrive late and out of order: an RSU's range comes through the RSU's
+backhaul after the vehicle's own gyro samples; a retransmitted packet carries samples older than the
+last batch. :class:`LagWindow` (the registry puts it around every pipeline, outside
+``plausibility.Plausible``) keeps the last ``max_delay_s`` seconds of the session: the measurements
+and a few *checkpoints* (the inner state at batch boundaries). A measurement older than the session's
+newest epoch but inside the window is inserted at its own time and the filter runs again from the
+latest checkpoint before it, through every later measurement (history replay, as robot fusion
+frameworks do). Replay is exact: the inner pipelines' states carry everything a step needs, so the
+result is the state filtering in time order would have reached, whatever the order of arrival (to
+round-off: an epoch's measurements may be stacked in another order). An exact out-of-sequence update
+exists only for linear filters with one model; the pipelines here are nonlinear banks, so replay it is
+(its cost is measured by ``bench/late_measurements.py``).
+
+Every response holds the fixes of the batch's epochs and, for epochs answered before whose estimate
+the late data changed, the *revised* fixes (``Fix.revised``), all in time order: a client keeps the
+last fix it received for each ``t``.
+
+A measurement older than the window (``t < newest - max_delay_s``, or before the oldest epoch the
+window still holds) is not invalid: it is reported ``used: false`` with how late it was in the
+response's newest fix, and the rest of the batch is applied. It is still validated with the batch:
+a malformed late measurement refuses the batch as any other would.
+
+Bounds: ``max_delay_s`` (0..10 s), ``max_window_epochs`` (the most epochs the window keeps; when more
+arrive within ``max_delay_s`` the oldest leave it), and ``max_lead_s`` (a measurement more than that
+after every other of its batch is refused: a clock error that would move the session past all later
+data). The service refuses at creation a window whose full replay would cost more CPU than its batch
+budget (``pipelines.cost``).
+
+State: ``_HEADER`` (magic, version, the options, the newest epoch, table sizes), then the checkpoint
+table (time of each checkpoint's last epoch, length), the checkpoint states, the current inner state,
+the window's observation times and end offsets, and the observations as one JSON record each. The
+first checkpoint is the window's *base*: the current state is the base state filtered through every
+observation of the window. A batch in time order appends its observations as bytes and decodes none
+of the stored ones.
+"""
+
+from __future__ import annotations
+
+import bisect
+import dataclasses
+import json
+import math
+import struct
+import typing
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from edgepos.core.observations import Observation
+from edgepos.core.state import StateFormatError
+from edgepos.pipelines.base import (
+    Environment,
+    Fix,
+    InitialState,
+    MeasurementUse,
+    OptionSpec,
+    Pipeline,
+    PipelineInputError,
+    Problem,
+    StateSummary,
+)
+from edgepos.pipelines.options import resolve_options
+
+MAGIC = b"EPLW"
+VERSION = 1
+
+CHECKPOINTS_PER_WINDOW = 8
+"""A new checkpoint is kept only when it is at least ``max_delay_s / CHECKPOINTS_PER_WINDOW`` after the
+previous one: at most about this many states per window, whatever the batch rate (a state is 2.4 kB for
+rsu_imu), at the price of replaying up to that much more than strictly needed."""
+
+OPTION_SPECS: tuple[OptionSpec, ...] = (
+    OptionSpec(
+        "max_delay_s", "number", 1.0,
+        "Lag window (s): a measurement up to this much older than the session's newest epoch is inserted at "
+        "its own time and the filter runs again from there (earlier fixes come back revised); an older one is "
+        "reported used=false. 0 keeps no window.", 0.0, 10.0,
+    ),
+    OptionSpec(
+        "max_window_epochs", "integer", 200,
+        "The most epochs the lag window keeps; when more arrive within max_delay_s the oldest leave it "
+        "(10 s at 20 Hz). Bounded so that replaying the whole window fits the server's CPU budget per batch.",
+        1, 1000,
+    ),
+    OptionSpec(
+        "max_lead_s", "number", 10.0,
+        "A measurement more than this (s) after every other measurement of its batch is refused (422): a "
+        "clock error that would put the session's newest epoch past all later data. At least the longest "
+        "gap between a batch's epochs.", 1.0, 3600.0,
+    ),
+)
+NAMES = frozenset(spec.name for spec in OPTION_SPECS)
+DEFAULTS: dict[str, Any] = {spec.name: spec.default for spec in OPTION_SPECS}
+
+# magic, version, max_delay_s, max_window_epochs, max_lead_s, newest epoch (NaN: none), checkpoints,
+# current state length, observations.
+_HEADER = struct.Struct("<4sBdIddIII")
+_CHECKPOINT = struct.Struct("<dI")  # time of the state's last epoch (NaN: none), state length
+_NAN = math.nan
+
+# Observation kinds by wire name, from the union in core.observations (a new kind registers there).
+_KINDS: dict[str, type] = {cls.kind: cls for cls in typing.get_args(Observation)}
+
+
+# -- the observation codec ---------------------------------------------------------------------------
+_FIELDS: dict[type, tuple[str, ...]] = {
+    cls: tuple(f.name for f in dataclasses.fields(cls)) for cls in _KINDS.values()
+}
+
+
+def encode_epoch(observations: Sequence[Observation]) -> bytes:
+    """An epoch's observations as one compact JSON array of arrays: kind, then the fields in declaration
+    order (one encoder call per epoch, not per observation)."""
+    rows = [[o.kind, *[getattr(o, name) for name in _FIELDS[type(o)]]] for o in observations]
+    return json.dumps(rows, separators=(",", ":"), allow_nan=False).encode()
+
+
+def decode_epoch(record: bytes) -> list[Observation]:
+    try:
+        rows = json.loads(record)
+    except ValueError as error:
+        raise StateFormatError(f"lag window record does not decode: {error}") from None
+    observations = []
+    for values in rows if isinstance(rows, list) else [None]:
+        cls = _KINDS.get(values[0]) if isinstance(values, list) and values else None
+        if cls is None:
+            raise StateFormatError("lag window holds an unknown observation kind")
+        fields = [tuple(v) if isinstance(v, list) else v for v in values[1:]]
+        try:
+            observations.append(typing.cast(Observation, cls(*fields)))
+        except TypeError as error:
+            raise StateFormatError(f"lag window observation does not decode: {error}") from None
+    return observations
+
+
+# -- the window --------------------------------------------------------------------------------------
+@dataclasses.dataclass
+class _Checkpoint:
+    t: float | None  # the time of the last epoch filtered into ``state`` (None: none yet)
+    state: bytes
+
+
+@dataclasses.dataclass
+class _Window:
+    options: dict[str, Any]
+    newest: float | None  # the session's newest epoch
+    checkpoints: list[_Checkpoint]  # oldest first; [0] is the base
+    current: bytes  # the inner state after every observation of the window
+    times: list[float]  # the window's epochs (distinct observation times), ascending
+    records: list[bytes]  # each epoch's observations (``encode_epoch``), same order
+
+    @property
+    def base(self) -> _Checkpoint:
+        return self.checkpoints[0]
+
+    def observations(self, start: int = 0) -> list[Observation]:
+        """The observations of the window's epochs from ``start`` on, in time order."""
+        return [o for record in self.records[start:] for o in decode_epoch(record)]
+
+
+def _pack(window: _Window) -> bytes:
+    options = window.options
+    header = _HEADER.pack(
+        MAGIC, VERSION, float(options["max_delay_s"]), int(options["max_window_epochs"]), float(options["max_lead_s"]),
+        _NAN if window.newest is None else window.newest, len(window.checkpoints), len(window.current),
+        len(window.records),
+    )
+    parts = [header]
+    parts += [_CHECKPOINT.pack(_NAN if c.t is None else c.t, len(c.state)) for c in window.checkpoints]
+    parts += [c.state for c in window.checkpoints]
+    parts.append(window.current)
+    count = len(window.records)
+    ends, end = [], 0
+    for record in window.records:
+        end += len(record)
+        ends.append(end)
+    parts.append(struct.pack(f"<{count}d{count}I", *window.times, *ends))
+    parts += window.records
+    return b"".join(parts)
+
+
+def _unpack(state: bytes) -> _Window:
+    if state[: len(MAGIC)] != MAGIC:
+        raise StateFormatError("state has no lag window (written by an older edgepos): open a new session")
+    try:
+        _, version, delay, epochs, lead, newest, checkpoints, current_length, count = _HEADER.unpack_from(state)
+        if version != VERSION:
+            raise StateFormatError(f"lag window version {version} is not {VERSION}")
+        offset = _HEADER.size
+        table = [_CHECKPOINT.unpack_from(state, offset + i * _CHECKPOINT.size) for i in range(checkpoints)]
+        offset += checkpoints * _CHECKPOINT.size
+        stored = []
+        for t, length in table:
+            stored.append(_Checkpoint(None if math.isnan(t) else t, state[offset : offset + length]))
+            offset += length
+        current = state[offset : offset + current_length]
+        offset += current_length
+        index = struct.unpack_from(f"<{count}d{count}I", state, offset)
+        offset += count * 12
+        records, start = [], 0
+        for end in index[count:]:
+            records.append(state[offset + start : offset + end])
+            start = end
+        if offset + start != len(state) or not stored or len(current) != current_length:
+            raise StateFormatError("lag window is truncated or corrupt")
+    except struct.error as error:
+        raise StateFormatError(f"lag window is truncated: {error}") from None
+    options = {"max_delay_s": delay, "max_window_epochs": epochs, "max_lead_s": lead}
+    return _Window(options, None if math.isnan(newest) else newest, stored, current, list(index[:count]), records)
+
+
+def _own(options: Mapping[str, Any]) -> dict[str, Any]:
+    return {name: options.get(name, default) for name, default in DEFAULTS.items()}
+
+
+def _finite(t: Any) -> bool:
+    return isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Arrival:
+    """A batch sorted out against the window: indices into the batch."""
+
+    fresh: list[int]  # newer than the newest epoch (or malformed times: the inner pipeline refuses them)
+    late: list[int]  # at or before the newest epoch, inside the window
+    too_late: list[int]  # before the window
+
+
+class LagWindow(Pipeline):
+    """``inner`` with a lag window for late measurements and revised fixes (see the module docstring)."""
+
+    def __init__(self, inner: Pipeline) -> None:
+        if isinstance(inner, LagWindow):
+            raise TypeError(f"pipeline {inner.name!r} already has a lag window")
+        self.inner = inner
+        # Instance attributes over the ClassVars: the wrapper is the inner pipeline to its callers.
+        self.name = inner.name  # type: ignore[misc]  # the wrapper answers for the pipeline it wraps
+        self.description = inner.description  # type: ignore[misc]  # idem
+        self.measurement_kinds = inner.measurement_kinds  # type: ignore[misc]  # idem
+        self.publishes_track = inner.publishes_track  # type: ignore[misc]  # idem
+        self.smoother = inner.smoother  # type: ignore[misc]  # idem
+
+    def __repr__(self) -> str:
+        return f"LagWindow({self.inner!r})"
+
+    # -- options -----------------------------------------------------------------------------------
+    def option_specs(self) -> list[OptionSpec]:
+        return [*self.inner.option_specs(), *OPTION_SPECS]
+
+    def resolve_options(self, options: Mapping[str, Any] | None) -> dict[str, Any]:
+        if options is not None and not isinstance(options, Mapping):
+            raise PipelineInputError([Problem(None, "options", "must be a JSON object")])
+        inner_options = None if options is None else {k: v for k, v in options.items() if k not in NAMES}
+        own = None if options is None else {k: v for k, v in options.items() if k in NAMES}
+        problems: list[Problem] = []
+        resolved: dict[str, Any] = {}
+        try:
+            resolved = self.inner.resolve_options(inner_options)
+        except PipelineInputError as error:
+            known = ", ".join(sorted(spec.name for spec in self.option_specs()))
+            problems += [
+                dataclasses.replace(p, reason=f"unknown option; known: {known}")
+                if p.reason.startswith("unknown option; known:") else p
+                for p in error.problems
+            ]
+        try:
+            mine = resolve_options(OPTION_SPECS, own)
+        except PipelineInputError as error:
+            problems += error.problems
+        if problems:
+            raise PipelineInputError(problems)
+        return {**resolved, **mine}
+
+    # -- sessions ----------------------------------------------------------------------------------
+    def create(self, options: Mapping[str, Any], initial: InitialState | None) -> bytes:
+        inner_state = self.inner.create({k: v for k, v in options.items() if k not in NAMES}, initial)
+        return _pack(_Window(_own(options), None, [_Checkpoint(None, inner_state)], inner_state, [], []))
+
+    def summarise(self, state: bytes) -> StateSummary:
+        window = _unpack(state)
+        summary = self.inner.summarise(window.current)
+        return dataclasses.replace(summary, options={**summary.options, **window.options})
+
+    def replayed_observations(self, state: bytes, observations: Sequence[Observation] | None) -> list[Observation]:
+        """The stored observations that applying ``observations`` would filter again (none for a batch in
+        time order), or with None every observation of the window: what the caller must look up
+        (RSUs, neighbours) and budget for beyond the batch itself."""
+        window = _unpack(state)
+        if observations is None:
+            return window.observations()
+        arrival = _sort_out(window, observations)
+        if not arrival.late:
+            return []
+        earliest = min(observations[i].t for i in arrival.late)
+        return window.observations(_replay_start(window, earliest)[1])
+
+    # -- batches -----------------------------------------------------------------------------------
+    def process(
+        self, state: bytes, observations: Sequence[Observation], environment: Environment
+    ) -> tuple[list[Fix], bytes]:
+        window = _unpack(state)
+        _check_lead(window, observations)
+        arrival = _sort_out(window, observations)
+        # Every problem of the batch in one answer: the too-late measurements' own, then the rest's.
+        problems = self._too_late_problems(window, observations, arrival.too_late, environment)
+        try:
+            if arrival.late:
+                fixes = self._replay(window, observations, arrival, environment)
+            elif arrival.fresh:
+                fixes = self._append(window, observations, arrival.fresh, environment)
+            else:
+                fixes = []
+        except PipelineInputError as error:
+            raise PipelineInputError([*problems, *error.problems]) from None
+        if problems:
+            raise PipelineInputError(problems)
+        if arrival.too_late:
+            fixes = self._report_too_late(window, observations, arrival.too_late, fixes, environment)
+        _prune(window)
+        return fixes, _pack(window)
+
+    def _append(
+        self, window: _Window, observations: Sequence[Observation], fresh: list[int], environment: Environment
+    ) -> list[Fix]:
+        """A batch newer than the window: filtered from the current state; the state before it may
+        become a checkpoint."""
+        order = sorted(fresh, key=lambda i: observations[i].t)
+        fixes, new_state = self._filter(window.current, [(i, observations[i]) for i in order], environment)
+        _maybe_checkpoint(window, window.newest, window.current)
+        window.current = new_state
+        _extend(window, [observations[i] for i in order])
+        return fixes
+
+    def _replay(
+        self, window: _Window, observations: Sequence[Observation], arrival: _Arrival, environment: Environment
+    ) -> list[Fix]:
+        """Late measurements: filter again from the latest checkpoint before the earliest of them, through
+        the window's later observations and the batch, segment by segment between the checkpoints (so the
+        checkpoints stay valid), and answer the changed epochs as revised fixes."""
+        earliest = min(observations[i].t for i in arrival.late)
+        checkpoint_index, start = _replay_start(window, earliest)
+        answered = set(window.times)
+        # The epochs from the checkpoint on: stored ones (their records kept unless late data joins
+        # them), then the batch's. Within an epoch stored observations come first, then the batch's in
+        # its order; index -1 marks a stored observation (it has no index in this batch).
+        arriving: dict[float, list[int]] = {}
+        for i in sorted((*arrival.late, *arrival.fresh), key=lambda i: observations[i].t):
+            arriving.setdefault(observations[i].t, []).append(i)
+        epochs: dict[float, tuple[list[tuple[int, Observation]], bytes | None]] = {}
+        for t, record in zip(window.times[start:], window.records[start:], strict=True):
+            epochs[t] = ([(-1, o) for o in decode_epoch(record)], record)
+        for t, indices in arriving.items():
+            stored, _ = epochs.get(t, ([], None))
+            epochs[t] = (stored + [(i, observations[i]) for i in indices], None)
+        times = sorted(epochs)
+        bounds = [c.t for c in window.checkpoints[checkpoint_index + 1 :]]
+        if window.newest is not None and arrival.fresh:
+            bounds.append(window.newest)  # the state before the batch's new epochs may become a checkpoint
+        state = window.checkpoints[checkpoint_index].state
+        fixes: list[Fix] = []
+        segment_start = 0
+        replaced: list[bytes] = []
+        for bound in [*bounds, None]:
+            end = len(times) if bound is None else bisect.bisect_right(times, bound)
+            part = [item for t in times[segment_start:end] for item in epochs[t][0]]
+            if part:
+                new, state = self._filter(state, part, environment)
+                fixes += new
+            if bound is not None:
+                replaced.append(state)
+            segment_start = end
+        # The checkpoints after the replayed one now hold the late data; the state at the old newest
+        # epoch is offered as a checkpoint like any batch boundary.
+        for checkpoint, new_state in zip(window.checkpoints[checkpoint_index + 1 :], replaced, strict=False):
+            checkpoint.state = new_state
+        if arrival.fresh and window.newest is not None:
+            _maybe_checkpoint(window, window.newest, replaced[-1])
+        window.current = state
+        window.times = window.times[:start] + times
+        window.records = window.records[:start] + [
+            record if record is not None else encode_epoch([o for _, o in items])
+            for items, record in (epochs[t] for t in times)
+        ]
+        window.newest = times[-1] if window.newest is None else max(window.newest, times[-1])
+        return [
+            dataclasses.replace(fix, revised=True) if fix.t in answered else fix
+            for fix in fixes
+            if fix.t >= earliest or fix.t not in answered
+        ]
+
+    def _filter(
+        self, state: bytes, items: Sequence[tuple[int, Observation]], environment: Environment
+    ) -> tuple[list[Fix], bytes]:
+        """The inner pipeline on ``items`` (batch index, observation; index -1: stored), with the fixes'
+        measurement uses and the problems it finds numbered as the batch's."""
+        indices = [i for i, _ in items]
+        try:
+            fixes, state = self.inner.process(state, [o for _, o in items], environment)
+        except PipelineInputError as error:
+            raise PipelineInputError([_renumbered_problem(p, indices, items) for p in error.problems]) from None
+        return [_renumbered(fix, indices) for fix in fixes], state
+
+    def _too_late_problems(
+        self, window: _Window, observations: Sequence[Observation], indices: list[int], environment: Environment
+    ) -> list[Problem]:
+        """Too-late measurements are not filtered, but a malformed one still refuses the batch: they are
+        checked by the inner pipeline on a fresh session of the same options (which has no clock to be
+        older than)."""
+        if not indices:
+            return []
+        options = self.inner.summarise(window.current).options
+        fresh = self.inner.create({k: v for k, v in options.items() if k not in NAMES}, None)
+        order = sorted(indices, key=lambda i: observations[i].t)
+        try:
+            self._filter(fresh, [(i, observations[i]) for i in order], environment)
+        except PipelineInputError as error:
+            return error.problems
+        return []
+
+    def _report_too_late(
+        self,
+        window: _Window,
+        observations: Sequence[Observation],
+        indices: list[int],
+        fixes: list[Fix],
+        environment: Environment,
+    ) -> list[Fix]:
+        """The too-late measurements as used=false in the response's newest fix; a batch with nothing else
+        gets the session's newest fix again (computed anew from its checkpoint, marked revised)."""
+        newest, delay = window.newest, window.options["max_delay_s"]
+        start = window.base.t
+        uses = []
+        for i in indices:
+            observation = observations[i]
+            assert newest is not None  # nothing is too late before the first epoch
+            lateness = newest - observation.t
+            if lateness > delay:
+                why = f"beyond the lag window (max_delay_s {delay:g} s)"
+            else:
+                why = (
+                    f"before the oldest epoch the lag window still holds (t={start!r}; max_window_epochs "
+                    f"{window.options['max_window_epochs']})"
+                )
+            reason = (
+                f"too late: t={observation.t!r} is {lateness:.6g} s older than the session's newest epoch "
+                f"t={newest!r}, {why}; not used, the rest of the batch was applied"
+            )
+            uses.append(MeasurementUse(i, observation.kind, False, reason))
+        if not fixes:
+            fixes = self._newest_fix(window, environment)
+            if not fixes:
+                return fixes
+        last = fixes[-1]
+        fixes[-1] = dataclasses.replace(last, measurements=sorted([*last.measurements, *uses], key=lambda u: u.index))
+        return fixes
+
+    def _newest_fix(self, window: _Window, environment: Environment) -> list[Fix]:
+        if window.newest is None or not window.records:
+            return []
+        index, start = _replay_start(window, window.newest)
+        fixes, _ = self.inner.process(window.checkpoints[index].state, window.observations(start), environment)
+        return [dataclasses.replace(fixes[-1], measurements=[], revised=True)] if fixes else []
+
+    # -- the window's track ------------------------------------------------------------------------
+    def track(self, state: bytes, environment: Environment, smoothed: bool) -> list[Fix]:
+        """The window's estimates, one per epoch in time order: filtered again from the window's base with
+        the environment as it is now, or (``smoothed``) smoothed over the whole window by the pipeline's
+        smoother. ValueError when smoothing is asked of a pipeline that has none."""
+        window = _unpack(state)
+        observations = window.observations()
+        if not observations:
+            return []
+        if smoothed:
+            if not self.smoother:
+                raise ValueError(f"the {self.name} pipeline has no smoother")
+            fixes = self.inner.smooth(window.base.state, observations, environment)
+        else:
+            fixes, _ = self.inner.process(window.base.state, observations, environment)
+        return [dataclasses.replace(fix, measurements=[]) for fix in fixes]
+
+    def window_bounds(self, state: bytes) -> tuple[float | None, float | None, dict[str, Any]]:
+        """The window's oldest and newest epoch times (None: empty) and its options."""
+        window = _unpack(state)
+        return (window.times[0] if window.times else None), window.newest, window.options
+
+
+# -- sorting a batch out -----------------------------------------------------------------------------
+def _sort_out(window: _Window, observations: Sequence[Observation]) -> _Arrival:
+    newest = window.newest
+    if newest is None:
+        return _Arrival(list(range(len(observations))), [], [])
+    floor = newest - window.options["max_delay_s"]
+    base = window.base.t
+    fresh, late, too_late = [], [], []
+    for index, observation in enumerate(observations):
+        t = observation.t
+        if not _finite(t) or t > newest:
+            fresh.append(index)  # a malformed time goes to the inner pipeline, which names it
+        elif t < floor or (base is not None and t <= base):
+            too_late.append(index)
+        else:
+            late.append(index)
+    return _Arrival(fresh, late, too_late)
+
+
+def _check_lead(window: _Window, observations: Sequence[Observation]) -> None:
+    """Refuse measurements more than max_lead_s after every other measurement of the batch."""
+    times = sorted({o.t for o in observations if _finite(o.t)})
+    if len(times) < 2:
+        return
+    bound = window.options["max_lead_s"]
+    if times[-1] - times[-2] <= bound:
+        return
+    problems = [
+        Problem(index, "t", (
+            f"{o.t!r} is {o.t - times[-2]:.6g} s after every other measurement of the batch (latest other "
+            f"t={times[-2]!r}), more than max_lead_s {bound:g} s: a clock error? It would make the others too late"
+        ))
+        for index, o in enumerate(observations)
+        if o.t == times[-1]
+    ]
+    raise PipelineInputError(problems)
+
+
+def _replay_start(window: _Window, earliest: float) -> tuple[int, int]:
+    """The latest checkpoint whose state is from before ``earliest``, and the index of the first window
+    observation after that checkpoint."""
+    index = 0
+    for i, checkpoint in enumerate(window.checkpoints):
+        if checkpoint.t is None or checkpoint.t < earliest:
+            index = i
+    t = window.checkpoints[index].t
+    start = 0 if t is None else bisect.bisect_right(window.times, t)
+    return index, start
+
+
+def _renumbered(fix: Fix, indices: Sequence[int]) -> Fix:
+    """A fix of a sub-list with its measurement indices mapped back to the batch's; uses of stored
+    observations (index -1: they belong to an earlier batch) are left out."""
+    uses = []
+    changed = False
+    for use in fix.measurements:
+        index = indices[use.index]
+        if index == use.index:
+            uses.append(use)
+            continue
+        changed = True
+        if index >= 0:
+            uses.append(dataclasses.replace(use, index=index))
+    return dataclasses.replace(fix, measurements=uses) if changed else fix
+
+
+def _renumbered_problem(problem: Problem, indices: Sequence[int], items: Sequence[tuple[int, Observation]]) -> Problem:
+    """A problem of a sub-list numbered as the batch's. A stored observation (applied by an earlier batch)
+    refused now (its RSU left the registry, say) is named by its time, without an index."""
+    if problem.index is None or not 0 <= problem.index < len(indices):
+        return problem
+    index = indices[problem.index]
+    if index >= 0:
+        return dataclasses.replace(problem, index=index)
+    t = items[problem.index][1].t
+    return Problem(None, "measurements", (
+        f"a measurement at t={t!r} that an earlier batch applied is refused when late data makes the lag "
+        f"window filter it again: {problem.field}: {problem.reason}"
+    ))
+
+
+def _extend(window: _Window, observations: Sequence[Observation]) -> None:
+    """Append observations (in time order, all newer than the window's epochs) as epochs."""
+    epoch: list[Observation] = []
+    for observation in observations:
+        if not _finite(observation.t):
+            continue
+        if epoch and observation.t != epoch[0].t:
+            _append_epoch(window, epoch)
+            epoch = []
+        epoch.append(observation)
+    if epoch:
+        _append_epoch(window, epoch)
+
+
+def _append_epoch(window: _Window, epoch: list[Observation]) -> None:
+    t = epoch[0].t
+    window.times.append(t)
+    window.records.append(encode_epoch(epoch))
+    if window.newest is None or t > window.newest:
+        window.newest = t
+
+
+def _maybe_checkpoint(window: _Window, t: float | None, state: bytes) -> None:
+    """Keep ``state`` (filtered up to ``t``) as a checkpoint if it is far enough after the last one."""
+    if t is None:
+        return
+    last = window.checkpoints[-1].t
+    spacing = window.options["max_delay_s"] / CHECKPOINTS_PER_WINDOW
+    if last is None or t - last >= spacing:
+        window.checkpoints.append(_Checkpoint(t, state))
+
+
+def _prune(window: _Window) -> None:
+    """Drop what no accepted late measurement can need: the base becomes the latest checkpoint from
+    before ``newest - max_delay_s``, and while the window holds more than ``max_window_epochs`` epochs
+    the base moves on (to the current state itself when no checkpoint is left)."""
+    if window.newest is None:
+        return
+    floor = window.newest - window.options["max_delay_s"]
+    keep = 0
+    for i, checkpoint in enumerate(window.checkpoints):
+        if checkpoint.t is None or checkpoint.t < floor:
+            keep = i
+    limit = window.options["max_window_epochs"]
+    while True:
+        t = window.checkpoints[keep].t
+        start = 0 if t is None else bisect.bisect_right(window.times, t)
+        if len(window.times) - start <= limit:
+            break
+        if keep + 1 < len(window.checkpoints):
+            keep += 1
+            continue
+        window.checkpoints = [_Checkpoint(window.newest, window.current)]
+        window.times, window.records = [], []
+        return
+    if keep or start:
+        window.checkpoints = window.checkpoints[keep:]
+        window.times, window.records = window.times[start:], window.records[start:]
+    if window.options["max_delay_s"] == 0:
+        # No window: nothing late is accepted, so no checkpoint but the current state is needed.
+        window.checkpoints = [_Checkpoint(window.newest, window.current)]
+        window.times, window.records = [], []
