@@ -40,6 +40,7 @@ from edgepos_client.models import (
     SessionCreated,
     SessionInfo,
     SessionPage,
+    Track,
     V2vRangeMeasurement,
     Vehicle,
     VehicleImport,
@@ -384,6 +385,11 @@ class Calls:
         session_id, credential = _session_credential(session, self.admin_key)
         return Call("GET", f"/v1/sessions/{_segment(session_id)}", credential=credential)
 
+    def track(self, session: Session | str, smoothed: bool) -> Call:
+        session_id, credential = _session_credential(session, self.admin_key)
+        path = _query(f"/v1/sessions/{_segment(session_id)}/track", smoothed="true" if smoothed else "false")
+        return Call("GET", path, credential=credential)
+
     def delete_session(self, session: Session | str) -> Call:
         session_id, credential = _session_credential(session, self.admin_key)
         return Call(
@@ -463,6 +469,10 @@ def parse_session(response: httpx.Response) -> Session:
 
 def parse_session_info(response: httpx.Response) -> SessionInfo:
     return SessionInfo.model_validate_json(response.content)
+
+
+def parse_track(response: httpx.Response) -> Track:
+    return Track.model_validate_json(response.content)
 
 
 def parse_vehicle_key(response: httpx.Response) -> VehicleKey:

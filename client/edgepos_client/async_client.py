@@ -19,6 +19,7 @@ from edgepos_client.models import (
     Rsu,
     SessionInfo,
     SessionPage,
+    Track,
     Vehicle,
     VehicleImport,
     VehicleKey,
@@ -199,6 +200,11 @@ class AsyncEdgeposClient:
 
     async def get_session(self, session: Session | str) -> SessionInfo:
         return protocol.parse_session_info(await self._send(self._calls.get_session(session)))
+
+    async def track(self, session: Session | str, *, smoothed: bool = False) -> Track:
+        """The estimates of the session's lag window (its last ``max_delay_s`` seconds), oldest first;
+        ``smoothed``: smoothed over the window (pipelines that have a smoother)."""
+        return protocol.parse_track(await self._send(self._calls.track(session, smoothed)))
 
     async def delete_session(self, session: Session | str) -> None:
         await self._send(self._calls.delete_session(session))

@@ -245,6 +245,9 @@ class Fix(_Response):
 
     t: float
     status: FixStatus
+    revised: bool = False
+    """True: this epoch was answered before and late measurements changed its estimate; this fix replaces
+    the earlier one of the same ``t`` (keep the last fix received for each ``t``)."""
     divergence: str | None = None
     """With status "diverged": which physical bound the estimate broke and what the server did (by
     default the session was reset: keep sending measurements; do not use this fix's position)."""
@@ -301,6 +304,19 @@ class SessionInfo(_Response):
     last_fix: Fix | None = None
     created_at: float
     updated_at: float
+
+
+class Track(_Response):
+    """``GET /v1/sessions/{id}/track``: the estimates of the session's lag window, oldest first,
+    filtered or (``smoothed``) smoothed over the window."""
+
+    session_id: str
+    pipeline: str
+    smoothed: bool
+    max_delay_s: float
+    start_t: float | None = None
+    end_t: float | None = None
+    fixes: list[Fix] = Field(default_factory=list)
 
 
 class SessionSummary(_Response):

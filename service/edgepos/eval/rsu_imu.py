@@ -23,9 +23,11 @@ from edgepos.eval.rsu_imu_algorithms import (
     select_algorithms,
     with_overrides,
 )
+from edgepos.eval.rsu_imu_late import LateSettings
 from edgepos.eval.rsu_imu_montecarlo import PIPELINE, RunFailed, initial_state, monte_carlo, results
 from edgepos.eval.rsu_imu_report import report, to_json, write_plots
 from edgepos.pipelines.registry import get_pipeline
+from edgepos.sim.delivery import LateDelivery
 from edgepos.sim.scenarios import rsu_imu_paper_scenario
 
 PROG = "edgepos eval rsu-imu"
@@ -38,6 +40,25 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help=f"comma-separated subset to run (default: all): {', '.join(ALGORITHMS)}",
     )
     add_option_argument(parser, 'model_params=\'{"singer": {"sigma": 2}}\'')
+    parser.add_argument(
+        "--smooth-lag", metavar="S", type=float, default=1.0,
+        help="also report the fixed-lag smoothed RMSE, each epoch smoothed with the data up to S seconds after "
+        "it (default 1.0, the default lag window; 0: no smoothing column)",
+    )
+    parser.add_argument(
+        "--delay-fraction", metavar="F", type=float, default=None,
+        help="also deliver the runs with a fraction F of the RSU measurements late (see --max-delay), and report "
+        "the RMSE of the last fix received per epoch beside the in-order run and beside dropping them",
+    )
+    parser.add_argument(
+        "--max-delay", metavar="S", type=float, default=0.5,
+        help="late RSU measurements arrive a uniform delay in [--min-delay, S] seconds late (default 0.5)",
+    )
+    parser.add_argument("--min-delay", metavar="S", type=float, default=0.05, help="see --max-delay (default 0.05)")
+    parser.add_argument(
+        "--batch-epochs", metavar="B", type=int, default=1,
+        help="with --delay-fraction, the vehicle sends a batch every B epochs (default 1: each epoch as it happens)",
+    )
 
 
 def _error(message: str) -> None:
@@ -52,12 +73,25 @@ def _check_options(algorithms: list[Algorithm]) -> None:
         pipeline.create(pipeline.resolve_options(algorithm.options), start)
 
 
+def _late_settings(args: argparse.Namespace) -> LateSettings:
+    """The smoothing and late-delivery columns asked for; ValueError naming a bad flag."""
+    if not args.smooth_lag >= 0.0:
+        raise ValueError("--smooth-lag must be >= 0")
+    if args.batch_epochs < 1:
+        raise ValueError("--batch-epochs must be >= 1")
+    delivery = None
+    if args.delay_fraction is not None:
+        delivery = LateDelivery(args.delay_fraction, args.max_delay, args.min_delay)
+    return LateSettings(args.smooth_lag or None, delivery, args.batch_epochs)
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the evaluation and print the report on stdout: 0 on success, 2 on bad arguments, 1 on failure."""
     try:
         overrides = parse_overrides(args.option)
         algorithms = with_overrides(select_algorithms(args.algorithms), overrides)
         _check_options(algorithms)
+        late = _late_settings(args)
         if args.plots is not None:
             plots.require_matplotlib()
     except (UnknownAlgorithm, plots.PlotsUnavailable, ValueError) as exc:
@@ -70,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
 
     progress = Progress(args.runs, label="runs")
     try:
-        totals = monte_carlo(algorithms, args.runs, args.seed, workers, progress)
+        totals = monte_carlo(algorithms, args.runs, args.seed, workers, progress, late)
     except RunFailed as exc:
         print(file=sys.stderr)
         _error(str(exc))
@@ -79,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
 
     scenario = rsu_imu_paper_scenario()
     results_by_name = results(algorithms, totals)
-    print(report(results_by_name, args.runs, args.seed, workers))
+    print(report(results_by_name, args.runs, args.seed, workers, late))
     if overrides:
         print(f"\noptions set on every algorithm (not the paper's defaults): {json.dumps(overrides)}")
     diverged = [
@@ -90,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
         return 1
     try:
         if args.json is not None:
-            document = to_json(results_by_name, scenario, args.runs, args.seed, workers)
+            document = to_json(results_by_name, scenario, args.runs, args.seed, workers, late)
             if overrides:
                 document["option_overrides"] = overrides
             Path(args.json).write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")

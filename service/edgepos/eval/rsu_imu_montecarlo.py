@@ -17,6 +17,7 @@ import numpy as np
 from edgepos.eval import montecarlo
 from edgepos.eval.progress import Progress
 from edgepos.eval.rsu_imu_algorithms import Algorithm
+from edgepos.eval.rsu_imu_late import LateSettings, late_columns
 from edgepos.pipelines.base import Environment, InitialState, Pipeline
 from edgepos.pipelines.registry import get_pipeline
 from edgepos.sim.scenarios import Scenario, rsu_imu_paper_scenario
@@ -35,6 +36,7 @@ class Sums:
     probabilities: np.ndarray | None  # (K, models) for banks of several models
     seconds: float
     epochs: int
+    extra: dict[str, np.ndarray] = field(default_factory=dict)  # rsu_imu_late's columns, same shape
 
     def __add__(self, other: Sums) -> Sums:
         probabilities = None
@@ -43,6 +45,7 @@ class Sums:
         return Sums(
             self.pos_sq + other.pos_sq, self.vel_sq + other.vel_sq, probabilities,
             self.seconds + other.seconds, self.epochs + other.epochs,
+            {name: values + other.extra[name] for name, values in self.extra.items()},
         )
 
 
@@ -74,6 +77,7 @@ class _Context:
     pipeline: Pipeline
     algorithms: list[tuple[str, dict[str, Any]]]  # name, resolved options
     initial: InitialState
+    late: LateSettings
 
 
 _CONTEXT: _Context | None = None
@@ -85,13 +89,13 @@ def initial_state(scenario: Scenario) -> InitialState:
     return InitialState(x=xp, y=yp, vx=xv, vy=yv, position_std=1.0, velocity_std=1.0)
 
 
-def _init_worker(specs: tuple[tuple[str, dict[str, Any]], ...], seed: int) -> None:
+def _init_worker(specs: tuple[tuple[str, dict[str, Any]], ...], seed: int, late: LateSettings) -> None:
     global _CONTEXT
     scenario = rsu_imu_paper_scenario()
     pipeline = get_pipeline(PIPELINE)
     algorithms = [(name, pipeline.resolve_options(options)) for name, options in specs]
     _CONTEXT = _Context(
-        seed, scenario, environment(scenario), pipeline, algorithms, initial_state(scenario)
+        seed, scenario, environment(scenario), pipeline, algorithms, initial_state(scenario), late
     )
 
 
@@ -125,7 +129,12 @@ def _run_chunk(chunk: range) -> Totals:
                 probabilities = np.array(
                     [[fix.model_probabilities[model] for model in models] for fix in fixes], dtype=float
                 )
-            sums[name] = Sums(pos_sq, vel_sq, probabilities, elapsed, len(fixes))
+            extra = late_columns(
+                context.pipeline, options, context.initial, observations, context.environment,
+                np.column_stack([true_x, true_y, true_vx, true_vy]), context.late,
+                np.random.default_rng([context.seed, run, 1]),  # the same deliveries for every algorithm
+            )
+            sums[name] = Sums(pos_sq, vel_sq, probabilities, elapsed, len(fixes), extra)
         run_totals = Totals(1, sums)
         totals = run_totals if totals is None else combine(totals, run_totals)
     assert totals is not None
@@ -133,12 +142,19 @@ def _run_chunk(chunk: range) -> Totals:
 
 
 def monte_carlo(
-    algorithms: list[Algorithm], runs: int, seed: int, workers: int, progress: Progress | None = None
+    algorithms: list[Algorithm],
+    runs: int,
+    seed: int,
+    workers: int,
+    progress: Progress | None = None,
+    late: LateSettings | None = None,
 ) -> Totals:
-    """Sums over ``runs`` runs, identical for any ``workers``."""
+    """Sums over ``runs`` runs, identical for any ``workers``; ``late``: the smoothing and late-delivery
+    columns to add (``rsu_imu_late``)."""
     specs = tuple((algorithm.name, algorithm.options) for algorithm in algorithms)
     return montecarlo.run_chunks(
-        _run_chunk, combine, montecarlo.chunk_runs(runs), workers, _init_worker, (specs, seed), progress
+        _run_chunk, combine, montecarlo.chunk_runs(runs), workers, _init_worker,
+        (specs, seed, late or LateSettings()), progress,
     )
 
 
@@ -151,6 +167,7 @@ class Result:
     vel_rmse: np.ndarray  # (K,) m/s
     probabilities: np.ndarray | None  # (K, models) mean over runs
     step_us: float
+    extra: dict[str, float] = field(default_factory=dict)  # mean RMSE of each rsu_imu_late column
 
     @property
     def pos_mean(self) -> float:
@@ -173,5 +190,6 @@ def results(algorithms: list[Algorithm], totals: Totals) -> dict[str, Result]:
             np.sqrt(sums.vel_sq / totals.runs),
             probabilities,
             sums.seconds / sums.epochs * 1e6,
+            {name: float(np.mean(np.sqrt(values / totals.runs))) for name, values in sums.extra.items()},
         )
     return out

@@ -9,6 +9,7 @@ from typing import Any
 
 from edgepos.eval import plots
 from edgepos.eval.rsu_imu_algorithms import AVERAGE_SUFFIX, IMM_VARIANTS, PAPER, SINGLE_MODELS
+from edgepos.eval.rsu_imu_late import LateSettings
 from edgepos.eval.rsu_imu_montecarlo import Result
 from edgepos.eval.tables import format_table, number, percent_change
 from edgepos.sim.scenarios import Scenario
@@ -104,7 +105,47 @@ def comparisons_table(results_by_name: dict[str, Result]) -> str | None:
     return format_table(headers, rows, right=[False, False, True, True, True, True])
 
 
-def report(results_by_name: dict[str, Result], runs: int, seed: int, workers: int) -> str:
+def late_table(results_by_name: dict[str, Result], late: LateSettings) -> str | None:
+    """Smoothed RMSE beside the filtered one; with late delivery the last fix per epoch beside the in-order
+    run and beside dropping the late measurements."""
+    rows = []
+    for name, r in results_by_name.items():
+        if not r.extra:
+            continue
+        cells = [name, number(r.pos_mean, 4)]
+        if "smooth_pos" in r.extra:
+            cells += [number(r.extra["smooth_pos"], 4), number(percent_change(r.pos_mean, r.extra["smooth_pos"]), 1)]
+        if "late_pos" in r.extra:
+            cells += [
+                number(r.extra["late_pos"], 4), number(r.extra["late_pos"] / r.pos_mean, 4),
+                number(r.extra["drop_pos"], 4), number(r.extra["drop_pos"] / r.pos_mean, 4),
+            ]
+        rows.append(cells)
+    if not rows:
+        return None
+    headers = ["algorithm", "filtered pos (m)"]
+    if late.smooth_lag_s is not None:
+        headers += [f"smoothed, lag {late.smooth_lag_s:g} s (m)", "lower by %"]
+    if late.delivery is not None:
+        headers += ["late: last fix (m)", "x in-order", "dropped (m)", "x in-order"]
+    return format_table(headers, rows, right=[False] + [True] * (len(headers) - 1))
+
+
+def late_note(late: LateSettings) -> str | None:
+    delivery = late.delivery
+    if delivery is None:
+        return None
+    return (
+        f"Late delivery: {delivery.fraction:.0%} of the RSU measurements arrive {delivery.min_delay_s:g}-"
+        f"{delivery.max_delay_s:g} s late (uniform); the vehicle sends a batch every {late.batch_epochs} "
+        "epoch(s); 'late' keeps the last fix received per epoch (revised fixes replace earlier ones, session "
+        "option max_delay_s at its default), 'dropped' discards every measurement that missed its epoch's batch."
+    )
+
+
+def report(
+    results_by_name: dict[str, Result], runs: int, seed: int, workers: int, late: LateSettings | None = None
+) -> str:
     """The whole text report."""
     parts = [
         f"RSU + IMU paper scenario (sec. 5): {runs} Monte Carlo run(s), seed {seed}; "
@@ -115,6 +156,12 @@ def report(results_by_name: dict[str, Result], runs: int, seed: int, workers: in
         "Note: " + paper_note(),
         "Note: " + timing_note(workers),
     ]
+    extra = None if late is None else late_table(results_by_name, late)
+    if extra is not None and late is not None:
+        parts += ["", "Smoothing and late measurements, mean position RMSE:", "", extra]
+        note = late_note(late)
+        if note:
+            parts += ["Note: " + note]
     comparisons = comparisons_table(results_by_name)
     if comparisons is not None:
         parts += [
@@ -128,18 +175,33 @@ def report(results_by_name: dict[str, Result], runs: int, seed: int, workers: in
 
 
 def to_json(
-    results_by_name: dict[str, Result], scenario: Scenario, runs: int, seed: int, workers: int
+    results_by_name: dict[str, Result],
+    scenario: Scenario,
+    runs: int,
+    seed: int,
+    workers: int,
+    late: LateSettings | None = None,
 ) -> dict[str, Any]:
-    """The --json document."""
+    """The --json document (``*_rmse_m``/``_mps`` of the smoothing and late columns when run)."""
+    notes = [paper_note(), timing_note(workers)]
+    note = None if late is None else late_note(late)
+    if note:
+        notes.append(note)
     return {
         "scenario": scenario.name,
         "runs": runs,
         "seed": seed,
         "algorithms": {
-            name: {"pos_rmse_m": r.pos_mean, "vel_rmse_mps": r.vel_mean, "step_us": r.step_us}
+            name: {
+                "pos_rmse_m": r.pos_mean, "vel_rmse_mps": r.vel_mean, "step_us": r.step_us,
+                **{
+                    f"{column}_rmse_{'m' if column.endswith('pos') else 'mps'}": value
+                    for column, value in r.extra.items()
+                },
+            }
             for name, r in results_by_name.items()
         },
-        "notes": [paper_note(), timing_note(workers)],
+        "notes": notes,
     }
 
 

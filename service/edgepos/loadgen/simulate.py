@@ -6,6 +6,11 @@ stream: child i of the seed) in batches of B epochs, all vehicles at once throug
 client. ``--realtime`` sends each batch when its last epoch has happened on the scenario's clock;
 the default sends as fast as the server answers. It ends with each vehicle's position and
 velocity RMSE against the scenario's ground truth, and deletes the sessions it opened.
+
+``--delay-fraction F --max-delay S``: the run three times over, as the vehicles' measurements would
+reach the server in order, with a fraction F of the RSU measurements up to S seconds late
+(``sim.delivery``: each batch holds what arrived since the previous one), and with those late ones
+dropped; the errors are those of the last fix received per epoch (a revised fix replaces the earlier).
 """
 
 from __future__ import annotations
@@ -24,7 +29,9 @@ import httpx
 import numpy as np
 from edgepos_client import AsyncEdgeposClient, EdgeposError, Fix, Session
 
+from edgepos.core.observations import Observation
 from edgepos.loadgen import common, federated_sim, v2v_sim
+from edgepos.sim.delivery import LateDelivery, arrival_batches, arrival_times
 from edgepos.sim.scenarios import Scenario
 
 
@@ -89,11 +96,15 @@ def _mean(values: list[float | None]) -> float | None:
 
 
 def rmse(fixes: list[Fix], scenario: Scenario) -> tuple[float | None, float | None]:
-    """Position (m) and velocity (m/s) RMSE of fixes k = 1..K against the truth at t_k; epochs
-    whose fix has no estimate (uninitialised) are left out."""
+    """Position (m) and velocity (m/s) RMSE of the last fix received for each epoch against the truth
+    at its t (a revised fix replaces the earlier one of the same t); epochs whose fix has no estimate
+    (uninitialised) are left out."""
     truth = scenario.truth
+    index = {float(t): k for k, t in enumerate(truth.t)}
+    latest = {fix.t: fix for fix in fixes}
     position, velocity = [], []
-    for k, fix in enumerate(fixes, start=1):
+    for t, fix in latest.items():
+        k = index[t]
         if fix.x is not None and fix.y is not None:
             position.append((fix.x - truth.x[k]) ** 2 + (fix.y - truth.y[k]) ** 2)
         if fix.vx is not None and fix.vy is not None:
@@ -181,13 +192,20 @@ async def run_simulation(
     progress_stream: TextIO | None = None,
     timeout: float = 30.0,
     keep_sessions: bool = False,
+    delivery: LateDelivery | None = None,
+    drop_late: bool = False,
 ) -> SimulationResult:
-    """Run the simulation against ``url``; vehicle i's noise is :func:`common.vehicle_rng(seed, i)`."""
+    """Run the simulation against ``url``; vehicle i's noise is :func:`common.vehicle_rng(seed, i)`.
+    ``delivery``: measurements arrive late as it says (vehicle i's delays from child i of
+    SeedSequence([seed, 1])); ``drop_late``: those that missed their epoch's batch are dropped."""
     if vehicles < 1:
         raise ValueError("vehicles must be >= 1")
     scenario = common.SCENARIOS[scenario_name]()
     streams = [common.vehicle_epochs(scenario, seed, i)[:epochs] for i in range(vehicles)]
-    batches = [common.wire_batches(stream, batch_epochs) for stream in streams]
+    if delivery is None:
+        batches = [common.wire_batches(stream, batch_epochs) for stream in streams]
+    else:
+        batches = [_late_batches(stream, delivery, seed, i, batch_epochs, drop_late) for i, stream in enumerate(streams)]
     total = sum(len(stream) for stream in streams)
     runs = [VehicleRun(index=i, vehicle_id=f"sim-{i + 1}") for i in range(vehicles)]
     progress = Progress(total, vehicles, progress_stream)
@@ -225,6 +243,24 @@ async def run_simulation(
         vehicles=runs,
         elapsed_s=time.perf_counter() - started,
     )
+
+
+def _late_batches(
+    epochs: list[list[Observation]],
+    delivery: LateDelivery,
+    seed: int,
+    vehicle: int,
+    batch_epochs: int,
+    drop_late: bool,
+) -> list[list[common.WireMeasurement]]:
+    """Vehicle ``vehicle``'s batches as they would reach the server with ``delivery``'s delays."""
+    observations = [o for epoch in epochs for o in epoch]
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 1], spawn_key=(vehicle,)))
+    arrivals = arrival_times(observations, delivery, rng)
+    return [
+        [common.to_wire(o) for o in batch]
+        for batch in arrival_batches(observations, arrivals, batch_epochs, drop_late=drop_late)
+    ]
 
 
 def _format(value: float | None) -> str:
@@ -289,6 +325,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--json", type=Path, default=None, metavar="FILE", help="also write the results as JSON"
     )
+    parser.add_argument(
+        "--delay-fraction", metavar="F", type=float, default=None,
+        help="rsu-imu: run three times, in order, with a fraction F of the RSU measurements late (see "
+        "--max-delay), and with those dropped; report the RMSE of the last fix received per epoch of each",
+    )
+    parser.add_argument(
+        "--max-delay", metavar="S", type=float, default=0.5,
+        help="late RSU measurements arrive a uniform delay in [--min-delay, S] s late (default 0.5)",
+    )
+    parser.add_argument("--min-delay", metavar="S", type=float, default=0.05, help="see --max-delay (default 0.05)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -309,6 +355,8 @@ def run(args: argparse.Namespace) -> int:
     if args.vehicles < 1 or args.batch_epochs < 1 or (args.epochs is not None and args.epochs < 1):
         print("edgepos simulate: --vehicles, --batch-epochs and --epochs must be >= 1", file=sys.stderr)
         return 2
+    if args.delay_fraction is not None:
+        return _run_late(args, key)
     try:
         result = asyncio.run(
             run_simulation(
@@ -331,6 +379,57 @@ def run(args: argparse.Namespace) -> int:
     if args.json is not None:
         args.json.write_text(json.dumps(result.to_json(), indent=2) + "\n")
     return 1 if any(v.error for v in result.vehicles) else 0
+
+
+LATE_MODES = (("in order", None, False), ("late", "late", False), ("late dropped", "late", True))
+
+
+def _run_late(args: argparse.Namespace, key: str) -> int:
+    """The same vehicles in order, with late RSU measurements, and with those dropped, one after the other."""
+    try:
+        delivery = LateDelivery(args.delay_fraction, args.max_delay, args.min_delay)
+    except ValueError as error:
+        print(f"edgepos simulate: {error}", file=sys.stderr)
+        return 2
+    results: dict[str, SimulationResult] = {}
+    for label, late, drop in LATE_MODES:
+        try:
+            results[label] = asyncio.run(
+                run_simulation(
+                    args.url, vehicles=args.vehicles, scenario_name=args.scenario, admin_key=key, seed=args.seed,
+                    batch_epochs=args.batch_epochs, realtime=args.realtime, epochs=args.epochs,
+                    progress_stream=sys.stderr, timeout=args.timeout,
+                    delivery=delivery if late else None, drop_late=drop,
+                )
+            )
+        except EdgeposError as error:
+            print(f"edgepos simulate: {label}: {error}", file=sys.stderr)
+            return 1
+    print(late_report(results, delivery, args.batch_epochs))
+    if args.json is not None:
+        document = {label: result.to_json() for label, result in results.items()}
+        args.json.write_text(json.dumps(document, indent=2) + "\n")
+    return 1 if any(v.error for r in results.values() for v in r.vehicles) else 0
+
+
+def late_report(results: dict[str, SimulationResult], delivery: LateDelivery, batch_epochs: int) -> str:
+    """Mean RMSE of the last fix per epoch in each delivery, and its ratio to the in-order run."""
+    base = results["in order"].mean_position_rmse
+    lines = [
+        (
+            f"{delivery.fraction:.0%} of the RSU measurements {delivery.min_delay_s:g}-{delivery.max_delay_s:g} s "
+            f"late, batches every {batch_epochs} epoch(s); RMSE of the last fix received per epoch, mean over vehicles"
+        ),
+        f"{'delivery':<14} {'position RMSE (m)':>18} {'x in order':>11} {'velocity RMSE (m/s)':>20}  errors",
+    ]
+    for label, result in results.items():
+        position = result.mean_position_rmse
+        ratio = "-" if position is None or not base else f"{position / base:.4f}"
+        errors = sum(1 for v in result.vehicles if v.error)
+        lines.append(
+            f"{label:<14} {_format(position):>18} {ratio:>11} {_format(result.mean_velocity_rmse):>20}  {errors}"
+        )
+    return "\n".join(lines)
 
 
 def _run_federated(args: argparse.Namespace) -> int:

@@ -290,10 +290,12 @@ class LagWindow(Pipeline):
         if observations is None:
             return window.observations()
         arrival = _sort_out(window, observations)
-        if not arrival.late:
-            return []
-        earliest = min(observations[i].t for i in arrival.late)
-        return window.observations(_replay_start(window, earliest)[1])
+        if arrival.late:
+            earliest = min(observations[i].t for i in arrival.late)
+            return window.observations(_replay_start(window, earliest)[1])
+        if arrival.too_late and not arrival.fresh and window.newest is not None:
+            return window.observations(_replay_start(window, window.newest)[1])  # see _newest_fix
+        return []
 
     # -- batches -----------------------------------------------------------------------------------
     def process(
@@ -461,6 +463,13 @@ class LagWindow(Pipeline):
         index, start = _replay_start(window, window.newest)
         fixes, _ = self.inner.process(window.checkpoints[index].state, window.observations(start), environment)
         return [dataclasses.replace(fixes[-1], measurements=[], revised=True)] if fixes else []
+
+    def smooth(
+        self, state: bytes, observations: Sequence[Observation], environment: Environment, lag_s: float | None = None
+    ) -> list[Fix]:
+        """The inner pipeline's smoother from the session's current state (evaluation runs it over a
+        whole run; the track endpoint over the window, through :meth:`track`)."""
+        return self.inner.smooth(_unpack(state).current, observations, environment, lag_s)
 
     # -- the window's track ------------------------------------------------------------------------
     def track(self, state: bytes, environment: Environment, smoothed: bool) -> list[Fix]:
