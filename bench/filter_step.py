@@ -31,7 +31,8 @@ from edgepos.core.compiled import BankStepper, CompiledBankStepper, warm_up  # n
 from edgepos.core.measurements import GyroYawRate, RsuRangeBearing, Stacked  # noqa: E402
 from edgepos.core.updates import RsuGyroEpoch  # noqa: E402
 from edgepos.pipelines.base import InitialState  # noqa: E402
-from edgepos.pipelines.plausibility import unwrap
+from edgepos.pipelines import lag  # noqa: E402
+from edgepos.pipelines.plausibility import unwrap  # noqa: E402
 from edgepos.pipelines.registry import get_pipeline  # noqa: E402
 from edgepos.pipelines.rsu_imu import _bank, _decode, _options_key  # noqa: E402
 from edgepos.sim.scenarios import rsu_imu_paper_scenario  # noqa: E402
@@ -60,7 +61,8 @@ def main() -> int:
     state = pipeline.create(options, InitialState(x0[0], x0[3], x0[1], x0[4]))
     warmup = 200  # a realistic, converged state to time from
     _, state = pipeline.process(state, [o for epoch in epochs[:warmup] for o in epoch], env)
-    session = _decode(unwrap(state)[1])  # the registry wraps every pipeline's state (plausibility checks)
+    # the registry wraps every pipeline's state: the lag window around the plausibility checks
+    session = _decode(unwrap(lag._unpack(state).current)[1])
     bank = _bank(_options_key(options))
     epoch = epochs[warmup]
     rsu_obs = [o for o in epoch if o.kind == "rsu"]

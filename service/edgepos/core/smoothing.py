@@ -22,7 +22,8 @@ smoothed model probabilities follow Kim's backward recursion
     mu_{k|N}(i) = sum_j mu_{k,k+1|N}(i, j),
 
 and each model's pair estimates are moment-matched with the weights mu_{k,k+1|N}(i, j) / mu_{k|N}(i).
-Its one approximation: given s_{k+1}, the model at k does not depend on the data after k. The
+Besides the moment matching, Kim's approximation is that once s_{k+1} is given, the data after k
+say nothing more about s_k, and model j's smoothed estimate at k+1 holds whatever the model at k. The
 filtered probabilities may come from any forward bank (IMM or 2IMM): the recursion only uses them and
 the Markov transition. The pair predictions depend on the forward pass alone, so
 :func:`bank_pair_predictions` computes them once per step and a fixed-lag run only repeats the cheap
@@ -30,10 +31,11 @@ backward algebra.
 
 Banks whose models carry different components are held padded in the 8-dim frame (``core.imm``):
 zeros where a model lacks a component. A predicted covariance with a zero diagonal entry has that
-component inactive: it gets zero gain. Model i's state at k reaches model j's input as the forward
-interaction would hand it over with all weight on i: the components i carries are its own, those only
-j carries follow j's conditional Gaussian given the bank's common components. Components only i
-carries are smoothed through their covariance with j's input (Stein's lemma: for Gaussian x,
+component inactive: it gets zero gain. Model i's state at k enters model j with the components i
+carries as they are (that is what s_k = i means) and those only j carries from j's conditional
+Gaussian given the bank's common components, as the forward interaction
+(``InteractingMultipleModel.mix``) gives a model its extra components. Components only i carries are
+smoothed through their covariance with j's input (Stein's lemma: for Gaussian x,
 Cov(x_a, f(x_b)) = Cov(x_a, x_b) Cov(x_b)^-1 Cov(x_b, f(x_b))).
 
 **Fixed lag.** ``ends[k]`` is the last step whose data the estimate at k may use: the estimate is the
@@ -89,6 +91,8 @@ def rts_smooth(
     docstring (None: fixed interval).
     """
     filtered_means, filtered_covs = np.asarray(filtered_means, float), np.asarray(filtered_covs, float)
+    predicted_means, predicted_covs = np.asarray(predicted_means, float), np.asarray(predicted_covs, float)
+    cross_covs = np.asarray(cross_covs, float)
     count, size = filtered_means.shape
     _check_chain(count, size, filtered_covs, predicted_means, predicted_covs, cross_covs)
     mask = np.zeros(size, dtype=bool) if angle_mask is None else np.asarray(angle_mask, dtype=bool)
@@ -133,6 +137,8 @@ def imm_smooth(
     means, covs = np.asarray(means, float), np.asarray(covs, float)
     probabilities, transition = np.asarray(probabilities, float), np.asarray(transition, float)
     count, models, size = means.shape
+    if count < 1:
+        raise ValueError("an IMM chain needs at least one step")
     if probabilities.shape != (count, models) or transition.shape != (models, models):
         raise ValueError("probabilities must be (N, M) and the transition (M, M)")
     pair = (count - 1, models, models)
@@ -363,17 +369,21 @@ def bank_pair_predictions(
             cross_covs[:, i, j, shared] = cross[:, shared]
             own = np.flatnonzero(bank.active[i] & ~active)
             if own.size:  # Stein: Cov(x_own, x') = Cov(x_own, x_in) Cov(x_in)^-1 Cov(x_in, x')
-                regression = np.linalg.solve(
-                    cov[:, inputs[:, None], inputs[None, :]], cov[:, inputs[:, None], own[None, :]]
-                ).transpose(0, 2, 1)
+                try:
+                    regression = np.linalg.solve(
+                        cov[:, inputs[:, None], inputs[None, :]], cov[:, inputs[:, None], own[None, :]]
+                    ).transpose(0, 2, 1)
+                except np.linalg.LinAlgError:
+                    raise NumericalError("a model's input covariance is singular") from None
                 cross_covs[:, i, j, own] = regression @ cross[:, inputs]
     return predicted_means, predicted_covs, cross_covs
 
 
 def _hand_over(bank: InteractingMultipleModel, means: np.ndarray, covs: np.ndarray, i: int, j: int):
     """Model i's posteriors (steps, 8) / (steps, 8, 8), extended by the components only model j
-    carries: their conditional Gaussian in model j given the common components, as the bank's
-    interaction with all weight on model i would give them (``InteractingMultipleModel.mix``)."""
+    carries: their conditional Gaussian in model j given the common components, shifted to model i's
+    common block, as the bank's interaction gives a model its extra components
+    (``InteractingMultipleModel.mix``)."""
     mean, cov = means[:, i].copy(), covs[:, i].copy()
     extra = np.flatnonzero(bank.active[j] & ~bank.active[i])
     if extra.size == 0:
