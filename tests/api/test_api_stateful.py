@@ -1,7 +1,9 @@
 """Stateful fuzzing: schemathesis follows the OpenAPI links of the app's schema (open a session ->
 send batches -> read it -> delete it) with generated data, and checks every response against the
 schema, no 5xx, and after each call that the session moved exactly as the answer says: a 200 batch
-adds one to last_seq, any refusal leaves the session as it was, a 204 delete makes it 404."""
+adds one to last_seq and its new (not revised) fixes to epochs, any refusal leaves the session as it
+was, a 204 delete makes it 404. Some measurements are moved into the past of the session (late, within
+or beyond its lag window)."""
 
 from __future__ import annotations
 
@@ -80,9 +82,14 @@ class SessionWorkflow(sessions_schema.as_state_machine()):  # type: ignore[misc]
         self.before = _session(session_id)
         if case.operation.path.endswith("/batches") and isinstance(case.body, dict) and self.before:
             case.body["seq"] = self.before["last_seq"] + 1
+            newest = self.before["t"]
             for number, measurement in enumerate(case.body.get("measurements") or []):
                 if isinstance(measurement, dict) and measurement.get("type") == "rsu":
                     measurement["rsu_id"] = RSU_IDS[number % len(RSU_IDS)]
+                # Every third measurement late (inside or beyond the 1 s lag window): the window's
+                # replays, revised fixes and too-late reports in the mix.
+                if isinstance(measurement, dict) and newest is not None and number % 3 == 2:
+                    measurement["t"] = newest - 0.25 * (number % 7)
 
     def after_call(self, response: Any, case: Any) -> None:
         assert response.status_code < 500, response.text
@@ -97,7 +104,10 @@ class SessionWorkflow(sessions_schema.as_state_machine()):  # type: ignore[misc]
         if method == "POST" and path.endswith("/batches") and response.status_code == 200:
             assert after["last_seq"] == self.before["last_seq"] + 1
             assert after["batches"] == self.before["batches"] + 1
-            assert after["epochs"] == self.before["epochs"] + len(response.json()["fixes"])
+            fixes = response.json()["fixes"]
+            assert after["epochs"] == self.before["epochs"] + sum(not fix["revised"] for fix in fixes)
+            times = [fix["t"] for fix in fixes]
+            assert times == sorted(times)
         else:
             unchanged = ("last_seq", "batches", "epochs", "t", "last_fix", "model_probabilities")
             assert {k: after[k] for k in unchanged} == {k: self.before[k] for k in unchanged}

@@ -14,10 +14,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
+import numpy as np
+from edgepos.core.observations import Observation
 from edgepos.loadgen import common
 from edgepos.loadgen.localserver import free_port
 from edgepos.pipelines.base import InitialState, StaticEnvironment
 from edgepos.pipelines.registry import get_pipeline
+from edgepos.sim.delivery import LateDelivery, arrival_batches, arrival_times
 from edgepos.sim.scenarios import Scenario, rsu_imu_paper_scenario
 from edgepos_client import InitialState as WireInitialState
 
@@ -139,23 +142,38 @@ def start_state() -> WireInitialState:
     return common.initial_state(scenario())
 
 
-@functools.lru_cache(maxsize=8)
-def stream_batches(stream: int, batch_epochs: int) -> tuple[list[common.WireMeasurement], ...]:
-    """Noise stream ``stream``'s measurements in batches of ``batch_epochs`` epochs (client models)."""
-    return tuple(common.wire_batches(common.vehicle_epochs(scenario(), 0, stream), batch_epochs))
+LATE = LateDelivery(fraction=0.3, max_delay_s=0.5)
+"""With ``late=True``: 30 % of the RSU measurements arrive 0.05-0.5 s late, so that batches carry late
+measurements the lag window replays (seeded per stream)."""
 
 
-def reference_states(stream: int, batch_epochs: int, batches: int) -> list[bytes]:
-    """The in-process pipeline's state after 0, 1, ..., ``batches`` batches of the stream, from the
-    same start and default options as a session opened with :func:`start_state`."""
+@functools.lru_cache(maxsize=16)
+def _observation_batches(stream: int, batch_epochs: int, late: bool) -> tuple[tuple[Observation, ...], ...]:
+    epochs = common.vehicle_epochs(scenario(), 0, stream)
+    if not late:
+        return tuple(tuple(o for epoch in epochs[k : k + batch_epochs] for o in epoch) for k in range(0, len(epochs), batch_epochs))
+    observations = [o for epoch in epochs for o in epoch]
+    arrivals = arrival_times(observations, LATE, np.random.default_rng([stream, 15]))
+    return tuple(tuple(batch) for batch in arrival_batches(observations, arrivals, batch_epochs))
+
+
+@functools.lru_cache(maxsize=16)
+def stream_batches(stream: int, batch_epochs: int, late: bool = False) -> tuple[list[common.WireMeasurement], ...]:
+    """Noise stream ``stream``'s measurements in batches of ``batch_epochs`` epochs (client models); with
+    ``late`` as they would arrive with :data:`LATE` (each batch what arrived since the previous one)."""
+    return tuple([common.to_wire(o) for o in batch] for batch in _observation_batches(stream, batch_epochs, late))
+
+
+def reference_states(stream: int, batch_epochs: int, batches: int, late: bool = False) -> list[bytes]:
+    """The in-process pipeline's state after 0, 1, ..., ``batches`` batches of the stream (as
+    :func:`stream_batches` cuts it), from the same start and default options as a session opened with
+    :func:`start_state`."""
     pipeline = get_pipeline("rsu_imu")
     environment = StaticEnvironment({rsu.id: rsu for rsu in scenario().rsus})
     start = start_state()
     state = pipeline.create(pipeline.resolve_options({}), InitialState(**start.model_dump()))
     states = [state]
-    epochs = common.vehicle_epochs(scenario(), 0, stream)
-    for k in range(batches):
-        observations = [o for epoch in epochs[k * batch_epochs : (k + 1) * batch_epochs] for o in epoch]
-        _fixes, state = pipeline.process(state, observations, environment)
+    for observations in _observation_batches(stream, batch_epochs, late)[:batches]:
+        _fixes, state = pipeline.process(state, list(observations), environment)
         states.append(state)
     return states
