@@ -306,6 +306,7 @@ class LagWindow(Pipeline):
         arrival = _sort_out(window, observations)
         # Every problem of the batch in one answer: the too-late measurements' own, then the rest's.
         problems = self._too_late_problems(window, observations, arrival.too_late, environment)
+        uses = _too_late_uses(window, observations, arrival.too_late)  # judged by the window before the batch
         try:
             if arrival.late:
                 fixes = self._replay(window, observations, arrival, environment)
@@ -317,8 +318,8 @@ class LagWindow(Pipeline):
             raise PipelineInputError([*problems, *error.problems]) from None
         if problems:
             raise PipelineInputError(problems)
-        if arrival.too_late:
-            fixes = self._report_too_late(window, observations, arrival.too_late, fixes, environment)
+        if uses:
+            fixes = self._report_too_late(window, uses, fixes, environment)
         _prune(window)
         return fixes, _pack(window)
 
@@ -328,6 +329,16 @@ class LagWindow(Pipeline):
         """A batch newer than the window: filtered from the current state; the state before it may
         become a checkpoint."""
         order = sorted(fresh, key=lambda i: observations[i].t)
+        times = sorted({observations[i].t for i in order if _finite(observations[i].t)})
+        limit = window.options["max_window_epochs"]
+        if len(times) > limit:
+            # More epochs than the window keeps: the state before its last ``limit`` epochs becomes a
+            # checkpoint, so that late data for them (and the newest fix) can still be filtered again.
+            split = times[-limit - 1]
+            head = [i for i in order if not observations[i].t > split]
+            order = [i for i in order if observations[i].t > split]
+            fixes = self._append(window, observations, head, environment)
+            return fixes + self._append(window, observations, order, environment)
         fixes, new_state = self._filter(window.current, [(i, observations[i]) for i in order], environment)
         _maybe_checkpoint(window, window.newest, window.current)
         window.current = new_state
@@ -421,34 +432,10 @@ class LagWindow(Pipeline):
         return []
 
     def _report_too_late(
-        self,
-        window: _Window,
-        observations: Sequence[Observation],
-        indices: list[int],
-        fixes: list[Fix],
-        environment: Environment,
+        self, window: _Window, uses: list[MeasurementUse], fixes: list[Fix], environment: Environment
     ) -> list[Fix]:
         """The too-late measurements as used=false in the response's newest fix; a batch with nothing else
         gets the session's newest fix again (computed anew from its checkpoint, marked revised)."""
-        newest, delay = window.newest, window.options["max_delay_s"]
-        start = window.base.t
-        uses = []
-        for i in indices:
-            observation = observations[i]
-            assert newest is not None  # nothing is too late before the first epoch
-            lateness = newest - observation.t
-            if lateness > delay:
-                why = f"beyond the lag window (max_delay_s {delay:g} s)"
-            else:
-                why = (
-                    f"before the oldest epoch the lag window still holds (t={start!r}; max_window_epochs "
-                    f"{window.options['max_window_epochs']})"
-                )
-            reason = (
-                f"too late: t={observation.t!r} is {lateness:.6g} s older than the session's newest epoch "
-                f"t={newest!r}, {why}; not used, the rest of the batch was applied"
-            )
-            uses.append(MeasurementUse(i, observation.kind, False, reason))
         if not fixes:
             fixes = self._newest_fix(window, environment)
             if not fixes:
@@ -499,18 +486,43 @@ def _sort_out(window: _Window, observations: Sequence[Observation]) -> _Arrival:
     newest = window.newest
     if newest is None:
         return _Arrival(list(range(len(observations))), [], [])
-    floor = newest - window.options["max_delay_s"]
+    delay = window.options["max_delay_s"]
+    floor = newest - delay
     base = window.base.t
     fresh, late, too_late = [], [], []
     for index, observation in enumerate(observations):
         t = observation.t
         if not _finite(t) or t > newest:
             fresh.append(index)  # a malformed time goes to the inner pipeline, which names it
-        elif t < floor or (base is not None and t <= base):
+        elif t < floor or (base is not None and t <= base) or delay == 0:
             too_late.append(index)
         else:
             late.append(index)
     return _Arrival(fresh, late, too_late)
+
+
+def _too_late_uses(window: _Window, observations: Sequence[Observation], indices: list[int]) -> list[MeasurementUse]:
+    """The report of each too-late measurement: how late against the session's newest epoch before the
+    batch, and which bound it missed."""
+    newest, delay = window.newest, window.options["max_delay_s"]
+    uses = []
+    for i in indices:
+        observation = observations[i]
+        assert newest is not None  # nothing is too late before the first epoch
+        lateness = newest - observation.t
+        if lateness > delay or delay == 0:
+            why = f"beyond the lag window (max_delay_s {delay:g} s)"
+        else:
+            why = (
+                f"before the oldest epoch the lag window still holds (t={window.times[0]!r}; max_window_epochs "
+                f"{window.options['max_window_epochs']})"
+            )
+        reason = (
+            f"too late: t={observation.t!r} is {lateness:.6g} s older than the session's newest epoch "
+            f"t={newest!r}, {why}; not used, the rest of the batch was applied"
+        )
+        uses.append(MeasurementUse(i, observation.kind, False, reason))
+    return uses
 
 
 def _check_lead(window: _Window, observations: Sequence[Observation]) -> None:
@@ -633,7 +645,3 @@ def _prune(window: _Window) -> None:
     if keep or start:
         window.checkpoints = window.checkpoints[keep:]
         window.times, window.records = window.times[start:], window.records[start:]
-    if window.options["max_delay_s"] == 0:
-        # No window: nothing late is accepted, so no checkpoint but the current state is needed.
-        window.checkpoints = [_Checkpoint(window.newest, window.current)]
-        window.times, window.records = [], []
