@@ -139,11 +139,17 @@ def _bad_batches():
             422,
             [(0, "measurements[0].bearing")],
         ),
-        (
-            "time older than last epoch",
-            {"seq": 2, "measurements": [good[0], {**good[-1], "t": 0.01}]},
+        (  # (older than the session's last epoch is no longer refused: tested below)
+            "time far ahead of the rest of the batch",
+            {"seq": 2, "measurements": [good[0], {**good[-1], "t": good[0]["t"] + 10.5}]},
             422,
             [(1, "measurements[1].t")],
+        ),
+        (  # the session's last epoch is t=0.5: t=-1.0 is too late for the 1 s lag window, but still checked
+            "unknown RSU too late for the lag window",
+            {"seq": 2, "measurements": [good[0], {**good[0], "t": -1.0, "rsu_id": "nowhere"}]},
+            422,
+            [(1, "measurements[1].rsu_id")],
         ),
         (
             "unknown type",
@@ -179,6 +185,36 @@ def test_bad_batches_leave_the_session_untouched(client, name, body, status, exp
     error = assert_error(_post(client, session_id, body, token), status, "invalid_request")
     assert [(p["index"], p["field"]) for p in error["problems"]] == expected
     assert _record(client, session_id) == before
+
+
+def test_late_measurements_are_filtered_at_their_time_and_too_late_ones_reported(client):
+    """The lag window (max_delay_s 1 s by default): a gyro reading between two epochs already answered is
+    inserted at its time and the later fix comes back revised; one older than the window is not used, says
+    why in the newest fix, and the rest of the batch is applied."""
+    session_id, token = open_session(client)
+    first = _post(client, session_id, batch_body(1, 0, 10), token).json()["fixes"]
+    assert first[-1]["t"] == 0.5
+    new_epoch = batch_body(2, 10, 1)["measurements"]
+    late = {"type": "gyro", "t": 0.475, "yaw_rate": 0.0}
+    too_late = {"type": "gyro", "t": -0.75, "yaw_rate": 0.0}
+    body = {"seq": 2, "measurements": [too_late, *new_epoch, late]}
+    response = _post(client, session_id, body, token)
+    assert response.status_code == 200, response.text
+    fixes = response.json()["fixes"]
+    assert [(f["t"], f["revised"]) for f in fixes] == [(0.475, False), (0.5, True), (new_epoch[0]["t"], False)]
+    assert fixes[0]["measurements"] == [{"index": len(body["measurements"]) - 1, "type": "gyro", "used": True,
+                                         "reason": None}]
+    assert fixes[1]["measurements"] == []  # a revised fix lists only the batch's measurements of its epoch
+    assert fixes[1]["x"] != first[-1]["x"]
+    newest = {u["index"]: u for u in fixes[-1]["measurements"]}
+    assert sorted(newest) == list(range(len(new_epoch) + 1))
+    assert not newest[0]["used"] and newest[0]["reason"].startswith("too late: t=-0.75 is ")
+    assert "max_delay_s 1 s" in newest[0]["reason"]
+    assert all(newest[i]["used"] for i in range(1, len(new_epoch) + 1))
+    info = client.get(f"/v1/sessions/{session_id}", headers=token).json()
+    # revised fixes are not new epochs; the late reading's is
+    assert (info["last_seq"], info["batches"], info["epochs"], info["t"]) == (2, 2, 12, new_epoch[0]["t"])
+    assert info["last_fix"] == {**fixes[-1], "state": None}
 
 
 @pytest.mark.parametrize("literal", ["NaN", "Infinity", "-Infinity"])

@@ -7,6 +7,7 @@ from edgepos.pipelines.base import InitialState, StaticEnvironment
 from edgepos.pipelines.registry import get_pipeline
 
 BATCHES = [(0, 1), (1, 7), (8, 20), (28, 3)]  # (first epoch, epochs)
+HELD_BACK = 29  # the last batch arrives without this epoch's gyro, which comes late with the next epoch
 OPTIONS = {"filter": "ckf", "rsu_handling": "joint"}
 
 
@@ -15,6 +16,7 @@ def _expected_wire(fix):
     return {
         "t": fix.t,
         "status": fix.status,
+        "revised": fix.revised,
         "divergence": fix.divergence,
         "x": fix.x,
         "y": fix.y,
@@ -60,8 +62,14 @@ def _check_session(client, initial_state):
     initial = None if initial_state is None else InitialState(**initial_state)
     state = pipeline.create(pipeline.resolve_options(OPTIONS), initial)
     session_id, token = open_session(client, options=OPTIONS, initial_state=initial_state)
-    for seq, (first, count) in enumerate(BATCHES, start=1):
-        observations = batch_observations(first, count)
+    late = next(o for o in batch_observations(HELD_BACK, 1) if o.kind == "gyro")
+    last_first, last_count = BATCHES[-1]
+    # in time order, then a late measurement: the lag window's revised fixes are served bit for bit too
+    batches = [batch_observations(first, count) for first, count in BATCHES]
+    batches[-1] = [o for o in batches[-1] if o != late]
+    batches.append(batch_observations(last_first + last_count, 1) + [late])
+    counts = [count for _, count in BATCHES] + [1 + (last_first + last_count - HELD_BACK)]  # fixes per batch
+    for seq, (observations, count) in enumerate(zip(batches, counts, strict=True), start=1):
         expected_fixes, state = pipeline.process(state, observations, environment)
         body = {"seq": seq, "measurements": [wire(o) for o in observations], "include_state": True}
         response = client.post(f"/v1/sessions/{session_id}/batches", json=body, headers=token)
@@ -70,6 +78,11 @@ def _check_session(client, initial_state):
         assert len(served) == len(expected_fixes) == count
         for index, (got, fix) in enumerate(zip(served, expected_fixes, strict=True)):
             _assert_identical(got, _expected_wire(fix), f"batch{seq}.fix{index}")
+    # the last batch: the held-back epoch and the one after it come back revised, then the new epoch
+    assert [f["revised"] for f in served] == [True] * (count - 1) + [False]
+    assert served[0]["t"] == late.t
+    gyro = {"index": len(observations) - 1, "type": "gyro", "used": True, "reason": None}
+    assert served[0]["measurements"] == [gyro]
     stored = client.portal.call(client.app.state.context.store.get, session_id)
     assert stored.state == state  # the session's state is byte-identical too
 

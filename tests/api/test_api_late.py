@@ -156,3 +156,26 @@ def test_smoothing_a_pipeline_without_a_smoother_is_a_422(client):
         client.get(f"/v1/sessions/{session_id}/track", params={"smoothed": "true"}, headers=token), 422, "invalid_request"
     )
     assert error["problems"][0]["field"] == "smoothed"
+
+
+def test_a_track_of_an_unreadable_state_is_a_409_like_a_batch(client):
+    import dataclasses
+
+    from edgepos.pipelines import lag
+
+    session_id, token = open_session(client)
+    assert _post(client, session_id, 1, batch_observations(0, 5), token).status_code == 200
+    store = client.app.state.context.store
+    record = client.portal.call(store.get, session_id)
+    window = lag._unpack(record.state)
+    for checkpoint in window.checkpoints:
+        checkpoint.state = b"garbage"
+    window.current = b"garbage"
+    damaged = dataclasses.replace(record, state=lag._pack(window))
+    assert client.portal.call(store.compare_and_set, damaged, record.version)
+    for response in (
+        client.get(f"/v1/sessions/{session_id}/track", headers=token),
+        _post(client, session_id, 2, batch_observations(5, 1), token),
+    ):
+        error = assert_error(response, 409, "conflict")
+        assert "cannot read the session's stored filter state" in error["message"]

@@ -1,9 +1,11 @@
 """A hypothesis state machine drives the API beside an in-process reference pipeline.
 
 Rules open sessions (various filters, with or without a known start), send the next epochs of the
-paper scenario's measurements, retry the last batch, send every kind of bad request (malformed
-JSON, wrong types, huge numbers, NaN, unicode ids, unknown RSUs, stale timestamps, seq gaps and
-reuse, over-long and over-size batches) and delete sessions. Opening a session for a vehicle that has
+paper scenario's measurements, send late measurements (inside the lag window: filtered at their time,
+earlier fixes revised; beyond it: reported unused), retry the last batch, send every kind of bad request
+(malformed JSON, wrong types, huge numbers, NaN, unicode ids, unknown RSUs, too-late measurements of
+an unknown RSU, a clock jump within the batch, seq gaps and reuse, over-long and over-size batches)
+and delete sessions. Opening a session for a vehicle that has
 one supersedes the old one, whose token then gets 409 superseded. After every step, for every session:
 the served fixes were the reference's bit for bit, refused requests got a 4xx with the standard
 error body and changed nothing, and the stored counters and latest fix equal the model's.
@@ -11,6 +13,7 @@ error body and changed nothing, and the stored counters and latest fix equal the
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,10 +24,12 @@ from edgepos.api.app import create_app
 from edgepos.api.convert import fix_to_json
 from edgepos.api.schemas import FixOut
 from edgepos.api.settings import Settings
-from edgepos.pipelines.base import InitialState, StaticEnvironment
+from edgepos.core.errors import EstimationError
+from edgepos.pipelines import lag
+from edgepos.pipelines.base import InitialState, PipelineInputError, StaticEnvironment
 from edgepos.pipelines.registry import get_pipeline
 from fastapi.testclient import TestClient
-from hypothesis import HealthCheck, settings
+from hypothesis import HealthCheck, event, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import (
     Bundle,
@@ -99,7 +104,8 @@ BAD_KINDS = [
     "unicode_rsu",
     "unknown_rsu",
     "negative_range",
-    "stale_time",
+    "too_late_unknown_rsu",
+    "clock_jump_in_batch",
     "seq_gap",
     "seq_zero",
     "seq_reused_other_body",
@@ -184,6 +190,52 @@ class ApiBesideReference(RuleBasedStateMachine):
         model.last_fix = served["fixes"][-1]
         model.last_body, model.last_response = body, response.content
 
+    @rule(
+        model=sessions,
+        # seconds before the session's newest epoch: the same epoch, between earlier epochs (0.05 s apart),
+        # before the first one, and beyond the window (max_delay_s 1 s)
+        lateness=st.sampled_from([0.0, 0.0125, 0.3125, 0.9875, 1.5, 30.0]),
+        which=st.sampled_from(["all", "gyro", "rsu"]),
+    )
+    def send_late_measurements(self, model: Model, lateness: float, which: str) -> None:
+        """The next epoch's measurements (or some), dated ``lateness`` before the newest epoch: the served
+        fixes (new and revised) are the reference's bit for bit, and the counters follow (a revised fix is
+        not a new epoch)."""
+        if model.deleted or model.epochs == 0:
+            return
+        t = model.last_fix["t"] - lateness
+        source = EPOCHS[min(model.next_epoch, len(EPOCHS) - 1)]
+        observations = [dataclasses.replace(o, t=t) for o in source if which in ("all", o.kind)]
+        body = {"seq": model.last_seq + 1, "measurements": [wire(o) for o in observations]}
+        if model.superseded_by is not None:
+            self._assert_superseded(model, self._post(model, json.dumps(body)))
+            return
+        try:
+            fixes, state = PIPELINE.process(model.state, observations, ENVIRONMENT)
+        except (PipelineInputError, EstimationError):
+            event("late measurements: refused")
+            response = self._post(model, json.dumps(body))
+            assert response.status_code == 422, response.text
+            return
+        response = self._post(model, json.dumps(body))
+        assert response.status_code == 200, response.text
+        served = response.json()
+        event(f"late measurements: {len(served['fixes'])} fixes, {sum(not f.revised for f in fixes)} new")
+        assert served["fixes"] == [_wire_fix(fix) for fix in fixes]  # floats compared exactly
+        assert served["fixes"][-1]["t"] == model.last_fix["t"]  # nothing newer came
+        uses = [u for f in served["fixes"] for u in f["measurements"]]
+        assert sorted(u["index"] for u in uses) == list(range(len(observations)))
+        if lateness > lag.DEFAULTS["max_delay_s"]:
+            assert not any(u["used"] for u in uses) and all(u["reason"].startswith("too late: ") for u in uses)
+            assert [f["revised"] for f in served["fixes"]] == [True]
+        else:
+            assert not any(u["reason"] and u["reason"].startswith("too late") for u in uses)
+            assert served["fixes"][-1]["revised"]
+        model.state, model.last_seq = state, body["seq"]
+        model.epochs += sum(not fix.revised for fix in fixes)
+        model.last_fix = served["fixes"][-1]
+        model.last_body, model.last_response = body, response.content
+
     @rule(model=sessions, spaced=st.booleans())
     def retry_last_batch(self, model: Model, spaced: bool) -> None:
         if not model.live or model.last_body is None:
@@ -221,11 +273,14 @@ class ApiBesideReference(RuleBasedStateMachine):
                 rsu["rsu_id"] = "nowhere-1"
             elif kind == "negative_range":
                 rsu["range"] = -1.0
-            elif kind == "stale_time":
+            elif kind == "too_late_unknown_rsu":  # too late for the lag window, but still validated
                 if model.epochs == 0:
                     return
                 for m in good:
-                    m["t"] = model.last_fix["t"] - 1.0
+                    m["t"] = model.last_fix["t"] - 2.0 * lag.DEFAULTS["max_delay_s"]
+                rsu["rsu_id"] = "nowhere-1"
+            elif kind == "clock_jump_in_batch":  # one measurement far after every other (max_lead_s)
+                good[-1]["t"] = good[0]["t"] + 2.0 * lag.DEFAULTS["max_lead_s"]
             elif kind == "seq_gap":
                 body["seq"], expected = seq + 1 + len(salt), {409}
             elif kind == "seq_zero":

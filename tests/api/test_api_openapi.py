@@ -25,6 +25,7 @@ def test_schema_documents_every_route_and_error():
         "/v1/sessions",
         "/v1/sessions/{session_id}",
         "/v1/sessions/{session_id}/batches",
+        "/v1/sessions/{session_id}/track",
         "/v1/vehicles",
         "/v1/vehicles/bulk",
         "/v1/vehicles/{vehicle_id}",
@@ -37,6 +38,16 @@ def test_schema_documents_every_route_and_error():
     assert set(batches["responses"]) == {"200", "401", "403", "404", "409", "413", "415", "422", "429", "503"}
     assert batches["responses"]["422"]["content"]["application/json"]["schema"]["$ref"].endswith("/ErrorBody")
     assert document["components"]["securitySchemes"]["bearer"]["scheme"] == "bearer"
+    # the lag window's track: a GET with no body (no 413/415), every error a batch's GET neighbours have
+    track = paths["/v1/sessions/{session_id}/track"]
+    assert set(track) == {"get"}
+    assert set(track["get"]["responses"]) == {"200", "401", "403", "404", "409", "422", "429", "503"}
+    answers = track["get"]["responses"]
+    assert answers["422"]["content"]["application/json"]["schema"]["$ref"].endswith("/ErrorBody")
+    assert answers["200"]["content"]["application/json"]["schema"]["$ref"].endswith("/TrackOut")
+    query = {p["name"]: p for p in track["get"]["parameters"] if p["in"] == "query"}
+    assert set(query) == {"smoothed"} and query["smoothed"]["schema"]["type"] == "boolean"
+    assert query["smoothed"]["schema"]["default"] is False and query["smoothed"]["description"]
     upload = paths["/v1/ephemerides"]["put"]["requestBody"]["content"]
     assert set(upload) == {"text/plain", "application/octet-stream"}
     assert set(paths["/v1/ephemerides"]) == {"put", "get", "delete"}

@@ -8,6 +8,7 @@ import threading
 from apifakes import GatedPipeline
 from apihelp import ADMIN, batch_body, make_settings, rsu_payload
 from edgepos.api.app import create_app
+from edgepos.pipelines.lag import LagWindow
 from edgepos.pipelines.plausibility import Plausible
 from fastapi.testclient import TestClient
 
@@ -15,8 +16,9 @@ from fastapi.testclient import TestClient
 def test_racing_instances_apply_a_batch_once(tmp_path):
     url = f"sqlite:///{tmp_path / 'shared.db'}"
     slow = GatedPipeline()
-    # wrapped as the registry wraps every pipeline, so that both instances read the same state format
-    app_a = create_app(make_settings(tmp_path, store=url), pipelines={"rsu_imu": Plausible(slow)})
+    # wrapped as the registry wraps every pipeline (lag window around plausibility), so that both instances
+    # read the same state format: B creates the session, and A must be able to read it
+    app_a = create_app(make_settings(tmp_path, store=url), pipelines={"rsu_imu": LagWindow(Plausible(slow))})
     app_b = create_app(make_settings(tmp_path, store=url))
     with TestClient(app_a) as a, TestClient(app_b) as b:
         a.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)

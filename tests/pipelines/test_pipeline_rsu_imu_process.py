@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from edgepos.core import state as state_format
 from edgepos.core.observations import GyroObservation, Observation, RsuObservation
+from edgepos.pipelines import lag
 from edgepos.pipelines.base import Fix, InitialState, PipelineInputError, Rsu, StaticEnvironment
 from edgepos.pipelines.registry import get_pipeline
 
@@ -77,6 +78,9 @@ def position_error(fix: Fix) -> float:
 
 
 # -- validation -------------------------------------------------------------------------------------
+MAX_DELAY = lag.DEFAULTS["max_delay_s"]  # the lag window: older measurements are too late (reported unused)
+
+
 def test_bad_batch_is_refused_whole_listing_every_bad_index(pipeline) -> None:
     _, state = run(pipeline, started(pipeline), 5, seed=1)
     last_t = 5 * DT
@@ -87,19 +91,40 @@ def test_bad_batch_is_refused_whole_listing_every_bad_index(pipeline) -> None:
         RsuObservation(t=last_t + DT, rsu_id="NOPE", range=10.0, bearing=0.1),  # 1: unknown RSU
         good[1],
         RsuObservation(t=last_t + DT, rsu_id="S000", range=-0.5, bearing=0.1),  # 3: negative range
-        GyroObservation(t=last_t - DT, yaw_rate=0.0),  # 4: older than the last epoch
-        RsuObservation(t=last_t - 1.0, rsu_id="ALSO_NOPE", range=-1.0, bearing=0.0),  # 5: three problems
+        GyroObservation(t=last_t - DT, yaw_rate=0.0),  # 4: late, inside the lag window: fine
+        # 5: too late for the lag window (not filtered), and two problems of its own
+        RsuObservation(t=last_t - 2 * MAX_DELAY, rsu_id="ALSO_NOPE", range=-1.0, bearing=0.0),
         good[-1],
+        RsuObservation(t=math.inf, rsu_id="S000", range=10.0, bearing=0.1),  # 7: no time at all
     ]
     with pytest.raises(PipelineInputError) as caught:
         pipeline.process(state, batch, ENV)
     problems = {(p.index, p.field) for p in caught.value.problems}
-    assert problems == {(1, "rsu_id"), (3, "range"), (4, "t"), (5, "t"), (5, "rsu_id"), (5, "range")}
+    assert problems == {(1, "rsu_id"), (3, "range"), (5, "rsu_id"), (5, "range"), (7, "t")}
     assert all(p.reason for p in caught.value.problems)
     # nothing was applied: the same state accepts the good part and gives what it would have anyway
-    fixes_a, state_a = pipeline.process(state, [o for i, o in enumerate(batch) if i in (0, 2, 6)], ENV)
-    fixes_b, state_b = pipeline.process(state, [good[0], good[1], good[-1]], ENV)
+    fixes_a, state_a = pipeline.process(state, [o for i, o in enumerate(batch) if i in (0, 2, 4, 6)], ENV)
+    fixes_b, state_b = pipeline.process(state, [good[0], good[1], batch[4], good[-1]], ENV)
     assert state_a == state_b and fixes_a == fixes_b
+    assert [(f.t, f.revised) for f in fixes_a] == [(last_t - DT, True), (last_t, True), (last_t + DT, False)]
+
+
+def test_a_malformed_late_measurement_is_listed_with_every_other_problem_of_the_batch(pipeline) -> None:
+    """A late measurement (inside the lag window) is validated as it is filtered again from a checkpoint,
+    the batch's new epochs after it: the problems of both parts are listed together."""
+    _, state = run(pipeline, started(pipeline), 5, seed=1)
+    last_t = 5 * DT
+    batch = [
+        RsuObservation(t=last_t - DT / 2, rsu_id="NOPE", range=10.0, bearing=0.1),  # late, unknown RSU
+        RsuObservation(t=last_t + DT, rsu_id="ALSO_NOPE", range=10.0, bearing=0.1),  # new, unknown RSU
+    ]
+    for alone in ([batch[0]], [batch[1]]):
+        with pytest.raises(PipelineInputError) as caught:
+            pipeline.process(state, alone, ENV)
+        assert [(p.index, p.field) for p in caught.value.problems] == [(0, "rsu_id")]
+    with pytest.raises(PipelineInputError) as caught:
+        pipeline.process(state, batch, ENV)
+    assert sorted((p.index, p.field) for p in caught.value.problems) == [(0, "rsu_id"), (1, "rsu_id")]
 
 
 @pytest.mark.parametrize(
@@ -118,13 +143,25 @@ def test_non_finite_or_out_of_range_values_are_refused(pipeline, observation: Ob
     assert [(p.index, p.field) for p in caught.value.problems] == [(0, field)]
 
 
-def test_time_equal_to_the_last_epoch_is_accepted_but_older_is_not(pipeline) -> None:
+def test_time_equal_to_the_last_epoch_is_accepted_and_older_than_the_lag_window_is_not_used(pipeline) -> None:
+    """Equal to the last epoch: joins it (its fix comes back revised). Older, inside the lag window: a new
+    epoch at its own time, the later fix revised. Older than the window: not used, said so in the newest
+    fix (the session's newest epoch again), the session unchanged."""
     _, state = run(pipeline, started(pipeline), 3, seed=3)
     last_t = 3 * DT
     fixes, _ = pipeline.process(state, [GyroObservation(t=last_t, yaw_rate=0.0)], ENV)
-    assert len(fixes) == 1
-    with pytest.raises(PipelineInputError):
-        pipeline.process(state, [GyroObservation(t=math.nextafter(last_t, 0.0), yaw_rate=0.0)], ENV)
+    assert [(f.t, f.revised) for f in fixes] == [(last_t, True)]
+    assert [(u.index, u.used) for u in fixes[0].measurements] == [(0, True)]
+    just_before = math.nextafter(last_t, 0.0)
+    fixes, _ = pipeline.process(state, [GyroObservation(t=just_before, yaw_rate=0.0)], ENV)
+    assert [(f.t, f.revised) for f in fixes] == [(just_before, False), (last_t, True)]
+    assert [(u.index, u.used) for u in fixes[0].measurements] == [(0, True)] and fixes[1].measurements == []
+    too_late = math.nextafter(last_t - MAX_DELAY, -math.inf)
+    fixes, same = pipeline.process(state, [GyroObservation(t=too_late, yaw_rate=0.0)], ENV)
+    assert [(f.t, f.revised) for f in fixes] == [(last_t, True)]
+    [use] = fixes[0].measurements
+    assert (use.index, use.used) == (0, False) and use.reason.startswith(f"too late: t={too_late!r}")
+    assert same == state
 
 
 # -- epochs -----------------------------------------------------------------------------------------
@@ -311,10 +348,20 @@ def test_state_reencodes_byte_identically(pipeline) -> None:
     from edgepos.pipelines.plausibility import unwrap, wrap
 
     _, state = run(pipeline, started(pipeline), 12, seed=20)
-    envelope, inner = unwrap(state)  # the registry's pipelines wrap the state (plausibility checks)
-    assert wrap(envelope, inner) == state
-    meta, arrays = state_format.unpack(inner)
-    assert state_format.pack(meta, arrays) == inner
+    # the registry's pipelines wrap the state: the lag window's envelope (its checkpoints, the current
+    # state and the window's observations) around plausibility's around the pipeline's own
+    window = lag._unpack(state)
+    assert lag._pack(window) == state
+    # its base is a checkpoint from before max_delay_s, and it holds every epoch after it: all a measurement
+    # late by up to max_delay_s needs filtered again
+    assert window.newest == 12 * DT and window.base.t is not None and window.base.t < window.newest - MAX_DELAY
+    assert window.times == [t for t in (k * DT for k in range(1, 13)) if t > window.base.t]
+    assert [o for record in window.records for o in lag.decode_epoch(record)] == window.observations()
+    for inner_state in [window.current, *(c.state for c in window.checkpoints)]:
+        envelope, inner = unwrap(inner_state)
+        assert wrap(envelope, inner) == inner_state
+        meta, arrays = state_format.unpack(inner)
+        assert state_format.pack(meta, arrays) == inner
     # an empty batch changes nothing
     fixes, same = pipeline.process(state, [], ENV)
     assert fixes == [] and same == state
@@ -330,7 +377,10 @@ def test_processing_is_deterministic(pipeline) -> None:
 
 
 def test_one_batch_equals_epoch_by_epoch(pipeline) -> None:
-    """Splitting a stream into batches does not change a single bit of the result."""
+    """Splitting a stream into batches does not change a single bit of the result: the fixes and the
+    filter's state after the last epoch. (Not the whole state bytes: the lag window keeps checkpoints at
+    batch boundaries and drops the epochs before the latest one older than max_delay_s, so batchings
+    differ in their checkpoints and in how many old epochs they still hold; those they hold are the same.)"""
     rng = np.random.default_rng(22)
     epochs = [epoch(k * DT, rng) for k in range(1, 16)]
     state = started(pipeline)
@@ -339,7 +389,14 @@ def test_one_batch_equals_epoch_by_epoch(pipeline) -> None:
     for e in epochs:
         new, state = pipeline.process(state, e, ENV)
         fixes_many.extend(new)
-    assert state == state_one
+    window_many, window_one = lag._unpack(state), lag._unpack(state_one)
+    assert window_many.current == window_one.current
+    assert window_many.newest == window_one.newest == epochs[-1][0].t
+    held = min(len(window_many.times), len(window_one.times))
+    assert held >= round(MAX_DELAY / DT)
+    assert window_many.times[-held:] == window_one.times[-held:]
+    assert window_many.records[-held:] == window_one.records[-held:]
+    assert len(fixes_one) == len(fixes_many) == len(epochs)
     for a, b in zip(fixes_one, fixes_many):
         assert (a.t, a.x, a.y, a.vx, a.vy, a.position_cov, a.state_cov, a.model_probabilities, a.nis) == (
             b.t, b.x, b.y, b.vx, b.vy, b.position_cov, b.state_cov, b.model_probabilities, b.nis
@@ -383,7 +440,7 @@ def test_absurd_gaps_fail_only_with_estimation_errors(pipeline, gap: float) -> N
     from edgepos.core.errors import EstimationError
 
     for filter_name in ("ckf", "ekf"):
-        for which in (pipeline, pipeline.inner):  # the registry's, and the filter without the time bound
+        for which in (pipeline, pipeline.inner.inner):  # the registry's, and the filter without the time bound
             _, state = run(which, started(which, {"filter": filter_name}), 3, seed=25)
             try:
                 which.process(state, epoch(0.3 + gap, np.random.default_rng(26)), ENV)

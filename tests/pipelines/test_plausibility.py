@@ -1,6 +1,10 @@
 """Physical plausibility (pipelines/plausibility.py): absurd but finite fixes are reported "diverged" and
 reset the session, far initial states and jumps of the clock are refused, and nothing changes by a bit
-when every fix is plausible."""
+when every fix is plausible.
+
+The registry's pipelines are ``LagWindow(Plausible(inner))``: tests of what the plausibility layer does
+with its own state (its envelope, states from before it, its time checks) take the registry pipeline's
+``.inner`` (``plausible(name)``); tests of what a session gets go through the whole registry pipeline."""
 
 from __future__ import annotations
 
@@ -15,7 +19,7 @@ import pytest
 from edgepos.core.errors import NumericalError
 from edgepos.core.observations import GnssFixObservation, GyroObservation, Observation
 from edgepos.core.state import StateFormatError
-from edgepos.pipelines import plausibility, tracks
+from edgepos.pipelines import lag, plausibility, tracks
 from edgepos.pipelines.base import (
     Environment,
     Fix,
@@ -27,6 +31,7 @@ from edgepos.pipelines.base import (
     StateSummary,
     StaticEnvironment,
 )
+from edgepos.pipelines.lag import LagWindow
 from edgepos.pipelines.options import resolve_options
 from edgepos.pipelines.plausibility import Plausible, implausibility, unwrap, wrap
 from edgepos.pipelines.registry import PIPELINES, get_pipeline
@@ -34,6 +39,24 @@ from edgepos.sim.scenarios import rsu_imu_paper_scenario
 from edgepos.sim.sensors import rsu_imu_epochs
 
 NEW_OPTIONS = {"max_speed_mps", "max_acceleration_mps2", "site_radius_m", "max_time_jump_s", "on_divergence"}
+LAG_OPTIONS = {"max_delay_s", "max_window_epochs", "max_lead_s"}
+
+
+def plausible(name: str) -> Plausible:
+    """The plausibility layer of the registry's pipeline ``name`` (registry: LagWindow(Plausible(inner)))."""
+    pipeline = get_pipeline(name)
+    assert isinstance(pipeline, LagWindow) and isinstance(pipeline.inner, Plausible)
+    return pipeline.inner
+
+
+def bare(name: str) -> Pipeline:
+    """The registry's pipeline ``name`` without any wrapper."""
+    return plausible(name).inner
+
+
+def bare_options(options: Mapping[str, Any]) -> dict[str, Any]:
+    """Resolved options of a registry pipeline without the wrappers' own."""
+    return {k: v for k, v in options.items() if k not in NEW_OPTIONS | LAG_OPTIONS}
 
 
 @pytest.fixture(scope="module")
@@ -134,15 +157,17 @@ ENV = StaticEnvironment()
 @pytest.mark.parametrize("name", sorted(PIPELINES))
 def test_every_registered_pipeline_checks_plausibility_and_lists_the_options(name: str) -> None:
     pipeline = get_pipeline(name)
-    assert isinstance(pipeline, Plausible) and pipeline.name == name
-    assert pipeline.publishes_track == pipeline.inner.publishes_track
-    assert pipeline.measurement_kinds == pipeline.inner.measurement_kinds
+    inner = bare(name)  # and the registry pipeline is LagWindow(Plausible(inner))
+    assert pipeline.name == plausible(name).name == name
+    assert pipeline.publishes_track == plausible(name).publishes_track == inner.publishes_track
+    assert pipeline.measurement_kinds == plausible(name).measurement_kinds == inner.measurement_kinds
     specs = {spec.name: spec for spec in pipeline.option_specs()}
     assert NEW_OPTIONS <= set(specs)
-    assert {spec.name for spec in pipeline.inner.option_specs()} | NEW_OPTIONS == set(specs)
+    assert {spec.name for spec in inner.option_specs()} | NEW_OPTIONS | LAG_OPTIONS == set(specs)
     resolved = pipeline.resolve_options({"max_speed_mps": 60, "on_divergence": "report"})
     assert resolved["max_speed_mps"] == 60.0 and resolved["on_divergence"] == "report"
     assert resolved["site_radius_m"] == 50_000.0 and resolved["max_time_jump_s"] == 3600.0
+    assert {k: resolved[k] for k in LAG_OPTIONS} == lag.DEFAULTS
     assert pipeline.resolve_options(resolved) == resolved  # the session's options round-trip
     state = pipeline.create(resolved, None)
     summary = pipeline.summarise(state)
@@ -164,7 +189,9 @@ def test_bad_options_of_the_wrapper_and_the_pipeline_are_named_together() -> Non
 
 def test_a_pipeline_is_wrapped_once() -> None:
     with pytest.raises(TypeError):
-        Plausible(get_pipeline("rsu_imu"))
+        Plausible(plausible("rsu_imu"))
+    with pytest.raises(TypeError):
+        LagWindow(get_pipeline("rsu_imu"))
 
 
 # -- initial states ---------------------------------------------------------------------------------------
@@ -200,8 +227,8 @@ def test_a_filter_running_off_is_diverged_reset_and_starts_again(paper) -> None:
     initial = InitialState(1e6, 1e6, 10.0, 0.0)
     options = pipeline.resolve_options({"site_radius_m": 2e6})
 
-    bare, bare_state = pipeline.inner, pipeline.inner.create(options, initial)
-    runaway, _ = bare.process(bare_state, flat(epochs[:8]), environment)
+    filt = bare("rsu_imu")
+    runaway, _ = filt.process(filt.create(bare_options(options), initial), flat(epochs[:8]), environment)
     assert all(f.status == "tracking" for f in runaway) and max(f.speed for f in runaway) > 1e7
 
     fixes, state = pipeline.process(pipeline.create(options, initial), flat(epochs[:8]), environment)
@@ -230,20 +257,22 @@ def test_report_marks_every_runaway_fix_and_filters_on(paper) -> None:
     options = pipeline.resolve_options({"site_radius_m": 2e6, "on_divergence": "report"})
     initial = InitialState(1e6, 1e6, 10.0, 0.0)
     fixes, _ = pipeline.process(pipeline.create(options, initial), flat(epochs[:8]), environment)
-    bare, _ = pipeline.inner.process(pipeline.inner.create(options, initial), flat(epochs[:8]), environment)
+    filt = bare("rsu_imu")
+    own, _ = filt.process(filt.create(bare_options(options), initial), flat(epochs[:8]), environment)
     assert [f.status for f in fixes] == ["tracking"] + ["diverged"] * 7
     assert all("reported only" in f.divergence for f in fixes[1:])
     # the estimates are the filter's own: nothing but the status and the reason changed
-    assert fixes == [bare[0]] + [
-        dataclasses.replace(b, status="diverged", divergence=f.divergence) for b, f in zip(bare[1:], fixes[1:])
+    assert fixes == [own[0]] + [
+        dataclasses.replace(b, status="diverged", divergence=f.divergence) for b, f in zip(own[1:], fixes[1:])
     ]
 
 
 def test_a_day_long_gap_the_filter_predicts_across_is_diverged(paper) -> None:
     """max_gap 86,400 s: the filter predicts across a long gap and lands ~1e8 m away; the fix is diverged
-    and the next RSU epoch starts the session again. With the default max_time_jump_s the gap is refused."""
+    and the next RSU epoch starts the session again. With the default max_time_jump_s the gap is refused.
+    (The plausibility layer itself: its state is unwrapped below.)"""
     epochs, environment = paper
-    pipeline = get_pipeline("rsu_imu")
+    pipeline = plausible("rsu_imu")
     start = InitialState(0.0, rsu_imu_paper_scenario().truth.y[0], 10.0, 0.0)
     gap = 80_000.0
 
@@ -270,9 +299,11 @@ def test_a_day_long_gap_the_filter_predicts_across_is_diverged(paper) -> None:
 # -- times ------------------------------------------------------------------------------------------------------
 def test_a_jump_to_the_largest_time_is_refused_and_the_session_goes_on(paper) -> None:
     """A session whose clock reached 1e10 (the largest t the API takes) could never take another epoch:
-    such a jump is refused, the state is untouched, and the next correct batch is filtered."""
+    such a jump is refused, the state is untouched, and the next correct batch is filtered. (The
+    plausibility layer; in the registry pipeline the lag window's max_lead_s refuses a jump within a batch
+    first, naming the same observations.)"""
     epochs, environment = paper
-    pipeline = get_pipeline("rsu_imu")
+    pipeline = plausible("rsu_imu")
     fixes, state = pipeline.process(pipeline.create(pipeline.resolve_options(None), None), flat(epochs[:3]), environment)
     far = [dataclasses.replace(o, t=1e10) for o in epochs[3]]
     with pytest.raises(PipelineInputError) as caught:
@@ -284,6 +315,14 @@ def test_a_jump_to_the_largest_time_is_refused_and_the_session_goes_on(paper) ->
         pipeline.process(state, list(epochs[3]) + far, environment)
     assert {p.index for p in caught.value.problems} == set(range(len(epochs[3]), len(epochs[3]) + len(far)))
     assert "previous epoch" in caught.value.problems[0].reason
+    registry = get_pipeline("rsu_imu")
+    registry_state = registry.create(registry.resolve_options(None), None)
+    _, registry_state = registry.process(registry_state, flat(epochs[:3]), environment)
+    for batch in (far, list(epochs[3]) + far):
+        with pytest.raises(PipelineInputError) as caught:
+            registry.process(registry_state, batch, environment)
+        assert {p.index for p in caught.value.problems} == set(range(len(batch) - len(far), len(batch)))
+        assert all(p.field == "t" for p in caught.value.problems)
     # and in a fresh session, whose clock is unset, between its epochs
     fresh = pipeline.create(pipeline.resolve_options(None), None)
     with pytest.raises(PipelineInputError):
@@ -418,10 +457,11 @@ def test_diverged_fixes_are_not_published() -> None:
 
 # -- state --------------------------------------------------------------------------------------------------------
 def test_a_state_written_before_the_wrapper_is_still_read(paper) -> None:
-    """Sessions opened before plausibility checks existed carry the bare pipeline's state: they go on with
-    the default options and get the envelope with their next batch, with the very same fixes."""
+    """Sessions opened before plausibility checks existed carry the bare pipeline's state: the plausibility
+    layer goes on with the default options and gives it the envelope with its next batch, with the very
+    same fixes. (The registry pipeline's lag window refuses a state without its own envelope: below.)"""
     epochs, environment = paper
-    pipeline = get_pipeline("rsu_imu")
+    pipeline = plausible("rsu_imu")
     options = pipeline.resolve_options(None)
     old = pipeline.inner.create({k: v for k, v in options.items() if k not in NEW_OPTIONS}, None)
     _, old = pipeline.inner.process(old, flat(epochs[:4]), environment)
@@ -433,11 +473,14 @@ def test_a_state_written_before_the_wrapper_is_still_read(paper) -> None:
     assert pipeline.process(old, [], environment) == ([], old)
     with pytest.raises(PipelineInputError):  # its clock is known: a jump is refused
         pipeline.process(old, [dataclasses.replace(o, t=1e10) for o in epochs[4]], environment)
+    for older in (old, new):  # written before the lag window: the session must be opened anew
+        with pytest.raises(StateFormatError, match="open a new session"):
+            get_pipeline("rsu_imu").process(older, flat(epochs[9:10]), environment)
 
 
 def test_the_envelope_round_trips_and_damage_is_a_state_format_error(paper) -> None:
     epochs, environment = paper
-    pipeline = get_pipeline("rsu_imu")
+    pipeline = plausible("rsu_imu")
     _, state = pipeline.process(pipeline.create(pipeline.resolve_options(None), None), flat(epochs[:3]), environment)
     envelope, inner = unwrap(state)
     assert wrap(envelope, inner) == state
@@ -449,7 +492,7 @@ def test_the_envelope_round_trips_and_damage_is_a_state_format_error(paper) -> N
         with pytest.raises(StateFormatError):
             pipeline.process(damaged, flat(epochs[3:4]), environment)
     # another pipeline's state behind the envelope is still refused by the pipeline itself
-    other = get_pipeline("v2v_coop")
+    other = plausible("v2v_coop")
     with pytest.raises(StateFormatError):
         pipeline.process(other.create(other.resolve_options(None), None), flat(epochs[3:4]), environment)
 
@@ -458,25 +501,34 @@ def test_the_envelope_round_trips_and_damage_is_a_state_format_error(paper) -> N
 BATCHES = [(0, 1), (1, 7), (8, 20), (28, 3), (31, 200), (231, 569)]
 
 
+def inner_state(wrapped: Pipeline, state: bytes) -> bytes:
+    """The bare pipeline's state inside a plausibility layer's (or a registry pipeline's) state."""
+    if isinstance(wrapped, LagWindow):
+        state = lag._unpack(state).current
+    return unwrap(state)[1]
+
+
+@pytest.mark.parametrize("layer", ["plausible", "registry"])
 @pytest.mark.parametrize("options", [{}, {"filter": "ekf", "rsu_handling": "average"}])
 @pytest.mark.parametrize("start", [False, True])
-def test_the_wrapper_changes_no_bit_of_plausible_fixes(paper, options: dict, start: bool) -> None:
+def test_the_wrapper_changes_no_bit_of_plausible_fixes(paper, options: dict, start: bool, layer: str) -> None:
+    """The plausibility layer alone, and the registry's LagWindow(Plausible(...)) on data in time order."""
     epochs, environment = paper
     assert sum(count for _, count in BATCHES) == len(epochs)
-    wrapped = get_pipeline("rsu_imu")
-    bare = wrapped.inner
+    wrapped = plausible("rsu_imu") if layer == "plausible" else get_pipeline("rsu_imu")
+    filt = bare("rsu_imu")
     truth = rsu_imu_paper_scenario().truth
     initial = InitialState(truth.x[0], truth.y[0], truth.vx[0], truth.vy[0]) if start else None
     resolved = wrapped.resolve_options(options)
     state_w = wrapped.create(resolved, initial)
-    state_b = bare.create(bare.resolve_options(options), initial)
-    assert unwrap(state_w)[1] == state_b
+    state_b = filt.create(filt.resolve_options(options), initial)
+    assert inner_state(wrapped, state_w) == state_b
     for first, count in BATCHES:
         batch = flat(epochs[first : first + count])
         fixes_w, state_w = wrapped.process(state_w, batch, environment)
-        fixes_b, state_b = bare.process(state_b, batch, environment)
+        fixes_b, state_b = filt.process(state_b, batch, environment)
         assert fixes_w == fixes_b
-        assert unwrap(state_w)[1] == state_b
+        assert inner_state(wrapped, state_w) == state_b
     assert all(f.status in ("initialised", "tracking") for f in fixes_w)
 
 
@@ -486,12 +538,13 @@ def test_the_wrapper_changes_no_bit_of_cooperative_fixes(method: str) -> None:
     from edgepos.sim import v2v
 
     run = v2v.make_run(3, 0, "ring")
-    wrapped = get_pipeline("v2v_coop")
+    wrapped = get_pipeline("v2v_coop")  # both wrappers: lag window and plausibility, on data in time order
     options = wrapped.resolve_options({"method": method})
-    inner_options = {k: v for k, v in options.items() if k not in NEW_OPTIONS}
     sessions = {
         which: (pipeline, {vid: pipeline.create(opts, None) for vid in v2v.VEHICLE_IDS}, {})
-        for which, pipeline, opts in (("wrapped", wrapped, options), ("bare", wrapped.inner, inner_options))
+        for which, pipeline, opts in (
+            ("wrapped", wrapped, options), ("bare", bare("v2v_coop"), bare_options(options))
+        )
     }
     for k in range(len(run.times)):
         step = {}
@@ -512,12 +565,13 @@ def test_the_wrapper_changes_no_bit_of_federated_fixes() -> None:
     from edgepos.sim import federated
 
     target = federated.make_run(3, 0, "multipath")
-    wrapped = get_pipeline("v2x_federated")
+    wrapped = get_pipeline("v2x_federated")  # both wrappers: lag window and plausibility, on data in time order
+    filt = bare("v2x_federated")
     options = wrapped.resolve_options(None)
-    inner_options = {k: v for k, v in options.items() if k not in NEW_OPTIONS}
-    state_w, state_b = wrapped.create(options, None), wrapped.inner.create(inner_options, None)
+    state_w, state_b = wrapped.create(options, None), filt.create(bare_options(options), None)
     for epoch in target.observations:
         environment = StaticEnvironment(vehicle_id="target")
         fixes_w, state_w = wrapped.process(state_w, epoch, environment)
-        fixes_b, state_b = wrapped.inner.process(state_b, epoch, environment)
+        fixes_b, state_b = filt.process(state_b, epoch, environment)
         assert fixes_w == fixes_b and all(f.status != "diverged" for f in fixes_w)
+    assert inner_state(wrapped, state_w) == state_b

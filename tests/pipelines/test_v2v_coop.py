@@ -8,8 +8,14 @@ import math
 
 import numpy as np
 import pytest
-
-from edgepos.core.observations import SPEED_OF_LIGHT, GnssFixObservation, GyroObservation, OdometerObservation, V2vRangeObservation
+from edgepos.core.observations import (
+    SPEED_OF_LIGHT,
+    GnssFixObservation,
+    GyroObservation,
+    OdometerObservation,
+    RsuObservation,
+    V2vRangeObservation,
+)
 from edgepos.eval.v2v import METHODS, run_method
 from edgepos.pipelines.base import NeighbourTrack, PipelineInputError, StaticEnvironment, TrackPoint
 from edgepos.pipelines.registry import get_pipeline
@@ -59,14 +65,47 @@ def test_state_round_trips_bit_for_bit_and_processing_is_pure():
     assert summary.initialised and summary.epochs == 2 and summary.options["method"] == "aug_ukf"
 
 
-def test_bad_method_and_time_going_back_are_refused_by_field():
+def test_bad_method_and_bad_times_are_refused_by_field():
     with pytest.raises(PipelineInputError) as error:
         PIPELINE.resolve_options({"method": "magic"})
     assert error.value.problems[0].field == "options.method"
     state = PIPELINE.process(session(), epoch(1.0, 0.0, 0.0, {}), StaticEnvironment())[1]
+    # a time far after the rest of the batch (a clock error, beyond max_lead_s) and a time that is no number
+    for bad_t in (30.0, float("nan")):
+        batch = epoch(1.2, 3.0, 0.0, {}) + [GyroObservation(bad_t, 0.0)]
+        with pytest.raises(PipelineInputError) as error:
+            PIPELINE.process(state, batch, StaticEnvironment())
+        assert [(p.index, p.field) for p in error.value.problems] == [(len(batch) - 1, "t")]
+    # a kind the pipeline does not take, too late for the lag window: still refused by field
+    batch = [RsuObservation(-5.0, "S000", 10.0, 0.0)] + epoch(1.2, 3.0, 0.0, {})
     with pytest.raises(PipelineInputError) as error:
-        PIPELINE.process(state, epoch(0.5, 0.0, 0.0, {}), StaticEnvironment())
-    assert error.value.problems[0].field == "t"
+        PIPELINE.process(state, batch, StaticEnvironment())
+    assert [(p.index, p.field) for p in error.value.problems] == [(0, "kind")]
+
+
+def test_time_going_back_is_late_or_too_late_and_a_batch_need_not_be_in_time_order():
+    """Inside the lag window (max_delay_s 1 s) a measurement is filtered at its own time and the later fix
+    is revised; beyond it, it is reported unused and the rest of the batch applied; within a batch the
+    order does not matter (the pipeline once refused a batch out of time order)."""
+    environment = StaticEnvironment()
+    state = PIPELINE.process(session(), epoch(1.0, 0.0, 0.0, {}) + epoch(1.2, 3.0, 0.0, {}), environment)[1]
+    fixes, late_state = PIPELINE.process(state, epoch(1.1, 1.5, 0.0, {}), environment)
+    assert [(f.t, f.revised) for f in fixes] == [(1.1, False), (1.2, True)]
+    assert all(u.used for u in fixes[0].measurements if u.kind == "gnss_fix")
+    assert PIPELINE.summarise(late_state).t == 1.2
+    batch = [GnssFixObservation(-1.0, 0.0, 0.0)] + epoch(1.4, 6.0, 0.0, {})
+    fixes, _ = PIPELINE.process(state, batch, environment)
+    assert [(f.t, f.revised) for f in fixes] == [(1.4, False)]
+    uses = {u.index: u for u in fixes[0].measurements}
+    assert sorted(uses) == list(range(len(batch)))
+    assert not uses[0].used and uses[0].reason.startswith("too late: ") and uses[1].used
+    in_order = epoch(1.4, 6.0, 0.0, {}) + epoch(1.6, 9.0, 0.0, {})
+    backwards = epoch(1.6, 9.0, 0.0, {}) + epoch(1.4, 6.0, 0.0, {})
+    fixes_in_order, state_in_order = PIPELINE.process(state, in_order, environment)
+    fixes_backwards, state_backwards = PIPELINE.process(state, backwards, environment)
+    assert state_backwards == state_in_order
+    assert [f.t for f in fixes_backwards] == [1.4, 1.6] and not any(f.revised for f in fixes_backwards)
+    assert [(f.x, f.y, f.vx, f.vy) for f in fixes_backwards] == [(f.x, f.y, f.vx, f.vy) for f in fixes_in_order]
 
 
 def test_each_unusable_range_says_why():

@@ -169,12 +169,30 @@ def test_first_odometer_distance_has_no_interval():
     assert not fixes[0].measurements[0].used and "first distance" in fixes[0].measurements[0].reason
 
 
-def test_time_going_back_is_refused_with_the_session_untouched():
+def test_time_going_back_beyond_the_window_is_reported_with_the_session_untouched():
+    """Older than the lag window (max_delay_s 1 s): not used, said so in the session's newest fix, and a
+    batch of nothing else leaves the state as it was; a malformed one still refuses the batch, naming its
+    field. Inside the window a measurement is filtered at its time, and a batch out of time order is the
+    batch in time order (this pipeline once refused both)."""
     pipeline, state = _session()
-    _, state = pipeline.process(state, [GnssFixObservation(1.0, 0.0, 0.0)], StaticEnvironment())
+    environment = StaticEnvironment()
+    first = [GnssFixObservation(t, t, 0.0) for t in (1.0, 1.5, 2.0, 2.5, 3.0)]
+    _, state = pipeline.process(state, first, environment)
+    fixes, after = pipeline.process(state, [GnssFixObservation(0.5, 0.0, 0.0)], environment)
+    assert after == state
+    assert [(f.t, f.revised) for f in fixes] == [(3.0, True)]
+    [use] = fixes[0].measurements
+    assert (use.index, use.used) == (0, False) and use.reason.startswith("too late: t=0.5 is 2.5 s older")
     with pytest.raises(PipelineInputError) as error:
-        pipeline.process(state, [GnssFixObservation(0.5, 0.0, 0.0)], StaticEnvironment())
-    assert error.value.problems[0].field == "t"
+        malformed = [OdometerObservation(0.5, distance=-1.0), GnssFixObservation(3.5, 3.5, 0.0)]
+        pipeline.process(state, malformed, environment)
+    assert [(p.index, p.field) for p in error.value.problems] == [(0, "distance")]
+    in_order = [GnssFixObservation(2.7, 2.7, 0.0), GnssFixObservation(3.5, 3.5, 0.0)]
+    fixes_in_order, state_in_order = pipeline.process(state, in_order, environment)
+    fixes_backwards, state_backwards = pipeline.process(state, in_order[::-1], environment)
+    assert state_backwards == state_in_order
+    assert [(f.t, f.revised) for f in fixes_backwards] == [(2.7, False), (3.0, True), (3.5, False)]
+    assert [(f.x, f.vx) for f in fixes_backwards] == [(f.x, f.vx) for f in fixes_in_order]
 
 
 def test_orderings_on_a_few_runs():

@@ -568,6 +568,8 @@ async def session_track(context: AppContext, session_id: str, smoothed: bool) ->
         fixes = await context.scheduler.run(
             record.vehicle_id, cost_s, pipeline.name, _track_fixes, pipeline, record.state, environment, smoothed
         )
+    except StateFormatError as error:
+        raise _unreadable_state(session_id, error) from None
     except (PipelineInputError, EstimationError) as error:
         raise ApiError(
             "estimation_failed", f"the window's track could not be computed now: {error}"

@@ -337,7 +337,11 @@ class LagWindow(Pipeline):
             split = times[-limit - 1]
             head = [i for i in order if not observations[i].t > split]
             order = [i for i in order if observations[i].t > split]
-            fixes = self._append(window, observations, head, environment)
+            try:
+                fixes = self._append(window, observations, head, environment)
+            except PipelineInputError as error:
+                rest = self._problems_alone(window, [(i, observations[i]) for i in order], environment)
+                raise PipelineInputError([*error.problems, *rest]) from None
             return fixes + self._append(window, observations, order, environment)
         fixes, new_state = self._filter(window.current, [(i, observations[i]) for i in order], environment)
         _maybe_checkpoint(window, window.newest, window.current)
@@ -374,15 +378,24 @@ class LagWindow(Pipeline):
         fixes: list[Fix] = []
         segment_start = 0
         replaced: list[bytes] = []
+        problems: list[Problem] = []
         for bound in [*bounds, None]:
             end = len(times) if bound is None else bisect.bisect_right(times, bound)
             part = [item for t in times[segment_start:end] for item in epochs[t][0]]
-            if part:
-                new, state = self._filter(state, part, environment)
-                fixes += new
+            if part and problems:
+                problems += self._problems_alone(window, part, environment)  # the rest only to list its problems
+            elif part:
+                try:
+                    new, state = self._filter(state, part, environment)
+                except PipelineInputError as error:
+                    problems += error.problems
+                else:
+                    fixes += new
             if bound is not None:
                 replaced.append(state)
             segment_start = end
+        if problems:
+            raise PipelineInputError(problems)
         # The checkpoints after the replayed one now hold the late data; the state at the old newest
         # epoch is offered as a checkpoint like any batch boundary.
         for checkpoint, new_state in zip(window.checkpoints[checkpoint_index + 1 :], replaced, strict=False):
@@ -422,11 +435,19 @@ class LagWindow(Pipeline):
         older than)."""
         if not indices:
             return []
+        order = sorted(indices, key=lambda i: observations[i].t)
+        return self._problems_alone(window, [(i, observations[i]) for i in order], environment)
+
+    def _problems_alone(
+        self, window: _Window, items: Sequence[tuple[int, Observation]], environment: Environment
+    ) -> list[Problem]:
+        """What the inner pipeline finds wrong with ``items`` (in time order) on a fresh session of the same
+        options: the problems of measurements that are not filtered from the session's state (too late, or
+        after a part of the batch that was refused already)."""
         options = self.inner.summarise(window.current).options
         fresh = self.inner.create({k: v for k, v in options.items() if k not in NAMES}, None)
-        order = sorted(indices, key=lambda i: observations[i].t)
         try:
-            self._filter(fresh, [(i, observations[i]) for i in order], environment)
+            self._filter(fresh, items, environment)
         except PipelineInputError as error:
             return error.problems
         return []
