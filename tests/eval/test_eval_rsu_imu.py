@@ -56,7 +56,9 @@ def test_json_has_exactly_the_documented_shape(one_worker: Outcome) -> None:
     assert (document["scenario"], document["runs"], document["seed"]) == ("rsu-imu-paper", 2, 7)
     assert list(document["algorithms"]) == ["CV-CKF/avg", "2IMM-CKF"]
     for entry in document["algorithms"].values():
-        assert set(entry) == {"pos_rmse_m", "vel_rmse_mps", "step_us"}
+        # the smoothed columns come by default (--smooth-lag 1.0); the late ones only with --delay-fraction
+        assert set(entry) == {"pos_rmse_m", "vel_rmse_mps", "step_us", "smooth_pos_rmse_m", "smooth_vel_rmse_mps"}
+        assert entry["smooth_pos_rmse_m"] < entry["pos_rmse_m"]
         assert all(isinstance(value, float) for value in entry.values())
 
 
@@ -199,3 +201,28 @@ def test_progress_off_a_terminal_writes_only_the_final_line() -> None:
     progress.advance(2)
     progress.finish()
     assert stream.getvalue().count("\n") == 1 and "3/3" in stream.getvalue() and "\r" not in stream.getvalue()
+
+
+def test_late_delivery_columns(tmp_path: Path) -> None:
+    """--delay-fraction adds the last fix per epoch with late RSU data (equal to in order: replay is exact)
+    and with those dropped (worse), beside the smoothed column."""
+    json_path = tmp_path / "late.json"
+    stdout = io.StringIO()
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr("sys.stdout", stdout)
+        patch.setattr("sys.stderr", io.StringIO())
+        code = run_eval(
+            "rsu-imu", "--runs", "1", "--seed", "7", "--workers", "1", "--algorithms", "2IMM-CKF",
+            "--delay-fraction", "0.3", "--max-delay", "0.5", "--batch-epochs", "5", "--json", str(json_path),
+        )
+    assert code == 0
+    entry = json.loads(json_path.read_text())["algorithms"]["2IMM-CKF"]
+    assert entry["late_pos_rmse_m"] == pytest.approx(entry["pos_rmse_m"], rel=1e-9)
+    assert entry["drop_pos_rmse_m"] > entry["pos_rmse_m"] > entry["smooth_pos_rmse_m"]
+    assert "late: last fix (m)" in stdout.getvalue() and "30% of the RSU measurements" in stdout.getvalue()
+
+
+def test_bad_late_flags_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    for flags in (("--delay-fraction", "1.5"), ("--delay-fraction", "0.3", "--max-delay", "0.01"), ("--smooth-lag", "-1")):
+        assert run_eval("rsu-imu", "--runs", "1", "--algorithms", "2IMM-CKF", *flags) == 2
+        assert "error" in capsys.readouterr().err

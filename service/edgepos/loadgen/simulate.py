@@ -100,11 +100,10 @@ def rmse(fixes: list[Fix], scenario: Scenario) -> tuple[float | None, float | No
     at its t (a revised fix replaces the earlier one of the same t); epochs whose fix has no estimate
     (uninitialised) are left out."""
     truth = scenario.truth
-    index = {float(t): k for k, t in enumerate(truth.t)}
     latest = {fix.t: fix for fix in fixes}
     position, velocity = [], []
     for t, fix in latest.items():
-        k = index[t]
+        k = int(np.argmin(np.abs(truth.t - t)))  # the truth sample of the epoch (times are the truth's)
         if fix.x is not None and fix.y is not None:
             position.append((fix.x - truth.x[k]) ** 2 + (fix.y - truth.y[k]) ** 2)
         if fix.vx is not None and fix.vy is not None:
