@@ -27,7 +27,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
 from edgepos.core.compiled import warm_up
 from edgepos.eval.rsu_imu_montecarlo import initial_state
 from edgepos.pipelines import lag
@@ -52,9 +51,13 @@ def _run(pipeline, options, start, batches, env) -> tuple[float, bytes, list[int
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--rounds", type=int, default=5)
-    parser.add_argument("--epochs", type=int, default=400, help="epochs of the scenario per run (default 400)")
+    parser.add_argument(
+        "--epochs", type=int, default=400, help="epochs of the scenario per run (default 400)"
+    )
     parser.add_argument("--batch-epochs", default="1,5,20", help="batch sizes to measure (default 1,5,20)")
     parser.add_argument("--fraction", type=float, default=0.3)
     parser.add_argument("--max-delay", type=float, default=0.5)
@@ -113,11 +116,13 @@ def main() -> int:
         print(
             f"{batch_epochs:>6} {per_in_order:>18.1f} {per_late:>14.1f} {ratio:>6.2f} "
             f"{'ok' if ratio <= TARGET_RATIO else 'MISSED':>7} {len(state_in_order):>17} {len(state_late):>13} "
-            f"{np.mean(sizes):>17.2f} {str(same):>15}"
+            f"{np.mean(sizes):>17.2f} {same!s:>15}"
         )
     print(f"load average after: {os.getloadavg()[0]:.2f}")
     if args.json is not None:
-        args.json.write_text(json.dumps({"results": results, "load_average": os.getloadavg()[0]}, indent=2) + "\n")
+        args.json.write_text(
+            json.dumps({"results": results, "load_average": os.getloadavg()[0]}, indent=2) + "\n"
+        )
     return 0 if all(r["same_end_state"] for r in results) else 1
 
 

@@ -83,8 +83,12 @@ def test_malformed_late_measurement_refuses_the_batch(client):
     stale = wire(batch_observations(2, 1)[0]) | {"rsu_id": "NOWHERE"}
     fresh = [wire(o) for o in batch_observations(40, 1)]
     body = {"seq": 2, "measurements": [*fresh, stale]}
-    error = assert_error(client.post(f"/v1/sessions/{session_id}/batches", json=body, headers=token), 422, "invalid_request")
-    assert {(p["index"], p["field"]) for p in error["problems"]} == {(len(fresh), f"measurements[{len(fresh)}].rsu_id")}
+    error = assert_error(
+        client.post(f"/v1/sessions/{session_id}/batches", json=body, headers=token), 422, "invalid_request"
+    )
+    assert {(p["index"], p["field"]) for p in error["problems"]} == {
+        (len(fresh), f"measurements[{len(fresh)}].rsu_id")
+    }
     after = client.get(f"/v1/sessions/{session_id}", headers=token).json()
     assert after == before
 
@@ -95,7 +99,11 @@ def test_lag_window_options_are_bounded(client):
         ({"max_window_epochs": 0}, "options.max_window_epochs"),
         ({"max_lead_s": 0.5}, "options.max_lead_s"),
     ):
-        response = client.post("/v1/sessions", json={"vehicle_id": "car-9", "pipeline": "rsu_imu", "options": options}, headers=ADMIN)
+        response = client.post(
+            "/v1/sessions",
+            json={"vehicle_id": "car-9", "pipeline": "rsu_imu", "options": options},
+            headers=ADMIN,
+        )
         error = assert_error(response, 422, "invalid_request")
         assert field in {p["field"] for p in error["problems"]}, error
 
@@ -105,8 +113,12 @@ def test_a_measurement_far_ahead_of_its_batch_is_refused(client):
     observations = batch_observations(0, 3)
     ahead = wire(batch_observations(3, 1)[-1]) | {"t": observations[-1].t + 30.0}
     body = {"seq": 1, "measurements": [*(wire(o) for o in observations), ahead]}
-    error = assert_error(client.post(f"/v1/sessions/{session_id}/batches", json=body, headers=token), 422, "invalid_request")
-    assert [(p["index"], p["field"]) for p in error["problems"]] == [(len(observations), f"measurements[{len(observations)}].t")]
+    error = assert_error(
+        client.post(f"/v1/sessions/{session_id}/batches", json=body, headers=token), 422, "invalid_request"
+    )
+    assert [(p["index"], p["field"]) for p in error["problems"]] == [
+        (len(observations), f"measurements[{len(observations)}].t")
+    ]
     assert "max_lead_s" in error["problems"][0]["reason"]
 
 
@@ -125,7 +137,9 @@ def test_track_filtered_equals_the_fixes_served_and_smoothed_differs(client):
     for fix in track["fixes"]:
         assert fix["x"] == by_t[fix["t"]]["x"] and fix["measurements"] == []
         assert fix["state"] is not None
-    smoothed = client.get(f"/v1/sessions/{session_id}/track", params={"smoothed": "true"}, headers=ADMIN).json()
+    smoothed = client.get(
+        f"/v1/sessions/{session_id}/track", params={"smoothed": "true"}, headers=ADMIN
+    ).json()
     assert smoothed["smoothed"] is True
     assert [f["t"] for f in smoothed["fixes"]] == [f["t"] for f in track["fixes"]]
     assert smoothed["fixes"][0]["x"] != track["fixes"][0]["x"]
@@ -139,8 +153,16 @@ def test_track_needs_the_sessions_credential_and_known_parameters(client):
     _, other = open_session(client, vehicle_id="car-2")
     assert client.get(f"/v1/sessions/{session_id}/track").status_code == 401
     assert client.get(f"/v1/sessions/{session_id}/track", headers=other).status_code in (401, 403)
-    assert_error(client.get(f"/v1/sessions/{session_id}/track", params={"smooth": "true"}, headers=token), 422, "invalid_request")
-    assert_error(client.get(f"/v1/sessions/{session_id}/track", params={"smoothed": "maybe"}, headers=token), 422, "invalid_request")
+    assert_error(
+        client.get(f"/v1/sessions/{session_id}/track", params={"smooth": "true"}, headers=token),
+        422,
+        "invalid_request",
+    )
+    assert_error(
+        client.get(f"/v1/sessions/{session_id}/track", params={"smoothed": "maybe"}, headers=token),
+        422,
+        "invalid_request",
+    )
     empty = client.get(f"/v1/sessions/{session_id}/track", headers=token).json()
     assert empty["fixes"] == [] and empty["start_t"] is None and empty["end_t"] is None
 
@@ -153,7 +175,9 @@ def test_smoothing_a_pipeline_without_a_smoother_is_a_422(client):
         return
     session_id, token = open_session(client, vehicle_id="coop-1", pipeline=without[0])
     error = assert_error(
-        client.get(f"/v1/sessions/{session_id}/track", params={"smoothed": "true"}, headers=token), 422, "invalid_request"
+        client.get(f"/v1/sessions/{session_id}/track", params={"smoothed": "true"}, headers=token),
+        422,
+        "invalid_request",
     )
     assert error["problems"][0]["field"] == "smoothed"
 

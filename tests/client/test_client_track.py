@@ -16,8 +16,14 @@ async def test_revised_fixes_and_the_track_through_the_client(aclient: AsyncEdge
     now = await aclient.send_batch(session, [m for m in batch(20, 2) if m not in held])
     assert [fix.revised for fix in now] == [False, False]
     later = await aclient.send_batch(session, [*batch(22, 1), *held])
-    assert [(fix.t, fix.revised) for fix in later] == [(now[0].t, True), (now[1].t, True), (later[-1].t, False)]
-    assert {m.index for m in later[0].measurements} == set(range(len(batch(22, 1)), len(batch(22, 1)) + len(held)))
+    assert [(fix.t, fix.revised) for fix in later] == [
+        (now[0].t, True),
+        (now[1].t, True),
+        (later[-1].t, False),
+    ]
+    assert {m.index for m in later[0].measurements} == set(
+        range(len(batch(22, 1)), len(batch(22, 1)) + len(held))
+    )
 
     filtered = await aclient.track(session)
     smoothed = await aclient.track(session.session_id, smoothed=True)  # a bare id opens with the admin key

@@ -32,7 +32,7 @@ from edgepos.eval.rsu_imu_montecarlo import initial_state
 from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
-from edgepos.pipelines import lag, plausibility
+from edgepos.pipelines import lag, lag_state, plausibility
 from edgepos.pipelines.base import (
     Environment,
     Fix,
@@ -711,7 +711,7 @@ def test_the_window_round_trips_through_its_bytes():
 
 def test_damaged_window_bytes_are_state_format_errors():
     state = rsu_state_after(3)
-    header = lag._HEADER.size
+    header = lag_state._HEADER.size
     edges = (0, 3, 4, 5, header - 1, header, header + 1, len(state) - 13, len(state) - 1)
     cuts = {*edges, *range(0, len(state), 211)}
     for cut in sorted(cuts):
@@ -757,8 +757,8 @@ def test_the_state_stays_bounded_over_a_long_in_order_run():
     epochs_kept = math.ceil((delay + spacing + period) / period) + 1
     record = max(len(lag.encode_epoch(epoch)) for epoch in epochs)
     bound = (
-        lag._HEADER.size
-        + checkpoints * (lag._CHECKPOINT.size + inner_largest)
+        lag_state._HEADER.size
+        + checkpoints * (lag_state._CHECKPOINT.size + inner_largest)
         + inner_largest
         + epochs_kept * (12 + record)
     )

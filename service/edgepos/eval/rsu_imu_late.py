@@ -80,12 +80,16 @@ def late_columns(
     out: dict[str, np.ndarray] = {}
     epoch_times = sorted({o.t for o in observations})
     if settings.smooth_lag_s is not None and pipeline.smoother:
-        smoothed = pipeline.smooth(pipeline.create(options, initial), observations, environment, settings.smooth_lag_s)
+        smoothed = pipeline.smooth(
+            pipeline.create(options, initial), observations, environment, settings.smooth_lag_s
+        )
         out["smooth_pos"], out["smooth_vel"] = squared_errors(smoothed, truth)
     if settings.delivery is not None:
         arrivals = arrival_times(observations, settings.delivery, rng)
         for name, drop in (("late", False), ("drop", True)):
             batches = arrival_batches(observations, arrivals, settings.batch_epochs, drop_late=drop)
-            fixes = last_fix_per_epoch(pipeline, pipeline.create(options, initial), batches, environment, epoch_times)
+            fixes = last_fix_per_epoch(
+                pipeline, pipeline.create(options, initial), batches, environment, epoch_times
+            )
             out[f"{name}_pos"], out[f"{name}_vel"] = squared_errors(fixes, truth)
     return out

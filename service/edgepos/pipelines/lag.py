@@ -28,27 +28,20 @@ after every other of its batch is refused: a clock error that would move the ses
 data). The service refuses at creation a window whose full replay would cost more CPU than its batch
 budget (``pipelines.cost``).
 
-State: ``_HEADER`` (magic, version, the options, the newest epoch, table sizes), then the checkpoint
-table (time of each checkpoint's last epoch, length), the checkpoint states, the current inner state,
-the window's observation times and end offsets, and the observations as one JSON record each. The
-first checkpoint is the window's *base*: the current state is the base state filtered through every
-observation of the window. A batch in time order appends its observations as bytes and decodes none
-of the stored ones.
+State (``lag_state``): the window's options and newest epoch, a few checkpoints (the inner state at
+batch boundaries, the first one the window's *base*), the current inner state, and the window's epochs
+as records. The current state is the base state filtered through every epoch of the window.
 """
 
 from __future__ import annotations
 
 import bisect
 import dataclasses
-import json
 import math
-import struct
-import typing
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 from edgepos.core.observations import Observation
-from edgepos.core.state import StateFormatError
 from edgepos.pipelines.base import (
     Environment,
     Fix,
@@ -60,10 +53,17 @@ from edgepos.pipelines.base import (
     Problem,
     StateSummary,
 )
+from edgepos.pipelines.lag_state import (  # noqa: F401  # re-exported: tests and benches read states through lag
+    MAGIC,
+    VERSION,
+    _Checkpoint,
+    _pack,
+    _unpack,
+    _Window,
+    decode_epoch,
+    encode_epoch,
+)
 from edgepos.pipelines.options import resolve_options
-
-MAGIC = b"EPLW"
-VERSION = 1
 
 CHECKPOINTS_PER_WINDOW = 8
 """A new checkpoint is kept only when it is at least ``max_delay_s / CHECKPOINTS_PER_WINDOW`` after the
@@ -72,142 +72,37 @@ rsu_imu), at the price of replaying up to that much more than strictly needed.""
 
 OPTION_SPECS: tuple[OptionSpec, ...] = (
     OptionSpec(
-        "max_delay_s", "number", 1.0,
+        "max_delay_s",
+        "number",
+        1.0,
         "Lag window (s): a measurement up to this much older than the session's newest epoch is inserted at "
         "its own time and the filter runs again from there (earlier fixes come back revised); an older one is "
-        "reported used=false. 0 keeps no window.", 0.0, 10.0,
+        "reported used=false. 0 keeps no window.",
+        0.0,
+        10.0,
     ),
     OptionSpec(
-        "max_window_epochs", "integer", 200,
+        "max_window_epochs",
+        "integer",
+        200,
         "The most epochs the lag window keeps; when more arrive within max_delay_s the oldest leave it "
         "(10 s at 20 Hz). Bounded so that replaying the whole window fits the server's CPU budget per batch.",
-        1, 1000,
+        1,
+        1000,
     ),
     OptionSpec(
-        "max_lead_s", "number", 10.0,
+        "max_lead_s",
+        "number",
+        10.0,
         "A measurement more than this (s) after every other measurement of its batch is refused (422): a "
         "clock error that would put the session's newest epoch past all later data. At least the longest "
-        "gap between a batch's epochs.", 1.0, 3600.0,
+        "gap between a batch's epochs.",
+        1.0,
+        3600.0,
     ),
 )
 NAMES = frozenset(spec.name for spec in OPTION_SPECS)
 DEFAULTS: dict[str, Any] = {spec.name: spec.default for spec in OPTION_SPECS}
-
-# magic, version, max_delay_s, max_window_epochs, max_lead_s, newest epoch (NaN: none), checkpoints,
-# current state length, observations.
-_HEADER = struct.Struct("<4sBdIddIII")
-_CHECKPOINT = struct.Struct("<dI")  # time of the state's last epoch (NaN: none), state length
-_NAN = math.nan
-
-# Observation kinds by wire name, from the union in core.observations (a new kind registers there).
-_KINDS: dict[str, type] = {cls.kind: cls for cls in typing.get_args(Observation)}
-
-
-# -- the observation codec ---------------------------------------------------------------------------
-_FIELDS: dict[type, tuple[str, ...]] = {
-    cls: tuple(f.name for f in dataclasses.fields(cls)) for cls in _KINDS.values()
-}
-
-
-def encode_epoch(observations: Sequence[Observation]) -> bytes:
-    """An epoch's observations as one compact JSON array of arrays: kind, then the fields in declaration
-    order (one encoder call per epoch, not per observation)."""
-    rows = [[o.kind, *[getattr(o, name) for name in _FIELDS[type(o)]]] for o in observations]
-    return json.dumps(rows, separators=(",", ":"), allow_nan=False).encode()
-
-
-def decode_epoch(record: bytes) -> list[Observation]:
-    try:
-        rows = json.loads(record)
-    except ValueError as error:
-        raise StateFormatError(f"lag window record does not decode: {error}") from None
-    observations = []
-    for values in rows if isinstance(rows, list) else [None]:
-        cls = _KINDS.get(values[0]) if isinstance(values, list) and values else None
-        if cls is None:
-            raise StateFormatError("lag window holds an unknown observation kind")
-        fields = [tuple(v) if isinstance(v, list) else v for v in values[1:]]
-        try:
-            observations.append(typing.cast(Observation, cls(*fields)))
-        except TypeError as error:
-            raise StateFormatError(f"lag window observation does not decode: {error}") from None
-    return observations
-
-
-# -- the window --------------------------------------------------------------------------------------
-@dataclasses.dataclass
-class _Checkpoint:
-    t: float | None  # the time of the last epoch filtered into ``state`` (None: none yet)
-    state: bytes
-
-
-@dataclasses.dataclass
-class _Window:
-    options: dict[str, Any]
-    newest: float | None  # the session's newest epoch
-    checkpoints: list[_Checkpoint]  # oldest first; [0] is the base
-    current: bytes  # the inner state after every observation of the window
-    times: list[float]  # the window's epochs (distinct observation times), ascending
-    records: list[bytes]  # each epoch's observations (``encode_epoch``), same order
-
-    @property
-    def base(self) -> _Checkpoint:
-        return self.checkpoints[0]
-
-    def observations(self, start: int = 0) -> list[Observation]:
-        """The observations of the window's epochs from ``start`` on, in time order."""
-        return [o for record in self.records[start:] for o in decode_epoch(record)]
-
-
-def _pack(window: _Window) -> bytes:
-    options = window.options
-    header = _HEADER.pack(
-        MAGIC, VERSION, float(options["max_delay_s"]), int(options["max_window_epochs"]), float(options["max_lead_s"]),
-        _NAN if window.newest is None else window.newest, len(window.checkpoints), len(window.current),
-        len(window.records),
-    )
-    parts = [header]
-    parts += [_CHECKPOINT.pack(_NAN if c.t is None else c.t, len(c.state)) for c in window.checkpoints]
-    parts += [c.state for c in window.checkpoints]
-    parts.append(window.current)
-    count = len(window.records)
-    ends, end = [], 0
-    for record in window.records:
-        end += len(record)
-        ends.append(end)
-    parts.append(struct.pack(f"<{count}d{count}I", *window.times, *ends))
-    parts += window.records
-    return b"".join(parts)
-
-
-def _unpack(state: bytes) -> _Window:
-    if state[: len(MAGIC)] != MAGIC:
-        raise StateFormatError("state has no lag window (written by an older edgepos): open a new session")
-    try:
-        _, version, delay, epochs, lead, newest, checkpoints, current_length, count = _HEADER.unpack_from(state)
-        if version != VERSION:
-            raise StateFormatError(f"lag window version {version} is not {VERSION}")
-        offset = _HEADER.size
-        table = [_CHECKPOINT.unpack_from(state, offset + i * _CHECKPOINT.size) for i in range(checkpoints)]
-        offset += checkpoints * _CHECKPOINT.size
-        stored = []
-        for t, length in table:
-            stored.append(_Checkpoint(None if math.isnan(t) else t, state[offset : offset + length]))
-            offset += length
-        current = state[offset : offset + current_length]
-        offset += current_length
-        index = struct.unpack_from(f"<{count}d{count}I", state, offset)
-        offset += count * 12
-        records, start = [], 0
-        for end in index[count:]:
-            records.append(state[offset + start : offset + end])
-            start = end
-        if offset + start != len(state) or not stored or len(current) != current_length:
-            raise StateFormatError("lag window is truncated or corrupt")
-    except struct.error as error:
-        raise StateFormatError(f"lag window is truncated: {error}") from None
-    options = {"max_delay_s": delay, "max_window_epochs": epochs, "max_lead_s": lead}
-    return _Window(options, None if math.isnan(newest) else newest, stored, current, list(index[:count]), records)
 
 
 def _own(options: Mapping[str, Any]) -> dict[str, Any]:
@@ -261,7 +156,8 @@ class LagWindow(Pipeline):
             known = ", ".join(sorted(spec.name for spec in self.option_specs()))
             problems += [
                 dataclasses.replace(p, reason=f"unknown option; known: {known}")
-                if p.reason.startswith("unknown option; known:") else p
+                if p.reason.startswith("unknown option; known:")
+                else p
                 for p in error.problems
             ]
         try:
@@ -282,7 +178,9 @@ class LagWindow(Pipeline):
         summary = self.inner.summarise(window.current)
         return dataclasses.replace(summary, options={**summary.options, **window.options})
 
-    def replayed_observations(self, state: bytes, observations: Sequence[Observation] | None) -> list[Observation]:
+    def replayed_observations(
+        self, state: bytes, observations: Sequence[Observation] | None
+    ) -> list[Observation]:
         """The stored observations that applying ``observations`` would filter again (none for a batch in
         time order), or with None every observation of the window: what the caller must look up
         (RSUs, neighbours) and budget for beyond the batch itself."""
@@ -350,7 +248,11 @@ class LagWindow(Pipeline):
         return fixes
 
     def _replay(
-        self, window: _Window, observations: Sequence[Observation], arrival: _Arrival, environment: Environment
+        self,
+        window: _Window,
+        observations: Sequence[Observation],
+        arrival: _Arrival,
+        environment: Environment,
     ) -> list[Fix]:
         """Late measurements: filter again from the latest checkpoint before the earliest of them, through
         the window's later observations and the batch, segment by segment between the checkpoints (so the
@@ -383,7 +285,9 @@ class LagWindow(Pipeline):
             end = len(times) if bound is None else bisect.bisect_right(times, bound)
             part = [item for t in times[segment_start:end] for item in epochs[t][0]]
             if part and problems:
-                problems += self._problems_alone(window, part, environment)  # the rest only to list its problems
+                problems += self._problems_alone(
+                    window, part, environment
+                )  # the rest only to list its problems
             elif part:
                 try:
                     new, state = self._filter(state, part, environment)
@@ -424,11 +328,17 @@ class LagWindow(Pipeline):
         try:
             fixes, state = self.inner.process(state, [o for _, o in items], environment)
         except PipelineInputError as error:
-            raise PipelineInputError([_renumbered_problem(p, indices, items) for p in error.problems]) from None
+            raise PipelineInputError(
+                [_renumbered_problem(p, indices, items) for p in error.problems]
+            ) from None
         return [_renumbered(fix, indices) for fix in fixes], state
 
     def _too_late_problems(
-        self, window: _Window, observations: Sequence[Observation], indices: list[int], environment: Environment
+        self,
+        window: _Window,
+        observations: Sequence[Observation],
+        indices: list[int],
+        environment: Environment,
     ) -> list[Problem]:
         """Too-late measurements are not filtered, but a malformed one still refuses the batch: they are
         checked by the inner pipeline on a fresh session of the same options (which has no clock to be
@@ -462,18 +372,26 @@ class LagWindow(Pipeline):
             if not fixes:
                 return fixes
         last = fixes[-1]
-        fixes[-1] = dataclasses.replace(last, measurements=sorted([*last.measurements, *uses], key=lambda u: u.index))
+        fixes[-1] = dataclasses.replace(
+            last, measurements=sorted([*last.measurements, *uses], key=lambda u: u.index)
+        )
         return fixes
 
     def _newest_fix(self, window: _Window, environment: Environment) -> list[Fix]:
         if window.newest is None or not window.records:
             return []
         index, start = _replay_start(window, window.newest)
-        fixes, _ = self.inner.process(window.checkpoints[index].state, window.observations(start), environment)
+        fixes, _ = self.inner.process(
+            window.checkpoints[index].state, window.observations(start), environment
+        )
         return [dataclasses.replace(fixes[-1], measurements=[], revised=True)] if fixes else []
 
     def smooth(
-        self, state: bytes, observations: Sequence[Observation], environment: Environment, lag_s: float | None = None
+        self,
+        state: bytes,
+        observations: Sequence[Observation],
+        environment: Environment,
+        lag_s: float | None = None,
     ) -> list[Fix]:
         """The inner pipeline's smoother from the session's current state (evaluation runs it over a
         whole run; the track endpoint over the window, through :meth:`track`)."""
@@ -522,7 +440,9 @@ def _sort_out(window: _Window, observations: Sequence[Observation]) -> _Arrival:
     return _Arrival(fresh, late, too_late)
 
 
-def _too_late_uses(window: _Window, observations: Sequence[Observation], indices: list[int]) -> list[MeasurementUse]:
+def _too_late_uses(
+    window: _Window, observations: Sequence[Observation], indices: list[int]
+) -> list[MeasurementUse]:
     """The report of each too-late measurement: how late against the session's newest epoch before the
     batch, and which bound it missed."""
     newest, delay = window.newest, window.options["max_delay_s"]
@@ -555,10 +475,14 @@ def _check_lead(window: _Window, observations: Sequence[Observation]) -> None:
     if times[-1] - times[-2] <= bound:
         return
     problems = [
-        Problem(index, "t", (
-            f"{o.t!r} is {o.t - times[-2]:.6g} s after every other measurement of the batch (latest other "
-            f"t={times[-2]!r}), more than max_lead_s {bound:g} s: a clock error? It would make the others too late"
-        ))
+        Problem(
+            index,
+            "t",
+            (
+                f"{o.t!r} is {o.t - times[-2]:.6g} s after every other measurement of the batch (latest other "
+                f"t={times[-2]!r}), more than max_lead_s {bound:g} s: a clock error? It would make the others too late"
+            ),
+        )
         for index, o in enumerate(observations)
         if o.t == times[-1]
     ]
@@ -593,7 +517,9 @@ def _renumbered(fix: Fix, indices: Sequence[int]) -> Fix:
     return dataclasses.replace(fix, measurements=uses) if changed else fix
 
 
-def _renumbered_problem(problem: Problem, indices: Sequence[int], items: Sequence[tuple[int, Observation]]) -> Problem:
+def _renumbered_problem(
+    problem: Problem, indices: Sequence[int], items: Sequence[tuple[int, Observation]]
+) -> Problem:
     """A problem of a sub-list numbered as the batch's. A stored observation (applied by an earlier batch)
     refused now (its RSU left the registry, say) is named by its time, without an index."""
     if problem.index is None or not 0 <= problem.index < len(indices):
@@ -602,10 +528,14 @@ def _renumbered_problem(problem: Problem, indices: Sequence[int], items: Sequenc
     if index >= 0:
         return dataclasses.replace(problem, index=index)
     t = items[problem.index][1].t
-    return Problem(None, "measurements", (
-        f"a measurement at t={t!r} that an earlier batch applied is refused when late data makes the lag "
-        f"window filter it again: {problem.field}: {problem.reason}"
-    ))
+    return Problem(
+        None,
+        "measurements",
+        (
+            f"a measurement at t={t!r} that an earlier batch applied is refused when late data makes the lag "
+            f"window filter it again: {problem.field}: {problem.reason}"
+        ),
+    )
 
 
 def _extend(window: _Window, observations: Sequence[Observation]) -> None:

@@ -31,9 +31,7 @@ class LateDelivery:
         if not 0.0 <= self.fraction <= 1.0:
             raise ValueError(f"the late fraction must be in [0, 1], got {self.fraction}")
         if not 0.0 <= self.min_delay_s <= self.max_delay_s:
-            raise ValueError(
-                f"delays must satisfy 0 <= min ({self.min_delay_s}) <= max ({self.max_delay_s})"
-            )
+            raise ValueError(f"delays must satisfy 0 <= min ({self.min_delay_s}) <= max ({self.max_delay_s})")
 
 
 def arrival_times(
