@@ -9,6 +9,7 @@ import json
 import pytest
 from edgepos.cli import main
 from edgepos.loadgen import common
+from edgepos.loadgen.localserver import clean_environment, running, serve_command
 from edgepos.loadgen.simulate import run_simulation
 from edgepos.pipelines.base import InitialState
 from edgepos.pipelines.registry import get_pipeline
@@ -121,3 +122,23 @@ def test_cli_late_delivery_matches_in_order_and_beats_dropping(server_url, tmp_p
     assert rmse["late"] == pytest.approx(rmse["in order"], rel=1e-9)
     assert rmse["late dropped"] > rmse["in order"]
     assert all(run["vehicles"][0]["error"] is None for run in document.values())
+
+
+def test_a_vehicle_over_its_request_rate_waits_and_sends_again(tmp_path) -> None:
+    """One-epoch batches sent as fast as answered exceed a low per-session request rate: every 429 is
+    waited out (Retry-After) and the same batch sent again, so the run completes with every epoch fixed
+    once and in order, and the waits are counted."""
+    environment = clean_environment(
+        EDGEPOS_ADMIN_KEY=ADMIN_KEY,
+        EDGEPOS_ADMIN_KEY_FILE=str(tmp_path / "admin.key"),
+        EDGEPOS_LOG_LEVEL="warning",
+        EDGEPOS_RATE_LIMIT_PER_S="20",
+        EDGEPOS_RATE_LIMIT_BURST="10",
+    )
+    with running(serve_command(1), environment, tmp_path / "server.log", ready_timeout_s=300.0) as url:
+        result = asyncio.run(run_simulation(url, admin_key=ADMIN_KEY, seed=2, batch_epochs=1, epochs=80))
+    (vehicle,) = result.vehicles
+    assert vehicle.error is None
+    assert vehicle.rate_limited > 0
+    assert [fix.t for fix in vehicle.fixes] == sorted({fix.t for fix in vehicle.fixes})
+    assert len(vehicle.fixes) == 80

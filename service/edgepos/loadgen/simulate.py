@@ -27,7 +27,7 @@ from typing import TextIO
 
 import httpx
 import numpy as np
-from edgepos_client import AsyncEdgeposClient, EdgeposError, Fix, Session
+from edgepos_client import AsyncEdgeposClient, EdgeposError, Fix, RateLimited, Session, TooManySessions
 
 from edgepos.core.observations import Observation
 from edgepos.loadgen import common, federated_sim, v2v_sim
@@ -46,6 +46,12 @@ class VehicleRun:
     error: str | None = None
     position_rmse: float | None = None
     velocity_rmse: float | None = None
+    rate_limited: int = 0  # batches the server asked to send again later (429 with Retry-After)
+
+
+#: A vehicle that is refused for its request rate this many times in a row gives up (the server is
+#: configured for far fewer requests than the simulation sends, e.g. one-epoch batches with --fast).
+MAX_RATE_LIMITED_IN_A_ROW = 20
 
 
 @dataclass
@@ -79,6 +85,7 @@ class SimulationResult:
                     "fixes": len(v.fixes),
                     "position_rmse_m": v.position_rmse,
                     "velocity_rmse_m_s": v.velocity_rmse,
+                    "rate_limited": v.rate_limited,
                     "error": v.error,
                 }
                 for v in self.vehicles
@@ -168,14 +175,37 @@ async def _drive(
         sent_epochs += epochs
         if pace_s is not None:
             await asyncio.sleep(max(0.0, started + sent_epochs * pace_s - time.perf_counter()))
-        try:
-            fixes = await client.send_batch(session, batch)
-        except EdgeposError as error:
-            run.error = str(error)
+        fixes = await _send_politely(client, session, batch, run)
+        if fixes is None:
             return
         run.fixes.extend(fixes)
         progress.epochs += len(fixes)
         progress.batches += 1
+
+
+async def _send_politely(
+    client: AsyncEdgeposClient, session: Session, batch: list[common.WireMeasurement], run: VehicleRun
+) -> list[Fix] | None:
+    """Send one batch; a 429 for the request rate is waited out (its Retry-After, else 1 s) and the same
+    batch sent again with the same seq, as a well-behaved vehicle does. None (and ``run.error``) on any
+    other error, or after MAX_RATE_LIMITED_IN_A_ROW refusals in a row."""
+    refusals = 0
+    while True:
+        try:
+            return await client.send_batch(session, batch)
+        except TooManySessions as error:
+            run.error = str(error)
+            return None
+        except RateLimited as error:
+            run.rate_limited += 1
+            refusals += 1
+            if refusals >= MAX_RATE_LIMITED_IN_A_ROW:
+                run.error = f"{error} ({refusals} times in a row; giving up)"
+                return None
+            await asyncio.sleep(error.retry_after if error.retry_after is not None else 1.0)
+        except EdgeposError as error:
+            run.error = str(error)
+            return None
 
 
 async def run_simulation(
@@ -419,14 +449,19 @@ def late_report(results: dict[str, SimulationResult], delivery: LateDelivery, ba
             f"{delivery.fraction:.0%} of the RSU measurements {delivery.min_delay_s:g}-{delivery.max_delay_s:g} s "
             f"late, batches every {batch_epochs} epoch(s); RMSE of the last fix received per epoch, mean over vehicles"
         ),
-        f"{'delivery':<14} {'position RMSE (m)':>18} {'x in order':>11} {'velocity RMSE (m/s)':>20}  errors",
+        (
+            f"{'delivery':<14} {'position RMSE (m)':>18} {'x in order':>11} {'velocity RMSE (m/s)':>20}  errors"
+            "  waits (429)"
+        ),
     ]
     for label, result in results.items():
         position = result.mean_position_rmse
         ratio = "-" if position is None or not base else f"{position / base:.4f}"
         errors = sum(1 for v in result.vehicles if v.error)
+        waits = sum(v.rate_limited for v in result.vehicles)
         lines.append(
-            f"{label:<14} {_format(position):>18} {ratio:>11} {_format(result.mean_velocity_rmse):>20}  {errors}"
+            f"{label:<14} {_format(position):>18} {ratio:>11} {_format(result.mean_velocity_rmse):>20}  "
+            f"{errors:>6}  {waits:>11}"
         )
     return "\n".join(lines)
 
