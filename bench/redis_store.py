@@ -15,6 +15,11 @@ loop of 40 vehicles at 20 Hz in 20-epoch batches (800 epochs/s offered: latency 
 The in-process and Redis runs at 1 worker alternate for ``--rounds`` rounds so that drift of the
 machine hits both alike; each figure is the median over rounds.
 
+Halfway through each Redis run the benchmark reads the size of every live session's stored state
+(``HSTRLEN`` of its ``state`` field): with the lag window at its default (``max_delay_s`` 1 s) a
+session stores the filter states and measurements of the last second, and that size is what each
+batch moves to and from Redis.
+
 Printed: a table of epochs/s and p50/p99 latency per target and load, and the ratio of Redis to
 in-process throughput at 1 worker for each closed-loop load (target: Redis costs at most 25 %,
 i.e. ratio >= 0.75 with 20-epoch batches), with the machine's core count and load average.
@@ -32,6 +37,7 @@ import platform
 import statistics
 import sys
 import tempfile
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -81,6 +87,28 @@ def measure(url: str, load: Load, duration: float) -> LoadReport:
     return asyncio.run(run_load(config))
 
 
+def sample_state_sizes(redis: RedisServer, prefix: str, delay: float, sizes: list[int]) -> threading.Thread:
+    """Start a thread that, after ``delay`` seconds, appends the stored state size (bytes) of every live
+    session under ``prefix`` to ``sizes``."""
+    import redis as redis_py  # the store's own client library
+
+    def sample() -> None:
+        time.sleep(delay)
+        client = redis_py.Redis(host="127.0.0.1", port=redis.port)
+        try:
+            keys = list(client.scan_iter(match=f"{prefix}session:*", count=1000))
+            pipe = client.pipeline(transaction=False)
+            for key in keys:
+                pipe.hstrlen(key, "state")
+            sizes.extend(int(n) for n in pipe.execute() if n)
+        finally:
+            client.close()
+
+    thread = threading.Thread(target=sample, daemon=True)
+    thread.start()
+    return thread
+
+
 def summary(reports: list[LoadReport]) -> dict[str, Any]:
     """Median over rounds of each figure, plus the errors summed."""
 
@@ -117,6 +145,7 @@ def main() -> int:
         flush=True,
     )
     results: dict[tuple[str, str], list[LoadReport]] = {}
+    state_sizes: list[int] = []
     with tempfile.TemporaryDirectory(prefix="edgepos-bench-redis-") as tmp:
         workdir = Path(tmp)
         base_env = clean_environment(
@@ -129,12 +158,21 @@ def main() -> int:
         )
         with RedisServer(binary, workdir / "redis", *PERSISTENCE[args.persistence]) as redis:
             redis_env = {**base_env, "EDGEPOS_STORE": redis.url("bench:")}
-            plan = [(BASELINE, 1, base_env), (REDIS_1, 1, redis_env)] * args.rounds + [(REDIS_2, 2, redis_env)]
+            plan = [(BASELINE, 1, base_env), (REDIS_1, 1, redis_env)] * args.rounds + [
+                (REDIS_2, 2, redis_env)
+            ]
             for target, workers, environment in plan:
                 log_path = workdir / f"{target.replace(' ', '-').replace(',', '')}.log"
                 with running(serve_command(workers), environment, log_path) as url:
                     for load in LOADS:
+                        sampler = (
+                            sample_state_sizes(redis, "bench:", args.duration / 2, state_sizes)
+                            if environment is redis_env
+                            else None
+                        )
                         report = measure(url, load, args.duration)
+                        if sampler is not None:
+                            sampler.join()
                         results.setdefault((target, load.name), []).append(report)
                         print(
                             f"  {target}: {load.name}: {report.epochs_per_s:.0f} epochs/s, "
@@ -165,15 +203,24 @@ def main() -> int:
         ratio = statistics.median(ratios)
         verdicts[load.name] = ratio
         scaling = (
-            figures[f"{REDIS_2} | {load.name}"]["epochs_per_s"] / figures[f"{REDIS_1} | {load.name}"]["epochs_per_s"]
+            figures[f"{REDIS_2} | {load.name}"]["epochs_per_s"]
+            / figures[f"{REDIS_1} | {load.name}"]["epochs_per_s"]
         )
         target_note = (
-            f" (target >= {RATIO_TARGET}: {'PASS' if ratio >= RATIO_TARGET else 'FAIL'})" if load.batch == 20 else ""
+            f" (target >= {RATIO_TARGET}: {'PASS' if ratio >= RATIO_TARGET else 'FAIL'})"
+            if load.batch == 20
+            else ""
         )
         print(
             f"{load.name}: Redis / in-process at 1 worker = {ratio:.2f} "
             f"(rounds: {', '.join(f'{r:.2f}' for r in ratios)}){target_note}; "
             f"Redis 2 workers / 1 worker = {scaling:.2f}"
+        )
+    if state_sizes:
+        print(
+            f"session state stored in Redis (lag window at its default, max_delay_s 1 s), sampled mid-run: "
+            f"{len(state_sizes)} samples, median {statistics.median(state_sizes):.0f} B, "
+            f"max {max(state_sizes)} B"
         )
     print(
         f"cores: {os.cpu_count()}; load average {load_before[0]:.2f} before, {os.getloadavg()[0]:.2f} after; "
@@ -187,6 +234,11 @@ def main() -> int:
             "load_average_start": load_before[0],
             "figures": figures,
             "ratios_redis_over_memory_1_worker": verdicts,
+            "state_bytes": {
+                "samples": len(state_sizes),
+                "median": statistics.median(state_sizes) if state_sizes else None,
+                "max": max(state_sizes, default=None),
+            },
         }
         args.json.write_text(json.dumps(document, indent=2) + "\n")
     return 0
