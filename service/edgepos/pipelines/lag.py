@@ -110,6 +110,8 @@ def _own(options: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def _finite(t: Any) -> bool:
+    if type(t) is float:  # the usual case, checked first: a few calls per observation of every batch
+        return -math.inf < t < math.inf
     return isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t)
 
 
@@ -331,6 +333,8 @@ class LagWindow(Pipeline):
             raise PipelineInputError(
                 [_renumbered_problem(p, indices, items) for p in error.problems]
             ) from None
+        if indices == list(range(len(indices))):
+            return fixes, state  # the whole batch in its own order: already numbered as the batch's
         return [_renumbered(fix, indices) for fix in fixes], state
 
     def _too_late_problems(

@@ -13,9 +13,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import operator
 import struct
 import typing
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from edgepos.core.observations import Observation
@@ -35,16 +36,18 @@ _KINDS: dict[str, type] = {cls.kind: cls for cls in typing.get_args(Observation)
 
 
 # -- the observation codec ---------------------------------------------------------------------------
-_FIELDS: dict[type, tuple[str, ...]] = {
-    cls: tuple(f.name for f in dataclasses.fields(cls)) for cls in _KINDS.values()
+# Each kind's row: its wire name, then its fields in declaration order (one attrgetter call per observation).
+_ROW: dict[type, Callable[[Any], tuple[Any, ...]]] = {
+    cls: operator.attrgetter("kind", *(f.name for f in dataclasses.fields(cls))) for cls in _KINDS.values()
 }
+# Built once: json.dumps with non-default arguments builds a new encoder on every call.
+_ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
 
 
 def encode_epoch(observations: Sequence[Observation]) -> bytes:
     """An epoch's observations as one compact JSON array of arrays: kind, then the fields in declaration
     order (one encoder call per epoch, not per observation)."""
-    rows = [[o.kind, *[getattr(o, name) for name in _FIELDS[type(o)]]] for o in observations]
-    return json.dumps(rows, separators=(",", ":"), allow_nan=False).encode()
+    return _ENCODER.encode([_ROW[type(o)](o) for o in observations]).encode()
 
 
 def decode_epoch(record: bytes) -> list[Observation]:

@@ -413,7 +413,7 @@ def _step(
             return Fix(t=t, status="uninitialised", measurements=[uses[i] for i in sorted(uses)])
         _initialise(session, bank, candidates, gyros, observations, rsus)
         for i in candidates + gyros:
-            uses[i] = MeasurementUse(i, observations[i].kind, True)
+            uses[i] = _used(i, observations[i].kind)
         output = bank.combine(session.means, session.covs, session.probabilities)
         return _fix(t, "initialised", output, session, bank, uses, nis=None, dof=0)
 
@@ -428,7 +428,7 @@ def _step(
             candidates, gyros = kept_rsus, kept_gyros
             measured = _epoch_measurements(candidates, gyros, observations, rsus, options)
     for i in candidates + gyros:
-        uses[i] = MeasurementUse(i, observations[i].kind, True)
+        uses[i] = _used(i, observations[i].kind)
 
     result: StepResult = stepper.correct(prediction, measured)
     coasting = not (candidates or gyros)
@@ -438,6 +438,12 @@ def _step(
     nis = None if coasting else float(result.probabilities @ result.nis)
     dof = 0 if coasting else measured.dim
     return _fix(t, "predicted" if coasting else "tracking", result.output, session, bank, uses, nis, dof)
+
+
+@functools.lru_cache(maxsize=4096)
+def _used(index: int, kind: str) -> MeasurementUse:
+    """The record of a measurement that entered the filter (immutable, so one instance serves every fix)."""
+    return MeasurementUse(index, kind, True)
 
 
 def _rsus_in_view(epoch, observations, rsus, options, uses) -> list[int]:
@@ -473,16 +479,18 @@ def _gate(candidates, gyros, measured, prior: Gaussian, probability, uses, stepp
     only gated when every model carries acceleration, since otherwise the bank has no yaw-rate
     prediction.
     """
-    rsu_distance, gyro_distance = stepper.gate_distances(prior, measured)
+    rsu_array, gyro_array = stepper.gate_distances(prior, measured)
+    rsu_distance, gyro_distance = rsu_array.tolist(), gyro_array.tolist()  # a handful: cheaper as floats
     kept_rsus = candidates
     threshold = _gate_threshold(probability, 2)
-    failed = rsu_distance > threshold
-    if failed.any() and failed.sum() * 2 <= len(candidates):
+    failed = [distance > threshold for distance in rsu_distance]
+    failures = sum(failed)
+    if failures and failures * 2 <= len(candidates):
         kept_rsus = [i for i, bad in zip(candidates, failed) if not bad]
         for i, distance in zip(candidates, rsu_distance):
             if distance > threshold:
                 uses[i] = MeasurementUse(i, "rsu", False, f"failed the gate: d^2 = {distance:.1f} > {threshold:.1f}")
-    if not gyros or not {layout.XA, layout.YA} <= set(prior.components):
+    if not gyros or layout.XA not in prior.components or layout.YA not in prior.components:
         return kept_rsus, gyros
     threshold = _gate_threshold(probability, 1)
     kept_gyros = []
@@ -497,16 +505,13 @@ def _gate(candidates, gyros, measured, prior: Gaussian, probability, uses, stepp
 def _epoch_measurements(candidates, gyros, observations, rsus, options) -> RsuGyroEpoch:
     """The chosen RSU pairs and gyro readings as plain arrays, with their noise and the RSU handling."""
     count = len(candidates)
-    positions = np.empty((count, 2))
-    observed = np.empty((count, 2))
-    range_std = np.empty(count)
-    bearing_std = np.empty(count)
-    for k, i in enumerate(candidates):
-        rsu, observation = rsus[i], observations[i]
-        positions[k] = rsu.x, rsu.y
-        observed[k] = observation.range, observation.bearing
-        range_std[k] = rsu.range_std or options["range_std"]
-        bearing_std[k] = rsu.bearing_std or options["bearing_std"]
+    chosen = [rsus[i] for i in candidates]
+    measured = [observations[i] for i in candidates]
+    positions = np.array([(rsu.x, rsu.y) for rsu in chosen], dtype=float).reshape(count, 2)
+    observed = np.array([(o.range, o.bearing) for o in measured], dtype=float).reshape(count, 2)
+    default_range, default_bearing = options["range_std"], options["bearing_std"]
+    range_std = np.array([rsu.range_std or default_range for rsu in chosen], dtype=float)
+    bearing_std = np.array([rsu.bearing_std or default_bearing for rsu in chosen], dtype=float)
     return RsuGyroEpoch(
         positions, observed, range_std, bearing_std, np.array([observations[i].yaw_rate for i in gyros], dtype=float),
         options["gyro_std"], averaged=options["rsu_handling"] == "average",
@@ -540,14 +545,23 @@ def _initialise(session, bank, candidates, gyros, observations, rsus) -> None:
     session.filter_t = observations[candidates[0]].t
 
 
+@functools.lru_cache(maxsize=64)
+def _fix_layout(components: tuple[int, ...]) -> tuple[int, int, np.ndarray, tuple[str, ...]]:
+    """For an output over ``components``: the indices of x and y, the flat indices of the [x, y, vx, vy]
+    block of its covariance, and the components' names."""
+    order = list(components)
+    kinematic = [order.index(c) for c in (layout.XP, layout.YP, layout.XV, layout.YV)]
+    flat = np.array([i * len(order) + j for i in kinematic for j in kinematic], dtype=np.intp)
+    return kinematic[0], kinematic[1], flat, tuple(layout.NAMES[c] for c in order)
+
+
 def _fix(t, status, output: Gaussian, session, bank, uses, nis, dof) -> Fix:
-    components = list(output.components)
+    components = tuple(output.components)
+    x_index, y_index, kinematic_flat, names = _fix_layout(components)
     state = output.mean.tolist()
     state_cov = output.cov.tolist()
     value = dict(zip(components, state))
     vx, vy = value[layout.XV], value[layout.YV]
-    x_index, y_index = components.index(layout.XP), components.index(layout.YP)
-    kinematic = [x_index, y_index, components.index(layout.XV), components.index(layout.YV)]
     return Fix(
         t=t,
         status=status,
@@ -560,8 +574,8 @@ def _fix(t, status, output: Gaussian, session, bank, uses, nis, dof) -> Fix:
         yaw_rate=_yaw_rate(value, session, bank),
         position_cov=[[state_cov[x_index][x_index], state_cov[x_index][y_index]],
                       [state_cov[y_index][x_index], state_cov[y_index][y_index]]],
-        kinematic_cov=[[state_cov[i][j] for j in kinematic] for i in kinematic],
-        state_components=tuple(layout.NAMES[c] for c in components),
+        kinematic_cov=output.cov.ravel()[kinematic_flat].reshape(4, 4).tolist(),
+        state_components=names,
         state=state,
         state_cov=state_cov,
         model_probabilities=dict(zip(session.options["models"], session.probabilities.tolist())),
