@@ -797,3 +797,19 @@ def test_smoothing_a_pipeline_without_a_smoother_is_a_value_error():
     state, _ = feed(pipeline, new_session(pipeline), run.observations, StaticEnvironment())
     with pytest.raises(ValueError, match="no smoother"):
         pipeline.track(state, StaticEnvironment(), smoothed=True)
+
+
+def test_replayed_observations_name_what_a_late_batch_filters_again():
+    """In time order nothing is filtered again (answered from the header alone); a late measurement
+    brings back the stored observations from the checkpoint before it; None asks for the whole window."""
+    state = rsu_state_after(10)
+    assert RSU_IMU.replayed_observations(state, RSU_EPOCHS[10]) == []
+    late = [*RSU_EPOCHS[10], first_rsu(7)]
+    replayed = RSU_IMU.replayed_observations(state, late)
+    assert replayed and min(o.t for o in replayed) <= first_rsu(7).t
+    assert all(o in [x for epoch in RSU_EPOCHS[:10] for x in epoch] for o in replayed)
+    assert RSU_IMU.replayed_observations(state, None) == lag._unpack(state).observations()
+    nan_time = dataclasses.replace(RSU_EPOCHS[10][0], t=math.nan)
+    assert RSU_IMU.replayed_observations(state, [nan_time]) == []  # not late: the inner pipeline refuses it
+    assert lag_state.newest_epoch(state) == RSU_EPOCHS[9][0].t
+    assert lag_state.newest_epoch(rsu_session()) is None

@@ -62,6 +62,7 @@ from edgepos.pipelines.lag_state import (  # noqa: F401  # re-exported: tests an
     _Window,
     decode_epoch,
     encode_epoch,
+    newest_epoch,
 )
 from edgepos.pipelines.options import resolve_options
 
@@ -186,6 +187,8 @@ class LagWindow(Pipeline):
         """The stored observations that applying ``observations`` would filter again (none for a batch in
         time order), or with None every observation of the window: what the caller must look up
         (RSUs, neighbours) and budget for beyond the batch itself."""
+        if observations is not None and _all_after_newest(state, observations):
+            return []  # the usual batch, in time order: only the header is read
         window = _unpack(state)
         if observations is None:
             return window.observations()
@@ -425,6 +428,20 @@ class LagWindow(Pipeline):
 
 
 # -- sorting a batch out -----------------------------------------------------------------------------
+def _all_after_newest(state: bytes, observations: Sequence[Observation]) -> bool:
+    """Whether every observation is newer than the window's newest epoch (False when unsure: no newest
+    epoch yet, a malformed time or a state that does not read), from the state's header alone."""
+    newest = newest_epoch(state)
+    if newest is None:
+        return False
+    for observation in observations:
+        t = observation.t
+        if not (_finite(t) and t > newest):
+            return False
+    return True
+
+
+
 def _sort_out(window: _Window, observations: Sequence[Observation]) -> _Arrival:
     newest = window.newest
     if newest is None:

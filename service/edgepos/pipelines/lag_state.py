@@ -120,6 +120,14 @@ def _pack(window: _Window) -> bytes:
     return b"".join(parts)
 
 
+def newest_epoch(state: bytes) -> float | None:
+    """The window's newest epoch from its header alone (None: none yet, or not a readable window)."""
+    if state[: len(MAGIC)] != MAGIC or len(state) < _HEADER.size:
+        return None
+    newest = _HEADER.unpack_from(state)[5]
+    return None if math.isnan(newest) else newest
+
+
 def _unpack(state: bytes) -> _Window:
     if state[: len(MAGIC)] != MAGIC:
         raise StateFormatError("state has no lag window (written by an older edgepos): open a new session")
