@@ -441,7 +441,6 @@ def _all_after_newest(state: bytes, observations: Sequence[Observation]) -> bool
     return True
 
 
-
 def _sort_out(window: _Window, observations: Sequence[Observation]) -> _Arrival:
     newest = window.newest
     if newest is None:
