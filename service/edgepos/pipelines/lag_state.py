@@ -2,28 +2,25 @@
 
 Layout: ``_HEADER`` (magic, version, the window's options, the newest epoch, table sizes), then the
 checkpoint table (time of each checkpoint's last epoch, length), the checkpoint states, the current
-inner state, the window's epoch times and end offsets, and each epoch's observations as one JSON
-record (``encode_epoch``: kind, then the fields in declaration order). Exact: floats are written by
-Python's shortest round-tripping repr. A batch in time order appends records as bytes and decodes
-none of the stored ones.
+inner state, the window's epoch times and end offsets, and each epoch's observations as one record
+(``encode_epoch``: ``core.observation_codec``'s exact binary form; version 1 wrote JSON rows). A
+batch in time order appends records as bytes and decodes none of the stored ones.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import operator
 import struct
-import typing
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
+from edgepos.core.observation_codec import ObservationCodecError, decode_observations, encode_observations
 from edgepos.core.observations import Observation
 from edgepos.core.state import StateFormatError
 
 MAGIC = b"EPLW"
-VERSION = 1
+VERSION = 2
 
 # magic, version, max_delay_s, max_window_epochs, max_lead_s, newest epoch (NaN: none), checkpoints,
 # current state length, observations.
@@ -31,41 +28,18 @@ _HEADER = struct.Struct("<4sBdIddIII")
 _CHECKPOINT = struct.Struct("<dI")  # time of the state's last epoch (NaN: none), state length
 _NAN = math.nan
 
-# Observation kinds by wire name, from the union in core.observations (a new kind registers there).
-_KINDS: dict[str, type] = {cls.kind: cls for cls in typing.get_args(Observation)}
-
 
 # -- the observation codec ---------------------------------------------------------------------------
-# Each kind's row: its wire name, then its fields in declaration order (one attrgetter call per observation).
-_ROW: dict[type, Callable[[Any], tuple[Any, ...]]] = {
-    cls: operator.attrgetter("kind", *(f.name for f in dataclasses.fields(cls))) for cls in _KINDS.values()
-}
-# Built once: json.dumps with non-default arguments builds a new encoder on every call.
-_ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
-
-
 def encode_epoch(observations: Sequence[Observation]) -> bytes:
-    """An epoch's observations as one compact JSON array of arrays: kind, then the fields in declaration
-    order (one encoder call per epoch, not per observation)."""
-    return _ENCODER.encode([_ROW[type(o)](o) for o in observations]).encode()
+    """An epoch's observations as one record (``core.observation_codec``: exact, compact binary)."""
+    return encode_observations(observations)
 
 
 def decode_epoch(record: bytes) -> list[Observation]:
     try:
-        rows = json.loads(record)
-    except ValueError as error:
+        return decode_observations(record)
+    except ObservationCodecError as error:
         raise StateFormatError(f"lag window record does not decode: {error}") from None
-    observations = []
-    for values in rows if isinstance(rows, list) else [None]:
-        cls = _KINDS.get(values[0]) if isinstance(values, list) and values else None
-        if cls is None:
-            raise StateFormatError("lag window holds an unknown observation kind")
-        fields = [tuple(v) if isinstance(v, list) else v for v in values[1:]]
-        try:
-            observations.append(typing.cast(Observation, cls(*fields)))
-        except TypeError as error:
-            raise StateFormatError(f"lag window observation does not decode: {error}") from None
-    return observations
 
 
 # -- the window's state --------------------------------------------------------------------------------------
