@@ -26,19 +26,24 @@ class StateFormatError(ValueError):
     """Bytes that are not a state this version of edgepos wrote."""
 
 
+# Built once: json.dumps with non-default arguments builds a new encoder on every call.
+_JSON = json.JSONEncoder(allow_nan=False, separators=(",", ":"))
+
+
 def pack(meta: Mapping[str, Any], arrays: Mapping[str, np.ndarray]) -> bytes:
     """Serialise ``meta`` (JSON-able) and named float64 ``arrays``."""
     layout = []
     chunks = []
     for name, array in arrays.items():
         data = np.asarray(array, dtype="<f8")
-        if not np.all(np.isfinite(data)):
-            raise ValueError(f"state array {name!r} is not finite")
         layout.append([name, list(data.shape)])
         chunks.append(data.tobytes())
-    header = json.dumps({"meta": meta, "arrays": layout}, allow_nan=False, separators=(",", ":"))
-    encoded = header.encode()
-    return _HEADER.pack(MAGIC, VERSION, len(encoded)) + encoded + b"".join(chunks)
+    body = b"".join(chunks)
+    if not np.isfinite(np.frombuffer(body, dtype="<f8")).all():  # one check over every array
+        bad = next(name for name, array in arrays.items() if not np.all(np.isfinite(array)))
+        raise ValueError(f"state array {bad!r} is not finite")
+    encoded = _JSON.encode({"meta": meta, "arrays": layout}).encode()
+    return _HEADER.pack(MAGIC, VERSION, len(encoded)) + encoded + body
 
 
 def unpack(blob: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
@@ -58,14 +63,14 @@ def unpack(blob: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     if not isinstance(meta, dict) or any(n < 0 for _, shape in shapes for n in shape):
         raise StateFormatError("state header is corrupt")
     offset = start + header_length
+    counts = [math.prod(shape) for _, shape in shapes]
+    total = sum(counts)
+    if offset + 8 * total != len(blob):
+        raise StateFormatError("state is truncated" if offset + 8 * total > len(blob) else "state has trailing bytes")
+    values = np.frombuffer(blob, dtype="<f8", count=total, offset=offset).astype(float)  # one writable copy
     arrays: dict[str, np.ndarray] = {}
-    for name, shape in shapes:
-        count = math.prod(shape)
-        end = offset + 8 * count
-        if end > len(blob):
-            raise StateFormatError("state is truncated")
-        arrays[name] = np.frombuffer(blob, dtype="<f8", count=count, offset=offset).reshape(shape).astype(float)
-        offset = end
-    if offset != len(blob):
-        raise StateFormatError("state has trailing bytes")
+    position = 0
+    for (name, shape), count in zip(shapes, counts, strict=True):
+        arrays[name] = values[position : position + count].reshape(shape)
+        position += count
     return meta, arrays

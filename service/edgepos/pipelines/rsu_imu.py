@@ -145,11 +145,18 @@ class _SessionState:
     probabilities: np.ndarray
     means: np.ndarray  # (models, 8), zero where a model lacks a component
     covs: np.ndarray  # (models, 8, 8)
+    options_key: str = ""  # the options as sorted JSON: the bank's cache key and their stored form
+
+    def __post_init__(self) -> None:
+        if not self.options_key:
+            self.options_key = _options_key(self.options)
 
     def to_bytes(self) -> bytes:
+        # The options go in as their JSON text: one string to write and read per batch instead of a
+        # nested object, and decoding looks the parsed options up by that text.
         meta = {
             "pipeline": RsuImuPipeline.name,
-            "options": self.options,
+            "options_json": self.options_key,
             "initialised": self.initialised,
             "t": self.t,
             "filter_t": self.filter_t,
@@ -215,7 +222,7 @@ class RsuImuPipeline(Pipeline):
     ) -> tuple[list[Fix], bytes]:
         session = _decode(state)
         rsus = _validate(session, observations, environment)
-        bank = _bank(_options_key(session.options))
+        bank = _bank(session.options_key)
         fixes = []
         for epoch in group_by_time(observations):
             fixes.append(_step(session, bank, epoch, observations, rsus))
@@ -382,10 +389,33 @@ def _decode(blob: bytes) -> _SessionState:
     meta, arrays = state_format.unpack(blob)
     if meta.get("pipeline") != RsuImuPipeline.name:
         raise state_format.StateFormatError("state does not belong to the rsu_imu pipeline")
-    return _SessionState(
-        meta["options"], meta["initialised"], meta["t"], meta["filter_t"], meta["epochs"],
-        arrays["probabilities"], arrays["means"], arrays["covs"],
-    )
+    try:
+        key = meta.get("options_json")
+        if isinstance(key, str):
+            options = _options_from_key(key)
+        else:  # written before the options were stored as their JSON text
+            options = meta["options"]
+            key = _options_key(options)
+        return _SessionState(
+            options, meta["initialised"], meta["t"], meta["filter_t"], meta["epochs"],
+            arrays["probabilities"], arrays["means"], arrays["covs"], key,
+        )
+    except (KeyError, TypeError, ValueError) as error:
+        raise state_format.StateFormatError(f"rsu_imu state is corrupt: {error!r}") from None
+
+
+def _options_from_key(key: str) -> dict[str, Any]:
+    """The options stored as ``key`` (their sorted JSON), parsed once per distinct text; a fresh
+    top-level dict each time (the nested parameter dicts are shared and only ever read)."""
+    options = _parsed_options(key)
+    if not isinstance(options, dict):
+        raise TypeError("the stored options are not a JSON object")
+    return dict(options)
+
+
+@functools.lru_cache(maxsize=256)
+def _parsed_options(key: str) -> Any:
+    return json.loads(key)
 
 
 # -- one epoch -----------------------------------------------------------------------------------
