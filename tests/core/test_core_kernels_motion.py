@@ -66,7 +66,10 @@ def kernel_rows(models: list[MotionModel], dt: float) -> tuple[np.ndarray, np.nd
     rows = [_motion_row(model) for model in models]
     kinds = np.array([kind for kind, _ in rows], dtype=np.int64)
     params = np.array([row for _, row in rows], dtype=float).reshape(len(models), -1)
-    return kernels_motion.bank_step_matrices(kinds, params, dt)
+    transitions = np.full((len(models), 8, 8), np.nan)  # the kernel must write every entry
+    noises = np.full((len(models), 8, 8), np.nan)
+    kernels_motion.bank_step_matrices(kinds, params, dt, transitions, noises)
+    return transitions, noises
 
 
 def assert_matches_reference(models: list[MotionModel], dt: float) -> None:

@@ -164,7 +164,9 @@ class CompiledBankStepper(BankStepper):
         compiled call (``core.kernels_motion``): a few microseconds, where the Python closed forms
         cost about 90 for a bank, and jittered timestamps make every interval new. Models the kernel
         does not cover take the Python reference's rows."""
-        transitions, noises = self._motion_kernels.bank_step_matrices(self._motion_kinds, self._motion_params, dt)
+        count = len(self.bank.models)
+        transitions, noises = np.empty((count, 8, 8)), np.empty((count, 8, 8))
+        self._motion_kernels.bank_step_matrices(self._motion_kinds, self._motion_params, dt, transitions, noises)
         if self._uncovered:
             models = tuple(self.bank.models[j] for j in self._uncovered)
             reference_transitions, reference_noises = _reference_step_matrices(models, dt)

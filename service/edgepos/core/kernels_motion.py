@@ -240,19 +240,20 @@ def _place_axes(axis, order, out):
 
 
 @_jit
-def bank_step_matrices(kinds, params, dt):
-    """Padded F and Q, (M, 8, 8) each, of the M models described by ``kinds`` (M,) and ``params``
-    (M, PARAMETER_COUNT) over the interval ``dt`` (see the module docstring)."""
+def bank_step_matrices(kinds, params, dt, out_transitions, out_noises):
+    """Padded F and Q into ``out_transitions`` and ``out_noises`` (M, 8, 8) of the M models described by
+    ``kinds`` (M,) and ``params`` (M, PARAMETER_COUNT) over the interval ``dt`` (see the module
+    docstring). The caller allocates them: numba unpickles the dtype of every array it returns."""
     count = kinds.shape[0]
-    transitions = np.zeros((count, 8, 8))
-    noises = np.zeros((count, 8, 8))
+    out_transitions[:] = 0.0
+    out_noises[:] = 0.0
     axis_f = np.zeros((3, 3))
     axis_q = np.zeros((3, 3))
     for b in range(count):
         kind = kinds[b]
         row = params[b]
-        f = transitions[b]
-        q = noises[b]
+        f = out_transitions[b]
+        q = out_noises[b]
         if kind == CV or kind == CA:
             order = 2 if kind == CV else 3
             _integrator_chain(order, row[0], dt, axis_f, axis_q)
@@ -275,4 +276,3 @@ def bank_step_matrices(kinds, params, dt):
                 for j in range(2):
                     f[6 + i, 6 + j] = axis_f[i, j]
                     q[6 + i, 6 + j] = axis_q[i, j]
-    return transitions, noises
