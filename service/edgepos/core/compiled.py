@@ -249,7 +249,8 @@ def stepper_for(bank: InteractingMultipleModel) -> BankStepper:
 def warm_up() -> float:
     """Compile (or load from the on-disk cache) every kernel signature the service uses, so that no
     request pays it; returns the seconds it took. Runs one epoch of each covered filter kind, with
-    the paper's 2IMM-CKF bank, joint and averaged, and the gate."""
+    the paper's 2IMM-CKF bank, joint and averaged, and the gate; the predictions also compile the
+    F and Q kernel (``core.kernels_motion``, one signature for every bank)."""
     started = time.perf_counter()
     if not compiled_enabled():
         return 0.0
