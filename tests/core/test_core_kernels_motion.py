@@ -142,6 +142,7 @@ def models(draw) -> MotionModel:
 @example(bank=[make_motion_model("singer", alpha=100.0, sigma=100.0)], dt=MAX_GAP)
 @example(bank=[make_motion_model("at", beta=100.0, eta=10.0, q=100.0, noise="continuous")], dt=6.9)
 @example(bank=[make_motion_model("ct", omega=-2.0 * math.pi, noise="continuous")], dt=0.5)
+@example(bank=[make_motion_model("ct", omega=0.0), make_motion_model("ct", omega=1e-12)], dt=0.05)
 def test_random_banks_match_the_closed_forms(bank: list[MotionModel], dt: float) -> None:
     dt = dt_key(min(dt, MAX_GAP))
     assert_matches_reference(bank, dt)
