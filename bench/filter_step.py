@@ -99,11 +99,12 @@ def main() -> int:
     pipeline_batch = [o for later in pipeline_batch_epochs for o in later]
 
     # Real clocks jitter: every interval is new, so nothing comes from the per-interval caches of F
-    # and Q. Timestamps moved by up to +-2 ms, a fresh draw per call (enough variants to defeat the caches).
+    # and Q. Timestamps moved by up to +-2 ms, a fresh draw per call (enough variants to defeat the caches),
+    # as Python floats like those a request's JSON gives (numpy scalars take slower paths in the pipeline).
     jitter_rng = np.random.default_rng(11)
     jittered_batches = []
     for _ in range(max(1, args.iterations // batch_epochs) + 2):
-        shifts = jitter_rng.uniform(-0.002, 0.002, batch_epochs)
+        shifts = jitter_rng.uniform(-0.002, 0.002, batch_epochs).tolist()
         jittered_batches.append(
             [dataclasses.replace(o, t=o.t + shift) for shift, later in zip(shifts, pipeline_batch_epochs) for o in later]
         )

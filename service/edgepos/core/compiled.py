@@ -8,7 +8,8 @@ the bank is covered: an EKF, UKF or CKF over models that are linear with a fixed
 (CV, CA, CT, Singer) or the adaptive turn (AT). Anything else, and any step where the kernels meet
 a Cholesky factor that does not exist or a non-finite number, runs on the numpy reference, which
 repairs a nearly singular covariance or raises ``NumericalError``: the compiled path never decides
-about bad numbers on its own.
+about bad numbers on its own. The models' F and Q for each interval come from one compiled call too
+(``core.kernels_motion``), so timestamps that jitter, which make every interval new, stay cheap.
 
 Set ``EDGEPOS_NUMBA=0`` to run everything on the numpy reference.
 """
@@ -28,7 +29,11 @@ from edgepos.core.filters import CubatureKalmanFilter, ExtendedKalmanFilter, Uns
 from edgepos.core.filters.sigma_points import SigmaPointFilter
 from edgepos.core.imm import Gaussian, InteractingMultipleModel, Prediction, StepResult
 from edgepos.core.motion.at import AdaptiveTurn
-from edgepos.core.motion.base import dt_key, padded_linear_step
+from edgepos.core.motion.base import MotionModel, dt_key, padded_linear_step
+from edgepos.core.motion.ca import ConstantAcceleration
+from edgepos.core.motion.ct import CoordinatedTurn
+from edgepos.core.motion.cv import ConstantVelocity
+from edgepos.core.motion.singer import Singer
 from edgepos.core.updates import RsuGyroEpoch, gate_distances
 
 _log = logging.getLogger(__name__)
@@ -78,6 +83,41 @@ def _motion_kind(model) -> int | None:
     return None
 
 
+def _motion_row(model: MotionModel) -> tuple[int, list[float]]:
+    """The kind and parameter row of ``model`` for ``kernels_motion.bank_step_matrices``, or UNCOVERED
+    (a model it does not implement, a subclass included, whose F and Q come from the Python reference).
+    The driving densities are computed as the models compute them."""
+    from edgepos.core import kernels_motion as motion
+
+    form = motion.CONTINUOUS if getattr(model, "noise", None) == "continuous" else motion.DISCRETE
+    kind = type(model)
+    if kind is ConstantVelocity:
+        return motion.CV, [model.q, form, 0.0, 0.0]
+    if kind is ConstantAcceleration:
+        return motion.CA, [model.q, form, 0.0, 0.0]
+    if kind is CoordinatedTurn:
+        return motion.CT, [model.q, form, model.omega, 0.0]
+    if kind is AdaptiveTurn and model.components == layout.ALL:
+        return motion.AT, [model.q, form, model.beta, 2.0 * model.beta * model.eta * model.eta]
+    if kind is Singer:
+        return motion.SINGER, [model.alpha, 2.0 * model.alpha * model.sigma**2, 0.0, 0.0]
+    return motion.UNCOVERED, [0.0] * motion.PARAMETER_COUNT
+
+
+def _reference_step_matrices(models: tuple[MotionModel, ...], dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Padded F and Q of ``models`` as the compiled prediction takes them, from the Python closed forms:
+    the linear ones' exact discretisation; for AT its turn-rate block F_omega (the kinematics follow
+    the state's omega) and its Q."""
+    transitions, noises = (np.array(m) for m in padded_linear_step(models, dt))
+    zero = np.zeros(layout.FULL_DIM)
+    for j, model in enumerate(models):
+        if isinstance(model, AdaptiveTurn):
+            transitions[j] = 0.0
+            transitions[j][6:, 6:] = model.turn_rate_block(dt)[0]
+            noises[j] = model.noise_covariance(zero, dt)
+    return transitions, noises
+
+
 def covered(bank: InteractingMultipleModel) -> bool:
     """Whether the compiled kernels implement this bank's filter and every one of its models."""
     return _filter_kind(bank.filter) is not None and all(_motion_kind(m) is not None for m in bank.models)
@@ -103,6 +143,13 @@ class CompiledBankStepper(BankStepper):
         self._priority = np.array(bank.priority if bank.is_two_stage else [], dtype=np.int64)
         self._others = np.array(bank.others, dtype=np.int64)
         self._kinds = np.array([_motion_kind(m) for m in bank.models], dtype=np.int64)
+        from edgepos.core import kernels_motion
+
+        self._motion_kernels = kernels_motion
+        rows = [_motion_row(m) for m in bank.models]
+        self._motion_kinds = np.array([kind for kind, _ in rows], dtype=np.int64)
+        self._motion_params = np.array([row for _, row in rows], dtype=float).reshape(count, -1)
+        self._uncovered = tuple(j for j, (kind, _) in enumerate(rows) if kind == kernels_motion.UNCOVERED)
         self._filter_kind = _filter_kind(bank.filter)
         weights = np.zeros((4, count))
         if isinstance(bank.filter, SigmaPointFilter):
@@ -113,16 +160,20 @@ class CompiledBankStepper(BankStepper):
 
     @functools.lru_cache(maxsize=64)  # noqa: B019 (steppers live as long as their cached bank)
     def _step_matrices(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        """Padded F and Q of every model for an interval: the linear ones' exact discretisation; for
-        AT its turn-rate block F_omega (the kinematics follow the state's omega) and its Q."""
-        transitions, noises = (np.array(m) for m in padded_linear_step(self.bank.models, dt))
-        zero = np.zeros(layout.FULL_DIM)
-        for j, model in enumerate(self.bank.models):
-            if isinstance(model, AdaptiveTurn):
-                transitions[j] = 0.0
-                transitions[j][6:, 6:] = model.turn_rate_block(dt)[0]
-                noises[j] = model.noise_covariance(zero, dt)
-        return np.ascontiguousarray(transitions), np.ascontiguousarray(noises)
+        """Padded F and Q of every model for an interval (see ``_reference_step_matrices``), in one
+        compiled call (``core.kernels_motion``): a few microseconds, where the Python closed forms
+        cost about 90 for a bank, and jittered timestamps make every interval new. Models the kernel
+        does not cover take the Python reference's rows."""
+        count = len(self.bank.models)
+        transitions, noises = np.empty((count, 8, 8)), np.empty((count, 8, 8))
+        self._motion_kernels.bank_step_matrices(self._motion_kinds, self._motion_params, dt, transitions, noises)
+        if self._uncovered:
+            models = tuple(self.bank.models[j] for j in self._uncovered)
+            reference_transitions, reference_noises = _reference_step_matrices(models, dt)
+            for row, j in enumerate(self._uncovered):
+                transitions[j] = reference_transitions[row]
+                noises[j] = reference_noises[row]
+        return transitions, noises
 
     def predict(self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray, dt: float | None) -> Prediction:
         transitions, noises = self._step_matrices(dt_key(dt) if dt else 0.0)  # the reference's rounding of dt
@@ -198,7 +249,8 @@ def stepper_for(bank: InteractingMultipleModel) -> BankStepper:
 def warm_up() -> float:
     """Compile (or load from the on-disk cache) every kernel signature the service uses, so that no
     request pays it; returns the seconds it took. Runs one epoch of each covered filter kind, with
-    the paper's 2IMM-CKF bank, joint and averaged, and the gate."""
+    the paper's 2IMM-CKF bank, joint and averaged, and the gate; the predictions also compile the
+    F and Q kernel (``core.kernels_motion``, one signature for every bank)."""
     started = time.perf_counter()
     if not compiled_enabled():
         return 0.0
