@@ -60,7 +60,10 @@ def main() -> int:
     x0 = scenario.initial_state
     state = pipeline.create(options, InitialState(x0[0], x0[3], x0[1], x0[4]))
     warmup = 200  # a realistic, converged state to time from
-    _, state = pipeline.process(state, [o for epoch in epochs[:warmup] for o in epoch], env)
+    # sent as a vehicle sends them, in 20-epoch batches, so that the lag window holds what a stream
+    # leaves in it (a few checkpoints and about a second of epochs), not one 200-epoch batch's records
+    for first in range(0, warmup, 20):
+        _, state = pipeline.process(state, [o for epoch in epochs[first : first + 20] for o in epoch], env)
     # the registry wraps every pipeline's state: the lag window around the plausibility checks
     session = _decode(unwrap(lag._unpack(state).current)[1])
     bank = _bank(_options_key(options))
