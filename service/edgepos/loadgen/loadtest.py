@@ -9,11 +9,13 @@ vehicle starts a new trip: it deletes its session and opens a fresh one (those c
 apart from the batches). ``--saturate`` ignores the schedule and sends each batch as soon as the
 previous one is answered: the server's capacity rather than its latency at a given load.
 
-``--verify`` reads every session back (with its own token) before it is deleted, at the end of a
-trip and at the end of the run, and checks that the server holds exactly what the vehicle was told:
-its last seq, batch count and epoch count equal the batches and epochs acknowledged. A session that
-saw an error is not checked (a timed-out batch may or may not have been applied); the report says
-how many were skipped, and the command fails when any checked session disagrees.
+``--verify`` reads every session back (with the admin key, so that a session the server no longer
+holds is a 404 rather than a refused token) before it is deleted, at the end of a
+trip and at the end of the run, also the sessions that saw an error, and checks that the server holds
+exactly what the vehicle was told (``loadgen/verify.py``): acknowledged batches found, lost
+(acknowledged but not stored, with the window of the run over which they were acknowledged) and
+inconsistent counters. A batch that got no answer may or may not be stored. The command fails when
+anything was lost, inconsistent or could not be read back.
 
 The load generator runs on the same machine as the server, so it reports its own lateness: how
 late each batch left against its schedule, split into waits for the vehicle's previous answer and
@@ -38,6 +40,7 @@ import httpx
 from edgepos_client import AsyncEdgeposClient, EdgeposError, Session
 
 from edgepos.loadgen import common
+from edgepos.loadgen.verify import Held, TripLedger, VerifyTally, judge
 from edgepos.sim.scenarios import Scenario, rsu_imu_paper_scenario
 
 #: Distinct measurement noise streams shared round-robin by the vehicles (keeps set-up cheap).
@@ -48,6 +51,9 @@ LATE_THRESHOLD_S = 0.010
 MAX_ERROR_SAMPLES = 5
 #: Period of the event-loop lag probe (s).
 LAG_PROBE_S = 0.010
+#: --verify: how long a session's read-back is retried through a 503 or a dropped connection (s).
+READ_BACK_S = 15.0
+READ_BACK_RETRY_S = 0.25
 
 
 @dataclass(frozen=True)
@@ -111,10 +117,8 @@ class Recorder:
     trip_errors: Counter[str] = field(default_factory=Counter)
     first_send: float | None = None
     last_answer: float | None = None
-    verified: int = 0
-    verify_mismatches: int = 0
-    verify_skipped: int = 0
-    verify_samples: list[str] = field(default_factory=list)
+    verify: VerifyTally = field(default_factory=VerifyTally)
+    run_started: float | None = None  # clock time the schedule started (loss window offsets are from it)
 
 
 @dataclass(frozen=True)
@@ -171,17 +175,27 @@ class LoadReport:
                 "loop_lag_max_ms": max(r.loop_lag_ms) if r.loop_lag_ms else None,
             },
             "trips": {"started": r.trips, "errors_by_code": dict(r.trip_errors)},
-            "verify": (
-                {
-                    "sessions_checked": r.verified,
-                    "mismatches": r.verify_mismatches,
-                    "skipped_after_error": r.verify_skipped,
-                    "samples": list(r.verify_samples),
-                }
-                if c.verify
-                else None
-            ),
+            "verify": _verify_json(r) if c.verify else None,
         }
+
+
+def _verify_json(recorder: Recorder) -> dict[str, Any]:
+    tally, origin = recorder.verify, recorder.run_started
+    window = tally.loss_window_s()
+    return {
+        "sessions_checked": tally.sessions,
+        "acknowledged_batches": tally.acknowledged,
+        "found": tally.found,
+        "lost": tally.lost,
+        "loss_window_s": window,
+        "loss_started_s": (
+            None if tally.lost_from is None or origin is None else round(tally.lost_from - origin, 6)
+        ),
+        "sessions_gone": tally.sessions_gone,
+        "unreadable": tally.unreadable,
+        "mismatches": tally.inconsistent,
+        "samples": list(tally.samples),
+    }
 
 
 def _noise_batches(scenario: Scenario, config: LoadConfig) -> list[list[list[common.WireMeasurement]]]:
@@ -236,31 +250,34 @@ class Vehicle:
         self.session: Session | None = None
         self.position = 0
         self.verify = verify
-        self.acknowledged = 0
-        self.acknowledged_epochs = 0
-        self.had_error = False
+        self.ledger = TripLedger()
 
     async def check_session(self) -> None:
-        """--verify: the server's counters for this session equal what the vehicle was told."""
-        recorder = self.recorder
+        """--verify: read the session back (through a recovering server: a 503 or a dropped connection
+        is retried for up to READ_BACK_S) and judge it against what the vehicle was told."""
         if self.session is None:
             return
-        if self.had_error:
-            recorder.verify_skipped += 1
+        tally = self.recorder.verify
+        name = f"{self.vehicle_id} session {self.session.session_id}"
+        deadline = self.clock.now() + READ_BACK_S
+        while True:
+            try:
+                info = await self.client.get_session(
+                    self.session.session_id
+                )  # a bare id: read with the admin key
+            except EdgeposError as error:
+                if error.status == 404:
+                    tally.add(name, self.ledger, judge(self.ledger, None), True, MAX_ERROR_SAMPLES)
+                    return
+                passing = error.status is None or error.status in (429, 503)
+                if passing and self.clock.now() < deadline:
+                    await self.clock.sleep(READ_BACK_RETRY_S)
+                    continue
+                tally.add_unreadable(name, self.ledger, str(error), MAX_ERROR_SAMPLES)
+                return
+            held = Held(info.last_seq, info.batches, info.epochs)
+            tally.add(name, self.ledger, judge(self.ledger, held), False, MAX_ERROR_SAMPLES)
             return
-        try:
-            info = await self.client.get_session(self.session)
-        except EdgeposError as error:
-            found = f"could not be read back: {error}"
-        else:
-            told = (self.acknowledged, self.acknowledged, self.acknowledged_epochs)
-            held = (info.last_seq, info.batches, info.epochs)
-            found = "" if held == told else f"holds (seq, batches, epochs) {held}, the vehicle was told {told}"
-        recorder.verified += 1
-        if found:
-            recorder.verify_mismatches += 1
-            if len(recorder.verify_samples) < MAX_ERROR_SAMPLES:
-                recorder.verify_samples.append(f"{self.vehicle_id} session {self.session.session_id} {found}")
 
     async def new_trip(self) -> None:
         """Close the current session (if any) and open a fresh one at the scenario's start."""
@@ -275,8 +292,7 @@ class Vehicle:
             self.session = None
         self.session = await self.client.create_session(self.vehicle_id, initial_state=self.start_state)
         self.position = 0
-        self.acknowledged = self.acknowledged_epochs = 0
-        self.had_error = False
+        self.ledger = TripLedger()
         recorder.trips += 1
 
     async def send_one(self) -> None:
@@ -296,7 +312,10 @@ class Vehicle:
             recorder.errors[error.code] += 1
             if len(recorder.error_samples) < MAX_ERROR_SAMPLES:
                 recorder.error_samples.append(str(error))
-            self.had_error = True
+            if (
+                error.status is None or error.status >= 500
+            ):  # no answer, or one after a failure: maybe applied
+                self.ledger.unanswered(len({measurement.t for measurement in batch}))
             self.position = len(self.batches)  # resynchronise: the next batch ends this trip, opens a new one
             return
         finished = self.clock.now()
@@ -305,8 +324,7 @@ class Vehicle:
         recorder.epochs += len(fixes)
         recorder.last_answer = finished
         self.position += 1
-        self.acknowledged += 1
-        self.acknowledged_epochs += len(fixes)
+        self.ledger.acknowledge(finished, len(fixes))
 
     async def run(self, config: LoadConfig, start: float, offset: float) -> None:
         """Send until ``config.duration`` s after ``start``; batch k is due at start + offset + k * interval.
@@ -392,6 +410,7 @@ async def run_load(config: LoadConfig) -> LoadReport:
         recorder.trips = 0  # count trips started after the first
         probe = asyncio.create_task(_probe_loop_lag(recorder))
         start = time.perf_counter()
+        recorder.run_started = start
         try:
             spread = 0.0 if config.saturate else config.interval_s
             await asyncio.gather(
@@ -454,9 +473,16 @@ def summary(report: LoadReport) -> str:
             )
     verify = data["verify"]
     if verify is not None:
+        lost = f"{verify['lost']} lost"
+        if verify["lost"] and verify["loss_started_s"] is not None:
+            lost += (
+                f" (acknowledged over {verify['loss_window_s']:.2f} s from {verify['loss_started_s']:.2f} s into "
+                f"the run; {verify['sessions_gone']} session(s) gone)"
+            )
         lines.append(
-            f"  verify          {verify['sessions_checked']} session(s) read back, {verify['mismatches']} "
-            f"inconsistent, {verify['skipped_after_error']} skipped after an error"
+            f"  verify          {verify['sessions_checked']} session(s) read back: "
+            f"{verify['acknowledged_batches']} acknowledged batch(es), {verify['found']} found, {lost}, "
+            f"{verify['mismatches']} inconsistent, {verify['unreadable']} unreadable"
         )
         lines.extend(f"    e.g. {sample}" for sample in verify["samples"])
     lines.append(
@@ -496,8 +522,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--verify",
         action="store_true",
-        help="read every session back before deleting it and check that its seq, batch and epoch counts "
-        "equal what was acknowledged (exit status 1 if any differ)",
+        help="read every session back before deleting it (also those that saw an error) and count the "
+        "acknowledged batches found and lost and any counters that disagree (exit status 1 if any batch was "
+        "lost, any session disagrees or could not be read back)",
     )
 
 
@@ -527,4 +554,4 @@ def run(args: argparse.Namespace) -> int:
     print(summary(report))
     if args.json is not None:
         args.json.write_text(json.dumps(report.to_json(), indent=2) + "\n")
-    return 1 if config.verify and report.recorder.verify_mismatches else 0
+    return 1 if config.verify and report.recorder.verify.failed else 0
