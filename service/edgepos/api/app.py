@@ -89,7 +89,14 @@ def create_app(
     context = AppContext(
         vehicle_keys=vehicle_keys,
         settings=settings,
-        store=store if store is not None else open_store(settings.store, settings.session_ttl_s),
+        store=store
+        if store is not None
+        else open_store(
+            settings.store,
+            settings.session_ttl_s,
+            wait_replicas=settings.redis_wait_replicas,
+            wait_timeout_ms=settings.redis_wait_timeout_ms,
+        ),
         pipelines=dict(pipelines),
         metrics=Metrics(),
         origin=settings.origin,
@@ -103,7 +110,9 @@ def create_app(
                 count = await context.store.upsert_rsus(_demo_rsus())
                 logger.info("demo RSU map loaded", extra={"event": "demo_rsus", "count": count})
             except StoreUnavailable:  # start anyway: /readyz reports the store until it answers
-                logger.warning("demo RSU map not loaded: the store does not answer", extra={"event": "demo_rsus"})
+                logger.warning(
+                    "demo RSU map not loaded: the store does not answer", extra={"event": "demo_rsus"}
+                )
         # Compile the filter kernels (or load them from numba's cache) before the first request.
         seconds = await context.run_filter(warm_up_kernels)
         logger.info("filter kernels ready", extra={"event": "warm_up", "seconds": round(seconds, 3)})

@@ -18,7 +18,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from edgepos.api.schemas import MEASUREMENT_TYPES, ErrorBody, ErrorDetail, ProblemModel
 from edgepos.pipelines.base import Problem
-from edgepos.store.base import StoreUnavailable
+from edgepos.store.base import NotReplicated, StoreUnavailable
 
 logger = logging.getLogger("edgepos.api")
 
@@ -164,7 +164,11 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _store_unavailable(request: Request, error: StoreUnavailable) -> Response:
         # The store's own message names hosts and ports: log it, answer with a fixed sentence.
         logger.warning("store unavailable", extra={"event": "store_unavailable", "error": str(error)})
-        message = "the session store does not answer; retry shortly"
+        message = (
+            str(error)
+            if isinstance(error, NotReplicated)
+            else "the session store does not answer; retry shortly"
+        )
         return error_response(ApiError("unavailable", message, headers={"Retry-After": "1"}))
 
     @app.exception_handler(RequestValidationError)

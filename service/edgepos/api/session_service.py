@@ -350,6 +350,7 @@ async def _apply_in_turn(
                 metrics.batches.labels("conflict").inc()
                 raise
             if replay is not None:
+                await context.store.make_durable()  # the first attempt may have stored it without replicas
                 metrics.batches.labels("replayed").inc()
                 return replay
             pipeline = _pipeline(context, record.pipeline)

@@ -25,7 +25,9 @@ class Settings(BaseSettings):
 
     host: str = Field("127.0.0.1", description="Address to listen on.")
     port: int = Field(8000, ge=0, le=65535, description="TCP port to listen on.")
-    workers: int = Field(1, ge=1, le=64, description="Worker processes (>1 needs a shared store: SQLite or Redis).")
+    workers: int = Field(
+        1, ge=1, le=64, description="Worker processes (>1 needs a shared store: SQLite or Redis)."
+    )
     admin_key: SecretStr | None = Field(
         None,
         description="Bearer key for RSU writes and admin access to every session. When unset a random "
@@ -38,6 +40,17 @@ class Settings(BaseSettings):
         "memory",
         description="'memory' (one process), 'sqlite:///path.db' (several workers on one box) or "
         "'redis://host:port/db' (any worker of any replica; also rediss:// and unix://).",
+    )
+    redis_wait_replicas: int = Field(
+        0,
+        ge=0,
+        le=16,
+        description="Redis only: replicas that must hold a batch (WAIT) before it is acknowledged; 0 acknowledges "
+        "once the primary has it. A batch that does not reach them in time is a 503 and not acknowledged "
+        "(it is on the primary: the same batch sent again is answered once it is replicated).",
+    )
+    redis_wait_timeout_ms: int = Field(
+        500, ge=1, le=60_000, description="Redis only: how long a batch waits for those replicas (ms)."
     )
     max_sessions: int = Field(10_000, ge=1, description="Live sessions allowed at once (429 beyond).")
     session_ttl_s: float = Field(
@@ -200,6 +213,14 @@ class Settings(BaseSettings):
         if value != "memory" and not sqlite and not redis:
             raise ValueError("store must be 'memory', 'sqlite:///path.db' or 'redis://host:port/db'")
         return value
+
+    @model_validator(mode="after")
+    def _wait_needs_redis(self) -> Settings:
+        if self.redis_wait_replicas and not self.store.startswith(("redis://", "rediss://", "unix://")):
+            raise ValueError(
+                "redis_wait_replicas (EDGEPOS_REDIS_WAIT_REPLICAS) needs a Redis store (EDGEPOS_STORE)"
+            )
+        return self
 
     @model_validator(mode="after")
     def _origin_pair(self) -> Settings:

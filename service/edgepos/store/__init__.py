@@ -11,8 +11,13 @@ from edgepos.store.sqlite import SQLiteStore, path_from_url
 __all__ = ["MemoryStore", "SQLiteStore", "SessionRecord", "SessionStore", "TooManySessions", "open_store"]
 
 
-def open_store(url: str, ttl_s: float, clock: Clock = time.time) -> SessionStore:
-    """The store named by ``url``: ``memory`` or ``sqlite:///path.db``."""
+def open_store(
+    url: str, ttl_s: float, clock: Clock = time.time, *, wait_replicas: int = 0, wait_timeout_ms: int = 500
+) -> SessionStore:
+    """The store named by ``url``: ``memory``, ``sqlite:///path.db`` or ``redis://...``; ``wait_replicas``
+    (Redis only) is how many replicas must hold a batch before it is acknowledged."""
+    if wait_replicas and not url.startswith(("redis:", "rediss:", "unix:")):
+        raise ValueError("waiting for replicas needs a Redis store")
     if url == "memory":
         return MemoryStore(ttl_s, clock)
     if url.startswith("sqlite:"):
@@ -20,5 +25,5 @@ def open_store(url: str, ttl_s: float, clock: Clock = time.time) -> SessionStore
     if url.startswith(("redis:", "rediss:", "unix:")):
         from edgepos.store.redis import RedisStore  # redis-py is only imported when configured
 
-        return RedisStore(url, ttl_s, clock)
+        return RedisStore(url, ttl_s, clock, wait_replicas=wait_replicas, wait_timeout_ms=wait_timeout_ms)
     raise ValueError(f"unknown store {url!r}: use 'memory', 'sqlite:///path.db' or 'redis://host:port/db'")

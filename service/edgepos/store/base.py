@@ -137,7 +137,8 @@ def decode_track(vehicle_id: str, text: str | bytes) -> tuple[NeighbourTrack, fl
     """The track and the server time it was written (inverse of :func:`encode_track`)."""
     value = json.loads(text)
     points = tuple(
-        TrackPoint(t, x, y, vx, vy, tuple(tuple(row) for row in cov)) for t, x, y, vx, vy, cov in value["points"]
+        TrackPoint(t, x, y, vx, vy, tuple(tuple(row) for row in cov))
+        for t, x, y, vx, vy, cov in value["points"]
     )
     return NeighbourTrack(vehicle_id, points), float(value["written_at"])
 
@@ -161,6 +162,11 @@ class VehicleNotRegistered(Exception):
 class StoreUnavailable(Exception):
     """The store did not answer in time or refused service (down, unreachable, loading, read-only).
     A write may or may not have been applied; retrying is safe (updates are compare-and-set)."""
+
+
+class NotReplicated(StoreUnavailable):
+    """The write is on the primary but not on as many replicas as configured in time: not acknowledged.
+    Its message names no host or port and is shown to the client."""
 
 
 class SessionLocks:
@@ -364,6 +370,13 @@ class SessionStore(ABC):
         """The seconds until one more request of ``key`` would be allowed (0.0 now), using none of
         its budget: a look before work that must not even start past the limit."""
 
+    async def make_durable(self) -> None:
+        """Return once what this store has acknowledged so far is as durable as it is configured to
+        make it (Redis with ``wait_replicas``: on that many replicas), else raise StoreUnavailable. A
+        replayed answer is sent only after this, so a retry cannot acknowledge a batch that the first
+        attempt stored but could not replicate. Nothing to wait for by default."""
+        return
+
     # lifecycle
     async def ping(self) -> bool:
         """True when the store answers (used by /readyz)."""
@@ -372,4 +385,4 @@ class SessionStore(ABC):
 
     async def close(self) -> None:
         """Release connections and threads (nothing to release by default)."""
-        return None
+        return

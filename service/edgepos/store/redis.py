@@ -39,6 +39,7 @@ from edgepos.pipelines.base import NeighbourTrack, Rsu
 from edgepos.store import redis_scripts as scripts
 from edgepos.store.base import (
     Clock,
+    NotReplicated,
     Revocation,
     SessionRecord,
     SessionStore,
@@ -199,9 +200,20 @@ def _rsu(rsu_id: str, value: bytes) -> Rsu:
 class RedisStore(SessionStore):
     """Sessions and RSUs in Redis under ``prefix`` (see docs/redis.md for the key layout)."""
 
-    def __init__(self, url: str, ttl_s: float, clock: Clock = time.time) -> None:
+    def __init__(
+        self,
+        url: str,
+        ttl_s: float,
+        clock: Clock = time.time,
+        *,
+        wait_replicas: int = 0,
+        wait_timeout_ms: int = 500,
+    ) -> None:
         super().__init__(ttl_s, clock)
         self.url, self.prefix = parse_url(url)
+        # WAIT: a batch is acknowledged only once this many replicas have it (0: once the primary has it)
+        self.wait_replicas, self.wait_timeout_ms = int(wait_replicas), int(wait_timeout_ms)
+        self.durable_key = f"{self.prefix}durable"
         self.session_prefix = f"{self.prefix}session:"
         self.index_key = f"{self.prefix}sessions"
         self.rsu_key = f"{self.prefix}rsus"
@@ -396,24 +408,47 @@ class RedisStore(SessionStore):
         return None if self.is_expired(record, self.clock()) else record
 
     async def compare_and_set(self, record: SessionRecord, expected_version: int) -> bool:
+        keys = [self._session_key(record.session_id), self.index_key, self._live_key(record.vehicle_id)]
+        args: list[bytes | str | int] = [
+            str(int(expected_version)),
+            self._ttl_ms,
+            repr(float(record.updated_at)),
+            record.session_id,
+            *_fields(record, expected_version + 1),
+        ]
         async with self._guard():
             client = await self._redis()
-            applied = await self._scripts["cas"](
-                keys=[
-                    self._session_key(record.session_id),
-                    self.index_key,
-                    self._live_key(record.vehicle_id),
-                ],
-                args=[
-                    str(int(expected_version)),
-                    self._ttl_ms,
-                    repr(float(record.updated_at)),
-                    record.session_id,
-                    *_fields(record, expected_version + 1),
-                ],
-                client=client,
+            if not self.wait_replicas:
+                return bool(await self._scripts["cas"](keys=keys, args=args, client=client) == 1)
+            # The script and WAIT on one connection in one round trip: WAIT covers this connection's writes.
+            pipe = client.pipeline(transaction=False)
+            await self._scripts["cas"](keys=keys, args=args, client=pipe)
+            pipe.execute_command("WAIT", self.wait_replicas, self.wait_timeout_ms)
+            applied, replicas = await pipe.execute()
+        if applied == 1:
+            self._check_replicas(int(replicas), "the batch")
+        return bool(applied == 1)
+
+    async def make_durable(self) -> None:
+        """A write of this connection's own, then WAIT: the replication stream is ordered, so once the
+        replicas have that write they have every write acknowledged before it."""
+        if not self.wait_replicas:
+            return
+        async with self._guard():
+            client = await self._redis()
+            pipe = client.pipeline(transaction=False)
+            pipe.set(self.durable_key, b"1")
+            pipe.execute_command("WAIT", self.wait_replicas, self.wait_timeout_ms)
+            _, replicas = await pipe.execute()
+        self._check_replicas(int(replicas), "the stored answer")
+
+    def _check_replicas(self, replicas: int, what: str) -> None:
+        if replicas < self.wait_replicas:
+            raise NotReplicated(
+                f"{what} reached {replicas} of the {self.wait_replicas} replica(s) it must reach within "
+                f"{self.wait_timeout_ms} ms (EDGEPOS_REDIS_WAIT_REPLICAS); it is not acknowledged: send the same "
+                "batch again"
             )
-        return applied == 1
 
     async def delete(self, session_id: str) -> bool:
         async with self._guard():
@@ -515,11 +550,10 @@ class RedisStore(SessionStore):
         if not mapping:
             return 0
         items = list(mapping.items())
-        async with self._guard():
-            async with (await self._redis()).pipeline(transaction=True) as pipe:
-                for start in range(0, len(items), _CHUNK):
-                    pipe.hset(self.rsu_key, mapping=dict(items[start : start + _CHUNK]))
-                await pipe.execute()
+        async with self._guard(), (await self._redis()).pipeline(transaction=True) as pipe:
+            for start in range(0, len(items), _CHUNK):
+                pipe.hset(self.rsu_key, mapping=dict(items[start : start + _CHUNK]))
+            await pipe.execute()
         return len(mapping)
 
     async def get_rsu(self, rsu_id: str) -> Rsu | None:
@@ -548,18 +582,17 @@ class RedisStore(SessionStore):
 
     # broadcast ephemerides ------------------------------------------------------------------
     async def put_ephemerides(self, document: StoredEphemerides) -> None:
-        async with self._guard():
-            async with (await self._redis()).pipeline(transaction=True) as pipe:
-                pipe.delete(self.ephemerides_key)
-                pipe.hset(
-                    self.ephemerides_key,
-                    mapping={
-                        "digest": document.digest,
-                        "text": document.text.encode(),
-                        "uploaded_at": repr(float(document.uploaded_at)),
-                    },
-                )
-                await pipe.execute()
+        async with self._guard(), (await self._redis()).pipeline(transaction=True) as pipe:
+            pipe.delete(self.ephemerides_key)
+            pipe.hset(
+                self.ephemerides_key,
+                mapping={
+                    "digest": document.digest,
+                    "text": document.text.encode(),
+                    "uploaded_at": repr(float(document.uploaded_at)),
+                },
+            )
+            await pipe.execute()
 
     async def get_ephemerides(self) -> StoredEphemerides | None:
         async with self._guard():
@@ -625,7 +658,12 @@ class RedisStore(SessionStore):
             client = await self._redis()
             wait = await self._scripts["take"](
                 keys=[f"{self.rate_prefix}{key}"],
-                args=[repr(float(self.clock())), repr(limit.interval_s), repr(limit.tolerance_s), repr(SLACK_S)],
+                args=[
+                    repr(float(self.clock())),
+                    repr(limit.interval_s),
+                    repr(limit.tolerance_s),
+                    repr(SLACK_S),
+                ],
                 client=client,
             )
         return float(wait)
