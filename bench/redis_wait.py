@@ -40,10 +40,51 @@ def link_up(primary: RedisServer, replica: RedisServer) -> None:
         time.sleep(0.05)
 
 
+def store_level(primary: RedisServer, writes: int) -> None:
+    """One client's get + compare-and-set of a session, WAIT 0 and WAIT 1 interleaved write by write:
+    the added latency of a batch without the service's noise around it."""
+    import dataclasses
+
+    from edgepos.store.base import SessionRecord
+    from edgepos.store.redis import RedisStore
+
+    async def run() -> dict[int, list[float]]:
+        stores = {
+            wait: RedisStore(primary.url(f"store{wait}:"), 3600.0, wait_replicas=wait) for wait in (0, 1)
+        }
+        now = time.time()
+        for store in stores.values():
+            record = SessionRecord("s", "v", "rsu_imu", {}, "ab" * 32, b"x" * 15_000, now, now)
+            await store.create(record, max_sessions=10)
+        timings: dict[int, list[float]] = {0: [], 1: []}
+        for _ in range(writes):
+            for wait, store in stores.items():
+                started = time.perf_counter()
+                current = await store.get("s")
+                assert current is not None
+                await store.compare_and_set(
+                    dataclasses.replace(current, last_seq=current.last_seq + 1), current.version
+                )
+                timings[wait].append((time.perf_counter() - started) * 1e6)
+        for store in stores.values():
+            await store.close()
+        return timings
+
+    timings = asyncio.run(run())
+    zero, one = (statistics.median(timings[w]) for w in (0, 1))
+    print(
+        f"store level, one client, get + compare-and-set of a 15 kB session state, {writes} writes each, interleaved: "
+        f"WAIT 0 {zero:.0f} us, WAIT 1 {one:.0f} us median (+{one - zero:.0f} us)"
+    )
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--duration", type=float, default=8.0, help="seconds per load run (default 8)")
     parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument(
+        "--writes", type=int, default=2000, help="store-level writes per setting (default 2000)"
+    )
     args = parser.parse_args()
     binary = redis_binary()
     if binary is None:
@@ -63,6 +104,7 @@ def main() -> int:
         try:
             replica.start()
             link_up(primary, replica)
+            store_level(primary, args.writes)
             for round_number in range(args.rounds):
                 for wait in (0, 1):
                     environment = clean_environment(
