@@ -48,7 +48,6 @@ from edgepos.pipelines.base import (
     InitialState,
     MeasurementUse,
     OptionSpec,
-    Pipeline,
     PipelineInputError,
     Problem,
     StateSummary,
@@ -64,7 +63,7 @@ from edgepos.pipelines.lag_state import (  # noqa: F401  # re-exported: tests an
     encode_epoch,
     newest_epoch,
 )
-from edgepos.pipelines.options import resolve_options
+from edgepos.pipelines.wrapping import WrappingPipeline
 
 CHECKPOINTS_PER_WINDOW = 8
 """A new checkpoint is kept only when it is at least ``max_delay_s / CHECKPOINTS_PER_WINDOW`` after the
@@ -102,7 +101,6 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         3600.0,
     ),
 )
-NAMES = frozenset(spec.name for spec in OPTION_SPECS)
 DEFAULTS: dict[str, Any] = {spec.name: spec.default for spec in OPTION_SPECS}
 
 
@@ -125,55 +123,14 @@ class _Arrival:
     too_late: list[int]  # before the window
 
 
-class LagWindow(Pipeline):
+class LagWindow(WrappingPipeline):
     """``inner`` with a lag window for late measurements and revised fixes (see the module docstring)."""
 
-    def __init__(self, inner: Pipeline) -> None:
-        if isinstance(inner, LagWindow):
-            raise TypeError(f"pipeline {inner.name!r} already has a lag window")
-        self.inner = inner
-        # Instance attributes over the ClassVars: the wrapper is the inner pipeline to its callers.
-        self.name = inner.name  # type: ignore[misc]  # the wrapper answers for the pipeline it wraps
-        self.description = inner.description  # type: ignore[misc]  # idem
-        self.measurement_kinds = inner.measurement_kinds  # type: ignore[misc]  # idem
-        self.publishes_track = inner.publishes_track  # type: ignore[misc]  # idem
-        self.smoother = inner.smoother  # type: ignore[misc]  # idem
-
-    def __repr__(self) -> str:
-        return f"LagWindow({self.inner!r})"
-
-    # -- options -----------------------------------------------------------------------------------
-    def option_specs(self) -> list[OptionSpec]:
-        return [*self.inner.option_specs(), *OPTION_SPECS]
-
-    def resolve_options(self, options: Mapping[str, Any] | None) -> dict[str, Any]:
-        if options is not None and not isinstance(options, Mapping):
-            raise PipelineInputError([Problem(None, "options", "must be a JSON object")])
-        inner_options = None if options is None else {k: v for k, v in options.items() if k not in NAMES}
-        own = None if options is None else {k: v for k, v in options.items() if k in NAMES}
-        problems: list[Problem] = []
-        resolved: dict[str, Any] = {}
-        try:
-            resolved = self.inner.resolve_options(inner_options)
-        except PipelineInputError as error:
-            known = ", ".join(sorted(spec.name for spec in self.option_specs()))
-            problems += [
-                dataclasses.replace(p, reason=f"unknown option; known: {known}")
-                if p.reason.startswith("unknown option; known:")
-                else p
-                for p in error.problems
-            ]
-        try:
-            mine = resolve_options(OPTION_SPECS, own)
-        except PipelineInputError as error:
-            problems += error.problems
-        if problems:
-            raise PipelineInputError(problems)
-        return {**resolved, **mine}
+    own_specs = OPTION_SPECS
 
     # -- sessions ----------------------------------------------------------------------------------
     def create(self, options: Mapping[str, Any], initial: InitialState | None) -> bytes:
-        inner_state = self.inner.create({k: v for k, v in options.items() if k not in NAMES}, initial)
+        inner_state = self.inner.create(self.inner_options(options), initial)
         return _pack(_Window(_own(options), None, [_Checkpoint(None, inner_state)], inner_state, [], []))
 
     def summarise(self, state: bytes) -> StateSummary:
@@ -362,7 +319,7 @@ class LagWindow(Pipeline):
         options: the problems of measurements that are not filtered from the session's state (too late, or
         after a part of the batch that was refused already)."""
         options = self.inner.summarise(window.current).options
-        fresh = self.inner.create({k: v for k, v in options.items() if k not in NAMES}, None)
+        fresh = self.inner.create(self.inner_options(options), None)
         try:
             self._filter(fresh, items, environment)
         except PipelineInputError as error:

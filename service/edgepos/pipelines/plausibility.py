@@ -78,7 +78,7 @@ from edgepos.pipelines.base import (
     StateSummary,
     is_finite_number,
 )
-from edgepos.pipelines.options import resolve_options
+from edgepos.pipelines.wrapping import WrappingPipeline
 
 MAGIC = b"EPPL"
 VERSION = 1
@@ -91,38 +91,53 @@ DIVERGED = "diverged"
 
 OPTION_SPECS: tuple[OptionSpec, ...] = (
     OptionSpec(
-        "max_speed_mps", "number", 150.0,
+        "max_speed_mps",
+        "number",
+        150.0,
         "Plausibility: a fix faster than this (m/s) is reported 'diverged' (540 km/h: no road vehicle, "
-        "with room for filter noise); an initial state faster than this is refused.", 1.0, 1000.0,
+        "with room for filter noise); an initial state faster than this is refused.",
+        1.0,
+        1000.0,
     ),
     OptionSpec(
-        "max_acceleration_mps2", "number", 100.0,
+        "max_acceleration_mps2",
+        "number",
+        100.0,
         "Plausibility: a velocity change between consecutive fixes faster than this (m/s^2), beyond "
         f"{SIGMA_ALLOWANCE:g} sigma of the filter's velocity uncertainty, is reported 'diverged'. Road vehicles "
         "brake at about 1 g (10 m/s^2), but a filter's velocity estimate also jumps with its measurement "
         "corrections: up to 60 m/s^2 at 20 Hz in the RSU paper's scenario with a mismatched motion model.",
-        1.0, 1000.0,
+        1.0,
+        1000.0,
     ),
     OptionSpec(
-        "site_radius_m", "number", 50_000.0,
+        "site_radius_m",
+        "number",
+        50_000.0,
         "Plausibility: a fix farther than this (m) from the site origin (0, 0) is reported 'diverged'; an "
         "initial state farther than this is refused. 2e6 covers every coordinate the API accepts.",
-        10.0, 2.0e6,
+        10.0,
+        2.0e6,
     ),
     OptionSpec(
-        "max_time_jump_s", "number", 3600.0,
+        "max_time_jump_s",
+        "number",
+        3600.0,
         "A batch with an epoch more than this (s) after the session's last epoch, or after the batch's "
         "previous epoch, is refused (422): a clock error must not move the session's clock past all "
-        "later measurements. Open a new session when the clock really jumped.", 1.0, 604800.0,
+        "later measurements. Open a new session when the clock really jumped.",
+        1.0,
+        604800.0,
     ),
     OptionSpec(
-        "on_divergence", "string", "reset",
+        "on_divergence",
+        "string",
+        "reset",
         "What a 'diverged' fix does: reset (the pipeline starts again from its next measurements; the "
         "rest of the batch is filtered from there) or report (the fix is marked, filtering continues).",
         choices=("reset", "report"),
     ),
 )
-NAMES = frozenset(spec.name for spec in OPTION_SPECS)
 DEFAULTS: dict[str, Any] = {spec.name: spec.default for spec in OPTION_SPECS}
 
 
@@ -163,13 +178,27 @@ _NAN = math.nan
 def wrap(envelope: _Envelope, inner_state: bytes) -> bytes:
     options, last = envelope.options, envelope.last
     flags = (_CLOCK_RESET if envelope.clock_reset else 0) | (_HAS_LAST if last is not None else 0)
-    point = (0.0,) * 7 if last is None else (
-        last.t, last.x, last.y, _NAN if last.vx is None else last.vx, _NAN if last.vy is None else last.vy,
-        last.position_var, last.velocity_var,
+    point = (
+        (0.0,) * 7
+        if last is None
+        else (
+            last.t,
+            last.x,
+            last.y,
+            _NAN if last.vx is None else last.vx,
+            _NAN if last.vy is None else last.vy,
+            last.position_var,
+            last.velocity_var,
+        )
     )
     header = _ENVELOPE.pack(
-        MAGIC, VERSION, *(float(options[name]) for name in _NUMBERS), _POLICIES.index(options["on_divergence"]),
-        _NAN if envelope.t is None else envelope.t, flags, *point,
+        MAGIC,
+        VERSION,
+        *(float(options[name]) for name in _NUMBERS),
+        _POLICIES.index(options["on_divergence"]),
+        _NAN if envelope.t is None else envelope.t,
+        flags,
+        *point,
     )
     return header + inner_state
 
@@ -186,14 +215,23 @@ def unwrap(state: bytes) -> tuple[_Envelope, bytes]:
     if policy >= len(_POLICIES) or not all(map(math.isfinite, (speed, accel, radius, jump))) or flags > 3:
         raise StateFormatError("plausibility envelope is corrupt")
     options = {
-        "max_speed_mps": speed, "max_acceleration_mps2": accel, "site_radius_m": radius,
-        "max_time_jump_s": jump, "on_divergence": _POLICIES[policy],
+        "max_speed_mps": speed,
+        "max_acceleration_mps2": accel,
+        "site_radius_m": radius,
+        "max_time_jump_s": jump,
+        "on_divergence": _POLICIES[policy],
     }
     last = None
     if flags & _HAS_LAST:
         pt, x, y, vx, vy, position_var, velocity_var = point
         last = _Point(
-            pt, x, y, None if math.isnan(vx) else vx, None if math.isnan(vy) else vy, position_var, velocity_var
+            pt,
+            x,
+            y,
+            None if math.isnan(vx) else vx,
+            None if math.isnan(vy) else vy,
+            position_var,
+            velocity_var,
         )
     envelope = _Envelope(options, None if math.isnan(t) else t, last, bool(flags & _CLOCK_RESET))
     return envelope, state[_ENVELOPE.size :]
@@ -204,62 +242,17 @@ def _own_options(options: Mapping[str, Any]) -> dict[str, Any]:
     return {name: options.get(name, default) for name, default in DEFAULTS.items()}
 
 
-class Plausible(Pipeline):
+class Plausible(WrappingPipeline):
     """``inner`` with physical plausibility checks of its fixes and times (see the module docstring)."""
 
-    def __init__(self, inner: Pipeline) -> None:
-        if isinstance(inner, Plausible):
-            raise TypeError(f"pipeline {inner.name!r} already checks plausibility")
-        self.inner = inner
-        # Instance attributes over the ClassVars: the wrapper is the inner pipeline to its callers.
-        self.name = inner.name  # type: ignore[misc]
-        self.description = inner.description  # type: ignore[misc]
-        self.measurement_kinds = inner.measurement_kinds  # type: ignore[misc]
-        self.publishes_track = inner.publishes_track  # type: ignore[misc]
-        self.smoother = inner.smoother  # type: ignore[misc]
-
-    def __repr__(self) -> str:
-        return f"Plausible({self.inner!r})"
-
-    # -- options -----------------------------------------------------------------------------------
-    def option_specs(self) -> list[OptionSpec]:
-        return [*self.inner.option_specs(), *OPTION_SPECS]
-
-    def resolve_options(self, options: Mapping[str, Any] | None) -> dict[str, Any]:
-        """The inner pipeline's resolved options, then this wrapper's; problems of both in one error."""
-        if options is not None and not isinstance(options, Mapping):
-            raise PipelineInputError([Problem(None, "options", "must be a JSON object")])
-        inner_options = None if options is None else {k: v for k, v in options.items() if k not in NAMES}
-        own = None if options is None else {k: v for k, v in options.items() if k in NAMES}
-        problems: list[Problem] = []
-        resolved: dict[str, Any] = {}
-        try:
-            resolved = self.inner.resolve_options(inner_options)
-        except PipelineInputError as error:
-            problems.extend(self._with_all_names(error.problems))
-        try:
-            mine = resolve_options(OPTION_SPECS, own)
-        except PipelineInputError as error:
-            problems.extend(error.problems)
-        if problems:
-            raise PipelineInputError(problems)
-        return {**resolved, **mine}
-
-    def _with_all_names(self, problems: Sequence[Problem]) -> list[Problem]:
-        """The inner pipeline's "unknown option" problems list the wrapper's options as known too."""
-        known = ", ".join(sorted({spec.name for spec in self.option_specs()}))
-        return [
-            dataclasses.replace(p, reason=f"unknown option; known: {known}")
-            if p.reason.startswith("unknown option; known:") else p
-            for p in problems
-        ]
+    own_specs = OPTION_SPECS
 
     # -- sessions ----------------------------------------------------------------------------------
     def create(self, options: Mapping[str, Any], initial: InitialState | None) -> bytes:
         own = _own_options(options)
         problems = [] if initial is None else _initial_problems(initial, own)
         try:
-            inner_state = self.inner.create({k: v for k, v in options.items() if k not in NAMES}, initial)
+            inner_state = self.inner.create(self.inner_options(options), initial)
         except PipelineInputError as error:
             raise PipelineInputError([*problems, *error.problems]) from None
         if problems:
@@ -276,7 +269,11 @@ class Plausible(Pipeline):
         )
 
     def smooth(
-        self, state: bytes, observations: Sequence[Observation], environment: Environment, lag_s: float | None = None
+        self,
+        state: bytes,
+        observations: Sequence[Observation],
+        environment: Environment,
+        lag_s: float | None = None,
     ) -> list[Fix]:
         """The inner pipeline's smoothed fixes (not judged: a smoother runs over fixes already judged)."""
         _, inner_state = unwrap(state)
@@ -337,11 +334,15 @@ def _check_times(envelope: _Envelope, observations: Sequence[Observation]) -> fl
         for index, observation in enumerate(observations):
             if is_finite_number(observation.t) and observation.t < last:
                 problems.append(
-                    Problem(index, "t", f"{observation.t!r} is older than the session's last epoch t={last!r}")
+                    Problem(
+                        index, "t", f"{observation.t!r} is older than the session's last epoch t={last!r}"
+                    )
                 )
     times = sorted({t for t in {o.t for o in observations} if is_finite_number(t)})
     latest = times[-1] if times else None
-    if not problems and (not times or (times[-1] - times[0] <= bound and (last is None or times[-1] - last <= bound))):
+    if not problems and (
+        not times or (times[-1] - times[0] <= bound and (last is None or times[-1] - last <= bound))
+    ):
         return latest  # the usual batch: no gap can be longer than the bound
     jumps: dict[float, tuple[float, str]] = {}
     previous, where = last, "the session's last epoch"
@@ -353,11 +354,17 @@ def _check_times(envelope: _Envelope, observations: Sequence[Observation]) -> fl
     for index, observation in enumerate(observations):
         if observation.t in jumps:
             before, what = jumps[observation.t]
-            problems.append(Problem(index, "t", (
-                f"{observation.t!r} is {observation.t - before:.6g} s after {what} t={before!r}, more than "
-                f"max_time_jump_s {bound:g} s: a clock error? (if the vehicle's clock really moved on, open a "
-                "new session)"
-            )))
+            problems.append(
+                Problem(
+                    index,
+                    "t",
+                    (
+                        f"{observation.t!r} is {observation.t - before:.6g} s after {what} t={before!r}, more than "
+                        f"max_time_jump_s {bound:g} s: a clock error? (if the vehicle's clock really moved on, open a "
+                        "new session)"
+                    ),
+                )
+            )
     if problems:
         raise PipelineInputError(sorted(problems, key=lambda p: p.index if p.index is not None else -1))
     return latest
@@ -456,7 +463,11 @@ class _Judge:
     """Checks a batch's fixes in order and applies the session's divergence policy."""
 
     def __init__(
-        self, inner: Pipeline, envelope: _Envelope, observations: Sequence[Observation], environment: Environment
+        self,
+        inner: Pipeline,
+        envelope: _Envelope,
+        observations: Sequence[Observation],
+        environment: Environment,
     ) -> None:
         self.inner = inner
         self.envelope = envelope
@@ -504,18 +515,24 @@ class _Judge:
                 judged.append(fix)
                 continue
             if not reset:
-                judged.append(dataclasses.replace(
-                    fix, status=DIVERGED,
-                    divergence=f"{reason}; reported only (on_divergence=report): the filter goes on from this "
-                    "estimate",
-                ))
+                judged.append(
+                    dataclasses.replace(
+                        fix,
+                        status=DIVERGED,
+                        divergence=f"{reason}; reported only (on_divergence=report): the filter goes on from this "
+                        "estimate",
+                    )
+                )
                 envelope.last = _point(fix)
                 continue
-            judged.append(dataclasses.replace(
-                fix, status=DIVERGED,
-                divergence=f"{reason}; the session was reset (on_divergence=reset): it starts again from its "
-                "next measurements; do not use this estimate",
-            ))
+            judged.append(
+                dataclasses.replace(
+                    fix,
+                    status=DIVERGED,
+                    divergence=f"{reason}; the session was reset (on_divergence=reset): it starts again from its "
+                    "next measurements; do not use this estimate",
+                )
+            )
             state = self.inner.create(self.inner.summarise(state).options, None)
             envelope.last = None
             queue.clear()
@@ -539,4 +556,6 @@ def _first_epochs(
     if epochs is None:
         return indices, []
     times = set(sorted({observations[i].t for i in indices})[:epochs])
-    return [i for i in indices if observations[i].t in times], [i for i in indices if observations[i].t not in times]
+    return [i for i in indices if observations[i].t in times], [
+        i for i in indices if observations[i].t not in times
+    ]
