@@ -78,7 +78,7 @@ class RangeRateModel:
         sat_velocity: np.ndarray,
         sat_clock_drift: np.ndarray,
         std_mps: np.ndarray,
-    ) -> "RangeRateModel":
+    ) -> RangeRateModel:
         """From satellite states and clock drifts (s/s), as the orbits give them."""
         return cls(
             anchor,
