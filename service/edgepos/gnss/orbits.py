@@ -223,3 +223,23 @@ def sagnac_range(satellite: np.ndarray, receiver: np.ndarray) -> np.ndarray:
     geometric = np.sqrt(np.sum(diff * diff, axis=-1))
     sagnac = OMEGA_EARTH * (satellite[..., 0] * receiver[..., 1] - satellite[..., 1] * receiver[..., 0])
     return geometric + sagnac / SPEED_OF_LIGHT
+
+
+def sagnac_range_rate(
+    sat_position: np.ndarray, sat_velocity: np.ndarray, receiver: np.ndarray, receiver_velocity: np.ndarray
+) -> np.ndarray:
+    """Geometric range rate (m/s) with the Sagnac term's rate, the time derivative of :func:`sagnac_range`.
+
+    Satellite (..., 3) position and velocity at transmit time, receiver (..., 3) position and velocity at
+    reception, all ECEF and broadcastable."""
+    diff = sat_position - receiver
+    distance = np.sqrt(np.sum(diff * diff, axis=-1))
+    relative = sat_velocity - receiver_velocity
+    geometric = np.sum(diff * relative, axis=-1) / distance
+    sagnac = OMEGA_EARTH * (
+        sat_velocity[..., 0] * receiver[..., 1]
+        + sat_position[..., 0] * receiver_velocity[..., 1]
+        - sat_velocity[..., 1] * receiver[..., 0]
+        - sat_position[..., 1] * receiver_velocity[..., 0]
+    )
+    return geometric + sagnac / SPEED_OF_LIGHT

@@ -22,7 +22,7 @@ import numpy as np
 
 from edgepos.core.motion.riss import DRIFT, VE, VN, VU, GeodeticAnchor
 from edgepos.gnss.geodesy import geodetic_to_ecef
-from edgepos.gnss.orbits import OMEGA_EARTH, SPEED_OF_LIGHT
+from edgepos.gnss.orbits import SPEED_OF_LIGHT, sagnac_range_rate
 
 
 def enu_velocity_to_ecef(lat: np.ndarray, lon: np.ndarray, v_enu: np.ndarray) -> np.ndarray:
@@ -37,26 +37,6 @@ def enu_velocity_to_ecef(lat: np.ndarray, lon: np.ndarray, v_enu: np.ndarray) ->
         ],
         axis=-1,
     )
-
-
-def range_rate(
-    sat_position: np.ndarray, sat_velocity: np.ndarray, receiver: np.ndarray, receiver_velocity: np.ndarray
-) -> np.ndarray:
-    """Geometric range rate (m/s) with the Sagnac term's rate, the derivative of ``orbits.sagnac_range``.
-
-    Satellite (..., 3) position and velocity at transmit time, receiver (..., 3) position and velocity at
-    reception, all ECEF and broadcastable."""
-    diff = sat_position - receiver
-    distance = np.sqrt(np.sum(diff * diff, axis=-1))
-    relative = sat_velocity - receiver_velocity
-    geometric = np.sum(diff * relative, axis=-1) / distance
-    sagnac = OMEGA_EARTH * (
-        sat_velocity[..., 0] * receiver[..., 1]
-        + sat_position[..., 0] * receiver_velocity[..., 1]
-        - sat_velocity[..., 1] * receiver[..., 0]
-        - sat_position[..., 1] * receiver_velocity[..., 0]
-    )
-    return geometric + sagnac / SPEED_OF_LIGHT
 
 
 @dataclass(frozen=True)
@@ -97,7 +77,7 @@ class RangeRateModel:
         lat, lon, height = self.anchor.geodetic(states)
         receiver = geodetic_to_ecef(lat, lon, height)
         velocity = enu_velocity_to_ecef(lat, lon, states[..., [VE, VN, VU]])
-        rates = range_rate(
+        rates = sagnac_range_rate(
             self.sat_position, self.sat_velocity, receiver[..., None, :], velocity[..., None, :]
         )
         return rates + states[..., DRIFT, None] + self.known_mps
