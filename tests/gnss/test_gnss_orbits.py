@@ -162,7 +162,6 @@ def test_dopplers_consistent_at_reference(orbits: BroadcastOrbits, epochs: list[
     or frame would leave hundreds of m/s."""
     from edgepos.gnss.orbits import sagnac_range_rate
     from edgepos.gnss.spp import read_reference, reference_velocity
-
     from gnsshelp import REFERENCE
 
     ref_time, ref_ecef = read_reference(str(REFERENCE))
