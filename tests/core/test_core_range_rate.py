@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from edgepos.core.measurements.pseudorange import PseudorangeModel
-from edgepos.core.measurements.range_rate import RangeRateModel
+from edgepos.core.measurements.range_rate import RangeRateModel, enu_velocity_to_ecef
 from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GeodeticAnchor, GnssOnlyModel
-from edgepos.gnss.orbits import SPEED_OF_LIGHT
+from edgepos.gnss.geodesy import geodetic_to_ecef
+from edgepos.gnss.orbits import SPEED_OF_LIGHT, sagnac_range_rate
 
 ANCHOR = GeodeticAnchor(np.radians(41.64), np.radians(2.35), 250.0)
 SATELLITES = np.array([[1.5e7, -3.0e6, 2.1e7], [2.2e7, 1.2e7, 8.0e6], [-4.0e6, 1.6e7, 2.0e7]])
@@ -63,3 +64,10 @@ def test_range_rate_is_vectorised_over_particles() -> None:
     for j in range(5):
         assert batch[1, j] == pytest.approx(model.predict(states[1, j]), abs=1e-9)
     assert model.variances() == pytest.approx(np.full(3, 0.01))
+    # The model's matrix-product form equals the baseline's direct formula (orbits.sagnac_range_rate).
+    lat, lon, height = ANCHOR.geodetic(states)
+    receiver = geodetic_to_ecef(lat, lon, height)
+    velocity = enu_velocity_to_ecef(lat, lon, states[..., [layout.VE, layout.VN, layout.VU]])
+    direct = sagnac_range_rate(SATELLITES, SAT_VELOCITY, receiver[..., None, :], velocity[..., None, :])
+    expected = direct + states[..., layout.DRIFT, None] - SPEED_OF_LIGHT * SAT_DRIFT
+    assert batch == pytest.approx(expected, abs=1e-6)

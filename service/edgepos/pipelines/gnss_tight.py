@@ -627,10 +627,14 @@ def _measurement(
     assert prs.range_rate_mps is not None
     rate_outlier = float(options.get("doppler_outlier_std_mps", DEFAULT_DOPPLER_OUTLIER_STD_MPS)) ** 2
     outlier_variance = np.concatenate([np.full(model_pr.dim, pr_outlier), np.full(rate_model.dim, rate_outlier)])
-    pr_predict, rate_predict = model_pr.predict, rate_model.predict
+    anchor = model_pr.anchor
 
     def predict(states: np.ndarray) -> np.ndarray:
-        return np.concatenate([pr_predict(states), rate_predict(states)], axis=-1)
+        lat, lon, height = anchor.geodetic(states)
+        receiver = geodetic_to_ecef(lat, lon, height)
+        return np.concatenate(
+            [model_pr.predict_at(states, receiver), rate_model.predict_at(states, lat, lon, receiver)], axis=-1
+        )
 
     return Measurement(
         predict, np.concatenate([pseudoranges, prs.range_rate_mps[rate_rows]]),

@@ -22,7 +22,7 @@ import numpy as np
 
 from edgepos.core.motion.riss import DRIFT, VE, VN, VU, GeodeticAnchor
 from edgepos.gnss.geodesy import geodetic_to_ecef
-from edgepos.gnss.orbits import SPEED_OF_LIGHT, sagnac_range_rate
+from edgepos.gnss.orbits import OMEGA_EARTH, SPEED_OF_LIGHT
 
 
 def enu_velocity_to_ecef(lat: np.ndarray, lon: np.ndarray, v_enu: np.ndarray) -> np.ndarray:
@@ -75,12 +75,34 @@ class RangeRateModel:
     def predict(self, states: np.ndarray) -> np.ndarray:
         """Predicted range rates (..., m) of states (..., DIM)."""
         lat, lon, height = self.anchor.geodetic(states)
-        receiver = geodetic_to_ecef(lat, lon, height)
+        return self.predict_at(states, lat, lon, geodetic_to_ecef(lat, lon, height))
+
+    def predict_at(
+        self, states: np.ndarray, lat: np.ndarray, lon: np.ndarray, receiver: np.ndarray
+    ) -> np.ndarray:
+        """:meth:`predict` with the states' latitudes, longitudes (...) and ECEF positions (..., 3) already
+        computed (shared with the pseudorange model when both are updated together)."""
         velocity = enu_velocity_to_ecef(lat, lon, states[..., [VE, VN, VU]])
-        rates = sagnac_range_rate(
-            self.sat_position, self.sat_velocity, receiver[..., None, :], velocity[..., None, :]
+        s, vs = self.sat_position, self.sat_velocity
+        # orbits.sagnac_range_rate written as products with the satellites' (3, m) columns, so that the
+        # particles x sigma points x satellites terms are matrix products, not (..., m, 3) temporaries:
+        # |s - r|^2 = |s|^2 - 2 r.s + |r|^2 (the cancellation costs 1e-9 m of range, nothing of the rate).
+        r_dot_s = receiver @ s.T
+        distance = np.sqrt(
+            np.maximum(
+                np.sum(s * s, axis=1) - 2.0 * r_dot_s + np.sum(receiver * receiver, axis=-1)[..., None], 0.0
+            )
         )
-        return rates + states[..., DRIFT, None] + self.known_mps
+        along = (
+            np.sum(s * vs, axis=1)
+            - receiver @ vs.T
+            - velocity @ s.T
+            + np.sum(receiver * velocity, axis=-1)[..., None]
+        )
+        turn_s = np.stack([-vs[:, 1], vs[:, 0], np.zeros(len(vs))], axis=1)  # omega x-terms of v_s with r
+        turn_r = np.stack([-s[:, 1], s[:, 0], np.zeros(len(s))], axis=1)  # ... and of s with v_r
+        sagnac = OMEGA_EARTH * (receiver @ turn_s.T + velocity @ turn_r.T) / SPEED_OF_LIGHT
+        return along / distance + sagnac + states[..., DRIFT, None] + self.known_mps
 
     def variances(self) -> np.ndarray:
         return self.std_mps**2
