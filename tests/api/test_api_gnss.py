@@ -294,9 +294,9 @@ def test_non_finite_doppler_is_refused_and_the_session_unchanged(client, value):
     before = client.get(f"/v1/sessions/{session_id}", headers=token).json()
     item = with_doppler(measurements(1, 1))[0]
     raw = (
-        '{"seq": 2, "measurements": [{"type": "pseudorange", "t": %r, "system": "%s", "prn": %d, '
-        '"pseudorange_m": %r, "cn0_dbhz": 40.0, "doppler_hz": %s}]}'
-        % (item["t"], item["system"], item["prn"], item["pseudorange_m"], value)
+        f'{{"seq": 2, "measurements": [{{"type": "pseudorange", "t": {item["t"]!r}, "system": "{item["system"]}", '
+        f'"prn": {item["prn"]}, "pseudorange_m": {item["pseudorange_m"]!r}, "cn0_dbhz": 40.0, '
+        f'"doppler_hz": {value}}}]}}'
     )
     response = client.post(
         f"/v1/sessions/{session_id}/batches", content=raw, headers={**token, "Content-Type": "application/json"}
