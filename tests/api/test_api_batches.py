@@ -8,7 +8,16 @@ import threading
 
 import pytest
 from apifakes import FailingPipeline, GatedPipeline, RsuOnlyPipeline
-from apihelp import ADMIN, NO_DOPPLER, assert_error, batch_body, make_settings, open_session, rsu_payload, wire
+from apihelp import (
+    ADMIN,
+    NO_DOPPLER,
+    assert_error,
+    batch_body,
+    make_settings,
+    open_session,
+    rsu_payload,
+    wire,
+)
 from edgepos.api.app import create_app
 from edgepos.geo import GeodeticOrigin
 from edgepos.store import MemoryStore
