@@ -22,9 +22,15 @@ Per epoch (observations sharing ``t``):
    constellation, its median removed so a clock error cannot fail every satellite) excludes pseudoranges
    beyond the ``gate_probability`` quantile; when more than half fail the track is lost and the pipeline
    starts again from this epoch's least-squares fix.
-4. The filter step; before initialisation, the first epoch with enough satellites initialises the filter
-   from a weighted least-squares fix (gnss/spp.py).
-Every pseudorange appears in the fix's measurement list, used or with the reason it was not.
+4. A pseudorange's optional ``doppler_hz`` (with ``use_doppler``) becomes a range rate, -D x wavelength,
+   modelled with the satellite's velocity and clock drift from the ephemerides
+   (core/measurements/range_rate.py); above the elevation mask it goes through its own residual test
+   (one receiver clock drift for all, so the median is removed) and into the same update as the
+   pseudoranges, with std ``doppler_std_mps`` x the fuzzy factor.
+5. The filter step; before initialisation, the first epoch with enough satellites initialises the filter
+   from a weighted least-squares fix (gnss/spp.py), its velocity and clock drift from the Dopplers when sent.
+Every pseudorange appears in the fix's measurement list, used or with the reason it was not, and with
+its Doppler's use when it carried one.
 """
 
 from __future__ import annotations
