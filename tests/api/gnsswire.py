@@ -52,6 +52,30 @@ def epochs(count: int = 10) -> tuple[tuple[float, tuple[dict[str, Any], ...]], .
     return tuple(out)
 
 
+@functools.lru_cache(maxsize=1)
+def _dopplers() -> dict[tuple[float, str, int], float]:
+    """(time of week, system, PRN) -> the recording's Doppler (Hz) of the pseudorange's own signal."""
+    codes = {system: DEFAULT_CODES[system] for system in ("G", "C")}
+    out = {}
+    for number, epoch in enumerate(read_epochs(str(OBS), codes)):
+        if number >= 10:
+            break
+        for system, prn, doppler in zip(epoch.systems, epoch.prns, epoch.doppler_hz):
+            if math.isfinite(doppler):
+                out[(epoch.gpst % SECONDS_PER_WEEK, system, int(prn))] = float(doppler)
+    return out
+
+
+def with_doppler(items: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The pseudorange measurements with their Doppler (doppler_hz) from the recording, where it has one."""
+    dopplers = _dopplers()
+    out = []
+    for m in items:
+        doppler = dopplers.get((m["t"], m["system"], m["prn"]))
+        out.append(m if doppler is None else {**m, "doppler_hz": doppler})
+    return out
+
+
 def measurements(first: int, count: int, satellites: set[str] | None = None) -> list[dict[str, Any]]:
     """Pseudoranges of epochs first .. first+count-1, only of ``satellites`` (e.g. 'G05') when given."""
     return [

@@ -8,7 +8,16 @@ import threading
 
 import pytest
 from apifakes import FailingPipeline, GatedPipeline, RsuOnlyPipeline
-from apihelp import ADMIN, assert_error, batch_body, make_settings, open_session, rsu_payload, wire
+from apihelp import (
+    ADMIN,
+    NO_DOPPLER,
+    assert_error,
+    batch_body,
+    make_settings,
+    open_session,
+    rsu_payload,
+    wire,
+)
 from edgepos.api.app import create_app
 from edgepos.geo import GeodeticOrigin
 from edgepos.store import MemoryStore
@@ -76,7 +85,7 @@ def test_uninitialised_epochs_have_null_kinematics(client):
     assert fix["status"] == "uninitialised"
     assert fix["x"] is None and fix["position_covariance"] is None
     assert fix["measurements"] == [
-        {"index": 0, "type": "gyro", "used": False, "reason": fix["measurements"][0]["reason"]}
+        {"index": 0, "type": "gyro", "used": False, "reason": fix["measurements"][0]["reason"], **NO_DOPPLER}
     ]
 
 
@@ -203,7 +212,7 @@ def test_late_measurements_are_filtered_at_their_time_and_too_late_ones_reported
     fixes = response.json()["fixes"]
     assert [(f["t"], f["revised"]) for f in fixes] == [(0.475, False), (0.5, True), (new_epoch[0]["t"], False)]
     assert fixes[0]["measurements"] == [{"index": len(body["measurements"]) - 1, "type": "gyro", "used": True,
-                                         "reason": None}]
+                                         "reason": None, **NO_DOPPLER}]
     assert fixes[1]["measurements"] == []  # a revised fix lists only the batch's measurements of its epoch
     assert fixes[1]["x"] != first[-1]["x"]
     newest = {u["index"]: u for u in fixes[-1]["measurements"]}

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from apihelp import batch_observations, open_session, scenario, wire
+from apihelp import NO_DOPPLER, batch_observations, open_session, scenario, wire
 from edgepos.pipelines.base import InitialState, StaticEnvironment
 from edgepos.pipelines.registry import get_pipeline
 
@@ -34,7 +34,11 @@ def _expected_wire(fix):
         "nis": fix.nis,
         "nis_dof": fix.nis_dof,
         "measurements": [
-            {"index": u.index, "type": u.kind, "used": u.used, "reason": u.reason} for u in fix.measurements
+            {
+                "index": u.index, "type": u.kind, "used": u.used, "reason": u.reason,
+                "doppler_used": u.doppler_used, "doppler_reason": u.doppler_reason,
+            }
+            for u in fix.measurements
         ],
     }
 
@@ -81,7 +85,7 @@ def _check_session(client, initial_state):
     # the last batch: the held-back epoch and the one after it come back revised, then the new epoch
     assert [f["revised"] for f in served] == [True] * (count - 1) + [False]
     assert served[0]["t"] == late.t
-    gyro = {"index": len(observations) - 1, "type": "gyro", "used": True, "reason": None}
+    gyro = {"index": len(observations) - 1, "type": "gyro", "used": True, "reason": None, **NO_DOPPLER}
     assert served[0]["measurements"] == [gyro]
     stored = client.portal.call(client.app.state.context.store.get, session_id)
     assert stored.state == state  # the session's state is byte-identical too

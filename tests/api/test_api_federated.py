@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from apihelp import ADMIN, assert_error, open_session
+from apihelp import ADMIN, NO_DOPPLER, assert_error, open_session
 
 
 def _post(client, session_id, auth, seq, measurements):
@@ -59,7 +59,7 @@ def test_federated_time_going_back_is_late_or_too_late_not_bad_input(client):
     assert response.status_code == 200, response.text
     fixes = response.json()["fixes"]
     assert [(f["t"], f["revised"]) for f in fixes] == [(0.5, False), (1.0, True)]
-    assert fixes[0]["measurements"] == [{"index": 0, "type": "gnss_fix", "used": True, "reason": None}]
+    assert fixes[0]["measurements"] == [{"index": 0, "type": "gnss_fix", "used": True, "reason": None, **NO_DOPPLER}]
     response = _post(client, session_id, auth, 3, [
         {"type": "gnss_fix", "t": -1.0, "x": 0.0, "y": 0.0}, {"type": "gnss_fix", "t": 1.2, "x": 0.1, "y": 0.0},
     ])

@@ -8,12 +8,12 @@ import math
 
 import numpy as np
 import pytest
-from apihelp import ADMIN, assert_error, make_settings, open_session
+from apihelp import ADMIN, NO_DOPPLER, assert_error, make_settings, open_session
 from edgepos.api.app import create_app
 from edgepos.gnss.ephemerides import DEFAULT_SIGNAL, parse_ephemerides
 from edgepos.gnss.orbits import group_delay_factors
 from fastapi.testclient import TestClient
-from gnsswire import QUICK, epochs, horizontal_error, measurements, nav_text
+from gnsswire import QUICK, epochs, horizontal_error, measurements, nav_text, with_doppler
 
 TEXT = {"Content-Type": "text/plain"}
 
@@ -255,6 +255,9 @@ def test_client_computed_satellite_states_need_no_ephemerides(client):
         ({"t": 604800.0}, "measurements[0].t"),
         ({"sat_position": [1.0, 2.0]}, "measurements[0].sat_position"),
         ({"sat_clock": 0.5}, "measurements[0].sat_clock"),
+        ({"doppler_hz": 20000.5}, "measurements[0].doppler_hz"),
+        ({"doppler_hz": -25000.0}, "measurements[0].doppler_hz"),
+        ({"doppler_hz": "1200"}, "measurements[0].doppler_hz"),
         ({"extra": 1}, "measurements[0].extra"),
     ],
 )
@@ -282,6 +285,80 @@ def test_nan_is_refused(client):
     assert error["problems"][0]["field"] == "measurements[0].pseudorange_m"
 
 
+@pytest.mark.parametrize("value", ["NaN", "Infinity", "-Infinity", "1e999"])
+def test_non_finite_doppler_is_refused_and_the_session_unchanged(client, value):
+    assert upload(client).status_code == 200
+    session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
+    first = post(client, session_id, token, 1, with_doppler(measurements(0, 1)))
+    assert first.status_code == 200, first.text
+    before = client.get(f"/v1/sessions/{session_id}", headers=token).json()
+    item = with_doppler(measurements(1, 1))[0]
+    raw = (
+        f'{{"seq": 2, "measurements": [{{"type": "pseudorange", "t": {item["t"]!r}, "system": "{item["system"]}", '
+        f'"prn": {item["prn"]}, "pseudorange_m": {item["pseudorange_m"]!r}, "cn0_dbhz": 40.0, '
+        f'"doppler_hz": {value}}}]}}'
+    )
+    response = client.post(
+        f"/v1/sessions/{session_id}/batches", content=raw, headers={**token, "Content-Type": "application/json"}
+    )
+    error = assert_error(response, 422, "invalid_request")
+    assert error["problems"][0]["field"] == "measurements[0].doppler_hz"
+    assert client.get(f"/v1/sessions/{session_id}", headers=token).json() == before
+
+
+def test_dopplers_are_used_and_reported(client):
+    """Dopplers on the wire enter the update and are reported per measurement; the same epochs with
+    use_doppler off report every Doppler unused, saying why; a client-computed satellite state has no
+    velocity, so its Doppler is reported unused with the reason."""
+    assert upload(client).status_code == 200
+    reports = {}
+    for use_doppler in (True, False):
+        session_id, token = open_session(client, pipeline="gnss_tight", options={**QUICK, "use_doppler": use_doppler})
+        for seq in range(1, 4):
+            response = post(client, session_id, token, seq, with_doppler(measurements(seq - 1, 1)))
+            assert response.status_code == 200, response.text
+        reports[use_doppler] = response.json()["fixes"][0]
+    on, off = reports[True]["measurements"], reports[False]["measurements"]
+    assert all(use["doppler_used"] is not None for use in on + off)
+    assert sum(use["doppler_used"] for use in on) >= 8
+    assert all(use["doppler_used"] or use["doppler_reason"] for use in on)
+    assert not any(use["doppler_used"] for use in off)
+    assert all(use["doppler_reason"] == "options.use_doppler is off" for use in off)
+    assert reports[True]["nis_dof"] > reports[False]["nis_dof"]
+    ephemerides = parse_ephemerides(nav_text())
+    items = with_doppler(measurements(0, 1))
+    gpst = epochs()[0][0]
+    systems = [m["system"] for m in items]
+    index = ephemerides.orbits.select(systems, [m["prn"] for m in items], gpst)
+    factors = np.array([group_delay_factors(s, DEFAULT_SIGNAL[s]) for s in systems])
+    states = ephemerides.orbits.transmit_states(index, gpst, [m["pseudorange_m"] for m in items], factors)
+    sent = [
+        {**m, "sat_position": [float(v) for v in states.position[k]], "sat_clock": float(states.clock_s[k])}
+        for k, m in enumerate(items)
+    ]
+    session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
+    (fix,) = post(client, session_id, token, 1, sent).json()["fixes"]
+    assert all(use["doppler_used"] is False and "no satellite velocity" in use["doppler_reason"]
+               for use in fix["measurements"])
+
+
+def test_an_epoch_too_costly_with_its_dopplers_is_refused_saying_what_to_change(client):
+    """At the defaults (UPF, 200 particles) one epoch of 40 pseudoranges, each with a Doppler, is predicted
+    over the default CPU budget (each Doppler adds an update row; 54 ms against 50 ms, 30 ms without the
+    Dopplers): 422 saying so and what to change, the session unchanged."""
+    assert upload(client).status_code == 200
+    session_id, token = open_session(client, pipeline="gnss_tight", options={"seed": 1})
+    template = measurements(0, 1)[0]
+    sats = [("G", prn) for prn in range(1, 33)] + [("C", prn) for prn in range(1, 9)]
+    epoch = [{**template, "system": system, "prn": prn, "doppler_hz": 100.0} for system, prn in sats]
+    error = assert_error(post(client, session_id, token, 1, epoch), 422, "invalid_request")
+    assert "too costly" in error["message"]
+    assert "one epoch like these alone" in error["problems"][0]["reason"]
+    assert "use_doppler" in error["problems"][0]["reason"]
+    described = client.get(f"/v1/sessions/{session_id}", headers=token).json()
+    assert described["last_seq"] == 0 and described["epochs"] == 0
+
+
 def test_riss_samples_drive_the_motion_model(client):
     assert upload(client).status_code == 200
     session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
@@ -290,7 +367,7 @@ def test_riss_samples_drive_the_motion_model(client):
     response = post(client, session_id, token, 1, [riss, *measurements(0, 1)])
     assert response.status_code == 200, response.text
     (fix,) = response.json()["fixes"]
-    assert fix["measurements"][0] == {"index": 0, "type": "riss", "used": True, "reason": None}
+    assert fix["measurements"][0] == {"index": 0, "type": "riss", "used": True, "reason": None, **NO_DOPPLER}
     response = post(client, session_id, token, 2, [{**riss, "t": t0 + 1.0}, *measurements(1, 1)])
     assert response.status_code == 200, response.text
     assert response.json()["fixes"][0]["yaw_rate"] == 0.01

@@ -14,6 +14,7 @@ from edgepos.core.observation_codec import (
     ObservationCodecError,
     _field_form,
     _KindCodec,
+    decode_legacy_observations,
     decode_observations,
     encode_observations,
 )
@@ -21,6 +22,7 @@ from edgepos.core.observations import (
     GyroObservation,
     Observation,
     PseudorangeObservation,
+    PseudorangeObservationV2,
     RsuObservation,
     V2vRangeObservation,
 )
@@ -65,6 +67,7 @@ def _same(decoded: Sequence[Observation], original: Sequence[Observation]) -> bo
                 finite,
                 st.none() | st.tuples(finite, finite, finite),
                 st.none() | finite,
+                st.none() | anything_float,
             ),
         ),
         max_size=12,
@@ -141,3 +144,25 @@ def test_every_cut_of_a_real_record_is_a_codec_error():
         with pytest.raises(ObservationCodecError):
             decode_observations(record[:cut])
     assert decode_observations(b"") == []
+
+
+def test_version_2_records_read_as_todays_observations_without_doppler():
+    """A lag window of version 2 stored pseudoranges before doppler_hz existed: its records decode through the
+    old layout into today's observations (doppler_hz None), the other kinds unchanged; today's codec would
+    misread them, which is why the window's version changed."""
+    old = _KindCodec(PseudorangeObservationV2)
+    gyro = GyroObservation(1.5, -0.25)
+    pseudoranges = [
+        PseudorangeObservationV2(1.5, "G", 7, 2.1e7, 44.5),
+        PseudorangeObservationV2(1.5, "C", 30, 2.4e7, 39.0, (-1.2e7, 1.5e7, 2.1e7), 1.2e-5),
+    ]
+    record = encode_observations([gyro]) + b"".join(old.encode(o) for o in pseudoranges)
+    decoded = decode_legacy_observations(record, 2)
+    assert decoded == [gyro] + [o.current() for o in pseudoranges]
+    assert all(o.doppler_hz is None for o in decoded[1:]) and isinstance(decoded[1], PseudorangeObservation)
+    with pytest.raises(ObservationCodecError):
+        decode_observations(record)  # the new layout is 8 bytes longer per pseudorange
+    with pytest.raises(ObservationCodecError):
+        decode_legacy_observations(record, 1)
+    with_doppler = PseudorangeObservation(1.5, "E", 3, 2.3e7, 41.0, doppler_hz=-1234.5)
+    assert decode_observations(encode_observations([with_doppler])) == [with_doppler]

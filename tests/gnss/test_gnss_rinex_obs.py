@@ -21,8 +21,8 @@ HEADER = [
 ]
 EPOCH = [
     "> 2020 11 29 12 40 00.0000000  0  3",
-    "G05  20741344.067 7 108998394.1 7      1427.440 7        46.250",
-    "G07                 114695434.7 7     -1942.590 7        47.406",
+    "G05  20741344.067 7 108998394.123 7      1427.440 7        46.250",
+    "G07                 114695434.700 7     -1942.590 7        47.406",
     "C21  21805890.851 7        47.969",
 ]
 
@@ -40,6 +40,10 @@ def test_real_recording_epochs(epochs: list[ObservationEpoch]) -> None:
     assert first.pseudorange_m[first.sats.index("G05")] == pytest.approx(20741344.067)
     assert first.cn0_dbhz[first.sats.index("G05")] == pytest.approx(46.250)
     assert first.pseudorange_m[first.sats.index("C07")] == pytest.approx(40656230.413)
+    # The Doppler of the chosen signal: D1C beside C1C (GPS), D2I beside C2I (BeiDou), not D1P or D5P.
+    assert first.doppler_hz[first.sats.index("G05")] == pytest.approx(1427.440)
+    assert first.doppler_hz[first.sats.index("C21")] == pytest.approx(2.619)
+    assert all(np.isfinite(e.doppler_hz).all() for e in epochs)
     counts = [sum(s[0] in "GC" for s in e.sats) for e in epochs]
     assert (min(counts), max(counts), sum(counts)) == (9, 17, 4126)
 
@@ -57,6 +61,7 @@ def test_blank_fields_truncated_lines_and_codes() -> None:
     assert epoch.gpst == calendar_to_seconds(2020, 11, 29, 12, 40, 0)
     assert epoch.sats == ("G05", "C21")  # G07 has a blank C1C field
     assert epoch.cn0_dbhz == pytest.approx([46.25, 47.969])
+    assert epoch.doppler_hz[0] == pytest.approx(1427.44) and math.isnan(epoch.doppler_hz[1])  # no D2I listed
     ((_, only_gps),) = list(iter_epochs(HEADER + EPOCH, {"G": ("C1C", "S9X")}))
     assert only_gps.sats == ("G05",) and math.isnan(only_gps.cn0_dbhz[0])
 

@@ -97,6 +97,34 @@ def test_wls_on_the_recording() -> None:
     assert figures["horizontal_rms_m"] < 0.8 * plain_figures["horizontal_rms_m"]
 
 
+def test_velocity_from_doppler_on_the_recording() -> None:
+    """Every epoch's Doppler gives a velocity; its horizontal error against the reference's central differences
+    measured 0.49 m/s RMS (median 0.20 m/s) over the 278 epochs with a reference velocity."""
+    from edgepos.gnss.spp import reference_velocity
+
+    results = solve_recording(str(OBS), str(NAV), SppConfig(), CODES)
+    ref_time, ref_ecef = read_reference(str(REFERENCE))
+    ref_velocity = reference_velocity(ref_time, ref_ecef)
+    errors = []
+    for t, solution, _ in results:
+        assert solution is not None and solution.velocity is not None
+        j = int(np.argmin(np.abs(ref_time - t)))
+        if abs(ref_time[j] - t) > 0.05 or not np.all(np.isfinite(ref_velocity[j])):
+            continue
+        enu = solution.velocity.velocity_enu - _enu(ref_ecef[j]) @ ref_velocity[j]
+        errors.append(math.hypot(enu[0], enu[1]))
+        assert abs(solution.velocity.clock_drift_mps) < 1e3  # a receiver TCXO's drift is tens of m/s at most
+    assert len(errors) > 270
+    assert math.sqrt(np.mean(np.square(errors))) < 0.8
+
+
+def _enu(position: np.ndarray) -> np.ndarray:
+    from edgepos.gnss.geodesy import ecef_to_geodetic, enu_rotation
+
+    lat, lon, _ = ecef_to_geodetic(position)
+    return enu_rotation(float(lat), float(lon))
+
+
 def test_module_main_prints_figures(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["--obs", str(OBS), "--nav", str(NAV), "--reference", str(REFERENCE), "--systems", "G"]) == 0
     out = capsys.readouterr().out

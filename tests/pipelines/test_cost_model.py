@@ -88,11 +88,20 @@ def gnss_workload():
         if number >= 16:
             break
         epochs.append([
-            PseudorangeObservation(epoch.gpst % 604800.0, s, int(prn), float(pr), float(cn0) if math.isfinite(cn0) else 0.0)
-            for s, prn, pr, cn0 in zip(epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz)
+            PseudorangeObservation(
+                epoch.gpst % 604800.0, s, int(prn), float(pr), float(cn0) if math.isfinite(cn0) else 0.0,
+                doppler_hz=float(doppler) if math.isfinite(doppler) else None,
+            )
+            for s, prn, pr, cn0, doppler in zip(
+                epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz, epoch.doppler_hz
+            )
             if math.isfinite(pr) and 1.0e6 <= pr <= 1.0e8
         ])
     return epochs, StaticEnvironment(navigation=navigation)
+
+
+def _without_doppler(epoch: list[PseudorangeObservation]) -> list[PseudorangeObservation]:
+    return [dataclasses.replace(o, doppler_hz=None) for o in epoch]
 
 
 def _with_repeats(epoch: list[PseudorangeObservation], count: int) -> list[PseudorangeObservation]:
@@ -138,16 +147,25 @@ def test_rsu_imu_measured_within_the_model(rsu_imu_workload, options, epochs) ->
 
 
 @pytest.mark.parametrize(
-    "options, pseudoranges, epochs",
+    "options, pseudoranges, epochs, doppler",
     [
-        ({"filter": "ukf", "seed": 1}, 22, 3),
-        ({"filter": "upf", "particles": 200, "seed": 1}, 22, 1),
-        ({"filter": "upf", "particles": 100, "seed": 1}, 40, 1),
-        ({"filter": "pf", "particles": 500, "seed": 1}, 22, 1),
+        ({"filter": "ukf", "seed": 1}, 22, 3, False),
+        ({"filter": "upf", "particles": 200, "seed": 1}, 22, 1, False),
+        ({"filter": "upf", "particles": 100, "seed": 1}, 40, 1, False),
+        ({"filter": "pf", "particles": 500, "seed": 1}, 22, 1, False),
+        # With Doppler every pseudorange adds a range-rate row to the update; the constants were fitted
+        # without (measured/predicted for the UPF rose from about 1.1 to 1.3 on a loaded box: within
+        # TOLERANCE, but the model wants a refit with Doppler cases in bench/batch_cost.py).
+        ({"filter": "ukf", "seed": 1}, 22, 3, True),
+        ({"filter": "upf", "particles": 200, "seed": 1}, 22, 1, True),
+        ({"filter": "upf", "particles": 100, "seed": 1}, 40, 1, True),
+        ({"filter": "pf", "particles": 500, "seed": 1}, 22, 1, True),
     ],
 )
-def test_gnss_tight_measured_within_the_model(gnss_workload, options, pseudoranges, epochs) -> None:
+def test_gnss_tight_measured_within_the_model(gnss_workload, options, pseudoranges, epochs, doppler) -> None:
     observations, environment = gnss_workload
+    if not doppler:
+        observations = [_without_doppler(e) for e in observations]
     pipeline = get_pipeline("gnss_tight")
     state = pipeline.create(pipeline.resolve_options(options), None)
     state = advance("gnss_tight", state, observations[:10], environment)

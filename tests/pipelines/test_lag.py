@@ -647,6 +647,7 @@ def sample_observations() -> list[Observation]:
         PseudorangeObservation(1.5, "G", 7, 2.1e7, 44.5),
         PseudorangeObservation(1.5, "C", 30, 2.4e7, 39.0, (-1.2e7, 1.5e7, 2.1e7), 1.2e-5),
         PseudorangeObservation(1.5, "E", 3, 2.3e7, 41.0, (1.0, 2.0, 3.0), None),
+        PseudorangeObservation(1.5, "E", 5, 2.3e7, 41.0, None, None, -2345.25),
         RissObservation(1.5, 14.0, 0.3, -0.1, 0.02),
     ]
 
@@ -707,6 +708,28 @@ def test_the_window_round_trips_through_its_bytes():
     assert lag._unpack(lag._pack(empty)) == empty
     for state in (RSU_REF_STATE, rsu_session()):
         assert lag._pack(lag._unpack(state)) == state
+
+
+def test_a_version_2_window_is_converted_when_read():
+    """Windows stored before doppler_hz (version 2) keep working: their pseudorange records are read in the
+    old layout and rewritten in the new one; the session's observations come back without Doppler."""
+    from edgepos.core.observation_codec import _KindCodec
+    from edgepos.core.observations import PseudorangeObservationV2
+
+    old_codec = _KindCodec(PseudorangeObservationV2)
+    old = [PseudorangeObservationV2(1.5, "G", 7, 2.1e7, 44.5), PseudorangeObservationV2(1.5, "E", 3, 2.3e7, 41.0)]
+    gyro = [GyroObservation(2.5, 0.125)]
+    window = lag._Window(
+        dict(lag.DEFAULTS), 2.5, [lag._Checkpoint(None, b"base")], b"current", [1.5, 2.5],
+        [b"".join(old_codec.encode(o) for o in old), lag.encode_epoch(gyro)],
+    )
+    packed = lag._pack(window)
+    version_2 = packed[:4] + bytes([2]) + packed[5:]
+    converted = lag._unpack(version_2)
+    assert converted.observations() == [o.current() for o in old] + gyro
+    assert lag._pack(converted)[4] == lag.VERSION == 3
+    with pytest.raises(StateFormatError, match="version 1"):
+        lag._unpack(packed[:4] + bytes([1]) + packed[5:])
 
 
 def test_damaged_window_bytes_are_state_format_errors():

@@ -10,7 +10,7 @@ import pydantic_core
 
 from edgepos.api.schemas import OptionOut, PipelineOut, RsuModel, RsuOut
 from edgepos.geo import GeodeticOrigin
-from edgepos.pipelines.base import Fix, Pipeline, Rsu
+from edgepos.pipelines.base import Fix, MeasurementUse, Pipeline, Rsu
 
 
 def rsu_from_wire(rsu: RsuModel) -> Rsu:
@@ -79,9 +79,16 @@ def fix_to_json(fix: Fix, include_state: bool, origin: GeodeticOrigin | None) ->
         "nis": fix.nis,
         "nis_dof": fix.nis_dof,
         "measurements": [
-            {"index": use.index, "type": use.kind, "used": use.used, "reason": use.reason}
-            for use in fix.measurements
+            _use_to_json(use) for use in fix.measurements
         ],
+    }
+
+
+def _use_to_json(use: MeasurementUse) -> dict[str, Any]:
+    """One measurement's use (the Doppler fields null unless it is a pseudorange that carried a Doppler)."""
+    return {
+        "index": use.index, "type": use.kind, "used": use.used, "reason": use.reason,
+        "doppler_used": use.doppler_used, "doppler_reason": use.doppler_reason,
     }
 
 

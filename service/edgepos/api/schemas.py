@@ -445,6 +445,14 @@ class MeasurementUseOut(ResponseModel):
     reason: str | None = Field(
         description="Why it was not used (out of range, failed the gate, ...), else null."
     )
+    doppler_used: bool | None = Field(
+        None,
+        description="Only for a pseudorange sent with doppler_hz, else null: whether its Doppler (range rate) "
+        "entered the update.",
+    )
+    doppler_reason: str | None = Field(
+        None, description="Why the Doppler was not used, when doppler_used is false; else null."
+    )
 
 
 class FixOut(ResponseModel):
@@ -652,6 +660,17 @@ class PseudorangeMeasurement(RequestModel):
         description="Optional satellite clock offset at transmit time (s), relativity and group delay "
         "included, so that the corrected range is pseudorange_m + c * sat_clock. Send it with sat_position.",
     )
+    doppler_hz: float | None = Field(
+        None,
+        ge=-20000.0,
+        le=20000.0,
+        description="Optional Doppler of the same signal as pseudorange_m (Hz), as the receiver measured it, "
+        "RINEX sign convention: positive when the satellite approaches. The service uses the range rate "
+        "-doppler_hz x wavelength of the signal's carrier (GPS L1 / Galileo E1 1575.42 MHz, BeiDou B1I "
+        "1561.098 MHz) for velocity and receiver clock drift; it needs the satellite's velocity from the "
+        "loaded ephemerides, so with sat_position and sat_clock sent it is reported unused. Finite, within "
+        "+-20000 Hz.",
+    )
 
     def to_observation(self) -> Observation:
         position = None if self.sat_position is None else tuple(self.sat_position)
@@ -663,6 +682,7 @@ class PseudorangeMeasurement(RequestModel):
             cn0=self.cn0_dbhz,
             sat_position=position,  # type: ignore[arg-type]
             sat_clock=self.sat_clock,
+            doppler_hz=self.doppler_hz,
         )
 
 

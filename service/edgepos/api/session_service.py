@@ -464,12 +464,18 @@ def _admit(
     budget_s = context.settings.batch_cpu_budget_s
     if predicted > budget_s:
         epochs = len({o.t for o in observations} | {o.t for o in replayed or ()})
-        fit = max(1, int(budget_s / (predicted / epochs))) if epochs else 0
+        fit = int(budget_s / (predicted / epochs)) if epochs else 0
         again = f", {len({o.t for o in replayed})} of them filtered again for late measurements" if replayed else ""
+        advice = (
+            f"send at most about {fit} epochs like these per batch"
+            if fit >= 1
+            else "one epoch like these alone is over it: send fewer measurements per epoch, or open a session with "
+            "cheaper options (fewer particles; for gnss_tight also use_doppler false: each Doppler adds a row to "
+            "the update)"
+        )
         reason = (
             f"this batch would cost about {predicted * 1e3:.0f} ms of CPU ({epochs} epochs{again}), over the server's "
-            f"budget of {budget_s * 1e3:g} ms per batch (EDGEPOS_BATCH_CPU_BUDGET_MS): send at most about {fit} "
-            "epochs like these per batch"
+            f"budget of {budget_s * 1e3:g} ms per batch (EDGEPOS_BATCH_CPU_BUDGET_MS): {advice}"
         )
         raise ApiError(
             "invalid_request",

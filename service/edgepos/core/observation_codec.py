@@ -28,7 +28,7 @@ import typing
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from edgepos.core.observations import Observation
+from edgepos.core.observations import Observation, PseudorangeObservationV2
 
 _LENGTH = struct.Struct("<H")
 
@@ -181,6 +181,21 @@ _BY_CLASS: dict[type, _KindCodec] = {cls: _KindCodec(cls) for cls in typing.get_
 _BY_NAME: dict[bytes, _KindCodec] = {codec.name: codec for codec in _BY_CLASS.values()}
 
 
+_LEGACY: dict[int, dict[bytes, _KindCodec]] = {
+    2: {**_BY_NAME, b"pseudorange": _KindCodec(PseudorangeObservationV2)},
+}
+"""Per older lag-window version, the codecs of its records (the kinds whose layout changed since)."""
+
+
+def decode_legacy_observations(record: bytes, version: int) -> list[Observation]:
+    """A record written by the lag window of ``version`` (see ``_LEGACY``), as today's observations;
+    ObservationCodecError for bytes it did not write or a version it does not know."""
+    codecs = _LEGACY.get(version)
+    if codecs is None:
+        raise ObservationCodecError(f"no codec for records of version {version}")
+    return [o.current() if isinstance(o, PseudorangeObservationV2) else o for o in _decode(record, codecs)]
+
+
 def encode_observations(observations: Sequence[Observation]) -> bytes:
     """``observations`` back to back in the binary form (see the module docstring)."""
     return b"".join([_BY_CLASS[type(o)].encode(o) for o in observations])
@@ -188,12 +203,16 @@ def encode_observations(observations: Sequence[Observation]) -> bytes:
 
 def decode_observations(record: bytes) -> list[Observation]:
     """Inverse of :func:`encode_observations`; ObservationCodecError for bytes it did not write."""
-    observations: list[Observation] = []
+    return _decode(record, _BY_NAME)
+
+
+def _decode(record: bytes, codecs: dict[bytes, _KindCodec]) -> list[Any]:
+    observations: list[Any] = []
     offset, end = 0, len(record)
     try:
         while offset < end:
             size = record[offset]
-            codec = _BY_NAME.get(record[offset + 1 : offset + 1 + size])
+            codec = codecs.get(record[offset + 1 : offset + 1 + size])
             if codec is None:
                 raise ObservationCodecError(f"unknown observation kind at byte {offset}")
             observation, offset = codec.decode(record, offset + 1 + size)

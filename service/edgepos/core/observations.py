@@ -1,14 +1,15 @@
 """Plain-data observations as the estimation core receives them (already validated, SI units).
 
 Times are seconds on the session's clock; angles are radians. Each type names itself with ``kind``,
-the same word the wire protocol uses as its discriminator.
+the same word the wire protocol uses as its discriminator. A new field goes last and is optional: the
+lag window's stored records (``core.observation_codec``) follow the field order, and older layouts are
+read through ``LEGACY_LAYOUTS``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import ClassVar
-
 
 SPEED_OF_LIGHT = 299_792_458.0
 """m/s, exact (SI); converts a one-way time of arrival to metres."""
@@ -94,7 +95,9 @@ class PseudorangeObservation:
     ``sat_position`` is its ECEF (WGS-84) position in metres at transmit time, expressed in the
     ECEF frame of the transmit epoch (the receiver applies the Earth-rotation correction), and
     ``sat_clock`` its clock offset in seconds (corrected range = pseudorange + c * sat_clock);
-    otherwise the service computes both from the broadcast ephemerides."""
+    otherwise the service computes both from the broadcast ephemerides. ``doppler_hz`` is the receiver's
+    Doppler of the same signal (Hz, RINEX sign: positive when the satellite approaches, so the range rate
+    is -doppler_hz times the carrier's wavelength), None when not sent."""
 
     kind: ClassVar[str] = "pseudorange"
     t: float
@@ -104,6 +107,7 @@ class PseudorangeObservation:
     cn0: float
     sat_position: tuple[float, float, float] | None = None
     sat_clock: float | None = None
+    doppler_hz: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -117,6 +121,27 @@ class RissObservation:
     accel_x: float
     accel_y: float
     gyro_z: float
+
+
+@dataclass(frozen=True, slots=True)
+class PseudorangeObservationV2:
+    """The pseudorange observation as lag windows of version 2 stored it (before ``doppler_hz``): read
+    only, to convert such records (``pipelines.lag_state``)."""
+
+    kind: ClassVar[str] = "pseudorange"
+    t: float
+    system: str
+    prn: int
+    pseudorange: float
+    cn0: float
+    sat_position: tuple[float, float, float] | None = None
+    sat_clock: float | None = None
+
+    def current(self) -> PseudorangeObservation:
+        """The same observation in today's form (no Doppler)."""
+        return PseudorangeObservation(
+            self.t, self.system, self.prn, self.pseudorange, self.cn0, self.sat_position, self.sat_clock
+        )
 
 
 Observation = (

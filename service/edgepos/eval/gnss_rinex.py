@@ -2,16 +2,22 @@
 navigation files) against a reference trajectory, beside the project's epoch-by-epoch WLS baseline.
 
 GNSS-only (a recording has no inertial data). Each epoch's pseudoranges become ``pseudorange``
-observations (GPS time of week, system, PRN, pseudorange, C/N0, no satellite states) and go through
+observations (GPS time of week, system, PRN, pseudorange, C/N0 and the Doppler of the same signal, no
+satellite states) and go through
 ``GnssTightPipeline.process`` one epoch per batch with the ephemerides in its environment and the state
 serialised in between: the same code path as ``POST /v1/sessions/{id}/batches``.
 Reference CSV: GPS week, seconds of week, latitude (deg), longitude (deg), ellipsoidal height (m), ...
-(``#`` comments), as in tests/data/gnss-rover/README.md.
+(``#`` comments), as in tests/data/gnss-rover/README.md. Velocity is scored against the reference's central
+differences (``spp.reference_velocity``): the horizontal error of the fix's (vx, vy), east and north of the
+site frame, against the reference's east and north velocity at its own position (the two frames differ by
+the few kilometres' rotation, 1e-3 rad: 0.01 m/s at 10 m/s). ``--score-epochs A:B`` scores only epochs
+A..B-1 (0-based) of one run from the first epoch, so halves of a recording are scored on the same run.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -28,10 +34,10 @@ from edgepos.gnss.geodesy import ecef_to_geodetic, enu_rotation, geodetic_to_ece
 from edgepos.gnss.measurements import prepare_epoch
 from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
-from edgepos.gnss.spp import SppConfig, SppError, read_reference, solve_epoch
+from edgepos.gnss.spp import SppConfig, SppError, read_reference, reference_velocity, solve_epoch
 from edgepos.gnss.timesys import SECONDS_PER_WEEK
 from edgepos.pipelines.base import StaticEnvironment
-from edgepos.pipelines.gnss_tight import GnssTightPipeline
+from edgepos.pipelines.gnss_tight import MAX_DOPPLER_HZ, GnssTightPipeline
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -45,47 +51,87 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-fuzzy", action="store_true", help="constant pseudorange noise instead of the fuzzy factor")
     parser.add_argument("--seed", type=int, default=1, help="the filter's random seed (default 1)")
     parser.add_argument("--max-epochs", type=int, default=None, help="stop after this many epochs")
+    parser.add_argument(
+        "--score-epochs", type=_epoch_range, default=None, metavar="A:B",
+        help="score only epochs A..B-1 (0-based; the run still starts at epoch 0), e.g. 0:150 and 150:300",
+    )
     add_option_argument(parser, "pseudorange_std=3")
 
 
+def _epoch_range(text: str) -> tuple[int, int]:
+    """``A:B`` -> (A, B) with 0 <= A < B."""
+    try:
+        first, stop = (int(part) for part in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected A:B (epoch indices), got {text!r}") from None
+    if not 0 <= first < stop:
+        raise argparse.ArgumentTypeError(f"need 0 <= A < B, got {text!r}")
+    return first, stop
+
+
 def _score(times: Sequence[float], positions: Sequence[np.ndarray | None], reference: tuple[np.ndarray, np.ndarray],
-           epochs: int) -> dict[str, Any]:
+           epochs: int, velocities: Sequence[np.ndarray | None] | None = None) -> dict[str, Any]:
+    """Horizontal position errors (m) at the reference epochs among ``times``; with ``velocities`` (east,
+    north m/s per epoch, None without one) also their horizontal errors against the reference velocity."""
     ref_time, ref_ecef = reference
-    by_time = {round(t, 1): p for t, p in zip(times, positions) if p is not None}
+    ref_velocity = reference_velocity(ref_time, ref_ecef)
+    first, last = (min(times), max(times)) if times else (math.inf, -math.inf)
+    by_time = {round(t, 1): k for k, t in enumerate(times)}
     errors = []
-    missing = 0
-    for t, truth in zip(ref_time, ref_ecef):
-        position = by_time.get(round(float(t), 1))
+    velocity_errors = []
+    missing = reference_epochs = 0
+    for t, truth, truth_velocity in zip(ref_time, ref_ecef, ref_velocity):
+        if not first - 0.05 <= t <= last + 0.05:
+            continue
+        reference_epochs += 1
+        k = by_time.get(round(float(t), 1))
+        position = None if k is None else positions[k]
         if position is None:
             missing += 1
             continue
         lat, lon, _ = ecef_to_geodetic(truth)
-        enu = enu_rotation(float(lat), float(lon)) @ (position - truth)
+        rotation = enu_rotation(float(lat), float(lon))
+        enu = rotation @ (position - truth)
         errors.append(math.hypot(enu[0], enu[1]))
+        velocity = None if velocities is None or k is None else velocities[k]
+        if velocity is not None and np.all(np.isfinite(truth_velocity)):
+            truth_enu = rotation @ truth_velocity
+            velocity_errors.append(math.hypot(velocity[0] - truth_enu[0], velocity[1] - truth_enu[1]))
     values = np.asarray(errors)
     empty = values.size == 0
-    return {
+    report: dict[str, Any] = {
         "epochs": epochs,
         "fixes": sum(p is not None for p in positions),
-        "reference_epochs": len(ref_time),
+        "reference_epochs": reference_epochs,
         "reference_epochs_without_fix": missing,
         "horizontal_rms_m": None if empty else float(np.sqrt(np.mean(values**2))),
         "horizontal_p95_m": None if empty else float(np.percentile(values, 95)),
         "horizontal_max_m": None if empty else float(values.max()),
     }
+    if velocities is not None:
+        speeds = np.asarray(velocity_errors)
+        none = speeds.size == 0
+        report["velocity_epochs"] = int(speeds.size)
+        report["velocity_rms_mps"] = None if none else float(np.sqrt(np.mean(speeds**2)))
+        report["velocity_p95_mps"] = None if none else float(np.percentile(speeds, 95))
+    return report
 
 
 def evaluate(
     obs_path: str, nav_path: str, reference_path: str, systems: str = "GC", options: Mapping[str, Any] | None = None,
-    max_epochs: int | None = None,
+    max_epochs: int | None = None, score_epochs: tuple[int, int] | None = None,
 ) -> dict[str, Any]:
-    """Run the pipeline and the WLS baseline over a recording; the figures as a dict."""
+    """Run the pipeline and the WLS baseline over a recording; the figures as a dict (of epochs
+    ``score_epochs`` = (A, B), A..B-1, when given; the run then stops after epoch B-1)."""
+    if score_epochs is not None:
+        max_epochs = score_epochs[1] if max_epochs is None else min(max_epochs, score_epochs[1])
     codes = {s: DEFAULT_CODES[s] for s in systems if s in DEFAULT_CODES}
     navigation = read_navigation(nav_path)
     ephemerides = Ephemerides.from_navigation(navigation)
     environment = StaticEnvironment(navigation=ephemerides)
     pipeline = GnssTightPipeline()
     resolved = pipeline.resolve_options({"systems": sorted(codes), **(options or {})})
+    use_doppler = bool(resolved["use_doppler"])
     state = pipeline.create(resolved, None)
     reference = read_reference(reference_path)
     atmosphere = ephemerides.atmosphere
@@ -93,7 +139,9 @@ def evaluate(
 
     times: list[float] = []
     fixes: list[np.ndarray | None] = []
+    fix_velocities: list[np.ndarray | None] = []
     baseline: list[np.ndarray | None] = []
+    baseline_velocities: list[np.ndarray | None] = []
     previous: np.ndarray | None = None
     pipeline_seconds = 0.0
     for count, epoch in enumerate(read_epochs(obs_path, codes)):
@@ -101,8 +149,13 @@ def evaluate(
             break
         tow = epoch.gpst % SECONDS_PER_WEEK
         batch = [
-            PseudorangeObservation(tow, system, int(prn), float(pr), float(cn0) if math.isfinite(cn0) else 0.0)
-            for system, prn, pr, cn0 in zip(epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz)
+            PseudorangeObservation(
+                tow, system, int(prn), float(pr), float(cn0) if math.isfinite(cn0) else 0.0,
+                doppler_hz=float(doppler) if math.isfinite(doppler) and abs(doppler) <= MAX_DOPPLER_HZ else None,
+            )
+            for system, prn, pr, cn0, doppler in zip(
+                epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz, epoch.doppler_hz
+            )
             if math.isfinite(pr) and 1.0e6 <= pr <= 1.0e8
         ]
         started = time.perf_counter()
@@ -114,20 +167,35 @@ def evaluate(
             fixes.append(None)
         else:
             fixes.append(geodetic_to_ecef(fix.latitude, fix.longitude, fix.height))
+        has_velocity = fix is not None and fix.vx is not None and fix.vy is not None
+        fix_velocities.append(np.array([fix.vx, fix.vy]) if has_velocity else None)  # type: ignore[union-attr]
         prs, _ = prepare_epoch(epoch, ephemerides.orbits, codes)
+        if not use_doppler:
+            prs = dataclasses.replace(prs, range_rate_mps=None, sat_velocity=None, sat_clock_drift=None)
         try:
             solution = solve_epoch(prs, atmosphere, config, previous)
             previous = solution.position
             baseline.append(solution.position)
+            baseline_velocities.append(None if solution.velocity is None else solution.velocity.velocity_enu[:2])
         except SppError:
             baseline.append(None)
-    report = _score(times, fixes, reference, len(times))
+            baseline_velocities.append(None)
+    if score_epochs is not None:
+        keep = slice(score_epochs[0], score_epochs[1])
+        times, fixes, fix_velocities = times[keep], fixes[keep], fix_velocities[keep]
+        baseline, baseline_velocities = baseline[keep], baseline_velocities[keep]
+    report = _score(times, fixes, reference, len(times), fix_velocities)
     report["filter"] = resolved["filter"]
     report["particles"] = resolved["particles"] if resolved["filter"] != "ukf" else 1
     report["fuzzy"] = resolved["fuzzy"]
     report["systems"] = systems
     report["seconds_per_epoch"] = pipeline_seconds / max(len(times), 1)
-    report["baseline"] = {"method": "epoch-by-epoch WLS (gnss/spp.py)", **_score(times, baseline, reference, len(times))}
+    report["use_doppler"] = use_doppler
+    report["score_epochs"] = None if score_epochs is None else list(score_epochs)
+    report["baseline"] = {
+        "method": "epoch-by-epoch WLS (gnss/spp.py)",
+        **_score(times, baseline, reference, len(times), baseline_velocities if use_doppler else None),
+    }
     return report
 
 
@@ -145,18 +213,27 @@ def run(args: argparse.Namespace) -> int:
         print(f"edgepos eval gnss-rinex: error: {error}", file=sys.stderr)
         return 2
     try:
-        report = evaluate(args.obs, args.nav, args.reference, args.systems, options, args.max_epochs)
+        report = evaluate(
+            args.obs, args.nav, args.reference, args.systems, options, args.max_epochs, args.score_epochs
+        )
     except (OSError, ValueError) as error:  # unreadable or malformed files (RinexError is a ValueError)
         print(f"edgepos eval gnss-rinex: error: {error}", file=sys.stderr)
         return 2
     details = [f"{report['particles']} particles"] if report["filter"] != "ukf" else []
     details += ["fuzzy"] if report["fuzzy"] else []
     label = f"gnss_tight {report['filter']}" + (f" ({', '.join(details)})" if details else "")
-    print(f"{'solution':<34} {'epochs':>6} {'fixes':>6} {'ref w/o fix':>11} {'RMS m':>7} {'p95 m':>7} {'max m':>7}")
+    label += " + Doppler" if report["use_doppler"] else " no Doppler"
+    if report["score_epochs"] is not None:
+        print(f"scored epochs {report['score_epochs'][0]}..{report['score_epochs'][1] - 1}")
+    print(
+        f"{'solution':<48} {'epochs':>6} {'fixes':>6} {'ref w/o fix':>11} {'RMS m':>7} {'p95 m':>7} {'max m':>7} "
+        f"{'vel RMS m/s':>11}"
+    )
     for name, row in ((label, report), ("WLS baseline (gnss/spp.py)", report["baseline"])):
         print(
-            f"{name:<34} {row['epochs']:>6} {row['fixes']:>6} {row['reference_epochs_without_fix']:>11} "
-            f"{_format(row['horizontal_rms_m']):>7} {_format(row['horizontal_p95_m']):>7} {_format(row['horizontal_max_m']):>7}"
+            f"{name:<48} {row['epochs']:>6} {row['fixes']:>6} {row['reference_epochs_without_fix']:>11} "
+            f"{_format(row['horizontal_rms_m']):>7} {_format(row['horizontal_p95_m']):>7} {_format(row['horizontal_max_m']):>7} "
+            f"{_format(row.get('velocity_rms_mps')):>11}"
         )
     print(f"pipeline time per epoch: {1e3 * report['seconds_per_epoch']:.1f} ms")
     if args.json:

@@ -15,7 +15,7 @@ import numpy as np
 
 from edgepos.gnss.corrections import carrier_frequency, klobuchar_delay, saastamoinen_delay
 from edgepos.gnss.geodesy import ecef_to_geodetic, elevation_azimuth
-from edgepos.gnss.orbits import BroadcastOrbits, group_delay_factors
+from edgepos.gnss.orbits import SPEED_OF_LIGHT, BroadcastOrbits, group_delay_factors
 from edgepos.gnss.rinex_nav import NavigationData
 from edgepos.gnss.rinex_obs import DEFAULT_CODES, ObservationEpoch
 
@@ -23,7 +23,11 @@ from edgepos.gnss.rinex_obs import DEFAULT_CODES, ObservationEpoch
 @dataclass(frozen=True)
 class PseudorangeSet:
     """One epoch's usable pseudoranges (n rows) with satellite ECEF positions at transmit time (m, in the
-    transmit-time frame), satellite clock offsets (s; add c * clock to the pseudorange) and carriers (Hz)."""
+    transmit-time frame), satellite clock offsets (s; add c * clock to the pseudorange) and carriers (Hz).
+
+    Optional, for Doppler: measured range rates (m/s, -lambda times the RINEX Doppler; NaN where a row has
+    none), the satellites' ECEF velocities (m/s) and clock drifts (s/s; NaN where unknown). All three are
+    None when the epoch carries no Doppler at all."""
 
     gpst: float
     systems: tuple[str, ...]
@@ -33,6 +37,9 @@ class PseudorangeSet:
     sat_position: np.ndarray
     sat_clock_s: np.ndarray
     frequency_hz: np.ndarray
+    range_rate_mps: np.ndarray | None = None
+    sat_velocity: np.ndarray | None = None
+    sat_clock_drift: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.systems)
@@ -48,7 +55,23 @@ class PseudorangeSet:
         return PseudorangeSet(
             self.gpst, tuple(self.systems[i] for i in rows), self.prns[rows], self.pseudorange_m[rows],
             self.cn0_dbhz[rows], self.sat_position[rows], self.sat_clock_s[rows], self.frequency_hz[rows],
+            None if self.range_rate_mps is None else self.range_rate_mps[rows],
+            None if self.sat_velocity is None else self.sat_velocity[rows],
+            None if self.sat_clock_drift is None else self.sat_clock_drift[rows],
         )
+
+    @property
+    def has_doppler(self) -> bool:
+        """Whether any row has a range rate with its satellite's velocity and clock drift."""
+        if self.range_rate_mps is None or self.sat_velocity is None or self.sat_clock_drift is None:
+            return False
+        return bool(np.any(np.isfinite(self.range_rate_mps) & np.isfinite(self.sat_clock_drift)))
+
+
+def doppler_to_range_rate(doppler_hz: np.ndarray, frequency_hz: np.ndarray) -> np.ndarray:
+    """Range rate (m/s) of Dopplers (Hz, RINEX sign: positive when the satellite approaches) on carriers (Hz):
+    -D c / f."""
+    return -np.asarray(doppler_hz, dtype=float) * SPEED_OF_LIGHT / np.asarray(frequency_hz, dtype=float)
 
 
 def prepare_epoch(
@@ -75,9 +98,13 @@ def prepare_epoch(
     dropped = tuple(s for s, ok in zip(epoch.sats, usable) if not ok)
     rows = np.flatnonzero(usable)
     states = orbits.transmit_states(index[rows], epoch.gpst, epoch.pseudorange_m[rows], factors[rows])
+    range_rate = doppler_to_range_rate(epoch.doppler_hz[rows], frequency[rows])
+    doppler = bool(np.any(np.isfinite(range_rate)))
     prepared = PseudorangeSet(
         epoch.gpst, tuple(epoch.systems[i] for i in rows), epoch.prns[rows], epoch.pseudorange_m[rows],
         epoch.cn0_dbhz[rows], states.position, states.clock_s, frequency[rows],
+        range_rate if doppler else None, states.velocity if doppler else None,
+        states.clock_drift if doppler else None,
     )
     return prepared, dropped
 

@@ -29,6 +29,12 @@ BEIDOU_GEO_PRNS = frozenset({1, 2, 3, 4, 5, 59, 60, 61, 62, 63})
 MAX_AGE_S = {"G": None, "J": None, "E": 4 * 3600.0, "C": 3 * 3600.0}
 """Largest |t - toe| an ephemeris is used for; None = half the broadcast fit interval (GPS, QZSS)."""
 _GEO_TILT = np.deg2rad(-5.0)
+VELOCITY_STEP_S = 0.5
+"""Half-width (s) of the central difference giving satellite velocity and clock drift. Its truncation error
+is h^2/6 times the position's third derivative, about n |a| = 8e-5 m/s^3 for a MEO orbit (mean motion
+n = 1.5e-4 rad/s, |a| = 0.6 m/s^2), so 3e-6 m/s; its rounding error, eps |r| / (2h) = 6e-9 m/s, and the
+Kepler iteration's 1e-14 rad (3e-7 m over 1 s) are smaller. All are four orders below a Doppler's noise
+(about 0.05 m/s), so one step serves every orbit (GEO and IGSO move slower)."""
 
 # Frequencies (Hz) for scaling group delays between bands.
 _F_GPS_L1, _F_GPS_L2 = 1575.42e6, 1227.60e6
@@ -59,12 +65,16 @@ def group_delay_factors(system: str, code: str) -> tuple[float, float]:
 class SatelliteStates:
     """Satellites at their signal transmit time: ECEF positions (n, 3) in the transmit-time frame (m),
     clock offsets (s, relativistic term and group delay included; add ``SPEED_OF_LIGHT * clock_s`` to the
-    pseudorange), transmit times (GPS s) and the ephemeris index used per row."""
+    pseudorange), transmit times (GPS s) and the ephemeris index used per row; ECEF velocities (n, 3) (m/s,
+    the rate of change of the Earth-fixed position, same frame as ``position``) and clock drifts (s/s, the
+    relativistic term's rate included) at the transmit time."""
 
     position: np.ndarray
     clock_s: np.ndarray
     t_transmit: np.ndarray
     ephemeris_index: np.ndarray
+    velocity: np.ndarray
+    clock_drift: np.ndarray
 
 
 class BroadcastOrbits:
@@ -176,7 +186,23 @@ class BroadcastOrbits:
         t_tx = t_sv - dt
         position, relativistic = self.position(index, t_tx)
         clock = self.clock_polynomial(index, t_tx) + relativistic - self.group_delay(index, delay_factors)
-        return SatelliteStates(position, clock, t_tx, index)
+        velocity, drift = self.rates(index, t_tx)
+        return SatelliteStates(position, clock, t_tx, index, velocity, drift)
+
+    def rates(self, index: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """ECEF velocity (n, 3) (m/s) and clock drift (s/s, relativistic rate included) at GPS times ``t``.
+
+        Central difference of :meth:`position` and the clock over +-``VELOCITY_STEP_S`` (see its note for the
+        error budget): one code path for every orbit type, the BeiDou GEO rotation included, rather than a
+        second, analytic copy of the orbit formulas to keep consistent with the first."""
+        index = np.asarray(index, dtype=int)
+        t = np.asarray(t, dtype=float)
+        h = VELOCITY_STEP_S
+        after, rel_after = self.position(index, t + h)
+        before, rel_before = self.position(index, t - h)
+        clock_after = self.clock_polynomial(index, t + h) + rel_after
+        clock_before = self.clock_polynomial(index, t - h) + rel_before
+        return (after - before) / (2.0 * h), (clock_after - clock_before) / (2.0 * h)
 
 
 def earth_rotation(position: np.ndarray, travel_time_s: np.ndarray | float) -> np.ndarray:
@@ -196,4 +222,24 @@ def sagnac_range(satellite: np.ndarray, receiver: np.ndarray) -> np.ndarray:
     diff = satellite - receiver
     geometric = np.sqrt(np.sum(diff * diff, axis=-1))
     sagnac = OMEGA_EARTH * (satellite[..., 0] * receiver[..., 1] - satellite[..., 1] * receiver[..., 0])
+    return geometric + sagnac / SPEED_OF_LIGHT
+
+
+def sagnac_range_rate(
+    sat_position: np.ndarray, sat_velocity: np.ndarray, receiver: np.ndarray, receiver_velocity: np.ndarray
+) -> np.ndarray:
+    """Geometric range rate (m/s) with the Sagnac term's rate, the time derivative of :func:`sagnac_range`.
+
+    Satellite (..., 3) position and velocity at transmit time, receiver (..., 3) position and velocity at
+    reception, all ECEF and broadcastable."""
+    diff = sat_position - receiver
+    distance = np.sqrt(np.sum(diff * diff, axis=-1))
+    relative = sat_velocity - receiver_velocity
+    geometric = np.sum(diff * relative, axis=-1) / distance
+    sagnac = OMEGA_EARTH * (
+        sat_velocity[..., 0] * receiver[..., 1]
+        + sat_position[..., 0] * receiver_velocity[..., 1]
+        - sat_velocity[..., 1] * receiver[..., 0]
+        - sat_position[..., 1] * receiver_velocity[..., 0]
+    )
     return geometric + sagnac / SPEED_OF_LIGHT

@@ -23,6 +23,11 @@ DEFAULT_CODES: dict[str, tuple[str, str]] = {"G": ("C1C", "S1C"), "C": ("C2I", "
 """Per system (pseudorange code, C/N0 code): GPS L1 C/A, BeiDou B1I, Galileo E1."""
 
 
+def doppler_code(code: str) -> str:
+    """The Doppler observation of the same signal as a pseudorange code (``C1C`` -> ``D1C``)."""
+    return "D" + code[1:]
+
+
 @dataclass(frozen=True)
 class ObservationHeader:
     """What the reader needs from the header."""
@@ -38,8 +43,9 @@ class ObservationHeader:
 class ObservationEpoch:
     """Observations of one epoch for the satellites that have every requested code of their system.
 
-    ``values[code]`` holds one entry per satellite (NaN when that satellite's system lacks the code or the
-    field was blank); ``systems`` and ``prns`` identify the satellites, in file order.
+    ``systems`` and ``prns`` identify the satellites, in file order; ``doppler_hz`` is the D observation of
+    the pseudorange's own signal (RINEX sign: positive when the satellite approaches), NaN when the header
+    lacks it or the field is blank.
     """
 
     gpst: float
@@ -49,6 +55,7 @@ class ObservationEpoch:
     prns: np.ndarray
     pseudorange_m: np.ndarray
     cn0_dbhz: np.ndarray
+    doppler_hz: np.ndarray
 
     @property
     def sats(self) -> tuple[str, ...]:
@@ -138,7 +145,8 @@ def iter_epochs(
     """Stream (header, epoch) pairs from RINEX 3 observation text.
 
     ``codes`` maps a system letter to its (pseudorange, C/N0) observation codes; systems not in it are
-    dropped, as are satellites whose pseudorange field is blank. A C/N0 code absent from the header gives NaN.
+    dropped, as are satellites whose pseudorange field is blank. A C/N0 code absent from the header gives NaN,
+    as does the Doppler of the pseudorange's signal (:func:`doppler_code`) when absent or blank.
     An explicitly requested pseudorange code that the header does not list for a present system is an error;
     with the defaults such a system is dropped.
     """
@@ -147,7 +155,7 @@ def iter_epochs(
     stream = (line.rstrip("\r\n") for line in lines)
     header, number = _parse_header(stream)
     offset = _time_offset(header.time_system)
-    columns: dict[str, tuple[int, int | None]] = {}
+    columns: dict[str, tuple[int, int | None, int | None]] = {}
     for system, (code, cn0) in chosen.items():
         types = header.obs_types.get(system)
         if types is None:
@@ -156,7 +164,11 @@ def iter_epochs(
             if explicit:
                 raise RinexError(number, f"system {system} has no observation {code!r}; header lists {', '.join(types)}")
             continue
-        columns[system] = (types.index(code), types.index(cn0) if cn0 in types else None)
+        doppler = doppler_code(code)
+        columns[system] = (
+            types.index(code), types.index(cn0) if cn0 in types else None,
+            types.index(doppler) if doppler in types else None,
+        )
     for line in stream:
         number += 1
         if not line.strip():
@@ -186,6 +198,7 @@ def iter_epochs(
         prns: list[int] = []
         ranges: list[float] = []
         cn0s: list[float] = []
+        dopplers: list[float] = []
         for _ in range(count):
             sat_line = next(stream, None)
             number += 1
@@ -201,6 +214,8 @@ def iter_epochs(
                 value = _field(sat_line, columns[system][0])
                 cn0_index = columns[system][1]
                 cn0 = _field(sat_line, cn0_index) if cn0_index is not None else math.nan
+                doppler_index = columns[system][2]
+                doppler = _field(sat_line, doppler_index) if doppler_index is not None else math.nan
             except ValueError:
                 raise RinexError(number, f"cannot read observation of {sat_line[:3]!r}") from None
             if math.isnan(value) or value <= 0.0:
@@ -209,9 +224,10 @@ def iter_epochs(
             prns.append(prn)
             ranges.append(value)
             cn0s.append(cn0)
+            dopplers.append(doppler)
         yield header, ObservationEpoch(
             t, flag, epoch_line, tuple(systems), np.asarray(prns, dtype=int), np.asarray(ranges, dtype=float),
-            np.asarray(cn0s, dtype=float),
+            np.asarray(cn0s, dtype=float), np.asarray(dopplers, dtype=float),
         )
 
 

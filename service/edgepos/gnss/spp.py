@@ -6,6 +6,10 @@ below the elevation mask are dropped once the estimate is near the Earth's surfa
 global chi-square test on the weighted residuals decides whether the satellite with the largest standardised
 residual is excluded and the solution recomputed, one at a time.
 
+When the epoch carries Doppler, :func:`solve_velocity` then solves ECEF velocity (m/s) and the receiver
+clock drift (m/s) by weighted least squares on the range rates at the solved position (the model of
+``core/measurements/range_rate.py``, linear in the unknowns), with the same chi-square exclusion.
+
 ``python -m edgepos.gnss.spp --obs OBS --nav NAV [--reference CSV]`` solves a recording and prints figures.
 """
 
@@ -24,7 +28,7 @@ from scipy.stats import chi2
 from edgepos.core.errors import EstimationError
 from edgepos.gnss.geodesy import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from edgepos.gnss.measurements import Atmosphere, PseudorangeSet, prepare_epoch
-from edgepos.gnss.orbits import SPEED_OF_LIGHT, BroadcastOrbits, sagnac_range
+from edgepos.gnss.orbits import OMEGA_EARTH, SPEED_OF_LIGHT, BroadcastOrbits, sagnac_range, sagnac_range_rate
 from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs, read_header
 
@@ -54,6 +58,12 @@ class SppConfig:
     max_exclusions: int = 4
     ionosphere: bool = True
     troposphere: bool = True
+    doppler_sigma_a_mps: float = 0.1
+    """Range-rate standard deviation, constant part (m/s): sigma^2 = a^2 + b^2 / sin^2(elevation). a = b =
+    0.1 m/s follows the Doppler residuals at the reference on the recording's first half (robust std 0.06 m/s
+    above 60 deg, 0.35 m/s at 10-20 deg; docs/gnss.md)."""
+    doppler_sigma_b_mps: float = 0.1
+    """Range-rate standard deviation, elevation-dependent part (m/s)."""
 
 
 @dataclass(frozen=True)
@@ -64,6 +74,20 @@ class Dop:
     pdop: float
     hdop: float
     vdop: float
+
+
+@dataclass(frozen=True)
+class VelocitySolution:
+    """ECEF velocity (m/s), the same in east/north/up at the solved position, receiver clock drift (m/s, c
+    times s/s), range-rate residuals (m/s) of the used satellites (``sats``) and those excluded."""
+
+    velocity: np.ndarray
+    velocity_enu: np.ndarray
+    clock_drift_mps: float
+    sats: tuple[str, ...]
+    residuals_mps: np.ndarray
+    excluded: tuple[str, ...]
+    chi2_passed: bool
 
 
 @dataclass(frozen=True)
@@ -84,6 +108,8 @@ class SppSolution:
     iterations: int
     chi2_passed: bool
     masked: tuple[str, ...] = field(default=())
+    velocity: VelocitySolution | None = None
+    """From the epoch's Doppler when it has enough (else None)."""
 
 
 def _weights(elevation: np.ndarray, config: SppConfig) -> np.ndarray:
@@ -187,12 +213,75 @@ def solve_epoch(
         start = x
     lat, lon, height = (float(v) for v in ecef_to_geodetic(x))
     sats = prs.sats
+    velocity = None
+    if prs.has_doppler:
+        try:
+            velocity = solve_velocity(prs, x, elevation, active & used, config)
+        except SppError:
+            velocity = None  # too few Dopplers or a singular geometry: the position stands on its own
     return SppSolution(
         gpst=prs.gpst, position=x, lat=lat, lon=lon, height=height, clock_bias_m=clocks,
         dop=_dop(design[rows][:, np.any(design[rows] != 0.0, axis=0)], x),
         sats=tuple(sats[i] for i in rows), residuals_m=residual[rows], elevation_rad=elevation[rows],
         excluded=tuple(sats[i] for i in excluded), iterations=iterations, chi2_passed=passed,
         masked=tuple(sats[i] for i in np.flatnonzero(active & ~used)),
+        velocity=velocity,
+    )
+
+
+def solve_velocity(
+    prs: PseudorangeSet, position: np.ndarray, elevation: np.ndarray, usable: np.ndarray,
+    config: SppConfig = SppConfig(),
+) -> VelocitySolution:
+    """Velocity and receiver clock drift from the range rates of the rows in ``usable`` (boolean) that have
+    one, at a solved ECEF ``position`` (m) with the rows' elevations (rad). Raises SppError.
+
+    -lambda D = u . (v_s - v) + omega_e (x_s vy - y_s vx + vx_s y - vy_s x) / c + d - c dt_s_dot is linear in
+    (v, d); one weighted least-squares solve, then while the chi-square test of the weighted residuals
+    fails, the row with the largest standardised residual is excluded (at most ``config.max_exclusions``).
+    """
+    if prs.range_rate_mps is None or prs.sat_velocity is None or prs.sat_clock_drift is None:
+        raise SppError("no Doppler in this epoch")
+    active = usable & np.isfinite(prs.range_rate_mps) & np.isfinite(prs.sat_clock_drift)
+    zero = np.zeros(3)
+    known = sagnac_range_rate(prs.sat_position, prs.sat_velocity, position, zero) - SPEED_OF_LIGHT * prs.sat_clock_drift
+    diff = prs.sat_position - position
+    unit = diff / np.linalg.norm(diff, axis=1)[:, None]
+    design = np.zeros((len(prs), 4))
+    design[:, :3] = -unit
+    design[:, 0] -= OMEGA_EARTH * prs.sat_position[:, 1] / SPEED_OF_LIGHT
+    design[:, 1] += OMEGA_EARTH * prs.sat_position[:, 0] / SPEED_OF_LIGHT
+    design[:, 3] = 1.0
+    observed = prs.range_rate_mps - known
+    sin_el = np.maximum(np.sin(elevation), 0.05)
+    root = 1.0 / np.sqrt(config.doppler_sigma_a_mps**2 + (config.doppler_sigma_b_mps / sin_el) ** 2)
+    excluded: list[int] = []
+    while True:
+        rows = np.flatnonzero(active)
+        dof = rows.size - 4
+        if dof < 0:
+            raise SppError(f"{rows.size} usable Dopplers for 4 unknowns")
+        weighted = design[rows] * root[rows, None]
+        solution, *_ = np.linalg.lstsq(weighted, observed[rows] * root[rows], rcond=None)
+        if not np.all(np.isfinite(solution)) or np.linalg.matrix_rank(weighted) < 4:
+            raise SppError("singular Doppler geometry")
+        residual = observed - design @ solution
+        normalised = residual[rows] * root[rows]
+        statistic = float(normalised @ normalised)
+        passed = dof == 0 or statistic <= chi2.ppf(config.outlier_probability, dof)
+        if passed or len(excluded) >= config.max_exclusions or dof < 2:
+            break
+        leverage = np.einsum("ij,jk,ik->i", weighted, np.linalg.pinv(weighted.T @ weighted), weighted)
+        standardised = np.abs(normalised) / np.sqrt(np.maximum(1.0 - leverage, 1e-6))
+        worst = int(rows[np.argmax(standardised)])
+        excluded.append(worst)
+        active[worst] = False
+    lat, lon, _ = ecef_to_geodetic(position)
+    sats = prs.sats
+    return VelocitySolution(
+        velocity=solution[:3].copy(), velocity_enu=enu_rotation(float(lat), float(lon)) @ solution[:3],
+        clock_drift_mps=float(solution[3]), sats=tuple(sats[i] for i in rows), residuals_mps=residual[rows],
+        excluded=tuple(sats[i] for i in excluded), chi2_passed=passed,
     )
 
 
@@ -233,6 +322,20 @@ def read_reference(path: str) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"{path}: expected at least 5 columns (week, sow, lat, lon, height), got {data.shape[1]}")
     gpst = data[:, 0] * 604800.0 + data[:, 1]
     return gpst, geodetic_to_ecef(np.radians(data[:, 2]), np.radians(data[:, 3]), data[:, 4])
+
+
+def reference_velocity(ref_time: np.ndarray, ref_ecef: np.ndarray, max_gap_s: float = 1.5) -> np.ndarray:
+    """ECEF velocity (m/s) per reference epoch by the central difference of its neighbours' positions (exact
+    for constant acceleration); NaN at the ends and where a neighbour is more than ``max_gap_s`` away."""
+    velocity = np.full_like(ref_ecef, np.nan, dtype=float)
+    if len(ref_time) < 3:
+        return velocity
+    before, after = ref_time[1:-1] - ref_time[:-2], ref_time[2:] - ref_time[1:-1]
+    ok = (before <= max_gap_s) & (after <= max_gap_s) & (before > 0.0) & (after > 0.0)
+    span = (ref_time[2:] - ref_time[:-2])[:, None]
+    inner = (ref_ecef[2:] - ref_ecef[:-2]) / span
+    velocity[1:-1] = np.where(ok[:, None], inner, np.nan)
+    return velocity
 
 
 def horizontal_errors(

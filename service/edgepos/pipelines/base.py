@@ -138,12 +138,15 @@ class PipelineInputError(ValueError):
 
 @dataclass(frozen=True)
 class MeasurementUse:
-    """Whether observation ``index`` of the batch entered the filter, and if not, why."""
+    """Whether observation ``index`` of the batch entered the filter, and if not, why. ``doppler_used`` and
+    ``doppler_reason`` say the same of a pseudorange's Doppler (None: the observation carries none)."""
 
     index: int
     kind: str
     used: bool
     reason: str | None = None
+    doppler_used: bool | None = None
+    doppler_reason: str | None = None
 
 
 @dataclass(frozen=True)

@@ -22,13 +22,20 @@ Per epoch (observations sharing ``t``):
    constellation, its median removed so a clock error cannot fail every satellite) excludes pseudoranges
    beyond the ``gate_probability`` quantile; when more than half fail the track is lost and the pipeline
    starts again from this epoch's least-squares fix.
-4. The filter step; before initialisation, the first epoch with enough satellites initialises the filter
-   from a weighted least-squares fix (gnss/spp.py).
-Every pseudorange appears in the fix's measurement list, used or with the reason it was not.
+4. A pseudorange's optional ``doppler_hz`` (with ``use_doppler``) becomes a range rate, -D x wavelength,
+   modelled with the satellite's velocity and clock drift from the ephemerides
+   (core/measurements/range_rate.py); above the elevation mask it goes through its own residual test
+   (one receiver clock drift for all, so the median is removed) and into the same update as the
+   pseudoranges, with std ``doppler_std_mps`` x the fuzzy factor.
+5. The filter step; before initialisation, the first epoch with enough satellites initialises the filter
+   from a weighted least-squares fix (gnss/spp.py), its velocity and clock drift from the Dopplers when sent.
+Every pseudorange appears in the fix's measurement list, used or with the reason it was not, and with
+its Doppler's use when it carried one.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import secrets
 from collections.abc import Mapping, Sequence
@@ -42,6 +49,7 @@ from edgepos.core import state as state_format
 from edgepos.core.errors import EstimationError, NumericalError
 from edgepos.core.fuzzy import FuzzyNoise
 from edgepos.core.measurements.pseudorange import PseudorangeModel
+from edgepos.core.measurements.range_rate import RangeRateModel
 from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GeodeticAnchor, GnssOnlyModel, RissInput, RissModel
 from edgepos.core.observations import Observation, PseudorangeObservation, RissObservation
@@ -50,7 +58,7 @@ from edgepos.core.particles.base import StepResult, weighted_moments
 from edgepos.gnss.corrections import carrier_frequency
 from edgepos.gnss.ephemerides import DEFAULT_SIGNAL, Ephemerides
 from edgepos.gnss.geodesy import enu_rotation, geodetic_to_ecef
-from edgepos.gnss.measurements import Atmosphere, PseudorangeSet
+from edgepos.gnss.measurements import Atmosphere, PseudorangeSet, doppler_to_range_rate
 from edgepos.gnss.orbits import SPEED_OF_LIGHT, group_delay_factors, sagnac_range
 from edgepos.gnss.spp import SppConfig, SppError, solve_epoch
 from edgepos.pipelines.base import (
@@ -72,6 +80,13 @@ from edgepos.pipelines.options import resolve_options
 SYSTEMS = ("G", "C", "E")
 MAX_PRN = 63
 SECONDS_PER_WEEK = 604800.0
+MAX_DOPPLER_HZ = 20000.0
+"""Largest |Doppler| accepted: a ground receiver sees at most about 5 kHz on L1 from satellite motion, plus
+its oscillator's offset (a few kHz for a poor one)."""
+DEFAULT_DOPPLER_STD_MPS = 0.25
+DEFAULT_DOPPLER_OUTLIER_STD_MPS = 5.0
+"""The Doppler options' defaults, also for sessions stored before the options existed (they sent no Doppler,
+but a client of such a session may start to)."""
 _SAT_RADIUS_M = (1.0e7, 5.0e7)
 """Geocentric distances a client-sent satellite position must lie between (MEO to GEO/IGSO)."""
 
@@ -122,6 +137,24 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "signal's extra path in a street canyon, tens of metres.", 0.1, 10000.0,
     ),
     OptionSpec(
+        "use_doppler", "boolean", True,
+        "Use each pseudorange's doppler_hz as a range rate in the update (velocity and receiver clock drift) "
+        "and in the least-squares initialisation; off: every Doppler is reported unused (to measure what "
+        "Doppler adds).",
+    ),
+    OptionSpec(
+        "doppler_std_mps", "number", DEFAULT_DOPPLER_STD_MPS,
+        "Range-rate noise std (m/s) of a Doppler before the fuzzy factor (its pseudorange's factor when fuzzy "
+        "is on). 0.25: the RMS (0.23 m/s) of the first half of tests/data/gnss-rover's Doppler residuals at "
+        "the reference trajectory, each divided by its fuzzy factor, rounded up (docs/gnss.md).", 0.001, 100.0,
+    ),
+    OptionSpec(
+        "doppler_outlier_std_mps", "number", DEFAULT_DOPPLER_OUTLIER_STD_MPS,
+        "PF and UPF: std (m/s) of a Doppler likelihood's outlier component (see outlier_probability): a "
+        "reflected signal's range rate differs from the direct one's by up to twice the vehicle's speed, "
+        "metres per second in town.", 0.01, 1000.0,
+    ),
+    OptionSpec(
         "systems", "string[]", list(SYSTEMS),
         "Constellations used (RINEX letters G GPS, C BeiDou, E Galileo); others are reported unused.",
         choices=SYSTEMS,
@@ -130,8 +163,8 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
     OptionSpec("min_cn0", "number", 0.0, "Pseudoranges below this C/N0 (dB-Hz) are not used.", 0.0, 80.0),
     OptionSpec(
         "gate_probability", "number", 0.9999,
-        "Residual test: exclude a pseudorange whose normalised residual squared exceeds this chi-square(1) "
-        "quantile; 0 disables.", 0.0, 0.999999999,
+        "Residual test: exclude a pseudorange (or a Doppler's range rate) whose normalised residual squared "
+        "exceeds this chi-square(1) quantile; 0 disables.", 0.0, 0.999999999,
     ),
     OptionSpec(
         "fde_probability", "number", 0.999,
@@ -189,6 +222,9 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
 )
 
 _INITIAL_CLOCK_DRIFT_STD = 5.0
+_INITIAL_DOPPLER_VELOCITY_STD = 1.0
+"""Velocity and drift std (m/s) when initialising from a least-squares Doppler velocity: the baseline's
+horizontal velocity error on the first half of tests/data/gnss-rover had a 95th percentile of 0.93 m/s."""
 _INITIAL_ATTITUDE_STD = 0.1
 _HEADING_STD_TO_START_RISS = 0.3
 """The RISS model takes over once the azimuth the velocity implies is known to this std (rad)."""
@@ -332,6 +368,10 @@ def _validate(session: _Session, observations: Sequence[Observation]) -> None:
                 not is_finite_number(observation.sat_clock) or abs(observation.sat_clock) > 0.01
             ):
                 problems.append(Problem(index, "sat_clock", "must be a finite offset within +-0.01 s"))
+            if observation.doppler_hz is not None and (
+                not is_finite_number(observation.doppler_hz) or abs(observation.doppler_hz) > MAX_DOPPLER_HZ
+            ):
+                problems.append(Problem(index, "doppler_hz", f"must be a finite Doppler within +-{MAX_DOPPLER_HZ:g} Hz"))
         elif isinstance(observation, RissObservation):
             for name, bound in (("wheel_speed", 100.0), ("accel_x", 50.0), ("accel_y", 50.0), ("gyro_z", 10.0)):
                 value = getattr(observation, name)
@@ -348,10 +388,19 @@ def _validate(session: _Session, observations: Sequence[Observation]) -> None:
 # -- satellites ----------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class _Satellites:
-    """The epoch's usable pseudoranges (rows of ``prs``) and the observation index of each row."""
+    """The epoch's usable pseudoranges (rows of ``prs``) and the observation index of each row; with Doppler,
+    ``prs`` carries range rates (NaN where a row has none or no satellite velocity), and ``doppler_reasons``
+    says why a sent Doppler cannot be used whatever the filter does."""
 
     prs: PseudorangeSet
     indices: list[int]
+    doppler_reasons: dict[int, str]
+
+
+_NO_SAT_VELOCITY = (
+    "no satellite velocity: with sat_position and sat_clock sent the service computes no orbit, and the "
+    "range-rate model needs the satellite's velocity and clock drift from the broadcast ephemerides"
+)
 
 
 def _satellites(
@@ -359,12 +408,17 @@ def _satellites(
     options: Mapping[str, Any], uses: dict[int, MeasurementUse],
 ) -> _Satellites:
     """Satellite states per pseudorange, from the client or the broadcast ephemerides; reasons for the rest."""
-    rows: list[tuple[int, str, int, float, float, np.ndarray, float, float]] = []
+    rows: list[tuple[Any, ...]] = []
     need_orbit: list[int] = []
+    use_doppler = bool(options.get("use_doppler", True))
+    doppler_reasons: dict[int, str] = {}
+    nan3 = np.full(3, np.nan)
     for i in epoch:
         observation = observations[i]
         if not isinstance(observation, PseudorangeObservation):
             continue
+        if observation.doppler_hz is not None and not use_doppler:
+            doppler_reasons[i] = "options.use_doppler is off"
         if observation.system not in options["systems"]:
             uses[i] = MeasurementUse(i, observation.kind, False, f"system {observation.system} is not in options.systems")
             continue
@@ -373,8 +427,11 @@ def _satellites(
             continue
         if observation.sat_position is not None and observation.sat_clock is not None:
             frequency = carrier_frequency(observation.system, DEFAULT_SIGNAL[observation.system])
+            if observation.doppler_hz is not None and i not in doppler_reasons:
+                doppler_reasons[i] = _NO_SAT_VELOCITY
             rows.append((i, observation.system, observation.prn, observation.pseudorange, observation.cn0,
-                         np.asarray(observation.sat_position, float), observation.sat_clock, frequency))
+                         np.asarray(observation.sat_position, float), observation.sat_clock, frequency,
+                         math.nan, nan3, math.nan))
         else:
             need_orbit.append(i)
     if need_orbit:
@@ -404,20 +461,31 @@ def _satellites(
                 for k, r in enumerate(have):
                     o = observed[r]
                     position = states.position[k] if o.sat_position is None else np.asarray(o.sat_position, float)
+                    frequency = carrier_frequency(o.system, DEFAULT_SIGNAL[o.system])
+                    rate = math.nan
+                    if o.doppler_hz is not None and use_doppler:
+                        rate = float(doppler_to_range_rate(np.array([o.doppler_hz]), np.array([frequency]))[0])
                     rows.append((need_orbit[r], o.system, o.prn, o.pseudorange, o.cn0, position,
-                                 float(states.clock_s[k]), carrier_frequency(o.system, DEFAULT_SIGNAL[o.system])))
+                                 float(states.clock_s[k]), frequency, rate, states.velocity[k],
+                                 float(states.clock_drift[k])))
     rows.sort(key=lambda row: row[0])
+    count = len(rows)
+    range_rate = np.array([r[8] for r in rows], dtype=float)
+    doppler = bool(np.isfinite(range_rate).any())
     prs = PseudorangeSet(
         gpst,
         tuple(r[1] for r in rows),
         np.array([r[2] for r in rows], dtype=int),
         np.array([r[3] for r in rows], dtype=float),
         np.array([r[4] for r in rows], dtype=float),
-        np.array([r[5] for r in rows], dtype=float).reshape(len(rows), 3),
+        np.array([r[5] for r in rows], dtype=float).reshape(count, 3),
         np.array([r[6] for r in rows], dtype=float),
         np.array([r[7] for r in rows], dtype=float),
+        range_rate if doppler else None,
+        np.array([r[9] for r in rows], dtype=float).reshape(count, 3) if doppler else None,
+        np.array([r[10] for r in rows], dtype=float) if doppler else None,
     )
-    return _Satellites(prs, [r[0] for r in rows])
+    return _Satellites(prs, [r[0] for r in rows], doppler_reasons)
 
 
 def _atmosphere(options: Mapping[str, Any], ephemerides: Ephemerides | None) -> Atmosphere:
@@ -426,9 +494,34 @@ def _atmosphere(options: Mapping[str, Any], ephemerides: Ephemerides | None) -> 
 
 
 # -- one epoch -----------------------------------------------------------------------------------
+_DopplerUses = dict[int, tuple[bool, str | None]]
+"""Per observation index, whether its Doppler entered the update and, if not, why."""
+
+
 def _step(
     session: _Session, epoch: list[int], observations: Sequence[Observation], ephemerides: Ephemerides | None,
     origin: tuple[float, float, float] | None,
+) -> Fix:
+    """One epoch through the filter; every Doppler sent is reported beside its pseudorange."""
+    doppler: _DopplerUses = {}
+    fix = _filter_epoch(session, epoch, observations, ephemerides, origin, doppler)
+    carrying = [i for i in epoch if getattr(observations[i], "doppler_hz", None) is not None]
+    if not carrying:
+        return fix
+    reported = []
+    for use in fix.measurements:
+        if use.index in carrying:
+            used, reason = doppler.get(use.index, (False, None))
+            if not used and reason is None:
+                reason = f"its pseudorange was not used: {use.reason}" if not use.used else "not in this update"
+            use = dataclasses.replace(use, doppler_used=used, doppler_reason=reason)
+        reported.append(use)
+    return dataclasses.replace(fix, measurements=reported)
+
+
+def _filter_epoch(
+    session: _Session, epoch: list[int], observations: Sequence[Observation], ephemerides: Ephemerides | None,
+    origin: tuple[float, float, float] | None, doppler: _DopplerUses,
 ) -> Fix:
     options = session.options
     t = observations[epoch[0]].t
@@ -444,13 +537,16 @@ def _step(
     else:
         gpst = (options["gps_week"] or 0) * SECONDS_PER_WEEK + t
     satellites = _satellites(epoch, observations, ephemerides, gpst, options, uses)
+    doppler.update({i: (False, reason) for i, reason in satellites.doppler_reasons.items()})
     atmosphere = _atmosphere(options, ephemerides)
     rng = np.random.default_rng([session.seed, session.epochs])
 
     if session.initialised and session.filter_t is not None and t - session.filter_t > options["max_gap"]:
         session.initialised = False
     if not session.initialised:
-        return _initialise(session, t, satellites, atmosphere, origin, uses, rng, "waiting for enough satellites to initialise")
+        return _initialise(
+            session, t, satellites, atmosphere, origin, uses, doppler, rng, "waiting for enough satellites to initialise"
+        )
 
     assert session.anchor is not None
     dt = t - session.filter_t if session.filter_t is not None else 0.0
@@ -461,6 +557,7 @@ def _step(
         active[index] = False
     measurement = None
     rows: np.ndarray = np.zeros(0, dtype=int)
+    rate_rows: np.ndarray = np.zeros(0, dtype=int)
     if len(satellites.prs):
         receiver = session.anchor.ecef(centre)
         iono, tropo, elevation, _ = atmosphere.delays(receiver, satellites.prs)
@@ -469,6 +566,8 @@ def _step(
             i = satellites.indices[row]
             uses[i] = MeasurementUse(i, "pseudorange", False, f"elevation {math.degrees(elevation[row]):.1f} deg below the mask")
         prs = satellites.prs
+        if prs.range_rate_mps is not None and prs.sat_clock_drift is not None:
+            rate_rows = rows[np.isfinite(prs.range_rate_mps[rows]) & np.isfinite(prs.sat_clock_drift[rows])]
         known = iono + tropo - SPEED_OF_LIGHT * prs.sat_clock_s
         factor = FuzzyNoise().factor(elevation, prs.cn0_dbhz) if options["fuzzy"] else np.ones(len(prs))
         std = options["pseudorange_std"] * factor
@@ -478,18 +577,29 @@ def _step(
         rows, lost = _residual_test(session, centre, prs, known, std, rows, dt, model, satellites.indices, uses)
         if lost:
             session.initialised = False
-            return _initialise(session, t, satellites, atmosphere, origin, uses, rng, "track lost; waiting for enough satellites")
-        if rows.size:
+            return _initialise(
+                session, t, satellites, atmosphere, origin, uses, doppler, rng, "track lost; waiting for enough satellites"
+            )
+        rate_std = float(options.get("doppler_std_mps", DEFAULT_DOPPLER_STD_MPS)) * factor
+        rate_model: RangeRateModel | None = None
+        if rate_rows.size:
+            rate_rows = _range_rate_test(
+                session, centre, prs, rate_std, rate_rows, dt, model, satellites.indices, doppler
+            )
+        if rate_rows.size:
+            assert prs.sat_velocity is not None and prs.sat_clock_drift is not None
+            rate_model = RangeRateModel.build(
+                session.anchor, prs.sat_position[rate_rows], prs.sat_velocity[rate_rows],
+                prs.sat_clock_drift[rate_rows], rate_std[rate_rows],
+            )
+        if rows.size or rate_model is not None:
             systems = [prs.systems[r] for r in rows]
-            _reset_unseen_clocks(session, t, systems, centre, prs, known, rows, rng)
+            if rows.size:
+                _reset_unseen_clocks(session, t, systems, centre, prs, known, rows, rng)
             for system in set(systems):
                 active[layout.CLOCK[system]] = True
             model_pr = PseudorangeModel.build(session.anchor, prs.sat_position[rows], systems, known[rows], std[rows])
-            outlier = float(options.get("outlier_probability", 0.0)) if options["filter"] != "ukf" else 0.0
-            measurement = Measurement(
-                model_pr.predict, prs.pseudorange_m[rows], model_pr.variances(), outlier,
-                float(options.get("outlier_std", 30.0)) ** 2 if outlier > 0.0 else 0.0,
-            )
+            measurement = _measurement(options, model_pr, prs.pseudorange_m[rows], rate_model, prs, rate_rows)
     filt = _filter(options)
     result = filt.step(session.cloud, model, dt, active, measurement, rng)
     if not (np.all(np.isfinite(result.mean)) and np.all(np.isfinite(result.cov))
@@ -502,8 +612,72 @@ def _step(
     for r in rows:
         i = satellites.indices[r]
         uses[i] = MeasurementUse(i, "pseudorange", True)
+    for r in rate_rows:
+        doppler[satellites.indices[r]] = (True, None)
     status = "tracking" if measurement is not None else "predicted"
-    return _fix(t, status, session, result.mean, result.cov, result, int(rows.size), uses, origin)
+    return _fix(t, status, session, result.mean, result.cov, result, int(rows.size + rate_rows.size), uses, origin)
+
+
+def _measurement(
+    options: Mapping[str, Any], model_pr: PseudorangeModel, pseudoranges: np.ndarray,
+    rate_model: RangeRateModel | None, prs: PseudorangeSet, rate_rows: np.ndarray,
+) -> Measurement:
+    """The epoch's update: the pseudoranges, then the range rates when any pass, as one measurement (one
+    update, so the filters see their correlation through the shared position and clocks)."""
+    outlier = float(options.get("outlier_probability", 0.0)) if options["filter"] != "ukf" else 0.0
+    pr_outlier = float(options.get("outlier_std", 30.0)) ** 2
+    if rate_model is None:
+        return Measurement(
+            model_pr.predict, pseudoranges, model_pr.variances(), outlier, pr_outlier if outlier > 0.0 else 0.0
+        )
+    assert prs.range_rate_mps is not None
+    rate_outlier = float(options.get("doppler_outlier_std_mps", DEFAULT_DOPPLER_OUTLIER_STD_MPS)) ** 2
+    outlier_variance = np.concatenate([np.full(model_pr.dim, pr_outlier), np.full(rate_model.dim, rate_outlier)])
+    anchor = model_pr.anchor
+
+    def predict(states: np.ndarray) -> np.ndarray:
+        lat, lon, height = anchor.geodetic(states)
+        receiver = geodetic_to_ecef(lat, lon, height)
+        return np.concatenate(
+            [model_pr.predict_at(states, receiver), rate_model.predict_at(states, lat, lon, receiver)], axis=-1
+        )
+
+    return Measurement(
+        predict, np.concatenate([pseudoranges, prs.range_rate_mps[rate_rows]]),
+        np.concatenate([model_pr.variances(), rate_model.variances()]), outlier,
+        outlier_variance if outlier > 0.0 else 0.0,
+    )
+
+
+def _range_rate_test(
+    session: _Session, centre: np.ndarray, prs: PseudorangeSet, std: np.ndarray, rows: np.ndarray, dt: float,
+    model: RissModel | GnssOnlyModel, indices: list[int], doppler: _DopplerUses,
+) -> np.ndarray:
+    """The pseudorange residual test's counterpart for range rates: residual = measured - predicted, the
+    median removed when three or more (one clock drift moves them all alike), else the drift's variance
+    added; variance std^2 + the predicted velocity variance (trace). Returns the rows kept."""
+    probability = session.options["gate_probability"]
+    if probability <= 0.0 or rows.size == 0:
+        return rows
+    assert session.anchor is not None and prs.range_rate_mps is not None
+    assert prs.sat_velocity is not None and prs.sat_clock_drift is not None
+    rate_model = RangeRateModel.build(
+        session.anchor, prs.sat_position[rows], prs.sat_velocity[rows], prs.sat_clock_drift[rows], std[rows]
+    )
+    residual = prs.range_rate_mps[rows] - rate_model.predict(centre)
+    predicted_cov = _covariance(session) + model.process_noise(dt)
+    velocity = [layout.VE, layout.VN, layout.VU]
+    variance = std[rows] ** 2 + float(np.trace(predicted_cov[np.ix_(velocity, velocity)]))
+    if rows.size >= 3:
+        residual = residual - np.median(residual)
+    else:
+        variance = variance + predicted_cov[layout.DRIFT, layout.DRIFT]
+    score = residual**2 / variance
+    threshold = _chi2_threshold(probability)
+    failed = score > threshold
+    for r, value in zip(rows[failed], score[failed]):
+        doppler[indices[r]] = (False, f"failed the range-rate residual test: {value:.1f} > {threshold:.1f} (chi-square, 1 dof)")
+    return rows[~failed]
 
 
 def _cloud_mean(cloud: Cloud) -> np.ndarray:
@@ -746,10 +920,11 @@ def _reset_unseen_clocks(
 
 def _initialise(
     session: _Session, t: float, satellites: _Satellites, atmosphere: Atmosphere,
-    origin: tuple[float, float, float] | None, uses: dict[int, MeasurementUse], rng: np.random.Generator,
-    waiting: str,
+    origin: tuple[float, float, float] | None, uses: dict[int, MeasurementUse], doppler: _DopplerUses,
+    rng: np.random.Generator, waiting: str,
 ) -> Fix:
-    """Start the filter from this epoch's weighted least-squares fix, or report why it cannot yet."""
+    """Start the filter from this epoch's weighted least-squares fix, or report why it cannot yet. With
+    Doppler the fix's least-squares velocity and clock drift start the velocity and drift states."""
     options = session.options
     prs = satellites.prs
     start = None if session.anchor is None else geodetic_to_ecef(session.anchor.lat, session.anchor.lon, session.anchor.height)
@@ -779,11 +954,18 @@ def _initialise(
     variances[[layout.NORTH, layout.EAST, layout.UP]] = (sigma * solution.dop.pdop) ** 2 / 3.0 + 1.0
     variances[[layout.VE, layout.VN, layout.VU]] = options["init_velocity_std"] ** 2
     variances[[layout.VU]] = min(options["init_velocity_std"], 2.0) ** 2
+    velocity = solution.velocity
+    if velocity is not None:
+        # Rotated from the solution's own east/north/up into the anchor's (they differ by kilometres at most).
+        enu = enu_rotation(anchor.lat, anchor.lon) @ velocity.velocity
+        mean[[layout.VE, layout.VN, layout.VU]] = enu
+        variances[[layout.VE, layout.VN, layout.VU]] = _INITIAL_DOPPLER_VELOCITY_STD**2
+        mean[layout.DRIFT] = velocity.clock_drift_mps
     variances[[layout.PITCH, layout.ROLL, layout.AZIMUTH]] = _INITIAL_ATTITUDE_STD**2
     for system, index in layout.CLOCK.items():
         mean[index] = solution.clock_bias_m.get(system, 0.0)
         variances[index] = (sigma * solution.dop.gdop) ** 2
-    variances[layout.DRIFT] = _INITIAL_CLOCK_DRIFT_STD**2
+    variances[layout.DRIFT] = (_INITIAL_CLOCK_DRIFT_STD if velocity is None else _INITIAL_DOPPLER_VELOCITY_STD) ** 2
     variances[layout.GYRO_BIAS] = options["gyro_bias_std"] ** 2
     variances[layout.WHEEL_SCALE] = options["wheel_scale_std"] ** 2
     cov = np.diag(variances)
@@ -811,6 +993,14 @@ def _initialise(
     for sat in solution.masked:
         i = satellites.indices[row_of[sat]]
         uses[i] = MeasurementUse(i, "pseudorange", False, "below the elevation mask")
+    if velocity is not None:
+        for sat in velocity.sats:
+            doppler[satellites.indices[row_of[sat]]] = (True, None)
+        for sat in velocity.excluded:
+            doppler[satellites.indices[row_of[sat]]] = (False, "excluded by the least-squares Doppler residual test")
+    elif prs.has_doppler:
+        for i in satellites.indices:
+            doppler.setdefault(i, (False, "too few Dopplers for the least-squares velocity that starts the filter"))
     weights = session.cloud.weights
     estimate = weights @ particles if count > 1 else mean
     return _fix(t, "initialised", session, estimate, cov, None, len(solution.sats), uses, origin)

@@ -439,7 +439,10 @@ def _too_late_uses(
             f"too late: t={observation.t!r} is {lateness:.6g} s older than the session's newest epoch "
             f"t={newest!r}, {why}; not used, the rest of the batch was applied"
         )
-        uses.append(MeasurementUse(i, observation.kind, False, reason))
+        doppler = getattr(observation, "doppler_hz", None) is not None
+        uses.append(
+            MeasurementUse(i, observation.kind, False, reason, False if doppler else None, reason if doppler else None)
+        )
     return uses
 
 

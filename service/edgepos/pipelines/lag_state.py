@@ -4,7 +4,9 @@ Layout: ``_HEADER`` (magic, version, the window's options, the newest epoch, tab
 checkpoint table (time of each checkpoint's last epoch, length), the checkpoint states, the current
 inner state, the window's epoch times and end offsets, and each epoch's observations as one record
 (``encode_epoch``: ``core.observation_codec``'s exact binary form; version 1 wrote JSON rows). A
-batch in time order appends records as bytes and decodes none of the stored ones.
+batch in time order appends records as bytes and decodes none of the stored ones. Version 3 added the
+pseudorange's optional ``doppler_hz``: a version-2 window's records are converted when it is read (its
+pseudoranges without Doppler), so sessions stored before the upgrade go on.
 """
 
 from __future__ import annotations
@@ -15,12 +17,19 @@ import struct
 from collections.abc import Sequence
 from typing import Any
 
-from edgepos.core.observation_codec import ObservationCodecError, decode_observations, encode_observations
+from edgepos.core.observation_codec import (
+    ObservationCodecError,
+    decode_legacy_observations,
+    decode_observations,
+    encode_observations,
+)
 from edgepos.core.observations import Observation
 from edgepos.core.state import StateFormatError
 
 MAGIC = b"EPLW"
-VERSION = 2
+VERSION = 3
+_CONVERTIBLE = (2,)
+"""Older versions whose records ``_unpack`` converts to this version's layout."""
 
 # magic, version, max_delay_s, max_window_epochs, max_lead_s, newest epoch (NaN: none), checkpoints,
 # current state length, observations.
@@ -40,6 +49,14 @@ def decode_epoch(record: bytes) -> list[Observation]:
         return decode_observations(record)
     except ObservationCodecError as error:
         raise StateFormatError(f"lag window record does not decode: {error}") from None
+
+
+def _convert(record: bytes, version: int) -> bytes:
+    """A record of an older window version in this version's layout."""
+    try:
+        return encode_observations(decode_legacy_observations(record, version))
+    except ObservationCodecError as error:
+        raise StateFormatError(f"lag window record (version {version}) does not decode: {error}") from None
 
 
 # -- the window's state --------------------------------------------------------------------------------------
@@ -109,8 +126,10 @@ def _unpack(state: bytes) -> _Window:
         _, version, delay, epochs, lead, newest, checkpoints, current_length, count = _HEADER.unpack_from(
             state
         )
-        if version != VERSION:
-            raise StateFormatError(f"lag window version {version} is not {VERSION}")
+        if version != VERSION and version not in _CONVERTIBLE:
+            raise StateFormatError(
+                f"lag window version {version} is not {VERSION} (nor one it converts): open a new session"
+            )
         offset = _HEADER.size
         table = [_CHECKPOINT.unpack_from(state, offset + i * _CHECKPOINT.size) for i in range(checkpoints)]
         offset += checkpoints * _CHECKPOINT.size
@@ -130,6 +149,8 @@ def _unpack(state: bytes) -> _Window:
             raise StateFormatError("lag window is truncated or corrupt")
     except struct.error as error:
         raise StateFormatError(f"lag window is truncated: {error}") from None
+    if version != VERSION:
+        records = [_convert(record, version) for record in records]
     options = {"max_delay_s": delay, "max_window_epochs": epochs, "max_lead_s": lead}
     return _Window(
         options, None if math.isnan(newest) else newest, stored, current, list(index[:count]), records

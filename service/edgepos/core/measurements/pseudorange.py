@@ -44,7 +44,11 @@ class PseudorangeModel:
 
     def predict(self, states: np.ndarray) -> np.ndarray:
         """Predicted pseudoranges (..., m) of states (..., DIM)."""
-        receiver = self.anchor.ecef(states)
+        return self.predict_at(states, self.anchor.ecef(states))
+
+    def predict_at(self, states: np.ndarray, receiver: np.ndarray) -> np.ndarray:
+        """:meth:`predict` with the states' ECEF positions (..., 3) already computed (shared with the
+        range-rate model when both are updated together)."""
         ranges = sagnac_range(self.sat_position, receiver[..., None, :])
         return ranges + states[..., self.clock_index] + self.known_m
 

@@ -37,7 +37,8 @@ class Measurement:
 
     ``outlier_probability`` > 0 makes each component's likelihood, in the particle filters' weights, the
     mixture (1 - p) N(r; 0, variance) + p N(r; 0, ``outlier_variance``): a heavy tail for errors the
-    Gaussian does not model (reflected signals). The unscented updates (UKF, the UPF's proposal) stay
+    Gaussian does not model (reflected signals). ``outlier_variance`` is one value or one per component
+    (measurements of different units stacked). The unscented updates (UKF, the UPF's proposal) stay
     Gaussian.
     """
 
@@ -45,7 +46,7 @@ class Measurement:
     z: np.ndarray
     variances: np.ndarray
     outlier_probability: float = 0.0
-    outlier_variance: float = 0.0
+    outlier_variance: float | np.ndarray = 0.0
 
     def log_likelihood(self, residual: np.ndarray) -> np.ndarray:
         """log p(z | x) for residuals z - h(x) (..., m), summed over the last axis."""
@@ -58,7 +59,7 @@ class Measurement:
         p = self.outlier_probability
         inlier = math.log1p(-p) - 0.5 * (residual * residual / self.variances + np.log(self.variances) + _LOG_2PI)
         outlier = math.log(p) - 0.5 * (
-            residual * residual / self.outlier_variance + math.log(self.outlier_variance) + _LOG_2PI
+            residual * residual / self.outlier_variance + np.log(self.outlier_variance) + _LOG_2PI
         )
         return np.logaddexp(inlier, outlier)
 
