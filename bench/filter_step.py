@@ -26,17 +26,17 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import baseline_2imm_ckf  # noqa: E402
-from edgepos.core.compiled import BankStepper, CompiledBankStepper, warm_up  # noqa: E402
-from edgepos.core.measurements import GyroYawRate, RsuRangeBearing, Stacked  # noqa: E402
-from edgepos.core.updates import RsuGyroEpoch  # noqa: E402
-from edgepos.pipelines.base import InitialState  # noqa: E402
-from edgepos.pipelines import lag  # noqa: E402
-from edgepos.pipelines.plausibility import unwrap  # noqa: E402
-from edgepos.pipelines.registry import get_pipeline  # noqa: E402
-from edgepos.pipelines.rsu_imu import _bank, _decode, _options_key  # noqa: E402
-from edgepos.sim.scenarios import rsu_imu_paper_scenario  # noqa: E402
-from edgepos.sim.sensors import environment, rsu_imu_epochs  # noqa: E402
+import baseline_2imm_ckf
+from edgepos.core.compiled import BankStepper, CompiledBankStepper, warm_up
+from edgepos.core.measurements import GyroYawRate, RsuRangeBearing, Stacked
+from edgepos.core.updates import RsuGyroEpoch
+from edgepos.pipelines import lag
+from edgepos.pipelines.base import InitialState
+from edgepos.pipelines.plausibility import unwrap
+from edgepos.pipelines.registry import get_pipeline
+from edgepos.pipelines.rsu_imu import _bank, _decode, _options_key
+from edgepos.sim.scenarios import rsu_imu_paper_scenario
+from edgepos.sim.sensors import environment, rsu_imu_epochs
 
 TARGET_US = 150.0
 

@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from edgepos.eval import commands, montecarlo, rsu_imu_algorithms, rsu_imu_montecarlo, rsu_imu_report
 from edgepos.eval.progress import Progress
 

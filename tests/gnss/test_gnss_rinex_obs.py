@@ -9,7 +9,6 @@ import pytest
 from edgepos.gnss.rinex_nav import RinexError
 from edgepos.gnss.rinex_obs import ObservationEpoch, iter_epochs, read_header
 from edgepos.gnss.timesys import calendar_to_seconds, week_seconds
-
 from gnsshelp import OBS
 
 HEADER = [

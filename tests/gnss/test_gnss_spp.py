@@ -22,7 +22,6 @@ from edgepos.gnss.spp import (
     solve_recording,
     summary,
 )
-
 from gnsshelp import NAV, OBS, REFERENCE
 
 CODES = {"G": ("C1C", "S1C"), "C": ("C2I", "S2I")}

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from edgepos.core import layout
 from edgepos.core.filters import make_filter
 from edgepos.core.filters.srukf import SquareRootUnscentedKalmanFilter, cholesky_update
@@ -14,7 +13,12 @@ from edgepos.core.filters.ukf import UnscentedKalmanFilter
 from edgepos.core.measurements.odometer import OdometerDistance, dead_reckoning
 from edgepos.core.motion.ct import CoordinatedTurn
 from edgepos.core.motion.current_statistical import CurrentStatistical
-from edgepos.core.observations import GnssFixObservation, GyroObservation, OdometerObservation, V2vRangeObservation
+from edgepos.core.observations import (
+    GnssFixObservation,
+    GyroObservation,
+    OdometerObservation,
+    V2vRangeObservation,
+)
 from edgepos.eval.federated import METHODS, assisting_tracks, run_method
 from edgepos.pipelines.base import NeighbourTrack, PipelineInputError, StaticEnvironment, TrackPoint
 from edgepos.pipelines.registry import get_pipeline

@@ -8,8 +8,8 @@ position. Estimators (the WLS baseline here, filters elsewhere) only add geometr
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -49,7 +49,7 @@ class PseudorangeSet:
         """RINEX satellite identifiers per row."""
         return tuple(f"{s}{int(p):02d}" for s, p in zip(self.systems, self.prns))
 
-    def subset(self, keep: np.ndarray) -> "PseudorangeSet":
+    def subset(self, keep: np.ndarray) -> PseudorangeSet:
         """Rows where the boolean ``keep`` is true."""
         rows = np.flatnonzero(keep)
         return PseudorangeSet(
@@ -117,7 +117,7 @@ class Atmosphere:
     troposphere: bool = True
 
     @classmethod
-    def from_navigation(cls, nav: NavigationData, troposphere: bool = True) -> "Atmosphere":
+    def from_navigation(cls, nav: NavigationData, troposphere: bool = True) -> Atmosphere:
         """The GPS Klobuchar set of a navigation header (None when the header lacks it)."""
         return cls(nav.klobuchar_gps, troposphere)
 

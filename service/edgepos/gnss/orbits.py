@@ -9,8 +9,8 @@ Times are continuous GPS seconds; BeiDou's 14 s offset is already folded into ``
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 

@@ -10,9 +10,9 @@ cycle-slip records (flag 6) are skipped. Epoch times are returned as continuous 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Iterator, Mapping
 
 import numpy as np
 

@@ -46,7 +46,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from edgepos.core import state as state_format
-from edgepos.core.errors import EstimationError, NumericalError
+from edgepos.core.errors import NumericalError
 from edgepos.core.fuzzy import FuzzyNoise
 from edgepos.core.measurements.pseudorange import PseudorangeModel
 from edgepos.core.measurements.range_rate import RangeRateModel

@@ -9,8 +9,9 @@ averaged on the circle. Everything is plain numpy with the particle axis first, 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Protocol
+from typing import Protocol
 
 import numpy as np
 
