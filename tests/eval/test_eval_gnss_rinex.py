@@ -8,14 +8,16 @@ import json
 from pathlib import Path
 
 import pytest
-
 from edgepos.eval import commands
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "gnss-rover"
 FILES = (
-    "--obs", str(DATA / "rover-0-5min.rnx"),
-    "--nav", str(DATA / "broadcast-nav.rnx"),
-    "--reference", str(DATA / "reference-0-5min.csv"),
+    "--obs",
+    str(DATA / "rover-0-5min.rnx"),
+    "--nav",
+    str(DATA / "broadcast-nav.rnx"),
+    "--reference",
+    str(DATA / "reference-0-5min.csv"),
 )
 
 
@@ -25,13 +27,25 @@ def run_eval(*argv: str) -> int:
     return commands.run(parser.parse_args(list(argv)))
 
 
-@pytest.mark.parametrize(("filter_name", "label"), [("upf", "upf (50 particles, fuzzy)"), ("ukf", "ukf (fuzzy)")])
+@pytest.mark.parametrize(
+    ("filter_name", "label"), [("upf", "upf (50 particles, fuzzy)"), ("ukf", "ukf (fuzzy)")]
+)
 def test_json_has_the_figures_of_filter_and_baseline(
     tmp_path: Path, filter_name: str, label: str, capsys: pytest.CaptureFixture[str]
 ) -> None:
     path = tmp_path / "rinex.json"
-    code = run_eval("gnss-rinex", *FILES, "--filter", filter_name, "--particles", "50", "--max-epochs", "30",
-                    "--json", str(path))
+    code = run_eval(
+        "gnss-rinex",
+        *FILES,
+        "--filter",
+        filter_name,
+        "--particles",
+        "50",
+        "--max-epochs",
+        "30",
+        "--json",
+        str(path),
+    )
     assert code == 0
     document = json.loads(path.read_text())
     for figures in (document, document["baseline"]):
@@ -50,9 +64,21 @@ def test_json_has_the_figures_of_filter_and_baseline(
         ("--option", "pseudorange_std"),
     ],
 )
-def test_refused_options_exit_2_with_a_message(extra: tuple[str, ...], capsys: pytest.CaptureFixture[str]) -> None:
+def test_refused_options_exit_2_with_a_message(
+    extra: tuple[str, ...], capsys: pytest.CaptureFixture[str]
+) -> None:
     assert run_eval("gnss-rinex", *FILES, "--max-epochs", "2", *extra) == 2
     assert "error" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("systems", ["GR", ""])
+def test_constellations_it_cannot_use_are_refused_not_left_out(
+    systems: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as refused:  # argparse's usage error: exit status 2 and the reason
+        run_eval("gnss-rinex", *FILES, "--max-epochs", "2", "--systems", systems)
+    assert refused.value.code == 2
+    assert "constellations must be letters of GCE" in capsys.readouterr().err
 
 
 def test_missing_or_malformed_files_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

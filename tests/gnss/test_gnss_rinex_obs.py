@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 from edgepos.gnss.rinex_nav import RinexError
-from edgepos.gnss.rinex_obs import ObservationEpoch, iter_epochs, read_header
+from edgepos.gnss.rinex_obs import ALL_SYSTEMS, ObservationEpoch, iter_epochs, parse_systems, read_header
 from edgepos.gnss.timesys import calendar_to_seconds, week_seconds
 from gnsshelp import OBS
 
@@ -34,8 +34,23 @@ def test_real_recording_epochs(epochs: list[ObservationEpoch]) -> None:
     first = epochs[0]
     # The first epoch's GPS satellites with C1C and BeiDou satellites with C2I (read off the file by eye).
     gps_bds = [s for s in first.sats if s[0] in "GC"]
-    assert gps_bds == ["C07", "C10", "C14", "C21", "C22", "C26", "C36", "G02", "G05", "G06", "G07", "G09",
-                       "G13", "G28", "G30"]
+    assert gps_bds == [
+        "C07",
+        "C10",
+        "C14",
+        "C21",
+        "C22",
+        "C26",
+        "C36",
+        "G02",
+        "G05",
+        "G06",
+        "G07",
+        "G09",
+        "G13",
+        "G28",
+        "G30",
+    ]
     assert first.pseudorange_m[first.sats.index("G05")] == pytest.approx(20741344.067)
     assert first.cn0_dbhz[first.sats.index("G05")] == pytest.approx(46.250)
     assert first.pseudorange_m[first.sats.index("C07")] == pytest.approx(40656230.413)
@@ -66,7 +81,10 @@ def test_blank_fields_truncated_lines_and_codes() -> None:
 
 
 def test_event_records_are_skipped_and_bdt_files_converted() -> None:
-    event = ["> 2020 11 29 12 40 00.5000000  4  1", "                                                            COMMENT"]
+    event = [
+        "> 2020 11 29 12 40 00.5000000  4  1",
+        "                                                            COMMENT",
+    ]
     bdt = [line.replace("     GPS     ", "     BDT     ") for line in HEADER]
     parsed = [e for _, e in iter_epochs(bdt + event + EPOCH)]
     assert len(parsed) == 1
@@ -88,3 +106,11 @@ def test_malformed_input_names_the_line() -> None:
         list(iter_epochs([HEADER[0][:20] + "N" + HEADER[0][21:]] + HEADER[1:]))
     with pytest.raises(RinexError, match="line 3: system C: 1 observation types, header said 2"):
         list(iter_epochs([HEADER[0], HEADER[1], HEADER[2].replace("C2I S2I", "C2I    "), HEADER[4]]))
+
+
+def test_systems_are_every_supported_constellation_by_default_and_unknown_letters_are_refused() -> None:
+    assert ALL_SYSTEMS == "GCE"
+    assert parse_systems("GCE") == "GCE" and parse_systems("CGC") == "CG"  # each once, in the order given
+    for bad, named in (("GR", "R not supported"), ("x", "x not supported"), ("", "got ''")):
+        with pytest.raises(ValueError, match=named):
+            parse_systems(bad)

@@ -33,7 +33,7 @@ from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.geodesy import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from edgepos.gnss.measurements import prepare_epoch
 from edgepos.gnss.rinex_nav import read_navigation
-from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
+from edgepos.gnss.rinex_obs import ALL_SYSTEMS, DEFAULT_CODES, parse_systems, read_epochs
 from edgepos.gnss.spp import SppConfig, SppError, read_reference, reference_velocity, solve_epoch
 from edgepos.gnss.timesys import SECONDS_PER_WEEK
 from edgepos.pipelines.base import StaticEnvironment
@@ -45,7 +45,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--nav", required=True, help="RINEX 3 navigation file (GPS / BeiDou / Galileo)")
     parser.add_argument("--reference", required=True, help="reference CSV: week, seconds of week, lat deg, lon deg, height m")
     parser.add_argument("--json", metavar="FILE", default=None, help="also write the figures as JSON to FILE")
-    parser.add_argument("--systems", default="GC", help="constellations to use (default GC: GPS + BeiDou; GCE adds Galileo)")
+    parser.add_argument(
+        "--systems", type=_systems, default=ALL_SYSTEMS,
+        help=f"constellations to use (default {ALL_SYSTEMS}: GPS, BeiDou and Galileo, all this project reads; GC: without "
+        "Galileo)",
+    )
     parser.add_argument("--filter", default="upf", choices=("upf", "pf", "ukf"), help="filter (default upf)")
     parser.add_argument("--particles", type=int, default=200, help="particles of pf / upf (default 200)")
     parser.add_argument("--no-fuzzy", action="store_true", help="constant pseudorange noise instead of the fuzzy factor")
@@ -56,6 +60,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="score only epochs A..B-1 (0-based; the run still starts at epoch 0), e.g. 0:150 and 150:300",
     )
     add_option_argument(parser, "pseudorange_std=3")
+
+
+def _systems(text: str) -> str:
+    try:
+        return parse_systems(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
 
 
 def _epoch_range(text: str) -> tuple[int, int]:
@@ -118,14 +129,15 @@ def _score(times: Sequence[float], positions: Sequence[np.ndarray | None], refer
 
 
 def evaluate(
-    obs_path: str, nav_path: str, reference_path: str, systems: str = "GC", options: Mapping[str, Any] | None = None,
+    obs_path: str, nav_path: str, reference_path: str, systems: str = ALL_SYSTEMS,
+    options: Mapping[str, Any] | None = None,
     max_epochs: int | None = None, score_epochs: tuple[int, int] | None = None,
 ) -> dict[str, Any]:
     """Run the pipeline and the WLS baseline over a recording; the figures as a dict (of epochs
     ``score_epochs`` = (A, B), A..B-1, when given; the run then stops after epoch B-1)."""
     if score_epochs is not None:
         max_epochs = score_epochs[1] if max_epochs is None else min(max_epochs, score_epochs[1])
-    codes = {s: DEFAULT_CODES[s] for s in systems if s in DEFAULT_CODES}
+    codes = {s: DEFAULT_CODES[s] for s in parse_systems(systems)}
     navigation = read_navigation(nav_path)
     ephemerides = Ephemerides.from_navigation(navigation)
     environment = StaticEnvironment(navigation=ephemerides)

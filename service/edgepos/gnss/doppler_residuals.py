@@ -25,7 +25,7 @@ from edgepos.gnss.geodesy import elevation_azimuth
 from edgepos.gnss.measurements import prepare_epoch
 from edgepos.gnss.orbits import SPEED_OF_LIGHT, BroadcastOrbits, sagnac_range_rate
 from edgepos.gnss.rinex_nav import read_navigation
-from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
+from edgepos.gnss.rinex_obs import ALL_SYSTEMS, DEFAULT_CODES, read_epochs
 from edgepos.gnss.spp import read_reference, reference_velocity
 
 
@@ -35,7 +35,7 @@ def residuals(
     reference_path: str,
     first: int,
     stop: int,
-    systems: str = "GC",
+    systems: str = ALL_SYSTEMS,
     mask_rad: float = math.radians(10.0),
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Median-centred Doppler residuals (m/s) of epochs first..stop-1, with their elevations (rad) and C/N0."""
@@ -90,7 +90,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--reference", required=True, help="reference CSV: week, seconds of week, lat, lon, height"
     )
     parser.add_argument("--epochs", default="0:1000000", help="epochs A:B (0-based, B excluded)")
-    parser.add_argument("--systems", default="GC", help="constellations (default GC)")
+    parser.add_argument("--systems", default=ALL_SYSTEMS, help=f"constellations (default {ALL_SYSTEMS})")
     args = parser.parse_args(argv)
     first, stop = (int(v) for v in args.epochs.split(":"))
     values, elevation, cn0 = residuals(args.obs, args.nav, args.reference, first, stop, args.systems)

@@ -21,6 +21,19 @@ from edgepos.gnss.timesys import BDT_MINUS_GPST_S, calendar_to_seconds
 
 DEFAULT_CODES: dict[str, tuple[str, str]] = {"G": ("C1C", "S1C"), "C": ("C2I", "S2I"), "E": ("C1C", "S1C")}
 """Per system (pseudorange code, C/N0 code): GPS L1 C/A, BeiDou B1I, Galileo E1."""
+ALL_SYSTEMS = "".join(DEFAULT_CODES)
+"""Every constellation read by default: all those with a signal above (GLONASS, SBAS and QZSS are not used)."""
+
+
+def parse_systems(text: str) -> str:
+    """RINEX system letters such as ``GCE``; ValueError naming any this project cannot use."""
+    unknown = sorted({letter for letter in text if letter not in DEFAULT_CODES})
+    if unknown or not text:
+        raise ValueError(
+            f"constellations must be letters of {ALL_SYSTEMS} (G GPS, C BeiDou, E Galileo), got {text!r}"
+            + (f": {''.join(unknown)} not supported" if unknown else "")
+        )
+    return "".join(dict.fromkeys(text))  # each once, in the order given
 
 
 def doppler_code(code: str) -> str:

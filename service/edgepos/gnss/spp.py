@@ -30,7 +30,7 @@ from edgepos.gnss.geodesy import ecef_to_geodetic, enu_rotation, geodetic_to_ece
 from edgepos.gnss.measurements import Atmosphere, PseudorangeSet, prepare_epoch
 from edgepos.gnss.orbits import OMEGA_EARTH, SPEED_OF_LIGHT, BroadcastOrbits, sagnac_range, sagnac_range_rate
 from edgepos.gnss.rinex_nav import read_navigation
-from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs, read_header
+from edgepos.gnss.rinex_obs import ALL_SYSTEMS, DEFAULT_CODES, parse_systems, read_epochs, read_header
 
 _NEAR_SURFACE_M = (6.0e6, 7.0e6)
 """Geocentric distances between which the estimate counts as a ground receiver (mask and corrections on)."""
@@ -375,13 +375,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--obs", required=True, help="RINEX 3 observation file")
     parser.add_argument("--nav", required=True, help="RINEX 3 navigation file (GPS/BeiDou/Galileo)")
     parser.add_argument("--reference", help="reference CSV: week, seconds of week, lat deg, lon deg, height m")
-    parser.add_argument("--systems", default="GC", help="constellations to use, e.g. GC (default) or GCE")
+    parser.add_argument(
+        "--systems", default=ALL_SYSTEMS, help=f"constellations to use (default {ALL_SYSTEMS}, all this project reads; e.g. GC)"
+    )
     parser.add_argument("--mask-deg", type=float, default=10.0, help="elevation mask (degrees)")
     parser.add_argument("--max-exclusions", type=int, default=SppConfig.max_exclusions,
                         help="outliers excluded per epoch at most (0: plain WLS without exclusion)")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
     args = parser.parse_args(argv)
-    codes = {s: DEFAULT_CODES[s] for s in args.systems if s in DEFAULT_CODES}
+    try:
+        codes = {s: DEFAULT_CODES[s] for s in parse_systems(args.systems)}
+    except ValueError as error:
+        parser.error(str(error))
     config = SppConfig(elevation_mask_rad=math.radians(args.mask_deg), max_exclusions=args.max_exclusions)
     results = solve_recording(args.obs, args.nav, config, codes)
     report: dict[str, object] = {"epochs": len(results), "fixes": sum(s is not None for _, s, _ in results)}
