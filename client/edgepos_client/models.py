@@ -81,6 +81,13 @@ class PseudorangeMeasurement(_Request):
     sat_clock: float | None = Field(
         None, ge=-0.01, le=0.01, description="Satellite clock offset (s); send with sat_position."
     )
+    doppler_hz: float | None = Field(
+        None,
+        ge=-20000.0,
+        le=20000.0,
+        description="Doppler of the same signal (Hz), RINEX sign: positive when the satellite approaches "
+        "(range rate = -doppler_hz x the carrier's wavelength). Optional; gives the server velocity and clock drift.",
+    )
 
 
 class RissMeasurement(_Request):
@@ -140,7 +147,9 @@ class V2vRangeMeasurement(_Request):
     t: float = Field(description="Time (s, vehicle clock); equal t means one epoch.")
     peer_vehicle_id: str = Field(description="The neighbour's vehicle_id.")
     range: float | None = Field(None, ge=0, description="Distance between the vehicles (m).")
-    toa: float | None = Field(None, ge=0, description="One-way time of arrival (s); the server scales it by c.")
+    toa: float | None = Field(
+        None, ge=0, description="One-way time of arrival (s); the server scales it by c."
+    )
 
     @model_validator(mode="after")
     def _one_of(self) -> V2vRangeMeasurement:
@@ -235,6 +244,8 @@ class MeasurementUse(_Response):
     type: str
     used: bool
     reason: str | None = None
+    doppler_used: bool | None = None  # a pseudorange sent with doppler_hz: whether its Doppler was used
+    doppler_reason: str | None = None
 
 
 FixStatus = Literal["initialised", "tracking", "predicted", "uninitialised", "diverged"]

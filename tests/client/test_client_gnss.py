@@ -20,7 +20,7 @@ from edgepos_client import (
 from pydantic import ValidationError
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "api"))
-from gnsswire import NAV, QUICK, horizontal_error, measurements, nav_text  # noqa: E402
+from gnsswire import NAV, QUICK, horizontal_error, measurements, nav_text, with_doppler  # noqa: E402
 
 
 def pseudoranges(first: int, count: int) -> list[PseudorangeMeasurement]:
@@ -57,12 +57,36 @@ async def test_async_client_ephemerides_and_pseudoranges(aclient: AsyncEdgeposCl
         await aclient.delete_ephemerides()
 
 
+@pytest.mark.anyio
+async def test_the_client_sends_dopplers_and_reads_what_became_of_them(aclient: AsyncEdgeposClient) -> None:
+    await aclient.put_ephemerides(NAV)
+    session = await aclient.create_session("doppler-car", "gnss_tight", options=QUICK)
+    batch = [
+        PseudorangeMeasurement(**{k: v for k, v in m.items() if k != "type"})
+        for m in with_doppler(measurements(0, 3))
+    ]
+    assert sum(m.doppler_hz is not None for m in batch) > 10
+    fixes = await aclient.send_batch(session, batch)
+    reports = {
+        use.index: use for fix in fixes for use in fix.measurements
+    }  # each measurement in its epoch's fix
+    assert sorted(reports) == list(range(len(batch)))
+    for index, sent in enumerate(batch):  # a Doppler sent is reported used or why not; none sent, null
+        assert (reports[index].doppler_used is None) == (sent.doppler_hz is None)
+    assert any(use.doppler_used for use in reports.values())
+    assert all(use.doppler_reason for use in reports.values() if use.doppler_used is False)
+    await aclient.delete_ephemerides()
+
+
 def test_models_check_before_sending() -> None:
     item = measurements(0, 1)[0]
     with pytest.raises(ValidationError):
         PseudorangeMeasurement(**{**item, "type": "pseudorange", "system": "R"})
     with pytest.raises(ValidationError):
         PseudorangeMeasurement(**{**item, "type": "pseudorange", "pseudorange_m": math.nan})
+    for doppler in (20000.5, math.inf, math.nan):
+        with pytest.raises(ValidationError):
+            PseudorangeMeasurement(**{**item, "type": "pseudorange", "doppler_hz": doppler})
     with pytest.raises(ValidationError):
         RissMeasurement(t=-1.0, wheel_speed=0.0, accel_x=0.0, accel_y=0.0, gyro_z=0.0)
 
