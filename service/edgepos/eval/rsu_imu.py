@@ -27,7 +27,7 @@ from edgepos.eval.rsu_imu_late import LateSettings
 from edgepos.eval.rsu_imu_montecarlo import PIPELINE, RunFailed, initial_state, monte_carlo, results
 from edgepos.eval.rsu_imu_report import report, to_json, write_plots
 from edgepos.pipelines.registry import get_pipeline
-from edgepos.sim.delivery import LateDelivery
+from edgepos.sim.delivery import add_delivery_arguments, delivery_from
 from edgepos.sim.scenarios import rsu_imu_paper_scenario
 
 PROG = "edgepos eval rsu-imu"
@@ -45,16 +45,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="also report the fixed-lag smoothed RMSE, each epoch smoothed with the data up to S seconds after "
         "it (default 1.0, the default lag window; 0: no smoothing column)",
     )
-    parser.add_argument(
-        "--delay-fraction", metavar="F", type=float, default=None,
-        help="also deliver the runs with a fraction F of the RSU measurements late (see --max-delay), and report "
+    add_delivery_arguments(
+        parser,
+        "also deliver the runs with a fraction F of the RSU measurements late (see --max-delay), and report "
         "the RMSE of the last fix received per epoch beside the in-order run and beside dropping them",
     )
-    parser.add_argument(
-        "--max-delay", metavar="S", type=float, default=0.5,
-        help="late RSU measurements arrive a uniform delay in [--min-delay, S] seconds late (default 0.5)",
-    )
-    parser.add_argument("--min-delay", metavar="S", type=float, default=0.05, help="see --max-delay (default 0.05)")
     parser.add_argument(
         "--batch-epochs", metavar="B", type=int, default=1,
         help="with --delay-fraction, the vehicle sends a batch every B epochs (default 1: each epoch as it happens)",
@@ -79,10 +74,7 @@ def _late_settings(args: argparse.Namespace) -> LateSettings:
         raise ValueError("--smooth-lag must be >= 0")
     if args.batch_epochs < 1:
         raise ValueError("--batch-epochs must be >= 1")
-    delivery = None
-    if args.delay_fraction is not None:
-        delivery = LateDelivery(args.delay_fraction, args.max_delay, args.min_delay)
-    return LateSettings(args.smooth_lag or None, delivery, args.batch_epochs)
+    return LateSettings(args.smooth_lag or None, delivery_from(args), args.batch_epochs)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -31,7 +31,13 @@ from edgepos_client import AsyncEdgeposClient, EdgeposError, Fix, RateLimited, S
 
 from edgepos.core.observations import Observation
 from edgepos.loadgen import common, federated_sim, v2v_sim
-from edgepos.sim.delivery import LateDelivery, arrival_batches, arrival_times
+from edgepos.sim.delivery import (
+    LateDelivery,
+    add_delivery_arguments,
+    arrival_batches,
+    arrival_times,
+    delivery_from,
+)
 from edgepos.sim.scenarios import Scenario
 
 
@@ -354,16 +360,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--json", type=Path, default=None, metavar="FILE", help="also write the results as JSON"
     )
-    parser.add_argument(
-        "--delay-fraction", metavar="F", type=float, default=None,
-        help="rsu-imu: run three times, in order, with a fraction F of the RSU measurements late (see "
+    add_delivery_arguments(
+        parser,
+        "rsu-imu: run three times, in order, with a fraction F of the RSU measurements late (see "
         "--max-delay), and with those dropped; report the RMSE of the last fix received per epoch of each",
     )
-    parser.add_argument(
-        "--max-delay", metavar="S", type=float, default=0.5,
-        help="late RSU measurements arrive a uniform delay in [--min-delay, S] s late (default 0.5)",
-    )
-    parser.add_argument("--min-delay", metavar="S", type=float, default=0.05, help="see --max-delay (default 0.05)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -416,7 +417,8 @@ LATE_MODES = (("in order", None, False), ("late", "late", False), ("late dropped
 def _run_late(args: argparse.Namespace, key: str) -> int:
     """The same vehicles in order, with late RSU measurements, and with those dropped, one after the other."""
     try:
-        delivery = LateDelivery(args.delay_fraction, args.max_delay, args.min_delay)
+        delivery = delivery_from(args)
+        assert delivery is not None  # only called with --delay-fraction
     except ValueError as error:
         print(f"edgepos simulate: {error}", file=sys.stderr)
         return 2

@@ -9,6 +9,7 @@ without a lag window would have to do: a measurement that missed its epoch's bat
 
 from __future__ import annotations
 
+import argparse
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -32,6 +33,24 @@ class LateDelivery:
             raise ValueError(f"the late fraction must be in [0, 1], got {self.fraction}")
         if not 0.0 <= self.min_delay_s <= self.max_delay_s:
             raise ValueError(f"delays must satisfy 0 <= min ({self.min_delay_s}) <= max ({self.max_delay_s})")
+
+
+def add_delivery_arguments(parser: argparse.ArgumentParser, fraction_help: str) -> None:
+    """``--delay-fraction`` (help: ``fraction_help``), ``--max-delay`` and ``--min-delay``: the command-line
+    form of a :class:`LateDelivery` (see :func:`delivery_from`)."""
+    parser.add_argument("--delay-fraction", metavar="F", type=float, default=None, help=fraction_help)
+    parser.add_argument(
+        "--max-delay", metavar="S", type=float, default=0.5,
+        help="late RSU measurements arrive a uniform delay in [--min-delay, S] seconds late (default 0.5)",
+    )
+    parser.add_argument("--min-delay", metavar="S", type=float, default=0.05, help="see --max-delay (default 0.05)")
+
+
+def delivery_from(args: argparse.Namespace) -> LateDelivery | None:
+    """The late delivery the arguments ask for (None without ``--delay-fraction``); ValueError if out of range."""
+    if args.delay_fraction is None:
+        return None
+    return LateDelivery(args.delay_fraction, args.max_delay, args.min_delay)
 
 
 def arrival_times(
