@@ -89,6 +89,7 @@ def _use_to_json(use: MeasurementUse) -> dict[str, Any]:
     return {
         "index": use.index, "type": use.kind, "used": use.used, "reason": use.reason,
         "doppler_used": use.doppler_used, "doppler_reason": use.doppler_reason,
+        "correction_applied": use.correction_applied, "correction_reason": use.correction_reason,
     }
 
 
