@@ -14,8 +14,10 @@ error, and the height difference between base and rover (the troposphere's main 
 A rover that models no ionosphere (or troposphere) adds the base's modelled term too (:meth:`lookup`
 returns them), which removes the whole delay as measured at the base.
 
-Range-rate corrections (the same difference for range rates from the base's Doppler, the median drift
-removed) let a correction be propagated to a rover epoch after its base epoch: C(t) = C(t_b) + R (t - t_b).
+A correction is held, not propagated, between its base epoch and the rover's: range-rate corrections
+from the base's Doppler (the same difference for range rates) were tried, and propagating by them made the
+correction's prediction worse than holding it at every age measured (1-120 s; docs/gnss.md): the Doppler's
+noise times the age exceeds the correction's own slow change.
 
 Which correction a rover pseudorange gets: the newest of its satellite at or before the rover epoch
 (never a later one: a live site has no future base epoch, so neither does the evaluation), only when no
@@ -33,7 +35,7 @@ import numpy as np
 
 from edgepos.gnss.geodesy import ecef_to_geodetic, enu_rotation
 from edgepos.gnss.measurements import Atmosphere, PseudorangeSet, prepare_epoch
-from edgepos.gnss.orbits import SPEED_OF_LIGHT, BroadcastOrbits, sagnac_range, sagnac_range_rate
+from edgepos.gnss.orbits import SPEED_OF_LIGHT, BroadcastOrbits, sagnac_range
 from edgepos.gnss.rinex_obs import ObservationEpoch, ObservationHeader
 
 DEFAULT_MAX_AGE_S = 30.0
@@ -78,14 +80,13 @@ def _issue(issue: Issue | None) -> Issue:
 
 @dataclass(frozen=True)
 class EpochCorrections:
-    """One base epoch's corrections: per satellite (``sats``) the pseudorange correction (m), its rate (m/s,
-    NaN without Doppler), the ephemeris issue used, and the modelled ionosphere and troposphere at the
+    """One base epoch's corrections: per satellite (``sats``) the pseudorange correction (m), the ephemeris
+    issue used, and the modelled ionosphere and troposphere at the
     base (m)."""
 
     gpst: float
     sats: tuple[str, ...]
     correction_m: np.ndarray
-    rate_mps: np.ndarray
     issues: tuple[Issue, ...]
     ionosphere_m: np.ndarray
     troposphere_m: np.ndarray
@@ -105,15 +106,11 @@ def epoch_corrections(
     prs, _ = prepare_epoch(epoch, orbits, codes)
     if len(prs) == 0:
         empty = np.zeros(0)
-        return EpochCorrections(epoch.gpst, (), empty, empty, (), empty, empty)
+        return EpochCorrections(epoch.gpst, (), empty, (), empty, empty)
     issues = ephemeris_issues(orbits, orbits.select(prs.systems, prs.prns, prs.gpst))
     iono, tropo, elevation, _ = atmosphere.delays(position, prs)
     model = sagnac_range(prs.sat_position, position) + iono + tropo - SPEED_OF_LIGHT * prs.sat_clock_s
     raw = model - prs.pseudorange_m
-    rate = np.full(len(prs), np.nan)
-    if prs.range_rate_mps is not None and prs.sat_velocity is not None and prs.sat_clock_drift is not None:
-        predicted = sagnac_range_rate(prs.sat_position, prs.sat_velocity, position, np.zeros(3))
-        rate = predicted - SPEED_OF_LIGHT * prs.sat_clock_drift - prs.range_rate_mps
     systems = np.array(prs.systems)
     keep = (elevation >= elevation_mask_rad) & np.isfinite(raw)
     correction = np.full(len(prs), np.nan)
@@ -123,17 +120,12 @@ def epoch_corrections(
             keep &= systems != system
             continue
         correction[rows] = raw[rows] - np.median(raw[rows])
-    rated = keep & np.isfinite(rate)
-    if rated.sum() >= 2:
-        rate[rated] -= np.median(rate[rated])
-    rate[~rated] = np.nan
     rows = np.flatnonzero(keep)
     sats = prs.sats
     return EpochCorrections(
         epoch.gpst,
         tuple(sats[r] for r in rows),
         correction[rows],
-        rate[rows],
         tuple(_issue(issues[r]) for r in rows),
         iono[rows],
         tropo[rows],
@@ -155,21 +147,20 @@ class CorrectionTable:
     """Every base epoch's corrections, indexed per satellite for the rover's lookups."""
 
     def __init__(self, epochs: Iterable[EpochCorrections]) -> None:
-        per_sat: dict[str, list[tuple[float, float, float, Issue, float, float]]] = {}
+        per_sat: dict[str, list[tuple[float, float, Issue, float, float]]] = {}
         for e in epochs:
             for k, sat in enumerate(e.sats):
                 per_sat.setdefault(sat, []).append(
                     (
                         e.gpst,
                         float(e.correction_m[k]),
-                        float(e.rate_mps[k]),
                         e.issues[k],
                         float(e.ionosphere_m[k]),
                         float(e.troposphere_m[k]),
                     )
                 )
         self._times: dict[str, np.ndarray] = {}
-        self._rows: dict[str, list[tuple[float, float, float, Issue, float, float]]] = {}
+        self._rows: dict[str, list[tuple[float, float, Issue, float, float]]] = {}
         for sat, rows in per_sat.items():
             rows.sort(key=lambda row: row[0])
             self._rows[sat] = rows
@@ -191,15 +182,14 @@ class CorrectionTable:
         k = int(np.searchsorted(times, gpst + 1e-6, side="right")) - 1
         if k < 0:
             return f"{NO_CORRECTION} at or before this epoch"
-        t_base, value, rate, base_issue, iono, tropo = self._rows[sat][k]
+        t_base, value, base_issue, iono, tropo = self._rows[sat][k]
         age = gpst - t_base
         if age > max_age_s:
             return f"{TOO_OLD}: {age:.1f} s > max_correction_age_s {max_age_s:g} s"
         if issue is None or base_issue != issue:
             rover = "none" if issue is None else f"IODE {issue[0]} toe {issue[1]:.0f}"
             return f"{ISSUE_MISMATCH}: base IODE {base_issue[0]} toe {base_issue[1]:.0f}, rover {rover}"
-        propagated = value + (rate * age if np.isfinite(rate) else 0.0)
-        return Correction(propagated, age, iono, tropo)
+        return Correction(value, age, iono, tropo)
 
 
 def corrections_from_epochs(

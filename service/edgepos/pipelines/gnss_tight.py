@@ -86,7 +86,6 @@ MAX_DOPPLER_HZ = 20000.0
 its oscillator's offset (a few kHz for a poor one)."""
 DEFAULT_DOPPLER_STD_MPS = 0.25
 DEFAULT_DOPPLER_OUTLIER_STD_MPS = 5.0
-DEFAULT_CORRECTED_PSEUDORANGE_STD = 1.6
 """The Doppler options' defaults, also for sessions stored before the options existed (they sent no Doppler,
 but a client of such a session may start to)."""
 _SAT_RADIUS_M = (1.0e7, 5.0e7)
@@ -126,17 +125,11 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
     ),
     OptionSpec("pseudorange_std", "number", 2.0, "R0: pseudorange noise std (m) before the fuzzy factor.", 0.01, 1000.0),
     OptionSpec(
-        "corrected_pseudorange_std", "number", DEFAULT_CORRECTED_PSEUDORANGE_STD,
-        "R0 of a pseudorange with a differential correction from the site's reference station (m, before "
-        "the fuzzy factor): 1.6 is the RMS (1.53 m) of corrected residuals at the reference trajectory, "
-        "divided by the fuzzy factor, on the first half of tests/data/gnss-rover, rounded up (docs/gnss.md). "
-        "Applies only when the site has corrections.", 0.01, 1000.0,
-    ),
-    OptionSpec(
         "max_correction_age_s", "number", DEFAULT_MAX_AGE_S,
-        "Differential corrections older than this (s) are not applied (the measurement says so); 30 s: a "
-        "correction propagated by its rate changes by decimetres within it (docs/gnss.md). Applies only "
-        "when the site has corrections.", 1.0, 600.0,
+        "Differential corrections from the site's reference station older than this (s) are not applied "
+        "(the measurement says so); 30 s: a reference station's correction changes by 0.2 m RMS in 30 s, "
+        "well under the corrected pseudoranges' noise (docs/gnss.md). Applies only when the site has "
+        "corrections.", 1.0, 600.0,
     ),
     OptionSpec(
         "outlier_probability", "number", 0.1,
@@ -647,9 +640,6 @@ def _filter_epoch(
         known = iono + tropo - SPEED_OF_LIGHT * prs.sat_clock_s
         factor = FuzzyNoise().factor(elevation, prs.cn0_dbhz) if options["fuzzy"] else np.ones(len(prs))
         std = options["pseudorange_std"] * factor
-        if satellites.corrected is not None:
-            corrected_std = float(options.get("corrected_pseudorange_std", DEFAULT_CORRECTED_PSEUDORANGE_STD))
-            std = np.where(satellites.corrected, corrected_std * factor, std)
         rows = _snapshot_test(
             session, centre, prs, known, _snapshot_std(elevation, satellites.corrected), rows,
             satellites.indices, uses,
