@@ -244,6 +244,9 @@ def _format(value: Any) -> str:
 def run(args: argparse.Namespace) -> int:
     options: dict[str, Any] = {"filter": args.filter, "particles": args.particles, "fuzzy": not args.no_fuzzy,
                                "seed": args.seed}
+    if args.base_position is not None and args.base is None:
+        print("edgepos eval gnss-rinex: error: --base-position needs --base (the station's observations)", file=sys.stderr)
+        return 2
     try:
         options.update(parse_overrides(args.option))
         GnssTightPipeline().resolve_options(options)
