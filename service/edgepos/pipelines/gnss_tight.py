@@ -15,7 +15,10 @@ Per epoch (observations sharing ``t``):
 2. Each pseudorange gets its satellite's ECEF position and clock at transmit time: the client's
    ``sat_position``/``sat_clock`` when sent, else the broadcast ephemerides (Earth rotation, satellite
    clock with relativity and group delay); then elevation mask, C/N0 floor, Klobuchar and Saastamoinen at
-   the predicted position, and the fuzzy noise factor (Table 1, eq. 20) when ``fuzzy`` is on.
+   the predicted position, and the fuzzy noise factor (Table 1, eq. 20) when ``fuzzy`` is on. When the
+   environment has differential corrections from the site's reference station (gnss/differential.py),
+   each pseudorange with a valid one (same satellite and ephemeris issue, at most
+   ``max_correction_age_s`` old) has it added; the others are used uncorrected, and each says why.
 3. A snapshot test like the least-squares baseline's (chi-square on this epoch's own least-squares
    residuals, worst pseudorange excluded while it fails; ``fde_probability``) finds biased (NLOS)
    pseudoranges whatever the filter believes; then a residual test against the prediction (per
