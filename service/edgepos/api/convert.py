@@ -86,15 +86,12 @@ def fix_to_json(fix: Fix, include_state: bool, origin: GeodeticOrigin | None) ->
 
 def _use_to_json(use: MeasurementUse) -> dict[str, Any]:
     """One measurement's use (the Doppler fields null unless it is a pseudorange that carried a Doppler; the
-    correction fields only when the site has differential corrections, so answers without are unchanged)."""
-    entry: dict[str, Any] = {
+    correction fields null unless the site has differential corrections)."""
+    return {
         "index": use.index, "type": use.kind, "used": use.used, "reason": use.reason,
         "doppler_used": use.doppler_used, "doppler_reason": use.doppler_reason,
+        "correction_applied": use.correction_applied, "correction_reason": use.correction_reason,
     }
-    if use.correction_applied is not None:
-        entry["correction_applied"] = use.correction_applied
-        entry["correction_reason"] = use.correction_reason
-    return entry
 
 
 # A number in value position (after ':', ',' or '[' in compact JSON) that JSON cannot hold.

@@ -456,7 +456,7 @@ class MeasurementUseOut(ResponseModel):
     correction_applied: bool | None = Field(
         None,
         description="Only for a pseudorange when the site has differential corrections from a reference "
-        "station (the field is absent otherwise): whether a correction was added to it.",
+        "station, else null: whether a correction was added to it.",
     )
     correction_reason: str | None = Field(
         None,
