@@ -89,3 +89,42 @@ def test_missing_or_malformed_files_exit_2(tmp_path: Path, capsys: pytest.Captur
     malformed = (*FILES[:2], "--nav", str(garbage), *FILES[4:])
     assert run_eval("gnss-rinex", *malformed, "--max-epochs", "2") == 2
     assert capsys.readouterr().err.count("error") == 2
+
+
+def test_base_station_corrections_in_the_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--base`` (position from the header) and the same position given with ``--base-position`` give the
+    same figures; the JSON names the station's position and its number of corrections."""
+    base = str(DATA / "base-0-5min.rnx")
+    documents = []
+    for extra in ((), ("--base-position", "4777633.952592235,203108.98744838778,4206595.200050365")):
+        path = tmp_path / f"base{len(extra)}.json"
+        code = run_eval("gnss-rinex", *FILES, "--filter", "ukf", "--max-epochs", "20", "--base", base, *extra,
+                        "--json", str(path))
+        assert code == 0
+        documents.append(json.loads(path.read_text()))
+    first, second = documents
+    assert first["base"]["corrections"] > 3000
+    assert first["base"]["position_ecef_m"] == pytest.approx(second["base"]["position_ecef_m"], abs=1e-6)
+    assert first["horizontal_rms_m"] == pytest.approx(second["horizontal_rms_m"], abs=1e-6)
+    assert "+ base" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("position", ["1,2", "a,b,c", "0,0,0", "nan,0,0"])
+def test_bad_base_position_is_refused_naming_the_argument(position: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        run_eval("gnss-rinex", *FILES, "--base", str(DATA / "base-0-5min.rnx"), "--base-position", position)
+    assert exit_info.value.code == 2
+    assert "--base-position" in capsys.readouterr().err
+
+
+def test_base_file_without_a_position_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A base file whose header has no APPROX POSITION XYZ (and no --base-position) is refused by name."""
+    lines = (DATA / "base-0-5min.rnx").read_text().splitlines(keepends=True)[:200]
+    stripped = tmp_path / "base.rnx"
+    stripped.write_text("".join(line for line in lines if "APPROX POSITION XYZ" not in line))
+    assert run_eval("gnss-rinex", *FILES, "--max-epochs", "2", "--base", str(stripped)) == 2
+    assert "APPROX POSITION XYZ" in capsys.readouterr().err
+    assert run_eval("gnss-rinex", *FILES, "--max-epochs", "2", "--base", str(tmp_path / "none.rnx")) == 2
+    # A position without a station would be ignored: refused instead.
+    assert run_eval("gnss-rinex", *FILES, "--max-epochs", "2", "--base-position", "4777633,203108,4206595") == 2
+    assert "--base-position needs --base" in capsys.readouterr().err

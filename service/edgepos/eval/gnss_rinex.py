@@ -12,6 +12,12 @@ differences (``spp.reference_velocity``): the horizontal error of the fix's (vx,
 site frame, against the reference's east and north velocity at its own position (the two frames differ by
 the few kilometres' rotation, 1e-3 rad: 0.01 m/s at 10 m/s). ``--score-epochs A:B`` scores only epochs
 A..B-1 (0-based) of one run from the first epoch, so halves of a recording are scored on the same run.
+
+``--base BASE.rnx`` adds differential corrections from a reference station's observations
+(gnss/differential.py) at its known position (``--base-position X,Y,Z`` ECEF m, else the file header's
+APPROX POSITION XYZ plus its antenna delta): the pipeline gets them in its environment, as the service
+would, and the WLS baseline adds the same corrections (with the same rules: same satellite and ephemeris
+issue, newest base epoch at or before, ``max_correction_age_s``).
 """
 
 from __future__ import annotations
@@ -29,11 +35,13 @@ import numpy as np
 
 from edgepos.core.observations import PseudorangeObservation
 from edgepos.eval.overrides import add_option_argument, parse_overrides
+from edgepos.gnss.differential import base_position as header_base_position
+from edgepos.gnss.differential import correct_set, corrections_from_epochs
 from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.geodesy import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from edgepos.gnss.measurements import prepare_epoch
 from edgepos.gnss.rinex_nav import read_navigation
-from edgepos.gnss.rinex_obs import ALL_SYSTEMS, DEFAULT_CODES, parse_systems, read_epochs
+from edgepos.gnss.rinex_obs import ALL_SYSTEMS, DEFAULT_CODES, parse_systems, read_epochs, read_header
 from edgepos.gnss.spp import SppConfig, SppError, read_reference, reference_velocity, solve_epoch
 from edgepos.gnss.timesys import SECONDS_PER_WEEK
 from edgepos.pipelines.base import StaticEnvironment
@@ -59,6 +67,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--score-epochs", type=_epoch_range, default=None, metavar="A:B",
         help="score only epochs A..B-1 (0-based; the run still starts at epoch 0), e.g. 0:150 and 150:300",
     )
+    parser.add_argument("--base", metavar="BASE.rnx", default=None,
+                        help="RINEX 3 observations of a reference station: differential corrections")
+    parser.add_argument("--base-position", type=_position, default=None, metavar="X,Y,Z",
+                        help="the reference station's ECEF antenna position (m; default: from --base's header)")
     add_option_argument(parser, "pseudorange_std=3")
 
 
@@ -67,6 +79,17 @@ def _systems(text: str) -> str:
         return parse_systems(text)
     except ValueError as error:
         raise argparse.ArgumentTypeError(str(error)) from None
+
+
+def _position(text: str) -> tuple[float, float, float]:
+    """``X,Y,Z`` (ECEF m, on the Earth's surface) -> a tuple."""
+    try:
+        x, y, z = (float(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y,Z (three ECEF metres), got {text!r}") from None
+    if not all(math.isfinite(v) for v in (x, y, z)) or not 6.0e6 < math.hypot(x, y, z) < 7.0e6:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an ECEF position on the Earth's surface")
+    return x, y, z
 
 
 def _epoch_range(text: str) -> tuple[int, int]:
@@ -131,18 +154,27 @@ def _score(times: Sequence[float], positions: Sequence[np.ndarray | None], refer
 def evaluate(
     obs_path: str, nav_path: str, reference_path: str, systems: str = ALL_SYSTEMS,
     options: Mapping[str, Any] | None = None,
-    max_epochs: int | None = None, score_epochs: tuple[int, int] | None = None,
+    max_epochs: int | None = None, score_epochs: tuple[int, int] | None = None, base_path: str | None = None,
+    base_position: Sequence[float] | None = None,
 ) -> dict[str, Any]:
     """Run the pipeline and the WLS baseline over a recording; the figures as a dict (of epochs
-    ``score_epochs`` = (A, B), A..B-1, when given; the run then stops after epoch B-1)."""
+    ``score_epochs`` = (A, B), A..B-1, when given; the run then stops after epoch B-1). With ``base_path``
+    both use differential corrections from that reference station."""
     if score_epochs is not None:
         max_epochs = score_epochs[1] if max_epochs is None else min(max_epochs, score_epochs[1])
     codes = {s: DEFAULT_CODES[s] for s in parse_systems(systems)}
     navigation = read_navigation(nav_path)
     ephemerides = Ephemerides.from_navigation(navigation)
-    environment = StaticEnvironment(navigation=ephemerides)
     pipeline = GnssTightPipeline()
     resolved = pipeline.resolve_options({"systems": sorted(codes), **(options or {})})
+    table = None
+    if base_path is not None:
+        station = header_base_position(read_header(base_path)) if base_position is None else np.asarray(base_position, float)
+        table = corrections_from_epochs(
+            read_epochs(base_path, codes), station, ephemerides.orbits, ephemerides.atmosphere, codes,
+            resolved["elevation_mask"],
+        )
+    environment = StaticEnvironment(navigation=ephemerides, differential=table)
     use_doppler = bool(resolved["use_doppler"])
     state = pipeline.create(resolved, None)
     reference = read_reference(reference_path)
@@ -182,10 +214,13 @@ def evaluate(
         has_velocity = fix is not None and fix.vx is not None and fix.vy is not None
         fix_velocities.append(np.array([fix.vx, fix.vy]) if has_velocity else None)  # type: ignore[union-attr]
         prs, _ = prepare_epoch(epoch, ephemerides.orbits, codes)
+        corrected = None
+        if table is not None:
+            prs, corrected, _ = correct_set(prs, ephemerides.orbits, table, resolved["max_correction_age_s"])
         if not use_doppler:
             prs = dataclasses.replace(prs, range_rate_mps=None, sat_velocity=None, sat_clock_drift=None)
         try:
-            solution = solve_epoch(prs, atmosphere, config, previous)
+            solution = solve_epoch(prs, atmosphere, config, previous, corrected)
             previous = solution.position
             baseline.append(solution.position)
             baseline_velocities.append(None if solution.velocity is None else solution.velocity.velocity_enu[:2])
@@ -204,6 +239,9 @@ def evaluate(
     report["seconds_per_epoch"] = pipeline_seconds / max(len(times), 1)
     report["use_doppler"] = use_doppler
     report["score_epochs"] = None if score_epochs is None else list(score_epochs)
+    report["base"] = None if base_path is None else {
+        "file": base_path, "position_ecef_m": [float(v) for v in station], "corrections": len(table or ()),
+    }
     report["baseline"] = {
         "method": "epoch-by-epoch WLS (gnss/spp.py)",
         **_score(times, baseline, reference, len(times), baseline_velocities if use_doppler else None),
@@ -218,6 +256,9 @@ def _format(value: Any) -> str:
 def run(args: argparse.Namespace) -> int:
     options: dict[str, Any] = {"filter": args.filter, "particles": args.particles, "fuzzy": not args.no_fuzzy,
                                "seed": args.seed}
+    if args.base_position is not None and args.base is None:
+        print("edgepos eval gnss-rinex: error: --base-position needs --base (the station's observations)", file=sys.stderr)
+        return 2
     try:
         options.update(parse_overrides(args.option))
         GnssTightPipeline().resolve_options(options)
@@ -226,7 +267,8 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         report = evaluate(
-            args.obs, args.nav, args.reference, args.systems, options, args.max_epochs, args.score_epochs
+            args.obs, args.nav, args.reference, args.systems, options, args.max_epochs, args.score_epochs,
+            args.base, args.base_position,
         )
     except (OSError, ValueError) as error:  # unreadable or malformed files (RinexError is a ValueError)
         print(f"edgepos eval gnss-rinex: error: {error}", file=sys.stderr)
@@ -235,13 +277,15 @@ def run(args: argparse.Namespace) -> int:
     details += ["fuzzy"] if report["fuzzy"] else []
     label = f"gnss_tight {report['filter']}" + (f" ({', '.join(details)})" if details else "")
     label += " + Doppler" if report["use_doppler"] else " no Doppler"
+    label += " + base" if report["base"] is not None else ""
     if report["score_epochs"] is not None:
         print(f"scored epochs {report['score_epochs'][0]}..{report['score_epochs'][1] - 1}")
     print(
         f"{'solution':<48} {'epochs':>6} {'fixes':>6} {'ref w/o fix':>11} {'RMS m':>7} {'p95 m':>7} {'max m':>7} "
         f"{'vel RMS m/s':>11}"
     )
-    for name, row in ((label, report), ("WLS baseline (gnss/spp.py)", report["baseline"])):
+    baseline_label = "WLS baseline (gnss/spp.py)" + (" + base" if report["base"] is not None else "")
+    for name, row in ((label, report), (baseline_label, report["baseline"])):
         print(
             f"{name:<48} {row['epochs']:>6} {row['fixes']:>6} {row['reference_epochs_without_fix']:>11} "
             f"{_format(row['horizontal_rms_m']):>7} {_format(row['horizontal_p95_m']):>7} {_format(row['horizontal_max_m']):>7} "

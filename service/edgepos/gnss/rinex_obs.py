@@ -50,6 +50,9 @@ class ObservationHeader:
     time_system: str
     approx_position: tuple[float, float, float] | None
     interval_s: float | None
+    antenna_delta_hen: tuple[float, float, float] | None = None
+    """``ANTENNA: DELTA H/E/N`` (m): the antenna reference point above, east and north of the marker, whose
+    position ``APPROX POSITION XYZ`` gives."""
 
 
 @dataclass(frozen=True)
@@ -97,6 +100,7 @@ def _parse_header(lines: Iterator[str]) -> tuple[ObservationHeader, int]:
     current: str | None = None
     time_system = "GPS"
     approx: tuple[float, float, float] | None = None
+    delta: tuple[float, float, float] | None = None
     interval: float | None = None
     number = 1
     for line in lines:
@@ -108,7 +112,9 @@ def _parse_header(lines: Iterator[str]) -> tuple[ObservationHeader, int]:
                     raise RinexError(
                         declared_at, f"system {system}: {len(obs_types[system])} observation types, header said {count}"
                     )
-            header = ObservationHeader(version, {k: tuple(v) for k, v in obs_types.items()}, time_system, approx, interval)
+            header = ObservationHeader(
+                version, {k: tuple(v) for k, v in obs_types.items()}, time_system, approx, interval, delta
+            )
             return header, number
         if label == "SYS / # / OBS TYPES":
             if line[0] != " ":
@@ -128,6 +134,11 @@ def _parse_header(lines: Iterator[str]) -> tuple[ObservationHeader, int]:
                 approx = (float(line[0:14]), float(line[14:28]), float(line[28:42]))
             except ValueError:
                 raise RinexError(number, "cannot read APPROX POSITION XYZ") from None
+        elif label == "ANTENNA: DELTA H/E/N":
+            try:
+                delta = (float(line[0:14]), float(line[14:28]), float(line[28:42]))
+            except ValueError:
+                raise RinexError(number, "cannot read ANTENNA: DELTA H/E/N") from None
         elif label == "INTERVAL":
             try:
                 interval = float(line[:10])

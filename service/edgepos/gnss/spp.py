@@ -64,6 +64,12 @@ class SppConfig:
     above 60 deg, 0.35 m/s at 10-20 deg; docs/gnss.md)."""
     doppler_sigma_b_mps: float = 0.1
     """Range-rate standard deviation, elevation-dependent part (m/s)."""
+    corrected_sigma_a_m: float = 0.0
+    """Pseudoranges with a differential correction: constant part of the std (m). The fit of a^2 + b^2 /
+    sin^2(el) to the corrected residuals' robust variance at the reference on the recording's first half
+    (docs/gnss.md) gave a negative a^2, so 0."""
+    corrected_sigma_b_m: float = 0.8
+    """... and the elevation-dependent part (m): the same fit's b, 0.79 rounded."""
 
 
 @dataclass(frozen=True)
@@ -112,13 +118,19 @@ class SppSolution:
     """From the epoch's Doppler when it has enough (else None)."""
 
 
-def _weights(elevation: np.ndarray, config: SppConfig) -> np.ndarray:
+def _weights(elevation: np.ndarray, config: SppConfig, corrected: np.ndarray | None = None) -> np.ndarray:
     sin_el = np.maximum(np.sin(elevation), 0.05)
-    return 1.0 / (config.sigma_a_m**2 + (config.sigma_b_m / sin_el) ** 2)
+    variance = config.sigma_a_m**2 + (config.sigma_b_m / sin_el) ** 2
+    if corrected is not None:
+        variance = np.where(
+            corrected, config.corrected_sigma_a_m**2 + (config.corrected_sigma_b_m / sin_el) ** 2, variance
+        )
+    return 1.0 / variance
 
 
 def _iterate(
     prs: PseudorangeSet, active: np.ndarray, atmosphere: Atmosphere, config: SppConfig, start: np.ndarray,
+    differential: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict[str, float], np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """Gauss-Newton on the rows in ``active``; returns position, clocks, and per-row (all rows) residuals,
     elevations, weights, design matrix (position part), the final used mask and the iteration count."""
@@ -147,7 +159,7 @@ def _iterate(
         design[:, :3] = line_of_sight
         for column, system in enumerate(present):
             design[systems == system, 3 + column] = 1.0
-        weight = _weights(elevation, config)
+        weight = _weights(elevation, config, differential)
         root = np.sqrt(weight[used])
         step, *_ = np.linalg.lstsq(design[used] * root[:, None], residual[used] * root, rcond=None)
         if not np.all(np.isfinite(step)):
@@ -180,9 +192,12 @@ def _dop(design: np.ndarray, position: np.ndarray) -> Dop:
 
 
 def solve_epoch(
-    prs: PseudorangeSet, atmosphere: Atmosphere, config: SppConfig = SppConfig(), initial: np.ndarray | None = None
+    prs: PseudorangeSet, atmosphere: Atmosphere, config: SppConfig = SppConfig(), initial: np.ndarray | None = None,
+    corrected: np.ndarray | None = None,
 ) -> SppSolution:
-    """Solve one epoch; ``initial`` ECEF guess (m), the Earth's centre when None. Raises SppError."""
+    """Solve one epoch; ``initial`` ECEF guess (m), the Earth's centre when None; ``corrected`` (boolean per
+    row) marks pseudoranges with a differential correction, weighted with ``config.corrected_sigma_*``.
+    Raises SppError."""
     if not config.ionosphere or not config.troposphere:
         atmosphere = Atmosphere(atmosphere.klobuchar if config.ionosphere else None, config.troposphere)
     active = np.isfinite(prs.pseudorange_m)
@@ -192,7 +207,7 @@ def solve_epoch(
     excluded: list[int] = []
     while True:
         x, clocks, residual, elevation, weight, design, used, iterations = _iterate(
-            prs, active, atmosphere, config, start
+            prs, active, atmosphere, config, start, corrected
         )
         rows = np.flatnonzero(used)
         h = design[rows][:, : design.shape[1]]

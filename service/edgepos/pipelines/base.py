@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 from edgepos.core.observations import Observation
 
 if TYPE_CHECKING:
+    from edgepos.gnss.differential import CorrectionTable
     from edgepos.gnss.ephemerides import Ephemerides
 
 
@@ -78,6 +79,11 @@ class Environment(Protocol):
         """The site frame's WGS-84 origin (latitude rad, longitude rad, ellipsoidal height m), if configured."""
         ...
 
+    def corrections(self) -> CorrectionTable | None:
+        """The site reference station's differential pseudorange corrections (gnss/differential.py), None
+        when the site has none."""
+        ...
+
 
 @dataclass(frozen=True)
 class StaticEnvironment:
@@ -89,6 +95,7 @@ class StaticEnvironment:
     vehicle_id: str | None = None
     navigation: Ephemerides | None = None
     origin: tuple[float, float, float] | None = None
+    differential: CorrectionTable | None = None
 
     def rsu(self, rsu_id: str) -> Rsu | None:
         return self.rsus.get(rsu_id)
@@ -101,6 +108,9 @@ class StaticEnvironment:
 
     def site_origin(self) -> tuple[float, float, float] | None:
         return self.origin
+
+    def corrections(self) -> CorrectionTable | None:
+        return self.differential
 
 
 @dataclass(frozen=True)
@@ -139,7 +149,9 @@ class PipelineInputError(ValueError):
 @dataclass(frozen=True)
 class MeasurementUse:
     """Whether observation ``index`` of the batch entered the filter, and if not, why. ``doppler_used`` and
-    ``doppler_reason`` say the same of a pseudorange's Doppler (None: the observation carries none)."""
+    ``doppler_reason`` say the same of a pseudorange's Doppler (None: the observation carries none);
+    ``correction_applied`` and ``correction_reason`` whether a differential correction was added to a
+    pseudorange and, if not, why (None: the site has no corrections)."""
 
     index: int
     kind: str
@@ -147,6 +159,8 @@ class MeasurementUse:
     reason: str | None = None
     doppler_used: bool | None = None
     doppler_reason: str | None = None
+    correction_applied: bool | None = None
+    correction_reason: str | None = None
 
 
 @dataclass(frozen=True)

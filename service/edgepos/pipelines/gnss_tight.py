@@ -15,7 +15,10 @@ Per epoch (observations sharing ``t``):
 2. Each pseudorange gets its satellite's ECEF position and clock at transmit time: the client's
    ``sat_position``/``sat_clock`` when sent, else the broadcast ephemerides (Earth rotation, satellite
    clock with relativity and group delay); then elevation mask, C/N0 floor, Klobuchar and Saastamoinen at
-   the predicted position, and the fuzzy noise factor (Table 1, eq. 20) when ``fuzzy`` is on.
+   the predicted position, and the fuzzy noise factor (Table 1, eq. 20) when ``fuzzy`` is on. When the
+   environment has differential corrections from the site's reference station (gnss/differential.py),
+   each pseudorange with a valid one (same satellite and ephemeris issue, at most
+   ``max_correction_age_s`` old) has it added; the others are used uncorrected, and each says why.
 3. A snapshot test like the least-squares baseline's (chi-square on this epoch's own least-squares
    residuals, worst pseudorange excluded while it fails; ``fde_probability``) finds biased (NLOS)
    pseudoranges whatever the filter believes; then a residual test against the prediction (per
@@ -56,6 +59,7 @@ from edgepos.core.observations import Observation, PseudorangeObservation, RissO
 from edgepos.core.particles import PARTICLE_FILTERS, Cloud, Measurement
 from edgepos.core.particles.base import StepResult, weighted_moments
 from edgepos.gnss.corrections import carrier_frequency
+from edgepos.gnss.differential import DEFAULT_MAX_AGE_S, CorrectionTable, Issue, ephemeris_issues
 from edgepos.gnss.ephemerides import DEFAULT_SIGNAL, Ephemerides
 from edgepos.gnss.geodesy import enu_rotation, geodetic_to_ecef
 from edgepos.gnss.measurements import Atmosphere, PseudorangeSet, doppler_to_range_rate
@@ -123,6 +127,13 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "off: every pseudorange has pseudorange_std.",
     ),
     OptionSpec("pseudorange_std", "number", 2.0, "R0: pseudorange noise std (m) before the fuzzy factor.", 0.01, 1000.0),
+    OptionSpec(
+        "max_correction_age_s", "number", DEFAULT_MAX_AGE_S,
+        "Differential corrections from the site's reference station older than this (s) are not applied "
+        "(the measurement says so); 30 s: a reference station's correction changes by 0.2 m RMS in 30 s, "
+        "well under the corrected pseudoranges' noise (docs/gnss.md). Applies only when the site has "
+        "corrections.", 1.0, 600.0,
+    ),
     OptionSpec(
         "outlier_probability", "number", 0.1,
         "PF and UPF: each pseudorange's likelihood in the particle weights is the mixture (1 - p) N(0, "
@@ -332,8 +343,9 @@ class GnssTightPipeline(Pipeline):
         _validate(session, observations)
         ephemerides = environment.ephemerides()
         origin = environment.site_origin()
+        corrections = environment.corrections()
         fixes = [
-            _step(session, epoch, observations, ephemerides, origin)
+            _step(session, epoch, observations, ephemerides, origin, corrections)
             for epoch in group_by_time(observations)
         ]
         return ensure_finite_fixes(fixes), session.to_bytes()
@@ -395,6 +407,10 @@ class _Satellites:
     prs: PseudorangeSet
     indices: list[int]
     doppler_reasons: dict[int, str]
+    issues: list[Issue | None] = dataclasses.field(default_factory=list)
+    """Per row, the broadcast ephemeris issue its satellite state came from (None: sent by the client)."""
+    corrected: np.ndarray | None = None
+    """Per row, whether a differential correction was added to its pseudorange (None: no corrections)."""
 
 
 _NO_SAT_VELOCITY = (
@@ -431,7 +447,7 @@ def _satellites(
                 doppler_reasons[i] = _NO_SAT_VELOCITY
             rows.append((i, observation.system, observation.prn, observation.pseudorange, observation.cn0,
                          np.asarray(observation.sat_position, float), observation.sat_clock, frequency,
-                         math.nan, nan3, math.nan))
+                         math.nan, nan3, math.nan, None))
         else:
             need_orbit.append(i)
     if need_orbit:
@@ -446,6 +462,7 @@ def _satellites(
             systems = [o.system for o in observed]
             prns = np.array([o.prn for o in observed])
             ephemeris_index = ephemerides.orbits.select(systems, prns, gpst)
+            issues = ephemeris_issues(ephemerides.orbits, ephemeris_index)
             have = np.flatnonzero(ephemeris_index >= 0)
             for row in np.flatnonzero(ephemeris_index < 0):
                 o = observed[row]
@@ -467,7 +484,7 @@ def _satellites(
                         rate = float(doppler_to_range_rate(np.array([o.doppler_hz]), np.array([frequency]))[0])
                     rows.append((need_orbit[r], o.system, o.prn, o.pseudorange, o.cn0, position,
                                  float(states.clock_s[k]), frequency, rate, states.velocity[k],
-                                 float(states.clock_drift[k])))
+                                 float(states.clock_drift[k]), None if o.sat_position is not None else issues[r]))
     rows.sort(key=lambda row: row[0])
     count = len(rows)
     range_rate = np.array([r[8] for r in rows], dtype=float)
@@ -485,7 +502,43 @@ def _satellites(
         np.array([r[9] for r in rows], dtype=float).reshape(count, 3) if doppler else None,
         np.array([r[10] for r in rows], dtype=float) if doppler else None,
     )
-    return _Satellites(prs, [r[0] for r in rows], doppler_reasons)
+    return _Satellites(prs, [r[0] for r in rows], doppler_reasons, [r[11] for r in rows])
+
+
+_CLIENT_STATE = "satellite position sent by the client: its ephemeris issue is unknown"
+
+
+def _apply_corrections(
+    satellites: _Satellites, corrections: CorrectionTable, options: Mapping[str, Any], ionosphere: bool,
+    reported: _CorrectionUses,
+) -> _Satellites:
+    """Add each row's differential correction (same satellite, same ephemeris issue, newest base epoch at or
+    before this one, within ``max_correction_age_s``); record per observation whether one was added or why
+    not. The rover keeps its own atmosphere models: a correction holds their error at the base only."""
+    prs = satellites.prs
+    max_age = float(options.get("max_correction_age_s", DEFAULT_MAX_AGE_S))
+    delta = np.full(len(prs), np.nan)
+    for row, (sat, issue) in enumerate(zip(prs.sats, satellites.issues)):
+        i = satellites.indices[row]
+        if issue is None:
+            reported[i] = (False, _CLIENT_STATE)
+            continue
+        found = corrections.lookup(sat, issue, prs.gpst, max_age)
+        if isinstance(found, str):
+            reported[i] = (False, found)
+            continue
+        value = found.value_m
+        if not ionosphere:
+            value += found.ionosphere_m
+        if not options["troposphere"]:
+            value += found.troposphere_m
+        delta[row] = value
+        reported[i] = (True, None)
+    corrected = np.isfinite(delta)
+    pseudoranges = prs.pseudorange_m + np.where(corrected, delta, 0.0)
+    return dataclasses.replace(
+        satellites, prs=dataclasses.replace(prs, pseudorange_m=pseudoranges), corrected=corrected
+    )
 
 
 def _atmosphere(options: Mapping[str, Any], ephemerides: Ephemerides | None) -> Atmosphere:
@@ -496,15 +549,29 @@ def _atmosphere(options: Mapping[str, Any], ephemerides: Ephemerides | None) -> 
 # -- one epoch -----------------------------------------------------------------------------------
 _DopplerUses = dict[int, tuple[bool, str | None]]
 """Per observation index, whether its Doppler entered the update and, if not, why."""
+_CorrectionUses = dict[int, tuple[bool, str | None]]
+"""Per observation index, whether a differential correction was added to its pseudorange and, if not, why."""
 
 
 def _step(
     session: _Session, epoch: list[int], observations: Sequence[Observation], ephemerides: Ephemerides | None,
-    origin: tuple[float, float, float] | None,
+    origin: tuple[float, float, float] | None, corrections: CorrectionTable | None = None,
 ) -> Fix:
-    """One epoch through the filter; every Doppler sent is reported beside its pseudorange."""
+    """One epoch through the filter; every Doppler sent is reported beside its pseudorange, and with
+    corrections, each pseudorange's correction."""
     doppler: _DopplerUses = {}
-    fix = _filter_epoch(session, epoch, observations, ephemerides, origin, doppler)
+    corrected: _CorrectionUses = {}
+    fix = _filter_epoch(session, epoch, observations, ephemerides, origin, doppler, corrections, corrected)
+    if corrections is not None:
+        uses = []
+        for use in fix.measurements:
+            if use.kind == "pseudorange":
+                applied, why = corrected.get(use.index, (False, None))
+                if not applied and why is None:
+                    why = f"its pseudorange was not used: {use.reason}"
+                use = dataclasses.replace(use, correction_applied=applied, correction_reason=why)
+            uses.append(use)
+        fix = dataclasses.replace(fix, measurements=uses)
     carrying = [i for i in epoch if getattr(observations[i], "doppler_hz", None) is not None]
     if not carrying:
         return fix
@@ -521,7 +588,8 @@ def _step(
 
 def _filter_epoch(
     session: _Session, epoch: list[int], observations: Sequence[Observation], ephemerides: Ephemerides | None,
-    origin: tuple[float, float, float] | None, doppler: _DopplerUses,
+    origin: tuple[float, float, float] | None, doppler: _DopplerUses, corrections: CorrectionTable | None,
+    corrected: _CorrectionUses,
 ) -> Fix:
     options = session.options
     t = observations[epoch[0]].t
@@ -539,6 +607,10 @@ def _filter_epoch(
     satellites = _satellites(epoch, observations, ephemerides, gpst, options, uses)
     doppler.update({i: (False, reason) for i, reason in satellites.doppler_reasons.items()})
     atmosphere = _atmosphere(options, ephemerides)
+    if corrections is not None:
+        satellites = _apply_corrections(
+            satellites, corrections, options, atmosphere.klobuchar is not None, corrected
+        )
     rng = np.random.default_rng([session.seed, session.epochs])
 
     if session.initialised and session.filter_t is not None and t - session.filter_t > options["max_gap"]:
@@ -572,7 +644,8 @@ def _filter_epoch(
         factor = FuzzyNoise().factor(elevation, prs.cn0_dbhz) if options["fuzzy"] else np.ones(len(prs))
         std = options["pseudorange_std"] * factor
         rows = _snapshot_test(
-            session, centre, prs, known, _snapshot_std(elevation), rows, satellites.indices, uses
+            session, centre, prs, known, _snapshot_std(elevation, satellites.corrected), rows,
+            satellites.indices, uses,
         )
         rows, lost = _residual_test(session, centre, prs, known, std, rows, dt, model, satellites.indices, uses)
         if lost:
@@ -771,12 +844,18 @@ def _take_riss(session: _Session, observation: RissObservation) -> None:
 
 
 
-def _snapshot_std(elevation: np.ndarray) -> np.ndarray:
-    """The least-squares baseline's pseudorange noise model (gnss/spp.py), sqrt(a^2 + b^2 / sin^2 el): the
-    snapshot test judges residuals as the baseline does, whatever noise the filter assumes."""
+def _snapshot_std(elevation: np.ndarray, corrected: np.ndarray | None = None) -> np.ndarray:
+    """The least-squares baseline's pseudorange noise model (gnss/spp.py), sqrt(a^2 + b^2 / sin^2 el), with
+    its own a, b for differentially corrected rows: the snapshot test judges residuals as the baseline
+    does, whatever noise the filter assumes."""
     config = SppConfig()
     sin_el = np.maximum(np.sin(elevation), 0.05)
-    return np.sqrt(config.sigma_a_m**2 + (config.sigma_b_m / sin_el) ** 2)
+    std = np.sqrt(config.sigma_a_m**2 + (config.sigma_b_m / sin_el) ** 2)
+    if corrected is None:
+        return std
+    return np.where(
+        corrected, np.sqrt(config.corrected_sigma_a_m**2 + (config.corrected_sigma_b_m / sin_el) ** 2), std
+    )
 
 
 def _snapshot_test(
@@ -932,7 +1011,9 @@ def _initialise(
     reason = waiting
     if len(prs) >= 3 + len(set(prs.systems)):
         try:
-            solution = solve_epoch(prs, atmosphere, SppConfig(elevation_mask_rad=options["elevation_mask"]), start)
+            solution = solve_epoch(
+                prs, atmosphere, SppConfig(elevation_mask_rad=options["elevation_mask"]), start, satellites.corrected
+            )
         except SppError as error:
             reason = f"{waiting} (least squares: {error})"
     else:
