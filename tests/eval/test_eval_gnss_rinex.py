@@ -98,8 +98,19 @@ def test_base_station_corrections_in_the_json(tmp_path: Path, capsys: pytest.Cap
     documents = []
     for extra in ((), ("--base-position", "4777633.952592235,203108.98744838778,4206595.200050365")):
         path = tmp_path / f"base{len(extra)}.json"
-        code = run_eval("gnss-rinex", *FILES, "--filter", "ukf", "--max-epochs", "20", "--base", base, *extra,
-                        "--json", str(path))
+        code = run_eval(
+            "gnss-rinex",
+            *FILES,
+            "--filter",
+            "ukf",
+            "--max-epochs",
+            "20",
+            "--base",
+            base,
+            *extra,
+            "--json",
+            str(path),
+        )
         assert code == 0
         documents.append(json.loads(path.read_text()))
     first, second = documents
@@ -110,7 +121,9 @@ def test_base_station_corrections_in_the_json(tmp_path: Path, capsys: pytest.Cap
 
 
 @pytest.mark.parametrize("position", ["1,2", "a,b,c", "0,0,0", "nan,0,0"])
-def test_bad_base_position_is_refused_naming_the_argument(position: str, capsys: pytest.CaptureFixture[str]) -> None:
+def test_bad_base_position_is_refused_naming_the_argument(
+    position: str, capsys: pytest.CaptureFixture[str]
+) -> None:
     with pytest.raises(SystemExit) as exit_info:
         run_eval("gnss-rinex", *FILES, "--base", str(DATA / "base-0-5min.rnx"), "--base-position", position)
     assert exit_info.value.code == 2
@@ -126,5 +139,23 @@ def test_base_file_without_a_position_exits_2(tmp_path: Path, capsys: pytest.Cap
     assert "APPROX POSITION XYZ" in capsys.readouterr().err
     assert run_eval("gnss-rinex", *FILES, "--max-epochs", "2", "--base", str(tmp_path / "none.rnx")) == 2
     # A position without a station would be ignored: refused instead.
-    assert run_eval("gnss-rinex", *FILES, "--max-epochs", "2", "--base-position", "4777633,203108,4206595") == 2
+    assert (
+        run_eval("gnss-rinex", *FILES, "--max-epochs", "2", "--base-position", "4777633,203108,4206595") == 2
+    )
     assert "--base-position needs --base" in capsys.readouterr().err
+    assert run_eval("gnss-rinex", *FILES, "--max-epochs", "2", "--max-correction-age", "60") == 2
+    assert "--max-correction-age needs --base" in capsys.readouterr().err
+    assert (
+        run_eval(
+            "gnss-rinex",
+            *FILES,
+            "--max-epochs",
+            "2",
+            "--base",
+            str(DATA / "base-0-5min.rnx"),
+            "--max-correction-age",
+            "0",
+        )
+        == 2
+    )
+    assert "maximum correction age must be in [1, 600] s" in capsys.readouterr().err

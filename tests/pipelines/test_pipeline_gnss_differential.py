@@ -4,15 +4,23 @@ the correction age option is bounded and applied."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from edgepos.core.observations import PseudorangeObservation
 from edgepos.eval.gnss_rinex import evaluate
-from edgepos.gnss.differential import NO_CORRECTION, TOO_OLD, base_position, corrections_from_epochs
+from edgepos.gnss.differential import (
+    NO_CORRECTION,
+    TOO_OLD,
+    CorrectionTable,
+    base_position,
+    corrections_from_epochs,
+)
 from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs, read_header
-from edgepos.pipelines.base import PipelineInputError, StaticEnvironment
+from edgepos.pipelines.base import StaticEnvironment
 from edgepos.pipelines.gnss_tight import GnssTightPipeline
 
 DATA = "tests/data/gnss-rover/"
@@ -98,20 +106,28 @@ def test_every_pseudorange_says_whether_it_was_corrected(ephemerides: Ephemeride
 
 
 def test_stale_corrections_are_not_applied(ephemerides: Ephemerides) -> None:
-    """Corrections of the base's first 5 epochs only: 40 s later, with max_correction_age_s 30, none
-    applies and each says it is too old; with 60 they apply."""
+    """Corrections of the base's first 5 epochs only: 40 s later, from a source whose maximum age is 30 s,
+    none applies and each says it is too old; from one of 60 s they apply."""
     station = base_position(read_header(BASE))
     first = list(read_epochs(BASE, CODES))[:5]
-    table = corrections_from_epochs(first, station, ephemerides.orbits, ephemerides.atmosphere, CODES)
     batches = _batches(45)
-    last = _run(ephemerides, table, batches, {"max_correction_age_s": 30.0})[-1]
-    stale = [u for u in last.measurements if u.correction_reason and u.correction_reason.startswith(TOO_OLD)]
-    assert len(stale) > 10 and not any(u.correction_applied for u in last.measurements)
-    last = _run(ephemerides, table, batches, {"max_correction_age_s": 60.0})[-1]
-    assert sum(bool(u.correction_applied) for u in last.measurements) > 10
+    for max_age, applies in ((30.0, False), (60.0, True)):
+        table = corrections_from_epochs(
+            first, station, ephemerides.orbits, ephemerides.atmosphere, CODES, max_age_s=max_age
+        )
+        last = _run(ephemerides, table, batches, {})[-1]
+        applied = sum(bool(u.correction_applied) for u in last.measurements)
+        stale = [
+            u for u in last.measurements if u.correction_reason and u.correction_reason.startswith(TOO_OLD)
+        ]
+        if applies:
+            assert applied > 10 and not stale
+        else:
+            assert applied == 0 and len(stale) > 10
+            assert f"the maximum correction age {max_age:g} s" in stale[0].correction_reason
 
 
-@pytest.mark.parametrize("value", [0.0, 601.0, "x"])
-def test_correction_age_option_is_bounded(value: object) -> None:
-    with pytest.raises(PipelineInputError, match="max_correction_age_s"):
-        GnssTightPipeline().resolve_options({"max_correction_age_s": value})
+@pytest.mark.parametrize("value", [0.0, 601.0, math.nan])
+def test_the_maximum_correction_age_is_bounded(value: float) -> None:
+    with pytest.raises(ValueError, match="maximum correction age"):
+        CorrectionTable([], max_age_s=value)

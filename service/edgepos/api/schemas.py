@@ -453,16 +453,6 @@ class MeasurementUseOut(ResponseModel):
     doppler_reason: str | None = Field(
         None, description="Why the Doppler was not used, when doppler_used is false; else null."
     )
-    correction_applied: bool | None = Field(
-        None,
-        description="Only for a pseudorange when the site has differential corrections from a reference "
-        "station, else null: whether a correction was added to it.",
-    )
-    correction_reason: str | None = Field(
-        None,
-        description="Why no correction was added, when correction_applied is false (none for this satellite, "
-        "too old, ephemeris issue mismatch); else null.",
-    )
 
 
 class FixOut(ResponseModel):

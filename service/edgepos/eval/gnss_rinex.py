@@ -17,7 +17,7 @@ A..B-1 (0-based) of one run from the first epoch, so halves of a recording are s
 (gnss/differential.py) at its known position (``--base-position X,Y,Z`` ECEF m, else the file header's
 APPROX POSITION XYZ plus its antenna delta): the pipeline gets them in its environment, as the service
 would, and the WLS baseline adds the same corrections (with the same rules: same satellite and ephemeris
-issue, newest base epoch at or before, ``max_correction_age_s``).
+issue, newest base epoch at or before, ``--max-correction-age``).
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ import numpy as np
 
 from edgepos.core.observations import PseudorangeObservation
 from edgepos.eval.overrides import add_option_argument, parse_overrides
+from edgepos.gnss.differential import DEFAULT_MAX_AGE_S, correct_set, corrections_from_epochs
 from edgepos.gnss.differential import base_position as header_base_position
-from edgepos.gnss.differential import correct_set, corrections_from_epochs
 from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.geodesy import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from edgepos.gnss.measurements import prepare_epoch
@@ -69,6 +69,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--base", metavar="BASE.rnx", default=None,
                         help="RINEX 3 observations of a reference station: differential corrections")
+    parser.add_argument(
+        "--max-correction-age", type=float, default=DEFAULT_MAX_AGE_S, metavar="S",
+        help=f"with --base: corrections older than S seconds are not applied (default {DEFAULT_MAX_AGE_S:g}; "
+        "see docs/gnss.md)",
+    )
     parser.add_argument("--base-position", type=_position, default=None, metavar="X,Y,Z",
                         help="the reference station's ECEF antenna position (m; default: from --base's header)")
     add_option_argument(parser, "pseudorange_std=3")
@@ -155,7 +160,7 @@ def evaluate(
     obs_path: str, nav_path: str, reference_path: str, systems: str = ALL_SYSTEMS,
     options: Mapping[str, Any] | None = None,
     max_epochs: int | None = None, score_epochs: tuple[int, int] | None = None, base_path: str | None = None,
-    base_position: Sequence[float] | None = None,
+    base_position: Sequence[float] | None = None, max_correction_age_s: float = DEFAULT_MAX_AGE_S,
 ) -> dict[str, Any]:
     """Run the pipeline and the WLS baseline over a recording; the figures as a dict (of epochs
     ``score_epochs`` = (A, B), A..B-1, when given; the run then stops after epoch B-1). With ``base_path``
@@ -172,7 +177,7 @@ def evaluate(
         station = header_base_position(read_header(base_path)) if base_position is None else np.asarray(base_position, float)
         table = corrections_from_epochs(
             read_epochs(base_path, codes), station, ephemerides.orbits, ephemerides.atmosphere, codes,
-            resolved["elevation_mask"],
+            resolved["elevation_mask"], max_correction_age_s,
         )
     environment = StaticEnvironment(navigation=ephemerides, differential=table)
     use_doppler = bool(resolved["use_doppler"])
@@ -216,7 +221,7 @@ def evaluate(
         prs, _ = prepare_epoch(epoch, ephemerides.orbits, codes)
         corrected = None
         if table is not None:
-            prs, corrected, _ = correct_set(prs, ephemerides.orbits, table, resolved["max_correction_age_s"])
+            prs, corrected, _ = correct_set(prs, ephemerides.orbits, table, table.max_age_s)
         if not use_doppler:
             prs = dataclasses.replace(prs, range_rate_mps=None, sat_velocity=None, sat_clock_drift=None)
         try:
@@ -259,6 +264,9 @@ def run(args: argparse.Namespace) -> int:
     if args.base_position is not None and args.base is None:
         print("edgepos eval gnss-rinex: error: --base-position needs --base (the station's observations)", file=sys.stderr)
         return 2
+    if args.max_correction_age != DEFAULT_MAX_AGE_S and args.base is None:
+        print("edgepos eval gnss-rinex: error: --max-correction-age needs --base", file=sys.stderr)
+        return 2
     try:
         options.update(parse_overrides(args.option))
         GnssTightPipeline().resolve_options(options)
@@ -268,7 +276,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         report = evaluate(
             args.obs, args.nav, args.reference, args.systems, options, args.max_epochs, args.score_epochs,
-            args.base, args.base_position,
+            args.base, args.base_position, args.max_correction_age,
         )
     except (OSError, ValueError) as error:  # unreadable or malformed files (RinexError is a ValueError)
         print(f"edgepos eval gnss-rinex: error: {error}", file=sys.stderr)

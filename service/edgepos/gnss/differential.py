@@ -143,10 +143,20 @@ class Correction:
     troposphere_m: float
 
 
-class CorrectionTable:
-    """Every base epoch's corrections, indexed per satellite for the rover's lookups."""
+MAX_AGE_BOUNDS_S = (1.0, 600.0)
 
-    def __init__(self, epochs: Iterable[EpochCorrections]) -> None:
+
+class CorrectionTable:
+    """Every base epoch's corrections, indexed per satellite for the rover's lookups, and how old (s) a
+    correction may be and still apply: a property of the site's correction source, not of a session."""
+
+    def __init__(self, epochs: Iterable[EpochCorrections], max_age_s: float = DEFAULT_MAX_AGE_S) -> None:
+        low, high = MAX_AGE_BOUNDS_S
+        if not low <= max_age_s <= high:  # also refuses NaN
+            raise ValueError(
+                f"the maximum correction age must be in [{low:g}, {high:g}] s, got {max_age_s!r}"
+            )
+        self.max_age_s = float(max_age_s)
         per_sat: dict[str, list[tuple[float, float, Issue, float, float]]] = {}
         for e in epochs:
             for k, sat in enumerate(e.sats):
@@ -185,7 +195,7 @@ class CorrectionTable:
         t_base, value, base_issue, iono, tropo = self._rows[sat][k]
         age = gpst - t_base
         if age > max_age_s:
-            return f"{TOO_OLD}: {age:.1f} s > max_correction_age_s {max_age_s:g} s"
+            return f"{TOO_OLD}: {age:.1f} s > the maximum correction age {max_age_s:g} s"
         if issue is None or base_issue != issue:
             rover = "none" if issue is None else f"IODE {issue[0]} toe {issue[1]:.0f}"
             return f"{ISSUE_MISMATCH}: base IODE {base_issue[0]} toe {base_issue[1]:.0f}, rover {rover}"
@@ -199,10 +209,12 @@ def corrections_from_epochs(
     atmosphere: Atmosphere,
     codes: Mapping[str, tuple[str, str]] | None = None,
     elevation_mask_rad: float = np.radians(10.0),
+    max_age_s: float = DEFAULT_MAX_AGE_S,
 ) -> CorrectionTable:
     """A correction table from a base station's observation epochs at its known ECEF position (m)."""
     return CorrectionTable(
-        epoch_corrections(e, position, orbits, atmosphere, codes, elevation_mask_rad) for e in epochs
+        (epoch_corrections(e, position, orbits, atmosphere, codes, elevation_mask_rad) for e in epochs),
+        max_age_s,
     )
 
 

@@ -18,7 +18,7 @@ Per epoch (observations sharing ``t``):
    the predicted position, and the fuzzy noise factor (Table 1, eq. 20) when ``fuzzy`` is on. When the
    environment has differential corrections from the site's reference station (gnss/differential.py),
    each pseudorange with a valid one (same satellite and ephemeris issue, at most
-   ``max_correction_age_s`` old) has it added; the others are used uncorrected, and each says why.
+   the correction source's maximum age old) has it added; the others are used uncorrected, and each says why.
 3. A snapshot test like the least-squares baseline's (chi-square on this epoch's own least-squares
    residuals, worst pseudorange excluded while it fails; ``fde_probability``) finds biased (NLOS)
    pseudoranges whatever the filter believes; then a residual test against the prediction (per
@@ -59,7 +59,7 @@ from edgepos.core.observations import Observation, PseudorangeObservation, RissO
 from edgepos.core.particles import PARTICLE_FILTERS, Cloud, Measurement
 from edgepos.core.particles.base import StepResult, weighted_moments
 from edgepos.gnss.corrections import carrier_frequency
-from edgepos.gnss.differential import DEFAULT_MAX_AGE_S, CorrectionTable, Issue, ephemeris_issues
+from edgepos.gnss.differential import CorrectionTable, Issue, ephemeris_issues
 from edgepos.gnss.ephemerides import DEFAULT_SIGNAL, Ephemerides
 from edgepos.gnss.geodesy import enu_rotation, geodetic_to_ecef
 from edgepos.gnss.measurements import Atmosphere, PseudorangeSet, doppler_to_range_rate
@@ -127,13 +127,6 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "off: every pseudorange has pseudorange_std.",
     ),
     OptionSpec("pseudorange_std", "number", 2.0, "R0: pseudorange noise std (m) before the fuzzy factor.", 0.01, 1000.0),
-    OptionSpec(
-        "max_correction_age_s", "number", DEFAULT_MAX_AGE_S,
-        "Differential corrections from the site's reference station older than this (s) are not applied "
-        "(the measurement says so); 30 s: a reference station's correction changes by 0.2 m RMS in 30 s, "
-        "well under the corrected pseudoranges' noise (docs/gnss.md). Applies only when the site has "
-        "corrections.", 1.0, 600.0,
-    ),
     OptionSpec(
         "outlier_probability", "number", 0.1,
         "PF and UPF: each pseudorange's likelihood in the particle weights is the mixture (1 - p) N(0, "
@@ -513,10 +506,10 @@ def _apply_corrections(
     reported: _CorrectionUses,
 ) -> _Satellites:
     """Add each row's differential correction (same satellite, same ephemeris issue, newest base epoch at or
-    before this one, within ``max_correction_age_s``); record per observation whether one was added or why
+    before this one, within the correction source's maximum age); record per observation whether one was added or why
     not. The rover keeps its own atmosphere models: a correction holds their error at the base only."""
     prs = satellites.prs
-    max_age = float(options.get("max_correction_age_s", DEFAULT_MAX_AGE_S))
+    max_age = corrections.max_age_s
     delta = np.full(len(prs), np.nan)
     for row, (sat, issue) in enumerate(zip(prs.sats, satellites.issues)):
         i = satellites.indices[row]
