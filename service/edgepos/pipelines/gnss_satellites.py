@@ -1,0 +1,225 @@
+"""The satellites of a ``gnss_tight`` epoch: each pseudorange's satellite state (from the client or the
+broadcast ephemerides), its Doppler as a range rate, the differential correction of the site's reference
+station where one applies, and the atmosphere models, with the reason for every measurement left out.
+Split from ``gnss_tight`` (the filter step stays there); pure numpy, no web imports."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from edgepos.core.observations import Observation, PseudorangeObservation
+from edgepos.gnss.corrections import carrier_frequency
+from edgepos.gnss.differential import CorrectionTable, Issue, ephemeris_issues
+from edgepos.gnss.ephemerides import DEFAULT_SIGNAL, Ephemerides
+from edgepos.gnss.measurements import Atmosphere, PseudorangeSet, doppler_to_range_rate
+from edgepos.gnss.orbits import group_delay_factors
+from edgepos.gnss.timesys import SECONDS_PER_WEEK
+from edgepos.pipelines.base import MeasurementUse
+
+CorrectionUses = dict[int, tuple[bool, str | None]]
+"""Per observation index: whether a differential correction was added, and why not (None when it was)."""
+
+
+@dataclass(frozen=True)
+class EpochSatellites:
+    """The epoch's usable pseudoranges (rows of ``prs``) and the observation index of each row; with Doppler,
+    ``prs`` carries range rates (NaN where a row has none or no satellite velocity), and ``doppler_reasons``
+    says why a sent Doppler cannot be used whatever the filter does."""
+
+    prs: PseudorangeSet
+    indices: list[int]
+    doppler_reasons: dict[int, str]
+    issues: list[Issue | None] = dataclasses.field(default_factory=list)
+    """Per row, the broadcast ephemeris issue its satellite state came from (None: sent by the client)."""
+    corrected: np.ndarray | None = None
+    """Per row, whether a differential correction was added to its pseudorange (None: no corrections)."""
+
+
+NO_SAT_VELOCITY = (
+    "no satellite velocity: with sat_position and sat_clock sent the service computes no orbit, and the "
+    "range-rate model needs the satellite's velocity and clock drift from the broadcast ephemerides"
+)
+
+
+def epoch_satellites(
+    epoch: list[int],
+    observations: Sequence[Observation],
+    ephemerides: Ephemerides | None,
+    gpst: float,
+    options: Mapping[str, Any],
+    uses: dict[int, MeasurementUse],
+) -> EpochSatellites:
+    """Satellite states per pseudorange, from the client or the broadcast ephemerides; reasons for the rest."""
+    rows: list[tuple[Any, ...]] = []
+    need_orbit: list[int] = []
+    use_doppler = bool(options.get("use_doppler", True))
+    doppler_reasons: dict[int, str] = {}
+    nan3 = np.full(3, np.nan)
+    for i in epoch:
+        observation = observations[i]
+        if not isinstance(observation, PseudorangeObservation):
+            continue
+        if observation.doppler_hz is not None and not use_doppler:
+            doppler_reasons[i] = "options.use_doppler is off"
+        if observation.system not in options["systems"]:
+            uses[i] = MeasurementUse(
+                i, observation.kind, False, f"system {observation.system} is not in options.systems"
+            )
+            continue
+        if observation.cn0 < options["min_cn0"]:
+            uses[i] = MeasurementUse(
+                i, observation.kind, False, f"C/N0 below options.min_cn0 ({options['min_cn0']:g} dB-Hz)"
+            )
+            continue
+        if observation.sat_position is not None and observation.sat_clock is not None:
+            frequency = carrier_frequency(observation.system, DEFAULT_SIGNAL[observation.system])
+            if observation.doppler_hz is not None and i not in doppler_reasons:
+                doppler_reasons[i] = NO_SAT_VELOCITY
+            rows.append(
+                (
+                    i,
+                    observation.system,
+                    observation.prn,
+                    observation.pseudorange,
+                    observation.cn0,
+                    np.asarray(observation.sat_position, float),
+                    observation.sat_clock,
+                    frequency,
+                    math.nan,
+                    nan3,
+                    math.nan,
+                    None,
+                )
+            )
+        else:
+            need_orbit.append(i)
+    if need_orbit:
+        if ephemerides is None:
+            for i in need_orbit:
+                uses[i] = MeasurementUse(
+                    i,
+                    "pseudorange",
+                    False,
+                    "no ephemerides loaded (PUT /v1/ephemerides) and no sat_position/sat_clock sent",
+                )
+        else:
+            observed = [observations[i] for i in need_orbit]
+            systems = [o.system for o in observed]
+            prns = np.array([o.prn for o in observed])
+            ephemeris_index = ephemerides.orbits.select(systems, prns, gpst)
+            issues = ephemeris_issues(ephemerides.orbits, ephemeris_index)
+            have = np.flatnonzero(ephemeris_index >= 0)
+            for row in np.flatnonzero(ephemeris_index < 0):
+                o = observed[row]
+                uses[need_orbit[row]] = MeasurementUse(
+                    need_orbit[row],
+                    "pseudorange",
+                    False,
+                    f"no valid healthy ephemeris for {o.system}{o.prn:02d} at GPS week {int(gpst // SECONDS_PER_WEEK)} "
+                    f"second {gpst % SECONDS_PER_WEEK:.1f}",
+                )
+            if have.size:
+                factors = np.array(
+                    [group_delay_factors(systems[r], DEFAULT_SIGNAL[systems[r]]) for r in have]
+                )
+                pseudoranges = np.array([observed[r].pseudorange for r in have])
+                states = ephemerides.orbits.transmit_states(
+                    ephemeris_index[have], gpst, pseudoranges, factors
+                )
+                for k, r in enumerate(have):
+                    o = observed[r]
+                    position = (
+                        states.position[k] if o.sat_position is None else np.asarray(o.sat_position, float)
+                    )
+                    frequency = carrier_frequency(o.system, DEFAULT_SIGNAL[o.system])
+                    rate = math.nan
+                    if o.doppler_hz is not None and use_doppler:
+                        rate = float(
+                            doppler_to_range_rate(np.array([o.doppler_hz]), np.array([frequency]))[0]
+                        )
+                    rows.append(
+                        (
+                            need_orbit[r],
+                            o.system,
+                            o.prn,
+                            o.pseudorange,
+                            o.cn0,
+                            position,
+                            float(states.clock_s[k]),
+                            frequency,
+                            rate,
+                            states.velocity[k],
+                            float(states.clock_drift[k]),
+                            None if o.sat_position is not None else issues[r],
+                        )
+                    )
+    rows.sort(key=lambda row: row[0])
+    count = len(rows)
+    range_rate = np.array([r[8] for r in rows], dtype=float)
+    doppler = bool(np.isfinite(range_rate).any())
+    prs = PseudorangeSet(
+        gpst,
+        tuple(r[1] for r in rows),
+        np.array([r[2] for r in rows], dtype=int),
+        np.array([r[3] for r in rows], dtype=float),
+        np.array([r[4] for r in rows], dtype=float),
+        np.array([r[5] for r in rows], dtype=float).reshape(count, 3),
+        np.array([r[6] for r in rows], dtype=float),
+        np.array([r[7] for r in rows], dtype=float),
+        range_rate if doppler else None,
+        np.array([r[9] for r in rows], dtype=float).reshape(count, 3) if doppler else None,
+        np.array([r[10] for r in rows], dtype=float) if doppler else None,
+    )
+    return EpochSatellites(prs, [r[0] for r in rows], doppler_reasons, [r[11] for r in rows])
+
+
+CLIENT_STATE = "satellite position sent by the client: its ephemeris issue is unknown"
+
+
+def apply_corrections(
+    satellites: EpochSatellites,
+    corrections: CorrectionTable,
+    options: Mapping[str, Any],
+    ionosphere: bool,
+    reported: CorrectionUses,
+) -> EpochSatellites:
+    """Add each row's differential correction (same satellite, same ephemeris issue, newest base epoch at or
+    before this one, within the correction source's maximum age); record per observation whether one was added or why
+    not. The rover keeps its own atmosphere models: a correction holds their error at the base only."""
+    prs = satellites.prs
+    max_age = corrections.max_age_s
+    delta = np.full(len(prs), np.nan)
+    for row, (sat, issue) in enumerate(zip(prs.sats, satellites.issues)):
+        i = satellites.indices[row]
+        if issue is None:
+            reported[i] = (False, CLIENT_STATE)
+            continue
+        found = corrections.lookup(sat, issue, prs.gpst, max_age)
+        if isinstance(found, str):
+            reported[i] = (False, found)
+            continue
+        value = found.value_m
+        if not ionosphere:
+            value += found.ionosphere_m
+        if not options["troposphere"]:
+            value += found.troposphere_m
+        delta[row] = value
+        reported[i] = (True, None)
+    corrected = np.isfinite(delta)
+    pseudoranges = prs.pseudorange_m + np.where(corrected, delta, 0.0)
+    return dataclasses.replace(
+        satellites, prs=dataclasses.replace(prs, pseudorange_m=pseudoranges), corrected=corrected
+    )
+
+
+def atmosphere_of(options: Mapping[str, Any], ephemerides: Ephemerides | None) -> Atmosphere:
+    klobuchar = (
+        ephemerides.navigation.klobuchar_gps if (ephemerides is not None and options["ionosphere"]) else None
+    )
+    return Atmosphere(klobuchar, options["troposphere"])
