@@ -8,14 +8,14 @@ import math
 
 import numpy as np
 import pytest
-
 from edgepos.core.observations import PseudorangeObservation
 from edgepos.eval.gnss_montecarlo import batches
 from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
 from edgepos.pipelines.base import StaticEnvironment
-from edgepos.pipelines.gnss_tight import GnssTightPipeline, _decode
+from edgepos.pipelines.gnss_session import decode_session as _decode
+from edgepos.pipelines.gnss_tight import GnssTightPipeline
 from edgepos.sim.gnss_scenario import open_sky_scenario
 from edgepos.sim.gnss_sensors import simulate
 
@@ -132,7 +132,7 @@ def test_upf_spread_fraction_option_reaches_the_filter_and_old_states_keep_their
     in its options) keeps the behaviour it was created with: all of the uncertainty in the particles."""
     from edgepos.core import state as state_format
     from edgepos.pipelines.base import PipelineInputError
-    from edgepos.pipelines.gnss_tight import _filter
+    from edgepos.pipelines.gnss_session import filter_for as _filter
 
     pipeline = GnssTightPipeline()
     assert pipeline.resolve_options({})["spread_fraction"] == 0.02

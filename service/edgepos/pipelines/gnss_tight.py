@@ -42,13 +42,10 @@ import dataclasses
 import math
 import secrets
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.stats import chi2
 
-from edgepos.core import state as state_format
 from edgepos.core.errors import NumericalError
 from edgepos.core.fuzzy import FuzzyNoise
 from edgepos.core.measurements.pseudorange import PseudorangeModel
@@ -84,6 +81,21 @@ from edgepos.pipelines.gnss_satellites import (
     apply_corrections,
     atmosphere_of,
     epoch_satellites,
+)
+from edgepos.pipelines.gnss_screening import (
+    DopplerUses,
+    range_rate_test,
+    residual_test,
+    snapshot_std,
+    snapshot_test,
+)
+from edgepos.pipelines.gnss_session import (
+    OWN_COVARIANCE_FILTERS,
+    PIPELINE_NAME,
+    GnssSession,
+    decode_session,
+    empty_cloud,
+    filter_for,
 )
 from edgepos.pipelines.options import resolve_options
 
@@ -243,69 +255,10 @@ _MIN_SPEED_FOR_HEADING = 1.0
 is unobservable, and the RISS model would freeze a guess."""
 
 
-@dataclass
-class _Session:
-    options: dict[str, Any]
-    seed: int
-    initialised: bool
-    t: float | None
-    filter_t: float | None
-    epochs: int
-    anchor: GeodeticAnchor | None
-    riss: dict[str, float] | None
-    clock_seen: dict[str, float]
-    cloud: Cloud
-    heading_known: bool = False
-    """Whether the RISS model may run: until the GNSS-only model's velocity gives the azimuth, the RISS
-    input is held back (a wrong initial azimuth is not recoverable once the model integrates the gyro)."""
-
-    def to_bytes(self) -> bytes:
-        meta = {
-            "pipeline": GnssTightPipeline.name,
-            "options": self.options,
-            "seed": self.seed,
-            "initialised": self.initialised,
-            "t": self.t,
-            "filter_t": self.filter_t,
-            "epochs": self.epochs,
-            "anchor": None if self.anchor is None else [self.anchor.lat, self.anchor.lon, self.anchor.height],
-            "riss": self.riss,
-            "clock_seen": self.clock_seen,
-            "heading_known": self.heading_known,
-        }
-        arrays = {
-            "particles": self.cloud.particles,
-            "log_weights": self.cloud.log_weights,
-            "cov": self.cloud.cov,
-        }
-        return state_format.pack(meta, arrays)
-
-
-def _decode(blob: bytes) -> _Session:
-    meta, arrays = state_format.unpack(blob)
-    if meta.get("pipeline") != GnssTightPipeline.name:
-        raise state_format.StateFormatError("state does not belong to the gnss_tight pipeline")
-    anchor = None if meta["anchor"] is None else GeodeticAnchor(*meta["anchor"])
-    if arrays["particles"].shape[-1] != layout.DIM or arrays["cov"].shape != (layout.DIM, layout.DIM):
-        # States written before the gyro-bias and wheel-scale components were added (13 components).
-        raise state_format.StateFormatError(
-            f"gnss_tight state has {arrays['particles'].shape[-1]} components; this version uses {layout.DIM}"
-        )
-    cloud = Cloud(arrays["particles"], arrays["log_weights"], arrays["cov"])
-    return _Session(
-        meta["options"], int(meta["seed"]), meta["initialised"], meta["t"], meta["filter_t"], meta["epochs"],
-        anchor, meta["riss"], dict(meta["clock_seen"]), cloud, bool(meta.get("heading_known", False)),
-    )
-
-
-def _empty_cloud() -> Cloud:
-    return Cloud(np.zeros((1, layout.DIM)), np.zeros(1), np.eye(layout.DIM))
-
-
 class GnssTightPipeline(Pipeline):
     """GPS/BeiDou/Galileo pseudoranges (+ RISS input) into a UPF, PF or UKF (default UPF with fuzzy noise)."""
 
-    name = "gnss_tight"
+    name = PIPELINE_NAME
     description = (
         "Tightly coupled GNSS pseudoranges (GPS, BeiDou, Galileo) and reduced inertial sensors (wheel speed, "
         "accelerometers, yaw gyro) fused by an unscented particle filter with fuzzy noise adaptation "
@@ -329,16 +282,16 @@ class GnssTightPipeline(Pipeline):
             raise PipelineInputError(
                 [Problem(None, "initial", "gnss_tight initialises itself from its first pseudorange epoch")]
             )
-        return _Session(options, seed, False, None, None, 0, None, None, {}, _empty_cloud()).to_bytes()
+        return GnssSession(options, seed, False, None, None, 0, None, None, {}, empty_cloud()).to_bytes()
 
     def summarise(self, state: bytes) -> StateSummary:
-        session = _decode(state)
+        session = decode_session(state)
         return StateSummary(session.initialised, session.t, session.epochs, {}, session.options)
 
     def process(
         self, state: bytes, observations: Sequence[Observation], environment: Environment
     ) -> tuple[list[Fix], bytes]:
-        session = _decode(state)
+        session = decode_session(state)
         _validate(session, observations)
         ephemerides = environment.ephemerides()
         origin = environment.site_origin()
@@ -351,7 +304,7 @@ class GnssTightPipeline(Pipeline):
 
 
 # -- validation -----------------------------------------------------------------------------------
-def _validate(session: _Session, observations: Sequence[Observation]) -> None:
+def _validate(session: GnssSession, observations: Sequence[Observation]) -> None:
     problems: list[Problem] = []
     for index, observation in enumerate(observations):
         if not is_finite_number(observation.t) or not 0.0 <= observation.t < SECONDS_PER_WEEK:
@@ -394,21 +347,16 @@ def _validate(session: _Session, observations: Sequence[Observation]) -> None:
         raise PipelineInputError(problems)
 
 
-
-
 # -- one epoch -----------------------------------------------------------------------------------
-_DopplerUses = dict[int, tuple[bool, str | None]]
-"""Per observation index, whether its Doppler entered the update and, if not, why."""
-"""Per observation index, whether a differential correction was added to its pseudorange and, if not, why."""
 
 
 def _step(
-    session: _Session, epoch: list[int], observations: Sequence[Observation], ephemerides: Ephemerides | None,
+    session: GnssSession, epoch: list[int], observations: Sequence[Observation], ephemerides: Ephemerides | None,
     origin: tuple[float, float, float] | None, corrections: CorrectionTable | None = None,
 ) -> Fix:
     """One epoch through the filter; every Doppler sent is reported beside its pseudorange, and with
     corrections, each pseudorange's correction."""
-    doppler: _DopplerUses = {}
+    doppler: DopplerUses = {}
     corrected: CorrectionUses = {}
     fix = _filter_epoch(session, epoch, observations, ephemerides, origin, doppler, corrections, corrected)
     if corrections is not None:
@@ -436,8 +384,8 @@ def _step(
 
 
 def _filter_epoch(
-    session: _Session, epoch: list[int], observations: Sequence[Observation], ephemerides: Ephemerides | None,
-    origin: tuple[float, float, float] | None, doppler: _DopplerUses, corrections: CorrectionTable | None,
+    session: GnssSession, epoch: list[int], observations: Sequence[Observation], ephemerides: Ephemerides | None,
+    origin: tuple[float, float, float] | None, doppler: DopplerUses, corrections: CorrectionTable | None,
     corrected: CorrectionUses,
 ) -> Fix:
     options = session.options
@@ -492,11 +440,11 @@ def _filter_epoch(
         known = iono + tropo - SPEED_OF_LIGHT * prs.sat_clock_s
         factor = FuzzyNoise().factor(elevation, prs.cn0_dbhz) if options["fuzzy"] else np.ones(len(prs))
         std = options["pseudorange_std"] * factor
-        rows = _snapshot_test(
-            session, centre, prs, known, _snapshot_std(elevation, satellites.corrected), rows,
+        rows = snapshot_test(
+            session, centre, prs, known, snapshot_std(elevation, satellites.corrected), rows,
             satellites.indices, uses,
         )
-        rows, lost = _residual_test(session, centre, prs, known, std, rows, dt, model, satellites.indices, uses)
+        rows, lost = residual_test(session, centre, prs, known, std, rows, dt, model, satellites.indices, uses)
         if lost:
             session.initialised = False
             return _initialise(
@@ -505,7 +453,7 @@ def _filter_epoch(
         rate_std = float(options.get("doppler_std_mps", DEFAULT_DOPPLER_STD_MPS)) * factor
         rate_model: RangeRateModel | None = None
         if rate_rows.size:
-            rate_rows = _range_rate_test(
+            rate_rows = range_rate_test(
                 session, centre, prs, rate_std, rate_rows, dt, model, satellites.indices, doppler
             )
         if rate_rows.size:
@@ -522,7 +470,7 @@ def _filter_epoch(
                 active[layout.CLOCK[system]] = True
             model_pr = PseudorangeModel.build(session.anchor, prs.sat_position[rows], systems, known[rows], std[rows])
             measurement = _measurement(options, model_pr, prs.pseudorange_m[rows], rate_model, prs, rate_rows)
-    filt = _filter(options)
+    filt = filter_for(options)
     result = filt.step(session.cloud, model, dt, active, measurement, rng)
     if not (np.all(np.isfinite(result.mean)) and np.all(np.isfinite(result.cov))
             and np.all(np.isfinite(result.cloud.particles))):
@@ -571,37 +519,6 @@ def _measurement(
     )
 
 
-def _range_rate_test(
-    session: _Session, centre: np.ndarray, prs: PseudorangeSet, std: np.ndarray, rows: np.ndarray, dt: float,
-    model: RissModel | GnssOnlyModel, indices: list[int], doppler: _DopplerUses,
-) -> np.ndarray:
-    """The pseudorange residual test's counterpart for range rates: residual = measured - predicted, the
-    median removed when three or more (one clock drift moves them all alike), else the drift's variance
-    added; variance std^2 + the predicted velocity variance (trace). Returns the rows kept."""
-    probability = session.options["gate_probability"]
-    if probability <= 0.0 or rows.size == 0:
-        return rows
-    assert session.anchor is not None and prs.range_rate_mps is not None
-    assert prs.sat_velocity is not None and prs.sat_clock_drift is not None
-    rate_model = RangeRateModel.build(
-        session.anchor, prs.sat_position[rows], prs.sat_velocity[rows], prs.sat_clock_drift[rows], std[rows]
-    )
-    residual = prs.range_rate_mps[rows] - rate_model.predict(centre)
-    predicted_cov = _covariance(session) + model.process_noise(dt)
-    velocity = [layout.VE, layout.VN, layout.VU]
-    variance = std[rows] ** 2 + float(np.trace(predicted_cov[np.ix_(velocity, velocity)]))
-    if rows.size >= 3:
-        residual = residual - np.median(residual)
-    else:
-        variance = variance + predicted_cov[layout.DRIFT, layout.DRIFT]
-    score = residual**2 / variance
-    threshold = _chi2_threshold(probability)
-    failed = score > threshold
-    for r, value in zip(rows[failed], score[failed]):
-        doppler[indices[r]] = (False, f"failed the range-rate residual test: {value:.1f} > {threshold:.1f} (chi-square, 1 dof)")
-    return rows[~failed]
-
-
 def _cloud_mean(cloud: Cloud) -> np.ndarray:
     """The cloud's weighted mean, the azimuth averaged on the circle: a plain average of particles at
     +179 and -179 deg (a vehicle heading south) would point north."""
@@ -610,7 +527,7 @@ def _cloud_mean(cloud: Cloud) -> np.ndarray:
     return weighted_moments(cloud.particles, cloud.weights, layout.ANGLES)[0]
 
 
-def _maybe_start_riss(session: _Session, t: float, result: StepResult) -> None:
+def _maybe_start_riss(session: GnssSession, t: float, result: StepResult) -> None:
     """Let the RISS model take over once the GNSS-only velocity determines the azimuth.
 
     The azimuth of velocity (v_e, v_n) is atan2(v_e, v_n); its variance is J P_v J^T with
@@ -631,7 +548,7 @@ def _maybe_start_riss(session: _Session, t: float, result: StepResult) -> None:
     if not variance <= _HEADING_STD_TO_START_RISS**2:
         return
     session.heading_known = True
-    if session.options["filter"] in _OWN_COVARIANCE_FILTERS:
+    if session.options["filter"] in OWN_COVARIANCE_FILTERS:
         # Their covariance holds the azimuth: until now (GNSS-only) it was derived, not estimated.
         own_velocity = session.cloud.cov[np.ix_([layout.VE, layout.VN], [layout.VE, layout.VN])]
         variance = float(jacobian @ own_velocity @ jacobian)
@@ -642,30 +559,7 @@ def _maybe_start_riss(session: _Session, t: float, result: StepResult) -> None:
         session.cloud = Cloud(session.cloud.particles, session.cloud.log_weights, cov)
 
 
-_OWN_COVARIANCE_FILTERS = ("ukf", "upf")
-"""Filters whose particles carry a covariance of their own (``Cloud.cov``); the PF's particles are points."""
-
-
-def _covariance(session: _Session) -> np.ndarray:
-    """The state covariance the filter's cloud stands for (for the UPF: the particles' spread plus their own
-    covariance)."""
-    filt = _filter(session.options)
-    return filt.covariance(session.cloud) if hasattr(filt, "covariance") else session.cloud.cov
-
-
-def _filter(options: Mapping[str, Any]) -> Any:
-    name = options["filter"]
-    cls = PARTICLE_FILTERS[name]
-    if name == "ukf":
-        return cls()
-    if name == "upf":
-        # States stored before the option existed carry the value that was then built in (1).
-        spread = options.get("spread_fraction", 1.0)
-        return cls(resample_threshold=options["resample_threshold"], spread_fraction=spread)
-    return cls(resample_threshold=options["resample_threshold"])
-
-
-def _model(session: _Session, t: float) -> RissModel | GnssOnlyModel:
+def _model(session: GnssSession, t: float) -> RissModel | GnssOnlyModel:
     options, anchor = session.options, session.anchor
     assert anchor is not None
     riss = session.riss
@@ -680,7 +574,7 @@ def _model(session: _Session, t: float) -> RissModel | GnssOnlyModel:
     )
 
 
-def _take_riss(session: _Session, observation: RissObservation) -> None:
+def _take_riss(session: GnssSession, observation: RissObservation) -> None:
     """Store the sample as the model input; the wheel acceleration is the wheel speed's difference quotient."""
     previous = session.riss
     accel = 0.0
@@ -692,128 +586,8 @@ def _take_riss(session: _Session, observation: RissObservation) -> None:
     }
 
 
-
-def _snapshot_std(elevation: np.ndarray, corrected: np.ndarray | None = None) -> np.ndarray:
-    """The least-squares baseline's pseudorange noise model (gnss/spp.py), sqrt(a^2 + b^2 / sin^2 el), with
-    its own a, b for differentially corrected rows: the snapshot test judges residuals as the baseline
-    does, whatever noise the filter assumes."""
-    config = SppConfig()
-    sin_el = np.maximum(np.sin(elevation), 0.05)
-    std = np.sqrt(config.sigma_a_m**2 + (config.sigma_b_m / sin_el) ** 2)
-    if corrected is None:
-        return std
-    return np.where(
-        corrected, np.sqrt(config.corrected_sigma_a_m**2 + (config.corrected_sigma_b_m / sin_el) ** 2), std
-    )
-
-
-def _snapshot_test(
-    session: _Session, centre: np.ndarray, prs: PseudorangeSet, known: np.ndarray, std: np.ndarray,
-    rows: np.ndarray, indices: list[int], uses: dict[int, MeasurementUse],
-) -> np.ndarray:
-    """Fault detection and exclusion on this epoch's pseudoranges alone, as the least-squares baseline does.
-
-    Linearised at the predicted position: weighted least squares for a position correction and one clock
-    per constellation; while the chi-square test of the weighted post-fit residuals fails, the pseudorange
-    with the largest standardised residual (divided by sqrt(1 - leverage)) is excluded. Unlike a gate centred
-    on the prediction it does not depend on the filter's history, so a persistent NLOS bias the filter has
-    already followed is still found. Returns the rows kept."""
-    options = session.options
-    probability = options["fde_probability"]
-    if probability <= 0.0 or options["max_exclusions"] <= 0 or rows.size == 0:
-        return rows
-    assert session.anchor is not None
-    receiver = session.anchor.ecef(centre)
-    systems = np.array(prs.systems)
-    geometric = sagnac_range(prs.sat_position, receiver)
-    residual = prs.pseudorange_m - geometric - known
-    line_of_sight = (receiver - prs.sat_position) / geometric[:, None]
-    keep = rows.copy()
-    for _ in range(options["max_exclusions"]):
-        present = sorted(set(systems[keep]))
-        design = np.zeros((keep.size, 3 + len(present)))
-        design[:, :3] = line_of_sight[keep]
-        for column, system in enumerate(present):
-            design[systems[keep] == system, 3 + column] = 1.0
-        dof = keep.size - design.shape[1]
-        if dof < 2:
-            break
-        root = 1.0 / std[keep]
-        weighted = design * root[:, None]
-        normal = weighted.T @ weighted
-        try:
-            inverse = np.linalg.inv(normal)
-        except np.linalg.LinAlgError:
-            break  # singular geometry: nothing to test against
-        normalised = (residual[keep] - design @ (inverse @ (weighted.T @ (residual[keep] * root)))) * root
-        statistic = float(normalised @ normalised)
-        if not math.isfinite(statistic) or statistic <= _chi2_threshold(probability, dof):
-            break
-        leverage = np.einsum("ij,jk,ik->i", weighted, inverse, weighted)
-        standardised = np.abs(normalised) / np.sqrt(np.maximum(1.0 - leverage, 1e-6))
-        worst = int(np.argmax(standardised))
-        i = indices[keep[worst]]
-        uses[i] = MeasurementUse(
-            i, "pseudorange", False,
-            f"excluded by the snapshot test: {statistic:.1f} > {_chi2_threshold(probability, dof):.1f} "
-            f"(chi-square, {dof} dof), largest standardised residual {standardised[worst]:.1f}",
-        )
-        keep = np.delete(keep, worst)
-    return keep
-
-
-def _residual_test(
-    session: _Session, centre: np.ndarray, prs: PseudorangeSet, known: np.ndarray, std: np.ndarray,
-    rows: np.ndarray, dt: float, model: RissModel | GnssOnlyModel, indices: list[int],
-    uses: dict[int, MeasurementUse],
-) -> tuple[np.ndarray, bool]:
-    """RAIM-like screening of each pseudorange against the predicted state.
-
-    Residual = measured - predicted; per constellation with three or more satellites its median is
-    removed (a clock error moves them all alike), otherwise the clock variance widens the test. The
-    variance is std^2 plus the predicted position variance (trace). Returns the rows kept and whether the
-    prediction is lost (more than half of at least four pseudoranges fail)."""
-    probability = session.options["gate_probability"]
-    if probability <= 0.0 or rows.size == 0:
-        return rows, False
-    assert session.anchor is not None
-    systems = [prs.systems[r] for r in rows]
-    model_pr = PseudorangeModel.build(session.anchor, prs.sat_position[rows], systems, known[rows], std[rows])
-    residual = prs.pseudorange_m[rows] - model_pr.predict(centre)
-    predicted_cov = _covariance(session) + model.process_noise(dt)
-    variance = std[rows] ** 2 + float(np.trace(predicted_cov[:3, :3]))
-    for system in set(systems):
-        members = np.array([s == system for s in systems])
-        if members.sum() >= 3:
-            residual[members] -= np.median(residual[members])
-        else:
-            clock = layout.CLOCK[system]
-            variance[members] += predicted_cov[clock, clock] if system in session.clock_seen else 1e12
-    score = residual**2 / variance
-    threshold = _chi2_threshold(probability)
-    failed = score > threshold
-    if failed.sum() * 2 > rows.size and rows.size >= 4:
-        return rows, True
-    for r, value in zip(rows[failed], score[failed]):
-        i = indices[r]
-        uses[i] = MeasurementUse(
-            i, "pseudorange", False, f"failed the residual test: {value:.1f} > {threshold:.1f} (chi-square, 1 dof)"
-        )
-    return rows[~failed], False
-
-
-_THRESHOLDS: dict[tuple[float, int], float] = {}
-
-
-def _chi2_threshold(probability: float, dof: int = 1) -> float:
-    key = (probability, dof)
-    if key not in _THRESHOLDS:
-        _THRESHOLDS[key] = float(chi2.ppf(probability, dof))
-    return _THRESHOLDS[key]
-
-
 def _reset_unseen_clocks(
-    session: _Session, t: float, systems: list[str], centre: np.ndarray, prs: PseudorangeSet, known: np.ndarray,
+    session: GnssSession, t: float, systems: list[str], centre: np.ndarray, prs: PseudorangeSet, known: np.ndarray,
     rows: np.ndarray, rng: np.random.Generator,
 ) -> None:
     """A constellation seen for the first time, or again after a while, restarts its clock bias from the
@@ -847,8 +621,8 @@ def _reset_unseen_clocks(
 
 
 def _initialise(
-    session: _Session, t: float, satellites: EpochSatellites, atmosphere: Atmosphere,
-    origin: tuple[float, float, float] | None, uses: dict[int, MeasurementUse], doppler: _DopplerUses,
+    session: GnssSession, t: float, satellites: EpochSatellites, atmosphere: Atmosphere,
+    origin: tuple[float, float, float] | None, uses: dict[int, MeasurementUse], doppler: DopplerUses,
     rng: np.random.Generator, waiting: str,
 ) -> Fix:
     """Start the filter from this epoch's weighted least-squares fix, or report why it cannot yet. With
@@ -937,7 +711,7 @@ def _initialise(
 
 
 def _fix(
-    t: float, status: str, session: _Session, mean: np.ndarray, cov: np.ndarray, result: StepResult | None,
+    t: float, status: str, session: GnssSession, mean: np.ndarray, cov: np.ndarray, result: StepResult | None,
     dof: int, uses: dict[int, MeasurementUse], origin: tuple[float, float, float] | None,
 ) -> Fix:
     anchor = session.anchor

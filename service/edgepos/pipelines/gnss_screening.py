@@ -1,0 +1,204 @@
+"""What a ``gnss_tight`` epoch's measurements must pass before the filter update: a snapshot test on the
+epoch's own least-squares residuals (as the baseline does), a residual test of each pseudorange against the
+predicted state, and the same for range rates. Each exclusion is reported with its reason. Split from
+``gnss_tight``."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.stats import chi2
+
+from edgepos.core.measurements.pseudorange import PseudorangeModel
+from edgepos.core.measurements.range_rate import RangeRateModel
+from edgepos.core.motion import riss as layout
+from edgepos.core.motion.riss import GnssOnlyModel, RissModel
+from edgepos.gnss.measurements import PseudorangeSet
+from edgepos.gnss.orbits import sagnac_range
+from edgepos.gnss.spp import SppConfig
+from edgepos.pipelines.base import (
+    MeasurementUse,
+)
+from edgepos.pipelines.gnss_session import GnssSession, session_covariance
+
+DopplerUses = dict[int, tuple[bool, str | None]]
+"""Per observation index, whether its Doppler entered the update and, if not, why."""
+
+
+def range_rate_test(
+    session: GnssSession,
+    centre: np.ndarray,
+    prs: PseudorangeSet,
+    std: np.ndarray,
+    rows: np.ndarray,
+    dt: float,
+    model: RissModel | GnssOnlyModel,
+    indices: list[int],
+    doppler: DopplerUses,
+) -> np.ndarray:
+    """The pseudorange residual test's counterpart for range rates: residual = measured - predicted, the
+    median removed when three or more (one clock drift moves them all alike), else the drift's variance
+    added; variance std^2 + the predicted velocity variance (trace). Returns the rows kept."""
+    probability = session.options["gate_probability"]
+    if probability <= 0.0 or rows.size == 0:
+        return rows
+    assert session.anchor is not None and prs.range_rate_mps is not None
+    assert prs.sat_velocity is not None and prs.sat_clock_drift is not None
+    rate_model = RangeRateModel.build(
+        session.anchor, prs.sat_position[rows], prs.sat_velocity[rows], prs.sat_clock_drift[rows], std[rows]
+    )
+    residual = prs.range_rate_mps[rows] - rate_model.predict(centre)
+    predicted_cov = session_covariance(session) + model.process_noise(dt)
+    velocity = [layout.VE, layout.VN, layout.VU]
+    variance = std[rows] ** 2 + float(np.trace(predicted_cov[np.ix_(velocity, velocity)]))
+    if rows.size >= 3:
+        residual = residual - np.median(residual)
+    else:
+        variance = variance + predicted_cov[layout.DRIFT, layout.DRIFT]
+    score = residual**2 / variance
+    threshold = chi2_threshold(probability)
+    failed = score > threshold
+    for r, value in zip(rows[failed], score[failed]):
+        doppler[indices[r]] = (
+            False,
+            f"failed the range-rate residual test: {value:.1f} > {threshold:.1f} (chi-square, 1 dof)",
+        )
+    return rows[~failed]
+
+
+def snapshot_std(elevation: np.ndarray, corrected: np.ndarray | None = None) -> np.ndarray:
+    """The least-squares baseline's pseudorange noise model (gnss/spp.py), sqrt(a^2 + b^2 / sin^2 el), with
+    its own a, b for differentially corrected rows: the snapshot test judges residuals as the baseline
+    does, whatever noise the filter assumes."""
+    config = SppConfig()
+    sin_el = np.maximum(np.sin(elevation), 0.05)
+    std = np.sqrt(config.sigma_a_m**2 + (config.sigma_b_m / sin_el) ** 2)
+    if corrected is None:
+        return std
+    return np.where(
+        corrected, np.sqrt(config.corrected_sigma_a_m**2 + (config.corrected_sigma_b_m / sin_el) ** 2), std
+    )
+
+
+def snapshot_test(
+    session: GnssSession,
+    centre: np.ndarray,
+    prs: PseudorangeSet,
+    known: np.ndarray,
+    std: np.ndarray,
+    rows: np.ndarray,
+    indices: list[int],
+    uses: dict[int, MeasurementUse],
+) -> np.ndarray:
+    """Fault detection and exclusion on this epoch's pseudoranges alone, as the least-squares baseline does.
+
+    Linearised at the predicted position: weighted least squares for a position correction and one clock
+    per constellation; while the chi-square test of the weighted post-fit residuals fails, the pseudorange
+    with the largest standardised residual (divided by sqrt(1 - leverage)) is excluded. Unlike a gate centred
+    on the prediction it does not depend on the filter's history, so a persistent NLOS bias the filter has
+    already followed is still found. Returns the rows kept."""
+    options = session.options
+    probability = options["fde_probability"]
+    if probability <= 0.0 or options["max_exclusions"] <= 0 or rows.size == 0:
+        return rows
+    assert session.anchor is not None
+    receiver = session.anchor.ecef(centre)
+    systems = np.array(prs.systems)
+    geometric = sagnac_range(prs.sat_position, receiver)
+    residual = prs.pseudorange_m - geometric - known
+    line_of_sight = (receiver - prs.sat_position) / geometric[:, None]
+    keep = rows.copy()
+    for _ in range(options["max_exclusions"]):
+        present = sorted(set(systems[keep]))
+        design = np.zeros((keep.size, 3 + len(present)))
+        design[:, :3] = line_of_sight[keep]
+        for column, system in enumerate(present):
+            design[systems[keep] == system, 3 + column] = 1.0
+        dof = keep.size - design.shape[1]
+        if dof < 2:
+            break
+        root = 1.0 / std[keep]
+        weighted = design * root[:, None]
+        normal = weighted.T @ weighted
+        try:
+            inverse = np.linalg.inv(normal)
+        except np.linalg.LinAlgError:
+            break  # singular geometry: nothing to test against
+        normalised = (residual[keep] - design @ (inverse @ (weighted.T @ (residual[keep] * root)))) * root
+        statistic = float(normalised @ normalised)
+        if not math.isfinite(statistic) or statistic <= chi2_threshold(probability, dof):
+            break
+        leverage = np.einsum("ij,jk,ik->i", weighted, inverse, weighted)
+        standardised = np.abs(normalised) / np.sqrt(np.maximum(1.0 - leverage, 1e-6))
+        worst = int(np.argmax(standardised))
+        i = indices[keep[worst]]
+        uses[i] = MeasurementUse(
+            i,
+            "pseudorange",
+            False,
+            f"excluded by the snapshot test: {statistic:.1f} > {chi2_threshold(probability, dof):.1f} "
+            f"(chi-square, {dof} dof), largest standardised residual {standardised[worst]:.1f}",
+        )
+        keep = np.delete(keep, worst)
+    return keep
+
+
+def residual_test(
+    session: GnssSession,
+    centre: np.ndarray,
+    prs: PseudorangeSet,
+    known: np.ndarray,
+    std: np.ndarray,
+    rows: np.ndarray,
+    dt: float,
+    model: RissModel | GnssOnlyModel,
+    indices: list[int],
+    uses: dict[int, MeasurementUse],
+) -> tuple[np.ndarray, bool]:
+    """RAIM-like screening of each pseudorange against the predicted state.
+
+    Residual = measured - predicted; per constellation with three or more satellites its median is
+    removed (a clock error moves them all alike), otherwise the clock variance widens the test. The
+    variance is std^2 plus the predicted position variance (trace). Returns the rows kept and whether the
+    prediction is lost (more than half of at least four pseudoranges fail)."""
+    probability = session.options["gate_probability"]
+    if probability <= 0.0 or rows.size == 0:
+        return rows, False
+    assert session.anchor is not None
+    systems = [prs.systems[r] for r in rows]
+    model_pr = PseudorangeModel.build(session.anchor, prs.sat_position[rows], systems, known[rows], std[rows])
+    residual = prs.pseudorange_m[rows] - model_pr.predict(centre)
+    predicted_cov = session_covariance(session) + model.process_noise(dt)
+    variance = std[rows] ** 2 + float(np.trace(predicted_cov[:3, :3]))
+    for system in set(systems):
+        members = np.array([s == system for s in systems])
+        if members.sum() >= 3:
+            residual[members] -= np.median(residual[members])
+        else:
+            clock = layout.CLOCK[system]
+            variance[members] += predicted_cov[clock, clock] if system in session.clock_seen else 1e12
+    score = residual**2 / variance
+    threshold = chi2_threshold(probability)
+    failed = score > threshold
+    if failed.sum() * 2 > rows.size and rows.size >= 4:
+        return rows, True
+    for r, value in zip(rows[failed], score[failed]):
+        i = indices[r]
+        uses[i] = MeasurementUse(
+            i,
+            "pseudorange",
+            False,
+            f"failed the residual test: {value:.1f} > {threshold:.1f} (chi-square, 1 dof)",
+        )
+    return rows[~failed], False
+
+
+_THRESHOLDS: dict[tuple[float, int], float] = {}
+
+
+def chi2_threshold(probability: float, dof: int = 1) -> float:
+    key = (probability, dof)
+    if key not in _THRESHOLDS:
+        _THRESHOLDS[key] = float(chi2.ppf(probability, dof))
+    return _THRESHOLDS[key]

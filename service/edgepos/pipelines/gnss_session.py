@@ -1,0 +1,112 @@
+"""The state a ``gnss_tight`` session keeps between batches (options, clocks seen, the RISS input, the
+particle cloud or UKF moments) and its exact byte form. Split from ``gnss_tight``."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from edgepos.core import state as state_format
+from edgepos.core.motion import riss as layout
+from edgepos.core.motion.riss import GeodeticAnchor
+from edgepos.core.particles import PARTICLE_FILTERS, Cloud
+
+PIPELINE_NAME = "gnss_tight"
+
+
+@dataclass
+class GnssSession:
+    """A gnss_tight session between batches."""
+
+    options: dict[str, Any]
+    seed: int
+    initialised: bool
+    t: float | None
+    filter_t: float | None
+    epochs: int
+    anchor: GeodeticAnchor | None
+    riss: dict[str, float] | None
+    clock_seen: dict[str, float]
+    cloud: Cloud
+    heading_known: bool = False
+    """Whether the RISS model may run: until the GNSS-only model's velocity gives the azimuth, the RISS
+    input is held back (a wrong initial azimuth is not recoverable once the model integrates the gyro)."""
+
+    def to_bytes(self) -> bytes:
+        meta = {
+            "pipeline": PIPELINE_NAME,
+            "options": self.options,
+            "seed": self.seed,
+            "initialised": self.initialised,
+            "t": self.t,
+            "filter_t": self.filter_t,
+            "epochs": self.epochs,
+            "anchor": None if self.anchor is None else [self.anchor.lat, self.anchor.lon, self.anchor.height],
+            "riss": self.riss,
+            "clock_seen": self.clock_seen,
+            "heading_known": self.heading_known,
+        }
+        arrays = {
+            "particles": self.cloud.particles,
+            "log_weights": self.cloud.log_weights,
+            "cov": self.cloud.cov,
+        }
+        return state_format.pack(meta, arrays)
+
+
+def decode_session(blob: bytes) -> GnssSession:
+    meta, arrays = state_format.unpack(blob)
+    if meta.get("pipeline") != PIPELINE_NAME:
+        raise state_format.StateFormatError("state does not belong to the gnss_tight pipeline")
+    anchor = None if meta["anchor"] is None else GeodeticAnchor(*meta["anchor"])
+    if arrays["particles"].shape[-1] != layout.DIM or arrays["cov"].shape != (layout.DIM, layout.DIM):
+        # States written before the gyro-bias and wheel-scale components were added (13 components).
+        raise state_format.StateFormatError(
+            f"gnss_tight state has {arrays['particles'].shape[-1]} components; this version uses {layout.DIM}"
+        )
+    cloud = Cloud(arrays["particles"], arrays["log_weights"], arrays["cov"])
+    return GnssSession(
+        meta["options"],
+        int(meta["seed"]),
+        meta["initialised"],
+        meta["t"],
+        meta["filter_t"],
+        meta["epochs"],
+        anchor,
+        meta["riss"],
+        dict(meta["clock_seen"]),
+        cloud,
+        bool(meta.get("heading_known", False)),
+    )
+
+
+def empty_cloud() -> Cloud:
+    """The placeholder cloud of a session not yet initialised (one particle at zero)."""
+    return Cloud(np.zeros((1, layout.DIM)), np.zeros(1), np.eye(layout.DIM))
+
+
+OWN_COVARIANCE_FILTERS = ("ukf", "upf")
+"""Filters whose particles carry a covariance of their own (``Cloud.cov``); the PF's particles are points."""
+
+
+def session_covariance(session: GnssSession) -> np.ndarray:
+    """The state covariance the filter's cloud stands for (for the UPF: the particles' spread plus their own
+    covariance)."""
+    filt = filter_for(session.options)
+    return filt.covariance(session.cloud) if hasattr(filt, "covariance") else session.cloud.cov
+
+
+def filter_for(options: Mapping[str, Any]) -> Any:
+    """The particle filter (UKF, PF or UPF) a session's options name, with their settings."""
+    name = options["filter"]
+    cls = PARTICLE_FILTERS[name]
+    if name == "ukf":
+        return cls()
+    if name == "upf":
+        # States stored before the option existed carry the value that was then built in (1).
+        spread = options.get("spread_fraction", 1.0)
+        return cls(resample_threshold=options["resample_threshold"], spread_fraction=spread)
+    return cls(resample_threshold=options["resample_threshold"])
