@@ -29,6 +29,22 @@ def post(client, session_id, token, seq, items, **extra):
     )
 
 
+def _with_satellite_states(items: list[dict]) -> tuple[list[dict], float]:
+    """The first epoch's measurements with the satellite positions and clocks a client would compute from
+    the same broadcast ephemerides (sat_position, sat_clock), and the epoch's GPS time."""
+    ephemerides = parse_ephemerides(nav_text())
+    gpst = epochs()[0][0]
+    systems = [m["system"] for m in items]
+    index = ephemerides.orbits.select(systems, [m["prn"] for m in items], gpst)
+    factors = np.array([group_delay_factors(s, DEFAULT_SIGNAL[s]) for s in systems])
+    states = ephemerides.orbits.transmit_states(index, gpst, [m["pseudorange_m"] for m in items], factors)
+    sent = [
+        {**m, "sat_position": [float(v) for v in states.position[k]], "sat_clock": float(states.clock_s[k])}
+        for k, m in enumerate(items)
+    ]
+    return sent, gpst
+
+
 def test_ephemerides_put_get_delete(client):
     assert_error(client.get("/v1/ephemerides", headers=ADMIN), 404, "not_found")
     response = upload(client)
@@ -220,17 +236,8 @@ def test_pseudoranges_without_a_satellite_state_are_refused(client):
 
 def test_client_computed_satellite_states_need_no_ephemerides(client):
     """A client that computes sat_position and sat_clock itself gets the same fix as the service's own."""
-    ephemerides = parse_ephemerides(nav_text())
     items = measurements(0, 1)
-    gpst = epochs()[0][0]
-    systems = [m["system"] for m in items]
-    index = ephemerides.orbits.select(systems, [m["prn"] for m in items], gpst)
-    factors = np.array([group_delay_factors(s, DEFAULT_SIGNAL[s]) for s in systems])
-    states = ephemerides.orbits.transmit_states(index, gpst, [m["pseudorange_m"] for m in items], factors)
-    sent = [
-        {**m, "sat_position": [float(v) for v in states.position[k]], "sat_clock": float(states.clock_s[k])}
-        for k, m in enumerate(items)
-    ]
+    sent, gpst = _with_satellite_states(items)
     options = {**QUICK, "gps_week": int(gpst // 604800), "ionosphere": False}
     session_id, token = open_session(client, pipeline="gnss_tight", options=options)
     own = post(client, session_id, token, 1, sent)
@@ -325,17 +332,7 @@ def test_dopplers_are_used_and_reported(client):
     assert not any(use["doppler_used"] for use in off)
     assert all(use["doppler_reason"] == "options.use_doppler is off" for use in off)
     assert reports[True]["nis_dof"] > reports[False]["nis_dof"]
-    ephemerides = parse_ephemerides(nav_text())
-    items = with_doppler(measurements(0, 1))
-    gpst = epochs()[0][0]
-    systems = [m["system"] for m in items]
-    index = ephemerides.orbits.select(systems, [m["prn"] for m in items], gpst)
-    factors = np.array([group_delay_factors(s, DEFAULT_SIGNAL[s]) for s in systems])
-    states = ephemerides.orbits.transmit_states(index, gpst, [m["pseudorange_m"] for m in items], factors)
-    sent = [
-        {**m, "sat_position": [float(v) for v in states.position[k]], "sat_clock": float(states.clock_s[k])}
-        for k, m in enumerate(items)
-    ]
+    sent, _ = _with_satellite_states(with_doppler(measurements(0, 1)))
     session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
     (fix,) = post(client, session_id, token, 1, sent).json()["fixes"]
     assert all(use["doppler_used"] is False and "no satellite velocity" in use["doppler_reason"]
