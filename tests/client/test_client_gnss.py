@@ -20,7 +20,7 @@ from edgepos_client import (
 from pydantic import ValidationError
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "api"))
-from gnsswire import NAV, QUICK, horizontal_error, measurements, nav_text, with_doppler  # noqa: E402
+from gnsswire import NAV, QUICK, horizontal_error, measurements, nav_text, with_doppler
 
 
 def pseudoranges(first: int, count: int) -> list[PseudorangeMeasurement]:
