@@ -20,7 +20,6 @@ import statistics
 import time
 
 import numpy as np
-
 from edgepos.core.observations import (
     SPEED_OF_LIGHT,
     GnssFixObservation,

@@ -20,8 +20,13 @@ import statistics
 import time
 
 import numpy as np
-
-from edgepos.core.observations import GnssFixObservation, GyroObservation, Observation, OdometerObservation, V2vRangeObservation
+from edgepos.core.observations import (
+    GnssFixObservation,
+    GyroObservation,
+    Observation,
+    OdometerObservation,
+    V2vRangeObservation,
+)
 from edgepos.pipelines.base import NeighbourTrack, StaticEnvironment, TrackPoint
 from edgepos.pipelines.registry import get_pipeline
 

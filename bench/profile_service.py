@@ -26,7 +26,6 @@ import time
 from pathlib import Path
 
 import httpx
-
 from edgepos.loadgen.localredis import RedisServer, redis_binary
 from edgepos.loadgen.localserver import clean_environment, free_port
 

@@ -64,7 +64,7 @@ def test_ephemerides_put_get_delete(client):
     # The recording (2020-11-29 12:40 GPST, week 2134 second 45600) lies inside the window.
     assert start["gps_seconds"] < 2134 * 604800 + 45600 < end["gps_seconds"]
 
-    session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
+    _session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
     assert client.get("/v1/ephemerides", headers=token).json() == summary  # any session token reads
     assert_error(upload(client, headers=token), 403, "forbidden")
     assert_error(client.delete("/v1/ephemerides", headers=token), 403, "forbidden")

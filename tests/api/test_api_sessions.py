@@ -127,7 +127,7 @@ def test_a_session_token_opens_only_its_session(client):
 
 
 def test_missing_or_wrong_credentials_are_401(client):
-    session_id, token = open_session(client)
+    session_id, _token = open_session(client)
     wrong_secret = bearer(f"{session_id}.not-the-secret")
     forged_other = bearer("f" * 32 + ".not-a-session")
     for headers in ({}, wrong_secret, forged_other, bearer("garbage"), {"Authorization": "Token abc"}):

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from edgepos.core import layout
 from edgepos.core.augmented import augmented_update
 from edgepos.core.filters.ukf import UnscentedKalmanFilter

@@ -6,7 +6,6 @@ import math
 
 import numpy as np
 import pytest
-
 from edgepos.core import layout
 from edgepos.core.filters import CubatureKalmanFilter, ExtendedKalmanFilter, UnscentedKalmanFilter
 from edgepos.core.filters.base import GaussianFilter, embed_bank

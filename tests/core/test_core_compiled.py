@@ -14,7 +14,6 @@ import math
 
 import numpy as np
 import pytest
-
 from edgepos.core import layout
 from edgepos.core.compiled import BankStepper, CompiledBankStepper, covered, stepper_for, warm_up
 from edgepos.core.errors import NumericalError

@@ -10,13 +10,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.stats import chi2
-
 from edgepos.core import layout
 from edgepos.core.filters import CubatureKalmanFilter, ExtendedKalmanFilter, UnscentedKalmanFilter
 from edgepos.core.filters.base import GaussianFilter
 from edgepos.core.measurements.base import MeasurementModel
 from edgepos.core.motion import ConstantAcceleration
+from scipy.stats import chi2
 
 RUNS, STEPS, DT = 60, 40, 0.1
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from edgepos.core.fuzzy import RULES, FuzzyNoise
 
 FUZZY = FuzzyNoise()

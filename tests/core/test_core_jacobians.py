@@ -6,7 +6,6 @@ import math
 
 import numpy as np
 import pytest
-
 from edgepos.core import layout
 from edgepos.core.measurements import GyroYawRate, RsuRange, RsuRangeBearing
 from edgepos.core.measurements.base import MeasurementModel

@@ -13,10 +13,8 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
-
-from edgepos.core.errors import ConfigurationError
-
 from edgepos.core import layout
+from edgepos.core.errors import ConfigurationError
 from edgepos.core.motion import (
     AdaptiveTurn,
     ConstantAcceleration,

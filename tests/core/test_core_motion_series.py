@@ -6,12 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import example
+from edgepos.core.motion.base import integrator_chain, markov_chain, van_loan
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from scipy.linalg import expm
-
-from edgepos.core.motion.base import integrator_chain, markov_chain, van_loan
 
 from tests.core.test_core_motion_closed_forms import exact, singer_f, singer_q
 

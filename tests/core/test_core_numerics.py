@@ -6,9 +6,13 @@ import math
 
 import numpy as np
 import pytest
-
 from edgepos.core.errors import EstimationError, NumericalError
-from edgepos.core.filters import CubatureKalmanFilter, ExtendedKalmanFilter, UnscentedKalmanFilter, kalman_correct
+from edgepos.core.filters import (
+    CubatureKalmanFilter,
+    ExtendedKalmanFilter,
+    UnscentedKalmanFilter,
+    kalman_correct,
+)
 from edgepos.core.filters.base import GaussianFilter
 from edgepos.core.imm import InteractingMultipleModel
 from edgepos.core.measurements import GyroYawRate, RsuRangeBearing, Stacked

@@ -11,7 +11,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
-
 from edgepos.core.errors import NumericalError
 from edgepos.core.motion import riss as layout
 from edgepos.core.particles import Cloud, Measurement, ParticleFilter, UnscentedParticleFilter

@@ -8,7 +8,6 @@ import sys
 
 import numpy as np
 import pytest
-
 from edgepos.core import state
 from edgepos.core.state import StateFormatError, pack, unpack
 

@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from edgepos.core.observations import PseudorangeObservation, RissObservation
 from edgepos.eval import commands, gnss_montecarlo
 from edgepos.sim.gnss_scenario import urban_scenario

@@ -58,7 +58,7 @@ def test_orbit_radii_and_geostationary_slot(orbits: BroadcastOrbits, nav: Naviga
     # C05 is BeiDou's GEO at 58.75 deg E: near the equator, near its slot, and almost fixed in ECEF.
     geo = _index(orbits, "C05", 12.004)
     position = _at(orbits, geo, T0)
-    lat, lon, height = ecef_to_geodetic(position)
+    lat, lon, _height = ecef_to_geodetic(position)
     assert abs(math.degrees(float(lat))) < 3.0
     assert math.degrees(float(lon)) == pytest.approx(58.75, abs=0.5)
     assert float(np.linalg.norm(position)) == pytest.approx(42164e3, abs=100e3)

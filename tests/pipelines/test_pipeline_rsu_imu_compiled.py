@@ -12,7 +12,6 @@ import dataclasses
 
 import numpy as np
 import pytest
-
 from edgepos.pipelines import rsu_imu
 from edgepos.pipelines.base import InitialState, StaticEnvironment
 from edgepos.pipelines.registry import get_pipeline

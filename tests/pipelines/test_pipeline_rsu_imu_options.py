@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 
 import pytest
-
 from edgepos.pipelines.base import PipelineInputError
 from edgepos.pipelines.registry import PIPELINES, get_pipeline
 

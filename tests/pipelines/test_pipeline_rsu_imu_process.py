@@ -170,11 +170,11 @@ def test_observations_sharing_a_timestamp_form_one_epoch_and_batches_are_sorted(
     rng = np.random.default_rng(4)
     epochs = [epoch(k * DT, rng) for k in range(1, 6)]
     in_order = [o for e in epochs for o in e]
-    fixes_sorted, state_sorted = pipeline.process(state, in_order, ENV)
+    fixes_sorted, _state_sorted = pipeline.process(state, in_order, ENV)
     assert [f.t for f in fixes_sorted] == [k * DT for k in range(1, 6)]
     shuffled_order = np.random.default_rng(5).permutation(len(in_order))
     shuffled = [in_order[i] for i in shuffled_order]
-    fixes_shuffled, state_shuffled = pipeline.process(state, shuffled, ENV)
+    fixes_shuffled, _state_shuffled = pipeline.process(state, shuffled, ENV)
     assert [f.t for f in fixes_shuffled] == [f.t for f in fixes_sorted]
     # measurement reports refer to the indices of the list passed in
     for fix in fixes_shuffled:

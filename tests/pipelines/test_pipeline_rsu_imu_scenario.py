@@ -6,7 +6,6 @@ import math
 
 import numpy as np
 import pytest
-
 from edgepos.pipelines.base import InitialState, StaticEnvironment
 from edgepos.pipelines.registry import get_pipeline
 from edgepos.sim.scenarios import rsu_imu_paper_scenario

@@ -304,7 +304,7 @@ def test_a_jump_to_the_largest_time_is_refused_and_the_session_goes_on(paper) ->
     first, naming the same observations.)"""
     epochs, environment = paper
     pipeline = plausible("rsu_imu")
-    fixes, state = pipeline.process(pipeline.create(pipeline.resolve_options(None), None), flat(epochs[:3]), environment)
+    _fixes, state = pipeline.process(pipeline.create(pipeline.resolve_options(None), None), flat(epochs[:3]), environment)
     far = [dataclasses.replace(o, t=1e10) for o in epochs[3]]
     with pytest.raises(PipelineInputError) as caught:
         pipeline.process(state, far, environment)

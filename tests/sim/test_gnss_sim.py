@@ -7,7 +7,6 @@ import math
 
 import numpy as np
 import pytest
-
 from edgepos.core.observations import PseudorangeObservation, RissObservation
 from edgepos.gnss.corrections import saastamoinen_delay
 from edgepos.gnss.geodesy import ecef_to_enu, ecef_to_geodetic, enu_rotation, geodetic_to_ecef

@@ -7,7 +7,6 @@ import math
 
 import numpy as np
 import pytest
-
 from edgepos.core.observations import GyroObservation, Observation, RsuObservation
 from edgepos.sim.scenarios import Scenario, rsu_imu_paper_scenario
 from edgepos.sim.sensors import environment, rsu_imu_epochs

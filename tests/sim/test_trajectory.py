@@ -6,7 +6,6 @@ import math
 
 import numpy as np
 import pytest
-
 from edgepos.sim.scenarios import LANE_WIDTH, PAPER_SEGMENTS, ROAD_EDGES, rsu_imu_paper_scenario
 from edgepos.sim.trajectory import Accelerate, Cruise, LaneChange, Truth, UTurn, build_trajectory
 

@@ -21,10 +21,10 @@ from edgepos.eval import plots
 from edgepos.eval.gnss_montecarlo import (
     ALGORITHMS,
     PIPELINE,
+    WLS,
     Result,
     RunFailed,
     Totals,
-    WLS,
     UnknownAlgorithm,
     build_scenario,
     monte_carlo,

@@ -15,7 +15,14 @@ from edgepos.core.measurements.base import MeasurementModel, Stacked
 from edgepos.core.measurements.gyro import GyroYawRate
 from edgepos.core.measurements.odometer import OdometerDistance
 from edgepos.core.observations import GyroObservation, Observation, OdometerObservation
-from edgepos.pipelines.base import Fix, MeasurementUse, PipelineInputError, Problem, TrackPoint, is_finite_number
+from edgepos.pipelines.base import (
+    Fix,
+    MeasurementUse,
+    PipelineInputError,
+    Problem,
+    TrackPoint,
+    is_finite_number,
+)
 
 KINEMATIC = layout.KINEMATIC
 _TRACK_ORDER = [0, 3, 1, 4]  # [x, y, vx, vy] of the published track

@@ -18,7 +18,13 @@ import numpy as np
 
 from edgepos.core.motion.base import van_loan
 from edgepos.core.motion.singer import singer_drift
-from edgepos.core.observations import GnssFixObservation, GyroObservation, Observation, OdometerObservation, V2vRangeObservation
+from edgepos.core.observations import (
+    GnssFixObservation,
+    GyroObservation,
+    Observation,
+    OdometerObservation,
+    V2vRangeObservation,
+)
 
 STEP = 0.2
 STEPS = 300

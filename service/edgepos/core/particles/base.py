@@ -202,7 +202,7 @@ class SigmaWeights:
 def sigma_points(means: np.ndarray, chols: np.ndarray, active: np.ndarray, weights: SigmaWeights) -> np.ndarray:
     """Eq. 10 for every particle: (N, 2k+1, D) points around means (N, D) along the columns of
     sqrt(k + lambda) L, L (k, k) shared or (N, k, k) per particle, in the ``active`` components."""
-    count, dim = means.shape
+    _count, _dim = means.shape
     k = weights.k
     scaled = math.sqrt(k + weights.lam) * chols
     columns = np.swapaxes(scaled, -1, -2)  # row j = column j of L

@@ -7,7 +7,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from edgepos.core.motion.riss import ANGLES
-from edgepos.core.particles.base import Cloud, Measurement, ParticleModel, StepResult, embed, nis, unscented_step
+from edgepos.core.particles.base import (
+    Cloud,
+    Measurement,
+    ParticleModel,
+    StepResult,
+    embed,
+    nis,
+    unscented_step,
+)
 
 
 @dataclass(frozen=True)
