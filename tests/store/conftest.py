@@ -1,5 +1,6 @@
-"""Real redis-server processes for the store tests: loopback only, each in its own temporary
-directory, on a free port. Skipped (with the reason) only when the redis-server binary is absent."""
+"""Real redis-server processes for the store tests (single servers and a six-node Redis Cluster):
+loopback only, each in its own temporary directory, on a free port. Skipped (with the reason) only
+when the redis-server or redis-cli binary is absent."""
 
 from __future__ import annotations
 
@@ -7,9 +8,15 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
-from edgepos.loadgen.localredis import RedisServer, free_port, redis_binary
+from edgepos.loadgen.localredis import (
+    RedisClusterProcesses,
+    RedisServer,
+    free_port,
+    redis_binary,
+    redis_cli_binary,
+)
 
-__all__ = ["RedisServer", "free_port"]
+__all__ = ["RedisClusterProcesses", "RedisServer", "free_port"]
 
 
 def _binary() -> str:
@@ -22,9 +29,7 @@ def _binary() -> str:
 @pytest.fixture(scope="session")
 def redis_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RedisServer]:
     """One shared in-memory redis-server (no persistence); tests keep apart by key prefix."""
-    server = RedisServer(
-        _binary(), tmp_path_factory.mktemp("redis"), "--save", "", "--appendonly", "no"
-    )
+    server = RedisServer(_binary(), tmp_path_factory.mktemp("redis"), "--save", "", "--appendonly", "no")
     server.start()
     yield server
     server.stop()
@@ -44,3 +49,22 @@ def redis_factory(tmp_path: Path) -> Iterator[Callable[..., RedisServer]]:
     yield make
     for server in servers:
         server.stop()
+
+
+def _cli() -> None:
+    if redis_cli_binary() is None:
+        pytest.skip("redis-cli is not installed (apt-get install -y redis-tools)")
+
+
+@pytest.fixture(scope="session")
+def redis_cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RedisClusterProcesses]:
+    """One shared Redis Cluster of three primaries and three replicas on loopback (no persistence);
+    tests keep apart by key prefix. Tests that kill or reshard nodes build their own."""
+    binary = _binary()
+    _cli()
+    cluster = RedisClusterProcesses(
+        binary, tmp_path_factory.mktemp("redis-cluster"), "--save", "", "--appendonly", "no"
+    )
+    cluster.start()
+    yield cluster
+    cluster.stop()

@@ -77,14 +77,14 @@ def test_without_its_replica_a_batch_is_not_acknowledged_until_the_replica_is_ba
         stored = await waiting.get("s1")
         assert stored is not None and stored.last_seq == 1  # it is on the primary: a retry is a replay
         with pytest.raises(NotReplicated):
-            await waiting.make_durable()  # and that replay is not acknowledged either
+            await waiting.make_durable("s1")  # and that replay is not acknowledged either
         # the default (no WAIT) acknowledges on the primary alone
         again = dataclasses.replace(stored, state=b"after 2", last_seq=2)
         assert await not_waiting.compare_and_set(again, stored.version)
 
         replica.start()  # resynchronises from the primary
         wait_for_link(primary, replica)
-        await waiting.make_durable()  # now the replay can be acknowledged
+        await waiting.make_durable("s1")  # now the replay can be acknowledged
         assert replica.command("HGET", "wait:session:s1", "last_seq") == b"$1\r\n2\r\n"
         await waiting.close()
         await not_waiting.close()

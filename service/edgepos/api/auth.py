@@ -74,10 +74,6 @@ class Principal:
     anonymous: bool = False
 
 
-def new_session_id() -> str:
-    return secrets.token_hex(16)
-
-
 def new_session_token(session_id: str) -> str:
     return f"{session_id}.{secrets.token_urlsafe(32)}"
 

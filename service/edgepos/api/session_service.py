@@ -18,7 +18,7 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
-from edgepos.api.auth import hash_token, new_session_id, new_session_token, superseded_error
+from edgepos.api.auth import hash_token, new_session_token, superseded_error
 from edgepos.api.context import AppContext
 from edgepos.api.convert import batch_body, fix_to_json, to_json
 from edgepos.api.ephemerides import LoadedEphemerides, satellite_problems
@@ -155,7 +155,7 @@ async def create_session(
         raise ApiError(
             "invalid_request", "the session options are invalid", pipeline_problems(error.problems)
         ) from None
-    session_id = new_session_id()
+    session_id = context.store.new_session_id(body.vehicle_id)
     token = new_session_token(session_id)
     now = context.store.clock()
     record = SessionRecord(
@@ -350,7 +350,7 @@ async def _apply_in_turn(
                 metrics.batches.labels("conflict").inc()
                 raise
             if replay is not None:
-                await context.store.make_durable()  # the first attempt may have stored it without replicas
+                await context.store.make_durable(session_id)  # the first attempt may have stored it without replicas
                 metrics.batches.labels("replayed").inc()
                 return replay
             pipeline = _pipeline(context, record.pipeline)

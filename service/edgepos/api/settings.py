@@ -39,7 +39,8 @@ class Settings(BaseSettings):
     store: str = Field(
         "memory",
         description="'memory' (one process), 'sqlite:///path.db' (several workers on one box) or "
-        "'redis://host:port/db' (any worker of any replica; also rediss:// and unix://).",
+        "'redis://host:port/db' (any worker of any replica; also rediss:// and unix://) or "
+        "'redis-cluster://host:port[,host:port...]' (Redis Cluster; see docs/redis.md).",
     )
     redis_wait_replicas: int = Field(
         0,
@@ -209,14 +210,21 @@ class Settings(BaseSettings):
     @classmethod
     def _check_store(cls, value: str) -> str:
         sqlite = value.startswith("sqlite:///") and len(value) > len("sqlite:///")
-        redis = value.startswith(("redis://", "rediss://", "unix://"))
+        redis = value.startswith(("redis://", "rediss://", "unix://", "redis-cluster://"))
         if value != "memory" and not sqlite and not redis:
-            raise ValueError("store must be 'memory', 'sqlite:///path.db' or 'redis://host:port/db'")
+            raise ValueError(
+                "store must be 'memory', 'sqlite:///path.db', 'redis://host:port/db' or "
+                "'redis-cluster://host:port[,host:port...]'"
+            )
+        if value.startswith("redis-cluster://"):
+            from edgepos.store.redis_cluster import parse_cluster_url
+
+            parse_cluster_url(value)  # a wrong node list or option stops the start, naming it
         return value
 
     @model_validator(mode="after")
     def _wait_needs_redis(self) -> Settings:
-        if self.redis_wait_replicas and not self.store.startswith(("redis://", "rediss://", "unix://")):
+        if self.redis_wait_replicas and not self.store.startswith(("redis://", "rediss://", "unix://", "redis-cluster://")):
             raise ValueError(
                 "redis_wait_replicas (EDGEPOS_REDIS_WAIT_REPLICAS) needs a Redis store (EDGEPOS_STORE)"
             )

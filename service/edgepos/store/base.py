@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import secrets
 import time
 from abc import ABC, abstractmethod
 from collections.abc import AsyncIterator, Callable, Iterable, Mapping, Sequence
@@ -370,8 +371,13 @@ class SessionStore(ABC):
         """The seconds until one more request of ``key`` would be allowed (0.0 now), using none of
         its budget: a look before work that must not even start past the limit."""
 
-    async def make_durable(self) -> None:
-        """Return once what this store has acknowledged so far is as durable as it is configured to
+    def new_session_id(self, vehicle_id: str) -> str:
+        """A fresh, unguessable session id (32 hex digits) for a session of ``vehicle_id``. A store that
+        shards may put the vehicle's shard in it, so that a session's keys are found without a lookup."""
+        return secrets.token_hex(16)
+
+    async def make_durable(self, session_id: str) -> None:
+        """Return once what this store has acknowledged so far for ``session_id`` is as durable as it is configured to
         make it (Redis with ``wait_replicas``: on that many replicas), else raise StoreUnavailable. A
         replayed answer is sent only after this, so a retry cannot acknowledge a batch that the first
         attempt stored but could not replicate. Nothing to wait for by default."""

@@ -27,6 +27,7 @@ import math
 import time
 from collections.abc import AsyncGenerator, AsyncIterator, Iterable, Mapping, Sequence
 from contextlib import asynccontextmanager
+from typing import Any
 from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
 
 from redis import exceptions as redis_errors
@@ -74,10 +75,12 @@ _UNAVAILABLE = (
     redis_errors.OutOfMemoryError,  # maxmemory reached under the noeviction policy
     redis_errors.ClusterDownError,
     redis_errors.TryAgainError,
+    redis_errors.SlotNotCoveredError,  # Redis Cluster: a slot without a primary (failover under way)
+    redis_errors.ClusterError,  # Redis Cluster: redirections or topology refreshes ran out of retries
     OSError,
     asyncio.TimeoutError,
 )
-_UNAVAILABLE_REPLIES = ("MISCONF", "LOADING", "MASTERDOWN", "NOREPLICAS", "BUSY")
+_UNAVAILABLE_REPLIES = ("MISCONF", "LOADING", "MASTERDOWN", "NOREPLICAS", "BUSY", "CLUSTERDOWN", "TRYAGAIN")
 
 
 def parse_url(url: str) -> tuple[str, str]:
@@ -200,6 +203,18 @@ def _rsu(rsu_id: str, value: bytes) -> Rsu:
 class RedisStore(SessionStore):
     """Sessions and RSUs in Redis under ``prefix`` (see docs/redis.md for the key layout)."""
 
+    SCRIPTS: Mapping[str, str] = {
+        "create": scripts.CREATE,
+        "cas": scripts.COMPARE_AND_SET,
+        "count": scripts.PURGE_AND_COUNT,
+        "take": scripts.TAKE_REQUEST,
+        "delete": scripts.DELETE,
+        "put_track": scripts.PUT_TRACK,
+        "add_vehicles": scripts.ADD_VEHICLES,
+        "rotate": scripts.ROTATE_VEHICLE_KEY,
+        "delete_vehicle": scripts.DELETE_VEHICLE,
+    }
+
     def __init__(
         self,
         url: str,
@@ -210,7 +225,7 @@ class RedisStore(SessionStore):
         wait_timeout_ms: int = 500,
     ) -> None:
         super().__init__(ttl_s, clock)
-        self.url, self.prefix = parse_url(url)
+        self.url, self.prefix = self._parse_url(url)
         # WAIT: a batch is acknowledged only once this many replicas have it (0: once the primary has it)
         self.wait_replicas, self.wait_timeout_ms = int(wait_replicas), int(wait_timeout_ms)
         self.durable_key = f"{self.prefix}durable"
@@ -225,37 +240,35 @@ class RedisStore(SessionStore):
         self.superseded_prefix = f"{self.prefix}superseded:"
         self.track_prefix = f"{self.prefix}track:"
         self._ttl_ms = max(1, math.ceil(self.ttl_s * 1000.0))
-        self._client: Redis | None = None
+        self._client: Any = None  # redis.asyncio.Redis, or RedisCluster in the cluster store
         self._loop: asyncio.AbstractEventLoop | None = None
         self._closer: AsyncGenerator[None, None] | None = None
         self._scripts: dict[str, AsyncScript] = {}
 
     # plumbing -------------------------------------------------------------------------------
-    async def _redis(self) -> Redis:
+    @staticmethod
+    def _parse_url(url: str) -> tuple[str, str]:
+        return parse_url(url)
+
+    async def _redis(self) -> Any:
         """The client of the running event loop (asyncio connections belong to one loop)."""
         loop = asyncio.get_running_loop()
         if self._client is None or self._loop is not loop:
-            # One reconnect attempt: replaces a pooled connection that went stale (Redis restarted)
-            # and is safe for writes, which are compare-and-set or idempotent.
-            pool = BlockingConnectionPool.from_url(
-                self.url, retry=Retry(ExponentialBackoff(cap=0.2, base=0.05), retries=1)
-            )
-            client = Redis.from_pool(pool)  # closing the client closes its pool
+            client = self._connect()
             closer = self._closed_with_loop(client)
             self._client, self._loop, self._closer = client, loop, closer
-            self._scripts = {
-                "create": client.register_script(scripts.CREATE),
-                "cas": client.register_script(scripts.COMPARE_AND_SET),
-                "count": client.register_script(scripts.PURGE_AND_COUNT),
-                "take": client.register_script(scripts.TAKE_REQUEST),
-                "delete": client.register_script(scripts.DELETE),
-                "put_track": client.register_script(scripts.PUT_TRACK),
-                "add_vehicles": client.register_script(scripts.ADD_VEHICLES),
-                "rotate": client.register_script(scripts.ROTATE_VEHICLE_KEY),
-                "delete_vehicle": client.register_script(scripts.DELETE_VEHICLE),
-            }
+            self._scripts = {name: client.register_script(source) for name, source in self.SCRIPTS.items()}
             await anext(closer)  # started, so the loop's shutdown will close it
         return self._client
+
+    def _connect(self) -> Any:
+        """A new client with its own connection pool."""
+        # One reconnect attempt: replaces a pooled connection that went stale (Redis restarted)
+        # and is safe for writes, which are compare-and-set or idempotent.
+        pool = BlockingConnectionPool.from_url(
+            self.url, retry=Retry(ExponentialBackoff(cap=0.2, base=0.05), retries=1)
+        )
+        return Redis.from_pool(pool)  # closing the client closes its pool
 
     @staticmethod
     async def _closed_with_loop(client: Redis) -> AsyncGenerator[None, None]:
@@ -281,10 +294,27 @@ class RedisStore(SessionStore):
                 raise StoreUnavailable(f"Redis refused the operation: {error}") from error
             raise
 
-    def _session_key(self, session_id: str) -> str:
-        return f"{self.session_prefix}{session_id}"
+    # key names: one place, so that a cluster store can put a session's keys in one hash slot
+    def _session_prefix_of(self, session_id: str) -> str:
+        """The prefix of the session keys stored beside ``session_id``'s (the purge scripts build names from it)."""
+        return self.session_prefix
 
-    def _live_key(self, vehicle_id: str) -> str:
+    def _session_key(self, session_id: str) -> str:
+        return f"{self._session_prefix_of(session_id)}{session_id}"
+
+    def _index_key(self, session_id: str) -> str:
+        """The sorted set of live sessions that ``session_id`` is counted in."""
+        return self.index_key
+
+    def _superseded_key(self, session_id: str) -> str:
+        return f"{self.superseded_prefix}{session_id}"
+
+    def _registry_key_for_create(self, session_id: str) -> str:
+        """The vehicle registry as the create script reads it (it checks the vehicle's key there)."""
+        return self.vehicles_key
+
+    def _live_key(self, vehicle_id: str, session_id: str | None = None) -> str:
+        """The vehicle's live-session pointer (with ``session_id`` given: beside that session's keys)."""
         return f"{self.live_prefix}{vehicle_id}"
 
     def _cutoff(self) -> str:
@@ -300,21 +330,21 @@ class RedisStore(SessionStore):
             outcome = await self._scripts["create"](
                 keys=[
                     key,
-                    self.index_key,
-                    self.vehicles_key,
+                    self._index_key(record.session_id),
+                    self._registry_key_for_create(record.session_id),
                     self._live_key(record.vehicle_id),
                     self._track_key(record.vehicle_id),
                 ],
                 args=[
                     self._cutoff(),
-                    self.session_prefix,
+                    self._session_prefix_of(record.session_id),
                     int(max_sessions),
                     self._ttl_ms,
                     repr(float(record.updated_at)),
                     record.session_id,
                     record.vehicle_id,
                     "" if vehicle_key_hash is None else vehicle_key_hash,
-                    self.superseded_prefix,
+                    self._superseded_key(record.session_id)[: -len(record.session_id)],
                     repr(float(self.clock())),
                     *_fields(record, record.version),
                 ],
@@ -351,7 +381,7 @@ class RedisStore(SessionStore):
         async with self._guard():
             client = await self._redis()
             by, token_hash, at = await client.hmget(
-                f"{self.superseded_prefix}{session_id}", ["superseded_by", "token_hash", "at"]
+                self._superseded_key(session_id), ["superseded_by", "token_hash", "at"]
             )
         if by is None or token_hash is None or at is None or self.clock() - float(at) > self.ttl_s:
             return None
@@ -375,8 +405,7 @@ class RedisStore(SessionStore):
                 pointer = await client.get(self._live_key(vehicle_id))
                 candidates = [] if pointer is None else [bytes(pointer).decode()]
             else:
-                members = await client.zrangebyscore(self.index_key, self._cutoff(), "+inf")
-                candidates = sorted(bytes(member).decode() for member in members)
+                candidates = sorted(await self._indexed_session_ids(client))
             if after is not None:
                 candidates = [sid for sid in candidates if sid > after]
             step = max(limit, 50)
@@ -399,6 +428,11 @@ class RedisStore(SessionStore):
                         return found
         return found
 
+    async def _indexed_session_ids(self, client: Any) -> list[str]:
+        """The ids in the session index scored after the TTL cutoff (expired ones not purged yet left out)."""
+        members = await client.zrangebyscore(self.index_key, self._cutoff(), "+inf")
+        return [bytes(member).decode() for member in members]
+
     async def get(self, session_id: str) -> SessionRecord | None:
         async with self._guard():
             raw = await (await self._redis()).hgetall(self._session_key(session_id))
@@ -408,7 +442,11 @@ class RedisStore(SessionStore):
         return None if self.is_expired(record, self.clock()) else record
 
     async def compare_and_set(self, record: SessionRecord, expected_version: int) -> bool:
-        keys = [self._session_key(record.session_id), self.index_key, self._live_key(record.vehicle_id)]
+        keys = [
+            self._session_key(record.session_id),
+            self._index_key(record.session_id),
+            self._live_key(record.vehicle_id, record.session_id),
+        ]
         args: list[bytes | str | int] = [
             str(int(expected_version)),
             self._ttl_ms,
@@ -420,16 +458,23 @@ class RedisStore(SessionStore):
             client = await self._redis()
             if not self.wait_replicas:
                 return bool(await self._scripts["cas"](keys=keys, args=args, client=client) == 1)
-            # The script and WAIT on one connection in one round trip: WAIT covers this connection's writes.
-            pipe = client.pipeline(transaction=False)
-            await self._scripts["cas"](keys=keys, args=args, client=pipe)
-            pipe.execute_command("WAIT", self.wait_replicas, self.wait_timeout_ms)
-            applied, replicas = await pipe.execute()
+            applied, replicas = await self._cas_then_wait(client, keys, args)
         if applied == 1:
             self._check_replicas(int(replicas), "the batch")
         return bool(applied == 1)
 
-    async def make_durable(self) -> None:
+    async def _cas_then_wait(
+        self, client: Any, keys: list[str], args: list[bytes | str | int]
+    ) -> tuple[int, int]:
+        """The compare-and-set script, then WAIT: (applied, replicas that acknowledged)."""
+        # The script and WAIT on one connection in one round trip: WAIT covers this connection's writes.
+        pipe = client.pipeline(transaction=False)
+        await self._scripts["cas"](keys=keys, args=args, client=pipe)
+        pipe.execute_command("WAIT", self.wait_replicas, self.wait_timeout_ms)
+        applied, replicas = await pipe.execute()
+        return int(applied), int(replicas)
+
+    async def make_durable(self, session_id: str) -> None:
         """A write of this connection's own, then WAIT: the replication stream is ordered, so once the
         replicas have that write they have every write acknowledged before it."""
         if not self.wait_replicas:
@@ -454,8 +499,8 @@ class RedisStore(SessionStore):
         async with self._guard():
             client = await self._redis()
             removed = await self._scripts["delete"](
-                keys=[self._session_key(session_id), self.index_key],
-                args=[session_id, self.live_prefix, self.track_prefix],
+                keys=[self._session_key(session_id), self._index_key(session_id)],
+                args=[session_id, self._live_key("", session_id), self._track_key("", session_id)],
                 client=client,
             )
         return bool(removed)
@@ -613,7 +658,7 @@ class RedisStore(SessionStore):
             return bool(await (await self._redis()).delete(self.ephemerides_key))
 
     # neighbour tracks: one string key per vehicle, replaced whole by SET (atomic), expiring by itself
-    def _track_key(self, vehicle_id: str) -> str:
+    def _track_key(self, vehicle_id: str, session_id: str | None = None) -> str:
         return f"{self.track_prefix}{vehicle_id}"
 
     async def put_track(self, track: NeighbourTrack, session_id: str) -> bool:
@@ -622,10 +667,10 @@ class RedisStore(SessionStore):
             client = await self._redis()
             written = await self._scripts["put_track"](
                 keys=[
-                    self._live_key(track.vehicle_id),
+                    self._live_key(track.vehicle_id, session_id),
                     self._session_key(session_id),
-                    self.index_key,
-                    self._track_key(track.vehicle_id),
+                    self._index_key(session_id),
+                    self._track_key(track.vehicle_id, session_id),
                 ],
                 args=[session_id, repr(float(now - self.ttl_s)), encode_track(track, now), self._ttl_ms],
                 client=client,
@@ -640,13 +685,16 @@ class RedisStore(SessionStore):
             client = await self._redis()
             for start in range(0, len(wanted), _CHUNK):
                 chunk = wanted[start : start + _CHUNK]
-                values = await client.mget([self._track_key(vehicle) for vehicle in chunk])
+                values = await self._mget(client, [self._track_key(vehicle) for vehicle in chunk])
                 for vehicle, value in zip(chunk, values):
                     if value:
                         track, written_at = decode_track(vehicle, value)
                         if self.track_is_live(written_at, now):
                             found[vehicle] = track
         return found
+
+    async def _mget(self, client: Any, keys: list[str]) -> list[bytes | None]:
+        return list(await client.mget(keys))
 
     async def delete_track(self, vehicle_id: str) -> bool:
         async with self._guard():

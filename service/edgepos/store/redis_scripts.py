@@ -188,3 +188,30 @@ tat = tat + tonumber(ARGV[2])
 redis.call('SET', KEYS[1], string.format('%.17g', tat), 'PX', math.ceil((tat - now) * 1000) + 1)
 return '0'
 """
+
+# Redis Cluster splits DELETE_VEHICLE in two single-slot steps (store.redis_cluster).
+# KEYS: vehicles, vehicle keys (the registry's slot). ARGV: vehicle id. Returns 1 if it was registered.
+DEREGISTER_VEHICLE = """
+local value = redis.call('HGET', KEYS[1], ARGV[1])
+if not value then return 0 end
+local key = cjson.decode(value)[1]
+redis.call('HDEL', KEYS[1], ARGV[1])
+if redis.call('HGET', KEYS[2], key) == ARGV[1] then redis.call('HDEL', KEYS[2], key) end
+return 1
+"""
+
+# KEYS: the vehicle's live pointer, its track, its shard's index (one slot). ARGV: session-key prefix,
+# cutoff. Ends the vehicle's live session; returns its id when it was live, else ''.
+END_VEHICLE_SESSION = """
+local ended = ''
+local sid = redis.call('GET', KEYS[1])
+if sid then
+  local score = redis.call('ZSCORE', KEYS[3], sid)
+  local existed = redis.call('DEL', ARGV[1] .. sid)
+  redis.call('ZREM', KEYS[3], sid)
+  if existed == 1 and score and tonumber(score) >= tonumber(ARGV[2]) then ended = sid end
+  redis.call('DEL', KEYS[1])
+end
+redis.call('DEL', KEYS[2])
+return ended
+"""
