@@ -70,6 +70,9 @@ class LoadConfig:
     timeout: float = 10.0
     seed: int = 0
     verify: bool = False
+    retries: int = 0
+    """Further attempts of a request after a 503, a dropped connection or a timeout (the client's
+    bounded exponential backoff, same bytes and seq); 0 counts every such answer as an error."""
 
     def problems(self) -> list[str]:
         found = []
@@ -86,6 +89,8 @@ class LoadConfig:
             found.append("--duration must be in (0, 3600] s")
         if not self.timeout > 0:
             found.append("--timeout must be > 0")
+        if not 0 <= self.retries <= 10:
+            found.append("--retries must be in [0, 10]")
         if not self.admin_key:
             found.append(
                 "the admin key is needed to open the simulated vehicles' sessions and load the RSU map: pass "
@@ -402,7 +407,11 @@ async def run_load(config: LoadConfig) -> LoadReport:
         for i in range(config.vehicles):
             client = await stack.enter_async_context(
                 AsyncEdgeposClient(
-                    config.url, config.admin_key, timeout=config.timeout, retries=0, limits=own_connection
+                    config.url,
+                    config.admin_key,
+                    timeout=config.timeout,
+                    retries=config.retries,
+                    limits=own_connection,
                 )
             )
             vehicles.append(Vehicle(i, client, batches[i % len(batches)], scenario, recorder, config.verify))
@@ -516,7 +525,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="closed loop: send each batch as soon as the previous is answered",
     )
     parser.add_argument(
-        "--timeout", type=float, default=10.0, help="seconds per request (default 10; no retries)"
+        "--timeout", type=float, default=10.0, help="seconds per attempt of a request (default 10)"
+    )
+    parser.add_argument(
+        "--retries",
+        type=int,
+        default=0,
+        help="further attempts after a 503, a dropped connection or a timeout, with exponential backoff from "
+        "0.2 s (default 0: every such answer counts as an error)",
     )
     parser.add_argument("--seed", type=int, default=0, help="measurement noise seed (default 0)")
     parser.add_argument(
@@ -540,6 +556,7 @@ def run(args: argparse.Namespace) -> int:
         timeout=args.timeout,
         seed=args.seed,
         verify=args.verify,
+        retries=args.retries,
     )
     problems = config.problems()
     if problems:

@@ -156,12 +156,15 @@ class RedisClusterProcesses:
                 str(self.NODE_TIMEOUT_MS),
                 "--cluster-require-full-coverage",
                 "no",
+                "--repl-diskless-sync-delay",  # a replica's first sync starts at once, not after 5 s
+                "0",
                 *config,
                 port=free_cluster_port(taken),
             )
             for index in range(primaries * (1 + replicas))
         ]
         self.replicas = replicas
+        self.primary_count = primaries
 
     def url(self, prefix: str = "") -> str:
         """``redis-cluster://`` URL naming every node as a startup node."""
@@ -188,15 +191,36 @@ class RedisClusterProcesses:
             timeout=60,
         )
         self.wait_until_ok()
+        self.wait_until_replicated()
 
-    def wait_until_ok(self, timeout_s: float = 30.0) -> None:
-        """Until every running node reports ``cluster_state:ok`` and agrees on the primaries."""
+    def wait_until_replicated(self, timeout_s: float = 30.0) -> None:
+        """Until every primary has all its replicas online (the first full sync done): before that a
+        replica promoted in a failover would hold nothing."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            infos = [
+                node.command("INFO", "replication").decode(errors="replace") for node in self.primaries()
+            ]
+            if all(info.count("state=online") >= self.replicas for info in infos):
+                return
+            time.sleep(0.1)
+        raise RuntimeError(f"the replicas did not finish their first sync within {timeout_s} s")
+
+    def wait_until_ok(self, timeout_s: float = 30.0, *, without: RedisServer | None = None) -> None:
+        """Until every running node reports ``cluster_state:ok`` and they agree on all the primaries (with
+        ``without``: a primary just killed, until a replica has been promoted in its place; a node without
+        persistence restarted before that would come back as the empty primary of its slots)."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             running = [node for node in self.nodes if node.process is not None]
             if all(b"cluster_state:ok" in node.command("CLUSTER", "INFO") for node in running):
                 views = {tuple(sorted(self._primary_ports(node))) for node in running}
-                if len(views) == 1:
+                view = next(iter(views))
+                if (
+                    len(views) == 1
+                    and len(view) == self.primary_count
+                    and (without is None or without.port not in view)
+                ):
                     return
             time.sleep(0.1)
         raise RuntimeError(f"the cluster did not reach cluster_state:ok within {timeout_s} s")

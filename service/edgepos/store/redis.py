@@ -83,6 +83,21 @@ _UNAVAILABLE = (
 _UNAVAILABLE_REPLIES = ("MISCONF", "LOADING", "MASTERDOWN", "NOREPLICAS", "BUSY", "CLUSTERDOWN", "TRYAGAIN")
 
 
+_DISCARD_GRACE_S = 5.0
+
+
+def _leaked_transport_error(error: BaseException) -> bool:
+    """Whether ``error`` was raised writing to a closed socket inside redis-py (see ``_guard``)."""
+    frame = error.__traceback__
+    while frame is not None:
+        if frame.tb_frame.f_code.co_filename.endswith(
+            ("redis/asyncio/connection.py", "redis/asyncio/cluster.py")
+        ):
+            return True
+        frame = frame.tb_next
+    return False
+
+
 def parse_url(url: str) -> tuple[str, str]:
     """Split ``redis://host:port/db?prefix=name:&socket_timeout=1`` into (client URL, key prefix).
 
@@ -244,6 +259,7 @@ class RedisStore(SessionStore):
         self._loop: asyncio.AbstractEventLoop | None = None
         self._closer: AsyncGenerator[None, None] | None = None
         self._scripts: dict[str, AsyncScript] = {}
+        self._closing: set[asyncio.Task[None]] = set()  # clients discarded, closing after their grace period
 
     # plumbing -------------------------------------------------------------------------------
     @staticmethod
@@ -293,6 +309,28 @@ class RedisStore(SessionStore):
             if str(error).startswith(_UNAVAILABLE_REPLIES):
                 raise StoreUnavailable(f"Redis refused the operation: {error}") from error
             raise
+        except (RuntimeError, AttributeError, TypeError) as error:
+            if not _leaked_transport_error(error):
+                raise
+            # redis-py 8 lets a write on a connection the server reset escape as the transport's own
+            # error (redis/redis-py#4287) and keeps that connection pooled: answer 503 and start
+            # afresh with new connections (the old client is closed once its requests are done).
+            self._discard_client()
+            raise StoreUnavailable(f"Redis dropped the connection: {error!r}") from error
+
+    def _discard_client(self) -> None:
+        """Forget this loop's client (the next operation connects anew); close it after a grace period."""
+        closer, self._client, self._closer = self._closer, None, None
+        if closer is None:
+            return
+
+        async def close_later() -> None:
+            await asyncio.sleep(_DISCARD_GRACE_S)
+            await closer.aclose()
+
+        task = asyncio.get_running_loop().create_task(close_later())
+        self._closing.add(task)
+        task.add_done_callback(self._closing.discard)
 
     # key names: one place, so that a cluster store can put a session's keys in one hash slot
     def _session_prefix_of(self, session_id: str) -> str:

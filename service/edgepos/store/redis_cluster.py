@@ -373,6 +373,14 @@ class RedisClusterStore(RedisStore):
         return list(await client.mget_nonatomic(keys))  # grouped by slot: one round trip per node
 
     # lifecycle ------------------------------------------------------------------------------
+    def _discard_client(self) -> None:
+        super()._discard_client()
+        for client in self._node_clients.values():  # they may hold reset connections too
+            task = asyncio.get_running_loop().create_task(client.aclose())
+            self._closing.add(task)
+            task.add_done_callback(self._closing.discard)
+        self._node_clients = {}
+
     async def close(self) -> None:
         clients, self._node_clients = list(self._node_clients.values()), {}
         for client in clients:
