@@ -19,6 +19,10 @@ Per epoch (observations sharing ``t``):
    environment has differential corrections from the site's reference station (gnss/differential.py),
    each pseudorange with a valid one (same satellite and ephemeris issue, at most
    the correction source's maximum age old) has it added; the others are used uncorrected, and each says why.
+   Before the corrections, a pseudorange with ``carrier_cycles`` (with ``carrier_smoothing`` hatch) is
+   replaced by its satellite's carrier-smoothed code (gnss/carrier.py: Hatch filter, a slip by ``lli``,
+   Doppler, code-carrier jump or gap restarting only that satellite; the tracks live in the session state),
+   its noise std scaled by max(1/sqrt(epochs averaged), ``hatch_std_floor``).
 3. A snapshot test like the least-squares baseline's (chi-square on this epoch's own least-squares
    residuals, worst pseudorange excluded while it fails; ``fde_probability``) finds biased (NLOS)
    pseudoranges whatever the filter believes; then a residual test against the prediction (per
