@@ -88,6 +88,19 @@ class PseudorangeMeasurement(_Request):
         description="Doppler of the same signal (Hz), RINEX sign: positive when the satellite approaches "
         "(range rate = -doppler_hz x the carrier's wavelength). Optional; gives the server velocity and clock drift.",
     )
+    carrier_cycles: float | None = Field(
+        None,
+        gt=-1.0e10,
+        lt=1.0e10,
+        description="Carrier phase of the same signal (cycles), RINEX convention (grows with the range). "
+        "Optional; the server smooths the pseudorange with it (options.carrier_smoothing).",
+    )
+    lli: int | None = Field(
+        None,
+        ge=0,
+        le=7,
+        description="RINEX loss-of-lock indicator of carrier_cycles (bit 0: lock lost since the previous epoch).",
+    )
 
 
 class RissMeasurement(_Request):

@@ -76,6 +76,30 @@ def with_doppler(items: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
+@functools.lru_cache(maxsize=1)
+def _carriers() -> dict[tuple[float, str, int], tuple[float, int]]:
+    """(time of week, system, PRN) -> the recording's carrier phase (cycles) and LLI of the pseudorange's signal."""
+    codes = {system: DEFAULT_CODES[system] for system in ("G", "C")}
+    out = {}
+    for number, epoch in enumerate(read_epochs(str(OBS), codes)):
+        if number >= 10:
+            break
+        for system, prn, cycles, lli in zip(epoch.systems, epoch.prns, epoch.carrier_cycles, epoch.lli):
+            if math.isfinite(cycles):
+                out[(epoch.gpst % SECONDS_PER_WEEK, system, int(prn))] = (float(cycles), int(lli))
+    return out
+
+
+def with_carrier(items: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The pseudorange measurements with their carrier phase and LLI from the recording, where it has one."""
+    carriers = _carriers()
+    out = []
+    for m in items:
+        found = carriers.get((m["t"], m["system"], m["prn"]))
+        out.append(m if found is None else {**m, "carrier_cycles": found[0], "lli": found[1]})
+    return out
+
+
 def measurements(first: int, count: int, satellites: set[str] | None = None) -> list[dict[str, Any]]:
     """Pseudoranges of epochs first .. first+count-1, only of ``satellites`` (e.g. 'G05') when given."""
     return [

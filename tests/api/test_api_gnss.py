@@ -13,7 +13,7 @@ from edgepos.api.app import create_app
 from edgepos.gnss.ephemerides import DEFAULT_SIGNAL, parse_ephemerides
 from edgepos.gnss.orbits import group_delay_factors
 from fastapi.testclient import TestClient
-from gnsswire import QUICK, epochs, horizontal_error, measurements, nav_text, with_doppler
+from gnsswire import QUICK, epochs, horizontal_error, measurements, nav_text, with_carrier, with_doppler
 
 TEXT = {"Content-Type": "text/plain"}
 
@@ -265,6 +265,13 @@ def test_client_computed_satellite_states_need_no_ephemerides(client):
         ({"doppler_hz": 20000.5}, "measurements[0].doppler_hz"),
         ({"doppler_hz": -25000.0}, "measurements[0].doppler_hz"),
         ({"doppler_hz": "1200"}, "measurements[0].doppler_hz"),
+        ({"carrier_cycles": 1.0e10}, "measurements[0].carrier_cycles"),
+        ({"carrier_cycles": -2.0e10}, "measurements[0].carrier_cycles"),
+        ({"carrier_cycles": "1.5e8"}, "measurements[0].carrier_cycles"),
+        ({"lli": 8}, "measurements[0].lli"),
+        ({"lli": -1}, "measurements[0].lli"),
+        ({"lli": 1.5}, "measurements[0].lli"),
+        ({"lli": True}, "measurements[0].lli"),
         ({"extra": 1}, "measurements[0].extra"),
     ],
 )
@@ -290,6 +297,47 @@ def test_nan_is_refused(client):
     )
     error = assert_error(response, 422, "invalid_request")
     assert error["problems"][0]["field"] == "measurements[0].pseudorange_m"
+
+
+@pytest.mark.parametrize("value", ["NaN", "Infinity", "-Infinity", "1e999"])
+def test_non_finite_carrier_phase_is_refused_and_the_session_unchanged(client, value):
+    assert upload(client).status_code == 200
+    session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
+    first = post(client, session_id, token, 1, with_carrier(measurements(0, 1)))
+    assert first.status_code == 200, first.text
+    before = client.get(f"/v1/sessions/{session_id}", headers=token).json()
+    item = measurements(1, 1)[0]
+    raw = (
+        f'{{"seq": 2, "measurements": [{{"type": "pseudorange", "t": {item["t"]!r}, "system": "{item["system"]}", '
+        f'"prn": {item["prn"]}, "pseudorange_m": {item["pseudorange_m"]!r}, "cn0_dbhz": 40.0, '
+        f'"carrier_cycles": {value}, "lli": 0}}]}}'
+    )
+    response = client.post(
+        f"/v1/sessions/{session_id}/batches", content=raw, headers={**token, "Content-Type": "application/json"}
+    )
+    error = assert_error(response, 422, "invalid_request")
+    assert error["problems"][0]["field"] == "measurements[0].carrier_cycles"
+    assert client.get(f"/v1/sessions/{session_id}", headers=token).json() == before
+
+
+def test_carrier_phase_smooths_the_fixes_on_the_wire(client):
+    """The recording's carrier phases with their LLI are accepted and change the fixes (Hatch smoothing, the
+    default); with options.carrier_smoothing off the same batches give the fixes of code alone."""
+    assert upload(client).status_code == 200
+    fixes = {}
+    for name, options, carrier in (
+        ("hatch", QUICK, True), ("off", {**QUICK, "carrier_smoothing": "off"}, True), ("code", QUICK, False)
+    ):
+        session_id, token = open_session(client, pipeline="gnss_tight", options=options)
+        got = []
+        for seq in range(1, 7):
+            items = with_doppler(measurements(seq - 1, 1))
+            response = post(client, session_id, token, seq, with_carrier(items) if carrier else items)
+            assert response.status_code == 200, response.text
+            got.append(response.json()["fixes"][0])
+        fixes[name] = [(f["latitude"], f["longitude"]) for f in got]
+    assert fixes["off"] == fixes["code"]
+    assert fixes["hatch"] != fixes["code"]
 
 
 @pytest.mark.parametrize("value", ["NaN", "Infinity", "-Infinity", "1e999"])

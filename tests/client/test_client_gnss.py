@@ -20,7 +20,7 @@ from edgepos_client import (
 from pydantic import ValidationError
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "api"))
-from gnsswire import NAV, QUICK, horizontal_error, measurements, nav_text, with_doppler
+from gnsswire import NAV, QUICK, horizontal_error, measurements, nav_text, with_carrier, with_doppler
 
 
 def pseudoranges(first: int, count: int) -> list[PseudorangeMeasurement]:
@@ -78,6 +78,30 @@ async def test_the_client_sends_dopplers_and_reads_what_became_of_them(aclient: 
     await aclient.delete_ephemerides()
 
 
+@pytest.mark.anyio
+async def test_the_client_sends_carrier_phase(aclient: AsyncEdgeposClient) -> None:
+    """Carrier phase and LLI from the recording go out with the pseudoranges and are accepted; the session
+    smooths with them (its fixes differ from code alone)."""
+    await aclient.put_ephemerides(NAV)
+    latitudes = {}
+    for carrier in (True, False):
+        session = await aclient.create_session(f"carrier-car-{carrier}", "gnss_tight", options=QUICK)
+        fixes = []
+        phases = 0
+        for epoch in range(4):
+            items = with_doppler(measurements(epoch, 1))
+            batch = [
+                PseudorangeMeasurement(**{k: v for k, v in m.items() if k != "type"})
+                for m in (with_carrier(items) if carrier else items)
+            ]
+            phases += sum(m.carrier_cycles is not None and m.lli is not None for m in batch)
+            fixes += await aclient.send_batch(session, batch)
+        assert (phases > 10) == carrier
+        latitudes[carrier] = [fix.latitude for fix in fixes]
+    assert latitudes[True] != latitudes[False]
+    await aclient.delete_ephemerides()
+
+
 def test_models_check_before_sending() -> None:
     item = measurements(0, 1)[0]
     with pytest.raises(ValidationError):
@@ -87,6 +111,9 @@ def test_models_check_before_sending() -> None:
     for doppler in (20000.5, math.inf, math.nan):
         with pytest.raises(ValidationError):
             PseudorangeMeasurement(**{**item, "type": "pseudorange", "doppler_hz": doppler})
+    for change in ({"carrier_cycles": 1.0e10}, {"carrier_cycles": math.nan}, {"lli": 8}, {"lli": -1}):
+        with pytest.raises(ValidationError):
+            PseudorangeMeasurement(**{**item, "type": "pseudorange", **change})
     with pytest.raises(ValidationError):
         RissMeasurement(t=-1.0, wheel_speed=0.0, accel_x=0.0, accel_y=0.0, gyro_z=0.0)
 

@@ -166,3 +166,20 @@ def test_version_2_records_read_as_todays_observations_without_doppler():
         decode_legacy_observations(record, 1)
     with_doppler = PseudorangeObservation(1.5, "E", 3, 2.3e7, 41.0, doppler_hz=-1234.5)
     assert decode_observations(encode_observations([with_doppler])) == [with_doppler]
+
+
+def test_carrier_phase_round_trips_and_plain_pseudoranges_keep_the_stored_layout():
+    """carrier_cycles / lli were added without a new lag-window version: a pseudorange without them is written
+    in the version-3 layout (so records stored before read back unchanged), one with them under its own name."""
+    from edgepos.core.observations import PseudorangeObservationV3
+
+    old = _KindCodec(PseudorangeObservationV3)
+    plain = PseudorangeObservation(1.5, "E", 3, 2.3e7, 41.0, None, None, -1234.5)
+    carrying = PseudorangeObservation(1.5, "G", 7, 2.1e7, 44.5, None, None, 812.25, 1.1e8 + 0.123, 1)
+    phase_only = PseudorangeObservation(1.5, "C", 21, 2.2e7, 40.0, carrier_cycles=-9.9e9)
+    assert encode_observations([plain]) == old.encode(PseudorangeObservationV3(1.5, "E", 3, 2.3e7, 41.0, None, None, -1234.5))
+    record = encode_observations([plain, carrying, phase_only])
+    decoded = decode_observations(record)
+    assert decoded == [plain, carrying, phase_only]
+    assert all(type(o) is PseudorangeObservation for o in decoded)
+    assert decoded[1].lli == 1 and decoded[2].lli is None

@@ -671,6 +671,27 @@ class PseudorangeMeasurement(RequestModel):
         "loaded ephemerides, so with sat_position and sat_clock sent it is reported unused. Finite, within "
         "+-20000 Hz.",
     )
+    carrier_cycles: float | None = Field(
+        None,
+        gt=-1.0e10,
+        lt=1.0e10,
+        description="Optional carrier phase of the same signal as pseudorange_m (cycles: GPS L1 / Galileo E1 "
+        "wavelength 0.1903 m, BeiDou B1I 0.1920 m), as the receiver measured it, RINEX convention: it grows as "
+        "the range grows (changes by about -doppler_hz per second) and carries an arbitrary constant per "
+        "continuous lock. With options.carrier_smoothing 'hatch' (the default) the service smooths this "
+        "satellite's pseudorange with it (Hatch filter) while lock holds. Finite, within +-1e10 cycles (the "
+        "RINEX field's range).",
+    )
+    lli: int | None = Field(
+        None,
+        ge=0,
+        le=7,
+        description="Optional RINEX loss-of-lock indicator of carrier_cycles (0-7, three bits): bit 0 (value "
+        "1) set when the receiver lost lock on this signal since its previous epoch, so the phase may have "
+        "slipped; the service then restarts this satellite's smoothing (also when its phase disagrees with "
+        "its Doppler or its code). Bit 1 (half-cycle ambiguity) and bit 2 are accepted and not used. Omitted "
+        "or null: 0.",
+    )
 
     def to_observation(self) -> Observation:
         position = None if self.sat_position is None else tuple(self.sat_position)
@@ -683,6 +704,8 @@ class PseudorangeMeasurement(RequestModel):
             sat_position=position,  # type: ignore[arg-type]
             sat_clock=self.sat_clock,
             doppler_hz=self.doppler_hz,
+            carrier_cycles=self.carrier_cycles,
+            lli=self.lli,
         )
 
 

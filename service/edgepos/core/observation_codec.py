@@ -1,7 +1,8 @@
 """A compact, exact binary form of observations, for the lag window's stored epochs.
 
 Every observation kind of ``core.observations`` gets its codec from its dataclass fields, so a new kind
-(or a new field) needs no change here. An observation is written as:
+needs no change here (a new field changes the stored layout: see ``_PseudorangeCodec`` for how the
+pseudorange's carrier fields were added without changing the records already stored). An observation is written as:
 
 * its ``kind`` as one length byte and ASCII;
 * with optional fields, a 32-bit mask of the ones that are None;
@@ -28,7 +29,12 @@ import typing
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from edgepos.core.observations import Observation, PseudorangeObservationV2
+from edgepos.core.observations import (
+    Observation,
+    PseudorangeObservation,
+    PseudorangeObservationV2,
+    PseudorangeObservationV3,
+)
 
 _LENGTH = struct.Struct("<H")
 
@@ -75,10 +81,10 @@ def _fields(cls: type) -> list[_Field]:
 class _KindCodec:
     """The generated encoder and decoder of one observation kind."""
 
-    def __init__(self, cls: type) -> None:
+    def __init__(self, cls: type, name: bytes | None = None, decode_as: type | None = None) -> None:
         fields = _fields(cls)
-        self.cls = cls
-        self.name = cls.kind.encode("ascii")  # type: ignore[attr-defined]  # every kind names itself
+        self.cls = cls if decode_as is None else decode_as
+        self.name = cls.kind.encode("ascii") if name is None else name  # type: ignore[attr-defined]  # every kind names itself
         optional = [f for f in fields if f.optional]
         if len(optional) > 32:
             raise TypeError(f"{cls.__name__} has more than 32 optional fields")
@@ -177,8 +183,37 @@ def _tupled(value: Any) -> Any:
 
 
 _JSON = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
-_BY_CLASS: dict[type, _KindCodec] = {cls: _KindCodec(cls) for cls in typing.get_args(Observation)}
-_BY_NAME: dict[bytes, _KindCodec] = {codec.name: codec for codec in _BY_CLASS.values()}
+
+
+class _PseudorangeCodec:
+    """Pseudoranges without carrier phase keep the version-3 layout under the name ``pseudorange`` (its
+    fields are a prefix of today's, decoded as today's class with no carrier), so lag windows stored before
+    ``carrier_cycles`` and ``lli`` existed read unchanged; those with either are written whole under
+    ``pseudorange+carrier``."""
+
+    def __init__(self) -> None:
+        self.plain = _KindCodec(PseudorangeObservationV3, decode_as=PseudorangeObservation)
+        self.carrier = _KindCodec(PseudorangeObservation, name=b"pseudorange+carrier")
+        self.name = self.plain.name
+        plain_encode, carrier_encode = self.plain.encode, self.carrier.encode
+
+        def encode(o: PseudorangeObservation) -> bytes:
+            if o.carrier_cycles is None and o.lli is None:
+                return plain_encode(o)
+            return carrier_encode(o)
+
+        self.encode = encode
+
+
+_PSEUDORANGE = _PseudorangeCodec()
+_BY_CLASS: dict[type, Any] = {
+    cls: _PSEUDORANGE if cls is PseudorangeObservation else _KindCodec(cls) for cls in typing.get_args(Observation)
+}
+_BY_NAME: dict[bytes, _KindCodec] = {
+    **{codec.name: codec for codec in _BY_CLASS.values() if codec is not _PSEUDORANGE},
+    _PSEUDORANGE.plain.name: _PSEUDORANGE.plain,
+    _PSEUDORANGE.carrier.name: _PSEUDORANGE.carrier,
+}
 
 
 _LEGACY: dict[int, dict[bytes, _KindCodec]] = {

@@ -97,7 +97,10 @@ class PseudorangeObservation:
     ``sat_clock`` its clock offset in seconds (corrected range = pseudorange + c * sat_clock);
     otherwise the service computes both from the broadcast ephemerides. ``doppler_hz`` is the receiver's
     Doppler of the same signal (Hz, RINEX sign: positive when the satellite approaches, so the range rate
-    is -doppler_hz times the carrier's wavelength), None when not sent."""
+    is -doppler_hz times the carrier's wavelength), None when not sent. ``carrier_cycles`` is the
+    receiver's carrier phase of the same signal (cycles, RINEX convention: it grows with the range, so it
+    changes by -doppler_hz per second) and ``lli`` its RINEX loss-of-lock indicator bits (bit 0: lock lost
+    since the previous epoch, so the phase may have slipped), None when not sent."""
 
     kind: ClassVar[str] = "pseudorange"
     t: float
@@ -108,6 +111,8 @@ class PseudorangeObservation:
     sat_position: tuple[float, float, float] | None = None
     sat_clock: float | None = None
     doppler_hz: float | None = None
+    carrier_cycles: float | None = None
+    lli: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -142,6 +147,23 @@ class PseudorangeObservationV2:
         return PseudorangeObservation(
             self.t, self.system, self.prn, self.pseudorange, self.cn0, self.sat_position, self.sat_clock
         )
+
+
+@dataclass(frozen=True, slots=True)
+class PseudorangeObservationV3:
+    """The pseudorange observation's fields before ``carrier_cycles`` and ``lli``: the layout the lag window
+    (version 3) stores pseudoranges without carrier phase in, so windows stored before carrier phase existed
+    read unchanged (``core.observation_codec``)."""
+
+    kind: ClassVar[str] = "pseudorange"
+    t: float
+    system: str
+    prn: int
+    pseudorange: float
+    cn0: float
+    sat_position: tuple[float, float, float] | None = None
+    sat_clock: float | None = None
+    doppler_hz: float | None = None
 
 
 Observation = (

@@ -45,7 +45,7 @@ from edgepos.gnss.rinex_obs import ALL_SYSTEMS, DEFAULT_CODES, parse_systems, re
 from edgepos.gnss.spp import SppConfig, SppError, read_reference, reference_velocity, solve_epoch
 from edgepos.gnss.timesys import SECONDS_PER_WEEK
 from edgepos.pipelines.base import StaticEnvironment
-from edgepos.pipelines.gnss_tight import MAX_DOPPLER_HZ, GnssTightPipeline
+from edgepos.pipelines.gnss_tight import MAX_CARRIER_CYCLES, MAX_DOPPLER_HZ, GnssTightPipeline
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -76,6 +76,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--base-position", type=_position, default=None, metavar="X,Y,Z",
                         help="the reference station's ECEF antenna position (m; default: from --base's header)")
+    parser.add_argument(
+        "--carrier", action=argparse.BooleanOptionalAction, default=False,
+        help="send each pseudorange's carrier phase (the L observation of its signal, cycles) and loss-of-lock "
+        "indicator from the RINEX as carrier_cycles / lli (the pipeline's carrier_smoothing option says what "
+        "it does with them; default: not sent)",
+    )
     add_option_argument(parser, "pseudorange_std=3")
 
 
@@ -161,10 +167,12 @@ def evaluate(
     options: Mapping[str, Any] | None = None,
     max_epochs: int | None = None, score_epochs: tuple[int, int] | None = None, base_path: str | None = None,
     base_position: Sequence[float] | None = None, max_correction_age_s: float = DEFAULT_MAX_AGE_S,
+    carrier: bool = False,
 ) -> dict[str, Any]:
     """Run the pipeline and the WLS baseline over a recording; the figures as a dict (of epochs
     ``score_epochs`` = (A, B), A..B-1, when given; the run then stops after epoch B-1). With ``base_path``
-    both use differential corrections from that reference station."""
+    both use differential corrections from that reference station. With ``carrier`` the pseudoranges carry
+    their carrier phase and loss-of-lock indicator (the WLS baseline does not use them)."""
     if score_epochs is not None:
         max_epochs = score_epochs[1] if max_epochs is None else min(max_epochs, score_epochs[1])
     codes = {s: DEFAULT_CODES[s] for s in parse_systems(systems)}
@@ -201,9 +209,12 @@ def evaluate(
             PseudorangeObservation(
                 tow, system, int(prn), float(pr), float(cn0) if math.isfinite(cn0) else 0.0,
                 doppler_hz=float(doppler) if math.isfinite(doppler) and abs(doppler) <= MAX_DOPPLER_HZ else None,
+                carrier_cycles=float(cycles) if carrier and math.isfinite(cycles) and abs(cycles) < MAX_CARRIER_CYCLES else None,
+                lli=int(lli) if carrier and math.isfinite(cycles) and abs(cycles) < MAX_CARRIER_CYCLES else None,
             )
-            for system, prn, pr, cn0, doppler in zip(
-                epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz, epoch.doppler_hz
+            for system, prn, pr, cn0, doppler, cycles, lli in zip(
+                epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz, epoch.doppler_hz, epoch.carrier_cycles,
+                epoch.lli,
             )
             if math.isfinite(pr) and 1.0e6 <= pr <= 1.0e8
         ]
@@ -243,6 +254,8 @@ def evaluate(
     report["systems"] = systems
     report["seconds_per_epoch"] = pipeline_seconds / max(len(times), 1)
     report["use_doppler"] = use_doppler
+    report["carrier_sent"] = carrier
+    report["carrier_smoothing"] = resolved["carrier_smoothing"]
     report["score_epochs"] = None if score_epochs is None else list(score_epochs)
     report["base"] = None if base_path is None else {
         "file": base_path, "position_ecef_m": [float(v) for v in station], "corrections": len(table or ()),
@@ -276,7 +289,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         report = evaluate(
             args.obs, args.nav, args.reference, args.systems, options, args.max_epochs, args.score_epochs,
-            args.base, args.base_position, args.max_correction_age,
+            args.base, args.base_position, args.max_correction_age, args.carrier,
         )
     except (OSError, ValueError) as error:  # unreadable or malformed files (RinexError is a ValueError)
         print(f"edgepos eval gnss-rinex: error: {error}", file=sys.stderr)
@@ -286,6 +299,8 @@ def run(args: argparse.Namespace) -> int:
     label = f"gnss_tight {report['filter']}" + (f" ({', '.join(details)})" if details else "")
     label += " + Doppler" if report["use_doppler"] else " no Doppler"
     label += " + base" if report["base"] is not None else ""
+    if report["carrier_sent"]:
+        label += " + carrier" if report["carrier_smoothing"] != "off" else " (carrier unused)"
     if report["score_epochs"] is not None:
         print(f"scored epochs {report['score_epochs'][0]}..{report['score_epochs'][1] - 1}")
     print(

@@ -3,7 +3,9 @@
 RINEX 3.04 layout: the header lists each system's observation types (``SYS / # / OBS TYPES``, 13 per line
 with continuation lines); each epoch starts with ``>`` (date, epoch flag, satellite count) followed by one line
 per satellite: the satellite id (3 characters) and per type a 16-character field (F14.3 value, loss-of-lock
-indicator, signal strength). Blank fields are missing observations (NaN here). Event records (flags 2-5) and
+indicator, signal strength). Blank fields are missing observations (NaN here). Besides the chosen
+pseudorange and C/N0, the reader keeps the Doppler (D) and carrier phase (L, cycles, with its loss-of-lock
+indicator) of the pseudorange's own signal. Event records (flags 2-5) and
 cycle-slip records (flag 6) are skipped. Epoch times are returned as continuous GPS seconds.
 """
 
@@ -41,6 +43,11 @@ def doppler_code(code: str) -> str:
     return "D" + code[1:]
 
 
+def carrier_code(code: str) -> str:
+    """The carrier-phase observation of the same signal as a pseudorange code (``C1C`` -> ``L1C``)."""
+    return "L" + code[1:]
+
+
 @dataclass(frozen=True)
 class ObservationHeader:
     """What the reader needs from the header."""
@@ -61,7 +68,9 @@ class ObservationEpoch:
 
     ``systems`` and ``prns`` identify the satellites, in file order; ``doppler_hz`` is the D observation of
     the pseudorange's own signal (RINEX sign: positive when the satellite approaches), NaN when the header
-    lacks it or the field is blank.
+    lacks it or the field is blank. ``carrier_cycles`` is the L observation of the same signal (cycles, NaN
+    when absent or blank) and ``lli`` its loss-of-lock indicator digit (RINEX 3: bit 0 set when lock was lost
+    since the previous observation, so the phase may have slipped; bit 1 half-cycle ambiguity; 0 when blank).
     """
 
     gpst: float
@@ -72,6 +81,8 @@ class ObservationEpoch:
     pseudorange_m: np.ndarray
     cn0_dbhz: np.ndarray
     doppler_hz: np.ndarray
+    carrier_cycles: np.ndarray
+    lli: np.ndarray
 
     @property
     def sats(self) -> tuple[str, ...]:
@@ -154,6 +165,12 @@ def _field(line: str, index: int) -> float:
     return float(text) if text else math.nan
 
 
+def _lli(line: str, index: int) -> int:
+    """Loss-of-lock indicator digit of observation ``index`` (0 when blank or beyond the line)."""
+    text = line[3 + 16 * index + 14 : 3 + 16 * index + 15].strip()
+    return int(text) if text else 0
+
+
 def _time_offset(time_system: str) -> float:
     """Seconds to add to the file's epoch times to obtain GPS time."""
     if time_system in ("GPS", "GAL"):
@@ -170,7 +187,8 @@ def iter_epochs(
 
     ``codes`` maps a system letter to its (pseudorange, C/N0) observation codes; systems not in it are
     dropped, as are satellites whose pseudorange field is blank. A C/N0 code absent from the header gives NaN,
-    as does the Doppler of the pseudorange's signal (:func:`doppler_code`) when absent or blank.
+    as does the Doppler of the pseudorange's signal (:func:`doppler_code`) and its carrier phase
+    (:func:`carrier_code`, with its loss-of-lock indicator, 0 when blank) when absent or blank.
     An explicitly requested pseudorange code that the header does not list for a present system is an error;
     with the defaults such a system is dropped.
     """
@@ -179,7 +197,7 @@ def iter_epochs(
     stream = (line.rstrip("\r\n") for line in lines)
     header, number = _parse_header(stream)
     offset = _time_offset(header.time_system)
-    columns: dict[str, tuple[int, int | None, int | None]] = {}
+    columns: dict[str, tuple[int, int | None, int | None, int | None]] = {}
     for system, (code, cn0) in chosen.items():
         types = header.obs_types.get(system)
         if types is None:
@@ -188,10 +206,10 @@ def iter_epochs(
             if explicit:
                 raise RinexError(number, f"system {system} has no observation {code!r}; header lists {', '.join(types)}")
             continue
-        doppler = doppler_code(code)
+        doppler, carrier = doppler_code(code), carrier_code(code)
         columns[system] = (
             types.index(code), types.index(cn0) if cn0 in types else None,
-            types.index(doppler) if doppler in types else None,
+            types.index(doppler) if doppler in types else None, types.index(carrier) if carrier in types else None,
         )
     for line in stream:
         number += 1
@@ -223,6 +241,8 @@ def iter_epochs(
         ranges: list[float] = []
         cn0s: list[float] = []
         dopplers: list[float] = []
+        carriers: list[float] = []
+        llis: list[int] = []
         for _ in range(count):
             sat_line = next(stream, None)
             number += 1
@@ -240,6 +260,9 @@ def iter_epochs(
                 cn0 = _field(sat_line, cn0_index) if cn0_index is not None else math.nan
                 doppler_index = columns[system][2]
                 doppler = _field(sat_line, doppler_index) if doppler_index is not None else math.nan
+                carrier_index = columns[system][3]
+                carrier = _field(sat_line, carrier_index) if carrier_index is not None else math.nan
+                lli = _lli(sat_line, carrier_index) if carrier_index is not None and math.isfinite(carrier) else 0
             except ValueError:
                 raise RinexError(number, f"cannot read observation of {sat_line[:3]!r}") from None
             if math.isnan(value) or value <= 0.0:
@@ -249,9 +272,12 @@ def iter_epochs(
             ranges.append(value)
             cn0s.append(cn0)
             dopplers.append(doppler)
+            carriers.append(carrier)
+            llis.append(lli)
         yield header, ObservationEpoch(
             t, flag, epoch_line, tuple(systems), np.asarray(prns, dtype=int), np.asarray(ranges, dtype=float),
-            np.asarray(cn0s, dtype=float), np.asarray(dopplers, dtype=float),
+            np.asarray(cn0s, dtype=float), np.asarray(dopplers, dtype=float), np.asarray(carriers, dtype=float),
+            np.asarray(llis, dtype=int),
         )
 
 

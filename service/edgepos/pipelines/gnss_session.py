@@ -4,7 +4,7 @@ particle cloud or UKF moments) and its exact byte form. Split from ``gnss_tight`
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -13,6 +13,7 @@ from edgepos.core import state as state_format
 from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GeodeticAnchor
 from edgepos.core.particles import PARTICLE_FILTERS, Cloud
+from edgepos.gnss.carrier import CarrierTrack, tracks_from_arrays, tracks_to_arrays
 
 PIPELINE_NAME = "gnss_tight"
 
@@ -34,8 +35,13 @@ class GnssSession:
     heading_known: bool = False
     """Whether the RISS model may run: until the GNSS-only model's velocity gives the azimuth, the RISS
     input is held back (a wrong initial azimuth is not recoverable once the model integrates the gyro)."""
+    carrier: dict[str, CarrierTrack] = field(default_factory=dict)
+    """Per satellite, its carrier smoothing (gnss.carrier), independent of the filter (kept across a
+    re-initialisation). Stored as the ``carrier_sats`` list and the ``carrier`` array; states written before
+    carrier phase have neither and start with none."""
 
     def to_bytes(self) -> bytes:
+        carrier_sats, carrier_table = tracks_to_arrays(self.carrier)
         meta = {
             "pipeline": PIPELINE_NAME,
             "options": self.options,
@@ -48,11 +54,13 @@ class GnssSession:
             "riss": self.riss,
             "clock_seen": self.clock_seen,
             "heading_known": self.heading_known,
+            "carrier_sats": carrier_sats,
         }
         arrays = {
             "particles": self.cloud.particles,
             "log_weights": self.cloud.log_weights,
             "cov": self.cloud.cov,
+            "carrier": carrier_table,
         }
         return state_format.pack(meta, arrays)
 
@@ -68,6 +76,10 @@ def decode_session(blob: bytes) -> GnssSession:
             f"gnss_tight state has {arrays['particles'].shape[-1]} components; this version uses {layout.DIM}"
         )
     cloud = Cloud(arrays["particles"], arrays["log_weights"], arrays["cov"])
+    try:
+        carrier = tracks_from_arrays(meta.get("carrier_sats", []), arrays.get("carrier", np.zeros((0, 6))))
+    except (ValueError, TypeError) as error:
+        raise state_format.StateFormatError(f"gnss_tight state's carrier tracks are corrupt: {error}") from None
     return GnssSession(
         meta["options"],
         int(meta["seed"]),
@@ -80,6 +92,7 @@ def decode_session(blob: bytes) -> GnssSession:
         dict(meta["clock_seen"]),
         cloud,
         bool(meta.get("heading_known", False)),
+        carrier,
     )
 
 

@@ -19,6 +19,10 @@ Per epoch (observations sharing ``t``):
    environment has differential corrections from the site's reference station (gnss/differential.py),
    each pseudorange with a valid one (same satellite and ephemeris issue, at most
    the correction source's maximum age old) has it added; the others are used uncorrected, and each says why.
+   Before the corrections, a pseudorange with ``carrier_cycles`` (with ``carrier_smoothing`` hatch) is
+   replaced by its satellite's carrier-smoothed code (gnss/carrier.py: Hatch filter, a slip by ``lli``,
+   Doppler, code-carrier jump or gap restarting only that satellite; the tracks live in the session state),
+   its noise std scaled by max(1/sqrt(epochs averaged), ``hatch_std_floor``).
 3. A snapshot test like the least-squares baseline's (chi-square on this epoch's own least-squares
    residuals, worst pseudorange excluded while it fails; ``fde_probability``) finds biased (NLOS)
    pseudoranges whatever the filter believes; then a residual test against the prediction (per
@@ -55,6 +59,14 @@ from edgepos.core.motion.riss import GeodeticAnchor, GnssOnlyModel, RissInput, R
 from edgepos.core.observations import Observation, PseudorangeObservation, RissObservation
 from edgepos.core.particles import PARTICLE_FILTERS, Cloud, Measurement
 from edgepos.core.particles.base import StepResult, weighted_moments
+from edgepos.gnss.carrier import (
+    DEFAULT_CODE_JUMP_M,
+    DEFAULT_MAX_GAP_S,
+    DEFAULT_SLIP_CYCLES_PER_S,
+    DEFAULT_WINDOW_S,
+    HatchConfig,
+    hatch_update,
+)
 from edgepos.gnss.differential import CorrectionTable
 from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.geodesy import enu_rotation, geodetic_to_ecef
@@ -102,6 +114,14 @@ from edgepos.pipelines.options import resolve_options
 SYSTEMS = ("G", "C", "E")
 MAX_PRN = 63
 SECONDS_PER_WEEK = 604800.0
+MAX_CARRIER_CYCLES = 1.0e10
+"""Largest |carrier phase| accepted (cycles): RINEX writes it as F14.3, below 1e10; float64 keeps 1e-6 cycle
+there."""
+MAX_LLI = 7
+"""RINEX loss-of-lock indicators are three bits."""
+CARRIER_SMOOTHING = ("hatch", "off")
+DEFAULT_CARRIER_SMOOTHING = "hatch"
+DEFAULT_HATCH_STD_FLOOR = 0.2
 MAX_DOPPLER_HZ = 20000.0
 """Largest |Doppler| accepted: a ground receiver sees at most about 5 kHz on L1 from satellite motion, plus
 its oscillator's offset (a few kHz for a poor one)."""
@@ -175,6 +195,42 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "PF and UPF: std (m/s) of a Doppler likelihood's outlier component (see outlier_probability): a "
         "reflected signal's range rate differs from the direct one's by up to twice the vehicle's speed, "
         "metres per second in town.", 0.01, 1000.0,
+    ),
+    OptionSpec(
+        "carrier_smoothing", "string", DEFAULT_CARRIER_SMOOTHING,
+        "What a pseudorange's carrier_cycles is used for. hatch: carrier-smoothed code (Hatch filter per "
+        "satellite, gnss/carrier.py): the smoothed pseudorange replaces the raw one in the update with its "
+        "noise std scaled by max(1/sqrt(epochs averaged), hatch_std_floor); a cycle slip (lli bit 0, phase "
+        "change against the integrated Doppler, code-carrier jump, a gap) restarts that satellite's average "
+        "only. off: carrier phase is ignored. Sessions stored before the option existed keep off.",
+        choices=CARRIER_SMOOTHING,
+    ),
+    OptionSpec(
+        "hatch_window_s", "number", DEFAULT_WINDOW_S,
+        "Hatch filter memory (s): the average weighs at most window / epoch interval epochs. 100 s (the SBAS "
+        "standard's): on one frequency the smoothed code drifts by twice the ionosphere's change over the window, "
+        "decimetres at 100 s, while code multipath averages down.", 1.0, 3600.0,
+    ),
+    OptionSpec(
+        "hatch_std_floor", "number", DEFAULT_HATCH_STD_FLOOR,
+        "Smallest fraction of the raw pseudorange std a smoothed pseudorange gets: averaging n epochs divides "
+        "white noise by sqrt(n), but street-canyon multipath is correlated over tens of seconds and does not "
+        "average down that fast. Chosen on the first half of tests/data/gnss-rover (docs/gnss.md).", 0.01, 1.0,
+    ),
+    OptionSpec(
+        "carrier_slip_cycles_per_s", "number", DEFAULT_SLIP_CYCLES_PER_S,
+        "Cycle-slip test: restart a satellite's smoothing when its phase change differs from its integrated "
+        "Doppler by more than this many cycles per second of interval (needs doppler_hz and use_doppler).",
+        0.1, 1.0e4,
+    ),
+    OptionSpec(
+        "carrier_code_jump_m", "number", DEFAULT_CODE_JUMP_M,
+        "Cycle-slip test: restart a satellite's smoothing when its code differs from the carrier-propagated "
+        "smoothed range by more than this (m).", 0.1, 1.0e4,
+    ),
+    OptionSpec(
+        "carrier_max_gap_s", "number", DEFAULT_MAX_GAP_S,
+        "Longest time (s) between a satellite's carrier phases its smoothing continues across.", 0.01, 600.0,
     ),
     OptionSpec(
         "systems", "string[]", list(SYSTEMS),
@@ -336,6 +392,17 @@ def _validate(session: GnssSession, observations: Sequence[Observation]) -> None
                 not is_finite_number(observation.doppler_hz) or abs(observation.doppler_hz) > MAX_DOPPLER_HZ
             ):
                 problems.append(Problem(index, "doppler_hz", f"must be a finite Doppler within +-{MAX_DOPPLER_HZ:g} Hz"))
+            if observation.carrier_cycles is not None and (
+                not is_finite_number(observation.carrier_cycles) or abs(observation.carrier_cycles) >= MAX_CARRIER_CYCLES
+            ):
+                problems.append(
+                    Problem(index, "carrier_cycles", f"must be a finite phase within +-{MAX_CARRIER_CYCLES:g} cycles")
+                )
+            if observation.lli is not None and (
+                isinstance(observation.lli, bool) or not isinstance(observation.lli, int)
+                or not 0 <= observation.lli <= MAX_LLI
+            ):
+                problems.append(Problem(index, "lli", f"must be an integer in [0, {MAX_LLI}] (RINEX loss-of-lock bits)"))
         elif isinstance(observation, RissObservation):
             for name, bound in (("wheel_speed", 100.0), ("accel_x", 50.0), ("accel_y", 50.0), ("gyro_z", 10.0)):
                 value = getattr(observation, name)
@@ -403,6 +470,7 @@ def _filter_epoch(
         gpst = (options["gps_week"] or 0) * SECONDS_PER_WEEK + t
     satellites = epoch_satellites(epoch, observations, ephemerides, gpst, options, uses)
     doppler.update({i: (False, reason) for i, reason in satellites.doppler_reasons.items()})
+    satellites, smoothing = _smooth(session, t, satellites, observations)
     atmosphere = atmosphere_of(options, ephemerides)
     if corrections is not None:
         satellites = apply_corrections(
@@ -439,7 +507,7 @@ def _filter_epoch(
             rate_rows = rows[np.isfinite(prs.range_rate_mps[rows]) & np.isfinite(prs.sat_clock_drift[rows])]
         known = iono + tropo - SPEED_OF_LIGHT * prs.sat_clock_s
         factor = FuzzyNoise().factor(elevation, prs.cn0_dbhz) if options["fuzzy"] else np.ones(len(prs))
-        std = options["pseudorange_std"] * factor
+        std = options["pseudorange_std"] * factor * smoothing
         rows = snapshot_test(
             session, centre, prs, known, snapshot_std(elevation, satellites.corrected), rows,
             satellites.indices, uses,
@@ -486,6 +554,40 @@ def _filter_epoch(
         doppler[satellites.indices[r]] = (True, None)
     status = "tracking" if measurement is not None else "predicted"
     return _fix(t, status, session, result.mean, result.cov, result, int(rows.size + rate_rows.size), uses, origin)
+
+
+def _smooth(
+    session: GnssSession, t: float, satellites: EpochSatellites, observations: Sequence[Observation]
+) -> tuple[EpochSatellites, np.ndarray]:
+    """Carrier-smoothed code (``carrier_smoothing`` hatch): each row with carrier_cycles advances its
+    satellite's Hatch filter and gets the smoothed pseudorange; returns the epoch with them and, per row, the
+    factor on its noise std (1 for raw code). Runs before differential corrections, which change with the
+    base's epoch and must not be averaged."""
+    prs = satellites.prs
+    factor = np.ones(len(prs))
+    options = session.options
+    if options.get("carrier_smoothing", "off") != "hatch" or not len(prs):
+        return satellites, factor
+    sent = [observations[i] for i in satellites.indices]
+    carrier = np.array([np.nan if o.carrier_cycles is None else o.carrier_cycles for o in sent], dtype=float)  # type: ignore[union-attr]
+    if not np.isfinite(carrier).any():
+        return satellites, factor
+    use_doppler = bool(options.get("use_doppler", True))
+    doppler_hz = np.array(
+        [o.doppler_hz if (o.doppler_hz is not None and use_doppler) else np.nan for o in sent], dtype=float  # type: ignore[union-attr]
+    )
+    lli = np.array([o.lli or 0 for o in sent], dtype=int)  # type: ignore[union-attr]
+    config = HatchConfig(
+        options["hatch_window_s"], options["carrier_slip_cycles_per_s"], options["carrier_code_jump_m"],
+        options["carrier_max_gap_s"],
+    )
+    result = hatch_update(
+        session.carrier, t, prs.sats, prs.pseudorange_m, carrier, SPEED_OF_LIGHT / prs.frequency_hz, doppler_hz, lli,
+        config,
+    )
+    smoothed = result.count >= 1.0
+    factor[smoothed] = np.maximum(1.0 / np.sqrt(result.count[smoothed]), options["hatch_std_floor"])
+    return dataclasses.replace(satellites, prs=dataclasses.replace(prs, pseudorange_m=result.pseudorange_m)), factor
 
 
 def _measurement(
