@@ -73,3 +73,31 @@ def test_kubernetes_sketch_parses_and_probes_readiness() -> None:
     assert "secretKeyRef" in environment["EDGEPOS_ADMIN_KEY"]["valueFrom"]
     redis = kinds["StatefulSet"]["spec"]["template"]["spec"]["containers"][0]
     assert redis["args"][redis["args"].index("--appendonly") + 1] == "yes"
+
+
+CLUSTER = ROOT / "docker" / "k8s" / "redis-cluster.yaml"
+
+
+def test_kubernetes_redis_cluster_manifests_hold_together() -> None:
+    from edgepos.store.redis_cluster import parse_cluster_url
+
+    documents = list(yaml.safe_load_all(CLUSTER.read_text()))
+    kinds = {doc["kind"]: doc for doc in documents}
+    assert {"Service", "StatefulSet", "Job", "Deployment"} <= set(kinds)
+    nodes = kinds["StatefulSet"]
+    service = kinds["Service"]
+    assert service["spec"]["clusterIP"] == "None" and nodes["spec"]["serviceName"] == service["metadata"]["name"]
+    assert nodes["spec"]["replicas"] == 6
+    args = nodes["spec"]["template"]["spec"]["containers"][0]["args"]
+    for flag, value in (("--cluster-enabled", "yes"), ("--appendonly", "yes"), ("--maxmemory-policy", "noeviction")):
+        assert args[args.index(flag) + 1] == value
+    assert args[args.index("--cluster-config-file") + 1].startswith("/data/")  # on the volume
+    pods = {f"{nodes['metadata']['name']}-{i}.{service['metadata']['name']}:6379" for i in range(6)}
+    create = kinds["Job"]["spec"]["template"]["spec"]["containers"][0]["command"]
+    assert create[:3] == ["redis-cli", "--cluster", "create"]
+    assert set(create[3:9]) == pods and create[create.index("--cluster-replicas") + 1] == "1"
+    container = kinds["Deployment"]["spec"]["template"]["spec"]["containers"][0]
+    environment = {item["name"]: item for item in container["env"]}
+    parsed = parse_cluster_url(environment["EDGEPOS_STORE"]["value"])
+    assert {f"{host}:{port}" for host, port in parsed["nodes"]} <= pods
+    assert int(environment["EDGEPOS_REDIS_WAIT_REPLICAS"]["value"]) >= 1
