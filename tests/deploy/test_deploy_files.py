@@ -47,7 +47,7 @@ def test_the_load_balancer_sends_to_every_replica_and_nothing_else() -> None:
     replicas = _replicas(services)
     text = NGINX.read_text()
     assert text.count("{") == text.count("}")
-    upstream = re.search(r"upstream edgepos \{(.*?)\}", text, re.S)
+    upstream = re.search(r"upstream edgepos \{(.*?)\}", text, re.DOTALL)
     assert upstream is not None
     servers = re.findall(r"server\s+([\w.-]+):(\d+)", upstream.group(1))
     assert sorted(name for name, _ in servers) == sorted(replicas)
@@ -60,7 +60,7 @@ def test_the_load_balancer_sends_to_every_replica_and_nothing_else() -> None:
 
 
 def test_kubernetes_sketch_parses_and_probes_readiness() -> None:
-    blocks = re.findall(r"```yaml\n(.*?)```", KUBERNETES.read_text(), re.S)
+    blocks = re.findall(r"```yaml\n(.*?)```", KUBERNETES.read_text(), re.DOTALL)
     documents = [doc for block in blocks for doc in yaml.safe_load_all(block)]
     kinds = {doc["kind"]: doc for doc in documents}
     assert {"Secret", "StatefulSet", "Deployment", "Service"} <= set(kinds)
