@@ -7,7 +7,8 @@ loadtest`` as its own process, closed loop (each vehicle sends its next batch on
 answered) with ``--verify``. Prints per round the epochs/s, p99, errors and lost batches of both, the
 ratio cluster / one Redis, the sessions per primary half way through the cluster run, and what the
 capacity model in docs/redis.md needs: Redis commands per batch and Redis CPU per batch (from
-``INFO commandstats`` and ``INFO cpu`` before and after, summed over primaries).
+``INFO commandstats`` and ``INFO cpu`` before and after, summed over primaries) and the service's CPU
+per batch (its processes' user and system time from /proc).
 
     python bench/redis_cluster.py [--vehicles 64] [--batch 20] [--duration 20] [--rounds 2] [--json FILE]
 """
@@ -29,7 +30,7 @@ from typing import Any
 
 import redis
 from edgepos.loadgen.localredis import RedisClusterProcesses, RedisServer, redis_binary
-from edgepos.loadgen.localserver import clean_environment, running, serve_command
+from edgepos.loadgen.localserver import clean_environment, running, serve_command, service_cpu_s
 
 ADMIN_KEY = "cluster-bench-admin-" + os.urandom(8).hex()
 PREFIX = "bench:"
@@ -95,14 +96,18 @@ def _run(kind: str, binary: str, args: argparse.Namespace) -> dict[str, Any]:
                     time.sleep(args.duration / 2)
                     spread["sessions"] = _sessions_by_primary(ports)
 
-                before = _stats(ports)
+                before, service_before = _stats(ports), service_cpu_s(url)
                 sampler = threading.Thread(target=sample, daemon=True)
                 sampler.start()
+                # its exit status says what the report says (lost batches): the report is read below
                 subprocess.run(
-                    command, env={**os.environ, "EDGEPOS_ADMIN_KEY": ADMIN_KEY}, stdout=subprocess.DEVNULL
+                    command,
+                    env={**os.environ, "EDGEPOS_ADMIN_KEY": ADMIN_KEY},
+                    stdout=subprocess.DEVNULL,
+                    check=False,
                 )
                 sampler.join()
-                after = _stats(ports)
+                after, service_cpu = _stats(ports), service_cpu_s(url) - service_before
                 report = json.loads(report_path.read_text())
     batches = max(1, report["requests"])
     return {
@@ -113,6 +118,7 @@ def _run(kind: str, binary: str, args: argparse.Namespace) -> dict[str, Any]:
         "batches": report["requests"],
         "redis_calls_per_batch": (after["calls"] - before["calls"]) / batches,
         "redis_cpu_us_per_batch": (after["cpu_s"] - before["cpu_s"]) / batches * 1e6,
+        "service_cpu_us_per_batch": service_cpu / batches * 1e6,
         "sessions_by_primary": spread.get("sessions"),
     }
 
@@ -145,8 +151,9 @@ def main() -> int:
             r = result[kind]
             print(
                 f"round {index + 1} {kind:8s} {r['epochs_per_s']:8.0f} epochs/s  p99 {r['p99_ms']:.0f} ms  "
-                f"errors {r['errors']}  lost {r['lost']}  {r['redis_calls_per_batch']:.2f} Redis commands and "
-                f"{r['redis_cpu_us_per_batch']:.0f} us Redis CPU per batch"
+                f"errors {r['errors']}  lost {r['lost']}  per batch: {r['redis_calls_per_batch']:.2f} Redis "
+                f"commands (a script's own calls included), {r['redis_cpu_us_per_batch']:.0f} us Redis CPU, "
+                f"{r['service_cpu_us_per_batch']:.0f} us service CPU"
                 + (f"  sessions per primary {r['sessions_by_primary']}" if kind == "cluster" else ""),
                 flush=True,
             )

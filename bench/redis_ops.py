@@ -7,7 +7,8 @@ script's own calls appear there marked ``lua`` and are not counted) and drives t
 ``v2v_coop`` vehicles ranging each other, their tracks published and read through Redis) and
 ``federated`` (``v2x_federated``). Prints per scenario the batches, the commands per batch by name,
 and Redis's CPU per batch (``INFO cpu`` before and after; MONITOR itself costs Redis some CPU, so
-this is an upper bound), and the batches per second one Redis core would serve at that cost.
+so that pass runs without it), the batches per second one Redis core would serve at that cost, and
+the largest session hash seen (state, stored answer for replay, ``MEMORY USAGE``).
 
     python bench/redis_ops.py [--epochs 400] [--batch-epochs 20] [--vehicles 4]
 """
@@ -28,10 +29,11 @@ from pathlib import Path
 import httpx
 import redis
 from edgepos.loadgen.localredis import RedisServer, redis_binary
-from edgepos.loadgen.localserver import clean_environment, running, serve_command
+from edgepos.loadgen.localserver import clean_environment, running, serve_command, service_cpu_s
 
 ADMIN_KEY = "ops-bench-admin-" + os.urandom(8).hex()
 SCENARIOS = ("rsu-imu", "v2v", "federated")
+_SAMPLER_COMMANDS = {"SCAN", "HSTRLEN", "MEMORY"}  # SessionSizes's; the service never sends them
 _COMMAND = re.compile(rb'^\+\d+\.\d+ \[\d+ [^\]]+\] "([A-Za-z]+)"')
 
 
@@ -59,9 +61,11 @@ class Monitor:
             *lines, buffer = buffer.split(b"\r\n")
             for line in lines:
                 found = _COMMAND.match(line)
-                if found and b" lua]" not in line:  # a script's own calls are not client commands
+                name = found.group(1).decode().upper() if found else ""
+                # a script's own calls are not client commands; the size sampler's are not the service's
+                if found and b" lua]" not in line and name not in _SAMPLER_COMMANDS:
                     with self._lock:
-                        self.counts[found.group(1).decode().upper()] += 1
+                        self.counts[name] += 1
 
     def take(self) -> Counter[str]:
         with self._lock:
@@ -70,6 +74,35 @@ class Monitor:
 
     def close(self) -> None:
         self._socket.close()
+
+
+class SessionSizes:
+    """Samples the sessions' sizes in Redis while a scenario runs: the state, the stored answer for
+    replay (``last_response``) and the whole hash (``MEMORY USAGE``), the largest seen of each."""
+
+    def __init__(self, port: int) -> None:
+        self.largest: dict[str, int] = {"state": 0, "last_response": 0, "memory": 0}
+        self._client = redis.Redis(host="127.0.0.1", port=port)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._sample, daemon=True)
+        self._thread.start()
+
+    def _sample(self) -> None:
+        while not self._stop.wait(0.1):
+            for key in self._client.scan_iter(match="ops:session:*", count=100):
+                sizes = {
+                    "state": self._client.hstrlen(key, "state"),
+                    "last_response": self._client.hstrlen(key, "last_response"),
+                    "memory": self._client.memory_usage(key) or 0,
+                }
+                for name, size in sizes.items():
+                    self.largest[name] = max(self.largest[name], int(size))
+
+    def stop(self) -> dict[str, int]:
+        self._stop.set()
+        self._thread.join()
+        self._client.close()
+        return self.largest
 
 
 def _cpu(client: redis.Redis) -> float:
@@ -92,6 +125,7 @@ def main() -> int:
     parser.add_argument("--epochs", type=int, default=400, help="epochs of each scenario per vehicle")
     parser.add_argument("--batch-epochs", type=int, default=20)
     parser.add_argument("--vehicles", type=int, default=4, help="vehicles (v2v: groups of four)")
+    parser.add_argument("--scenarios", default=",".join(SCENARIOS), help="comma-separated (default all)")
     args = parser.parse_args()
     binary = redis_binary()
     if binary is None:
@@ -114,7 +148,7 @@ def main() -> int:
             )
             client = redis.Redis(host="127.0.0.1", port=server.port)
             with running(serve_command(1), environment, workdir / "server.log") as url:
-                for scenario in SCENARIOS:
+                for scenario in args.scenarios.split(","):
                     # the federated scenario's epochs cost more: its batches are kept within the CPU budget
                     epochs_per_batch = (
                         args.batch_epochs if scenario != "federated" else args.batch_epochs // 2
@@ -127,16 +161,22 @@ def main() -> int:
                     ]  # fmt: skip
                     # first with MONITOR, counting commands; then again without it, for Redis's CPU (MONITOR
                     # formatting every command's arguments for its client would dominate it)
-                    monitor = Monitor(server.port)
+                    monitor, sizes = Monitor(server.port), SessionSizes(server.port)
                     before_batches = _batches(url)
                     subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
                     counts = monitor.take()
                     monitor.close()
+                    largest = sizes.stop()
                     batches = _batches(url) - before_batches
-                    before_batches, before_cpu = _batches(url), _cpu(client)
+                    before_batches, before_cpu, before_service = (
+                        _batches(url),
+                        _cpu(client),
+                        service_cpu_s(url),
+                    )
                     subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
                     cpu_batches = _batches(url) - before_batches
                     cpu_us = (_cpu(client) - before_cpu) * 1e6
+                    service_us = (service_cpu_s(url) - before_service) * 1e6
                     total = sum(counts.values())
                     per_batch = ", ".join(
                         f"{name} {count / batches:.2f}" for name, count in counts.most_common(6)
@@ -146,6 +186,12 @@ def main() -> int:
                         f"commands per batch (opening and closing the sessions included: {per_batch})  Redis CPU "
                         f"{cpu_us / cpu_batches:.0f} us per batch, {cpu_batches / cpu_us * 1e6:,.0f} batches/s per "
                         "Redis core",
+                        flush=True,
+                    )
+                    print(
+                        f"{scenario:10s} largest session: state {largest['state']:,} B, stored answer "
+                        f"{largest['last_response']:,} B, the hash in Redis {largest['memory']:,} B; service CPU "
+                        f"{service_us / cpu_batches:.0f} us per batch",
                         flush=True,
                     )
             client.close()

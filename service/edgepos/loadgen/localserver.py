@@ -88,3 +88,26 @@ def running(
         except subprocess.TimeoutExpired:
             process.kill()
             process.wait()
+
+
+def service_cpu_s(url: str) -> float:
+    """CPU seconds (user + system) used so far by the ``edgepos serve`` process listening at ``url`` and
+    its workers, from /proc (Linux): what a benchmark divides by the batches it sent."""
+    port = url.rsplit(":", 1)[1]
+    stats = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                cmdline = (entry / "cmdline").read_bytes().split(b"\0")
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            stats[int(entry.name)] = (cmdline, int(fields[1]), int(fields[11]) + int(fields[12]))
+    serve = [
+        pid for pid, (cmdline, _, _) in stats.items() if b"serve" in cmdline and port.encode() in cmdline
+    ]
+    family = set(serve)
+    for pid, (_, parent, _) in stats.items():
+        if parent in family:
+            family.add(pid)
+    return sum(stats[pid][2] for pid in family) / os.sysconf("SC_CLK_TCK")
