@@ -29,11 +29,12 @@ test: $(STAMP) redis-server
 test-under-load: $(STAMP) redis-server
 	$(BIN)/python bench/suite_under_load.py --runs 10
 
-# The Redis store's tests start their own redis-server on loopback; install it if the machine lacks it.
+# The Redis store's tests start their own redis-server on loopback, and redis-cli joins the local Redis
+# Cluster's nodes (Debian's redis-server package brings redis-tools); install them if the machine lacks them.
 redis-server:
-	@command -v redis-server >/dev/null || { \
+	@{ command -v redis-server && command -v redis-cli; } >/dev/null || { \
 		echo "installing redis-server (Debian package)"; \
-		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq redis-server >/dev/null; }
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq redis-server redis-tools >/dev/null; }
 
 bench: $(STAMP) redis-server
 	$(BIN)/python bench/filter_step.py
