@@ -3,13 +3,15 @@ killed, and the paper scenario's batches with an in-process reference to check s
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import functools
 import os
 import subprocess
 import sys
+import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,6 +19,7 @@ import httpx
 import numpy as np
 from edgepos.core.observations import Observation
 from edgepos.loadgen import common
+from edgepos.loadgen.loadtest import LoadConfig, LoadReport, run_load
 from edgepos.loadgen.localserver import free_port
 from edgepos.pipelines.base import InitialState, StaticEnvironment
 from edgepos.pipelines.registry import get_pipeline
@@ -151,17 +154,24 @@ measurements the lag window replays (seeded per stream)."""
 def _observation_batches(stream: int, batch_epochs: int, late: bool) -> tuple[tuple[Observation, ...], ...]:
     epochs = common.vehicle_epochs(scenario(), 0, stream)
     if not late:
-        return tuple(tuple(o for epoch in epochs[k : k + batch_epochs] for o in epoch) for k in range(0, len(epochs), batch_epochs))
+        return tuple(
+            tuple(o for epoch in epochs[k : k + batch_epochs] for o in epoch)
+            for k in range(0, len(epochs), batch_epochs)
+        )
     observations = [o for epoch in epochs for o in epoch]
     arrivals = arrival_times(observations, LATE, np.random.default_rng([stream, 15]))
     return tuple(tuple(batch) for batch in arrival_batches(observations, arrivals, batch_epochs))
 
 
 @functools.lru_cache(maxsize=16)
-def stream_batches(stream: int, batch_epochs: int, late: bool = False) -> tuple[list[common.WireMeasurement], ...]:
+def stream_batches(
+    stream: int, batch_epochs: int, late: bool = False
+) -> tuple[list[common.WireMeasurement], ...]:
     """Noise stream ``stream``'s measurements in batches of ``batch_epochs`` epochs (client models); with
     ``late`` as they would arrive with :data:`LATE` (each batch what arrived since the previous one)."""
-    return tuple([common.to_wire(o) for o in batch] for batch in _observation_batches(stream, batch_epochs, late))
+    return tuple(
+        [common.to_wire(o) for o in batch] for batch in _observation_batches(stream, batch_epochs, late)
+    )
 
 
 def reference_states(stream: int, batch_epochs: int, batches: int, late: bool = False) -> list[bytes]:
@@ -177,3 +187,39 @@ def reference_states(stream: int, batch_epochs: int, batches: int, late: bool = 
         _fixes, state = pipeline.process(state, list(observations), environment)
         states.append(state)
     return states
+
+
+def load_with_fault(
+    config: LoadConfig,
+    due: Callable[[float], bool],
+    fault: Callable[[], None] | None,
+    server: Server,
+    timeout_s: float = 180.0,
+) -> LoadReport:
+    """``config``'s load test in a thread; ``fault()`` runs once ``due(seconds since the start)`` is true.
+    Asserts the load outlived the fault, ended within ``timeout_s`` after its duration and that the
+    service was never restarted."""
+    result: dict[str, object] = {}
+
+    def load() -> None:
+        try:
+            result["report"] = asyncio.run(run_load(config))
+        except Exception as error:  # noqa: BLE001  (any failure of the load thread is reported below)
+            result["error"] = error
+
+    worker = threading.Thread(target=load, daemon=True)
+    started = time.monotonic()
+    worker.start()
+    if fault is not None:
+        while not due(time.monotonic() - started):
+            assert worker.is_alive(), result.get("error")
+            time.sleep(0.05)
+        assert worker.is_alive(), "the load ended before the fault"
+        fault()
+    worker.join(config.duration + timeout_s)
+    assert not worker.is_alive()
+    assert server.process.poll() is None  # the service was never restarted
+    assert "error" not in result, result.get("error")
+    report = result["report"]
+    assert isinstance(report, LoadReport)
+    return report

@@ -10,13 +10,11 @@ the window of the run over which they were acknowledged. Either way the vehicles
 
 from __future__ import annotations
 
-import asyncio
-import threading
 import time
 
 import pytest
-from edgepos.loadgen.loadtest import LoadConfig, LoadReport, run_load
-from faulthelp import ADMIN_KEY, serve
+from edgepos.loadgen.loadtest import LoadConfig
+from faulthelp import ADMIN_KEY, load_with_fault, serve
 
 pytestmark = pytest.mark.slow
 
@@ -30,7 +28,6 @@ OUTAGE_S = 3.0
 def _run_with_outage(tmp_path, redis) -> tuple[dict, float]:
     """The load with Redis killed during it; returns the report and how long after the start Redis was killed (s)."""
     store_url = redis.url("verify:", socket_timeout="0.5", socket_connect_timeout="0.5")
-    result: dict[str, object] = {}
     with serve(tmp_path, 2, EDGEPOS_STORE=store_url, EDGEPOS_DEMO_RSUS="true") as server:
         config = LoadConfig(
             url=server.url,
@@ -42,34 +39,20 @@ def _run_with_outage(tmp_path, redis) -> tuple[dict, float]:
             timeout=5.0,
             verify=True,
         )
+        timeline: dict[str, float] = {}
 
-        def load() -> None:
-            try:
-                result["report"] = asyncio.run(run_load(config))
-            except Exception as error:  # noqa: BLE001  (any failure of the load thread is reported by the assertion below)
-                result["error"] = error
+        def holds_sessions(elapsed: float) -> bool:
+            timeline["elapsed"] = elapsed
+            return elapsed >= KILL_AFTER_S and redis.command("KEYS", "verify:*session*").count(b"$") > 0
 
-        worker = threading.Thread(target=load, daemon=True)
-        started = time.monotonic()
-        worker.start()
-        while (
-            not redis.command("KEYS", "verify:*session*").count(b"$")
-            or time.monotonic() - started < KILL_AFTER_S
-        ):
-            assert worker.is_alive(), result.get("error")
-            time.sleep(0.05)
-        assert worker.is_alive(), "the load ended before Redis was killed"
-        redis.kill()
-        killed = time.monotonic() - started
-        time.sleep(OUTAGE_S)
-        redis.start()  # same port, same directory
-        worker.join(DURATION_S + 120.0)
-        assert not worker.is_alive()
-        assert server.process.poll() is None  # the service was never restarted
-    assert "error" not in result, result.get("error")
-    report = result["report"]
-    assert isinstance(report, LoadReport)
-    return report.to_json(), killed
+        def outage() -> None:
+            redis.kill()
+            timeline["killed"] = timeline["elapsed"]
+            time.sleep(OUTAGE_S)
+            redis.start()  # same port, same directory
+
+        report = load_with_fault(config, holds_sessions, outage, server, timeout_s=120.0)
+    return report.to_json(), timeline["killed"]
 
 
 def test_with_aof_always_no_acknowledged_batch_is_lost(tmp_path, redis_factory):

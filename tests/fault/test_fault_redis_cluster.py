@@ -11,16 +11,14 @@ loopback replication usually keeps up, so it is mostly zero, but nothing guarant
 
 from __future__ import annotations
 
-import asyncio
-import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
 import pytest
 import redis
-from edgepos.loadgen.loadtest import LoadConfig, LoadReport, run_load
-from faulthelp import ADMIN_KEY, serve
+from edgepos.loadgen.loadtest import LoadConfig
+from faulthelp import ADMIN_KEY, load_with_fault, serve
 
 pytestmark = pytest.mark.slow
 
@@ -33,7 +31,6 @@ PREFIX = "fault:"
 
 def _run(tmp_path, cluster, fault: Callable[[], None] | None, **env: str) -> dict[str, Any]:
     """The load on two workers over ``cluster``; ``fault`` runs FAULT_AFTER_S into it."""
-    result: dict[str, object] = {}
     with serve(tmp_path, 2, EDGEPOS_STORE=cluster.url(PREFIX), EDGEPOS_DEMO_RSUS="true", **env) as server:
         config = LoadConfig(
             url=server.url,
@@ -46,28 +43,7 @@ def _run(tmp_path, cluster, fault: Callable[[], None] | None, **env: str) -> dic
             verify=True,
             retries=RETRIES,
         )
-
-        def load() -> None:
-            try:
-                result["report"] = asyncio.run(run_load(config))
-            except Exception as error:  # noqa: BLE001  (any failure of the load thread is reported by the assertion below)
-                result["error"] = error
-
-        worker = threading.Thread(target=load, daemon=True)
-        started = time.monotonic()
-        worker.start()
-        if fault is not None:
-            while time.monotonic() - started < FAULT_AFTER_S:
-                assert worker.is_alive(), result.get("error")
-                time.sleep(0.05)
-            fault()
-        worker.join(DURATION_S + 180.0)
-        assert not worker.is_alive()
-        assert server.process.poll() is None  # the service was never restarted
-    assert "error" not in result, result.get("error")
-    report = result["report"]
-    assert isinstance(report, LoadReport)
-    return report.to_json()
+        return load_with_fault(config, lambda elapsed: elapsed >= FAULT_AFTER_S, fault, server).to_json()
 
 
 def _sessions_by_primary(cluster) -> list[int]:

@@ -145,26 +145,50 @@ redis.call('HSET', KEYS[2], ARGV[2], ARGV[1])
 return rotated
 """
 
+# Revoking a vehicle, in two parts that a Redis Cluster runs as two single-slot scripts
+# (store.redis_cluster) and one Redis as one script.
+# deregister(vehicles, vehicle keys, vehicle id): removes the vehicle and its key's entry; false if it
+# was not registered.
+DEREGISTER_FN = """
+local function deregister(vehicles, vehicle_keys, vehicle_id)
+  local value = redis.call('HGET', vehicles, vehicle_id)
+  if not value then return false end
+  local key = cjson.decode(value)[1]
+  redis.call('HDEL', vehicles, vehicle_id)
+  if redis.call('HGET', vehicle_keys, key) == vehicle_id then redis.call('HDEL', vehicle_keys, key) end
+  return true
+end
+"""
+
+# end_live_session(live pointer, track, index, session-key prefix, cutoff): ends the vehicle's live
+# session (hash, index entry, pointer) and deletes its track; returns the session's id when it was
+# live, else ''.
+END_LIVE_SESSION_FN = """
+local function end_live_session(live, track, index, session_prefix, cutoff)
+  local ended = ''
+  local sid = redis.call('GET', live)
+  if sid then
+    local score = redis.call('ZSCORE', index, sid)
+    local existed = redis.call('DEL', session_prefix .. sid)
+    redis.call('ZREM', index, sid)
+    if existed == 1 and score and tonumber(score) >= tonumber(cutoff) then ended = sid end
+    redis.call('DEL', live)
+  end
+  redis.call('DEL', track)
+  return ended
+end
+"""
+
 # KEYS: vehicles, vehicle keys, the vehicle's live pointer, the vehicle's track, index. ARGV: vehicle
 # id, session-key prefix, cutoff. Returns {0} when not registered, else {1, ended session id or ''}.
-DELETE_VEHICLE = """
-local value = redis.call('HGET', KEYS[1], ARGV[1])
-if not value then return {0} end
-local key = cjson.decode(value)[1]
-redis.call('HDEL', KEYS[1], ARGV[1])
-if redis.call('HGET', KEYS[2], key) == ARGV[1] then redis.call('HDEL', KEYS[2], key) end
-local ended = ''
-local sid = redis.call('GET', KEYS[3])
-if sid then
-  local score = redis.call('ZSCORE', KEYS[5], sid)
-  local existed = redis.call('DEL', ARGV[2] .. sid)
-  redis.call('ZREM', KEYS[5], sid)
-  if existed == 1 and score and tonumber(score) >= tonumber(ARGV[3]) then ended = sid end
-  redis.call('DEL', KEYS[3])
-end
-redis.call('DEL', KEYS[4])
-return {1, ended}
+DELETE_VEHICLE = (
+    DEREGISTER_FN
+    + END_LIVE_SESSION_FN
+    + """
+if not deregister(KEYS[1], KEYS[2], ARGV[1]) then return {0} end
+return {1, end_live_session(KEYS[3], KEYS[4], KEYS[5], ARGV[2], ARGV[3])}
 """
+)
 
 # KEYS: index. ARGV: cutoff, session-key prefix. Returns {purged, remaining}.
 PURGE_AND_COUNT = (
@@ -189,29 +213,21 @@ redis.call('SET', KEYS[1], string.format('%.17g', tat), 'PX', math.ceil((tat - n
 return '0'
 """
 
-# Redis Cluster splits DELETE_VEHICLE in two single-slot steps (store.redis_cluster).
+# Redis Cluster: DELETE_VEHICLE's two parts as scripts of their own (store.redis_cluster).
 # KEYS: vehicles, vehicle keys (the registry's slot). ARGV: vehicle id. Returns 1 if it was registered.
-DEREGISTER_VEHICLE = """
-local value = redis.call('HGET', KEYS[1], ARGV[1])
-if not value then return 0 end
-local key = cjson.decode(value)[1]
-redis.call('HDEL', KEYS[1], ARGV[1])
-if redis.call('HGET', KEYS[2], key) == ARGV[1] then redis.call('HDEL', KEYS[2], key) end
-return 1
+DEREGISTER_VEHICLE = (
+    DEREGISTER_FN
+    + """
+if deregister(KEYS[1], KEYS[2], ARGV[1]) then return 1 end
+return 0
 """
+)
 
 # KEYS: the vehicle's live pointer, its track, its shard's index (one slot). ARGV: session-key prefix,
-# cutoff. Ends the vehicle's live session; returns its id when it was live, else ''.
-END_VEHICLE_SESSION = """
-local ended = ''
-local sid = redis.call('GET', KEYS[1])
-if sid then
-  local score = redis.call('ZSCORE', KEYS[3], sid)
-  local existed = redis.call('DEL', ARGV[1] .. sid)
-  redis.call('ZREM', KEYS[3], sid)
-  if existed == 1 and score and tonumber(score) >= tonumber(ARGV[2]) then ended = sid end
-  redis.call('DEL', KEYS[1])
-end
-redis.call('DEL', KEYS[2])
-return ended
+# cutoff. Returns the ended session's id when it was live, else ''.
+END_VEHICLE_SESSION = (
+    END_LIVE_SESSION_FN
+    + """
+return end_live_session(KEYS[1], KEYS[2], KEYS[3], ARGV[1], ARGV[2])
 """
+)
