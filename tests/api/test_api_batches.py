@@ -464,3 +464,50 @@ def test_a_json_syntax_error_names_line_and_column(client):
     [problem] = error["problems"]
     assert problem["field"] == "body"
     assert "line 4, column 21" in problem["reason"], problem["reason"]
+
+
+def _count_reads(client, monkeypatch) -> list[str]:
+    store = client.app.state.context.store
+    reads: list[str] = []
+    real_get = store.get
+
+    async def counted(session_id):
+        reads.append(session_id)
+        return await real_get(session_id)
+
+    monkeypatch.setattr(store, "get", counted)
+    return reads
+
+
+def test_a_batch_with_a_session_token_reads_the_session_once(client, monkeypatch):
+    session_id, token = open_session(client)
+    reads = _count_reads(client, monkeypatch)
+    assert _post(client, session_id, batch_body(1, 0, 3), token).status_code == 200
+    assert reads == [session_id]  # the token check's read is the one the batch is applied on
+    reads.clear()
+    assert _post(client, session_id, batch_body(1, 0, 3), token).status_code == 200  # a replay
+    assert reads == [session_id, session_id]  # a replay or a refusal is decided on a fresh read
+
+
+def test_a_stale_prefetched_record_never_decides_a_batch(client):
+    """The record the token check read may be old by the time the batch is applied (another request
+    of the vehicle got in between): the next seq is checked again by the compare-and-set, anything
+    else on a fresh read."""
+    from edgepos.api import session_service
+    from edgepos.api.schemas import BatchIn
+
+    session_id, token = open_session(client)
+    context = client.app.state.context
+    stale = _record(client, session_id)
+    first = _post(client, session_id, batch_body(1, 0, 3), token)
+    assert first.status_code == 200
+    # the same seq 1 again on the stale record (which says seq 1 is next): the compare-and-set fails, the
+    # fresh read finds it applied with this body, and the stored answer comes back
+    again = BatchIn.model_validate(batch_body(1, 0, 3))
+    replayed = client.portal.call(session_service.apply_batch, context, session_id, again, stale)
+    assert json.loads(replayed) == first.json()
+    # seq 2 on the stale record (which says seq 1 is next) is not refused as skipping ahead: it is decided
+    # on a fresh read and applied
+    second = BatchIn.model_validate(batch_body(2, 3, 3))
+    applied = json.loads(client.portal.call(session_service.apply_batch, context, session_id, second, stale))
+    assert applied["seq"] == 2 and _record(client, session_id).last_seq == 2

@@ -337,6 +337,7 @@ async def require_session(
     if not _token_matches(secret, record.token_hash):
         raise await _refuse(context, request, secret, "invalid", _unauthorized())
     await charge_rate_limit(context, session_id)
+    request.state.session_record = record  # the batch route applies on it (see session_service.apply_batch)
     return Principal(admin=False, session_id=session_id)
 
 

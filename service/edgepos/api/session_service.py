@@ -309,8 +309,14 @@ def _check_types(pipeline: Pipeline, batch: BatchIn) -> None:
         raise ApiError("invalid_request", "the batch has measurements this session cannot use", problems)
 
 
-async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> bytes:
-    """Apply ``batch`` exactly once and return the response body (JSON bytes)."""
+async def apply_batch(
+    context: AppContext, session_id: str, batch: BatchIn, prefetched: SessionRecord | None = None
+) -> bytes:
+    """Apply ``batch`` exactly once and return the response body (JSON bytes).
+
+    ``prefetched`` is the record the token check just read (one store read per batch instead of two):
+    it is trusted only to apply the next seq, which the compare-and-set then confirms is still current;
+    a replay or a refusal is decided on a fresh read."""
     limit = context.settings.max_batch_measurements
     if len(batch.measurements) > limit:
         count = len(batch.measurements)
@@ -325,7 +331,9 @@ async def apply_batch(context: AppContext, session_id: str, batch: BatchIn) -> b
     # One place in the vehicle's line for the whole request: a vehicle that sends batches in parallel
     # gets 429 instead of holding the worker's admission slots while it waits for its own session.
     async with context.scheduler.hold(f"session:{session_id}"):
-        return await _apply_in_turn(context, session_id, batch, digest, observations, rsu_ids, peer_ids, has_pseudoranges)
+        return await _apply_in_turn(
+            context, session_id, batch, digest, observations, rsu_ids, peer_ids, has_pseudoranges, prefetched
+        )
 
 
 async def _apply_in_turn(
@@ -337,11 +345,16 @@ async def _apply_in_turn(
     rsu_ids: set[str],
     peer_ids: set[str],
     has_pseudoranges: bool,
+    prefetched: SessionRecord | None = None,
 ) -> bytes:
     metrics = context.metrics
+    if context.store.locks.busy(session_id):
+        prefetched = None  # another request of this session goes first: what the token check read is old
     for _attempt in range(MAX_ATTEMPTS):
         async with context.store.session_lock(session_id):
-            record = await context.store.get(session_id)
+            record, prefetched = prefetched, None
+            if record is None or batch.seq != record.last_seq + 1:  # only the next seq goes on a prefetched read
+                record = await context.store.get(session_id)
             if record is None:
                 raise await _session_gone(context, session_id)
             try:

@@ -196,6 +196,10 @@ class SessionLocks:
             else:
                 self._locks[session_id] = (lock, users - 1)
 
+    def busy(self, session_id: str) -> bool:
+        """Whether a request of this process holds or awaits the session's lock right now."""
+        return session_id in self._locks
+
     def __len__(self) -> int:
         return len(self._locks)
 

@@ -168,12 +168,13 @@ async def delete_session(session_id: str, context: Context) -> Response:
         200: {"links": _links(_FROM_PATH, _READ_IT, _SEND_TO_IT, _DELETE_IT)},
     },
 )
-async def post_batch(session_id: str, body: BatchIn, context: Context) -> Response:
+async def post_batch(session_id: str, body: BatchIn, context: Context, request: Request) -> Response:
     """Filter the batch and return one fix per epoch (measurements sharing t), in time order.
 
     All or nothing: any problem gives 4xx listing every offending measurement and leaves the session
     unchanged. ``seq`` must be last_seq + 1; re-sending the last seq with the same content returns
     the stored response without applying it again; a different body for it, an older seq or a gap
     is 409."""
-    body_bytes = await session_service.apply_batch(context, session_id, body)
+    prefetched = getattr(request.state, "session_record", None)  # read by the token check
+    body_bytes = await session_service.apply_batch(context, session_id, body, prefetched)
     return Response(body_bytes, media_type="application/json")
