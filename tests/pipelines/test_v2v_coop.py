@@ -152,7 +152,52 @@ def test_gps_method_returns_the_fix_itself():
     state = session("gps")
     fixes, state = PIPELINE.process(state, epoch(0.0, 1.0, 2.0, {}) + epoch(0.2, 4.0, 2.5, {}), StaticEnvironment())
     assert (fixes[1].x, fixes[1].y) == (4.0, 2.5)
-    assert fixes[1].vx == pytest.approx(15.0) and fixes[1].vy == pytest.approx(2.5)
+    assert fixes[1].position_cov[0][0] == fixes[1].position_cov[1][1] == pytest.approx(
+        PIPELINE.resolve_options({})["gps_std"] ** 2
+    )
+    assert 0.0 < fixes[1].vx < 15.0 and 0.0 < fixes[1].vy < 2.5  # a filter's velocity: towards the differences
+
+
+def _gps_between_fixes(every: int, seed: int = 3) -> tuple[float, float, float, float]:
+    """A straight drive at 15 m/s with 5 Hz epochs and a 3.8 m fix every ``every``-th epoch (white
+    errors; the epochs between carry only a gyro reading): (position RMSE over all epochs, RMSE of the
+    fixes, mean NEES of the position, RMS velocity error), after a 10 s start."""
+    rng = np.random.default_rng(seed)
+    sigma = 3.8
+    state = PIPELINE.create(PIPELINE.resolve_options({"method": "gps", "gps_std": sigma}), None)
+    errors, fix_errors, nees, velocity = [], [], [], []
+    for k in range(600):
+        t = 0.2 * k
+        truth = np.array([15.0 * t, 0.0])
+        batch: list = [GyroObservation(t, 0.0)]
+        if k % every == 0:
+            measured = truth + rng.normal(0.0, sigma, 2)
+            batch.append(GnssFixObservation(t, float(measured[0]), float(measured[1])))
+            if t >= 10.0:
+                fix_errors.append(float(np.sum((measured - truth) ** 2)))
+        (fix,), state = PIPELINE.process(state, batch, StaticEnvironment())
+        if t >= 10.0:
+            error = np.array([fix.x, fix.y]) - truth
+            errors.append(float(error @ error))
+            nees.append(float(error @ np.linalg.solve(np.array(fix.position_cov), error)))
+            velocity.append((fix.vx - 15.0) ** 2 + fix.vy**2)
+    return (
+        math.sqrt(np.mean(errors)),
+        math.sqrt(np.mean(fix_errors)),
+        float(np.mean(nees)),
+        math.sqrt(np.mean(velocity)),
+    )
+
+
+@pytest.mark.parametrize("every", [1, 5])
+def test_gps_method_between_fixes_neither_drifts_nor_claims_too_much(every):
+    """Between fixes the last fix moves on at a filtered velocity: the error stays near the fixes'
+    own and the covariance says how large it is (mean NEES near 2 for 2 dof, not tens)."""
+    rmse, fix_rmse, mean_nees, velocity_rms = _gps_between_fixes(every)
+    assert rmse <= 1.25 * fix_rmse, (rmse, fix_rmse)
+    assert 1.0 <= mean_nees <= 4.0, mean_nees
+    differenced = 2.0 * 3.8 / (0.2 * every)  # RMS of velocities differenced from consecutive fixes
+    assert velocity_rms < 0.5 * differenced, velocity_rms
 
 
 @pytest.mark.parametrize("scenario", ["straight", "ring"])
