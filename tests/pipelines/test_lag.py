@@ -632,6 +632,19 @@ def test_the_window_keeps_at_most_max_window_epochs_and_older_data_is_too_late()
     assert_same_filter_state(state, rsu_state_after(30, max_window_epochs=5))
 
 
+def test_late_data_after_one_epoch_batches_emptied_the_window_is_not_an_error():
+    """max_window_epochs 2 with one-epoch batches: after three epochs since the last checkpoint the window
+    moves its base to the current state and holds no epoch; a measurement within max_delay_s but at or
+    before that base is too late (it raised IndexError while its report was written)."""
+    state = rsu_session(max_window_epochs=2)
+    for epoch in RSU_EPOCHS[:4]:
+        _, state = RSU_IMU.process(state, epoch, RSU_ENV)
+    window = lag._unpack(state)
+    assert window.times == [] and window.base.t == RSU_EPOCHS[3][0].t
+    _, after = RSU_IMU.process(state, [first_rsu(3)], RSU_ENV)
+    assert current(after) == current(state)
+
+
 # -- 6. the state format ---------------------------------------------------------------------------------
 def sample_observations() -> list[Observation]:
     return [

@@ -430,6 +430,8 @@ def _too_late_uses(
         lateness = newest - observation.t
         if lateness > delay or delay == 0:
             why = f"beyond the lag window (max_delay_s {delay:g} s)"
+        elif not window.times:  # more epochs since the last checkpoint than max_window_epochs: none kept
+            why = f"the lag window holds no epoch before it (max_window_epochs {window.options['max_window_epochs']})"
         else:
             why = (
                 f"before the oldest epoch the lag window still holds (t={window.times[0]!r}; max_window_epochs "
