@@ -763,6 +763,100 @@ def test_damaged_window_bytes_are_state_format_errors():
         RSU_IMU.process(state[:-1], RSU_EPOCHS[3], RSU_ENV)
 
 
+# -- 6b. the in-order path (``LagWindow._in_order``) against the general one ------------------------------
+def feed_both(
+    batches: Sequence[Sequence[Observation]], state: bytes, monkeypatch: pytest.MonkeyPatch, env: Environment = RSU_ENV
+) -> tuple[bytes, list[list[Fix]]]:
+    """``batches`` sent with the in-order path and without it, asserting after every batch the same fixes
+    and the same state bytes (or the same problems); the state and responses of the first."""
+    fast_state, slow_state = state, state
+    responses = []
+    for batch in batches:
+        outcomes = []
+        for enabled, before in ((True, fast_state), (False, slow_state)):
+            monkeypatch.setattr(lag, "IN_ORDER_PATH", enabled)
+            try:
+                outcomes.append(RSU_IMU.process(before, list(batch), env))
+            except PipelineInputError as error:
+                outcomes.append(error.problems)
+        assert outcomes[0] == outcomes[1]
+        if isinstance(outcomes[0], tuple):
+            (fixes, fast_state), (_, slow_state) = outcomes
+            responses.append(fixes)
+    monkeypatch.setattr(lag, "IN_ORDER_PATH", True)
+    assert fast_state == slow_state
+    return fast_state, responses
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    delays=st.dictionaries(st.integers(0, len(RSU_OBSERVATIONS) - 1), st.floats(0.0, 1.2), max_size=20),
+    batch_epochs=st.integers(1, 6),
+    max_window_epochs=st.sampled_from([2, 5, 200]),
+    max_delay_s=st.sampled_from([0.0, 0.3, 1.0]),
+    shuffle=st.booleans(),
+)
+@example(delays={}, batch_epochs=1, max_window_epochs=200, max_delay_s=1.0, shuffle=False)
+@example(delays={}, batch_epochs=6, max_window_epochs=2, max_delay_s=1.0, shuffle=False)
+@example(delays={30: 0.4}, batch_epochs=1, max_window_epochs=5, max_delay_s=1.0, shuffle=False)
+def test_the_in_order_path_gives_the_general_paths_fixes_and_bytes(
+    delays, batch_epochs, max_window_epochs, max_delay_s, shuffle
+):
+    """Whatever the arrival (in order, late, too late, shuffled within a batch, more epochs than the window
+    keeps), every batch answers the same fixes and leaves the same state bytes with the in-order path as
+    without it: the path only skips decoding, never changes what is kept."""
+    arrivals = np.array([o.t for o in RSU_OBSERVATIONS])
+    for index, delay in delays.items():
+        arrivals[index] += delay
+    batches = arrival_batches(RSU_OBSERVATIONS, arrivals, batch_epochs)
+    if shuffle:
+        for batch in batches:
+            random.Random(len(batch)).shuffle(batch)
+    options = {"max_window_epochs": max_window_epochs, "max_delay_s": max_delay_s}
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        feed_both(batches, rsu_session(**options), monkeypatch)
+
+
+def test_an_in_order_batch_after_a_late_one_still_replays_correctly(monkeypatch):
+    """Late data, then batches in time order (the in-order path), then late data again reaching back
+    before them: the result is time order's, and the in-order batches never decoded the window."""
+    late, later = first_rsu(12), first_rsu(27)
+    without = [[o for o in epoch if o is not late and o is not later] for epoch in RSU_EPOCHS[:30]]
+    batches = [
+        *without[:16],
+        [late],  # 0.2 s late: filtered again from a checkpoint
+        *without[16:30],  # in order again
+        [later],  # joins an epoch the in-order path stored: its record is decoded and replaced
+    ]
+    state, responses = feed_both(batches, rsu_session(), monkeypatch)
+    reference, reference_responses = feed(RSU_IMU, rsu_session(), RSU_EPOCHS[:30], RSU_ENV)
+    assert_same_filter_state(state, reference)
+    latest, want = last_fixes(responses), last_fixes(reference_responses)
+    assert latest.keys() == want.keys()
+    for t, fix in latest.items():
+        assert_fix_close(fix, want[t])
+    assert responses[-1][0].t == RSU_EPOCHS[27][0].t and all(f.revised for f in responses[-1])
+
+    def no_decoding(_state: bytes) -> None:
+        raise AssertionError("an in-order batch decoded the whole window")
+
+    monkeypatch.setattr(lag, "_unpack", no_decoding)
+    fixes, after = RSU_IMU.process(state, RSU_EPOCHS[30], RSU_ENV)
+    assert [f.t for f in fixes] == [RSU_EPOCHS[30][0].t] and not fixes[0].revised
+    monkeypatch.undo()
+    assert lag._unpack(after).newest == RSU_EPOCHS[30][0].t
+
+
+def test_the_in_order_path_leaves_older_windows_and_damage_to_the_general_path():
+    """A version-2 window (converted when read) and damaged bytes do not take the in-order path."""
+    state = rsu_state_after(5)
+    assert lag_state._spans(state) is not None
+    assert lag_state._spans(state[:4] + bytes([2]) + state[5:]) is None
+    for cut in (len(state) - 1, lag_state._HEADER.size + 3, 3):
+        assert lag_state._spans(state[:cut]) is None
+    assert lag_state._spans(state + b"\x00") is None
+
+
 # -- 7. bounded size ---------------------------------------------------------------------------------------
 def test_the_state_stays_bounded_over_a_long_in_order_run():
     period = SCENARIO.period
