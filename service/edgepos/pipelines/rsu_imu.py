@@ -172,11 +172,17 @@ class _SessionState:
         count = len(self.probabilities)
         arrays = {"probabilities": self.probabilities, "means": self.means, "covs": self.covs}
         shapes = {"probabilities": (count,), "means": (count, layout.FULL_DIM), "covs": (count, *_FULL_COV)}
+        chunks = []
         for name, array in arrays.items():
-            if np.shape(array) != shapes[name]:
-                raise ValueError(f"state array {name!r} has shape {np.shape(array)}, not {shapes[name]}")
-        values = np.concatenate([np.ravel(array) for array in arrays.values()]).astype("<f8", copy=False)
-        if not np.isfinite(values).all():  # a state holding NaN is a bug to surface, never something to store
+            data = np.asarray(array, dtype="<f8")
+            if data.shape != shapes[name]:
+                raise ValueError(f"state array {name!r} has shape {data.shape}, not {shapes[name]}")
+            chunks.append(data.tobytes())
+        body = b"".join(chunks)
+        values = np.frombuffer(body, dtype="<f8")
+        # A state holding NaN is a bug to surface, never something to store. The sum of squares is finite
+        # when every value is (one pass); only when it is not (NaN, or an overflow) is each value checked.
+        if not math.isfinite(values @ values) and not np.isfinite(values).all():
             bad = next(name for name, array in arrays.items() if not np.all(np.isfinite(array)))
             raise ValueError(f"state array {bad!r} is not finite")
         flags = (
@@ -190,7 +196,7 @@ class _SessionState:
             raise ValueError(f"state times are not finite: t={self.t!r}, filter_t={self.filter_t!r}")
         key = self.options_key.encode()
         header = _STATE.pack(_MAGIC, _VERSION, flags, t, filter_t, self.epochs, count, len(key))
-        return header + key + values.tobytes()
+        return header + key + body
 
 
 class RsuImuPipeline(Pipeline):
