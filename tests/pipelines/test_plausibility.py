@@ -37,6 +37,8 @@ from edgepos.pipelines.plausibility import Plausible, implausibility, unwrap, wr
 from edgepos.pipelines.registry import PIPELINES, get_pipeline
 from edgepos.sim.scenarios import rsu_imu_paper_scenario
 from edgepos.sim.sensors import rsu_imu_epochs
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 NEW_OPTIONS = {"max_speed_mps", "max_acceleration_mps2", "site_radius_m", "max_time_jump_s", "on_divergence"}
 LAG_OPTIONS = {"max_delay_s", "max_window_epochs", "max_lead_s"}
@@ -575,3 +577,48 @@ def test_the_wrapper_changes_no_bit_of_federated_fixes() -> None:
         fixes_b, state_b = filt.process(state_b, epoch, environment)
         assert fixes_w == fixes_b and all(f.status != "diverged" for f in fixes_w)
     assert inner_state(wrapped, state_w) == state_b
+
+
+# -- the quick paths of the checks against their plain definitions ---------------------------------
+TIMES = st.one_of(
+    st.floats(-5.0, 5.0), st.integers(-5, 5), st.sampled_from([math.nan, math.inf, -math.inf, 1e10, 0.0])
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    times=st.lists(TIMES, max_size=6),
+    last=st.one_of(st.none(), st.floats(-5.0, 5.0)),
+    bound=st.sampled_from([1.0, 3.0, 3600.0]),
+)
+def test_the_time_check_of_the_usual_batch_agrees_with_its_definition(times, last, bound) -> None:
+    """``_check_times`` answers a batch of floats in one pass; whatever the times (ints, NaN, infinities,
+    jumps), it returns the latest finite time or refuses exactly as sorting the finite times does."""
+    envelope = plausibility._Envelope({**plausibility.DEFAULTS, "max_time_jump_s": bound}, last, None, False)
+    observations = [GyroObservation(t, 0.0) for t in times]
+    finite = sorted({t for t in times if plausibility.is_finite_number(t)})
+    previous, jump = last, False
+    for t in finite:
+        jump = jump or (previous is not None and t - previous > bound)
+        previous = t if previous is None or t > previous else previous
+    if jump:
+        with pytest.raises(PipelineInputError):
+            plausibility._check_times(envelope, observations)
+    else:
+        assert plausibility._check_times(envelope, observations) == (finite[-1] if finite else None)
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf, None])
+@pytest.mark.parametrize("field", ["t", "x", "y", "vx", "vy"])
+def test_a_fix_with_anything_not_finite_is_not_kept_for_the_next_check(field: str, bad: float | None) -> None:
+    if bad is None and field == "t":
+        pytest.skip("a fix always has a time")
+    fix = Fix(t=1.0, status="tracking", x=2.0, y=3.0, vx=4.0, vy=5.0, position_cov=[[1.0, 0.0], [0.0, 1.0]])
+    point = plausibility._point(dataclasses.replace(fix, **{field: bad}))
+    if bad is None and field in ("vx", "vy"):
+        assert point is not None and getattr(point, field) is None
+    else:
+        assert point is None
+    assert plausibility._point(fix) == plausibility._Point(1.0, 2.0, 3.0, 4.0, 5.0, 2.0, 0.0)
+    huge = dataclasses.replace(fix, x=1e308, y=1e308)  # finite, though their sum is not
+    assert plausibility._point(huge) is not None

@@ -61,6 +61,7 @@ import collections
 import dataclasses
 import math
 import struct
+import typing
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -141,9 +142,9 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
 DEFAULTS: dict[str, Any] = {spec.name: spec.default for spec in OPTION_SPECS}
 
 
-@dataclasses.dataclass(frozen=True)
-class _Point:
-    """What is kept of the last judged fix: time, position, velocity and their variances (traces)."""
+class _Point(typing.NamedTuple):
+    """What is kept of the last judged fix: time, position, velocity and their variances (traces). A
+    named tuple: one is made per judged fix, and a frozen dataclass takes several times as long."""
 
     t: float
     x: float
@@ -338,6 +339,23 @@ def _check_times(envelope: _Envelope, observations: Sequence[Observation]) -> fl
                         index, "t", f"{observation.t!r} is older than the session's last epoch t={last!r}"
                     )
                 )
+    if not problems:
+        earliest = latest = None
+        for observation in observations:
+            t = observation.t
+            if type(t) is not float:  # ints and anything else: the general path below
+                break
+            if earliest is None:
+                earliest = latest = t
+            elif t < earliest:
+                earliest = t
+            elif t > latest:
+                latest = t
+        else:
+            if latest is None or (  # NaN and infinities fail every comparison with the bound
+                latest - earliest <= bound and (last is None or latest - last <= bound)
+            ):
+                return latest  # the usual batch: no gap can be longer than the bound
     times = sorted({t for t in {o.t for o in observations} if is_finite_number(t)})
     latest = times[-1] if times else None
     if not problems and (
@@ -402,7 +420,13 @@ def _point(fix: Fix) -> _Point | None:
     if fix.x is None or fix.y is None:
         return None
     position_var, velocity_var = _position_variance(fix), _velocity_variance(fix)
-    if not _finite(fix.t, fix.x, fix.y, fix.vx, fix.vy, position_var, velocity_var):
+    # finite, all of them: a finite sum is (NaN and infinities carry through a sum), else one by one
+    total = fix.t + fix.x + fix.y + position_var + velocity_var
+    if fix.vx is not None:
+        total += fix.vx
+    if fix.vy is not None:
+        total += fix.vy
+    if not math.isfinite(total) and not _finite(fix.t, fix.x, fix.y, fix.vx, fix.vy, position_var, velocity_var):
         return None
     return _Point(fix.t, fix.x, fix.y, fix.vx, fix.vy, max(position_var, 0.0), max(velocity_var, 0.0))
 
