@@ -14,6 +14,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
+from edgepos.core.errors import NumericalError
 from edgepos.core.observations import Observation
 
 if TYPE_CHECKING:
@@ -314,8 +315,6 @@ def ensure_finite_fixes(fixes: Sequence[Fix]) -> list[Fix]:
     """``fixes`` as a list, after checking that no number in them is NaN or infinite; otherwise raises
     ``core.errors.NumericalError`` naming the epoch and the field, so that the batch is refused (422
     estimation_failed, the session unchanged) instead of answering a non-finite number."""
-    from edgepos.core.errors import NumericalError
-
     for fix in fixes:
         if _finite_sum(fix):
             continue  # the common case: one sum of every number is finite (NaN and infinity propagate)
