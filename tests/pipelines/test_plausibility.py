@@ -622,3 +622,27 @@ def test_a_fix_with_anything_not_finite_is_not_kept_for_the_next_check(field: st
     assert plausibility._point(fix) == plausibility._Point(1.0, 2.0, 3.0, 4.0, 5.0, 2.0, 0.0)
     huge = dataclasses.replace(fix, x=1e308, y=1e308)  # finite, though their sum is not
     assert plausibility._point(huge) is not None
+
+
+NUMBERS = st.one_of(st.floats(-300.0, 300.0), st.sampled_from([math.nan, math.inf, 1e6, 0.0]))
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    now=st.tuples(NUMBERS, NUMBERS, NUMBERS, st.one_of(st.none(), NUMBERS), st.floats(0.0, 1e4)),
+    before=st.one_of(st.none(), st.tuples(NUMBERS, NUMBERS, NUMBERS, st.one_of(st.none(), NUMBERS), st.floats(0.0, 1e4))),
+    status=st.sampled_from(["tracking", "initialised"]),
+)
+def test_judging_a_fix_at_once_agrees_with_the_check_and_the_kept_point(now, before, status) -> None:
+    """What the judge asks of every fix (``_judged``, the variances read once) is exactly
+    ``implausibility`` and ``_point`` asked one after the other."""
+
+    def fix_of(t: float, values: tuple) -> Fix:
+        x, y, vx, vy, var = values
+        cov = [[var, 0.0], [0.0, var]]
+        kinematic = [[var if i == j else 0.0 for j in range(4)] for i in range(4)]
+        return Fix(t=t, status=status, x=x, y=y, vx=vx, vy=vy, position_cov=cov, kinematic_cov=kinematic)
+
+    last = None if before is None else plausibility._point(fix_of(0.0, before))
+    fix = fix_of(0.05, now)
+    assert plausibility._judged(fix, last, OPTIONS) == (implausibility(fix, last, OPTIONS), plausibility._point(fix))
