@@ -774,7 +774,11 @@ def test_damaged_window_bytes_are_state_format_errors():
 
 # -- 6b. the in-order path (``LagWindow._in_order``) against the general one ------------------------------
 def feed_both(
-    batches: Sequence[Sequence[Observation]], state: bytes, monkeypatch: pytest.MonkeyPatch, env: Environment = RSU_ENV
+    batches: Sequence[Sequence[Observation]],
+    state: bytes,
+    monkeypatch: pytest.MonkeyPatch,
+    env: Environment = RSU_ENV,
+    pipeline: Pipeline = RSU_IMU,
 ) -> tuple[bytes, list[list[Fix]]]:
     """``batches`` sent with the in-order path and without it, asserting after every batch the same fixes
     and the same state bytes (or the same problems); the state and responses of the first."""
@@ -785,7 +789,7 @@ def feed_both(
         for enabled, before in ((True, fast_state), (False, slow_state)):
             monkeypatch.setattr(lag, "IN_ORDER_PATH", enabled)
             try:
-                outcomes.append(RSU_IMU.process(before, list(batch), env))
+                outcomes.append(pipeline.process(before, list(batch), env))
             except PipelineInputError as error:
                 outcomes.append(error.problems)
         assert outcomes[0] == outcomes[1]
@@ -854,6 +858,26 @@ def test_an_in_order_batch_after_a_late_one_still_replays_correctly(monkeypatch)
     assert [f.t for f in fixes] == [RSU_EPOCHS[30][0].t] and not fixes[0].revised
     monkeypatch.undo()
     assert lag._unpack(after).newest == RSU_EPOCHS[30][0].t
+
+
+@pytest.mark.parametrize("batch_epochs", [1, 3])
+@pytest.mark.parametrize("name", ["v2v_coop", "v2x_federated", "gnss_tight"])
+def test_the_in_order_path_gives_the_same_bytes_for_the_other_pipelines(
+    name, batch_epochs, v2v_data, v2x_data, gnss_data, monkeypatch
+):
+    """The other pipelines' windows too (their own records and states): batches in time order, then the
+    late ones of a schedule, the same fixes and bytes with the in-order path as without it."""
+    epochs, env = {"v2v_coop": v2v_data, "v2x_federated": v2x_data, "gnss_tight": gnss_data}[name]
+    options = {
+        "v2v_coop": {"method": "aug_ukf"},
+        "v2x_federated": {},
+        "gnss_tight": {"filter": "pf", "particles": 100, "seed": 3, "systems": ["C", "G"], "max_delay_s": 5.0},
+    }[name]
+    pipeline = get_pipeline(name)
+    in_order = [[o for e in epochs[k : k + batch_epochs] for o in e] for k in range(0, len(epochs), batch_epochs)]
+    late = scheduled(epochs, SCHEDULES["several late, delivered newest first"])
+    for batches in (in_order, late):
+        feed_both(batches, new_session(pipeline, options), monkeypatch, env, pipeline)
 
 
 def test_the_in_order_path_leaves_older_windows_and_damage_to_the_general_path():
