@@ -32,7 +32,7 @@ from edgepos.eval.rsu_imu_montecarlo import initial_state
 from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
-from edgepos.pipelines import lag, lag_state, plausibility
+from edgepos.pipelines import lag, lag_state, plausibility, rsu_imu
 from edgepos.pipelines.base import (
     Environment,
     Fix,
@@ -123,6 +123,15 @@ def assert_close(a: typing.Any, b: typing.Any, path: str = "state", tol: float =
         assert a == b, (path, a, b)
 
 
+def decoded(inner: bytes) -> tuple[dict[str, typing.Any], dict[str, np.ndarray]]:
+    """A pipeline's state as its numbers: rsu_imu's binary layout, or ``core.state``'s (the others)."""
+    if inner[: len(rsu_imu._MAGIC)] != rsu_imu._MAGIC:
+        return state_format.unpack(inner)
+    session = rsu_imu._decode(inner)
+    meta = {k: getattr(session, k) for k in ("options", "initialised", "t", "filter_t", "epochs")}
+    return meta, {"probabilities": session.probabilities, "means": session.means, "covs": session.covs}
+
+
 def assert_same_filter_state(got: bytes, want: bytes, tol: float = 1e-9) -> None:
     """The inner states (plausibility envelope + pipeline state) byte-identical, or their decoded numbers
     equal to ``tol`` (an epoch's measurements may be stacked in another order: round-off)."""
@@ -132,8 +141,8 @@ def assert_same_filter_state(got: bytes, want: bytes, tol: float = 1e-9) -> None
     got_envelope, got_inner = plausibility.unwrap(got_current)
     want_envelope, want_inner = plausibility.unwrap(want_current)
     assert_close(dataclasses.asdict(got_envelope), dataclasses.asdict(want_envelope), "envelope", tol)
-    got_meta, got_arrays = state_format.unpack(got_inner)
-    want_meta, want_arrays = state_format.unpack(want_inner)
+    got_meta, got_arrays = decoded(got_inner)
+    want_meta, want_arrays = decoded(want_inner)
     assert_close(got_meta, want_meta, "meta", tol)
     assert_close(got_arrays, want_arrays, "arrays", tol)
 
@@ -632,6 +641,19 @@ def test_the_window_keeps_at_most_max_window_epochs_and_older_data_is_too_late()
     assert_same_filter_state(state, rsu_state_after(30, max_window_epochs=5))
 
 
+def test_late_data_after_one_epoch_batches_emptied_the_window_is_not_an_error():
+    """max_window_epochs 2 with one-epoch batches: after three epochs since the last checkpoint the window
+    moves its base to the current state and holds no epoch; a measurement within max_delay_s but at or
+    before that base is too late (it raised IndexError while its report was written)."""
+    state = rsu_session(max_window_epochs=2)
+    for epoch in RSU_EPOCHS[:4]:
+        _, state = RSU_IMU.process(state, epoch, RSU_ENV)
+    window = lag._unpack(state)
+    assert window.times == [] and window.base.t == RSU_EPOCHS[3][0].t
+    _, after = RSU_IMU.process(state, [first_rsu(3)], RSU_ENV)
+    assert current(after) == current(state)
+
+
 # -- 6. the state format ---------------------------------------------------------------------------------
 def sample_observations() -> list[Observation]:
     return [
@@ -748,6 +770,124 @@ def test_damaged_window_bytes_are_state_format_errors():
         lag._unpack(state + b"\x00")
     with pytest.raises(StateFormatError):
         RSU_IMU.process(state[:-1], RSU_EPOCHS[3], RSU_ENV)
+
+
+# -- 6b. the in-order path (``LagWindow._in_order``) against the general one ------------------------------
+def feed_both(
+    batches: Sequence[Sequence[Observation]],
+    state: bytes,
+    monkeypatch: pytest.MonkeyPatch,
+    env: Environment = RSU_ENV,
+    pipeline: Pipeline = RSU_IMU,
+) -> tuple[bytes, list[list[Fix]]]:
+    """``batches`` sent with the in-order path and without it, asserting after every batch the same fixes
+    and the same state bytes (or the same problems); the state and responses of the first."""
+    fast_state, slow_state = state, state
+    responses = []
+    for batch in batches:
+        outcomes = []
+        for enabled, before in ((True, fast_state), (False, slow_state)):
+            monkeypatch.setattr(lag, "IN_ORDER_PATH", enabled)
+            try:
+                outcomes.append(pipeline.process(before, list(batch), env))
+            except PipelineInputError as error:
+                outcomes.append(error.problems)
+        assert outcomes[0] == outcomes[1]
+        if isinstance(outcomes[0], tuple):
+            (fixes, fast_state), (_, slow_state) = outcomes
+            responses.append(fixes)
+    monkeypatch.setattr(lag, "IN_ORDER_PATH", True)
+    assert fast_state == slow_state
+    return fast_state, responses
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    delays=st.dictionaries(st.integers(0, len(RSU_OBSERVATIONS) - 1), st.floats(0.0, 1.2), max_size=20),
+    batch_epochs=st.integers(1, 6),
+    max_window_epochs=st.sampled_from([2, 5, 200]),
+    max_delay_s=st.sampled_from([0.0, 0.3, 1.0]),
+    shuffle=st.booleans(),
+)
+@example(delays={}, batch_epochs=1, max_window_epochs=200, max_delay_s=1.0, shuffle=False)
+@example(delays={}, batch_epochs=6, max_window_epochs=2, max_delay_s=1.0, shuffle=False)
+@example(delays={30: 0.4}, batch_epochs=1, max_window_epochs=5, max_delay_s=1.0, shuffle=False)
+def test_the_in_order_path_gives_the_general_paths_fixes_and_bytes(
+    delays, batch_epochs, max_window_epochs, max_delay_s, shuffle
+):
+    """Whatever the arrival (in order, late, too late, shuffled within a batch, more epochs than the window
+    keeps), every batch answers the same fixes and leaves the same state bytes with the in-order path as
+    without it: the path only skips decoding, never changes what is kept."""
+    arrivals = np.array([o.t for o in RSU_OBSERVATIONS])
+    for index, delay in delays.items():
+        arrivals[index] += delay
+    batches = arrival_batches(RSU_OBSERVATIONS, arrivals, batch_epochs)
+    if shuffle:
+        for batch in batches:
+            random.Random(len(batch)).shuffle(batch)
+    options = {"max_window_epochs": max_window_epochs, "max_delay_s": max_delay_s}
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        feed_both(batches, rsu_session(**options), monkeypatch)
+
+
+def test_an_in_order_batch_after_a_late_one_still_replays_correctly(monkeypatch):
+    """Late data, then batches in time order (the in-order path), then late data again reaching back
+    before them: the result is time order's, and the in-order batches never decoded the window."""
+    late, later = first_rsu(12), first_rsu(27)
+    without = [[o for o in epoch if o is not late and o is not later] for epoch in RSU_EPOCHS[:30]]
+    batches = [
+        *without[:16],
+        [late],  # 0.2 s late: filtered again from a checkpoint
+        *without[16:30],  # in order again
+        [later],  # joins an epoch the in-order path stored: its record is decoded and replaced
+    ]
+    state, responses = feed_both(batches, rsu_session(), monkeypatch)
+    reference, reference_responses = feed(RSU_IMU, rsu_session(), RSU_EPOCHS[:30], RSU_ENV)
+    assert_same_filter_state(state, reference)
+    latest, want = last_fixes(responses), last_fixes(reference_responses)
+    assert latest.keys() == want.keys()
+    for t, fix in latest.items():
+        assert_fix_close(fix, want[t])
+    assert responses[-1][0].t == RSU_EPOCHS[27][0].t and all(f.revised for f in responses[-1])
+
+    def no_decoding(_state: bytes) -> None:
+        raise AssertionError("an in-order batch decoded the whole window")
+
+    monkeypatch.setattr(lag, "_unpack", no_decoding)
+    fixes, after = RSU_IMU.process(state, RSU_EPOCHS[30], RSU_ENV)
+    assert [f.t for f in fixes] == [RSU_EPOCHS[30][0].t] and not fixes[0].revised
+    monkeypatch.undo()
+    assert lag._unpack(after).newest == RSU_EPOCHS[30][0].t
+
+
+@pytest.mark.parametrize("batch_epochs", [1, 3])
+@pytest.mark.parametrize("name", ["v2v_coop", "v2x_federated", "gnss_tight"])
+def test_the_in_order_path_gives_the_same_bytes_for_the_other_pipelines(
+    name, batch_epochs, v2v_data, v2x_data, gnss_data, monkeypatch
+):
+    """The other pipelines' windows too (their own records and states): batches in time order, then the
+    late ones of a schedule, the same fixes and bytes with the in-order path as without it."""
+    epochs, env = {"v2v_coop": v2v_data, "v2x_federated": v2x_data, "gnss_tight": gnss_data}[name]
+    options = {
+        "v2v_coop": {"method": "aug_ukf"},
+        "v2x_federated": {},
+        "gnss_tight": {"filter": "pf", "particles": 100, "seed": 3, "systems": ["C", "G"], "max_delay_s": 5.0},
+    }[name]
+    pipeline = get_pipeline(name)
+    in_order = [[o for e in epochs[k : k + batch_epochs] for o in e] for k in range(0, len(epochs), batch_epochs)]
+    late = scheduled(epochs, SCHEDULES["several late, delivered newest first"])
+    for batches in (in_order, late):
+        feed_both(batches, new_session(pipeline, options), monkeypatch, env, pipeline)
+
+
+def test_the_in_order_path_leaves_older_windows_and_damage_to_the_general_path():
+    """A version-2 window (converted when read) and damaged bytes do not take the in-order path."""
+    state = rsu_state_after(5)
+    assert lag_state._spans(state) is not None
+    assert lag_state._spans(state[:4] + bytes([2]) + state[5:]) is None
+    for cut in (len(state) - 1, lag_state._HEADER.size + 3, 3):
+        assert lag_state._spans(state[:cut]) is None
+    assert lag_state._spans(state + b"\x00") is None
 
 
 # -- 7. bounded size ---------------------------------------------------------------------------------------

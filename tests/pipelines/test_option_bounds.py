@@ -105,7 +105,13 @@ def test_the_option_descriptions_list_the_nested_bounds() -> None:
 def test_ensure_finite_fixes_names_the_epoch_and_the_field() -> None:
     good = Fix(t=1.0, status="tracking", x=1.0, y=2.0, state=[1e308, 1e308], state_cov=[[1.0, 0.0], [0.0, 1.0]])
     assert ensure_finite_fixes([good]) == [good]  # a sum that overflows is not a non-finite entry
-    for field, value in (("x", math.nan), ("yaw_rate", math.inf), ("state_cov", [[1.0, math.nan], [0.0, 1.0]])):
+    for field, value in (
+        ("x", math.nan),
+        ("yaw_rate", math.inf),
+        ("state_cov", [[1.0, math.nan], [0.0, 1.0]]),
+        ("position_cov", [[1.0, 0.0], [-math.inf, 1.0]]),
+        ("kinematic_cov", [[1.0, 0.0], [0.0, math.nan]]),
+    ):
         bad = dataclasses.replace(good, t=2.5, **{field: value})
         with pytest.raises(NumericalError, match=rf"t=2\.5 has a non-finite {field}"):
             ensure_finite_fixes([good, bad])

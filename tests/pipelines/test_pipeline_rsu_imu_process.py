@@ -13,6 +13,7 @@ from edgepos.core.observations import GyroObservation, Observation, RsuObservati
 from edgepos.pipelines import lag
 from edgepos.pipelines.base import Fix, InitialState, PipelineInputError, Rsu, StaticEnvironment
 from edgepos.pipelines.registry import get_pipeline
+from edgepos.pipelines.rsu_imu import _decode
 
 RSUS = (
     Rsu("S000", 0.0, -4.0),
@@ -360,11 +361,77 @@ def test_state_reencodes_byte_identically(pipeline) -> None:
     for inner_state in [window.current, *(c.state for c in window.checkpoints)]:
         envelope, inner = unwrap(inner_state)
         assert wrap(envelope, inner) == inner_state
-        meta, arrays = state_format.unpack(inner)
-        assert state_format.pack(meta, arrays) == inner
+        assert _decode(inner).to_bytes() == inner
     # an empty batch changes nothing
     fixes, same = pipeline.process(state, [], ENV)
     assert fixes == [] and same == state
+
+
+def _json_layout(inner: bytes) -> bytes:
+    """An rsu_imu state in the layout written before the binary one (``core.state``, JSON header)."""
+    session = _decode(inner)
+    meta = {
+        "pipeline": "rsu_imu",
+        "options_json": session.options_key,
+        "initialised": session.initialised,
+        "t": session.t,
+        "filter_t": session.filter_t,
+        "epochs": session.epochs,
+    }
+    arrays = {"probabilities": session.probabilities, "means": session.means, "covs": session.covs}
+    return state_format.pack(meta, arrays)
+
+
+def test_the_binary_state_round_trips_exactly_and_the_json_layout_is_still_read(pipeline) -> None:
+    """Every number of the session reads back bit for bit (also before the first epoch: no t, no
+    filter_t); a state stored in the former JSON layout decodes to the same session, and a batch applied
+    to it answers the same fixes and writes the same bytes as one applied to the binary state."""
+    from edgepos.pipelines.plausibility import unwrap, wrap
+
+    fresh = _decode(unwrap(lag._unpack(started(pipeline)).current)[1])
+    assert fresh.t is None and fresh.filter_t is None and fresh.epochs == 0
+    again = _decode(fresh.to_bytes())
+    assert (again.t, again.filter_t, again.initialised, again.options) == (None, None, True, fresh.options)
+    assert again.to_bytes() == fresh.to_bytes()
+    _, state = run(pipeline, started(pipeline), 6, seed=23)
+    envelope, inner = unwrap(lag._unpack(state).current)
+    session, legacy = _decode(inner), _decode(_json_layout(inner))
+    for name in ("options", "options_key", "initialised", "t", "filter_t", "epochs"):
+        assert getattr(legacy, name) == getattr(session, name), name
+    for name in ("probabilities", "means", "covs"):
+        assert getattr(legacy, name).tobytes() == getattr(session, name).tobytes(), name
+    assert legacy.to_bytes() == inner
+    batch = epoch(7 * DT, np.random.default_rng(7))
+    window = lag._unpack(state)
+    window.current = wrap(envelope, _json_layout(inner))
+    fixes_legacy, after_legacy = pipeline.process(lag._pack(window), batch, ENV)
+    fixes, after = pipeline.process(state, batch, ENV)
+    assert fixes_legacy == fixes
+    assert lag._unpack(after_legacy).current == lag._unpack(after).current
+
+
+def test_damaged_binary_states_are_state_format_errors(pipeline) -> None:
+    from edgepos.pipelines import rsu_imu
+    from edgepos.pipelines.plausibility import unwrap
+
+    _, state = run(pipeline, started(pipeline), 3, seed=24)
+    inner = unwrap(lag._unpack(state).current)[1]
+    for cut in (0, 3, 4, 10, rsu_imu._STATE.size - 1, rsu_imu._STATE.size + 5, len(inner) - 8, len(inner) - 1):
+        with pytest.raises(state_format.StateFormatError):
+            _decode(inner[:cut])
+    with pytest.raises(state_format.StateFormatError):
+        _decode(inner + b"\x00")
+    with pytest.raises(state_format.StateFormatError, match="version 2"):
+        _decode(inner[:4] + bytes([2]) + inner[5:])
+    with pytest.raises(state_format.StateFormatError):
+        _decode(inner[:5] + bytes([8]) + inner[6:])  # an unknown flag
+    key_start = rsu_imu._STATE.size
+    with pytest.raises(state_format.StateFormatError):
+        _decode(inner[:key_start] + b"[" + inner[key_start + 1 :])  # options text that is not a JSON object
+    with pytest.raises(ValueError, match="not finite"):
+        session = _decode(inner)
+        session.covs[0, 0, 0] = math.nan
+        session.to_bytes()
 
 
 def test_processing_is_deterministic(pipeline) -> None:

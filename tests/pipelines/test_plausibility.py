@@ -37,6 +37,8 @@ from edgepos.pipelines.plausibility import Plausible, implausibility, unwrap, wr
 from edgepos.pipelines.registry import PIPELINES, get_pipeline
 from edgepos.sim.scenarios import rsu_imu_paper_scenario
 from edgepos.sim.sensors import rsu_imu_epochs
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 NEW_OPTIONS = {"max_speed_mps", "max_acceleration_mps2", "site_radius_m", "max_time_jump_s", "on_divergence"}
 LAG_OPTIONS = {"max_delay_s", "max_window_epochs", "max_lead_s"}
@@ -575,3 +577,72 @@ def test_the_wrapper_changes_no_bit_of_federated_fixes() -> None:
         fixes_b, state_b = filt.process(state_b, epoch, environment)
         assert fixes_w == fixes_b and all(f.status != "diverged" for f in fixes_w)
     assert inner_state(wrapped, state_w) == state_b
+
+
+# -- the quick paths of the checks against their plain definitions ---------------------------------
+TIMES = st.one_of(
+    st.floats(-5.0, 5.0), st.integers(-5, 5), st.sampled_from([math.nan, math.inf, -math.inf, 1e10, 0.0])
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    times=st.lists(TIMES, max_size=6),
+    last=st.one_of(st.none(), st.floats(-5.0, 5.0)),
+    bound=st.sampled_from([1.0, 3.0, 3600.0]),
+)
+def test_the_time_check_of_the_usual_batch_agrees_with_its_definition(times, last, bound) -> None:
+    """``_check_times`` answers a batch of floats in one pass; whatever the times (ints, NaN, infinities,
+    jumps), it returns the latest finite time or refuses exactly as sorting the finite times does."""
+    envelope = plausibility._Envelope({**plausibility.DEFAULTS, "max_time_jump_s": bound}, last, None, False)
+    observations = [GyroObservation(t, 0.0) for t in times]
+    finite = sorted({t for t in times if plausibility.is_finite_number(t)})
+    previous, jump = last, False
+    for t in finite:
+        jump = jump or (previous is not None and t - previous > bound)
+        previous = t if previous is None or t > previous else previous
+    if jump:
+        with pytest.raises(PipelineInputError):
+            plausibility._check_times(envelope, observations)
+    else:
+        assert plausibility._check_times(envelope, observations) == (finite[-1] if finite else None)
+
+
+@pytest.mark.parametrize(
+    ("field", "bad"),
+    [(f, b) for f in ("t", "x", "y", "vx", "vy") for b in (math.nan, math.inf, -math.inf, None) if (f, b) != ("t", None)],
+)
+def test_a_fix_with_anything_not_finite_is_not_kept_for_the_next_check(field: str, bad: float | None) -> None:
+    fix = Fix(t=1.0, status="tracking", x=2.0, y=3.0, vx=4.0, vy=5.0, position_cov=[[1.0, 0.0], [0.0, 1.0]])
+    point = plausibility._point(dataclasses.replace(fix, **{field: bad}))
+    if bad is None and field in ("vx", "vy"):
+        assert point is not None and getattr(point, field) is None
+    else:
+        assert point is None
+    assert plausibility._point(fix) == plausibility._Point(1.0, 2.0, 3.0, 4.0, 5.0, 2.0, 0.0)
+    huge = dataclasses.replace(fix, x=1e308, y=1e308)  # finite, though their sum is not
+    assert plausibility._point(huge) is not None
+
+
+NUMBERS = st.one_of(st.floats(-300.0, 300.0), st.sampled_from([math.nan, math.inf, 1e6, 0.0]))
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    now=st.tuples(NUMBERS, NUMBERS, NUMBERS, st.one_of(st.none(), NUMBERS), st.floats(0.0, 1e4)),
+    before=st.one_of(st.none(), st.tuples(NUMBERS, NUMBERS, NUMBERS, st.one_of(st.none(), NUMBERS), st.floats(0.0, 1e4))),
+    status=st.sampled_from(["tracking", "initialised"]),
+)
+def test_judging_a_fix_at_once_agrees_with_the_check_and_the_kept_point(now, before, status) -> None:
+    """What the judge asks of every fix (``_judged``, the variances read once) is exactly
+    ``implausibility`` and ``_point`` asked one after the other."""
+
+    def fix_of(t: float, values: tuple) -> Fix:
+        x, y, vx, vy, var = values
+        cov = [[var, 0.0], [0.0, var]]
+        kinematic = [[var if i == j else 0.0 for j in range(4)] for i in range(4)]
+        return Fix(t=t, status=status, x=x, y=y, vx=vx, vy=vy, position_cov=cov, kinematic_cov=kinematic)
+
+    last = None if before is None else plausibility._point(fix_of(0.0, before))
+    fix = fix_of(0.05, now)
+    assert plausibility._judged(fix, last, OPTIONS) == (implausibility(fix, last, OPTIONS), plausibility._point(fix))

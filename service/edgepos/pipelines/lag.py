@@ -30,7 +30,10 @@ budget (``pipelines.cost``).
 
 State (``lag_state``): the window's options and newest epoch, a few checkpoints (the inner state at
 batch boundaries, the first one the window's *base*), the current inner state, and the window's epochs
-as records. The current state is the base state filtered through every epoch of the window.
+as records. The current state is the base state filtered through every epoch of the window. A batch in
+time order (the usual one) is applied on the window's bytes (``LagWindow._in_order``, ``lag_state._spans``):
+its new records and checkpoint are appended and the pruned ones cut off without decoding or copying the
+stored ones one by one; every other batch goes through the decoded window.
 """
 
 from __future__ import annotations
@@ -57,6 +60,8 @@ from edgepos.pipelines.lag_state import (  # noqa: F401  # re-exported: tests an
     VERSION,
     _Checkpoint,
     _pack,
+    _pack_parts,
+    _spans,
     _unpack,
     _Window,
     decode_epoch,
@@ -64,6 +69,9 @@ from edgepos.pipelines.lag_state import (  # noqa: F401  # re-exported: tests an
     newest_epoch,
 )
 from edgepos.pipelines.wrapping import WrappingPipeline
+
+IN_ORDER_PATH = True
+"""Whether a batch in time order takes ``LagWindow._in_order`` (the tests switch it off to compare)."""
 
 CHECKPOINTS_PER_WINDOW = 8
 """A new checkpoint is kept only when it is at least ``max_delay_s / CHECKPOINTS_PER_WINDOW`` after the
@@ -161,6 +169,10 @@ class LagWindow(WrappingPipeline):
     def process(
         self, state: bytes, observations: Sequence[Observation], environment: Environment
     ) -> tuple[list[Fix], bytes]:
+        if IN_ORDER_PATH:
+            done = self._in_order(state, observations, environment)
+            if done is not None:
+                return done
         window = _unpack(state)
         _check_lead(window, observations)
         arrival = _sort_out(window, observations)
@@ -182,6 +194,68 @@ class LagWindow(WrappingPipeline):
             fixes = self._report_too_late(window, uses, fixes, environment)
         _prune(window)
         return fixes, _pack(window)
+
+    def _in_order(
+        self, state: bytes, observations: Sequence[Observation], environment: Environment
+    ) -> tuple[list[Fix], bytes] | None:
+        """The usual batch, every observation newer than the window's newest epoch and in time order, with
+        no more epochs than the window keeps: what ``_append`` and ``_prune`` do, on the window's bytes
+        (``_spans``) without decoding or copying its checkpoints and records one by one. None for any
+        other batch or state (no newest epoch yet, an older version, a problem to report): the general
+        path takes it, and gives the same bytes and fixes where both apply (tests/pipelines/test_lag.py)."""
+        spans = _spans(state)
+        if spans is None or spans.newest is None or not observations:
+            return None
+        delay, limit, lead = spans.options
+        previous = spans.newest
+        times: list[float] = []
+        epochs: list[list[Observation]] = []
+        for observation in observations:
+            t = observation.t
+            if not _finite(t):
+                return None
+            if t > previous:
+                times.append(t)
+                epochs.append([observation])
+                previous = t
+            elif t == previous and epochs:
+                epochs[-1].append(observation)
+            else:
+                return None  # late, or out of order within the batch
+        if len(times) > limit or (len(times) > 1 and times[-1] - times[-2] > lead):
+            return None
+        fixes, current = self.inner.process(bytes(spans.current), observations, environment)
+        newest = spans.newest
+        checkpoint_times = spans.checkpoint_times
+        checkpoint_states: list[bytes | memoryview] = list(spans.checkpoint_states)
+        last = checkpoint_times[-1]
+        if last is None or newest - last >= delay / CHECKPOINTS_PER_WINDOW:  # as _maybe_checkpoint
+            checkpoint_times = [*checkpoint_times, newest]
+            checkpoint_states.append(spans.current)
+        records = [encode_epoch(epoch) for epoch in epochs]
+        all_times = spans.times + times
+        keep, start = _pruning(times[-1], delay, limit, checkpoint_times, all_times)
+        if keep is None:
+            packed = _pack_parts(spans.options, times[-1], [(times[-1], current)], current, [], [], [])
+            return fixes, packed
+        ends = spans.ends
+        offset = ends[start - 1] if start else 0
+        stored_end = ends[-1] if ends else 0
+        kept_ends = [end - offset for end in ends[start:]]
+        end = stored_end - offset
+        for record in records:
+            end += len(record)
+            kept_ends.append(end)
+        packed = _pack_parts(
+            spans.options,
+            times[-1],
+            list(zip(checkpoint_times[keep:], checkpoint_states[keep:], strict=True)),
+            current,
+            all_times[start:],
+            kept_ends,
+            [spans.records[offset:stored_end], *records],
+        )
+        return fixes, packed
 
     def _append(
         self, window: _Window, observations: Sequence[Observation], fresh: list[int], environment: Environment
@@ -430,6 +504,8 @@ def _too_late_uses(
         lateness = newest - observation.t
         if lateness > delay or delay == 0:
             why = f"beyond the lag window (max_delay_s {delay:g} s)"
+        elif not window.times:  # more epochs since the last checkpoint than max_window_epochs: none kept
+            why = f"the lag window holds no epoch before it (max_window_epochs {window.options['max_window_epochs']})"
         else:
             why = (
                 f"before the oldest epoch the lag window still holds (t={window.times[0]!r}; max_window_epochs "
@@ -551,28 +627,42 @@ def _maybe_checkpoint(window: _Window, t: float | None, state: bytes) -> None:
 
 
 def _prune(window: _Window) -> None:
-    """Drop what no accepted late measurement can need: the base becomes the latest checkpoint from
-    before ``newest - max_delay_s``, and while the window holds more than ``max_window_epochs`` epochs
-    the base moves on (to the current state itself when no checkpoint is left)."""
+    """Drop what no accepted late measurement can need (see ``_pruning``)."""
     if window.newest is None:
         return
-    floor = window.newest - window.options["max_delay_s"]
-    keep = 0
-    for i, checkpoint in enumerate(window.checkpoints):
-        if checkpoint.t is None or checkpoint.t < floor:
-            keep = i
-    limit = window.options["max_window_epochs"]
-    while True:
-        t = window.checkpoints[keep].t
-        start = 0 if t is None else bisect.bisect_right(window.times, t)
-        if len(window.times) - start <= limit:
-            break
-        if keep + 1 < len(window.checkpoints):
-            keep += 1
-            continue
+    keep, start = _pruning(
+        window.newest,
+        window.options["max_delay_s"],
+        window.options["max_window_epochs"],
+        [c.t for c in window.checkpoints],
+        window.times,
+    )
+    if keep is None:
         window.checkpoints = [_Checkpoint(window.newest, window.current)]
         window.times, window.records = [], []
-        return
-    if keep or start:
+    elif keep or start:
         window.checkpoints = window.checkpoints[keep:]
         window.times, window.records = window.times[start:], window.records[start:]
+
+
+def _pruning(
+    newest: float, delay: float, limit: int, checkpoint_times: Sequence[float | None], times: Sequence[float]
+) -> tuple[int | None, int]:
+    """What stays of a window: the base becomes the latest checkpoint from before ``newest - max_delay_s``,
+    and while the window holds more than ``max_window_epochs`` epochs the base moves on. Returns the
+    index of the new base and of its first epoch after it; (None, 0) when no checkpoint is left (the
+    current state becomes the base, with no epochs)."""
+    floor = newest - delay
+    keep = 0
+    for i, t in enumerate(checkpoint_times):
+        if t is None or t < floor:
+            keep = i
+    while True:
+        t = checkpoint_times[keep]
+        start = 0 if t is None else bisect.bisect_right(times, t)
+        if len(times) - start <= limit:
+            return keep, start
+        if keep + 1 < len(checkpoint_times):
+            keep += 1
+            continue
+        return None, 0

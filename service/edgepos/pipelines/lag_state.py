@@ -12,6 +12,7 @@ pseudoranges without Doppler), so sessions stored before the upgrade go on.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import struct
 from collections.abc import Sequence
@@ -86,29 +87,98 @@ class _Window:
 
 def _pack(window: _Window) -> bytes:
     options = window.options
-    header = _HEADER.pack(
-        MAGIC,
-        VERSION,
-        float(options["max_delay_s"]),
-        int(options["max_window_epochs"]),
-        float(options["max_lead_s"]),
-        _NAN if window.newest is None else window.newest,
-        len(window.checkpoints),
-        len(window.current),
-        len(window.records),
+    return _pack_parts(
+        (float(options["max_delay_s"]), int(options["max_window_epochs"]), float(options["max_lead_s"])),
+        window.newest,
+        [(c.t, c.state) for c in window.checkpoints],
+        window.current,
+        window.times,
+        list(itertools.accumulate(len(record) for record in window.records)),
+        window.records,
     )
-    parts = [header]
-    parts += [_CHECKPOINT.pack(_NAN if c.t is None else c.t, len(c.state)) for c in window.checkpoints]
-    parts += [c.state for c in window.checkpoints]
-    parts.append(window.current)
-    count = len(window.records)
-    ends, end = [], 0
-    for record in window.records:
-        end += len(record)
-        ends.append(end)
-    parts.append(struct.pack(f"<{count}d{count}I", *window.times, *ends))
-    parts += window.records
+
+
+def _pack_parts(
+    options: tuple[float, int, float],
+    newest: float | None,
+    checkpoints: Sequence[tuple[float | None, bytes | memoryview]],
+    current: bytes | memoryview,
+    times: Sequence[float],
+    ends: Sequence[int],
+    records: Sequence[bytes | memoryview],
+) -> bytes:
+    """The window's bytes from its parts: ``options`` (max_delay_s, max_window_epochs, max_lead_s), the
+    checkpoints as (t, state), the epochs' times and the end offsets of their records, and the records'
+    bytes back to back in one or more pieces (``_pack`` gives one per epoch, the in-order path of
+    ``lag`` the kept stored ones as one piece)."""
+    delay, epochs, lead = options
+    count = len(times)
+    parts: list[bytes | memoryview] = [
+        _HEADER.pack(
+            MAGIC, VERSION, delay, epochs, lead, _NAN if newest is None else newest, len(checkpoints), len(current), count
+        )
+    ]
+    parts += [_CHECKPOINT.pack(_NAN if t is None else t, len(state)) for t, state in checkpoints]
+    parts += [state for _, state in checkpoints]
+    parts.append(current)
+    parts.append(struct.pack(f"<{count}d{count}I", *times, *ends))
+    parts += records
     return b"".join(parts)
+
+
+@dataclasses.dataclass
+class _Spans:
+    """Where a window's parts lie in its bytes, read from the header and tables alone (no checkpoint,
+    state or record copied or decoded): what a batch in time order needs (``lag``'s in-order path)."""
+
+    options: tuple[float, int, float]  # max_delay_s, max_window_epochs, max_lead_s
+    newest: float | None
+    checkpoint_times: list[float | None]
+    checkpoint_states: list[memoryview]
+    current: memoryview
+    times: list[float]
+    ends: list[int]  # each epoch record's end, from the start of the records
+    records: memoryview  # every record, back to back
+
+
+def _spans(state: bytes) -> _Spans | None:
+    """The spans of a window of this version; None for anything else (an older version, damage: the
+    full ``_unpack`` converts or refuses it)."""
+    if state[: len(MAGIC)] != MAGIC or len(state) < _HEADER.size:
+        return None
+    _, version, delay, epochs, lead, newest, checkpoints, current_length, count = _HEADER.unpack_from(state)
+    if version != VERSION:
+        return None
+    view = memoryview(state)
+    offset = _HEADER.size
+    try:
+        table = struct.unpack_from("<" + "dI" * checkpoints, state, offset)
+        offset += checkpoints * _CHECKPOINT.size
+        checkpoint_times: list[float | None] = []
+        checkpoint_states = []
+        for t, length in zip(table[0::2], table[1::2], strict=True):
+            checkpoint_times.append(None if math.isnan(t) else t)
+            checkpoint_states.append(view[offset : offset + length])
+            offset += length
+        current = view[offset : offset + current_length]
+        offset += current_length
+        index = struct.unpack_from(f"<{count}d{count}I", state, offset)
+    except struct.error:
+        return None
+    offset += count * 12
+    ends = list(index[count:])
+    if not checkpoints or offset + (ends[-1] if ends else 0) != len(state) or len(current) != current_length:
+        return None
+    return _Spans(
+        (delay, epochs, lead),
+        None if math.isnan(newest) else newest,
+        checkpoint_times,
+        checkpoint_states,
+        current,
+        list(index[:count]),
+        ends,
+        view[offset:],
+    )
 
 
 def newest_epoch(state: bytes) -> float | None:

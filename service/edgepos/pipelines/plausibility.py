@@ -61,6 +61,7 @@ import collections
 import dataclasses
 import math
 import struct
+import typing
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -141,9 +142,9 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
 DEFAULTS: dict[str, Any] = {spec.name: spec.default for spec in OPTION_SPECS}
 
 
-@dataclasses.dataclass(frozen=True)
-class _Point:
-    """What is kept of the last judged fix: time, position, velocity and their variances (traces)."""
+class _Point(typing.NamedTuple):
+    """What is kept of the last judged fix: time, position, velocity and their variances (traces). A
+    named tuple: one is made per judged fix, and a frozen dataclass takes several times as long."""
 
     t: float
     x: float
@@ -338,6 +339,23 @@ def _check_times(envelope: _Envelope, observations: Sequence[Observation]) -> fl
                         index, "t", f"{observation.t!r} is older than the session's last epoch t={last!r}"
                     )
                 )
+    if not problems:
+        earliest = latest = None
+        for observation in observations:
+            t = observation.t
+            if type(t) is not float:  # ints and anything else: the general path below
+                break
+            if earliest is None:
+                earliest = latest = t
+            elif t < earliest:
+                earliest = t
+            elif t > latest:
+                latest = t
+        else:
+            if latest is None or (  # NaN and infinities fail every comparison with the bound
+                latest - earliest <= bound and (last is None or latest - last <= bound)
+            ):
+                return latest  # the usual batch: no gap can be longer than the bound
     times = sorted({t for t in {o.t for o in observations} if is_finite_number(t)})
     latest = times[-1] if times else None
     if not problems and (
@@ -401,8 +419,18 @@ def _point(fix: Fix) -> _Point | None:
     """What is kept of a fix for the next one's checks; None without finite kinematics."""
     if fix.x is None or fix.y is None:
         return None
-    position_var, velocity_var = _position_variance(fix), _velocity_variance(fix)
-    if not _finite(fix.t, fix.x, fix.y, fix.vx, fix.vy, position_var, velocity_var):
+    return _point_of(fix, _position_variance(fix), _velocity_variance(fix))
+
+
+def _point_of(fix: Fix, position_var: float, velocity_var: float) -> _Point | None:
+    """``_point`` of a fix with a position, its variances given."""
+    # finite, all of them: a finite sum is (NaN and infinities carry through a sum), else one by one
+    total = fix.t + fix.x + fix.y + position_var + velocity_var
+    if fix.vx is not None:
+        total += fix.vx
+    if fix.vy is not None:
+        total += fix.vy
+    if not math.isfinite(total) and not _finite(fix.t, fix.x, fix.y, fix.vx, fix.vy, position_var, velocity_var):
         return None
     return _Point(fix.t, fix.x, fix.y, fix.vx, fix.vy, max(position_var, 0.0), max(velocity_var, 0.0))
 
@@ -411,6 +439,25 @@ def implausibility(fix: Fix, last: _Point | None, options: Mapping[str, Any]) ->
     """Why ``fix`` is physically implausible after ``last`` (the previous judged fix), or None."""
     if fix.x is None or fix.y is None:
         return None  # no estimate (uninitialised): nothing to judge
+    return _implausibility(fix, last, options, _position_variance(fix), _velocity_variance(fix))
+
+
+def _judged(fix: Fix, last: _Point | None, options: Mapping[str, Any]) -> tuple[str | None, _Point | None]:
+    """``implausibility(fix, last, options)`` and ``_point(fix)`` together, the fix's variances read once
+    (what ``_Judge`` asks of every fix)."""
+    if fix.x is None or fix.y is None:
+        return None, None
+    position_var, velocity_var = _position_variance(fix), _velocity_variance(fix)
+    return (
+        _implausibility(fix, last, options, position_var, velocity_var),
+        _point_of(fix, position_var, velocity_var),
+    )
+
+
+def _implausibility(
+    fix: Fix, last: _Point | None, options: Mapping[str, Any], position_var: float, velocity_var: float
+) -> str | None:
+    """``implausibility`` of a fix with a position, its position and velocity variances given."""
     if not _finite(fix.x, fix.y, fix.vx, fix.vy):
         return "the estimate is not finite"
     distance = math.hypot(fix.x, fix.y)
@@ -419,7 +466,7 @@ def implausibility(fix: Fix, last: _Point | None, options: Mapping[str, Any]) ->
         return f"position {distance:.4g} m from the site origin is beyond site_radius_m {radius:g} m"
     if fix.vx is not None and fix.vy is not None:
         speed = math.hypot(fix.vx, fix.vy)
-        if speed > options["max_speed_mps"] + SIGMA_ALLOWANCE * math.sqrt(_velocity_variance(fix)):
+        if speed > options["max_speed_mps"] + SIGMA_ALLOWANCE * math.sqrt(velocity_var):
             return (
                 f"speed {speed:.4g} m/s exceeds max_speed_mps {options['max_speed_mps']:g} m/s (beyond the "
                 "filter's own velocity uncertainty)"
@@ -428,7 +475,7 @@ def implausibility(fix: Fix, last: _Point | None, options: Mapping[str, Any]) ->
         return None  # a new track (or the first fix): nothing to compare with
     dt = fix.t - last.t
     accel = options["max_acceleration_mps2"]
-    velocity_var = _velocity_variance(fix) + last.velocity_var
+    velocity_var = velocity_var + last.velocity_var
     if fix.vx is not None and fix.vy is not None and last.vx is not None and last.vy is not None:
         change = math.hypot(fix.vx - last.vx, fix.vy - last.vy)
         if change > accel * dt + SIGMA_ALLOWANCE * math.sqrt(velocity_var):
@@ -441,7 +488,7 @@ def implausibility(fix: Fix, last: _Point | None, options: Mapping[str, Any]) ->
     else:
         x, y = last.x, last.y
     miss = math.hypot(fix.x - x, fix.y - y)
-    spread = _position_variance(fix) + last.position_var + 0.25 * velocity_var * dt * dt
+    spread = position_var + last.position_var + 0.25 * velocity_var * dt * dt
     speed = options["max_speed_mps"]
     if miss > speed * dt + 0.5 * accel * dt * dt + SIGMA_ALLOWANCE * math.sqrt(max(spread, 0.0)):
         return (
@@ -509,9 +556,9 @@ class _Judge:
                 chunk = None if chunk is None else 2 * chunk
                 continue
             fix = queue.popleft()
-            reason = implausibility(fix, envelope.last, self.options)
+            reason, point = _judged(fix, envelope.last, self.options)
             if reason is None:
-                envelope.last = _point(fix) or envelope.last
+                envelope.last = point or envelope.last
                 judged.append(fix)
                 continue
             if not reset:
@@ -523,7 +570,7 @@ class _Judge:
                         "estimate",
                     )
                 )
-                envelope.last = _point(fix)
+                envelope.last = point
                 continue
             judged.append(
                 dataclasses.replace(
