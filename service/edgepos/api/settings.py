@@ -126,6 +126,31 @@ class Settings(BaseSettings):
     rate_limit_burst: int = Field(
         100, ge=1, description="Requests a session's token may make at once before the rate applies."
     )
+    stream_buffer: int = Field(
+        10_000,
+        ge=10,
+        le=1_000_000,
+        description="Fixes the fix stream (GET /v1/stream/fixes) keeps for consumers that resume with "
+        "Last-Event-ID, across all sessions; a consumer further behind is told how many it missed.",
+    )
+    stream_queue: int = Field(
+        1_000,
+        ge=10,
+        le=1_000_000,
+        description="Fixes one stream consumer may have waiting to be sent; a consumer that falls further "
+        "behind is dropped with a final event saying so (it resumes with Last-Event-ID), so a slow "
+        "consumer never holds back the others or the vehicles.",
+    )
+    stream_max_consumers: int = Field(
+        64, ge=1, le=100_000, description="Fix stream consumers one worker serves at once (503 beyond)."
+    )
+    stream_ping_s: float = Field(
+        15.0,
+        gt=0,
+        le=300,
+        allow_inf_nan=False,
+        description="Seconds between keep-alive comments on an idle fix stream, so proxies do not cut it.",
+    )
     origin_lat: float | None = Field(
         None, ge=-90, le=90, allow_inf_nan=False, description="Site origin latitude, WGS-84 decimal degrees."
     )
