@@ -777,6 +777,7 @@ class RedisStore(SessionStore):
         query = dict(parse_qsl(parts.query, keep_blank_values=True))
         timeout = float(query.get("socket_timeout", DEFAULT_SOCKET_TIMEOUT_S)) + block_s
         query.update(socket_timeout=repr(timeout), max_connections="2")
+        query.pop("timeout", None)  # the blocking pool's wait, not a connection option
         return Redis.from_url(urlunsplit(parts._replace(query=urlencode(query))))
 
     # lifecycle ------------------------------------------------------------------------------
@@ -824,7 +825,9 @@ class RedisFixLog(FixLog):
         store = self.store
         async with store._guard():
             client = await store._redis()
-            await store._scripts["publish_fixes"](keys=[store.fixes_key, store.fixes_seq_key], args=args, client=client)
+            await store._scripts["publish_fixes"](
+                keys=[store.fixes_key, store.fixes_seq_key], args=args, client=client
+            )
 
     async def newest(self) -> int:
         async with self.store._guard():
@@ -863,7 +866,7 @@ class RedisFixLog(FixLog):
             oldest = _entry_event(*first[0]).id if first else None
             gap = gap_between(after, oldest, newest)
             start = "-" if gap is not None else f"{after + 1}-0"
-            entries = await client.xrange(store.fixes_key, start, "+", count=self.buffer)
+            entries = await client.xrange(store.fixes_key, start, "+")  # the stream is bounded already
         return [_entry_event(entry_id, fields) for entry_id, fields in entries], gap
 
     async def _close_reader(self) -> None:
