@@ -37,6 +37,8 @@ PUBLISH_CHUNK = 500
 """Fixes per write to the log (the publisher coalesces what batches left in the outbox meanwhile)."""
 OUTBOX_LIMIT = 20_000
 """Fixes a worker's outbox may hold while the store is slow to take them; beyond, new ones are dropped."""
+SEND_CHUNK = 256
+"""Events one write to a consumer carries at most: a burst of fixes goes out in a few writes, not one each."""
 _TOLERANCE_S = 1e-6
 
 
@@ -105,17 +107,18 @@ class Consumer:
         self._ready.set()
         return lost
 
-    async def next(self, timeout_s: float) -> FixEvent | Gap | None:
-        """The next queued event; None after ``timeout_s`` without one or once dropped."""
+    async def take(self, timeout_s: float, most: int) -> list[FixEvent | Gap]:
+        """Up to ``most`` queued events, waiting up to ``timeout_s`` for one; empty after that or once dropped."""
         while not self.queue:
             if self.dropped:
-                return None
+                return []
             self._ready.clear()
             try:
                 await asyncio.wait_for(self._ready.wait(), timeout_s)
             except TimeoutError:
-                return None
-        return self.queue.popleft()
+                return []
+        queue = self.queue
+        return [queue.popleft() for _ in range(min(most, len(queue)))]
 
 
 class StreamHub:
@@ -258,36 +261,45 @@ class StreamHub:
         # after an unknown id every held event is sent (their ids are below it); else those after it
         last_id = None if gap is not None and gap.reason == "unknown" else after
 
-        def fix(event: FixEvent) -> bytes | None:
+        def chunk(items: Sequence[FixEvent | Gap]) -> bytes:
+            """The events of ``items`` this consumer gets, as one write (one send per burst, not per fix)."""
             nonlocal last_id
-            if last_id is not None and event.id <= last_id:
-                return None  # already sent (from the backlog)
-            last_id = event.id
-            if period is not None:
-                previous = last_t.get(event.vehicle_id)
-                if previous is not None and abs(event.t - previous) < period - _TOLERANCE_S:
-                    metrics.stream_events_dropped.labels("decimated").inc()
-                    return None
-                last_t[event.vehicle_id] = event.t
-            metrics.stream_events_sent.inc()
-            return sse("fix", event.data, event.id)
+            parts, decimated = [], 0
+            for item in items:
+                if isinstance(item, Gap):
+                    parts.append(missed_event(item, None))
+                    continue
+                if last_id is not None and item.id <= last_id:
+                    continue  # already sent (from the backlog)
+                last_id = item.id
+                if period is not None:
+                    previous = last_t.get(item.vehicle_id)
+                    if previous is not None and abs(item.t - previous) < period - _TOLERANCE_S:
+                        decimated += 1
+                        continue
+                    last_t[item.vehicle_id] = item.t
+                parts.append(sse("fix", item.data, item.id))
+            if decimated:
+                metrics.stream_events_dropped.labels("decimated").inc(decimated)
+            sent = len(parts) - sum(isinstance(item, Gap) for item in items)
+            if sent:
+                metrics.stream_events_sent.inc(sent)
+            return b"".join(parts)
 
         try:
             yield b"retry: 1000\n: edgepos fix stream\n\n"
             if gap is not None:
                 yield missed_event(gap, after)
-            for event in backlog:
-                chunk = fix(event)
-                if chunk is not None:
-                    yield chunk
+            for start in range(0, len(backlog), SEND_CHUNK):
+                data = chunk(backlog[start : start + SEND_CHUNK])
+                if data:
+                    yield data
             while True:
-                item = await consumer.next(self.ping_s)
-                if isinstance(item, FixEvent):
-                    chunk = fix(item)
-                    if chunk is not None:
-                        yield chunk
-                elif isinstance(item, Gap):
-                    yield missed_event(item, None)
+                items = await consumer.take(self.ping_s, SEND_CHUNK)
+                if items:
+                    data = chunk(items)
+                    if data:
+                        yield data
                 elif consumer.dropped:
                     yield end_event(
                         "slow_consumer",
