@@ -43,19 +43,24 @@ DRAIN_S = 1.0
 async def _consume(
     url: str, key: str, counts: list[int], ends: list[int], index: int, ready: asyncio.Event
 ) -> None:
+    """Count the fix events of one stream from its raw bytes (cheaper than parsing lines: the consumers share
+    the machine's cores with the server and the load generator)."""
     headers = {"Authorization": f"Bearer {key}", "Accept": "text/event-stream"}
     timeout = httpx.Timeout(10.0, read=None)
+    fix, end = b"event: fix\n", b"event: end\n"
     async with (
         httpx.AsyncClient(timeout=timeout) as client,
         client.stream("GET", f"{url}/v1/stream/fixes", headers=headers) as response,
     ):
         response.raise_for_status()
         ready.set()
-        async for line in response.aiter_lines():
-            if line.startswith("id:"):
-                counts[index] += 1
-            elif line == "event: end":
-                ends[index] += 1
+        tail = b""
+        async for raw in response.aiter_raw():
+            data = tail + raw
+            counts[index] += data.count(fix)
+            ends[index] += data.count(end)
+            # the bytes a marker split across two reads could start in (a full marker is never counted twice)
+            tail = data[-(len(fix) - 1) :]
 
 
 async def _consumers(url: str, key: str, count: int) -> dict[str, Any]:
