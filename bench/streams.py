@@ -6,8 +6,9 @@ the same open-loop fleet load (the load test's vehicles x rate in batches, as be
 twice: with no consumer, and with ``--consumers`` admin consumers of ``GET /v1/stream/fixes`` attached
 for the whole run, in a process of their own (so their parsing does not slow the load generator's
 loop). Each consumer counts the fix events it received. Printed per run: epochs/s, p50/p99 latency,
-errors and the events each consumer received against the fixes applied; then the median ratio of
-epochs/s and p99 with consumers to without, the core count and the load average. Loopback only; every
+errors, the service's CPU seconds (its processes, from /proc) and the events each consumer received
+against the fixes applied; then the median ratios with consumers to without of epochs/s, p99 and
+service CPU per fix, the core count and the load average. Loopback only; every
 run is bounded by ``--duration``.
 
     python bench/streams.py [--vehicles N] [--rate HZ] [--batch B] [--duration S] [--rounds R]
@@ -32,7 +33,7 @@ from typing import Any
 import httpx
 from edgepos.loadgen.loadtest import LoadConfig, LoadReport, run_load
 from edgepos.loadgen.localredis import RedisServer, redis_binary
-from edgepos.loadgen.localserver import clean_environment, running, serve_command
+from edgepos.loadgen.localserver import clean_environment, running, serve_command, service_cpu_s
 
 ADMIN_KEY = "streams-admin-key-" + os.urandom(8).hex()
 DRAIN_S = 1.0
@@ -115,7 +116,7 @@ def attached(url: str, count: int):  # type: ignore[no-untyped-def]
         result.update(json.loads(output.strip().splitlines()[-1]))
 
 
-def _run(url: str, args: argparse.Namespace, consumers: int) -> tuple[LoadReport, dict[str, Any]]:
+def _run(url: str, args: argparse.Namespace, consumers: int) -> tuple[LoadReport, dict[str, Any], float]:
     config = LoadConfig(
         url=url,
         vehicles=args.vehicles,
@@ -126,15 +127,19 @@ def _run(url: str, args: argparse.Namespace, consumers: int) -> tuple[LoadReport
         timeout=30.0,
     )
     with attached(url, consumers) as counted:
+        cpu_before = service_cpu_s(url)
         report = asyncio.run(run_load(config))
-    return report, counted
+        cpu_s = service_cpu_s(url) - cpu_before
+    return report, counted, cpu_s
 
 
-def _line(label: str, report: LoadReport, counted: dict[str, Any]) -> str:
+def _line(label: str, report: LoadReport, counted: dict[str, Any], cpu_s: float) -> str:
     p50, p99 = report.latency(50), report.latency(99)
+    per_1000 = 1000.0 * cpu_s / report.recorder.epochs if report.recorder.epochs else float("nan")
     text = (
         f"  {label}: {report.epochs_per_s:.0f} epochs/s, p50 {p50 or float('nan'):.1f} ms, "
-        f"p99 {p99 or float('nan'):.1f} ms, {report.errors} errors, {report.recorder.epochs} fixes applied"
+        f"p99 {p99 or float('nan'):.1f} ms, {report.errors} errors, {report.recorder.epochs} fixes applied, "
+        f"service CPU {cpu_s:.1f} s ({per_1000:.2f} s per 1000 fixes)"
     )
     if counted:
         events = counted["events"]
@@ -195,10 +200,18 @@ def main() -> int:
         )
         for number in range(1, args.rounds + 1):
             for consumers in (0, args.consumers):
-                report, counted = _run(url, args, consumers)
+                report, counted, cpu_s = _run(url, args, consumers)
                 label = f"round {number}, {consumers} consumers"
-                print(_line(label, report, counted), flush=True)
-                runs.append({"round": number, "consumers": consumers, **report.to_json(), "stream": counted})
+                print(_line(label, report, counted, cpu_s), flush=True)
+                runs.append(
+                    {
+                        "round": number,
+                        "consumers": consumers,
+                        **report.to_json(),
+                        "stream": counted,
+                        "service_cpu_s": cpu_s,
+                    }
+                )
     without = [r for r in runs if r["consumers"] == 0]
     with_ = [r for r in runs if r["consumers"] > 0]
     epochs_ratio = statistics.median(w["epochs_per_s"] / o["epochs_per_s"] for w, o in zip(with_, without))
@@ -208,9 +221,13 @@ def main() -> int:
     received = [
         statistics.median(r["stream"]["events"]) / r["epochs"] if r["epochs"] else float("nan") for r in with_
     ]
+    cpu_ratio = statistics.median(
+        (w["service_cpu_s"] / w["epochs"]) / (o["service_cpu_s"] / o["epochs"])
+        for w, o in zip(with_, without)
+    )
     print(
         f"with {args.consumers} consumers / without, median over rounds: epochs/s x{epochs_ratio:.3f}, "
-        f"p99 x{p99_ratio:.2f}; median events per consumer / fixes applied: "
+        f"p99 x{p99_ratio:.2f}, service CPU per fix x{cpu_ratio:.2f}; median events per consumer / fixes applied: "
         f"{', '.join(f'{value:.3f}' for value in received)}"
     )
     print(
@@ -218,7 +235,11 @@ def main() -> int:
     )
     if args.json is not None:
         args.json.write_text(
-            json.dumps({"runs": runs, "epochs_ratio": epochs_ratio, "p99_ratio": p99_ratio}, indent=2) + "\n"
+            json.dumps(
+                {"runs": runs, "epochs_ratio": epochs_ratio, "p99_ratio": p99_ratio, "cpu_ratio": cpu_ratio},
+                indent=2,
+            )
+            + "\n"
         )
     return 0
 
