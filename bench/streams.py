@@ -78,7 +78,7 @@ async def _consumers(url: str, key: str, count: int) -> dict[str, Any]:
         for r in await asyncio.gather(*tasks, return_exceptions=True)
         if not isinstance(r, asyncio.CancelledError)
     ]
-    return {"events": counts, "ends": ends, "failures": failures}
+    return {"events": counts, "ends": ends, "failures": failures, "cpu_s": time.process_time()}
 
 
 def consumer_main(url: str, key: str, count: int) -> int:
@@ -145,7 +145,7 @@ def _line(label: str, report: LoadReport, counted: dict[str, Any], cpu_s: float)
         events = counted["events"]
         text += (
             f"; events per consumer min {min(events)} / median {statistics.median(events):.0f} / max {max(events)}, "
-            f"{sum(counted['ends'])} dropped"
+            f"{sum(counted['ends'])} dropped; the consumers' process used {counted['cpu_s']:.1f} s CPU"
         )
     return text
 

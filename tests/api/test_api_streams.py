@@ -123,6 +123,10 @@ def test_a_token_stream_ends_when_its_session_ends(client: TestClient):
 
 def test_refusals(client: TestClient):
     assert_error(client.get(STREAM), 401, "unauthorized")
+    registered = client.post("/v1/vehicles", json={"vehicle_id": "car-9"}, headers=ADMIN)
+    assert registered.status_code == 201, registered.text
+    vehicle = {"Authorization": f"Bearer {registered.json()['key']}"}
+    assert_error(client.get(STREAM, headers=vehicle), 403, "forbidden")  # a vehicle key opens sessions only
     cases = [
         ({"pipeline": "nope"}, "pipeline"),
         ({"pipeline": "rsu_imu,nope"}, "pipeline"),

@@ -55,6 +55,7 @@ class AppContext:
                 queue=settings.stream_queue,
                 max_consumers=settings.stream_max_consumers,
                 ping_s=settings.stream_ping_s,
+                interval_s=settings.stream_interval_ms / 1000.0,
             )
         return self._streams
 

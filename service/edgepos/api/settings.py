@@ -144,6 +144,15 @@ class Settings(BaseSettings):
     stream_max_consumers: int = Field(
         64, ge=1, le=100_000, description="Fix stream consumers one worker serves at once (503 beyond)."
     )
+    stream_interval_ms: float = Field(
+        50.0,
+        ge=0,
+        le=1000,
+        allow_inf_nan=False,
+        description="Under load a worker reads the fix stream and writes to its consumers at most once per this "
+        "many ms, all that came meanwhile at once (0: as soon as each batch's fixes arrive); fewer, larger writes "
+        "keep the consumers from delaying the vehicles' answers.",
+    )
     stream_ping_s: float = Field(
         15.0,
         gt=0,
@@ -249,7 +258,9 @@ class Settings(BaseSettings):
 
     @model_validator(mode="after")
     def _wait_needs_redis(self) -> Settings:
-        if self.redis_wait_replicas and not self.store.startswith(("redis://", "rediss://", "unix://", "redis-cluster://")):
+        if self.redis_wait_replicas and not self.store.startswith(
+            ("redis://", "rediss://", "unix://", "redis-cluster://")
+        ):
             raise ValueError(
                 "redis_wait_replicas (EDGEPOS_REDIS_WAIT_REPLICAS) needs a Redis store (EDGEPOS_STORE)"
             )

@@ -125,9 +125,17 @@ class StreamHub:
     """This worker's side of the fix stream: the publisher, the reader and the connected consumers."""
 
     def __init__(
-        self, log: FixLog, metrics: Metrics, *, queue: int, max_consumers: int, ping_s: float
+        self,
+        log: FixLog,
+        metrics: Metrics,
+        *,
+        queue: int,
+        max_consumers: int,
+        ping_s: float,
+        interval_s: float = 0.05,
     ) -> None:
         self.log = log
+        self.interval_s = interval_s
         self.metrics = metrics
         self.queue = queue
         self.max_consumers = max_consumers
@@ -222,6 +230,12 @@ class StreamHub:
                 for event in events:
                     self._cursor = event.id
                     self._offer(event)
+                if events and self.interval_s > 0:
+                    # Under load, read (and write to the consumers) at most once an interval, each time all
+                    # that came meanwhile: a few large writes instead of one per batch. Each write releases
+                    # the interpreter lock, and getting it back from the filter thread can take its 5 ms
+                    # switch interval: many small writes delayed the vehicles' answers (bench/streams.py).
+                    await asyncio.sleep(self.interval_s)
         finally:
             self._reader = None
 
