@@ -232,9 +232,9 @@ class StreamHub:
                     self._offer(event)
                 if events and self.interval_s > 0:
                     # Under load, read (and write to the consumers) at most once an interval, each time all
-                    # that came meanwhile: a few large writes instead of one per batch. Each write releases
-                    # the interpreter lock, and getting it back from the filter thread can take its 5 ms
-                    # switch interval: many small writes delayed the vehicles' answers (bench/streams.py).
+                    # that came meanwhile: a few large writes instead of one per batch. One write per batch
+                    # per consumer raised the vehicles' p99 about tenfold with ten consumers (bench/streams.py),
+                    # presumably as each write releases the interpreter lock to the busy filter thread.
                     await asyncio.sleep(self.interval_s)
         finally:
             self._reader = None
