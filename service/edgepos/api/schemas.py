@@ -554,7 +554,9 @@ class StreamMissedOut(ResponseModel):
         "many); unknown: last_event_id is ahead of the stream (its buffer was reset, e.g. the in-process store "
         "restarted), so how many were missed is not known."
     )
-    last_event_id: str | None = Field(description="The id the consumer resumed from (null: the worker fell behind).")
+    last_event_id: str | None = Field(
+        description="The id the consumer resumed from (null: the worker fell behind)."
+    )
     missed: int | None = Field(description="How many fixes were missed, when known.")
     oldest_event_id: str | None = Field(description="The oldest id the buffer holds now (null: it is empty).")
     message: str = Field(description="The same in words.")

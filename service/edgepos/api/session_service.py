@@ -440,19 +440,23 @@ async def _apply_in_turn(
     raise ApiError("unavailable", "the session kept changing under this request; retry the same batch")
 
 
-def _publish_fixes(context: AppContext, record: SessionRecord, seq: int, wire_fixes: list[dict[str, Any]]) -> None:
+def _publish_fixes(
+    context: AppContext, record: SessionRecord, seq: int, wire_fixes: list[dict[str, Any]]
+) -> None:
     """Hand the applied batch's fixes to the fix stream: queued for this worker's publisher, so the answer
     never waits for the stream (see api.streams)."""
-    context.streams.publish([
-        NewFix(
-            record.session_id,
-            record.vehicle_id,
-            record.pipeline,
-            float(fix["t"]),
-            fix_event_data(record.session_id, record.vehicle_id, record.pipeline, seq, fix),
-        )
-        for fix in wire_fixes
-    ])
+    context.streams.publish(
+        [
+            NewFix(
+                record.session_id,
+                record.vehicle_id,
+                record.pipeline,
+                float(fix["t"]),
+                fix_event_data(record.session_id, record.vehicle_id, record.pipeline, seq, fix),
+            )
+            for fix in wire_fixes
+        ]
+    )
 
 
 def _rsu_ids(observations: list[Any]) -> set[str]:
