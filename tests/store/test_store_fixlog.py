@@ -91,3 +91,28 @@ def test_event_ids_and_gaps():
     assert gap_between(3, 6, 10) == gap_between(3, 6, 10) and gap_between(3, 6, 10).missed == 2  # type: ignore[union-attr]
     assert gap_between(11, 6, 10).reason == "unknown"  # type: ignore[union-attr]
     assert gap_between(0, None, 0) is None
+
+
+def test_the_stream_hub_delivers_through_every_store(store: SessionStore):
+    """The service's side (publisher, reader, a consumer's events) over each store's log, the cluster's too."""
+    from edgepos.api.metrics import Metrics
+    from edgepos.api.streams import StreamFilter, StreamHub
+
+    async def run() -> bytes:
+        hub = StreamHub(store.fix_log(100), Metrics(), queue=100, max_consumers=4, ping_s=0.2, interval_s=0.0)
+        consumer, backlog, gap = await hub.subscribe(StreamFilter(vehicles=frozenset({"car-2"})), None)
+        events = hub.events(consumer, backlog, gap, None, None)
+        received = await anext(events)  # the preamble
+        hub.publish(_fixes(3, "car-1") + _fixes(2, "car-2"))
+        for _ in range(100):  # pings (every 0.2 s) bound the wait
+            if received.count(b"event: fix") >= 2:
+                break
+            received += await anext(events)
+        await events.aclose()
+        await hub.close()
+        await store.close()
+        return received
+
+    received = asyncio.run(run())
+    assert received.count(b"event: fix") == 2
+    assert b'id: 4\nevent: fix\ndata: {"n":0}' in received and b'id: 5\nevent: fix\ndata: {"n":1}' in received
