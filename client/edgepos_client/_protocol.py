@@ -7,6 +7,7 @@ Keeping this free of I/O lets both clients be thin loops around ``httpx`` that c
 from __future__ import annotations
 
 import json
+import math
 import os
 import random
 import re
@@ -26,6 +27,7 @@ from edgepos_client.models import (
     BatchResult,
     EphemeridesSummary,
     Fix,
+    FixEvent,
     GnssFixMeasurement,
     GyroMeasurement,
     InitialState,
@@ -40,6 +42,7 @@ from edgepos_client.models import (
     SessionCreated,
     SessionInfo,
     SessionPage,
+    StreamNotice,
     Track,
     V2vRangeMeasurement,
     Vehicle,
@@ -497,3 +500,83 @@ def parse_revocation(response: httpx.Response) -> Revocation:
 
 def parse_session_page(response: httpx.Response) -> SessionPage:
     return SessionPage.model_validate_json(response.content)
+
+
+# -- the fix stream (server-sent events) -----------------------------------------------------------------
+STREAM_PATH = "/v1/stream/fixes"
+
+
+@dataclass(frozen=True)
+class StreamRequest:
+    """What ``stream_fixes`` asks for; ``headers(last_event_id)`` gives each (re)connection's headers."""
+
+    path: str
+    credential: str | None
+
+    def headers(self, last_event_id: str | None) -> dict[str, str]:
+        headers = {"Accept": "text/event-stream", "Cache-Control": "no-cache"}
+        if self.credential:
+            headers["Authorization"] = f"Bearer {self.credential}"
+        if last_event_id is not None:
+            headers["Last-Event-ID"] = last_event_id
+        return headers
+
+
+def stream_request(
+    calls: Calls,
+    session: Session | None,
+    session_id: str | None,
+    pipelines: Iterable[str] | None,
+    vehicle_ids: Iterable[str] | None,
+    max_rate_hz: float | None,
+) -> StreamRequest:
+    """The stream's path and bearer: a session handle streams its own session with its token, else the
+    admin key streams every session's fixes (or ``session_id``'s)."""
+    params: list[tuple[str, str]] = []
+    if session_id is not None:
+        params.append(("session_id", session_id))
+    params += [("pipeline", name) for name in pipelines or ()]
+    params += [("vehicle_id", vehicle) for vehicle in vehicle_ids or ()]
+    if max_rate_hz is not None:
+        if not (math.isfinite(max_rate_hz) and max_rate_hz > 0):
+            raise ValueError("max_rate_hz must be a positive number")
+        params.append(("max_rate_hz", repr(float(max_rate_hz))))
+    path = f"{STREAM_PATH}?{urlencode(params, quote_via=quote)}" if params else STREAM_PATH
+    return StreamRequest(path, session.token if session is not None else calls.admin_key)
+
+
+class SseParser:
+    """Server-sent events from the lines of a response: feed lines, get (event, data, id) at each blank line."""
+
+    def __init__(self) -> None:
+        self._event = ""
+        self._data: list[str] = []
+        self._id: str | None = None
+
+    def feed(self, line: str) -> tuple[str, str, str | None] | None:
+        if line == "":
+            if not self._data and not self._event:
+                return None
+            done = (self._event or "message", "\n".join(self._data), self._id)
+            self._event, self._data, self._id = "", [], None
+            return done
+        if line.startswith(":"):
+            return None  # a comment: the server's keep-alive ping
+        name, _, value = line.partition(":")
+        value = value.removeprefix(" ")
+        if name == "event":
+            self._event = value
+        elif name == "data":
+            self._data.append(value)
+        elif name == "id":
+            self._id = value
+        return None
+
+
+def stream_item(event: str, data: str, event_id: str | None) -> FixEvent | StreamNotice | None:
+    """A parsed event as the client's model (None for kinds this client does not know)."""
+    if event == "fix" and event_id is not None:
+        return FixEvent.model_validate({**json.loads(data), "id": event_id})
+    if event in ("missed", "end"):
+        return StreamNotice.model_validate({**json.loads(data), "event": event})
+    return None

@@ -330,6 +330,30 @@ class SessionInfo(_Response):
     updated_at: float
 
 
+class FixEvent(_Response):
+    """One fix of the fix stream (``GET /v1/stream/fixes``): whose it is, the batch's seq and the fix (its
+    ``state`` is always None on the stream). ``id`` resumes the stream after this event."""
+
+    id: str
+    session_id: str
+    vehicle_id: str
+    pipeline: str
+    seq: int
+    fix: Fix
+
+
+class StreamNotice(_Response):
+    """A ``missed`` event (fixes the stream's buffer no longer held when resuming: ``missed`` of them, None
+    when unknown) or an ``end`` event (the server ended the stream: ``slow_consumer``, ``session_ended``)."""
+
+    event: Literal["missed", "end"]
+    reason: str
+    message: str = ""
+    last_event_id: str | None = None
+    missed: int | None = None
+    oldest_event_id: str | None = None
+
+
 class Track(_Response):
     """``GET /v1/sessions/{id}/track``: the estimates of the session's lag window, oldest first,
     filtered or (``smoothed``) smoothed over the window."""

@@ -13,18 +13,24 @@ from edgepos_client._protocol import Call, MeasurementLike, NavigationLike, Retr
 from edgepos_client.models import (
     EphemeridesSummary,
     Fix,
+    FixEvent,
     InitialState,
     PipelineInfo,
     Revocation,
     Rsu,
     SessionInfo,
     SessionPage,
+    StreamNotice,
     Track,
     Vehicle,
     VehicleImport,
     VehicleKey,
     VehiclePage,
 )
+
+
+class _Retry(Exception):
+    """A 503 on opening the stream: try again."""
 
 
 class EdgeposClient:
@@ -223,3 +229,68 @@ class EdgeposClient:
         number = protocol.next_seq(session, seq)
         call = self._calls.batch(session, measurements, number, include_state)
         return protocol.batch_fixes(session, number, self._send(call))
+
+    def stream_fixes(
+        self,
+        session: Session | None = None,
+        *,
+        session_id: str | None = None,
+        pipelines: Iterable[str] | None = None,
+        vehicle_ids: Iterable[str] | None = None,
+        max_rate_hz: float | None = None,
+        last_event_id: str | None = None,
+        reconnect: bool = True,
+        read_timeout: float = 60.0,
+    ) -> Iterator[FixEvent | StreamNotice]:
+        """The fix stream (``GET /v1/stream/fixes``): each applied fix as a :class:`FixEvent`, as it is
+        applied, and the server's :class:`StreamNotice` events (``missed``: fixes lost to the buffer when
+        resuming; ``end``: the server ended the stream).
+
+        With a ``session`` handle, that session's fixes (its token); else every session's (the admin key),
+        narrowed by ``session_id``, ``pipelines``, ``vehicle_ids``; ``max_rate_hz`` decimates per vehicle.
+        ``last_event_id`` resumes after that event. With ``reconnect`` a dropped connection, a 503 or an
+        ``end`` for a slow consumer is followed by a new connection that resumes after the last fix
+        received (``Last-Event-ID``), after up to ``retries`` consecutive failures; ``read_timeout`` (s)
+        must exceed the server's ping interval (15 s). Stop by breaking out of the loop."""
+        request = protocol.stream_request(
+            self._calls, session, session_id, pipelines, vehicle_ids, max_rate_hz
+        )
+        timeout = httpx.Timeout(
+            self._http.timeout.connect, read=read_timeout, write=read_timeout, pool=read_timeout
+        )
+        failures = 0
+        while True:
+            try:
+                with self._http.stream(
+                    "GET", request.path, headers=request.headers(last_event_id), timeout=timeout
+                ) as response:
+                    if not response.is_success:
+                        response.read()
+                        if not (reconnect and response.status_code == 503 and failures < self.policy.retries):
+                            protocol.check(response)
+                        raise _Retry
+                    failures = 0
+                    parser = protocol.SseParser()
+                    for line in response.iter_lines():
+                        parsed = parser.feed(line)
+                        item = None if parsed is None else protocol.stream_item(*parsed)
+                        if item is None:
+                            continue
+                        if isinstance(item, FixEvent):
+                            last_event_id = item.id
+                        yield item
+                        if isinstance(item, StreamNotice) and item.event == "end":
+                            if not reconnect or item.reason != "slow_consumer":
+                                return
+                            break
+                if not reconnect:
+                    return
+            except (httpx.TransportError, _Retry) as error:
+                if not reconnect or failures >= self.policy.retries:
+                    if isinstance(error, httpx.TransportError):
+                        raise protocol.transport_failure(
+                            protocol.Call("GET", request.path), error, failures + 1
+                        ) from error
+                    raise
+                failures += 1
+            time.sleep(self.policy.delay(max(0, failures - 1)))

@@ -26,6 +26,7 @@ def test_schema_documents_every_route_and_error():
         "/v1/sessions/{session_id}",
         "/v1/sessions/{session_id}/batches",
         "/v1/sessions/{session_id}/track",
+        "/v1/stream/fixes",
         "/v1/vehicles",
         "/v1/vehicles/bulk",
         "/v1/vehicles/{vehicle_id}",

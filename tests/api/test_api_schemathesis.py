@@ -30,7 +30,9 @@ app = create_app(_SETTINGS)
 client = TestClient(app)
 client.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)
 
-schema = schemathesis.openapi.from_asgi("/openapi.json", app)
+# The fix stream's 200 never ends (server-sent events until the consumer leaves): schemathesis would wait for
+# its end forever. Its refusals and events are tested in test_api_streams.
+schema = schemathesis.openapi.from_asgi("/openapi.json", app).exclude(path="/v1/stream/fixes")
 EXCLUDED = [positive_data_acceptance]
 RSU_IDS = [rsu.id for rsu in scenario().rsus]
 BOUNDED = settings(max_examples=40, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)

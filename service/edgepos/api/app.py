@@ -12,6 +12,7 @@ import gc
 import logging
 from collections.abc import AsyncIterator, Mapping
 from importlib import resources
+from typing import Any
 
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
@@ -24,7 +25,7 @@ from edgepos.api.errors import install_error_handlers
 from edgepos.api.logs import configure_logging
 from edgepos.api.metrics import Metrics
 from edgepos.api.middleware import AdmissionMiddleware, BodyLimitMiddleware, RequestContextMiddleware
-from edgepos.api.routes import docs, ephemerides, health, rsus, sessions, vehicles
+from edgepos.api.routes import docs, ephemerides, health, rsus, sessions, streams, vehicles
 from edgepos.api.routes import pipelines as pipeline_routes
 from edgepos.api.settings import Settings, ensure_admin_key
 from edgepos.api.vehicle_jwt import load_vehicle_jwks
@@ -134,6 +135,7 @@ def create_app(
             sweeper.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await sweeper
+            await context.close_streams()
             await context.store.close()
             context.stop_filter_thread()
 
@@ -153,6 +155,7 @@ def create_app(
         ephemerides.router,
         pipeline_routes.router,
         sessions.router,
+        streams.router,
         vehicles.router,
         health.router,
         docs.router,
@@ -163,6 +166,14 @@ def create_app(
             if isinstance(route, APIRoute):
                 allowed_methods.setdefault(route.path, set()).update(route.methods)
     app.state.allowed_methods = allowed_methods
+    default_openapi = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            streams.add_event_schemas(default_openapi())
+        return app.openapi_schema or default_openapi()
+
+    app.openapi = openapi  # type: ignore[method-assign]
     static_dir = resources.files("edgepos.api") / "static"
     app.mount(docs.STATIC_PREFIX, StaticFiles(directory=str(static_dir)), name="static")
 

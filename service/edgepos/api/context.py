@@ -13,6 +13,7 @@ from edgepos.api.ephemerides import EphemeridesCache
 from edgepos.api.metrics import Metrics
 from edgepos.api.scheduler import FairScheduler
 from edgepos.api.settings import Settings
+from edgepos.api.streams import StreamHub
 from edgepos.api.vehicle_jwt import VehicleKeySet
 from edgepos.geo import GeodeticOrigin
 from edgepos.pipelines.base import Pipeline
@@ -41,6 +42,28 @@ class AppContext:
     vehicle_keys: VehicleKeySet | None = None
     """The fleet operator's public keys (EDGEPOS_VEHICLE_AUTH=jwt), loaded once at start-up."""
     _scheduler: FairScheduler | None = field(default=None, repr=False)
+    _streams: StreamHub | None = field(default=None, repr=False)
+
+    @property
+    def streams(self) -> StreamHub:
+        """This worker's side of the fix stream (GET /v1/stream/fixes), over the store's fix log."""
+        if self._streams is None:
+            settings = self.settings
+            self._streams = StreamHub(
+                self.store.fix_log(settings.stream_buffer),
+                self.metrics,
+                queue=settings.stream_queue,
+                max_consumers=settings.stream_max_consumers,
+                ping_s=settings.stream_ping_s,
+                interval_s=settings.stream_interval_ms / 1000.0,
+            )
+        return self._streams
+
+    async def close_streams(self) -> None:
+        """Write the fixes still waiting for the stream, stop the stream's tasks and close its log."""
+        streams, self._streams = self._streams, None
+        if streams is not None:
+            await streams.close()
 
     @property
     def scheduler(self) -> FairScheduler:

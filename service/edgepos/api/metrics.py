@@ -121,6 +121,25 @@ class Metrics:
             registry=self.registry,
         )
 
+        self.stream_consumers = Gauge(
+            "edgepos_stream_consumers",
+            "Fix stream consumers (GET /v1/stream/fixes) connected to this worker.",
+            registry=self.registry,
+        )
+        self.stream_events_sent = Counter(
+            "edgepos_stream_events_sent",
+            "Fix events this worker sent to stream consumers.",
+            registry=self.registry,
+        )
+        self.stream_events_dropped = Counter(
+            "edgepos_stream_events_dropped",
+            "Fix events not sent, by reason: slow_consumer (a consumer fell EDGEPOS_STREAM_QUEUE behind and was "
+            "dropped), decimated (max_rate_hz), publish_backlog (this worker's stream writes fell behind), "
+            "store_unavailable (the store refused the stream write).",
+            ["reason"],
+            registry=self.registry,
+        )
+
     def observe_request(self, method: str, route: str, status: int, seconds: float) -> None:
         labels = (method, route, str(status))
         self.requests.labels(*labels).inc()

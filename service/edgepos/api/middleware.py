@@ -172,7 +172,9 @@ class AdmissionMiddleware:
     orchestrator does not restart a busy worker.
     """
 
-    BYPASS = frozenset({"/healthz", "/readyz", "/metrics"})
+    BYPASS = frozenset({"/healthz", "/readyz", "/metrics", "/v1/stream/fixes"})
+    """Probes, metrics and the fix stream, whose responses last as long as the consumer stays (a stream
+    would hold a slot for hours; EDGEPOS_STREAM_MAX_CONSUMERS bounds the streams instead)."""
 
     def __init__(self, app: ASGIApp, max_inflight: int, queue_timeout_s: float, metrics: Metrics) -> None:
         self.app = app

@@ -531,6 +531,49 @@ class BatchOut(ResponseModel):
     )
 
 
+class FixEventOut(ResponseModel):
+    """The data of one ``fix`` event of the fix stream (GET /v1/stream/fixes): one fix of an applied batch."""
+
+    session_id: str = Field(description="The session whose batch produced the fix.")
+    vehicle_id: str = Field(description="The session's vehicle.")
+    pipeline: str = Field(description="The session's pipeline.")
+    seq: int = Field(description="The seq of the batch that produced the fix.")
+    fix: FixOut = Field(
+        description="The fix exactly as the batch's answer carried it, except state, which is always null on the "
+        "stream (read the session's track for the state covariance)."
+    )
+
+
+class StreamMissedOut(ResponseModel):
+    """The data of a ``missed`` event: sent first when a consumer resumes from an id whose successors the
+    stream's buffer (EDGEPOS_STREAM_BUFFER) no longer holds, or when this worker's reader fell behind it;
+    the stream then goes on with the oldest fixes it holds."""
+
+    reason: Literal["trimmed", "unknown"] = Field(
+        description="trimmed: the fixes after last_event_id were older than the buffer holds (missed says how "
+        "many); unknown: last_event_id is ahead of the stream (its buffer was reset, e.g. the in-process store "
+        "restarted), so how many were missed is not known."
+    )
+    last_event_id: str | None = Field(
+        description="The id the consumer resumed from (null: the worker fell behind)."
+    )
+    missed: int | None = Field(description="How many fixes were missed, when known.")
+    oldest_event_id: str | None = Field(description="The oldest id the buffer holds now (null: it is empty).")
+    message: str = Field(description="The same in words.")
+
+
+class StreamEndOut(ResponseModel):
+    """The data of an ``end`` event: the last event of a stream that the server ends."""
+
+    reason: Literal["slow_consumer", "session_ended"] = Field(
+        description="slow_consumer: the consumer fell EDGEPOS_STREAM_QUEUE fixes behind and was dropped so that it "
+        "holds nobody back (reconnect with Last-Event-ID to resume); session_ended: the session whose token "
+        "opened the stream was deleted, superseded or expired."
+    )
+    last_event_id: str | None = Field(description="The id of the last fix sent on this stream (null: none).")
+    message: str = Field(description="The same in words.")
+
+
 class TrackOut(ResponseModel):
     """The estimates of a session's lag window, one per epoch, oldest first."""
 

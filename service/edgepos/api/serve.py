@@ -62,6 +62,11 @@ def _settings(args: argparse.Namespace) -> Settings:
 KEEP_ALIVE_S = 75
 """Seconds an idle keep-alive connection stays open."""
 
+GRACEFUL_SHUTDOWN_S = 10
+"""On SIGTERM, how long a worker waits for its requests in progress before cancelling them. A fix stream
+(GET /v1/stream/fixes) never ends by itself: without a bound uvicorn would wait for every consumer to
+leave. Batches take milliseconds; consumers reconnect elsewhere with Last-Event-ID."""
+
 
 def run(args: argparse.Namespace) -> int:
     import uvicorn
@@ -119,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
         # Longer than any client's idle-connection expiry (httpx: 5 s), so that a vehicle never sends
         # a batch on a connection the server is closing at that moment (a reset, not an answer).
         timeout_keep_alive=KEEP_ALIVE_S,
+        timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
     )
     return 0
 

@@ -34,6 +34,7 @@ from edgepos.api.schemas import (
     SessionOut,
     TrackOut,
 )
+from edgepos.api.streams import fix_event_data
 from edgepos.core.errors import EstimationError
 from edgepos.core.observations import (
     PseudorangeObservation,
@@ -60,6 +61,7 @@ from edgepos.store.base import (
     TooManySessions,
     VehicleNotRegistered,
 )
+from edgepos.store.fixlog import NewFix
 
 logger = logging.getLogger("edgepos.api")
 
@@ -443,11 +445,31 @@ async def _apply_in_turn(
             )
             if await context.store.compare_and_set(updated, record.version):
                 metrics.observe_batch(len(fixes), elapsed)
+                _publish_fixes(context, record, batch.seq, wire_fixes)
                 if pipeline.publishes_track:
                     await _publish_track(context, record, published.get(record.vehicle_id), fixes)
                 return body
             metrics.store_conflicts.inc()
     raise ApiError("unavailable", "the session kept changing under this request; retry the same batch")
+
+
+def _publish_fixes(
+    context: AppContext, record: SessionRecord, seq: int, wire_fixes: list[dict[str, Any]]
+) -> None:
+    """Hand the applied batch's fixes to the fix stream: queued for this worker's publisher, so the answer
+    never waits for the stream (see api.streams)."""
+    context.streams.publish(
+        [
+            NewFix(
+                record.session_id,
+                record.vehicle_id,
+                record.pipeline,
+                float(fix["t"]),
+                fix_event_data(record.session_id, record.vehicle_id, record.pipeline, seq, fix),
+            )
+            for fix in wire_fixes
+        ]
+    )
 
 
 def _rsu_ids(observations: list[Any]) -> set[str]:

@@ -126,6 +126,40 @@ class Settings(BaseSettings):
     rate_limit_burst: int = Field(
         100, ge=1, description="Requests a session's token may make at once before the rate applies."
     )
+    stream_buffer: int = Field(
+        10_000,
+        ge=10,
+        le=1_000_000,
+        description="Fixes the fix stream (GET /v1/stream/fixes) keeps for consumers that resume with "
+        "Last-Event-ID, across all sessions; a consumer further behind is told how many it missed.",
+    )
+    stream_queue: int = Field(
+        1_000,
+        ge=10,
+        le=1_000_000,
+        description="Fixes one stream consumer may have waiting to be sent; a consumer that falls further "
+        "behind is dropped with a final event saying so (it resumes with Last-Event-ID), so a slow "
+        "consumer never holds back the others or the vehicles.",
+    )
+    stream_max_consumers: int = Field(
+        64, ge=1, le=100_000, description="Fix stream consumers one worker serves at once (503 beyond)."
+    )
+    stream_interval_ms: float = Field(
+        50.0,
+        ge=0,
+        le=1000,
+        allow_inf_nan=False,
+        description="Under load a worker reads the fix stream and writes to its consumers at most once per this "
+        "many ms, all that came meanwhile at once (0: as soon as each batch's fixes arrive); fewer, larger writes "
+        "keep the consumers from delaying the vehicles' answers.",
+    )
+    stream_ping_s: float = Field(
+        15.0,
+        gt=0,
+        le=300,
+        allow_inf_nan=False,
+        description="Seconds between keep-alive comments on an idle fix stream, so proxies do not cut it.",
+    )
     origin_lat: float | None = Field(
         None, ge=-90, le=90, allow_inf_nan=False, description="Site origin latitude, WGS-84 decimal degrees."
     )
@@ -224,7 +258,9 @@ class Settings(BaseSettings):
 
     @model_validator(mode="after")
     def _wait_needs_redis(self) -> Settings:
-        if self.redis_wait_replicas and not self.store.startswith(("redis://", "rediss://", "unix://", "redis-cluster://")):
+        if self.redis_wait_replicas and not self.store.startswith(
+            ("redis://", "rediss://", "unix://", "redis-cluster://")
+        ):
             raise ValueError(
                 "redis_wait_replicas (EDGEPOS_REDIS_WAIT_REPLICAS) needs a Redis store (EDGEPOS_STORE)"
             )

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from edgepos.pipelines.base import NeighbourTrack, Rsu, TrackPoint
+from edgepos.store.fixlog import FixLog, MemoryFixLog
 from edgepos.store.ratelimit import RateLimit
 
 Clock = Callable[[], float]
@@ -386,6 +387,13 @@ class SessionStore(ABC):
         replayed answer is sent only after this, so a retry cannot acknowledge a batch that the first
         attempt stored but could not replicate. Nothing to wait for by default."""
         return
+
+    # the fix stream (GET /v1/stream/fixes)
+    def fix_log(self, buffer: int) -> FixLog:
+        """A new handle on the log of applied fixes that this store's processes share, holding the last
+        ``buffer`` events. By default the log lives in this process, which is right for a store that
+        serves one process only (the in-process store); shared stores share it through themselves."""
+        return MemoryFixLog(buffer)
 
     # lifecycle
     async def ping(self) -> bool:

@@ -183,6 +183,16 @@ class RedisClusterStore(RedisStore):
             },
         )
 
+    def _blocking_client(self, block_s: float) -> Any:
+        """A cluster client of its own for XREAD BLOCK on the fix stream (one slot: one node's connection)."""
+        settings = self.settings["client"]
+        return RedisCluster(
+            startup_nodes=[ClusterNode(host, port) for host, port in self.settings["nodes"]],
+            require_full_coverage=False,
+            retry=Retry(ExponentialBackoff(cap=0.5, base=0.1), retries=4),
+            **{**settings, "socket_timeout": settings["socket_timeout"] + block_s, "max_connections": 2},
+        )
+
     @asynccontextmanager
     async def _guard(self) -> AsyncIterator[None]:
         await self._redis()  # this loop's client and permits

@@ -230,4 +230,20 @@ END_VEHICLE_SESSION = (
     + """
 return end_live_session(KEYS[1], KEYS[2], KEYS[3], ARGV[1], ARGV[2])
 """
+
 )
+
+# The fix stream (store.redis.RedisFixLog). KEYS: the stream, its id counter (one slot: {fixes}).
+# ARGV: MAXLEN, then session id, vehicle id, pipeline, t, data of each fix. Gives the fixes the next
+# ids of the counter (dense: a consumer's resume can tell exactly how many events it missed) and
+# appends them, trimming the stream to about MAXLEN entries. Returns the last id given.
+PUBLISH_FIXES = """
+local n = (#ARGV - 1) / 5
+local last = redis.call('INCRBY', KEYS[2], n)
+for i = 0, n - 1 do
+  local b = 2 + i * 5
+  redis.call('XADD', KEYS[1], 'MAXLEN', '~', ARGV[1], string.format('%d-0', last - n + 1 + i),
+    's', ARGV[b], 'v', ARGV[b + 1], 'p', ARGV[b + 2], 't', ARGV[b + 3], 'd', ARGV[b + 4])
+end
+return last
+"""

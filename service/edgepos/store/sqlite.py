@@ -37,6 +37,7 @@ from edgepos.store.base import (
     decode_track,
     encode_track,
 )
+from edgepos.store.fixlog import FixLog, SQLiteFixLog, fix_log_path
 from edgepos.store.ratelimit import RateLimit, gcra
 
 T = TypeVar("T")
@@ -155,6 +156,10 @@ class SQLiteStore(SessionStore):
         if self._executor is None:
             self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="edgepos-sqlite")
         return self._executor
+
+    def fix_log(self, buffer: int) -> FixLog:
+        """The fix stream's log in a file beside this one (see ``edgepos.store.fixlog``)."""
+        return SQLiteFixLog(fix_log_path(self.path), buffer)
 
     async def _run(self, fn: Callable[[sqlite3.Connection], T]) -> T:
         loop = asyncio.get_running_loop()
