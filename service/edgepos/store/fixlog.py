@@ -7,7 +7,7 @@ holds them all, a :class:`Gap` saying how many it missed. Three implementations,
 
 * :class:`MemoryFixLog`: a ``deque`` in this process (the in-process store: one worker);
 * :class:`SQLiteFixLog`: a table in a file beside the SQLite store's, shared by the workers of one box;
-* ``RedisFixLog`` (``edgepos.store.redis``): a Redis stream, shared by every worker of every replica.
+* ``RedisFixLog`` (``edgepos.store.redis_fixlog``): a Redis stream, shared by every worker of every replica.
 
 The log is written by one publisher task per worker and read by one reader task per worker (which
 fans the events out to that worker's consumers), never by the requests of the vehicles themselves.

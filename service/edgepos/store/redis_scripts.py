@@ -233,7 +233,7 @@ return end_live_session(KEYS[1], KEYS[2], KEYS[3], ARGV[1], ARGV[2])
 
 )
 
-# The fix stream (store.redis.RedisFixLog). KEYS: the stream, its id counter (one slot: {fixes}).
+# The fix stream (store.redis_fixlog.RedisFixLog). KEYS: the stream, its id counter (one slot: {fixes}).
 # ARGV: MAXLEN, then session id, vehicle id, pipeline, t, data of each fix. Gives the fixes the next
 # ids of the counter (dense: a consumer's resume can tell exactly how many events it missed) and
 # appends them, trimming the stream to about MAXLEN entries. Returns the last id given.
