@@ -163,7 +163,8 @@ class RedisClusterStore(RedisStore):
         self._counts: tuple[float, list[int]] | None = None  # (monotonic time, sessions per shard)
         self._permits = asyncio.Semaphore(1)  # replaced with the client, per event loop
 
-    def _parse_url(self, url: str) -> tuple[str, str]:
+    @staticmethod
+    def _parse_url(url: str) -> tuple[str, str]:
         return url, parse_cluster_url(url)["prefix"]
 
     def _connect(self) -> Any:
