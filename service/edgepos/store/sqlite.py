@@ -319,7 +319,8 @@ class SQLiteStore(SessionStore):
         pipeline: str | None = None,
         vehicle_id: str | None = None,
     ) -> list[SessionSummary]:
-        conditions, params = ["updated_at >= ?"], [self._live_since()]
+        conditions: list[str] = ["updated_at >= ?"]
+        params: list[float | str] = [self._live_since()]
         filters = (("session_id > ?", after), ("pipeline = ?", pipeline), ("vehicle_id = ?", vehicle_id))
         for condition, value in filters:
             if value is not None:
