@@ -26,7 +26,6 @@ import json
 import math
 import os
 import platform
-import statistics
 import sys
 import tempfile
 import time
@@ -41,7 +40,7 @@ from edgepos.loadgen import common
 from edgepos.loadgen.localredis import RedisServer, redis_binary
 from edgepos.loadgen.localserver import clean_environment, running, serve_command
 from edgepos.pipelines import cost
-from edgepos.pipelines.gnss_tight import OPTION_SPECS as GNSS_OPTIONS
+from edgepos.pipelines.gnss_options import OPTION_SPECS as GNSS_OPTIONS
 from edgepos.sim.scenarios import rsu_imu_paper_scenario
 from edgepos.sim.sensors import rsu_imu_epochs
 from gnss_api import load_epochs  # the GNSS bench's reading of the recording (bench/ is on sys.path)

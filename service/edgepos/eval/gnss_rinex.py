@@ -45,7 +45,8 @@ from edgepos.gnss.rinex_obs import ALL_SYSTEMS, DEFAULT_CODES, parse_systems, re
 from edgepos.gnss.spp import SppConfig, SppError, read_reference, reference_velocity, solve_epoch
 from edgepos.gnss.timesys import SECONDS_PER_WEEK
 from edgepos.pipelines.base import StaticEnvironment
-from edgepos.pipelines.gnss_tight import MAX_CARRIER_CYCLES, MAX_DOPPLER_HZ, GnssTightPipeline
+from edgepos.pipelines.gnss_options import MAX_CARRIER_CYCLES, MAX_DOPPLER_HZ
+from edgepos.pipelines.gnss_tight import GnssTightPipeline
 
 
 def configure(parser: argparse.ArgumentParser) -> None:

@@ -57,13 +57,9 @@ from edgepos.core.measurements.range_rate import RangeRateModel
 from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GeodeticAnchor, GnssOnlyModel, RissInput, RissModel
 from edgepos.core.observations import Observation, PseudorangeObservation, RissObservation
-from edgepos.core.particles import PARTICLE_FILTERS, Cloud, Measurement
+from edgepos.core.particles import Cloud, Measurement
 from edgepos.core.particles.base import StepResult, weighted_moments
 from edgepos.gnss.carrier import (
-    DEFAULT_CODE_JUMP_M,
-    DEFAULT_MAX_GAP_S,
-    DEFAULT_SLIP_CYCLES_PER_S,
-    DEFAULT_WINDOW_S,
     HatchConfig,
     hatch_update,
 )
@@ -87,6 +83,17 @@ from edgepos.pipelines.base import (
     is_finite_number,
 )
 from edgepos.pipelines.epochs import group_by_time
+from edgepos.pipelines.gnss_options import (
+    DEFAULT_DOPPLER_OUTLIER_STD_MPS,
+    DEFAULT_DOPPLER_STD_MPS,
+    MAX_CARRIER_CYCLES,
+    MAX_DOPPLER_HZ,
+    MAX_LLI,
+    MAX_PRN,
+    OPTION_SPECS,
+    SECONDS_PER_WEEK,
+    SYSTEMS,
+)
 from edgepos.pipelines.gnss_satellites import (
     CorrectionUses,
     EpochSatellites,
@@ -111,193 +118,9 @@ from edgepos.pipelines.gnss_session import (
 )
 from edgepos.pipelines.options import resolve_options
 
-SYSTEMS = ("G", "C", "E")
-MAX_PRN = 63
-SECONDS_PER_WEEK = 604800.0
-MAX_CARRIER_CYCLES = 1.0e10
-"""Largest |carrier phase| accepted (cycles): RINEX writes it as F14.3, below 1e10; float64 keeps 1e-6 cycle
-there."""
-MAX_LLI = 7
-"""RINEX loss-of-lock indicators are three bits."""
-CARRIER_SMOOTHING = ("hatch", "off")
-DEFAULT_CARRIER_SMOOTHING = "hatch"
-DEFAULT_HATCH_STD_FLOOR = 0.2
-MAX_DOPPLER_HZ = 20000.0
-"""Largest |Doppler| accepted: a ground receiver sees at most about 5 kHz on L1 from satellite motion, plus
-its oscillator's offset (a few kHz for a poor one)."""
-DEFAULT_DOPPLER_STD_MPS = 0.25
-DEFAULT_DOPPLER_OUTLIER_STD_MPS = 5.0
-"""The Doppler options' defaults, also for sessions stored before the options existed (they sent no Doppler,
-but a client of such a session may start to)."""
 _SAT_RADIUS_M = (1.0e7, 5.0e7)
 """Geocentric distances a client-sent satellite position must lie between (MEO to GEO/IGSO)."""
 
-OPTION_SPECS: tuple[OptionSpec, ...] = (
-    OptionSpec(
-        "filter", "string", "upf",
-        "upf: the paper's unscented particle filter (a UKF proposal per particle); pf: bootstrap particle "
-        "filter (prior as proposal); ukf: a single unscented Kalman filter (cheap baseline).",
-        choices=tuple(PARTICLE_FILTERS),
-    ),
-    OptionSpec(
-        "particles", "integer", 200,
-        "Particles of the pf and upf filters (ignored by ukf). The maximum keeps one epoch of the most "
-        "pseudoranges accepted (40) within the default CPU budget per batch (EDGEPOS_BATCH_CPU_BUDGET_MS, "
-        "50 ms) for the pf; the upf costs about twice as much per particle, and a session whose options "
-        "would not fit one such epoch in the server's budget (about 350 upf particles at 50 ms) is refused "
-        "with 422 saying how many fit.",
-        10, 700,
-    ),
-    OptionSpec(
-        "resample_threshold", "number", 0.5,
-        "Resample when the effective sample size falls below this fraction of the particles.", 0.0, 1.0,
-    ),
-    OptionSpec(
-        "spread_fraction", "number", 0.02,
-        "upf: the fraction of each particle's UKF proposal covariance the particles carry as their spread; "
-        "each keeps the rest as its own covariance. 1: the particles alone carry the uncertainty; near 0: "
-        "each particle is a UKF. 0.02 measured best on the simulated urban drive (docs/gnss-simulation.md).",
-        0.0, 1.0,
-    ),
-    OptionSpec(
-        "fuzzy", "boolean", True,
-        "Scale each pseudorange's noise by the fuzzy factor of its elevation and C/N0 (Table 1, eq. 20); "
-        "off: every pseudorange has pseudorange_std.",
-    ),
-    OptionSpec("pseudorange_std", "number", 2.0, "R0: pseudorange noise std (m) before the fuzzy factor.", 0.01, 1000.0),
-    OptionSpec(
-        "outlier_probability", "number", 0.1,
-        "PF and UPF: each pseudorange's likelihood in the particle weights is the mixture (1 - p) N(0, "
-        "(R0 x fuzzy factor)^2) + p N(0, outlier_std^2), a heavy tail for reflected (NLOS) signals and other "
-        "errors the Gaussian does not model (the UPF's UKF proposal stays Gaussian). 0.1: one range in ten "
-        "may be an outlier, a generic robust-likelihood prior (not fitted to a scenario). 0: Gaussian. Not "
-        "used by the UKF.", 0.0, 0.9,
-    ),
-    OptionSpec(
-        "outlier_std", "number", 30.0,
-        "Std (m) of the likelihood's outlier component (see outlier_probability): the size of a reflected "
-        "signal's extra path in a street canyon, tens of metres.", 0.1, 10000.0,
-    ),
-    OptionSpec(
-        "use_doppler", "boolean", True,
-        "Use each pseudorange's doppler_hz as a range rate in the update (velocity and receiver clock drift) "
-        "and in the least-squares initialisation; off: every Doppler is reported unused (to measure what "
-        "Doppler adds).",
-    ),
-    OptionSpec(
-        "doppler_std_mps", "number", DEFAULT_DOPPLER_STD_MPS,
-        "Range-rate noise std (m/s) of a Doppler before the fuzzy factor (its pseudorange's factor when fuzzy "
-        "is on). 0.25: the RMS (0.23 m/s) of the first half of tests/data/gnss-rover's Doppler residuals at "
-        "the reference trajectory, each divided by its fuzzy factor, rounded up (docs/gnss.md).", 0.001, 100.0,
-    ),
-    OptionSpec(
-        "doppler_outlier_std_mps", "number", DEFAULT_DOPPLER_OUTLIER_STD_MPS,
-        "PF and UPF: std (m/s) of a Doppler likelihood's outlier component (see outlier_probability): a "
-        "reflected signal's range rate differs from the direct one's by up to twice the vehicle's speed, "
-        "metres per second in town.", 0.01, 1000.0,
-    ),
-    OptionSpec(
-        "carrier_smoothing", "string", DEFAULT_CARRIER_SMOOTHING,
-        "What a pseudorange's carrier_cycles is used for. hatch: carrier-smoothed code (Hatch filter per "
-        "satellite, gnss/carrier.py): the smoothed pseudorange replaces the raw one in the update with its "
-        "noise std scaled by max(1/sqrt(epochs averaged), hatch_std_floor); a cycle slip (lli bit 0, phase "
-        "change against the integrated Doppler, code-carrier jump, a gap) restarts that satellite's average "
-        "only. off: carrier phase is ignored. Sessions stored before the option existed keep off.",
-        choices=CARRIER_SMOOTHING,
-    ),
-    OptionSpec(
-        "hatch_window_s", "number", DEFAULT_WINDOW_S,
-        "Hatch filter memory (s): the average weighs at most window / epoch interval epochs. 100 s (the SBAS "
-        "standard's): on one frequency the smoothed code drifts by twice the ionosphere's change over the window, "
-        "decimetres at 100 s, while code multipath averages down.", 1.0, 3600.0,
-    ),
-    OptionSpec(
-        "hatch_std_floor", "number", DEFAULT_HATCH_STD_FLOOR,
-        "Smallest fraction of the raw pseudorange std a smoothed pseudorange gets: averaging n epochs divides "
-        "white noise by sqrt(n), but street-canyon multipath is correlated over tens of seconds and does not "
-        "average down that fast. Chosen on the first half of tests/data/gnss-rover (docs/gnss.md).", 0.01, 1.0,
-    ),
-    OptionSpec(
-        "carrier_slip_cycles_per_s", "number", DEFAULT_SLIP_CYCLES_PER_S,
-        "Cycle-slip test: restart a satellite's smoothing when its phase change differs from its integrated "
-        "Doppler by more than this many cycles per second of interval (needs doppler_hz and use_doppler).",
-        0.1, 1.0e4,
-    ),
-    OptionSpec(
-        "carrier_code_jump_m", "number", DEFAULT_CODE_JUMP_M,
-        "Cycle-slip test: restart a satellite's smoothing when its code differs from the carrier-propagated "
-        "smoothed range by more than this (m).", 0.1, 1.0e4,
-    ),
-    OptionSpec(
-        "carrier_max_gap_s", "number", DEFAULT_MAX_GAP_S,
-        "Longest time (s) between a satellite's carrier phases its smoothing continues across.", 0.01, 600.0,
-    ),
-    OptionSpec(
-        "systems", "string[]", list(SYSTEMS),
-        "Constellations used (RINEX letters G GPS, C BeiDou, E Galileo); others are reported unused.",
-        choices=SYSTEMS,
-    ),
-    OptionSpec("elevation_mask", "number", math.radians(10.0), "Elevation mask (rad).", -0.1, 1.5),
-    OptionSpec("min_cn0", "number", 0.0, "Pseudoranges below this C/N0 (dB-Hz) are not used.", 0.0, 80.0),
-    OptionSpec(
-        "gate_probability", "number", 0.9999,
-        "Residual test: exclude a pseudorange (or a Doppler's range rate) whose normalised residual squared "
-        "exceeds this chi-square(1) quantile; 0 disables.", 0.0, 0.999999999,
-    ),
-    OptionSpec(
-        "fde_probability", "number", 0.999,
-        "Snapshot fault detection and exclusion, as in the least-squares baseline: while the chi-square test "
-        "(this level) of the epoch's weighted least-squares residuals, linearised at the prediction, fails, "
-        "the pseudorange with the largest standardised residual is excluded; 0 disables.", 0.0, 0.999999999,
-    ),
-    OptionSpec(
-        "max_exclusions", "integer", 4, "Pseudoranges the snapshot test may exclude per epoch.", 0, 30
-    ),
-    OptionSpec("ionosphere", "boolean", True, "Apply the broadcast Klobuchar ionosphere (needs ephemerides)."),
-    OptionSpec("troposphere", "boolean", True, "Apply the Saastamoinen troposphere."),
-    OptionSpec(
-        "accel_std", "number", 3.0,
-        "GNSS-only model: horizontal white-noise acceleration (m/s^2); a car braking, accelerating and "
-        "cornering in town reaches 2-4 m/s^2.", 1e-3, 100.0,
-    ),
-    OptionSpec("vertical_accel_std", "number", 0.3, "GNSS-only model: vertical white-noise acceleration (m/s^2).", 1e-3, 100.0),
-    OptionSpec("wheel_speed_std", "number", 0.1, "RISS model: wheel speed noise (m/s).", 1e-4, 10.0),
-    OptionSpec("accelerometer_std", "number", 0.05, "RISS model: accelerometer noise (m/s^2).", 1e-4, 10.0),
-    OptionSpec("gyro_std", "number", 0.005, "RISS model: yaw gyro noise (rad/s).", 1e-6, 1.0),
-    OptionSpec(
-        "gyro_bias_std", "number", 0.002,
-        "RISS model: initial std of the yaw gyro's bias (rad/s; 0.002 = 0.11 deg/s, a MEMS gyro's turn-on "
-        "bias after start-up calibration), estimated in the state.", 1e-6, 0.1,
-    ),
-    OptionSpec(
-        "gyro_bias_psd", "number", 1e-10,
-        "RISS model: random-walk density of the gyro bias (rad^2/s^3; 1e-10 lets it wander 0.03 deg/s in "
-        "an hour, the bias instability of a 10 deg/h MEMS gyro).", 0.0, 1e-4,
-    ),
-    OptionSpec(
-        "wheel_scale_std", "number", 0.01,
-        "RISS model: initial std of the wheel speed's scale error (0.01: a tyre's rolling radius known to "
-        "1 %), estimated in the state.", 1e-6, 0.2,
-    ),
-    OptionSpec("clock_bias_psd", "number", 1.0, "Receiver clock bias random-walk density (m^2/s).", 1e-6, 1e6),
-    OptionSpec("clock_drift_psd", "number", 0.1, "Receiver clock drift random-walk density (m^2/s^3).", 1e-8, 1e6),
-    OptionSpec(
-        "riss_timeout", "number", 1.5,
-        "Use the RISS model while the last riss sample is at most this old (s); otherwise GNSS-only.", 0.01, 60.0,
-    ),
-    OptionSpec(
-        "max_gap", "number", 30.0,
-        "Longest time (s) between epochs the filter predicts across; after a longer gap it starts again "
-        "from the next least-squares fix.", 0.1, 86400.0,
-    ),
-    OptionSpec("init_velocity_std", "number", 10.0, "Velocity std (m/s) when initialising from a fix.", 0.01, 1000.0),
-    OptionSpec("gps_week", "integer", None, "GPS week of the times of week when no ephemerides are loaded.", 0, 10000),
-    OptionSpec(
-        "seed", "integer", None,
-        "Random seed of the particle filters; null draws one at session creation (stored in the state, so "
-        "a replay gives the same fixes).", 0, 2**63 - 1,
-    ),
-)
 
 _INITIAL_CLOCK_DRIFT_STD = 5.0
 _INITIAL_DOPPLER_VELOCITY_STD = 1.0
