@@ -232,7 +232,7 @@ def test_non_finite_literals_are_refused(client, literal):
     before = _record(client, session_id)
     content = (
         '{"seq": 1, "measurements": [{"type": "gyro", "t": 1.0, "yaw_rate": 0.1},'
-        ' {"type": "rsu", "t": %s, "rsu_id": "S+000", "range": %s, "bearing": 0.0}]}' % (literal, literal)
+        ' {"type": "rsu", "t": ' + literal + ', "rsu_id": "S+000", "range": ' + literal + ', "bearing": 0.0}]}'
     )
     error = assert_error(_post_raw(client, session_id, content, token), 422, "invalid_request")
     assert [(p["index"], p["field"]) for p in error["problems"]] == [

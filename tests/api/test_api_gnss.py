@@ -287,8 +287,8 @@ def test_nan_is_refused(client):
     session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
     item = measurements(0, 1)[0]
     raw = (
-        '{"seq": 1, "measurements": [{"type": "pseudorange", "t": %r, "system": "G", "prn": %d, '
-        '"pseudorange_m": NaN, "cn0_dbhz": 40.0}]}' % (item["t"], item["prn"])
+        f'{{"seq": 1, "measurements": [{{"type": "pseudorange", "t": {item["t"]!r}, "system": "G", '
+        f'"prn": {item["prn"]:d}, "pseudorange_m": NaN, "cn0_dbhz": 40.0}}]}}'
     )
     response = client.post(
         f"/v1/sessions/{session_id}/batches",

@@ -78,7 +78,7 @@ def test_invalid_rsus_list_every_problem(client):
 
 def test_non_finite_json_literals_are_refused(client):
     for literal in ("NaN", "Infinity", "-Infinity"):
-        content = '{"rsus": [{"id": "K", "x": %s, "y": 0}]}' % literal
+        content = '{"rsus": [{"id": "K", "x": ' + literal + ', "y": 0}]}'
         response = client.put(
             "/v1/rsus", content=content, headers={**ADMIN, "content-type": "application/json"}
         )

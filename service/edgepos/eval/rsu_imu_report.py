@@ -148,8 +148,8 @@ def report(
 ) -> str:
     """The whole text report."""
     parts = [
-        f"RSU + IMU paper scenario (sec. 5): {runs} Monte Carlo run(s), seed {seed}; "
-        "mean over time steps of the RMSE over runs (eqs. 39-40).",
+        (f"RSU + IMU paper scenario (sec. 5): {runs} Monte Carlo run(s), seed {seed}; "
+        "mean over time steps of the RMSE over runs (eqs. 39-40)."),
         "",
         results_table(results_by_name),
         "",
@@ -166,8 +166,8 @@ def report(
     if comparisons is not None:
         parts += [
             "",
-            "Improvement in mean RMSE, percent (positive: the candidate's error is lower than the "
-            "reference's):",
+            ("Improvement in mean RMSE, percent (positive: the candidate's error is lower than the "
+            "reference's):"),
             "",
             comparisons,
         ]

@@ -119,8 +119,8 @@ def rate(better: float, worse: float) -> float:
 
 def report(results: dict[str, dict[str, dict[str, float]]], runs: int, seed: int) -> str:
     lines = [
-        f"V2V cooperative positioning (Qiao & Qu 2021, sec. 4): {runs} runs, seed {seed}, "
-        f"{len(VEHICLE_IDS)} vehicles, {STEPS} epochs of {STEP:g} s",
+        (f"V2V cooperative positioning (Qiao & Qu 2021, sec. 4): {runs} runs, seed {seed}, "
+        f"{len(VEHICLE_IDS)} vehicles, {STEPS} epochs of {STEP:g} s"),
         "",
     ]
     rows = []
