@@ -112,7 +112,7 @@ CALIBRATION: dict[str, dict[str, float]] = {
         "batch_particle": 0.0 * _US,
     },
     "v2v_coop": {
-        "gps.epoch": 0.0 * _US,
+        "gps.epoch": 314 * _US,  # the Kalman filter on the fixes (07ee333); refitted alone on 2026-11-26, load 0.4
         "gps.range": 0.0 * _US,
         "gps.range2": 0.0 * _US,
         "gps_dr.epoch": 290 * _US,
