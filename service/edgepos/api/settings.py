@@ -160,6 +160,14 @@ class Settings(BaseSettings):
         allow_inf_nan=False,
         description="Seconds between keep-alive comments on an idle fix stream, so proxies do not cut it.",
     )
+    ws_idle_timeout_s: float = Field(
+        300.0,
+        gt=0,
+        le=86_400,
+        allow_inf_nan=False,
+        description="Seconds a batch WebSocket (/v1/sessions/{id}/ws) may stay without a frame from the "
+        "vehicle before the server closes it (code 1000); protocol pings alone do not keep it open.",
+    )
     origin_lat: float | None = Field(
         None, ge=-90, le=90, allow_inf_nan=False, description="Site origin latitude, WGS-84 decimal degrees."
     )
