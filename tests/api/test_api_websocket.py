@@ -191,7 +191,9 @@ def test_a_frame_over_the_body_limit_closes_with_1009_and_changes_nothing(tmp_pa
         big = compact(batch_body(1, 0, 40))
         assert len(big.encode()) > 4096
         assert_error(
-            client.post(f"/v1/sessions/{session_id}/batches", content=big, headers=token), 413, "payload_too_large"
+            client.post(f"/v1/sessions/{session_id}/batches", content=big, headers=token),
+            413,
+            "payload_too_large",
         )
         with client.websocket_connect(ws_path(session_id), headers=token) as websocket:
             assert exchange(websocket, compact(batch_body(1, 0, 1)))["status"] == 200
