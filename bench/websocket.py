@@ -7,9 +7,11 @@ answered, through the client package (``send_batch`` on its own keep-alive httpx
 of 1 epoch and of 20 epochs (``--batches``), the paper scenario with each vehicle's own noise
 (loadgen.common); a vehicle that reaches the scenario's end opens a new session (not timed). HTTP and
 WebSocket runs alternate in interleaved rounds (the order flips every round), each ``--duration``
-seconds. Printed per run: epochs/s, batches/s, p50/p99 latency (send to answer) and the service's CPU
-per epoch (its process, from /proc); then per batch size the medians over the rounds and the ratios
-WebSocket / HTTP, the core count and the load average. Loopback only.
+seconds. Printed per run: epochs/s, batches/s, p50/p99 latency (send to answer), and the CPU per epoch
+of the service (its process, from /proc) and of the vehicles (this process: all vehicles share one
+event loop, so on a small machine their client-side cost bounds the closed loop as much as the
+server does); then per batch size the medians over the rounds and the ratios WebSocket / HTTP, the
+core count and the load average. Loopback only.
 
     python bench/websocket.py [--vehicles N] [--batches 1,20] [--duration S] [--rounds R] [--json FILE]
 """
@@ -104,12 +106,12 @@ async def _run(
         else:
             for vehicle in vehicles:
                 await vehicle.client.send_batch(await vehicle.new_trip(), vehicle.batches[0])
-        cpu_before = service_cpu_s(url)
+        cpu_before, own_before = service_cpu_s(url), time.process_time()
         began = time.perf_counter()
         until = began + args.duration
         await asyncio.gather(*(vehicle.run(mode, until, latencies, epochs) for vehicle in vehicles))
         elapsed = time.perf_counter() - began
-        cpu_s = service_cpu_s(url) - cpu_before
+        cpu_s, own_s = service_cpu_s(url) - cpu_before, time.process_time() - own_before
     finally:
         for vehicle in vehicles:
             await vehicle.client.close()
@@ -121,6 +123,7 @@ async def _run(
         "p50_ms": 1e3 * (common.percentile(latencies, 50) or 0.0),
         "p99_ms": 1e3 * (common.percentile(latencies, 99) or 0.0),
         "service_cpu_us_per_epoch": 1e6 * cpu_s / max(1, epochs[0]),
+        "client_cpu_us_per_epoch": 1e6 * own_s / max(1, epochs[0]),
         "batches": len(latencies),
     }
 
@@ -129,7 +132,7 @@ def _line(run: dict[str, Any]) -> str:
     return (
         f"{run['mode']:>4} {run['batch_epochs']:>2}-epoch: {run['epochs_per_s']:8.0f} epochs/s "
         f"{run['batches_per_s']:7.0f} batches/s  p50 {run['p50_ms']:6.2f} ms  p99 {run['p99_ms']:6.2f} ms  "
-        f"service CPU {run['service_cpu_us_per_epoch']:6.0f} us/epoch"
+        f"CPU/epoch service {run['service_cpu_us_per_epoch']:5.0f} us, vehicles {run['client_cpu_us_per_epoch']:5.0f} us"
     )
 
 
@@ -141,7 +144,13 @@ def _summary(runs: list[dict[str, Any]], sizes: list[int]) -> dict[str, Any]:
                 key: statistics.median(
                     r[key] for r in runs if r["mode"] == mode and r["batch_epochs"] == size
                 )
-                for key in ("epochs_per_s", "p50_ms", "p99_ms", "service_cpu_us_per_epoch")
+                for key in (
+                    "epochs_per_s",
+                    "p50_ms",
+                    "p99_ms",
+                    "service_cpu_us_per_epoch",
+                    "client_cpu_us_per_epoch",
+                )
             }
             for mode in MODES
         }
@@ -192,12 +201,14 @@ def main() -> int:
             m = entry["median"][mode]
             print(
                 f"  {mode:>4} {size:>2}-epoch: {m['epochs_per_s']:8.0f} epochs/s  p50 {m['p50_ms']:6.2f} ms  "
-                f"p99 {m['p99_ms']:6.2f} ms  service CPU {m['service_cpu_us_per_epoch']:6.0f} us/epoch"
+                f"p99 {m['p99_ms']:6.2f} ms  CPU/epoch service {m['service_cpu_us_per_epoch']:5.0f} us, "
+                f"vehicles {m['client_cpu_us_per_epoch']:5.0f} us"
             )
         r = entry["ws_over_http"]
         print(
             f"  ws/http {size:>2}-epoch: epochs/s x{r['epochs_per_s']:.2f}  p50 x{r['p50_ms']:.2f}  "
-            f"p99 x{r['p99_ms']:.2f}  service CPU/epoch x{r['service_cpu_us_per_epoch']:.2f}"
+            f"p99 x{r['p99_ms']:.2f}  CPU/epoch service x{r['service_cpu_us_per_epoch']:.2f}, "
+            f"vehicles x{r['client_cpu_us_per_epoch']:.2f}"
         )
     load = os.getloadavg()
     print(f"cores {os.cpu_count()}, load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")

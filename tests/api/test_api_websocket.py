@@ -116,9 +116,11 @@ def test_a_refused_handshake_gets_the_http_error_of_the_post_route(client, who):
         "not bearer": {"Authorization": token["Authorization"].replace("Bearer", "Basic")},
     }[who]
     posted = client.post(f"/v1/sessions/{session_id}/batches", json=batch_body(1, 0, 1), headers=headers)
-    with pytest.raises(WebSocketDenialResponse) as refused:
-        with client.websocket_connect(ws_path(session_id), headers=headers):
-            pass
+    with (
+        pytest.raises(WebSocketDenialResponse) as refused,
+        client.websocket_connect(ws_path(session_id), headers=headers),
+    ):
+        pass
     status = 403 if who == "another session" else 401
     error = assert_error(refused.value, status, posted.json()["error"]["code"])
     assert refused.value.json() == posted.json()
@@ -130,9 +132,11 @@ def test_a_refused_handshake_gets_the_http_error_of_the_post_route(client, who):
 def test_a_superseded_sessions_token_is_refused_with_409_at_the_handshake(client):
     old_id, old_token = open_session(client)
     new_id, _ = open_session(client)
-    with pytest.raises(WebSocketDenialResponse) as refused:
-        with client.websocket_connect(ws_path(old_id), headers=old_token):
-            pass
+    with (
+        pytest.raises(WebSocketDenialResponse) as refused,
+        client.websocket_connect(ws_path(old_id), headers=old_token),
+    ):
+        pass
     error = assert_error(refused.value, 409, "superseded")
     assert new_id in error["message"]
 
@@ -152,9 +156,12 @@ class WithoutDenialResponses:
 def test_without_denial_responses_a_refused_handshake_closes_with_1008_and_a_json_reason(settings):
     with TestClient(WithoutDenialResponses(create_app(settings))) as client:
         session_id, _token = open_session(client)
-        with pytest.raises(WebSocketDisconnect) as closed:
-            with client.websocket_connect(ws_path(session_id), headers=bearer(f"{session_id}.wrong")):
-                pass
+        wrong = bearer(f"{session_id}.wrong")
+        with (
+            pytest.raises(WebSocketDisconnect) as closed,
+            client.websocket_connect(ws_path(session_id), headers=wrong),
+        ):
+            pass
     assert closed.value.code == 1008
     assert json.loads(closed.value.reason) == {"status": 401, "code": "unauthorized"}
 
@@ -173,15 +180,25 @@ def test_a_session_superseded_while_connected_gets_an_error_frame_then_1008(clie
     assert json.loads(closed.value.reason) == {"status": 409, "code": "superseded"}
 
 
-def test_a_session_deleted_while_connected_gets_404_then_1008(client):
+@pytest.mark.parametrize(
+    ("credential", "status", "code"), [("token", 401, "unauthorized"), ("admin", 404, "not_found")]
+)
+def test_a_session_deleted_while_connected_is_refused_as_over_http_then_1008(
+    client, credential, status, code
+):
     session_id, token = open_session(client)
-    with client.websocket_connect(ws_path(session_id), headers=token) as websocket:
+    headers = token if credential == "token" else ADMIN
+    with client.websocket_connect(ws_path(session_id), headers=headers) as websocket:
+        assert exchange(websocket, compact(batch_body(1, 0, 1)))["status"] == 200
         assert client.delete(f"/v1/sessions/{session_id}", headers=ADMIN).status_code == 204
-        answer = exchange(websocket, compact(batch_body(1, 0, 1)))
-        assert (answer["status"], answer["body"]["error"]["code"]) == (404, "not_found")
+        posted = client.post(f"/v1/sessions/{session_id}/batches", json=batch_body(2, 1, 1), headers=headers)
+        answer = exchange(websocket, compact(batch_body(2, 1, 1)))
+        assert (answer["status"], answer["body"]) == (posted.status_code, posted.json())
+        assert (answer["status"], answer["body"]["error"]["code"]) == (status, code)
         with pytest.raises(WebSocketDisconnect) as closed:
             websocket.receive_text()
     assert closed.value.code == 1008
+    assert json.loads(closed.value.reason) == {"status": status, "code": code}
 
 
 def test_a_frame_over_the_body_limit_closes_with_1009_and_changes_nothing(tmp_path):
@@ -221,9 +238,11 @@ def test_a_binary_frame_is_415_and_the_link_stays_open(client):
 def test_an_idle_link_is_closed_with_1000(tmp_path):
     with TestClient(create_app(make_settings(tmp_path, ws_idle_timeout_s=0.2))) as client:
         session_id, token = open_session(client)
-        with client.websocket_connect(ws_path(session_id), headers=token) as websocket:
-            with pytest.raises(WebSocketDisconnect) as closed:
-                websocket.receive_text()
+        with (
+            client.websocket_connect(ws_path(session_id), headers=token) as websocket,
+            pytest.raises(WebSocketDisconnect) as closed,
+        ):
+            websocket.receive_text()
     assert closed.value.code == 1000
     assert json.loads(closed.value.reason) == {"status": 408, "code": "idle_timeout"}
 
@@ -246,3 +265,23 @@ def test_every_frame_counts_against_the_sessions_request_rate(tmp_path):
         assert limited["body"]["error"]["code"] == "rate_limited"
         assert limited["seq"] == 3 and 1 <= limited["retry_after"] <= 2
         assert client.get(f"/v1/sessions/{session_id}", headers=ADMIN).json()["last_seq"] == 2
+
+
+def test_links_beyond_the_workers_maximum_are_refused_503_with_retry_after(tmp_path):
+    with TestClient(create_app(make_settings(tmp_path, ws_max_connections=2))) as client:
+        client.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)
+        sessions = [open_session(client, vehicle_id=f"car-{n}") for n in range(3)]
+        (first, first_token), (second, second_token), (third, third_token) = sessions
+        with client.websocket_connect(ws_path(first), headers=first_token) as one:
+            with (
+                client.websocket_connect(ws_path(second), headers=second_token),
+                pytest.raises(WebSocketDenialResponse) as refused,
+                client.websocket_connect(ws_path(third), headers=third_token),
+            ):
+                pass
+            error = assert_error(refused.value, 503, "unavailable")
+            assert "EDGEPOS_WS_MAX_CONNECTIONS" in error["message"]
+            assert refused.value.headers["retry-after"] == "5"
+            assert exchange(one, compact(batch_body(1, 0, 1)))["status"] == 200
+        with client.websocket_connect(ws_path(third), headers=third_token) as three:  # room again
+            assert exchange(three, compact(batch_body(1, 0, 1)))["status"] == 200

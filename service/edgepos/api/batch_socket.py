@@ -3,10 +3,10 @@
 For vehicles that keep a link open: each text frame is one batch, exactly the body of
 ``POST /v1/sessions/{id}/batches``, and each answer one text frame
 ``{"status", "seq", "frame", "request_id", "retry_after", "body"}`` whose ``status`` and ``body`` are what
-the POST would have answered. The batch goes down the POST route's own path (the session check of
-``auth.authenticate_session`` at the handshake, the request-rate budget, the worker's admission line,
-``session_service.apply_batch`` with its scheduler turn, compare-and-set and replay), so seq rules,
-idempotency and errors are the same by construction. Frames are read one at a time: one batch of the
+the POST would have answered. Each frame goes down the POST route's own path (the worker's admission
+line, the session check of ``auth.authenticate_session`` with the token's request budget, the body's
+validation, ``session_service.apply_batch`` with its scheduler turn, compare-and-set and replay), so seq
+rules, idempotency and errors are the same by construction; the handshake is checked the same way. Frames are read one at a time: one batch of the
 connection is in flight, as over HTTP with one connection.
 
 Close codes: 1000 after EDGEPOS_WS_IDLE_TIMEOUT_S without a frame, 1008 after a frame answered that
@@ -30,7 +30,7 @@ from pydantic import ValidationError
 from starlette.websockets import WebSocketDisconnect
 
 from edgepos.api import session_service
-from edgepos.api.auth import Principal, authenticate_session, bearer_secret, charge_rate_limit
+from edgepos.api.auth import authenticate_session, bearer_secret
 from edgepos.api.context import AppContext
 from edgepos.api.errors import (
     ApiError,
@@ -51,8 +51,12 @@ ROUTE = "/v1/sessions/{session_id}/ws"
 CLOSE_NORMAL = 1000
 CLOSE_POLICY_VIOLATION = 1008
 CLOSE_TOO_BIG = 1009
-ENDING_CODES = frozenset({"superseded", "not_found"})
-"""Answers after which the session's token opens nothing more: the frame is sent, then the link closes."""
+FULL_RETRY_AFTER_S = 5
+"""Retry-After of a handshake refused because the worker holds its maximum of links."""
+ENDING_CODES = frozenset({"superseded", "not_found", "unauthorized"})
+"""Answers after which the credential opens nothing more (the session was superseded, or deleted, revoked or
+expired: 409 superseded, else as over HTTP 401 for its token and 404 for the admin key): the frame is sent,
+then the link closes."""
 
 
 def close_reason(status: int, code: str) -> str:
@@ -112,6 +116,7 @@ class BatchSocket:
         self.websocket = websocket
         self.context = context
         self.session_id = session_id
+        self.secret = bearer_secret(websocket)
         incoming = websocket.headers.get(REQUEST_ID_HEADER, "")
         self.connection_id = incoming if valid_request_id(incoming) else uuid.uuid4().hex
         self.frames = 0
@@ -124,16 +129,19 @@ class BatchSocket:
         close = "client"
         try:
             try:
-                principal, _record = await authenticate_session(
-                    self.context, self.websocket, self.session_id, bearer_secret(self.websocket)
-                )
+                await authenticate_session(self.context, self.websocket, self.session_id, self.secret)
+                self._check_room()
             except (ApiError, StoreUnavailable) as refusal:
                 error = refusal if isinstance(refusal, ApiError) else store_unavailable_error(refusal)
                 await self._deny(error)
                 close = f"refused:{error.code}"
                 return
-            await self.websocket.accept()
-            close = await self._answer_frames(principal)
+            self.context.batch_sockets += 1
+            try:
+                await self.websocket.accept()
+                close = await self._answer_frames()
+            finally:
+                self.context.batch_sockets -= 1
         except WebSocketDisconnect:
             close = "client"
         finally:
@@ -149,6 +157,17 @@ class BatchSocket:
             )
             request_id_var.reset(token)
 
+    def _check_room(self) -> None:
+        """503 with Retry-After when this worker already holds EDGEPOS_WS_MAX_CONNECTIONS links."""
+        most = self.context.settings.ws_max_connections
+        if self.context.batch_sockets >= most:
+            raise ApiError(
+                "unavailable",
+                f"this worker holds its maximum of {most} batch WebSockets (EDGEPOS_WS_MAX_CONNECTIONS); "
+                "retry after the Retry-After seconds, or send the batch with POST",
+                headers={"Retry-After": str(FULL_RETRY_AFTER_S)},
+            )
+
     async def _deny(self, error: ApiError) -> None:
         """Refuse the handshake: the POST route's HTTP error response, or a policy-violation close."""
         self.context.metrics.observe_request("WS", ROUTE, error.status, 0.0)
@@ -157,7 +176,7 @@ class BatchSocket:
         else:
             await self.websocket.close(CLOSE_POLICY_VIOLATION, close_reason(error.status, error.code))
 
-    async def _answer_frames(self, principal: Principal) -> str:
+    async def _answer_frames(self) -> str:
         settings = self.context.settings
         limit = settings.max_body_bytes
         while True:
@@ -177,7 +196,7 @@ class BatchSocket:
             request_id = f"{self.connection_id}.{self.frames}"
             token = request_id_var.set(request_id)
             try:
-                status, seq, body, error = await self._answer(principal, text)
+                status, seq, body, error = await self._answer(text)
             finally:
                 request_id_var.reset(token)
             retry_after = None if error is None else _retry_after(error)
@@ -189,11 +208,12 @@ class BatchSocket:
                 await self.websocket.close(CLOSE_POLICY_VIOLATION, close_reason(error.status, error.code))
                 return f"ended:{error.code}"
 
-    async def _answer(
-        self, principal: Principal, text: str | None
-    ) -> tuple[int, int | None, bytes, ApiError | None]:
+    async def _answer(self, text: str | None) -> tuple[int, int | None, bytes, ApiError | None]:
         """Status, echoed seq, body and the refusal (None on success) of one frame, in the POST route's
-        order: a place in the worker's line, the token's request budget, the body, the batch."""
+        order: a place in the worker's line; the credential checked against the session as it is now,
+        which charges the token's request budget (as every POST is checked: a session deleted, revoked,
+        expired or superseded meanwhile is refused alike); the body; the batch, applied on the record
+        that check read, as the POST route does."""
         document, syntax_error = (None, None) if text is None else decode_frame(text)
         seq = _seq_of(document)
         admission = self.context.admission
@@ -202,8 +222,9 @@ class BatchSocket:
             error = ApiError("unavailable", admission.busy_message, headers=retry_after)
             return error.status, seq, error_body(error.code, error.message), error
         try:
-            if not principal.admin and principal.session_id is not None:
-                await charge_rate_limit(self.context, self.session_id)
+            _principal, record = await authenticate_session(
+                self.context, self.websocket, self.session_id, self.secret
+            )
             if text is None:
                 raise ApiError(
                     "unsupported_media_type",
@@ -212,7 +233,8 @@ class BatchSocket:
                 )
             if syntax_error is not None:
                 raise syntax_error
-            body = await session_service.apply_batch(self.context, self.session_id, validate_batch(document))
+            batch = validate_batch(document)
+            body = await session_service.apply_batch(self.context, self.session_id, batch, record)
             return 200, seq, body, None
         except ApiError as refusal:
             error = refusal

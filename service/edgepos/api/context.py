@@ -45,6 +45,8 @@ class AppContext:
     admission: Admission | None = None
     """This worker's line of requests at work (EDGEPOS_MAX_INFLIGHT), set by ``create_app``: HTTP requests
     and WebSocket batch frames wait in it alike."""
+    batch_sockets: int = 0
+    """Batch WebSockets this worker holds open now (bounded by EDGEPOS_WS_MAX_CONNECTIONS)."""
     _scheduler: FairScheduler | None = field(default=None, repr=False)
     _streams: StreamHub | None = field(default=None, repr=False)
 
