@@ -72,7 +72,7 @@ def test_every_frame_is_answered_as_the_post_route_answers_the_same_body(client)
     assert (described["last_seq"], described["batches"]) == (2, 2)
 
 
-def test_answers_name_the_seq_and_the_frame_and_echo_the_request_id(client):
+def test_answers_name_the_seq_and_the_frame_and_echo_the_request_id(client, caplog):
     session_id, token = open_session(client)
     headers = {**token, "X-Request-ID": "vehicle-link-7"}
     with client.websocket_connect(ws_path(session_id), headers=headers) as websocket:
@@ -85,6 +85,10 @@ def test_answers_name_the_seq_and_the_frame_and_echo_the_request_id(client):
     assert "the next seq is 2" in gap["body"]["error"]["message"]
     assert (broken["status"], broken["seq"], broken["frame"]) == (422, None, 3)
     assert broken["body"]["error"]["problems"][0]["reason"].startswith("not valid JSON at line 1, column 2")
+    logged = [r for r in caplog.records if r.name == "edgepos.access" and getattr(r, "method", None) == "WS"]
+    assert [r.status for r in logged] == [200, 409, 422]  # one access line per frame, as per POST
+    metrics = client.get("/metrics").text
+    assert 'edgepos_http_requests_total{method="WS",route="/v1/sessions/{session_id}/ws",status="409"} 1.0' in metrics
 
 
 def test_a_retry_on_a_new_connection_replays_the_stored_answer(client):

@@ -194,16 +194,28 @@ class BatchSocket:
                 return "too_big"
             started = time.perf_counter()
             request_id = f"{self.connection_id}.{self.frames}"
-            token = request_id_var.set(request_id)
+            token = request_id_var.set(request_id)  # the frame's log lines carry its own request id
             try:
                 status, seq, body, error = await self._answer(text)
+                retry_after = None if error is None else _retry_after(error)
+                await self.websocket.send_text(
+                    answer_frame(status, seq, self.frames, request_id, retry_after, body)
+                )
+                elapsed = time.perf_counter() - started
+                self.context.metrics.observe_request("WS", ROUTE, status, elapsed)
+                access_logger.info(  # one line per batch, as a POST gets
+                    "request",
+                    extra={
+                        "event": "request",
+                        "method": "WS",
+                        "route": ROUTE,
+                        "path": self.websocket.url.path,
+                        "status": status,
+                        "duration_ms": round(elapsed * 1000.0, 3),
+                    },
+                )
             finally:
                 request_id_var.reset(token)
-            retry_after = None if error is None else _retry_after(error)
-            await self.websocket.send_text(
-                answer_frame(status, seq, self.frames, request_id, retry_after, body)
-            )
-            self.context.metrics.observe_request("WS", ROUTE, status, time.perf_counter() - started)
             if error is not None and error.code in ENDING_CODES:
                 await self.websocket.close(CLOSE_POLICY_VIOLATION, close_reason(error.status, error.code))
                 return f"ended:{error.code}"
