@@ -29,6 +29,7 @@ except ImportError as missing:
 from websockets.asyncio.client import ClientConnection as AsyncConnection
 from websockets.asyncio.client import connect as async_connect
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidStatus
+from websockets.protocol import State
 from websockets.sync.client import ClientConnection, connect
 
 from edgepos_client import _protocol as protocol
@@ -188,6 +189,8 @@ class BatchSocket:
         attempt = 0
         while True:
             try:
+                if self._link is not None and self._link.protocol.state is not State.OPEN:
+                    self.close()  # closed meanwhile (the server's idle timeout): a new link, not a retry
                 if self._link is None:
                     # entered as a context (closed by close()): websockets 17 warns on a bare connect()
                     self._link = connect(self._target.url, **self._target.options()).__enter__()
@@ -238,6 +241,10 @@ class AsyncBatchSocket:
         attempt = 0
         while True:
             try:
+                if self._link is not None and self._link.protocol.state is not State.OPEN:
+                    await (
+                        self.close()
+                    )  # closed meanwhile (the server's idle timeout): a new link, not a retry
                 if self._link is None:
                     self._link = await async_connect(self._target.url, **self._target.options())
                 await self._link.send(text)

@@ -6,9 +6,12 @@ handshake with the HTTP error and closes with 1009 on a frame over the body limi
 from __future__ import annotations
 
 import json
+import time
+from pathlib import Path
 
 import pytest
 from clienthelp import ADMIN_KEY, INITIAL_STATE, batch, scenario_rsus
+from edgepos.loadgen.localserver import clean_environment, running, serve_command
 from edgepos_client import (
     AsyncEdgeposClient,
     Conflict,
@@ -42,9 +45,13 @@ def test_batches_over_the_socket_match_http_batches(server_url: str) -> None:
             with pytest.raises(Conflict) as conflict:
                 socket.send_batch(batch(0, 20), seq=2)
             assert conflict.value.status == 409 and conflict.value.problems[0].field == "seq"
-            with pytest.raises(InvalidRequest) as invalid:  # an RSU the site does not have: refused by the server
+            with pytest.raises(
+                InvalidRequest
+            ) as invalid:  # an RSU the site does not have: refused by the server
                 socket.send_batch([{"type": "rsu", "t": 3.0, "rsu_id": "NOPE", "range": 5.0, "bearing": 0.0}])
-            assert invalid.value.status == 422 and invalid.value.problems[0].field.startswith("measurements[0]")
+            assert invalid.value.status == 422 and invalid.value.problems[0].field.startswith(
+                "measurements[0]"
+            )
             socket._link.close()  # the link breaks between two batches: opened again, batch sent once
             assert len(socket.send_batch(batch(60, 20))) == 20
         info = client.get_session(over_ws)
@@ -99,3 +106,22 @@ def test_the_server_refuses_a_handshake_with_the_error_body_and_a_large_frame_wi
         with pytest.raises(ConnectionClosed) as closed:
             link.recv(10.0)
     assert closed.value.rcvd is not None and closed.value.rcvd.code == 1009
+
+
+def test_a_link_the_server_closed_for_idling_is_opened_again_without_a_retry(tmp_path: Path) -> None:
+    environment = clean_environment(
+        EDGEPOS_ADMIN_KEY=ADMIN_KEY,
+        EDGEPOS_ADMIN_KEY_FILE=str(tmp_path / "admin.key"),
+        EDGEPOS_WS_IDLE_TIMEOUT_S="0.5",
+    )
+    with (
+        running(serve_command(1), environment, tmp_path / "server.log", ready_timeout_s=300.0) as url,
+        EdgeposClient(url, ADMIN_KEY, timeout=10.0, retries=0) as client,
+    ):
+        client.put_rsus(scenario_rsus())
+        session = client.create_session("ws-idle", initial_state=INITIAL_STATE)
+        with client.websocket(session) as socket:
+            socket.send_batch(batch(0, 5))
+            time.sleep(1.5)  # the server closes the idle link (1000)
+            assert len(socket.send_batch(batch(5, 5))) == 5  # retries=0: a new link, not a retry
+        assert client.get_session(session).last_seq == 2
