@@ -88,7 +88,10 @@ def test_answers_name_the_seq_and_the_frame_and_echo_the_request_id(client, capl
     logged = [r for r in caplog.records if r.name == "edgepos.access" and getattr(r, "method", None) == "WS"]
     assert [r.status for r in logged] == [200, 409, 422]  # one access line per frame, as per POST
     metrics = client.get("/metrics").text
-    assert 'edgepos_http_requests_total{method="WS",route="/v1/sessions/{session_id}/ws",status="409"} 1.0' in metrics
+    assert (
+        'edgepos_http_requests_total{method="WS",route="/v1/sessions/{session_id}/ws",status="409"} 1.0'
+        in metrics
+    )
 
 
 def test_a_retry_on_a_new_connection_replays_the_stored_answer(client):
@@ -289,3 +292,24 @@ def test_links_beyond_the_workers_maximum_are_refused_503_with_retry_after(tmp_p
             assert exchange(one, compact(batch_body(1, 0, 1)))["status"] == 200
         with client.websocket_connect(ws_path(third), headers=third_token) as three:  # room again
             assert exchange(three, compact(batch_body(1, 0, 1)))["status"] == 200
+
+
+def test_a_bug_while_applying_is_a_500_frame_and_the_link_stays_open(client, monkeypatch):
+    from edgepos.api import session_service
+
+    session_id, token = open_session(client)
+    real = session_service.apply_batch
+    calls = []
+
+    async def broken_once(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            raise RuntimeError("a bug")
+        return await real(*args, **kwargs)
+
+    monkeypatch.setattr(session_service, "apply_batch", broken_once)
+    with client.websocket_connect(ws_path(session_id), headers=token) as websocket:
+        failed = exchange(websocket, compact(batch_body(1, 0, 1)))
+        assert (failed["status"], failed["body"]["error"]["code"]) == (500, "internal_error")
+        assert "a bug" not in failed["body"]["error"]["message"]
+        assert exchange(websocket, compact(batch_body(1, 0, 1)))["status"] == 200

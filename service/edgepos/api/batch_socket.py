@@ -252,6 +252,9 @@ class BatchSocket:
             error = refusal
         except StoreUnavailable as unavailable:
             error = store_unavailable_error(unavailable)
+        except Exception:  # a bug: logged with its traceback and answered as the HTTP routes' generic 500
+            logger.exception("unhandled error", extra={"event": "unhandled_error"})
+            error = ApiError("internal_error", "internal server error; the error was logged")
         finally:
             if admission is not None:
                 admission.release()
