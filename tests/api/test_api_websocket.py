@@ -46,6 +46,7 @@ def frames_of_a_vehicle() -> list[str]:
         compact(batch_body(2, 2, 3)),
         compact(batch_body(2, 2, 3)),  # replayed
         "[]",
+        '{"seq": 3, "measurements": [{"type": "gyro", "t": NaN, "yaw_rate": 0.0}]}',  # a non-finite literal
     ]
 
 
@@ -67,7 +68,7 @@ def test_every_frame_is_answered_as_the_post_route_answers_the_same_body(client)
             if posted.status_code == 200:
                 assert answer["seq"] == posted.json()["seq"]
             seen.append(answer["status"])
-    assert seen == [200, 200, 409, 409, 422, 422, 422, 422, 422, 200, 200, 422]
+    assert seen == [200, 200, 409, 409, 422, 422, 422, 422, 422, 200, 200, 422, 422]
     described = client.get(f"/v1/sessions/{ws_session}", headers=ADMIN).json()
     assert (described["last_seq"], described["batches"]) == (2, 2)
 

@@ -6,8 +6,9 @@ For vehicles that keep a link open: each text frame is one batch, exactly the bo
 the POST would have answered. Each frame goes down the POST route's own path (the worker's admission
 line, the session check of ``auth.authenticate_session`` with the token's request budget, the body's
 validation, ``session_service.apply_batch`` with its scheduler turn, compare-and-set and replay), so seq
-rules, idempotency and errors are the same by construction; the handshake is checked the same way. Frames are read one at a time: one batch of the
-connection is in flight, as over HTTP with one connection.
+rules, idempotency and errors are the same by construction; the handshake is checked the same way.
+Frames are read one at a time: one batch of the connection is in flight, as over HTTP with one
+connection. A worker holds at most EDGEPOS_WS_MAX_CONNECTIONS links (503 at the handshake beyond).
 
 Close codes: 1000 after EDGEPOS_WS_IDLE_TIMEOUT_S without a frame, 1008 after a frame answered that
 the session has ended or been superseded, 1009 for a frame over EDGEPOS_MAX_BODY_BYTES; the reason is a
