@@ -22,6 +22,7 @@ from edgepos_client import (
     Unauthorized,
 )
 from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.protocol import State
 from websockets.sync.client import connect
 
 pytestmark = pytest.mark.slow
@@ -122,6 +123,11 @@ def test_a_link_the_server_closed_for_idling_is_opened_again_without_a_retry(tmp
         session = client.create_session("ws-idle", initial_state=INITIAL_STATE)
         with client.websocket(session) as socket:
             socket.send_batch(batch(0, 5))
-            time.sleep(1.5)  # the server closes the idle link (1000)
+            deadline = time.monotonic() + 60.0
+            while (
+                socket._link.protocol.state is State.OPEN
+            ):  # until the server has closed the idle link (1000)
+                assert time.monotonic() < deadline, "the server did not close the idle link"
+                time.sleep(0.05)
             assert len(socket.send_batch(batch(5, 5))) == 5  # retries=0: a new link, not a retry
         assert client.get_session(session).last_seq == 2
