@@ -428,6 +428,12 @@ class Calls:
         return Call("POST", f"/v1/sessions/{_segment(session_id)}/batches", body, credential)
 
 
+    def batch_socket(self, session: Session | str) -> Call:
+        """The handshake of the session's batch WebSocket (its path and bearer)."""
+        session_id, credential = _session_credential(session, self.admin_key)
+        return Call("GET", f"/v1/sessions/{_segment(session_id)}/ws", credential=credential)
+
+
 def next_seq(session: Session | str, seq: int | None) -> int:
     if seq is not None:
         return seq
@@ -438,7 +444,11 @@ def next_seq(session: Session | str, seq: int | None) -> int:
 
 def batch_fixes(session: Session | str, seq: int, response: httpx.Response) -> list[Fix]:
     """Parse a batch answer and advance the handle's seq."""
-    result = BatchResult.model_validate_json(response.content)
+    return result_fixes(session, seq, BatchResult.model_validate_json(response.content))
+
+
+def result_fixes(session: Session | str, seq: int, result: BatchResult) -> list[Fix]:
+    """The fixes of the answer to batch ``seq`` (over HTTP or the WebSocket); advances the handle's seq."""
     if result.seq != seq:
         raise EdgeposError("protocol_error", f"sent seq {seq} but the server answered seq {result.seq}")
     if isinstance(session, Session):

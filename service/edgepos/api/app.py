@@ -24,7 +24,12 @@ from edgepos.api.context import AppContext
 from edgepos.api.errors import install_error_handlers
 from edgepos.api.logs import configure_logging
 from edgepos.api.metrics import Metrics
-from edgepos.api.middleware import AdmissionMiddleware, BodyLimitMiddleware, RequestContextMiddleware
+from edgepos.api.middleware import (
+    Admission,
+    AdmissionMiddleware,
+    BodyLimitMiddleware,
+    RequestContextMiddleware,
+)
 from edgepos.api.routes import docs, ephemerides, health, rsus, sessions, streams, vehicles
 from edgepos.api.routes import pipelines as pipeline_routes
 from edgepos.api.settings import Settings, ensure_admin_key
@@ -103,6 +108,7 @@ def create_app(
         origin=settings.origin,
         admin_key_hash=AppContext.hash_admin_key(admin_key),
     )
+    context.admission = Admission(settings.max_inflight, settings.queue_timeout_s, context.metrics)
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -190,11 +196,6 @@ def create_app(
             allow_headers=["Authorization", "Content-Type", "X-Request-ID"],
             expose_headers=["X-Request-ID"],
         )
-    app.add_middleware(
-        AdmissionMiddleware,
-        max_inflight=settings.max_inflight,
-        queue_timeout_s=settings.queue_timeout_s,
-        metrics=context.metrics,
-    )
+    app.add_middleware(AdmissionMiddleware, admission=context.admission)
     app.add_middleware(RequestContextMiddleware, metrics=context.metrics)
     return app

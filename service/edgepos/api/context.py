@@ -11,6 +11,7 @@ from fastapi import Depends, Request
 
 from edgepos.api.ephemerides import EphemeridesCache
 from edgepos.api.metrics import Metrics
+from edgepos.api.middleware import Admission
 from edgepos.api.scheduler import FairScheduler
 from edgepos.api.settings import Settings
 from edgepos.api.streams import StreamHub
@@ -41,6 +42,11 @@ class AppContext:
     ephemerides: EphemeridesCache = field(default_factory=EphemeridesCache)
     vehicle_keys: VehicleKeySet | None = None
     """The fleet operator's public keys (EDGEPOS_VEHICLE_AUTH=jwt), loaded once at start-up."""
+    admission: Admission | None = None
+    """This worker's line of requests at work (EDGEPOS_MAX_INFLIGHT), set by ``create_app``: HTTP requests
+    and WebSocket batch frames wait in it alike."""
+    batch_sockets: int = 0
+    """Batch WebSockets this worker holds open now (bounded by EDGEPOS_WS_MAX_CONNECTIONS)."""
     _scheduler: FairScheduler | None = field(default=None, repr=False)
     _streams: StreamHub | None = field(default=None, repr=False)
 

@@ -140,6 +140,25 @@ def validation_problems(errors: Sequence[dict[str, Any]], document: Any = None) 
     return problems
 
 
+def store_unavailable_error(error: StoreUnavailable) -> ApiError:
+    """503 with Retry-After for a store that does not answer. The store's own message names hosts and
+    ports: it is logged, and the answer is a fixed sentence (a replication shortfall is named as is)."""
+    logger.warning("store unavailable", extra={"event": "store_unavailable", "error": str(error)})
+    message = (
+        str(error) if isinstance(error, NotReplicated) else "the session store does not answer; retry shortly"
+    )
+    return ApiError("unavailable", message, headers={"Retry-After": "1"})
+
+
+def invalid_request_error(errors: Sequence[dict[str, Any]], document: Any = None) -> ApiError:
+    """422 listing every problem of a body that is not JSON or does not fit its schema (see
+    :func:`validation_problems`)."""
+    problems = validation_problems(errors, document)
+    count = len(problems)
+    message = f"the request is invalid ({count} problem{'s' if count != 1 else ''})"
+    return ApiError("invalid_request", message, problems)
+
+
 _STATUS_CODES = {
     404: "not_found",
     405: "method_not_allowed",
@@ -162,21 +181,11 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(StoreUnavailable)
     async def _store_unavailable(request: Request, error: StoreUnavailable) -> Response:
-        # The store's own message names hosts and ports: log it, answer with a fixed sentence.
-        logger.warning("store unavailable", extra={"event": "store_unavailable", "error": str(error)})
-        message = (
-            str(error)
-            if isinstance(error, NotReplicated)
-            else "the session store does not answer; retry shortly"
-        )
-        return error_response(ApiError("unavailable", message, headers={"Retry-After": "1"}))
+        return error_response(store_unavailable_error(error))
 
     @app.exception_handler(RequestValidationError)
     async def _validation_error(request: Request, error: RequestValidationError) -> Response:
-        problems = validation_problems(error.errors(), error.body)
-        count = len(problems)
-        message = f"the request is invalid ({count} problem{'s' if count != 1 else ''})"
-        return error_response(ApiError("invalid_request", message, problems))
+        return error_response(invalid_request_error(error.errors(), error.body))
 
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(request: Request, error: StarletteHTTPException) -> Response:

@@ -160,6 +160,21 @@ class Settings(BaseSettings):
         allow_inf_nan=False,
         description="Seconds between keep-alive comments on an idle fix stream, so proxies do not cut it.",
     )
+    ws_max_connections: int = Field(
+        1024,
+        ge=1,
+        le=100_000,
+        description="Batch WebSockets (/v1/sessions/{id}/ws) one worker holds open at once; a handshake beyond "
+        "is refused 503 with Retry-After (each link holds buffers; a stolen token must not open thousands).",
+    )
+    ws_idle_timeout_s: float = Field(
+        300.0,
+        gt=0,
+        le=86_400,
+        allow_inf_nan=False,
+        description="Seconds a batch WebSocket (/v1/sessions/{id}/ws) may stay without a frame from the "
+        "vehicle before the server closes it (code 1000); protocol pings alone do not keep it open.",
+    )
     origin_lat: float | None = Field(
         None, ge=-90, le=90, allow_inf_nan=False, description="Site origin latitude, WGS-84 decimal degrees."
     )
