@@ -378,7 +378,8 @@
       const l = svg("line", { class: "grid-line", x1: pax, y1: pay, x2: pbx, y2: pby }, grid);
       l.dataset.kind = kind;
       l.dataset.value = String(value);
-      const t = svg("text", { class: "grid-label", x: kind.endsWith("x") || kind === "longitude" ? pax + 3 : 3, y: kind.endsWith("x") || kind === "longitude" ? s.h - 4 : pay - 3 }, grid);
+      const vertical = kind === "x" || kind === "longitude";
+      const t = svg("text", { class: "grid-label", x: vertical ? pax + 3 : 3, y: vertical ? 12 : pay - 3 }, grid);
       t.textContent = text;
     };
     const o = state.origin;
@@ -580,9 +581,11 @@
       $("nis-summary").textContent = "no update in the last 60 s";
       return;
     }
-    const tEnd = points[points.length - 1][0], tStart = tEnd - NIS_WINDOW_S;
+    // the last minute, or since the first update when that is shorter (a young session fills the plot)
+    const tEnd = points[points.length - 1][0], span = Math.max(tEnd - points[0][0], 1);
+    const tStart = tEnd - span;
     const top = Math.max(...points.map((p) => Math.max(p[1], chi2Gate(p[2])))) * 1.1;
-    const px = (t) => pad + ((t - tStart) / NIS_WINDOW_S) * (w - 2 * pad);
+    const px = (t) => pad + ((t - tStart) / span) * (w - 2 * pad);
     const py = (value) => h - pad - (value / top) * (h - 2 * pad);
     svg("polyline", { class: "gate", points: points.map((p) => px(p[0]).toFixed(1) + "," + py(chi2Gate(p[2])).toFixed(1)).join(" ") }, plot);
     svg("polyline", { class: "nis", points: points.map((p) => px(p[0]).toFixed(1) + "," + py(p[1]).toFixed(1)).join(" ") }, plot);
@@ -590,7 +593,7 @@
     const meanNis = points.reduce((a, p) => a + p[1], 0) / points.length;
     const meanDof = points.reduce((a, p) => a + p[2], 0) / points.length;
     const over = points.filter((p) => p[1] > chi2Gate(p[2])).length;
-    $("nis-summary").textContent = "mean NIS " + meanNis.toFixed(2) + " for mean dof " + meanDof.toFixed(2) + "; " +
+    $("nis-summary").textContent = "over " + span.toFixed(1) + " s: mean NIS " + meanNis.toFixed(2) + " for mean dof " + meanDof.toFixed(2) + "; " +
       over + " of " + points.length + " updates above the 95 % chi-square bound (dashed)";
   }
 

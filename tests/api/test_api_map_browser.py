@@ -1,0 +1,194 @@
+"""The operator map in a real browser (Debian's chromium driven by Playwright, no downloaded browser) against a
+real server process: every request to a host other than 127.0.0.1 is blocked and recorded; a wrong key is
+refused and not kept; after ``edgepos simulate`` drives three vehicles, each marker sits where the API's fix
+says (its data attributes and its drawn position), with the fix's heading and 95 % ellipse; the detail
+panel shows the vehicle's models, NIS and a rejected measurement; the grid is latitude/longitude with
+EDGEPOS_ORIGIN_LAT/LON. A screenshot goes to results/map.png."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import shutil
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from urllib.parse import urlparse
+
+import httpx
+import numpy as np
+import pytest
+from apihelp import ADMIN, ADMIN_KEY, wire
+from edgepos.geo import GeodeticOrigin
+from edgepos.loadgen import common
+from edgepos.loadgen.localserver import clean_environment, running, serve_command
+from edgepos.loadgen.simulate import run_simulation
+
+pytestmark = pytest.mark.slow
+
+sync_api = pytest.importorskip("playwright.sync_api")
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+RESULTS = Path(__file__).resolve().parents[2] / "results"
+ORIGIN_DEG = (48.137, 11.575)
+EPOCHS = 150
+WAIT_MS = 20_000
+
+
+def _centre(page, selector: str) -> tuple[float, float]:
+    box = page.locator(selector).bounding_box()
+    assert box is not None, selector
+    return box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+
+
+@pytest.mark.skipif(not Path(CHROMIUM).exists(), reason="Debian's chromium is not installed (make chromium)")
+def test_map_in_a_browser(tmp_path: Path):
+    environment = clean_environment(
+        EDGEPOS_ADMIN_KEY=ADMIN_KEY,
+        EDGEPOS_DEMO_RSUS="true",
+        EDGEPOS_ORIGIN_LAT=str(ORIGIN_DEG[0]),
+        EDGEPOS_ORIGIN_LON=str(ORIGIN_DEG[1]),
+        EDGEPOS_LOG_LEVEL="warning",
+    )
+    with running(serve_command(1), environment, tmp_path / "server.log", ready_timeout_s=300.0) as url:
+        with sync_api.sync_playwright() as playwright:
+            browser = playwright.chromium.launch(executable_path=CHROMIUM)
+            try:
+                _drive_the_page(browser, url, tmp_path)
+            finally:
+                browser.close()
+
+
+def _drive_the_page(browser, url: str, tmp_path: Path) -> None:
+    context = browser.new_context(viewport={"width": 1280, "height": 800})
+    outside: list[str] = []
+
+    def guard(route) -> None:
+        if urlparse(route.request.url).hostname == "127.0.0.1":
+            route.continue_()
+        else:
+            outside.append(route.request.url)
+            route.abort("blockedbyclient")
+
+    context.route("**/*", guard)
+    errors: list[str] = []
+    page = context.new_page()
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    page.goto(f"{url}/map")
+    page.wait_for_selector("#login-form")
+
+    # a wrong key: refused on the page, not kept, and the map stays closed
+    page.fill("#key", "not-the-admin-key")
+    page.click("#login-button")
+    page.wait_for_selector("#login-error:not([hidden])")
+    assert "Refused" in page.text_content("#login-error")
+    assert page.evaluate("sessionStorage.getItem('edgepos.adminKey')") is None
+    assert page.is_hidden("#app")
+
+    page.fill("#key", ADMIN_KEY)
+    page.click("#login-button")
+    page.wait_for_selector("body[data-stream='live']", timeout=WAIT_MS)
+    assert page.evaluate("sessionStorage.getItem('edgepos.adminKey')") == ADMIN_KEY
+    assert ADMIN_KEY not in page.url
+
+    rsus = httpx.get(f"{url}/v1/rsus", headers=ADMIN).json()["rsus"]
+    assert page.locator("#rsus rect.rsu").count() == len(rsus) >= 2
+
+    simulation = run_simulation(
+        url, vehicles=3, admin_key=ADMIN_KEY, epochs=EPOCHS, batch_epochs=10, keep_sessions=True
+    )
+    with ThreadPoolExecutor(1) as pool:  # Playwright's own event loop runs in this thread
+        result = pool.submit(asyncio.run, simulation).result()
+    assert [run.error for run in result.vehicles] == [None, None, None]
+
+    # one batch more for sim-1 with every RSU range 300 m long: refused by the pipeline, the panel says why
+    first = result.vehicles[0]
+    observations = common.vehicle_epochs(common.SCENARIOS["rsu-imu"](), 0, 0)[EPOCHS]
+    measurements = [wire(o) for o in observations]
+    for measurement in measurements:
+        if measurement["type"] == "rsu":
+            measurement["range"] += 300.0
+    last_seq = httpx.get(f"{url}/v1/sessions/{first.session_id}", headers=ADMIN).json()["last_seq"]
+    extra = httpx.post(
+        f"{url}/v1/sessions/{first.session_id}/batches",
+        json={"seq": last_seq + 1, "measurements": measurements},
+        headers=ADMIN,
+    )
+    assert extra.status_code == 200, extra.text
+    gated = [m for m in extra.json()["fixes"][-1]["measurements"] if not m["used"]]
+    assert gated and all(m["reason"] for m in gated)
+
+    origin = GeodeticOrigin.from_degrees(*ORIGIN_DEG)
+    # the screen transform the RSUs' squares were drawn with: uniform scale, y down on screen
+    (sa, ra), *others = [(_centre(page, f"#rsus rect[data-rsu-id='{r['id']}']"), r) for r in rsus]
+    sb, rb = max(others, key=lambda item: math.dist((item[1]["x"], item[1]["y"]), (ra["x"], ra["y"])))
+    scale = math.dist(sa, sb) / math.dist((ra["x"], ra["y"]), (rb["x"], rb["y"]))
+
+    for run in result.vehicles:
+        session = httpx.get(f"{url}/v1/sessions/{run.session_id}", headers=ADMIN).json()
+        fix = session["last_fix"]
+        returned = extra.json()["fixes"][-1] if run is first else run.fixes[-1]
+        as_read = (returned["t"], returned["x"], returned["y"]) if run is first else (returned.t, returned.x, returned.y)
+        assert (fix["t"], fix["x"], fix["y"]) == as_read  # the session's last fix is the one its batch returned
+        marker = f"#vehicles g.vehicle[data-vehicle-id='{run.vehicle_id}']"
+        page.wait_for_function(
+            "([selector, t]) => { const g = document.querySelector(selector); return g && Number(g.dataset.t) === t; }",
+            arg=[marker, fix["t"]],
+            timeout=WAIT_MS,
+        )
+        data = page.eval_on_selector(marker, "g => ({...g.dataset})")
+        assert data["sessionId"] == run.session_id and data["status"] == fix["status"]
+        assert (float(data["x"]), float(data["y"])) == (fix["x"], fix["y"])  # the fix's own numbers, site m
+        assert float(data["heading"]) == fix["heading"]
+        # the 95 % ellipse of the fix's covariance: chi-square(2) 95 % quantile on the eigenvalues
+        eigenvalues, eigenvectors = np.linalg.eigh(np.array(fix["position_covariance"]))
+        k = math.sqrt(5.991464547107979)
+        assert float(data["ellipseMajor"]) == pytest.approx(k * math.sqrt(eigenvalues[1]), rel=1e-9)
+        assert float(data["ellipseMinor"]) == pytest.approx(k * math.sqrt(eigenvalues[0]), rel=1e-9)
+        major = eigenvectors[:, 1]
+        angle = float(data["ellipseAngle"])
+        assert abs(math.cos(angle) * major[1] - math.sin(angle) * major[0]) < 1e-6  # parallel to the major axis
+        # drawn where the fix is: the same screen transform as the RSUs' squares (y down on screen)
+        cx, cy = _centre(page, f"{marker} ellipse")
+        assert cx == pytest.approx(sa[0] + (fix["x"] - ra["x"]) * scale, abs=1.5)
+        assert cy == pytest.approx(sa[1] - (fix["y"] - ra["y"]) * scale, abs=1.5)
+        # the grid's latitude/longitude on the tangent plane agree with the fix's WGS-84 position
+        geo = page.evaluate(
+            "([x, y, o]) => window.edgeposMap.siteToGeo(x, y, o)",
+            [fix["x"], fix["y"], {"latitude": origin.lat, "longitude": origin.lon, "height": 0.0}],
+        )
+        assert geo["latitude"] == pytest.approx(fix["latitude"], abs=2e-8)  # 2e-8 rad: 13 cm
+        assert geo["longitude"] == pytest.approx(fix["longitude"], abs=2e-8)
+
+    assert page.get_attribute("#grid", "data-kind") == "wgs84"
+    assert page.locator("#grid line[data-kind='latitude']").count() >= 2
+    assert page.locator("#grid line[data-kind='longitude']").count() >= 2
+    page.wait_for_selector("#header[data-sessions='3']", state="attached", timeout=WAIT_MS)
+    # the header's figures are the service's: the batches just sent are in its 10 s window
+    page.wait_for_function("Number(document.getElementById('header').dataset.batchRequests) > 0", timeout=WAIT_MS)
+    assert float(page.get_attribute("#header", "data-epochs-per-s") or "0") > 0
+
+    # the detail panel of sim-1: its pipeline, models, NIS history and the refused RSU measurements
+    # the three vehicles start together and overlap: click this one's marker itself, not whatever is on top
+    page.dispatch_event(f"#vehicles g.vehicle[data-vehicle-id='{first.vehicle_id}'] .body:not([visibility])", "click")
+    page.wait_for_selector("#panel:not([hidden])")
+    page.wait_for_selector("#rejected li[data-type='rsu']", timeout=WAIT_MS)
+    assert page.get_attribute("#panel", "data-vehicle-id") == first.vehicle_id
+    assert "rsu_imu" in page.text_content("#panel-facts")
+    last = extra.json()["fixes"][-1]
+    shown = {
+        row["model"]: float(row["probability"])
+        for row in page.eval_on_selector_all("#models .model", "rows => rows.map(r => ({...r.dataset}))")
+    }
+    assert shown == last["model_probabilities"]
+    assert all(m["reason"] in page.text_content("#rejected") for m in gated)
+    assert int(page.get_attribute("#nis-plot", "data-points") or "0") > 10
+    page.wait_for_selector("#session-facts dt:text('batches')", timeout=WAIT_MS)
+
+    RESULTS.mkdir(exist_ok=True)
+    page.screenshot(path=str(RESULTS / "map.png"))
+
+    # the guard does see outside requests (a page without the map's policy tries one), and the map made none
+    probe = context.new_page()
+    with pytest.raises(sync_api.Error):
+        probe.goto("http://192.0.2.1/")
+    assert outside == ["http://192.0.2.1/"]
+    assert errors == []
