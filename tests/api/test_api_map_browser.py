@@ -48,16 +48,18 @@ def test_map_in_a_browser(tmp_path: Path):
         EDGEPOS_ORIGIN_LON=str(ORIGIN_DEG[1]),
         EDGEPOS_LOG_LEVEL="warning",
     )
-    with running(serve_command(1), environment, tmp_path / "server.log", ready_timeout_s=300.0) as url:
-        with sync_api.sync_playwright() as playwright:
-            browser = playwright.chromium.launch(executable_path=CHROMIUM)
-            try:
-                _drive_the_page(browser, url, tmp_path)
-            finally:
-                browser.close()
+    with (
+        running(serve_command(1), environment, tmp_path / "server.log", ready_timeout_s=300.0) as url,
+        sync_api.sync_playwright() as playwright,
+    ):
+        browser = playwright.chromium.launch(executable_path=CHROMIUM)
+        try:
+            _drive_the_page(browser, url)
+        finally:
+            browser.close()
 
 
-def _drive_the_page(browser, url: str, tmp_path: Path) -> None:
+def _drive_the_page(browser, url: str) -> None:
     context = browser.new_context(viewport={"width": 1280, "height": 800})
     outside: list[str] = []
 
@@ -126,8 +128,16 @@ def _drive_the_page(browser, url: str, tmp_path: Path) -> None:
         session = httpx.get(f"{url}/v1/sessions/{run.session_id}", headers=ADMIN).json()
         fix = session["last_fix"]
         returned = extra.json()["fixes"][-1] if run is first else run.fixes[-1]
-        as_read = (returned["t"], returned["x"], returned["y"]) if run is first else (returned.t, returned.x, returned.y)
-        assert (fix["t"], fix["x"], fix["y"]) == as_read  # the session's last fix is the one its batch returned
+        as_read = (
+            (returned["t"], returned["x"], returned["y"])
+            if run is first
+            else (returned.t, returned.x, returned.y)
+        )
+        assert (
+            fix["t"],
+            fix["x"],
+            fix["y"],
+        ) == as_read  # the session's last fix is the one its batch returned
         marker = f"#vehicles g.vehicle[data-vehicle-id='{run.vehicle_id}']"
         page.wait_for_function(
             "([selector, t]) => { const g = document.querySelector(selector); return g && Number(g.dataset.t) === t; }",
@@ -145,7 +155,9 @@ def _drive_the_page(browser, url: str, tmp_path: Path) -> None:
         assert float(data["ellipseMinor"]) == pytest.approx(k * math.sqrt(eigenvalues[0]), rel=1e-9)
         major = eigenvectors[:, 1]
         angle = float(data["ellipseAngle"])
-        assert abs(math.cos(angle) * major[1] - math.sin(angle) * major[0]) < 1e-6  # parallel to the major axis
+        assert (
+            abs(math.cos(angle) * major[1] - math.sin(angle) * major[0]) < 1e-6
+        )  # parallel to the major axis
         # drawn where the fix is: the same screen transform as the RSUs' squares (y down on screen)
         cx, cy = _centre(page, f"{marker} ellipse")
         assert cx == pytest.approx(sa[0] + (fix["x"] - ra["x"]) * scale, abs=1.5)
@@ -163,12 +175,16 @@ def _drive_the_page(browser, url: str, tmp_path: Path) -> None:
     assert page.locator("#grid line[data-kind='longitude']").count() >= 2
     page.wait_for_selector("#header[data-sessions='3']", state="attached", timeout=WAIT_MS)
     # the header's figures are the service's: the batches just sent are in its 10 s window
-    page.wait_for_function("Number(document.getElementById('header').dataset.batchRequests) > 0", timeout=WAIT_MS)
+    page.wait_for_function(
+        "Number(document.getElementById('header').dataset.batchRequests) > 0", timeout=WAIT_MS
+    )
     assert float(page.get_attribute("#header", "data-epochs-per-s") or "0") > 0
 
     # the detail panel of sim-1: its pipeline, models, NIS history and the refused RSU measurements
     # the three vehicles start together and overlap: click this one's marker itself, not whatever is on top
-    page.dispatch_event(f"#vehicles g.vehicle[data-vehicle-id='{first.vehicle_id}'] .body:not([visibility])", "click")
+    page.dispatch_event(
+        f"#vehicles g.vehicle[data-vehicle-id='{first.vehicle_id}'] .body:not([visibility])", "click"
+    )
     page.wait_for_selector("#panel:not([hidden])")
     page.wait_for_selector("#rejected li[data-type='rsu']", timeout=WAIT_MS)
     assert page.get_attribute("#panel", "data-vehicle-id") == first.vehicle_id
