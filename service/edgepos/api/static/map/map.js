@@ -41,6 +41,8 @@
     panelDirty: false,
     panelTimer: null,
     timers: [],
+    // what the page did since it opened the map: the browser test and bench/map_browser.py read these
+    counts: { fixes: 0, streams: 0, frames: 0, drawMs: 0, drawMsMax: 0 },
   };
 
   // ---- the site frame and WGS-84 ------------------------------------------------------------------
@@ -228,6 +230,7 @@
           return;
         }
         if (!response.ok) throw new Error(await errorMessage(response));
+        state.counts.streams++;
         setStreamState("live");
         const reader = response.body.getReader();
         const decoder = new TextDecoder();
@@ -271,6 +274,7 @@
 
   function onFix(event) {
     const fix = event.fix;
+    state.counts.fixes++;
     let v = state.vehicles.get(event.vehicle_id);
     if (!v || v.sessionId !== event.session_id) {
       if (v) { v.group.remove(); v.trail.remove(); }
@@ -460,6 +464,14 @@
   function draw() {
     state.frameRequested = false;
     if (!state.running) return;
+    const started = performance.now();
+    drawFrame();
+    const ms = performance.now() - started;
+    state.counts.frames++;
+    state.counts.drawMs += ms;
+    state.counts.drawMsMax = Math.max(state.counts.drawMsMax, ms);
+  }
+  function drawFrame() {
     const s = size();
     if (state.autoFit) fitView(s);
     const key = [s.w, s.h, state.view.cx, state.view.cy, state.view.scale, state.rsus.length, JSON.stringify(state.origin)].join("|");
