@@ -201,7 +201,7 @@ def _drive_the_page(context, page, outside: list[str], errors: list[str], url: s
     page.wait_for_selector("#header[data-sessions='3']", state="attached", timeout=WAIT_MS)
     # the header's figures are the service's: the batches just sent are in its 10 s window
     page.wait_for_function(
-        "Number(document.getElementById('header').dataset.batchRequests) > 0", timeout=WAIT_MS
+        "() => Number(document.getElementById('header').dataset.batchRequests) > 0", timeout=WAIT_MS
     )
     assert float(page.get_attribute("#header", "data-epochs-per-s") or "0") > 0
 
@@ -224,6 +224,37 @@ def _drive_the_page(context, page, outside: list[str], errors: list[str], url: s
     assert int(page.get_attribute("#nis-plot", "data-points") or "0") > 10
     page.wait_for_selector("#session-facts dt:text('batches')", timeout=WAIT_MS)
 
+    # zooming with the wheel keeps the site point under the cursor there, and the marker is redrawn at its fix
+    ellipse = f"#vehicles g.vehicle[data-vehicle-id='{first.vehicle_id}'] ellipse"
+    cursor = tuple(round(c) for c in _centre(page, ellipse))  # the browser's wheel events are at whole pixels
+    width = page.locator(ellipse).bounding_box()["width"]
+    stage = page.locator("#map").bounding_box()
+
+    def under_cursor(view: dict[str, float]) -> tuple[float, float]:
+        return (
+            view["cx"] + (cursor[0] - stage["x"] - stage["width"] / 2) / view["scale"],
+            view["cy"] - (cursor[1] - stage["y"] - stage["height"] / 2) / view["scale"],
+        )
+
+    view_script = "() => ({...window.edgeposMap.state.view})"
+    before = page.evaluate(view_script)
+    page.mouse.move(*cursor)
+    for _ in range(2):  # exp(2 x 1500 x 0.0015) = 90 times closer
+        page.mouse.wheel(0, -1500)
+    page.wait_for_function(
+        "([selector, width]) => document.querySelector(selector).getBoundingClientRect().width > width",
+        arg=[ellipse, 10 * width],
+    )
+    after = page.evaluate(view_script)
+    assert after["scale"] == pytest.approx(before["scale"] * math.exp(4.5), rel=1e-9)
+    assert under_cursor(after) == pytest.approx(under_cursor(before), abs=1e-6)
+    x, y = _centre(page, ellipse)
+    assert x == pytest.approx(
+        stage["x"] + stage["width"] / 2 + (last["x"] - after["cx"]) * after["scale"], abs=1.5
+    )
+    assert y == pytest.approx(
+        stage["y"] + stage["height"] / 2 - (last["y"] - after["cy"]) * after["scale"], abs=1.5
+    )
     RESULTS.mkdir(exist_ok=True)
     page.screenshot(path=str(RESULTS / "map.png"))
 

@@ -368,8 +368,8 @@
   }
   function niceStep(raw) {
     const power = Math.pow(10, Math.floor(Math.log10(raw)));
-    for (const f of [1, 2, 5, 10]) if (f * power >= raw) return f * power;
-    return 10 * power;
+    for (const f of [1, 2, 5, 10]) if (f * power >= raw) return Number((f * power).toPrecision(1));
+    return Number((10 * power).toPrecision(1));
   }
   function drawGrid(s) {
     const grid = $("grid");
@@ -402,11 +402,12 @@
         const deg = k * stepDeg, x = geoToSite(o.latitude, deg * Math.PI / 180, o).x;
         line(x, y0, x, y1, deg.toFixed(decimals) + "°", "longitude", deg);
       }
-      $("scale-note").textContent = "grid " + stepDeg + "° (WGS-84)";
+      $("scale-note").textContent = "grid " + stepDeg.toFixed(Math.max(0, decimals - 1)) + "° (WGS-84 on the site's tangent plane)";
     } else {
       const step = niceStep(90 / v.scale);
-      for (let x = Math.ceil(x0 / step) * step; x <= x1; x += step) line(x, y0, x, y1, x.toFixed(0) + " m", "x", x);
-      for (let y = Math.ceil(y0 / step) * step; y <= y1; y += step) line(x0, y, x1, y, y.toFixed(0) + " m", "y", y);
+      const decimals = Math.max(0, -Math.floor(Math.log10(step)));
+      for (let k = Math.ceil(x0 / step); k * step <= x1; k++) line(k * step, y0, k * step, y1, (k * step).toFixed(decimals) + " m", "x", k * step);
+      for (let k = Math.ceil(y0 / step); k * step <= y1; k++) line(x0, k * step, x1, k * step, (k * step).toFixed(decimals) + " m", "y", k * step);
       $("scale-note").textContent = "grid " + step + " m (site frame: x east, y north)";
     }
   }
