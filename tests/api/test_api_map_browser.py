@@ -288,7 +288,8 @@ def test_map_keeps_up_with_twenty_vehicles_at_20_hz(browser, tmp_path: Path):
             assert counts["fixes"] == sum(len(run.fixes) for run in result.vehicles)  # every fix, once
             assert counts["streams"] == 1  # never dropped as a slow consumer, never reconnected
             assert counts["frames"] > 0 and counts["drawMs"] / counts["frames"] < 16.0
-            print(f"map, 20 vehicles: {counts}")  # the figures of the report (pytest -s)
+            rate = counts["fixes"] / result.elapsed_s
+            print(f"map, 20 vehicles: {counts}, {result.elapsed_s:.1f} s, {rate:.0f} fixes/s")  # pytest -s
             assert page.get_attribute("#grid", "data-kind") == "metres"
             assert page.locator("#grid line[data-kind='x']").count() >= 2
             page.reload()  # the key is the tab's: the map opens again without the form
