@@ -25,8 +25,17 @@ from edgepos.api.errors import install_error_handlers
 from edgepos.api.logs import configure_logging
 from edgepos.api.metrics import Metrics
 from edgepos.api.middleware import AdmissionMiddleware, BodyLimitMiddleware, RequestContextMiddleware
-from edgepos.api.routes import docs, ephemerides, health, rsus, sessions, status, streams, vehicles
-from edgepos.api.routes import map as map_routes
+from edgepos.api.routes import (
+    docs,
+    ephemerides,
+    health,
+    operator_map,
+    rsus,
+    sessions,
+    status,
+    streams,
+    vehicles,
+)
 from edgepos.api.routes import pipelines as pipeline_routes
 from edgepos.api.settings import Settings, ensure_admin_key
 from edgepos.api.vehicle_jwt import load_vehicle_jwks
@@ -161,7 +170,7 @@ def create_app(
         health.router,
         status.router,
         docs.router,
-        map_routes.router,
+        operator_map.router,
     )
     for router in routers:
         app.include_router(router)

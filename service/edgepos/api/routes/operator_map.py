@@ -1,4 +1,5 @@
-"""``GET /map``: the live operator map, one page of the package's static files (no CDN, no map tiles).
+"""``GET /map``: the live operator map (a module not named ``map``: it would shadow the builtin in the
+package ``edgepos.api.routes``), one page of the package's static files (no CDN, no map tiles).
 
 The page itself holds no site or vehicle data: it asks for the admin key and reads the API with it
 (GET /v1/status, /v1/rsus, /v1/sessions and the fix stream). Its Content-Security-Policy lets it load and
