@@ -294,6 +294,11 @@ def test_map_keeps_up_with_twenty_vehicles_at_20_hz(browser, tmp_path: Path):
             assert page.locator("#grid line[data-kind='x']").count() >= 2
             page.reload()  # the key is the tab's: the map opens again without the form
             page.wait_for_selector("body[data-stream='live']", timeout=WAIT_MS)
+            # and, the stream carrying only new fixes, draws the live sessions' last fixes read from the API
+            for run in result.vehicles:
+                data = _wait_for_fix(page, run.vehicle_id, run.fixes[-1].t)
+                assert (float(data["x"]), float(data["y"])) == (run.fixes[-1].x, run.fixes[-1].y)
+            assert page.evaluate("window.edgeposMap.state.counts.fixes") == 0
             page.click("#logout")
             page.wait_for_selector("#login-form")
             assert page.evaluate("sessionStorage.getItem('edgepos.adminKey')") is None

@@ -42,7 +42,7 @@
     panelTimer: null,
     timers: [],
     // what the page did since it opened the map: the browser test and bench/map_browser.py read these
-    counts: { fixes: 0, streams: 0, frames: 0, drawMs: 0, drawMsMax: 0 },
+    counts: { fixes: 0, streams: 0, frames: 0, drawMs: 0, drawMsMax: 0 }, // fixes: from the stream
   };
 
   // ---- the site frame and WGS-84 ------------------------------------------------------------------
@@ -266,7 +266,10 @@
         else if (field === "id") id = value;
       }
       if (id !== null) state.lastEventId = id;
-      if (event === "fix" && data.length) onFix(JSON.parse(data.join("\n")));
+      if (event === "fix" && data.length) {
+        state.counts.fixes++;
+        onFix(JSON.parse(data.join("\n")));
+      }
       else if (event === "missed") setStreamState("live (some fixes missed)");
     }
     return buffer;
@@ -274,7 +277,6 @@
 
   function onFix(event) {
     const fix = event.fix;
-    state.counts.fixes++;
     let v = state.vehicles.get(event.vehicle_id);
     if (!v || v.sessionId !== event.session_id) {
       if (v) { v.group.remove(); v.trail.remove(); }
