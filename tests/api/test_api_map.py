@@ -116,6 +116,17 @@ def test_recent_window_forgets_what_is_older_than_the_window():
     assert window.figures().batch_latency_p99_s is None
 
 
+def test_recent_window_forgets_as_it_writes():
+    """Memory follows the rate even when nobody reads the figures."""
+    now = [0.0]
+    window = RecentWindow(window_s=10.0, clock=lambda: now[0])
+    for step in range(1000):
+        now[0] = step * 0.1
+        window.add_latency(0.001)
+        window.add_batch(1)
+    assert len(window._latencies) == len(window._epochs) == 101  # 10 s at 10/s, both ends included
+
+
 def test_recent_window_is_bounded():
     window = RecentWindow(window_s=10.0, max_events=5, clock=lambda: 0.0)
     for _ in range(8):

@@ -3,8 +3,9 @@ operator map's header (GET /v1/status).
 
 Prometheus keeps counters and bucketed histograms, from which a rate or a quantile needs two scrapes and
 a bucket interpolation; the map wants exact figures at a glance from one request, so each worker also keeps
-the events of the last ``window_s`` seconds here. Bounded: at most ``max_events`` of each kind are kept
-(the oldest go first), so a burst cannot grow memory without limit.
+the events of the last ``window_s`` seconds here. Bounded: older events are dropped as new ones come, and
+at most ``max_events`` of each kind are kept (the oldest go first), so a burst cannot grow memory without
+limit.
 """
 
 from __future__ import annotations
@@ -14,9 +15,12 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 WINDOW_S = 10.0
-MAX_EVENTS = 200_000
+MAX_EVENTS = 100_000
+"""Per kind: 10 000 batches/s over the 10 s window, far above one worker's rate; about 10 MB at most."""
+_T = TypeVar("_T", int, float)
 
 
 @dataclass(frozen=True)
@@ -59,20 +63,26 @@ class RecentWindow:
         self._latencies: deque[tuple[float, float]] = deque(maxlen=max_events)
 
     def add_batch(self, epochs: int) -> None:
-        self._epochs.append((self._clock(), epochs))
+        now = self._clock()
+        self._epochs.append((now, epochs))
+        self._trim(self._epochs, now)
 
     def add_latency(self, seconds: float) -> None:
-        self._latencies.append((self._clock(), seconds))
+        now = self._clock()
+        self._latencies.append((now, seconds))
+        self._trim(self._latencies, now)
 
-    def _trim(self, now: float) -> None:
+    def _trim(self, events: deque[tuple[float, _T]], now: float) -> None:
+        """Forget the events older than the window (on every write too: memory follows the rate, whether
+        or not anyone reads the figures)."""
         oldest = now - self.window_s
-        for events in (self._epochs, self._latencies):
-            while events and events[0][0] < oldest:
-                events.popleft()
+        while events and events[0][0] < oldest:
+            events.popleft()
 
     def figures(self) -> RecentFigures:
         now = self._clock()
-        self._trim(now)
+        self._trim(self._epochs, now)
+        self._trim(self._latencies, now)
         latencies = [seconds for _, seconds in self._latencies]
         return RecentFigures(
             window_s=self.window_s,
