@@ -10,7 +10,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: serve test test-under-load bench openapi clean redis-server
+.PHONY: serve test test-under-load bench openapi clean redis-server chromium
 
 $(STAMP): pyproject.toml client/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -21,12 +21,12 @@ $(STAMP): pyproject.toml client/pyproject.toml
 serve: $(STAMP)
 	EDGEPOS_DEMO_RSUS=$${EDGEPOS_DEMO_RSUS:-true} $(BIN)/edgepos serve
 
-test: $(STAMP) redis-server
+test: $(STAMP) redis-server chromium
 	$(BIN)/python -m pytest
 
 # A test that leans on a quiet machine (fixed sleeps, wall-clock deadlines, unsynchronised threads)
 # fails here: one busy-loop process per core, the suite run 10 times with CI=true (bench/suite_under_load.py).
-test-under-load: $(STAMP) redis-server
+test-under-load: $(STAMP) redis-server chromium
 	$(BIN)/python bench/suite_under_load.py --runs 10
 
 # The Redis store's tests start their own redis-server on loopback, and redis-cli joins the local Redis
@@ -35,6 +35,13 @@ redis-server:
 	@{ command -v redis-server && command -v redis-cli; } >/dev/null || { \
 		echo "installing redis-server (Debian package)"; \
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq redis-server redis-tools >/dev/null; }
+
+# The operator map's browser test (tests/api/test_api_map_browser.py) drives Debian's chromium through Playwright
+# (executable_path=/usr/bin/chromium; `playwright install` is never run, nothing downloads a browser).
+chromium:
+	@command -v chromium >/dev/null || { \
+		echo "installing chromium (Debian package)"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; }
 
 bench: $(STAMP) redis-server
 	$(BIN)/python bench/filter_step.py

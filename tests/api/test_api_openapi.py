@@ -34,6 +34,7 @@ def test_schema_documents_every_route_and_error():
         "/healthz",
         "/readyz",
         "/metrics",
+        "/v1/status",
     }
     batches = paths["/v1/sessions/{session_id}/batches"]["post"]
     assert set(batches["responses"]) == {"200", "401", "403", "404", "409", "413", "415", "422", "429", "503"}

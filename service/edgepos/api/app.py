@@ -30,7 +30,17 @@ from edgepos.api.middleware import (
     BodyLimitMiddleware,
     RequestContextMiddleware,
 )
-from edgepos.api.routes import docs, ephemerides, health, rsus, sessions, streams, vehicles
+from edgepos.api.routes import (
+    docs,
+    ephemerides,
+    health,
+    operator_map,
+    rsus,
+    sessions,
+    status,
+    streams,
+    vehicles,
+)
 from edgepos.api.routes import pipelines as pipeline_routes
 from edgepos.api.settings import Settings, ensure_admin_key
 from edgepos.api.vehicle_jwt import load_vehicle_jwks
@@ -164,7 +174,9 @@ def create_app(
         streams.router,
         vehicles.router,
         health.router,
+        status.router,
         docs.router,
+        operator_map.router,
     )
     for router in routers:
         app.include_router(router)

@@ -65,6 +65,11 @@ class AppContext:
             )
         return self._streams
 
+    @property
+    def stream_consumers(self) -> int:
+        """Fix stream consumers of this worker (0 before the first one: the hub is not started for this)."""
+        return 0 if self._streams is None else self._streams.consumer_count
+
     async def close_streams(self) -> None:
         """Write the fixes still waiting for the stream, stop the stream's tasks and close its log."""
         streams, self._streams = self._streams, None
