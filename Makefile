@@ -4,13 +4,14 @@
 #   make test-under-load  the whole suite 10 times in a row with every CPU core busy (must pass 10 of 10)
 #   make bench   install and run the benchmark scripts
 #   make openapi regenerate openapi.json from the app
+#   make docs    build the docs site into site/ (strict: a broken link or an unlisted page fails)
 
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: serve test test-under-load bench openapi clean redis-server
+.PHONY: serve test test-under-load bench openapi docs clean redis-server
 
 $(STAMP): pyproject.toml client/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -21,7 +22,7 @@ $(STAMP): pyproject.toml client/pyproject.toml
 serve: $(STAMP)
 	EDGEPOS_DEMO_RSUS=$${EDGEPOS_DEMO_RSUS:-true} $(BIN)/edgepos serve
 
-test: $(STAMP) redis-server
+test: $(STAMP) redis-server docs
 	$(BIN)/python -m pytest
 
 # A test that leans on a quiet machine (fixed sleeps, wall-clock deadlines, unsynchronised threads)
@@ -45,6 +46,10 @@ bench: $(STAMP) redis-server
 
 openapi: $(STAMP)
 	$(BIN)/python -m edgepos.api.openapi
+
+# MkDocs 1.x prints a banner about its successor on every build; the site is pinned to 1.x (pyproject.toml).
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 DISABLE_MKDOCS_2_WARNING=true $(BIN)/mkdocs build --strict --quiet
 
 clean:
 	rm -rf $(VENV)
