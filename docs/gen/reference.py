@@ -17,6 +17,7 @@ import mkdocs_gen_files
 
 from edgepos.api.settings import Settings
 from edgepos.cli import build_parser
+from edgepos.pipelines.registry import PIPELINES
 
 ROOT = Path(__file__).resolve().parents[2]
 METHODS = ("get", "post", "put", "patch", "delete")
@@ -205,12 +206,44 @@ def client_guide() -> str:
     return "# The Python client\n" + body + "\nEvery class and method: [Client API](reference/client.md).\n"
 
 
+def pipeline_options() -> str:
+    """The pipelines page: every pipeline's method and options, as ``GET /v1/pipelines`` answers them."""
+    lines = [
+        "# Pipelines and their options",
+        "",
+        "Generated from the pipeline registry when the site is built; a running server answers the same with "
+        "`GET /v1/pipelines`. A session sets options in its `options` object at creation; an option it does "
+        "not set takes the default. Units are SI, angles radians.",
+        "",
+    ]
+    for name in sorted(PIPELINES):
+        pipeline = PIPELINES[name]
+        lines += [f"## `{name}`", "", pipeline.description.strip(), ""]
+        lines += [f"Measurement types: {', '.join(f'`{kind}`' for kind in pipeline.measurement_kinds)}.", ""]
+        lines += ["| option | type | default | bounds or choices | description |", "|---|---|---|---|---|"]
+        for spec in pipeline.option_specs():
+            bounds = []
+            if spec.minimum is not None:
+                bounds.append(f"≥ {spec.minimum:g}")
+            if spec.maximum is not None:
+                bounds.append(f"≤ {spec.maximum:g}")
+            if spec.choices is not None:
+                bounds.append("one of " + ", ".join(f"`{choice}`" for choice in spec.choices))
+            lines.append(
+                f"| `{spec.name}` | {spec.type} | `{_cell(json.dumps(spec.default, default=str))}` | "
+                f"{_cell(', '.join(bounds))} | {_cell(spec.description)} |"
+            )
+        lines.append("")
+    return "\n".join(lines) + "\n"
+
+
 def main() -> None:
     document = json.loads((ROOT / "openapi.json").read_text(encoding="utf-8"))
     pages = {
         "reference/http-api.md": http_api(document),
         "reference/cli.md": cli(),
         "reference/configuration.md": configuration(),
+        "reference/pipelines.md": pipeline_options(),
         # the client's own README (what PyPI shows) is the guide page, so the two cannot drift apart
         "client.md": client_guide(),
     }
