@@ -11,7 +11,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: serve test test-under-load bench openapi docs clean redis-server
+.PHONY: serve test test-under-load bench openapi docs clean redis-server wrk
 
 $(STAMP): pyproject.toml client/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -37,8 +37,15 @@ redis-server:
 		echo "installing redis-server (Debian package)"; \
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq redis-server redis-tools >/dev/null; }
 
-bench: $(STAMP) redis-server
+# wrk (a C HTTP load generator, Debian package) drives bench/wrk_load.py.
+wrk:
+	@command -v wrk >/dev/null || { \
+		echo "installing wrk (Debian package)"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq wrk >/dev/null; }
+
+bench: $(STAMP) redis-server wrk
 	$(BIN)/python bench/filter_step.py
+	$(BIN)/python bench/wrk_load.py
 	$(BIN)/python bench/service_load.py
 	$(BIN)/python bench/redis_store.py
 	$(BIN)/python bench/federated.py
