@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Any
 
 import mkdocs_gen_files
-
 from edgepos.api.settings import Settings
 from edgepos.cli import build_parser
 from edgepos.pipelines.registry import PIPELINES
@@ -78,9 +77,11 @@ def http_api(document: dict[str, Any]) -> str:
     lines = [
         "# HTTP API",
         "",
-        f"Generated from `openapi.json` (OpenAPI {document.get('openapi', '')}, API version "
-        f"{document['info'].get('version', '')}) when the site is built. The running service serves the same "
-        "document at `/openapi.json`, and an interactive page at `/docs`.",
+        (
+            f"Generated from `openapi.json` (OpenAPI {document.get('openapi', '')}, API version "
+            f"{document['info'].get('version', '')}) when the site is built. The running service serves the "
+            "same document at `/openapi.json`, and an interactive page at `/docs`."
+        ),
         "",
     ]
     by_tag: dict[str, list[tuple[str, str, dict[str, Any]]]] = {}
@@ -146,8 +147,8 @@ def http_api(document: dict[str, Any]) -> str:
 def _subcommands(parser: argparse.ArgumentParser) -> list[tuple[str, argparse.ArgumentParser]]:
     """The parsers of a parser's subcommands, in the order they were added."""
     found = []
-    for action in parser._actions:  # noqa: SLF001 - argparse offers no public way to walk subcommands
-        if isinstance(action, argparse._SubParsersAction):  # noqa: SLF001 - same
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
             found.extend(action.choices.items())
     return found
 
@@ -166,8 +167,10 @@ def cli() -> str:
     lines = [
         "# Command line",
         "",
-        "Generated from the argparse parsers of `edgepos` when the site is built: each section is what "
-        "`edgepos ... --help` prints.",
+        (
+            "Generated from the argparse parsers of `edgepos` when the site is built: each section is what "
+            "`edgepos ... --help` prints."
+        ),
         "",
     ]
     return "\n".join(lines + _command_sections("edgepos", parser, 2)) + "\n"
@@ -179,9 +182,11 @@ def configuration() -> str:
     lines = [
         "# Configuration",
         "",
-        "The service reads its configuration from environment variables (a `.env` file is not read). "
-        "Generated from the settings model (`edgepos.api.settings.Settings`) when the site is built; an "
-        "invalid value stops the service at start with a message naming the variable.",
+        (
+            "The service reads its configuration from environment variables (a `.env` file is not read). "
+            "Generated from the settings model (`edgepos.api.settings.Settings`) when the site is built; an "
+            "invalid value stops the service at start with a message naming the variable."
+        ),
         "",
         "| variable | default | constraints | description |",
         "|---|---|---|---|",
@@ -211,9 +216,11 @@ def pipeline_options() -> str:
     lines = [
         "# Pipelines and their options",
         "",
-        "Generated from the pipeline registry when the site is built; a running server answers the same with "
-        "`GET /v1/pipelines`. A session sets options in its `options` object at creation; an option it does "
-        "not set takes the default. Units are SI, angles radians.",
+        (
+            "Generated from the pipeline registry when the site is built; a running server answers the same "
+            "with `GET /v1/pipelines`. A session sets options in its `options` object at creation; an option "
+            "it does not set takes the default. Units are SI, angles radians."
+        ),
         "",
     ]
     for name in sorted(PIPELINES):
