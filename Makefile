@@ -4,13 +4,14 @@
 #   make test-under-load  the whole suite 10 times in a row with every CPU core busy (must pass 10 of 10)
 #   make bench   install and run the benchmark scripts
 #   make openapi regenerate openapi.json from the app
+#   make docs    build the docs site into site/ (strict: a broken link or an unlisted page fails)
 
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: serve test test-under-load bench openapi clean redis-server chromium
+.PHONY: serve test test-under-load bench openapi docs clean redis-server chromium wrk
 
 $(STAMP): pyproject.toml client/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -21,7 +22,7 @@ $(STAMP): pyproject.toml client/pyproject.toml
 serve: $(STAMP)
 	EDGEPOS_DEMO_RSUS=$${EDGEPOS_DEMO_RSUS:-true} $(BIN)/edgepos serve
 
-test: $(STAMP) redis-server chromium
+test: $(STAMP) redis-server chromium docs
 	$(BIN)/python -m pytest
 
 # A test that leans on a quiet machine (fixed sleeps, wall-clock deadlines, unsynchronised threads)
@@ -43,8 +44,15 @@ chromium:
 		echo "installing chromium (Debian package)"; \
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; }
 
-bench: $(STAMP) redis-server
+# wrk (a C HTTP load generator, Debian package) drives bench/wrk_load.py.
+wrk:
+	@command -v wrk >/dev/null || { \
+		echo "installing wrk (Debian package)"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq wrk >/dev/null; }
+
+bench: $(STAMP) redis-server wrk
 	$(BIN)/python bench/filter_step.py
+	$(BIN)/python bench/wrk_load.py
 	$(BIN)/python bench/service_load.py
 	$(BIN)/python bench/redis_store.py
 	$(BIN)/python bench/federated.py
@@ -52,6 +60,10 @@ bench: $(STAMP) redis-server
 
 openapi: $(STAMP)
 	$(BIN)/python -m edgepos.api.openapi
+
+# MkDocs 1.x prints a banner about its successor on every build; the site is pinned to 1.x (pyproject.toml).
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 DISABLE_MKDOCS_2_WARNING=true $(BIN)/mkdocs build --strict --quiet
 
 clean:
 	rm -rf $(VENV)

@@ -19,6 +19,8 @@ are stopped at the end, on Ctrl-C and on any error. The exit status is 1 when an
 
 from __future__ import annotations
 
+from typing import Self
+
 import argparse
 import multiprocessing
 import os
@@ -63,7 +65,7 @@ class BusyCores:
         self.limit_s = limit_s
         self.processes: list[multiprocessing.Process] = []
 
-    def __enter__(self) -> BusyCores:
+    def __enter__(self) -> Self:
         deadline = time.monotonic() + self.limit_s  # CLOCK_MONOTONIC is system-wide on Linux
         try:
             for index in range(self.count):

@@ -9,7 +9,7 @@ All outputs are delays in metres to add to the geometric range.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
