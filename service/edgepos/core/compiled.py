@@ -21,7 +21,6 @@ import functools
 import logging
 import os
 import time
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -40,10 +39,8 @@ from edgepos.core.motion.ca import ConstantAcceleration
 from edgepos.core.motion.ct import CoordinatedTurn
 from edgepos.core.motion.cv import ConstantVelocity
 from edgepos.core.motion.singer import Singer
+from edgepos.core.numerics import FloatArray
 from edgepos.core.updates import RsuGyroEpoch, gate_distances
-
-if TYPE_CHECKING:  # the kernels import numba, which compiled_enabled() imports lazily
-    from edgepos.core.kernels import FloatArray
 
 _log = logging.getLogger(__name__)
 

@@ -30,7 +30,7 @@ from edgepos.core import layout
 from edgepos.core.errors import ConfigurationError, NumericalError
 from edgepos.core.filters.base import GaussianFilter, UpdateResult
 from edgepos.core.motion.base import MotionModel
-from edgepos.core.numerics import require_finite, weighted_mean, wrap_rows
+from edgepos.core.numerics import FloatArray, require_finite, weighted_mean, wrap_rows
 
 _TINY = 1e-300
 
@@ -277,4 +277,5 @@ def _softmax(log_weights: np.ndarray) -> np.ndarray:
     total = shifted.sum()
     if not (np.isfinite(total) and total >= 1.0):
         raise NumericalError("model probabilities cannot be normalised")
-    return shifted / total
+    probabilities: FloatArray = shifted / total
+    return probabilities

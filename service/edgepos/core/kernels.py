@@ -27,6 +27,8 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
+from edgepos.core.numerics import FloatArray
+
 OK = 0
 FAILED = 1
 
@@ -43,8 +45,7 @@ _MIN_DISTANCE = 1e-3  # as core.measurements.rsu: Jacobians below 1 mm are taken
 _SMALL_TURN = 1e-4  # as core.motion.turn
 _XP, _XV, _XA, _YP, _YV, _YA, _PHI, _OMEGA = range(8)
 
-#: The kernels' array arguments: float64 states, covariances and scratch; int64 indices; bool masks.
-FloatArray = npt.NDArray[np.float64]
+#: The kernels' other array arguments (float64 states, covariances and scratch are FloatArray).
 IntArray = npt.NDArray[np.int64]
 BoolArray = npt.NDArray[np.bool_]
 

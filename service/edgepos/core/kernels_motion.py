@@ -28,8 +28,9 @@ import math
 
 import numpy as np
 
-from edgepos.core.kernels import FloatArray, IntArray, _jit
+from edgepos.core.kernels import IntArray, _jit
 from edgepos.core.motion.base import _MARKOV_TERMS, _chain_tables, _markov_tables
+from edgepos.core.numerics import FloatArray
 
 UNCOVERED = -1
 CV = 0
