@@ -267,9 +267,8 @@ def mix(means: FloatArray, covs: FloatArray, probabilities: FloatArray, transiti
                 if not is_common:
                     extra[ne] = k
                     ne += 1
-        if ne > 0:
-            if not _carry_extras(means[j], covs[j], out_means[j], out_covs[j], common, extra[:ne], phi_slot):
-                return FAILED
+        if ne > 0 and not _carry_extras(means[j], covs[j], out_means[j], out_covs[j], common, extra[:ne], phi_slot):
+            return FAILED
     total = 0.0
     for j in range(count):
         _symmetrize(out_covs[j], 8)
