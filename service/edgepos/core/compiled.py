@@ -241,7 +241,7 @@ def compiled_enabled() -> bool:
     if os.environ.get("EDGEPOS_NUMBA", "1").strip().lower() in ("0", "false", "no", "off"):
         return False
     try:
-        from edgepos.core import kernels  # noqa: F401
+        from edgepos.core import kernels  # noqa: F401  # imported only to learn whether numba imports
     except ImportError as error:  # pragma: no cover - numba is a dependency; this is a safety net
         _log.warning("numba unavailable (%s): filtering runs on the numpy reference", error)
         return False
