@@ -15,7 +15,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 from urllib.parse import quote, urlencode
 
 import httpx
@@ -31,6 +31,7 @@ from edgepos_client.models import (
     GnssFixMeasurement,
     GyroMeasurement,
     InitialState,
+    Measurement,
     OdometerMeasurement,
     PipelineInfo,
     PseudorangeMeasurement,
@@ -410,8 +411,10 @@ class Calls:
         session_id, credential = _session_credential(session, self.admin_key)
         if seq < 1:
             raise ValueError("seq must be >= 1")
+        items: list[Measurement]
         if all(isinstance(item, _MEASUREMENT_MODELS) for item in measurements):
-            items = list(measurements)
+            # every item is a measurement model (the test above, which does not narrow the list's type)
+            items = cast("list[Measurement]", list(measurements))
         else:
             items = MEASUREMENTS.validate_python(list(measurements))
         body = b"".join(
@@ -419,7 +422,7 @@ class Calls:
                 b'{"seq":',
                 str(int(seq)).encode(),
                 b',"measurements":',
-                MEASUREMENTS.dump_json(items),  # type: ignore[arg-type]
+                MEASUREMENTS.dump_json(items),
                 b',"include_state":',
                 b"true" if include_state else b"false",
                 b"}",

@@ -91,10 +91,17 @@ class RateLimited(EdgeposError):
     the server's Retry-After in seconds when it sent one."""
 
     def __init__(
-        self, code: str, message: str, *, retry_after: float | None = None, **kwargs: object
+        self,
+        code: str,
+        message: str,
+        *,
+        retry_after: float | None = None,
+        status: int | None = None,
+        problems: list[Problem] | None = None,
+        request_id: str | None = None,
     ) -> None:
         self.retry_after = retry_after
-        super().__init__(code, message, **kwargs)  # type: ignore[arg-type]
+        super().__init__(code, message, status=status, problems=problems, request_id=request_id)
 
 
 class TooManySessions(RateLimited):
