@@ -118,7 +118,7 @@ def failure(target: SocketTarget, error: Exception, attempt: int) -> EdgeposErro
         response = error.response
         refusal = error_from_answer(
             response.status_code,
-            response.body or b"",
+            bytes(response.body or b""),
             retry_after=response.headers.get("retry-after"),
             request_id=response.headers.get("x-request-id"),
             reason_phrase=response.reason_phrase,

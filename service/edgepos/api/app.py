@@ -182,7 +182,7 @@ def create_app(
         app.include_router(router)
         for route in router.routes:
             if isinstance(route, APIRoute):
-                allowed_methods.setdefault(route.path, set()).update(route.methods)
+                allowed_methods.setdefault(route.path, set()).update(route.methods or ())
     app.state.allowed_methods = allowed_methods
     default_openapi = app.openapi
 

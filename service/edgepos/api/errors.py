@@ -8,7 +8,7 @@ logs it with its traceback and answers a generic 500 that reveals nothing.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -60,7 +60,7 @@ class ApiError(Exception):
 
 def error_body(code: str, message: str, problems: Sequence[ProblemModel] = ()) -> bytes:
     """The serialised error body."""
-    detail = ErrorDetail(code=code, message=message, problems=list(problems))  # type: ignore[arg-type]
+    detail = ErrorDetail(code=code, message=message, problems=list(problems))
     return ErrorBody(error=detail).model_dump_json().encode()
 
 
@@ -103,7 +103,7 @@ def _line_and_column(document: Any, position: int) -> tuple[int, int]:
     return line, position - (before.rfind("\n") + 1) + 1
 
 
-def validation_problems(errors: Sequence[dict[str, Any]], document: Any = None) -> list[ProblemModel]:
+def validation_problems(errors: Sequence[Mapping[str, Any]], document: Any = None) -> list[ProblemModel]:
     """FastAPI/pydantic error entries as wire problems: ``loc`` becomes a dotted path with
     ``[i]`` for list items, the union tag pydantic inserts is dropped, and items of the
     ``measurements`` list carry their index. A body that is not JSON at all is named as ``body`` with
@@ -150,7 +150,7 @@ def store_unavailable_error(error: StoreUnavailable) -> ApiError:
     return ApiError("unavailable", message, headers={"Retry-After": "1"})
 
 
-def invalid_request_error(errors: Sequence[dict[str, Any]], document: Any = None) -> ApiError:
+def invalid_request_error(errors: Sequence[Mapping[str, Any]], document: Any = None) -> ApiError:
     """422 listing every problem of a body that is not JSON or does not fit its schema (see
     :func:`validation_problems`)."""
     problems = validation_problems(errors, document)
