@@ -25,7 +25,7 @@ from edgepos.api.errors import install_error_handlers
 from edgepos.api.logs import configure_logging
 from edgepos.api.metrics import Metrics
 from edgepos.api.middleware import AdmissionMiddleware, BodyLimitMiddleware, RequestContextMiddleware
-from edgepos.api.routes import docs, ephemerides, health, rsus, sessions, streams, vehicles
+from edgepos.api.routes import base_stations, docs, ephemerides, health, rsus, sessions, streams, vehicles
 from edgepos.api.routes import pipelines as pipeline_routes
 from edgepos.api.settings import Settings, ensure_admin_key
 from edgepos.api.vehicle_jwt import load_vehicle_jwks
@@ -153,6 +153,7 @@ def create_app(
     routers = (
         rsus.router,
         ephemerides.router,
+        base_stations.router,
         pipeline_routes.router,
         sessions.router,
         streams.router,
@@ -180,7 +181,10 @@ def create_app(
     app.add_middleware(
         BodyLimitMiddleware,
         max_bytes=settings.max_body_bytes,
-        path_limits={ephemerides.PATH: (settings.max_ephemerides_bytes, "EDGEPOS_MAX_EPHEMERIDES_BYTES")},
+        path_limits={
+            ephemerides.PATH: (settings.max_ephemerides_bytes, "EDGEPOS_MAX_EPHEMERIDES_BYTES"),
+            f"{base_stations.PATH}/*": (settings.max_base_observations_bytes, "EDGEPOS_MAX_BASE_OBSERVATIONS_BYTES"),
+        },
     )
     if settings.cors_origin_list:
         app.add_middleware(

@@ -35,9 +35,7 @@ from edgepos.gnss.timesys import BDT_MINUS_GPST_S
 PREAMBLE = 0xD3
 MSM4 = {"1074": "G", "1094": "E", "1124": "C"}
 MSM7 = {"1077": "G", "1097": "E", "1127": "C"}
-SKIPPED_MSM = frozenset(
-    f"{base + kind}" for base in (1080, 1100, 1110, 1130) for kind in (4, 5, 6, 7)
-)
+SKIPPED_MSM = frozenset(f"{base + kind}" for base in (1080, 1100, 1110, 1130) for kind in (4, 5, 6, 7))
 """MSM4-7 of GLONASS, SBAS, QZSS and NavIC: valid, but of systems the positioning code does not use."""
 POSITION_MESSAGES = ("1005", "1006")
 _INVALID_FINE_MS = -(2.0**-10)
@@ -150,7 +148,9 @@ def decode(data: bytes, gpst_of_week: Callable[[float], float]) -> RtcmContent:
             name = f"frame {index} (message {kind}, bytes {offset}-{offset + len(frame) - 1})"
             accepted = ", ".join([*MSM4, *MSM7, *POSITION_MESSAGES])
             raise RtcmError(name, f"message type {kind} is not accepted here (accepted: {accepted})")
-        tow_ms = float(message.DF427 if system == "C" else (message.DF248 if system == "E" else message.DF004))
+        tow_ms = float(
+            message.DF427 if system == "C" else (message.DF248 if system == "E" else message.DF004)
+        )
         tow = tow_ms / 1000.0 - (BDT_MINUS_GPST_S if system == "C" else 0.0)
         gpst = round(gpst_of_week(tow % 604800.0), 3)
         rows = by_time.setdefault(gpst, {})

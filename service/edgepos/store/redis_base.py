@@ -83,7 +83,9 @@ class RedisBaseStations:
             removed, _ = await pipe.execute()
         return bool(removed)
 
-    async def add_base_epochs(self, station_id: str, epochs: Sequence[tuple[float, str]], keep: int) -> int | None:
+    async def add_base_epochs(
+        self, station_id: str, epochs: Sequence[tuple[float, str]], keep: int
+    ) -> int | None:
         args: list[Any] = [station_id, int(keep)]
         for gpst, document in epochs:
             args += [repr(float(gpst)), f"{float(gpst)!r}|{document}"]

@@ -34,8 +34,14 @@ def frame(payload: bytes) -> bytes:
     return RTCMMessage(payload=payload).serialize()
 
 
-def msm(system: str, tow_ms: int, sats: Sequence[tuple[int, float, float]], msm7: bool, more: bool = False,
-        station: int = 7) -> bytes:
+def msm(
+    system: str,
+    tow_ms: int,
+    sats: Sequence[tuple[int, float, float]],
+    msm7: bool,
+    more: bool = False,
+    station: int = 7,
+) -> bytes:
     """One MSM4 or MSM7 frame: ``sats`` = (PRN, pseudorange m, C/N0 dB-Hz) on the system's signal."""
     bits = Bits()
     bits.put(MESSAGE_BASE[system] + (7 if msm7 else 4), 12)
