@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections import OrderedDict
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -117,6 +118,62 @@ def epoch_of(document: str) -> EpochCorrections:
     )
 
 
+class EpochCache:
+    """Decoded stored epochs of this worker, keyed by their document (so a replaced epoch is decoded
+    again): consecutive batches of a session read mostly the same epochs, and decoding them is most of
+    a batch's correction cost. Least recently used first out."""
+
+    def __init__(self, capacity: int = 4096) -> None:
+        self.capacity = capacity
+        self._decoded: OrderedDict[tuple[str, float, str], EpochCorrections] = OrderedDict()
+
+    def decode(self, station_id: str, gpst: float, document: str) -> EpochCorrections:
+        key = (station_id, gpst, document)
+        found = self._decoded.get(key)
+        if found is None:
+            found = self._decoded[key] = epoch_of(document)
+            while len(self._decoded) > self.capacity:
+                self._decoded.popitem(last=False)
+        else:
+            self._decoded.move_to_end(key)
+        return found
+
+
+def needed_rows(epochs: Sequence[EpochCorrections], times: Sequence[float]) -> list[EpochCorrections]:
+    """Only the rows a lookup at one of the rover ``times`` can return: per rover time and satellite the
+    newest row at or before it (as CorrectionTable.lookup picks, with its 1 us tolerance). The table built
+    from them answers every lookup at those times exactly as one built from all ``epochs`` would."""
+    keep: dict[int, set[str]] = {}
+    for t in times:
+        seen: set[str] = set()
+        for index in range(len(epochs) - 1, -1, -1):
+            epoch = epochs[index]
+            if epoch.gpst > t + 1e-6:
+                continue
+            fresh = set(epoch.sats) - seen
+            if fresh:
+                keep.setdefault(index, set()).update(fresh)
+                seen |= fresh
+    out = []
+    for index in sorted(keep):
+        epoch, wanted = epochs[index], keep[index]
+        if len(wanted) == len(epoch.sats):
+            out.append(epoch)
+            continue
+        rows = [k for k, sat in enumerate(epoch.sats) if sat in wanted]
+        out.append(
+            EpochCorrections(
+                epoch.gpst,
+                tuple(epoch.sats[k] for k in rows),
+                epoch.correction_m[rows],
+                tuple(epoch.issues[k] for k in rows),
+                epoch.ionosphere_m[rows],
+                epoch.troposphere_m[rows],
+            )
+        )
+    return out
+
+
 # -- uploads ----------------------------------------------------------------------------------------
 class ObservationFileError(ValueError):
     """An upload that is not a usable RINEX 3 observation file; ``line`` is 1-based, or None."""
@@ -188,6 +245,7 @@ def _rover_times(
 
 async def batch_corrections(
     store: SessionStore,
+    cache: EpochCache,
     options: Mapping[str, Any],
     observations: Sequence[Observation],
     ephemerides: Ephemerides | None,
@@ -220,8 +278,9 @@ async def batch_corrections(
         return empty(f"base station {wanted!r} is not registered (deleted?)")
     if not window.epochs:
         return empty(f"base station {wanted!r} has no observations at or before this epoch")
+    decoded = [cache.decode(str(wanted), gpst, document) for gpst, document in window.epochs]
     return CorrectionTable(
-        (epoch_of(document) for _, document in window.epochs),
+        needed_rows(decoded, times),
         max_age,
         f"no base data: base station {wanted!r} has no observations at or before this epoch",
     )

@@ -399,7 +399,7 @@ async def _apply_in_turn(
             differential = None
             if has_pseudoranges and record.options.get("base_station") is not None:
                 differential = await batch_corrections(
-                    context.store, record.options, observations,
+                    context.store, context.base_epochs, record.options, observations,
                     None if loaded is None else loaded.ephemerides, record.last_fix, _origin(context),
                 )
             environment = StaticEnvironment(
