@@ -368,3 +368,17 @@ def test_upload_size_limit(tmp_path):
             "EDGEPOS_MAX_BASE_OBSERVATIONS_BYTES"
             in assert_error(response, 413, "payload_too_large")["message"]
         )
+
+
+def test_two_workers_share_the_station_through_the_store(tmp_path):
+    """Registered and fed on one worker, used by a session on another (a SQLite store both open)."""
+    url = f"sqlite:///{tmp_path / 'store.db'}"
+    with (
+        TestClient(create_app(make_settings(tmp_path, store=url))) as a,
+        TestClient(create_app(make_settings(tmp_path, store=url))) as b,
+    ):
+        _setup(a, {"station_id": "rt", "position_ecef": MARE["position_ecef"]}, observations=False)
+        assert a.post("/v1/base-stations/rt/rtcm", content=_rtcm_of(0, 3), headers=BINARY).status_code == 200
+        assert b.get("/v1/base-stations/rt", headers=ADMIN).json()["newest_epoch_satellites"] > 8
+        fixes = _run(b, "elsewhere", {**OPTIONS, "base_station": "rt"}, 3, per_batch=3)
+        assert all(any(u["correction_applied"] for u in fix["measurements"]) for fix in fixes)
