@@ -126,3 +126,26 @@ def station_position(xyz: Sequence[float], station: int = 7, kind: int = 1005) -
     if kind == 1006:
         bits.put(0, 16)
     return frame(bits.payload())
+
+
+def descriptor(station: int = 7) -> bytes:
+    """A 1007 antenna descriptor with an empty description (skipped by the service)."""
+    bits = Bits()
+    bits.put(1007, 12)
+    bits.put(station, 12)
+    bits.put(0, 8)  # DF029: no characters
+    bits.put(0, 8)  # DF031 antenna setup id
+    return frame(bits.payload())
+
+
+def legacy_gps_header(tow_ms: int, station: int = 7) -> bytes:
+    """A 1001 (legacy GPS L1 observations) with no satellite: a type the service refuses."""
+    bits = Bits()
+    bits.put(1001, 12)
+    bits.put(station, 12)
+    bits.put(tow_ms, 30)
+    bits.put(0, 1)  # DF005 synchronous
+    bits.put(0, 5)  # DF006 satellites
+    bits.put(0, 1)  # DF007 smoothing
+    bits.put(0, 3)  # DF008 interval
+    return frame(bits.payload())

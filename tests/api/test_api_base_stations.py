@@ -341,6 +341,23 @@ def test_bad_rtcm_is_refused_naming_the_message_and_nothing_changes(client):
         assert words in assert_error(response, 422, "invalid_request")["message"]
 
 
+def test_descriptors_are_skipped_and_legacy_observations_refused(client):
+    _setup(client, {"station_id": "rt", "position_ecef": MARE["position_ecef"]}, observations=False)
+    frames = rtcmwrite.descriptor() + _rtcm_of(0, 1)
+    response = client.post("/v1/base-stations/rt/rtcm", content=frames, headers=BINARY)
+    assert response.status_code == 200, response.text
+    assert response.json()["messages"] == {"1007": 1, "1077": 1, "1097": 1, "1127": 1}
+    legacy = _rtcm_of(1, 1) + rtcmwrite.legacy_gps_header(0)
+    error = assert_error(
+        client.post("/v1/base-stations/rt/rtcm", content=legacy, headers=BINARY), 422, "invalid_request"
+    )
+    assert "frame 4 (message 1001" in error["message"] and "not accepted" in error["message"], error
+    assert (
+        client.get("/v1/base-stations/rt", headers=ADMIN).json()["newest_epoch"]["gps_seconds"]
+        == epochs(1)[0][0]
+    )
+
+
 def test_old_uploads_are_refused(client):
     _setup(client, observations=False)
     lines = BASE.read_text().splitlines(keepends=True)

@@ -38,6 +38,13 @@ MSM7 = {"1077": "G", "1097": "E", "1127": "C"}
 SKIPPED_MSM = frozenset(f"{base + kind}" for base in (1080, 1100, 1110, 1130) for kind in (4, 5, 6, 7))
 """MSM4-7 of GLONASS, SBAS, QZSS and NavIC: valid, but of systems the positioning code does not use."""
 POSITION_MESSAGES = ("1005", "1006")
+SKIPPED_OTHER = frozenset(
+    ("1007", "1008", "1013", "1019", "1020", "1033", "1041", "1042", "1044", "1045", "1046", "1230")
+)
+"""Messages a station's stream carries beside its observations and that corrections do not need: antenna
+and receiver descriptors, system parameters, broadcast ephemerides (the service uses the uploaded navigation
+file) and GLONASS code-phase biases. Counted and skipped; any other type is refused (legacy 1001-1004 and
+1009-1012 observations among them: send MSM4 or MSM7)."""
 _INVALID_FINE_MS = -(2.0**-10)
 """The "invalid" value of DF400 (-2^14 x 2^-24 ms) and of DF405 (-2^19 x 2^-29 ms) after pyrtcm's scaling."""
 _MS_TO_M = SPEED_OF_LIGHT / 1000.0
@@ -141,13 +148,17 @@ def decode(data: bytes, gpst_of_week: Callable[[float], float]) -> RtcmContent:
         if kind in POSITION_MESSAGES:
             position = (float(message.DF025), float(message.DF026), float(message.DF027))
             continue
-        if kind in SKIPPED_MSM:
+        if kind in SKIPPED_MSM or kind in SKIPPED_OTHER:
             continue
         system = MSM4.get(kind) or MSM7.get(kind)
         if system is None:
             name = f"frame {index} (message {kind}, bytes {offset}-{offset + len(frame) - 1})"
             accepted = ", ".join([*MSM4, *MSM7, *POSITION_MESSAGES])
-            raise RtcmError(name, f"message type {kind} is not accepted here (accepted: {accepted})")
+            raise RtcmError(
+                name,
+                f"message type {kind} is not accepted here (observations: {accepted}; GLONASS, SBAS, QZSS "
+                "and NavIC MSMs and descriptor, ephemeris and bias messages are skipped)",
+            )
         tow_ms = float(
             message.DF427 if system == "C" else (message.DF248 if system == "E" else message.DF004)
         )

@@ -24,13 +24,11 @@ from typing import Any, TypeVar
 
 from edgepos.pipelines.base import NeighbourTrack, Rsu
 from edgepos.store.base import (
-    BaseWindow,
     Clock,
     Revocation,
     SessionRecord,
     SessionStore,
     SessionSummary,
-    StoredBaseStation,
     StoredEphemerides,
     Supersession,
     TooManySessions,
@@ -41,6 +39,7 @@ from edgepos.store.base import (
 )
 from edgepos.store.fixlog import FixLog, SQLiteFixLog, fix_log_path
 from edgepos.store.ratelimit import RateLimit, gcra
+from edgepos.store.sqlite_base import SQLiteBaseStations
 
 T = TypeVar("T")
 
@@ -141,7 +140,7 @@ def path_from_url(url: str) -> Path:
     return Path(url[len(prefix) :])
 
 
-class SQLiteStore(SessionStore):
+class SQLiteStore(SQLiteBaseStations, SessionStore):
     """Sessions and RSUs in a SQLite database file."""
 
     def __init__(self, path: str | Path, ttl_s: float, clock: Clock = time.time) -> None:
@@ -548,88 +547,6 @@ class SQLiteStore(SessionStore):
     async def delete_rsu(self, rsu_id: str) -> bool:
         def work(db: sqlite3.Connection) -> bool:
             return db.execute("DELETE FROM rsus WHERE id = ?", (rsu_id,)).rowcount == 1
-
-        return await self._run(work)
-
-    # reference stations ---------------------------------------------------------------------
-    async def add_base_station(self, station: StoredBaseStation) -> bool:
-        def work(db: sqlite3.Connection) -> bool:
-            cursor = db.execute(
-                "INSERT OR IGNORE INTO base_stations VALUES (?, ?, ?)",
-                (station.station_id, station.document, station.updated_at),
-            )
-            return cursor.rowcount == 1
-
-        return await self._run(work)
-
-    async def replace_base_station(self, station: StoredBaseStation) -> bool:
-        def work(db: sqlite3.Connection) -> bool:
-            cursor = db.execute(
-                "UPDATE base_stations SET document = ?, updated_at = ? WHERE station_id = ?",
-                (station.document, station.updated_at, station.station_id),
-            )
-            return cursor.rowcount == 1
-
-        return await self._run(work)
-
-    async def get_base_station(self, station_id: str) -> StoredBaseStation | None:
-        def work(db: sqlite3.Connection) -> StoredBaseStation | None:
-            row = db.execute(
-                "SELECT station_id, document, updated_at FROM base_stations WHERE station_id = ?", (station_id,)
-            ).fetchone()
-            return None if row is None else StoredBaseStation(*row)
-
-        return await self._run(work)
-
-    async def list_base_stations(self) -> list[StoredBaseStation]:
-        def work(db: sqlite3.Connection) -> list[StoredBaseStation]:
-            rows = db.execute("SELECT station_id, document, updated_at FROM base_stations ORDER BY station_id")
-            return [StoredBaseStation(*row) for row in rows]
-
-        return await self._run(work)
-
-    async def delete_base_station(self, station_id: str) -> bool:
-        def body(db: sqlite3.Connection) -> bool:
-            db.execute("DELETE FROM base_epochs WHERE station_id = ?", (station_id,))
-            return db.execute("DELETE FROM base_stations WHERE station_id = ?", (station_id,)).rowcount == 1
-
-        return await self._run(lambda db: self._transaction(db, lambda: body(db)))
-
-    async def add_base_epochs(self, station_id: str, epochs: Sequence[tuple[float, str]], keep: int) -> int | None:
-        def body(db: sqlite3.Connection) -> int | None:
-            if db.execute("SELECT 1 FROM base_stations WHERE station_id = ?", (station_id,)).fetchone() is None:
-                return None
-            db.executemany(
-                "INSERT OR REPLACE INTO base_epochs VALUES (?, ?, ?)",
-                [(station_id, float(gpst), document) for gpst, document in epochs],
-            )
-            db.execute(
-                "DELETE FROM base_epochs WHERE station_id = ? AND gpst NOT IN "
-                "(SELECT gpst FROM base_epochs WHERE station_id = ? ORDER BY gpst DESC LIMIT ?)",
-                (station_id, station_id, int(keep)),
-            )
-            row = db.execute("SELECT COUNT(*) FROM base_epochs WHERE station_id = ?", (station_id,)).fetchone()
-            return int(row[0])
-
-        return await self._run(lambda db: self._transaction(db, lambda: body(db)))
-
-    async def base_window(self, station_id: str, since: float, until: float) -> BaseWindow | None:
-        def work(db: sqlite3.Connection) -> BaseWindow | None:
-            row = db.execute(
-                "SELECT station_id, document, updated_at FROM base_stations WHERE station_id = ?", (station_id,)
-            ).fetchone()
-            if row is None:
-                return None
-            before = db.execute(
-                "SELECT gpst, document FROM base_epochs WHERE station_id = ? AND gpst < ? ORDER BY gpst DESC LIMIT 1",
-                (station_id, since),
-            ).fetchall()
-            inside = db.execute(
-                "SELECT gpst, document FROM base_epochs WHERE station_id = ? AND gpst >= ? AND gpst <= ? "
-                "ORDER BY gpst",
-                (station_id, since, until),
-            ).fetchall()
-            return BaseWindow(StoredBaseStation(*row), tuple((float(t), str(d)) for t, d in [*before, *inside]))
 
         return await self._run(work)
 

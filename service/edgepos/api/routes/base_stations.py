@@ -69,8 +69,9 @@ _RTCM_BODY = {
     "requestBody": {
         "required": True,
         "description": "RTCM 3 frames back to back: MSM4/MSM7 of GPS (1074/1077), Galileo (1094/1097) and "
-        "BeiDou (1124/1127); GLONASS, SBAS, QZSS and NavIC MSMs are skipped; 1005/1006 set the station's "
-        "position when it has none. MSM epoch times are times of week: the week is the one nearest the "
+        "BeiDou (1124/1127); GLONASS, SBAS, QZSS and NavIC MSMs and descriptor, ephemeris and bias messages "
+        "are skipped; 1005/1006 set the station's position when it has none; other types are refused. MSM "
+        "epoch times are times of week: the week is the one nearest the "
         "loaded ephemerides. At most EDGEPOS_MAX_BASE_OBSERVATIONS_BYTES.",
         "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
     }
