@@ -358,6 +358,25 @@ def test_descriptors_are_skipped_and_legacy_observations_refused(client):
     )
 
 
+def test_an_ephemeris_issue_the_base_did_not_use_gets_no_correction(client):
+    """Corrections computed with one ephemeris of G05, then a navigation file whose G05 records carry another
+    IODE: the rover's G05 is told the issues differ, the other satellites are still corrected."""
+    _setup(client)
+    lines = nav_text().splitlines(keepends=True)
+    for k, line in enumerate(lines):
+        if line.startswith("G05 "):
+            iode = float(lines[k + 1][4:23].replace("D", "E"))
+            lines[k + 1] = f"    {iode + 100:19.12e}{lines[k + 1][23:]}"
+    assert client.put("/v1/ephemerides", content="".join(lines), headers=TEXT).status_code == 200
+    (fix,) = _run(client, "issue", {**OPTIONS, "base_station": "MARE"}, 1)
+    sent = epochs(1)[0][1]
+    by_sat = {f"{sent[u['index']]['system']}{sent[u['index']]['prn']:02d}": u for u in fix["measurements"]}
+    assert by_sat["G05"]["correction_applied"] is False
+    assert by_sat["G05"]["correction_reason"].startswith("ephemeris issue mismatch: base IODE 39 ")
+    assert "rover IODE 139 " in by_sat["G05"]["correction_reason"]
+    assert sum(u["correction_applied"] for u in by_sat.values()) >= 10
+
+
 def test_old_uploads_are_refused(client):
     _setup(client, observations=False)
     lines = BASE.read_text().splitlines(keepends=True)
