@@ -213,6 +213,7 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
         "delete_vehicle": scripts.DELETE_VEHICLE,
         "publish_fixes": scripts.PUBLISH_FIXES,
         "add_base_epochs": scripts.ADD_BASE_EPOCHS,
+        "replace_base_station": scripts.REPLACE_BASE_STATION,
     }
 
     def __init__(

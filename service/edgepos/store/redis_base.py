@@ -58,12 +58,10 @@ class RedisBaseStations:
     async def replace_base_station(self, station: StoredBaseStation) -> bool:
         async with self._guard():
             client = await self._redis()
-            # HSET XX does not exist; a station deleted between these two calls is written back, which
-            # only a registration racing its own deletion can cause (the routes read it just before)
-            if not await client.hexists(self.base_stations_key, station.station_id):
-                return False
-            await client.hset(self.base_stations_key, station.station_id, _value(station))
-            return True
+            replaced = await self._scripts["replace_base_station"](
+                keys=[self.base_stations_key], args=[station.station_id, _value(station)], client=client
+            )
+        return bool(replaced)
 
     async def get_base_station(self, station_id: str) -> StoredBaseStation | None:
         async with self._guard():

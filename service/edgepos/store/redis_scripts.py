@@ -267,3 +267,13 @@ if size > keep then
 end
 return size
 """
+
+# KEYS: the base-station hash. ARGV: station id, value. Replaces the value only if the station exists.
+# Returns 1 if replaced, 0 if the station is not registered (nothing written).
+REPLACE_BASE_STATION = """
+if redis.call('HEXISTS', KEYS[1], ARGV[1]) == 0 then
+  return 0
+end
+redis.call('HSET', KEYS[1], ARGV[1], ARGV[2])
+return 1
+"""
