@@ -12,11 +12,14 @@ without ``--base`` on the same epochs and options: the two must agree.
 from __future__ import annotations
 
 import argparse
+import asyncio
 import statistics
 import time
 from pathlib import Path
 
 from edgepos.api.app import create_app
+from edgepos.api.base_stations import batch_corrections
+from edgepos.api.schemas import PseudorangeMeasurement
 from edgepos.api.settings import Settings
 from edgepos.eval.gnss_rinex import _score, evaluate
 from edgepos.gnss.geodesy import geodetic_to_ecef
@@ -60,6 +63,28 @@ def run(
     return fixes, seconds
 
 
+def lookup_ms(client: TestClient, repeats: int = 200) -> float:
+    """The web layer's per-batch cost of corrections alone: ``batch_corrections`` for epoch 150's pseudoranges."""
+    context = client.app.state.context
+    loaded = asyncio.run(context.ephemerides.current(context.store, lambda fn, *a: _now(fn(*a))))
+    observations = [PseudorangeMeasurement(**m).to_observation() for m in load_epochs(151, "GC")[150]]
+    options = {"base_station": "MARE", "max_correction_age_s": 30.0}
+
+    async def repeat() -> float:
+        started = time.perf_counter()
+        for _ in range(repeats):
+            await batch_corrections(
+                context.store, context.base_epochs, options, observations, loaded.ephemerides, None, None
+            )
+        return (time.perf_counter() - started) / repeats * 1e3
+
+    return asyncio.run(repeat())
+
+
+async def _now(value):
+    return value
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--epochs", type=int, default=300)
@@ -67,7 +92,9 @@ def main() -> None:
     args = parser.parse_args()
     options = {"filter": args.filter, "seed": 1, "systems": ["G", "C"], "use_doppler": False}
     batches = load_epochs(args.epochs, "GC")
-    client = TestClient(create_app(Settings(admin_key=KEY, admin_key_file=Path("/nonexistent/never.key"), rate_limit_per_s=0)))
+    client = TestClient(
+        create_app(Settings(admin_key=KEY, admin_key_file=Path("/nonexistent/never.key"), rate_limit_per_s=0))
+    )
     with client:
         client.put(
             "/v1/ephemerides", content=(DATA / "broadcast-nav.rnx").read_text(), headers=TEXT
@@ -104,6 +131,9 @@ def main() -> None:
             f"batch median {statistics.median(seconds) * 1e3:.2f} ms"
         )
     print(f"pseudoranges corrected: {sum(applied)} of {len(applied)}")
+    print(
+        f"correction read + table per one-epoch batch (memory store, warm cache): {lookup_ms(client):.3f} ms"
+    )
     obs, nav, ref = (str(DATA / n) for n in ("rover-0-5min.rnx", "broadcast-nav.rnx", "reference-0-5min.csv"))
     for label, base in (("eval gnss-rinex", None), ("eval gnss-rinex --base", str(DATA / "base-0-5min.rnx"))):
         s = evaluate(obs, nav, ref, "GC", options, args.epochs, base_path=base)
