@@ -21,6 +21,10 @@ def test_schema_documents_every_route_and_error():
         "/v1/rsus",
         "/v1/rsus/{rsu_id}",
         "/v1/ephemerides",
+        "/v1/base-stations",
+        "/v1/base-stations/{station_id}",
+        "/v1/base-stations/{station_id}/observations",
+        "/v1/base-stations/{station_id}/rtcm",
         "/v1/pipelines",
         "/v1/sessions",
         "/v1/sessions/{session_id}",
@@ -53,6 +57,12 @@ def test_schema_documents_every_route_and_error():
     upload = paths["/v1/ephemerides"]["put"]["requestBody"]["content"]
     assert set(upload) == {"text/plain", "application/octet-stream"}
     assert set(paths["/v1/ephemerides"]) == {"put", "get", "delete"}
+    assert set(paths["/v1/base-stations"]) == {"post", "get"}
+    assert set(paths["/v1/base-stations/{station_id}"]) == {"get", "delete"}
+    rtcm = paths["/v1/base-stations/{station_id}/rtcm"]["post"]
+    assert set(rtcm["requestBody"]["content"]) == {"application/octet-stream"}
+    assert {"404", "413", "422"} <= set(rtcm["responses"])
+    assert "404" in paths["/v1/sessions"]["post"]["responses"]  # an unknown options.base_station
     assert set(paths["/v1/sessions"]) == {"post", "get"}
     assert {"401", "403", "429"} <= set(paths["/v1/sessions"]["post"]["responses"])
     assert set(paths["/v1/vehicles"]) == {"post", "get"}

@@ -31,6 +31,7 @@ from edgepos.api.middleware import (
     RequestContextMiddleware,
 )
 from edgepos.api.routes import (
+    base_stations,
     docs,
     ephemerides,
     health,
@@ -169,6 +170,7 @@ def create_app(
     routers = (
         rsus.router,
         ephemerides.router,
+        base_stations.router,
         pipeline_routes.router,
         sessions.router,
         streams.router,
@@ -198,7 +200,10 @@ def create_app(
     app.add_middleware(
         BodyLimitMiddleware,
         max_bytes=settings.max_body_bytes,
-        path_limits={ephemerides.PATH: (settings.max_ephemerides_bytes, "EDGEPOS_MAX_EPHEMERIDES_BYTES")},
+        path_limits={
+            ephemerides.PATH: (settings.max_ephemerides_bytes, "EDGEPOS_MAX_EPHEMERIDES_BYTES"),
+            f"{base_stations.PATH}/*": (settings.max_base_observations_bytes, "EDGEPOS_MAX_BASE_OBSERVATIONS_BYTES"),
+        },
     )
     if settings.cors_origin_list:
         app.add_middleware(

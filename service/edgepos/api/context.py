@@ -9,6 +9,7 @@ from typing import Annotated, Any, TypeVar
 
 from fastapi import Depends, Request
 
+from edgepos.api.base_stations import EpochCache
 from edgepos.api.ephemerides import EphemeridesCache
 from edgepos.api.metrics import Metrics
 from edgepos.api.middleware import Admission
@@ -40,6 +41,8 @@ class AppContext:
     origin: GeodeticOrigin | None
     admin_key_hash: bytes
     ephemerides: EphemeridesCache = field(default_factory=EphemeridesCache)
+    base_epochs: EpochCache = field(default_factory=EpochCache)
+    """Decoded reference-station epochs of this worker (api.base_stations)."""
     vehicle_keys: VehicleKeySet | None = None
     """The fleet operator's public keys (EDGEPOS_VEHICLE_AUTH=jwt), loaded once at start-up."""
     admission: Admission | None = None

@@ -116,7 +116,7 @@ class RequestContextMiddleware:
 class BodyLimitMiddleware:
     """Refuse request bodies above ``max_bytes`` with 413 before the app parses anything; the
     accepted body is buffered and handed on unchanged. ``path_limits`` gives some paths their own
-    limit (path -> (bytes, name of the setting))."""
+    limit (path, or "/prefix/*" for every path under a prefix -> (bytes, name of the setting))."""
 
     def __init__(
         self, app: ASGIApp, max_bytes: int, path_limits: dict[str, tuple[int, str]] | None = None
@@ -125,11 +125,21 @@ class BodyLimitMiddleware:
         self.max_bytes = max_bytes
         self.path_limits = dict(path_limits or {})
 
+    def _limit(self, path: str) -> tuple[int, str]:
+        """A path's own limit: an exact path, or a prefix given as ``"/prefix/*"``; else the default."""
+        exact = self.path_limits.get(path)
+        if exact is not None:
+            return exact
+        for pattern, limit in self.path_limits.items():
+            if pattern.endswith("/*") and path.startswith(pattern[:-1]):
+                return limit
+        return self.max_bytes, "EDGEPOS_MAX_BODY_BYTES"
+
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        limit, setting = self.path_limits.get(scope["path"], (self.max_bytes, "EDGEPOS_MAX_BODY_BYTES"))
+        limit, setting = self._limit(scope["path"])
         too_large = f"the request body exceeds {limit} bytes ({setting})"
         declared = dict(scope.get("headers") or []).get(b"content-length")
         if declared is not None and declared.strip().isdigit() and int(declared) > limit:

@@ -71,6 +71,21 @@ class Settings(BaseSettings):
         description="Largest navigation file PUT /v1/ephemerides accepts, in bytes (413 beyond, checked "
         "before parsing); replaces max_body_bytes on that route.",
     )
+    max_base_observations_bytes: int = Field(
+        16_777_216,
+        ge=1024,
+        le=1_073_741_824,
+        description="Largest base-station observation upload (RINEX 3 or RTCM 3) POST "
+        "/v1/base-stations/{id}/observations and .../rtcm accept, in bytes (413 beyond, checked before "
+        "parsing; five minutes of a 1 Hz multi-GNSS RINEX file are about 2 MB).",
+    )
+    base_window_epochs: int = Field(
+        900,
+        ge=10,
+        le=100_000,
+        description="Base epochs of corrections kept per reference station (the newest; older ones are "
+        "dropped): 900 is 15 min at 1 Hz, more than the largest max_correction_age_s (600 s).",
+    )
     max_inflight: int = Field(
         32,
         ge=1,

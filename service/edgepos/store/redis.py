@@ -54,6 +54,7 @@ from edgepos.store.base import (
 )
 from edgepos.store.fixlog import FixLog
 from edgepos.store.ratelimit import SLACK_S, RateLimit, gcra
+from edgepos.store.redis_base import RedisBaseStations
 from edgepos.store.redis_registry import RedisRegistry
 
 DEFAULT_PREFIX = "edgepos:"
@@ -197,7 +198,7 @@ def _summary(session_id: str, values: Sequence[bytes | None]) -> SessionSummary 
     )
 
 
-class RedisStore(RedisRegistry, SessionStore):
+class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
     """Sessions and RSUs in Redis under ``prefix`` (see docs/redis.md for the key layout)."""
 
     SCRIPTS: Mapping[str, str] = {
@@ -211,6 +212,8 @@ class RedisStore(RedisRegistry, SessionStore):
         "rotate": scripts.ROTATE_VEHICLE_KEY,
         "delete_vehicle": scripts.DELETE_VEHICLE,
         "publish_fixes": scripts.PUBLISH_FIXES,
+        "add_base_epochs": scripts.ADD_BASE_EPOCHS,
+        "replace_base_station": scripts.REPLACE_BASE_STATION,
     }
 
     def __init__(

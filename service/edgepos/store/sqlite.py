@@ -39,6 +39,7 @@ from edgepos.store.base import (
 )
 from edgepos.store.fixlog import FixLog, SQLiteFixLog, fix_log_path
 from edgepos.store.ratelimit import RateLimit, gcra
+from edgepos.store.sqlite_base import SQLiteBaseStations
 
 T = TypeVar("T")
 
@@ -74,6 +75,17 @@ CREATE TABLE IF NOT EXISTS ephemerides (
     digest TEXT NOT NULL,
     text TEXT NOT NULL,
     uploaded_at REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS base_stations (
+    station_id TEXT PRIMARY KEY,
+    document TEXT NOT NULL,
+    updated_at REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS base_epochs (
+    station_id TEXT NOT NULL,
+    gpst REAL NOT NULL,
+    document TEXT NOT NULL,
+    PRIMARY KEY (station_id, gpst)
 );
 CREATE TABLE IF NOT EXISTS tracks (
     vehicle_id TEXT PRIMARY KEY,
@@ -128,7 +140,7 @@ def path_from_url(url: str) -> Path:
     return Path(url[len(prefix) :])
 
 
-class SQLiteStore(SessionStore):
+class SQLiteStore(SQLiteBaseStations, SessionStore):
     """Sessions and RSUs in a SQLite database file."""
 
     def __init__(self, path: str | Path, ttl_s: float, clock: Clock = time.time) -> None:

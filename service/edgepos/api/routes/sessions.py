@@ -60,7 +60,7 @@ _FROM_PATH = "$request.path.session_id"
     response_model=SessionCreated,
     summary="Open a session",
     responses={
-        **errors(401, 403, 413, 415, 422, 429, 503),
+        **errors(401, 403, 404, 413, 415, 422, 429, 503),
         201: {"links": _links(_FROM_BODY, _READ_IT, _SEND_TO_IT, _DELETE_IT)},
     },
 )
