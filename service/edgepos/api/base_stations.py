@@ -62,7 +62,8 @@ class Station:
             return marker
         up, east, north = self.antenna_delta  # as differential.base_position turns a RINEX header's
         lat, lon, _ = geodesy.ecef_to_geodetic(marker)
-        return marker + enu_rotation(float(lat), float(lon)).T @ np.array([east, north, up])
+        position: np.ndarray = marker + enu_rotation(float(lat), float(lon)).T @ np.array([east, north, up])
+        return position
 
     def stored(self) -> StoredBaseStation:
         document = {

@@ -115,4 +115,5 @@ def saastamoinen_delay(
     if not -1000.0 < height_m < 1e5:
         return np.zeros_like(el)
     hydrostatic, wet = saastamoinen_zenith(lat, height_m, relative_humidity)
-    return (hydrostatic + wet) / np.sin(el)
+    result: np.ndarray = (hydrostatic + wet) / np.sin(el)
+    return result

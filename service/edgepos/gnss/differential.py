@@ -69,7 +69,8 @@ def base_position(header: ObservationHeader) -> np.ndarray:
         return marker
     up, east, north = header.antenna_delta_hen
     lat, lon, _ = ecef_to_geodetic(marker)
-    return marker + enu_rotation(float(lat), float(lon)).T @ np.array([east, north, up])
+    result: np.ndarray = marker + enu_rotation(float(lat), float(lon)).T @ np.array([east, north, up])
+    return result
 
 
 def _issue(issue: Issue | None) -> Issue:

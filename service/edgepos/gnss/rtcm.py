@@ -169,20 +169,20 @@ def decode(data: bytes, gpst_of_week: Callable[[float], float]) -> RtcmContent:
             rows.setdefault((system, prn), (pseudorange, cn0))  # the first message of a satellite counts
     epochs = []
     for gpst in sorted(by_time):
-        rows = [(sat[0], sat[1], *values) for sat, values in sorted(by_time[gpst].items())]
-        if not rows:
+        epoch_rows = [(sat[0], sat[1], *values) for sat, values in sorted(by_time[gpst].items())]
+        if not epoch_rows:
             continue
-        count = len(rows)
+        count = len(epoch_rows)
         nan = np.full(count, np.nan)
         epochs.append(
             ObservationEpoch(
                 gpst=gpst,
                 flag=0,
                 line_number=0,
-                systems=tuple(row[0] for row in rows),
-                prns=np.array([row[1] for row in rows], dtype=int),
-                pseudorange_m=np.array([row[2] for row in rows]),
-                cn0_dbhz=np.array([row[3] for row in rows]),
+                systems=tuple(row[0] for row in epoch_rows),
+                prns=np.array([row[1] for row in epoch_rows], dtype=int),
+                pseudorange_m=np.array([row[2] for row in epoch_rows]),
+                cn0_dbhz=np.array([row[3] for row in epoch_rows]),
                 doppler_hz=nan,
                 carrier_cycles=nan.copy(),
                 lli=np.zeros(count, dtype=int),

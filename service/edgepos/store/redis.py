@@ -585,7 +585,7 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
                 args=[session_id, repr(float(now - self.ttl_s)), encode_track(track, now), self._ttl_ms],
                 client=client,
             )
-        return written == 1
+        return bool(written == 1)
 
     async def get_tracks(self, vehicle_ids: Iterable[str]) -> Mapping[str, NeighbourTrack]:
         wanted = sorted(set(vehicle_ids))
