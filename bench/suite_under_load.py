@@ -19,8 +19,6 @@ are stopped at the end, on Ctrl-C and on any error. The exit status is 1 when an
 
 from __future__ import annotations
 
-from typing import Self
-
 import argparse
 import multiprocessing
 import os
@@ -34,6 +32,7 @@ import time
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Self
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_COMMAND = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"]
