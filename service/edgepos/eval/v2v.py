@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 
+from edgepos.eval import correlated
 from edgepos.eval.montecarlo import chunk_runs, run_chunks
 from edgepos.eval.progress import Progress
 from edgepos.eval.scenario_command import Totals, combine, run_scenario_command
@@ -39,6 +40,10 @@ PAPER_RATES = {
 }
 
 
+#: The paper's model (sec. 4): white GNSS errors, neighbours' estimates as independent information.
+PAPER_OPTIONS = {"gnss_bias_std": 0.0, "neighbour_fusion": "independent"}
+
+
 class RunFailed(RuntimeError):
     """A run raised an estimation error: which scenario, run and method."""
 
@@ -47,7 +52,8 @@ def run_method(run: V2vRun, method: str) -> tuple[np.ndarray, float, int]:
     """Squared 2-D errors per step summed over the vehicles (steps,), seconds in the pipelines and
     epochs processed, for one Table 2 ``method`` on one run."""
     pipeline = V2vCoopPipeline()
-    options = pipeline.resolve_options({"method": METHODS[method]})
+    # The paper's receiver has white errors and its vehicles take one another's estimates as independent.
+    options = pipeline.resolve_options({"method": METHODS[method], **PAPER_OPTIONS})
     states = {vid: pipeline.create(options, None) for vid in VEHICLE_IDS}
     published: dict[str, NeighbourTrack] = {}
     steps = len(run.times)
@@ -144,7 +150,8 @@ def report(results: dict[str, dict[str, dict[str, float]]], runs: int, seed: int
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    """No options beyond the common ones."""
+    """``--scene`` (the paper's or the correlated-error one) and the correlated scene's options."""
+    correlated.configure(parser)
 
 
 def curves(totals: Totals, runs: int) -> dict[str, tuple[np.ndarray, dict[str, np.ndarray]]]:
@@ -155,4 +162,6 @@ def curves(totals: Totals, runs: int) -> dict[str, tuple[np.ndarray, dict[str, n
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.scene == "correlated":
+        return correlated.run(args, "v2v", PROG)
     return run_scenario_command(args, PROG, monte_carlo, summary, report, curves, "v2v", RunFailed)
