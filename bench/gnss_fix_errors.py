@@ -41,7 +41,9 @@ def _enu_errors(solutions, truth_at) -> dict[int, np.ndarray]:
     return out
 
 
-def autocorrelation(series: dict[int, np.ndarray], axis: int, lags: range, centred: bool = True) -> np.ndarray:
+def autocorrelation(
+    series: dict[int, np.ndarray], axis: int, lags: range, centred: bool = True
+) -> np.ndarray:
     """ACF of one axis at whole-second lags, over the pairs both present (gaps skipped): about the mean
     (``centred``) or about zero (the error's mean counts as the slowest part of a bias)."""
     values = {t: float(e[axis]) for t, e in series.items()}
@@ -71,7 +73,9 @@ def main() -> int:
     nav = str(DATA / "broadcast-nav.rnx")
     ref_time, ref_ecef = read_reference(str(DATA / "reference-0-5min.csv"))
     reference = {round(float(t)): p for t, p in zip(ref_time, ref_ecef)}
-    rover = _enu_errors(solve_recording(str(DATA / "rover-0-5min.rnx"), nav), lambda t: reference.get(round(t)))
+    rover = _enu_errors(
+        solve_recording(str(DATA / "rover-0-5min.rnx"), nav), lambda t: reference.get(round(t))
+    )
     station_obs = str(DATA / "base-0-5min.rnx")
     station_at = base_position(read_header(station_obs))
     station = _enu_errors(solve_recording(station_obs, nav), lambda t: station_at)
@@ -91,7 +95,9 @@ def main() -> int:
                 "acf_1_5_10_20_30_60": [round(float(acf[k - 1]), 3) for k in (1, 5, 10, 20, 30, 60)],
                 "gm_tau_s": tau,
                 "gm_fraction": markov,
-                "about_zero_acf_1_5_10_20_30_60": [round(float(raw[k - 1]), 3) for k in (1, 5, 10, 20, 30, 60)],
+                "about_zero_acf_1_5_10_20_30_60": [
+                    round(float(raw[k - 1]), 3) for k in (1, 5, 10, 20, 30, 60)
+                ],
                 "about_zero_gm_tau_s": raw_tau,
                 "about_zero_gm_fraction": raw_markov,
             }

@@ -6,7 +6,6 @@ import math
 
 import numpy as np
 import pytest
-
 from edgepos.core import gnss_bias
 from edgepos.core.gnss_bias import Bias
 from edgepos.core.motion.ca import ConstantAcceleration
@@ -121,7 +120,10 @@ def test_a_filter_with_the_bias_is_consistent_on_correlated_fixes_and_one_withou
             for label, (mean, cov, bias) in states.items():
                 if k:
                     transition = motion.transition_matrix(mean, 1.0)
-                    mean, cov = transition @ mean, transition @ cov @ transition.T + motion.noise_covariance(mean, 1.0)
+                    mean, cov = (
+                        transition @ mean,
+                        transition @ cov @ transition.T + motion.noise_covariance(mean, 1.0),
+                    )
                     bias = gnss_bias.predict(bias, transition, tau, sigma if label == "bias" else 0.0, 1.0)
                 r = gnss_bias.white_variance(total, sigma) if label == "bias" else total**2
                 mean, cov, bias = gnss_bias.fix_update(mean, cov, bias, fix, r)

@@ -20,7 +20,13 @@ from edgepos.core.observations import (
     V2vRangeObservation,
 )
 from edgepos.eval.federated import METHODS, assisting_tracks, run_method
-from edgepos.pipelines.base import InitialState, NeighbourTrack, PipelineInputError, StaticEnvironment, TrackPoint
+from edgepos.pipelines.base import (
+    InitialState,
+    NeighbourTrack,
+    PipelineInputError,
+    StaticEnvironment,
+    TrackPoint,
+)
 from edgepos.pipelines.registry import get_pipeline
 from edgepos.pipelines.v2x_federated import RangesToPoints, fuse
 from edgepos.sim.federated import make_run

@@ -66,10 +66,14 @@ class Bias:
 def predict(bias: Bias, transition: np.ndarray, tau: float, sigma: float, dt: float) -> Bias:
     """The bias after ``dt``, beside a kinematic state predicted with the (linear) ``transition``."""
     phi, q = discretise(tau, sigma, dt)
-    return Bias(phi * bias.mean, symmetrize(phi * phi * bias.cov + q * np.eye(2)), phi * (transition @ bias.cross))
+    return Bias(
+        phi * bias.mean, symmetrize(phi * phi * bias.cov + q * np.eye(2)), phi * (transition @ bias.cross)
+    )
 
 
-def condition(bias: Bias, prior_mean: np.ndarray, prior_cov: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> Bias:
+def condition(
+    bias: Bias, prior_mean: np.ndarray, prior_cov: np.ndarray, mean: np.ndarray, cov: np.ndarray
+) -> Bias:
     """The bias after the kinematic state went from (``prior_mean``, ``prior_cov``) to (``mean``, ``cov``)
     by a measurement of the kinematic state alone: b's regression on the state, G = C^T P^-1, carries the
     change (b += G dm, C = P' G^T, B -= G (P - P') G^T). Exact for a linear update."""
@@ -78,7 +82,9 @@ def condition(bias: Bias, prior_mean: np.ndarray, prior_cov: np.ndarray, mean: n
     try:
         factor = np.linalg.cholesky(prior_cov)
     except np.linalg.LinAlgError:
-        raise NumericalError("prior covariance not positive definite when carrying an update to the GNSS bias") from None
+        raise NumericalError(
+            "prior covariance not positive definite when carrying an update to the GNSS bias"
+        ) from None
     gain = np.linalg.solve(factor.T, np.linalg.solve(factor, bias.cross)).T  # (2, n)
     new = Bias(
         bias.mean + gain @ (mean - prior_mean),

@@ -5,8 +5,8 @@ A neighbour's published estimate and a vehicle's own both rest on GNSS fixes wit
 the same information counts twice and the covariance shrinks below the error. Covariance intersection
 (Julier & Uhlmann 1997) is consistent whatever the correlation: for estimates with covariances P_i
 (each an upper bound of its own error's), blockdiag(P_i / w_i) with w_i > 0, sum w_i = 1, bounds the
-joint error covariance of any cross-correlation. The weights are chosen to minimise the trace of the
-result's position covariance.
+joint error covariance of any cross-correlation. The weights are chosen to minimise the result's
+covariance: its trace for two estimates of one state, its determinant for a filter's range update.
 """
 
 from __future__ import annotations
@@ -51,32 +51,30 @@ def range_weight(
     neighbour_design: np.ndarray,
     neighbour_cov: np.ndarray,
     noise: np.ndarray,
-    position: tuple[int, int],
     neighbours: int,
 ) -> float:
     """The own weight w for an update with measurements of the own state and ``neighbours`` other
     estimates, correlated by unknown amounts: the prior is taken as blockdiag(P / w, Pn (m / (1 - w)))
-    (own state and each of the m neighbours weighted alike), and w in WEIGHTS minimises the trace of
-    the linearised posterior's ``position`` block. ``design``: (k, n) Jacobian on the own state;
-    ``neighbour_design``: (k, 2m) on the neighbours' stacked positions with joint covariance
-    ``neighbour_cov`` (2m, 2m); ``noise``: (k, k). w = 1 means the measurements carry no weight."""
-    idx = list(position)
+    (own state and each of the m neighbours weighted alike), and w in WEIGHTS minimises the determinant
+    of the linearised posterior of the whole own state. By the determinant lemma, log det P+ = log det P
+    - n log w + log det(S - H P H^T / w) - log det S, so no posterior is formed. (The trace of the
+    position block alone is not enough: it lets a small w inflate what the measurements do not see,
+    the velocity, every epoch, and a filter without another source of it diverges.)
+
+    ``design``: (k, n) Jacobian on the own state; ``neighbour_design``: (k, 2m) on the neighbours'
+    stacked positions with joint covariance ``neighbour_cov`` (2m, 2m); ``noise``: (k, k). w = 1 means
+    the measurements carry no weight."""
     if neighbours == 0:
         return 1.0
     own = WEIGHTS[:-1]
-    design_cov = design @ cov  # (k, n)
-    own_term = design_cov @ design.T
+    own_term = design @ cov @ design.T
     other = neighbour_design @ neighbour_cov @ neighbour_design.T
-    innovation = (own_term[None] / own[:, None, None] + other[None] * (neighbours / (1.0 - own))[:, None, None]
-                  + noise[None])
-    cross = design_cov[:, idx].T  # (2, k)
-    try:
-        solved = np.linalg.solve(innovation, np.broadcast_to(cross.T, (own.size, *cross.T.shape)))  # (W, k, 2)
-    except np.linalg.LinAlgError:
-        raise NumericalError("innovation covariance of the intersected range update is singular") from None
-    reduction = np.einsum("ik,wki->w", cross, solved) / (own * own)
-    traces = np.trace(cov[np.ix_(idx, idx)]) / own - reduction
-    best = int(np.argmin(traces))
-    if traces[best] >= float(np.trace(cov[np.ix_(idx, idx)])):
-        return 1.0
-    return float(own[best])
+    rest = other[None] * (neighbours / (1.0 - own))[:, None, None] + noise[None]
+    innovation = own_term[None] / own[:, None, None] + rest
+    sign_rest, logdet_rest = np.linalg.slogdet(rest)
+    sign_all, logdet_all = np.linalg.slogdet(innovation)
+    if np.any(sign_rest <= 0) or np.any(sign_all <= 0):
+        raise NumericalError("innovation covariance of the intersected range update is not positive definite")
+    change = -cov.shape[0] * np.log(own) + logdet_rest - logdet_all
+    best = int(np.argmin(change))
+    return 1.0 if change[best] >= 0.0 else float(own[best])

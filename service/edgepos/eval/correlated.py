@@ -93,7 +93,9 @@ def run_method(
             batch = [obs for obs in run.observations[i][k] if obs.kind in kinds]
             if not batch:
                 continue
-            fixes, states[vid] = pipeline.process(states[vid], batch, StaticEnvironment(tracks=snapshot, vehicle_id=vid))
+            fixes, states[vid] = pipeline.process(
+                states[vid], batch, StaticEnvironment(tracks=snapshot, vehicle_id=vid)
+            )
             fix = fixes[-1]
             error = np.array([fix.x - run.positions[i, k, 0], fix.y - run.positions[i, k, 1]])
             squared[k] += float(error @ error)
@@ -129,7 +131,9 @@ def _work(chunk: range) -> Sums:
     return sums
 
 
-def monte_carlo(evaluation: str, runs: int, seed: int, workers: int, errors: ErrorModel, progress: Progress | None = None) -> Sums:
+def monte_carlo(
+    evaluation: str, runs: int, seed: int, workers: int, errors: ErrorModel, progress: Progress | None = None
+) -> Sums:
     return run_chunks(_work, combine, chunk_runs(runs), workers, _init, (evaluation, seed, errors), progress)
 
 
@@ -147,18 +151,31 @@ def summary(sums: Sums) -> dict[str, dict[str, float]]:
     return out
 
 
-def report(results: dict[str, dict[str, float]], evaluation: str, runs: int, seed: int, errors: ErrorModel) -> str:
+def report(
+    results: dict[str, dict[str, float]], evaluation: str, runs: int, seed: int, errors: ErrorModel
+) -> str:
     pipeline = METHODS[evaluation][next(iter(METHODS[evaluation]))][0].name
     lines = [
-        (f"{pipeline} on the correlated-error scene: seeds {seed}-{seed + runs - 1}, {len(VEHICLE_IDS)} vehicles, "
-         f"{STEPS} epochs of {STEP:g} s, fixes every {errors.fix_interval:g} s"),
-        (f"fix error per axis: common GM {errors.common_std:g} m / {errors.common_tau:g} s + own GM "
-         f"{errors.vehicle_std:g} m / {errors.vehicle_tau:g} s + white {errors.white_std:g} m; "
-         f"epochs from {WARMUP_S:g} s; NEES is 2 when consistent (2 dof)"),
+        (
+            f"{pipeline} on the correlated-error scene: seeds {seed}-{seed + runs - 1}, {len(VEHICLE_IDS)} vehicles, "
+            f"{STEPS} epochs of {STEP:g} s, fixes every {errors.fix_interval:g} s"
+        ),
+        (
+            f"fix error per axis: common GM {errors.common_std:g} m / {errors.common_tau:g} s + own GM "
+            f"{errors.vehicle_std:g} m / {errors.vehicle_tau:g} s + white {errors.white_std:g} m; "
+            f"epochs from {WARMUP_S:g} s; NEES is 2 when consistent (2 dof)"
+        ),
         "",
     ]
-    rows = [[m, number(r["pos_rmse_m"], 2), number(r["mean_nees"], 2), "yes" if 1.0 <= r["mean_nees"] <= 4.0 else "NO"]
-            for m, r in results.items()]
+    rows = [
+        [
+            m,
+            number(r["pos_rmse_m"], 2),
+            number(r["mean_nees"], 2),
+            "yes" if 1.0 <= r["mean_nees"] <= 4.0 else "NO",
+        ]
+        for m, r in results.items()
+    ]
     lines.append(format_table(["method", "RMSE m", "mean NEES", "in 1-4"], rows, [False, True, True, False]))
     return "\n".join(lines)
 
@@ -167,10 +184,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     """The scene switch and the correlated scene's error options."""
     defaults = ErrorModel()
     parser.add_argument(
-        "--scene", choices=("paper", "correlated"), default="paper",
+        "--scene",
+        choices=("paper", "correlated"),
+        default="paper",
         help="paper: the paper's scenarios and table; correlated: four vehicles on an S-curved road with "
-             "time-correlated GNSS errors partly common to all, RMSE and mean NEES per method (seeds SEED.."
-             "SEED+RUNS-1)",
+        "time-correlated GNSS errors partly common to all, RMSE and mean NEES per method (seeds SEED.."
+        "SEED+RUNS-1)",
     )
     for flag, attr, text in (
         ("--common-tau", "common_tau", "time constant (s) of the error common to all vehicles"),
@@ -180,8 +199,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
         ("--white-std", "white_std", "1-sigma per axis (m) of the white part of the fix error"),
         ("--fix-interval", "fix_interval", "seconds between GNSS fixes"),
     ):
-        parser.add_argument(flag, dest=attr, type=_positive_float, default=getattr(defaults, attr),
-                            help=f"correlated scene: {text} (default {getattr(defaults, attr):g})")
+        parser.add_argument(
+            flag,
+            dest=attr,
+            type=_positive_float,
+            default=getattr(defaults, attr),
+            help=f"correlated scene: {text} (default {getattr(defaults, attr):g})",
+        )
 
 
 def _positive_float(text: str) -> float:
@@ -199,7 +223,14 @@ def run(args: argparse.Namespace, evaluation: str, prog: str) -> int:
     if args.json is not None and not Path(args.json).resolve().parent.is_dir():
         print(f"{prog}: error: --json: the directory of {args.json} does not exist", file=sys.stderr)
         return 2
-    errors = ErrorModel(args.common_tau, args.common_std, args.vehicle_tau, args.vehicle_std, args.white_std, args.fix_interval)
+    errors = ErrorModel(
+        args.common_tau,
+        args.common_std,
+        args.vehicle_tau,
+        args.vehicle_std,
+        args.white_std,
+        args.fix_interval,
+    )
     progress = Progress(args.runs, label="runs")
     try:
         sums = monte_carlo(evaluation, args.runs, args.seed, args.workers, errors, progress)
@@ -212,7 +243,9 @@ def run(args: argparse.Namespace, evaluation: str, prog: str) -> int:
     if args.json is not None:
         scene = {"name": "correlated", "seeds": [args.seed, args.seed + args.runs - 1], **vars(errors)}
         try:
-            Path(args.json).write_text(json.dumps({"scene": scene, "methods": results}, indent=2) + "\n", encoding="utf-8")
+            Path(args.json).write_text(
+                json.dumps({"scene": scene, "methods": results}, indent=2) + "\n", encoding="utf-8"
+            )
         except OSError as exc:
             print(f"{prog}: error: {exc}", file=sys.stderr)
             return 1

@@ -21,7 +21,7 @@ from edgepos.eval.tables import format_table, number
 from edgepos.pipelines import tracks
 from edgepos.pipelines.base import NeighbourTrack, StaticEnvironment
 from edgepos.pipelines.v2x_federated import V2xFederatedPipeline
-from edgepos.sim.federated import SCENARIOS, STEPS, FederatedRun, make_run
+from edgepos.sim.federated import PAPER_OPTIONS, SCENARIOS, STEPS, FederatedRun, make_run
 
 PROG = "edgepos eval federated"
 METHODS = ("GPS", "GPS/DR", "GPS/DR/V2X", "GPS/DR/V2X-nofeedback")
@@ -37,10 +37,6 @@ PAPER = {
     "multipath": {"GPS": 12.45, "GPS/DR": 7.02, "GPS/DR/V2X": 4.52},
 }
 PAPER_RATES = {("clean", "GPS"): 51.0, ("clean", "GPS/DR"): 28.0, ("multipath", "GPS"): 64.0, ("multipath", "GPS/DR"): 36.0}
-
-
-#: The paper's model (sec. 3): white GNSS errors, the assisting vehicles' positions as independent of the target's.
-PAPER_OPTIONS = {"gnss_bias_std": 0.0, "neighbour_fusion": "independent"}
 
 
 class RunFailed(RuntimeError):

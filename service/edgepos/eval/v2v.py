@@ -23,7 +23,7 @@ from edgepos.eval.tables import format_table, number
 from edgepos.pipelines import tracks
 from edgepos.pipelines.base import NeighbourTrack, StaticEnvironment
 from edgepos.pipelines.v2v_coop import V2vCoopPipeline
-from edgepos.sim.v2v import SCENARIOS, STEP, STEPS, VEHICLE_IDS, V2vRun, make_run
+from edgepos.sim.v2v import PAPER_OPTIONS, SCENARIOS, STEP, STEPS, VEHICLE_IDS, V2vRun, make_run
 
 PROG = "edgepos eval v2v"
 #: Table 2's methods and the pipeline's ``method`` option for each.
@@ -38,10 +38,6 @@ PAPER_RATES = {
     ("straight", "GPS"): 60, ("straight", "GPS/DR"): 42, ("straight", "UKF"): 17,
     ("ring", "GPS"): 53, ("ring", "GPS/DR"): 35, ("ring", "UKF"): 20,
 }
-
-
-#: The paper's model (sec. 4): white GNSS errors, neighbours' estimates as independent information.
-PAPER_OPTIONS = {"gnss_bias_std": 0.0, "neighbour_fusion": "independent"}
 
 
 class RunFailed(RuntimeError):

@@ -29,10 +29,10 @@ import numpy as np
 from edgepos.core import gnss_bias
 from edgepos.core import state as state_format
 from edgepos.core.augmented import augmented_update
-from edgepos.core.gnss_bias import Bias
-from edgepos.core.intersection import range_weight
 from edgepos.core.filters.ekf import ExtendedKalmanFilter
 from edgepos.core.filters.ukf import UnscentedKalmanFilter
+from edgepos.core.gnss_bias import Bias
+from edgepos.core.intersection import range_weight
 from edgepos.core.measurements.gnss_fix import GnssPosition
 from edgepos.core.measurements.rsu import RsuRange
 from edgepos.core.motion.ca import ConstantAcceleration
@@ -421,7 +421,7 @@ def _range_update(session, epoch, observations, uses, environment, t) -> bool:
     for k in range(count):
         neighbour_design[k, 2 * k : 2 * k + 2] = -directions[k]
     independent = options["neighbour_fusion"] == "independent"
-    weight = 1.0 if independent else range_weight(session.cov, design, neighbour_design, extra_cov, noise, (0, 3), count)
+    weight = 1.0 if independent else range_weight(session.cov, design, neighbour_design, extra_cov, noise, count)
     if weight >= 1.0 and not independent:
         for i in used:
             uses[i] = MeasurementUse(i, "v2v_range", False, "covariance intersection gives the ranges no weight here")

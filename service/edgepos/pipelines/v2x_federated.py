@@ -443,7 +443,7 @@ def _v2x_update(means, covs, epoch, observations, options, uses, environment, t)
         neighbour_cov[2 * k : 2 * k + 2, 2 * k : 2 * k + 2] = cov
     weight, scale = 1.0, 1.0  # independent: the neighbour's covariance as independent range noise
     if options["neighbour_fusion"] == "intersection" and neighbours:
-        weight = range_weight(covs[2], design, neighbour_design, neighbour_cov, np.diag(variances), (0, 3), len(neighbours))
+        weight = range_weight(covs[2], design, neighbour_design, neighbour_cov, np.diag(variances), len(neighbours))
         scale = len(neighbours) / (1.0 - weight) if weight < 1.0 else 0.0
     if weight >= 1.0 and scale == 0.0:
         # Intersected, the neighbours' ranges would carry no weight: only the RSUs' (exact points) are used.

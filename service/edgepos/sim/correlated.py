@@ -75,7 +75,9 @@ class CorrelatedRun:
     observations: list[list[list[Observation]]]
 
 
-def gauss_markov_series(rng: np.random.Generator, tau: float, std: float, times: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+def gauss_markov_series(
+    rng: np.random.Generator, tau: float, std: float, times: np.ndarray, shape: tuple[int, ...]
+) -> np.ndarray:
     """Samples (len(times), *shape) of a stationary first-order Gauss-Markov process, started from its
     stationary distribution and stepped exactly: x' = phi x + sqrt(1 - phi^2) std w, phi = exp(-dt/tau)."""
     out = np.zeros((len(times), *shape))
@@ -104,17 +106,25 @@ def make_run(seed: int, errors: ErrorModel = ErrorModel(), steps: int = STEPS) -
     times = np.arange(steps) * STEP
     phases = rng.uniform(0.0, 2.0 * math.pi, VEHICLES)
     # Speed CRUISE + 1.5 sin(2 pi t / 20 + phase): arc length in closed form.
-    arc = np.array([
-        (VEHICLES - 1 - i) * SPACING + CRUISE * times
-        - 1.5 * 20.0 / (2.0 * math.pi) * (np.cos(2.0 * math.pi * times / 20.0 + phases[i]) - math.cos(phases[i]))
-        for i in range(VEHICLES)
-    ])
+    arc = np.array(
+        [
+            (VEHICLES - 1 - i) * SPACING
+            + CRUISE * times
+            - 1.5
+            * 20.0
+            / (2.0 * math.pi)
+            * (np.cos(2.0 * math.pi * times / 20.0 + phases[i]) - math.cos(phases[i]))
+            for i in range(VEHICLES)
+        ]
+    )
     speed = CRUISE + 1.5 * np.sin(2.0 * math.pi * times[None, :] / 20.0 + phases[:, None])
     s, points, heading = _road(float(arc.max()) + 10.0)
     positions = np.stack([np.interp(arc, s, points[:, 0]), np.interp(arc, s, points[:, 1])], axis=-1)
     psi = np.interp(arc, s, heading)
     velocity = speed[..., None] * np.stack([np.cos(psi), np.sin(psi)], axis=-1)
-    yaw_rate = ROAD_SWING * 2.0 * math.pi / ROAD_WAVELENGTH * np.cos(2.0 * math.pi * arc / ROAD_WAVELENGTH) * speed
+    yaw_rate = (
+        ROAD_SWING * 2.0 * math.pi / ROAD_WAVELENGTH * np.cos(2.0 * math.pi * arc / ROAD_WAVELENGTH) * speed
+    )
     common = gauss_markov_series(rng, errors.common_tau, errors.common_std, times, (2,))
     own = gauss_markov_series(rng, errors.vehicle_tau, errors.vehicle_std, times, (VEHICLES, 2))
     white = rng.standard_normal((steps, VEHICLES, 2)) * errors.white_std
