@@ -20,13 +20,7 @@ from edgepos.core.observations import (
     V2vRangeObservation,
 )
 from edgepos.eval.federated import METHODS, assisting_tracks, run_method
-from edgepos.pipelines.base import (
-    InitialState,
-    NeighbourTrack,
-    PipelineInputError,
-    StaticEnvironment,
-    TrackPoint,
-)
+from edgepos.pipelines.base import NeighbourTrack, PipelineInputError, StaticEnvironment, TrackPoint
 from edgepos.pipelines.registry import get_pipeline
 from edgepos.pipelines.v2x_federated import RangesToPoints, fuse
 from edgepos.sim.federated import make_run
@@ -167,14 +161,12 @@ def test_fix_says_why_measurements_were_not_used():
     ]
     fixes, state = pipeline.process(state, batch, env)
     uses = fixes[0].measurements
-    assert [u.used for u in uses] == [False, False, False, True]
-    assert "heading not yet known" in uses[0].reason  # started at rest: DR waits for the fixes' heading
+    assert [u.used for u in uses] == [True, False, False, True]
     assert "no live session" in uses[1].reason and "itself" in uses[2].reason
 
 
 def test_first_odometer_distance_has_no_interval():
-    pipeline = get_pipeline("v2x_federated")
-    state = pipeline.create(pipeline.resolve_options({}), InitialState(0.0, 0.0, 10.0, 0.0))  # heading known
+    pipeline, state = _session()
     batch = [GnssFixObservation(0.0, 0.0, 0.0)]
     _, state = pipeline.process(state, batch, StaticEnvironment())
     fixes, _ = pipeline.process(state, [OdometerObservation(0.2, distance=2.0)], StaticEnvironment())
