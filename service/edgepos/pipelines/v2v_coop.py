@@ -72,6 +72,8 @@ GNSS_BIAS_TAU = 35.0
 """s: the fix errors' autocorrelation on the real drive of tests/data/gnss-rover (docs/v2v.md)."""
 GNSS_BIAS_STD = 2.1
 """m per axis: the same recording's fix errors less their white part (docs/v2v.md)."""
+#: What a session created before these options existed did: white fixes, neighbours as independent.
+LEGACY_OPTIONS = {"gnss_bias_tau": GNSS_BIAS_TAU, "gnss_bias_std": 0.0, "neighbour_fusion": "independent"}
 _INITIAL_VELOCITY_STD = 30.0
 _INITIAL_ACCEL_STD = 1.0
 
@@ -168,10 +170,14 @@ def _decode(blob: bytes) -> _SessionState:
     meta, arrays = state_format.unpack(blob)
     if meta.get("pipeline") != V2vCoopPipeline.name:
         raise state_format.StateFormatError(f"state belongs to pipeline {meta.get('pipeline')!r}")
+    # A session stored before the GNSS bias and covariance intersection goes on as it was created.
+    options = {**LEGACY_OPTIONS, **meta["options"]}
+    white = Bias.stationary(0.0)
     return _SessionState(
-        dict(meta["options"]), bool(meta["initialised"]), meta["t"], int(meta["epochs"]), meta["odometer_t"],
+        options, bool(meta["initialised"]), meta["t"], int(meta["epochs"]), meta["odometer_t"],
         arrays["mean"], arrays["cov"], arrays["own_mean"], arrays["own_cov"],
-        Bias.from_arrays(arrays["bias"]), Bias.from_arrays(arrays["own_bias"]),
+        Bias.from_arrays(arrays["bias"]) if "bias" in arrays else white,
+        Bias.from_arrays(arrays["own_bias"]) if "own_bias" in arrays else white.copy(),
     )
 
 

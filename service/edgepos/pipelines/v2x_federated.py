@@ -60,7 +60,7 @@ from edgepos.pipelines.kinematic import (
 )
 from edgepos.pipelines.options import resolve_options
 from edgepos.pipelines.tracks import NeighbourUnavailable, position_at
-from edgepos.pipelines.v2v_coop import GNSS_BIAS_STD, GNSS_BIAS_TAU, NEIGHBOUR_FUSION
+from edgepos.pipelines.v2v_coop import GNSS_BIAS_STD, GNSS_BIAS_TAU, LEGACY_OPTIONS, NEIGHBOUR_FUSION
 
 SUB_FILTERS = ("gps", "dr", "v2x")
 _KIN = layout.KINEMATIC
@@ -201,10 +201,12 @@ def _decode(blob: bytes) -> _SessionState:
     meta, arrays = state_format.unpack(blob)
     if meta.get("pipeline") != V2xFederatedPipeline.name:
         raise state_format.StateFormatError(f"state belongs to pipeline {meta.get('pipeline')!r}")
+    # A session stored before the GNSS bias and covariance intersection goes on as it was created.
     return _SessionState(
-        dict(meta["options"]), bool(meta["initialised"]), meta["t"], int(meta["epochs"]), meta["odometer_t"],
-        arrays["means"], arrays["covs"], arrays["noise_scales"], Bias.from_arrays(arrays["bias"]),
-        bool(meta["dr_started"]),
+        {**LEGACY_OPTIONS, **meta["options"]}, bool(meta["initialised"]), meta["t"], int(meta["epochs"]),
+        meta["odometer_t"], arrays["means"], arrays["covs"], arrays["noise_scales"],
+        Bias.from_arrays(arrays["bias"]) if "bias" in arrays else Bias.stationary(0.0),
+        bool(meta.get("dr_started", True)),
     )
 
 
