@@ -211,6 +211,8 @@ class RedisStore(RedisRegistry, SessionStore):
         "rotate": scripts.ROTATE_VEHICLE_KEY,
         "delete_vehicle": scripts.DELETE_VEHICLE,
         "publish_fixes": scripts.PUBLISH_FIXES,
+        "replace_document": scripts.REPLACE_DOCUMENT,
+        "acquire_lease": scripts.ACQUIRE_LEASE,
     }
 
     def __init__(
@@ -232,6 +234,8 @@ class RedisStore(RedisRegistry, SessionStore):
         self.rsu_key = f"{self.prefix}rsus"
         self.rate_prefix = f"{self.prefix}rate:"
         self.ephemerides_key = f"{self.prefix}ephemerides"
+        self.documents_prefix = f"{self.prefix}documents:"
+        self.lease_prefix = f"{self.prefix}lease:"
         self.vehicles_key = f"{self.prefix}vehicles"
         self.vehicle_keys_key = f"{self.prefix}vehiclekeys"
         self.live_prefix = f"{self.prefix}live:"

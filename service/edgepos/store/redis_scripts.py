@@ -230,7 +230,6 @@ END_VEHICLE_SESSION = (
     + """
 return end_live_session(KEYS[1], KEYS[2], KEYS[3], ARGV[1], ARGV[2])
 """
-
 )
 
 # The fix stream (store.redis_fixlog.RedisFixLog). KEYS: the stream, its id counter (one slot: {fixes}).
@@ -246,4 +245,24 @@ for i = 0, n - 1 do
     's', ARGV[b], 'v', ARGV[b + 1], 'p', ARGV[b + 2], 't', ARGV[b + 3], 'd', ARGV[b + 4])
 end
 return last
+"""
+
+# KEYS: the kind's document hash. ARGV: key, text. Writes only if the key is there; returns 1 if written.
+REPLACE_DOCUMENT = """
+if redis.call('HEXISTS', KEYS[1], ARGV[1]) == 1 then
+  redis.call('HSET', KEYS[1], ARGV[1], ARGV[2])
+  return 1
+end
+return 0
+"""
+
+# KEYS: the lease's key. ARGV: owner, ttl ms. Takes the lease when it is free (expired keys are gone) or
+# renews it when it is the owner's; returns 1 when the owner holds it afterwards.
+ACQUIRE_LEASE = """
+local holder = redis.call('GET', KEYS[1])
+if holder == false or holder == ARGV[1] then
+  redis.call('SET', KEYS[1], ARGV[1], 'PX', ARGV[2])
+  return 1
+end
+return 0
 """
