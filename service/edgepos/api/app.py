@@ -22,10 +22,11 @@ from fastapi.staticfiles import StaticFiles
 from edgepos import __version__
 from edgepos.api.context import AppContext
 from edgepos.api.errors import install_error_handlers
+from edgepos.api.location.notifier import LocationNotifier
 from edgepos.api.logs import configure_logging
 from edgepos.api.metrics import Metrics
 from edgepos.api.middleware import AdmissionMiddleware, BodyLimitMiddleware, RequestContextMiddleware
-from edgepos.api.routes import docs, ephemerides, health, rsus, sessions, streams, vehicles
+from edgepos.api.routes import docs, ephemerides, health, location, rsus, sessions, streams, vehicles, zones
 from edgepos.api.routes import pipelines as pipeline_routes
 from edgepos.api.settings import Settings, ensure_admin_key
 from edgepos.api.vehicle_jwt import load_vehicle_jwks
@@ -79,7 +80,8 @@ def create_app(
     key one is generated (printed once to stderr and written to ``admin_key_file``)."""
     settings = ensure_admin_key(settings if settings is not None else Settings())
     admin_key = settings.admin_key.get_secret_value() if settings.admin_key is not None else ""
-    configure_logging(settings.log_level, secrets=[admin_key])
+    read_key = settings.read_key.get_secret_value() if settings.read_key is not None else None
+    configure_logging(settings.log_level, secrets=[admin_key] + ([read_key] if read_key else []))
     if pipelines is None:
         from edgepos.pipelines.registry import PIPELINES
 
@@ -102,6 +104,7 @@ def create_app(
         metrics=Metrics(),
         origin=settings.origin,
         admin_key_hash=AppContext.hash_admin_key(admin_key),
+        read_key_hash=None if read_key is None else AppContext.hash_admin_key(read_key),
     )
 
     @contextlib.asynccontextmanager
@@ -124,6 +127,7 @@ def create_app(
         gc.freeze()
         sweep_period = min(60.0, max(0.5, settings.session_ttl_s / 4.0))
         sweeper = asyncio.create_task(_expire_periodically(context.store, sweep_period))
+        notifier = asyncio.create_task(LocationNotifier(context.store, settings, context.origin).run())
         if not settings.auth_enabled:
             logger.warning(
                 "LAB MODE: authentication is off; every request has admin rights", extra={"event": "auth_off"}
@@ -132,9 +136,10 @@ def create_app(
         try:
             yield
         finally:
-            sweeper.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await sweeper
+            for task in (sweeper, notifier):
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
             await context.close_streams()
             await context.store.close()
             context.stop_filter_thread()
@@ -157,6 +162,8 @@ def create_app(
         sessions.router,
         streams.router,
         vehicles.router,
+        zones.router,
+        location.router,
         health.router,
         docs.router,
     )

@@ -6,7 +6,9 @@ Three kinds of credential reach the service:
 - a **vehicle credential** opens a session for its own vehicle only (POST /v1/sessions): the vehicle's
   key from the registry (EDGEPOS_VEHICLE_AUTH=key, the default) or a token signed by the fleet
   operator (``jwt``); with ``open`` no credential is needed (a lab or a loopback bench);
-- a **session token** ``<session_id>.<random>`` opens only its own session.
+- a **session token** ``<session_id>.<random>`` opens only its own session;
+- the **read key** (EDGEPOS_READ_KEY, optional) opens only the read-only location routes: the MEC 013
+  adapter under /location/v3 and every session's fix stream.
 
 The store keeps only SHA-256 digests of keys and tokens, and every comparison of secrets uses
 ``hmac.compare_digest`` on fixed-length digests (the keys are 256-bit random values, so a fast hash
@@ -72,6 +74,8 @@ class Principal:
     vehicle_id: str | None = None
     vehicle_key_hash: str | None = None
     anonymous: bool = False
+    reader: bool = False
+    """The read key (EDGEPOS_READ_KEY): the read-only location routes and every session's fix stream."""
 
 
 def new_session_token(session_id: str) -> str:
@@ -95,6 +99,18 @@ def _token_session_id(token: str) -> str | None:
 
 def _is_admin(context: AppContext, secret: str) -> bool:
     return hmac.compare_digest(hashlib.sha256(secret.encode()).digest(), context.admin_key_hash)
+
+
+def _is_reader(context: AppContext, secret: str) -> bool:
+    """The read key (EDGEPOS_READ_KEY), when one is set."""
+    expected = context.read_key_hash
+    return expected is not None and hmac.compare_digest(hashlib.sha256(secret.encode()).digest(), expected)
+
+
+_READER_ONLY = ApiError(
+    "forbidden",
+    "the read key (EDGEPOS_READ_KEY) opens only the location adapter (/location/v3) and the fix stream",
+)
 
 
 def _token_matches(secret: str, token_hash: str) -> bool:
@@ -130,7 +146,9 @@ def _retry_after(wait_s: float) -> str:
 
 def _limited(message: str, wait_s: float) -> ApiError:
     retry_after = _retry_after(wait_s)
-    return ApiError("rate_limited", f"{message}; retry after {retry_after} s", headers={"Retry-After": retry_after})
+    return ApiError(
+        "rate_limited", f"{message}; retry after {retry_after} s", headers={"Retry-After": retry_after}
+    )
 
 
 async def _refuse(
@@ -194,12 +212,16 @@ async def _vehicle(context: AppContext, secret: str) -> Principal | None:
             return None
         key_hash = hash_token(secret)
         vehicle_id = await context.store.vehicle_of_key(key_hash)
-        return None if vehicle_id is None else Principal(False, vehicle_id=vehicle_id, vehicle_key_hash=key_hash)
+        return (
+            None if vehicle_id is None else Principal(False, vehicle_id=vehicle_id, vehicle_key_hash=key_hash)
+        )
     if mode == "jwt" and context.vehicle_keys is not None and secret.count(".") == 2:
         try:
             vehicle_id = context.vehicle_keys.verify(secret, context.settings.vehicle_jwt_audience)
         except InvalidVehicleToken as error:
-            logger.debug("vehicle token refused", extra={"event": "vehicle_token_refused", "cause": error.cause})
+            logger.debug(
+                "vehicle token refused", extra={"event": "vehicle_token_refused", "cause": error.cause}
+            )
             return None
         return Principal(False, vehicle_id=vehicle_id)
     return None
@@ -214,15 +236,51 @@ async def require_admin(request: Request, context: Context, credentials: Credent
         raise await _refuse(context, request, None, "missing", _unauthorized(_MISSING))
     if _is_admin(context, secret):
         return Principal(admin=True)
+    if _is_reader(context, secret):
+        raise await _refuse(context, request, None, "forbidden", _READER_ONLY)
     if await _valid_session_token(context, secret) or await _vehicle(context, secret) is not None:
         raise await _refuse(
             context,
             request,
             secret,
             "forbidden",
-            ApiError("forbidden", "this call needs the admin key; a session token or vehicle credential does not open it"),
+            ApiError(
+                "forbidden",
+                "this call needs the admin key; a session token or vehicle credential does not open it",
+            ),
         )
     raise await _refuse(context, request, secret, "invalid", _unauthorized())
+
+
+async def require_reader(request: Request, context: Context, credentials: Credentials) -> Principal:
+    """The admin key or the read key (EDGEPOS_READ_KEY) passes: the read-only location routes (the MEC 013
+    adapter). A valid session token or vehicle credential gets 403."""
+    if _auth_off(context):
+        return _LAB
+    secret = None if credentials is None else credentials.credentials
+    if not secret:
+        raise await _refuse(context, request, None, "missing", _unauthorized(_MISSING))
+    if _is_admin(context, secret):
+        return Principal(admin=True)
+    if _is_reader(context, secret):
+        return Principal(admin=False, reader=True)
+    if await _valid_session_token(context, secret) or await _vehicle(context, secret) is not None:
+        raise await _refuse(
+            context,
+            request,
+            secret,
+            "forbidden",
+            ApiError("forbidden", "this call needs the admin key or the read key (EDGEPOS_READ_KEY)"),
+        )
+    raise await _refuse(context, request, secret, "invalid", _unauthorized())
+
+
+async def require_stream_reader(request: Request, context: Context, credentials: Credentials) -> Principal:
+    """The read key, or whatever :func:`require_any` lets in (the fix stream: a session token reads its own)."""
+    secret = None if credentials is None else credentials.credentials
+    if secret and not _auth_off(context) and _is_reader(context, secret):
+        return Principal(admin=False, reader=True)
+    return await require_any(request, context, credentials)
 
 
 async def require_any(request: Request, context: Context, credentials: Credentials) -> Principal:
@@ -242,6 +300,8 @@ async def require_any(request: Request, context: Context, credentials: Credentia
     vehicle = await _vehicle(context, secret)
     if vehicle is not None:
         return vehicle
+    if _is_reader(context, secret):
+        raise await _refuse(context, request, None, "forbidden", _READER_ONLY)
     raise await _refuse(context, request, secret, "invalid", _unauthorized())
 
 
@@ -321,6 +381,8 @@ async def require_session(
         return Principal(admin=True)
     token_session = _token_session_id(secret)
     if token_session is None:
+        if _is_reader(context, secret):
+            raise await _refuse(context, request, None, "forbidden", _READER_ONLY)
         raise await _refuse(context, request, secret, "invalid", _unauthorized())
     if token_session != session_id:
         if await _valid_session_token(context, secret):

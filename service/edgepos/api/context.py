@@ -38,6 +38,8 @@ class AppContext:
     metrics: Metrics
     origin: GeodeticOrigin | None
     admin_key_hash: bytes
+    read_key_hash: bytes | None = None
+    """SHA-256 of EDGEPOS_READ_KEY (opens the read-only location routes), None when it is not set."""
     ephemerides: EphemeridesCache = field(default_factory=EphemeridesCache)
     vehicle_keys: VehicleKeySet | None = None
     """The fleet operator's public keys (EDGEPOS_VEHICLE_AUTH=jwt), loaded once at start-up."""
