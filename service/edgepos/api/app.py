@@ -48,6 +48,11 @@ with the admin key (the registries, any session), a vehicle's credential (its ke
 POST /v1/vehicles, or a fleet-signed token: opens sessions for that vehicle only), or a session's
 token (that session only). A vehicle has one live session: opening another supersedes the old one.
 Every error has the body `{"error": {"code", "message", "problems": [{"index", "field", "reason"}]}}`.
+
+The ETSI GS MEC 013 location adapter under /location/v3 is the one exception: it follows that
+specification, so its angles are degrees, its speeds km/h and its errors RFC 7807 problem details
+(application/problem+json). It needs the admin key or the read key (EDGEPOS_READ_KEY) and the site
+origin (EDGEPOS_ORIGIN_LAT/LON); its zones are defined by the operator with /v1/zones.
 """
 
 
@@ -177,7 +182,9 @@ def create_app(
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
-            streams.add_event_schemas(default_openapi())
+            document = default_openapi()
+            streams.add_event_schemas(document)
+            location.add_problem_schema(document)
         return app.openapi_schema or default_openapi()
 
     app.openapi = openapi  # type: ignore[method-assign]

@@ -52,7 +52,8 @@ bearer_scheme = HTTPBearer(
     scheme_name="bearer",
     description="The admin key (EDGEPOS_ADMIN_KEY), a vehicle credential (the vehicle's key from "
     "POST /v1/vehicles, or a fleet-signed token with EDGEPOS_VEHICLE_AUTH=jwt: opens sessions for that "
-    "vehicle only), or a session token returned by POST /v1/sessions (that session only).",
+    "vehicle only), a session token returned by POST /v1/sessions (that session only), or the read key (EDGEPOS_READ_KEY: "
+    "the /location/v3 adapter and the fix stream only).",
 )
 Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(bearer_scheme)]
 

@@ -128,16 +128,16 @@ class InlineTerminalDistance(MecModel):
 class ZoneInfo(MecModel):
     """An operator zone as MEC 013 lists zones. Zones here are areas, not radio cells: no access points."""
 
-    zoneId: str
+    zoneId: str = Field(description="The zone's id (as in PUT /v1/zones/{zone_id}).")
     numberOfAccessPoints: int = Field(0, description="Always 0: the site's zones are areas, not radio cells.")
     numberOfUnserviceableAccessPoints: int = Field(0, description="Always 0, as numberOfAccessPoints.")
     numberOfUsers: int = Field(description="Vehicles whose latest fix is in the zone.")
-    resourceURL: str
+    resourceURL: str = Field(description="This zone's resource.")
 
 
 class ZoneList(MecModel):
-    zone: list[ZoneInfo]
-    resourceURL: str
+    zone: list[ZoneInfo] = Field(description="Every operator zone, in id order.")
+    resourceURL: str = Field(description="The query that produced this list.")
 
 
 class InlineZoneList(MecModel):
@@ -149,7 +149,7 @@ class InlineZoneInfo(MecModel):
 
 
 class LinkType(MecModel):
-    href: str
+    href: str = Field(description="An absolute URL.")
 
 
 class SelfLinks(MecModel):
@@ -170,7 +170,9 @@ _DEADLINE = "When the subscription ends by itself (server clock); a deadline alr
 class UserLocationEventSubscriptionIn(RequestModel):
     """Notify when the vehicle enters or leaves any of the operator's zones."""
 
-    subscriptionType: Literal["UserLocationEventSubscription"]
+    subscriptionType: Literal["UserLocationEventSubscription"] = Field(
+        description="Names the kind of subscription."
+    )
     address: str = Field(pattern=ADDRESS_PATTERN, description="'acr:' followed by the vehicle id.")
     callbackReference: str = Field(max_length=2048, description=_CALLBACK)
     clientCorrelator: str | None = Field(None, max_length=256, description="Echoed back unchanged.")
@@ -181,19 +183,25 @@ class UserLocationEventSubscriptionIn(RequestModel):
 
 
 class UserLocationEventSubscription(MecModel):
+    """A user location subscription as created (its _links.self is its URL)."""
+
     links: SelfLinks = Field(alias="_links")
-    subscriptionType: Literal["UserLocationEventSubscription"]
-    address: str
-    callbackReference: str
-    clientCorrelator: str | None = None
-    eventType: list[LocationEventType]
-    expiryDeadline: TimeStamp | None = None
+    subscriptionType: Literal["UserLocationEventSubscription"] = Field(
+        description="Names the kind of subscription."
+    )
+    address: str = Field(description="The vehicle watched: 'acr:' followed by its id.")
+    callbackReference: str = Field(description="Where notifications are POSTed.")
+    clientCorrelator: str | None = Field(None, description="As given.")
+    eventType: list[LocationEventType] = Field(description="The crossings notified.")
+    expiryDeadline: TimeStamp | None = Field(None, description="When it ends by itself, as given.")
 
 
 class ZoneLocationEventSubscriptionIn(RequestModel):
     """Notify when vehicles enter or leave one of the operator's zones."""
 
-    subscriptionType: Literal["ZoneLocationEventSubscription"]
+    subscriptionType: Literal["ZoneLocationEventSubscription"] = Field(
+        description="Names the kind of subscription."
+    )
     zoneId: str = Field(
         pattern=ZONE_ID_PATTERN, description="An operator zone (GET /location/v3/queries/zones)."
     )
@@ -212,24 +220,32 @@ class ZoneLocationEventSubscriptionIn(RequestModel):
 
 
 class ZoneLocationEventSubscription(MecModel):
+    """A zone location subscription as created (its _links.self is its URL)."""
+
     links: SelfLinks = Field(alias="_links")
-    subscriptionType: Literal["ZoneLocationEventSubscription"]
-    zoneId: str
-    callbackReference: str
-    clientCorrelator: str | None = None
-    addressList: list[str] | None = None
-    locationEventType: list[LocationEventType]
-    expiryDeadline: TimeStamp | None = None
+    subscriptionType: Literal["ZoneLocationEventSubscription"] = Field(
+        description="Names the kind of subscription."
+    )
+    zoneId: str = Field(description="The zone watched.")
+    callbackReference: str = Field(description="Where notifications are POSTed.")
+    clientCorrelator: str | None = Field(None, description="As given.")
+    addressList: list[str] | None = Field(
+        None, description="The vehicles watched, as given; absent: every vehicle."
+    )
+    locationEventType: list[LocationEventType] = Field(description="The crossings notified.")
+    expiryDeadline: TimeStamp | None = Field(None, description="When it ends by itself, as given.")
 
 
 class SubscriptionEntry(MecModel):
-    href: str
-    subscriptionType: str
+    href: str = Field(description="The subscription's URL.")
+    subscriptionType: str = Field(
+        description="UserLocationEventSubscription or ZoneLocationEventSubscription."
+    )
 
 
 class NotificationSubscriptionList(MecModel):
     links: SelfLinks = Field(alias="_links")
-    subscription: list[SubscriptionEntry]
+    subscription: list[SubscriptionEntry] = Field(description="The subscriptions, in id order.")
 
 
 class UserLocationEventNotification(MecModel):
@@ -260,7 +276,7 @@ class ProblemDetails(MecModel):
 
     type: str = Field(description="A URI naming the kind of problem (about:blank: the status says it).")
     title: str = Field(description="The HTTP status's phrase.")
-    status: int
+    status: int = Field(description="The HTTP status code.")
     detail: str = Field(description="What was wrong, naming each field and why.")
     instance: str = Field(description="The request's path.")
 
@@ -288,7 +304,7 @@ class ZoneIn(RequestModel):
         description="site: points are [x, y] in metres (x east, y north of the origin); wgs84: [latitude, "
         "longitude] in radians (needs EDGEPOS_ORIGIN_LAT/LON; stored converted to the site frame).",
     )
-    circle: CircleIn | None = None
+    circle: CircleIn | None = Field(None, description="A disc; give it or polygon.")
     polygon: list[Point] | None = Field(
         None,
         min_length=3,
@@ -300,18 +316,22 @@ class ZoneIn(RequestModel):
 class SiteShapeOut(ResponseModel):
     """The zone in the site frame (m), as vehicles' fixes are tested against it."""
 
-    circle: CircleOut | None
-    polygon: list[list[float]] | None
+    circle: CircleOut | None = Field(description="The circle in the site frame, or null.")
+    polygon: list[list[float]] | None = Field(description="The polygon's vertices [x, y] (m), or null.")
 
 
 class CircleOut(ResponseModel):
-    center: list[float]
-    radius: float
+    center: list[float] = Field(
+        description="[x, y] (m) in the site frame, or [latitude, longitude] (rad) in wgs84."
+    )
+    radius: float = Field(description="Radius (m).")
 
 
 class ZoneOut(ResponseModel):
-    zone_id: str
-    frame: Literal["site", "wgs84"]
+    """A zone as stored."""
+
+    zone_id: str = Field(description="The zone's id.")
+    frame: Literal["site", "wgs84"] = Field(description="The frame it was given in.")
     circle: CircleOut | None = Field(description="As given (frame's units).")
     polygon: list[list[float]] | None = Field(description="As given (frame's units).")
     site: SiteShapeOut
@@ -319,7 +339,7 @@ class ZoneOut(ResponseModel):
 
 
 class ZoneListOut(ResponseModel):
-    zones: list[ZoneOut]
+    zones: list[ZoneOut] = Field(description="Every zone, in id order.")
 
 
 SiteShapeOut.model_rebuild()

@@ -66,10 +66,17 @@ _PROBLEM_TEXT = {
 
 
 def _problems(*statuses: int) -> dict[int | str, dict[str, Any]]:
-    return {
-        status: {"model": ProblemDetails, "description": _PROBLEM_TEXT[status], "content": {MEDIA_TYPE: {}}}
-        for status in statuses
-    }
+    """OpenAPI ``responses`` entries for error statuses: problem details (see :func:`add_problem_schema`)."""
+    content = {MEDIA_TYPE: {"schema": {"$ref": "#/components/schemas/ProblemDetails"}}}
+    return {status: {"description": _PROBLEM_TEXT[status], "content": content} for status in statuses}
+
+
+def add_problem_schema(document: dict[str, Any]) -> None:
+    """Put ProblemDetails in the schema's components (the error responses above refer to it by name)."""
+    schemas = document.setdefault("components", {}).setdefault("schemas", {})
+    schemas["ProblemDetails"] = ProblemDetails.model_json_schema(
+        mode="serialization", ref_template="#/components/schemas/{model}"
+    )
 
 
 async def site_origin(context: Context) -> GeodeticOrigin:
