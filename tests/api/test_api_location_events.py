@@ -278,3 +278,22 @@ def test_two_workers_sharing_a_store_send_each_notification_once(tmp_path: Path)
             "ENTERING_AREA_EVENT",
             "LEAVING_AREA_EVENT",
         ]
+
+
+def test_a_subscription_ends_at_its_expiry_deadline(client: TestClient):
+    deadline = time.time() + 0.5
+    seconds = int(deadline)
+    body = user_subscription(
+        "http://127.0.0.1:9/notify",
+        expiryDeadline={"seconds": seconds, "nanoSeconds": int((deadline - seconds) * 1e9)},
+    )
+    created = client.post(USER_SUBS, json=body, headers=READER)
+    assert created.status_code == 201, created.text
+    assert created.json()["expiryDeadline"] == body["expiryDeadline"]
+    path = created.headers["location"].removeprefix("http://testserver")
+    assert client.get(path, headers=READER).status_code == 200
+    finish = time.monotonic() + 5.0
+    while client.get(path, headers=READER).status_code == 200 and time.monotonic() < finish:
+        time.sleep(0.05)
+    assert time.time() >= deadline
+    assert_problem(client.get(path, headers=READER), 404)

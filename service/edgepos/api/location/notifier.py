@@ -13,7 +13,9 @@ let the next holder send it again. Crossings are seen at poll resolution: a vehi
 leaves a zone between two polls is not notified.
 
 Delivery: a subscription's notifications go out in order, one POST each (httpx, EDGEPOS_CALLBACK_TIMEOUT_S,
-redirects not followed, so a callback cannot lead elsewhere than its allowed host). Any answer but 2xx, or
+redirects not followed, so a callback cannot lead elsewhere than its allowed host). A poll starts no POST
+after half the lease (which is at least twice the timeout), so the holder's last POST ends before its lease
+runs out: the rest wait for the next poll. Any answer but 2xx, or
 none, is a failure: the subscription waits EDGEPOS_CALLBACK_BACKOFF_S, doubled per further failure (at
 most 300 s), and after EDGEPOS_CALLBACK_MAX_FAILURES consecutive failures it expires (is deleted).
 """
@@ -96,7 +98,11 @@ class LocationNotifier:
                 watched.update(vehicles)
         zones = await load_zones(self.store)
         fixes = await latest_fixes(self.store, watched)
-        await asyncio.gather(*(self._serve(client, key, doc, zones, fixes) for key, doc in loaded.items()))
+        # deliveries stop well inside the lease, so that no other worker takes it while this one still sends
+        until = time.monotonic() + self.lease_s / 2.0
+        await asyncio.gather(
+            *(self._serve(client, key, doc, zones, fixes, until) for key, doc in loaded.items())
+        )
         return True
 
     async def _serve(
@@ -106,6 +112,7 @@ class LocationNotifier:
         document: dict[str, Any],
         zones: dict[str, Zone],
         fixes: dict[str, LatestFix],
+        until: float,
     ) -> None:
         now = self.clock()
         if document["expires_at"] is not None and now >= document["expires_at"]:
@@ -115,7 +122,7 @@ class LocationNotifier:
         changed = subs.advance(document, zones, fixes, self.origin, now)
         if document["pending"] and now >= document["retry_at"]:
             changed = True
-            await self._deliver(client, document)
+            await self._deliver(client, document, until)
             if document["failures"] >= self.settings.callback_max_failures:
                 await self.store.delete_document(subs.KIND, key)
                 logger.warning(
@@ -126,13 +133,13 @@ class LocationNotifier:
         if changed:
             await self.store.replace_document(subs.KIND, key, subs.encode(document))
 
-    async def _deliver(self, client: httpx.AsyncClient, document: dict[str, Any]) -> None:
-        """POST the pending notifications in order until one fails."""
+    async def _deliver(self, client: httpx.AsyncClient, document: dict[str, Any], until: float) -> None:
+        """POST the pending notifications in order until one fails or the poll's time is up (``until``,
+        monotonic); the rest wait for the next poll."""
         url = document["callback"]
-        problem = subs.callback_problem(
-            url, self.settings.callback_host_set
-        )  # the list may have changed since
-        while document["pending"]:
+        # the allowed hosts are checked again: the list may have changed since the subscription was made
+        problem = subs.callback_problem(url, self.settings.callback_host_set)
+        while document["pending"] and time.monotonic() < until:
             reason = problem
             if reason is None:
                 try:
