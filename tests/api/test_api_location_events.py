@@ -297,3 +297,11 @@ def test_a_subscription_ends_at_its_expiry_deadline(client: TestClient):
         time.sleep(0.05)
     assert time.time() >= deadline
     assert_problem(client.get(path, headers=READER), 404)
+
+
+def test_a_body_refused_before_routing_is_problem_details_too(client: TestClient):
+    huge = user_subscription("http://127.0.0.1:9/notify", clientCorrelator="x" * 2_000_000)
+    assert_problem(client.post(USER_SUBS, json=huge, headers=READER), 413, "EDGEPOS_MAX_BODY_BYTES")
+    assert client.post("/v1/sessions", json={"vehicle_id": "x" * 2_000_000}, headers=ADMIN).json()["error"][
+        "code"
+    ] == ("payload_too_large")

@@ -18,6 +18,7 @@ from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 
 from edgepos.api.errors import error_body
+from edgepos.api.location import problems as location_problems
 from edgepos.api.logs import request_id_var
 from edgepos.api.metrics import Metrics
 
@@ -35,15 +36,28 @@ error_logger = logging.getLogger("edgepos.api")
 
 
 async def _send_error(
-    send: Send, status: int, code: str, message: str, extra_headers: tuple[tuple[bytes, bytes], ...] = ()
+    send: Send,
+    scope: Scope,
+    status: int,
+    code: str,
+    message: str,
+    extra_headers: tuple[tuple[bytes, bytes], ...] = (),
 ) -> None:
-    body = error_body(code, message)
+    """The error body of the service, or problem details on the location adapter's paths."""
+    path = scope.get("path", "")
+    if location_problems.is_location_path(path):
+        body, media_type = (
+            location_problems.problem_body(status, message, (), path),
+            location_problems.MEDIA_TYPE,
+        )
+    else:
+        body, media_type = error_body(code, message), "application/json"
     await send(
         {
             "type": "http.response.start",
             "status": status,
             "headers": [
-                (b"content-type", b"application/json"),
+                (b"content-type", media_type.encode()),
                 (b"content-length", str(len(body)).encode()),
                 *extra_headers,
             ],
@@ -88,7 +102,7 @@ class RequestContextMiddleware:
             status = 500
             if not response_started:
                 await _send_error(
-                    send_with_id, 500, "internal_error", "internal server error; the error was logged"
+                    send_with_id, scope, 500, "internal_error", "internal server error; the error was logged"
                 )
         finally:
             elapsed = time.perf_counter() - started
@@ -128,7 +142,7 @@ class BodyLimitMiddleware:
         too_large = f"the request body exceeds {limit} bytes ({setting})"
         declared = dict(scope.get("headers") or []).get(b"content-length")
         if declared is not None and declared.strip().isdigit() and int(declared) > limit:
-            await _send_error(send, 413, "payload_too_large", too_large)
+            await _send_error(send, scope, 413, "payload_too_large", too_large)
             return
         chunks: list[bytes] = []
         size = 0
@@ -141,7 +155,7 @@ class BodyLimitMiddleware:
             chunk = message.get("body", b"")
             size += len(chunk)
             if size > limit:
-                await _send_error(send, 413, "payload_too_large", too_large)
+                await _send_error(send, scope, 413, "payload_too_large", too_large)
                 return
             chunks.append(chunk)
             if not message.get("more_body", False):
@@ -193,6 +207,7 @@ class AdmissionMiddleware:
             retry_after = str(max(1, math.ceil(self.queue_timeout_s / 10))).encode()
             await _send_error(
                 send,
+                scope,
                 503,
                 "unavailable",
                 f"this worker is busy: the request waited {self.queue_timeout_s:g} s "
