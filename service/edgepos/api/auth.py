@@ -52,8 +52,8 @@ bearer_scheme = HTTPBearer(
     scheme_name="bearer",
     description="The admin key (EDGEPOS_ADMIN_KEY), a vehicle credential (the vehicle's key from "
     "POST /v1/vehicles, or a fleet-signed token with EDGEPOS_VEHICLE_AUTH=jwt: opens sessions for that "
-    "vehicle only), a session token returned by POST /v1/sessions (that session only), or the read key (EDGEPOS_READ_KEY: "
-    "the /location/v3 adapter and the fix stream only).",
+    "vehicle only), a session token returned by POST /v1/sessions (that session only), or the read "
+    "key (EDGEPOS_READ_KEY: the /location/v3 adapter and the fix stream only).",
 )
 Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(bearer_scheme)]
 
@@ -147,9 +147,7 @@ def _retry_after(wait_s: float) -> str:
 
 def _limited(message: str, wait_s: float) -> ApiError:
     retry_after = _retry_after(wait_s)
-    return ApiError(
-        "rate_limited", f"{message}; retry after {retry_after} s", headers={"Retry-After": retry_after}
-    )
+    return ApiError("rate_limited", f"{message}; retry after {retry_after} s", headers={"Retry-After": retry_after})
 
 
 async def _refuse(
@@ -213,16 +211,12 @@ async def _vehicle(context: AppContext, secret: str) -> Principal | None:
             return None
         key_hash = hash_token(secret)
         vehicle_id = await context.store.vehicle_of_key(key_hash)
-        return (
-            None if vehicle_id is None else Principal(False, vehicle_id=vehicle_id, vehicle_key_hash=key_hash)
-        )
+        return None if vehicle_id is None else Principal(False, vehicle_id=vehicle_id, vehicle_key_hash=key_hash)
     if mode == "jwt" and context.vehicle_keys is not None and secret.count(".") == 2:
         try:
             vehicle_id = context.vehicle_keys.verify(secret, context.settings.vehicle_jwt_audience)
         except InvalidVehicleToken as error:
-            logger.debug(
-                "vehicle token refused", extra={"event": "vehicle_token_refused", "cause": error.cause}
-            )
+            logger.debug("vehicle token refused", extra={"event": "vehicle_token_refused", "cause": error.cause})
             return None
         return Principal(False, vehicle_id=vehicle_id)
     return None
@@ -245,10 +239,7 @@ async def require_admin(request: Request, context: Context, credentials: Credent
             request,
             secret,
             "forbidden",
-            ApiError(
-                "forbidden",
-                "this call needs the admin key; a session token or vehicle credential does not open it",
-            ),
+            ApiError("forbidden", "this call needs the admin key; a session token or vehicle credential does not open it"),
         )
     raise await _refuse(context, request, secret, "invalid", _unauthorized())
 
@@ -277,7 +268,7 @@ async def require_reader(request: Request, context: Context, credentials: Creden
 
 
 async def require_stream_reader(request: Request, context: Context, credentials: Credentials) -> Principal:
-    """The read key, or whatever :func:`require_any` lets in (the fix stream: a session token reads its own)."""
+    """The read key, or whatever :func:`require_any` lets in (a session token streams its own fixes)."""
     secret = None if credentials is None else credentials.credentials
     if secret and not _auth_off(context) and _is_reader(context, secret):
         return Principal(admin=False, reader=True)

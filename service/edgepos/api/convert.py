@@ -78,7 +78,9 @@ def fix_to_json(fix: Fix, include_state: bool, origin: GeodeticOrigin | None) ->
         "model_probabilities": fix.model_probabilities,
         "nis": fix.nis,
         "nis_dof": fix.nis_dof,
-        "measurements": [_use_to_json(use) for use in fix.measurements],
+        "measurements": [
+            _use_to_json(use) for use in fix.measurements
+        ],
     }
 
 
@@ -87,12 +89,8 @@ def _use_to_json(use: MeasurementUse) -> dict[str, Any]:
     pipeline's differential-correction report is not on the wire yet: the service has no reference-station
     resource to fill it (edgepos eval gnss-rinex --base reads it)."""
     return {
-        "index": use.index,
-        "type": use.kind,
-        "used": use.used,
-        "reason": use.reason,
-        "doppler_used": use.doppler_used,
-        "doppler_reason": use.doppler_reason,
+        "index": use.index, "type": use.kind, "used": use.used, "reason": use.reason,
+        "doppler_used": use.doppler_used, "doppler_reason": use.doppler_reason,
     }
 
 

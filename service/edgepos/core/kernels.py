@@ -204,9 +204,7 @@ def _carry_extras(old_mean, old_cov, new_mean, new_cov, common, extra, phi_slot)
 
 
 @_jit
-def mix(
-    means, covs, probabilities, transition, active, common, phi_slot, out_means, out_covs, out_predicted
-) -> int:
+def mix(means, covs, probabilities, transition, active, common, phi_slot, out_means, out_covs, out_predicted) -> int:
     """Interaction (eqs. 11-14): each model's mixed prior into out_means/out_covs, c_j into out_predicted."""
     count = means.shape[0]
     nc = common.shape[0]
@@ -292,12 +290,7 @@ def _linear_predict(transition, noise, mean, cov, out_mean, out_cov):
 def _turn_coefficients(omega, dt):
     angle = omega * dt
     half_sinc = _sinc(angle / (2.0 * math.pi))
-    return (
-        math.sin(angle),
-        math.cos(angle),
-        dt * _sinc(angle / math.pi),
-        0.5 * angle * dt * half_sinc * half_sinc,
-    )
+    return math.sin(angle), math.cos(angle), dt * _sinc(angle / math.pi), 0.5 * angle * dt * half_sinc * half_sinc
 
 
 @_jit
@@ -355,9 +348,8 @@ def _turn_jacobian(state, f_omega, dt, out):
 
 
 @_jit
-def _turn_predict_sigma(
-    mean, cov, f_omega, noise, dt, spread, side, centre_mean, centre_cov, has_centre, out_mean, out_cov
-) -> bool:
+def _turn_predict_sigma(mean, cov, f_omega, noise, dt, spread, side, centre_mean, centre_cov, has_centre,
+                        out_mean, out_cov) -> bool:
     """Sigma-point prediction of the adaptive-turn model over all 8 components."""
     factor = np.zeros((8, 8))
     if not cholesky(cov, 8, factor):
@@ -402,22 +394,8 @@ def _turn_predict_sigma(
 
 
 @_jit
-def predict_bank(
-    means,
-    covs,
-    kinds,
-    transitions,
-    noises,
-    dt,
-    filter_kind,
-    spreads,
-    sides,
-    centre_means,
-    centre_covs,
-    has_centre,
-    out_means,
-    out_covs,
-) -> int:
+def predict_bank(means, covs, kinds, transitions, noises, dt, filter_kind, spreads, sides, centre_means,
+                 centre_covs, has_centre, out_means, out_covs) -> int:
     """Every model's prediction over dt (``GaussianFilter.predict_bank``)."""
     count = means.shape[0]
     jacobian = np.empty((8, 8))
@@ -428,20 +406,8 @@ def predict_bank(
             _symmetrize(out_covs[b], 8)
         elif filter_kind == SIGMA:
             f_omega = transitions[b, 6:, 6:]
-            if not _turn_predict_sigma(
-                means[b],
-                covs[b],
-                f_omega,
-                noises[b],
-                dt,
-                spreads[b],
-                sides[b],
-                centre_means[b],
-                centre_covs[b],
-                has_centre,
-                out_means[b],
-                out_covs[b],
-            ):
+            if not _turn_predict_sigma(means[b], covs[b], f_omega, noises[b], dt, spreads[b], sides[b],
+                                       centre_means[b], centre_covs[b], has_centre, out_means[b], out_covs[b]):
                 return FAILED
         else:
             f_omega = transitions[b, 6:, 6:]
@@ -498,25 +464,8 @@ def _measure_jacobian(state, positions, rsus, gyros, min_speed_sq, out):
 
 
 @_jit
-def _moments(
-    mean,
-    cov,
-    active_row,
-    positions,
-    rsus,
-    gyros,
-    min_speed_sq,
-    variances,
-    filter_kind,
-    spread,
-    side,
-    centre_mean,
-    centre_cov,
-    has_centre,
-    predicted,
-    innovation_cov,
-    cross_cov,
-) -> bool:
+def _moments(mean, cov, active_row, positions, rsus, gyros, min_speed_sq, variances, filter_kind, spread, side,
+             centre_mean, centre_cov, has_centre, predicted, innovation_cov, cross_cov) -> bool:
     """Predicted measurement, S (with R, symmetrised) and C for one model (``measurement_moments``)."""
     size = predicted.shape[0]
     angle_rows = 2 * rsus.shape[0]
@@ -606,51 +555,16 @@ def _moments(
 
 
 @_jit
-def _correct_one(
-    mean,
-    cov,
-    active_row,
-    positions,
-    rsus,
-    observed,
-    gyros,
-    min_speed_sq,
-    variances,
-    filter_kind,
-    spread,
-    side,
-    centre_mean,
-    centre_cov,
-    has_centre,
-    out_mean,
-    out_cov,
-    stats,
-) -> bool:
+def _correct_one(mean, cov, active_row, positions, rsus, observed, gyros, min_speed_sq, variances, filter_kind,
+                 spread, side, centre_mean, centre_cov, has_centre, out_mean, out_cov, stats) -> bool:
     """One model's Kalman correction through the Cholesky factor of S (``kalman_correct``);
     stats receives (NIS, log-likelihood)."""
     size = observed.shape[0]
     predicted = np.empty(size)
     innovation_cov = np.empty((size, size))
     cross_cov = np.empty((8, size))
-    if not _moments(
-        mean,
-        cov,
-        active_row,
-        positions,
-        rsus,
-        gyros,
-        min_speed_sq,
-        variances,
-        filter_kind,
-        spread,
-        side,
-        centre_mean,
-        centre_cov,
-        has_centre,
-        predicted,
-        innovation_cov,
-        cross_cov,
-    ):
+    if not _moments(mean, cov, active_row, positions, rsus, gyros, min_speed_sq, variances, filter_kind, spread,
+                    side, centre_mean, centre_cov, has_centre, predicted, innovation_cov, cross_cov):
         return False
     factor = np.zeros((size, size))
     if not cholesky(innovation_cov, size, factor):
@@ -694,29 +608,9 @@ def _correct_one(
 
 
 @_jit
-def correct_bank(
-    means,
-    covs,
-    active,
-    positions,
-    observed_rsus,
-    yaw_rates,
-    range_variances,
-    bearing_variances,
-    gyro_variance,
-    min_speed_sq,
-    averaged,
-    filter_kind,
-    spreads,
-    sides,
-    centre_means,
-    centre_covs,
-    has_centre,
-    out_means,
-    out_covs,
-    out_nis,
-    out_log_likelihood,
-) -> int:
+def correct_bank(means, covs, active, positions, observed_rsus, yaw_rates, range_variances, bearing_variances,
+                 gyro_variance, min_speed_sq, averaged, filter_kind, spreads, sides, centre_means, centre_covs,
+                 has_centre, out_means, out_covs, out_nis, out_log_likelihood) -> int:
     """Every model's update with K RSUs (positions (K, 2), observed (K, 2) range and bearing) and G gyro
     readings: one joint update, or with ``averaged`` one per RSU (each with the gyros), averaged
     (``core.updates``)."""
@@ -752,26 +646,9 @@ def correct_bank(
             observed[2 * per_part + g] = yaw_rates[g]
             variances[2 * per_part + g] = gyro_variance
         for b in range(count):
-            if not _correct_one(
-                means[b],
-                covs[b],
-                active[b],
-                positions,
-                rsus,
-                observed,
-                gyros,
-                min_speed_sq,
-                variances,
-                filter_kind,
-                spreads[b],
-                sides[b],
-                centre_means[b],
-                centre_covs[b],
-                has_centre,
-                part_mean,
-                part_cov,
-                stats,
-            ):
+            if not _correct_one(means[b], covs[b], active[b], positions, rsus, observed, gyros, min_speed_sq,
+                                variances, filter_kind, spreads[b], sides[b], centre_means[b], centre_covs[b],
+                                has_centre, part_mean, part_cov, stats):
                 return FAILED
             if parts == 1:
                 out_means[b, :] = part_mean
@@ -848,20 +725,8 @@ def model_probabilities(log_likelihoods, predicted, priority, others, out):
 
 # -- the gate ------------------------------------------------------------------------------------
 @_jit
-def gate_distances(
-    mean,
-    cov,
-    common,
-    positions,
-    observed_rsus,
-    yaw_rates,
-    range_variances,
-    bearing_variances,
-    gyro_variance,
-    min_speed_sq,
-    rsu_out,
-    gyro_out,
-):
+def gate_distances(mean, cov, common, positions, observed_rsus, yaw_rates, range_variances, bearing_variances,
+                   gyro_variance, min_speed_sq, rsu_out, gyro_out):
     """Squared Mahalanobis distance of each RSU pair (2 dof) and gyro reading (1 dof) against a
     Gaussian over ``common`` (``mean`` is the full 8-vector, zero elsewhere), linearised at its mean."""
     rsu_count = positions.shape[0]
@@ -905,25 +770,8 @@ def gate_distances(
 
 # -- the two entry points of an epoch ------------------------------------------------------------
 @_jit
-def predict_step(
-    means,
-    covs,
-    probabilities,
-    transition,
-    active,
-    common,
-    phi_slot,
-    dt,
-    kinds,
-    transitions,
-    noises,
-    filter_kind,
-    spreads,
-    sides,
-    centre_means,
-    centre_covs,
-    has_centre,
-):
+def predict_step(means, covs, probabilities, transition, active, common, phi_slot, dt, kinds, transitions, noises,
+                 filter_kind, spreads, sides, centre_means, centre_covs, has_centre):
     """Interaction, every model's prediction over dt (none when dt is 0) and the fused prior.
 
     Returns (status, means, covs, predicted probabilities c_j, fused mean, fused cov over common)."""
@@ -936,27 +784,11 @@ def predict_step(
     out_covs = np.empty((count, 8, 8))
     fused_mean = np.empty(nc)
     fused_cov = np.empty((nc, nc))
-    status = mix(
-        means, covs, probabilities, transition, active, common, phi_slot, mixed_means, mixed_covs, predicted
-    )
+    status = mix(means, covs, probabilities, transition, active, common, phi_slot, mixed_means, mixed_covs, predicted)
     if status == OK:
         if dt != 0.0:
-            status = predict_bank(
-                mixed_means,
-                mixed_covs,
-                kinds,
-                transitions,
-                noises,
-                dt,
-                filter_kind,
-                spreads,
-                sides,
-                centre_means,
-                centre_covs,
-                has_centre,
-                out_means,
-                out_covs,
-            )
+            status = predict_bank(mixed_means, mixed_covs, kinds, transitions, noises, dt, filter_kind, spreads,
+                                  sides, centre_means, centre_covs, has_centre, out_means, out_covs)
         else:
             out_means[:, :] = mixed_means
             out_covs[:, :, :] = mixed_covs
@@ -966,30 +798,9 @@ def predict_step(
 
 
 @_jit
-def correct_step(
-    means,
-    covs,
-    predicted,
-    active,
-    common,
-    phi_slot,
-    priority,
-    others,
-    positions,
-    observed_rsus,
-    yaw_rates,
-    range_variances,
-    bearing_variances,
-    gyro_variance,
-    min_speed_sq,
-    averaged,
-    filter_kind,
-    spreads,
-    sides,
-    centre_means,
-    centre_covs,
-    has_centre,
-):
+def correct_step(means, covs, predicted, active, common, phi_slot, priority, others, positions, observed_rsus,
+                 yaw_rates, range_variances, bearing_variances, gyro_variance, min_speed_sq, averaged, filter_kind,
+                 spreads, sides, centre_means, centre_covs, has_centre):
     """Every model's update, the model probabilities (IMM or 2IMM) and the fused posterior.
 
     Returns (status, means, covs, probabilities, log-likelihoods, NIS, fused mean, fused cov)."""
@@ -1002,29 +813,9 @@ def correct_step(
     probabilities = np.empty(count)
     fused_mean = np.empty(nc)
     fused_cov = np.empty((nc, nc))
-    status = correct_bank(
-        means,
-        covs,
-        active,
-        positions,
-        observed_rsus,
-        yaw_rates,
-        range_variances,
-        bearing_variances,
-        gyro_variance,
-        min_speed_sq,
-        averaged,
-        filter_kind,
-        spreads,
-        sides,
-        centre_means,
-        centre_covs,
-        has_centre,
-        out_means,
-        out_covs,
-        nis,
-        log_likelihoods,
-    )
+    status = correct_bank(means, covs, active, positions, observed_rsus, yaw_rates, range_variances,
+                          bearing_variances, gyro_variance, min_speed_sq, averaged, filter_kind, spreads, sides,
+                          centre_means, centre_covs, has_centre, out_means, out_covs, nis, log_likelihoods)
     if status == OK:
         model_probabilities(log_likelihoods, predicted, priority, others, probabilities)
         moment_match(probabilities, out_means, out_covs, common, phi_slot, fused_mean, fused_cov)

@@ -207,8 +207,7 @@ class _PseudorangeCodec:
 
 _PSEUDORANGE = _PseudorangeCodec()
 _BY_CLASS: dict[type, Any] = {
-    cls: _PSEUDORANGE if cls is PseudorangeObservation else _KindCodec(cls)
-    for cls in typing.get_args(Observation)
+    cls: _PSEUDORANGE if cls is PseudorangeObservation else _KindCodec(cls) for cls in typing.get_args(Observation)
 }
 _BY_NAME: dict[bytes, _KindCodec] = {
     **{codec.name: codec for codec in _BY_CLASS.values() if codec is not _PSEUDORANGE},

@@ -32,9 +32,7 @@ class JointCorrection(Correction):
         self.measurement = measurement
         self.observed = np.asarray(observed, dtype=float)
 
-    def apply(
-        self, filt: GaussianFilter, means: np.ndarray, covs: np.ndarray, active: np.ndarray
-    ) -> UpdateResult:
+    def apply(self, filt: GaussianFilter, means: np.ndarray, covs: np.ndarray, active: np.ndarray) -> UpdateResult:
         return filt.update(means, covs, active, self.measurement, self.observed)
 
 
@@ -46,18 +44,14 @@ class AveragedCorrection(Correction):
             raise ValueError("an averaged correction needs at least one part")
         self.parts = tuple(parts)
 
-    def apply(
-        self, filt: GaussianFilter, means: np.ndarray, covs: np.ndarray, active: np.ndarray
-    ) -> UpdateResult:
+    def apply(self, filt: GaussianFilter, means: np.ndarray, covs: np.ndarray, active: np.ndarray) -> UpdateResult:
         results = [part.apply(filt, means, covs, active) for part in self.parts]
         if len(results) == 1:
             return results[0]
         stacked = np.stack([r.means for r in results])  # (K, B, 8)
         mean = stacked.mean(axis=0)
         heading = layout.PHI
-        mean[:, heading] = np.arctan2(
-            np.sin(stacked[:, :, heading]).mean(0), np.cos(stacked[:, :, heading]).mean(0)
-        )
+        mean[:, heading] = np.arctan2(np.sin(stacked[:, :, heading]).mean(0), np.cos(stacked[:, :, heading]).mean(0))
         mean[:, heading] *= active[:, heading]
         return UpdateResult(
             means=mean,
@@ -101,18 +95,14 @@ class RsuGyroEpoch:
         pairs = 1 if self.averaged and self.rsu_count > 1 else self.rsu_count
         return 2 * pairs + int(self.yaw_rates.size)
 
-    def measurement(
-        self, rsus: Sequence[int] | None = None
-    ) -> tuple[MeasurementModel | None, np.ndarray | None]:
+    def measurement(self, rsus: Sequence[int] | None = None) -> tuple[MeasurementModel | None, np.ndarray | None]:
         """The stacked model [RSU pairs..., gyros...] of ``rsus`` (default all) and its observation."""
         chosen = range(self.rsu_count) if rsus is None else rsus
         parts: list[MeasurementModel] = []
         observed = []
         if len(chosen):
             index = list(chosen)
-            parts.append(
-                RsuRangeBearing(self.positions[index], self.range_std[index], self.bearing_std[index])
-            )
+            parts.append(RsuRangeBearing(self.positions[index], self.range_std[index], self.bearing_std[index]))
             observed.append(self.observed[index].ravel())
         if self.yaw_rates.size:
             parts.extend([GyroYawRate(self.gyro_std, self.gyro_min_speed)] * int(self.yaw_rates.size))
@@ -124,9 +114,7 @@ class RsuGyroEpoch:
     def correction(self) -> Correction | None:
         """The correction of the numpy reference path, or None when nothing was measured."""
         if self.averaged and self.rsu_count > 1:
-            return AveragedCorrection(
-                [JointCorrection(*self.measurement([k])) for k in range(self.rsu_count)]
-            )
+            return AveragedCorrection([JointCorrection(*self.measurement([k])) for k in range(self.rsu_count)])
         model, observed = self.measurement()
         return None if model is None else JointCorrection(model, observed)
 

@@ -77,10 +77,8 @@ def to_wire(observation: Observation, peer_prefix: str = "") -> WireMeasurement:
         return OdometerMeasurement(t=observation.t, distance=observation.distance, speed=observation.speed)
     if isinstance(observation, V2vRangeObservation):
         return V2vRangeMeasurement(
-            t=observation.t,
-            peer_vehicle_id=f"{peer_prefix}{observation.peer_vehicle_id}",
-            range=observation.range,
-            toa=observation.toa,
+            t=observation.t, peer_vehicle_id=f"{peer_prefix}{observation.peer_vehicle_id}",
+            range=observation.range, toa=observation.toa,
         )
     if isinstance(observation, RsuObservation):
         return RsuMeasurement(

@@ -430,9 +430,7 @@ def _point_of(fix: Fix, position_var: float, velocity_var: float) -> _Point | No
         total += fix.vx
     if fix.vy is not None:
         total += fix.vy
-    if not math.isfinite(total) and not _finite(
-        fix.t, fix.x, fix.y, fix.vx, fix.vy, position_var, velocity_var
-    ):
+    if not math.isfinite(total) and not _finite(fix.t, fix.x, fix.y, fix.vx, fix.vy, position_var, velocity_var):
         return None
     return _Point(fix.t, fix.x, fix.y, fix.vx, fix.vy, max(position_var, 0.0), max(velocity_var, 0.0))
 

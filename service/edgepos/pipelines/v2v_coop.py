@@ -67,61 +67,34 @@ _INITIAL_ACCEL_STD = 1.0
 
 OPTION_SPECS = (
     OptionSpec(
-        "method",
-        "string",
-        "aug_ukf",
+        "method", "string", "aug_ukf",
         "gps (fixes as they are), gps_dr (Kalman filter with dead reckoning), ukf (plus V2V ranges, "
         "neighbours' estimates taken as exact) or aug_ukf (neighbours' positions augmented into the state).",
         choices=METHODS,
     ),
     OptionSpec(
-        "gps_std",
-        "number",
-        5.0 / math.sqrt(2.0),
-        "GNSS fix 1-sigma per axis (m) when a fix carries none.",
-        minimum=1e-3,
-        maximum=1e4,
+        "gps_std", "number", 5.0 / math.sqrt(2.0), "GNSS fix 1-sigma per axis (m) when a fix carries none.",
+        minimum=1e-3, maximum=1e4,
     ),
     OptionSpec(
-        "accel_std",
-        "number",
-        0.3,
-        "Acceleration change 1-sigma per step (m/s^2), the DR model's noise.",
-        minimum=1e-4,
-        maximum=100.0,
+        "accel_std", "number", 0.3, "Acceleration change 1-sigma per step (m/s^2), the DR model's noise.",
+        minimum=1e-4, maximum=100.0,
     ),
     OptionSpec("gyro_std", "number", 0.005, "Gyro yaw-rate 1-sigma (rad/s).", minimum=1e-6, maximum=10.0),
     OptionSpec(
-        "odometer_std",
-        "number",
-        0.1,
-        "Odometer distance 1-sigma per reading (m); for speed readings (m/s).",
-        minimum=1e-6,
-        maximum=1e3,
+        "odometer_std", "number", 0.1, "Odometer distance 1-sigma per reading (m); for speed readings (m/s).",
+        minimum=1e-6, maximum=1e3,
     ),
     OptionSpec(
-        "range_std",
-        "number",
-        2.0,
-        "V2V range 1-sigma (m); a TOA's 1-sigma times c.",
-        minimum=1e-3,
-        maximum=1e4,
+        "range_std", "number", 2.0, "V2V range 1-sigma (m); a TOA's 1-sigma times c.", minimum=1e-3, maximum=1e4
     ),
     OptionSpec(
-        "max_neighbour_age",
-        "number",
-        1.0,
-        "Oldest usable neighbour estimate (s) past its last point.",
-        minimum=0.0,
-        maximum=60.0,
+        "max_neighbour_age", "number", 1.0, "Oldest usable neighbour estimate (s) past its last point.",
+        minimum=0.0, maximum=60.0,
     ),
     OptionSpec(
-        "neighbour_accel_std",
-        "number",
-        1.0,
-        "White acceleration (m/s^2) for predicting a neighbour forward.",
-        minimum=0.0,
-        maximum=100.0,
+        "neighbour_accel_std", "number", 1.0, "White acceleration (m/s^2) for predicting a neighbour forward.",
+        minimum=0.0, maximum=100.0,
     ),
 )
 
@@ -160,15 +133,8 @@ def _decode(blob: bytes) -> _SessionState:
     if meta.get("pipeline") != V2vCoopPipeline.name:
         raise state_format.StateFormatError(f"state belongs to pipeline {meta.get('pipeline')!r}")
     return _SessionState(
-        dict(meta["options"]),
-        bool(meta["initialised"]),
-        meta["t"],
-        int(meta["epochs"]),
-        meta["odometer_t"],
-        arrays["mean"],
-        arrays["cov"],
-        arrays["own_mean"],
-        arrays["own_cov"],
+        dict(meta["options"]), bool(meta["initialised"]), meta["t"], int(meta["epochs"]), meta["odometer_t"],
+        arrays["mean"], arrays["cov"], arrays["own_mean"], arrays["own_cov"],
     )
 
 
@@ -181,12 +147,7 @@ class V2vCoopPipeline(Pipeline):
         "vehicles read from their sessions; the improved UKF augments their positions into the state "
         "(Qiao & Qu 2021)."
     )
-    measurement_kinds = (
-        GnssFixObservation.kind,
-        GyroObservation.kind,
-        OdometerObservation.kind,
-        V2vRangeObservation.kind,
-    )
+    measurement_kinds = (GnssFixObservation.kind, GyroObservation.kind, OdometerObservation.kind, V2vRangeObservation.kind)
     publishes_track = True
 
     def option_specs(self) -> list[OptionSpec]:
@@ -198,9 +159,7 @@ class V2vCoopPipeline(Pipeline):
     def create(self, options: Mapping[str, Any], initial: InitialState | None) -> bytes:
         options = dict(options)
         if initial is None:
-            return _SessionState(
-                options, False, None, 0, None, np.zeros(6), np.eye(6), np.zeros(6), np.eye(6)
-            ).to_bytes()
+            return _SessionState(options, False, None, 0, None, np.zeros(6), np.eye(6), np.zeros(6), np.eye(6)).to_bytes()
         mean = np.array([initial.x, initial.vx, 0.0, initial.y, initial.vy, 0.0])
         cov = np.diag(np.square([initial.position_std, initial.velocity_std, _INITIAL_ACCEL_STD] * 2))
         return _SessionState(options, True, None, 0, None, mean, cov, mean.copy(), cov.copy()).to_bytes()
@@ -222,9 +181,9 @@ def _validate(session: _SessionState, observations: Sequence[Observation]) -> No
     check_batch(V2vCoopPipeline.name, set(V2vCoopPipeline.measurement_kinds), session.t, observations)
 
 
-def _step(
-    session: _SessionState, epoch: list[int], observations: Sequence[Observation], environment: Environment
-) -> Fix:
+
+
+def _step(session: _SessionState, epoch: list[int], observations: Sequence[Observation], environment: Environment) -> Fix:
     options = session.options
     method = options["method"]
     t = observations[epoch[0]].t
@@ -240,9 +199,7 @@ def _step(
     else:
         cooperative = method in ("ukf", "aug_ukf")
         # The fix's filter, and for the cooperative methods the GNSS + DR filter the vehicle shares.
-        gaussians = [(session.mean, session.cov)] + (
-            [(session.own_mean, session.own_cov)] if cooperative else []
-        )
+        gaussians = [(session.mean, session.cov)] + ([(session.own_mean, session.own_cov)] if cooperative else [])
         updated = []
         used = False
         odometer_t = session.odometer_t
@@ -253,9 +210,7 @@ def _step(
             if fixes:
                 obs = observations[fixes[0]]
                 std = obs.std if obs.std is not None else options["gps_std"]
-                mean, cov, _, _ = _KF.update_one(
-                    mean, cov, KINEMATIC, GnssPosition(std), np.array([obs.x, obs.y])
-                )
+                mean, cov, _, _ = _KF.update_one(mean, cov, KINEMATIC, GnssPosition(std), np.array([obs.x, obs.y]))
                 uses[fixes[0]] = MeasurementUse(fixes[0], "gnss_fix", True)
                 used = True
             mean, cov, dr_used = _dr_update(session, mean, cov, epoch, observations, uses, t)
@@ -270,9 +225,7 @@ def _step(
         status = "tracking" if used else "predicted"
     for i in epoch:
         if i not in uses:
-            uses[i] = MeasurementUse(
-                i, observations[i].kind, False, f"method {method} does not use {observations[i].kind}"
-            )
+            uses[i] = MeasurementUse(i, observations[i].kind, False, f"method {method} does not use {observations[i].kind}")
     session.t = t
     session.epochs += 1
     fix = kinematic_fix(t, status, session.mean, session.cov, [uses[i] for i in epoch])
@@ -290,9 +243,7 @@ def _initialise(session, epoch, observations, fixes, uses, t) -> Fix:
     session.epochs += 1
     if not fixes:
         for i in epoch:
-            uses[i] = MeasurementUse(
-                i, observations[i].kind, False, "no estimate yet: waiting for a gnss_fix to start from"
-            )
+            uses[i] = MeasurementUse(i, observations[i].kind, False, "no estimate yet: waiting for a gnss_fix to start from")
         return Fix(t, "uninitialised", measurements=[uses[i] for i in epoch])
     first = observations[fixes[0]]
     std = first.std if first.std is not None else session.options["gps_std"]
@@ -304,9 +255,7 @@ def _initialise(session, epoch, observations, fixes, uses, t) -> Fix:
         if i == fixes[0]:
             uses[i] = MeasurementUse(i, "gnss_fix", True)
         elif i not in uses:
-            uses[i] = MeasurementUse(
-                i, observations[i].kind, False, "the session starts from this epoch's first gnss_fix"
-            )
+            uses[i] = MeasurementUse(i, observations[i].kind, False, "the session starts from this epoch's first gnss_fix")
     return kinematic_fix(t, "initialised", session.mean, session.cov, [uses[i] for i in epoch])
 
 
@@ -352,27 +301,14 @@ def _dr_update(session, mean, cov, epoch, observations, uses, t) -> tuple[np.nda
             for i in readings[:1]:
                 uses[i] = MeasurementUse(i, observations[i].kind, False, reason)
             for i in readings[1:]:
-                uses[i] = MeasurementUse(
-                    i,
-                    observations[i].kind,
-                    False,
-                    f"another {observations[i].kind} reading at the same time was used",
-                )
+                uses[i] = MeasurementUse(i, observations[i].kind, False, f"another {observations[i].kind} reading at the same time was used")
         odos = [i for i in epoch if isinstance(observations[i], OdometerObservation)]
         if odos and observations[odos[0]].distance is not None:
             session.odometer_t = t
         return mean, cov, False
     filt = _KF if options["method"] == "gps_dr" else _UKF
     outcome = dead_reckoning_update(
-        filt,
-        mean,
-        cov,
-        epoch,
-        observations,
-        uses,
-        session.odometer_t,
-        options["gyro_std"],
-        options["odometer_std"],
+        filt, mean, cov, epoch, observations, uses, session.odometer_t, options["gyro_std"], options["odometer_std"]
     )
     session.odometer_t = outcome.odometer_t
     return outcome.mean, outcome.cov, outcome.used
@@ -399,12 +335,8 @@ def _range_update(session, epoch, observations, uses, environment, t) -> bool:
             continue
         try:
             neighbour = position_at(
-                environment.neighbour(obs.peer_vehicle_id),
-                t,
-                options["max_neighbour_age"],
-                options["neighbour_accel_std"],
-                environment.vehicle_id,
-                obs.peer_vehicle_id,
+                environment.neighbour(obs.peer_vehicle_id), t, options["max_neighbour_age"],
+                options["neighbour_accel_std"], environment.vehicle_id, obs.peer_vehicle_id,
             )
         except NeighbourUnavailable as reason:
             uses[i] = MeasurementUse(i, obs.kind, False, str(reason))
@@ -420,9 +352,7 @@ def _range_update(session, epoch, observations, uses, environment, t) -> bool:
     range_std = options["range_std"]
     if options["method"] == "ukf":
         model = RsuRange(points_array, np.full(len(used), range_std))
-        session.mean, session.cov, _, _ = _UKF.update_one(
-            session.mean, session.cov, KINEMATIC, model, observed
-        )
+        session.mean, session.cov, _, _ = _UKF.update_one(session.mean, session.cov, KINEMATIC, model, observed)
     else:
         count = len(used)
         extra_cov = np.zeros((2 * count, 2 * count))
@@ -435,14 +365,8 @@ def _range_update(session, epoch, observations, uses, environment, t) -> bool:
             return np.linalg.norm(peers - own[:, None, :], axis=2)
 
         session.mean, session.cov, _, _ = augmented_update(
-            _UKF,
-            session.mean,
-            session.cov,
-            points_array.reshape(-1),
-            extra_cov,
-            ranges,
-            np.eye(count) * range_std**2,
-            observed,
+            _UKF, session.mean, session.cov, points_array.reshape(-1), extra_cov, ranges,
+            np.eye(count) * range_std**2, observed,
         )
     for i in used:
         uses[i] = MeasurementUse(i, "v2v_range", True)

@@ -60,73 +60,38 @@ _INITIAL_VELOCITY_STD = 10.0
 _INITIAL_ACCEL_STD = 1.0
 
 OPTION_SPECS = (
+    OptionSpec("feedback", "boolean", True, "Reset the sub-filters with the fused estimate each epoch (eq. 16)."),
     OptionSpec(
-        "feedback", "boolean", True, "Reset the sub-filters with the fused estimate each epoch (eq. 16)."
-    ),
-    OptionSpec(
-        "dr_share",
-        "number",
-        0.5,
+        "dr_share", "number", 0.5,
         "Information-sharing factor beta_D of the DR sub-filter; beta_G/V = 1 - beta_D (eq. 16).",
-        minimum=0.05,
-        maximum=0.95,
+        minimum=0.05, maximum=0.95,
     ),
     OptionSpec(
-        "gps_std",
-        "number",
-        math.sqrt(15.0),
-        "GNSS fix 1-sigma per axis (m) when a fix carries none.",
-        minimum=1e-3,
-        maximum=1e4,
+        "gps_std", "number", math.sqrt(15.0), "GNSS fix 1-sigma per axis (m) when a fix carries none.",
+        minimum=1e-3, maximum=1e4,
     ),
     OptionSpec("gyro_std", "number", 0.005, "Gyro yaw-rate 1-sigma (rad/s).", minimum=1e-6, maximum=10.0),
     OptionSpec(
-        "odometer_std",
-        "number",
-        0.1,
-        "Odometer distance 1-sigma per reading (m); for speed readings (m/s).",
-        minimum=1e-6,
-        maximum=1e3,
+        "odometer_std", "number", 0.1, "Odometer distance 1-sigma per reading (m); for speed readings (m/s).",
+        minimum=1e-6, maximum=1e3,
     ),
     OptionSpec(
-        "range_std",
-        "number",
-        3.0,
-        "Range 1-sigma (m) to RSUs and neighbour vehicles.",
-        minimum=1e-3,
-        maximum=1e4,
+        "range_std", "number", 3.0, "Range 1-sigma (m) to RSUs and neighbour vehicles.", minimum=1e-3, maximum=1e4
     ),
     OptionSpec(
-        "cs_alpha",
-        "number",
-        0.1,
-        "Current-statistical manoeuvre frequency 1/tau (1/s).",
-        minimum=1e-4,
-        maximum=100.0,
+        "cs_alpha", "number", 0.1, "Current-statistical manoeuvre frequency 1/tau (1/s).", minimum=1e-4, maximum=100.0
     ),
     OptionSpec(
-        "cs_a_max",
-        "number",
-        10.0,
-        "Current-statistical maximum manoeuvre acceleration (m/s^2).",
-        minimum=0.1,
-        maximum=100.0,
+        "cs_a_max", "number", 10.0, "Current-statistical maximum manoeuvre acceleration (m/s^2).",
+        minimum=0.1, maximum=100.0,
     ),
     OptionSpec(
-        "max_neighbour_age",
-        "number",
-        1.0,
-        "Oldest usable neighbour estimate (s) past its last point.",
-        minimum=0.0,
-        maximum=60.0,
+        "max_neighbour_age", "number", 1.0, "Oldest usable neighbour estimate (s) past its last point.",
+        minimum=0.0, maximum=60.0,
     ),
     OptionSpec(
-        "neighbour_accel_std",
-        "number",
-        1.0,
-        "White acceleration (m/s^2) for predicting a neighbour forward.",
-        minimum=0.0,
-        maximum=100.0,
+        "neighbour_accel_std", "number", 1.0, "White acceleration (m/s^2) for predicting a neighbour forward.",
+        minimum=0.0, maximum=100.0,
     ),
 )
 
@@ -204,14 +169,8 @@ def _decode(blob: bytes) -> _SessionState:
     if meta.get("pipeline") != V2xFederatedPipeline.name:
         raise state_format.StateFormatError(f"state belongs to pipeline {meta.get('pipeline')!r}")
     return _SessionState(
-        dict(meta["options"]),
-        bool(meta["initialised"]),
-        meta["t"],
-        int(meta["epochs"]),
-        meta["odometer_t"],
-        arrays["means"],
-        arrays["covs"],
-        arrays["noise_scales"],
+        dict(meta["options"]), bool(meta["initialised"]), meta["t"], int(meta["epochs"]), meta["odometer_t"],
+        arrays["means"], arrays["covs"], arrays["noise_scales"],
     )
 
 
@@ -226,11 +185,8 @@ class V2xFederatedPipeline(Pipeline):
         "own sub-filter; the better of GNSS and V2X fused with DR and fed back (Wang et al. 2019)."
     )
     measurement_kinds = (
-        GnssFixObservation.kind,
-        GyroObservation.kind,
-        OdometerObservation.kind,
-        RsuRangeObservation.kind,
-        V2vRangeObservation.kind,
+        GnssFixObservation.kind, GyroObservation.kind, OdometerObservation.kind,
+        RsuRangeObservation.kind, V2vRangeObservation.kind,
     )
 
     def option_specs(self) -> list[OptionSpec]:
@@ -245,15 +201,11 @@ class V2xFederatedPipeline(Pipeline):
         if options["feedback"]:
             scales = _feedback_scales(options)
         if initial is None:
-            return _SessionState(
-                options, False, None, 0, None, np.zeros((3, 6)), np.tile(np.eye(6), (3, 1, 1)), scales
-            ).to_bytes()
+            return _SessionState(options, False, None, 0, None, np.zeros((3, 6)), np.tile(np.eye(6), (3, 1, 1)), scales).to_bytes()
         mean = np.array([initial.x, initial.vx, 0.0, initial.y, initial.vy, 0.0])
         stds = [initial.position_std, initial.velocity_std, _INITIAL_ACCEL_STD] * 2
         cov = np.diag(np.square(stds))
-        return _SessionState(
-            options, True, None, 0, None, np.tile(mean, (3, 1)), np.tile(cov, (3, 1, 1)), scales
-        ).to_bytes()
+        return _SessionState(options, True, None, 0, None, np.tile(mean, (3, 1)), np.tile(cov, (3, 1, 1)), scales).to_bytes()
 
     def summarise(self, state: bytes) -> StateSummary:
         session = _decode(state)
@@ -272,9 +224,9 @@ class V2xFederatedPipeline(Pipeline):
 
 
 def _validate(session: _SessionState, observations: Sequence[Observation]) -> None:
-    check_batch(
-        V2xFederatedPipeline.name, set(V2xFederatedPipeline.measurement_kinds), session.t, observations
-    )
+    check_batch(V2xFederatedPipeline.name, set(V2xFederatedPipeline.measurement_kinds), session.t, observations)
+
+
 
 
 # -- one epoch -----------------------------------------------------------------------------------
@@ -288,9 +240,7 @@ def _feedback_scales(options: Mapping[str, Any]) -> np.ndarray:
     return np.array([1.0 / (1.0 - beta_d), 1.0 / beta_d, 1.0 / (1.0 - beta_d)])
 
 
-def _step(
-    session: _SessionState, epoch: list[int], observations: Sequence[Observation], environment: Environment
-) -> Fix:
+def _step(session: _SessionState, epoch: list[int], observations: Sequence[Observation], environment: Environment) -> Fix:
     options = session.options
     t = observations[epoch[0]].t
     uses: dict[int, MeasurementUse] = {}
@@ -298,9 +248,7 @@ def _step(
         fixes = [i for i in epoch if isinstance(observations[i], GnssFixObservation)]
         if not fixes:
             for i in epoch:
-                uses[i] = MeasurementUse(
-                    i, observations[i].kind, False, "no estimate yet: waiting for a gnss_fix to start from"
-                )
+                uses[i] = MeasurementUse(i, observations[i].kind, False, "no estimate yet: waiting for a gnss_fix to start from")
                 _note_odometer(session, observations[i])
             session.t = t
             session.epochs += 1
@@ -316,12 +264,7 @@ def _step(
         session.epochs += 1
         for i in epoch:
             used = i == fixes[0]
-            uses[i] = MeasurementUse(
-                i,
-                observations[i].kind,
-                used,
-                None if used else "the session starts from this epoch's first gnss_fix",
-            )
+            uses[i] = MeasurementUse(i, observations[i].kind, used, None if used else "the session starts from this epoch's first gnss_fix")
             _note_odometer(session, observations[i])
         return kinematic_fix(t, "initialised", session.means[0], session.covs[0], [uses[i] for i in epoch])
 
@@ -329,9 +272,7 @@ def _step(
     means, covs = session.means.copy(), session.covs.copy()
     if dt > 0.0:
         for k, filt in enumerate((_KF, _SRUKF, _SRUKF)):
-            model = SharedNoiseCurrentStatistical(
-                options["cs_alpha"], options["cs_a_max"], session.noise_scales[k]
-            )
+            model = SharedNoiseCurrentStatistical(options["cs_alpha"], options["cs_a_max"], session.noise_scales[k])
             means[k], covs[k] = filt.predict(means[k], covs[k], model, dt)
 
     updated = [False, False, False]
@@ -367,24 +308,14 @@ def _gps_update(means, covs, epoch, observations, options, uses) -> bool:
         return False
     obs = observations[fixes[0]]
     std = obs.std if obs.std is not None else options["gps_std"]
-    means[0], covs[0], _, _ = _KF.update_one(
-        means[0], covs[0], _KIN, GnssPosition(std), np.array([obs.x, obs.y])
-    )
+    means[0], covs[0], _, _ = _KF.update_one(means[0], covs[0], _KIN, GnssPosition(std), np.array([obs.x, obs.y]))
     uses[fixes[0]] = MeasurementUse(fixes[0], "gnss_fix", True)
     return True
 
 
 def _dr_update(session, means, covs, epoch, observations, options, uses, t) -> bool:
     outcome = dead_reckoning_update(
-        _SRUKF,
-        means[1],
-        covs[1],
-        epoch,
-        observations,
-        uses,
-        session.odometer_t,
-        options["gyro_std"],
-        options["odometer_std"],
+        _SRUKF, means[1], covs[1], epoch, observations, uses, session.odometer_t, options["gyro_std"], options["odometer_std"]
     )
     means[1], covs[1], session.odometer_t = outcome.mean, outcome.cov, outcome.odometer_t
     return outcome.used
@@ -407,12 +338,8 @@ def _v2x_update(means, covs, epoch, observations, options, uses, environment, t)
         elif isinstance(obs, V2vRangeObservation):
             try:
                 neighbour = position_at(
-                    environment.neighbour(obs.peer_vehicle_id),
-                    t,
-                    options["max_neighbour_age"],
-                    options["neighbour_accel_std"],
-                    environment.vehicle_id,
-                    obs.peer_vehicle_id,
+                    environment.neighbour(obs.peer_vehicle_id), t, options["max_neighbour_age"],
+                    options["neighbour_accel_std"], environment.vehicle_id, obs.peer_vehicle_id,
                 )
             except NeighbourUnavailable as reason:
                 uses[i] = MeasurementUse(i, obs.kind, False, str(reason))
@@ -430,17 +357,13 @@ def _v2x_update(means, covs, epoch, observations, options, uses, environment, t)
     if not used:
         return False
     model = RangesToPoints(np.array(points), np.array(variances))
-    means[2], covs[2], _, _ = _SRUKF.update_one(
-        means[2], covs[2], _KIN, model, np.array([v for _, v in used])
-    )
+    means[2], covs[2], _, _ = _SRUKF.update_one(means[2], covs[2], _KIN, model, np.array([v for _, v in used]))
     for i, _ in used:
         uses[i] = MeasurementUse(i, observations[i].kind, True)
     return True
 
 
-def fuse(
-    mean_a: np.ndarray, cov_a: np.ndarray, mean_b: np.ndarray, cov_b: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+def fuse(mean_a: np.ndarray, cov_a: np.ndarray, mean_b: np.ndarray, cov_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 15: P = (Pa^-1 + Pb^-1)^-1, x = P (Pa^-1 xa + Pb^-1 xb), through Cholesky solves."""
     try:
         info_a = np.linalg.inv(np.linalg.cholesky(cov_a))

@@ -188,7 +188,9 @@ class UTurn(Segment):
                 f"UTurn: a {target} m shift in {self.duration} s at {speed} m/s is not reachable "
                 f"(between {narrowest:.3f} and {widest:.3f} m)"
             )
-        return brentq(lambda p: self.lateral_shift(p, speed) - target, 1.0, MAX_U_TURN_SHARPNESS, xtol=1e-13)
+        return brentq(
+            lambda p: self.lateral_shift(p, speed) - target, 1.0, MAX_U_TURN_SHARPNESS, xtol=1e-13
+        )
 
     def peak_yaw_rate(self, sharpness: float) -> float:
         """Turn rate (rad/s, signed) at mid-turn for the profile with ``sharpness`` p."""

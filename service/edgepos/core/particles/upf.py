@@ -77,13 +77,8 @@ class UnscentedParticleFilter:
         return spread + cloud.cov
 
     def step(
-        self,
-        cloud: Cloud,
-        model: ParticleModel,
-        dt: float,
-        active: np.ndarray,
-        measurement: Measurement | None,
-        rng: np.random.Generator,
+        self, cloud: Cloud, model: ParticleModel, dt: float, active: np.ndarray,
+        measurement: Measurement | None, rng: np.random.Generator,
     ) -> StepResult:
         index = np.flatnonzero(active)
         count = len(cloud.particles)
