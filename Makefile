@@ -4,13 +4,14 @@
 #   make test-under-load  the whole suite 10 times in a row with every CPU core busy (must pass 10 of 10)
 #   make bench   install and run the benchmark scripts
 #   make openapi regenerate openapi.json from the app
+#   make docs    build the docs site into site/ (strict: a broken link or an unlisted page fails)
 
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: serve test test-under-load bench openapi clean redis-server
+.PHONY: serve test test-under-load bench openapi docs clean redis-server chromium wrk
 
 $(STAMP): pyproject.toml client/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -21,12 +22,12 @@ $(STAMP): pyproject.toml client/pyproject.toml
 serve: $(STAMP)
 	EDGEPOS_DEMO_RSUS=$${EDGEPOS_DEMO_RSUS:-true} $(BIN)/edgepos serve
 
-test: $(STAMP) redis-server
+test: $(STAMP) redis-server chromium docs
 	$(BIN)/python -m pytest
 
 # A test that leans on a quiet machine (fixed sleeps, wall-clock deadlines, unsynchronised threads)
 # fails here: one busy-loop process per core, the suite run 10 times with CI=true (bench/suite_under_load.py).
-test-under-load: $(STAMP) redis-server
+test-under-load: $(STAMP) redis-server chromium
 	$(BIN)/python bench/suite_under_load.py --runs 10
 
 # The Redis store's tests start their own redis-server on loopback, and redis-cli joins the local Redis
@@ -36,8 +37,22 @@ redis-server:
 		echo "installing redis-server (Debian package)"; \
 		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq redis-server redis-tools >/dev/null; }
 
-bench: $(STAMP) redis-server
+# The operator map's browser test (tests/api/test_api_map_browser.py) drives Debian's chromium through Playwright
+# (executable_path=/usr/bin/chromium; `playwright install` is never run, nothing downloads a browser).
+chromium:
+	@command -v chromium >/dev/null || { \
+		echo "installing chromium (Debian package)"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; }
+
+# wrk (a C HTTP load generator, Debian package) drives bench/wrk_load.py.
+wrk:
+	@command -v wrk >/dev/null || { \
+		echo "installing wrk (Debian package)"; \
+		apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq wrk >/dev/null; }
+
+bench: $(STAMP) redis-server wrk
 	$(BIN)/python bench/filter_step.py
+	$(BIN)/python bench/wrk_load.py
 	$(BIN)/python bench/service_load.py
 	$(BIN)/python bench/redis_store.py
 	$(BIN)/python bench/federated.py
@@ -45,6 +60,10 @@ bench: $(STAMP) redis-server
 
 openapi: $(STAMP)
 	$(BIN)/python -m edgepos.api.openapi
+
+# MkDocs 1.x prints a banner about its successor on every build; the site is pinned to 1.x (pyproject.toml).
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 DISABLE_MKDOCS_2_WARNING=true $(BIN)/mkdocs build --strict --quiet
 
 clean:
 	rm -rf $(VENV)

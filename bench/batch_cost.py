@@ -116,7 +116,7 @@ def pf_stages_forced() -> Iterator[None]:
 
     original = pf._largest_power
 
-    def eighth(log_weights, log_likelihood, remaining, target):  # noqa: ANN001
+    def eighth(log_weights, log_likelihood, remaining, target):
         original(log_weights, log_likelihood, remaining, target)  # its bisection's cost, result unused
         return min(remaining, 0.125)
 
@@ -275,7 +275,7 @@ def riss_samples(gpst: Sequence[float], rate_hz: float = 10.0) -> list[list[Riss
     out = []
     for t in gpst:
         samples = []
-        for k in range(int(round(rate_hz))):
+        for k in range(round(rate_hz)):
             tk = t + k * step
             east = np.interp([tk - 0.5, tk + 0.5], ref_t, enu[:, 0])
             north = np.interp([tk - 0.5, tk + 0.5], ref_t, enu[:, 1])

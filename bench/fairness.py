@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import itertools
 import json
 import math
 import os
@@ -176,7 +177,10 @@ async def drive(url: str, duration: float, budget_s: float) -> tuple[Figures, di
     options = {"filter": "upf", "particles": _max_particles(budget_s), "systems": ["G", "C"], "seed": 1}
     epochs = gnss_epochs()
     per_batch = heaviest_epochs(options, epochs, budget_s)
-    batches = [sum(epochs[k : k + per_batch], []) for k in range(0, len(epochs) - per_batch + 1, per_batch)]
+    batches = [
+        list(itertools.chain.from_iterable(epochs[k : k + per_batch]))
+        for k in range(0, len(epochs) - per_batch + 1, per_batch)
+    ]
     light = light_batches(int(duration * LIGHT_RATE_HZ) + 1)
     figures = Figures()
     start = time.monotonic() + 1.0
@@ -193,7 +197,7 @@ def _p(values: list[float], q: float) -> float:
     if not values:
         return math.nan
     ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, int(math.ceil(q * len(ordered))) - 1)]
+    return ordered[min(len(ordered) - 1, math.ceil(q * len(ordered)) - 1)]
 
 
 def run_target(name: str, workers: int, store: str, extra: dict[str, str], duration: float, workdir: Path) -> dict[str, Any]:

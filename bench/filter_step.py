@@ -69,7 +69,7 @@ def main() -> int:
     bank = _bank(_options_key(options))
     epoch = epochs[warmup]
     rsu_obs = [o for o in epoch if o.kind == "rsu"]
-    gyro = [o for o in epoch if o.kind == "gyro"][0]
+    gyro = next(o for o in epoch if o.kind == "gyro")
     positions = np.array([[env.rsu(o.rsu_id).x, env.rsu(o.rsu_id).y] for o in rsu_obs])
     measurement = Stacked(
         [RsuRangeBearing(positions, options["range_std"], options["bearing_std"]), GyroYawRate(options["gyro_std"])]

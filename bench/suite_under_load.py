@@ -32,6 +32,7 @@ import time
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Self
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_COMMAND = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"]
@@ -63,7 +64,7 @@ class BusyCores:
         self.limit_s = limit_s
         self.processes: list[multiprocessing.Process] = []
 
-    def __enter__(self) -> BusyCores:
+    def __enter__(self) -> Self:
         deadline = time.monotonic() + self.limit_s  # CLOCK_MONOTONIC is system-wide on Linux
         try:
             for index in range(self.count):

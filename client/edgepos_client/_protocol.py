@@ -15,7 +15,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 from urllib.parse import quote, urlencode
 
 import httpx
@@ -31,6 +31,7 @@ from edgepos_client.models import (
     GnssFixMeasurement,
     GyroMeasurement,
     InitialState,
+    Measurement,
     OdometerMeasurement,
     PipelineInfo,
     PseudorangeMeasurement,
@@ -410,8 +411,10 @@ class Calls:
         session_id, credential = _session_credential(session, self.admin_key)
         if seq < 1:
             raise ValueError("seq must be >= 1")
+        items: list[Measurement]
         if all(isinstance(item, _MEASUREMENT_MODELS) for item in measurements):
-            items = list(measurements)
+            # every item is a measurement model (the test above, which does not narrow the list's type)
+            items = cast("list[Measurement]", list(measurements))
         else:
             items = MEASUREMENTS.validate_python(list(measurements))
         body = b"".join(
@@ -419,13 +422,19 @@ class Calls:
                 b'{"seq":',
                 str(int(seq)).encode(),
                 b',"measurements":',
-                MEASUREMENTS.dump_json(items),  # type: ignore[arg-type]
+                MEASUREMENTS.dump_json(items),
                 b',"include_state":',
                 b"true" if include_state else b"false",
                 b"}",
             )
         )
         return Call("POST", f"/v1/sessions/{_segment(session_id)}/batches", body, credential)
+
+
+    def batch_socket(self, session: Session | str) -> Call:
+        """The handshake of the session's batch WebSocket (its path and bearer)."""
+        session_id, credential = _session_credential(session, self.admin_key)
+        return Call("GET", f"/v1/sessions/{_segment(session_id)}/ws", credential=credential)
 
 
 def next_seq(session: Session | str, seq: int | None) -> int:
@@ -438,7 +447,11 @@ def next_seq(session: Session | str, seq: int | None) -> int:
 
 def batch_fixes(session: Session | str, seq: int, response: httpx.Response) -> list[Fix]:
     """Parse a batch answer and advance the handle's seq."""
-    result = BatchResult.model_validate_json(response.content)
+    return result_fixes(session, seq, BatchResult.model_validate_json(response.content))
+
+
+def result_fixes(session: Session | str, seq: int, result: BatchResult) -> list[Fix]:
+    """The fixes of the answer to batch ``seq`` (over HTTP or the WebSocket); advances the handle's seq."""
     if result.seq != seq:
         raise EdgeposError("protocol_error", f"sent seq {seq} but the server answered seq {result.seq}")
     if isinstance(session, Session):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import AsyncIterator, Iterable, Mapping, Sequence
-from typing import Any, Self
+from typing import TYPE_CHECKING, Any, Self
 
 import httpx
 
@@ -27,6 +27,9 @@ from edgepos_client.models import (
     VehicleKey,
     VehiclePage,
 )
+
+if TYPE_CHECKING:
+    from edgepos_client.websocket import AsyncBatchSocket
 
 
 class _Retry(Exception):
@@ -230,6 +233,25 @@ class AsyncEdgeposClient:
         number = protocol.next_seq(session, seq)
         call = self._calls.batch(session, measurements, number, include_state)
         return protocol.batch_fixes(session, number, await self._send(call))
+
+    def websocket(
+        self, session: Session | str, *, timeout: float | None = None, compression: bool = False
+    ) -> AsyncBatchSocket:
+        """The session's batches over one WebSocket (``/v1/sessions/{id}/ws``), for a vehicle that keeps a
+        link open: its ``send_batch`` sends the same bytes as :meth:`send_batch`, returns the same fixes
+        and raises the same errors, with one batch in flight. The link opens with the first batch and is
+        opened again (the batch resent with its seq) after it breaks, within the retry policy; close it
+        (or use it as a context manager) when done. ``timeout`` (s) bounds each answer, by default the
+        client's; ``compression`` turns on permessage-deflate (fewer bytes on a slow link, more CPU).
+        Needs a real server (the WebSocket does not go through an httpx ``transport``) and the
+        ``websockets`` package: ``pip install 'edgepos-client[websocket]'``."""
+        from edgepos_client.websocket import AsyncBatchSocket, SocketTarget
+
+        wait = timeout if timeout is not None else self._http.timeout.read
+        target = SocketTarget.of(
+            self._http.base_url, self._calls, session, self.policy, 10.0 if wait is None else wait, compression
+        )
+        return AsyncBatchSocket(target, session, self._calls)
 
     async def stream_fixes(
         self,

@@ -91,10 +91,17 @@ class RateLimited(EdgeposError):
     the server's Retry-After in seconds when it sent one."""
 
     def __init__(
-        self, code: str, message: str, *, retry_after: float | None = None, **kwargs: object
+        self,
+        code: str,
+        message: str,
+        *,
+        retry_after: float | None = None,
+        status: int | None = None,
+        problems: list[Problem] | None = None,
+        request_id: str | None = None,
     ) -> None:
         self.retry_after = retry_after
-        super().__init__(code, message, **kwargs)  # type: ignore[arg-type]
+        super().__init__(code, message, status=status, problems=problems, request_id=request_id)
 
 
 class TooManySessions(RateLimited):
@@ -143,8 +150,7 @@ _CODE_OF_STATUS: Mapping[int, str] = {
 }
 
 
-def _retry_after(response: httpx.Response) -> float | None:
-    value = response.headers.get("retry-after")
+def _retry_after(value: str | float | None) -> float | None:
     if value is None:
         return None
     try:
@@ -156,15 +162,32 @@ def _retry_after(response: httpx.Response) -> float | None:
 
 def error_from_response(response: httpx.Response) -> EdgeposError:
     """The exception for a non-2xx answer, from the standard error body when there is one."""
-    status = response.status_code
-    request_id = response.headers.get("x-request-id")
+    return error_from_answer(
+        response.status_code,
+        response.content,
+        retry_after=response.headers.get("retry-after"),
+        request_id=response.headers.get("x-request-id"),
+        reason_phrase=response.reason_phrase,
+    )
+
+
+def error_from_answer(
+    status: int,
+    content: bytes,
+    *,
+    retry_after: str | float | None = None,
+    request_id: str | None = None,
+    reason_phrase: str = "",
+) -> EdgeposError:
+    """The exception for a refusal with this status and body: an HTTP answer, a refused WebSocket handshake,
+    or an error frame of the batch WebSocket (which carries the same status and body)."""
     try:
-        detail = ErrorBody.model_validate_json(response.content).error
+        detail = ErrorBody.model_validate_json(content).error
         code, message, problems = detail.code, detail.message, detail.problems
     except (ValidationError, json.JSONDecodeError, UnicodeDecodeError):
         code = _CODE_OF_STATUS.get(status, "internal_error" if status >= 500 else "invalid_request")
-        text = response.text.strip()
-        message = text[:500] if text else f"HTTP {status} {response.reason_phrase}"
+        text = content.decode("utf-8", "replace").strip()
+        message = text[:500] if text else f"HTTP {status} {reason_phrase}".rstrip()
         problems = []
     cls = ERROR_CLASSES.get(code)
     if cls is None:  # a code this client does not know yet: fall back on the status
@@ -178,6 +201,6 @@ def error_from_response(response: httpx.Response) -> EdgeposError:
             status=status,
             problems=problems,
             request_id=request_id,
-            retry_after=_retry_after(response),
+            retry_after=_retry_after(retry_after),
         )
     return cls(code, message, status=status, problems=problems, request_id=request_id)

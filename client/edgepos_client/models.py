@@ -259,6 +259,8 @@ class MeasurementUse(_Response):
     reason: str | None = None
     doppler_used: bool | None = None  # a pseudorange sent with doppler_hz: whether its Doppler was used
     doppler_reason: str | None = None
+    correction_applied: bool | None = None  # a pseudorange of a session with options.base_station
+    correction_reason: str | None = None  # why no reference-station correction was added (when not)
 
 
 FixStatus = Literal["initialised", "tracking", "predicted", "uninitialised", "diverged"]

@@ -417,9 +417,9 @@ def _admin_key(args: argparse.Namespace) -> str:
         if not key:
             raise UsageError(f"--admin-key-file {key_file} is empty")
         return key
-    key = os.environ.get("EDGEPOS_ADMIN_KEY")
-    if key:
-        return key
+    from_environment = os.environ.get("EDGEPOS_ADMIN_KEY")
+    if from_environment:
+        return from_environment
     raise UsageError(
         "the vehicle registry needs the admin key: give --admin-key or --admin-key-file, or set "
         "EDGEPOS_ADMIN_KEY (a server that generated its key saved it to edgepos-admin.key)"

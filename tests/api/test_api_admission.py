@@ -10,7 +10,7 @@ import json
 import httpx
 import pytest
 from edgepos.api.metrics import Metrics
-from edgepos.api.middleware import AdmissionMiddleware
+from edgepos.api.middleware import Admission, AdmissionMiddleware
 from edgepos.api.settings import Settings
 
 
@@ -50,7 +50,7 @@ def test_requests_beyond_the_slots_wait_then_all_succeed():
     async def scenario() -> tuple[list[int], int]:
         gate = Gate()
         metrics = Metrics()
-        app = AdmissionMiddleware(gate, max_inflight=2, queue_timeout_s=10.0, metrics=metrics)
+        app = AdmissionMiddleware(gate, Admission(max_inflight=2, queue_timeout_s=10.0, metrics=metrics))
         async with client_for(app) as client:
             pending = [asyncio.create_task(client.get("/slow")) for _ in range(6)]
             await until(lambda: metrics.waiting._value.get() == 4)
@@ -69,7 +69,7 @@ def test_requests_beyond_the_slots_wait_then_all_succeed():
 def test_a_request_that_waits_too_long_gets_503_with_retry_after_and_probes_skip_the_line():
     async def scenario() -> tuple[httpx.Response, httpx.Response, httpx.Response]:
         gate = Gate()
-        app = AdmissionMiddleware(gate, max_inflight=1, queue_timeout_s=0.1, metrics=Metrics())
+        app = AdmissionMiddleware(gate, Admission(max_inflight=1, queue_timeout_s=0.1, metrics=Metrics()))
         async with client_for(app) as client:
             holder = asyncio.create_task(client.get("/slow"))
             await until(lambda: gate.running == 1)

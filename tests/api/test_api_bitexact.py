@@ -37,6 +37,7 @@ def _expected_wire(fix):
             {
                 "index": u.index, "type": u.kind, "used": u.used, "reason": u.reason,
                 "doppler_used": u.doppler_used, "doppler_reason": u.doppler_reason,
+                "correction_applied": u.correction_applied, "correction_reason": u.correction_reason,
             }
             for u in fix.measurements
         ],

@@ -11,7 +11,7 @@ from apihelp import epochs, scenario
 from edgepos.api.convert import batch_body, fix_to_json
 from edgepos.api.schemas import BatchOut, FixOut
 from edgepos.geo import GeodeticOrigin
-from edgepos.pipelines.base import Fix, InitialState, MeasurementUse, StaticEnvironment
+from edgepos.pipelines.base import Fix, MeasurementUse, StaticEnvironment
 from edgepos.pipelines.registry import get_pipeline
 
 

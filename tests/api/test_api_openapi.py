@@ -21,6 +21,10 @@ def test_schema_documents_every_route_and_error():
         "/v1/rsus",
         "/v1/rsus/{rsu_id}",
         "/v1/ephemerides",
+        "/v1/base-stations",
+        "/v1/base-stations/{station_id}",
+        "/v1/base-stations/{station_id}/observations",
+        "/v1/base-stations/{station_id}/rtcm",
         "/v1/pipelines",
         "/v1/sessions",
         "/v1/sessions/{session_id}",
@@ -44,6 +48,7 @@ def test_schema_documents_every_route_and_error():
         "/healthz",
         "/readyz",
         "/metrics",
+        "/v1/status",
     }
     batches = paths["/v1/sessions/{session_id}/batches"]["post"]
     assert set(batches["responses"]) == {"200", "401", "403", "404", "409", "413", "415", "422", "429", "503"}
@@ -62,6 +67,12 @@ def test_schema_documents_every_route_and_error():
     upload = paths["/v1/ephemerides"]["put"]["requestBody"]["content"]
     assert set(upload) == {"text/plain", "application/octet-stream"}
     assert set(paths["/v1/ephemerides"]) == {"put", "get", "delete"}
+    assert set(paths["/v1/base-stations"]) == {"post", "get"}
+    assert set(paths["/v1/base-stations/{station_id}"]) == {"get", "delete"}
+    rtcm = paths["/v1/base-stations/{station_id}/rtcm"]["post"]
+    assert set(rtcm["requestBody"]["content"]) == {"application/octet-stream"}
+    assert {"404", "413", "422"} <= set(rtcm["responses"])
+    assert "404" in paths["/v1/sessions"]["post"]["responses"]  # an unknown options.base_station
     assert set(paths["/v1/sessions"]) == {"post", "get"}
     assert {"401", "403", "429"} <= set(paths["/v1/sessions"]["post"]["responses"])
     assert set(paths["/v1/vehicles"]) == {"post", "get"}

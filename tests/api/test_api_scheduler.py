@@ -89,7 +89,7 @@ def test_heavy_jobs_run_in_a_worker_process_and_count_their_cpu() -> None:
         heavy_pid = await scheduler.run("truck", 1.0, "gnss_tight", os.getpid)
         light_pid = await scheduler.run("car", 0.0, "rsu_imu", os.getpid)
         scheduler.shutdown()
-        cpu = metrics.pipeline_cpu.labels("gnss_tight")._value.get()  # noqa: SLF001 - reading the counter back
+        cpu = metrics.pipeline_cpu.labels("gnss_tight")._value.get()
         return heavy_pid, light_pid, cpu
 
     heavy_pid, light_pid, cpu = asyncio.run(scenario())

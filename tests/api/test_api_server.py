@@ -187,11 +187,13 @@ def test_serve_refuses_auth_off_unless_declared_a_lab(tmp_path):
 
 
 def test_lab_server_with_auth_off_is_open_and_says_so(tmp_path):
-    with running_server(tmp_path, "--lab", EDGEPOS_AUTH="off") as (url, log_path):
-        with httpx.Client(base_url=url, timeout=10.0) as client:
-            assert client.put("/v1/rsus", json=rsu_payload()).status_code == 200
-            session_id = client.post("/v1/sessions", json={"vehicle_id": "lab-car"}).json()["session_id"]
-            answer = client.post(f"/v1/sessions/{session_id}/batches", json=batch_body(1, 0, 3))
-            assert answer.status_code == 200 and len(answer.json()["fixes"]) == 3
+    with (
+        running_server(tmp_path, "--lab", EDGEPOS_AUTH="off") as (url, log_path),
+        httpx.Client(base_url=url, timeout=10.0) as client,
+    ):
+        assert client.put("/v1/rsus", json=rsu_payload()).status_code == 200
+        session_id = client.post("/v1/sessions", json={"vehicle_id": "lab-car"}).json()["session_id"]
+        answer = client.post(f"/v1/sessions/{session_id}/batches", json=batch_body(1, 0, 3))
+        assert answer.status_code == 200 and len(answer.json()["fixes"]) == 3
     log = log_path.read_text()
     assert "AUTHENTICATION IS OFF" in log and "authentication is off" in log

@@ -20,6 +20,8 @@ def test_client_distribution_depends_on_httpx_and_pydantic_only() -> None:
     project = tomllib.loads((ROOT / "client" / "pyproject.toml").read_text())["project"]
     assert project["name"] == "edgepos-client"
     assert sorted(re.split(r"[<>=!~ ]", dep)[0] for dep in project["dependencies"]) == ["httpx", "pydantic"]
+    # the batch WebSocket (client.websocket) is an extra, imported only when a socket is made
+    assert [re.split(r"[<>=!~ ]", dep)[0] for dep in project["optional-dependencies"]["websocket"]] == ["websockets"]
     assert (ROOT / "client" / "edgepos_client" / "py.typed").exists()
 
 
@@ -31,7 +33,7 @@ def test_client_imports_nothing_from_the_server() -> None:
             if isinstance(node, ast.ImportFrom) and node.module:
                 names = [node.module]
             assert not any(name == "edgepos" or name.startswith("edgepos.") for name in names), path
-    code = "import sys, edgepos_client; print(sorted(m for m in sys.modules if m.split('.')[0] in ('edgepos', 'numpy', 'fastapi')))"
+    code = "import sys, edgepos_client; print(sorted(m for m in sys.modules if m.split('.')[0] in ('edgepos', 'numpy', 'fastapi', 'websockets')))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 

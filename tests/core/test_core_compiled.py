@@ -303,7 +303,7 @@ def test_kernels_compile_in_memory_when_numba_has_nowhere_to_cache() -> None:
     from edgepos.core import kernels
 
     namespace: dict = {}
-    exec("def twice(x):\n    return 2.0 * x\n", namespace)  # no file: no cache locator
+    exec("def twice(x):\n    return 2.0 * x\n", namespace)  # noqa: S102 - a function without a source file is the point
     compiled = kernels._jit(namespace["twice"])
     assert compiled(2.5) == 5.0
     assert type(compiled._cache).__name__ == "NullCache"

@@ -248,7 +248,7 @@ def test_singular_and_non_finite_steps_raise_numerical_error():
     means = np.stack([state(0.0, 0.0, 1.0, 1.0)])
     zero = np.zeros((4, 4))
     # Two identical exact measurements of a known state: the innovation covariance is singular.
-    twice = lambda s: np.stack([s[..., N], s[..., N]], axis=-1)  # noqa: E731
+    twice = lambda s: np.stack([s[..., N], s[..., N]], axis=-1)
     duplicate = Measurement(twice, np.array([0.0, 0.0]), np.zeros(2))
     with pytest.raises(NumericalError):
         unscented_update(means, zero, ConstantVelocity(), ACTIVE, layout.ANGLES, duplicate)

@@ -29,7 +29,7 @@ from edgepos.pipelines.registry import get_pipeline
 from faulthelp import ADMIN_KEY, scenario, serve, start_state, stream_batches
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "api"))
-from gnsswire import QUICK, measurements, nav_text  # noqa: E402 - the api tests' wire helpers, found by path
+from gnsswire import QUICK, measurements, nav_text
 
 pytestmark = pytest.mark.slow
 ADMIN = {"Authorization": f"Bearer {ADMIN_KEY}"}

@@ -84,7 +84,7 @@ def test_redis_restart_with_aof_keeps_sessions_and_the_service_recovers_by_itsel
 
             try:
                 asyncio.run(go())
-            except Exception as error:  # reported by the assertion below
+            except Exception as error:  # noqa: BLE001 - any failure of the rider is reported by the assertion below
                 riding["error"] = error
             started.set()
 

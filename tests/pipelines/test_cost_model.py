@@ -21,6 +21,7 @@ The whole module takes a few seconds.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import statistics
 import time
@@ -267,7 +268,7 @@ def test_cost_grows_with_epochs_particles_and_pseudoranges() -> None:
         assert by_prs == sorted(by_prs) and by_prs[0] < by_prs[-1], name
     for name in ("pf", "upf"):
         by_particles = [cost.epoch_cost_s("gnss_tight", {"filter": name, "particles": n}) for n in (10, 50, 200, 1000, 5000)]
-        assert all(a < b for a, b in zip(by_particles, by_particles[1:])), name
+        assert all(a < b for a, b in itertools.pairwise(by_particles)), name
     # The UKF ignores the particles option.
     assert cost.epoch_cost_s("gnss_tight", {"filter": "ukf", "particles": 10}) == cost.epoch_cost_s(
         "gnss_tight", {"filter": "ukf", "particles": 5000}
@@ -275,7 +276,7 @@ def test_cost_grows_with_epochs_particles_and_pseudoranges() -> None:
 
 
 def _non_decreasing(values: list[float]) -> bool:
-    return all(a <= b for a, b in zip(values, values[1:]))
+    return all(a <= b for a, b in itertools.pairwise(values))
 
 
 def test_rsu_imu_cost_grows_with_models_and_used_rsus_only() -> None:

@@ -16,7 +16,7 @@ def truth() -> Truth:
 
 
 def sample_index(truth: Truth, t: float) -> int:
-    index = int(round(t / (truth.t[1] - truth.t[0])))
+    index = round(t / (truth.t[1] - truth.t[0]))
     assert truth.t[index] == pytest.approx(t, abs=1e-9)
     return index
 

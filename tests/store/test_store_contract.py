@@ -15,8 +15,10 @@ import pytest
 from edgepos.pipelines.base import NeighbourTrack, Rsu, TrackPoint
 from edgepos.store import MemoryStore, SessionRecord, SessionStore, SQLiteStore, TooManySessions, open_store
 from edgepos.store.base import (
+    BaseWindow,
     Revocation,
     SessionSummary,
+    StoredBaseStation,
     StoredEphemerides,
     Supersession,
     VehicleNotRegistered,
@@ -210,6 +212,46 @@ def test_ephemerides_document(store):
         assert await store.delete_ephemerides()
         assert await store.get_ephemerides() is None
         assert await store.ephemerides_digest() is None
+
+    asyncio.run(scenario())
+
+
+def test_base_stations_and_their_windows(store):
+    async def scenario() -> None:
+        assert await store.list_base_stations() == []
+        assert await store.get_base_station("mare") is None
+        assert await store.base_window("mare", 0.0, 10.0) is None
+        assert await store.add_base_epochs("mare", [(1.0, "x")], 5) is None
+        assert not await store.delete_base_station("mare")
+        mare = StoredBaseStation("mare", '{"position": [1, 2, 3], "name": "\u00b5|x"}', 100.5)
+        assert await store.add_base_station(mare)
+        assert not await store.add_base_station(dataclasses.replace(mare, document="{}"))
+        assert await store.get_base_station("mare") == mare
+        assert not await store.replace_base_station(StoredBaseStation("other", "{}", 1.0))
+        moved = dataclasses.replace(mare, document='{"position": null}', updated_at=101.0)
+        assert await store.replace_base_station(moved)
+        assert await store.add_base_station(StoredBaseStation("a-first", "{}", 1.0))
+        assert [s.station_id for s in await store.list_base_stations()] == ["a-first", "mare"]
+        # epochs: added out of order, one time twice (the later document wins), trimmed to the newest 4
+        epochs = [(1290688800.0 + t, f"doc {t}|same") for t in (3.0, 1.0, 2.0, 5.5, 4.0)]
+        assert await store.add_base_epochs("mare", epochs, 4) == 4
+        assert await store.add_base_epochs("mare", [(1290688803.0, "replaced")], 4) == 4
+        window = await store.base_window("mare", 1290688803.5, 1290688805.5)
+        assert window == BaseWindow(
+            moved,
+            ((1290688803.0, "replaced"), (1290688804.0, "doc 4.0|same"), (1290688805.5, "doc 5.5|same")),
+        )
+        # nothing before 'since': only the epochs inside; an empty window of a registered station
+        window = await store.base_window("mare", 1290688802.0, 1290688803.0)
+        assert window is not None and window.epochs == ((1290688802.0, "doc 2.0|same"), (1290688803.0, "replaced"))
+        assert (await store.base_window("a-first", 0.0, 2e9)) == BaseWindow(
+            StoredBaseStation("a-first", "{}", 1.0), ()
+        )
+        # deleting a station drops its window: a new one of the same id starts empty
+        assert await store.delete_base_station("mare")
+        assert await store.get_base_station("mare") is None
+        assert await store.add_base_station(mare)
+        assert (await store.base_window("mare", 0.0, 2e9)).epochs == ()
 
     asyncio.run(scenario())
 

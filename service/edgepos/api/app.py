@@ -25,8 +25,26 @@ from edgepos.api.errors import install_error_handlers
 from edgepos.api.location.notifier import LocationNotifier
 from edgepos.api.logs import configure_logging
 from edgepos.api.metrics import Metrics
-from edgepos.api.middleware import AdmissionMiddleware, BodyLimitMiddleware, RequestContextMiddleware
-from edgepos.api.routes import docs, ephemerides, health, location, rsus, sessions, streams, vehicles, zones
+from edgepos.api.middleware import (
+    Admission,
+    AdmissionMiddleware,
+    BodyLimitMiddleware,
+    RequestContextMiddleware,
+)
+from edgepos.api.routes import (
+    base_stations,
+    docs,
+    ephemerides,
+    health,
+    location,
+    operator_map,
+    rsus,
+    sessions,
+    status,
+    streams,
+    vehicles,
+    zones,
+)
 from edgepos.api.routes import pipelines as pipeline_routes
 from edgepos.api.settings import Settings, ensure_admin_key
 from edgepos.api.vehicle_jwt import load_vehicle_jwks
@@ -111,6 +129,7 @@ def create_app(
         admin_key_hash=AppContext.hash_admin_key(admin_key),
         read_key_hash=None if read_key is None else AppContext.hash_admin_key(read_key),
     )
+    context.admission = Admission(settings.max_inflight, settings.queue_timeout_s, context.metrics)
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -163,6 +182,7 @@ def create_app(
     routers = (
         rsus.router,
         ephemerides.router,
+        base_stations.router,
         pipeline_routes.router,
         sessions.router,
         streams.router,
@@ -170,13 +190,15 @@ def create_app(
         zones.router,
         location.router,
         health.router,
+        status.router,
         docs.router,
+        operator_map.router,
     )
     for router in routers:
         app.include_router(router)
         for route in router.routes:
             if isinstance(route, APIRoute):
-                allowed_methods.setdefault(route.path, set()).update(route.methods)
+                allowed_methods.setdefault(route.path, set()).update(route.methods or ())
     app.state.allowed_methods = allowed_methods
     default_openapi = app.openapi
 
@@ -194,7 +216,10 @@ def create_app(
     app.add_middleware(
         BodyLimitMiddleware,
         max_bytes=settings.max_body_bytes,
-        path_limits={ephemerides.PATH: (settings.max_ephemerides_bytes, "EDGEPOS_MAX_EPHEMERIDES_BYTES")},
+        path_limits={
+            ephemerides.PATH: (settings.max_ephemerides_bytes, "EDGEPOS_MAX_EPHEMERIDES_BYTES"),
+            f"{base_stations.PATH}/*": (settings.max_base_observations_bytes, "EDGEPOS_MAX_BASE_OBSERVATIONS_BYTES"),
+        },
     )
     if settings.cors_origin_list:
         app.add_middleware(
@@ -204,11 +229,6 @@ def create_app(
             allow_headers=["Authorization", "Content-Type", "X-Request-ID"],
             expose_headers=["X-Request-ID"],
         )
-    app.add_middleware(
-        AdmissionMiddleware,
-        max_inflight=settings.max_inflight,
-        queue_timeout_s=settings.queue_timeout_s,
-        metrics=context.metrics,
-    )
+    app.add_middleware(AdmissionMiddleware, admission=context.admission)
     app.add_middleware(RequestContextMiddleware, metrics=context.metrics)
     return app

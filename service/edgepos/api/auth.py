@@ -39,10 +39,13 @@ from typing import Annotated
 
 from fastapi import Depends, Path, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from fastapi.security.utils import get_authorization_scheme_param
+from starlette.requests import HTTPConnection
 
 from edgepos.api.context import AppContext, Context
 from edgepos.api.errors import ApiError
 from edgepos.api.vehicle_jwt import InvalidVehicleToken
+from edgepos.store.base import SessionRecord
 from edgepos.store.ratelimit import RateLimit
 
 logger = logging.getLogger("edgepos.api")
@@ -135,10 +138,10 @@ def _auth_off(context: AppContext) -> bool:
     return not context.settings.auth_enabled
 
 
-def client_address(request: Request) -> str:
+def client_address(connection: HTTPConnection) -> str:
     """The caller's address as the server sees it (behind a reverse proxy, uvicorn's
     --forwarded-allow-ips decides whether X-Forwarded-For is believed)."""
-    return request.client.host if request.client is not None else "unknown"
+    return connection.client.host if connection.client is not None else "unknown"
 
 
 def _retry_after(wait_s: float) -> str:
@@ -151,7 +154,7 @@ def _limited(message: str, wait_s: float) -> ApiError:
 
 
 async def _refuse(
-    context: AppContext, request: Request, secret: str | None, reason: str, error: ApiError
+    context: AppContext, request: HTTPConnection, secret: str | None, reason: str, error: ApiError
 ) -> ApiError:
     """Count a failed authentication (address and credential budgets, metrics, a log line without
     the credential) and return the error to raise: ``error``, or 429 once a budget is spent."""
@@ -364,22 +367,41 @@ async def require_session(
     """The admin key, or this session's own token (another session's valid token gets 403).
 
     A token of a session that a newer session of its vehicle replaced gets 409 naming the newer one."""
-    if _auth_off(context):
-        return _LAB
     secret = None if credentials is None else credentials.credentials
+    principal, record = await authenticate_session(context, request, session_id, secret)
+    if record is not None:
+        request.state.session_record = record  # the batch route applies on it (see session_service.apply_batch)
+    return principal
+
+
+def bearer_secret(connection: HTTPConnection) -> str | None:
+    """The credential of an ``Authorization: Bearer ...`` header (what HTTPBearer reads for a route), for a
+    WebSocket handshake, which FastAPI's security dependencies do not see."""
+    scheme, secret = get_authorization_scheme_param(connection.headers.get("authorization"))
+    return secret or None if scheme.lower() == "bearer" else None
+
+
+async def authenticate_session(
+    context: AppContext, connection: HTTPConnection, session_id: str, secret: str | None
+) -> tuple[Principal, SessionRecord | None]:
+    """The check of :func:`require_session`, shared by the HTTP routes and the WebSocket handshake: the
+    principal, and the session's record when a session token was checked against it (None for the
+    admin). Charges the session's request-rate budget once for a session token."""
+    if _auth_off(context):
+        return _LAB, None
     if not secret:
-        raise await _refuse(context, request, None, "missing", _unauthorized(_MISSING))
+        raise await _refuse(context, connection, None, "missing", _unauthorized(_MISSING))
     if _is_admin(context, secret):
-        return Principal(admin=True)
+        return Principal(admin=True), None
     token_session = _token_session_id(secret)
     if token_session is None:
         if _is_reader(context, secret):
-            raise await _refuse(context, request, None, "forbidden", _READER_ONLY)
-        raise await _refuse(context, request, secret, "invalid", _unauthorized())
+            raise await _refuse(context, connection, None, "forbidden", _READER_ONLY)
+        raise await _refuse(context, connection, secret, "invalid", _unauthorized())
     if token_session != session_id:
         if await _valid_session_token(context, secret):
             raise ApiError("forbidden", "a session token opens only its own session")
-        raise await _refuse(context, request, secret, "invalid", _unauthorized())
+        raise await _refuse(context, connection, secret, "invalid", _unauthorized())
     record = await context.store.get(session_id)
     if record is None:
         superseded = await context.store.supersession(session_id)
@@ -387,12 +409,11 @@ async def require_session(
             raise superseded_error(session_id, superseded.superseded_by)
         # A token of a session that does not exist (never did, expired, deleted, revoked) is answered
         # exactly as a wrong token of one that does: a stranger learns nothing by probing ids.
-        raise await _refuse(context, request, secret, "invalid", _unauthorized())
+        raise await _refuse(context, connection, secret, "invalid", _unauthorized())
     if not _token_matches(secret, record.token_hash):
-        raise await _refuse(context, request, secret, "invalid", _unauthorized())
+        raise await _refuse(context, connection, secret, "invalid", _unauthorized())
     await charge_rate_limit(context, session_id)
-    request.state.session_record = record  # the batch route applies on it (see session_service.apply_batch)
-    return Principal(admin=False, session_id=session_id)
+    return Principal(admin=False, session_id=session_id), record
 
 
 def superseded_error(session_id: str, newer: str) -> ApiError:

@@ -9,8 +9,10 @@ from typing import Annotated, Any, TypeVar
 
 from fastapi import Depends, Request
 
+from edgepos.api.base_stations import EpochCache
 from edgepos.api.ephemerides import EphemeridesCache
 from edgepos.api.metrics import Metrics
+from edgepos.api.middleware import Admission
 from edgepos.api.scheduler import FairScheduler
 from edgepos.api.settings import Settings
 from edgepos.api.streams import StreamHub
@@ -41,8 +43,15 @@ class AppContext:
     read_key_hash: bytes | None = None
     """SHA-256 of EDGEPOS_READ_KEY (opens the read-only location routes), None when it is not set."""
     ephemerides: EphemeridesCache = field(default_factory=EphemeridesCache)
+    base_epochs: EpochCache = field(default_factory=EpochCache)
+    """Decoded reference-station epochs of this worker (api.base_stations)."""
     vehicle_keys: VehicleKeySet | None = None
     """The fleet operator's public keys (EDGEPOS_VEHICLE_AUTH=jwt), loaded once at start-up."""
+    admission: Admission | None = None
+    """This worker's line of requests at work (EDGEPOS_MAX_INFLIGHT), set by ``create_app``: HTTP requests
+    and WebSocket batch frames wait in it alike."""
+    batch_sockets: int = 0
+    """Batch WebSockets this worker holds open now (bounded by EDGEPOS_WS_MAX_CONNECTIONS)."""
     _scheduler: FairScheduler | None = field(default=None, repr=False)
     _streams: StreamHub | None = field(default=None, repr=False)
 
@@ -60,6 +69,11 @@ class AppContext:
                 interval_s=settings.stream_interval_ms / 1000.0,
             )
         return self._streams
+
+    @property
+    def stream_consumers(self) -> int:
+        """Fix stream consumers of this worker (0 before the first one: the hub is not started for this)."""
+        return 0 if self._streams is None else self._streams.consumer_count
 
     async def close_streams(self) -> None:
         """Write the fixes still waiting for the stream, stop the stream's tasks and close its log."""

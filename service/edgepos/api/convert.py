@@ -85,12 +85,12 @@ def fix_to_json(fix: Fix, include_state: bool, origin: GeodeticOrigin | None) ->
 
 
 def _use_to_json(use: MeasurementUse) -> dict[str, Any]:
-    """One measurement's use (the Doppler fields null unless it is a pseudorange that carried a Doppler). The
-    pipeline's differential-correction report is not on the wire yet: the service has no reference-station
-    resource to fill it (edgepos eval gnss-rinex --base reads it)."""
+    """One measurement's use (the Doppler fields null unless it is a pseudorange that carried a Doppler; the
+    correction fields null unless the session uses a reference station's corrections)."""
     return {
         "index": use.index, "type": use.kind, "used": use.used, "reason": use.reason,
         "doppler_used": use.doppler_used, "doppler_reason": use.doppler_reason,
+        "correction_applied": use.correction_applied, "correction_reason": use.correction_reason,
     }
 
 

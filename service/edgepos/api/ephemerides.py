@@ -124,7 +124,7 @@ class EphemeridesCache:
             stored = await store.get_ephemerides()
             if stored is None:
                 return None
-            loaded = await run(parse, stored.text, stored.digest, stored.uploaded_at)
+            loaded: LoadedEphemerides = await run(parse, stored.text, stored.digest, stored.uploaded_at)
             self.remember(loaded)
             return loaded
 

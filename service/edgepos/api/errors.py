@@ -8,7 +8,7 @@ logs it with its traceback and answers a generic 500 that reveals nothing.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -61,7 +61,7 @@ class ApiError(Exception):
 
 def error_body(code: str, message: str, problems: Sequence[ProblemModel] = ()) -> bytes:
     """The serialised error body."""
-    detail = ErrorDetail(code=code, message=message, problems=list(problems))  # type: ignore[arg-type]
+    detail = ErrorDetail(code=code, message=message, problems=list(problems))
     return ErrorBody(error=detail).model_dump_json().encode()
 
 
@@ -113,7 +113,7 @@ def _line_and_column(document: Any, position: int) -> tuple[int, int]:
     return line, position - (before.rfind("\n") + 1) + 1
 
 
-def validation_problems(errors: Sequence[dict[str, Any]], document: Any = None) -> list[ProblemModel]:
+def validation_problems(errors: Sequence[Mapping[str, Any]], document: Any = None) -> list[ProblemModel]:
     """FastAPI/pydantic error entries as wire problems: ``loc`` becomes a dotted path with
     ``[i]`` for list items, the union tag pydantic inserts is dropped, and items of the
     ``measurements`` list carry their index. A body that is not JSON at all is named as ``body`` with
@@ -150,6 +150,25 @@ def validation_problems(errors: Sequence[dict[str, Any]], document: Any = None) 
     return problems
 
 
+def store_unavailable_error(error: StoreUnavailable) -> ApiError:
+    """503 with Retry-After for a store that does not answer. The store's own message names hosts and
+    ports: it is logged, and the answer is a fixed sentence (a replication shortfall is named as is)."""
+    logger.warning("store unavailable", extra={"event": "store_unavailable", "error": str(error)})
+    message = (
+        str(error) if isinstance(error, NotReplicated) else "the session store does not answer; retry shortly"
+    )
+    return ApiError("unavailable", message, headers={"Retry-After": "1"})
+
+
+def invalid_request_error(errors: Sequence[Mapping[str, Any]], document: Any = None) -> ApiError:
+    """422 listing every problem of a body that is not JSON or does not fit its schema (see
+    :func:`validation_problems`)."""
+    problems = validation_problems(errors, document)
+    count = len(problems)
+    message = f"the request is invalid ({count} problem{'s' if count != 1 else ''})"
+    return ApiError("invalid_request", message, problems)
+
+
 _STATUS_CODES = {
     404: "not_found",
     405: "method_not_allowed",
@@ -172,21 +191,11 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(StoreUnavailable)
     async def _store_unavailable(request: Request, error: StoreUnavailable) -> Response:
-        # The store's own message names hosts and ports: log it, answer with a fixed sentence.
-        logger.warning("store unavailable", extra={"event": "store_unavailable", "error": str(error)})
-        message = (
-            str(error)
-            if isinstance(error, NotReplicated)
-            else "the session store does not answer; retry shortly"
-        )
-        return error_response(ApiError("unavailable", message, headers={"Retry-After": "1"}), request)
+        return error_response(store_unavailable_error(error), request)
 
     @app.exception_handler(RequestValidationError)
     async def _validation_error(request: Request, error: RequestValidationError) -> Response:
-        problems = validation_problems(error.errors(), error.body)
-        count = len(problems)
-        message = f"the request is invalid ({count} problem{'s' if count != 1 else ''})"
-        return error_response(ApiError("invalid_request", message, problems), request)
+        return error_response(invalid_request_error(error.errors(), error.body), request)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(request: Request, error: StarletteHTTPException) -> Response:

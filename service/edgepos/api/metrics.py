@@ -15,10 +15,15 @@ from prometheus_client import (
     generate_latest,
 )
 
+from edgepos.api.recent import RecentWindow
+
 _LATENCY_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
 _STEP_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1)
 
 CONTENT_TYPE = CONTENT_TYPE_LATEST
+
+BATCH_ROUTE = "/v1/sessions/{session_id}/batches"
+"""The route whose latency the operator map's header shows (GET /v1/status)."""
 
 
 class Metrics:
@@ -26,6 +31,8 @@ class Metrics:
 
     def __init__(self) -> None:
         self.registry = CollectorRegistry(auto_describe=True)
+        self.recent = RecentWindow()
+        """The last seconds' epochs/s, batches/s and batch latency p99 (GET /v1/status)."""
         self.requests = Counter(
             "edgepos_http_requests",
             "HTTP requests answered, by method, route template and status.",
@@ -144,10 +151,13 @@ class Metrics:
         labels = (method, route, str(status))
         self.requests.labels(*labels).inc()
         self.latency.labels(*labels).observe(seconds)
+        if route == BATCH_ROUTE and method == "POST":
+            self.recent.add_latency(seconds)
 
     def observe_batch(self, epochs: int, seconds: float) -> None:
         self.batches.labels("applied").inc()
         self.epochs.inc(epochs)
+        self.recent.add_batch(epochs)
         self.pipeline_batch.observe(seconds)
         if epochs:
             self.filter_step.observe(seconds / epochs)

@@ -35,6 +35,11 @@ access_logger = logging.getLogger("edgepos.access")
 error_logger = logging.getLogger("edgepos.api")
 
 
+def valid_request_id(value: str) -> bool:
+    """True for an X-Request-ID the service keeps as the request's id (1-128 of ``A-Za-z0-9._:-``)."""
+    return _REQUEST_ID_PATTERN.match(value) is not None
+
+
 async def _send_error(
     send: Send,
     scope: Scope,
@@ -79,7 +84,7 @@ class RequestContextMiddleware:
             await self.app(scope, receive, send)
             return
         incoming = dict(scope.get("headers") or []).get(REQUEST_ID_HEADER.encode(), b"").decode("latin-1")
-        request_id = incoming if _REQUEST_ID_PATTERN.match(incoming) else uuid.uuid4().hex
+        request_id = incoming if valid_request_id(incoming) else uuid.uuid4().hex
         token = request_id_var.set(request_id)
         started = time.perf_counter()
         status = 500
@@ -125,7 +130,7 @@ class RequestContextMiddleware:
 class BodyLimitMiddleware:
     """Refuse request bodies above ``max_bytes`` with 413 before the app parses anything; the
     accepted body is buffered and handed on unchanged. ``path_limits`` gives some paths their own
-    limit (path -> (bytes, name of the setting))."""
+    limit (path, or "/prefix/*" for every path under a prefix -> (bytes, name of the setting))."""
 
     def __init__(
         self, app: ASGIApp, max_bytes: int, path_limits: dict[str, tuple[int, str]] | None = None
@@ -134,11 +139,21 @@ class BodyLimitMiddleware:
         self.max_bytes = max_bytes
         self.path_limits = dict(path_limits or {})
 
+    def _limit(self, path: str) -> tuple[int, str]:
+        """A path's own limit: an exact path, or a prefix given as ``"/prefix/*"``; else the default."""
+        exact = self.path_limits.get(path)
+        if exact is not None:
+            return exact
+        for pattern, limit in self.path_limits.items():
+            if pattern.endswith("/*") and path.startswith(pattern[:-1]):
+                return limit
+        return self.max_bytes, "EDGEPOS_MAX_BODY_BYTES"
+
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        limit, setting = self.path_limits.get(scope["path"], (self.max_bytes, "EDGEPOS_MAX_BODY_BYTES"))
+        limit, setting = self._limit(scope["path"])
         too_large = f"the request body exceeds {limit} bytes ({setting})"
         declared = dict(scope.get("headers") or []).get(b"content-length")
         if declared is not None and declared.strip().isdigit() and int(declared) > limit:
@@ -174,15 +189,52 @@ class BodyLimitMiddleware:
         await self.app(scope, replay, send)
 
 
-class AdmissionMiddleware:
-    """At most ``max_inflight`` requests of this worker past this point at once; the rest wait in
-    line, before their body is read, for up to ``queue_timeout_s`` and are then answered 503 with
-    Retry-After.
+class Admission:
+    """At most ``max_inflight`` requests of this worker at work at once; the rest wait in line for up to
+    ``queue_timeout_s``. Shared by :class:`AdmissionMiddleware` (each HTTP request) and the batch
+    WebSocket (each frame), so that a batch takes the same place in line whichever way it came.
 
     Why: under overload an asyncio worker that starts every request at once interleaves them all,
     so each one's store round trip waits behind everyone else's CPU work and a healthy Redis looks
     like a timeout. Bounding the work in progress keeps each request short; the waiting costs
-    nothing but latency, which the metrics show. Probes and metrics bypass the line so that an
+    nothing but latency, which the metrics show."""
+
+    def __init__(self, max_inflight: int, queue_timeout_s: float, metrics: Metrics) -> None:
+        self.slots = asyncio.Semaphore(max_inflight)
+        self.queue_timeout_s = queue_timeout_s
+        self.metrics = metrics
+
+    @property
+    def retry_after_s(self) -> int:
+        """The Retry-After of a request that found no slot."""
+        return max(1, math.ceil(self.queue_timeout_s / 10))
+
+    @property
+    def busy_message(self) -> str:
+        return (
+            f"this worker is busy: the request waited {self.queue_timeout_s:g} s "
+            "(EDGEPOS_QUEUE_TIMEOUT_S) without a free slot; retry after the Retry-After seconds"
+        )
+
+    async def acquire(self) -> bool:
+        """Wait for a slot: True once holding one (give it back with :meth:`release`), False when the
+        wait timed out."""
+        self.metrics.waiting.inc()
+        try:
+            await asyncio.wait_for(self.slots.acquire(), self.queue_timeout_s)
+        except TimeoutError:
+            return False
+        finally:
+            self.metrics.waiting.dec()
+        return True
+
+    def release(self) -> None:
+        self.slots.release()
+
+
+class AdmissionMiddleware:
+    """Each HTTP request waits for a slot of :class:`Admission` before its body is read, and is answered
+    503 with Retry-After if none frees up in time. Probes and metrics bypass the line so that an
     orchestrator does not restart a busy worker.
     """
 
@@ -190,34 +242,20 @@ class AdmissionMiddleware:
     """Probes, metrics and the fix stream, whose responses last as long as the consumer stays (a stream
     would hold a slot for hours; EDGEPOS_STREAM_MAX_CONSUMERS bounds the streams instead)."""
 
-    def __init__(self, app: ASGIApp, max_inflight: int, queue_timeout_s: float, metrics: Metrics) -> None:
+    def __init__(self, app: ASGIApp, admission: Admission) -> None:
         self.app = app
-        self.slots = asyncio.Semaphore(max_inflight)
-        self.queue_timeout_s = queue_timeout_s
-        self.metrics = metrics
+        self.admission = admission
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or scope["path"] in self.BYPASS:
             await self.app(scope, receive, send)
             return
-        self.metrics.waiting.inc()
-        try:
-            await asyncio.wait_for(self.slots.acquire(), self.queue_timeout_s)
-        except TimeoutError:
-            retry_after = str(max(1, math.ceil(self.queue_timeout_s / 10))).encode()
-            await _send_error(
-                send,
-                scope,
-                503,
-                "unavailable",
-                f"this worker is busy: the request waited {self.queue_timeout_s:g} s "
-                "(EDGEPOS_QUEUE_TIMEOUT_S) without a free slot; retry after the Retry-After seconds",
-                ((b"retry-after", retry_after),),
-            )
+        admission = self.admission
+        if not await admission.acquire():
+            retry_after = str(admission.retry_after_s).encode()
+            await _send_error(send, scope, 503, "unavailable", admission.busy_message, ((b"retry-after", retry_after),))
             return
-        finally:
-            self.metrics.waiting.dec()
         try:
             await self.app(scope, receive, send)
         finally:
-            self.slots.release()
+            admission.release()

@@ -453,6 +453,18 @@ class MeasurementUseOut(ResponseModel):
     doppler_reason: str | None = Field(
         None, description="Why the Doppler was not used, when doppler_used is false; else null."
     )
+    correction_applied: bool | None = Field(
+        None,
+        description="Only for a pseudorange of a session with options.base_station, else null: whether the "
+        "reference station's differential correction was added to it.",
+    )
+    correction_reason: str | None = Field(
+        None,
+        description="Why no correction was added, when correction_applied is false: 'no base data: ...', 'no "
+        "correction for this satellite' (the base does not track it), 'correction too old: ...' (older than "
+        "max_correction_age_s), 'ephemeris issue mismatch: ...' (base and rover used different IODE/toe), or "
+        "that the client sent the satellite's position; else null.",
+    )
 
 
 class FixOut(ResponseModel):

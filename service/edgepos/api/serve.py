@@ -62,6 +62,13 @@ def _settings(args: argparse.Namespace) -> Settings:
 KEEP_ALIVE_S = 75
 """Seconds an idle keep-alive connection stays open."""
 
+WS_PING_INTERVAL_S = 20.0
+"""Seconds between the server's protocol pings on a batch WebSocket: they keep NAT and proxy mappings of a
+quiet link alive and notice a vehicle that vanished without closing."""
+
+WS_PING_TIMEOUT_S = 20.0
+"""Seconds a ping may go unanswered before the server drops the link."""
+
 GRACEFUL_SHUTDOWN_S = 10
 """On SIGTERM, how long a worker waits for its requests in progress before cancelling them. A fix stream
 (GET /v1/stream/fixes) never ends by itself: without a bound uvicorn would wait for every consumer to
@@ -125,6 +132,12 @@ def run(args: argparse.Namespace) -> int:
         # a batch on a connection the server is closing at that moment (a reset, not an answer).
         timeout_keep_alive=KEEP_ALIVE_S,
         timeout_graceful_shutdown=GRACEFUL_SHUTDOWN_S,
+        # The batch WebSocket (/v1/sessions/{id}/ws): the websockets library refuses a frame over the body
+        # limit (close 1009) before reading it, so a frame is never buffered past EDGEPOS_MAX_BODY_BYTES.
+        ws="websockets-sansio",
+        ws_max_size=settings.max_body_bytes,
+        ws_ping_interval=WS_PING_INTERVAL_S,
+        ws_ping_timeout=WS_PING_TIMEOUT_S,
     )
     return 0
 

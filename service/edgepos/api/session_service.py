@@ -19,6 +19,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from edgepos.api.auth import hash_token, new_session_token, superseded_error
+from edgepos.api.base_stations import batch_corrections, check_base_station
 from edgepos.api.context import AppContext
 from edgepos.api.convert import batch_body, fix_to_json, to_json
 from edgepos.api.ephemerides import LoadedEphemerides, satellite_problems
@@ -157,6 +158,7 @@ async def create_session(
         raise ApiError(
             "invalid_request", "the session options are invalid", pipeline_problems(error.problems)
         ) from None
+    await check_base_station(context.store, options)
     session_id = context.store.new_session_id(body.vehicle_id)
     token = new_session_token(session_id)
     now = context.store.clock()
@@ -392,12 +394,21 @@ async def _apply_in_turn(
             if has_pseudoranges:
                 loaded = await context.ephemerides.current(context.store, context.run_filter)
                 _check_satellites(observations, loaded, record.options.get("systems"))
+            # The reference station's corrections when the session asked for them: one store read of the
+            # epochs this batch can use (two for base_station "nearest": the stations, then the window).
+            differential = None
+            if has_pseudoranges and record.options.get("base_station") is not None:
+                differential = await batch_corrections(
+                    context.store, context.base_epochs, record.options, observations,
+                    None if loaded is None else loaded.ephemerides, record.last_fix, _origin(context),
+                )
             environment = StaticEnvironment(
                 rsus,
                 peers,
                 record.vehicle_id,
                 navigation=None if loaded is None else loaded.ephemerides,
                 origin=_origin(context),
+                differential=differential,
             )
             started = time.perf_counter()
             try:

@@ -108,6 +108,21 @@ class Settings(BaseSettings):
         description="Largest navigation file PUT /v1/ephemerides accepts, in bytes (413 beyond, checked "
         "before parsing); replaces max_body_bytes on that route.",
     )
+    max_base_observations_bytes: int = Field(
+        16_777_216,
+        ge=1024,
+        le=1_073_741_824,
+        description="Largest base-station observation upload (RINEX 3 or RTCM 3) POST "
+        "/v1/base-stations/{id}/observations and .../rtcm accept, in bytes (413 beyond, checked before "
+        "parsing; five minutes of a 1 Hz multi-GNSS RINEX file are about 2 MB).",
+    )
+    base_window_epochs: int = Field(
+        900,
+        ge=10,
+        le=100_000,
+        description="Base epochs of corrections kept per reference station (the newest; older ones are "
+        "dropped): 900 is 15 min at 1 Hz, more than the largest max_correction_age_s (600 s).",
+    )
     max_inflight: int = Field(
         32,
         ge=1,
@@ -196,6 +211,21 @@ class Settings(BaseSettings):
         le=300,
         allow_inf_nan=False,
         description="Seconds between keep-alive comments on an idle fix stream, so proxies do not cut it.",
+    )
+    ws_max_connections: int = Field(
+        1024,
+        ge=1,
+        le=100_000,
+        description="Batch WebSockets (/v1/sessions/{id}/ws) one worker holds open at once; a handshake beyond "
+        "is refused 503 with Retry-After (each link holds buffers; a stolen token must not open thousands).",
+    )
+    ws_idle_timeout_s: float = Field(
+        300.0,
+        gt=0,
+        le=86_400,
+        allow_inf_nan=False,
+        description="Seconds a batch WebSocket (/v1/sessions/{id}/ws) may stay without a frame from the "
+        "vehicle before the server closes it (code 1000); protocol pings alone do not keep it open.",
     )
     origin_lat: float | None = Field(
         None, ge=-90, le=90, allow_inf_nan=False, description="Site origin latitude, WGS-84 decimal degrees."

@@ -177,6 +177,11 @@ class StreamHub:
             await asyncio.shield(self._publisher)
 
     # consuming ----------------------------------------------------------------------------------
+    @property
+    def consumer_count(self) -> int:
+        """Consumers connected to this worker now."""
+        return len(self._consumers)
+
     async def subscribe(
         self, stream_filter: StreamFilter, after: int | None
     ) -> tuple[Consumer, list[FixEvent], Gap | None]:

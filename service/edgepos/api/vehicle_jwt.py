@@ -241,7 +241,7 @@ def _load_key(index: int, member: Any, where: str) -> VehicleKey | str:
     if not isinstance(member, dict):
         raise JwksError(f"{label} is not a JSON object")
     kty = member.get("kty")
-    if kty not in _ALG_BY_KTY:
+    if not isinstance(kty, str) or kty not in _ALG_BY_KTY:
         raise JwksError(f"{label}: unsupported key type {_shown(kty)} (only EC P-256 and RSA are accepted)")
     private = sorted(_PRIVATE_MEMBERS & member.keys())
     if private:

@@ -25,7 +25,12 @@ import time
 import numpy as np
 
 from edgepos.core import layout
-from edgepos.core.filters import CubatureKalmanFilter, ExtendedKalmanFilter, UnscentedKalmanFilter
+from edgepos.core.filters import (
+    CubatureKalmanFilter,
+    ExtendedKalmanFilter,
+    GaussianFilter,
+    UnscentedKalmanFilter,
+)
 from edgepos.core.filters.sigma_points import SigmaPointFilter
 from edgepos.core.imm import Gaussian, InteractingMultipleModel, Prediction, StepResult
 from edgepos.core.motion.at import AdaptiveTurn
@@ -34,6 +39,7 @@ from edgepos.core.motion.ca import ConstantAcceleration
 from edgepos.core.motion.ct import CoordinatedTurn
 from edgepos.core.motion.cv import ConstantVelocity
 from edgepos.core.motion.singer import Singer
+from edgepos.core.numerics import FloatArray
 from edgepos.core.updates import RsuGyroEpoch, gate_distances
 
 _log = logging.getLogger(__name__)
@@ -63,7 +69,7 @@ class BankStepper:
         return gate_distances(prior, epoch)
 
 
-def _filter_kind(filt) -> int | None:
+def _filter_kind(filt: GaussianFilter) -> int | None:
     from edgepos.core import kernels
 
     if type(filt) is ExtendedKalmanFilter:
@@ -73,7 +79,7 @@ def _filter_kind(filt) -> int | None:
     return None
 
 
-def _motion_kind(model) -> int | None:
+def _motion_kind(model: MotionModel) -> int | None:
     from edgepos.core import kernels
 
     if isinstance(model, AdaptiveTurn) and model.components == layout.ALL:
@@ -90,16 +96,16 @@ def _motion_row(model: MotionModel) -> tuple[int, list[float]]:
     from edgepos.core import kernels_motion as motion
 
     form = motion.CONTINUOUS if getattr(model, "noise", None) == "continuous" else motion.DISCRETE
-    kind = type(model)
-    if kind is ConstantVelocity:
+    # type(model) is spelled out in each test so that the type checker narrows ``model`` to that class.
+    if type(model) is ConstantVelocity:
         return motion.CV, [model.q, form, 0.0, 0.0]
-    if kind is ConstantAcceleration:
+    if type(model) is ConstantAcceleration:
         return motion.CA, [model.q, form, 0.0, 0.0]
-    if kind is CoordinatedTurn:
+    if type(model) is CoordinatedTurn:
         return motion.CT, [model.q, form, model.omega, 0.0]
-    if kind is AdaptiveTurn and model.components == layout.ALL:
+    if type(model) is AdaptiveTurn and model.components == layout.ALL:
         return motion.AT, [model.q, form, model.beta, 2.0 * model.beta * model.eta * model.eta]
-    if kind is Singer:
+    if type(model) is Singer:
         return motion.SINGER, [model.alpha, 2.0 * model.alpha * model.sigma**2, 0.0, 0.0]
     return motion.UNCOVERED, [0.0] * motion.PARAMETER_COUNT
 
@@ -131,7 +137,8 @@ class CompiledBankStepper(BankStepper):
     def __init__(self, bank: InteractingMultipleModel) -> None:
         from edgepos.core import kernels
 
-        if not covered(bank):
+        filter_kind = _filter_kind(bank.filter)
+        if filter_kind is None or not covered(bank):
             raise ValueError("the compiled kernels do not cover this bank")
         super().__init__(bank)
         self._kernels = kernels
@@ -150,7 +157,7 @@ class CompiledBankStepper(BankStepper):
         self._motion_kinds = np.array([kind for kind, _ in rows], dtype=np.int64)
         self._motion_params = np.array([row for _, row in rows], dtype=float).reshape(count, -1)
         self._uncovered = tuple(j for j, (kind, _) in enumerate(rows) if kind == kernels_motion.UNCOVERED)
-        self._filter_kind = _filter_kind(bank.filter)
+        self._filter_kind = filter_kind
         weights = np.zeros((4, count))
         if isinstance(bank.filter, SigmaPointFilter):
             for j, model in enumerate(bank.models):
@@ -213,7 +220,9 @@ class CompiledBankStepper(BankStepper):
         return rsu, gyro
 
 
-def _epoch_arrays(epoch: RsuGyroEpoch) -> tuple:
+def _epoch_arrays(
+    epoch: RsuGyroEpoch,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, float]:
     """positions (K, 2), observed (K, 2), yaw rates (G,), range and bearing variances (K,), gyro
     variance: as the kernels take them."""
     range_variances, bearing_variances, gyro_variance = epoch.variances
@@ -232,7 +241,7 @@ def compiled_enabled() -> bool:
     if os.environ.get("EDGEPOS_NUMBA", "1").strip().lower() in ("0", "false", "no", "off"):
         return False
     try:
-        from edgepos.core import kernels  # noqa: F401
+        from edgepos.core import kernels  # noqa: F401  # imported only to learn whether numba imports
     except ImportError as error:  # pragma: no cover - numba is a dependency; this is a safety net
         _log.warning("numba unavailable (%s): filtering runs on the numpy reference", error)
         return False

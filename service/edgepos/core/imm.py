@@ -25,12 +25,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from edgepos.core import layout
 from edgepos.core.errors import ConfigurationError, NumericalError
 from edgepos.core.filters.base import GaussianFilter, UpdateResult
 from edgepos.core.motion.base import MotionModel
-from edgepos.core.numerics import require_finite, weighted_mean, wrap_rows
+from edgepos.core.numerics import FloatArray, require_finite, weighted_mean, wrap_rows
 
 _TINY = 1e-300
 
@@ -73,7 +74,11 @@ def _index(components: tuple[int, ...]) -> slice | list[int]:
     return list(components)
 
 
-def _block(rows: slice | list[int], cols: slice | list[int]) -> tuple:
+#: A sub-matrix index: two slices (indexing returns a view) or np.ix_'s open mesh.
+_Block = tuple[slice, slice] | tuple[npt.NDArray[np.intp], ...]
+
+
+def _block(rows: slice | list[int], cols: slice | list[int]) -> _Block:
     """Index of the sub-matrix rows x cols."""
     if isinstance(rows, slice) and isinstance(cols, slice):
         return rows, cols
@@ -140,7 +145,7 @@ class InteractingMultipleModel:
         if priority is None or len(set(priority)) == count:
             self.priority = np.arange(count)
         else:
-            self.priority = np.array(sorted(set(int(i) for i in priority)), dtype=int)
+            self.priority = np.array(sorted({int(i) for i in priority}), dtype=int)
             if self.priority.size < 1 or self.priority.min() < 0 or self.priority.max() >= count:
                 raise ConfigurationError("priority set must name models of the bank")
         self.others = np.array([i for i in range(count) if i not in set(self.priority.tolist())], dtype=int)
@@ -172,7 +177,9 @@ class InteractingMultipleModel:
         """The fused estimate of the bank over the common components."""
         return Gaussian(self.common, *self._moments(probabilities, means[:, self._common], covs[self._common_block]))
 
-    def mix(self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray):
+    def mix(
+        self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Interaction (eqs. 11-14): every model's mixed initial condition, and c_j."""
         joint = self.transition * probabilities[:, None]  # P(model i before, model j now)
         predicted = joint.sum(axis=0)
@@ -202,7 +209,14 @@ class InteractingMultipleModel:
             self._carry_extras(blocks, means[j], covs[j], new_means[j], new_covs[j])
         return new_means, 0.5 * (new_covs + new_covs.transpose(0, 2, 1)), predicted / predicted.sum()
 
-    def _carry_extras(self, blocks: _ExtraBlocks, old_mean, old_cov, new_mean, new_cov) -> None:
+    def _carry_extras(
+        self,
+        blocks: _ExtraBlocks,
+        old_mean: FloatArray,
+        old_cov: FloatArray,
+        new_mean: FloatArray,
+        new_cov: FloatArray,
+    ) -> None:
         """A model's extra components follow their conditional given its re-mixed common block."""
         own_cc = old_cov[blocks.cc]
         own_ec = old_cov[blocks.ec]
@@ -277,4 +291,5 @@ def _softmax(log_weights: np.ndarray) -> np.ndarray:
     total = shifted.sum()
     if not (np.isfinite(total) and total >= 1.0):
         raise NumericalError("model probabilities cannot be normalised")
-    return shifted / total
+    probabilities: FloatArray = shifted / total
+    return probabilities

@@ -20,9 +20,14 @@ Conventions shared with the caller:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import Any, TypeVar, cast
 
 import numba
 import numpy as np
+import numpy.typing as npt
+
+from edgepos.core.numerics import FloatArray
 
 OK = 0
 FAILED = 1
@@ -40,8 +45,14 @@ _MIN_DISTANCE = 1e-3  # as core.measurements.rsu: Jacobians below 1 mm are taken
 _SMALL_TURN = 1e-4  # as core.motion.turn
 _XP, _XV, _XA, _YP, _YV, _YA, _PHI, _OMEGA = range(8)
 
+#: The kernels' other array arguments (float64 states, covariances and scratch are FloatArray).
+IntArray = npt.NDArray[np.int64]
+BoolArray = npt.NDArray[np.bool_]
 
-def _jit(function):
+_Function = TypeVar("_Function", bound=Callable[..., Any])
+
+
+def _jit(function: _Function) -> _Function:
     """njit with an on-disk cache (so no request pays compilation), or in memory when numba finds no
     writable cache directory (next to this file, NUMBA_CACHE_DIR or the user's cache directory):
     the service then compiles at warm-up instead.
@@ -52,10 +63,12 @@ def _jit(function):
     hand-off instead of up to sixty; the event loop still preempts the filter thread every switch
     interval (5 ms). Measured: +8 % and +14 % closed-loop epochs/s of a 1-worker service, p99 at 100
     vehicles unchanged."""
+    # numba ships no types: its dispatcher is called as the function it compiles, so it keeps that
+    # function's signature for the type checker.
     try:
-        return numba.njit(cache=True, error_model="numpy")(function)
+        return cast(_Function, numba.njit(cache=True, error_model="numpy")(function))
     except RuntimeError:  # "no locator available": nowhere to write the cache
-        return numba.njit(error_model="numpy")(function)
+        return cast(_Function, numba.njit(error_model="numpy")(function))
 
 
 # -- small dense helpers -------------------------------------------------------------------------
@@ -66,7 +79,7 @@ def wrap(angle: float) -> float:
 
 
 @_jit
-def cholesky(matrix, n, out) -> bool:
+def cholesky(matrix: FloatArray, n: int, out: FloatArray) -> bool:
     """Lower Cholesky factor of matrix[:n, :n] into out[:n, :n]; False when not positive definite."""
     for j in range(n):
         total = matrix[j, j]
@@ -87,7 +100,7 @@ def cholesky(matrix, n, out) -> bool:
 
 
 @_jit
-def _symmetrize(matrix, n):
+def _symmetrize(matrix: FloatArray, n: int) -> None:
     for i in range(n):
         for j in range(i + 1, n):
             value = 0.5 * (matrix[i, j] + matrix[j, i])
@@ -96,7 +109,7 @@ def _symmetrize(matrix, n):
 
 
 @_jit
-def _all_finite(array) -> bool:
+def _all_finite(array: FloatArray) -> bool:
     total = 0.0
     for value in array.flat:
         total += value
@@ -114,7 +127,8 @@ def _sinc(x: float) -> float:
 
 # -- mixtures over the common components ---------------------------------------------------------
 @_jit
-def moment_match(weights, means, covs, common, phi_slot, out_mean, out_cov):
+def moment_match(weights: FloatArray, means: FloatArray, covs: FloatArray, common: IntArray, phi_slot: int, out_mean: FloatArray,
+                 out_cov: FloatArray) -> None:
     """Moment-matched Gaussian of a mixture over ``common`` (the heading at ``phi_slot``, -1 if none)."""
     count = means.shape[0]
     size = common.shape[0]
@@ -146,7 +160,8 @@ def moment_match(weights, means, covs, common, phi_slot, out_mean, out_cov):
 
 
 @_jit
-def _carry_extras(old_mean, old_cov, new_mean, new_cov, common, extra, phi_slot) -> bool:
+def _carry_extras(old_mean: FloatArray, old_cov: FloatArray, new_mean: FloatArray, new_cov: FloatArray, common: IntArray, extra: IntArray,
+                  phi_slot: int) -> bool:
     """A model's extra components follow their conditional given its re-mixed common block:
     B = P_ec P_cc^-1, x_e' = x_e + B (x_c' - x_c), P_ec' = B P_cc', P_ee' = P_ee - B P_ce + B P_cc' B^T."""
     nc, ne = common.shape[0], extra.shape[0]
@@ -204,7 +219,8 @@ def _carry_extras(old_mean, old_cov, new_mean, new_cov, common, extra, phi_slot)
 
 
 @_jit
-def mix(means, covs, probabilities, transition, active, common, phi_slot, out_means, out_covs, out_predicted) -> int:
+def mix(means: FloatArray, covs: FloatArray, probabilities: FloatArray, transition: FloatArray, active: BoolArray, common: IntArray,
+        phi_slot: int, out_means: FloatArray, out_covs: FloatArray, out_predicted: FloatArray) -> int:
     """Interaction (eqs. 11-14): each model's mixed prior into out_means/out_covs, c_j into out_predicted."""
     count = means.shape[0]
     nc = common.shape[0]
@@ -251,9 +267,8 @@ def mix(means, covs, probabilities, transition, active, common, phi_slot, out_me
                 if not is_common:
                     extra[ne] = k
                     ne += 1
-        if ne > 0:
-            if not _carry_extras(means[j], covs[j], out_means[j], out_covs[j], common, extra[:ne], phi_slot):
-                return FAILED
+        if ne > 0 and not _carry_extras(means[j], covs[j], out_means[j], out_covs[j], common, extra[:ne], phi_slot):
+            return FAILED
     total = 0.0
     for j in range(count):
         _symmetrize(out_covs[j], 8)
@@ -265,7 +280,8 @@ def mix(means, covs, probabilities, transition, active, common, phi_slot, out_me
 
 # -- prediction ----------------------------------------------------------------------------------
 @_jit
-def _linear_predict(transition, noise, mean, cov, out_mean, out_cov):
+def _linear_predict(transition: FloatArray, noise: FloatArray, mean: FloatArray, cov: FloatArray, out_mean: FloatArray,
+                    out_cov: FloatArray) -> None:
     """F m and F P F^T + Q on the padded 8x8 (zero rows stay zero)."""
     temp = np.empty((8, 8))
     for i in range(8):
@@ -287,14 +303,14 @@ def _linear_predict(transition, noise, mean, cov, out_mean, out_cov):
 
 
 @_jit
-def _turn_coefficients(omega, dt):
+def _turn_coefficients(omega: float, dt: float) -> tuple[float, float, float, float]:
     angle = omega * dt
     half_sinc = _sinc(angle / (2.0 * math.pi))
     return math.sin(angle), math.cos(angle), dt * _sinc(angle / math.pi), 0.5 * angle * dt * half_sinc * half_sinc
 
 
 @_jit
-def _turn_propagate(state, f_omega, dt, out):
+def _turn_propagate(state: FloatArray, f_omega: FloatArray, dt: float, out: FloatArray) -> None:
     """The adaptive-turn transition of one full state (``AdaptiveTurn.propagate``)."""
     omega = state[_OMEGA]
     sin, cos, sin_over, one_minus_cos_over = _turn_coefficients(omega, dt)
@@ -313,7 +329,7 @@ def _turn_propagate(state, f_omega, dt, out):
 
 
 @_jit
-def _turn_jacobian(state, f_omega, dt, out):
+def _turn_jacobian(state: FloatArray, f_omega: FloatArray, dt: float, out: FloatArray) -> None:
     """``AdaptiveTurn.transition_matrix``: the turn matrix at the state's omega, its omega column."""
     omega = state[_OMEGA]
     sin, cos, sin_over, one_minus_cos_over = _turn_coefficients(omega, dt)
@@ -348,8 +364,9 @@ def _turn_jacobian(state, f_omega, dt, out):
 
 
 @_jit
-def _turn_predict_sigma(mean, cov, f_omega, noise, dt, spread, side, centre_mean, centre_cov, has_centre,
-                        out_mean, out_cov) -> bool:
+def _turn_predict_sigma(mean: FloatArray, cov: FloatArray, f_omega: FloatArray, noise: FloatArray, dt: float, spread: float, side: float,
+                        centre_mean: float, centre_cov: float, has_centre: bool, out_mean: FloatArray,
+                        out_cov: FloatArray) -> bool:
     """Sigma-point prediction of the adaptive-turn model over all 8 components."""
     factor = np.zeros((8, 8))
     if not cholesky(cov, 8, factor):
@@ -394,8 +411,9 @@ def _turn_predict_sigma(mean, cov, f_omega, noise, dt, spread, side, centre_mean
 
 
 @_jit
-def predict_bank(means, covs, kinds, transitions, noises, dt, filter_kind, spreads, sides, centre_means,
-                 centre_covs, has_centre, out_means, out_covs) -> int:
+def predict_bank(means: FloatArray, covs: FloatArray, kinds: IntArray, transitions: FloatArray, noises: FloatArray, dt: float,
+                 filter_kind: int, spreads: FloatArray, sides: FloatArray, centre_means: FloatArray, centre_covs: FloatArray,
+                 has_centre: bool, out_means: FloatArray, out_covs: FloatArray) -> int:
     """Every model's prediction over dt (``GaussianFilter.predict_bank``)."""
     count = means.shape[0]
     jacobian = np.empty((8, 8))
@@ -423,7 +441,7 @@ def predict_bank(means, covs, kinds, transitions, noises, dt, filter_kind, sprea
 
 # -- measurements and the correction -------------------------------------------------------------
 @_jit
-def _measure(state, positions, rsus, gyros, min_speed_sq, out):
+def _measure(state: FloatArray, positions: FloatArray, rsus: IntArray, gyros: int, min_speed_sq: float, out: FloatArray) -> None:
     """h(x): the ranges and bearings of ``rsus`` (indices into positions), then the yaw rate per gyro."""
     for r in range(rsus.shape[0]):
         dx = state[_XP] - positions[rsus[r], 0]
@@ -438,7 +456,8 @@ def _measure(state, positions, rsus, gyros, min_speed_sq, out):
 
 
 @_jit
-def _measure_jacobian(state, positions, rsus, gyros, min_speed_sq, out):
+def _measure_jacobian(state: FloatArray, positions: FloatArray, rsus: IntArray, gyros: int, min_speed_sq: float,
+                      out: FloatArray) -> None:
     """dh/dx at ``state`` (``RsuRangeBearing.jacobian`` and ``GyroYawRate.jacobian``)."""
     out[:, :] = 0.0
     for r in range(rsus.shape[0]):
@@ -464,8 +483,9 @@ def _measure_jacobian(state, positions, rsus, gyros, min_speed_sq, out):
 
 
 @_jit
-def _moments(mean, cov, active_row, positions, rsus, gyros, min_speed_sq, variances, filter_kind, spread, side,
-             centre_mean, centre_cov, has_centre, predicted, innovation_cov, cross_cov) -> bool:
+def _moments(mean: FloatArray, cov: FloatArray, active_row: BoolArray, positions: FloatArray, rsus: IntArray, gyros: int, min_speed_sq: float,
+             variances: FloatArray, filter_kind: int, spread: float, side: float, centre_mean: float, centre_cov: float,
+             has_centre: bool, predicted: FloatArray, innovation_cov: FloatArray, cross_cov: FloatArray) -> bool:
     """Predicted measurement, S (with R, symmetrised) and C for one model (``measurement_moments``)."""
     size = predicted.shape[0]
     angle_rows = 2 * rsus.shape[0]
@@ -555,8 +575,10 @@ def _moments(mean, cov, active_row, positions, rsus, gyros, min_speed_sq, varian
 
 
 @_jit
-def _correct_one(mean, cov, active_row, positions, rsus, observed, gyros, min_speed_sq, variances, filter_kind,
-                 spread, side, centre_mean, centre_cov, has_centre, out_mean, out_cov, stats) -> bool:
+def _correct_one(mean: FloatArray, cov: FloatArray, active_row: BoolArray, positions: FloatArray, rsus: IntArray, observed: FloatArray, gyros: int,
+                 min_speed_sq: float, variances: FloatArray, filter_kind: int, spread: float, side: float,
+                 centre_mean: float, centre_cov: float, has_centre: bool, out_mean: FloatArray, out_cov: FloatArray,
+                 stats: FloatArray) -> bool:
     """One model's Kalman correction through the Cholesky factor of S (``kalman_correct``);
     stats receives (NIS, log-likelihood)."""
     size = observed.shape[0]
@@ -608,9 +630,11 @@ def _correct_one(mean, cov, active_row, positions, rsus, observed, gyros, min_sp
 
 
 @_jit
-def correct_bank(means, covs, active, positions, observed_rsus, yaw_rates, range_variances, bearing_variances,
-                 gyro_variance, min_speed_sq, averaged, filter_kind, spreads, sides, centre_means, centre_covs,
-                 has_centre, out_means, out_covs, out_nis, out_log_likelihood) -> int:
+def correct_bank(means: FloatArray, covs: FloatArray, active: BoolArray, positions: FloatArray, observed_rsus: FloatArray, yaw_rates: FloatArray,
+                 range_variances: FloatArray, bearing_variances: FloatArray, gyro_variance: float, min_speed_sq: float,
+                 averaged: bool, filter_kind: int, spreads: FloatArray, sides: FloatArray, centre_means: FloatArray,
+                 centre_covs: FloatArray, has_centre: bool, out_means: FloatArray, out_covs: FloatArray, out_nis: FloatArray,
+                 out_log_likelihood: FloatArray) -> int:
     """Every model's update with K RSUs (positions (K, 2), observed (K, 2) range and bearing) and G gyro
     readings: one joint update, or with ``averaged`` one per RSU (each with the gyros), averaged
     (``core.updates``)."""
@@ -681,7 +705,7 @@ def correct_bank(means, covs, active, positions, observed_rsus, yaw_rates, range
 
 # -- model probabilities -------------------------------------------------------------------------
 @_jit
-def _softmax_into(log_weights, out):
+def _softmax_into(log_weights: FloatArray, out: FloatArray) -> None:
     top = log_weights.max()
     total = 0.0
     for i in range(log_weights.shape[0]):
@@ -692,7 +716,8 @@ def _softmax_into(log_weights, out):
 
 
 @_jit
-def model_probabilities(log_likelihoods, predicted, priority, others, out):
+def model_probabilities(log_likelihoods: FloatArray, predicted: FloatArray, priority: IntArray, others: IntArray,
+                        out: FloatArray) -> None:
     """IMM (softmax of log c_j + log L_j) or, with ``others``, the 2IMM eqs. 30 and 33-38."""
     count = log_likelihoods.shape[0]
     log_predicted = np.empty(count)
@@ -725,8 +750,9 @@ def model_probabilities(log_likelihoods, predicted, priority, others, out):
 
 # -- the gate ------------------------------------------------------------------------------------
 @_jit
-def gate_distances(mean, cov, common, positions, observed_rsus, yaw_rates, range_variances, bearing_variances,
-                   gyro_variance, min_speed_sq, rsu_out, gyro_out):
+def gate_distances(mean: FloatArray, cov: FloatArray, common: IntArray, positions: FloatArray, observed_rsus: FloatArray, yaw_rates: FloatArray,
+                   range_variances: FloatArray, bearing_variances: FloatArray, gyro_variance: float, min_speed_sq: float,
+                   rsu_out: FloatArray, gyro_out: FloatArray) -> None:
     """Squared Mahalanobis distance of each RSU pair (2 dof) and gyro reading (1 dof) against a
     Gaussian over ``common`` (``mean`` is the full 8-vector, zero elsewhere), linearised at its mean."""
     rsu_count = positions.shape[0]
@@ -770,8 +796,10 @@ def gate_distances(mean, cov, common, positions, observed_rsus, yaw_rates, range
 
 # -- the two entry points of an epoch ------------------------------------------------------------
 @_jit
-def predict_step(means, covs, probabilities, transition, active, common, phi_slot, dt, kinds, transitions, noises,
-                 filter_kind, spreads, sides, centre_means, centre_covs, has_centre):
+def predict_step(means: FloatArray, covs: FloatArray, probabilities: FloatArray, transition: FloatArray, active: BoolArray, common: IntArray,
+                 phi_slot: int, dt: float, kinds: IntArray, transitions: FloatArray, noises: FloatArray, filter_kind: int,
+                 spreads: FloatArray, sides: FloatArray, centre_means: FloatArray, centre_covs: FloatArray,
+                 has_centre: bool) -> tuple[int, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """Interaction, every model's prediction over dt (none when dt is 0) and the fused prior.
 
     Returns (status, means, covs, predicted probabilities c_j, fused mean, fused cov over common)."""
@@ -798,9 +826,11 @@ def predict_step(means, covs, probabilities, transition, active, common, phi_slo
 
 
 @_jit
-def correct_step(means, covs, predicted, active, common, phi_slot, priority, others, positions, observed_rsus,
-                 yaw_rates, range_variances, bearing_variances, gyro_variance, min_speed_sq, averaged, filter_kind,
-                 spreads, sides, centre_means, centre_covs, has_centre):
+def correct_step(means: FloatArray, covs: FloatArray, predicted: FloatArray, active: BoolArray, common: IntArray, phi_slot: int,
+                 priority: IntArray, others: IntArray, positions: FloatArray, observed_rsus: FloatArray, yaw_rates: FloatArray,
+                 range_variances: FloatArray, bearing_variances: FloatArray, gyro_variance: float, min_speed_sq: float,
+                 averaged: bool, filter_kind: int, spreads: FloatArray, sides: FloatArray, centre_means: FloatArray,
+                 centre_covs: FloatArray, has_centre: bool) -> tuple[int, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """Every model's update, the model probabilities (IMM or 2IMM) and the fused posterior.
 
     Returns (status, means, covs, probabilities, log-likelihoods, NIS, fused mean, fused cov)."""

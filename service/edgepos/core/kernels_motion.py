@@ -28,8 +28,9 @@ import math
 
 import numpy as np
 
-from edgepos.core.kernels import _jit
+from edgepos.core.kernels import IntArray, _jit
 from edgepos.core.motion.base import _MARKOV_TERMS, _chain_tables, _markov_tables
+from edgepos.core.numerics import FloatArray
 
 UNCOVERED = -1
 CV = 0
@@ -48,7 +49,7 @@ PARAMETER_COUNT = 4
 _X_AXIS, _Y_AXIS = 0, 3
 
 
-def _padded_tables() -> tuple[np.ndarray, ...]:
+def _padded_tables() -> tuple[FloatArray, ...]:
     """The reference's series coefficients for orders 2 and 3, zero-padded to 3 states, indexed by
     order - 2: integrator lags and F coefficients, Q exponents and coefficients; Markov F-column and
     Q series (the same numbers :func:`~edgepos.core.motion.base.markov_chain` uses)."""
@@ -83,7 +84,7 @@ def _padded_tables() -> tuple[np.ndarray, ...]:
 
 
 @_jit
-def _power(x, exponent):
+def _power(x: float, exponent: float) -> float:
     """x ** exponent for a small whole ``exponent`` (a float from the tables) by repeated products:
     within a few ulps of the reference's ``pow``, at a fraction of its cost."""
     out = 1.0
@@ -93,7 +94,7 @@ def _power(x, exponent):
 
 
 @_jit
-def _integrator_chain(order, density, dt, f, q):
+def _integrator_chain(order: int, density: float, dt: float, f: FloatArray, q: FloatArray) -> None:
     """``integrator_chain(order, density, dt)`` into f[:order, :order] and q[:order, :order]."""
     table = order - 2
     for i in range(order):
@@ -103,7 +104,7 @@ def _integrator_chain(order, density, dt, f, q):
 
 
 @_jit
-def _markov_chain(order, rate, density, dt, f, q):
+def _markov_chain(order: int, rate: float, density: float, dt: float, f: FloatArray, q: FloatArray) -> None:
     """``markov_chain(order, rate, density, dt)`` into f and q: the series on the interval halved until
     rate h <= 1/2, then doubled back as the reference does; rate 0 is the integrator chain."""
     if rate == 0.0:
@@ -165,7 +166,7 @@ def _markov_chain(order, rate, density, dt, f, q):
 
 
 @_jit
-def _discrete_noise(order, gain, dt, q):
+def _discrete_noise(order: int, gain: float, dt: float, q: FloatArray) -> None:
     """``discrete_noise(gain, order, dt)``: gain^2 G G^T with G = [T^2/2, T, 1][:order]."""
     column = (dt * dt / 2.0, dt, 1.0)
     square = gain * gain
@@ -175,7 +176,7 @@ def _discrete_noise(order, gain, dt, q):
 
 
 @_jit
-def _sinc(x):
+def _sinc(x: float) -> float:
     """numpy's sinc: sin(pi x) / (pi x), exactly 1 at 0."""
     if x == 0.0:
         return 1.0
@@ -184,7 +185,7 @@ def _sinc(x):
 
 
 @_jit
-def _turn_matrix(omega, dt, out):
+def _turn_matrix(omega: float, dt: float, out: FloatArray) -> None:
     """``turn_matrix(omega, dt)`` into out[:6, :6] (the rest of those rows untouched)."""
     angle = omega * dt
     half_sinc = _sinc(angle / (2.0 * math.pi))
@@ -212,7 +213,7 @@ def _turn_matrix(omega, dt, out):
 
 
 @_jit
-def _turn_noise(q, continuous, dt, out, axis):
+def _turn_noise(q: float, continuous: bool, dt: float, out: FloatArray, axis: FloatArray) -> None:
     """``turn_noise(q, form, dt)`` into out[:6, :6] (two axes of ``axis``, a 3x3 scratch)."""
     if continuous:
         half_square = dt * dt / 2.0
@@ -231,7 +232,7 @@ def _turn_noise(q, continuous, dt, out, axis):
 
 
 @_jit
-def _place_axes(axis, order, out):
+def _place_axes(axis: FloatArray, order: int, out: FloatArray) -> None:
     """diag(axis, axis) of an ``order``-state axis into the padded matrix (x at 0, y at 3)."""
     for i in range(order):
         for j in range(order):
@@ -240,7 +241,7 @@ def _place_axes(axis, order, out):
 
 
 @_jit
-def bank_step_matrices(kinds, params, dt, out_transitions, out_noises):
+def bank_step_matrices(kinds: IntArray, params: FloatArray, dt: float, out_transitions: FloatArray, out_noises: FloatArray) -> None:
     """Padded F and Q into ``out_transitions`` and ``out_noises`` (M, 8, 8) of the M models described by
     ``kinds`` (M,) and ``params`` (M, PARAMETER_COUNT) over the interval ``dt`` (see the module
     docstring). The caller allocates them: numba unpickles the dtype of every array it returns."""

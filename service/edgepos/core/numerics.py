@@ -5,10 +5,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 
 from edgepos.core.errors import NumericalError
 
 TWO_PI = 2.0 * math.pi
+
+#: float64 arrays: states, covariances, weights.
+FloatArray = npt.NDArray[np.float64]
 
 
 def wrap_angle(angle: np.ndarray | float) -> np.ndarray | float:
@@ -25,14 +29,14 @@ def wrap_rows(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 def weighted_mean(points: np.ndarray, weights: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Weighted mean of rows; entries flagged in ``mask`` are angles and get a circular mean."""
-    mean = weights @ points
+    mean: FloatArray = weights @ points
     if mask.any():
         angles = points[:, mask]
         mean[mask] = np.arctan2(weights @ np.sin(angles), weights @ np.cos(angles))
     return mean
 
 
-def symmetrize(matrix: np.ndarray) -> np.ndarray:
+def symmetrize(matrix: FloatArray) -> FloatArray:
     """Return (M + M^T) / 2, removing the asymmetry that rounding accumulates."""
     return 0.5 * (matrix + matrix.T)
 

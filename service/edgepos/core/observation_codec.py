@@ -96,7 +96,9 @@ class _KindCodec:
         self.encode = self._encoder(fields, numbers, texts, bit, bool(optional))
         self.decode = self._decoder(fields, numbers, texts, bit, bool(optional))
 
-    def _encoder(self, fields, numbers, texts, bit, has_mask) -> Callable[[Any], bytes]:
+    def _encoder(
+        self, fields: list[_Field], numbers: list[_Field], texts: list[_Field], bit: dict[str, int], has_mask: bool
+    ) -> Callable[[Any], bytes]:
         lines = ["def encode(o):"]
         lines += [f"    v_{f.name} = o.{f.name}" for f in fields]
         if has_mask:
@@ -132,9 +134,12 @@ class _KindCodec:
             "dumps": _JSON.encode,
         }
         exec("\n".join(lines), namespace)  # noqa: S102  # generated from the dataclass's own fields, as dataclasses does
-        return namespace["encode"]  # type: ignore[no-any-return]
+        encode: Callable[[Any], bytes] = namespace["encode"]  # the function exec just defined
+        return encode
 
-    def _decoder(self, fields, numbers, texts, bit, has_mask) -> Callable[[bytes, int], tuple[Any, int]]:
+    def _decoder(
+        self, fields: list[_Field], numbers: list[_Field], texts: list[_Field], bit: dict[str, int], has_mask: bool
+    ) -> Callable[[bytes, int], tuple[Any, int]]:
         names = (["mask"] if has_mask else []) + [
             f"n_{f.name}_{i}" for f in numbers for i in range(int(f.form[1:]) if f.form[0] == "t" else 1)
         ]
@@ -174,7 +179,8 @@ class _KindCodec:
             "cls": self.cls,
         }
         exec("\n".join(lines), namespace)  # noqa: S102  # generated from the dataclass's own fields, as dataclasses does
-        return namespace["decode"]  # type: ignore[no-any-return]
+        decode: Callable[[bytes, int], tuple[Any, int]] = namespace["decode"]  # the function exec just defined
+        return decode
 
 
 def _tupled(value: Any) -> Any:

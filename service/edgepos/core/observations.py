@@ -9,7 +9,7 @@ read through ``LEGACY_LAYOUTS``.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, cast
 
 SPEED_OF_LIGHT = 299_792_458.0
 """m/s, exact (SI); converts a one-way time of arrival to metres."""
@@ -83,7 +83,8 @@ class V2vRangeObservation:
     @property
     def metres(self) -> float:
         """The range in metres: ``range``, or ``toa`` times the speed of light in vacuum."""
-        return self.range if self.range is not None else float(self.toa) * SPEED_OF_LIGHT
+        # toa is set when range is not: the API's schema accepts exactly one of the two.
+        return self.range if self.range is not None else float(cast(float, self.toa)) * SPEED_OF_LIGHT
 
 
 @dataclass(frozen=True, slots=True)

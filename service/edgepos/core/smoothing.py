@@ -57,7 +57,7 @@ from edgepos.core.filters.base import GaussianFilter
 from edgepos.core.filters.sigma_points import SigmaPointFilter
 from edgepos.core.imm import InteractingMultipleModel
 from edgepos.core.motion.base import MotionModel, dt_key
-from edgepos.core.numerics import robust_cholesky, wrap_rows
+from edgepos.core.numerics import FloatArray, robust_cholesky, wrap_rows
 
 #: Window ends from a lag in seconds tolerate this much rounding in the timestamps (s).
 TIME_TOLERANCE = 1e-9
@@ -184,7 +184,14 @@ def lag_ends(times: np.ndarray, lag: float) -> np.ndarray:
     return np.searchsorted(times, times + lag + TIME_TOLERANCE, side="right") - 1
 
 
-def _check_chain(count, size, filtered_covs, predicted_means, predicted_covs, cross_covs) -> None:
+def _check_chain(
+    count: int,
+    size: int,
+    filtered_covs: np.ndarray,
+    predicted_means: np.ndarray,
+    predicted_covs: np.ndarray,
+    cross_covs: np.ndarray,
+) -> None:
     if count < 1 or filtered_covs.shape != (count, size, size):
         raise ValueError("filtered moments must be (N, n) and (N, n, n) with N >= 1")
     if np.shape(predicted_means) != (count - 1, size):
@@ -193,7 +200,9 @@ def _check_chain(count, size, filtered_covs, predicted_means, predicted_covs, cr
         raise ValueError("predicted and cross covariances must be (N-1, n, n)")
 
 
-def _gains(filtered_covs: np.ndarray, predicted_covs: np.ndarray, cross_covs: np.ndarray):
+def _gains(
+    filtered_covs: np.ndarray, predicted_covs: np.ndarray, cross_covs: np.ndarray
+) -> tuple[FloatArray, FloatArray]:
     """Smoother gains G = C P^-1 and conditional covariances D = P_k - C P^-1 C^T through the
     Cholesky factor of each predicted covariance (inactive, zero-variance components: identity)."""
     size = predicted_covs.shape[-1]
@@ -211,7 +220,9 @@ def _gains(filtered_covs: np.ndarray, predicted_covs: np.ndarray, cross_covs: np
     return gains, conditional
 
 
-def _collapse(weights: np.ndarray, means: np.ndarray, covs: np.ndarray, mask: np.ndarray):
+def _collapse(
+    weights: np.ndarray, means: np.ndarray, covs: np.ndarray, mask: np.ndarray
+) -> tuple[FloatArray, FloatArray]:
     """Moment match over the last model axis: weights (..., J), means (..., J, n), covs (..., J, n, n)."""
     column = weights[..., None]
     mean = (column * means).sum(axis=-2)
@@ -319,7 +330,9 @@ def predict_with_cross(
     return out_means, out_covs, out_crosses
 
 
-def _sigma_point_prediction(filt: SigmaPointFilter, model: MotionModel, mean, cov, dt: float, mask):
+def _sigma_point_prediction(
+    filt: SigmaPointFilter, model: MotionModel, mean: FloatArray, cov: FloatArray, dt: float, mask: np.ndarray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Points mean + s L e_i through f: predicted mean, the points' covariance (without Q) and the
     cross covariance sum_i w_i (X_i - m)(f(X_i) - m')^T."""
     offsets, mean_weights, cov_weights = filt.unit_points(mean.shape[1])
@@ -379,7 +392,9 @@ def bank_pair_predictions(
     return predicted_means, predicted_covs, cross_covs
 
 
-def _hand_over(bank: InteractingMultipleModel, means: np.ndarray, covs: np.ndarray, i: int, j: int):
+def _hand_over(
+    bank: InteractingMultipleModel, means: np.ndarray, covs: np.ndarray, i: int, j: int
+) -> tuple[FloatArray, FloatArray]:
     """Model i's posteriors (steps, 8) / (steps, 8, 8), extended by the components only model j
     carries: their conditional Gaussian in model j given the common components, shifted to model i's
     common block, as the bank's interaction gives a model its extra components

@@ -95,8 +95,11 @@ class RsuGyroEpoch:
         pairs = 1 if self.averaged and self.rsu_count > 1 else self.rsu_count
         return 2 * pairs + int(self.yaw_rates.size)
 
-    def measurement(self, rsus: Sequence[int] | None = None) -> tuple[MeasurementModel | None, np.ndarray | None]:
-        """The stacked model [RSU pairs..., gyros...] of ``rsus`` (default all) and its observation."""
+    def measurement(
+        self, rsus: Sequence[int] | None = None
+    ) -> tuple[MeasurementModel, np.ndarray] | tuple[None, None]:
+        """The stacked model [RSU pairs..., gyros...] of ``rsus`` (default all) and its observation;
+        (None, None) when nothing was measured."""
         chosen = range(self.rsu_count) if rsus is None else rsus
         parts: list[MeasurementModel] = []
         observed = []
@@ -114,9 +117,14 @@ class RsuGyroEpoch:
     def correction(self) -> Correction | None:
         """The correction of the numpy reference path, or None when nothing was measured."""
         if self.averaged and self.rsu_count > 1:
-            return AveragedCorrection([JointCorrection(*self.measurement([k])) for k in range(self.rsu_count)])
+            corrections = []
+            for k in range(self.rsu_count):
+                model, observed = self.measurement([k])
+                if model is not None and observed is not None:  # always: RSU k was measured
+                    corrections.append(JointCorrection(model, observed))
+            return AveragedCorrection(corrections)
         model, observed = self.measurement()
-        return None if model is None else JointCorrection(model, observed)
+        return None if model is None or observed is None else JointCorrection(model, observed)
 
 
 def gate_distances(prior: Gaussian, epoch: RsuGyroEpoch) -> tuple[np.ndarray, np.ndarray]:
@@ -126,6 +134,8 @@ def gate_distances(prior: Gaussian, epoch: RsuGyroEpoch) -> tuple[np.ndarray, np
     S = H P H^T + R.
     """
     model, observed = epoch.measurement()
+    if model is None or observed is None:  # nothing measured: no distances (as the compiled stepper)
+        return np.empty(0), np.empty(0)
     idx = list(prior.components)
     mean = np.zeros(layout.FULL_DIM)
     mean[idx] = prior.mean

@@ -9,11 +9,13 @@ from __future__ import annotations
 import argparse
 import os
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from edgepos.eval import federated, gnss, gnss_rinex, rsu_imu, v2v
 
 #: argparse's object returned by ``add_subparsers`` (private type name, so spelled out here).
-Subparsers = argparse._SubParsersAction
+if TYPE_CHECKING:  # generic only in the type stubs, not at run time
+    Subparsers = argparse._SubParsersAction[argparse.ArgumentParser]
 
 
 def _positive_int(text: str) -> int:

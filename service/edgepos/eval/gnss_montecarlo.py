@@ -197,7 +197,7 @@ def _init_worker(
     global _CONTEXT
     built = build_scenario(scenario, short)
     pipeline = get_pipeline(PIPELINE)
-    algorithms = []
+    algorithms: list[tuple[str, dict[str, Any]]] = []
     for name in names:
         if name == WLS:
             algorithms.append((name, {}))

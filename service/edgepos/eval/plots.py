@@ -23,7 +23,7 @@ def require_matplotlib() -> ModuleType:
             "--plots needs matplotlib, which is not installed: pip install 'edgepos[plots]'"
         ) from exc
     matplotlib.use("Agg")
-    import matplotlib.pyplot as pyplot
+    from matplotlib import pyplot
 
     return pyplot
 

@@ -115,7 +115,7 @@ def _run_chunk(chunk: range) -> Totals:
             started = time.perf_counter()
             try:
                 fixes, _ = context.pipeline.process(state, observations, context.environment)
-            except Exception as exc:  # a diverging filter must name itself, not kill the pool silently
+            except Exception as exc:  # noqa: BLE001 - any failure of a filter must name the algorithm and run, not kill the pool silently
                 raise RunFailed(f"{name} failed in run {run} (seed {context.seed}): {exc}") from None
             elapsed = time.perf_counter() - started
             if len(fixes) != true_x.size or any(fix.x is None or fix.vx is None for fix in fixes):

@@ -9,7 +9,7 @@ All outputs are delays in metres to add to the geometric range.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -115,4 +115,5 @@ def saastamoinen_delay(
     if not -1000.0 < height_m < 1e5:
         return np.zeros_like(el)
     hydrostatic, wet = saastamoinen_zenith(lat, height_m, relative_humidity)
-    return (hydrostatic + wet) / np.sin(el)
+    result: np.ndarray = (hydrostatic + wet) / np.sin(el)
+    return result

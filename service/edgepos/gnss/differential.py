@@ -69,7 +69,8 @@ def base_position(header: ObservationHeader) -> np.ndarray:
         return marker
     up, east, north = header.antenna_delta_hen
     lat, lon, _ = ecef_to_geodetic(marker)
-    return marker + enu_rotation(float(lat), float(lon)).T @ np.array([east, north, up])
+    result: np.ndarray = marker + enu_rotation(float(lat), float(lon)).T @ np.array([east, north, up])
+    return result
 
 
 def _issue(issue: Issue | None) -> Issue:
@@ -150,13 +151,21 @@ class CorrectionTable:
     """Every base epoch's corrections, indexed per satellite for the rover's lookups, and how old (s) a
     correction may be and still apply: a property of the site's correction source, not of a session."""
 
-    def __init__(self, epochs: Iterable[EpochCorrections], max_age_s: float = DEFAULT_MAX_AGE_S) -> None:
+    def __init__(
+        self,
+        epochs: Iterable[EpochCorrections],
+        max_age_s: float = DEFAULT_MAX_AGE_S,
+        no_data_reason: str | None = None,
+    ) -> None:
+        """``no_data_reason``: what :meth:`lookup` answers when the table holds no correction at all (the
+        service says which station had no data, and why), instead of NO_CORRECTION."""
         low, high = MAX_AGE_BOUNDS_S
         if not low <= max_age_s <= high:  # also refuses NaN
             raise ValueError(
                 f"the maximum correction age must be in [{low:g}, {high:g}] s, got {max_age_s!r}"
             )
         self.max_age_s = float(max_age_s)
+        self.no_data_reason = no_data_reason
         per_sat: dict[str, list[tuple[float, float, Issue, float, float]]] = {}
         for e in epochs:
             for k, sat in enumerate(e.sats):
@@ -188,7 +197,7 @@ class CorrectionTable:
         why there is none (a sentence starting with NO_CORRECTION, TOO_OLD or ISSUE_MISMATCH)."""
         times = self._times.get(sat)
         if times is None:
-            return NO_CORRECTION
+            return self.no_data_reason if (self.no_data_reason and not self._times) else NO_CORRECTION
         k = int(np.searchsorted(times, gpst + 1e-6, side="right")) - 1
         if k < 0:
             return f"{NO_CORRECTION} at or before this epoch"

@@ -33,7 +33,7 @@ class Ephemerides:
     digest: str
 
     @classmethod
-    def from_navigation(cls, navigation: NavigationData, digest: str = "") -> "Ephemerides":
+    def from_navigation(cls, navigation: NavigationData, digest: str = "") -> Ephemerides:
         return cls(navigation, BroadcastOrbits(navigation.ephemerides), digest)
 
     @property

@@ -63,13 +63,15 @@ def enu_rotation(lat: float, lon: float) -> np.ndarray:
 def ecef_to_enu(position: np.ndarray, origin: np.ndarray) -> np.ndarray:
     """ECEF points (..., 3) -> east, north, up (m) relative to the ECEF ``origin`` (3,)."""
     lat, lon, _ = ecef_to_geodetic(origin)
-    return (np.asarray(position, float) - origin) @ enu_rotation(float(lat), float(lon)).T
+    result: np.ndarray = (np.asarray(position, float) - origin) @ enu_rotation(float(lat), float(lon)).T
+    return result
 
 
 def enu_to_ecef(enu: np.ndarray, origin: np.ndarray) -> np.ndarray:
     """East, north, up (..., 3) relative to the ECEF ``origin`` -> ECEF points (m)."""
     lat, lon, _ = ecef_to_geodetic(origin)
-    return np.asarray(enu, float) @ enu_rotation(float(lat), float(lon)) + origin
+    result: np.ndarray = np.asarray(enu, float) @ enu_rotation(float(lat), float(lon)) + origin
+    return result
 
 
 def elevation_azimuth(receiver: np.ndarray, satellite: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

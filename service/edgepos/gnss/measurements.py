@@ -71,7 +71,8 @@ class PseudorangeSet:
 def doppler_to_range_rate(doppler_hz: np.ndarray, frequency_hz: np.ndarray) -> np.ndarray:
     """Range rate (m/s) of Dopplers (Hz, RINEX sign: positive when the satellite approaches) on carriers (Hz):
     -D c / f."""
-    return -np.asarray(doppler_hz, dtype=float) * SPEED_OF_LIGHT / np.asarray(frequency_hz, dtype=float)
+    result: np.ndarray = -np.asarray(doppler_hz, dtype=float) * SPEED_OF_LIGHT / np.asarray(frequency_hz, dtype=float)
+    return result
 
 
 def prepare_epoch(

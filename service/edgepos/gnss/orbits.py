@@ -124,7 +124,8 @@ class BroadcastOrbits:
         """af0 + af1 dt + af2 dt^2 with dt = t - toc (s), without relativity or group delay."""
         a = self._a
         dt = t - a["toc"][index]
-        return a["af0"][index] + dt * (a["af1"][index] + dt * a["af2"][index])
+        result: np.ndarray = a["af0"][index] + dt * (a["af1"][index] + dt * a["af2"][index])
+        return result
 
     def position(self, index: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """ECEF positions (n, 3) at GPS times ``t`` and the relativistic clock term (s) per satellite."""
@@ -169,7 +170,8 @@ class BroadcastOrbits:
 
     def group_delay(self, index: np.ndarray, factors: np.ndarray) -> np.ndarray:
         """Broadcast group delay (s) per row, from (n, 2) factors on (tgd1, tgd2)."""
-        return factors[:, 0] * self._a["tgd1"][index] + factors[:, 1] * self._a["tgd2"][index]
+        result: np.ndarray = factors[:, 0] * self._a["tgd1"][index] + factors[:, 1] * self._a["tgd2"][index]
+        return result
 
     def transmit_states(
         self, index: np.ndarray, t_receive: float, pseudorange_m: np.ndarray, delay_factors: np.ndarray
@@ -222,7 +224,8 @@ def sagnac_range(satellite: np.ndarray, receiver: np.ndarray) -> np.ndarray:
     diff = satellite - receiver
     geometric = np.sqrt(np.sum(diff * diff, axis=-1))
     sagnac = OMEGA_EARTH * (satellite[..., 0] * receiver[..., 1] - satellite[..., 1] * receiver[..., 0])
-    return geometric + sagnac / SPEED_OF_LIGHT
+    result: np.ndarray = geometric + sagnac / SPEED_OF_LIGHT
+    return result
 
 
 def sagnac_range_rate(
@@ -242,4 +245,5 @@ def sagnac_range_rate(
         - sat_velocity[..., 1] * receiver[..., 0]
         - sat_position[..., 1] * receiver_velocity[..., 0]
     )
-    return geometric + sagnac / SPEED_OF_LIGHT
+    result: np.ndarray = geometric + sagnac / SPEED_OF_LIGHT
+    return result

@@ -198,7 +198,7 @@ def iter_epochs(
     header, number = _parse_header(stream)
     offset = _time_offset(header.time_system)
     columns: dict[str, tuple[int, int | None, int | None, int | None]] = {}
-    for system, (code, cn0) in chosen.items():
+    for system, (code, cn0_code) in chosen.items():
         types = header.obs_types.get(system)
         if types is None:
             continue
@@ -206,10 +206,11 @@ def iter_epochs(
             if explicit:
                 raise RinexError(number, f"system {system} has no observation {code!r}; header lists {', '.join(types)}")
             continue
-        doppler, carrier = doppler_code(code), carrier_code(code)
+        doppler_type, carrier_type = doppler_code(code), carrier_code(code)
         columns[system] = (
-            types.index(code), types.index(cn0) if cn0 in types else None,
-            types.index(doppler) if doppler in types else None, types.index(carrier) if carrier in types else None,
+            types.index(code), types.index(cn0_code) if cn0_code in types else None,
+            types.index(doppler_type) if doppler_type in types else None,
+            types.index(carrier_type) if carrier_type in types else None,
         )
     for line in stream:
         number += 1

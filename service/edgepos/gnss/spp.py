@@ -125,7 +125,8 @@ def _weights(elevation: np.ndarray, config: SppConfig, corrected: np.ndarray | N
         variance = np.where(
             corrected, config.corrected_sigma_a_m**2 + (config.corrected_sigma_b_m / sin_el) ** 2, variance
         )
-    return 1.0 / variance
+    result: np.ndarray = 1.0 / variance
+    return result
 
 
 def _iterate(

@@ -39,7 +39,7 @@ SCENARIO_PIPELINE = {"rsu-imu": "rsu_imu"}
 INITIAL_POSITION_STD = 1.0
 INITIAL_VELOCITY_STD = 1.0
 
-WireMeasurement = RsuMeasurement | GyroMeasurement
+WireMeasurement = RsuMeasurement | GyroMeasurement | GnssFixMeasurement | OdometerMeasurement | V2vRangeMeasurement
 
 
 def scenario_rsus(scenario: Scenario) -> list[Rsu]:

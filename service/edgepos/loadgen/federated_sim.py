@@ -21,7 +21,7 @@ import time
 from dataclasses import dataclass, field
 
 import httpx
-from edgepos_client import AsyncEdgeposClient, EdgeposError, GnssFixMeasurement
+from edgepos_client import AsyncEdgeposClient, EdgeposError, Fix, GnssFixMeasurement, Session
 
 from edgepos.loadgen import common
 from edgepos.sim.federated import STEP, FederatedRun, make_run
@@ -36,14 +36,16 @@ class FederatedVehicle:
     index: int
     vehicle_id: str
     position_rmse: float | None = None
-    fixes: list = field(default_factory=list)
+    fixes: list[Fix] = field(default_factory=list)
     error: str | None = None
 
 
-def _assist_batches(run: FederatedRun, name: str, epochs: int, batch_epochs: int) -> list[list]:
-    out = []
+def _assist_batches(
+    run: FederatedRun, name: str, epochs: int, batch_epochs: int
+) -> list[list[common.WireMeasurement]]:
+    out: list[list[common.WireMeasurement]] = []
     for start in range(0, epochs, batch_epochs):
-        batch = []
+        batch: list[common.WireMeasurement] = []
         for k in range(start, min(start + batch_epochs, epochs)):
             fix = run.neighbour_fixes[k][name]
             batch.append(GnssFixMeasurement(t=fix.t, x=fix.x, y=fix.y, std=fix.std))
@@ -71,7 +73,8 @@ async def run_federated(
     clients: list[AsyncEdgeposClient] = []
     sessions = []
     try:
-        lanes = []  # (client, session, batches) per vehicle, assisting vehicles before their target
+        # (target or None for an assisting vehicle, client, session, batches), assisting vehicles before their target
+        lanes: list[tuple[FederatedVehicle | None, AsyncEdgeposClient, Session, list[list[common.WireMeasurement]]]] = []
         for target, run in zip(targets, runs):
             prefix = f"{target.vehicle_id}-"
             for name in run.neighbour_ids:
@@ -108,7 +111,12 @@ async def run_federated(
     return targets, time.perf_counter() - started
 
 
-async def _send(client: AsyncEdgeposClient, session, batch: list, target: FederatedVehicle | None) -> None:
+async def _send(
+    client: AsyncEdgeposClient,
+    session: Session,
+    batch: list[common.WireMeasurement],
+    target: FederatedVehicle | None,
+) -> None:
     if target is not None and target.error is not None:
         return
     try:

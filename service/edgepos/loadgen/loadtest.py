@@ -223,6 +223,10 @@ class WallClock:
         await asyncio.sleep(seconds)
 
 
+WALL_CLOCK = WallClock()
+"""The clock of every vehicle unless a test gives its own."""
+
+
 def batches_due(duration: float, offset: float, interval: float) -> int:
     """How many batches fall due in [offset, duration): batch k is due at offset + k * interval.
 
@@ -244,10 +248,10 @@ class Vehicle:
         scenario: Scenario,
         recorder: Recorder,
         verify: bool = False,
-        clock: WallClock = WallClock(),
+        clock: WallClock | None = None,
     ) -> None:
         self.vehicle_id = f"load-{index + 1}"
-        self.clock = clock
+        self.clock = clock or WALL_CLOCK
         self.client = client
         self.batches = batches
         self.start_state = common.initial_state(scenario)

@@ -121,8 +121,7 @@ def rmse(fixes: list[Fix], scenario: Scenario) -> tuple[float | None, float | No
             position.append((fix.x - truth.x[k]) ** 2 + (fix.y - truth.y[k]) ** 2)
         if fix.vx is not None and fix.vy is not None:
             velocity.append((fix.vx - truth.vx[k]) ** 2 + (fix.vy - truth.vy[k]) ** 2)
-    as_rmse = lambda squares: math.sqrt(float(np.mean(squares))) if squares else None
-    return as_rmse(position), as_rmse(velocity)
+    return _rmse(position), _rmse(velocity)
 
 
 class Progress:
@@ -279,6 +278,11 @@ async def run_simulation(
         elapsed_s=time.perf_counter() - started,
     )
 
+
+
+def _rmse(squares: list[float]) -> float | None:
+    """Root mean of squared errors; None without any."""
+    return math.sqrt(float(np.mean(squares))) if squares else None
 
 def _late_batches(
     epochs: list[list[Observation]],

@@ -17,7 +17,7 @@ import time
 from dataclasses import dataclass, field
 
 import httpx
-from edgepos_client import AsyncEdgeposClient, EdgeposError
+from edgepos_client import AsyncEdgeposClient, EdgeposError, Fix, Session
 
 from edgepos.loadgen import common
 from edgepos.sim.v2v import STEP, VEHICLE_IDS, make_run
@@ -33,7 +33,7 @@ class V2vVehicle:
     index: int
     vehicle_id: str
     position_rmse: float | None = None
-    fixes: list = field(default_factory=list)
+    fixes: list[Fix] = field(default_factory=list)
     error: str | None = None
 
 
@@ -58,12 +58,14 @@ async def run_v2v(
     ]
     started = time.perf_counter()
     limits = httpx.Limits(max_connections=1, max_keepalive_connections=1)
-    lanes = []
+    clients: list[AsyncEdgeposClient] = []
+    lanes: list[tuple[V2vVehicle, AsyncEdgeposClient, Session]] = []
     try:
         for vehicle in vehicles:
             client = AsyncEdgeposClient(url, admin_key, timeout=timeout, limits=limits)
-            lanes.append([vehicle, client, None])
-            lanes[-1][2] = await client.create_session(vehicle.vehicle_id, "v2v_coop", options={"method": method})
+            clients.append(client)
+            session = await client.create_session(vehicle.vehicle_id, "v2v_coop", options={"method": method})
+            lanes.append((vehicle, client, session))
         t0 = time.perf_counter()
         for start in range(0, count, batch_epochs):
             stop = min(start + batch_epochs, count)
@@ -77,8 +79,8 @@ async def run_v2v(
                 for vehicle, client, session in lanes
             ))
     finally:
-        await asyncio.gather(*(c.delete_session(s) for _, c, s in lanes if s is not None), return_exceptions=True)
-        await asyncio.gather(*(c.close() for _, c, _ in lanes), return_exceptions=True)
+        await asyncio.gather(*(c.delete_session(s) for _, c, s in lanes), return_exceptions=True)
+        await asyncio.gather(*(c.close() for c in clients), return_exceptions=True)
     for vehicle in vehicles:
         truth = runs[vehicle.group].positions[vehicle.index]
         errors = [
@@ -89,7 +91,9 @@ async def run_v2v(
     return vehicles, time.perf_counter() - started
 
 
-async def _send(client: AsyncEdgeposClient, session, vehicle: V2vVehicle, batch: list) -> None:
+async def _send(
+    client: AsyncEdgeposClient, session: Session, vehicle: V2vVehicle, batch: list[common.WireMeasurement]
+) -> None:
     if vehicle.error is not None:
         return
     try:

@@ -202,7 +202,7 @@ class RsuImuCost(CostModel):
 
     pipeline = "rsu_imu"
     PATHS = ("compiled", "reference", "srukf")
-    REFERENCE_PATH = {"ekf": "reference", "ukf": "reference", "ckf": "reference", "srukf": "srukf"}
+    REFERENCE_PATH: ClassVar[dict[str, str]] = {"ekf": "reference", "ukf": "reference", "ckf": "reference", "srukf": "srukf"}
     """The constants a filter takes off the compiled kernels; every filter of ``core.filters.FILTERS`` needs
     an entry (checked on import)."""
     features = tuple(

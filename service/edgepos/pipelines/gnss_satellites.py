@@ -58,6 +58,7 @@ def epoch_satellites(
     """Satellite states per pseudorange, from the client or the broadcast ephemerides; reasons for the rest."""
     rows: list[tuple[Any, ...]] = []
     need_orbit: list[int] = []
+    orbit_observations: list[PseudorangeObservation] = []  # observations[i] for i in need_orbit, narrowed
     use_doppler = bool(options.get("use_doppler", True))
     doppler_reasons: dict[int, str] = {}
     nan3 = np.full(3, np.nan)
@@ -99,6 +100,7 @@ def epoch_satellites(
             )
         else:
             need_orbit.append(i)
+            orbit_observations.append(observation)
     if need_orbit:
         if ephemerides is None:
             for i in need_orbit:
@@ -109,7 +111,7 @@ def epoch_satellites(
                     "no ephemerides loaded (PUT /v1/ephemerides) and no sat_position/sat_clock sent",
                 )
         else:
-            observed = [observations[i] for i in need_orbit]
+            observed = orbit_observations
             systems = [o.system for o in observed]
             prns = np.array([o.prn for o in observed])
             ephemeris_index = ephemerides.orbits.select(systems, prns, gpst)

@@ -14,6 +14,7 @@ from edgepos.core.measurements.pseudorange import PseudorangeModel
 from edgepos.core.measurements.range_rate import RangeRateModel
 from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GnssOnlyModel, RissModel
+from edgepos.core.numerics import FloatArray
 from edgepos.gnss.measurements import PseudorangeSet
 from edgepos.gnss.orbits import sagnac_range
 from edgepos.gnss.spp import SppConfig
@@ -64,7 +65,8 @@ def range_rate_test(
             False,
             f"failed the range-rate residual test: {value:.1f} > {threshold:.1f} (chi-square, 1 dof)",
         )
-    return rows[~failed]
+    kept: np.ndarray = rows[~failed]
+    return kept
 
 
 def snapshot_std(elevation: np.ndarray, corrected: np.ndarray | None = None) -> np.ndarray:
@@ -73,12 +75,13 @@ def snapshot_std(elevation: np.ndarray, corrected: np.ndarray | None = None) -> 
     does, whatever noise the filter assumes."""
     config = SppConfig()
     sin_el = np.maximum(np.sin(elevation), 0.05)
-    std = np.sqrt(config.sigma_a_m**2 + (config.sigma_b_m / sin_el) ** 2)
+    std: FloatArray = np.sqrt(config.sigma_a_m**2 + (config.sigma_b_m / sin_el) ** 2)
     if corrected is None:
         return std
-    return np.where(
+    chosen: FloatArray = np.where(
         corrected, np.sqrt(config.corrected_sigma_a_m**2 + (config.corrected_sigma_b_m / sin_el) ** 2), std
     )
+    return chosen
 
 
 def snapshot_test(

@@ -46,7 +46,7 @@ import dataclasses
 import math
 import secrets
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -56,6 +56,7 @@ from edgepos.core.measurements.pseudorange import PseudorangeModel
 from edgepos.core.measurements.range_rate import RangeRateModel
 from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GeodeticAnchor, GnssOnlyModel, RissInput, RissModel
+from edgepos.core.numerics import FloatArray
 from edgepos.core.observations import Observation, PseudorangeObservation, RissObservation
 from edgepos.core.particles import Cloud, Measurement
 from edgepos.core.particles.base import StepResult, weighted_moments
@@ -391,15 +392,16 @@ def _smooth(
     options = session.options
     if options.get("carrier_smoothing", "off") != "hatch" or not len(prs):
         return satellites, factor
-    sent = [observations[i] for i in satellites.indices]
-    carrier = np.array([np.nan if o.carrier_cycles is None else o.carrier_cycles for o in sent], dtype=float)  # type: ignore[union-attr]
+    # satellites.indices are the epoch's pseudoranges (satellite_states keeps no other kind)
+    sent = [cast(PseudorangeObservation, observations[i]) for i in satellites.indices]
+    carrier = np.array([np.nan if o.carrier_cycles is None else o.carrier_cycles for o in sent], dtype=float)
     if not np.isfinite(carrier).any():
         return satellites, factor
     use_doppler = bool(options.get("use_doppler", True))
     doppler_hz = np.array(
-        [o.doppler_hz if (o.doppler_hz is not None and use_doppler) else np.nan for o in sent], dtype=float  # type: ignore[union-attr]
+        [o.doppler_hz if (o.doppler_hz is not None and use_doppler) else np.nan for o in sent], dtype=float
     )
-    lli = np.array([o.lli or 0 for o in sent], dtype=int)  # type: ignore[union-attr]
+    lli = np.array([o.lli or 0 for o in sent], dtype=int)
     config = HatchConfig(
         options["hatch_window_s"], options["carrier_slip_cycles_per_s"], options["carrier_code_jump_m"],
         options["carrier_max_gap_s"],
@@ -448,8 +450,10 @@ def _cloud_mean(cloud: Cloud) -> np.ndarray:
     """The cloud's weighted mean, the azimuth averaged on the circle: a plain average of particles at
     +179 and -179 deg (a vehicle heading south) would point north."""
     if len(cloud.particles) == 1:
-        return cloud.particles[0].copy()
-    return weighted_moments(cloud.particles, cloud.weights, layout.ANGLES)[0]
+        single: FloatArray = cloud.particles[0].copy()
+        return single
+    mean: FloatArray = weighted_moments(cloud.particles, cloud.weights, layout.ANGLES)[0]
+    return mean
 
 
 def _maybe_start_riss(session: GnssSession, t: float, result: StepResult) -> None:

@@ -73,9 +73,8 @@ def _check(spec: OptionSpec, value: Any) -> str | None:
         ):
             return "must be a list of rows of finite numbers"
         return _element_bounds(spec, [v for row in value for v in row])
-    elif kind == "object":
-        if not isinstance(value, dict):
-            return "must be a JSON object"
+    elif kind == "object" and not isinstance(value, dict):
+        return "must be a JSON object"
     if spec.choices is not None and value not in spec.choices:
         return f"must be one of {list(spec.choices)}"
     return None

@@ -339,23 +339,20 @@ def _check_times(envelope: _Envelope, observations: Sequence[Observation]) -> fl
                         index, "t", f"{observation.t!r} is older than the session's last epoch t={last!r}"
                     )
                 )
-    if not problems:
-        earliest = latest = None
+    if not problems and observations and type(observations[0].t) is float:
+        oldest = newest = observations[0].t
         for observation in observations:
             t = observation.t
             if type(t) is not float:  # ints and anything else: the general path below
                 break
-            if earliest is None:
-                earliest = latest = t
-            elif t < earliest:
-                earliest = t
-            elif t > latest:
-                latest = t
+            if t < oldest:
+                oldest = t
+            elif t > newest:
+                newest = t
         else:
-            if latest is None or (  # NaN and infinities fail every comparison with the bound
-                latest - earliest <= bound and (last is None or latest - last <= bound)
-            ):
-                return latest  # the usual batch: no gap can be longer than the bound
+            # NaN and infinities fail every comparison with the bound
+            if newest - oldest <= bound and (last is None or newest - last <= bound):
+                return newest  # the usual batch: no gap can be longer than the bound
     times = sorted({t for t in {o.t for o in observations} if is_finite_number(t)})
     latest = times[-1] if times else None
     if not problems and (
@@ -419,27 +416,28 @@ def _point(fix: Fix) -> _Point | None:
     """What is kept of a fix for the next one's checks; None without finite kinematics."""
     if fix.x is None or fix.y is None:
         return None
-    return _point_of(fix, _position_variance(fix), _velocity_variance(fix))
+    return _point_of(fix, fix.x, fix.y, _position_variance(fix), _velocity_variance(fix))
 
 
-def _point_of(fix: Fix, position_var: float, velocity_var: float) -> _Point | None:
-    """``_point`` of a fix with a position, its variances given."""
+def _point_of(fix: Fix, x: float, y: float, position_var: float, velocity_var: float) -> _Point | None:
+    """``_point`` of a fix with a position (``x``, ``y``: its own, passed known not None), its
+    variances given."""
     # finite, all of them: a finite sum is (NaN and infinities carry through a sum), else one by one
-    total = fix.t + fix.x + fix.y + position_var + velocity_var
+    total = fix.t + x + y + position_var + velocity_var
     if fix.vx is not None:
         total += fix.vx
     if fix.vy is not None:
         total += fix.vy
-    if not math.isfinite(total) and not _finite(fix.t, fix.x, fix.y, fix.vx, fix.vy, position_var, velocity_var):
+    if not math.isfinite(total) and not _finite(fix.t, x, y, fix.vx, fix.vy, position_var, velocity_var):
         return None
-    return _Point(fix.t, fix.x, fix.y, fix.vx, fix.vy, max(position_var, 0.0), max(velocity_var, 0.0))
+    return _Point(fix.t, x, y, fix.vx, fix.vy, max(position_var, 0.0), max(velocity_var, 0.0))
 
 
 def implausibility(fix: Fix, last: _Point | None, options: Mapping[str, Any]) -> str | None:
     """Why ``fix`` is physically implausible after ``last`` (the previous judged fix), or None."""
     if fix.x is None or fix.y is None:
         return None  # no estimate (uninitialised): nothing to judge
-    return _implausibility(fix, last, options, _position_variance(fix), _velocity_variance(fix))
+    return _implausibility(fix, fix.x, fix.y, last, options, _position_variance(fix), _velocity_variance(fix))
 
 
 def _judged(fix: Fix, last: _Point | None, options: Mapping[str, Any]) -> tuple[str | None, _Point | None]:
@@ -449,18 +447,25 @@ def _judged(fix: Fix, last: _Point | None, options: Mapping[str, Any]) -> tuple[
         return None, None
     position_var, velocity_var = _position_variance(fix), _velocity_variance(fix)
     return (
-        _implausibility(fix, last, options, position_var, velocity_var),
-        _point_of(fix, position_var, velocity_var),
+        _implausibility(fix, fix.x, fix.y, last, options, position_var, velocity_var),
+        _point_of(fix, fix.x, fix.y, position_var, velocity_var),
     )
 
 
 def _implausibility(
-    fix: Fix, last: _Point | None, options: Mapping[str, Any], position_var: float, velocity_var: float
+    fix: Fix,
+    x: float,
+    y: float,
+    last: _Point | None,
+    options: Mapping[str, Any],
+    position_var: float,
+    velocity_var: float,
 ) -> str | None:
-    """``implausibility`` of a fix with a position, its position and velocity variances given."""
-    if not _finite(fix.x, fix.y, fix.vx, fix.vy):
+    """``implausibility`` of a fix with a position (``x``, ``y``: its own, passed known not None), its
+    position and velocity variances given."""
+    if not _finite(x, y, fix.vx, fix.vy):
         return "the estimate is not finite"
-    distance = math.hypot(fix.x, fix.y)
+    distance = math.hypot(x, y)
     radius = options["site_radius_m"]
     if distance > radius:
         return f"position {distance:.4g} m from the site origin is beyond site_radius_m {radius:g} m"
@@ -483,11 +488,11 @@ def _implausibility(
                 f"acceleration {change / dt:.4g} m/s^2 over {dt:.4g} s exceeds max_acceleration_mps2 {accel:g} "
                 "m/s^2 (beyond the filter's own velocity uncertainty)"
             )
-        x = last.x + 0.5 * (last.vx + fix.vx) * dt
-        y = last.y + 0.5 * (last.vy + fix.vy) * dt
+        carried_x = last.x + 0.5 * (last.vx + fix.vx) * dt
+        carried_y = last.y + 0.5 * (last.vy + fix.vy) * dt
     else:
-        x, y = last.x, last.y
-    miss = math.hypot(fix.x - x, fix.y - y)
+        carried_x, carried_y = last.x, last.y
+    miss = math.hypot(x - carried_x, y - carried_y)
     spread = position_var + last.position_var + 0.25 * velocity_var * dt * dt
     speed = options["max_speed_mps"]
     if miss > speed * dt + 0.5 * accel * dt * dt + SIGMA_ALLOWANCE * math.sqrt(max(spread, 0.0)):

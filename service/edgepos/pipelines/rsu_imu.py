@@ -21,7 +21,7 @@ import math
 import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, cast
 
 import numpy as np
 from scipy.stats import chi2
@@ -543,19 +543,25 @@ def _used(index: int, kind: str) -> MeasurementUse:
     return MeasurementUse(index, kind, True)
 
 
-def _rsus_in_view(epoch, observations, rsus, options, uses) -> list[int]:
+def _rsus_in_view(
+    epoch: list[int],
+    observations: Sequence[Observation],
+    rsus: list[Rsu | None],
+    options: Mapping[str, Any],
+    uses: dict[int, MeasurementUse],
+) -> list[int]:
     """RSU observations inside their radius, nearest ``max_rsus`` by measured range."""
     in_radius = []
     for i in epoch:
         observation = observations[i]
         if not isinstance(observation, RsuObservation):
             continue
-        radius = rsus[i].radius or options["comm_radius"]
+        radius = cast(Rsu, rsus[i]).radius or options["comm_radius"]  # _validate found its station
         if observation.range > radius:
             uses[i] = MeasurementUse(i, observation.kind, False, f"range beyond the {radius:g} m communication radius")
         else:
             in_radius.append(i)
-    in_radius.sort(key=lambda i: observations[i].range)
+    in_radius.sort(key=lambda i: cast(RsuObservation, observations[i]).range)
     for i in in_radius[options["max_rsus"]:]:
         uses[i] = MeasurementUse(i, "rsu", False, f"not among the nearest {options['max_rsus']} RSUs")
     return in_radius[: options["max_rsus"]]
@@ -567,7 +573,15 @@ def _gate_threshold(probability: float, dof: int) -> float:
     return float(chi2.ppf(probability, dof))
 
 
-def _gate(candidates, gyros, measured, prior: Gaussian, probability, uses, stepper) -> tuple[list[int], list[int]]:
+def _gate(
+    candidates: list[int],
+    gyros: list[int],
+    measured: RsuGyroEpoch,
+    prior: Gaussian,
+    probability: float,
+    uses: dict[int, MeasurementUse],
+    stepper: BankStepper,
+) -> tuple[list[int], list[int]]:
     """Mahalanobis gate of each RSU pair (2 dof) and gyro reading (1 dof) against the fused prior.
 
     ``measured`` holds the epoch's RSU pairs and gyros; each group's distance uses its own diagonal
@@ -599,28 +613,42 @@ def _gate(candidates, gyros, measured, prior: Gaussian, probability, uses, stepp
     return kept_rsus, kept_gyros
 
 
-def _epoch_measurements(candidates, gyros, observations, rsus, options) -> RsuGyroEpoch:
+def _epoch_measurements(
+    candidates: list[int],
+    gyros: list[int],
+    observations: Sequence[Observation],
+    rsus: list[Rsu | None],
+    options: Mapping[str, Any],
+) -> RsuGyroEpoch:
     """The chosen RSU pairs and gyro readings as plain arrays, with their noise and the RSU handling."""
     count = len(candidates)
-    chosen = [rsus[i] for i in candidates]
-    measured = [observations[i] for i in candidates]
+    # candidates are RSU observations, whose stations _validate found; gyros are gyro observations
+    chosen = cast("list[Rsu]", [rsus[i] for i in candidates])
+    measured = cast("list[RsuObservation]", [observations[i] for i in candidates])
     positions = np.array([(rsu.x, rsu.y) for rsu in chosen], dtype=float).reshape(count, 2)
     observed = np.array([(o.range, o.bearing) for o in measured], dtype=float).reshape(count, 2)
     default_range, default_bearing = options["range_std"], options["bearing_std"]
     range_std = np.array([rsu.range_std or default_range for rsu in chosen], dtype=float)
     bearing_std = np.array([rsu.bearing_std or default_bearing for rsu in chosen], dtype=float)
     return RsuGyroEpoch(
-        positions, observed, range_std, bearing_std, np.array([observations[i].yaw_rate for i in gyros], dtype=float),
+        positions, observed, range_std, bearing_std, np.array([cast(GyroObservation, observations[i]).yaw_rate for i in gyros], dtype=float),
         options["gyro_std"], averaged=options["rsu_handling"] == "average",
     )
 
 
-def _initialise(session, bank, candidates, gyros, observations, rsus) -> None:
+def _initialise(
+    session: _SessionState,
+    bank: InteractingMultipleModel,
+    candidates: list[int],
+    gyros: list[int],
+    observations: Sequence[Observation],
+    rsus: list[Rsu | None],
+) -> None:
     """Start the filter from this epoch: position from the RSU fixes, velocity unknown."""
     options = session.options
     points, variances = [], []
-    for i in candidates:
-        observation, rsu = observations[i], rsus[i]
+    for i in candidates:  # RSU observations, whose stations _validate found
+        observation, rsu = cast(RsuObservation, observations[i]), cast(Rsu, rsus[i])
         points.append(
             [rsu.x + observation.range * math.cos(observation.bearing),
              rsu.y + observation.range * math.sin(observation.bearing)]
@@ -630,7 +658,7 @@ def _initialise(session, bank, candidates, gyros, observations, rsus) -> None:
         variances.append(range_std**2 + (observation.range * bearing_std) ** 2)
     x, y = np.mean(points, axis=0)
     position_var = float(np.mean(variances)) / len(points)
-    yaw_rate = float(np.mean([observations[i].yaw_rate for i in gyros])) if gyros else 0.0
+    yaw_rate = float(np.mean([cast(GyroObservation, observations[i]).yaw_rate for i in gyros])) if gyros else 0.0
     velocity_var = options["init_velocity_std"] ** 2
     mean = np.array([x, 0.0, 0.0, y, 0.0, 0.0, 0.0, yaw_rate])
     variances8 = [
@@ -652,7 +680,16 @@ def _fix_layout(components: tuple[int, ...]) -> tuple[int, int, np.ndarray, tupl
     return kinematic[0], kinematic[1], flat, tuple(layout.NAMES[c] for c in order)
 
 
-def _fix(t, status, output: Gaussian, session, bank, uses, nis, dof) -> Fix:
+def _fix(
+    t: float,
+    status: str,
+    output: Gaussian,
+    session: _SessionState,
+    bank: InteractingMultipleModel,
+    uses: dict[int, MeasurementUse],
+    nis: float | None,
+    dof: int,
+) -> Fix:
     components = tuple(output.components)
     x_index, y_index, kinematic_flat, names = _fix_layout(components)
     state = output.mean.tolist()

@@ -19,6 +19,7 @@ import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -26,7 +27,7 @@ from edgepos.core import layout
 from edgepos.core.imm import InteractingMultipleModel
 from edgepos.core.observations import Observation
 from edgepos.core.smoothing import bank_pair_predictions, imm_smooth, lag_ends
-from edgepos.pipelines.base import Environment, Fix, PipelineInputError, Problem, ensure_finite_fixes
+from edgepos.pipelines.base import Environment, Fix, PipelineInputError, Problem, Rsu, ensure_finite_fixes
 from edgepos.pipelines.epochs import group_by_time
 from edgepos.pipelines.rsu_imu import _bank, _decode, _fix, _options_key, _SessionState, _step, _validate
 
@@ -56,7 +57,10 @@ def smooth(
 
 
 def filter_run(
-    session: _SessionState, bank: InteractingMultipleModel, observations: Sequence[Observation], rsus: list
+    session: _SessionState,
+    bank: InteractingMultipleModel,
+    observations: Sequence[Observation],
+    rsus: list[Rsu | None],
 ) -> FilteredRun:
     """Filter a validated batch from ``session`` (advanced in place) exactly as process() does,
     keeping each epoch's bank."""
@@ -97,9 +101,10 @@ def smooth_run(
     smoothed = list(run.fixes)
     for segment in segments(run.fixes):
         times = np.array([run.fixes[k].t for k in segment])
-        means = np.stack([run.means[k] for k in segment])
-        covs = np.stack([run.covs[k] for k in segment])
-        probabilities = np.stack([run.probabilities[k] for k in segment])
+        # a segment holds filtered epochs only, whose bank was kept (not None)
+        means = np.stack(cast("list[np.ndarray]", [run.means[k] for k in segment]))
+        covs = np.stack(cast("list[np.ndarray]", [run.covs[k] for k in segment]))
+        probabilities = np.stack(cast("list[np.ndarray]", [run.probabilities[k] for k in segment]))
         pairs = bank_pair_predictions(bank, means, covs, np.diff(times))
         result = imm_smooth(
             means, covs, probabilities, bank.transition, *pairs,

@@ -83,7 +83,8 @@ def _gauss_markov(innovations: np.ndarray, step: float, tau: float) -> np.ndarra
 
 def klobuchar_obliquity(elevation: np.ndarray) -> np.ndarray:
     """Klobuchar's slant factor F = 1 + 16 (0.53 - E)^3, E the elevation in semicircles."""
-    return 1.0 + 16.0 * (0.53 - np.maximum(elevation, 0.0) / math.pi) ** 3
+    result: np.ndarray = 1.0 + 16.0 * (0.53 - np.maximum(elevation, 0.0) / math.pi) ** 3
+    return result
 
 
 def simulate(scenario: GnssScenario, rng: np.random.Generator) -> GnssRun:
@@ -235,7 +236,7 @@ def simulate(scenario: GnssScenario, rng: np.random.Generator) -> GnssRun:
                         prn=int(prns[j]),
                         pseudorange=float(pseudorange[k, j]),
                         cn0=float(round(cn0[k, j], 2)),
-                        sat_position=tuple(float(v) for v in transmit[k, j]),
+                        sat_position=(float(transmit[k, j, 0]), float(transmit[k, j, 1]), float(transmit[k, j, 2])),
                         sat_clock=float(sat_clock[k, j]),
                     )
                 )

@@ -151,7 +151,8 @@ def _turn_fraction(theta: np.ndarray, sharpness: float) -> np.ndarray:
     I the regularised incomplete beta function; the profile's symmetry gives the second half.
     """
     half = 0.5 * betainc(sharpness + 0.5, 0.5, np.sin(theta) ** 2)
-    return np.where(theta <= 0.5 * math.pi, half, 1.0 - half)
+    result: np.ndarray = np.where(theta <= 0.5 * math.pi, half, 1.0 - half)
+    return result
 
 
 @dataclass(frozen=True)
@@ -188,8 +189,8 @@ class UTurn(Segment):
                 f"UTurn: a {target} m shift in {self.duration} s at {speed} m/s is not reachable "
                 f"(between {narrowest:.3f} and {widest:.3f} m)"
             )
-        return brentq(
-            lambda p: self.lateral_shift(p, speed) - target, 1.0, MAX_U_TURN_SHARPNESS, xtol=1e-13
+        return float(
+            brentq(lambda p: self.lateral_shift(p, speed) - target, 1.0, MAX_U_TURN_SHARPNESS, xtol=1e-13)
         )
 
     def peak_yaw_rate(self, sharpness: float) -> float:

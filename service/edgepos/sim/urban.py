@@ -107,7 +107,8 @@ def _canyon(relative: np.ndarray, view: StreetView) -> np.ndarray:
     right_side = sine > 0.0
     height = np.where(right_side, view.right_height[:, None], view.left_height[:, None]) - ANTENNA_HEIGHT_M
     distance = np.where(right_side, view.right[:, None], view.left[:, None])
-    return np.arctan2(np.maximum(height, 0.0) * np.abs(sine), distance)
+    result: np.ndarray = np.arctan2(np.maximum(height, 0.0) * np.abs(sine), distance)
+    return result
 
 
 def nanjing_route() -> list[Segment]:

@@ -128,6 +128,27 @@ class StoredEphemerides:
     uploaded_at: float
 
 
+@dataclass(frozen=True)
+class StoredBaseStation:
+    """A registered reference station (``POST /v1/base-stations``): ``document`` is its registration as the
+    web layer encodes it (JSON: position, antenna delta, where the position came from); ``updated_at`` Unix
+    seconds of the last change of the document."""
+
+    station_id: str
+    document: str
+    updated_at: float
+
+
+@dataclass(frozen=True)
+class BaseWindow:
+    """A station and the part of its correction window a batch needs: the epochs (GPS s, document) with
+    ``since <= gpst <= until`` in time order, preceded by the newest epoch before ``since`` if there is one
+    (so a rover can be told that the newest correction is too old rather than that there is none)."""
+
+    station: StoredBaseStation
+    epochs: tuple[tuple[float, str], ...]
+
+
 def encode_track(track: NeighbourTrack, written_at: float) -> str:
     """One track as one JSON text (floats round-trip exactly): stores keep it as a single value, so a
     reader sees either the whole previous track or the whole new one."""
@@ -344,6 +365,37 @@ class SessionStore(ABC):
     @abstractmethod
     async def delete_ephemerides(self) -> bool:
         """Remove the navigation file; False if there was none."""
+
+    # reference stations and their corrections (shared like the ephemerides)
+    @abstractmethod
+    async def add_base_station(self, station: StoredBaseStation) -> bool:
+        """Register a station; False (nothing written) when one with its id exists."""
+
+    @abstractmethod
+    async def replace_base_station(self, station: StoredBaseStation) -> bool:
+        """Replace a registered station's document (its corrections stay); False when it is not registered."""
+
+    @abstractmethod
+    async def get_base_station(self, station_id: str) -> StoredBaseStation | None: ...
+
+    @abstractmethod
+    async def list_base_stations(self) -> list[StoredBaseStation]:
+        """Every registered station, sorted by id."""
+
+    @abstractmethod
+    async def delete_base_station(self, station_id: str) -> bool:
+        """Remove a station and its corrections; False if it was not registered."""
+
+    @abstractmethod
+    async def add_base_epochs(self, station_id: str, epochs: Sequence[tuple[float, str]], keep: int) -> int | None:
+        """Add correction epochs (GPS s, document) to a station's window, replacing any of the same time,
+        then drop the oldest beyond the newest ``keep``, in one atomic step. The window's size after, None
+        (nothing written) when the station is not registered."""
+
+    @abstractmethod
+    async def base_window(self, station_id: str, since: float, until: float) -> BaseWindow | None:
+        """One read: the station and its epochs from ``since`` to ``until`` (see :class:`BaseWindow`); None
+        when it is not registered."""
 
     # neighbour tracks: what a vehicle's session publishes for cooperative pipelines of other vehicles
     def track_is_live(self, written_at: float, now: float) -> bool:

@@ -10,11 +10,13 @@ from collections.abc import Iterable, Mapping, Sequence
 
 from edgepos.pipelines.base import NeighbourTrack, Rsu
 from edgepos.store.base import (
+    BaseWindow,
     Clock,
     Revocation,
     SessionRecord,
     SessionStore,
     SessionSummary,
+    StoredBaseStation,
     StoredEphemerides,
     Supersession,
     TooManySessions,
@@ -38,6 +40,8 @@ class MemoryStore(SessionStore):
         self._tracks: dict[str, tuple[NeighbourTrack, float]] = {}
         self._rate_tats: dict[str, float] = {}
         self._ephemerides: StoredEphemerides | None = None
+        self._base_stations: dict[str, StoredBaseStation] = {}
+        self._base_epochs: dict[str, dict[float, str]] = {}  # station id -> GPS s -> document
         self._live: dict[str, str] = {}  # vehicle id -> its live session's id
         self._superseded: dict[str, Supersession] = {}
         self._vehicles: dict[str, VehicleRecord] = {}
@@ -252,6 +256,48 @@ class MemoryStore(SessionStore):
     async def delete_ephemerides(self) -> bool:
         existed, self._ephemerides = self._ephemerides is not None, None
         return existed
+
+    async def add_base_station(self, station: StoredBaseStation) -> bool:
+        if station.station_id in self._base_stations:
+            return False
+        self._base_stations[station.station_id] = station
+        self._base_epochs[station.station_id] = {}
+        return True
+
+    async def replace_base_station(self, station: StoredBaseStation) -> bool:
+        if station.station_id not in self._base_stations:
+            return False
+        self._base_stations[station.station_id] = station
+        return True
+
+    async def get_base_station(self, station_id: str) -> StoredBaseStation | None:
+        return self._base_stations.get(station_id)
+
+    async def list_base_stations(self) -> list[StoredBaseStation]:
+        return [self._base_stations[key] for key in sorted(self._base_stations)]
+
+    async def delete_base_station(self, station_id: str) -> bool:
+        self._base_epochs.pop(station_id, None)
+        return self._base_stations.pop(station_id, None) is not None
+
+    async def add_base_epochs(self, station_id: str, epochs: Sequence[tuple[float, str]], keep: int) -> int | None:
+        window = self._base_epochs.get(station_id)
+        if window is None:
+            return None
+        window.update((float(gpst), document) for gpst, document in epochs)
+        for gpst in sorted(window)[: max(0, len(window) - keep)]:
+            del window[gpst]
+        return len(window)
+
+    async def base_window(self, station_id: str, since: float, until: float) -> BaseWindow | None:
+        station = self._base_stations.get(station_id)
+        if station is None:
+            return None
+        window = self._base_epochs[station_id]
+        times = sorted(window)
+        before = [t for t in times if t < since][-1:]
+        chosen = before + [t for t in times if since <= t <= until]
+        return BaseWindow(station, tuple((t, window[t]) for t in chosen))
 
     async def put_track(self, track: NeighbourTrack, session_id: str) -> bool:
         record = self._sessions.get(session_id)

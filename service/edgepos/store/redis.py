@@ -54,6 +54,7 @@ from edgepos.store.base import (
 )
 from edgepos.store.fixlog import FixLog
 from edgepos.store.ratelimit import SLACK_S, RateLimit, gcra
+from edgepos.store.redis_base import RedisBaseStations
 from edgepos.store.redis_registry import RedisRegistry
 
 DEFAULT_PREFIX = "edgepos:"
@@ -197,7 +198,7 @@ def _summary(session_id: str, values: Sequence[bytes | None]) -> SessionSummary 
     )
 
 
-class RedisStore(RedisRegistry, SessionStore):
+class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
     """Sessions and RSUs in Redis under ``prefix`` (see docs/redis.md for the key layout)."""
 
     SCRIPTS: Mapping[str, str] = {
@@ -213,6 +214,8 @@ class RedisStore(RedisRegistry, SessionStore):
         "publish_fixes": scripts.PUBLISH_FIXES,
         "replace_document": scripts.REPLACE_DOCUMENT,
         "acquire_lease": scripts.ACQUIRE_LEASE,
+        "add_base_epochs": scripts.ADD_BASE_EPOCHS,
+        "replace_base_station": scripts.REPLACE_BASE_STATION,
     }
 
     def __init__(
@@ -586,7 +589,7 @@ class RedisStore(RedisRegistry, SessionStore):
                 args=[session_id, repr(float(now - self.ttl_s)), encode_track(track, now), self._ttl_ms],
                 client=client,
             )
-        return written == 1
+        return bool(written == 1)
 
     async def get_tracks(self, vehicle_ids: Iterable[str]) -> Mapping[str, NeighbourTrack]:
         wanted = sorted(set(vehicle_ids))

@@ -267,3 +267,33 @@ if holder == false or holder == ARGV[1] then
 end
 return 0
 """
+
+# KEYS: the base-station hash, the station's epoch window (sorted set scored by GPS s).
+# ARGV: station id, how many epochs to keep, then (score, member) pairs.
+# Returns the window's size after, or -1 (the station is not registered; nothing written).
+ADD_BASE_EPOCHS = """
+if redis.call('HEXISTS', KEYS[1], ARGV[1]) == 0 then
+  return -1
+end
+for i = 3, #ARGV, 2 do
+  redis.call('ZREMRANGEBYSCORE', KEYS[2], ARGV[i], ARGV[i])
+  redis.call('ZADD', KEYS[2], ARGV[i], ARGV[i + 1])
+end
+local keep = tonumber(ARGV[2])
+local size = redis.call('ZCARD', KEYS[2])
+if size > keep then
+  redis.call('ZREMRANGEBYRANK', KEYS[2], 0, size - keep - 1)
+  size = keep
+end
+return size
+"""
+
+# KEYS: the base-station hash. ARGV: station id, value. Replaces the value only if the station exists.
+# Returns 1 if replaced, 0 if the station is not registered (nothing written).
+REPLACE_BASE_STATION = """
+if redis.call('HEXISTS', KEYS[1], ARGV[1]) == 0 then
+  return 0
+end
+redis.call('HSET', KEYS[1], ARGV[1], ARGV[2])
+return 1
+"""

@@ -39,6 +39,8 @@ from edgepos.store.base import (
 )
 from edgepos.store.fixlog import FixLog, SQLiteFixLog, fix_log_path
 from edgepos.store.ratelimit import RateLimit, gcra
+from edgepos.store.sqlite_base import SQLiteBaseStations
+from edgepos.store.sqlite_documents import SQLiteDocuments
 
 T = TypeVar("T")
 
@@ -74,6 +76,17 @@ CREATE TABLE IF NOT EXISTS ephemerides (
     digest TEXT NOT NULL,
     text TEXT NOT NULL,
     uploaded_at REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS base_stations (
+    station_id TEXT PRIMARY KEY,
+    document TEXT NOT NULL,
+    updated_at REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS base_epochs (
+    station_id TEXT NOT NULL,
+    gpst REAL NOT NULL,
+    document TEXT NOT NULL,
+    PRIMARY KEY (station_id, gpst)
 );
 CREATE TABLE IF NOT EXISTS tracks (
     vehicle_id TEXT PRIMARY KEY,
@@ -139,7 +152,7 @@ def path_from_url(url: str) -> Path:
     return Path(url[len(prefix) :])
 
 
-class SQLiteStore(SessionStore):
+class SQLiteStore(SQLiteBaseStations, SQLiteDocuments, SessionStore):
     """Sessions and RSUs in a SQLite database file."""
 
     def __init__(self, path: str | Path, ttl_s: float, clock: Clock = time.time) -> None:
@@ -576,54 +589,6 @@ class SQLiteStore(SessionStore):
     async def delete_ephemerides(self) -> bool:
         def work(db: sqlite3.Connection) -> bool:
             return db.execute("DELETE FROM ephemerides WHERE slot = 0").rowcount == 1
-
-        return await self._run(work)
-
-    # documents of the location adapter and leases ---------------------------------------------
-    async def put_document(self, kind: str, key: str, text: str) -> None:
-        def work(db: sqlite3.Connection) -> None:
-            db.execute("INSERT OR REPLACE INTO documents VALUES (?, ?, ?)", (kind, key, text))
-
-        await self._run(work)
-
-    async def replace_document(self, kind: str, key: str, text: str) -> bool:
-        def work(db: sqlite3.Connection) -> bool:
-            cursor = db.execute("UPDATE documents SET text = ? WHERE kind = ? AND key = ?", (text, kind, key))
-            return cursor.rowcount == 1
-
-        return await self._run(work)
-
-    async def get_document(self, kind: str, key: str) -> str | None:
-        def work(db: sqlite3.Connection) -> str | None:
-            row = db.execute("SELECT text FROM documents WHERE kind = ? AND key = ?", (kind, key)).fetchone()
-            return None if row is None else str(row[0])
-
-        return await self._run(work)
-
-    async def list_documents(self, kind: str) -> dict[str, str]:
-        def work(db: sqlite3.Connection) -> dict[str, str]:
-            rows = db.execute("SELECT key, text FROM documents WHERE kind = ? ORDER BY key", (kind,))
-            return {str(key): str(text) for key, text in rows}
-
-        return await self._run(work)
-
-    async def delete_document(self, kind: str, key: str) -> bool:
-        def work(db: sqlite3.Connection) -> bool:
-            return db.execute("DELETE FROM documents WHERE kind = ? AND key = ?", (kind, key)).rowcount == 1
-
-        return await self._run(work)
-
-    async def acquire_lease(self, name: str, owner: str, ttl_s: float) -> bool:
-        now = self.clock()
-
-        def work(db: sqlite3.Connection) -> bool:
-            # One statement: the row is taken when absent, expired or already the owner's, atomically.
-            cursor = db.execute(
-                "INSERT INTO leases VALUES (?, ?, ?) ON CONFLICT (name) DO UPDATE SET owner = excluded.owner, "
-                "expires_at = excluded.expires_at WHERE leases.owner = excluded.owner OR leases.expires_at <= ?",
-                (name, owner, now + ttl_s, now),
-            )
-            return cursor.rowcount == 1
 
         return await self._run(work)
 

@@ -30,7 +30,7 @@ async def readyz(context: Context) -> Ready:
     """200 when the session store answers within 2 s, else 503."""
     try:
         await asyncio.wait_for(context.store.ping(), READY_TIMEOUT_S)
-    except Exception as error:  # any store failure means "not ready", never a 500
+    except Exception as error:  # noqa: BLE001 - any store failure (timeout, transport, protocol) means "not ready", never a 500
         logger.warning("store not ready", extra={"event": "not_ready", "error": repr(error)})
         raise ApiError("unavailable", "the session store does not answer") from None
     return Ready(status="ready")

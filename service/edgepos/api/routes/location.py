@@ -25,6 +25,7 @@ from edgepos.api.location.problems import MEDIA_TYPE
 from edgepos.api.location.schemas import (
     ADDRESS_PATTERN,
     LOCATION_EVENT_TYPES,
+    ZONE_ID_PATTERN,
     InlineTerminalDistance,
     InlineUserList,
     InlineZoneInfo,
@@ -291,7 +292,7 @@ async def query_zones(request: Request, context: Context) -> InlineZoneList:
 async def query_zone(
     request: Request,
     context: Context,
-    zoneId: Annotated[str, Path(max_length=64)],
+    zoneId: Annotated[str, Path(pattern=ZONE_ID_PATTERN, description="An operator zone's id.")],
 ) -> InlineZoneInfo:
     for info in await _zone_infos(request, context):
         if info.zoneId == zoneId:
@@ -474,7 +475,7 @@ async def list_zone_subscriptions(
     context: Context,
     subscription_type: SubscriptionType = None,
     zoneId: Annotated[
-        str | None, Query(max_length=64, description="Only the subscriptions of this zone.")
+        str | None, Query(pattern=ZONE_ID_PATTERN, description="Only the subscriptions of this zone.")
     ] = None,
 ) -> NotificationSubscriptionList:
     return await _list(

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Query, Request, Response
+from fastapi import APIRouter, Depends, Query, Request, Response, WebSocket
 
 from edgepos.api import session_service
 from edgepos.api.auth import (
@@ -15,7 +15,8 @@ from edgepos.api.auth import (
     require_session,
     require_vehicle,
 )
-from edgepos.api.context import Context
+from edgepos.api.batch_socket import BatchSocket
+from edgepos.api.context import AppContext, Context
 from edgepos.api.routes import errors, json_body, known_query_parameters
 from edgepos.api.schemas import (
     PIPELINE_NAME_PATTERN,
@@ -59,7 +60,7 @@ _FROM_PATH = "$request.path.session_id"
     response_model=SessionCreated,
     summary="Open a session",
     responses={
-        **errors(401, 403, 413, 415, 422, 429, 503),
+        **errors(401, 403, 404, 413, 415, 422, 429, 503),
         201: {"links": _links(_FROM_BODY, _READ_IT, _SEND_TO_IT, _DELETE_IT)},
     },
 )
@@ -75,7 +76,9 @@ async def create_session(
     live session: opening another supersedes the old one, whose token then gets 409 superseded.
 
     Keep the returned token: it is shown once and opens only this session (send it as
-    ``Authorization: Bearer <token>``)."""
+    ``Authorization: Bearer <token>``). Send the session batches with POST /v1/sessions/{session_id}/batches,
+    or over one WebSocket, /v1/sessions/{session_id}/ws (protocol in docs/service.md, "Batches over a
+    WebSocket")."""
     await authorise_session_creation(request, context, principal, body.vehicle_id)
     return await session_service.create_session(context, body, principal.vehicle_key_hash)
 
@@ -174,7 +177,19 @@ async def post_batch(session_id: str, body: BatchIn, context: Context, request: 
     All or nothing: any problem gives 4xx listing every offending measurement and leaves the session
     unchanged. ``seq`` must be last_seq + 1; re-sending the last seq with the same content returns
     the stored response without applying it again; a different body for it, an older seq or a gap
-    is 409."""
+    is 409.
+
+    A vehicle that keeps a link open can send the same batches over one WebSocket instead,
+    ``GET /v1/sessions/{session_id}/ws`` (same credential, seq rules, replay and error bodies; one frame per
+    batch and per answer). WebSocket routes are not part of OpenAPI: the protocol is described in
+    docs/service.md, section "Batches over a WebSocket"."""
     prefetched = getattr(request.state, "session_record", None)  # read by the token check
     body_bytes = await session_service.apply_batch(context, session_id, body, prefetched)
     return Response(body_bytes, media_type="application/json")
+
+
+@router.websocket("/{session_id}/ws")
+async def batch_websocket(websocket: WebSocket, session_id: str) -> None:
+    """Batches over one WebSocket (see :mod:`edgepos.api.batch_socket` and docs/service.md)."""
+    context: AppContext = websocket.app.state.context
+    await BatchSocket(websocket, context, session_id).serve()

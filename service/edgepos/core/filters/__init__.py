@@ -32,4 +32,14 @@ def make_filter(name: str, **params: Any) -> GaussianFilter:
         raise ConfigurationError(f"bad parameters for filter {name!r}: {error}") from None
 
 
-__all__ = ["FILTERS", "GaussianFilter", "UpdateResult", "kalman_correct", "make_filter"]
+__all__ = [
+    "FILTERS",
+    "CubatureKalmanFilter",
+    "ExtendedKalmanFilter",
+    "GaussianFilter",
+    "SquareRootUnscentedKalmanFilter",
+    "UnscentedKalmanFilter",
+    "UpdateResult",
+    "kalman_correct",
+    "make_filter",
+]

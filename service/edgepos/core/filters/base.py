@@ -76,8 +76,8 @@ class GaussianFilter(ABC):
         for j, model in enumerate(models):
             if not model.linear:
                 idx = _index(model.components)
-                block = (idx, idx) if isinstance(idx, slice) else np.ix_(idx, idx)
-                new_means[j, idx], new_covs[j][block] = self.predict(means[j, idx], covs[j][block], model, dt)
+                own = (idx, idx) if isinstance(idx, slice) else np.ix_(idx, idx)
+                new_means[j, idx], new_covs[j][own] = self.predict(means[j, idx], covs[j][own], model, dt)
         new_means[:, layout.PHI] = wrap_angle(new_means[:, layout.PHI])
         require_finite("predicted state", new_means, new_covs)
         return new_means, new_covs

@@ -22,6 +22,7 @@ from edgepos.core.filters.base import GaussianFilter
 from edgepos.core.measurements.base import MeasurementModel
 from edgepos.core.motion.base import MotionModel
 from edgepos.core.numerics import (
+    FloatArray,
     require_finite,
     robust_cholesky,
     symmetrize,
@@ -65,7 +66,9 @@ class SigmaPointFilter(GaussianFilter):
         require_finite("predicted state", new_mean, new_cov)
         return new_mean, new_cov
 
-    def bank_points(self, means: np.ndarray, covs: np.ndarray, active: np.ndarray):
+    def bank_points(
+        self, means: np.ndarray, covs: np.ndarray, active: np.ndarray
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Sigma points of every Gaussian of a bank: offsets (B, n, 8), mean and cov weights (B, n)."""
         pad, column_scale, mean_weights, cov_weights = _bank_weights(self, active.tobytes(), active.shape)
         padded = covs + pad
@@ -118,7 +121,9 @@ def _unit_points(filt: SigmaPointFilter, dim: int) -> tuple[np.ndarray, np.ndarr
 
 
 @functools.lru_cache(maxsize=256)
-def _bank_weights(filt: SigmaPointFilter, active_key: bytes, shape: tuple[int, int]):
+def _bank_weights(
+    filt: SigmaPointFilter, active_key: bytes, shape: tuple[int, int]
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """For a bank's active pattern (cached): the identity padding of inactive diagonals, the spread
     of each direction (zero for inactive ones), and padded mean and covariance weights."""
     active = np.frombuffer(active_key, dtype=bool).reshape(shape)

@@ -15,6 +15,8 @@ predict/update contract. In exact arithmetic every result equals the UKF's.
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 
 from edgepos.core import layout
@@ -22,7 +24,14 @@ from edgepos.core.errors import NumericalError
 from edgepos.core.filters.ukf import UnscentedKalmanFilter
 from edgepos.core.measurements.base import MeasurementModel
 from edgepos.core.motion.base import MotionModel
-from edgepos.core.numerics import require_finite, robust_cholesky, weighted_mean, wrap_angle, wrap_rows
+from edgepos.core.numerics import (
+    FloatArray,
+    require_finite,
+    robust_cholesky,
+    weighted_mean,
+    wrap_angle,
+    wrap_rows,
+)
 
 
 def noise_square_root(noise: np.ndarray) -> np.ndarray:
@@ -32,7 +41,8 @@ def noise_square_root(noise: np.ndarray) -> np.ndarray:
     scale = max(float(np.max(np.abs(eigenvalues))), 1e-300)
     if eigenvalues.min() < -1e-9 * scale:
         raise NumericalError(f"noise covariance is indefinite (smallest eigenvalue {eigenvalues.min():.3g})")
-    return np.sqrt(np.maximum(eigenvalues, 0.0))[:, None] * eigenvectors.T
+    rows: FloatArray = np.sqrt(np.maximum(eigenvalues, 0.0))[:, None] * eigenvectors.T
+    return rows
 
 
 def cholesky_update(upper: np.ndarray, vector: np.ndarray, sign: float) -> np.ndarray:
@@ -61,7 +71,8 @@ def cholesky_update(upper: np.ndarray, vector: np.ndarray, sign: float) -> np.nd
 
 def triangular_factor(rows: np.ndarray, centre: np.ndarray | None, centre_weight: float) -> np.ndarray:
     """Upper R with R^T R = rows^T rows + centre_weight * centre centre^T (QR, then rank-one step)."""
-    upper = np.linalg.qr(rows, mode="r")
+    # numpy's stubs type every mode of qr as QRResult; mode "r" returns the factor R alone.
+    upper = cast(FloatArray, np.linalg.qr(rows, mode="r"))
     upper = upper * np.where(np.diag(upper) < 0.0, -1.0, 1.0)[:, None]  # non-negative diagonal
     dim = rows.shape[1]
     if upper.shape[0] < dim:

@@ -53,4 +53,4 @@ class UnscentedKalmanFilter(SigmaPointFilter):
         return hash((self.name, self.alpha, self.beta, self.kappa))
 
     def __eq__(self, other: object) -> bool:
-        return type(other) is type(self) and other.params() == self.params()  # type: ignore[attr-defined]
+        return type(other) is type(self) and other.params() == self.params()

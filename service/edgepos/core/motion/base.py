@@ -15,6 +15,7 @@ import numpy as np
 from scipy.linalg import expm
 
 from edgepos.core.errors import ConfigurationError
+from edgepos.core.numerics import FloatArray
 from edgepos.core.parameters import ParameterSpec
 
 #: Timestamps are resolved to this step (1 ns) when a discretisation is cached per interval.
@@ -275,7 +276,8 @@ class LinearAxisModel(MotionModel):
 
     def propagate(self, points: np.ndarray, dt: float) -> np.ndarray:
         transition, _ = self.discretise(dt)
-        return points @ transition.T
+        propagated: FloatArray = points @ transition.T
+        return propagated
 
     def transition_matrix(self, mean: np.ndarray, dt: float) -> np.ndarray:
         return self.discretise(dt)[0]
@@ -292,7 +294,7 @@ class LinearAxisModel(MotionModel):
             return self._hash
 
     def __eq__(self, other: object) -> bool:
-        return type(other) is type(self) and other.params() == self.params()  # type: ignore[attr-defined]
+        return type(other) is type(self) and other.params() == self.params()
 
 
 @functools.lru_cache(maxsize=512)

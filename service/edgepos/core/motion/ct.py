@@ -19,6 +19,7 @@ from edgepos.core.motion.base import (
     dt_key,
 )
 from edgepos.core.motion.turn import turn_matrix, turn_noise
+from edgepos.core.numerics import FloatArray
 from edgepos.core.parameters import ParameterSpec
 
 
@@ -45,7 +46,8 @@ class CoordinatedTurn(MotionModel):
         return {"q": self.q, "omega": self.omega, "noise": self.noise}
 
     def propagate(self, points: np.ndarray, dt: float) -> np.ndarray:
-        return points @ self.transition_matrix(points[0], dt).T
+        propagated: FloatArray = points @ self.transition_matrix(points[0], dt).T
+        return propagated
 
     def transition_matrix(self, mean: np.ndarray, dt: float) -> np.ndarray:
         return _turn_matrix_cached(self.omega, dt_key(dt))

@@ -20,6 +20,7 @@ import numpy as np
 from edgepos.core import layout
 from edgepos.core.motion.base import MotionModel, check_positive, dt_key, van_loan
 from edgepos.core.motion.singer import singer_drift
+from edgepos.core.numerics import FloatArray
 from edgepos.core.parameters import ParameterSpec
 
 _CA_DRIFT = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.0, 0.0, 0.0]])
@@ -53,7 +54,8 @@ class CurrentStatistical(MotionModel):
         return _RAYLEIGH_FACTOR * margin * margin
 
     def propagate(self, points: np.ndarray, dt: float) -> np.ndarray:
-        return points @ _ca_transition(dt_key(dt)).T
+        propagated: FloatArray = points @ _ca_transition(dt_key(dt)).T
+        return propagated
 
     def transition_matrix(self, mean: np.ndarray, dt: float) -> np.ndarray:
         return _ca_transition(dt_key(dt))

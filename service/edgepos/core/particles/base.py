@@ -16,6 +16,7 @@ from typing import Protocol
 import numpy as np
 
 from edgepos.core.errors import NumericalError
+from edgepos.core.numerics import FloatArray
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -53,7 +54,8 @@ class Measurement:
         """log p(z | x) for residuals z - h(x) (..., m), summed over the last axis."""
         if self.outlier_probability <= 0.0:
             return diagonal_logpdf(residual, self.variances)
-        return np.sum(self.component_log_likelihoods(residual), axis=-1)
+        total: FloatArray = np.sum(self.component_log_likelihoods(residual), axis=-1)
+        return total
 
     def component_log_likelihoods(self, residual: np.ndarray) -> np.ndarray:
         """log of each component's mixture density (..., m)."""
@@ -62,7 +64,8 @@ class Measurement:
         outlier = math.log(p) - 0.5 * (
             residual * residual / self.outlier_variance + np.log(self.outlier_variance) + _LOG_2PI
         )
-        return np.logaddexp(inlier, outlier)
+        mixture: FloatArray = np.logaddexp(inlier, outlier)
+        return mixture
 
 
 @dataclass
@@ -76,7 +79,8 @@ class Cloud:
 
     @property
     def weights(self) -> np.ndarray:
-        return np.exp(self.log_weights)
+        weights: FloatArray = np.exp(self.log_weights)
+        return weights
 
 
 @dataclass(frozen=True)
@@ -165,12 +169,14 @@ def gaussian_logpdf(deviation: np.ndarray, chol: np.ndarray) -> np.ndarray:
     whitened = np.linalg.solve(chol, deviation[..., None])[..., 0]
     log_det = np.sum(np.log(np.diagonal(chol, axis1=-2, axis2=-1)), axis=-1)
     k = deviation.shape[-1]
-    return -0.5 * np.sum(whitened * whitened, axis=-1) - log_det - 0.5 * k * _LOG_2PI
+    log_pdf: FloatArray = -0.5 * np.sum(whitened * whitened, axis=-1) - log_det - 0.5 * k * _LOG_2PI
+    return log_pdf
 
 
 def diagonal_logpdf(residual: np.ndarray, variances: np.ndarray) -> np.ndarray:
     """log N(residual; 0, diag(variances)) over the last axis."""
-    return -0.5 * np.sum(residual * residual / variances + np.log(variances) + _LOG_2PI, axis=-1)
+    log_pdf: FloatArray = -0.5 * np.sum(residual * residual / variances + np.log(variances) + _LOG_2PI, axis=-1)
+    return log_pdf
 
 
 @dataclass(frozen=True)
@@ -218,7 +224,7 @@ def sigma_points(means: np.ndarray, chols: np.ndarray, active: np.ndarray, weigh
 def sigma_mean(points: np.ndarray, weights: np.ndarray, angles: np.ndarray) -> np.ndarray:
     """Weighted mean over the sigma axis (N, S, D) -> (N, D); angles averaged as wrapped offsets from the
     central point."""
-    mean = weights @ points
+    mean: FloatArray = weights @ points
     if angles.any():
         centre = points[:, 0, angles]
         offsets = wrap(points[:, :, angles] - centre[:, None, :], np.ones(int(angles.sum()), dtype=bool))
@@ -228,7 +234,8 @@ def sigma_mean(points: np.ndarray, weights: np.ndarray, angles: np.ndarray) -> n
 
 def weighted_outer(weights: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """sum_s w_s a[n, s, :] b[n, s, :]^T for sigma-point deviations a (N, S, i), b (N, S, j) -> (N, i, j)."""
-    return np.swapaxes(a * weights[:, None], -1, -2) @ b
+    outer: FloatArray = np.swapaxes(a * weights[:, None], -1, -2) @ b
+    return outer
 
 
 @dataclass(frozen=True)
@@ -373,7 +380,7 @@ def regularised_resample(
     weights = np.exp(log_weights)
     mean, cov = weighted_moments(particles, weights, angles)
     unbiased = 1.0 - float(np.sum(weights * weights))
-    resampled = particles[systematic_resample(log_weights, rng)]
+    resampled: FloatArray = particles[systematic_resample(log_weights, rng)]
     uniform = np.full(count, -math.log(count))
     index = np.flatnonzero(active)
     if kernel:

@@ -33,6 +33,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from edgepos.core.motion.riss import ANGLES
+from edgepos.core.numerics import FloatArray
 from edgepos.core.particles.base import (
     Cloud,
     Measurement,
@@ -58,7 +59,8 @@ def predicted_own_covariance(cloud: Cloud, model: ParticleModel, dt: float, acti
     linearisation point serves every particle."""
     centre, _ = weighted_moments(cloud.particles, cloud.weights, ANGLES)
     _, _, cov = unscented_predict(centre[None, :], cloud.cov, model, dt, active, ANGLES)
-    return cov[0]
+    own: FloatArray = cov[0]
+    return own
 
 
 @dataclass(frozen=True)
@@ -74,7 +76,8 @@ class UnscentedParticleFilter:
     def covariance(self, cloud: Cloud) -> np.ndarray:
         """The state covariance the cloud stands for: spread of the centres plus their own covariance."""
         _, spread = weighted_moments(cloud.particles, cloud.weights, ANGLES)
-        return spread + cloud.cov
+        total: FloatArray = spread + cloud.cov
+        return total
 
     def step(
         self, cloud: Cloud, model: ParticleModel, dt: float, active: np.ndarray,

@@ -1,0 +1,158 @@
+"""Benchmark: the service against its floor under wrk (a C load generator), interleaved rounds in one run.
+
+The figures of the performance issue: closed loops of N vehicles (one wrk thread and connection each)
+sending ``rsu_imu`` batches of 20 epochs of the RSU + IMU paper's scenario (4 RSUs + gyro per epoch),
+timestamps jittered by a few milliseconds as real clocks are, against
+
+* the service (``edgepos serve``, the demo RSU map, rate limit off: capacity, not policy) on the
+  in-process store, or on a ``redis-server`` started here (append-only file, ``appendfsync everysec``);
+* the floor (``bench/floor_app.py``): the same routes and request schemas, fixed answers of the same
+  shape, no filter, no store.
+
+Each round runs every target once, so a service and its floor are measured close together under the
+same background load; the ratio service ÷ floor is taken per round. wrk's latency percentiles include
+the few session creations (one per 40 batches per vehicle). wrk is Debian's package (``make bench``
+installs it).
+
+    python bench/wrk_load.py [--workers 1] [--store memory|redis] [--vehicles 16] [--duration 10]
+        [--rounds 3] [--batch 20] [--jitter-ms 3] [--json FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import platform
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from edgepos.loadgen import common
+from edgepos.loadgen.localredis import RedisServer, redis_binary
+from edgepos.loadgen.localserver import PORT_PLACEHOLDER, clean_environment, running, serve_command
+from edgepos.sim.scenarios import rsu_imu_paper_scenario
+
+BENCH_DIR = Path(__file__).resolve().parent
+ADMIN_KEY = "wrk-benchmark-admin-key"
+
+
+def write_batches(directory: Path, batch_epochs: int, jitter_s: float, seed: int) -> int:
+    """The scenario's epochs as batch bodies (one JSON line each, ``"seq":0`` for the script to set) and
+    the session-creation body; returns the number of batches per trip."""
+    scenario = rsu_imu_paper_scenario()
+    rng = np.random.default_rng(seed)
+    epochs = common.vehicle_epochs(scenario, seed, 0)
+    shifts = rng.uniform(-jitter_s, jitter_s, len(epochs))  # period 50 ms: the order is kept
+    lines = []
+    for start in range(0, len(epochs) - batch_epochs + 1, batch_epochs):
+        measurements = []
+        for shift, epoch in zip(shifts[start : start + batch_epochs], epochs[start : start + batch_epochs]):
+            for observation in epoch:
+                wire = common.to_wire(observation).model_dump(mode="json", exclude_none=True)
+                wire["t"] = round(float(observation.t + shift), 6)
+                measurements.append(wire)
+        lines.append(json.dumps({"seq": 0, "measurements": measurements}, separators=(",", ":")))
+    (directory / "batches.jsonl").write_text("\n".join(lines) + "\n")
+    initial = common.initial_state(scenario)
+    create = {
+        "vehicle_id": "wrk-VEHICLE",
+        "pipeline": "rsu_imu",
+        "initial_state": {"x": initial.x, "y": initial.y, "vx": initial.vx, "vy": initial.vy},
+    }
+    (directory / "create.json").write_text(json.dumps(create, separators=(",", ":")))
+    return len(lines)
+
+
+def run_wrk(url: str, directory: Path, vehicles: int, duration_s: float) -> dict[str, Any]:
+    """One closed-loop wrk run; the totals its script prints."""
+    command = [
+        "wrk", "-t", str(vehicles), "-c", str(vehicles), "-d", f"{duration_s:g}s", "--timeout", "10s",
+        "-s", str(BENCH_DIR / "wrk_batches.lua"), url, "--", str(directory), ADMIN_KEY,
+    ]  # fmt: skip
+    output = subprocess.run(command, capture_output=True, text=True, check=True, timeout=duration_s + 60).stdout
+    line = next(line for line in output.splitlines() if line.startswith("WRK_RESULT "))
+    result: dict[str, Any] = json.loads(line.removeprefix("WRK_RESULT "))
+    seconds = result["duration_us"] / 1e6
+    result["epochs_per_s"] = result["epochs"] / seconds
+    return result
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--store", choices=("memory", "redis"), default="memory")
+    parser.add_argument("--vehicles", type=int, default=16)
+    parser.add_argument("--duration", type=float, default=10.0, help="seconds per run")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--batch", type=int, default=20, help="epochs per batch")
+    parser.add_argument("--jitter-ms", type=float, default=3.0, help="timestamp jitter, uniform +-")
+    parser.add_argument("--json", type=Path)
+    args = parser.parse_args()
+    if shutil.which("wrk") is None:
+        print("wrk is not installed: `make wrk` (Debian package) installs it", file=sys.stderr)
+        return 2
+    load_before = os.getloadavg()[0]
+    print(
+        f"wrk load: {os.cpu_count()} cores, {platform.python_implementation()} {platform.python_version()}, "
+        f"{args.vehicles} vehicles closed loop, {args.batch}-epoch batches, jitter +-{args.jitter_ms:g} ms, "
+        f"{args.workers} worker(s), store {args.store}, {args.duration:g} s x {args.rounds} rounds, "
+        f"load average {load_before:.2f} at start",
+        flush=True,
+    )
+    results: dict[str, list[dict[str, Any]]] = {"service": [], "floor": []}
+    with tempfile.TemporaryDirectory(prefix="edgepos-wrk-") as tmp, contextlib.ExitStack() as stack:
+        workdir = Path(tmp)
+        write_batches(workdir, args.batch, args.jitter_ms / 1e3, seed=1)
+        env = clean_environment(
+            EDGEPOS_ADMIN_KEY=ADMIN_KEY,
+            EDGEPOS_ADMIN_KEY_FILE=str(workdir / "admin.key"),
+            EDGEPOS_DEMO_RSUS="true",
+            EDGEPOS_RATE_LIMIT_PER_S="0",  # capacity, not policy
+        )
+        if args.store == "redis":
+            binary = redis_binary()
+            if binary is None:
+                print("redis-server is not installed: `make redis-server` installs it", file=sys.stderr)
+                return 2
+            redis = stack.enter_context(
+                RedisServer(binary, workdir / "redis", "--appendonly", "yes", "--appendfsync", "everysec")
+            )
+            env["EDGEPOS_STORE"] = redis.url(prefix="wrk")
+        floor = [sys.executable, str(BENCH_DIR / "floor_app.py"), "--port", PORT_PLACEHOLDER]
+        floor += ["--workers", str(args.workers)]
+        targets = {"service": serve_command(args.workers), "floor": floor}
+        for round_index in range(args.rounds):
+            for name, command in targets.items():
+                with running(command, env, workdir / f"{name}.log", ready_timeout_s=300.0) as url:
+                    run_wrk(url, workdir, args.vehicles, min(2.0, args.duration))  # warm-up (compiles, caches)
+                    result = run_wrk(url, workdir, args.vehicles, args.duration)
+                results[name].append(result)
+                print(
+                    f"  round {round_index + 1} {name:8s} {result['epochs_per_s']:9.0f} epochs/s  "
+                    f"p50 {result['p50_us'] / 1e3:6.1f} ms  p99 {result['p99_us'] / 1e3:6.1f} ms  "
+                    f"errors {result['errors'] + result['socket_errors']}",
+                    flush=True,
+                )
+    ratios = [s["epochs_per_s"] / f["epochs_per_s"] for s, f in zip(results["service"], results["floor"])]
+    service = statistics.median(r["epochs_per_s"] for r in results["service"])
+    floor_rate = statistics.median(r["epochs_per_s"] for r in results["floor"])
+    print(
+        f"service {service:.0f} epochs/s, floor {floor_rate:.0f} (medians of rounds); service / floor per round: "
+        + ", ".join(f"{ratio:.2f}" for ratio in ratios)
+        + f"; load average {load_before:.2f} before, {os.getloadavg()[0]:.2f} after"
+    )
+    if args.json:
+        args.json.write_text(json.dumps({"args": vars(args) | {"json": str(args.json)}, "results": results,
+                                         "ratios": ratios}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
