@@ -20,6 +20,7 @@ from edgepos.api.errors import ApiError
 from edgepos.api.location.fixes import LatestFix, address_of, timestamp
 from edgepos.api.location.schemas import (
     LinkType,
+    LocationEventType,
     SubscriptionLink,
     UserLocationEventNotification,
     ZoneLocationEventNotification,
@@ -136,7 +137,7 @@ def memberships(
 class Crossing:
     vehicle_id: str
     zone_id: str
-    event: str
+    event: LocationEventType
 
 
 def crossings(
@@ -172,7 +173,7 @@ def notification(
         body: Any = UserLocationEventNotification(
             timeStamp=timestamp(now),
             address=address,
-            eventType=crossing.event,  # type: ignore[arg-type]
+            eventType=crossing.event,
             zoneId=crossing.zone_id,
             locationInfo=info,
             links=links,
@@ -182,7 +183,7 @@ def notification(
             timeStamp=timestamp(now),
             address=address,
             zoneId=crossing.zone_id,
-            userLocationEvent=crossing.event,  # type: ignore[arg-type]
+            userLocationEvent=crossing.event,
             links=links,
         )
     result: dict[str, Any] = body.model_dump(mode="json", exclude_none=True)

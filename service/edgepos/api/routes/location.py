@@ -490,7 +490,7 @@ SubscriptionId = Annotated[
 
 async def _document(context: AppContext, kind: str, subscription_id: str) -> dict[str, Any]:
     text = await context.store.get_document(subs.KIND, subscription_id)
-    document = None if text is None else json.loads(text)
+    document: dict[str, Any] | None = None if text is None else json.loads(text)
     if document is None or document["kind"] != kind:
         raise ApiError(
             "not_found", f"no {kind} subscription {subscription_id!r} (deleted, expired, or never made)"
