@@ -31,7 +31,11 @@ def batch(vehicle_y: float, peer: str, k: int) -> list[dict]:
 
 
 def test_a_range_uses_the_peer_session_and_says_when_it_cannot(client):
-    lone, lone_auth = open_session(client, vehicle_id="lone", pipeline="v2x_federated")
+    # Taken as independent, a found peer's range is always used (by covariance intersection, the default,
+    # a peer no better placed than the vehicle gets no weight): what is checked here is the plumbing.
+    lone, lone_auth = open_session(
+        client, vehicle_id="lone", pipeline="v2x_federated", options={"neighbour_fusion": "independent"}
+    )
     response = client.post(f"/v1/sessions/{lone}/batches", json={"seq": 1, "measurements": batch(0.0, "ghost", 0) + batch(0.0, "lone", 1)}, headers=lone_auth)
     assert response.status_code == 200, response.text
     reasons = [u["reason"] for f in response.json()["fixes"] for u in f["measurements"] if u["type"] == "v2v_range"]
@@ -58,7 +62,7 @@ def test_two_vehicles_ranging_to_each_other_update_concurrently(client):
     on a busy machine by more than any max_neighbour_age, which is the service working as documented.
     """
     lanes = {"north": (4.0, "south"), "south": (0.0, "north")}
-    options = {"max_neighbour_age": 1.5 * STEP}
+    options = {"max_neighbour_age": 1.5 * STEP, "neighbour_fusion": "independent"}  # every found range used
     sessions = {
         name: open_session(client, vehicle_id=name, pipeline="v2x_federated", options=options)
         for name in lanes

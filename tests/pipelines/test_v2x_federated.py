@@ -20,7 +20,13 @@ from edgepos.core.observations import (
     V2vRangeObservation,
 )
 from edgepos.eval.federated import METHODS, assisting_tracks, run_method
-from edgepos.pipelines.base import NeighbourTrack, PipelineInputError, StaticEnvironment, TrackPoint
+from edgepos.pipelines.base import (
+    InitialState,
+    NeighbourTrack,
+    PipelineInputError,
+    StaticEnvironment,
+    TrackPoint,
+)
 from edgepos.pipelines.registry import get_pipeline
 from edgepos.pipelines.v2x_federated import RangesToPoints, fuse
 from edgepos.sim.federated import make_run
@@ -166,7 +172,9 @@ def test_fix_says_why_measurements_were_not_used():
 
 
 def test_first_odometer_distance_has_no_interval():
-    pipeline, state = _session()
+    pipeline = get_pipeline("v2x_federated")
+    # Started with a velocity, its first fix lets dead reckoning start (from rest it waits for a second).
+    state = pipeline.create(pipeline.resolve_options({}), InitialState(0.0, 0.0, 10.0, 0.0))
     batch = [GnssFixObservation(0.0, 0.0, 0.0)]
     _, state = pipeline.process(state, batch, StaticEnvironment())
     fixes, _ = pipeline.process(state, [OdometerObservation(0.2, distance=2.0)], StaticEnvironment())

@@ -83,9 +83,13 @@ class Settings(BaseSettings):
         0,
         ge=0,
         le=16,
-        description="Redis only: replicas that must hold a batch (WAIT) before it is acknowledged; 0 acknowledges "
-        "once the primary has it. A batch that does not reach them in time is a 503 and not acknowledged "
-        "(it is on the primary: the same batch sent again is answered once it is replicated).",
+        description=(
+            "Redis only: replicas that must hold a batch (Redis WAIT) before it is acknowledged; 0 "
+            "acknowledges once the primary has it. A batch that does not reach them within "
+            "EDGEPOS_REDIS_WAIT_TIMEOUT_MS is a 503 unavailable saying so, and is not acknowledged; it "
+            "is on the primary, so the same batch sent again is answered (from the stored answer) once "
+            "the replicas have it (docs/redis.md)."
+        ),
     )
     redis_wait_timeout_ms: int = Field(
         500, ge=1, le=60_000, description="Redis only: how long a batch waits for those replicas (ms)."
@@ -95,12 +99,20 @@ class Settings(BaseSettings):
         3600.0,
         gt=0,
         allow_inf_nan=False,
-        description="Seconds without a batch after which a session expires.",
+        description=(
+            "A session with no applied batch for this many seconds (since its last batch, or its "
+            "creation) expires and is removed."
+        ),
     )
     max_batch_measurements: int = Field(
-        1000, ge=1, le=100_000, description="Measurements allowed in one batch (422 beyond)."
+        1000, ge=1, le=100_000, description=(
+            "Measurements allowed in one batch; more gives 422 invalid_request (field measurements)."
+        )
     )
-    max_body_bytes: int = Field(1_048_576, ge=1024, description="Largest request body in bytes (413 beyond).")
+    max_body_bytes: int = Field(1_048_576, ge=1024, description=(
+            "Largest request body in bytes; larger gives 413 payload_too_large before anything is "
+            "parsed."
+        ))
     max_ephemerides_bytes: int = Field(
         16_777_216,
         ge=1024,
@@ -127,8 +139,12 @@ class Settings(BaseSettings):
         32,
         ge=1,
         le=10_000,
-        description="Requests one worker works on at once; more wait in line (before their body is read) "
-        "so that the ones in progress finish quickly and store round trips do not time out under overload.",
+        description=(
+            "Requests one worker works on at once. The rest wait in line before their body is read, so "
+            "that the requests in progress finish quickly: without the line an overloaded worker "
+            "interleaves every request and a healthy Redis round trip can exceed its socket timeout. "
+            "/healthz, /readyz and /metrics skip the line; edgepos_requests_waiting shows its length."
+        ),
     )
     queue_timeout_s: float = Field(
         30.0,
@@ -172,8 +188,11 @@ class Settings(BaseSettings):
         50.0,
         ge=0,
         allow_inf_nan=False,
-        description="Requests per second one session's token may make, sustained, counted in the store "
-        "so the limit holds across workers and replicas (429 with Retry-After beyond); 0 turns it off.",
+        description=(
+            "Requests per second one session's token may make, sustained, counted in the store so that "
+            "it holds across workers and replicas; beyond it 429 rate_limited with Retry-After. 0 turns "
+            "it off. The admin key is not limited."
+        ),
     )
     rate_limit_burst: int = Field(
         100, ge=1, description="Requests a session's token may make at once before the rate applies."
@@ -194,7 +213,10 @@ class Settings(BaseSettings):
         "consumer never holds back the others or the vehicles.",
     )
     stream_max_consumers: int = Field(
-        64, ge=1, le=100_000, description="Fix stream consumers one worker serves at once (503 beyond)."
+        64, ge=1, le=100_000, description=(
+            "Fix streams one worker serves at once; beyond, 503 with Retry-After. Streams do not take "
+            "EDGEPOS_MAX_INFLIGHT slots."
+        )
     )
     stream_interval_ms: float = Field(
         50.0,
@@ -228,7 +250,10 @@ class Settings(BaseSettings):
         "vehicle before the server closes it (code 1000); protocol pings alone do not keep it open.",
     )
     origin_lat: float | None = Field(
-        None, ge=-90, le=90, allow_inf_nan=False, description="Site origin latitude, WGS-84 decimal degrees."
+        None, ge=-90, le=90, allow_inf_nan=False, description=(
+            "Site origin latitude, WGS-84 decimal degrees. Set with EDGEPOS_ORIGIN_LON to get "
+            "latitude/longitude in fixes (and the map's latitude/longitude grid)."
+        )
     )
     origin_lon: float | None = Field(
         None,
@@ -244,7 +269,10 @@ class Settings(BaseSettings):
         "", description="Comma-separated origins allowed by CORS ('*' for any); empty disables CORS."
     )
     log_level: LogLevel = Field("info", description="Log level of the JSON-lines logs.")
-    demo_rsus: bool = Field(False, description="Preload the paper scenario's RSU map at start-up.")
+    demo_rsus: bool = Field(False, description=(
+            "Preload the RSU map of the RSU + IMU paper's scenario "
+            "(edgepos.sim.scenarios.rsu_imu_paper_scenario) at start-up."
+        ))
     auth: Literal["on", "off"] = Field(
         "on",
         description="'off' lets every request in with admin rights and no credentials, for a lab bench "
@@ -252,8 +280,11 @@ class Settings(BaseSettings):
     )
     lab: bool = Field(
         False,
-        description="Declares this instance a lab (no real vehicles): the only way to start with auth off, "
-        "or with vehicle_auth 'open' on a non-loopback address. Also `edgepos serve --lab`.",
+        description=(
+            "Declares the instance a lab bench (edgepos serve --lab): the only way EDGEPOS_AUTH=off, or "
+            "EDGEPOS_VEHICLE_AUTH=open on a non-loopback address, is accepted; the service then warns "
+            "on stderr (and, with auth off, in its log)."
+        ),
     )
     vehicle_auth: Literal["key", "jwt", "open"] = Field(
         "key",
@@ -275,8 +306,11 @@ class Settings(BaseSettings):
         0.2,
         gt=0,
         allow_inf_nan=False,
-        description="Failed authentications allowed per second, sustained, per client address and per "
-        "credential presented (429 with Retry-After beyond, counted in the store across workers).",
+        description=(
+            "Failed authentications allowed per second, sustained, per client address and per "
+            "credential presented; beyond it 429 rate_limited with Retry-After, and an address past it "
+            "cannot open sessions until its budget refills."
+        ),
     )
     auth_failure_burst: int = Field(
         20, ge=1, description="Failed authentications a client address or credential may make at once."

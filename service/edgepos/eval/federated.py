@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 
+from edgepos.eval import correlated
 from edgepos.eval.montecarlo import chunk_runs, run_chunks
 from edgepos.eval.progress import Progress
 from edgepos.eval.scenario_command import Totals, combine, run_scenario_command
@@ -20,7 +21,7 @@ from edgepos.eval.tables import format_table, number
 from edgepos.pipelines import tracks
 from edgepos.pipelines.base import NeighbourTrack, StaticEnvironment
 from edgepos.pipelines.v2x_federated import V2xFederatedPipeline
-from edgepos.sim.federated import SCENARIOS, STEPS, FederatedRun, make_run
+from edgepos.sim.federated import PAPER_OPTIONS, SCENARIOS, STEPS, FederatedRun, make_run
 
 PROG = "edgepos eval federated"
 METHODS = ("GPS", "GPS/DR", "GPS/DR/V2X", "GPS/DR/V2X-nofeedback")
@@ -46,7 +47,7 @@ def assisting_tracks(run: FederatedRun) -> list[dict[str, NeighbourTrack]]:
     """What the server would publish of each assisting vehicle after each epoch: its own
     ``v2x_federated`` session fed its GNSS fixes, published with :func:`tracks.publish`."""
     pipeline = V2xFederatedPipeline()
-    options = pipeline.resolve_options(None)
+    options = pipeline.resolve_options(PAPER_OPTIONS)
     states = {vid: pipeline.create(options, None) for vid in run.neighbour_ids}
     published: dict[str, NeighbourTrack | None] = dict.fromkeys(run.neighbour_ids)
     per_step = []
@@ -66,7 +67,7 @@ def run_method(
     if neighbours is None:
         neighbours = assisting_tracks(run)
     pipeline = V2xFederatedPipeline()
-    options = pipeline.resolve_options({"feedback": method != "GPS/DR/V2X-nofeedback"})
+    options = pipeline.resolve_options({"feedback": method != "GPS/DR/V2X-nofeedback", **PAPER_OPTIONS})
     state = pipeline.create(options, None)
     kinds = _KINDS[method]
     squared = np.zeros(len(run.times))
@@ -157,7 +158,8 @@ def report(results: dict[str, dict[str, dict[str, float]]], runs: int, seed: int
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    """No options beyond the common ones."""
+    """``--scene`` (the paper's or the correlated-error one) and the correlated scene's options."""
+    correlated.configure(parser)
 
 
 def curves(totals: Totals, runs: int) -> dict[str, tuple[np.ndarray, dict[str, np.ndarray]]]:
@@ -167,4 +169,6 @@ def curves(totals: Totals, runs: int) -> dict[str, tuple[np.ndarray, dict[str, n
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.scene == "correlated":
+        return correlated.run(args, "federated", PROG)
     return run_scenario_command(args, PROG, monte_carlo, summary, report, curves, "federated", RunFailed)

@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 
+from edgepos.eval import correlated
 from edgepos.eval.montecarlo import chunk_runs, run_chunks
 from edgepos.eval.progress import Progress
 from edgepos.eval.scenario_command import Totals, combine, run_scenario_command
@@ -22,7 +23,7 @@ from edgepos.eval.tables import format_table, number
 from edgepos.pipelines import tracks
 from edgepos.pipelines.base import NeighbourTrack, StaticEnvironment
 from edgepos.pipelines.v2v_coop import V2vCoopPipeline
-from edgepos.sim.v2v import SCENARIOS, STEP, STEPS, VEHICLE_IDS, V2vRun, make_run
+from edgepos.sim.v2v import PAPER_OPTIONS, SCENARIOS, STEP, STEPS, VEHICLE_IDS, V2vRun, make_run
 
 PROG = "edgepos eval v2v"
 #: Table 2's methods and the pipeline's ``method`` option for each.
@@ -47,7 +48,8 @@ def run_method(run: V2vRun, method: str) -> tuple[np.ndarray, float, int]:
     """Squared 2-D errors per step summed over the vehicles (steps,), seconds in the pipelines and
     epochs processed, for one Table 2 ``method`` on one run."""
     pipeline = V2vCoopPipeline()
-    options = pipeline.resolve_options({"method": METHODS[method]})
+    # The paper's receiver has white errors and its vehicles take one another's estimates as independent.
+    options = pipeline.resolve_options({"method": METHODS[method], **PAPER_OPTIONS})
     states = {vid: pipeline.create(options, None) for vid in VEHICLE_IDS}
     published: dict[str, NeighbourTrack] = {}
     steps = len(run.times)
@@ -144,7 +146,8 @@ def report(results: dict[str, dict[str, dict[str, float]]], runs: int, seed: int
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    """No options beyond the common ones."""
+    """``--scene`` (the paper's or the correlated-error one) and the correlated scene's options."""
+    correlated.configure(parser)
 
 
 def curves(totals: Totals, runs: int) -> dict[str, tuple[np.ndarray, dict[str, np.ndarray]]]:
@@ -155,4 +158,6 @@ def curves(totals: Totals, runs: int) -> dict[str, tuple[np.ndarray, dict[str, n
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.scene == "correlated":
+        return correlated.run(args, "v2v", PROG)
     return run_scenario_command(args, PROG, monte_carlo, summary, report, curves, "v2v", RunFailed)

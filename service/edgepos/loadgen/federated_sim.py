@@ -24,7 +24,7 @@ import httpx
 from edgepos_client import AsyncEdgeposClient, EdgeposError, Fix, GnssFixMeasurement, Session
 
 from edgepos.loadgen import common
-from edgepos.sim.federated import STEP, FederatedRun, make_run
+from edgepos.sim.federated import PAPER_OPTIONS, STEP, FederatedRun, make_run
 
 SCENARIOS = ("federated",)
 
@@ -80,12 +80,12 @@ async def run_federated(
             for name in run.neighbour_ids:
                 client = AsyncEdgeposClient(url, admin_key, timeout=timeout, limits=limits)
                 clients.append(client)
-                session = await client.create_session(prefix + name, "v2x_federated")
+                session = await client.create_session(prefix + name, "v2x_federated", options=PAPER_OPTIONS)
                 sessions.append((client, session))
                 lanes.append((None, client, session, _assist_batches(run, name, count, batch_epochs)))
             client = AsyncEdgeposClient(url, admin_key, timeout=timeout, limits=limits)
             clients.append(client)
-            session = await client.create_session(target.vehicle_id, "v2x_federated")
+            session = await client.create_session(target.vehicle_id, "v2x_federated", options=PAPER_OPTIONS)
             sessions.append((client, session))
             batches = [
                 [common.to_wire(o, prefix) for k in range(s, min(s + batch_epochs, count)) for o in run.observations[k]]

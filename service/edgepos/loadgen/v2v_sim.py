@@ -20,7 +20,7 @@ import httpx
 from edgepos_client import AsyncEdgeposClient, EdgeposError, Fix, Session
 
 from edgepos.loadgen import common
-from edgepos.sim.v2v import STEP, VEHICLE_IDS, make_run
+from edgepos.sim.v2v import PAPER_OPTIONS, STEP, VEHICLE_IDS, make_run
 
 SCENARIOS = ("v2v",)
 
@@ -64,7 +64,9 @@ async def run_v2v(
         for vehicle in vehicles:
             client = AsyncEdgeposClient(url, admin_key, timeout=timeout, limits=limits)
             clients.append(client)
-            session = await client.create_session(vehicle.vehicle_id, "v2v_coop", options={"method": method})
+            session = await client.create_session(
+                vehicle.vehicle_id, "v2v_coop", options={"method": method, **PAPER_OPTIONS}
+            )
             lanes.append((vehicle, client, session))
         t0 = time.perf_counter()
         for start in range(0, count, batch_epochs):

@@ -138,3 +138,34 @@ def dead_reckoning_update(
     model = parts[0] if len(parts) == 1 else Stacked(parts)
     mean, cov, _, _ = filt.update_one(mean, cov, KINEMATIC, model, np.array(values))
     return DeadReckoning(mean, cov, True, odometer_t)
+
+
+def heading_known(mean: np.ndarray, cov: np.ndarray) -> bool:
+    """Whether the direction of travel is established: speed at least 3 sigma of the velocity.
+
+    Yaw rate and distance say nothing about the heading; linearised at a velocity near zero, or in
+    the wrong direction, they pin the speed along an arbitrary axis and hold it there (measured: a
+    vehicle started at rest with its fixes heading north-east tracked east for 8 s, 28 m off)."""
+    velocity = mean[[1, 4]]
+    spread = float(np.linalg.eigvalsh(cov[np.ix_([1, 4], [1, 4])])[-1])
+    return float(velocity @ velocity) >= 9.0 * max(spread, 0.0)
+
+
+def wait_for_heading(
+    epoch: Sequence[int], observations: Sequence[Observation], uses: dict[int, MeasurementUse],
+    odometer_t: float | None, t: float,
+    reason: str = "heading not yet known (speed within 3 sigma of zero): dead reckoning waits for the fixes",
+) -> float | None:
+    """Report the epoch's gyro and odometer readings unused with ``reason`` (by default: until
+    :func:`heading_known`); returns the odometer interval's new start (a distance reading still starts
+    the next interval)."""
+    for kind in (GyroObservation, OdometerObservation):
+        readings = [i for i in epoch if isinstance(observations[i], kind)]
+        for i in readings[:1]:
+            uses[i] = MeasurementUse(i, observations[i].kind, False, reason)
+        for i in readings[1:]:
+            uses[i] = MeasurementUse(i, observations[i].kind, False, f"another {observations[i].kind} reading at the same time was used")
+    odos = [i for i in epoch if isinstance(observations[i], OdometerObservation)]
+    if odos and observations[odos[0]].distance is not None:
+        return t
+    return odometer_t

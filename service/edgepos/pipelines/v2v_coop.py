@@ -26,10 +26,13 @@ from typing import Any
 
 import numpy as np
 
+from edgepos.core import gnss_bias
 from edgepos.core import state as state_format
 from edgepos.core.augmented import augmented_update
 from edgepos.core.filters.ekf import ExtendedKalmanFilter
 from edgepos.core.filters.ukf import UnscentedKalmanFilter
+from edgepos.core.gnss_bias import Bias
+from edgepos.core.intersection import range_weight
 from edgepos.core.measurements.gnss_fix import GnssPosition
 from edgepos.core.measurements.rsu import RsuRange
 from edgepos.core.motion.ca import ConstantAcceleration
@@ -55,13 +58,22 @@ from edgepos.pipelines.kinematic import (
     KINEMATIC,
     check_batch,
     dead_reckoning_update,
+    heading_known,
     kinematic_fix,
     shared_point,
+    wait_for_heading,
 )
 from edgepos.pipelines.options import resolve_options
 from edgepos.pipelines.tracks import NeighbourUnavailable, position_at
 
 METHODS = ("gps", "gps_dr", "ukf", "aug_ukf")
+NEIGHBOUR_FUSION = ("intersection", "independent")
+GNSS_BIAS_TAU = 35.0
+"""s: the fix errors' autocorrelation on the real drive of tests/data/gnss-rover (docs/v2v.md)."""
+GNSS_BIAS_STD = 2.1
+"""m per axis: the same recording's fix errors less their white part (docs/v2v.md)."""
+#: What a session created before these options existed did: white fixes, neighbours as independent.
+LEGACY_OPTIONS = {"gnss_bias_tau": GNSS_BIAS_TAU, "gnss_bias_std": 0.0, "neighbour_fusion": "independent"}
 _INITIAL_VELOCITY_STD = 30.0
 _INITIAL_ACCEL_STD = 1.0
 
@@ -73,8 +85,22 @@ OPTION_SPECS = (
         choices=METHODS,
     ),
     OptionSpec(
-        "gps_std", "number", 5.0 / math.sqrt(2.0), "GNSS fix 1-sigma per axis (m) when a fix carries none.",
+        "gps_std", "number", 5.0 / math.sqrt(2.0),
+        "GNSS fix total error 1-sigma per axis (m) when a fix carries none; gnss_bias_std of it is the "
+        "time-correlated part, the rest white.",
         minimum=1e-3, maximum=1e4,
+    ),
+    OptionSpec(
+        "gnss_bias_tau", "number", GNSS_BIAS_TAU,
+        "Time constant (s) of the GNSS fix error's Gauss-Markov part (site x and y alike); measured on a "
+        "real drive, docs/v2v.md.",
+        minimum=0.1, maximum=3600.0,
+    ),
+    OptionSpec(
+        "gnss_bias_std", "number", GNSS_BIAS_STD,
+        "Stationary 1-sigma per axis (m) of the GNSS fix error's Gauss-Markov part, estimated as a state; "
+        "0: fix errors white (independent from fix to fix).",
+        minimum=0.0, maximum=1e3,
     ),
     OptionSpec(
         "accel_std", "number", 0.3, "Acceleration change 1-sigma per step (m/s^2), the DR model's noise.",
@@ -87,6 +113,13 @@ OPTION_SPECS = (
     ),
     OptionSpec(
         "range_std", "number", 2.0, "V2V range 1-sigma (m); a TOA's 1-sigma times c.", minimum=1e-3, maximum=1e4
+    ),
+    OptionSpec(
+        "neighbour_fusion", "string", "intersection",
+        "How a neighbour's estimate enters a range update: intersection (covariance intersection with this "
+        "vehicle's own estimate: consistent whatever their correlation, e.g. GNSS errors they share) or "
+        "independent (as independent information, the paper's; over-confident when they share errors).",
+        choices=NEIGHBOUR_FUSION,
     ),
     OptionSpec(
         "max_neighbour_age", "number", 1.0, "Oldest usable neighbour estimate (s) past its last point.",
@@ -114,6 +147,8 @@ class _SessionState:
     cov: np.ndarray  # (6, 6)
     own_mean: np.ndarray  # (6,) GNSS + dead reckoning only: what the vehicle shares with its neighbours
     own_cov: np.ndarray  # (6, 6)
+    bias: Bias  # the GNSS fix error's Gauss-Markov part beside mean/cov
+    own_bias: Bias  # and beside own_mean/own_cov
 
     def to_bytes(self) -> bytes:
         meta = {
@@ -124,7 +159,10 @@ class _SessionState:
             "epochs": self.epochs,
             "odometer_t": self.odometer_t,
         }
-        arrays = {"mean": self.mean, "cov": self.cov, "own_mean": self.own_mean, "own_cov": self.own_cov}
+        arrays = {
+            "mean": self.mean, "cov": self.cov, "own_mean": self.own_mean, "own_cov": self.own_cov,
+            "bias": self.bias.arrays(), "own_bias": self.own_bias.arrays(),
+        }
         return state_format.pack(meta, arrays)
 
 
@@ -132,9 +170,14 @@ def _decode(blob: bytes) -> _SessionState:
     meta, arrays = state_format.unpack(blob)
     if meta.get("pipeline") != V2vCoopPipeline.name:
         raise state_format.StateFormatError(f"state belongs to pipeline {meta.get('pipeline')!r}")
+    # A session stored before the GNSS bias and covariance intersection goes on as it was created.
+    options = {**LEGACY_OPTIONS, **meta["options"]}
+    white = Bias.stationary(0.0)
     return _SessionState(
-        dict(meta["options"]), bool(meta["initialised"]), meta["t"], int(meta["epochs"]), meta["odometer_t"],
+        options, bool(meta["initialised"]), meta["t"], int(meta["epochs"]), meta["odometer_t"],
         arrays["mean"], arrays["cov"], arrays["own_mean"], arrays["own_cov"],
+        Bias.from_arrays(arrays["bias"]) if "bias" in arrays else white,
+        Bias.from_arrays(arrays["own_bias"]) if "own_bias" in arrays else white.copy(),
     )
 
 
@@ -158,11 +201,14 @@ class V2vCoopPipeline(Pipeline):
 
     def create(self, options: Mapping[str, Any], initial: InitialState | None) -> bytes:
         options = dict(options)
+        bias = Bias.stationary(options["gnss_bias_std"])
         if initial is None:
-            return _SessionState(options, False, None, 0, None, np.zeros(6), np.eye(6), np.zeros(6), np.eye(6)).to_bytes()
+            return _SessionState(
+                options, False, None, 0, None, np.zeros(6), np.eye(6), np.zeros(6), np.eye(6), bias, bias.copy()
+            ).to_bytes()
         mean = np.array([initial.x, initial.vx, 0.0, initial.y, initial.vy, 0.0])
         cov = np.diag(np.square([initial.position_std, initial.velocity_std, _INITIAL_ACCEL_STD] * 2))
-        return _SessionState(options, True, None, 0, None, mean, cov, mean.copy(), cov.copy()).to_bytes()
+        return _SessionState(options, True, None, 0, None, mean, cov, mean.copy(), cov.copy(), bias, bias.copy()).to_bytes()
 
     def summarise(self, state: bytes) -> StateSummary:
         session = _decode(state)
@@ -199,29 +245,31 @@ def _step(session: _SessionState, epoch: list[int], observations: Sequence[Obser
     else:
         cooperative = method in ("ukf", "aug_ukf")
         # The fix's filter, and for the cooperative methods the GNSS + DR filter the vehicle shares.
-        gaussians = [(session.mean, session.cov)] + ([(session.own_mean, session.own_cov)] if cooperative else [])
+        gaussians = [(session.mean, session.cov, session.bias)]
+        if cooperative:
+            gaussians.append((session.own_mean, session.own_cov, session.own_bias))
         updated = []
         used = False
         odometer_t = session.odometer_t
-        for mean, cov in gaussians:
+        for mean, cov, bias in gaussians:
             session.odometer_t = odometer_t
-            if dt > 0.0:
-                mean, cov = _KF.predict(mean, cov, ConstantAcceleration(options["accel_std"]), dt)
+            mean, cov, bias = _predict(options, mean, cov, bias, dt)
             if fixes:
-                obs = observations[fixes[0]]
-                std = obs.std if obs.std is not None else options["gps_std"]
-                mean, cov, _, _ = _KF.update_one(mean, cov, KINEMATIC, GnssPosition(std), np.array([obs.x, obs.y]))
+                mean, cov, bias = _fix_update(options, mean, cov, bias, observations[fixes[0]])
                 uses[fixes[0]] = MeasurementUse(fixes[0], "gnss_fix", True)
                 used = True
+            prior_mean, prior_cov = mean, cov
             mean, cov, dr_used = _dr_update(session, mean, cov, epoch, observations, uses, t)
-            updated.append((mean, cov))
+            if dr_used:
+                bias = gnss_bias.condition(bias, prior_mean, prior_cov, mean, cov)
+            updated.append((mean, cov, bias))
             used = used or dr_used
-        session.mean, session.cov = updated[0]
+        session.mean, session.cov, session.bias = updated[0]
         if cooperative:
-            session.own_mean, session.own_cov = updated[1]
+            session.own_mean, session.own_cov, session.own_bias = updated[1]
             used = _range_update(session, epoch, observations, uses, environment, t) or used
         else:
-            session.own_mean, session.own_cov = session.mean, session.cov
+            session.own_mean, session.own_cov, session.own_bias = session.mean, session.cov, session.bias
         status = "tracking" if used else "predicted"
     for i in epoch:
         if i not in uses:
@@ -246,10 +294,8 @@ def _initialise(session, epoch, observations, fixes, uses, t) -> Fix:
             uses[i] = MeasurementUse(i, observations[i].kind, False, "no estimate yet: waiting for a gnss_fix to start from")
         return Fix(t, "uninitialised", measurements=[uses[i] for i in epoch])
     first = observations[fixes[0]]
-    std = first.std if first.std is not None else session.options["gps_std"]
-    session.mean = np.array([first.x, 0.0, 0.0, first.y, 0.0, 0.0])
-    session.cov = np.diag(np.square([std, _INITIAL_VELOCITY_STD, _INITIAL_ACCEL_STD] * 2))
-    session.own_mean, session.own_cov = session.mean.copy(), session.cov.copy()
+    session.mean, session.cov, session.bias = _start(session.options, first)
+    session.own_mean, session.own_cov, session.own_bias = session.mean.copy(), session.cov.copy(), session.bias.copy()
     session.initialised = True
     for i in epoch:
         if i == fixes[0]:
@@ -266,17 +312,18 @@ def _gps_only(session, epoch, observations, fixes, uses, dt) -> str:
     divides their noise by the interval: 3.8 m fixes 0.2 s apart give velocities 27 m/s off, and a
     fix extrapolated on them drifts tens of metres away while its covariance stays small."""
     options = session.options
-    motion = ConstantAcceleration(options["accel_std"])
     if dt > 0.0:
-        session.own_mean, session.own_cov = _KF.predict(session.own_mean, session.own_cov, motion, dt)
-        session.mean, session.cov = _KF.predict(session.mean, session.cov, motion, dt)
+        session.own_mean, session.own_cov, session.own_bias = _predict(
+            options, session.own_mean, session.own_cov, session.own_bias, dt
+        )
+        session.mean, session.cov = _KF.predict(session.mean, session.cov, ConstantAcceleration(options["accel_std"]), dt)
     if not fixes:
         return "predicted"
     obs = observations[fixes[0]]
     std = obs.std if obs.std is not None else options["gps_std"]
     position = np.array([obs.x, obs.y])
-    session.own_mean, session.own_cov, _, _ = _KF.update_one(
-        session.own_mean, session.own_cov, KINEMATIC, GnssPosition(std), position
+    session.own_mean, session.own_cov, session.own_bias = _fix_update(
+        options, session.own_mean, session.own_cov, session.own_bias, obs
     )
     # The fix with its own variance, beside the filter's velocity and acceleration (their correlation
     # with this one fix is left out: the filter's velocity rests on many fixes).
@@ -290,21 +337,47 @@ def _gps_only(session, epoch, observations, fixes, uses, dt) -> str:
     return "tracking"
 
 
+def _start(options: Mapping[str, Any], fix: GnssFixObservation) -> tuple[np.ndarray, np.ndarray, Bias]:
+    """The state from a first fix z = p + b + v: position z with the bias's and the white variance,
+    its error -(b + v) correlated with the bias (cross-covariance -sigma_b^2), a wide velocity."""
+    std = fix.std if fix.std is not None else options["gps_std"]
+    sigma = options["gnss_bias_std"]
+    white = gnss_bias.white_variance(std, sigma) if sigma > 0.0 else std * std
+    mean = np.array([fix.x, 0.0, 0.0, fix.y, 0.0, 0.0])
+    cov = np.diag(np.square([0.0, _INITIAL_VELOCITY_STD, _INITIAL_ACCEL_STD] * 2))
+    cov[0, 0] = cov[3, 3] = sigma * sigma + white
+    bias = Bias.stationary(sigma)
+    bias.cross[[0, 3], [0, 1]] = -sigma * sigma
+    return mean, cov, bias
+
+
+def _predict(options, mean, cov, bias: Bias, dt: float) -> tuple[np.ndarray, np.ndarray, Bias]:
+    """The nearly-constant-acceleration prediction over ``dt``, the GNSS bias's Gauss-Markov step beside it."""
+    if dt <= 0.0:
+        return mean, cov, bias
+    motion = ConstantAcceleration(options["accel_std"])
+    transition = motion.transition_matrix(mean, dt)
+    mean, cov = _KF.predict(mean, cov, motion, dt)
+    return mean, cov, gnss_bias.predict(bias, transition, options["gnss_bias_tau"], options["gnss_bias_std"], dt)
+
+
+def _fix_update(options, mean, cov, bias: Bias, obs: GnssFixObservation) -> tuple[np.ndarray, np.ndarray, Bias]:
+    """The fix as position + Gauss-Markov bias + white noise (white alone when gnss_bias_std is 0)."""
+    std = obs.std if obs.std is not None else options["gps_std"]
+    position = np.array([obs.x, obs.y])
+    sigma = options["gnss_bias_std"]
+    if sigma <= 0.0:
+        mean, cov, _, _ = _KF.update_one(mean, cov, KINEMATIC, GnssPosition(std), position)
+        return mean, cov, bias
+    return gnss_bias.fix_update(mean, cov, bias, position, gnss_bias.white_variance(std, sigma))
+
+
 def _dr_update(session, mean, cov, epoch, observations, uses, t) -> tuple[np.ndarray, np.ndarray, bool]:
-    """Gyro and odometer once the heading is known (see _heading_known); the UKF methods update
+    """Gyro and odometer once the heading is known (see kinematic.heading_known); the UKF methods update
     through the UKF, gps_dr through the linearised Kalman filter."""
     options = session.options
-    if not _heading_known(mean, cov):
-        reason = "heading not yet known (speed within 3 sigma of zero): dead reckoning waits for the fixes"
-        for kind in (GyroObservation, OdometerObservation):
-            readings = [i for i in epoch if isinstance(observations[i], kind)]
-            for i in readings[:1]:
-                uses[i] = MeasurementUse(i, observations[i].kind, False, reason)
-            for i in readings[1:]:
-                uses[i] = MeasurementUse(i, observations[i].kind, False, f"another {observations[i].kind} reading at the same time was used")
-        odos = [i for i in epoch if isinstance(observations[i], OdometerObservation)]
-        if odos and observations[odos[0]].distance is not None:
-            session.odometer_t = t
+    if not heading_known(mean, cov):
+        session.odometer_t = wait_for_heading(epoch, observations, uses, session.odometer_t, t)
         return mean, cov, False
     filt = _KF if options["method"] == "gps_dr" else _UKF
     outcome = dead_reckoning_update(
@@ -312,17 +385,6 @@ def _dr_update(session, mean, cov, epoch, observations, uses, t) -> tuple[np.nda
     )
     session.odometer_t = outcome.odometer_t
     return outcome.mean, outcome.cov, outcome.used
-
-
-def _heading_known(mean: np.ndarray, cov: np.ndarray) -> bool:
-    """Whether the direction of travel is established: speed at least 3 sigma of the velocity.
-
-    Yaw rate and distance say nothing about the heading; linearised at a velocity near zero, or in
-    the wrong direction, they pin the speed along an arbitrary axis and hold it there (measured: a
-    vehicle started at rest with its fixes heading north-east tracked east for 8 s, 28 m off)."""
-    velocity = mean[[1, 4]]
-    spread = float(np.linalg.eigvalsh(cov[np.ix_([1, 4], [1, 4])])[-1])
-    return float(velocity @ velocity) >= 9.0 * max(spread, 0.0)
 
 
 def _range_update(session, epoch, observations, uses, environment, t) -> bool:
@@ -350,14 +412,37 @@ def _range_update(session, epoch, observations, uses, environment, t) -> bool:
     points_array = np.array(points)
     observed = np.array(values)
     range_std = options["range_std"]
+    count = len(used)
+    noise = np.eye(count) * range_std**2
+    extra_cov = np.zeros((2 * count, 2 * count))
+    for k, cov in enumerate(point_covs):
+        extra_cov[2 * k : 2 * k + 2, 2 * k : 2 * k + 2] = cov
+    # Covariance intersection: the neighbours' estimates and this one share GNSS errors (and, through
+    # earlier ranges, one another's): each is weighted for an unknown correlation, never as independent.
+    offsets = session.mean[[0, 3]] - points_array
+    directions = offsets / np.maximum(np.linalg.norm(offsets, axis=1), 1e-9)[:, None]
+    design = np.zeros((count, 6))
+    design[:, 0], design[:, 3] = directions[:, 0], directions[:, 1]
+    neighbour_design = np.zeros((count, 2 * count))
+    for k in range(count):
+        neighbour_design[k, 2 * k : 2 * k + 2] = -directions[k]
+    independent = options["neighbour_fusion"] == "independent"
+    weight = 1.0 if independent else range_weight(session.cov, design, neighbour_design, extra_cov, noise, count)
+    if weight >= 1.0 and not independent:
+        for i in used:
+            uses[i] = MeasurementUse(i, "v2v_range", False, "covariance intersection gives the ranges no weight here")
+        return False
+    prior_mean, prior_cov = session.mean, session.cov / weight
+    bias = Bias(session.bias.mean, session.bias.cov / weight, session.bias.cross / weight)
+    inflation = 1.0 if independent else count / (1.0 - weight)
+    extra_cov = extra_cov * inflation
     if options["method"] == "ukf":
-        model = RsuRange(points_array, np.full(len(used), range_std))
-        session.mean, session.cov, _, _ = _UKF.update_one(session.mean, session.cov, KINEMATIC, model, observed)
+        # The neighbours as points; intersected, their covariance along the line of sight is added to the
+        # range's; taken as independent, they are exact (the paper's traditional UKF).
+        spread = 0.0 if independent else np.einsum("ki,kij,kj->k", directions, np.array(point_covs), directions) * inflation
+        model = RsuRange(points_array, np.sqrt(range_std**2 + spread))
+        session.mean, session.cov, _, _ = _UKF.update_one(prior_mean, prior_cov, KINEMATIC, model, observed)
     else:
-        count = len(used)
-        extra_cov = np.zeros((2 * count, 2 * count))
-        for k, cov in enumerate(point_covs):
-            extra_cov[2 * k : 2 * k + 2, 2 * k : 2 * k + 2] = cov
 
         def ranges(states: np.ndarray) -> np.ndarray:
             own = states[:, [0, 3]]
@@ -365,9 +450,9 @@ def _range_update(session, epoch, observations, uses, environment, t) -> bool:
             return np.linalg.norm(peers - own[:, None, :], axis=2)
 
         session.mean, session.cov, _, _ = augmented_update(
-            _UKF, session.mean, session.cov, points_array.reshape(-1), extra_cov, ranges,
-            np.eye(count) * range_std**2, observed,
+            _UKF, prior_mean, prior_cov, points_array.reshape(-1), extra_cov, ranges, noise, observed,
         )
+    session.bias = gnss_bias.condition(bias, prior_mean, prior_cov, session.mean, session.cov)
     for i in used:
         uses[i] = MeasurementUse(i, "v2v_range", True)
     return True

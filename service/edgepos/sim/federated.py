@@ -41,6 +41,9 @@ NEIGHBOUR_STD = 1.0
 NEIGHBOUR_OFFSETS = ((-45.0, 3.5), (-15.0, -3.5), (15.0, 3.5), (45.0, -3.5))
 SCENARIOS = tuple(GPS_STD)
 
+#: Pipeline options for the paper's model (sec. 3): white GNSS errors, the assisting vehicles' positions as independent of the target's.
+PAPER_OPTIONS = {"gnss_bias_std": 0.0, "neighbour_fusion": "independent"}
+
 
 @dataclass(frozen=True)
 class FederatedRun:

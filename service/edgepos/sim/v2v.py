@@ -38,6 +38,9 @@ STARTS = ((0.0, 0.0), (20.0, 0.0), (0.0, 20.0), (20.0, 20.0))
 SCENARIOS = ("straight", "ring")
 VEHICLE_IDS = tuple(f"veh-{i + 1}" for i in range(VEHICLES))
 
+#: Pipeline options for the paper's model (sec. 4): white GNSS errors, neighbours' estimates as independent information.
+PAPER_OPTIONS = {"gnss_bias_std": 0.0, "neighbour_fusion": "independent"}
+
 
 @dataclass(frozen=True)
 class V2vRun:
