@@ -99,3 +99,19 @@ class GeodeticOrigin:
     def enu_to_geodetic(self, east: float, north: float, up: float = 0.0) -> tuple[float, float, float]:
         """A point of the local east-north-up frame (m) -> latitude, longitude (rad), height (m)."""
         return ecef_to_geodetic(*self.enu_to_ecef(east, north, up))
+
+    def geodetic_to_enu(
+        self, lat: float, lon: float, height: float | None = None
+    ) -> tuple[float, float, float]:
+        """Latitude, longitude (rad) and ellipsoidal height (m; the origin's when None) -> a point of the
+        local east-north-up frame (m): the inverse of :meth:`enu_to_geodetic`."""
+        x, y, z = geodetic_to_ecef(lat, lon, self.height if height is None else height)
+        x0, y0, z0 = geodetic_to_ecef(self.lat, self.lon, self.height)
+        dx, dy, dz = x - x0, y - y0, z - z0
+        sin_lat, cos_lat = math.sin(self.lat), math.cos(self.lat)
+        sin_lon, cos_lon = math.sin(self.lon), math.cos(self.lon)
+        return (
+            -sin_lon * dx + cos_lon * dy,
+            -sin_lat * cos_lon * dx - sin_lat * sin_lon * dy + cos_lat * dz,
+            cos_lat * cos_lon * dx + cos_lat * sin_lon * dy + sin_lat * dz,
+        )

@@ -58,3 +58,20 @@ def test_origin_is_validated():
         GeodeticOrigin(2.0, 0.0)
     with pytest.raises(ValueError):
         GeodeticOrigin(0.0, float("nan"))
+
+
+@pytest.mark.parametrize("lat_deg", [-70.0, 0.0, 48.1375, 89.0])
+@pytest.mark.parametrize(
+    ("east", "north", "up"), [(0.0, 0.0, 0.0), (1234.5, -876.25, 3.0), (-20_000.0, 50_000.0, -40.0)]
+)
+def test_enu_from_geodetic_inverts_geodetic_from_enu(lat_deg, east, north, up):
+    origin = GeodeticOrigin.from_degrees(lat_deg, 11.575, 520.0)
+    back = origin.geodetic_to_enu(*origin.enu_to_geodetic(east, north, up))
+    assert back == pytest.approx((east, north, up), abs=1e-6)
+
+
+def test_enu_from_geodetic_defaults_to_the_origins_height():
+    origin = GeodeticOrigin.from_degrees(48.1375, 11.575, 520.0)
+    assert origin.geodetic_to_enu(origin.lat, origin.lon) == pytest.approx((0.0, 0.0, 0.0), abs=1e-9)
+    east, north, up = origin.geodetic_to_enu(origin.lat + 1e-5, origin.lon)  # ~64 m north, on the ellipsoid
+    assert east == pytest.approx(0.0, abs=1e-9) and north == pytest.approx(63.7, abs=0.1) and up < 0

@@ -819,3 +819,39 @@ def test_sqlite_file_of_an_earlier_version_is_upgraded(tmp_path, clock):
         await store.close()
 
     asyncio.run(scenario())
+
+
+def test_documents_by_kind(store):
+    async def scenario() -> None:
+        assert await store.list_documents("zones") == {}
+        assert await store.get_document("zones", "a") is None
+        assert not await store.replace_document("zones", "a", "{}")
+        assert await store.get_document("zones", "a") is None  # replace never creates
+        await store.put_document("zones", "b", '{"r": 2}')
+        await store.put_document("zones", "a", '{"r": "\u00b5"}')
+        await store.put_document("subscriptions", "a", "other kind")
+        assert await store.list_documents("zones") == {"a": '{"r": "\u00b5"}', "b": '{"r": 2}'}
+        assert list(await store.list_documents("zones")) == ["a", "b"]
+        assert await store.replace_document("zones", "b", '{"r": 3}')
+        assert await store.get_document("zones", "b") == '{"r": 3}'
+        assert await store.delete_document("zones", "b")
+        assert not await store.delete_document("zones", "b")
+        assert not await store.replace_document("zones", "b", '{"r": 4}')
+        assert await store.list_documents("zones") == {"a": '{"r": "\u00b5"}'}
+        assert await store.get_document("subscriptions", "a") == "other kind"
+
+    asyncio.run(scenario())
+
+
+def test_a_lease_has_one_holder_until_it_runs_out(store, clock):
+    async def scenario() -> None:
+        assert await store.acquire_lease("notifier", "worker-1", 0.3)
+        assert not await store.acquire_lease("notifier", "worker-2", 0.3)
+        assert await store.acquire_lease("notifier", "worker-1", 0.3)  # renewed by its holder
+        assert await store.acquire_lease("other", "worker-2", 0.3)  # leases are independent
+        clock.now += 0.5
+        await asyncio.sleep(0.5)  # a store that keeps time itself (Redis) sees it run out too
+        assert await store.acquire_lease("notifier", "worker-2", 0.3)
+        assert not await store.acquire_lease("notifier", "worker-1", 0.3)
+
+    asyncio.run(scenario())

@@ -22,6 +22,7 @@ from fastapi.staticfiles import StaticFiles
 from edgepos import __version__
 from edgepos.api.context import AppContext
 from edgepos.api.errors import install_error_handlers
+from edgepos.api.location.notifier import LocationNotifier
 from edgepos.api.logs import configure_logging
 from edgepos.api.metrics import Metrics
 from edgepos.api.middleware import (
@@ -35,12 +36,14 @@ from edgepos.api.routes import (
     docs,
     ephemerides,
     health,
+    location,
     operator_map,
     rsus,
     sessions,
     status,
     streams,
     vehicles,
+    zones,
 )
 from edgepos.api.routes import pipelines as pipeline_routes
 from edgepos.api.settings import Settings, ensure_admin_key
@@ -63,6 +66,11 @@ with the admin key (the registries, any session), a vehicle's credential (its ke
 POST /v1/vehicles, or a fleet-signed token: opens sessions for that vehicle only), or a session's
 token (that session only). A vehicle has one live session: opening another supersedes the old one.
 Every error has the body `{"error": {"code", "message", "problems": [{"index", "field", "reason"}]}}`.
+
+The ETSI GS MEC 013 location adapter under /location/v3 is the one exception: it follows that
+specification, so its angles are degrees, its speeds km/h and its errors RFC 7807 problem details
+(application/problem+json). It needs the admin key or the read key (EDGEPOS_READ_KEY) and the site
+origin (EDGEPOS_ORIGIN_LAT/LON); its zones are defined by the operator with /v1/zones.
 """
 
 
@@ -95,7 +103,8 @@ def create_app(
     key one is generated (printed once to stderr and written to ``admin_key_file``)."""
     settings = ensure_admin_key(settings if settings is not None else Settings())
     admin_key = settings.admin_key.get_secret_value() if settings.admin_key is not None else ""
-    configure_logging(settings.log_level, secrets=[admin_key])
+    read_key = settings.read_key.get_secret_value() if settings.read_key is not None else None
+    configure_logging(settings.log_level, secrets=[admin_key] + ([read_key] if read_key else []))
     if pipelines is None:
         from edgepos.pipelines.registry import PIPELINES
 
@@ -118,6 +127,7 @@ def create_app(
         metrics=Metrics(),
         origin=settings.origin,
         admin_key_hash=AppContext.hash_admin_key(admin_key),
+        read_key_hash=None if read_key is None else AppContext.hash_admin_key(read_key),
     )
     context.admission = Admission(settings.max_inflight, settings.queue_timeout_s, context.metrics)
 
@@ -141,6 +151,7 @@ def create_app(
         gc.freeze()
         sweep_period = min(60.0, max(0.5, settings.session_ttl_s / 4.0))
         sweeper = asyncio.create_task(_expire_periodically(context.store, sweep_period))
+        notifier = asyncio.create_task(LocationNotifier(context.store, settings, context.origin).run())
         if not settings.auth_enabled:
             logger.warning(
                 "LAB MODE: authentication is off; every request has admin rights", extra={"event": "auth_off"}
@@ -149,9 +160,10 @@ def create_app(
         try:
             yield
         finally:
-            sweeper.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await sweeper
+            for task in (sweeper, notifier):
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
             await context.close_streams()
             await context.store.close()
             context.stop_filter_thread()
@@ -175,6 +187,8 @@ def create_app(
         sessions.router,
         streams.router,
         vehicles.router,
+        zones.router,
+        location.router,
         health.router,
         status.router,
         docs.router,
@@ -190,7 +204,9 @@ def create_app(
 
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
-            streams.add_event_schemas(default_openapi())
+            document = default_openapi()
+            streams.add_event_schemas(document)
+            location.add_problem_schema(document)
         return app.openapi_schema or default_openapi()
 
     app.openapi = openapi  # type: ignore[method-assign]

@@ -6,7 +6,9 @@ Three kinds of credential reach the service:
 - a **vehicle credential** opens a session for its own vehicle only (POST /v1/sessions): the vehicle's
   key from the registry (EDGEPOS_VEHICLE_AUTH=key, the default) or a token signed by the fleet
   operator (``jwt``); with ``open`` no credential is needed (a lab or a loopback bench);
-- a **session token** ``<session_id>.<random>`` opens only its own session.
+- a **session token** ``<session_id>.<random>`` opens only its own session;
+- the **read key** (EDGEPOS_READ_KEY, optional) opens only the read-only location routes: the MEC 013
+  adapter under /location/v3 and every session's fix stream.
 
 The store keeps only SHA-256 digests of keys and tokens, and every comparison of secrets uses
 ``hmac.compare_digest`` on fixed-length digests (the keys are 256-bit random values, so a fast hash
@@ -53,7 +55,8 @@ bearer_scheme = HTTPBearer(
     scheme_name="bearer",
     description="The admin key (EDGEPOS_ADMIN_KEY), a vehicle credential (the vehicle's key from "
     "POST /v1/vehicles, or a fleet-signed token with EDGEPOS_VEHICLE_AUTH=jwt: opens sessions for that "
-    "vehicle only), or a session token returned by POST /v1/sessions (that session only).",
+    "vehicle only), a session token returned by POST /v1/sessions (that session only), or the read "
+    "key (EDGEPOS_READ_KEY: the /location/v3 adapter and the fix stream only).",
 )
 Credentials = Annotated[HTTPAuthorizationCredentials | None, Depends(bearer_scheme)]
 
@@ -75,6 +78,8 @@ class Principal:
     vehicle_id: str | None = None
     vehicle_key_hash: str | None = None
     anonymous: bool = False
+    reader: bool = False
+    """The read key (EDGEPOS_READ_KEY): the read-only location routes and every session's fix stream."""
 
 
 def new_session_token(session_id: str) -> str:
@@ -98,6 +103,18 @@ def _token_session_id(token: str) -> str | None:
 
 def _is_admin(context: AppContext, secret: str) -> bool:
     return hmac.compare_digest(hashlib.sha256(secret.encode()).digest(), context.admin_key_hash)
+
+
+def _is_reader(context: AppContext, secret: str) -> bool:
+    """The read key (EDGEPOS_READ_KEY), when one is set."""
+    expected = context.read_key_hash
+    return expected is not None and hmac.compare_digest(hashlib.sha256(secret.encode()).digest(), expected)
+
+
+_READER_ONLY = ApiError(
+    "forbidden",
+    "the read key (EDGEPOS_READ_KEY) opens only the location adapter (/location/v3) and the fix stream",
+)
 
 
 def _token_matches(secret: str, token_hash: str) -> bool:
@@ -217,6 +234,8 @@ async def require_admin(request: Request, context: Context, credentials: Credent
         raise await _refuse(context, request, None, "missing", _unauthorized(_MISSING))
     if _is_admin(context, secret):
         return Principal(admin=True)
+    if _is_reader(context, secret):
+        raise await _refuse(context, request, None, "forbidden", _READER_ONLY)
     if await _valid_session_token(context, secret) or await _vehicle(context, secret) is not None:
         raise await _refuse(
             context,
@@ -226,6 +245,37 @@ async def require_admin(request: Request, context: Context, credentials: Credent
             ApiError("forbidden", "this call needs the admin key; a session token or vehicle credential does not open it"),
         )
     raise await _refuse(context, request, secret, "invalid", _unauthorized())
+
+
+async def require_reader(request: Request, context: Context, credentials: Credentials) -> Principal:
+    """The admin key or the read key (EDGEPOS_READ_KEY) passes: the read-only location routes (the MEC 013
+    adapter). A valid session token or vehicle credential gets 403."""
+    if _auth_off(context):
+        return _LAB
+    secret = None if credentials is None else credentials.credentials
+    if not secret:
+        raise await _refuse(context, request, None, "missing", _unauthorized(_MISSING))
+    if _is_admin(context, secret):
+        return Principal(admin=True)
+    if _is_reader(context, secret):
+        return Principal(admin=False, reader=True)
+    if await _valid_session_token(context, secret) or await _vehicle(context, secret) is not None:
+        raise await _refuse(
+            context,
+            request,
+            secret,
+            "forbidden",
+            ApiError("forbidden", "this call needs the admin key or the read key (EDGEPOS_READ_KEY)"),
+        )
+    raise await _refuse(context, request, secret, "invalid", _unauthorized())
+
+
+async def require_stream_reader(request: Request, context: Context, credentials: Credentials) -> Principal:
+    """The read key, or whatever :func:`require_any` lets in (a session token streams its own fixes)."""
+    secret = None if credentials is None else credentials.credentials
+    if secret and not _auth_off(context) and _is_reader(context, secret):
+        return Principal(admin=False, reader=True)
+    return await require_any(request, context, credentials)
 
 
 async def require_any(request: Request, context: Context, credentials: Credentials) -> Principal:
@@ -245,6 +295,8 @@ async def require_any(request: Request, context: Context, credentials: Credentia
     vehicle = await _vehicle(context, secret)
     if vehicle is not None:
         return vehicle
+    if _is_reader(context, secret):
+        raise await _refuse(context, request, None, "forbidden", _READER_ONLY)
     raise await _refuse(context, request, secret, "invalid", _unauthorized())
 
 
@@ -343,6 +395,8 @@ async def authenticate_session(
         return Principal(admin=True), None
     token_session = _token_session_id(secret)
     if token_session is None:
+        if _is_reader(context, secret):
+            raise await _refuse(context, connection, None, "forbidden", _READER_ONLY)
         raise await _refuse(context, connection, secret, "invalid", _unauthorized())
     if token_session != session_id:
         if await _valid_session_token(context, secret):

@@ -40,6 +40,8 @@ class AppContext:
     metrics: Metrics
     origin: GeodeticOrigin | None
     admin_key_hash: bytes
+    read_key_hash: bytes | None = None
+    """SHA-256 of EDGEPOS_READ_KEY (opens the read-only location routes), None when it is not set."""
     ephemerides: EphemeridesCache = field(default_factory=EphemeridesCache)
     base_epochs: EpochCache = field(default_factory=EpochCache)
     """Decoded reference-station epochs of this worker (api.base_stations)."""

@@ -16,6 +16,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from edgepos.api.location import problems as location_problems
 from edgepos.api.schemas import MEASUREMENT_TYPES, ErrorBody, ErrorDetail, ProblemModel
 from edgepos.pipelines.base import Problem
 from edgepos.store.base import NotReplicated, StoreUnavailable
@@ -64,10 +65,19 @@ def error_body(code: str, message: str, problems: Sequence[ProblemModel] = ()) -
     return ErrorBody(error=detail).model_dump_json().encode()
 
 
-def error_response(error: ApiError) -> Response:
+def error_response(error: ApiError, request: Request | None = None) -> Response:
+    """The error's response; on the location adapter's paths as RFC 7807 problem details (its clients
+    follow ETSI GS MEC 013, which answers errors so)."""
     headers = dict(error.headers)
     if error.status == 401:
         headers.setdefault("WWW-Authenticate", "Bearer")
+    if request is not None and location_problems.is_location_path(request.url.path):
+        return Response(
+            location_problems.problem_body(error.status, error.message, error.problems, request.url.path),
+            status_code=error.status,
+            media_type=location_problems.MEDIA_TYPE,
+            headers=headers,
+        )
     return Response(
         error_body(error.code, error.message, error.problems),
         status_code=error.status,
@@ -177,22 +187,22 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(ApiError)
     async def _api_error(request: Request, error: ApiError) -> Response:
-        return error_response(error)
+        return error_response(error, request)
 
     @app.exception_handler(StoreUnavailable)
     async def _store_unavailable(request: Request, error: StoreUnavailable) -> Response:
-        return error_response(store_unavailable_error(error))
+        return error_response(store_unavailable_error(error), request)
 
     @app.exception_handler(RequestValidationError)
     async def _validation_error(request: Request, error: RequestValidationError) -> Response:
-        return error_response(invalid_request_error(error.errors(), error.body))
+        return error_response(invalid_request_error(error.errors(), error.body), request)
 
     @app.exception_handler(StarletteHTTPException)
     async def _http_error(request: Request, error: StarletteHTTPException) -> Response:
         if error.status_code == 400:  # FastAPI could not decode the body (e.g. not UTF-8)
             problem = ProblemModel(index=None, field="body", reason=f"cannot be read as JSON: {error.detail}")
             return error_response(
-                ApiError("invalid_request", "the request body is not valid JSON", [problem])
+                ApiError("invalid_request", "the request body is not valid JSON", [problem]), request
             )
         code = _STATUS_CODES.get(
             error.status_code, "invalid_request" if error.status_code < 500 else "internal_error"
@@ -203,8 +213,9 @@ def install_error_handlers(app: FastAPI) -> None:
             message = f"method {request.method} is not allowed on {request.url.path}"
         else:
             message = str(error.detail)
-        response = error_response(ApiError(code, message))
-        response.status_code = error.status_code
+        refusal = ApiError(code, message)
+        refusal.status = error.status_code
+        response = error_response(refusal, request)
         for key, value in (error.headers or {}).items():
             response.headers[key] = value
         template = getattr(request.scope.get("route"), "path", None)

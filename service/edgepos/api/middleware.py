@@ -18,6 +18,7 @@ from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 
 from edgepos.api.errors import error_body
+from edgepos.api.location import problems as location_problems
 from edgepos.api.logs import request_id_var
 from edgepos.api.metrics import Metrics
 
@@ -40,15 +41,28 @@ def valid_request_id(value: str) -> bool:
 
 
 async def _send_error(
-    send: Send, status: int, code: str, message: str, extra_headers: tuple[tuple[bytes, bytes], ...] = ()
+    send: Send,
+    scope: Scope,
+    status: int,
+    code: str,
+    message: str,
+    extra_headers: tuple[tuple[bytes, bytes], ...] = (),
 ) -> None:
-    body = error_body(code, message)
+    """The error body of the service, or problem details on the location adapter's paths."""
+    path = scope.get("path", "")
+    if location_problems.is_location_path(path):
+        body, media_type = (
+            location_problems.problem_body(status, message, (), path),
+            location_problems.MEDIA_TYPE,
+        )
+    else:
+        body, media_type = error_body(code, message), "application/json"
     await send(
         {
             "type": "http.response.start",
             "status": status,
             "headers": [
-                (b"content-type", b"application/json"),
+                (b"content-type", media_type.encode()),
                 (b"content-length", str(len(body)).encode()),
                 *extra_headers,
             ],
@@ -93,7 +107,7 @@ class RequestContextMiddleware:
             status = 500
             if not response_started:
                 await _send_error(
-                    send_with_id, 500, "internal_error", "internal server error; the error was logged"
+                    send_with_id, scope, 500, "internal_error", "internal server error; the error was logged"
                 )
         finally:
             elapsed = time.perf_counter() - started
@@ -143,7 +157,7 @@ class BodyLimitMiddleware:
         too_large = f"the request body exceeds {limit} bytes ({setting})"
         declared = dict(scope.get("headers") or []).get(b"content-length")
         if declared is not None and declared.strip().isdigit() and int(declared) > limit:
-            await _send_error(send, 413, "payload_too_large", too_large)
+            await _send_error(send, scope, 413, "payload_too_large", too_large)
             return
         chunks: list[bytes] = []
         size = 0
@@ -156,7 +170,7 @@ class BodyLimitMiddleware:
             chunk = message.get("body", b"")
             size += len(chunk)
             if size > limit:
-                await _send_error(send, 413, "payload_too_large", too_large)
+                await _send_error(send, scope, 413, "payload_too_large", too_large)
                 return
             chunks.append(chunk)
             if not message.get("more_body", False):
@@ -239,7 +253,7 @@ class AdmissionMiddleware:
         admission = self.admission
         if not await admission.acquire():
             retry_after = str(admission.retry_after_s).encode()
-            await _send_error(send, 503, "unavailable", admission.busy_message, ((b"retry-after", retry_after),))
+            await _send_error(send, scope, 503, "unavailable", admission.busy_message, ((b"retry-after", retry_after),))
             return
         try:
             await self.app(scope, receive, send)

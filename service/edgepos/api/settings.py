@@ -33,6 +33,43 @@ class Settings(BaseSettings):
         description="Bearer key for RSU writes and admin access to every session. When unset a random "
         "key is generated at start-up, printed once to stderr and written to admin_key_file.",
     )
+    read_key: SecretStr | None = Field(
+        None,
+        description="Bearer key that opens only the read-only location routes: the MEC 013 adapter under "
+        "/location/v3 and the fix stream (GET /v1/stream/fixes, every session's). Unset: only the admin key "
+        "opens them. At least 32 characters, and not the admin key.",
+    )
+    callback_hosts: str = Field(
+        "127.0.0.1,::1,localhost",
+        description="Comma-separated host names or addresses that location subscriptions may send "
+        "notifications to (callbackReference); a callback on any other host is refused with 422. The "
+        "default allows this machine only.",
+    )
+    location_poll_s: float = Field(
+        1.0,
+        ge=0.01,
+        le=60.0,
+        allow_inf_nan=False,
+        description="How often the location notifier compares the vehicles' latest fixes with the zones of "
+        "the subscriptions (s): a zone entry is notified within about this long of the fix that shows it.",
+    )
+    callback_timeout_s: float = Field(
+        5.0, gt=0, le=60.0, allow_inf_nan=False, description="Timeout of one notification POST (s)."
+    )
+    callback_backoff_s: float = Field(
+        1.0,
+        gt=0,
+        le=3600.0,
+        allow_inf_nan=False,
+        description="Wait before the first retry of a failed notification (s); it doubles with each further "
+        "failure, up to 300 s.",
+    )
+    callback_max_failures: int = Field(
+        5,
+        ge=1,
+        le=100,
+        description="Consecutive failed deliveries after which a location subscription expires (is deleted).",
+    )
     admin_key_file: Path = Field(
         Path("edgepos-admin.key"), description="Where a generated admin key is written (mode 0600)."
     )
@@ -331,6 +368,26 @@ class Settings(BaseSettings):
         return self
 
     @model_validator(mode="after")
+    def _read_key(self) -> Settings:
+        if self.read_key is None:
+            return self
+        key = self.read_key.get_secret_value()
+        if len(key) < 32:
+            raise ValueError("read_key (EDGEPOS_READ_KEY) must be at least 32 characters (a random secret)")
+        if self.admin_key is not None and key == self.admin_key.get_secret_value():
+            raise ValueError("read_key (EDGEPOS_READ_KEY) must differ from the admin key")
+        return self
+
+    @field_validator("callback_hosts")
+    @classmethod
+    def _check_callback_hosts(cls, value: str) -> str:
+        hosts = [host.strip() for host in value.split(",") if host.strip()]
+        bad = [host for host in hosts if "/" in host or " " in host]
+        if bad:
+            raise ValueError(f"callback_hosts: {bad[0]!r} is not a host name or address")
+        return value
+
+    @model_validator(mode="after")
     def _origin_pair(self) -> Settings:
         if (self.origin_lat is None) != (self.origin_lon is None):
             raise ValueError("set both origin_lat and origin_lon, or neither")
@@ -390,6 +447,13 @@ class Settings(BaseSettings):
     def session_create_address_limit(self) -> RateLimit:
         """Session creations per client address (vehicle credentials or none)."""
         return RateLimit(self.session_create_address_rate_per_s, self.session_create_address_burst)
+
+    @property
+    def callback_host_set(self) -> frozenset[str]:
+        """The hosts notifications may go to, lower-case, IPv6 addresses without brackets."""
+        return frozenset(
+            host.strip().strip("[]").lower() for host in self.callback_hosts.split(",") if host.strip()
+        )
 
     @property
     def cors_origin_list(self) -> list[str]:

@@ -428,6 +428,33 @@ class SessionStore(ABC):
         """The seconds until one more request of ``key`` would be allowed (0.0 now), using none of
         its budget: a look before work that must not even start past the limit."""
 
+    # documents of the location adapter (zones, subscriptions): small JSON texts by kind and key
+    @abstractmethod
+    async def put_document(self, kind: str, key: str, text: str) -> None:
+        """Insert or replace the document ``key`` of ``kind`` (one atomic write)."""
+
+    @abstractmethod
+    async def replace_document(self, kind: str, key: str, text: str) -> bool:
+        """Replace the document only if it still exists (False, writing nothing, when it was deleted):
+        a background writer's late update never brings back a document a client deleted."""
+
+    @abstractmethod
+    async def get_document(self, kind: str, key: str) -> str | None: ...
+
+    @abstractmethod
+    async def list_documents(self, kind: str) -> dict[str, str]:
+        """Every document of ``kind``, by key (in key order)."""
+
+    @abstractmethod
+    async def delete_document(self, kind: str, key: str) -> bool:
+        """Remove the document; False if there was none."""
+
+    @abstractmethod
+    async def acquire_lease(self, name: str, owner: str, ttl_s: float) -> bool:
+        """Take or renew the lease ``name`` for ``owner`` for ``ttl_s`` seconds: True when ``owner`` holds
+        it now (it was free, expired, or already its own), False while another owner's lease runs.
+        Every process sharing the store sees the same holder, so one of them does a shared job."""
+
     def new_session_id(self, vehicle_id: str) -> str:
         """A fresh, unguessable session id (32 hex digits) for a session of ``vehicle_id``. A store that
         shards may put the vehicle's shard in it, so that a session's keys are found without a lookup."""

@@ -46,6 +46,8 @@ class MemoryStore(SessionStore):
         self._superseded: dict[str, Supersession] = {}
         self._vehicles: dict[str, VehicleRecord] = {}
         self._vehicle_of_key: dict[str, str] = {}  # key hash -> vehicle id
+        self._documents: dict[str, dict[str, str]] = {}  # kind -> key -> text
+        self._leases: dict[str, tuple[str, float]] = {}  # name -> (owner, expires at)
 
     @staticmethod
     def _copy(record: SessionRecord) -> SessionRecord:
@@ -329,3 +331,31 @@ class MemoryStore(SessionStore):
 
     async def request_wait(self, key: str, limit: RateLimit) -> float:
         return gcra(self._rate_tats.get(key), self.clock(), limit)[0]
+
+    async def put_document(self, kind: str, key: str, text: str) -> None:
+        self._documents.setdefault(kind, {})[key] = text
+
+    async def replace_document(self, kind: str, key: str, text: str) -> bool:
+        documents = self._documents.get(kind, {})
+        if key not in documents:
+            return False
+        documents[key] = text
+        return True
+
+    async def get_document(self, kind: str, key: str) -> str | None:
+        return self._documents.get(kind, {}).get(key)
+
+    async def list_documents(self, kind: str) -> dict[str, str]:
+        documents = self._documents.get(kind, {})
+        return {key: documents[key] for key in sorted(documents)}
+
+    async def delete_document(self, kind: str, key: str) -> bool:
+        return self._documents.get(kind, {}).pop(key, None) is not None
+
+    async def acquire_lease(self, name: str, owner: str, ttl_s: float) -> bool:
+        now = self.clock()
+        holder = self._leases.get(name)
+        if holder is not None and holder[0] != owner and holder[1] > now:
+            return False
+        self._leases[name] = (owner, now + ttl_s)
+        return True

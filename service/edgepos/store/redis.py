@@ -212,6 +212,8 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
         "rotate": scripts.ROTATE_VEHICLE_KEY,
         "delete_vehicle": scripts.DELETE_VEHICLE,
         "publish_fixes": scripts.PUBLISH_FIXES,
+        "replace_document": scripts.REPLACE_DOCUMENT,
+        "acquire_lease": scripts.ACQUIRE_LEASE,
         "add_base_epochs": scripts.ADD_BASE_EPOCHS,
         "replace_base_station": scripts.REPLACE_BASE_STATION,
     }
@@ -235,6 +237,8 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
         self.rsu_key = f"{self.prefix}rsus"
         self.rate_prefix = f"{self.prefix}rate:"
         self.ephemerides_key = f"{self.prefix}ephemerides"
+        self.documents_prefix = f"{self.prefix}documents:"
+        self.lease_prefix = f"{self.prefix}lease:"
         self.vehicles_key = f"{self.prefix}vehicles"
         self.vehicle_keys_key = f"{self.prefix}vehiclekeys"
         self.live_prefix = f"{self.prefix}live:"

@@ -1,11 +1,13 @@
 """The site's registries in Redis, shared by the Redis stores (``store.redis``, ``store.redis_cluster``):
 registered vehicles (a hash by vehicle id and one by key hash, written together by Lua scripts), the
-RSU map (one hash) and the broadcast ephemerides (one hash replaced in one transaction). Each is one
-key or, for the vehicles, two keys of one hash slot (see docs/redis.md)."""
+RSU map (one hash), the broadcast ephemerides (one hash replaced in one transaction), the location
+adapter's documents (one hash per kind) and leases (one key each). Each is one key or, for the
+vehicles, two keys of one hash slot (see docs/redis.md)."""
 
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterable, Mapping, Sequence
 from contextlib import AbstractAsyncContextManager
 from typing import TYPE_CHECKING, Any
@@ -45,6 +47,8 @@ class RedisRegistry:
     vehicle_keys_key: str
     rsu_key: str
     ephemerides_key: str
+    documents_prefix: str
+    lease_prefix: str
     _scripts: dict[str, AsyncScript]
 
     if TYPE_CHECKING:
@@ -170,3 +174,40 @@ class RedisRegistry:
     async def delete_ephemerides(self) -> bool:
         async with self._guard():
             return bool(await (await self._redis()).delete(self.ephemerides_key))
+
+    # documents of the location adapter and leases ---------------------------------------------
+    async def put_document(self, kind: str, key: str, text: str) -> None:
+        async with self._guard():
+            await (await self._redis()).hset(self.documents_prefix + kind, key, text.encode())
+
+    async def replace_document(self, kind: str, key: str, text: str) -> bool:
+        async with self._guard():
+            client = await self._redis()
+            written = await self._scripts["replace_document"](
+                keys=[self.documents_prefix + kind], args=[key, text.encode()], client=client
+            )
+        return bool(written == 1)
+
+    async def get_document(self, kind: str, key: str) -> str | None:
+        async with self._guard():
+            text = await (await self._redis()).hget(self.documents_prefix + kind, key)
+        return None if text is None else bytes(text).decode()
+
+    async def list_documents(self, kind: str) -> dict[str, str]:
+        async with self._guard():
+            raw = await (await self._redis()).hgetall(self.documents_prefix + kind)
+        documents = {bytes(key).decode(): bytes(text).decode() for key, text in raw.items()}
+        return {key: documents[key] for key in sorted(documents)}
+
+    async def delete_document(self, kind: str, key: str) -> bool:
+        async with self._guard():
+            return bool(await (await self._redis()).hdel(self.documents_prefix + kind, key))
+
+    async def acquire_lease(self, name: str, owner: str, ttl_s: float) -> bool:
+        ttl_ms = max(1, math.ceil(ttl_s * 1000.0))
+        async with self._guard():
+            client = await self._redis()
+            held = await self._scripts["acquire_lease"](
+                keys=[self.lease_prefix + name], args=[owner, ttl_ms], client=client
+            )
+        return bool(held == 1)

@@ -248,6 +248,26 @@ end
 return last
 """
 
+# KEYS: the kind's document hash. ARGV: key, text. Writes only if the key is there; returns 1 if written.
+REPLACE_DOCUMENT = """
+if redis.call('HEXISTS', KEYS[1], ARGV[1]) == 1 then
+  redis.call('HSET', KEYS[1], ARGV[1], ARGV[2])
+  return 1
+end
+return 0
+"""
+
+# KEYS: the lease's key. ARGV: owner, ttl ms. Takes the lease when it is free (expired keys are gone) or
+# renews it when it is the owner's; returns 1 when the owner holds it afterwards.
+ACQUIRE_LEASE = """
+local holder = redis.call('GET', KEYS[1])
+if holder == false or holder == ARGV[1] then
+  redis.call('SET', KEYS[1], ARGV[1], 'PX', ARGV[2])
+  return 1
+end
+return 0
+"""
+
 # KEYS: the base-station hash, the station's epoch window (sorted set scored by GPS s).
 # ARGV: station id, how many epochs to keep, then (score, member) pairs.
 # Returns the window's size after, or -1 (the station is not registered; nothing written).

@@ -40,6 +40,7 @@ from edgepos.store.base import (
 from edgepos.store.fixlog import FixLog, SQLiteFixLog, fix_log_path
 from edgepos.store.ratelimit import RateLimit, gcra
 from edgepos.store.sqlite_base import SQLiteBaseStations
+from edgepos.store.sqlite_documents import SQLiteDocuments
 
 T = TypeVar("T")
 
@@ -114,6 +115,17 @@ CREATE TABLE IF NOT EXISTS supersessions (
     at REAL NOT NULL
 );
 CREATE INDEX IF NOT EXISTS supersessions_at ON supersessions (at);
+CREATE TABLE IF NOT EXISTS documents (
+    kind TEXT NOT NULL,
+    key TEXT NOT NULL,
+    text TEXT NOT NULL,
+    PRIMARY KEY (kind, key)
+);
+CREATE TABLE IF NOT EXISTS leases (
+    name TEXT PRIMARY KEY,
+    owner TEXT NOT NULL,
+    expires_at REAL NOT NULL
+);
 """
 
 _SESSION_COLUMNS = (
@@ -140,7 +152,7 @@ def path_from_url(url: str) -> Path:
     return Path(url[len(prefix) :])
 
 
-class SQLiteStore(SQLiteBaseStations, SessionStore):
+class SQLiteStore(SQLiteBaseStations, SQLiteDocuments, SessionStore):
     """Sessions and RSUs in a SQLite database file."""
 
     def __init__(self, path: str | Path, ttl_s: float, clock: Clock = time.time) -> None:

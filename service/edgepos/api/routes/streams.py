@@ -8,7 +8,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Header, Query
 from fastapi.responses import StreamingResponse
 
-from edgepos.api.auth import Principal, require_any
+from edgepos.api.auth import Principal, require_stream_reader
 from edgepos.api.context import AppContext, Context
 from edgepos.api.errors import ApiError
 from edgepos.api.routes import errors, known_query_parameters
@@ -71,17 +71,17 @@ def _stream_filter(
     pipeline: list[str] | None,
     vehicle_id: list[str] | None,
 ) -> StreamFilter:
-    if not principal.admin:
+    if not principal.admin and not principal.reader:
         own = principal.session_id
         if own is None:
             raise ApiError(
                 "forbidden",
-                "a vehicle credential opens sessions only; read the fix stream with the session's token or the admin key",
+                "a vehicle credential opens sessions only; read the fix stream with the session's token, the admin key or the read key",
             )
         if session_id is not None and session_id != own:
             raise ApiError(
                 "forbidden",
-                "a session token streams its own session's fixes only; every session's fixes need the admin key",
+                "a session token streams its own session's fixes only; every session's fixes need the admin key or the read key",
             )
         session_id = own
     pipelines = _values(pipeline)
@@ -123,7 +123,7 @@ def _stream_filter(
 )
 async def stream_fixes(
     context: Context,
-    principal: Annotated[Principal, Depends(require_any)],
+    principal: Annotated[Principal, Depends(require_stream_reader)],
     session_id: Annotated[
         str | None,
         Query(
@@ -170,7 +170,7 @@ async def stream_fixes(
     ] = None,
 ) -> EventStreamResponse:
     """Every applied fix as a server-sent event, as it is applied, from any worker or replica: with the admin
-    key every session's (or those the filters keep), with a session token that session's only. Resume with
+    key or the read key (EDGEPOS_READ_KEY) every session's (or those the filters keep), with a session token that session's only. Resume with
     ``Last-Event-ID``: the fixes after it that the buffer (EDGEPOS_STREAM_BUFFER) holds come first, after a
     ``missed`` event if it no longer holds them all. A consumer that falls EDGEPOS_STREAM_QUEUE fixes behind
     is ended with an ``end`` event: a slow consumer never delays the vehicles or other consumers."""
