@@ -15,7 +15,7 @@ from typing import Any
 
 import mkdocs_gen_files
 from edgepos.api.settings import Settings
-from edgepos.cli import build_parser
+from edgepos.cli import COMMANDS, build_parser
 from edgepos.pipelines.registry import PIPELINES
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -161,9 +161,10 @@ def _command_sections(name: str, parser: argparse.ArgumentParser, depth: int) ->
 
 
 def cli() -> str:
-    """The CLI page: the help of ``edgepos`` and of every subcommand, as argparse prints it."""
+    """The CLI page: the help of ``edgepos`` and of every subcommand, as argparse prints it (each
+    subcommand's options are only configured when it is the one run, so each is built on its own)."""
     os.environ["COLUMNS"] = "100"  # argparse wraps to the terminal: the same page on every machine
-    parser = build_parser()
+    top = build_parser()
     lines = [
         "# Command line",
         "",
@@ -172,8 +173,17 @@ def cli() -> str:
             "`edgepos ... --help` prints."
         ),
         "",
+        "## `edgepos`",
+        "",
+        "```text",
+        top.format_help().rstrip(),
+        "```",
+        "",
     ]
-    return "\n".join(lines + _command_sections("edgepos", parser, 2)) + "\n"
+    for name in COMMANDS:
+        configured = dict(_subcommands(build_parser(name)))[name]
+        lines += _command_sections(f"edgepos {name}", configured, 3)
+    return "\n".join(lines) + "\n"
 
 
 def configuration() -> str:
