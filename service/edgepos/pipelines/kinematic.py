@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -115,12 +116,13 @@ def dead_reckoning_update(
         uses[i] = MeasurementUse(i, "gyro", False, "another gyro reading at the same time was used")
     for i in odos[1:]:
         uses[i] = MeasurementUse(i, "odometer", False, "another odometer reading at the same time was used")
+    # gyros and odos index observations their isinstance filters established (cast: free at run time)
     if gyros:
         parts.append(GyroYawRate(gyro_std))
-        values.append(observations[gyros[0]].yaw_rate)
+        values.append(cast(GyroObservation, observations[gyros[0]]).yaw_rate)
         uses[gyros[0]] = MeasurementUse(gyros[0], "gyro", True)
     if odos:
-        obs = observations[odos[0]]
+        obs = cast(OdometerObservation, observations[odos[0]])
         if obs.speed is not None:
             parts.append(OdometerDistance(odometer_std, 1.0))
             values.append(obs.speed)
@@ -129,7 +131,7 @@ def dead_reckoning_update(
             uses[odos[0]] = MeasurementUse(odos[0], "odometer", False, "first distance reading: no previous reading starts its interval")
         else:
             parts.append(OdometerDistance(odometer_std, t - odometer_t))
-            values.append(obs.distance)
+            values.append(cast(float, obs.distance))  # speed is None: exactly one of the two is set
             uses[odos[0]] = MeasurementUse(odos[0], "odometer", True)
         if obs.distance is not None:
             odometer_t = t
@@ -166,6 +168,7 @@ def wait_for_heading(
         for i in readings[1:]:
             uses[i] = MeasurementUse(i, observations[i].kind, False, f"another {observations[i].kind} reading at the same time was used")
     odos = [i for i in epoch if isinstance(observations[i], OdometerObservation)]
-    if odos and observations[odos[0]].distance is not None:
+    # odos index the odometer readings the isinstance filter found (cast: free at run time)
+    if odos and cast(OdometerObservation, observations[odos[0]]).distance is not None:
         return t
     return odometer_t

@@ -22,7 +22,7 @@ import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -36,6 +36,7 @@ from edgepos.core.intersection import range_weight
 from edgepos.core.measurements.gnss_fix import GnssPosition
 from edgepos.core.measurements.rsu import RsuRange
 from edgepos.core.motion.ca import ConstantAcceleration
+from edgepos.core.numerics import FloatArray
 from edgepos.core.observations import (
     GnssFixObservation,
     GyroObservation,
@@ -255,7 +256,9 @@ def _step(session: _SessionState, epoch: list[int], observations: Sequence[Obser
             session.odometer_t = odometer_t
             mean, cov, bias = _predict(options, mean, cov, bias, dt)
             if fixes:
-                mean, cov, bias = _fix_update(options, mean, cov, bias, observations[fixes[0]])
+                # fixes index the gnss_fix observations its isinstance filter found (cast: free at run time)
+                gnss_fix = cast(GnssFixObservation, observations[fixes[0]])
+                mean, cov, bias = _fix_update(options, mean, cov, bias, gnss_fix)
                 uses[fixes[0]] = MeasurementUse(fixes[0], "gnss_fix", True)
                 used = True
             prior_mean, prior_cov = mean, cov
@@ -282,10 +285,18 @@ def _step(session: _SessionState, epoch: list[int], observations: Sequence[Obser
     return fix
 
 
-def _initialise(session, epoch, observations, fixes, uses, t) -> Fix:
+def _initialise(
+    session: _SessionState,
+    epoch: list[int],
+    observations: Sequence[Observation],
+    fixes: list[int],
+    uses: dict[int, MeasurementUse],
+    t: float,
+) -> Fix:
     """Start from the epoch's first GNSS fix, with a wide velocity."""
     for i in epoch:
-        if isinstance(observations[i], OdometerObservation) and observations[i].distance is not None:
+        observation = observations[i]
+        if isinstance(observation, OdometerObservation) and observation.distance is not None:
             session.odometer_t = t
     session.t = t
     session.epochs += 1
@@ -293,7 +304,7 @@ def _initialise(session, epoch, observations, fixes, uses, t) -> Fix:
         for i in epoch:
             uses[i] = MeasurementUse(i, observations[i].kind, False, "no estimate yet: waiting for a gnss_fix to start from")
         return Fix(t, "uninitialised", measurements=[uses[i] for i in epoch])
-    first = observations[fixes[0]]
+    first = cast(GnssFixObservation, observations[fixes[0]])  # fixes: the epoch's gnss_fix observations
     session.mean, session.cov, session.bias = _start(session.options, first)
     session.own_mean, session.own_cov, session.own_bias = session.mean.copy(), session.cov.copy(), session.bias.copy()
     session.initialised = True
@@ -305,7 +316,14 @@ def _initialise(session, epoch, observations, fixes, uses, t) -> Fix:
     return kinematic_fix(t, "initialised", session.mean, session.cov, [uses[i] for i in epoch])
 
 
-def _gps_only(session, epoch, observations, fixes, uses, dt) -> str:
+def _gps_only(
+    session: _SessionState,
+    epoch: list[int],
+    observations: Sequence[Observation],
+    fixes: list[int],
+    uses: dict[int, MeasurementUse],
+    dt: float,
+) -> str:
     """The paper's GPS row: the fix as it is. Between fixes the last fix moves on at the velocity of a
     Kalman filter on the fixes alone (kept in ``own_mean``/``own_cov``, which this method shares with
     nobody), with the spread that velocity's uncertainty adds. Differencing consecutive fixes instead
@@ -319,7 +337,7 @@ def _gps_only(session, epoch, observations, fixes, uses, dt) -> str:
         session.mean, session.cov = _KF.predict(session.mean, session.cov, ConstantAcceleration(options["accel_std"]), dt)
     if not fixes:
         return "predicted"
-    obs = observations[fixes[0]]
+    obs = cast(GnssFixObservation, observations[fixes[0]])  # fixes: the epoch's gnss_fix observations
     std = obs.std if obs.std is not None else options["gps_std"]
     position = np.array([obs.x, obs.y])
     session.own_mean, session.own_cov, session.own_bias = _fix_update(
@@ -351,7 +369,9 @@ def _start(options: Mapping[str, Any], fix: GnssFixObservation) -> tuple[np.ndar
     return mean, cov, bias
 
 
-def _predict(options, mean, cov, bias: Bias, dt: float) -> tuple[np.ndarray, np.ndarray, Bias]:
+def _predict(
+    options: Mapping[str, Any], mean: FloatArray, cov: FloatArray, bias: Bias, dt: float
+) -> tuple[np.ndarray, np.ndarray, Bias]:
     """The nearly-constant-acceleration prediction over ``dt``, the GNSS bias's Gauss-Markov step beside it."""
     if dt <= 0.0:
         return mean, cov, bias
@@ -361,7 +381,9 @@ def _predict(options, mean, cov, bias: Bias, dt: float) -> tuple[np.ndarray, np.
     return mean, cov, gnss_bias.predict(bias, transition, options["gnss_bias_tau"], options["gnss_bias_std"], dt)
 
 
-def _fix_update(options, mean, cov, bias: Bias, obs: GnssFixObservation) -> tuple[np.ndarray, np.ndarray, Bias]:
+def _fix_update(
+    options: Mapping[str, Any], mean: FloatArray, cov: FloatArray, bias: Bias, obs: GnssFixObservation
+) -> tuple[np.ndarray, np.ndarray, Bias]:
     """The fix as position + Gauss-Markov bias + white noise (white alone when gnss_bias_std is 0)."""
     std = obs.std if obs.std is not None else options["gps_std"]
     position = np.array([obs.x, obs.y])
@@ -372,7 +394,15 @@ def _fix_update(options, mean, cov, bias: Bias, obs: GnssFixObservation) -> tupl
     return gnss_bias.fix_update(mean, cov, bias, position, gnss_bias.white_variance(std, sigma))
 
 
-def _dr_update(session, mean, cov, epoch, observations, uses, t) -> tuple[np.ndarray, np.ndarray, bool]:
+def _dr_update(
+    session: _SessionState,
+    mean: FloatArray,
+    cov: FloatArray,
+    epoch: list[int],
+    observations: Sequence[Observation],
+    uses: dict[int, MeasurementUse],
+    t: float,
+) -> tuple[np.ndarray, np.ndarray, bool]:
     """Gyro and odometer once the heading is known (see kinematic.heading_known); the UKF methods update
     through the UKF, gps_dr through the linearised Kalman filter."""
     options = session.options
@@ -387,7 +417,14 @@ def _dr_update(session, mean, cov, epoch, observations, uses, t) -> tuple[np.nda
     return outcome.mean, outcome.cov, outcome.used
 
 
-def _range_update(session, epoch, observations, uses, environment, t) -> bool:
+def _range_update(
+    session: _SessionState,
+    epoch: list[int],
+    observations: Sequence[Observation],
+    uses: dict[int, MeasurementUse],
+    environment: Environment,
+    t: float,
+) -> bool:
     """V2V ranges to the neighbours available at ``t``: exact points (ukf) or augmented (aug_ukf)."""
     options = session.options
     points, point_covs, values, used = [], [], [], []
@@ -447,7 +484,8 @@ def _range_update(session, epoch, observations, uses, environment, t) -> bool:
         def ranges(states: np.ndarray) -> np.ndarray:
             own = states[:, [0, 3]]
             peers = states[:, 6:].reshape(states.shape[0], count, 2)
-            return np.linalg.norm(peers - own[:, None, :], axis=2)
+            distances: FloatArray = np.linalg.norm(peers - own[:, None, :], axis=2)
+            return distances
 
         session.mean, session.cov, _, _ = augmented_update(
             _UKF, prior_mean, prior_cov, points_array.reshape(-1), extra_cov, ranges, noise, observed,

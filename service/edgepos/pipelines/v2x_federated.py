@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -33,6 +33,7 @@ from edgepos.core.intersection import range_weight
 from edgepos.core.measurements.base import MeasurementModel
 from edgepos.core.measurements.gnss_fix import GnssPosition
 from edgepos.core.motion.current_statistical import CurrentStatistical
+from edgepos.core.numerics import FloatArray
 from edgepos.core.observations import (
     GnssFixObservation,
     GyroObservation,
@@ -155,7 +156,8 @@ class RangesToPoints(MeasurementModel):
     def predict(self, states: np.ndarray) -> np.ndarray:
         dx = states[:, None, layout.XP] - self.points[None, :, 0]
         dy = states[:, None, layout.YP] - self.points[None, :, 1]
-        return np.hypot(dx, dy)
+        ranges: FloatArray = np.hypot(dx, dy)
+        return ranges
 
     def jacobian(self, states: np.ndarray) -> np.ndarray:
         dx = states[:, None, layout.XP] - self.points[None, :, 0]
@@ -294,7 +296,7 @@ def _step(session: _SessionState, epoch: list[int], observations: Sequence[Obser
             session.t = t
             session.epochs += 1
             return Fix(t, "uninitialised", measurements=[uses[i] for i in epoch])
-        first = observations[fixes[0]]
+        first = cast(GnssFixObservation, observations[fixes[0]])  # fixes: the epoch's gnss_fix observations
         std = first.std if first.std is not None else options["gps_std"]
         sigma = options["gnss_bias_std"]
         white = gnss_bias.white_variance(std, sigma) if sigma > 0.0 else std * std
@@ -355,14 +357,22 @@ def _note_odometer(session: _SessionState, obs: Observation) -> None:
         session.odometer_t = obs.t
 
 
-def _gps_update(means, covs, bias: Bias, epoch, observations, options, uses) -> tuple[bool, Bias]:
+def _gps_update(
+    means: FloatArray,
+    covs: FloatArray,
+    bias: Bias,
+    epoch: list[int],
+    observations: Sequence[Observation],
+    options: Mapping[str, Any],
+    uses: dict[int, MeasurementUse],
+) -> tuple[bool, Bias]:
     """The fix as position + Gauss-Markov bias + white noise (white alone when gnss_bias_std is 0)."""
     fixes = [i for i in epoch if isinstance(observations[i], GnssFixObservation)]
     for i in fixes[1:]:
         uses[i] = MeasurementUse(i, "gnss_fix", False, "another gnss_fix at the same time was used")
     if not fixes:
         return False, bias
-    obs = observations[fixes[0]]
+    obs = cast(GnssFixObservation, observations[fixes[0]])  # fixes: the epoch's gnss_fix observations
     std = obs.std if obs.std is not None else options["gps_std"]
     position = np.array([obs.x, obs.y])
     sigma = options["gnss_bias_std"]
@@ -376,7 +386,16 @@ def _gps_update(means, covs, bias: Bias, epoch, observations, options, uses) -> 
     return True, bias
 
 
-def _dr_update(session, means, covs, epoch, observations, options, uses, t) -> bool:
+def _dr_update(
+    session: _SessionState,
+    means: FloatArray,
+    covs: FloatArray,
+    epoch: list[int],
+    observations: Sequence[Observation],
+    options: Mapping[str, Any],
+    uses: dict[int, MeasurementUse],
+    t: float,
+) -> bool:
     """Gyro and odometer once a second fix has given the filter a velocity (``session.dr_started``):
     from a start at rest with none, they pin the speed along an arbitrary axis (measured on the
     correlated-error scene with fixes every second: 11-18 m off for the first 20 s). The stricter rule
@@ -395,7 +414,16 @@ def _dr_update(session, means, covs, epoch, observations, options, uses, t) -> b
     return outcome.used
 
 
-def _v2x_update(means, covs, epoch, observations, options, uses, environment, t) -> bool:
+def _v2x_update(
+    means: FloatArray,
+    covs: FloatArray,
+    epoch: list[int],
+    observations: Sequence[Observation],
+    options: Mapping[str, Any],
+    uses: dict[int, MeasurementUse],
+    environment: Environment,
+    t: float,
+) -> bool:
     """Ranges to RSUs (known points) and neighbours (their published estimates, weighted by covariance
     intersection against this sub-filter: both rest on GNSS errors in common and on one another's
     ranges, so neither is taken as independent of the other)."""
@@ -455,7 +483,11 @@ def _v2x_update(means, covs, epoch, observations, options, uses, environment, t)
         keep = [k for k in range(count) if k not in neighbours]
         if not keep:
             return False
-        points, variances, point_covs, used = ([seq[k] for k in keep] for seq in (points, variances, point_covs, used))
+        # one comprehension per list (not one over the four): each keeps its element type
+        points = [points[k] for k in keep]
+        variances = [variances[k] for k in keep]
+        point_covs = [point_covs[k] for k in keep]
+        used = [used[k] for k in keep]
         weight = 1.0
     total = [v + scale * float(d @ c @ d) for v, (d, c) in zip(variances, point_covs)]  # the nodes' own uncertainty
     model = RangesToPoints(np.array(points), np.array(total))

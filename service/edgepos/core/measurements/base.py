@@ -13,7 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from edgepos.core.numerics import wrap_angle
+from edgepos.core.numerics import FloatArray, wrap_angle
 
 
 class MeasurementModel(ABC):
@@ -48,7 +48,7 @@ class MeasurementModel(ABC):
 
     def residual(self, observed: np.ndarray, predicted: np.ndarray) -> np.ndarray:
         """observed - predicted with angle rows wrapped to [-pi, pi)."""
-        residual = np.asarray(observed, dtype=float) - predicted
+        residual: FloatArray = np.asarray(observed, dtype=float) - predicted
         if self.angle_rows.size:
             residual[..., self.angle_rows] = wrap_angle(residual[..., self.angle_rows])
         return residual

@@ -10,6 +10,7 @@ import numpy as np
 
 from edgepos.core import layout
 from edgepos.core.measurements.base import MeasurementModel
+from edgepos.core.numerics import FloatArray
 
 
 class GyroYawRate(MeasurementModel):
@@ -31,7 +32,8 @@ class GyroYawRate(MeasurementModel):
     def predict(self, states: np.ndarray) -> np.ndarray:
         xv, xa, yv, ya = (states[:, i] for i in (layout.XV, layout.XA, layout.YV, layout.YA))
         speed_sq = np.maximum(xv * xv + yv * yv, self.min_speed_sq)
-        return ((xv * ya - xa * yv) / speed_sq)[:, None]
+        yaw_rate: FloatArray = ((xv * ya - xa * yv) / speed_sq)[:, None]
+        return yaw_rate
 
     def jacobian(self, states: np.ndarray) -> np.ndarray:
         xv, xa, yv, ya = (states[:, i] for i in (layout.XV, layout.XA, layout.YV, layout.YA))

@@ -11,6 +11,7 @@ import numpy as np
 from edgepos.core import layout
 from edgepos.core.measurements.base import MeasurementModel, Stacked
 from edgepos.core.measurements.gyro import GyroYawRate
+from edgepos.core.numerics import FloatArray
 
 
 class OdometerDistance(MeasurementModel):
@@ -33,7 +34,8 @@ class OdometerDistance(MeasurementModel):
         return np.zeros(1, dtype=bool)
 
     def predict(self, states: np.ndarray) -> np.ndarray:
-        return (self.interval * np.hypot(states[:, layout.XV], states[:, layout.YV]))[:, None]
+        distance: FloatArray = (self.interval * np.hypot(states[:, layout.XV], states[:, layout.YV]))[:, None]
+        return distance
 
     def jacobian(self, states: np.ndarray) -> np.ndarray:
         xv, yv = states[:, layout.XV], states[:, layout.YV]

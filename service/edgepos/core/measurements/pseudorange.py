@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from edgepos.core.motion.riss import CLOCK, GeodeticAnchor
+from edgepos.core.numerics import FloatArray
 from edgepos.gnss.orbits import sagnac_range
 
 
@@ -50,7 +51,8 @@ class PseudorangeModel:
         """:meth:`predict` with the states' ECEF positions (..., 3) already computed (shared with the
         range-rate model when both are updated together)."""
         ranges = sagnac_range(self.sat_position, receiver[..., None, :])
-        return ranges + states[..., self.clock_index] + self.known_m
+        pseudoranges: FloatArray = ranges + states[..., self.clock_index] + self.known_m
+        return pseudoranges
 
     def variances(self) -> np.ndarray:
         return self.std_m**2

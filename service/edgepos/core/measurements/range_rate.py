@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from edgepos.core.motion.riss import DRIFT, VE, VN, VU, GeodeticAnchor
+from edgepos.core.numerics import FloatArray
 from edgepos.gnss.geodesy import geodetic_to_ecef
 from edgepos.gnss.orbits import OMEGA_EARTH, SPEED_OF_LIGHT
 
@@ -102,7 +103,8 @@ class RangeRateModel:
         turn_s = np.stack([-vs[:, 1], vs[:, 0], np.zeros(len(vs))], axis=1)  # omega x-terms of v_s with r
         turn_r = np.stack([-s[:, 1], s[:, 0], np.zeros(len(s))], axis=1)  # ... and of s with v_r
         sagnac = OMEGA_EARTH * (receiver @ turn_s.T + velocity @ turn_r.T) / SPEED_OF_LIGHT
-        return along / distance + sagnac + states[..., DRIFT, None] + self.known_mps
+        rates: FloatArray = along / distance + sagnac + states[..., DRIFT, None] + self.known_mps
+        return rates
 
     def variances(self) -> np.ndarray:
         return self.std_mps**2

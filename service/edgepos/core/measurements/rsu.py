@@ -12,6 +12,7 @@ import numpy as np
 
 from edgepos.core import layout
 from edgepos.core.measurements.base import MeasurementModel
+from edgepos.core.numerics import FloatArray
 
 #: Below this distance (m) the Jacobians are evaluated at this distance instead.
 _MIN_DISTANCE = 1e-3
@@ -28,7 +29,7 @@ class RsuRangeBearing(MeasurementModel):
     """Range and bearing from ``positions`` (K, 2) with per-RSU noise standard deviations."""
 
     def __init__(self, positions: np.ndarray, range_std: np.ndarray, bearing_std: np.ndarray) -> None:
-        self.positions = np.atleast_2d(np.asarray(positions, dtype=float))
+        self.positions: FloatArray = np.atleast_2d(np.asarray(positions, dtype=float))
         count = self.positions.shape[0]
         variances = np.empty(2 * count)
         variances[0::2] = np.square(range_std)
@@ -39,7 +40,8 @@ class RsuRangeBearing(MeasurementModel):
 
     @property
     def dim(self) -> int:
-        return 2 * self.positions.shape[0]
+        count: int = self.positions.shape[0]
+        return 2 * count
 
     @property
     def angle_mask(self) -> np.ndarray:
@@ -70,14 +72,15 @@ class RsuRange(MeasurementModel):
     """Range only from ``positions`` (K, 2): time-of-flight ranging to known nodes."""
 
     def __init__(self, positions: np.ndarray, range_std: np.ndarray) -> None:
-        self.positions = np.atleast_2d(np.asarray(positions, dtype=float))
+        self.positions: FloatArray = np.atleast_2d(np.asarray(positions, dtype=float))
         count = self.positions.shape[0]
         self._noise = np.diag(np.broadcast_to(np.asarray(range_std, dtype=float), (count,)) ** 2)
         self._mask = np.zeros(count, dtype=bool)
 
     @property
     def dim(self) -> int:
-        return self.positions.shape[0]
+        count: int = self.positions.shape[0]
+        return count
 
     @property
     def angle_mask(self) -> np.ndarray:
