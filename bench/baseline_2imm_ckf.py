@@ -40,7 +40,10 @@ def step(models, transition, priority, means, covs, probabilities, dt, measureme
         mean_c = sum(mixing[i, j] * means[i][local[i]] for i in range(count))
         cov_c = sum(
             mixing[i, j]
-            * (covs[i][np.ix_(local[i], local[i])] + np.outer(means[i][local[i]] - mean_c, means[i][local[i]] - mean_c))
+            * (
+                covs[i][np.ix_(local[i], local[i])]
+                + np.outer(means[i][local[i]] - mean_c, means[i][local[i]] - mean_c)
+            )
             for i in range(count)
         )
         mean, cov = means[j].copy(), covs[j].copy()
@@ -95,7 +98,11 @@ def step(models, transition, priority, means, covs, probabilities, dt, measureme
     mu = likelihoods[first] * predicted[first] / np.sum(likelihoods[first] * predicted[first])
     x0 = sum(mu[k] * new_means[i][local[i]] for k, i in enumerate(first))
     p0 = sum(
-        mu[k] * (new_covs[i][np.ix_(local[i], local[i])] + np.outer(new_means[i][local[i]] - x0, new_means[i][local[i]] - x0))
+        mu[k]
+        * (
+            new_covs[i][np.ix_(local[i], local[i])]
+            + np.outer(new_means[i][local[i]] - x0, new_means[i][local[i]] - x0)
+        )
         for k, i in enumerate(first)
     )
     # Second interaction (eqs. 33-37) and the probability update (eq. 38).
@@ -106,7 +113,10 @@ def step(models, transition, priority, means, covs, probabilities, dt, measureme
     fused = mu0 * x0 + sum(mu_second[k] * new_means[i][local[i]] for k, i in enumerate(second))
     fused_cov = mu0 * (p0 + np.outer(x0 - fused, x0 - fused)) + sum(
         mu_second[k]
-        * (new_covs[i][np.ix_(local[i], local[i])] + np.outer(new_means[i][local[i]] - fused, new_means[i][local[i]] - fused))
+        * (
+            new_covs[i][np.ix_(local[i], local[i])]
+            + np.outer(new_means[i][local[i]] - fused, new_means[i][local[i]] - fused)
+        )
         for k, i in enumerate(second)
     )
     probabilities = np.zeros(count)

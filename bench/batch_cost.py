@@ -176,7 +176,10 @@ def rsu_imu_cases(quick: bool) -> Iterator[Case]:
         for epoch, j in zip(epochs, jitter):
             moved = [dataclasses.replace(o, t=o.t + float(j)) for o in epoch]
             extra = [o for o in moved if isinstance(o, GyroObservation)] * (gyros - 1)
-            out.append(moved + [dataclasses.replace(o, yaw_rate=o.yaw_rate + 1e-3 * (k + 1)) for k, o in enumerate(extra)])
+            out.append(
+                moved
+                + [dataclasses.replace(o, yaw_rate=o.yaw_rate + 1e-3 * (k + 1)) for k, o in enumerate(extra)]
+            )
         return out
 
     paper_epochs = jittered(paper, 7)
@@ -200,8 +203,15 @@ def rsu_imu_cases(quick: bool) -> Iterator[Case]:
                 continue
             models, priority = RSU_MODEL_SETS[label]
             for handling in ("joint", "average"):
-                options = {"filter": filter_name, "models": models, "priority": priority, "rsu_handling": handling}
-                yield case(f"{filter_name} {label} {handling} max_rsus=4", options, paper_epochs, paper_env, 20)
+                options = {
+                    "filter": filter_name,
+                    "models": models,
+                    "priority": priority,
+                    "rsu_handling": handling,
+                }
+                yield case(
+                    f"{filter_name} {label} {handling} max_rsus=4", options, paper_epochs, paper_env, 20
+                )
     # RSUs per epoch: dense layout (64 heard), max_rsus 8..64, joint and average; 4 gyros per epoch.
     for filter_name in filters:
         for label in ("1:ca", "3:ca,at,singer", "6:all(cs)"):
@@ -210,15 +220,28 @@ def rsu_imu_cases(quick: bool) -> Iterator[Case]:
                 sweep = (8, 16, 32, 64) if filter_name == "ckf" else (16, 64)
                 for max_rsus in sweep:
                     options = {
-                        "filter": filter_name, "models": models, "priority": priority, "rsu_handling": handling,
-                        "max_rsus": max_rsus, "comm_radius": 2000.0,
+                        "filter": filter_name,
+                        "models": models,
+                        "priority": priority,
+                        "rsu_handling": handling,
+                        "max_rsus": max_rsus,
+                        "comm_radius": 2000.0,
                     }
                     count = 5 if max_rsus >= 32 else 10
-                    yield case(f"{filter_name} {label} {handling} max_rsus={max_rsus}", options, dense_epochs, dense_env, count)
+                    yield case(
+                        f"{filter_name} {label} {handling} max_rsus={max_rsus}",
+                        options,
+                        dense_epochs,
+                        dense_env,
+                        count,
+                    )
                     if max_rsus == 64 and filter_name in ("ckf", "srukf"):
                         yield case(
-                            f"{filter_name} {label} {handling} max_rsus=64 4gyro", options, dense_gyro_epochs,
-                            dense_env, count,
+                            f"{filter_name} {label} {handling} max_rsus=64 4gyro",
+                            options,
+                            dense_gyro_epochs,
+                            dense_env,
+                            count,
                         )
             if quick:
                 break
@@ -232,11 +255,24 @@ def rsu_imu_cases(quick: bool) -> Iterator[Case]:
     options = {"filter": "ckf", "models": RSU_MODEL_SETS["6:all(cs)"][0], "priority": ["ca", "at"]}
     gyro_only = [[o for o in epoch if isinstance(o, GyroObservation)] for epoch in paper_epochs]
     resolved = pipeline.resolve_options(options)
-    state = advance("rsu_imu", pipeline.create(resolved, initial), [flatten(paper_epochs[:warmup])], paper_env)
-    yield Case("rsu_imu", "ckf 6:all(cs) gyro-only epochs", options, state, flatten(gyro_only[warmup : warmup + 100]), paper_env)
+    state = advance(
+        "rsu_imu", pipeline.create(resolved, initial), [flatten(paper_epochs[:warmup])], paper_env
+    )
     yield Case(
-        "rsu_imu", "ckf 6:all(cs) fresh session (initialises)", options, pipeline.create(resolved, None),
-        flatten(paper_epochs[:20]), paper_env,
+        "rsu_imu",
+        "ckf 6:all(cs) gyro-only epochs",
+        options,
+        state,
+        flatten(gyro_only[warmup : warmup + 100]),
+        paper_env,
+    )
+    yield Case(
+        "rsu_imu",
+        "ckf 6:all(cs) fresh session (initialises)",
+        options,
+        pipeline.create(resolved, None),
+        flatten(paper_epochs[:20]),
+        paper_env,
     )
 
 
@@ -252,11 +288,21 @@ def gnss_inputs(epochs: int) -> tuple[list[list[PseudorangeObservation]], Static
     for number, epoch in enumerate(read_epochs(str(GNSS_DATA / "rover-0-5min.rnx"), codes)):
         if number >= epochs:
             break
-        out.append([
-            PseudorangeObservation(epoch.gpst % 604800.0, system, int(prn), float(pr), float(cn0) if math.isfinite(cn0) else 0.0)
-            for system, prn, pr, cn0 in zip(epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz)
-            if math.isfinite(pr) and 1.0e6 <= pr <= 1.0e8
-        ])
+        out.append(
+            [
+                PseudorangeObservation(
+                    epoch.gpst % 604800.0,
+                    system,
+                    int(prn),
+                    float(pr),
+                    float(cn0) if math.isfinite(cn0) else 0.0,
+                )
+                for system, prn, pr, cn0 in zip(
+                    epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz
+                )
+                if math.isfinite(pr) and 1.0e6 <= pr <= 1.0e8
+            ]
+        )
         gpst.append(float(epoch.gpst))
     return out, StaticEnvironment(navigation=navigation), gpst
 
@@ -343,23 +389,48 @@ def gnss_cases(quick: bool) -> Iterator[Case]:
                 yield Case("gnss_tight", f"{label} {prs}pr", options, converged, batch, env)
         if filter_name == "pf":
             for prs in (6, 22, 40):
-                batch = flatten(pseudorange_subset(e, prs) for e in epochs[warmup : warmup + (1 if big else 3)])
-                yield Case("gnss_tight", f"{label} {prs}pr 8 stages forced", options, converged, batch, env, PF_WORST)
+                batch = flatten(
+                    pseudorange_subset(e, prs) for e in epochs[warmup : warmup + (1 if big else 3)]
+                )
+                yield Case(
+                    "gnss_tight", f"{label} {prs}pr 8 stages forced", options, converged, batch, env, PF_WORST
+                )
         # Pseudoranges with large errors: the snapshot test excludes up to max_exclusions, the residual
         # test loses the track, the least squares start again.
         if count <= 1000:
             for exclusions in (4, 30):
                 bad_options = {**options, "max_exclusions": exclusions}
-                bad_state = advance("gnss_tight", pipeline.create(pipeline.resolve_options(bad_options), None), epochs[:warmup], env)
+                bad_state = advance(
+                    "gnss_tight",
+                    pipeline.create(pipeline.resolve_options(bad_options), None),
+                    epochs[:warmup],
+                    env,
+                )
                 noise = np.random.default_rng(11)
                 batch = [
                     dataclasses.replace(o, pseudorange=o.pseudorange + float(noise.normal(0.0, 300.0)))
-                    for e in epochs[warmup : warmup + 3] for o in pseudorange_subset(e, 40)
+                    for e in epochs[warmup : warmup + 3]
+                    for o in pseudorange_subset(e, 40)
                 ]
-                yield Case("gnss_tight", f"{label} 40pr biased max_exclusions={exclusions}", bad_options, bad_state, batch, env)
+                yield Case(
+                    "gnss_tight",
+                    f"{label} 40pr biased max_exclusions={exclusions}",
+                    bad_options,
+                    bad_state,
+                    batch,
+                    env,
+                )
         # Right after initialisation (the PF's progressive correction takes several stages), and a fresh
         # session's first batch (least-squares initialisation).
-        yield Case("gnss_tight", f"{label} 22pr after init", options, after_init, flatten(epochs[1:4]), env, "after init")
+        yield Case(
+            "gnss_tight",
+            f"{label} 22pr after init",
+            options,
+            after_init,
+            flatten(epochs[1:4]),
+            env,
+            "after init",
+        )
         yield Case("gnss_tight", f"{label} 22pr fresh", options, fresh, flatten(epochs[:3]), env, "fresh")
         # With RISS at 10 Hz: nine RISS-only epochs between GNSS epochs; the RISS model once the heading is known.
         with_riss = [list(e) + riss[k][:1] for k, e in enumerate(epochs)]
@@ -376,7 +447,15 @@ def gnss_cases(quick: bool) -> Iterator[Case]:
         riss_state = advance("gnss_tight", fresh, grouped[:start], env)
         sizes = (10,) if big else (10, 30)
         for size in sizes:
-            yield Case("gnss_tight", f"{label} 22pr+riss 10Hz", options, riss_state, flatten(grouped[start : start + size]), env, "riss")
+            yield Case(
+                "gnss_tight",
+                f"{label} 22pr+riss 10Hz",
+                options,
+                riss_state,
+                flatten(grouped[start : start + size]),
+                env,
+                "riss",
+            )
 
 
 # -- v2v_coop ------------------------------------------------------------------------------------
@@ -401,7 +480,9 @@ def v2v_cases(quick: bool) -> Iterator[Case]:
     others = [j for j in range(len(VEHICLE_IDS)) if j != ego]
     rng = np.random.default_rng(5)
 
-    def environment_and_epochs(method: str, ranges: int, end: int) -> tuple[StaticEnvironment, list[list[Observation]]]:
+    def environment_and_epochs(
+        method: str, ranges: int, end: int
+    ) -> tuple[StaticEnvironment, list[list[Observation]]]:
         """Every vehicle's session run to ``end`` with the method, tracks kept whole; the ego's epochs with
         ``ranges`` ranges per epoch to the simulated neighbours and shifted copies of them."""
         options = pipeline.resolve_options({"method": method})
@@ -410,14 +491,18 @@ def v2v_cases(quick: bool) -> Iterator[Case]:
         for k in range(end):
             snapshot = dict(published)
             for i, vid in enumerate(VEHICLE_IDS):
-                fixes, states[vid] = pipeline.process(states[vid], run.observations[i][k], StaticEnvironment(tracks=snapshot, vehicle_id=vid))
+                fixes, states[vid] = pipeline.process(
+                    states[vid], run.observations[i][k], StaticEnvironment(tracks=snapshot, vehicle_id=vid)
+                )
                 track = tracks.publish(vid, published.get(vid), fixes, keep=10_000)
                 if track is not None:
                     published[vid] = track
         peers = []
         for shift_index, (dx, dy) in enumerate(V2V_SHIFTS):
             for j in others:
-                peers.append((j, dx, dy, VEHICLE_IDS[j] if shift_index == 0 else f"{VEHICLE_IDS[j]}~{shift_index}"))
+                peers.append(
+                    (j, dx, dy, VEHICLE_IDS[j] if shift_index == 0 else f"{VEHICLE_IDS[j]}~{shift_index}")
+                )
         peers = peers[:ranges]
         env_tracks = {}
         for j, dx, dy, pid in peers:
@@ -428,7 +513,9 @@ def v2v_cases(quick: bool) -> Iterator[Case]:
             t = float(run.times[k])
             for j, dx, dy, pid in peers:
                 distance = float(np.linalg.norm(run.positions[j, k] + [dx, dy] - run.positions[ego, k]))
-                base.append(V2vRangeObservation(t, pid, range=max(distance + 2.0 * float(rng.standard_normal()), 0.0)))
+                base.append(
+                    V2vRangeObservation(t, pid, range=max(distance + 2.0 * float(rng.standard_normal()), 0.0))
+                )
             epochs.append(base)
         return StaticEnvironment(tracks=env_tracks, vehicle_id=VEHICLE_IDS[ego]), epochs
 
@@ -437,16 +524,33 @@ def v2v_cases(quick: bool) -> Iterator[Case]:
         for ranges in range_counts:
             env, epochs = environment_and_epochs(method, ranges, 100)
             options = {"method": method}
-            state = advance("v2v_coop", pipeline.create(pipeline.resolve_options(options), None), [flatten(epochs[:1])], env)
+            state = advance(
+                "v2v_coop",
+                pipeline.create(pipeline.resolve_options(options), None),
+                [flatten(epochs[:1])],
+                env,
+            )
             for k in range(1, warmup):
                 state = advance("v2v_coop", state, [epochs[k]], env)
             sizes = (1, 5, 20, 50) if ranges in (3, 16) else (5,)
             for size in sizes:
-                yield Case("v2v_coop", f"{method} {ranges} ranges", options, state, flatten(epochs[warmup : warmup + size]), env)
+                yield Case(
+                    "v2v_coop",
+                    f"{method} {ranges} ranges",
+                    options,
+                    state,
+                    flatten(epochs[warmup : warmup + size]),
+                    env,
+                )
             if ranges == 3:
                 yield Case(
-                    "v2v_coop", f"{method} {ranges} ranges fresh", options,
-                    pipeline.create(pipeline.resolve_options(options), None), flatten(epochs[:20]), env, "fresh",
+                    "v2v_coop",
+                    f"{method} {ranges} ranges fresh",
+                    options,
+                    pipeline.create(pipeline.resolve_options(options), None),
+                    flatten(epochs[:20]),
+                    env,
+                    "fresh",
                 )
 
 
@@ -470,7 +574,9 @@ def federated_cases(quick: bool) -> Iterator[Case]:
     published: dict[str, NeighbourTrack] = {}
     for step_fixes in run.neighbour_fixes:
         for vid in run.neighbour_ids:
-            fixes, states[vid] = pipeline.process(states[vid], [step_fixes[vid]], StaticEnvironment(vehicle_id=vid))
+            fixes, states[vid] = pipeline.process(
+                states[vid], [step_fixes[vid]], StaticEnvironment(vehicle_id=vid)
+            )
             track = tracks.publish(vid, published.get(vid), fixes, keep=10_000)
             if track is not None:
                 published[vid] = track
@@ -483,22 +589,34 @@ def federated_cases(quick: bool) -> Iterator[Case]:
             for n, vid in enumerate(run.neighbour_ids):
                 peers.append((n, dx, dy, vid if shift_index == 0 else f"{vid}~{shift_index}"))
         peers = peers[:v2v]
-        env_tracks = {pid: shifted_track(published[run.neighbour_ids[n]], pid, dx, dy) for n, dx, dy, pid in peers}
+        env_tracks = {
+            pid: shifted_track(published[run.neighbour_ids[n]], pid, dx, dy) for n, dx, dy, pid in peers
+        }
         epochs = []
         for k, t in enumerate(run.times):
             x, y = run.truth[k, 0], run.truth[k, 3]
             base = [o for o in run.observations[k] if not isinstance(o, V2vRangeObservation)]
             for n, dx, dy, pid in peers:
                 distance = float(np.hypot(*(run.neighbour_truth[k, n] + [dx, dy] - [x, y])))
-                base.append(V2vRangeObservation(float(t), pid, range=max(distance + 3.0 * float(rng.standard_normal()), 0.0)))
+                base.append(
+                    V2vRangeObservation(
+                        float(t), pid, range=max(distance + 3.0 * float(rng.standard_normal()), 0.0)
+                    )
+                )
             nearest = sorted(rsus.values(), key=lambda r: math.hypot(r.x - x, r.y - y))[:rsu]
             for r in nearest:
-                base.append(RsuRangeObservation(float(t), r.id, math.hypot(r.x - x, r.y - y) + 3.0 * float(rng.standard_normal())))
+                base.append(
+                    RsuRangeObservation(
+                        float(t), r.id, math.hypot(r.x - x, r.y - y) + 3.0 * float(rng.standard_normal())
+                    )
+                )
             epochs.append(base)
         return StaticEnvironment(rsus=rsus, tracks=env_tracks, vehicle_id="target"), epochs
 
     shapes = [("GPS", 0, 0), ("GPS/DR", 0, 0)]
-    shapes += [("GPS/DR/V2X", v, r) for v, r in ((4, 0), (8, 0), (16, 0), (32, 0), (0, 16), (16, 16), (32, 32))]
+    shapes += [
+        ("GPS/DR/V2X", v, r) for v, r in ((4, 0), (8, 0), (16, 0), (32, 0), (0, 16), (16, 16), (32, 32))
+    ]
     if quick:
         shapes = [("GPS", 0, 0), ("GPS/DR/V2X", 4, 0), ("GPS/DR/V2X", 16, 16)]
     for method, v2v, rsu in shapes:
@@ -512,7 +630,9 @@ def federated_cases(quick: bool) -> Iterator[Case]:
             label = f"{method}{'' if feedback else ' nofeedback'} {v2v}v2v+{rsu}rsu"
             sizes = (1, 5, 20, 100) if feedback and (v2v, rsu) in ((0, 0), (4, 0), (16, 16)) else (5,)
             for size in sizes:
-                yield Case("v2x_federated", label, options, state, flatten(epochs[warmup : warmup + size]), env)
+                yield Case(
+                    "v2x_federated", label, options, state, flatten(epochs[warmup : warmup + size]), env
+                )
 
 
 GENERATORS: dict[str, Callable[[bool], Iterator[Case]]] = {
@@ -559,8 +679,10 @@ def fit(rows: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
             raise RuntimeError(f"{name}: envelope fit failed: {result.message}")
         out[name] = {f: float(f"{value:.3g}") for f, value in zip(features, result.x)}
         ratios = (a @ result.x) / y
-        print(f"{name}: envelope / measured over {len(y)} rows: min {ratios.min():.2f} median "
-              f"{np.median(ratios):.2f} max {ratios.max():.2f}")
+        print(
+            f"{name}: envelope / measured over {len(y)} rows: min {ratios.min():.2f} median "
+            f"{np.median(ratios):.2f} max {ratios.max():.2f}"
+        )
     return out
 
 
@@ -572,7 +694,10 @@ def main() -> int:
     parser.add_argument("--json", type=Path, help="write every row here")
     parser.add_argument("--fit", action="store_true", help="print the envelope's constants for CALIBRATION")
     parser.add_argument(
-        "--from-json", type=Path, nargs="+", help="fit earlier --json runs (each case at the median of its runs)"
+        "--from-json",
+        type=Path,
+        nargs="+",
+        help="fit earlier --json runs (each case at the median of its runs)",
     )
     args = parser.parse_args()
     if args.from_json:
@@ -582,7 +707,10 @@ def main() -> int:
         for path in args.from_json:
             for row in json.loads(path.read_text())["rows"]:
                 merged.setdefault((row["pipeline"], row["config"], row["epochs"]), []).append(row)
-        rows = [{**runs[0], "median_s": statistics.median(r["median_s"] for r in runs)} for runs in merged.values()]
+        rows = [
+            {**runs[0], "median_s": statistics.median(r["median_s"] for r in runs)}
+            for runs in merged.values()
+        ]
         print(json.dumps(fit(rows), indent=4))
         return 0
     missing = set(PIPELINES) - set(GENERATORS)
@@ -592,11 +720,15 @@ def main() -> int:
     load_before = os.getloadavg()
     started = time.perf_counter()
     warm_up()
-    print(f"python {platform.python_version()} on {platform.machine()}, {os.cpu_count()} cpus, "
-          f"EDGEPOS_NUMBA={os.environ.get('EDGEPOS_NUMBA', '1')}; load average before {load_before[0]:.2f} "
-          f"{load_before[1]:.2f} {load_before[2]:.2f}")
-    header = (f"{'pipeline':<13} {'config':<46} {'ep':>4} {'per epoch (most)':<34} {'ms/batch':>9} {'max':>8} "
-              f"{'ms/epoch':>9} {'pred ms':>9} {'meas/pred':>9}")
+    print(
+        f"python {platform.python_version()} on {platform.machine()}, {os.cpu_count()} cpus, "
+        f"EDGEPOS_NUMBA={os.environ.get('EDGEPOS_NUMBA', '1')}; load average before {load_before[0]:.2f} "
+        f"{load_before[1]:.2f} {load_before[2]:.2f}"
+    )
+    header = (
+        f"{'pipeline':<13} {'config':<46} {'ep':>4} {'per epoch (most)':<34} {'ms/batch':>9} {'max':>8} "
+        f"{'ms/epoch':>9} {'pred ms':>9} {'meas/pred':>9}"
+    )
     print(header)
     rows = []
     loads = []
@@ -612,24 +744,48 @@ def main() -> int:
             shape = " ".join(f"{k}={v}" for k, v in most.items())
             ratio = "" if not predicted else f"{median / predicted:9.2f}"
             pred = "" if not predicted else f"{1e3 * predicted:9.2f}"
-            print(f"{case.pipeline:<13} {case.config:<46} {epochs:>4} {shape:<34} {1e3 * median:>9.2f} "
-                  f"{1e3 * max(times):>8.2f} {1e3 * median / epochs:>9.3f} {pred} {ratio}", flush=True)
-            rows.append({
-                "pipeline": case.pipeline, "config": case.config, "note": case.note, "options": case.options,
-                "epochs": epochs, "per_epoch_most": most, "observations": len(case.batch),
-                "counts": [dict(c) for c in _epoch_counts(case.batch)],
-                "cpu_s": times, "median_s": median, "predicted_s": predicted,
-            })
+            print(
+                f"{case.pipeline:<13} {case.config:<46} {epochs:>4} {shape:<34} {1e3 * median:>9.2f} "
+                f"{1e3 * max(times):>8.2f} {1e3 * median / epochs:>9.3f} {pred} {ratio}",
+                flush=True,
+            )
+            rows.append(
+                {
+                    "pipeline": case.pipeline,
+                    "config": case.config,
+                    "note": case.note,
+                    "options": case.options,
+                    "epochs": epochs,
+                    "per_epoch_most": most,
+                    "observations": len(case.batch),
+                    "counts": [dict(c) for c in _epoch_counts(case.batch)],
+                    "cpu_s": times,
+                    "median_s": median,
+                    "predicted_s": predicted,
+                }
+            )
         print(f"# {name}: {time.perf_counter() - pipeline_started:.0f} s wall", flush=True)
     load_after = os.getloadavg()
-    print(f"load average after {load_after[0]:.2f} {load_after[1]:.2f} {load_after[2]:.2f}; 1-minute load "
-          f"during the run: median {statistics.median(loads):.2f}, max {max(loads):.2f}; "
-          f"{time.perf_counter() - started:.0f} s wall")
+    print(
+        f"load average after {load_after[0]:.2f} {load_after[1]:.2f} {load_after[2]:.2f}; 1-minute load "
+        f"during the run: median {statistics.median(loads):.2f}, max {max(loads):.2f}; "
+        f"{time.perf_counter() - started:.0f} s wall"
+    )
     if args.json:
-        args.json.write_text(json.dumps({
-            "python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count(),
-            "load_before": load_before, "load_after": load_after, "load_during": loads, "rows": rows,
-        }, indent=1))
+        args.json.write_text(
+            json.dumps(
+                {
+                    "python": platform.python_version(),
+                    "machine": platform.machine(),
+                    "cpus": os.cpu_count(),
+                    "load_before": load_before,
+                    "load_after": load_after,
+                    "load_during": loads,
+                    "rows": rows,
+                },
+                indent=1,
+            )
+        )
     if args.fit:
         print(json.dumps(fit(rows), indent=4))
     return 0

@@ -38,13 +38,19 @@ NEIGHBOUR_COUNTS = (1, 3, 8, 16)
 METHODS = ("gps", "ukf", "aug_ukf")
 
 
-def scenario(count: int, epochs: int, rng: np.random.Generator) -> tuple[list[list[Observation]], StaticEnvironment]:
+def scenario(
+    count: int, epochs: int, rng: np.random.Generator
+) -> tuple[list[list[Observation]], StaticEnvironment]:
     """A vehicle driving east among ``count`` neighbours 20-60 m away, and their tracks."""
-    offsets = [(20.0 * math.cos(2 * math.pi * k / count) * (1 + k % 3), 20.0 * math.sin(2 * math.pi * k / count)) for k in range(count)]
+    offsets = [
+        (20.0 * math.cos(2 * math.pi * k / count) * (1 + k % 3), 20.0 * math.sin(2 * math.pi * k / count))
+        for k in range(count)
+    ]
     cov = tuple(tuple(float(i == j) * (1.0 if i < 2 else 0.25) for j in range(4)) for i in range(4))
     tracks = {
         f"peer-{k}": NeighbourTrack(
-            f"peer-{k}", tuple(TrackPoint(n * STEP, SPEED * n * STEP + dx, dy, SPEED, 0.0, cov) for n in range(epochs))
+            f"peer-{k}",
+            tuple(TrackPoint(n * STEP, SPEED * n * STEP + dx, dy, SPEED, 0.0, cov) for n in range(epochs)),
         )
         for k, (dx, dy) in enumerate(offsets)
     }
@@ -57,7 +63,9 @@ def scenario(count: int, epochs: int, rng: np.random.Generator) -> tuple[list[li
             OdometerObservation(t, distance=SPEED * STEP + rng.normal(0, 0.1)),
         ]
         epoch += [
-            V2vRangeObservation(t, f"peer-{k}", toa=(math.hypot(dx, dy) + rng.normal(0, 2.0)) / SPEED_OF_LIGHT)
+            V2vRangeObservation(
+                t, f"peer-{k}", toa=(math.hypot(dx, dy) + rng.normal(0, 2.0)) / SPEED_OF_LIGHT
+            )
             for k, (dx, dy) in enumerate(offsets)
         ]
         observations.append(epoch)
@@ -66,7 +74,9 @@ def scenario(count: int, epochs: int, rng: np.random.Generator) -> tuple[list[li
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--batches", type=int, default=40, help="timed 20-epoch batches per case (default 40)")
+    parser.add_argument(
+        "--batches", type=int, default=40, help="timed 20-epoch batches per case (default 40)"
+    )
     args = parser.parse_args()
     pipeline = get_pipeline("v2v_coop")
     epochs = BATCH * (args.batches + 2)
@@ -74,7 +84,9 @@ def main() -> int:
         f"v2v_coop per epoch (20-epoch batches, {args.batches} batches per case), {os.cpu_count()} cores, "
         f"{platform.python_implementation()} {platform.python_version()}, load average {os.getloadavg()[0]:.2f}"
     )
-    print(f"{'method':>8}  {'neighbours':>10}  {'median us':>10}  {'p90 us':>8}  {'gps_dr us':>9}  {'ratio':>6}")
+    print(
+        f"{'method':>8}  {'neighbours':>10}  {'median us':>10}  {'p90 us':>8}  {'gps_dr us':>9}  {'ratio':>6}"
+    )
     for count in NEIGHBOUR_COUNTS:
         observations, environment = scenario(count, epochs, np.random.default_rng(count))
         baseline_state = pipeline.create(pipeline.resolve_options({"method": "gps_dr"}), None)

@@ -88,7 +88,9 @@ def light_batches(count: int) -> list[list[dict[str, Any]]]:
         items = []
         for o in epoch:
             if hasattr(o, "rsu_id"):
-                items.append({"type": "rsu", "t": o.t, "rsu_id": o.rsu_id, "range": o.range, "bearing": o.bearing})
+                items.append(
+                    {"type": "rsu", "t": o.t, "rsu_id": o.rsu_id, "range": o.range, "bearing": o.bearing}
+                )
             else:
                 items.append({"type": "gyro", "t": o.t, "yaw_rate": o.yaw_rate})
         out.append(items)
@@ -105,7 +107,9 @@ class Figures:
     heavy_errors: dict[str, int] = field(default_factory=dict)
 
 
-async def _open(client: httpx.AsyncClient, vehicle: str, pipeline: str, options: dict[str, Any], initial: Any = None) -> tuple[str, dict[str, str]]:
+async def _open(
+    client: httpx.AsyncClient, vehicle: str, pipeline: str, options: dict[str, Any], initial: Any = None
+) -> tuple[str, dict[str, str]]:
     body: dict[str, Any] = {"vehicle_id": vehicle, "pipeline": pipeline, "options": options}
     if initial is not None:
         body["initial_state"] = initial
@@ -115,8 +119,14 @@ async def _open(client: httpx.AsyncClient, vehicle: str, pipeline: str, options:
     return created["session_id"], {"Authorization": f"Bearer {created['token']}"}
 
 
-async def heavy_vehicle(url: str, index: int, options: dict[str, Any], batches: list[list[dict[str, Any]]],
-                        stop_at: float, figures: Figures) -> None:
+async def heavy_vehicle(
+    url: str,
+    index: int,
+    options: dict[str, Any],
+    batches: list[list[dict[str, Any]]],
+    stop_at: float,
+    figures: Figures,
+) -> None:
     async with httpx.AsyncClient(base_url=url, timeout=120.0) as client:
         session_id, token = await _open(client, f"heavy-{index}", "gnss_tight", options)
         seq = 0
@@ -126,7 +136,9 @@ async def heavy_vehicle(url: str, index: int, options: dict[str, Any], batches: 
                 seq = 0
             seq += 1
             response = await client.post(
-                f"/v1/sessions/{session_id}/batches", json={"seq": seq, "measurements": batches[seq - 1]}, headers=token
+                f"/v1/sessions/{session_id}/batches",
+                json={"seq": seq, "measurements": batches[seq - 1]},
+                headers=token,
             )
             if response.status_code == 200:
                 figures.heavy_batches += 1
@@ -138,8 +150,9 @@ async def heavy_vehicle(url: str, index: int, options: dict[str, Any], batches: 
                 await asyncio.sleep(0.05)
 
 
-async def light_vehicle(url: str, batches: list[list[dict[str, Any]]], start: float, stop_at: float,
-                        figures: Figures) -> None:
+async def light_vehicle(
+    url: str, batches: list[list[dict[str, Any]]], start: float, stop_at: float, figures: Figures
+) -> None:
     start_state = common.initial_state(rsu_imu_paper_scenario())
     initial = {"x": start_state.x, "y": start_state.y, "vx": start_state.vx, "vy": start_state.vy}
     async with httpx.AsyncClient(base_url=url, timeout=60.0) as client:
@@ -172,7 +185,9 @@ async def light_vehicle(url: str, batches: list[list[dict[str, Any]]], start: fl
 async def drive(url: str, duration: float, budget_s: float) -> tuple[Figures, dict[str, Any]]:
     async with httpx.AsyncClient(base_url=url, timeout=60.0) as client:
         nav = (DATA / "broadcast-nav.rnx").read_text()
-        response = await client.put("/v1/ephemerides", content=nav, headers={**ADMIN, "Content-Type": "text/plain"})
+        response = await client.put(
+            "/v1/ephemerides", content=nav, headers={**ADMIN, "Content-Type": "text/plain"}
+        )
         response.raise_for_status()
     options = {"filter": "upf", "particles": _max_particles(budget_s), "systems": ["G", "C"], "seed": 1}
     epochs = gnss_epochs()
@@ -189,8 +204,11 @@ async def drive(url: str, duration: float, budget_s: float) -> tuple[Figures, di
         light_vehicle(url, light, start, stop_at, figures),
         *(heavy_vehicle(url, index, options, batches, stop_at, figures) for index in range(HEAVY_VEHICLES)),
     )
-    return figures, {"particles": options["particles"], "epochs_per_heavy_batch": per_batch,
-                     "pseudoranges_per_heavy_batch": len(batches[0])}
+    return figures, {
+        "particles": options["particles"],
+        "epochs_per_heavy_batch": per_batch,
+        "pseudoranges_per_heavy_batch": len(batches[0]),
+    }
 
 
 def _p(values: list[float], q: float) -> float:
@@ -200,7 +218,9 @@ def _p(values: list[float], q: float) -> float:
     return ordered[min(len(ordered) - 1, math.ceil(q * len(ordered)) - 1)]
 
 
-def run_target(name: str, workers: int, store: str, extra: dict[str, str], duration: float, workdir: Path) -> dict[str, Any]:
+def run_target(
+    name: str, workers: int, store: str, extra: dict[str, str], duration: float, workdir: Path
+) -> dict[str, Any]:
     environment = clean_environment(
         EDGEPOS_ADMIN_KEY=ADMIN_KEY,
         EDGEPOS_ADMIN_KEY_FILE=str(workdir / "admin.key"),
@@ -229,10 +249,14 @@ def run_target(name: str, workers: int, store: str, extra: dict[str, str], durat
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--duration", type=float, default=15.0, help="seconds of load per configuration (default 15)")
+    parser.add_argument(
+        "--duration", type=float, default=15.0, help="seconds of load per configuration (default 15)"
+    )
     parser.add_argument("--json", type=Path, default=None, help="write the figures as JSON")
     parser.add_argument(
-        "--budget-ms", type=float, default=50.0,
+        "--budget-ms",
+        type=float,
+        default=50.0,
         help="EDGEPOS_BATCH_CPU_BUDGET_MS of every server (default 50, the service's); a larger budget admits "
         "heavier batches and shows what the heavy lane's processes buy",
     )
@@ -243,26 +267,45 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="edgepos-fairness-") as tmp:
         workdir = Path(tmp)
         one_lane = {**budget, "EDGEPOS_HEAVY_WORKERS": "0", "EDGEPOS_SCHEDULER_SLICE_MS": "10000"}
-        rows.append(run_target("1 worker, one lane (as before)", 1, "memory", one_lane, args.duration, workdir))
         rows.append(
-            run_target("1 worker, heavy on a thread", 1, "memory", {**budget, "EDGEPOS_HEAVY_WORKERS": "0"}, args.duration, workdir)
+            run_target("1 worker, one lane (as before)", 1, "memory", one_lane, args.duration, workdir)
+        )
+        rows.append(
+            run_target(
+                "1 worker, heavy on a thread",
+                1,
+                "memory",
+                {**budget, "EDGEPOS_HEAVY_WORKERS": "0"},
+                args.duration,
+                workdir,
+            )
         )
         rows.append(run_target("1 worker, heavy in a process", 1, "memory", budget, args.duration, workdir))
         binary = redis_binary()
         if binary is not None:
-            with RedisServer(binary, workdir / "redis", "--save", "", "--appendonly", "yes", "--appendfsync", "everysec") as redis:
-                rows.append(run_target("2 workers on Redis", 2, redis.url("fair:"), budget, args.duration, workdir))
+            with RedisServer(
+                binary, workdir / "redis", "--save", "", "--appendonly", "yes", "--appendfsync", "everysec"
+            ) as redis:
+                rows.append(
+                    run_target("2 workers on Redis", 2, redis.url("fair:"), budget, args.duration, workdir)
+                )
         else:
             print("redis-server is not installed: the 2-worker row is skipped", file=sys.stderr)
     print(f"machine: {os.cpu_count()} cores, {platform.python_implementation()} {platform.python_version()}")
     print(f"CPU budget per batch: {args.budget_ms:g} ms; load average before: {before[0]:.2f}")
-    print(f"heavy vehicles: {HEAVY_VEHICLES} x UPF {rows[0]['particles']} particles, {rows[0]['epochs_per_heavy_batch']} "
-          f"epochs ({rows[0]['pseudoranges_per_heavy_batch']} pseudoranges) per batch, back to back; "
-          f"light vehicle: one-epoch rsu_imu batches at {LIGHT_RATE_HZ:g} Hz for {args.duration:g} s")
-    print(f"{'configuration':34} {'light done':>10} {'p50 ms':>8} {'p99 ms':>8} {'heavy b/s':>9}  load avg   errors")
+    print(
+        f"heavy vehicles: {HEAVY_VEHICLES} x UPF {rows[0]['particles']} particles, {rows[0]['epochs_per_heavy_batch']} "
+        f"epochs ({rows[0]['pseudoranges_per_heavy_batch']} pseudoranges) per batch, back to back; "
+        f"light vehicle: one-epoch rsu_imu batches at {LIGHT_RATE_HZ:g} Hz for {args.duration:g} s"
+    )
+    print(
+        f"{'configuration':34} {'light done':>10} {'p50 ms':>8} {'p99 ms':>8} {'heavy b/s':>9}  load avg   errors"
+    )
     for row in rows:
-        print(f"{row['target']:34} {row['light_completed']:>10.1%} {row['light_p50_ms']:>8.1f} {row['light_p99_ms']:>8.1f} "
-              f"{row['heavy_batches_per_s']:>9.1f}  {row['load_average'][0]:<9} light {row['light_errors'] or '-'} heavy {row['heavy_errors'] or '-'}")
+        print(
+            f"{row['target']:34} {row['light_completed']:>10.1%} {row['light_p50_ms']:>8.1f} {row['light_p99_ms']:>8.1f} "
+            f"{row['heavy_batches_per_s']:>9.1f}  {row['load_average'][0]:<9} light {row['light_errors'] or '-'} heavy {row['heavy_errors'] or '-'}"
+        )
     if args.json is not None:
         args.json.write_text(json.dumps({"rows": rows}, indent=2) + "\n")
     return 0

@@ -38,10 +38,15 @@ NEIGHBOUR_COUNTS = (0, 1, 2, 4, 8, 16)
 
 def neighbour_offsets(count: int) -> list[tuple[float, float]]:
     """Neighbours 30 m apart along the road, alternating lanes 3.5 m either side of the target."""
-    return [(30.0 * (k // 2 + 1) * (1 if k % 2 == 0 else -1), 3.5 * (1 if k % 4 < 2 else -1)) for k in range(count)]
+    return [
+        (30.0 * (k // 2 + 1) * (1 if k % 2 == 0 else -1), 3.5 * (1 if k % 4 < 2 else -1))
+        for k in range(count)
+    ]
 
 
-def scenario(count: int, epochs: int, rng: np.random.Generator) -> tuple[list[list[Observation]], StaticEnvironment]:
+def scenario(
+    count: int, epochs: int, rng: np.random.Generator
+) -> tuple[list[list[Observation]], StaticEnvironment]:
     """Observations per epoch of a target driving east at SPEED, and the neighbours' tracks."""
     offsets = neighbour_offsets(count)
     cov = tuple(tuple(float(i == j) * (1.0 if i < 2 else 0.25) for j in range(4)) for i in range(4))
@@ -70,7 +75,9 @@ def scenario(count: int, epochs: int, rng: np.random.Generator) -> tuple[list[li
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--batches", type=int, default=60, help="timed 20-epoch batches per case (default 60)")
+    parser.add_argument(
+        "--batches", type=int, default=60, help="timed 20-epoch batches per case (default 60)"
+    )
     args = parser.parse_args()
     pipeline = get_pipeline("v2x_federated")
     options = pipeline.resolve_options({})
@@ -87,7 +94,9 @@ def main() -> int:
         full_state = pipeline.create(options, None)
         gps_state = pipeline.create(options, None)
         # The first batch initialises and warms up both sessions; it is not timed.
-        _, full_state = pipeline.process(full_state, [o for e in observations[:BATCH] for o in e], environment)
+        _, full_state = pipeline.process(
+            full_state, [o for e in observations[:BATCH] for o in e], environment
+        )
         _, gps_state = pipeline.process(gps_state, [o for e in gps_only[:BATCH] for o in e], environment)
         full_us: list[float] = []
         gps_us: list[float] = []

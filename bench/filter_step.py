@@ -72,12 +72,19 @@ def main() -> int:
     gyro = next(o for o in epoch if o.kind == "gyro")
     positions = np.array([[env.rsu(o.rsu_id).x, env.rsu(o.rsu_id).y] for o in rsu_obs])
     measurement = Stacked(
-        [RsuRangeBearing(positions, options["range_std"], options["bearing_std"]), GyroYawRate(options["gyro_std"])]
+        [
+            RsuRangeBearing(positions, options["range_std"], options["bearing_std"]),
+            GyroYawRate(options["gyro_std"]),
+        ]
     )
     observed = np.concatenate([np.ravel([[o.range, o.bearing] for o in rsu_obs]), [gyro.yaw_rate]])
     measured = RsuGyroEpoch(
-        positions, np.array([[o.range, o.bearing] for o in rsu_obs]), np.full(len(rsu_obs), options["range_std"]),
-        np.full(len(rsu_obs), options["bearing_std"]), np.array([gyro.yaw_rate]), options["gyro_std"],
+        positions,
+        np.array([[o.range, o.bearing] for o in rsu_obs]),
+        np.full(len(rsu_obs), options["range_std"]),
+        np.full(len(rsu_obs), options["bearing_std"]),
+        np.array([gyro.yaw_rate]),
+        options["gyro_std"],
     )
     compiled, reference = CompiledBankStepper(bank), BankStepper(bank)
     dt = scenario.period
@@ -85,15 +92,26 @@ def main() -> int:
     sub_covs = [session.covs[j][np.ix_(m.components, m.components)] for j, m in enumerate(bank.models)]
 
     def compiled_step():
-        return compiled.correct(compiled.predict(session.means, session.covs, session.probabilities, dt), measured)
+        return compiled.correct(
+            compiled.predict(session.means, session.covs, session.probabilities, dt), measured
+        )
 
     def reference_step():
-        return reference.correct(reference.predict(session.means, session.covs, session.probabilities, dt), measured)
+        return reference.correct(
+            reference.predict(session.means, session.covs, session.probabilities, dt), measured
+        )
 
     def baseline_step():
         return baseline_2imm_ckf.step(
-            bank.models, bank.transition, bank.priority, sub_means, sub_covs, session.probabilities,
-            dt, measurement, observed,
+            bank.models,
+            bank.transition,
+            bank.priority,
+            sub_means,
+            sub_covs,
+            session.probabilities,
+            dt,
+            measurement,
+            observed,
         )
 
     pipeline_epoch = list(epoch)
@@ -109,7 +127,11 @@ def main() -> int:
     for _ in range(max(1, args.iterations // batch_epochs) + 2):
         shifts = jitter_rng.uniform(-0.002, 0.002, batch_epochs).tolist()
         jittered_batches.append(
-            [dataclasses.replace(o, t=o.t + shift) for shift, later in zip(shifts, pipeline_batch_epochs) for o in later]
+            [
+                dataclasses.replace(o, t=o.t + shift)
+                for shift, later in zip(shifts, pipeline_batch_epochs)
+                for o in later
+            ]
         )
     jittered = iter(jittered_batches)
 
@@ -152,16 +174,24 @@ def main() -> int:
 
     agreement = {"compiled": disagreement(compiled_step()), "numpy reference": disagreement(reference_step())}
 
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, python {platform.python_version()}, numpy {np.__version__}")
-    print(f"load average before: {load_before[0]:.2f}, after: {os.getloadavg()[0]:.2f}; kernels ready in {compile_seconds:.2f} s")
-    print(f"2IMM-CKF step, models CA/AT/Singer, {len(rsu_obs)} RSUs + gyro, {args.iterations} interleaved iterations")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, python {platform.python_version()}, numpy {np.__version__}"
+    )
+    print(
+        f"load average before: {load_before[0]:.2f}, after: {os.getloadavg()[0]:.2f}; kernels ready in {compile_seconds:.2f} s"
+    )
+    print(
+        f"2IMM-CKF step, models CA/AT/Singer, {len(rsu_obs)} RSUs + gyro, {args.iterations} interleaved iterations"
+    )
     print(f"{'what':40s} {'median us':>10s} {'p90 us':>10s}")
     for name, values in timings.items():
         print(f"{name:40s} {statistics.median(values):10.1f} {percentile(values, 90):10.1f}")
     median = {name: statistics.median(values) for name, values in timings.items()}
     compiled_median = median["compiled bank step"]
     print(f"baseline / compiled step (median): {median['numpy baseline'] / compiled_median:.1f}x")
-    print(f"numpy reference / compiled step (median): {median['numpy reference bank step'] / compiled_median:.1f}x")
+    print(
+        f"numpy reference / compiled step (median): {median['numpy reference bank step'] / compiled_median:.1f}x"
+    )
     verdict = "PASS" if compiled_median <= TARGET_US else "FAIL"
     print(f"compiled 2IMM-CKF step: {compiled_median:.1f} us median (target <= {TARGET_US:g} us) {verdict}")
     for name, value in agreement.items():

@@ -62,13 +62,31 @@ def main() -> int:
             environment["EDGEPOS_STORE"] = redis.url("fleet:")
             with running(serve_command(args.workers), environment, workdir / "server.log") as url:
                 command = [
-                    sys.executable, "-m", "edgepos.cli", "loadtest", "--url", url,
-                    "--vehicles", str(args.vehicles), "--rate", str(args.rate), "--batch", str(args.batch),
-                    "--duration", str(args.duration), "--admin-key", ADMIN_KEY, "--timeout", "60", "--verify",
+                    sys.executable,
+                    "-m",
+                    "edgepos.cli",
+                    "loadtest",
+                    "--url",
+                    url,
+                    "--vehicles",
+                    str(args.vehicles),
+                    "--rate",
+                    str(args.rate),
+                    "--batch",
+                    str(args.batch),
+                    "--duration",
+                    str(args.duration),
+                    "--admin-key",
+                    ADMIN_KEY,
+                    "--timeout",
+                    "60",
+                    "--verify",
                 ]
                 if args.json is not None:
                     command += ["--json", str(args.json)]
-                status = subprocess.run(command, env={**os.environ, "EDGEPOS_ADMIN_KEY": ADMIN_KEY}, check=False).returncode
+                status = subprocess.run(
+                    command, env={**os.environ, "EDGEPOS_ADMIN_KEY": ADMIN_KEY}, check=False
+                ).returncode
     print(
         f"load generator exit status {status}; load average {os.getloadavg()[0]:.2f} after; "
         f"whole benchmark {time.perf_counter() - began:.0f} s"

@@ -76,9 +76,7 @@ def run(
 ) -> tuple[float, float, float]:
     """Median ms per epoch: (through the API, straight into the pipeline), and of GET /healthz through the
     same in-process client (the floor of any request: the test client's thread hop and the middleware)."""
-    settings = Settings(
-        admin_key=KEY, admin_key_file=workdir / "admin.key", store=store, rate_limit_per_s=0
-    )
+    settings = Settings(admin_key=KEY, admin_key_file=workdir / "admin.key", store=store, rate_limit_per_s=0)
     pipeline = GnssTightPipeline()
     navigation = Ephemerides.from_navigation(parse_navigation(text.splitlines()))
     environment = StaticEnvironment(navigation=navigation)
@@ -118,16 +116,20 @@ def main() -> int:
     args = parser.parse_args()
     text = (DATA / "broadcast-nav.rnx").read_text(encoding="ascii")
     epochs = load_epochs(args.epochs, args.systems)
-    print(f"python {platform.python_version()} on {platform.machine()}; {len(epochs)} epochs of "
-          f"{statistics.median(len(e) for e in epochs):.0f} pseudoranges")
+    print(
+        f"python {platform.python_version()} on {platform.machine()}; {len(epochs)} epochs of "
+        f"{statistics.median(len(e) for e in epochs):.0f} pseudoranges"
+    )
 
     parses = []
     for _ in range(20):
         started = time.perf_counter()
         Ephemerides.from_navigation(parse_navigation(text.splitlines()))
         parses.append(1e3 * (time.perf_counter() - started))
-    print(f"parse the navigation file ({len(text.encode())} bytes), once per worker and file: "
-          f"{statistics.median(parses):.1f} ms median")
+    print(
+        f"parse the navigation file ({len(text.encode())} bytes), once per worker and file: "
+        f"{statistics.median(parses):.1f} ms median"
+    )
     loaded = parse(text, "bench", 0.0)
     first = observations(epochs[0])
     checks = []
@@ -135,11 +137,15 @@ def main() -> int:
         started = time.perf_counter()
         assert not satellite_problems(first, loaded, list(args.systems))
         checks.append(1e6 * (time.perf_counter() - started))
-    print(f"per batch: the check that each of {len(first)} pseudoranges has a satellite state: "
-          f"{statistics.median(checks):.0f} us median")
+    print(
+        f"per batch: the check that each of {len(first)} pseudoranges has a satellite state: "
+        f"{statistics.median(checks):.0f} us median"
+    )
 
-    print(f"{'store':<8} {'filter':<10} {'API ms/epoch':>13} {'pipeline ms':>12} {'service share ms':>17} "
-          f"{'GET /healthz ms':>16}")
+    print(
+        f"{'store':<8} {'filter':<10} {'API ms/epoch':>13} {'pipeline ms':>12} {'service share ms':>17} "
+        f"{'GET /healthz ms':>16}"
+    )
     with tempfile.TemporaryDirectory() as directory:
         workdir = Path(directory)
         stores = {"memory": "memory"}

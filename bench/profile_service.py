@@ -37,8 +37,14 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("in-process store", ("edgepos/store/memory.py",)),
     ("request validation (pydantic)", ("pydantic", "edgepos/api/schemas.py")),
     ("fix serialisation (convert, JSON)", ("edgepos/api/convert.py", "model_dump_json", "json/")),
-    ("session service (auth, hashing, replay, bookkeeping)", ("edgepos/api/session_service.py", "edgepos/api/auth.py", "hashlib", "hmac")),
-    ("logging and metrics", ("logging/", "prometheus_client", "edgepos/api/logs.py", "edgepos/api/metrics.py")),
+    (
+        "session service (auth, hashing, replay, bookkeeping)",
+        ("edgepos/api/session_service.py", "edgepos/api/auth.py", "hashlib", "hmac"),
+    ),
+    (
+        "logging and metrics",
+        ("logging/", "prometheus_client", "edgepos/api/logs.py", "edgepos/api/metrics.py"),
+    ),
     ("middleware (request id, admission, body limit)", ("edgepos/api/middleware.py",)),
     ("FastAPI/Starlette routing and dependencies", ("starlette", "fastapi", "edgepos/api/routes")),
     ("HTTP protocol (uvicorn, httptools)", ("uvicorn", "httptools", "h11")),
@@ -116,25 +122,79 @@ def main() -> int:
         )
         redis = None
         if args.store == "redis":
-            redis = RedisServer(redis_binary(), workdir / "redis", "--save", "", "--appendonly", "yes", "--appendfsync", "everysec")
+            redis = RedisServer(
+                redis_binary(),
+                workdir / "redis",
+                "--save",
+                "",
+                "--appendonly",
+                "yes",
+                "--appendfsync",
+                "everysec",
+            )
             redis.start()
             environment["EDGEPOS_STORE"] = redis.url("profile:")
-        command = [sys.executable, "-m", "edgepos.cli", "serve", "--host", "127.0.0.1", "--port", str(port), "--workers", "1"]
+        command = [
+            sys.executable,
+            "-m",
+            "edgepos.cli",
+            "serve",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+            "--workers",
+            "1",
+        ]
         with open(workdir / "server.log", "wb") as log:
             server = subprocess.Popen(command, env=environment, stdout=log, stderr=subprocess.STDOUT)
         try:
             wait_ready(url, server)
             duration = args.seconds + 8.0
             load = subprocess.Popen(
-                [sys.executable, "-m", "edgepos.cli", "loadtest", "--url", url, "--vehicles", "20", "--rate", "20",
-                 "--batch", "20", "--duration", str(duration), "--saturate", "--admin-key", ADMIN_KEY],
-                env={**os.environ, "EDGEPOS_ADMIN_KEY": ADMIN_KEY}, stdout=subprocess.PIPE, text=True,
+                [
+                    sys.executable,
+                    "-m",
+                    "edgepos.cli",
+                    "loadtest",
+                    "--url",
+                    url,
+                    "--vehicles",
+                    "20",
+                    "--rate",
+                    "20",
+                    "--batch",
+                    "20",
+                    "--duration",
+                    str(duration),
+                    "--saturate",
+                    "--admin-key",
+                    ADMIN_KEY,
+                ],
+                env={**os.environ, "EDGEPOS_ADMIN_KEY": ADMIN_KEY},
+                stdout=subprocess.PIPE,
+                text=True,
             )
             time.sleep(4.0)  # sessions opened, the loop at full speed
             subprocess.run(
-                [py_spy, "record", "-p", str(server.pid), "-d", str(int(args.seconds)), "-r", "200", "-f", "raw",
-                 "-o", str(raw), "--nonblocking"],
-                check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                [
+                    py_spy,
+                    "record",
+                    "-p",
+                    str(server.pid),
+                    "-d",
+                    str(int(args.seconds)),
+                    "-r",
+                    "200",
+                    "-f",
+                    "raw",
+                    "-o",
+                    str(raw),
+                    "--nonblocking",
+                ],
+                check=True,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
             )
             report, _ = load.communicate(timeout=duration + 60.0)
         finally:
@@ -143,8 +203,10 @@ def main() -> int:
             if redis is not None:
                 redis.stop()
         counts, total = shares(raw)
-    print(f"profile of 1 worker on the {args.store} store, closed loop of 20 vehicles x 20-epoch batches, "
-          f"{args.seconds:g} s at 200 Hz, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}")
+    print(
+        f"profile of 1 worker on the {args.store} store, closed loop of 20 vehicles x 20-epoch batches, "
+        f"{args.seconds:g} s at 200 Hz, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}"
+    )
     print("\n".join(line for line in report.splitlines()[1:5]))
     for name, samples in counts.most_common():
         print(f"  {100.0 * samples / total:5.1f} %  {name}")

@@ -177,7 +177,12 @@ def filter_alone(seconds: float = 3.0) -> float:
 
 def floor_command(workers: int) -> list[str]:
     return [
-        sys.executable, str(BENCH_DIR / "floor_app.py"), "--port", PORT_PLACEHOLDER, "--workers", str(workers)
+        sys.executable,
+        str(BENCH_DIR / "floor_app.py"),
+        "--port",
+        PORT_PLACEHOLDER,
+        "--workers",
+        str(workers),
     ]
 
 
@@ -214,7 +219,8 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="edgepos-bench-") as tmp:
         workdir = Path(tmp)
         env = clean_environment(
-            EDGEPOS_ADMIN_KEY=ADMIN_KEY, EDGEPOS_ADMIN_KEY_FILE=str(workdir / "admin.key"),
+            EDGEPOS_ADMIN_KEY=ADMIN_KEY,
+            EDGEPOS_ADMIN_KEY_FILE=str(workdir / "admin.key"),
             EDGEPOS_RATE_LIMIT_PER_S="0",  # capacity, not policy: no 429s in the closed loops
         )
         targets = [

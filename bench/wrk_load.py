@@ -76,7 +76,9 @@ def run_wrk(url: str, directory: Path, vehicles: int, duration_s: float) -> dict
         "wrk", "-t", str(vehicles), "-c", str(vehicles), "-d", f"{duration_s:g}s", "--timeout", "10s",
         "-s", str(BENCH_DIR / "wrk_batches.lua"), url, "--", str(directory), ADMIN_KEY,
     ]  # fmt: skip
-    output = subprocess.run(command, capture_output=True, text=True, check=True, timeout=duration_s + 60).stdout
+    output = subprocess.run(
+        command, capture_output=True, text=True, check=True, timeout=duration_s + 60
+    ).stdout
     line = next(line for line in output.splitlines() if line.startswith("WRK_RESULT "))
     result: dict[str, Any] = json.loads(line.removeprefix("WRK_RESULT "))
     seconds = result["duration_us"] / 1e6
@@ -131,7 +133,9 @@ def main() -> int:
         for round_index in range(args.rounds):
             for name, command in targets.items():
                 with running(command, env, workdir / f"{name}.log", ready_timeout_s=300.0) as url:
-                    run_wrk(url, workdir, args.vehicles, min(2.0, args.duration))  # warm-up (compiles, caches)
+                    run_wrk(
+                        url, workdir, args.vehicles, min(2.0, args.duration)
+                    )  # warm-up (compiles, caches)
                     result = run_wrk(url, workdir, args.vehicles, args.duration)
                 results[name].append(result)
                 print(
@@ -149,8 +153,12 @@ def main() -> int:
         + f"; load average {load_before:.2f} before, {os.getloadavg()[0]:.2f} after"
     )
     if args.json:
-        args.json.write_text(json.dumps({"args": vars(args) | {"json": str(args.json)}, "results": results,
-                                         "ratios": ratios}, indent=2))
+        args.json.write_text(
+            json.dumps(
+                {"args": vars(args) | {"json": str(args.json)}, "results": results, "ratios": ratios},
+                indent=2,
+            )
+        )
     return 0
 
 

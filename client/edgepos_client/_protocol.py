@@ -430,7 +430,6 @@ class Calls:
         )
         return Call("POST", f"/v1/sessions/{_segment(session_id)}/batches", body, credential)
 
-
     def batch_socket(self, session: Session | str) -> Call:
         """The handshake of the session's batch WebSocket (its path and bearer)."""
         session_id, credential = _session_credential(session, self.admin_key)

@@ -249,7 +249,12 @@ class AsyncEdgeposClient:
 
         wait = timeout if timeout is not None else self._http.timeout.read
         target = SocketTarget.of(
-            self._http.base_url, self._calls, session, self.policy, 10.0 if wait is None else wait, compression
+            self._http.base_url,
+            self._calls,
+            session,
+            self.policy,
+            10.0 if wait is None else wait,
+            compression,
         )
         return AsyncBatchSocket(target, session, self._calls)
 

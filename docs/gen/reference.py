@@ -133,7 +133,9 @@ def http_api(document: dict[str, Any]) -> str:
             required = set(schema.get("required", []))
             lines += ["| field | type | required | description |", "|---|---|---|---|"]
             for field, field_schema in properties.items():
-                described = " ".join(filter(None, [field_schema.get("description", ""), _bounds(field_schema)]))
+                described = " ".join(
+                    filter(None, [field_schema.get("description", ""), _bounds(field_schema)])
+                )
                 lines.append(
                     f"| `{field}` | {_schema_name(field_schema)} | {'yes' if field in required else 'no'} | "
                     f"{_cell(described)} |"

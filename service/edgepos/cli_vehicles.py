@@ -132,9 +132,7 @@ def parse_ids(text: str) -> IdsFile:
     return result
 
 
-def _csv_rows(
-    text: str, column: int, width: int, result: IdsFile
-) -> Iterable[tuple[int, str, str | None]]:
+def _csv_rows(text: str, column: int, width: int, result: IdsFile) -> Iterable[tuple[int, str, str | None]]:
     """(line number, vehicle id, problem or None) of each record after the header."""
     reader = csv.reader(io.StringIO(text, newline=""))
     try:

@@ -14,7 +14,12 @@ from edgepos.sim.sensors import rsu_imu_epochs
 
 ADMIN_KEY = "test-admin-key-5b1f0c9e2d7a4e3f"
 ADMIN = {"Authorization": f"Bearer {ADMIN_KEY}"}
-NO_DOPPLER = {"doppler_used": None, "doppler_reason": None, "correction_applied": None, "correction_reason": None}
+NO_DOPPLER = {
+    "doppler_used": None,
+    "doppler_reason": None,
+    "correction_applied": None,
+    "correction_reason": None,
+}
 """The Doppler fields of a measurement use that carried no Doppler (every kind but a pseudorange with one),
 and the correction fields, null while the site has no differential corrections."""
 

@@ -90,7 +90,9 @@ def test_a_request_that_waits_too_long_gets_503_with_retry_after_and_probes_skip
     assert after.status_code == 200
 
 
-@pytest.mark.parametrize("field,value", [("max_inflight", 0), ("queue_timeout_s", 0), ("queue_timeout_s", "nan")])
+@pytest.mark.parametrize(
+    "field,value", [("max_inflight", 0), ("queue_timeout_s", 0), ("queue_timeout_s", "nan")]
+)
 def test_admission_settings_are_bounded(field: str, value: object):
     with pytest.raises(ValueError, match=field):
         Settings(**{field: value})

@@ -210,9 +210,14 @@ def test_late_measurements_are_filtered_at_their_time_and_too_late_ones_reported
     response = _post(client, session_id, body, token)
     assert response.status_code == 200, response.text
     fixes = response.json()["fixes"]
-    assert [(f["t"], f["revised"]) for f in fixes] == [(0.475, False), (0.5, True), (new_epoch[0]["t"], False)]
-    assert fixes[0]["measurements"] == [{"index": len(body["measurements"]) - 1, "type": "gyro", "used": True,
-                                         "reason": None, **NO_DOPPLER}]
+    assert [(f["t"], f["revised"]) for f in fixes] == [
+        (0.475, False),
+        (0.5, True),
+        (new_epoch[0]["t"], False),
+    ]
+    assert fixes[0]["measurements"] == [
+        {"index": len(body["measurements"]) - 1, "type": "gyro", "used": True, "reason": None, **NO_DOPPLER}
+    ]
     assert fixes[1]["measurements"] == []  # a revised fix lists only the batch's measurements of its epoch
     assert fixes[1]["x"] != first[-1]["x"]
     newest = {u["index"]: u for u in fixes[-1]["measurements"]}
@@ -232,7 +237,11 @@ def test_non_finite_literals_are_refused(client, literal):
     before = _record(client, session_id)
     content = (
         '{"seq": 1, "measurements": [{"type": "gyro", "t": 1.0, "yaw_rate": 0.1},'
-        ' {"type": "rsu", "t": ' + literal + ', "rsu_id": "S+000", "range": ' + literal + ', "bearing": 0.0}]}'
+        ' {"type": "rsu", "t": '
+        + literal
+        + ', "rsu_id": "S+000", "range": '
+        + literal
+        + ', "bearing": 0.0}]}'
     )
     error = assert_error(_post_raw(client, session_id, content, token), 422, "invalid_request")
     assert [(p["index"], p["field"]) for p in error["problems"]] == [
@@ -441,7 +450,13 @@ def test_a_stored_state_this_server_cannot_read_is_a_409_not_a_500(client, damag
 
 @pytest.mark.parametrize(
     "content_type",
-    [None, "text/plain", "application/x-www-form-urlencoded", "application/json; charset=utf-16", "multipart/form-data"],
+    [
+        None,
+        "text/plain",
+        "application/x-www-form-urlencoded",
+        "application/json; charset=utf-16",
+        "multipart/form-data",
+    ],
 )
 def test_a_body_that_is_not_declared_json_is_415_and_changes_nothing(client, content_type):
     session_id, token = open_session(client)
@@ -454,7 +469,12 @@ def test_a_body_that_is_not_declared_json_is_415_and_changes_nothing(client, con
     assert error["problems"][0]["field"] == "Content-Type"
     assert client.get(f"/v1/sessions/{session_id}", headers=ADMIN).json()["last_seq"] == 0
     plain_json = {**token, "content-type": "application/json; charset=UTF-8"}
-    assert client.post(f"/v1/sessions/{session_id}/batches", content=json.dumps(batch_body(1, 0, 2)), headers=plain_json).status_code == 200
+    assert (
+        client.post(
+            f"/v1/sessions/{session_id}/batches", content=json.dumps(batch_body(1, 0, 2)), headers=plain_json
+        ).status_code
+        == 200
+    )
 
 
 def test_a_json_syntax_error_names_line_and_column(client):

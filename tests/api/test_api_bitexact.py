@@ -35,9 +35,14 @@ def _expected_wire(fix):
         "nis_dof": fix.nis_dof,
         "measurements": [
             {
-                "index": u.index, "type": u.kind, "used": u.used, "reason": u.reason,
-                "doppler_used": u.doppler_used, "doppler_reason": u.doppler_reason,
-                "correction_applied": u.correction_applied, "correction_reason": u.correction_reason,
+                "index": u.index,
+                "type": u.kind,
+                "used": u.used,
+                "reason": u.reason,
+                "doppler_used": u.doppler_used,
+                "doppler_reason": u.doppler_reason,
+                "correction_applied": u.correction_applied,
+                "correction_reason": u.correction_reason,
             }
             for u in fix.measurements
         ],

@@ -24,7 +24,10 @@ def _fixes() -> list[Fix]:
     fixes, _ = pipeline.process(state, observations, environment)
     waiting = MeasurementUse(0, "gyro", False, "waiting for an RSU measurement to initialise")
     diverged = dataclasses.replace(
-        fixes[-1], t=1.4, status="diverged", divergence="speed 3.4e+04 m/s exceeds max_speed_mps 150 m/s; reset"
+        fixes[-1],
+        t=1.4,
+        status="diverged",
+        divergence="speed 3.4e+04 m/s exceeds max_speed_mps 150 m/s; reset",
     )
     return [*fixes, diverged, Fix(t=1.5, status="uninitialised", measurements=[waiting])]
 

@@ -23,14 +23,30 @@ INVALID: list[tuple[dict[str, Any], str, str]] = [
     ({"type": "odometer", "t": 1.0, "distance": 1.0, "speed": 2.0}, "measurements[0].speed", "both"),
     ({"type": "odometer", "t": 1.0, "speed": -1.0}, "measurements[0].speed", "greater than or equal"),
     ({"type": "v2v_range", "t": 1.0, "peer_vehicle_id": "b"}, "measurements[0].toa", "neither"),
-    ({"type": "v2v_range", "t": 1.0, "peer_vehicle_id": "b", "range": 1.0, "toa": 1e-9}, "measurements[0].toa", "both"),
+    (
+        {"type": "v2v_range", "t": 1.0, "peer_vehicle_id": "b", "range": 1.0, "toa": 1e-9},
+        "measurements[0].toa",
+        "both",
+    ),
     ({"type": "v2v_range", "t": 1.0, "peer_vehicle_id": "b", "toa": 1.0}, "measurements[0].toa", "less than"),
-    ({"type": "v2v_range", "t": 1.0, "peer_vehicle_id": "", "range": 1.0}, "measurements[0].peer_vehicle_id", "match"),
+    (
+        {"type": "v2v_range", "t": 1.0, "peer_vehicle_id": "", "range": 1.0},
+        "measurements[0].peer_vehicle_id",
+        "match",
+    ),
     ({"type": "gnss_fix", "t": 1.0, "x": 1.0}, "measurements[0].y", "required"),
     ({"type": "gnss_fix", "t": 1.0, "x": 1.0, "y": 2.0, "std": 0.0}, "measurements[0].std", "greater than"),
     ({"type": "gnss_fix", "t": 1.0, "x": 2e6, "y": 2.0}, "measurements[0].x", "less than"),
-    ({"type": "rsu_range", "t": 1.0, "rsu_id": "RSU1", "range": -1.0}, "measurements[0].range", "greater than"),
-    ({"type": "rsu_range", "t": 1.0, "rsu_id": "RSU1", "range": 1.0, "bearing": 0.0}, "measurements[0].bearing", "Extra"),
+    (
+        {"type": "rsu_range", "t": 1.0, "rsu_id": "RSU1", "range": -1.0},
+        "measurements[0].range",
+        "greater than",
+    ),
+    (
+        {"type": "rsu_range", "t": 1.0, "rsu_id": "RSU1", "range": 1.0, "bearing": 0.0},
+        "measurements[0].bearing",
+        "Extra",
+    ),
 ]
 
 

@@ -104,7 +104,11 @@ def test_octet_stream_upload_and_replacement(client):
     ("edit", "line", "words"),
     [
         (lambda ls: ls.__setitem__(0, ls[0].replace("3.04", "2.11")), 1, "version"),
-        (lambda ls: ls.__setitem__(12, ls[12][:4] + "   x.50000000D+00" + ls[12][19:]), 13, "cannot read number"),
+        (
+            lambda ls: ls.__setitem__(12, ls[12][:4] + "   x.50000000D+00" + ls[12][19:]),
+            13,
+            "cannot read number",
+        ),
         (lambda ls: ls.__delitem__(slice(12, 13)), None, "expected"),
     ],
 )
@@ -313,7 +317,9 @@ def test_non_finite_carrier_phase_is_refused_and_the_session_unchanged(client, v
         f'"carrier_cycles": {value}, "lli": 0}}]}}'
     )
     response = client.post(
-        f"/v1/sessions/{session_id}/batches", content=raw, headers={**token, "Content-Type": "application/json"}
+        f"/v1/sessions/{session_id}/batches",
+        content=raw,
+        headers={**token, "Content-Type": "application/json"},
     )
     error = assert_error(response, 422, "invalid_request")
     assert error["problems"][0]["field"] == "measurements[0].carrier_cycles"
@@ -326,7 +332,9 @@ def test_carrier_phase_smooths_the_fixes_on_the_wire(client):
     assert upload(client).status_code == 200
     fixes = {}
     for name, options, carrier in (
-        ("hatch", QUICK, True), ("off", {**QUICK, "carrier_smoothing": "off"}, True), ("code", QUICK, False)
+        ("hatch", QUICK, True),
+        ("off", {**QUICK, "carrier_smoothing": "off"}, True),
+        ("code", QUICK, False),
     ):
         session_id, token = open_session(client, pipeline="gnss_tight", options=options)
         got = []
@@ -354,7 +362,9 @@ def test_non_finite_doppler_is_refused_and_the_session_unchanged(client, value):
         f'"doppler_hz": {value}}}]}}'
     )
     response = client.post(
-        f"/v1/sessions/{session_id}/batches", content=raw, headers={**token, "Content-Type": "application/json"}
+        f"/v1/sessions/{session_id}/batches",
+        content=raw,
+        headers={**token, "Content-Type": "application/json"},
     )
     error = assert_error(response, 422, "invalid_request")
     assert error["problems"][0]["field"] == "measurements[0].doppler_hz"
@@ -368,7 +378,9 @@ def test_dopplers_are_used_and_reported(client):
     assert upload(client).status_code == 200
     reports = {}
     for use_doppler in (True, False):
-        session_id, token = open_session(client, pipeline="gnss_tight", options={**QUICK, "use_doppler": use_doppler})
+        session_id, token = open_session(
+            client, pipeline="gnss_tight", options={**QUICK, "use_doppler": use_doppler}
+        )
         for seq in range(1, 4):
             response = post(client, session_id, token, seq, with_doppler(measurements(seq - 1, 1)))
             assert response.status_code == 200, response.text
@@ -383,8 +395,10 @@ def test_dopplers_are_used_and_reported(client):
     sent, _ = _with_satellite_states(with_doppler(measurements(0, 1)))
     session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
     (fix,) = post(client, session_id, token, 1, sent).json()["fixes"]
-    assert all(use["doppler_used"] is False and "no satellite velocity" in use["doppler_reason"]
-               for use in fix["measurements"])
+    assert all(
+        use["doppler_used"] is False and "no satellite velocity" in use["doppler_reason"]
+        for use in fix["measurements"]
+    )
 
 
 def test_an_epoch_too_costly_with_its_dopplers_is_refused_saying_what_to_change(client):
@@ -416,8 +430,9 @@ def test_riss_samples_drive_the_motion_model(client):
     response = post(client, session_id, token, 2, [{**riss, "t": t0 + 1.0}, *measurements(1, 1)])
     assert response.status_code == 200, response.text
     assert response.json()["fixes"][0]["yaw_rate"] == 0.01
-    error = assert_error(post(client, session_id, token, 3, [{**riss, "t": t0 + 2.0, "gyro_z": 11.0}]), 422,
-                         "invalid_request")
+    error = assert_error(
+        post(client, session_id, token, 3, [{**riss, "t": t0 + 2.0, "gyro_z": 11.0}]), 422, "invalid_request"
+    )
     assert error["problems"][0]["field"] == "measurements[0].gyro_z"
 
 
@@ -442,8 +457,10 @@ def test_pipelines_list_gnss_tight_with_its_options(client):
     assert all(o["description"] for o in gnss["options"])
     error = assert_error(
         client.post(
-            "/v1/sessions", json={"vehicle_id": "c", "pipeline": "gnss_tight", "options": {"particles": 1}}
-        , headers=ADMIN),
+            "/v1/sessions",
+            json={"vehicle_id": "c", "pipeline": "gnss_tight", "options": {"particles": 1}},
+            headers=ADMIN,
+        ),
         422,
         "invalid_request",
     )

@@ -58,7 +58,8 @@ def test_no_schema_valid_gnss_batch_gets_a_500(gnss_client, options, fuzzy, edit
             "vehicle_id": "fuzz",
             "pipeline": "gnss_tight",
             "options": {**options, "fuzzy": fuzzy, "seed": 3},
-        }, headers=ADMIN,
+        },
+        headers=ADMIN,
     )
     assert created.status_code == 201, created.text
     session_id, token = created.json()["session_id"], {"Authorization": f"Bearer {created.json()['token']}"}

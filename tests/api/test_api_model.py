@@ -134,7 +134,9 @@ class ApiBesideReference(RuleBasedStateMachine):
         target=sessions,
         filter_name=st.sampled_from(["ckf", "ukf", "ekf"]),
         known_start=st.booleans(),
-        vehicle=st.one_of(st.just("car-1"), st.text(st.characters(categories=["L", "N", "P", "S"]), min_size=1, max_size=20)),
+        vehicle=st.one_of(
+            st.just("car-1"), st.text(st.characters(categories=["L", "N", "P", "S"]), min_size=1, max_size=20)
+        ),
     )
     def open_session(self, filter_name: str, known_start: bool, vehicle: str) -> Model:
         body: dict[str, Any] = {"vehicle_id": vehicle, "options": {"filter": filter_name}}
@@ -226,7 +228,9 @@ class ApiBesideReference(RuleBasedStateMachine):
         uses = [u for f in served["fixes"] for u in f["measurements"]]
         assert sorted(u["index"] for u in uses) == list(range(len(observations)))
         if lateness > lag.DEFAULTS["max_delay_s"]:
-            assert not any(u["used"] for u in uses) and all(u["reason"].startswith("too late: ") for u in uses)
+            assert not any(u["used"] for u in uses) and all(
+                u["reason"].startswith("too late: ") for u in uses
+            )
             assert [f["revised"] for f in served["fixes"]] == [True]
         else:
             assert not any(u["reason"] and u["reason"].startswith("too late") for u in uses)
@@ -342,7 +346,11 @@ class ApiBesideReference(RuleBasedStateMachine):
                 continue
             assert response.status_code == 200, response.text
             info = response.json()
-            assert (info["last_seq"], info["batches"], info["epochs"]) == (model.last_seq, model.last_seq, model.epochs)
+            assert (info["last_seq"], info["batches"], info["epochs"]) == (
+                model.last_seq,
+                model.last_seq,
+                model.epochs,
+            )
             assert info["last_fix"] == model.last_fix
             summary = PIPELINE.summarise(model.state)
             assert info["model_probabilities"] == summary.model_probabilities and info["t"] == summary.t

@@ -36,14 +36,31 @@ def test_a_range_uses_the_peer_session_and_says_when_it_cannot(client):
     lone, lone_auth = open_session(
         client, vehicle_id="lone", pipeline="v2x_federated", options={"neighbour_fusion": "independent"}
     )
-    response = client.post(f"/v1/sessions/{lone}/batches", json={"seq": 1, "measurements": batch(0.0, "ghost", 0) + batch(0.0, "lone", 1)}, headers=lone_auth)
+    response = client.post(
+        f"/v1/sessions/{lone}/batches",
+        json={"seq": 1, "measurements": batch(0.0, "ghost", 0) + batch(0.0, "lone", 1)},
+        headers=lone_auth,
+    )
     assert response.status_code == 200, response.text
-    reasons = [u["reason"] for f in response.json()["fixes"] for u in f["measurements"] if u["type"] == "v2v_range"]
+    reasons = [
+        u["reason"] for f in response.json()["fixes"] for u in f["measurements"] if u["type"] == "v2v_range"
+    ]
     assert any("initialised" in r or "first gnss_fix" in r for r in reasons if r)
     assert any(r and "itself" in r for r in reasons), reasons
     peer, peer_auth = open_session(client, vehicle_id="peer", pipeline="v2x_federated")
-    assert client.post(f"/v1/sessions/{peer}/batches", json={"seq": 1, "measurements": batch(4.0, "x", 2)[:3]}, headers=peer_auth).status_code == 200
-    response = client.post(f"/v1/sessions/{lone}/batches", json={"seq": 2, "measurements": batch(0.0, "peer", 2)}, headers=lone_auth)
+    assert (
+        client.post(
+            f"/v1/sessions/{peer}/batches",
+            json={"seq": 1, "measurements": batch(4.0, "x", 2)[:3]},
+            headers=peer_auth,
+        ).status_code
+        == 200
+    )
+    response = client.post(
+        f"/v1/sessions/{lone}/batches",
+        json={"seq": 2, "measurements": batch(0.0, "peer", 2)},
+        headers=lone_auth,
+    )
     used = [u for f in response.json()["fixes"] for u in f["measurements"] if u["type"] == "v2v_range"]
     assert used and all(u["used"] for u in used), used
 
@@ -140,7 +157,11 @@ def test_sessions_of_non_cooperative_pipelines_publish_no_track(client):
     store = client.app.state.context.store
     assert asyncio.run(store.get_tracks(["plain"])) == {}
     coop, coop_auth = open_session(client, vehicle_id="coop", pipeline="v2x_federated")
-    response = client.post(f"/v1/sessions/{coop}/batches", json={"seq": 1, "measurements": batch(0.0, "plain", 0) + batch(0.0, "plain", 1)}, headers=coop_auth)
+    response = client.post(
+        f"/v1/sessions/{coop}/batches",
+        json={"seq": 1, "measurements": batch(0.0, "plain", 0) + batch(0.0, "plain", 1)},
+        headers=coop_auth,
+    )
     reasons = [u["reason"] for u in response.json()["fixes"][1]["measurements"] if u["type"] == "v2v_range"]
     assert reasons and "cooperative pipeline" in reasons[0], reasons
     assert asyncio.run(store.get_tracks(["coop"]))["coop"].points[-1].t == 0.2

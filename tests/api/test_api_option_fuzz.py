@@ -60,7 +60,9 @@ def _kinematic_batch(with_rsu: bool) -> list[dict[str, Any]]:
         if k:
             items.append({"type": "v2v_range", "t": t, "peer_vehicle_id": PEER, "range": 3.6})
         if with_rsu:
-            items.append({"type": "rsu_range", "t": t, "rsu_id": "S+000", "range": math.hypot(x, 3.875) + 0.2})
+            items.append(
+                {"type": "rsu_range", "t": t, "rsu_id": "S+000", "range": math.hypot(x, 3.875) + 0.2}
+            )
     return items
 
 
@@ -71,7 +73,14 @@ def _gnss_batch() -> list[dict[str, Any]]:
     for _, epoch in gnss_epochs()[:2]:
         items.extend(epoch)
         items.append(
-            {"type": "riss", "t": epoch[0]["t"], "wheel_speed": 5.0, "accel_x": 0.1, "accel_y": 0.0, "gyro_z": 0.01}
+            {
+                "type": "riss",
+                "t": epoch[0]["t"],
+                "wheel_speed": 5.0,
+                "accel_x": 0.1,
+                "accel_y": 0.0,
+                "gyro_z": 0.01,
+            }
         )
     return items
 
@@ -104,7 +113,8 @@ def fuzz_client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient
         headers = {**ADMIN, "Content-Type": "text/plain"}
         assert client.put("/v1/ephemerides", content=nav_text(), headers=headers).status_code == 200
         peer = client.post(
-            "/v1/sessions", json={"vehicle_id": PEER, "pipeline": "v2v_coop", "options": {"method": "gps_dr"}},
+            "/v1/sessions",
+            json={"vehicle_id": PEER, "pipeline": "v2v_coop", "options": {"method": "gps_dr"}},
             headers=ADMIN,
         )
         assert peer.status_code == 201, peer.text
@@ -113,7 +123,9 @@ def fuzz_client(tmp_path_factory: pytest.TempPathFactory) -> Iterator[TestClient
         ]  # t 0 .. 0.4: the car's range at t = 0.6 reads the peer predicted 0.2 s past its last point
         token = {"Authorization": f"Bearer {peer.json()['token']}"}
         response = client.post(
-            f"/v1/sessions/{peer.json()['session_id']}/batches", json={"seq": 1, "measurements": track}, headers=token
+            f"/v1/sessions/{peer.json()['session_id']}/batches",
+            json={"seq": 1, "measurements": track},
+            headers=token,
         )
         assert response.status_code == 200, response.text
         listing = client.get("/v1/pipelines").json()["pipelines"]
@@ -231,7 +243,9 @@ def option_sets(draw: st.DrawFn, name: str) -> tuple[dict[str, Any], str | None]
         elif option["name"] == "model_params":
             options["model_params"] = {m: draw(parameter_values(m)) for m in draw(subsets(tuple(models)))}
         elif option["name"] == "filter_params":
-            options["filter_params"] = draw(parameter_values(options.get("filter", published["filter"]["default"])))
+            options["filter_params"] = draw(
+                parameter_values(options.get("filter", published["filter"]["default"]))
+            )
         else:
             raise AssertionError(f"option {option['name']!r} has no strategy: add one")
     bad_field = None
@@ -254,7 +268,10 @@ def _violation(draw: st.DrawFn, options: dict[str, Any], published: dict[str, An
     if nested and draw(st.booleans()):
         model, spec = draw(st.sampled_from(nested))
         params = dict(options.get("model_params") or {})
-        params[model] = {**params.get(model, {}), spec.name: draw(_outside(spec.minimum, spec.maximum, integer=False))}
+        params[model] = {
+            **params.get(model, {}),
+            spec.name: draw(_outside(spec.minimum, spec.maximum, integer=False)),
+        }
         options["model_params"] = params
         return f"options.model_params.{model}.{spec.name}"
     name = draw(st.sampled_from(numeric))
@@ -342,7 +359,9 @@ def _check_case(
         assert created.status_code == 422
         fields = [p["field"] for p in error["problems"]]
         # The bad value is named, unless an earlier check of the same request already refused it.
-        assert bad_field in fields or not all(f.startswith(bad_field.rsplit(".", 1)[0]) for f in fields), fields
+        assert bad_field in fields or not all(f.startswith(bad_field.rsplit(".", 1)[0]) for f in fields), (
+            fields
+        )
         return
     if created.status_code != 201:
         assert created.status_code == 422, created.text
@@ -352,7 +371,9 @@ def _check_case(
     auth = {"Authorization": f"Bearer {session['token']}"}
     url = f"/v1/sessions/{session['session_id']}"
     answer = client.post(
-        f"{url}/batches", json={"seq": 1, "measurements": BATCHES[pipeline], "include_state": True}, headers=auth
+        f"{url}/batches",
+        json={"seq": 1, "measurements": BATCHES[pipeline], "include_state": True},
+        headers=auth,
     )
     assert answer.status_code < 500, answer.text
     event(f"{pipeline}: batch {answer.status_code}")
@@ -370,8 +391,18 @@ def _check_case(
     after = client.get(url, headers=auth)
     assert after.status_code == 200, after.text
     summary = _strict_json(after.text)
-    assert (summary["last_seq"], summary["batches"], summary["epochs"], summary["t"], summary["last_fix"]) == (
-        0, 0, 0, None, None,
+    assert (
+        summary["last_seq"],
+        summary["batches"],
+        summary["epochs"],
+        summary["t"],
+        summary["last_fix"],
+    ) == (
+        0,
+        0,
+        0,
+        None,
+        None,
     ), "a failed batch changed the session"
 
 
@@ -386,7 +417,14 @@ def _check_case(
 @example(case=("v2x_federated", {"range_std": 1e308}, None, "options.range_std"))
 @example(case=("v2x_federated", {"odometer_std": 1e308}, None, "options.odometer_std"))
 @example(case=("v2v_coop", {"gps_std": 1e200}, None, "options.gps_std"))
-@example(case=("rsu_imu", {"model_params": {"singer": {"sigma": 1e200}}}, None, "options.model_params.singer.sigma"))
+@example(
+    case=(
+        "rsu_imu",
+        {"model_params": {"singer": {"sigma": 1e200}}},
+        None,
+        "options.model_params.singer.sigma",
+    )
+)
 # ... and every model with a loose initial position: the turn-rate models' probabilities underflowed to
 # exactly 0 and their weighted yaw rate was 0/0.
 @example(
@@ -402,7 +440,8 @@ def _check_case(
 @example(case=("rsu_imu", {"models": [], "initial_probabilities": []}, None, None))
 @example(
     case=(
-        "v2x_federated", {},
+        "v2x_federated",
+        {},
         {"x": 0.0, "y": 0.0, "vx": 0.0, "vy": 0.0, "position_std": 5e-324, "velocity_std": 1.0},
         "initial_state.position_std",
     )

@@ -31,7 +31,8 @@ def test_an_initial_state_far_outside_the_site_is_a_422_naming_it(client):
     response = client.post("/v1/sessions", json={"vehicle_id": "car-1", "initial_state": far}, headers=ADMIN)
     error = assert_error(response, 422, "invalid_request")
     assert [(p["index"], p["field"]) for p in error["problems"]] == [
-        (None, "initial_state.x"), (None, "initial_state.y")
+        (None, "initial_state.x"),
+        (None, "initial_state.y"),
     ]
     assert "site_radius_m" in error["problems"][0]["reason"]
     assert client.get("/v1/sessions", headers=ADMIN).json()["sessions"] == []
@@ -58,7 +59,9 @@ def test_a_run_off_fix_is_served_diverged_and_the_session_starts_again(client):
     truth = scenario().truth  # epoch k of the batches is the truth's point k + 1
     assert abs(more[-1]["x"] - truth.x[13]) < 1.0 and abs(more[-1]["y"] - truth.y[13]) < 1.0
     # a session whose latest fix diverged is listed and described as such
-    session_id, token = open_session(client, vehicle_id="car-2", initial_state=far, options={"site_radius_m": 2.0e6})
+    session_id, token = open_session(
+        client, vehicle_id="car-2", initial_state=far, options={"site_radius_m": 2.0e6}
+    )
     assert _post(client, session_id, batch_body(1, 0, 2), token).status_code == 200
     described = client.get(f"/v1/sessions/{session_id}", headers=token).json()
     assert described["last_fix"]["status"] == "diverged" and described["initialised"] is False
@@ -77,7 +80,9 @@ def test_report_only_marks_the_fixes(client):
 
 
 def test_a_diverged_fix_is_not_published_to_neighbours(client):
-    session_id, token = open_session(client, vehicle_id="car-a", pipeline="v2v_coop", options={"method": "ukf"})
+    session_id, token = open_session(
+        client, vehicle_id="car-a", pipeline="v2v_coop", options={"method": "ukf"}
+    )
     fixes = [(0.0, 0.0, 0.0), (0.2, 3.0, 3.0), (0.4, 6.0, 6.0), (0.6, 3000.0, 6.0), (0.8, 3003.0, 6.0)]
     batch = [{"type": "gnss_fix", "t": t, "x": x, "y": y} for t, x, y in fixes]
     response = _post(client, session_id, {"seq": 1, "measurements": batch}, token)
@@ -96,7 +101,9 @@ def test_a_jump_of_the_clock_is_refused_and_the_session_goes_on(client):
     for measurement in jump["measurements"]:
         measurement["t"] = 1.0e10
     error = assert_error(_post(client, session_id, jump, token), 422, "invalid_request")
-    assert [p["field"] for p in error["problems"]] == [f"measurements[{i}].t" for i in range(len(jump["measurements"]))]
+    assert [p["field"] for p in error["problems"]] == [
+        f"measurements[{i}].t" for i in range(len(jump["measurements"]))
+    ]
     assert "max_time_jump_s" in error["problems"][0]["reason"]
     assert client.get(f"/v1/sessions/{session_id}", headers=token).json() == before
     response = _post(client, session_id, batch_body(2, 3, 3), token)

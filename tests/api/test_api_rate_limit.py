@@ -41,9 +41,13 @@ def test_a_burst_then_429_with_retry_after(tmp_path):
         for _ in range(10):  # invalid credentials spend nothing
             assert_error(client.get(f"/v1/sessions/{session_id}", headers=wrong), 401, "unauthorized")
         for seq in range(1, BURST + 1):
-            response = client.post(f"/v1/sessions/{session_id}/batches", json=batch_body(seq, seq - 1, 1), headers=token)
+            response = client.post(
+                f"/v1/sessions/{session_id}/batches", json=batch_body(seq, seq - 1, 1), headers=token
+            )
             assert response.status_code == 200, response.text
-        refused = client.post(f"/v1/sessions/{session_id}/batches", json=batch_body(BURST + 1, BURST, 1), headers=token)
+        refused = client.post(
+            f"/v1/sessions/{session_id}/batches", json=batch_body(BURST + 1, BURST, 1), headers=token
+        )
         error = assert_error(refused, 429, "rate_limited")
         assert "EDGEPOS_RATE_LIMIT_PER_S" in error["message"]
         assert 1 <= int(refused.headers["Retry-After"]) <= 2

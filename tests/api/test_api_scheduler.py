@@ -32,7 +32,9 @@ def test_vehicles_are_served_in_turn_not_in_arrival_order() -> None:
         gate = threading.Event()
         blocker = asyncio.ensure_future(scheduler.run("Z", 0.0, "test", _record, order, "Z", gate))
         await asyncio.sleep(0)
-        jobs = [asyncio.ensure_future(scheduler.run("A", 0.0, "test", _record, order, f"A{n}")) for n in (1, 2, 3)]
+        jobs = [
+            asyncio.ensure_future(scheduler.run("A", 0.0, "test", _record, order, f"A{n}")) for n in (1, 2, 3)
+        ]
         jobs.append(asyncio.ensure_future(scheduler.run("B", 0.0, "test", _record, order, "B1")))
         await asyncio.sleep(0)
         gate.set()
@@ -125,6 +127,7 @@ def test_an_error_in_a_job_reaches_the_caller_unchanged() -> None:
 def _heavy_worker_pid() -> int:
     """Start a scheduler with a heavy worker in this (child) process, print the worker's pid, then
     die without any shutdown, as a SIGKILLed service would."""
+
     async def scenario() -> int:
         scheduler = FairScheduler(Metrics(), slice_s=0.0, heavy_workers=1)
         return await scheduler.run("truck", 1.0, "test", os.getpid)
@@ -143,7 +146,12 @@ def test_a_heavy_worker_does_not_outlive_a_killed_service() -> None:
     code = "import test_api_scheduler as t; t._heavy_worker_pid()"
     here = os.path.dirname(os.path.abspath(__file__))
     child = subprocess.run(
-        [sys.executable, "-c", code], cwd=here, capture_output=True, text=True, timeout=300, check=False,
+        [sys.executable, "-c", code],
+        cwd=here,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
         env={**os.environ, "PYTHONPATH": here + os.pathsep + os.environ.get("PYTHONPATH", "")},
     )
     worker = int(child.stdout.strip().splitlines()[-1])

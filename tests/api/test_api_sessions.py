@@ -12,10 +12,20 @@ from fastapi.testclient import TestClient
 
 
 def test_create_returns_token_and_effective_options(client):
-    response = client.post("/v1/sessions", json={"vehicle_id": "car-7", "options": {"filter": "ukf"}}, headers=ADMIN)
+    response = client.post(
+        "/v1/sessions", json={"vehicle_id": "car-7", "options": {"filter": "ukf"}}, headers=ADMIN
+    )
     assert response.status_code == 201
     body = response.json()
-    assert set(body) == {"session_id", "token", "vehicle_id", "pipeline", "options", "created_at", "superseded"}
+    assert set(body) == {
+        "session_id",
+        "token",
+        "vehicle_id",
+        "pipeline",
+        "options",
+        "created_at",
+        "superseded",
+    }
     assert body["superseded"] is None
     assert body["vehicle_id"] == "car-7" and body["pipeline"] == "rsu_imu"
     assert body["options"] == get_pipeline("rsu_imu").resolve_options({"filter": "ukf"})
@@ -69,7 +79,9 @@ def test_bad_option_is_refused(client, options, field):
 
 def test_non_finite_option_is_refused(client):
     content = '{"vehicle_id": "car", "options": {"transition_diagonal": NaN}}'
-    response = client.post("/v1/sessions", content=content, headers={**ADMIN, "content-type": "application/json"})
+    response = client.post(
+        "/v1/sessions", content=content, headers={**ADMIN, "content-type": "application/json"}
+    )
     error = assert_error(response, 422, "invalid_request")
     assert error["problems"][0]["field"] == "options"
 
@@ -171,7 +183,9 @@ def test_idle_sessions_expire_after_the_ttl(tmp_path):
         session_id, token = open_session(client)
         clock.now += 50.0
         assert client.get(f"/v1/sessions/{session_id}", headers=token).status_code == 200
-        assert_error(client.post("/v1/sessions", json={"vehicle_id": "car"}, headers=ADMIN), 429, "too_many_sessions")
+        assert_error(
+            client.post("/v1/sessions", json={"vehicle_id": "car"}, headers=ADMIN), 429, "too_many_sessions"
+        )
         clock.now += 11.0
         assert_error(client.get(f"/v1/sessions/{session_id}", headers=ADMIN), 404, "not_found")
         open_session(client)  # the expired one no longer counts

@@ -56,7 +56,9 @@ def test_concurrent_batches_through_two_instances(tmp_path):
         sessions = []
         for index in range(2):
             created = (
-                (a if index == 0 else b).post("/v1/sessions", json={"vehicle_id": f"car-{index}"}, headers=ADMIN).json()
+                (a if index == 0 else b)
+                .post("/v1/sessions", json={"vehicle_id": f"car-{index}"}, headers=ADMIN)
+                .json()
             )
             sessions.append((created["session_id"], {"Authorization": f"Bearer {created['token']}"}))
         errors: list[str] = []

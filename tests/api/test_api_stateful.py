@@ -46,7 +46,9 @@ def test_the_schema_links_the_session_workflow():
     assert ("/v1/sessions/{session_id}/batches", "post", "ReadSession") in links
     assert ("/v1/sessions/{session_id}", "get", "DeleteSession") in links
     operation_ids = {
-        operation["operationId"] for operations in app.openapi()["paths"].values() for operation in operations.values()
+        operation["operationId"]
+        for operations in app.openapi()["paths"].values()
+        for operation in operations.values()
     }
     for operations in app.openapi()["paths"].values():
         for operation in operations.values():
@@ -122,7 +124,9 @@ class SessionWorkflow(sessions_schema.as_state_machine()):  # type: ignore[misc]
             unchanged = ("last_seq", "batches", "epochs", "t", "last_fix", "model_probabilities")
             assert {k: after[k] for k in unchanged} == {k: self.before[k] for k in unchanged}
 
-    def validate_response(self, response: Any, case: Any, additional_checks: Any = None, **kwargs: Any) -> None:
+    def validate_response(
+        self, response: Any, case: Any, additional_checks: Any = None, **kwargs: Any
+    ) -> None:
         case.validate_response(response, excluded_checks=EXCLUDED, transport_kwargs=kwargs)
 
 

@@ -7,24 +7,32 @@ from apihelp import ADMIN, assert_error, open_session
 
 
 def test_v2v_session_fixes_and_refusals(client):
-    session_id, auth = open_session(client, vehicle_id="car-a", pipeline="v2v_coop", options={"method": "ukf"})
+    session_id, auth = open_session(
+        client, vehicle_id="car-a", pipeline="v2v_coop", options={"method": "ukf"}
+    )
     batch = [
         {"type": "gnss_fix", "t": 0.0, "x": 0.0, "y": 0.0},
         {"type": "gnss_fix", "t": 0.2, "x": 3.0, "y": 3.0},
         {"type": "v2v_range", "t": 0.2, "peer_vehicle_id": "car-b", "toa": 1e-7},
     ]
-    response = client.post(f"/v1/sessions/{session_id}/batches", json={"seq": 1, "measurements": batch}, headers=auth)
+    response = client.post(
+        f"/v1/sessions/{session_id}/batches", json={"seq": 1, "measurements": batch}, headers=auth
+    )
     assert response.status_code == 200, response.text
     fixes = response.json()["fixes"]
     assert [f["status"] for f in fixes] == ["initialised", "tracking"]
     assert "no live session" in fixes[1]["measurements"][1]["reason"]
     before = client.get(f"/v1/sessions/{session_id}", headers=auth).json()
     bad = [{"type": "v2v_range", "t": 0.4, "peer_vehicle_id": "car-b", "range": -1.0}]
-    response = client.post(f"/v1/sessions/{session_id}/batches", json={"seq": 2, "measurements": bad}, headers=auth)
+    response = client.post(
+        f"/v1/sessions/{session_id}/batches", json={"seq": 2, "measurements": bad}, headers=auth
+    )
     error = assert_error(response, 422, "invalid_request")
     assert error["problems"][0]["field"].startswith("measurements[0]")
     rsu = [{"type": "rsu", "t": 0.4, "rsu_id": "R", "range": 1.0, "bearing": 0.0}]
-    response = client.post(f"/v1/sessions/{session_id}/batches", json={"seq": 2, "measurements": rsu}, headers=auth)
+    response = client.post(
+        f"/v1/sessions/{session_id}/batches", json={"seq": 2, "measurements": rsu}, headers=auth
+    )
     assert 400 <= response.status_code < 500
     assert client.get(f"/v1/sessions/{session_id}", headers=auth).json() == before
 

@@ -250,8 +250,19 @@ REFUSED = {
     **{
         f"garbage {text!r}": (lambda text=text: text)
         for text in [
-            "garbage", "a.b.c", "..", "...", "e30.e30.", "e30.e30.e30", "Bearer x.y.z", "nul\x00l",
-            "é.é.é", "eyJhbGciOiJFUzI1NiJ9", "W10.e30.", "bnVsbA.e30.", "eyJhbGciOiJFUzI1NiJ9.W10.AA",
+            "garbage",
+            "a.b.c",
+            "..",
+            "...",
+            "e30.e30.",
+            "e30.e30.e30",
+            "Bearer x.y.z",
+            "nul\x00l",
+            "é.é.é",
+            "eyJhbGciOiJFUzI1NiJ9",
+            "W10.e30.",
+            "bnVsbA.e30.",
+            "eyJhbGciOiJFUzI1NiJ9.W10.AA",
         ]
     },
 }

@@ -61,7 +61,13 @@ def test_a_registered_vehicle_opens_sessions_for_itself_only(client):
 
 @pytest.mark.parametrize(
     "credential",
-    [None, bearer("evk_not-a-registered-key"), bearer("no-prefix"), bearer("a.b.c"), {"Authorization": "Basic x"}],
+    [
+        None,
+        bearer("evk_not-a-registered-key"),
+        bearer("no-prefix"),
+        bearer("a.b.c"),
+        {"Authorization": "Basic x"},
+    ],
 )
 def test_opening_a_session_needs_a_valid_credential(client, credential):
     response = create(client, "car-1", credential)
@@ -87,7 +93,11 @@ def test_the_registry_never_shows_a_key_and_refuses_duplicates(client):
 
 
 def test_vehicle_listing_pages(client):
-    client.post("/v1/vehicles/bulk", json={"vehicles": [{"vehicle_id": f"car-{n:03d}"} for n in range(25)]}, headers=ADMIN)
+    client.post(
+        "/v1/vehicles/bulk",
+        json={"vehicles": [{"vehicle_id": f"car-{n:03d}"} for n in range(25)]},
+        headers=ADMIN,
+    )
     seen, after = [], None
     while True:
         params = {"limit": 10, **({"after": after} if after else {})}
@@ -103,7 +113,9 @@ def test_vehicle_listing_pages(client):
 def test_bulk_import_registers_the_new_and_leaves_the_known(client):
     first = register(client, "known")
     response = client.post(
-        "/v1/vehicles/bulk", json={"vehicles": [{"vehicle_id": "known"}, {"vehicle_id": "new-1"}]}, headers=ADMIN
+        "/v1/vehicles/bulk",
+        json={"vehicles": [{"vehicle_id": "known"}, {"vehicle_id": "new-1"}]},
+        headers=ADMIN,
     )
     assert response.status_code == 200, response.text
     body = response.json()
@@ -134,11 +146,17 @@ def test_revoking_a_vehicle_ends_its_session_and_key(client):
     key = register(client, "lost-1")
     created = create(client, "lost-1", key).json()
     token = bearer(created["token"])
-    applied = client.post(f"/v1/sessions/{created['session_id']}/batches", json=batch_body(1, 0, 2), headers=token)
+    applied = client.post(
+        f"/v1/sessions/{created['session_id']}/batches", json=batch_body(1, 0, 2), headers=token
+    )
     assert applied.status_code == 200
     revoked = client.delete("/v1/vehicles/lost-1", headers=ADMIN)
     assert revoked.json() == {"vehicle_id": "lost-1", "ended_session": created["session_id"]}
-    assert_error(client.post(f"/v1/sessions/{created['session_id']}/batches", json=batch_body(2, 2, 1), headers=token), 401, "unauthorized")
+    assert_error(
+        client.post(f"/v1/sessions/{created['session_id']}/batches", json=batch_body(2, 2, 1), headers=token),
+        401,
+        "unauthorized",
+    )
     assert_error(create(client, "lost-1", key), 401, "unauthorized")
     assert_error(client.delete("/v1/vehicles/lost-1", headers=ADMIN), 404, "not_found")
     assert live_sessions(client) == []
@@ -162,7 +180,9 @@ def test_a_newer_session_supersedes_the_older_one(client):
     wrong = client.get(f"/v1/sessions/{first['session_id']}", headers=bearer(f"{first['session_id']}.wrong"))
     assert assert_error(wrong, 401, "unauthorized")["message"] == INVALID
     assert [s["session_id"] for s in live_sessions(client)] == [second["session_id"]]
-    assert client.get(f"/v1/sessions/{second['session_id']}", headers=bearer(second["token"])).status_code == 200
+    assert (
+        client.get(f"/v1/sessions/{second['session_id']}", headers=bearer(second["token"])).status_code == 200
+    )
 
 
 def test_the_operator_lists_live_sessions_with_filters_and_pages(client):
@@ -182,7 +202,9 @@ def test_the_operator_lists_live_sessions_with_filters_and_pages(client):
     assert [s["vehicle_id"] for s in live_sessions(client, pipeline="gnss_tight")] == ["gnss-1"]
     pages, after = [], None
     while True:
-        page = client.get("/v1/sessions", params={"limit": 4, **({"after": after} if after else {})}, headers=ADMIN)
+        page = client.get(
+            "/v1/sessions", params={"limit": 4, **({"after": after} if after else {})}, headers=ADMIN
+        )
         pages.append(page.json()["sessions"])
         after = page.json()["next_after"]
         if after is None:
@@ -190,18 +212,24 @@ def test_the_operator_lists_live_sessions_with_filters_and_pages(client):
     assert [len(p) for p in pages] == [4, 2]
     assert [s["session_id"] for p in pages for s in p] == [s["session_id"] for s in everything]
     assert_error(client.get("/v1/sessions", params={"limit": 0}, headers=ADMIN), 422, "invalid_request")
-    misspelt = assert_error(client.get("/v1/sessions", params={"pipline": "gnss_tight"}, headers=ADMIN), 422, "invalid_request")
+    misspelt = assert_error(
+        client.get("/v1/sessions", params={"pipline": "gnss_tight"}, headers=ADMIN), 422, "invalid_request"
+    )
     assert [p["field"] for p in misspelt["problems"]] == ["pipline"]
 
 
 def test_only_the_admin_key_lists_sessions(client):
     key = register(client, "car-9")
     token = bearer(create(client, "car-9", key).json()["token"])
-    assert client.get("/v1/rsus", headers=key).status_code == 200  # the site's map is readable by its vehicles
+    assert (
+        client.get("/v1/rsus", headers=key).status_code == 200
+    )  # the site's map is readable by its vehicles
     for credential in (key, token):
         assert_error(client.get("/v1/sessions", headers=credential), 403, "forbidden")
         assert_error(client.get("/v1/vehicles", headers=credential), 403, "forbidden")
-        assert_error(client.post("/v1/vehicles", json={"vehicle_id": "x"}, headers=credential), 403, "forbidden")
+        assert_error(
+            client.post("/v1/vehicles", json={"vehicle_id": "x"}, headers=credential), 403, "forbidden"
+        )
     assert_error(client.get("/v1/sessions"), 401, "unauthorized")
 
 
@@ -227,7 +255,9 @@ def test_failed_authentications_are_limited_per_address(tmp_path, caplog):
         assert 'edgepos_auth_failures_total{reason="invalid"} 7.0' in metrics  # 3 + 1 + 3, not the last one
         assert 'edgepos_rate_limited_total{limit="auth_failures"}' in metrics
         logged = "\n".join(record.getMessage() + str(record.__dict__) for record in caplog.records)
-        assert "auth_failed" in logged and "evk_guess" not in logged and key["Authorization"][7:] not in logged
+        assert (
+            "auth_failed" in logged and "evk_guess" not in logged and key["Authorization"][7:] not in logged
+        )
         # the admin key is never locked out: an operator can always act
         assert client.get("/v1/vehicles", headers=ADMIN).status_code == 200
 
@@ -291,10 +321,16 @@ def test_a_revoked_vehicles_session_and_track_are_gone_in_every_store(tmp_path, 
         created = client.post("/v1/sessions", json=body, headers=key).json()
         token = bearer(created["token"])
         fix = {"seq": 1, "measurements": [{"type": "gnss_fix", "t": 0.0, "x": 10.0, "y": 5.0}]}
-        assert client.post(f"/v1/sessions/{created['session_id']}/batches", json=fix, headers=token).status_code == 200
+        assert (
+            client.post(f"/v1/sessions/{created['session_id']}/batches", json=fix, headers=token).status_code
+            == 200
+        )
         store = client.app.state.context.store
         assert "bus-42" in client.portal.call(store.get_tracks, ["bus-42"])
-        assert client.delete("/v1/vehicles/bus-42", headers=ADMIN).json()["ended_session"] == created["session_id"]
+        assert (
+            client.delete("/v1/vehicles/bus-42", headers=ADMIN).json()["ended_session"]
+            == created["session_id"]
+        )
         assert_error(client.get(f"/v1/sessions/{created['session_id']}", headers=token), 401, "unauthorized")
         assert_error(client.get(f"/v1/sessions/{created['session_id']}", headers=ADMIN), 404, "not_found")
         assert client.portal.call(store.get_tracks, ["bus-42"]) == {}
@@ -321,16 +357,25 @@ def test_a_fleet_signed_token_opens_its_own_vehicle_only(tmp_path, fleet_key):
     private, jwks = fleet_key
     with TestClient(create_app(make_settings(tmp_path, vehicle_auth="jwt", vehicle_jwks=jwks))) as client:
         client.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)
-        assert create(client, "tram-3", fleet_token(private, "tram-3")).status_code == 201  # no registry needed
+        assert (
+            create(client, "tram-3", fleet_token(private, "tram-3")).status_code == 201
+        )  # no registry needed
         assert_error(create(client, "tram-4", fleet_token(private, "tram-3")), 403, "forbidden")
         stranger = ec.generate_private_key(ec.SECP256R1())
         refusals = [
             fleet_token(private, "tram-3", exp=time.time() - 3600),
             fleet_token(private, "tram-3", aud="someone-else"),
             fleet_token(stranger, "tram-3"),
-            bearer(jwt.encode({"sub": "tram-3", "aud": "edgepos", "exp": time.time() + 60}, None, algorithm="none")),
+            bearer(
+                jwt.encode(
+                    {"sub": "tram-3", "aud": "edgepos", "exp": time.time() + 60}, None, algorithm="none"
+                )
+            ),
         ]
-        messages = {assert_error(create(client, "tram-3", credential), 401, "unauthorized")["message"] for credential in refusals}
+        messages = {
+            assert_error(create(client, "tram-3", credential), 401, "unauthorized")["message"]
+            for credential in refusals
+        }
         assert messages == {INVALID}
         assert create(client, "tram-3", ADMIN).status_code == 201
         assert_error(client.get("/v1/sessions", headers=fleet_token(private, "tram-3")), 403, "forbidden")
@@ -364,7 +409,9 @@ def test_a_key_set_that_does_not_parse_stops_the_start(tmp_path):
 def forgery_target(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[TestClient, str, str, str]]:
     """One app for every example: a registered vehicle's key and a live session's id and token. The
     failure budget is out of the way: this test is about what a forgery opens, not how often one may try."""
-    settings = make_settings(tmp_path_factory.mktemp("forgery"), auth_failure_rate_per_s=1e6, auth_failure_burst=10**6)
+    settings = make_settings(
+        tmp_path_factory.mktemp("forgery"), auth_failure_rate_per_s=1e6, auth_failure_burst=10**6
+    )
     with TestClient(create_app(settings)) as client:
         key = register(client, "target")["Authorization"][len("Bearer ") :]
         created = create(client, "target", bearer(key)).json()
@@ -375,17 +422,23 @@ def _mutate(secret: str, data: st.DataObject) -> str:
     kind = data.draw(st.sampled_from(["flip", "truncate", "extend", "case", "replace_tail"]))
     if kind == "flip":
         at = data.draw(st.integers(0, len(secret) - 1))
-        new = data.draw(st.characters(codec="ascii", exclude_characters="\r\n").filter(lambda c: c != secret[at]))
+        new = data.draw(
+            st.characters(codec="ascii", exclude_characters="\r\n").filter(lambda c: c != secret[at])
+        )
         return secret[:at] + new + secret[at + 1 :]
     if kind == "truncate":
         return secret[: data.draw(st.integers(0, len(secret) - 1))]
     if kind == "extend":
-        return secret + data.draw(st.text(st.characters(codec="ascii", min_codepoint=33, max_codepoint=126), min_size=1, max_size=8))
+        return secret + data.draw(
+            st.text(st.characters(codec="ascii", min_codepoint=33, max_codepoint=126), min_size=1, max_size=8)
+        )
     if kind == "case":
         swapped = secret.swapcase()
         return swapped if swapped != secret else secret + "x"
     keep = data.draw(st.integers(0, len(secret) - 1))
-    tail = data.draw(st.text(st.characters(codec="ascii", min_codepoint=33, max_codepoint=126), min_size=1, max_size=40))
+    tail = data.draw(
+        st.text(st.characters(codec="ascii", min_codepoint=33, max_codepoint=126), min_size=1, max_size=40)
+    )
     forged = secret[:keep] + tail
     return forged if forged != secret else secret + "x"
 

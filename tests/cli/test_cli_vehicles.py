@@ -123,7 +123,12 @@ def test_import_1200_vehicles_then_again(
     environment = clean_environment(EDGEPOS_ADMIN_KEY=admin_key, EDGEPOS_URL=server_url)
     done = subprocess.run(
         [sys.executable, "-m", "edgepos.cli", "vehicles", "import", "fleet.csv"],
-        env=environment, cwd=tmp_path, capture_output=True, text=True, timeout=120, check=False,
+        env=environment,
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
     )
     assert done.returncode == 0, done.stderr
     assert done.stdout == (
@@ -240,7 +245,12 @@ def test_register_rotate_list_revoke(server_url: str, admin_key: str, tmp_path: 
     assert "404 not_found" in capsys.readouterr().err and not (tmp_path / "rot.csv").exists()
     done = subprocess.run(
         [sys.executable, "-m", "edgepos.cli", "vehicles", "revoke", vid, *base],
-        env=clean_environment(), cwd=tmp_path, capture_output=True, text=True, timeout=60, check=False,
+        env=clean_environment(),
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
     )
     assert done.returncode == 1 and done.stdout == ""
     assert done.stderr.count("\n") == 1 and "404 not_found" in done.stderr and "Traceback" not in done.stderr

@@ -21,7 +21,9 @@ def test_client_distribution_depends_on_httpx_and_pydantic_only() -> None:
     assert project["name"] == "edgepos-client"
     assert sorted(re.split(r"[<>=!~ ]", dep)[0] for dep in project["dependencies"]) == ["httpx", "pydantic"]
     # the batch WebSocket (client.websocket) is an extra, imported only when a socket is made
-    assert [re.split(r"[<>=!~ ]", dep)[0] for dep in project["optional-dependencies"]["websocket"]] == ["websockets"]
+    assert [re.split(r"[<>=!~ ]", dep)[0] for dep in project["optional-dependencies"]["websocket"]] == [
+        "websockets"
+    ]
     assert (ROOT / "client" / "edgepos_client" / "py.typed").exists()
 
 

@@ -216,7 +216,11 @@ def test_listing_sessions(admin: EdgeposClient, transport: Recording) -> None:
     assert [s.session_id for s in only.sessions] == [sessions[vehicles[0]].session_id]
     item = only.sessions[0]
     assert (item.vehicle_id, item.pipeline, item.last_seq, item.batches, item.epochs) == (
-        vehicles[0], "rsu_imu", 1, 1, 3,
+        vehicles[0],
+        "rsu_imu",
+        1,
+        1,
+        3,
     )
     assert item.status in ("initialised", "tracking") and item.last_fix_t == pytest.approx(0.15)
     assert item.created_at <= item.updated_at
@@ -356,7 +360,10 @@ def test_bearer_of_each_call() -> None:
     with EdgeposClient(URL, "admin", transport=mock) as client:
         client.create_session("v")
     assert [r.headers["authorization"] for r in seen] == [
-        "Bearer evk_car", "Bearer admin", "Bearer h.p.s", "Bearer admin",
+        "Bearer evk_car",
+        "Bearer admin",
+        "Bearer h.p.s",
+        "Bearer admin",
     ]
 
 

@@ -56,12 +56,16 @@ def test_certain_neighbours_give_the_plain_ukf_with_known_points():
     count = len(points)
 
     def ranges(states):
-        return np.linalg.norm(states[:, 6:].reshape(states.shape[0], count, 2) - states[:, None, [0, 3]], axis=2)
+        return np.linalg.norm(
+            states[:, 6:].reshape(states.shape[0], count, 2) - states[:, None, [0, 3]], axis=2
+        )
 
     new_mean, new_cov, _, _ = augmented_update(
         UKF, mean, cov, points.reshape(-1), np.eye(2 * count) * 1e-14, ranges, np.eye(count) * 4.0, observed
     )
-    plain_mean, plain_cov, _, _ = UKF.update_one(mean, cov, KIN, RsuRange(points, np.full(count, 2.0)), observed)
+    plain_mean, plain_cov, _, _ = UKF.update_one(
+        mean, cov, KIN, RsuRange(points, np.full(count, 2.0)), observed
+    )
     # Not equal: the unscented transform's spread grows with the dimension, and the ranges are
     # nonlinear; the difference is of the order of the range's curvature over the prior spread.
     np.testing.assert_allclose(new_mean, plain_mean, rtol=0, atol=2e-2)
@@ -76,8 +80,12 @@ def test_uncertain_neighbours_make_the_update_more_cautious():
     def ranges(states):
         return np.linalg.norm(states[:, 6:].reshape(states.shape[0], 2, 2) - states[:, None, [0, 3]], axis=2)
 
-    sure = augmented_update(UKF, mean, cov, points.reshape(-1), np.eye(4) * 1e-14, ranges, np.eye(2), np.array([30.0, 25.0]))
-    unsure = augmented_update(UKF, mean, cov, points.reshape(-1), np.eye(4) * 9.0, ranges, np.eye(2), np.array([30.0, 25.0]))
+    sure = augmented_update(
+        UKF, mean, cov, points.reshape(-1), np.eye(4) * 1e-14, ranges, np.eye(2), np.array([30.0, 25.0])
+    )
+    unsure = augmented_update(
+        UKF, mean, cov, points.reshape(-1), np.eye(4) * 9.0, ranges, np.eye(2), np.array([30.0, 25.0])
+    )
     assert np.trace(unsure[1]) > np.trace(sure[1])
     assert np.all(np.diag(unsure[3]) > np.diag(sure[3]))
 
@@ -87,7 +95,10 @@ def test_gnss_fix_jacobian_matches_finite_differences():
     state = np.random.default_rng(7).normal(size=(1, layout.FULL_DIM)) * 10.0
     step = 1e-6
     numeric = np.stack(
-        [(model.predict(state + step * e) - model.predict(state - step * e))[0] / (2 * step) for e in np.eye(layout.FULL_DIM)],
+        [
+            (model.predict(state + step * e) - model.predict(state - step * e))[0] / (2 * step)
+            for e in np.eye(layout.FULL_DIM)
+        ],
         axis=1,
     )
     np.testing.assert_allclose(model.jacobian(state)[0], numeric, atol=1e-8)

@@ -43,7 +43,9 @@ def test_tracking_through_the_bearing_cut_stays_accurate(filt: GaussianFilter) -
         position = start + velocity * t
         full = np.zeros(8)
         full[[layout.XP, layout.YP]] = position
-        z = model.predict(full[None, :])[0] + rng.standard_normal(2) * np.sqrt(np.diag(model.noise_covariance()))
+        z = model.predict(full[None, :])[0] + rng.standard_normal(2) * np.sqrt(
+            np.diag(model.noise_covariance())
+        )
         z[1] = wrap_angle(z[1])
         bearings.append(z[1])
         prior_mean, cov = filt.predict(mean, cov, motion, dt)
@@ -149,8 +151,10 @@ def test_ckf_bearing_moments_by_hand_across_the_cut() -> None:
     cov[0, 3] = cov[3, 0] = 0.5
     dim = mean.size
     root = np.linalg.cholesky(cov)
-    points = np.vstack([mean + math.sqrt(dim) * root[:, i] for i in range(dim)]
-                       + [mean - math.sqrt(dim) * root[:, i] for i in range(dim)])
+    points = np.vstack(
+        [mean + math.sqrt(dim) * root[:, i] for i in range(dim)]
+        + [mean - math.sqrt(dim) * root[:, i] for i in range(dim)]
+    )
     ranges = np.hypot(points[:, 0], points[:, 3])
     bearings = np.arctan2(points[:, 3], points[:, 0])
     assert (bearings > 3.0).any() and (bearings < -3.0).any()  # the points straddle the cut
@@ -159,8 +163,12 @@ def test_ckf_bearing_moments_by_hand_across_the_cut() -> None:
     expected_s = deviations.T @ deviations / (2 * dim) + model.noise_covariance()
     expected_c = (points - mean).T @ deviations / (2 * dim)
     means, covs, active = embed_bank([(mean, cov)], [ConstantAcceleration.components])
-    predicted, innovation_cov, cross_cov = CubatureKalmanFilter().measurement_moments(means, covs, active, model)
+    predicted, innovation_cov, cross_cov = CubatureKalmanFilter().measurement_moments(
+        means, covs, active, model
+    )
     assert predicted[0, 0] == pytest.approx(ranges.mean(), rel=1e-13)
     assert angular_distance(predicted[0, 1], bearing_mean) < 1e-13
     np.testing.assert_allclose(innovation_cov[0], expected_s, rtol=1e-10)
-    np.testing.assert_allclose(cross_cov[0][list(ConstantAcceleration.components)], expected_c, rtol=1e-10, atol=1e-13)
+    np.testing.assert_allclose(
+        cross_cov[0][list(ConstantAcceleration.components)], expected_c, rtol=1e-10, atol=1e-13
+    )

@@ -55,7 +55,9 @@ def make_bank(filter_name: str, bank_name: str, stay: float = 0.97) -> Interacti
     transition = np.ones((1, 1)) if count == 1 else np.full((count, count), (1 - stay) / (count - 1))
     if count > 1:
         np.fill_diagonal(transition, stay)
-    return InteractingMultipleModel([make_motion_model(n) for n in names], FILTERS[filter_name](), transition, priority)
+    return InteractingMultipleModel(
+        [make_motion_model(n) for n in names], FILTERS[filter_name](), transition, priority
+    )
 
 
 def random_bank_state(bank: InteractingMultipleModel, rng: np.random.Generator):
@@ -78,15 +80,23 @@ def random_bank_state(bank: InteractingMultipleModel, rng: np.random.Generator):
 def make_epoch(rng, rsus: int, gyros: int, averaged: bool, near: np.ndarray) -> RsuGyroEpoch:
     positions = near[None, :] + rng.uniform(-60.0, 60.0, size=(rsus, 2))
     offsets = near[None, :] - positions + rng.standard_normal((rsus, 2)) * 0.5
-    observed = np.column_stack([np.hypot(offsets[:, 0], offsets[:, 1]), np.arctan2(offsets[:, 1], offsets[:, 0])])
+    observed = np.column_stack(
+        [np.hypot(offsets[:, 0], offsets[:, 1]), np.arctan2(offsets[:, 1], offsets[:, 0])]
+    )
     return RsuGyroEpoch(
-        positions=positions.reshape(rsus, 2), observed=observed.reshape(rsus, 2),
-        range_std=rng.uniform(0.3, 1.0, rsus), bearing_std=rng.uniform(0.005, 0.02, rsus),
-        yaw_rates=rng.normal(0.05, 0.01, gyros), gyro_std=math.radians(0.3), averaged=averaged,
+        positions=positions.reshape(rsus, 2),
+        observed=observed.reshape(rsus, 2),
+        range_std=rng.uniform(0.3, 1.0, rsus),
+        bearing_std=rng.uniform(0.005, 0.02, rsus),
+        yaw_rates=rng.normal(0.05, 0.01, gyros),
+        gyro_std=math.radians(0.3),
+        averaged=averaged,
     )
 
 
-def assert_agree(actual, expected, what: str, scale: float | None = None, tolerance: float = TOLERANCE) -> None:
+def assert_agree(
+    actual, expected, what: str, scale: float | None = None, tolerance: float = TOLERANCE
+) -> None:
     """Equal to rounding: within TOLERANCE relative to the array's scale (at least 1)."""
     expected = np.asarray(expected, dtype=float)
     actual = np.asarray(actual, dtype=float)
@@ -112,8 +122,12 @@ def assert_same_result(fast, slow) -> None:
     # Probabilities are exponentials of log-likelihood differences: a rounding-level relative
     # difference in a log-likelihood of size |l| moves them by about |l| times that.
     likelihood_scale = max(1.0, float(np.max(np.abs(slow.log_likelihoods))))
-    assert_agree(fast.probabilities, slow.probabilities, "model probabilities", likelihood_scale, STATISTICS_TOLERANCE)
-    assert_agree(fast.log_likelihoods, slow.log_likelihoods, "log-likelihoods", tolerance=STATISTICS_TOLERANCE)
+    assert_agree(
+        fast.probabilities, slow.probabilities, "model probabilities", likelihood_scale, STATISTICS_TOLERANCE
+    )
+    assert_agree(
+        fast.log_likelihoods, slow.log_likelihoods, "log-likelihoods", tolerance=STATISTICS_TOLERANCE
+    )
     assert_agree(fast.nis, slow.nis, "NIS", tolerance=STATISTICS_TOLERANCE)
     assert fast.output.components == slow.output.components
     # The fused posterior is weighted by those probabilities, so it inherits their tolerance.
@@ -178,8 +192,15 @@ def test_bearings_across_plus_minus_pi_agree() -> None:
         for averaged in (False, True):
             positions = np.array([vehicle + [25.0, 0.0], vehicle + [40.0, 1e-3], vehicle + [-30.0, 5.0]])
             observed = np.array([[25.0, observed_bearing], [40.0, observed_bearing], [30.4, -0.16]])
-            epoch = RsuGyroEpoch(positions, observed, np.full(3, 0.6), np.full(3, 0.01), np.array([0.05]),
-                                 math.radians(0.3), averaged)
+            epoch = RsuGyroEpoch(
+                positions,
+                observed,
+                np.full(3, 0.6),
+                np.full(3, 0.01),
+                np.array([0.05]),
+                math.radians(0.3),
+                averaged,
+            )
             result = compare_epoch(bank, means, covs, probabilities, epoch)
             assert np.all(np.abs(result.output.mean[[0, 3]] - vehicle) < 5.0)
 
@@ -208,10 +229,14 @@ def test_other_intervals_agree(dt) -> None:
 def test_vanishing_model_probability_agrees() -> None:
     """No probability flows into a model (identity transition, zero prior): it keeps its own estimate."""
     names, priority = BANKS["imm-ca-at-singer"]
-    bank = InteractingMultipleModel([make_motion_model(n) for n in names], CubatureKalmanFilter(), np.eye(3), priority)
+    bank = InteractingMultipleModel(
+        [make_motion_model(n) for n in names], CubatureKalmanFilter(), np.eye(3), priority
+    )
     rng = np.random.default_rng(14)
     means, covs, _ = random_bank_state(bank, rng)
-    compare_epoch(bank, means, covs, np.array([0.5, 0.5, 0.0]), make_epoch(rng, 4, 1, False, means[0, [0, 3]]))
+    compare_epoch(
+        bank, means, covs, np.array([0.5, 0.5, 0.0]), make_epoch(rng, 4, 1, False, means[0, [0, 3]])
+    )
 
 
 def test_nothing_measured_coasts_on_the_prediction() -> None:
@@ -280,7 +305,8 @@ def test_uncovered_banks_and_the_switch_use_the_numpy_reference(monkeypatch) -> 
     paper = make_bank("ckf", "2imm-ca-at-singer")
     assert stepper_for(paper).compiled
     adaptive = InteractingMultipleModel(
-        [make_motion_model("ca"), make_motion_model("current_statistical")], CubatureKalmanFilter(),
+        [make_motion_model("ca"), make_motion_model("current_statistical")],
+        CubatureKalmanFilter(),
         np.array([[0.9, 0.1], [0.1, 0.9]]),
     )
     assert not covered(adaptive)

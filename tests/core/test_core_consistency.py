@@ -49,7 +49,9 @@ class PositionMeasurement(MeasurementModel):
 def nees_runs(filt: GaussianFilter, seed: int) -> np.ndarray:
     """NEES (runs, steps) of ``filt`` over Monte Carlo runs of the CA truth."""
     rng = np.random.default_rng(seed)
-    motion = ConstantAcceleration(q=2.0, noise="continuous")  # full-rank Q, so the truth can be drawn by Cholesky
+    motion = ConstantAcceleration(
+        q=2.0, noise="continuous"
+    )  # full-rank Q, so the truth can be drawn by Cholesky
     measurement = PositionMeasurement(std=0.8)
     transition = motion.transition_matrix(np.zeros(6), DT)
     noise_root = np.linalg.cholesky(motion.noise_covariance(np.zeros(6), DT))
@@ -84,7 +86,9 @@ def test_average_nees_is_inside_the_95_percent_chi_square_band(filt: GaussianFil
     low, high = chi2.ppf([0.025, 0.975], RUNS * dim) / RUNS
     averaged = nees.mean(axis=0)  # per step, over runs
     # the final step (runs independent, so exactly chi-square N n / N if consistent)
-    assert low <= averaged[-1] <= high, f"final averaged NEES {averaged[-1]:.2f} outside [{low:.2f}, {high:.2f}]"
+    assert low <= averaged[-1] <= high, (
+        f"final averaged NEES {averaged[-1]:.2f} outside [{low:.2f}, {high:.2f}]"
+    )
     # per-step values are correlated in time but each should be in the band ~95 % of the time
     inside = np.mean((averaged >= low) & (averaged <= high))
     assert inside >= 0.85, f"only {inside:.0%} of steps inside [{low:.2f}, {high:.2f}]"

@@ -26,9 +26,14 @@ def truth(t: float) -> np.ndarray:
     a = RATE * t
     return np.array(
         [
-            RADIUS * math.sin(a), SPEED * math.cos(a), -SPEED * RATE * math.sin(a),
-            RADIUS * (1 - math.cos(a)), SPEED * math.sin(a), SPEED * RATE * math.cos(a),
-            (a + math.pi) % (2 * math.pi) - math.pi, RATE,
+            RADIUS * math.sin(a),
+            SPEED * math.cos(a),
+            -SPEED * RATE * math.sin(a),
+            RADIUS * (1 - math.cos(a)),
+            SPEED * math.sin(a),
+            SPEED * RATE * math.cos(a),
+            (a + math.pi) % (2 * math.pi) - math.pi,
+            RATE,
         ]
     )
 
@@ -113,8 +118,12 @@ def test_single_model_imm_is_plain_filtering(filt: GaussianFilter, model_name: s
         assert result.nis[0] == pytest.approx(nis, rel=1e-12, abs=1e-12)
 
 
-def bank_of(names: list[str], filt: GaussianFilter, priority=None, stay: float = 0.95) -> InteractingMultipleModel:
-    return InteractingMultipleModel([make_motion_model(n) for n in names], filt, transition(len(names), stay), priority)
+def bank_of(
+    names: list[str], filt: GaussianFilter, priority=None, stay: float = 0.95
+) -> InteractingMultipleModel:
+    return InteractingMultipleModel(
+        [make_motion_model(n) for n in names], filt, transition(len(names), stay), priority
+    )
 
 
 @pytest.mark.parametrize("filt", FILTERS)
@@ -143,7 +152,9 @@ def test_2imm_with_a_proper_priority_set_differs_from_imm() -> None:
 
 @pytest.mark.parametrize("filt", FILTERS)
 @pytest.mark.parametrize("priority", [None, [0, 1], [1], [0, 2]])
-def test_model_probabilities_stay_a_distribution_under_extreme_measurements(filt: GaussianFilter, priority) -> None:
+def test_model_probabilities_stay_a_distribution_under_extreme_measurements(
+    filt: GaussianFilter, priority
+) -> None:
     names = ["ca", "at", "singer"]
     zs = observations(60, seed=4, extreme_every=7)
     for result in run_bank(bank_of(names, filt, priority, stay=0.98), zs):
@@ -198,7 +209,9 @@ def test_2imm_step_follows_eqs_30_to_38(priority: list[int]) -> None:
         mu_second = likelihood[second] * rho[second] / denominator  # eq. 34
         mu0 = np.sum(a0 * rho[first]) / denominator  # eq. 35
         x, p = _moments(
-            np.concatenate([[mu0], mu_second]), np.vstack([x0, cmeans[second]]), np.concatenate([p0[None], ccovs[second]])
+            np.concatenate([[mu0], mu_second]),
+            np.vstack([x0, cmeans[second]]),
+            np.concatenate([p0[None], ccovs[second]]),
         )  # eqs. 36-37
         expected = np.empty(3)
         expected[first] = mu_first * mu0  # eq. 38

@@ -81,7 +81,9 @@ def test_linear_model_transition_matrix_is_the_jacobian_of_propagate(model: Moti
         numeric = central_difference(lambda s: model.propagate(s[None, :], dt)[0], x, mask)
         assert_jacobian_matches(model.transition_matrix(x, dt), numeric)
         # linear: propagate is exactly F x
-        np.testing.assert_allclose(model.propagate(x[None, :], dt)[0], model.transition_matrix(x, dt) @ x, atol=1e-12)
+        np.testing.assert_allclose(
+            model.propagate(x[None, :], dt)[0], model.transition_matrix(x, dt) @ x, atol=1e-12
+        )
 
 
 RSU_POSITIONS = np.array([[0.0, 0.0], [100.0, -3.875], [-40.0, 15.125]])
@@ -131,7 +133,11 @@ def test_measurement_jacobians_are_batched_row_by_row() -> None:
     rng = np.random.default_rng(5)
     states = rng.normal(0.0, 20.0, (6, 8))
     model: MeasurementModel
-    for model in (RsuRangeBearing(RSU_POSITIONS, 0.6, 0.01), RsuRange(RSU_POSITIONS, 0.6), GyroYawRate(0.005)):
+    for model in (
+        RsuRangeBearing(RSU_POSITIONS, 0.6, 0.01),
+        RsuRange(RSU_POSITIONS, 0.6),
+        GyroYawRate(0.005),
+    ):
         batched = model.jacobian(states)
         for row, state in zip(batched, states):
             np.testing.assert_array_equal(row, model.jacobian(state[None, :])[0])

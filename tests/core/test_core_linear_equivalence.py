@@ -140,8 +140,12 @@ def test_bank_update_equals_per_gaussian_kalman_updates(filt: GaussianFilter) ->
         h = measurement.matrix[:, idx]
         s = h @ cov @ h.T + measurement.noise
         gain = cov @ h.T @ np.linalg.inv(s)
-        np.testing.assert_allclose(result.means[b, idx], mean + gain @ (observed - h @ mean), rtol=TOL, atol=TOL)
-        np.testing.assert_allclose(result.covs[b][np.ix_(idx, idx)], cov - gain @ s @ gain.T, rtol=TOL, atol=TOL)
+        np.testing.assert_allclose(
+            result.means[b, idx], mean + gain @ (observed - h @ mean), rtol=TOL, atol=TOL
+        )
+        np.testing.assert_allclose(
+            result.covs[b][np.ix_(idx, idx)], cov - gain @ s @ gain.T, rtol=TOL, atol=TOL
+        )
         inactive = ~active[b]
         assert np.all(result.means[b, inactive] == 0.0)
         assert np.all(result.covs[b][inactive, :] == 0.0) and np.all(result.covs[b][:, inactive] == 0.0)
@@ -182,8 +186,14 @@ def test_bank_prediction_equals_model_by_model_prediction(filt: GaussianFilter) 
     from edgepos.core.motion import CurrentStatistical
 
     rng = np.random.default_rng(23)
-    models = (ConstantVelocity(), ConstantAcceleration(), Singer(), CoordinatedTurn(omega=0.2),
-              CurrentStatistical(), AdaptiveTurn())
+    models = (
+        ConstantVelocity(),
+        ConstantAcceleration(),
+        Singer(),
+        CoordinatedTurn(omega=0.2),
+        CurrentStatistical(),
+        AdaptiveTurn(),
+    )
     gaussians = []
     for model in models:
         mean, cov = initial_gaussian(model, rng)

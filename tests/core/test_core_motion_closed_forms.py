@@ -117,7 +117,9 @@ def test_at_turn_rate_block_matches_eqs_7_and_9(beta: float, eta: float, dt: flo
 
 @pytest.mark.parametrize(("beta", "eta", "dt"), AT_PARAMS)
 @pytest.mark.parametrize("omega", [0.0, 0.4, -2.5])
-def test_at_propagation_is_eq_7_at_each_points_own_turn_rate(beta: float, eta: float, dt: float, omega: float) -> None:
+def test_at_propagation_is_eq_7_at_each_points_own_turn_rate(
+    beta: float, eta: float, dt: float, omega: float
+) -> None:
     model = AdaptiveTurn(q=3.5, beta=beta, eta=eta)
     rng = np.random.default_rng(17)
     points = rng.normal(0.0, 5.0, (5, 8))
@@ -134,7 +136,9 @@ def test_at_propagation_is_eq_7_at_each_points_own_turn_rate(beta: float, eta: f
     # the Jacobian's kinematic block is F_CT at the mean's own rate, eq. 7's other diagonal block
     mean = points[0]
     transition = model.transition_matrix(mean, dt)
-    np.testing.assert_allclose(transition[:6, :6], classic_turn(mean[layout.OMEGA], dt), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        transition[:6, :6], classic_turn(mean[layout.OMEGA], dt), rtol=1e-12, atol=1e-12
+    )
     assert np.all(transition[6:, :6] == 0.0) and np.all(transition[:, layout.PHI][:6] == 0.0)
 
 
@@ -143,7 +147,9 @@ def test_ct_transition_is_the_classic_turn(omega: float) -> None:
     for noise in ("discrete", "continuous"):
         model = CoordinatedTurn(q=2.0, omega=omega, noise=noise)
         for dt in (0.05, 0.7):
-            np.testing.assert_allclose(model.transition_matrix(np.zeros(6), dt), classic_turn(omega, dt), atol=1e-13)
+            np.testing.assert_allclose(
+                model.transition_matrix(np.zeros(6), dt), classic_turn(omega, dt), atol=1e-13
+            )
             assert_close(model.noise_covariance(np.zeros(6), dt), turn_noise_form(2.0, dt, noise))
 
 
@@ -165,6 +171,7 @@ def test_discrete_noise_forms_are_dwna_and_dwpa(gain: float, dt: float) -> None:
 def test_unknown_noise_form_is_refused() -> None:
     with pytest.raises(ConfigurationError):
         ConstantVelocity(noise="pink")
+
 
 def per_axis(block: np.ndarray) -> np.ndarray:
     n = block.shape[0]
@@ -231,7 +238,9 @@ SINGER_CASES = [
 def test_singer_matches_singer_1970(alpha: float, sigma: float, dt: float) -> None:
     model = Singer(alpha=alpha, sigma=sigma)
     assert_close(model.transition_matrix(np.zeros(6), dt), per_axis(exact(singer_f, alpha, dt)))
-    assert_close(model.noise_covariance(np.zeros(6), dt), per_axis(exact(singer_q, alpha, sigma, dt)), rtol=1e-8)
+    assert_close(
+        model.noise_covariance(np.zeros(6), dt), per_axis(exact(singer_q, alpha, sigma, dt)), rtol=1e-8
+    )
 
 
 def test_singer_tends_to_ca_as_alpha_vanishes() -> None:
@@ -239,18 +248,25 @@ def test_singer_tends_to_ca_as_alpha_vanishes() -> None:
     q, dt, alpha = 3.5, 0.5, 1e-7
     singer = Singer(alpha=alpha, sigma=math.sqrt(q / (2 * alpha)))
     continuous_ca = ConstantAcceleration(q, noise="continuous")
-    assert_close(singer.noise_covariance(np.zeros(6), dt), continuous_ca.noise_covariance(np.zeros(6), dt), rtol=1e-6)
+    assert_close(
+        singer.noise_covariance(np.zeros(6), dt), continuous_ca.noise_covariance(np.zeros(6), dt), rtol=1e-6
+    )
 
 
 # -- current statistical ---------------------------------------------------------------------------
 @pytest.mark.parametrize("dt", [0.05, 0.8])
 @pytest.mark.parametrize(("ax", "ay"), [(0.0, 0.0), (1.5, -3.0), (-4.95, 4.99), (7.0, -12.0)])
-def test_current_statistical_f_is_ca_and_q_scales_with_rayleigh_variance(dt: float, ax: float, ay: float) -> None:
+def test_current_statistical_f_is_ca_and_q_scales_with_rayleigh_variance(
+    dt: float, ax: float, ay: float
+) -> None:
     alpha, a_max, sigma_min = 0.8, 5.0, 0.1
     model = CurrentStatistical(alpha=alpha, a_max=a_max, sigma_min=sigma_min)
     mean = np.array([0.0, 10.0, ax, 0.0, -3.0, ay])
     np.testing.assert_allclose(
-        model.transition_matrix(mean, dt), ConstantAcceleration().transition_matrix(mean, dt), rtol=1e-14, atol=1e-15
+        model.transition_matrix(mean, dt),
+        ConstantAcceleration().transition_matrix(mean, dt),
+        rtol=1e-14,
+        atol=1e-15,
     )
     noise = model.noise_covariance(mean, dt)
     unit = exact(singer_q, alpha, 1.0, dt)
@@ -261,8 +277,11 @@ def test_current_statistical_f_is_ca_and_q_scales_with_rayleigh_variance(dt: flo
     # the mean-input Singer transition collapses to CA: check it from Singer's own F
     singer = exact(singer_f, alpha, dt)
     mean_input = np.array(
-        [(-dt + alpha * dt**2 / 2 + (1 - math.exp(-alpha * dt)) / alpha) / alpha, dt - (1 - math.exp(-alpha * dt)) / alpha,
-         1 - math.exp(-alpha * dt)]
+        [
+            (-dt + alpha * dt**2 / 2 + (1 - math.exp(-alpha * dt)) / alpha) / alpha,
+            dt - (1 - math.exp(-alpha * dt)) / alpha,
+            1 - math.exp(-alpha * dt),
+        ]
     )
     collapsed = singer.copy()
     collapsed[:, 2] += mean_input
@@ -272,9 +291,16 @@ def test_current_statistical_f_is_ca_and_q_scales_with_rayleigh_variance(dt: flo
 # -- registry and parameter checks ------------------------------------------------------------------
 @pytest.mark.parametrize(
     ("name", "params"),
-    [("cv", {"q": 0.0}), ("ca", {"q": -1.0}), ("singer", {"alpha": float("nan")}), ("at", {"beta": 0.0}),
-     ("ct", {"omega": float("inf")}), ("current_statistical", {"a_max": -5.0}), ("ca", {"bogus": 1.0}),
-     ("nonexistent", {})],
+    [
+        ("cv", {"q": 0.0}),
+        ("ca", {"q": -1.0}),
+        ("singer", {"alpha": float("nan")}),
+        ("at", {"beta": 0.0}),
+        ("ct", {"omega": float("inf")}),
+        ("current_statistical", {"a_max": -5.0}),
+        ("ca", {"bogus": 1.0}),
+        ("nonexistent", {}),
+    ],
 )
 def test_bad_model_parameters_are_configuration_errors(name: str, params: dict) -> None:
     from edgepos.core.errors import ConfigurationError
@@ -284,8 +310,14 @@ def test_bad_model_parameters_are_configuration_errors(name: str, params: dict) 
 
 
 def test_models_rebuild_from_their_params() -> None:
-    for model in (ConstantVelocity(1.0), ConstantAcceleration(2.0), Singer(0.3, 2.0), CoordinatedTurn(1.0, 0.2),
-                  AdaptiveTurn(2.0, 0.1, 0.2), CurrentStatistical(0.5, 4.0, 0.2)):
+    for model in (
+        ConstantVelocity(1.0),
+        ConstantAcceleration(2.0),
+        Singer(0.3, 2.0),
+        CoordinatedTurn(1.0, 0.2),
+        AdaptiveTurn(2.0, 0.1, 0.2),
+        CurrentStatistical(0.5, 4.0, 0.2),
+    ):
         rebuilt = make_motion_model(model.name, **model.params())
         dt = 0.1
         mean = np.linspace(1.0, 2.0, model.dim)

@@ -156,7 +156,9 @@ def test_covariances_stay_symmetric_positive_definite_over_a_long_run(filt: Gaus
     position, velocity = np.array([0.0, 0.0]), np.array([10.0, 0.0])
     for k in range(600):
         rate = 0.3 * math.sin(0.02 * k)
-        rotation = np.array([[math.cos(rate * dt), -math.sin(rate * dt)], [math.sin(rate * dt), math.cos(rate * dt)]])
+        rotation = np.array(
+            [[math.cos(rate * dt), -math.sin(rate * dt)], [math.sin(rate * dt), math.cos(rate * dt)]]
+        )
         velocity = rotation @ velocity
         position = position + velocity * dt
         if abs(position[0]) > 60:  # stay among the RSUs: turn round
@@ -164,7 +166,9 @@ def test_covariances_stay_symmetric_positive_definite_over_a_long_run(filt: Gaus
         state = np.zeros((1, 8))
         state[0, [0, 1, 3, 4]] = position[0], velocity[0], position[1], velocity[1]
         state[0, [2, 5]] = -rate * velocity[1], rate * velocity[0]
-        z = measurement.predict(state)[0] + rng.standard_normal(measurement.dim) * np.sqrt(np.diag(measurement.noise_covariance()))
+        z = measurement.predict(state)[0] + rng.standard_normal(measurement.dim) * np.sqrt(
+            np.diag(measurement.noise_covariance())
+        )
         prediction = bank.predict(means, covs, probabilities, dt)
         result = bank.correct(prediction, JointCorrection(measurement, z))
         means, covs, probabilities = result.means, result.covs, result.probabilities

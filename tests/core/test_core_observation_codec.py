@@ -177,7 +177,9 @@ def test_carrier_phase_round_trips_and_plain_pseudoranges_keep_the_stored_layout
     plain = PseudorangeObservation(1.5, "E", 3, 2.3e7, 41.0, None, None, -1234.5)
     carrying = PseudorangeObservation(1.5, "G", 7, 2.1e7, 44.5, None, None, 812.25, 1.1e8 + 0.123, 1)
     phase_only = PseudorangeObservation(1.5, "C", 21, 2.2e7, 40.0, carrier_cycles=-9.9e9)
-    assert encode_observations([plain]) == old.encode(PseudorangeObservationV3(1.5, "E", 3, 2.3e7, 41.0, None, None, -1234.5))
+    assert encode_observations([plain]) == old.encode(
+        PseudorangeObservationV3(1.5, "E", 3, 2.3e7, 41.0, None, None, -1234.5)
+    )
     record = encode_observations([plain, carrying, phase_only])
     decoded = decode_observations(record)
     assert decoded == [plain, carrying, phase_only]

@@ -71,7 +71,9 @@ def test_clock_process_noise_is_positive_semidefinite(dt: float, bias_psd: float
     filters then refused every batch with clock_bias_psd below about 0.04, the drift at its default)."""
     models = [
         GnssOnlyModel(ANCHOR, clock_bias_psd=bias_psd, clock_drift_psd=drift_psd),
-        RissModel(ANCHOR, RissInput(5.0, 0.0, 0.0, 0.01, 0.1), clock_bias_psd=bias_psd, clock_drift_psd=drift_psd),
+        RissModel(
+            ANCHOR, RissInput(5.0, 0.0, 0.0, 0.01, 0.1), clock_bias_psd=bias_psd, clock_drift_psd=drift_psd
+        ),
     ]
     for model in models:
         noise = model.process_noise(dt)

@@ -332,4 +332,3 @@ def test_repeated_resampling_does_not_collapse_the_cloud():
         particles = regularised_resample(particles, log_weights, active, angles, rng, kernel=cycle % 2 == 0)
     variance = float(np.mean(np.var(particles, axis=0)))
     assert 0.05 < variance < 20.0
-

@@ -12,8 +12,21 @@ from edgepos.core import state
 from edgepos.core.state import StateFormatError, pack, unpack
 
 SPECIAL = np.array(
-    [0.0, -0.0, 5e-324, -5e-324, 2.2250738585072009e-308, sys.float_info.max, -sys.float_info.max,
-     sys.float_info.min, 1e308, 1.0 + 2**-52, 0.1, -1 / 3, np.nextafter(0.0, 1.0) * 3]
+    [
+        0.0,
+        -0.0,
+        5e-324,
+        -5e-324,
+        2.2250738585072009e-308,
+        sys.float_info.max,
+        -sys.float_info.max,
+        sys.float_info.min,
+        1e308,
+        1.0 + 2**-52,
+        0.1,
+        -1 / 3,
+        np.nextafter(0.0, 1.0) * 3,
+    ]
 )
 
 

@@ -51,7 +51,9 @@ def test_the_load_balancer_sends_to_every_replica_and_nothing_else() -> None:
     assert upstream is not None
     servers = re.findall(r"server\s+([\w.-]+):(\d+)", upstream.group(1))
     assert sorted(name for name, _ in servers) == sorted(replicas)
-    assert {port for _, port in servers} == {service["environment"]["EDGEPOS_PORT"] for service in replicas.values()}
+    assert {port for _, port in servers} == {
+        service["environment"]["EDGEPOS_PORT"] for service in replicas.values()
+    }
     lb = services["lb"]
     assert any(volume.startswith("./scale/nginx.conf:") for volume in lb["volumes"])
     assert set(lb["depends_on"]) == set(replicas)
@@ -86,10 +88,16 @@ def test_kubernetes_redis_cluster_manifests_hold_together() -> None:
     assert {"Service", "StatefulSet", "Job", "Deployment"} <= set(kinds)
     nodes = kinds["StatefulSet"]
     service = kinds["Service"]
-    assert service["spec"]["clusterIP"] == "None" and nodes["spec"]["serviceName"] == service["metadata"]["name"]
+    assert (
+        service["spec"]["clusterIP"] == "None" and nodes["spec"]["serviceName"] == service["metadata"]["name"]
+    )
     assert nodes["spec"]["replicas"] == 6
     args = nodes["spec"]["template"]["spec"]["containers"][0]["args"]
-    for flag, value in (("--cluster-enabled", "yes"), ("--appendonly", "yes"), ("--maxmemory-policy", "noeviction")):
+    for flag, value in (
+        ("--cluster-enabled", "yes"),
+        ("--appendonly", "yes"),
+        ("--maxmemory-policy", "noeviction"),
+    ):
         assert args[args.index(flag) + 1] == value
     assert args[args.index("--cluster-config-file") + 1].startswith("/data/")  # on the volume
     pods = {f"{nodes['metadata']['name']}-{i}.{service['metadata']['name']}:6379" for i in range(6)}

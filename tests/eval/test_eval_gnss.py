@@ -138,8 +138,21 @@ def test_option_overrides_reach_the_pipeline(tmp_path: Path, capsys: pytest.Capt
     figures = {}
     for extra in ((), ("--option", "spread_fraction=1")):
         path = tmp_path / f"upf{len(extra)}.json"
-        code = run_eval("gnss", "--runs", "1", "--short", "--particles", "20", "--workers", "1",
-                        "--algorithms", "UPF+fuzzy", "--json", str(path), *extra)
+        code = run_eval(
+            "gnss",
+            "--runs",
+            "1",
+            "--short",
+            "--particles",
+            "20",
+            "--workers",
+            "1",
+            "--algorithms",
+            "UPF+fuzzy",
+            "--json",
+            str(path),
+            *extra,
+        )
         assert code == 0
         document = json.loads(path.read_text())
         figures[len(extra)] = document["algorithms"]["UPF+fuzzy"]["horizontal_rms_m"]

@@ -42,8 +42,19 @@ def one_worker(tmp_path_factory: pytest.TempPathFactory) -> Outcome:
         patch.setattr("sys.stdout", stdout)
         patch.setattr("sys.stderr", io.StringIO())
         code = run_eval(
-            "rsu-imu", "--runs", "2", "--seed", "7", "--workers", "1", "--algorithms", SUBSET,
-            "--json", str(json_path), "--plots", str(plot_dir),
+            "rsu-imu",
+            "--runs",
+            "2",
+            "--seed",
+            "7",
+            "--workers",
+            "1",
+            "--algorithms",
+            SUBSET,
+            "--json",
+            str(json_path),
+            "--plots",
+            str(plot_dir),
         )
     return Outcome(code, stdout.getvalue(), json.loads(json_path.read_text()), plot_dir)
 
@@ -56,7 +67,13 @@ def test_json_has_exactly_the_documented_shape(one_worker: Outcome) -> None:
     assert list(document["algorithms"]) == ["CV-CKF/avg", "2IMM-CKF"]
     for entry in document["algorithms"].values():
         # the smoothed columns come by default (--smooth-lag 1.0); the late ones only with --delay-fraction
-        assert set(entry) == {"pos_rmse_m", "vel_rmse_mps", "step_us", "smooth_pos_rmse_m", "smooth_vel_rmse_mps"}
+        assert set(entry) == {
+            "pos_rmse_m",
+            "vel_rmse_mps",
+            "step_us",
+            "smooth_pos_rmse_m",
+            "smooth_vel_rmse_mps",
+        }
         assert entry["smooth_pos_rmse_m"] < entry["pos_rmse_m"]
         assert all(isinstance(value, float) for value in entry.values())
 
@@ -94,8 +111,17 @@ def test_plots_are_written(one_worker: Outcome) -> None:
 def test_results_do_not_depend_on_the_worker_count(one_worker: Outcome, tmp_path: Path, capsys) -> None:
     json_path = tmp_path / "two.json"
     code = run_eval(
-        "rsu-imu", "--runs", "2", "--seed", "7", "--workers", "2", "--algorithms", SUBSET,
-        "--json", str(json_path),
+        "rsu-imu",
+        "--runs",
+        "2",
+        "--seed",
+        "7",
+        "--workers",
+        "2",
+        "--algorithms",
+        SUBSET,
+        "--json",
+        str(json_path),
     )
     assert code == 0
     two = json.loads(json_path.read_text())["algorithms"]
@@ -124,8 +150,19 @@ def test_an_option_override_changes_the_result_and_is_recorded(
     json_path = tmp_path / "sigma.json"
     override = '{"singer": {"sigma": 2.0}, "cv": {"q": 1.0}}'
     code = run_eval(
-        "rsu-imu", "--runs", "2", "--seed", "7", "--workers", "1", "--algorithms", SUBSET,
-        "--option", f"model_params={override}", "--json", str(json_path),
+        "rsu-imu",
+        "--runs",
+        "2",
+        "--seed",
+        "7",
+        "--workers",
+        "1",
+        "--algorithms",
+        SUBSET,
+        "--option",
+        f"model_params={override}",
+        "--json",
+        str(json_path),
     )
     assert code == 0
     assert '"sigma": 2.0' in capsys.readouterr().out  # the report says the defaults were not used
@@ -138,7 +175,7 @@ def test_an_option_override_changes_the_result_and_is_recorded(
 @pytest.mark.parametrize(
     ("option", "says"),
     [
-        ("filter=\"ekf\"", "--algorithms"),
+        ('filter="ekf"', "--algorithms"),
         ("priority=[]", "--algorithms"),
         ("gate_probability", "NAME=JSON"),
         ("gate_probability=0.9x", "must be JSON"),
@@ -211,8 +248,23 @@ def test_late_delivery_columns(tmp_path: Path) -> None:
         patch.setattr("sys.stdout", stdout)
         patch.setattr("sys.stderr", io.StringIO())
         code = run_eval(
-            "rsu-imu", "--runs", "1", "--seed", "7", "--workers", "1", "--algorithms", "2IMM-CKF",
-            "--delay-fraction", "0.3", "--max-delay", "0.5", "--batch-epochs", "5", "--json", str(json_path),
+            "rsu-imu",
+            "--runs",
+            "1",
+            "--seed",
+            "7",
+            "--workers",
+            "1",
+            "--algorithms",
+            "2IMM-CKF",
+            "--delay-fraction",
+            "0.3",
+            "--max-delay",
+            "0.5",
+            "--batch-epochs",
+            "5",
+            "--json",
+            str(json_path),
         )
     assert code == 0
     entry = json.loads(json_path.read_text())["algorithms"]["2IMM-CKF"]
@@ -222,6 +274,10 @@ def test_late_delivery_columns(tmp_path: Path) -> None:
 
 
 def test_bad_late_flags_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
-    for flags in (("--delay-fraction", "1.5"), ("--delay-fraction", "0.3", "--max-delay", "0.01"), ("--smooth-lag", "-1")):
+    for flags in (
+        ("--delay-fraction", "1.5"),
+        ("--delay-fraction", "0.3", "--max-delay", "0.01"),
+        ("--smooth-lag", "-1"),
+    ):
         assert run_eval("rsu-imu", "--runs", "1", "--algorithms", "2IMM-CKF", *flags) == 2
         assert "error" in capsys.readouterr().err

@@ -47,7 +47,12 @@ def _light_reference(stream: int) -> list[list[dict]]:
     out = []
     for epoch in common.vehicle_epochs(scenario(), 0, stream)[:LIGHT_BATCHES]:
         fixes, state = pipeline.process(state, list(epoch), environment)
-        out.append([json.loads(FixOut.model_validate(fix_to_json(fix, False, None)).model_dump_json()) for fix in fixes])
+        out.append(
+            [
+                json.loads(FixOut.model_validate(fix_to_json(fix, False, None)).model_dump_json())
+                for fix in fixes
+            ]
+        )
     return out
 
 
@@ -65,7 +70,9 @@ async def _light(url: str, stream: int, answers: list[tuple[int, list[dict]]]) -
         for seq, batch in enumerate(stream_batches(stream, 1)[:LIGHT_BATCHES], start=1):
             items = [item.model_dump(mode="json", exclude_none=True) for item in batch]
             response = await client.post(
-                f"/v1/sessions/{created['session_id']}/batches", json={"seq": seq, "measurements": items}, headers=token
+                f"/v1/sessions/{created['session_id']}/batches",
+                json={"seq": seq, "measurements": items},
+                headers=token,
             )
             answers.append((response.status_code, response.json().get("fixes", [])))
 

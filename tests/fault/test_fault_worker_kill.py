@@ -171,15 +171,19 @@ def test_killing_a_worker_loses_no_batch_and_fails_no_vehicle(tmp_path, redis_fa
         records = asyncio.run(stored([session_id for session_id, *_ in results]))
 
     assert [errors for *_, errors in results] == [[]] * VEHICLES
-    (victim, held, at_kill), = killed
+    ((victim, held, at_kill),) = killed
     survivor = next(pid for pid in before if pid != victim)
     assert victim not in after and survivor in after and len(after) == 2, (before, after)  # replaced
     assert held[victim] >= 1, held
-    print(f"killed worker {victim} holding {held[victim]} of {sum(held.values())} connections; "
-          f"{CountingTransport.errors} transport error(s) retried; acknowledged {[r[1] for r in results]}")
+    print(
+        f"killed worker {victim} holding {held[victim]} of {sum(held.values())} connections; "
+        f"{CountingTransport.errors} transport error(s) retried; acknowledged {[r[1] for r in results]}"
+    )
     assert CountingTransport.errors >= 1, "the kill hit no request in flight: the test proved nothing"
     references: dict[int, list[bytes]] = {}
-    for index, ((_sid, acknowledged, epochs, _errors), record) in enumerate(zip(results, records, strict=True)):
+    for index, ((_sid, acknowledged, epochs, _errors), record) in enumerate(
+        zip(results, records, strict=True)
+    ):
         at_least = min(len(streams[index % STREAMS]), at_kill[index] + AFTER_KILL_BATCHES)
         assert acknowledged >= at_least, f"vehicle {index} stopped at {acknowledged} of {at_least} batches"
         assert record is not None

@@ -38,7 +38,9 @@ def _run(
         code = ranges + 3.0 * rng.standard_normal(2)
         cycles = ranges / LAMBDA + ambiguity
         dop = -np.asarray(rate_mps) / LAMBDA if doppler else np.full(2, np.nan)
-        result = hatch_update(tracks, t, SATS, code, cycles, np.full(2, LAMBDA), dop, np.zeros(2, int), config)
+        result = hatch_update(
+            tracks, t, SATS, code, cycles, np.full(2, LAMBDA), dop, np.zeros(2, int), config
+        )
         history.append((result, code, cycles, dop))
     return tracks, history
 
@@ -119,13 +121,28 @@ def test_rows_without_carrier_pass_their_code_and_old_tracks_are_dropped():
     tracks, _ = _run(5)
     code = np.array([2.2e7 + 1.0, 2.4e7 - 1.0])
     result = hatch_update(
-        tracks, 1005.0, SATS, code, np.array([np.nan, np.nan]), np.full(2, LAMBDA), np.zeros(2), np.zeros(2, int),
+        tracks,
+        1005.0,
+        SATS,
+        code,
+        np.array([np.nan, np.nan]),
+        np.full(2, LAMBDA),
+        np.zeros(2),
+        np.zeros(2, int),
         HatchConfig(),
     )
     assert list(result.pseudorange_m) == list(code) and list(result.count) == [0, 0]
     assert set(tracks) == set(SATS)  # kept: a later phase within the gap continues them
     hatch_update(
-        tracks, 1010.0, (), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0, int), HatchConfig()
+        tracks,
+        1010.0,
+        (),
+        np.zeros(0),
+        np.zeros(0),
+        np.zeros(0),
+        np.zeros(0),
+        np.zeros(0, int),
+        HatchConfig(),
     )
     assert tracks == {}
 

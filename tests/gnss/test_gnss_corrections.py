@@ -23,8 +23,15 @@ C = 299792458.0
 def test_klobuchar_published_example() -> None:
     """Ovstedal's GPS Toolbox example (NGS GPS Toolbox, Klobuchar programs): receiver 40 N 260 E (i.e. 100 W),
     azimuth 210 deg, elevation 20 deg, GPS time of week 593100 s -> 23.784 m on L1."""
-    delay = klobuchar_l1_delay(ALPHA, BETA, math.radians(40.0), math.radians(260.0), math.radians(20.0),
-                               math.radians(210.0), 593100.0)
+    delay = klobuchar_l1_delay(
+        ALPHA,
+        BETA,
+        math.radians(40.0),
+        math.radians(260.0),
+        math.radians(20.0),
+        math.radians(210.0),
+        593100.0,
+    )
     assert float(delay) == pytest.approx(23.784, abs=1e-3)
 
 

@@ -28,7 +28,9 @@ heights = st.floats(-5000.0, 4.0e7)
 def test_geodetic_ecef_round_trip(lat: float, lon: float, height: float) -> None:
     ecef = geodetic_to_ecef(lat, lon, height)
     lat2, lon2, height2 = ecef_to_geodetic(ecef)
-    assert np.linalg.norm(geodetic_to_ecef(lat2, lon2, height2) - ecef) < 1e-8 * max(1.0, np.linalg.norm(ecef) / 6.4e6)
+    assert np.linalg.norm(geodetic_to_ecef(lat2, lon2, height2) - ecef) < 1e-8 * max(
+        1.0, np.linalg.norm(ecef) / 6.4e6
+    )
     assert abs(float(height2) - height) < 1e-8 * max(1.0, abs(height) / 6.4e6)
     assert abs(float(lat2) - lat) < 1e-14 * 1e3
 
@@ -63,5 +65,9 @@ def test_enu_and_elevation_azimuth() -> None:
     assert float(el[3]) == pytest.approx(math.atan2(5.0, 50.0))
     assert float(az[3]) == pytest.approx(math.atan2(30.0, -40.0))
     # Due south and due west wrap into [0, 2 pi).
-    el, az = elevation_azimuth(origin, enu_to_ecef(np.array([[0.0, -10.0, -10.0], [-10.0, 0.0, 0.0]]), origin))
-    assert np.degrees(az) == pytest.approx([180.0, 270.0]) and np.degrees(el) == pytest.approx([-45.0, 0.0], abs=1e-7)
+    el, az = elevation_azimuth(
+        origin, enu_to_ecef(np.array([[0.0, -10.0, -10.0], [-10.0, 0.0, 0.0]]), origin)
+    )
+    assert np.degrees(az) == pytest.approx([180.0, 270.0]) and np.degrees(el) == pytest.approx(
+        [-45.0, 0.0], abs=1e-7
+    )

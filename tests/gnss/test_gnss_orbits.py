@@ -35,10 +35,18 @@ def _at(orbits: BroadcastOrbits, index: int, t: float) -> np.ndarray:
 
 @pytest.mark.parametrize(
     ("sat", "hour_a", "hour_b"),
-    [("G05", 12.0, 14.0), ("G02", 12.0, 14.0), ("C21", 11.004, 12.004), ("C10", 11.004, 12.004),
-     ("C05", 11.004, 12.004), ("E07", 12.0, 12.5)],
+    [
+        ("G05", 12.0, 14.0),
+        ("G02", 12.0, 14.0),
+        ("C21", 11.004, 12.004),
+        ("C10", 11.004, 12.004),
+        ("C05", 11.004, 12.004),
+        ("E07", 12.0, 12.5),
+    ],
 )
-def test_consecutive_ephemerides_agree(orbits: BroadcastOrbits, sat: str, hour_a: float, hour_b: float) -> None:
+def test_consecutive_ephemerides_agree(
+    orbits: BroadcastOrbits, sat: str, hour_a: float, hour_b: float
+) -> None:
     """Two independent uploads evaluated at the same instant (one forwards, one backwards from its toe) give
     the same point to metres; a wrong sign or frame in the formulas would separate them by kilometres."""
     a = _at(orbits, _index(orbits, sat, hour_a), T0)
@@ -47,8 +55,12 @@ def test_consecutive_ephemerides_agree(orbits: BroadcastOrbits, sat: str, hour_a
 
 
 def test_orbit_radii_and_geostationary_slot(orbits: BroadcastOrbits, nav: NavigationData) -> None:
-    for sat, hour, low, high in [("G05", 12.0, 26.0e6, 26.9e6), ("C21", 12.004, 27.7e6, 28.1e6),
-                                 ("C10", 12.004, 42.0e6, 42.6e6), ("E07", 12.0, 29.4e6, 29.8e6)]:
+    for sat, hour, low, high in [
+        ("G05", 12.0, 26.0e6, 26.9e6),
+        ("C21", 12.004, 27.7e6, 28.1e6),
+        ("C10", 12.004, 42.0e6, 42.6e6),
+        ("E07", 12.0, 29.4e6, 29.8e6),
+    ]:
         index = _index(orbits, sat, hour)
         eph = orbits.ephemerides[index]
         radius = float(np.linalg.norm(_at(orbits, index, T0)))
@@ -124,7 +136,9 @@ def test_pseudoranges_consistent_at_reference(
     assert np.ptp(raw[systems == "G"]) > 1000.0
 
 
-@pytest.mark.parametrize(("sat", "hour"), [("G05", 12.0), ("C21", 12.004), ("C10", 12.004), ("C05", 12.004), ("E07", 12.0)])
+@pytest.mark.parametrize(
+    ("sat", "hour"), [("G05", 12.0), ("C21", 12.004), ("C10", 12.004), ("C05", 12.004), ("E07", 12.0)]
+)
 def test_velocity_and_clock_drift(orbits: BroadcastOrbits, sat: str, hour: float) -> None:
     """Velocity and clock drift against a wider finite difference of the position and clock, and the speed
     against vis-viva once the Earth's rotation is added back (an error of scale, step or frame breaks one)."""
@@ -134,8 +148,10 @@ def test_velocity_and_clock_drift(orbits: BroadcastOrbits, sat: str, hour: float
     wide = (_at(orbits, index, T0 + 2.0) - _at(orbits, index, T0 - 2.0)) / 4.0
     # Truncation of the 2 s difference: (2 s)^2 / 6 * 8e-5 m/s^3 = 5e-5 m/s.
     assert np.linalg.norm(velocity[0] - wide) < 2e-4
-    clock = [orbits.clock_polynomial(i, np.array([t]))[0] + orbits.position(i, np.array([t]))[1][0]
-             for t in (T0 - 2.0, T0 + 2.0)]
+    clock = [
+        orbits.clock_polynomial(i, np.array([t]))[0] + orbits.position(i, np.array([t]))[1][0]
+        for t in (T0 - 2.0, T0 + 2.0)
+    ]
     assert drift[0] == pytest.approx((clock[1] - clock[0]) / 4.0, abs=1e-15)
     position = _at(orbits, index, T0)
     eph = orbits.ephemerides[index]
@@ -171,7 +187,11 @@ def test_dopplers_consistent_at_reference(orbits: BroadcastOrbits, epochs: list[
         j = int(np.argmin(np.abs(ref_time - epoch.gpst)))
         assert abs(ref_time[j] - epoch.gpst) < 0.05 and np.all(np.isfinite(ref_velocity[j]))
         prs, _ = prepare_epoch(epoch, orbits, {"G": ("C1C", "S1C"), "C": ("C2I", "S2I")})
-        assert prs.range_rate_mps is not None and prs.sat_velocity is not None and prs.sat_clock_drift is not None
+        assert (
+            prs.range_rate_mps is not None
+            and prs.sat_velocity is not None
+            and prs.sat_clock_drift is not None
+        )
         modelled = sagnac_range_rate(prs.sat_position, prs.sat_velocity, ref_ecef[j], ref_velocity[j])
         residual = prs.range_rate_mps - modelled + SPEED_OF_LIGHT * prs.sat_clock_drift
         centred.extend(residual - np.median(residual))

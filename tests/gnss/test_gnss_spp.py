@@ -60,17 +60,26 @@ def test_one_gross_outlier_is_excluded(
     rng = np.random.default_rng(5)
     noisy = clean.pseudorange_m + rng.normal(0.0, 0.5, len(clean))
     noisy[clean.sats.index("G05")] += 80.0
-    solution = solve_epoch(dataclasses.replace(clean, pseudorange_m=noisy), Atmosphere.from_navigation(nav),
-                           initial=TRUTH + 1000.0)
+    solution = solve_epoch(
+        dataclasses.replace(clean, pseudorange_m=noisy),
+        Atmosphere.from_navigation(nav),
+        initial=TRUTH + 1000.0,
+    )
     assert solution.excluded == ("G05",)
     assert solution.chi2_passed
     assert np.linalg.norm(ecef_to_enu(solution.position, TRUTH)[:2]) < 2.0
-    without = solve_epoch(dataclasses.replace(clean, pseudorange_m=noisy), Atmosphere.from_navigation(nav),
-                          SppConfig(max_exclusions=0), initial=TRUTH)
+    without = solve_epoch(
+        dataclasses.replace(clean, pseudorange_m=noisy),
+        Atmosphere.from_navigation(nav),
+        SppConfig(max_exclusions=0),
+        initial=TRUTH,
+    )
     assert np.linalg.norm(ecef_to_enu(without.position, TRUTH)[:2]) > 5.0 and not without.chi2_passed
 
 
-def test_too_few_satellites_raise(orbits: BroadcastOrbits, nav: NavigationData, epochs: list[ObservationEpoch]) -> None:
+def test_too_few_satellites_raise(
+    orbits: BroadcastOrbits, nav: NavigationData, epochs: list[ObservationEpoch]
+) -> None:
     prs = _synthetic(orbits, nav, epochs[0], {"G": 0.0, "C": 0.0})
     keep = np.array([s in ("G02", "G05", "G07", "C21") for s in prs.sats])
     with pytest.raises(SppError, match="4 usable pseudoranges for 5 unknowns"):

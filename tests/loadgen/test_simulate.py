@@ -110,8 +110,23 @@ def test_cli_late_delivery_matches_in_order_and_beats_dropping(server_url, tmp_p
     equals the in-order run's (replay is exact), dropping the late measurements is worse."""
     out = tmp_path / "late.json"
     argv = [
-        "simulate", "--url", server_url, "--admin-key", ADMIN_KEY, "--epochs", "160", "--batch-epochs", "4",
-        "--seed", "5", "--delay-fraction", "0.3", "--max-delay", "0.5", "--json", str(out),
+        "simulate",
+        "--url",
+        server_url,
+        "--admin-key",
+        ADMIN_KEY,
+        "--epochs",
+        "160",
+        "--batch-epochs",
+        "4",
+        "--seed",
+        "5",
+        "--delay-fraction",
+        "0.3",
+        "--max-delay",
+        "0.5",
+        "--json",
+        str(out),
     ]
     assert main(argv) == 0
     printed = capsys.readouterr().out

@@ -15,7 +15,9 @@ EPOCHS = 100
 
 
 def test_federated_over_http_matches_in_process(server_url):
-    targets, _ = asyncio.run(run_federated(server_url, vehicles=2, seed=5, batch_epochs=5, epochs=EPOCHS, admin_key=ADMIN_KEY))
+    targets, _ = asyncio.run(
+        run_federated(server_url, vehicles=2, seed=5, batch_epochs=5, epochs=EPOCHS, admin_key=ADMIN_KEY)
+    )
     assert all(t.error is None and len(t.fixes) == EPOCHS for t in targets), [t.error for t in targets]
     for target in targets:
         # The simulator truncates the full-length run (its draws depend on the length), and the

@@ -25,12 +25,18 @@ BELOW, ABOVE = 0.2, 0.1
 
 
 def test_v2v_over_http_matches_in_process(server_url):
-    vehicles, _ = asyncio.run(run_v2v(server_url, groups=2, seed=3, layout="ring", batch_epochs=1, epochs=EPOCHS, admin_key=ADMIN_KEY))
+    vehicles, _ = asyncio.run(
+        run_v2v(
+            server_url, groups=2, seed=3, layout="ring", batch_epochs=1, epochs=EPOCHS, admin_key=ADMIN_KEY
+        )
+    )
     assert all(v.error is None and len(v.fixes) == EPOCHS for v in vehicles), [v.error for v in vehicles]
     for group in range(2):
         members = [v for v in vehicles if v.group == group]
         used = [u for v in members for f in v.fixes[2:] for u in f.measurements if u.type == "v2v_range"]
-        assert used and sum(u.used for u in used) >= 0.9 * len(used), [u.reason for u in used if not u.used][:3]
+        assert used and sum(u.used for u in used) >= 0.9 * len(used), [u.reason for u in used if not u.used][
+            :3
+        ]
         over_http = math.sqrt(sum(v.position_rmse**2 for v in members) / len(members))
         # The draws depend on the run's length: the simulator sends the first EPOCHS of the full run.
         squared, _, _ = run_method(make_run(3, group, "ring"), "augUKF")

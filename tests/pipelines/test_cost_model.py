@@ -88,16 +88,22 @@ def gnss_workload():
     for number, epoch in enumerate(read_epochs(str(GNSS_DATA / "rover-0-5min.rnx"), codes)):
         if number >= 16:
             break
-        epochs.append([
-            PseudorangeObservation(
-                epoch.gpst % 604800.0, s, int(prn), float(pr), float(cn0) if math.isfinite(cn0) else 0.0,
-                doppler_hz=float(doppler) if math.isfinite(doppler) else None,
-            )
-            for s, prn, pr, cn0, doppler in zip(
-                epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz, epoch.doppler_hz
-            )
-            if math.isfinite(pr) and 1.0e6 <= pr <= 1.0e8
-        ])
+        epochs.append(
+            [
+                PseudorangeObservation(
+                    epoch.gpst % 604800.0,
+                    s,
+                    int(prn),
+                    float(pr),
+                    float(cn0) if math.isfinite(cn0) else 0.0,
+                    doppler_hz=float(doppler) if math.isfinite(doppler) else None,
+                )
+                for s, prn, pr, cn0, doppler in zip(
+                    epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz, epoch.doppler_hz
+                )
+                if math.isfinite(pr) and 1.0e6 <= pr <= 1.0e8
+            ]
+        )
     return epochs, StaticEnvironment(navigation=navigation)
 
 
@@ -133,7 +139,11 @@ def _check(pipeline_name: str, options: dict, state: bytes, batch: list, environ
         ({}, 20),  # the paper's 2IMM-CKF, compiled
         ({"filter": "ekf", "models": ["ca"], "priority": [], "rsu_handling": "average"}, 20),
         (  # the current-statistical model: the numpy reference
-            {"filter": "ukf", "models": ["cv", "ca", "ct", "at", "singer", "current_statistical"], "rsu_handling": "average"},
+            {
+                "filter": "ukf",
+                "models": ["cv", "ca", "ct", "at", "singer", "current_statistical"],
+                "rsu_handling": "average",
+            },
             5,
         ),
     ],
@@ -220,7 +230,9 @@ def test_v2x_federated_measured_within_the_model(feedback) -> None:
     options = {"feedback": feedback}
     state = pipeline.create(pipeline.resolve_options(options), None)
     for k in range(30):
-        _, state = pipeline.process(state, run.observations[k], StaticEnvironment(tracks=neighbours[k], vehicle_id="target"))
+        _, state = pipeline.process(
+            state, run.observations[k], StaticEnvironment(tracks=neighbours[k], vehicle_id="target")
+        )
     # The evaluation feeds one epoch at a time; here a 4-epoch batch against the tracks before it.
     environment = StaticEnvironment(tracks=neighbours[29], vehicle_id="target")
     batch = [o for k in range(30, 34) for o in run.observations[k]]
@@ -255,19 +267,26 @@ def test_a_feature_without_a_constant_fails_the_import_check(monkeypatch) -> Non
 
 def _pseudorange_epochs(epochs: int, per_epoch: int) -> list[PseudorangeObservation]:
     return [
-        PseudorangeObservation(100.0 + k, "G", 1 + j % 32, 2.2e7 + j, 45.0) for k in range(epochs) for j in range(per_epoch)
+        PseudorangeObservation(100.0 + k, "G", 1 + j % 32, 2.2e7 + j, 45.0)
+        for k in range(epochs)
+        for j in range(per_epoch)
     ]
 
 
 def test_cost_grows_with_epochs_particles_and_pseudoranges() -> None:
     for name in ("ukf", "pf", "upf"):
         options = {"filter": name, "particles": 200}
-        by_epochs = [cost.batch_cost_s("gnss_tight", options, _pseudorange_epochs(e, 20)) for e in (1, 2, 5, 20)]
+        by_epochs = [
+            cost.batch_cost_s("gnss_tight", options, _pseudorange_epochs(e, 20)) for e in (1, 2, 5, 20)
+        ]
         assert by_epochs == sorted(by_epochs) and by_epochs[0] < by_epochs[-1], name
         by_prs = [cost.epoch_cost_s("gnss_tight", options, {"pseudorange": m}) for m in (0, 6, 15, 22, 40)]
         assert by_prs == sorted(by_prs) and by_prs[0] < by_prs[-1], name
     for name in ("pf", "upf"):
-        by_particles = [cost.epoch_cost_s("gnss_tight", {"filter": name, "particles": n}) for n in (10, 50, 200, 1000, 5000)]
+        by_particles = [
+            cost.epoch_cost_s("gnss_tight", {"filter": name, "particles": n})
+            for n in (10, 50, 200, 1000, 5000)
+        ]
         assert all(a < b for a, b in itertools.pairwise(by_particles)), name
     # The UKF ignores the particles option.
     assert cost.epoch_cost_s("gnss_tight", {"filter": "ukf", "particles": 10}) == cost.epoch_cost_s(
@@ -288,12 +307,17 @@ def test_rsu_imu_cost_grows_with_models_and_used_rsus_only() -> None:
     for filter_name in ("ekf", "ukf", "ckf", "srukf"):
         for handling in ("joint", "average"):
             by_models = [
-                cost.epoch_cost_s("rsu_imu", {"filter": filter_name, "models": models[:m], "priority": [], "rsu_handling": handling})
+                cost.epoch_cost_s(
+                    "rsu_imu",
+                    {"filter": filter_name, "models": models[:m], "priority": [], "rsu_handling": handling},
+                )
                 for m in range(1, 6)  # cv..singer: all compiled (srukf: all reference)
             ]
             assert _non_decreasing(by_models) and by_models[0] < by_models[-1], (filter_name, handling)
             options = {"filter": filter_name, "rsu_handling": handling, "max_rsus": 8}
-            by_rsus = [cost.epoch_cost_s("rsu_imu", options, {"rsu": k, "gyro": 1}) for k in (0, 1, 4, 8, 16, 64)]
+            by_rsus = [
+                cost.epoch_cost_s("rsu_imu", options, {"rsu": k, "gyro": 1}) for k in (0, 1, 4, 8, 16, 64)
+            ]
             assert _non_decreasing(by_rsus) and by_rsus[0] < by_rsus[3], (filter_name, handling)
             assert by_rsus[5] - by_rsus[3] == pytest.approx(56 * per_observation)
     compiled = cost.epoch_cost_s("rsu_imu", {"models": models[:5]})
@@ -309,12 +333,18 @@ def test_reference_path_when_numba_is_off(monkeypatch) -> None:
 
 def test_cooperative_cost_never_falls_with_more_ranges() -> None:
     for method in ("gps", "gps_dr", "ukf", "aug_ukf"):
-        by_ranges = [cost.epoch_cost_s("v2v_coop", {"method": method}, {"gnss_fix": 1, "v2v_range": r}) for r in (0, 1, 8, 32)]
+        by_ranges = [
+            cost.epoch_cost_s("v2v_coop", {"method": method}, {"gnss_fix": 1, "v2v_range": r})
+            for r in (0, 1, 8, 32)
+        ]
         assert _non_decreasing(by_ranges), method
-    aug = [cost.epoch_cost_s("v2v_coop", {"method": "aug_ukf"}, {"gnss_fix": 1, "v2v_range": r}) for r in (0, 32)]
+    aug = [
+        cost.epoch_cost_s("v2v_coop", {"method": "aug_ukf"}, {"gnss_fix": 1, "v2v_range": r}) for r in (0, 32)
+    ]
     assert aug[0] < aug[1]
     by_ranges = [
-        cost.epoch_cost_s("v2x_federated", {}, {"gnss_fix": 1, "rsu_range": r, "v2v_range": r}) for r in (0, 1, 8, 32)
+        cost.epoch_cost_s("v2x_federated", {}, {"gnss_fix": 1, "rsu_range": r, "v2v_range": r})
+        for r in (0, 1, 8, 32)
     ]
     assert _non_decreasing(by_ranges) and by_ranges[0] < by_ranges[-1]
 
@@ -330,9 +360,18 @@ def test_max_particles_is_the_largest_that_fits() -> None:
     for name in ("pf", "upf"):
         most = cost.max_particles(name)
         assert most >= 10, name
-        largest = {"pseudorange": cost.MAX_PER_EPOCH["gnss_tight"]["pseudorange"], "riss": cost.MAX_PER_EPOCH["gnss_tight"]["riss"]}
-        assert cost.epoch_cost_s("gnss_tight", {"filter": name, "particles": most}, largest) <= cost.DEFAULT_BUDGET_S
-        assert cost.epoch_cost_s("gnss_tight", {"filter": name, "particles": most + 1}, largest) > cost.DEFAULT_BUDGET_S
+        largest = {
+            "pseudorange": cost.MAX_PER_EPOCH["gnss_tight"]["pseudorange"],
+            "riss": cost.MAX_PER_EPOCH["gnss_tight"]["riss"],
+        }
+        assert (
+            cost.epoch_cost_s("gnss_tight", {"filter": name, "particles": most}, largest)
+            <= cost.DEFAULT_BUDGET_S
+        )
+        assert (
+            cost.epoch_cost_s("gnss_tight", {"filter": name, "particles": most + 1}, largest)
+            > cost.DEFAULT_BUDGET_S
+        )
         assert cost.max_particles(name, budget_s=2 * cost.DEFAULT_BUDGET_S) > most
 
 
@@ -342,7 +381,12 @@ def test_epoch_bounds_name_the_epoch_and_kind() -> None:
     assert cost.epoch_bound_violations("gnss_tight", within) == []
     over = within + [PseudorangeObservation(101.0, "C", 7, 2.3e7, 40.0)]
     (violation,) = cost.epoch_bound_violations("gnss_tight", over)
-    assert (violation.t, violation.kind, violation.count, violation.bound) == (101.0, "pseudorange", bound + 1, bound)
+    assert (violation.t, violation.kind, violation.count, violation.bound) == (
+        101.0,
+        "pseudorange",
+        bound + 1,
+        bound,
+    )
     assert "pseudorange" in violation.reason and str(bound) in violation.reason
     gyros = [GyroObservation(5.0, 0.01)] * (cost.MAX_PER_EPOCH["rsu_imu"]["gyro"] + 1)
     assert [v.kind for v in cost.epoch_bound_violations("rsu_imu", gyros)] == ["gyro"]
@@ -362,8 +406,6 @@ def test_epoch_counts_group_by_time_and_every_route_agrees() -> None:
         features = cost.batch_features(name, options, cost.epoch_counts(mixed))
         weighed = cost.MARGIN * sum(cost.CALIBRATION[name][f] * v for f, v in features.items())
         assert weighed == pytest.approx(direct)
-
-
 
 
 def test_admission_in_one_pass_agrees_with_the_two_functions() -> None:

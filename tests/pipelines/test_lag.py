@@ -739,10 +739,17 @@ def test_a_version_2_window_is_converted_when_read():
     from edgepos.core.observations import PseudorangeObservationV2
 
     old_codec = _KindCodec(PseudorangeObservationV2)
-    old = [PseudorangeObservationV2(1.5, "G", 7, 2.1e7, 44.5), PseudorangeObservationV2(1.5, "E", 3, 2.3e7, 41.0)]
+    old = [
+        PseudorangeObservationV2(1.5, "G", 7, 2.1e7, 44.5),
+        PseudorangeObservationV2(1.5, "E", 3, 2.3e7, 41.0),
+    ]
     gyro = [GyroObservation(2.5, 0.125)]
     window = lag._Window(
-        dict(lag.DEFAULTS), 2.5, [lag._Checkpoint(None, b"base")], b"current", [1.5, 2.5],
+        dict(lag.DEFAULTS),
+        2.5,
+        [lag._Checkpoint(None, b"base")],
+        b"current",
+        [1.5, 2.5],
         [b"".join(old_codec.encode(o) for o in old), lag.encode_epoch(gyro)],
     )
     packed = lag._pack(window)
@@ -871,10 +878,18 @@ def test_the_in_order_path_gives_the_same_bytes_for_the_other_pipelines(
     options = {
         "v2v_coop": {"method": "aug_ukf"},
         "v2x_federated": {},
-        "gnss_tight": {"filter": "pf", "particles": 100, "seed": 3, "systems": ["C", "G"], "max_delay_s": 5.0},
+        "gnss_tight": {
+            "filter": "pf",
+            "particles": 100,
+            "seed": 3,
+            "systems": ["C", "G"],
+            "max_delay_s": 5.0,
+        },
     }[name]
     pipeline = get_pipeline(name)
-    in_order = [[o for e in epochs[k : k + batch_epochs] for o in e] for k in range(0, len(epochs), batch_epochs)]
+    in_order = [
+        [o for e in epochs[k : k + batch_epochs] for o in e] for k in range(0, len(epochs), batch_epochs)
+    ]
     late = scheduled(epochs, SCHEDULES["several late, delivered newest first"])
     for batches in (in_order, late):
         feed_both(batches, new_session(pipeline, options), monkeypatch, env, pipeline)

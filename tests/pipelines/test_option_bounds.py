@@ -70,12 +70,19 @@ def _fields(pipeline: str, options: dict) -> list[str]:
         ("rsu_imu", {"model_params": {"singer": {"alpha": "fast"}}}, "options.model_params.singer.alpha"),
         ("rsu_imu", {"model_params": {"singer": {"alpha": True}}}, "options.model_params.singer.alpha"),
         ("rsu_imu", {"model_params": {"ca": {"noise": "pink"}}}, "options.model_params.ca.noise"),
-        ("rsu_imu", {"models": ["ca", "ct"], "priority": [], "model_params": {"ct": {"omega": 100.0}}},
-         "options.model_params.ct.omega"),
+        (
+            "rsu_imu",
+            {"models": ["ca", "ct"], "priority": [], "model_params": {"ct": {"omega": 100.0}}},
+            "options.model_params.ct.omega",
+        ),
         ("rsu_imu", {"filter": "ukf", "filter_params": {"alpha": 50.0}}, "options.filter_params.alpha"),
         ("rsu_imu", {"filter_params": {"alpha": 0.5}}, "options.filter_params.alpha"),  # the CKF has none
         # list elements within the published bounds
-        ("rsu_imu", {"transition": [[2.0, -1.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]}, "options.transition"),
+        (
+            "rsu_imu",
+            {"transition": [[2.0, -1.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]},
+            "options.transition",
+        ),
         ("rsu_imu", {"initial_probabilities": [1e300, 0.0, 0.0]}, "options.initial_probabilities"),
         # no models and no initial probabilities: the minimum of an empty list was a 500
         ("rsu_imu", {"models": [], "initial_probabilities": []}, "options.models"),
@@ -87,12 +94,16 @@ def test_out_of_bounds_values_are_refused_by_field(pipeline: str, options: dict,
 
 def test_every_bad_model_parameter_is_reported_at_once() -> None:
     options = {
-        "models": ["ca", "singer"], "priority": [],
+        "models": ["ca", "singer"],
+        "priority": [],
         "model_params": {"ca": {"q": 1e9}, "singer": {"sigma": 0.0}},
-        "filter": "ukf", "filter_params": {"beta": -1.0},
+        "filter": "ukf",
+        "filter_params": {"beta": -1.0},
     }
     assert set(_fields("rsu_imu", options)) == {
-        "options.model_params.ca.q", "options.model_params.singer.sigma", "options.filter_params.beta",
+        "options.model_params.ca.q",
+        "options.model_params.singer.sigma",
+        "options.filter_params.beta",
     }
 
 
@@ -103,7 +114,9 @@ def test_the_option_descriptions_list_the_nested_bounds() -> None:
 
 
 def test_ensure_finite_fixes_names_the_epoch_and_the_field() -> None:
-    good = Fix(t=1.0, status="tracking", x=1.0, y=2.0, state=[1e308, 1e308], state_cov=[[1.0, 0.0], [0.0, 1.0]])
+    good = Fix(
+        t=1.0, status="tracking", x=1.0, y=2.0, state=[1e308, 1e308], state_cov=[[1.0, 0.0], [0.0, 1.0]]
+    )
     assert ensure_finite_fixes([good]) == [good]  # a sum that overflows is not a non-finite entry
     for field, value in (
         ("x", math.nan),
@@ -140,10 +153,22 @@ def test_six_model_bank_with_a_loose_start_answers_finite_fixes() -> None:
     ("module", "builder", "pipeline", "observations"),
     [
         (rsu_imu, "_fix", "rsu_imu", lambda: batch_observations(0, 2)),
-        (v2x_federated, "kinematic_fix", "v2x_federated",
-         lambda: [GnssFixObservation(0.0, 0.0, 0.0), GnssFixObservation(0.2, 2.0, 0.0), GyroObservation(0.2, 0.0)]),
-        (v2v_coop, "kinematic_fix", "v2v_coop",
-         lambda: [GnssFixObservation(0.0, 0.0, 0.0), GnssFixObservation(0.2, 2.0, 0.0)]),
+        (
+            v2x_federated,
+            "kinematic_fix",
+            "v2x_federated",
+            lambda: [
+                GnssFixObservation(0.0, 0.0, 0.0),
+                GnssFixObservation(0.2, 2.0, 0.0),
+                GyroObservation(0.2, 0.0),
+            ],
+        ),
+        (
+            v2v_coop,
+            "kinematic_fix",
+            "v2v_coop",
+            lambda: [GnssFixObservation(0.0, 0.0, 0.0), GnssFixObservation(0.2, 2.0, 0.0)],
+        ),
     ],
 )
 def test_a_non_finite_fix_fails_the_batch(monkeypatch, module, builder, pipeline, observations) -> None:

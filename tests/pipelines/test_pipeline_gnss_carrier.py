@@ -38,7 +38,9 @@ def test_carrier_smoothing_is_not_worse_on_either_half() -> None:
 @pytest.fixture(scope="module")
 def recording() -> tuple[list[list[PseudorangeObservation]], StaticEnvironment]:
     codes = {s: DEFAULT_CODES[s] for s in "GC"}
-    environment = StaticEnvironment(navigation=Ephemerides.from_navigation(read_navigation(DATA + "broadcast-nav.rnx")))
+    environment = StaticEnvironment(
+        navigation=Ephemerides.from_navigation(read_navigation(DATA + "broadcast-nav.rnx"))
+    )
     epochs = []
     for number, epoch in enumerate(read_epochs(FILES[0], codes)):
         if number >= 8:
@@ -46,12 +48,23 @@ def recording() -> tuple[list[list[PseudorangeObservation]], StaticEnvironment]:
         epochs.append(
             [
                 PseudorangeObservation(
-                    epoch.gpst % 604800.0, s, int(prn), float(pr), float(cn0), doppler_hz=float(d),
-                    carrier_cycles=float(cycles) if math.isfinite(cycles) else None, lli=int(lli),
+                    epoch.gpst % 604800.0,
+                    s,
+                    int(prn),
+                    float(pr),
+                    float(cn0),
+                    doppler_hz=float(d),
+                    carrier_cycles=float(cycles) if math.isfinite(cycles) else None,
+                    lli=int(lli),
                 )
                 for s, prn, pr, cn0, d, cycles, lli in zip(
-                    epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz, epoch.doppler_hz,
-                    epoch.carrier_cycles, epoch.lli,
+                    epoch.systems,
+                    epoch.prns,
+                    epoch.pseudorange_m,
+                    epoch.cn0_dbhz,
+                    epoch.doppler_hz,
+                    epoch.carrier_cycles,
+                    epoch.lli,
                 )
             ]
         )

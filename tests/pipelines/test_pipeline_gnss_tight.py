@@ -40,8 +40,9 @@ def run_scenario(heading0: float, options: dict) -> tuple[np.ndarray, bytes]:
     return errors, state
 
 
-@pytest.mark.parametrize("options", [{"filter": "ukf"}, {"filter": "upf"}, {"filter": "pf"}],
-                         ids=["ukf", "upf", "pf"])
+@pytest.mark.parametrize(
+    "options", [{"filter": "ukf"}, {"filter": "upf"}, {"filter": "pf"}], ids=["ukf", "upf", "pf"]
+)
 def test_an_eastbound_start_is_tracked(options: dict) -> None:
     """Starting east (90 degrees from the old fixed initial azimuth): every epoch has a fix and the error
     settles as on a northbound start (it used to be 7-10 m RMS and growing)."""
@@ -62,11 +63,15 @@ def recording() -> tuple[list[list[PseudorangeObservation]], StaticEnvironment]:
     for count, epoch in enumerate(read_epochs(DATA + "rover-0-5min.rnx", codes)):
         if count >= 12:
             break
-        epochs.append([
-            PseudorangeObservation(epoch.gpst % 604800.0, system, int(prn), float(pr), float(cn0))
-            for system, prn, pr, cn0 in zip(epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz)
-            if math.isfinite(pr) and math.isfinite(cn0)
-        ])
+        epochs.append(
+            [
+                PseudorangeObservation(epoch.gpst % 604800.0, system, int(prn), float(pr), float(cn0))
+                for system, prn, pr, cn0 in zip(
+                    epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz
+                )
+                if math.isfinite(pr) and math.isfinite(cn0)
+            ]
+        )
     return epochs, environment
 
 
@@ -78,9 +83,16 @@ def test_a_biased_pseudorange_is_excluded_by_the_snapshot_test(recording, filter
     pipeline = GnssTightPipeline()
 
     def last_use(fde: float, gate: float) -> tuple[bool, str | None]:
-        options = pipeline.resolve_options({"filter": filter_name, "particles": 50, "seed": 2,
-                                            "systems": ["C", "G"], "fde_probability": fde,
-                                            "gate_probability": gate})
+        options = pipeline.resolve_options(
+            {
+                "filter": filter_name,
+                "particles": 50,
+                "seed": 2,
+                "systems": ["C", "G"],
+                "fde_probability": fde,
+                "gate_probability": gate,
+            }
+        )
         state = pipeline.create(options, None)
         for batch in epochs[:-1]:
             _, state = pipeline.process(state, batch, environment)
@@ -141,8 +153,11 @@ def test_upf_spread_fraction_option_reaches_the_filter_and_old_states_keep_their
     options = pipeline.resolve_options({"filter": "upf", "spread_fraction": 0.3})
     assert _filter(options).spread_fraction == 0.3
 
-    old_options = {k: v for k, v in pipeline.resolve_options({"filter": "upf", "seed": 1}).items()
-                   if k != "spread_fraction"}
+    old_options = {
+        k: v
+        for k, v in pipeline.resolve_options({"filter": "upf", "seed": 1}).items()
+        if k != "spread_fraction"
+    }
     meta, arrays = state_format.unpack(pipeline.create({**old_options, "seed": 1}, None))
     assert "spread_fraction" not in meta["options"]
     assert _filter(meta["options"]).spread_fraction == 1.0

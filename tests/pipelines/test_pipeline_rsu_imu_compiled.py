@@ -82,7 +82,16 @@ def run_both(scenario, observations, options, monkeypatch, initial=True):
         {"models": ["at"], "priority": []},
         {"models": ["singer"], "priority": [], "gate_probability": 0.0},
     ],
-    ids=["2imm-ckf", "2imm-ckf-avg", "imm-ckf", "imm-ukf", "imm-ekf-avg", "cv-ct-at", "at-ckf", "singer-nogate"],
+    ids=[
+        "2imm-ckf",
+        "2imm-ckf-avg",
+        "imm-ckf",
+        "imm-ukf",
+        "imm-ekf-avg",
+        "cv-ct-at",
+        "at-ckf",
+        "singer-nogate",
+    ],
 )
 def test_compiled_pipeline_equals_the_numpy_reference(scenario, observations, options, monkeypatch) -> None:
     fast, slow = run_both(scenario, observations, options, monkeypatch, initial=options != {"priority": []})

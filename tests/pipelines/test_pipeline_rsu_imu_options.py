@@ -51,8 +51,12 @@ def test_resolving_does_not_alias_the_defaults(pipeline) -> None:
         {"filter": "ekf", "models": ["cv", "ca", "ct", "singer"], "priority": ["cv", "ca"]},
         {"models": ["ca"], "priority": []},
         {"models": ["at"], "priority": ["at"]},
-        {"models": ["ca", "at"], "priority": [], "transition": [[0.9, 0.1], [0.2, 0.8]],
-         "initial_probabilities": [0.25, 0.75]},
+        {
+            "models": ["ca", "at"],
+            "priority": [],
+            "transition": [[0.9, 0.1], [0.2, 0.8]],
+            "initial_probabilities": [0.25, 0.75],
+        },
         {"model_params": {"ct": {"omega": 0.35}}, "models": ["ca", "ct"], "priority": []},
         {"rsu_handling": "average", "max_rsus": 1, "gate_probability": 0.0},
         {"comm_radius": 1.0, "range_std": 1e-4, "bearing_std": math.pi, "gyro_std": 10, "max_rsus": 64},
@@ -105,11 +109,19 @@ BAD_OPTIONS = [
     pytest.param({"models": ["ca"]}, "priority", id="default-priority-not-in-single-model"),
     pytest.param({"models": [], "priority": []}, "models", id="no-models"),
     pytest.param({"transition": [[0.5, 0.5], [0.5, 0.5]]}, "transition", id="transition-wrong-shape"),
-    pytest.param({"transition": [[1.0, 0.0, 0.0], [0.0, 1.0], [0.0, 0.0, 1.0]]}, "transition", id="transition-ragged"),
-    pytest.param({"transition": [[0.5, 0.5, 0.5], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]}, "transition",
-                 id="transition-row-sum"),
-    pytest.param({"transition": [[1.5, -0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]}, "transition",
-                 id="transition-negative"),
+    pytest.param(
+        {"transition": [[1.0, 0.0, 0.0], [0.0, 1.0], [0.0, 0.0, 1.0]]}, "transition", id="transition-ragged"
+    ),
+    pytest.param(
+        {"transition": [[0.5, 0.5, 0.5], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]},
+        "transition",
+        id="transition-row-sum",
+    ),
+    pytest.param(
+        {"transition": [[1.5, -0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]},
+        "transition",
+        id="transition-negative",
+    ),
     pytest.param({"initial_probabilities": [0.5, 0.5]}, "initial_probabilities", id="initial-wrong-length"),
     pytest.param({"initial_probabilities": [0.5, 0.6, -0.1]}, "initial_probabilities", id="initial-negative"),
     pytest.param({"initial_probabilities": [0.3, 0.3, 0.3]}, "initial_probabilities", id="initial-sum"),
@@ -131,26 +143,40 @@ def test_bad_options_are_refused_naming_the_field(pipeline, options: dict, field
     [
         pytest.param({"model_params": {"ca": {"q": -1.0}}}, "model_params", id="model-param-out-of-domain"),
         pytest.param({"model_params": {"at": {"bogus": 1.0}}}, "model_params", id="model-param-unknown-name"),
-        pytest.param({"model_params": {"singer": {"alpha": "fast"}}}, "model_params", id="model-param-wrong-type"),
+        pytest.param(
+            {"model_params": {"singer": {"alpha": "fast"}}}, "model_params", id="model-param-wrong-type"
+        ),
         pytest.param({"filter_params": {"gamma": 1.0}}, "filter_params", id="filter-param-unknown-for-ckf"),
-        pytest.param({"filter": "ukf", "filter_params": {"alpha": -1.0}}, "filter_params", id="ukf-alpha-negative"),
-        pytest.param({"filter": "ukf", "filter_params": {"alpha": 1.0, "kappa": -20.0}}, "filter_params",
-                     id="ukf-kappa-makes-spread-negative"),
+        pytest.param(
+            {"filter": "ukf", "filter_params": {"alpha": -1.0}}, "filter_params", id="ukf-alpha-negative"
+        ),
+        pytest.param(
+            {"filter": "ukf", "filter_params": {"alpha": 1.0, "kappa": -20.0}},
+            "filter_params",
+            id="ukf-kappa-makes-spread-negative",
+        ),
     ],
 )
-def test_bad_model_and_filter_parameters_are_pipeline_input_errors(pipeline, options: dict, field: str) -> None:
+def test_bad_model_and_filter_parameters_are_pipeline_input_errors(
+    pipeline, options: dict, field: str
+) -> None:
     """resolve_options' contract: PipelineInputError naming the option, not a bare ConfigurationError
     escaping from building the bank (the service would have to guess which field was wrong)."""
     with pytest.raises(PipelineInputError) as caught:
         pipeline.resolve_options(options)
-    assert any(f == f"options.{field}" or f.startswith(f"options.{field}.") for f in problem_fields(caught.value))
+    assert any(
+        f == f"options.{field}" or f.startswith(f"options.{field}.") for f in problem_fields(caught.value)
+    )
 
 
 def test_every_bad_option_is_reported_at_once(pipeline) -> None:
     with pytest.raises(PipelineInputError) as caught:
         pipeline.resolve_options({"bogus": 1, "max_rsus": 0, "filter": "pf", "range_std": -1.0})
     assert set(problem_fields(caught.value)) == {
-        "options.bogus", "options.max_rsus", "options.filter", "options.range_std"
+        "options.bogus",
+        "options.max_rsus",
+        "options.filter",
+        "options.range_std",
     }
 
 

@@ -38,8 +38,9 @@ def true_position(t: float) -> tuple[float, float]:
     return 20.0 + SPEED * t, 0.0
 
 
-def epoch(t: float, rng: np.random.Generator, env: StaticEnvironment = ENV, ids=None, gyro: bool = True
-          ) -> list[Observation]:
+def epoch(
+    t: float, rng: np.random.Generator, env: StaticEnvironment = ENV, ids=None, gyro: bool = True
+) -> list[Observation]:
     """Noisy observations at time t of the vehicle driving east along y = 0."""
     x, y = true_position(t)
     out: list[Observation] = []
@@ -49,7 +50,8 @@ def epoch(t: float, rng: np.random.Generator, env: StaticEnvironment = ENV, ids=
         dx, dy = x - rsu.x, y - rsu.y
         out.append(
             RsuObservation(
-                t=t, rsu_id=rsu.id,
+                t=t,
+                rsu_id=rsu.id,
                 range=math.hypot(dx, dy) + RANGE_STD * rng.standard_normal(),
                 bearing=math.remainder(math.atan2(dy, dx) + BEARING_STD * rng.standard_normal(), 2 * math.pi),
             )
@@ -64,7 +66,9 @@ def started(pipeline, options=None) -> bytes:
     return pipeline.create(pipeline.resolve_options(options), InitialState(x, y, SPEED, 0.0, 0.5, 0.5))
 
 
-def run(pipeline, state: bytes, epochs: int, seed: int, start: int = 1, env=ENV, **kw) -> tuple[list[Fix], bytes]:
+def run(
+    pipeline, state: bytes, epochs: int, seed: int, start: int = 1, env=ENV, **kw
+) -> tuple[list[Fix], bytes]:
     rng = np.random.default_rng(seed)
     fixes: list[Fix] = []
     for k in range(start, start + epochs):
@@ -138,7 +142,9 @@ def test_a_malformed_late_measurement_is_listed_with_every_other_problem_of_the_
         (GyroObservation(t=1.0, yaw_rate=float("nan")), "yaw_rate"),
     ],
 )
-def test_non_finite_or_out_of_range_values_are_refused(pipeline, observation: Observation, field: str) -> None:
+def test_non_finite_or_out_of_range_values_are_refused(
+    pipeline, observation: Observation, field: str
+) -> None:
     with pytest.raises(PipelineInputError) as caught:
         pipeline.process(started(pipeline), [observation], ENV)
     assert [(p.index, p.field) for p in caught.value.problems] == [(0, field)]
@@ -273,8 +279,12 @@ def test_absurd_gyro_reading_fails_the_gate(pipeline) -> None:
 
 @pytest.mark.parametrize("handling", ["joint", "average"])
 @pytest.mark.parametrize("filter_name", ["ckf", "ukf", "ekf"])
-def test_joint_and_average_handling_track_with_every_filter(pipeline, handling: str, filter_name: str) -> None:
-    fixes, _ = run(pipeline, started(pipeline, {"rsu_handling": handling, "filter": filter_name}), 30, seed=13)
+def test_joint_and_average_handling_track_with_every_filter(
+    pipeline, handling: str, filter_name: str
+) -> None:
+    fixes, _ = run(
+        pipeline, started(pipeline, {"rsu_handling": handling, "filter": filter_name}), 30, seed=13
+    )
     assert all(f.status == "tracking" for f in fixes)
     assert max(position_error(f) for f in fixes) < 1.0
     dof = {f.nis_dof for f in fixes}
@@ -298,7 +308,12 @@ def test_per_rsu_noise_overrides_are_honoured(pipeline, override: dict, option: 
     with_option, _ = run(pipeline, started(pipeline, option), 8, seed=15, env=ENV)
     plain, _ = run(pipeline, started(pipeline), 8, seed=15, env=ENV)
     for a, b in zip(with_override, with_option):
-        assert (a.x, a.y, a.position_cov, a.model_probabilities) == (b.x, b.y, b.position_cov, b.model_probabilities)
+        assert (a.x, a.y, a.position_cov, a.model_probabilities) == (
+            b.x,
+            b.y,
+            b.position_cov,
+            b.model_probabilities,
+        )
     assert any(a.position_cov != c.position_cov for a, c in zip(with_override, plain))
 
 
@@ -322,7 +337,9 @@ def test_per_rsu_radius_override_is_honoured(pipeline) -> None:
     env = StaticEnvironment(rsus)
     batch = epoch(DT, np.random.default_rng(18), env)
     fixes, _ = pipeline.process(started(pipeline, {"max_rsus": 64, "gate_probability": 0.0}), batch, env)
-    uses = {batch[u.index].rsu_id: u for u in fixes[0].measurements if isinstance(batch[u.index], RsuObservation)}
+    uses = {
+        batch[u.index].rsu_id: u for u in fixes[0].measurements if isinstance(batch[u.index], RsuObservation)
+    }
     assert not uses["S200"].used and "100 m" in uses["S200"].reason  # 179 m away, radius 100 m
     assert uses["FAR"].used  # 1979 m away, radius 5000 m
     assert uses["N150"].used  # 132 m, default radius 160 m
@@ -355,7 +372,9 @@ def test_state_reencodes_byte_identically(pipeline) -> None:
     assert lag._pack(window) == state
     # its base is a checkpoint from before max_delay_s, and it holds every epoch after it: all a measurement
     # late by up to max_delay_s needs filtered again
-    assert window.newest == 12 * DT and window.base.t is not None and window.base.t < window.newest - MAX_DELAY
+    assert (
+        window.newest == 12 * DT and window.base.t is not None and window.base.t < window.newest - MAX_DELAY
+    )
     assert window.times == [t for t in (k * DT for k in range(1, 13)) if t > window.base.t]
     assert [o for record in window.records for o in lag.decode_epoch(record)] == window.observations()
     for inner_state in [window.current, *(c.state for c in window.checkpoints)]:
@@ -416,7 +435,16 @@ def test_damaged_binary_states_are_state_format_errors(pipeline) -> None:
 
     _, state = run(pipeline, started(pipeline), 3, seed=24)
     inner = unwrap(lag._unpack(state).current)[1]
-    for cut in (0, 3, 4, 10, rsu_imu._STATE.size - 1, rsu_imu._STATE.size + 5, len(inner) - 8, len(inner) - 1):
+    for cut in (
+        0,
+        3,
+        4,
+        10,
+        rsu_imu._STATE.size - 1,
+        rsu_imu._STATE.size + 5,
+        len(inner) - 8,
+        len(inner) - 1,
+    ):
         with pytest.raises(state_format.StateFormatError):
             _decode(inner[:cut])
     with pytest.raises(state_format.StateFormatError):
@@ -466,7 +494,15 @@ def test_one_batch_equals_epoch_by_epoch(pipeline) -> None:
     assert len(fixes_one) == len(fixes_many) == len(epochs)
     for a, b in zip(fixes_one, fixes_many):
         assert (a.t, a.x, a.y, a.vx, a.vy, a.position_cov, a.state_cov, a.model_probabilities, a.nis) == (
-            b.t, b.x, b.y, b.vx, b.vy, b.position_cov, b.state_cov, b.model_probabilities, b.nis
+            b.t,
+            b.x,
+            b.y,
+            b.vx,
+            b.vy,
+            b.position_cov,
+            b.state_cov,
+            b.model_probabilities,
+            b.nis,
         )
 
 
@@ -479,7 +515,10 @@ def test_foreign_or_corrupt_state_is_refused(pipeline) -> None:
 
 # -- gaps in the data ---------------------------------------------------------------------------------
 LONG_ROAD = StaticEnvironment(
-    {f"R{x:04d}": Rsu(f"R{x:04d}", float(x), -4.0 if (x // 50) % 2 == 0 else 15.0) for x in range(0, 2001, 50)}
+    {
+        f"R{x:04d}": Rsu(f"R{x:04d}", float(x), -4.0 if (x // 50) % 2 == 0 else 15.0)
+        for x in range(0, 2001, 50)
+    }
 )
 
 
@@ -507,7 +546,10 @@ def test_absurd_gaps_fail_only_with_estimation_errors(pipeline, gap: float) -> N
     from edgepos.core.errors import EstimationError
 
     for filter_name in ("ckf", "ekf"):
-        for which in (pipeline, pipeline.inner.inner):  # the registry's, and the filter without the time bound
+        for which in (
+            pipeline,
+            pipeline.inner.inner,
+        ):  # the registry's, and the filter without the time bound
             _, state = run(which, started(which, {"filter": filter_name}), 3, seed=25)
             try:
                 which.process(state, epoch(0.3 + gap, np.random.default_rng(26)), ENV)

@@ -29,14 +29,20 @@ def run(scenario, epochs, options=None, initial=True):
     pipeline = get_pipeline("rsu_imu")
     env = StaticEnvironment({rsu.id: rsu for rsu in scenario.rsus})
     x0 = scenario.initial_state  # [xp, xv, xa, yp, yv, ya, phi, omega]
-    start = InitialState(x=x0[0], y=x0[3], vx=x0[1], vy=x0[4], position_std=0.5, velocity_std=0.5) if initial else None
+    start = (
+        InitialState(x=x0[0], y=x0[3], vx=x0[1], vy=x0[4], position_std=0.5, velocity_std=0.5)
+        if initial
+        else None
+    )
     state = pipeline.create(pipeline.resolve_options(options), start)
     fixes, state = pipeline.process(state, [o for e in epochs for o in e], env)
     assert len(fixes) == len(epochs)
     truth = scenario.truth
     k = np.arange(1, len(epochs) + 1)
     assert np.allclose([f.t for f in fixes], truth.t[k])
-    errors = np.hypot([f.x - x for f, x in zip(fixes, truth.x[k])], [f.y - y for f, y in zip(fixes, truth.y[k])])
+    errors = np.hypot(
+        [f.x - x for f, x in zip(fixes, truth.x[k])], [f.y - y for f, y in zip(fixes, truth.y[k])]
+    )
     return fixes, errors
 
 
@@ -52,5 +58,5 @@ def test_default_pipeline_reaches_paper_accuracy_over_10_s(scenario, epochs) -> 
 def test_self_initialised_pipeline_converges_on_the_scenario(scenario, epochs) -> None:
     fixes, errors = run(scenario, epochs, initial=False)
     assert fixes[0].status == "initialised"
-    settled = errors[len(errors) // 2:]
+    settled = errors[len(errors) // 2 :]
     assert math.sqrt(float(np.mean(settled**2))) < 0.3

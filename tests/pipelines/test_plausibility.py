@@ -88,7 +88,9 @@ class Echo(Pipeline):
     def option_specs(self) -> list[OptionSpec]:
         return [
             OptionSpec("std", "number", 0.1, "position and velocity std", 0.0, 100.0),
-            OptionSpec("fail_beyond", "number", None, "NumericalError after a fix this far (m) east of the origin"),
+            OptionSpec(
+                "fail_beyond", "number", None, "NumericalError after a fix this far (m) east of the origin"
+            ),
         ]
 
     def resolve_options(self, options: Mapping[str, Any] | None) -> dict[str, Any]:
@@ -100,7 +102,9 @@ class Echo(Pipeline):
 
     def summarise(self, state: bytes) -> StateSummary:
         session = json.loads(state)
-        return StateSummary(session["last"] is not None, session["t"], session["epochs"], {}, session["options"])
+        return StateSummary(
+            session["last"] is not None, session["t"], session["epochs"], {}, session["options"]
+        )
 
     def process(
         self, state: bytes, observations: Sequence[Observation], environment: Environment
@@ -128,21 +132,43 @@ class Echo(Pipeline):
                     dt = t - session["t"]
                     status, vx, vy = "tracking", (x - session["last"][0]) / dt, (y - session["last"][1]) / dt
                 session["last"] = [x, y]
-                fix = Fix(t, status, x, y, vx, vy, math.hypot(vx, vy), position_cov=[r[:2] for r in cov[:2]],
-                          kinematic_cov=cov, measurements=uses)
+                fix = Fix(
+                    t,
+                    status,
+                    x,
+                    y,
+                    vx,
+                    vy,
+                    math.hypot(vx, vy),
+                    position_cov=[r[:2] for r in cov[:2]],
+                    kinematic_cov=cov,
+                    measurements=uses,
+                )
             elif session["last"] is None:
                 fix = Fix(t, "uninitialised", measurements=uses)
             else:
                 x, y = session["last"]
-                fix = Fix(t, "predicted", x, y, 0.0, 0.0, 0.0, position_cov=[r[:2] for r in cov[:2]],
-                          kinematic_cov=cov, measurements=uses)
+                fix = Fix(
+                    t,
+                    "predicted",
+                    x,
+                    y,
+                    0.0,
+                    0.0,
+                    0.0,
+                    position_cov=[r[:2] for r in cov[:2]],
+                    kinematic_cov=cov,
+                    measurements=uses,
+                )
             session["t"] = t
             session["epochs"] += 1
             fixes.append(fix)
         return fixes, json.dumps(session).encode()
 
 
-def echo(options: dict[str, Any] | None = None, initial: InitialState | None = None) -> tuple[Plausible, bytes]:
+def echo(
+    options: dict[str, Any] | None = None, initial: InitialState | None = None
+) -> tuple[Plausible, bytes]:
     pipeline = Plausible(Echo())
     return pipeline, pipeline.create(pipeline.resolve_options(options), initial)
 
@@ -184,7 +210,10 @@ def test_bad_options_of_the_wrapper_and_the_pipeline_are_named_together() -> Non
         )
     fields = {p.field: p.reason for p in caught.value.problems}
     assert set(fields) == {
-        "options.max_speed_mps", "options.on_divergence", "options.filter", "options.speed_limit"
+        "options.max_speed_mps",
+        "options.on_divergence",
+        "options.filter",
+        "options.speed_limit",
     }
     assert "max_time_jump_s" in fields["options.speed_limit"]  # the known options include the wrapper's
 
@@ -202,7 +231,10 @@ def test_an_initial_state_far_outside_the_site_is_refused_naming_its_fields() ->
     options = pipeline.resolve_options(None)
     with pytest.raises(PipelineInputError) as caught:
         pipeline.create(options, InitialState(1e6, 1e6, 10.0, 0.0))
-    assert [(p.index, p.field) for p in caught.value.problems] == [(None, "initial_state.x"), (None, "initial_state.y")]
+    assert [(p.index, p.field) for p in caught.value.problems] == [
+        (None, "initial_state.x"),
+        (None, "initial_state.y"),
+    ]
     assert "site_radius_m" in caught.value.problems[0].reason
     with pytest.raises(PipelineInputError) as caught:
         pipeline.create(options, InitialState(10.0, 0.0, 400.0, 0.0))
@@ -242,14 +274,17 @@ def test_a_filter_running_off_is_diverged_reset_and_starts_again(paper) -> None:
     assert fixes[1] == dataclasses.replace(runaway[1], status="diverged", divergence=fix.divergence)
     assert fixes[2].status == "initialised" and [f.status for f in fixes[3:]] == ["tracking"] * 5
     # the re-filtered epochs name their measurements by the batch's indices
-    assert [u.index for u in fixes[2].measurements] == [i for i in range(len(flat(epochs[:8])))
-                                                        if flat(epochs[:8])[i].t == fixes[2].t]
+    assert [u.index for u in fixes[2].measurements] == [
+        i for i in range(len(flat(epochs[:8]))) if flat(epochs[:8])[i].t == fixes[2].t
+    ]
     assert all(f.divergence is None for k, f in enumerate(fixes) if k != 1)
 
     later, state = pipeline.process(state, flat(epochs[8:40]), environment)
     scenario = rsu_imu_paper_scenario()
     assert all(f.status == "tracking" for f in later)
-    errors = [math.hypot(f.x - scenario.truth.x[k + 9], f.y - scenario.truth.y[k + 9]) for k, f in enumerate(later)]
+    errors = [
+        math.hypot(f.x - scenario.truth.x[k + 9], f.y - scenario.truth.y[k + 9]) for k, f in enumerate(later)
+    ]
     assert max(errors) < 1.0, errors
 
 
@@ -290,7 +325,9 @@ def test_a_day_long_gap_the_filter_predicts_across_is_diverged(paper) -> None:
     assert [f.status for f in fixes] == ["diverged", "initialised"]
     assert "site_radius_m" in fixes[0].divergence
 
-    _, state = pipeline.process(pipeline.create(pipeline.resolve_options(None), start), flat(epochs[:5]), environment)
+    _, state = pipeline.process(
+        pipeline.create(pipeline.resolve_options(None), start), flat(epochs[:5]), environment
+    )
     batch = late(5)
     with pytest.raises(PipelineInputError) as caught:
         pipeline.process(state, batch, environment)
@@ -306,7 +343,9 @@ def test_a_jump_to_the_largest_time_is_refused_and_the_session_goes_on(paper) ->
     first, naming the same observations.)"""
     epochs, environment = paper
     pipeline = plausible("rsu_imu")
-    _fixes, state = pipeline.process(pipeline.create(pipeline.resolve_options(None), None), flat(epochs[:3]), environment)
+    _fixes, state = pipeline.process(
+        pipeline.create(pipeline.resolve_options(None), None), flat(epochs[:3]), environment
+    )
     far = [dataclasses.replace(o, t=1e10) for o in epochs[3]]
     with pytest.raises(PipelineInputError) as caught:
         pipeline.process(state, far, environment)
@@ -351,10 +390,14 @@ def test_after_a_reset_at_the_end_of_a_batch_time_still_only_goes_forward() -> N
 
 
 # -- each check -------------------------------------------------------------------------------------------------
-def _fix(t: float, x: float, y: float, vx: float, vy: float, std: float = 0.1, status: str = "tracking") -> Fix:
+def _fix(
+    t: float, x: float, y: float, vx: float, vy: float, std: float = 0.1, status: str = "tracking"
+) -> Fix:
     variance = std**2
     cov = [[variance if i == j else 0.0 for j in range(4)] for i in range(4)]
-    return Fix(t, status, x, y, vx, vy, math.hypot(vx, vy), position_cov=[r[:2] for r in cov[:2]], kinematic_cov=cov)
+    return Fix(
+        t, status, x, y, vx, vy, math.hypot(vx, vy), position_cov=[r[:2] for r in cov[:2]], kinematic_cov=cov
+    )
 
 
 OPTIONS = dict(plausibility.DEFAULTS)
@@ -415,7 +458,14 @@ def test_a_reset_refilters_the_rest_of_the_batch_with_its_indices() -> None:
     Echo.calls = 0
     fixes, state = pipeline.process(state, batch, ENV)
     assert Echo.calls == 2  # one more call, only because of the reset
-    assert [f.status for f in fixes] == ["uninitialised", "initialised", "tracking", "diverged", "initialised", "tracking"]
+    assert [f.status for f in fixes] == [
+        "uninitialised",
+        "initialised",
+        "tracking",
+        "diverged",
+        "initialised",
+        "tracking",
+    ]
     assert [[u.index for u in f.measurements] for f in fixes] == [[0], [1], [2], [3], [4, 5], [6]]
     assert fixes[3].x == 9000.0 and fixes[4].vx == 0.0 and fixes[5].vx == 20.0
 
@@ -435,7 +485,9 @@ def test_a_run_off_the_filter_then_fails_on_is_reset_rather_than_failing_the_bat
         pipeline.process(echo({"fail_beyond": 5000, "on_divergence": "report"})[1], batch, ENV)
     pipeline, state = echo({"fail_beyond": 50})
     with pytest.raises(NumericalError):  # 30 m/s is plausible: the failure is the filter's own
-        pipeline.process(state, track((1.0, 0.0, 0.0), (2.0, 30.0, 0.0), (3.0, 60.0, 0.0), (4.0, 90.0, 0.0)), ENV)
+        pipeline.process(
+            state, track((1.0, 0.0, 0.0), (2.0, 30.0, 0.0), (3.0, 60.0, 0.0), (4.0, 90.0, 0.0)), ENV
+        )
 
 
 def test_a_batch_diverging_at_every_epoch_costs_a_few_plain_runs() -> None:
@@ -450,7 +502,9 @@ def test_a_batch_diverging_at_every_epoch_costs_a_few_plain_runs() -> None:
 
 def test_diverged_fixes_are_not_published() -> None:
     pipeline, state = echo()
-    fixes, _ = pipeline.process(state, track((0.0, 0.0, 0.0), (0.1, 1.0, 0.0), (0.2, 500.0, 0.0), (0.3, 501.0, 0.0)), ENV)
+    fixes, _ = pipeline.process(
+        state, track((0.0, 0.0, 0.0), (0.1, 1.0, 0.0), (0.2, 500.0, 0.0), (0.3, 501.0, 0.0)), ENV
+    )
     assert [f.status for f in fixes] == ["initialised", "tracking", "diverged", "initialised"]
     assert fixes[2].kinematic_cov is not None
     published = tracks.publish("car", None, fixes)
@@ -483,7 +537,9 @@ def test_a_state_written_before_the_wrapper_is_still_read(paper) -> None:
 def test_the_envelope_round_trips_and_damage_is_a_state_format_error(paper) -> None:
     epochs, environment = paper
     pipeline = plausible("rsu_imu")
-    _, state = pipeline.process(pipeline.create(pipeline.resolve_options(None), None), flat(epochs[:3]), environment)
+    _, state = pipeline.process(
+        pipeline.create(pipeline.resolve_options(None), None), flat(epochs[:3]), environment
+    )
     envelope, inner = unwrap(state)
     assert wrap(envelope, inner) == state
     assert envelope.t == epochs[2][0].t and envelope.last is not None and envelope.last.t == envelope.t
@@ -545,7 +601,8 @@ def test_the_wrapper_changes_no_bit_of_cooperative_fixes(method: str) -> None:
     sessions = {
         which: (pipeline, {vid: pipeline.create(opts, None) for vid in v2v.VEHICLE_IDS}, {})
         for which, pipeline, opts in (
-            ("wrapped", wrapped, options), ("bare", bare("v2v_coop"), bare_options(options))
+            ("wrapped", wrapped, options),
+            ("bare", bare("v2v_coop"), bare_options(options)),
         )
     }
     for k in range(len(run.times)):
@@ -567,7 +624,9 @@ def test_the_wrapper_changes_no_bit_of_federated_fixes() -> None:
     from edgepos.sim import federated
 
     target = federated.make_run(3, 0, "multipath")
-    wrapped = get_pipeline("v2x_federated")  # both wrappers: lag window and plausibility, on data in time order
+    wrapped = get_pipeline(
+        "v2x_federated"
+    )  # both wrappers: lag window and plausibility, on data in time order
     filt = bare("v2x_federated")
     options = wrapped.resolve_options(None)
     state_w, state_b = wrapped.create(options, None), filt.create(bare_options(options), None)
@@ -610,7 +669,12 @@ def test_the_time_check_of_the_usual_batch_agrees_with_its_definition(times, las
 
 @pytest.mark.parametrize(
     ("field", "bad"),
-    [(f, b) for f in ("t", "x", "y", "vx", "vy") for b in (math.nan, math.inf, -math.inf, None) if (f, b) != ("t", None)],
+    [
+        (f, b)
+        for f in ("t", "x", "y", "vx", "vy")
+        for b in (math.nan, math.inf, -math.inf, None)
+        if (f, b) != ("t", None)
+    ],
 )
 def test_a_fix_with_anything_not_finite_is_not_kept_for_the_next_check(field: str, bad: float | None) -> None:
     fix = Fix(t=1.0, status="tracking", x=2.0, y=3.0, vx=4.0, vy=5.0, position_cov=[[1.0, 0.0], [0.0, 1.0]])
@@ -630,7 +694,9 @@ NUMBERS = st.one_of(st.floats(-300.0, 300.0), st.sampled_from([math.nan, math.in
 @settings(max_examples=300, deadline=None)
 @given(
     now=st.tuples(NUMBERS, NUMBERS, NUMBERS, st.one_of(st.none(), NUMBERS), st.floats(0.0, 1e4)),
-    before=st.one_of(st.none(), st.tuples(NUMBERS, NUMBERS, NUMBERS, st.one_of(st.none(), NUMBERS), st.floats(0.0, 1e4))),
+    before=st.one_of(
+        st.none(), st.tuples(NUMBERS, NUMBERS, NUMBERS, st.one_of(st.none(), NUMBERS), st.floats(0.0, 1e4))
+    ),
     status=st.sampled_from(["tracking", "initialised"]),
 )
 def test_judging_a_fix_at_once_agrees_with_the_check_and_the_kept_point(now, before, status) -> None:
@@ -645,4 +711,7 @@ def test_judging_a_fix_at_once_agrees_with_the_check_and_the_kept_point(now, bef
 
     last = None if before is None else plausibility._point(fix_of(0.0, before))
     fix = fix_of(0.05, now)
-    assert plausibility._judged(fix, last, OPTIONS) == (implausibility(fix, last, OPTIONS), plausibility._point(fix))
+    assert plausibility._judged(fix, last, OPTIONS) == (
+        implausibility(fix, last, OPTIONS),
+        plausibility._point(fix),
+    )

@@ -105,17 +105,24 @@ def test_time_going_back_is_late_or_too_late_and_a_batch_need_not_be_in_time_ord
     fixes_backwards, state_backwards = PIPELINE.process(state, backwards, environment)
     assert state_backwards == state_in_order
     assert [f.t for f in fixes_backwards] == [1.4, 1.6] and not any(f.revised for f in fixes_backwards)
-    assert [(f.x, f.y, f.vx, f.vy) for f in fixes_backwards] == [(f.x, f.y, f.vx, f.vy) for f in fixes_in_order]
+    assert [(f.x, f.y, f.vx, f.vy) for f in fixes_backwards] == [
+        (f.x, f.y, f.vx, f.vy) for f in fixes_in_order
+    ]
 
 
 def test_each_unusable_range_says_why():
     environment = StaticEnvironment(
-        tracks={"old": track("old", -5.0, 30.0, 0.0), "north": track("north", 0.2, 30.0, 20.0)}, vehicle_id="me"
+        tracks={"old": track("old", -5.0, 30.0, 0.0), "north": track("north", 0.2, 30.0, 20.0)},
+        vehicle_id="me",
     )
     state = PIPELINE.process(session(), epoch(0.0, 0.0, 0.0, {}), environment)[1]
     batch = epoch(0.2, 3.0, 0.0, {"ghost": 10.0, "me": 1.0, "old": 20.0, "north": 33.0})
     fixes, _ = PIPELINE.process(state, batch, environment)
-    reasons = {obs.peer_vehicle_id: use for obs, use in zip(batch, fixes[0].measurements) if isinstance(obs, V2vRangeObservation)}
+    reasons = {
+        obs.peer_vehicle_id: use
+        for obs, use in zip(batch, fixes[0].measurements)
+        if isinstance(obs, V2vRangeObservation)
+    }
     assert "no live session" in reasons["ghost"].reason
     assert "itself" in reasons["me"].reason
     assert "older than the measurement" in reasons["old"].reason
@@ -150,12 +157,18 @@ def test_a_cooperative_vehicle_shares_its_own_gnss_dr_estimate_not_the_cooperati
 
 def test_gps_method_returns_the_fix_itself():
     state = session("gps")
-    fixes, state = PIPELINE.process(state, epoch(0.0, 1.0, 2.0, {}) + epoch(0.2, 4.0, 2.5, {}), StaticEnvironment())
-    assert (fixes[1].x, fixes[1].y) == (4.0, 2.5)
-    assert fixes[1].position_cov[0][0] == fixes[1].position_cov[1][1] == pytest.approx(
-        PIPELINE.resolve_options({})["gps_std"] ** 2
+    fixes, state = PIPELINE.process(
+        state, epoch(0.0, 1.0, 2.0, {}) + epoch(0.2, 4.0, 2.5, {}), StaticEnvironment()
     )
-    assert 0.0 < fixes[1].vx < 15.0 and 0.0 < fixes[1].vy < 2.5  # a filter's velocity: towards the differences
+    assert (fixes[1].x, fixes[1].y) == (4.0, 2.5)
+    assert (
+        fixes[1].position_cov[0][0]
+        == fixes[1].position_cov[1][1]
+        == pytest.approx(PIPELINE.resolve_options({})["gps_std"] ** 2)
+    )
+    assert (
+        0.0 < fixes[1].vx < 15.0 and 0.0 < fixes[1].vy < 2.5
+    )  # a filter's velocity: towards the differences
 
 
 def _gps_between_fixes(every: int, seed: int = 3) -> tuple[float, float, float, float]:

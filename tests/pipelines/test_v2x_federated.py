@@ -109,7 +109,11 @@ def test_eq15_refuses_an_indefinite_covariance():
 
 @pytest.mark.parametrize(
     "model",
-    [OdometerDistance(0.1, 0.2), dead_reckoning(0.005, 0.1, 0.2), RangesToPoints(np.array([[30.0, 5.0], [-3.0, 8.0]]), np.ones(2))],
+    [
+        OdometerDistance(0.1, 0.2),
+        dead_reckoning(0.005, 0.1, 0.2),
+        RangesToPoints(np.array([[30.0, 5.0], [-3.0, 8.0]]), np.ones(2)),
+    ],
 )
 def test_dr_and_range_jacobians_against_finite_differences(model):
     rng = np.random.default_rng(3)
@@ -120,7 +124,9 @@ def test_dr_and_range_jacobians_against_finite_differences(model):
         for j in range(layout.FULL_DIM):
             step = np.zeros(layout.FULL_DIM)
             step[j] = 1e-6
-            numeric[:, j] = (model.predict((state + step)[None])[0] - model.predict((state - step)[None])[0]) / 2e-6
+            numeric[:, j] = (
+                model.predict((state + step)[None])[0] - model.predict((state - step)[None])[0]
+            ) / 2e-6
         np.testing.assert_allclose(jac, numeric, atol=1e-6, rtol=1e-6)
 
 
@@ -157,7 +163,9 @@ def test_fix_says_why_measurements_were_not_used():
     batch = [GnssFixObservation(0.2, 1.0, 2.0), OdometerObservation(0.2, distance=2.0)]
     fixes, state = pipeline.process(state, batch, StaticEnvironment())
     assert fixes[0].status == "initialised"
-    own = NeighbourTrack("me", (TrackPoint(0.4, 0.0, 0.0, 0.0, 0.0, tuple(tuple(r) for r in np.eye(4).tolist())),))
+    own = NeighbourTrack(
+        "me", (TrackPoint(0.4, 0.0, 0.0, 0.0, 0.0, tuple(tuple(r) for r in np.eye(4).tolist())),)
+    )
     env = StaticEnvironment(tracks={"me": own}, vehicle_id="me")
     batch = [
         OdometerObservation(0.4, distance=2.0),

@@ -201,7 +201,9 @@ def test_ephemerides_document(store):
         assert await store.get_ephemerides() is None
         assert await store.ephemerides_digest() is None
         assert not await store.delete_ephemerides()
-        text = "     3.04           N: GNSS NAV DATA    M: Mixed            RINEX VERSION / TYPE\n\u00b5 \n" * 3
+        text = (
+            "     3.04           N: GNSS NAV DATA    M: Mixed            RINEX VERSION / TYPE\n\u00b5 \n" * 3
+        )
         first = StoredEphemerides("d1" * 32, text, 1000.5)
         await store.put_ephemerides(first)
         assert await store.get_ephemerides() == first
@@ -243,7 +245,10 @@ def test_base_stations_and_their_windows(store):
         )
         # nothing before 'since': only the epochs inside; an empty window of a registered station
         window = await store.base_window("mare", 1290688802.0, 1290688803.0)
-        assert window is not None and window.epochs == ((1290688802.0, "doc 2.0|same"), (1290688803.0, "replaced"))
+        assert window is not None and window.epochs == (
+            (1290688802.0, "doc 2.0|same"),
+            (1290688803.0, "replaced"),
+        )
         assert (await store.base_window("a-first", 0.0, 2e9)) == BaseWindow(
             StoredBaseStation("a-first", "{}", 1.0), ()
         )
@@ -355,7 +360,9 @@ def test_track_expires_with_the_session_ttl(store, clock):
 
 def test_concurrent_track_writers_never_expose_a_mix(store):
     """Two vehicles publishing while a third reads: every read is one whole published track."""
-    versions = {vehicle: [track(vehicle, count, t0=float(count)) for count in range(1, 12)] for vehicle in ("a", "b")}
+    versions = {
+        vehicle: [track(vehicle, count, t0=float(count)) for count in range(1, 12)] for vehicle in ("a", "b")
+    }
 
     async def writer(vehicle: str) -> None:
         for version in versions[vehicle]:

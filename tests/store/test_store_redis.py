@@ -225,7 +225,9 @@ def test_session_limit_holds_under_concurrent_creates(redis_server: RedisServer,
     assert asyncio.run(scenario()) == (5, 5)
 
 
-def test_a_burst_wider_than_the_pool_waits_for_connections(redis_server: RedisServer, prefix: str, raw: redis.Redis):
+def test_a_burst_wider_than_the_pool_waits_for_connections(
+    redis_server: RedisServer, prefix: str, raw: redis.Redis
+):
     """300 concurrent creates through a pool of 4 connections all succeed (they queue for a
     connection instead of opening 300 sockets), and the store never holds more than 4."""
 
@@ -233,7 +235,9 @@ def test_a_burst_wider_than_the_pool_waits_for_connections(redis_server: RedisSe
         name = f"burst{uuid.uuid4().hex[:8]}"
         instance = RedisStore(redis_server.url(prefix, max_connections="4", client_name=name), 60.0)
         now = time.time()
-        await asyncio.gather(*(instance.create(record(f"b{i}", now=now), max_sessions=1000) for i in range(300)))
+        await asyncio.gather(
+            *(instance.create(record(f"b{i}", now=now), max_sessions=1000) for i in range(300))
+        )
         opened = sum(1 for client in raw.client_list() if client.get("name") == name)
         count = await instance.count()
         await instance.close()

@@ -218,7 +218,10 @@ def create_app(
         max_bytes=settings.max_body_bytes,
         path_limits={
             ephemerides.PATH: (settings.max_ephemerides_bytes, "EDGEPOS_MAX_EPHEMERIDES_BYTES"),
-            f"{base_stations.PATH}/*": (settings.max_base_observations_bytes, "EDGEPOS_MAX_BASE_OBSERVATIONS_BYTES"),
+            f"{base_stations.PATH}/*": (
+                settings.max_base_observations_bytes,
+                "EDGEPOS_MAX_BASE_OBSERVATIONS_BYTES",
+            ),
         },
     )
     if settings.cors_origin_list:

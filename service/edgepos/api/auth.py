@@ -150,7 +150,9 @@ def _retry_after(wait_s: float) -> str:
 
 def _limited(message: str, wait_s: float) -> ApiError:
     retry_after = _retry_after(wait_s)
-    return ApiError("rate_limited", f"{message}; retry after {retry_after} s", headers={"Retry-After": retry_after})
+    return ApiError(
+        "rate_limited", f"{message}; retry after {retry_after} s", headers={"Retry-After": retry_after}
+    )
 
 
 async def _refuse(
@@ -214,12 +216,16 @@ async def _vehicle(context: AppContext, secret: str) -> Principal | None:
             return None
         key_hash = hash_token(secret)
         vehicle_id = await context.store.vehicle_of_key(key_hash)
-        return None if vehicle_id is None else Principal(False, vehicle_id=vehicle_id, vehicle_key_hash=key_hash)
+        return (
+            None if vehicle_id is None else Principal(False, vehicle_id=vehicle_id, vehicle_key_hash=key_hash)
+        )
     if mode == "jwt" and context.vehicle_keys is not None and secret.count(".") == 2:
         try:
             vehicle_id = context.vehicle_keys.verify(secret, context.settings.vehicle_jwt_audience)
         except InvalidVehicleToken as error:
-            logger.debug("vehicle token refused", extra={"event": "vehicle_token_refused", "cause": error.cause})
+            logger.debug(
+                "vehicle token refused", extra={"event": "vehicle_token_refused", "cause": error.cause}
+            )
             return None
         return Principal(False, vehicle_id=vehicle_id)
     return None
@@ -242,7 +248,10 @@ async def require_admin(request: Request, context: Context, credentials: Credent
             request,
             secret,
             "forbidden",
-            ApiError("forbidden", "this call needs the admin key; a session token or vehicle credential does not open it"),
+            ApiError(
+                "forbidden",
+                "this call needs the admin key; a session token or vehicle credential does not open it",
+            ),
         )
     raise await _refuse(context, request, secret, "invalid", _unauthorized())
 
@@ -370,7 +379,9 @@ async def require_session(
     secret = None if credentials is None else credentials.credentials
     principal, record = await authenticate_session(context, request, session_id, secret)
     if record is not None:
-        request.state.session_record = record  # the batch route applies on it (see session_service.apply_batch)
+        request.state.session_record = (
+            record  # the batch route applies on it (see session_service.apply_batch)
+        )
     return principal
 
 

@@ -78,9 +78,7 @@ def fix_to_json(fix: Fix, include_state: bool, origin: GeodeticOrigin | None) ->
         "model_probabilities": fix.model_probabilities,
         "nis": fix.nis,
         "nis_dof": fix.nis_dof,
-        "measurements": [
-            _use_to_json(use) for use in fix.measurements
-        ],
+        "measurements": [_use_to_json(use) for use in fix.measurements],
     }
 
 
@@ -88,9 +86,14 @@ def _use_to_json(use: MeasurementUse) -> dict[str, Any]:
     """One measurement's use (the Doppler fields null unless it is a pseudorange that carried a Doppler; the
     correction fields null unless the session uses a reference station's corrections)."""
     return {
-        "index": use.index, "type": use.kind, "used": use.used, "reason": use.reason,
-        "doppler_used": use.doppler_used, "doppler_reason": use.doppler_reason,
-        "correction_applied": use.correction_applied, "correction_reason": use.correction_reason,
+        "index": use.index,
+        "type": use.kind,
+        "used": use.used,
+        "reason": use.reason,
+        "doppler_used": use.doppler_used,
+        "doppler_reason": use.doppler_reason,
+        "correction_applied": use.correction_applied,
+        "correction_reason": use.correction_reason,
     }
 
 

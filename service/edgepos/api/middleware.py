@@ -253,7 +253,9 @@ class AdmissionMiddleware:
         admission = self.admission
         if not await admission.acquire():
             retry_after = str(admission.retry_after_s).encode()
-            await _send_error(send, scope, 503, "unavailable", admission.busy_message, ((b"retry-after", retry_after),))
+            await _send_error(
+                send, scope, 503, "unavailable", admission.busy_message, ((b"retry-after", retry_after),)
+            )
             return
         try:
             await self.app(scope, receive, send)

@@ -67,7 +67,9 @@ def _exit_when_orphaned(parent: int) -> None:
 def _warm_worker(parent: int) -> None:
     """Heavy-lane worker start-up: watch the parent, and compile (or load from numba's cache) the filter
     kernels now, not in the first heavy batch."""
-    threading.Thread(target=_exit_when_orphaned, args=(parent,), daemon=True, name="edgepos-orphan-watch").start()
+    threading.Thread(
+        target=_exit_when_orphaned, args=(parent,), daemon=True, name="edgepos-orphan-watch"
+    ).start()
     from edgepos.core.compiled import warm_up
 
     warm_up()
@@ -234,5 +236,7 @@ class FairScheduler:
         for (a heavy batch is bounded by the CPU budget), so none outlives the service."""
         for lane in self._lanes.values():
             if lane.executor is not None:
-                lane.executor.shutdown(wait=isinstance(lane.executor, ProcessPoolExecutor), cancel_futures=True)
+                lane.executor.shutdown(
+                    wait=isinstance(lane.executor, ProcessPoolExecutor), cancel_futures=True
+                )
                 lane.executor = None

@@ -324,7 +324,8 @@ class SessionListItem(ResponseModel):
     batches: int = Field(description="Batches applied.")
     epochs: int = Field(description="Epochs filtered (fixes produced).")
     last_fix_t: float | None = Field(
-        None, description="t of the latest fix (the vehicle's measurement clock, s); null before the first fix."
+        None,
+        description="t of the latest fix (the vehicle's measurement clock, s); null before the first fix.",
     )
     status: Literal["new", "initialised", "tracking", "predicted", "uninitialised", "diverged"] = Field(
         description="The latest fix's status, or 'new' before the first batch with a fix."
@@ -335,9 +336,7 @@ class SessionList(ResponseModel):
     """A page of GET /v1/sessions, ordered by session id."""
 
     sessions: list[SessionListItem] = Field(description="Live sessions of this page.")
-    next_after: str | None = Field(
-        description="Pass as ?after= for the next page; null on the last page."
-    )
+    next_after: str | None = Field(description="Pass as ?after= for the next page; null on the last page.")
 
 
 # -- vehicle registry ------------------------------------------------------------------------------
@@ -597,7 +596,9 @@ class TrackOut(ResponseModel):
         "measurement in the window, so the oldest epochs gain the most."
     )
     max_delay_s: float = Field(description="The session's lag window (s).")
-    start_t: float | None = Field(description="The window's oldest epoch (s, vehicle clock), null when empty.")
+    start_t: float | None = Field(
+        description="The window's oldest epoch (s, vehicle clock), null when empty."
+    )
     end_t: float | None = Field(description="The session's newest epoch (s), null before any.")
     fixes: list[FixOut] = Field(
         description="One estimate per epoch of the window, in time order (measurements lists are empty)."
@@ -827,7 +828,9 @@ class RsuRangeMeasurement(RequestModel):
     t: float = Field(ge=-MAX_TIME_S, le=MAX_TIME_S, description=_T_DESCRIPTION)
     rsu_id: str = Field(pattern=RSU_ID_PATTERN, description="Id of a registered RSU.")
     range: float = Field(
-        ge=0, le=MAX_COORDINATE_M, description="Distance from the RSU antenna to the vehicle (m), finite, >= 0."
+        ge=0,
+        le=MAX_COORDINATE_M,
+        description="Distance from the RSU antenna to the vehicle (m), finite, >= 0.",
     )
 
     def to_observation(self) -> Observation:
@@ -916,7 +919,9 @@ class V2vRangeMeasurement(RequestModel):
         return _exactly_one(value, info, "range", "toa")
 
     def to_observation(self) -> Observation:
-        return V2vRangeObservation(t=self.t, peer_vehicle_id=self.peer_vehicle_id, range=self.range, toa=self.toa)
+        return V2vRangeObservation(
+            t=self.t, peer_vehicle_id=self.peer_vehicle_id, range=self.range, toa=self.toa
+        )
 
 
 MeasurementModel = Annotated[
@@ -931,7 +936,14 @@ MeasurementModel = Annotated[
     Field(discriminator="type"),
 ]
 MEASUREMENT_TYPES: tuple[str, ...] = (
-    "rsu", "gyro", "rsu_range", "gnss_fix", "odometer", "v2v_range", "pseudorange", "riss"
+    "rsu",
+    "gyro",
+    "rsu_range",
+    "gnss_fix",
+    "odometer",
+    "v2v_range",
+    "pseudorange",
+    "riss",
 )
 """The discriminator values of :data:`MeasurementModel` (used to tidy validation error paths)."""
 

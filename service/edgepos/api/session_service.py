@@ -80,7 +80,9 @@ def _pipeline(context: AppContext, name: str) -> Pipeline:
     return pipeline
 
 
-def _resolve_and_create(pipeline: Pipeline, body: SessionCreate, budget_s: float) -> tuple[dict[str, Any], bytes]:
+def _resolve_and_create(
+    pipeline: Pipeline, body: SessionCreate, budget_s: float
+) -> tuple[dict[str, Any], bytes]:
     """Effective options and the initial state (runs in the scheduler's lane: it may build filters).
     Options under which one epoch of the most measurements a batch may carry per epoch would cost
     more CPU than ``budget_s`` are refused before anything is built."""
@@ -90,7 +92,9 @@ def _resolve_and_create(pipeline: Pipeline, body: SessionCreate, budget_s: float
         raise PipelineInputError([_problem("options", str(error))]) from None
     epoch_s = cost.epoch_cost_s(pipeline.name, options)
     if epoch_s > budget_s:
-        raise PipelineInputError([_problem("options", _too_heavy_options(pipeline.name, options, epoch_s, budget_s))])
+        raise PipelineInputError(
+            [_problem("options", _too_heavy_options(pipeline.name, options, epoch_s, budget_s))]
+        )
     initial = None
     if body.initial_state is not None:
         initial = InitialState(**body.initial_state.model_dump())
@@ -177,7 +181,9 @@ async def create_session(
             record, context.settings.max_sessions, vehicle_key_hash=vehicle_key_hash
         )
     except VehicleNotRegistered:
-        raise ApiError("unauthorized", "the bearer credential is not valid (unknown, revoked or expired key or token)") from None
+        raise ApiError(
+            "unauthorized", "the bearer credential is not valid (unknown, revoked or expired key or token)"
+        ) from None
     except TooManySessions as error:
         raise ApiError(
             "too_many_sessions",
@@ -357,7 +363,9 @@ async def _apply_in_turn(
     for _attempt in range(MAX_ATTEMPTS):
         async with context.store.session_lock(session_id):
             record, prefetched = prefetched, None
-            if record is None or batch.seq != record.last_seq + 1:  # only the next seq goes on a prefetched read
+            if (
+                record is None or batch.seq != record.last_seq + 1
+            ):  # only the next seq goes on a prefetched read
                 record = await context.store.get(session_id)
             if record is None:
                 raise await _session_gone(context, session_id)
@@ -367,7 +375,9 @@ async def _apply_in_turn(
                 metrics.batches.labels("conflict").inc()
                 raise
             if replay is not None:
-                await context.store.make_durable(session_id)  # the first attempt may have stored it without replicas
+                await context.store.make_durable(
+                    session_id
+                )  # the first attempt may have stored it without replicas
                 metrics.batches.labels("replayed").inc()
                 return replay
             pipeline = _pipeline(context, record.pipeline)
@@ -399,8 +409,13 @@ async def _apply_in_turn(
             differential = None
             if has_pseudoranges and record.options.get("base_station") is not None:
                 differential = await batch_corrections(
-                    context.store, context.base_epochs, record.options, observations,
-                    None if loaded is None else loaded.ephemerides, record.last_fix, _origin(context),
+                    context.store,
+                    context.base_epochs,
+                    record.options,
+                    observations,
+                    None if loaded is None else loaded.ephemerides,
+                    record.last_fix,
+                    _origin(context),
                 )
             environment = StaticEnvironment(
                 rsus,
@@ -413,7 +428,13 @@ async def _apply_in_turn(
             started = time.perf_counter()
             try:
                 fixes, state = await context.scheduler.run(
-                    record.vehicle_id, cost_s, pipeline.name, pipeline.process, record.state, observations, environment
+                    record.vehicle_id,
+                    cost_s,
+                    pipeline.name,
+                    pipeline.process,
+                    record.state,
+                    observations,
+                    environment,
                 )
             except PipelineInputError as error:
                 metrics.batches.labels("rejected").inc()
@@ -506,12 +527,20 @@ def _admit(
         predicted += cost.batch_cost_s(pipeline.name, options, replayed)
     if violations:
         problems = [ProblemModel(index=None, field="measurements", reason=v.reason) for v in violations[:20]]
-        raise ApiError("invalid_request", "the batch has epochs with too many measurements; the session is unchanged", problems)
+        raise ApiError(
+            "invalid_request",
+            "the batch has epochs with too many measurements; the session is unchanged",
+            problems,
+        )
     budget_s = context.settings.batch_cpu_budget_s
     if predicted > budget_s:
         epochs = len({o.t for o in observations} | {o.t for o in replayed or ()})
         fit = int(budget_s / (predicted / epochs)) if epochs else 0
-        again = f", {len({o.t for o in replayed})} of them filtered again for late measurements" if replayed else ""
+        again = (
+            f", {len({o.t for o in replayed})} of them filtered again for late measurements"
+            if replayed
+            else ""
+        )
         advice = (
             f"send at most about {fit} epochs like these per batch"
             if fit >= 1
@@ -531,9 +560,7 @@ def _admit(
     return predicted
 
 
-def _check_satellites(
-    observations: list[Any], loaded: LoadedEphemerides | None, systems_used: Any
-) -> None:
+def _check_satellites(observations: list[Any], loaded: LoadedEphemerides | None, systems_used: Any) -> None:
     """422 naming each pseudorange whose satellite state is unknown (no ephemeris, none sent)."""
     systems = [str(s) for s in systems_used] if isinstance(systems_used, list) else None
     problems = satellite_problems(observations, loaded, systems)
@@ -612,14 +639,24 @@ async def session_track(context: AppContext, session_id: str, smoothed: bool) ->
     if any(isinstance(o, PseudorangeObservation) for o in observations):
         loaded = await context.ephemerides.current(context.store, context.run_filter)
     environment = StaticEnvironment(
-        rsus, peers, record.vehicle_id, navigation=None if loaded is None else loaded.ephemerides,
+        rsus,
+        peers,
+        record.vehicle_id,
+        navigation=None if loaded is None else loaded.ephemerides,
         origin=_origin(context),
     )
     # A smoother filters forwards and then runs backwards: about twice a replay of the window.
     cost_s = (2.0 if smoothed else 1.0) * cost.batch_cost_s(pipeline.name, record.options, observations)
     try:
         fixes = await context.scheduler.run(
-            record.vehicle_id, cost_s, pipeline.name, _track_fixes, pipeline, record.state, environment, smoothed
+            record.vehicle_id,
+            cost_s,
+            pipeline.name,
+            _track_fixes,
+            pipeline,
+            record.state,
+            environment,
+            smoothed,
         )
     except StateFormatError as error:
         raise _unreadable_state(session_id, error) from None
@@ -628,17 +665,21 @@ async def session_track(context: AppContext, session_id: str, smoothed: bool) ->
             "estimation_failed", f"the window's track could not be computed now: {error}"
         ) from None
     origin = context.origin
-    return TrackOut.model_validate({
-        "session_id": session_id,
-        "pipeline": pipeline.name,
-        "smoothed": smoothed,
-        "max_delay_s": window.get("max_delay_s", 0.0),
-        "start_t": start_t,
-        "end_t": end_t,
-        "fixes": [fix_to_json(fix, True, origin) for fix in fixes],
-    })
+    return TrackOut.model_validate(
+        {
+            "session_id": session_id,
+            "pipeline": pipeline.name,
+            "smoothed": smoothed,
+            "max_delay_s": window.get("max_delay_s", 0.0),
+            "start_t": start_t,
+            "end_t": end_t,
+            "fixes": [fix_to_json(fix, True, origin) for fix in fixes],
+        }
+    )
 
 
-def _track_fixes(pipeline: Pipeline, state: bytes, environment: StaticEnvironment, smoothed: bool) -> list[Fix]:
+def _track_fixes(
+    pipeline: Pipeline, state: bytes, environment: StaticEnvironment, smoothed: bool
+) -> list[Fix]:
     """Runs in the scheduler's lane: the window's fixes, each checked finite."""
     return ensure_finite_fixes(pipeline.track(state, environment, smoothed))

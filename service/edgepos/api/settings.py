@@ -105,14 +105,20 @@ class Settings(BaseSettings):
         ),
     )
     max_batch_measurements: int = Field(
-        1000, ge=1, le=100_000, description=(
+        1000,
+        ge=1,
+        le=100_000,
+        description=(
             "Measurements allowed in one batch; more gives 422 invalid_request (field measurements)."
-        )
+        ),
     )
-    max_body_bytes: int = Field(1_048_576, ge=1024, description=(
-            "Largest request body in bytes; larger gives 413 payload_too_large before anything is "
-            "parsed."
-        ))
+    max_body_bytes: int = Field(
+        1_048_576,
+        ge=1024,
+        description=(
+            "Largest request body in bytes; larger gives 413 payload_too_large before anything is parsed."
+        ),
+    )
     max_ephemerides_bytes: int = Field(
         16_777_216,
         ge=1024,
@@ -213,10 +219,13 @@ class Settings(BaseSettings):
         "consumer never holds back the others or the vehicles.",
     )
     stream_max_consumers: int = Field(
-        64, ge=1, le=100_000, description=(
+        64,
+        ge=1,
+        le=100_000,
+        description=(
             "Fix streams one worker serves at once; beyond, 503 with Retry-After. Streams do not take "
             "EDGEPOS_MAX_INFLIGHT slots."
-        )
+        ),
     )
     stream_interval_ms: float = Field(
         50.0,
@@ -250,10 +259,14 @@ class Settings(BaseSettings):
         "vehicle before the server closes it (code 1000); protocol pings alone do not keep it open.",
     )
     origin_lat: float | None = Field(
-        None, ge=-90, le=90, allow_inf_nan=False, description=(
+        None,
+        ge=-90,
+        le=90,
+        allow_inf_nan=False,
+        description=(
             "Site origin latitude, WGS-84 decimal degrees. Set with EDGEPOS_ORIGIN_LON to get "
             "latitude/longitude in fixes (and the map's latitude/longitude grid)."
-        )
+        ),
     )
     origin_lon: float | None = Field(
         None,
@@ -269,10 +282,13 @@ class Settings(BaseSettings):
         "", description="Comma-separated origins allowed by CORS ('*' for any); empty disables CORS."
     )
     log_level: LogLevel = Field("info", description="Log level of the JSON-lines logs.")
-    demo_rsus: bool = Field(False, description=(
+    demo_rsus: bool = Field(
+        False,
+        description=(
             "Preload the RSU map of the RSU + IMU paper's scenario "
             "(edgepos.sim.scenarios.rsu_imu_paper_scenario) at start-up."
-        ))
+        ),
+    )
     auth: Literal["on", "off"] = Field(
         "on",
         description="'off' lets every request in with admin rights and no credentials, for a lab bench "

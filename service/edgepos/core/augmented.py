@@ -51,7 +51,9 @@ def augmented_update(
     try:
         factor = np.linalg.cholesky(innovation_cov)
     except np.linalg.LinAlgError:
-        raise NumericalError("innovation covariance of the augmented update is not positive definite") from None
+        raise NumericalError(
+            "innovation covariance of the augmented update is not positive definite"
+        ) from None
     gain = np.linalg.solve(factor.T, np.linalg.solve(factor, cross.T)).T
     innovation = observed - z_mean
     new_joint_mean = joint_mean + gain @ innovation

@@ -53,7 +53,9 @@ class BankStepper:
     def __init__(self, bank: InteractingMultipleModel) -> None:
         self.bank = bank
 
-    def predict(self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray, dt: float | None) -> Prediction:
+    def predict(
+        self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray, dt: float | None
+    ) -> Prediction:
         """Interaction and every model's prediction over ``dt`` (none when dt is None or 0)."""
         return self.bank.predict(means, covs, probabilities, dt)
 
@@ -162,7 +164,9 @@ class CompiledBankStepper(BankStepper):
         if isinstance(bank.filter, SigmaPointFilter):
             for j, model in enumerate(bank.models):
                 weights[:, j] = bank.filter.point_weights(model.dim)
-        self._spreads, self._sides, self._centre_means, self._centre_covs = (np.ascontiguousarray(w) for w in weights)
+        self._spreads, self._sides, self._centre_means, self._centre_covs = (
+            np.ascontiguousarray(w) for w in weights
+        )
         self._has_centre = bool(getattr(bank.filter, "has_centre_point", False))
 
     @functools.lru_cache(maxsize=64)  # noqa: B019 (steppers live as long as their cached bank)
@@ -173,7 +177,9 @@ class CompiledBankStepper(BankStepper):
         does not cover take the Python reference's rows."""
         count = len(self.bank.models)
         transitions, noises = np.empty((count, 8, 8)), np.empty((count, 8, 8))
-        self._motion_kernels.bank_step_matrices(self._motion_kinds, self._motion_params, dt, transitions, noises)
+        self._motion_kernels.bank_step_matrices(
+            self._motion_kinds, self._motion_params, dt, transitions, noises
+        )
         if self._uncovered:
             models = tuple(self.bank.models[j] for j in self._uncovered)
             reference_transitions, reference_noises = _reference_step_matrices(models, dt)
@@ -182,13 +188,28 @@ class CompiledBankStepper(BankStepper):
                 noises[j] = reference_noises[row]
         return transitions, noises
 
-    def predict(self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray, dt: float | None) -> Prediction:
+    def predict(
+        self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray, dt: float | None
+    ) -> Prediction:
         transitions, noises = self._step_matrices(dt_key(dt) if dt else 0.0)  # the reference's rounding of dt
         status, new_means, new_covs, predicted, mean, cov = self._kernels.predict_step(
-            np.ascontiguousarray(means, dtype=float), np.ascontiguousarray(covs, dtype=float),
-            np.ascontiguousarray(probabilities, dtype=float), self._transition, self._active, self._common,
-            self._phi_slot, float(dt) if dt else 0.0, self._kinds, transitions, noises, self._filter_kind,
-            self._spreads, self._sides, self._centre_means, self._centre_covs, self._has_centre,
+            np.ascontiguousarray(means, dtype=float),
+            np.ascontiguousarray(covs, dtype=float),
+            np.ascontiguousarray(probabilities, dtype=float),
+            self._transition,
+            self._active,
+            self._common,
+            self._phi_slot,
+            float(dt) if dt else 0.0,
+            self._kinds,
+            transitions,
+            noises,
+            self._filter_kind,
+            self._spreads,
+            self._sides,
+            self._centre_means,
+            self._centre_covs,
+            self._has_centre,
         )
         if status != self._kernels.OK:
             return super().predict(means, covs, probabilities, dt)  # repairs, or raises NumericalError
@@ -198,15 +219,29 @@ class CompiledBankStepper(BankStepper):
         if epoch.rsu_count == 0 and epoch.yaw_rates.size == 0:
             return self.bank.coast(prediction)
         status, means, covs, probabilities, log_likelihoods, nis, mean, cov = self._kernels.correct_step(
-            np.ascontiguousarray(prediction.means), np.ascontiguousarray(prediction.covs),
-            np.ascontiguousarray(prediction.predicted_probabilities), self._active, self._common,
-            self._phi_slot, self._priority, self._others, *_epoch_arrays(epoch), epoch.gyro_min_speed**2,
-            bool(epoch.averaged), self._filter_kind, self._spreads, self._sides, self._centre_means,
-            self._centre_covs, self._has_centre,
+            np.ascontiguousarray(prediction.means),
+            np.ascontiguousarray(prediction.covs),
+            np.ascontiguousarray(prediction.predicted_probabilities),
+            self._active,
+            self._common,
+            self._phi_slot,
+            self._priority,
+            self._others,
+            *_epoch_arrays(epoch),
+            epoch.gyro_min_speed**2,
+            bool(epoch.averaged),
+            self._filter_kind,
+            self._spreads,
+            self._sides,
+            self._centre_means,
+            self._centre_covs,
+            self._has_centre,
         )
         if status != self._kernels.OK:
             return super().correct(prediction, epoch)  # repairs, or raises NumericalError
-        return StepResult(means, covs, probabilities, Gaussian(self.bank.common, mean, cov), log_likelihoods, nis)
+        return StepResult(
+            means, covs, probabilities, Gaussian(self.bank.common, mean, cov), log_likelihoods, nis
+        )
 
     def gate_distances(self, prior: Gaussian, epoch: RsuGyroEpoch) -> tuple[np.ndarray, np.ndarray]:
         mean = np.zeros(layout.FULL_DIM)
@@ -214,8 +249,13 @@ class CompiledBankStepper(BankStepper):
         rsu = np.empty(epoch.rsu_count)
         gyro = np.empty(epoch.yaw_rates.size)
         self._kernels.gate_distances(
-            mean, np.ascontiguousarray(prior.cov), self._common, *_epoch_arrays(epoch),
-            epoch.gyro_min_speed**2, rsu, gyro,
+            mean,
+            np.ascontiguousarray(prior.cov),
+            self._common,
+            *_epoch_arrays(epoch),
+            epoch.gyro_min_speed**2,
+            rsu,
+            gyro,
         )
         return rsu, gyro
 
@@ -269,8 +309,11 @@ def warm_up() -> float:
     models = [make_motion_model(name) for name in ("ca", "at", "singer")]
     transition = np.full((3, 3), 0.01) + np.eye(3) * 0.97
     epoch = RsuGyroEpoch(
-        positions=np.array([[0.0, -3.875], [50.0, 3.875]]), observed=np.array([[4.0, 1.4], [50.0, -3.0]]),
-        range_std=np.array([0.6, 0.6]), bearing_std=np.array([0.01, 0.01]), yaw_rates=np.array([0.0]),
+        positions=np.array([[0.0, -3.875], [50.0, 3.875]]),
+        observed=np.array([[4.0, 1.4], [50.0, -3.0]]),
+        range_std=np.array([0.6, 0.6]),
+        bearing_std=np.array([0.01, 0.01]),
+        yaw_rates=np.array([0.0]),
         gyro_std=0.005,
     )
     mean = np.array([0.5, 10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])

@@ -50,7 +50,9 @@ class FuzzyNoise:
     normal: float = 2.0
     bad: float = 4.0
 
-    def memberships(self, elevation: np.ndarray, cn0: np.ndarray) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    def memberships(
+        self, elevation: np.ndarray, cn0: np.ndarray
+    ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         """Degrees of membership of each input in its sets."""
         el = np.asarray(elevation, float)
         c = np.asarray(cn0, float)

@@ -102,7 +102,9 @@ class Correction(ABC):
     """How a bank's priors become posteriors for one epoch (see ``core.updates``)."""
 
     @abstractmethod
-    def apply(self, filt: GaussianFilter, means: np.ndarray, covs: np.ndarray, active: np.ndarray) -> UpdateResult:
+    def apply(
+        self, filt: GaussianFilter, means: np.ndarray, covs: np.ndarray, active: np.ndarray
+    ) -> UpdateResult:
         """Posteriors of the padded priors given this epoch's measurements."""
 
 
@@ -161,7 +163,9 @@ class InteractingMultipleModel:
         return means, covs
 
     # -- mixtures over the common components --------------------------------------------------
-    def _moments(self, weights: np.ndarray, means: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _moments(
+        self, weights: np.ndarray, means: np.ndarray, covs: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Moment-matched mean and covariance of a Gaussian mixture (common components only)."""
         if self._common_has_angle:
             mean = weighted_mean(means, weights, self.common_mask)
@@ -175,7 +179,9 @@ class InteractingMultipleModel:
 
     def combine(self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray) -> Gaussian:
         """The fused estimate of the bank over the common components."""
-        return Gaussian(self.common, *self._moments(probabilities, means[:, self._common], covs[self._common_block]))
+        return Gaussian(
+            self.common, *self._moments(probabilities, means[:, self._common], covs[self._common_block])
+        )
 
     def mix(
         self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray
@@ -192,7 +198,9 @@ class InteractingMultipleModel:
         common_covs = covs[self._common_block]
         count, size = common_means.shape
         if self._common_has_angle:
-            mixed = np.stack([weighted_mean(common_means, weights[:, j], self.common_mask) for j in range(count)])
+            mixed = np.stack(
+                [weighted_mean(common_means, weights[:, j], self.common_mask) for j in range(count)]
+            )
             spread = wrap_rows(common_means[None, :, :] - mixed[:, None, :], self.common_mask)  # (j, i, c)
         else:
             mixed = weights.T @ common_means
@@ -233,19 +241,27 @@ class InteractingMultipleModel:
         new_cov[blocks.ee] = old_cov[blocks.ee] - regression @ own_ec.T + cross @ regression.T
 
     # -- one epoch ---------------------------------------------------------------------------
-    def predict(self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray, dt: float | None) -> Prediction:
+    def predict(
+        self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray, dt: float | None
+    ) -> Prediction:
         """Interaction, then each model's prediction over ``dt`` (none when dt is None or 0)."""
         mixed_means, mixed_covs, predicted = self.mix(means, covs, probabilities)
         if dt:
             mixed_means, mixed_covs = self.filter.predict_bank(mixed_means, mixed_covs, self.models, dt)
-        return Prediction(mixed_means, mixed_covs, predicted, self.combine(mixed_means, mixed_covs, predicted))
+        return Prediction(
+            mixed_means, mixed_covs, predicted, self.combine(mixed_means, mixed_covs, predicted)
+        )
 
     def coast(self, prediction: Prediction) -> StepResult:
         """An epoch without usable measurements: priors stand, probabilities are c_j."""
         count = len(self.models)
         return StepResult(
-            prediction.means, prediction.covs, prediction.predicted_probabilities, prediction.output,
-            np.zeros(count), np.full(count, np.nan),
+            prediction.means,
+            prediction.covs,
+            prediction.predicted_probabilities,
+            prediction.output,
+            np.zeros(count),
+            np.full(count, np.nan),
         )
 
     def correct(self, prediction: Prediction, correction: Correction) -> StepResult:

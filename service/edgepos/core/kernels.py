@@ -127,8 +127,15 @@ def _sinc(x: float) -> float:
 
 # -- mixtures over the common components ---------------------------------------------------------
 @_jit
-def moment_match(weights: FloatArray, means: FloatArray, covs: FloatArray, common: IntArray, phi_slot: int, out_mean: FloatArray,
-                 out_cov: FloatArray) -> None:
+def moment_match(
+    weights: FloatArray,
+    means: FloatArray,
+    covs: FloatArray,
+    common: IntArray,
+    phi_slot: int,
+    out_mean: FloatArray,
+    out_cov: FloatArray,
+) -> None:
     """Moment-matched Gaussian of a mixture over ``common`` (the heading at ``phi_slot``, -1 if none)."""
     count = means.shape[0]
     size = common.shape[0]
@@ -160,8 +167,15 @@ def moment_match(weights: FloatArray, means: FloatArray, covs: FloatArray, commo
 
 
 @_jit
-def _carry_extras(old_mean: FloatArray, old_cov: FloatArray, new_mean: FloatArray, new_cov: FloatArray, common: IntArray, extra: IntArray,
-                  phi_slot: int) -> bool:
+def _carry_extras(
+    old_mean: FloatArray,
+    old_cov: FloatArray,
+    new_mean: FloatArray,
+    new_cov: FloatArray,
+    common: IntArray,
+    extra: IntArray,
+    phi_slot: int,
+) -> bool:
     """A model's extra components follow their conditional given its re-mixed common block:
     B = P_ec P_cc^-1, x_e' = x_e + B (x_c' - x_c), P_ec' = B P_cc', P_ee' = P_ee - B P_ce + B P_cc' B^T."""
     nc, ne = common.shape[0], extra.shape[0]
@@ -219,8 +233,18 @@ def _carry_extras(old_mean: FloatArray, old_cov: FloatArray, new_mean: FloatArra
 
 
 @_jit
-def mix(means: FloatArray, covs: FloatArray, probabilities: FloatArray, transition: FloatArray, active: BoolArray, common: IntArray,
-        phi_slot: int, out_means: FloatArray, out_covs: FloatArray, out_predicted: FloatArray) -> int:
+def mix(
+    means: FloatArray,
+    covs: FloatArray,
+    probabilities: FloatArray,
+    transition: FloatArray,
+    active: BoolArray,
+    common: IntArray,
+    phi_slot: int,
+    out_means: FloatArray,
+    out_covs: FloatArray,
+    out_predicted: FloatArray,
+) -> int:
     """Interaction (eqs. 11-14): each model's mixed prior into out_means/out_covs, c_j into out_predicted."""
     count = means.shape[0]
     nc = common.shape[0]
@@ -267,7 +291,9 @@ def mix(means: FloatArray, covs: FloatArray, probabilities: FloatArray, transiti
                 if not is_common:
                     extra[ne] = k
                     ne += 1
-        if ne > 0 and not _carry_extras(means[j], covs[j], out_means[j], out_covs[j], common, extra[:ne], phi_slot):
+        if ne > 0 and not _carry_extras(
+            means[j], covs[j], out_means[j], out_covs[j], common, extra[:ne], phi_slot
+        ):
             return FAILED
     total = 0.0
     for j in range(count):
@@ -280,8 +306,14 @@ def mix(means: FloatArray, covs: FloatArray, probabilities: FloatArray, transiti
 
 # -- prediction ----------------------------------------------------------------------------------
 @_jit
-def _linear_predict(transition: FloatArray, noise: FloatArray, mean: FloatArray, cov: FloatArray, out_mean: FloatArray,
-                    out_cov: FloatArray) -> None:
+def _linear_predict(
+    transition: FloatArray,
+    noise: FloatArray,
+    mean: FloatArray,
+    cov: FloatArray,
+    out_mean: FloatArray,
+    out_cov: FloatArray,
+) -> None:
     """F m and F P F^T + Q on the padded 8x8 (zero rows stay zero)."""
     temp = np.empty((8, 8))
     for i in range(8):
@@ -306,7 +338,12 @@ def _linear_predict(transition: FloatArray, noise: FloatArray, mean: FloatArray,
 def _turn_coefficients(omega: float, dt: float) -> tuple[float, float, float, float]:
     angle = omega * dt
     half_sinc = _sinc(angle / (2.0 * math.pi))
-    return math.sin(angle), math.cos(angle), dt * _sinc(angle / math.pi), 0.5 * angle * dt * half_sinc * half_sinc
+    return (
+        math.sin(angle),
+        math.cos(angle),
+        dt * _sinc(angle / math.pi),
+        0.5 * angle * dt * half_sinc * half_sinc,
+    )
 
 
 @_jit
@@ -364,9 +401,20 @@ def _turn_jacobian(state: FloatArray, f_omega: FloatArray, dt: float, out: Float
 
 
 @_jit
-def _turn_predict_sigma(mean: FloatArray, cov: FloatArray, f_omega: FloatArray, noise: FloatArray, dt: float, spread: float, side: float,
-                        centre_mean: float, centre_cov: float, has_centre: bool, out_mean: FloatArray,
-                        out_cov: FloatArray) -> bool:
+def _turn_predict_sigma(
+    mean: FloatArray,
+    cov: FloatArray,
+    f_omega: FloatArray,
+    noise: FloatArray,
+    dt: float,
+    spread: float,
+    side: float,
+    centre_mean: float,
+    centre_cov: float,
+    has_centre: bool,
+    out_mean: FloatArray,
+    out_cov: FloatArray,
+) -> bool:
     """Sigma-point prediction of the adaptive-turn model over all 8 components."""
     factor = np.zeros((8, 8))
     if not cholesky(cov, 8, factor):
@@ -411,9 +459,22 @@ def _turn_predict_sigma(mean: FloatArray, cov: FloatArray, f_omega: FloatArray, 
 
 
 @_jit
-def predict_bank(means: FloatArray, covs: FloatArray, kinds: IntArray, transitions: FloatArray, noises: FloatArray, dt: float,
-                 filter_kind: int, spreads: FloatArray, sides: FloatArray, centre_means: FloatArray, centre_covs: FloatArray,
-                 has_centre: bool, out_means: FloatArray, out_covs: FloatArray) -> int:
+def predict_bank(
+    means: FloatArray,
+    covs: FloatArray,
+    kinds: IntArray,
+    transitions: FloatArray,
+    noises: FloatArray,
+    dt: float,
+    filter_kind: int,
+    spreads: FloatArray,
+    sides: FloatArray,
+    centre_means: FloatArray,
+    centre_covs: FloatArray,
+    has_centre: bool,
+    out_means: FloatArray,
+    out_covs: FloatArray,
+) -> int:
     """Every model's prediction over dt (``GaussianFilter.predict_bank``)."""
     count = means.shape[0]
     jacobian = np.empty((8, 8))
@@ -424,8 +485,20 @@ def predict_bank(means: FloatArray, covs: FloatArray, kinds: IntArray, transitio
             _symmetrize(out_covs[b], 8)
         elif filter_kind == SIGMA:
             f_omega = transitions[b, 6:, 6:]
-            if not _turn_predict_sigma(means[b], covs[b], f_omega, noises[b], dt, spreads[b], sides[b],
-                                       centre_means[b], centre_covs[b], has_centre, out_means[b], out_covs[b]):
+            if not _turn_predict_sigma(
+                means[b],
+                covs[b],
+                f_omega,
+                noises[b],
+                dt,
+                spreads[b],
+                sides[b],
+                centre_means[b],
+                centre_covs[b],
+                has_centre,
+                out_means[b],
+                out_covs[b],
+            ):
                 return FAILED
         else:
             f_omega = transitions[b, 6:, 6:]
@@ -441,7 +514,9 @@ def predict_bank(means: FloatArray, covs: FloatArray, kinds: IntArray, transitio
 
 # -- measurements and the correction -------------------------------------------------------------
 @_jit
-def _measure(state: FloatArray, positions: FloatArray, rsus: IntArray, gyros: int, min_speed_sq: float, out: FloatArray) -> None:
+def _measure(
+    state: FloatArray, positions: FloatArray, rsus: IntArray, gyros: int, min_speed_sq: float, out: FloatArray
+) -> None:
     """h(x): the ranges and bearings of ``rsus`` (indices into positions), then the yaw rate per gyro."""
     for r in range(rsus.shape[0]):
         dx = state[_XP] - positions[rsus[r], 0]
@@ -456,8 +531,9 @@ def _measure(state: FloatArray, positions: FloatArray, rsus: IntArray, gyros: in
 
 
 @_jit
-def _measure_jacobian(state: FloatArray, positions: FloatArray, rsus: IntArray, gyros: int, min_speed_sq: float,
-                      out: FloatArray) -> None:
+def _measure_jacobian(
+    state: FloatArray, positions: FloatArray, rsus: IntArray, gyros: int, min_speed_sq: float, out: FloatArray
+) -> None:
     """dh/dx at ``state`` (``RsuRangeBearing.jacobian`` and ``GyroYawRate.jacobian``)."""
     out[:, :] = 0.0
     for r in range(rsus.shape[0]):
@@ -483,9 +559,25 @@ def _measure_jacobian(state: FloatArray, positions: FloatArray, rsus: IntArray, 
 
 
 @_jit
-def _moments(mean: FloatArray, cov: FloatArray, active_row: BoolArray, positions: FloatArray, rsus: IntArray, gyros: int, min_speed_sq: float,
-             variances: FloatArray, filter_kind: int, spread: float, side: float, centre_mean: float, centre_cov: float,
-             has_centre: bool, predicted: FloatArray, innovation_cov: FloatArray, cross_cov: FloatArray) -> bool:
+def _moments(
+    mean: FloatArray,
+    cov: FloatArray,
+    active_row: BoolArray,
+    positions: FloatArray,
+    rsus: IntArray,
+    gyros: int,
+    min_speed_sq: float,
+    variances: FloatArray,
+    filter_kind: int,
+    spread: float,
+    side: float,
+    centre_mean: float,
+    centre_cov: float,
+    has_centre: bool,
+    predicted: FloatArray,
+    innovation_cov: FloatArray,
+    cross_cov: FloatArray,
+) -> bool:
     """Predicted measurement, S (with R, symmetrised) and C for one model (``measurement_moments``)."""
     size = predicted.shape[0]
     angle_rows = 2 * rsus.shape[0]
@@ -575,18 +667,51 @@ def _moments(mean: FloatArray, cov: FloatArray, active_row: BoolArray, positions
 
 
 @_jit
-def _correct_one(mean: FloatArray, cov: FloatArray, active_row: BoolArray, positions: FloatArray, rsus: IntArray, observed: FloatArray, gyros: int,
-                 min_speed_sq: float, variances: FloatArray, filter_kind: int, spread: float, side: float,
-                 centre_mean: float, centre_cov: float, has_centre: bool, out_mean: FloatArray, out_cov: FloatArray,
-                 stats: FloatArray) -> bool:
+def _correct_one(
+    mean: FloatArray,
+    cov: FloatArray,
+    active_row: BoolArray,
+    positions: FloatArray,
+    rsus: IntArray,
+    observed: FloatArray,
+    gyros: int,
+    min_speed_sq: float,
+    variances: FloatArray,
+    filter_kind: int,
+    spread: float,
+    side: float,
+    centre_mean: float,
+    centre_cov: float,
+    has_centre: bool,
+    out_mean: FloatArray,
+    out_cov: FloatArray,
+    stats: FloatArray,
+) -> bool:
     """One model's Kalman correction through the Cholesky factor of S (``kalman_correct``);
     stats receives (NIS, log-likelihood)."""
     size = observed.shape[0]
     predicted = np.empty(size)
     innovation_cov = np.empty((size, size))
     cross_cov = np.empty((8, size))
-    if not _moments(mean, cov, active_row, positions, rsus, gyros, min_speed_sq, variances, filter_kind, spread,
-                    side, centre_mean, centre_cov, has_centre, predicted, innovation_cov, cross_cov):
+    if not _moments(
+        mean,
+        cov,
+        active_row,
+        positions,
+        rsus,
+        gyros,
+        min_speed_sq,
+        variances,
+        filter_kind,
+        spread,
+        side,
+        centre_mean,
+        centre_cov,
+        has_centre,
+        predicted,
+        innovation_cov,
+        cross_cov,
+    ):
         return False
     factor = np.zeros((size, size))
     if not cholesky(innovation_cov, size, factor):
@@ -630,11 +755,29 @@ def _correct_one(mean: FloatArray, cov: FloatArray, active_row: BoolArray, posit
 
 
 @_jit
-def correct_bank(means: FloatArray, covs: FloatArray, active: BoolArray, positions: FloatArray, observed_rsus: FloatArray, yaw_rates: FloatArray,
-                 range_variances: FloatArray, bearing_variances: FloatArray, gyro_variance: float, min_speed_sq: float,
-                 averaged: bool, filter_kind: int, spreads: FloatArray, sides: FloatArray, centre_means: FloatArray,
-                 centre_covs: FloatArray, has_centre: bool, out_means: FloatArray, out_covs: FloatArray, out_nis: FloatArray,
-                 out_log_likelihood: FloatArray) -> int:
+def correct_bank(
+    means: FloatArray,
+    covs: FloatArray,
+    active: BoolArray,
+    positions: FloatArray,
+    observed_rsus: FloatArray,
+    yaw_rates: FloatArray,
+    range_variances: FloatArray,
+    bearing_variances: FloatArray,
+    gyro_variance: float,
+    min_speed_sq: float,
+    averaged: bool,
+    filter_kind: int,
+    spreads: FloatArray,
+    sides: FloatArray,
+    centre_means: FloatArray,
+    centre_covs: FloatArray,
+    has_centre: bool,
+    out_means: FloatArray,
+    out_covs: FloatArray,
+    out_nis: FloatArray,
+    out_log_likelihood: FloatArray,
+) -> int:
     """Every model's update with K RSUs (positions (K, 2), observed (K, 2) range and bearing) and G gyro
     readings: one joint update, or with ``averaged`` one per RSU (each with the gyros), averaged
     (``core.updates``)."""
@@ -670,9 +813,26 @@ def correct_bank(means: FloatArray, covs: FloatArray, active: BoolArray, positio
             observed[2 * per_part + g] = yaw_rates[g]
             variances[2 * per_part + g] = gyro_variance
         for b in range(count):
-            if not _correct_one(means[b], covs[b], active[b], positions, rsus, observed, gyros, min_speed_sq,
-                                variances, filter_kind, spreads[b], sides[b], centre_means[b], centre_covs[b],
-                                has_centre, part_mean, part_cov, stats):
+            if not _correct_one(
+                means[b],
+                covs[b],
+                active[b],
+                positions,
+                rsus,
+                observed,
+                gyros,
+                min_speed_sq,
+                variances,
+                filter_kind,
+                spreads[b],
+                sides[b],
+                centre_means[b],
+                centre_covs[b],
+                has_centre,
+                part_mean,
+                part_cov,
+                stats,
+            ):
                 return FAILED
             if parts == 1:
                 out_means[b, :] = part_mean
@@ -716,8 +876,9 @@ def _softmax_into(log_weights: FloatArray, out: FloatArray) -> None:
 
 
 @_jit
-def model_probabilities(log_likelihoods: FloatArray, predicted: FloatArray, priority: IntArray, others: IntArray,
-                        out: FloatArray) -> None:
+def model_probabilities(
+    log_likelihoods: FloatArray, predicted: FloatArray, priority: IntArray, others: IntArray, out: FloatArray
+) -> None:
     """IMM (softmax of log c_j + log L_j) or, with ``others``, the 2IMM eqs. 30 and 33-38."""
     count = log_likelihoods.shape[0]
     log_predicted = np.empty(count)
@@ -750,9 +911,20 @@ def model_probabilities(log_likelihoods: FloatArray, predicted: FloatArray, prio
 
 # -- the gate ------------------------------------------------------------------------------------
 @_jit
-def gate_distances(mean: FloatArray, cov: FloatArray, common: IntArray, positions: FloatArray, observed_rsus: FloatArray, yaw_rates: FloatArray,
-                   range_variances: FloatArray, bearing_variances: FloatArray, gyro_variance: float, min_speed_sq: float,
-                   rsu_out: FloatArray, gyro_out: FloatArray) -> None:
+def gate_distances(
+    mean: FloatArray,
+    cov: FloatArray,
+    common: IntArray,
+    positions: FloatArray,
+    observed_rsus: FloatArray,
+    yaw_rates: FloatArray,
+    range_variances: FloatArray,
+    bearing_variances: FloatArray,
+    gyro_variance: float,
+    min_speed_sq: float,
+    rsu_out: FloatArray,
+    gyro_out: FloatArray,
+) -> None:
     """Squared Mahalanobis distance of each RSU pair (2 dof) and gyro reading (1 dof) against a
     Gaussian over ``common`` (``mean`` is the full 8-vector, zero elsewhere), linearised at its mean."""
     rsu_count = positions.shape[0]
@@ -796,10 +968,25 @@ def gate_distances(mean: FloatArray, cov: FloatArray, common: IntArray, position
 
 # -- the two entry points of an epoch ------------------------------------------------------------
 @_jit
-def predict_step(means: FloatArray, covs: FloatArray, probabilities: FloatArray, transition: FloatArray, active: BoolArray, common: IntArray,
-                 phi_slot: int, dt: float, kinds: IntArray, transitions: FloatArray, noises: FloatArray, filter_kind: int,
-                 spreads: FloatArray, sides: FloatArray, centre_means: FloatArray, centre_covs: FloatArray,
-                 has_centre: bool) -> tuple[int, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+def predict_step(
+    means: FloatArray,
+    covs: FloatArray,
+    probabilities: FloatArray,
+    transition: FloatArray,
+    active: BoolArray,
+    common: IntArray,
+    phi_slot: int,
+    dt: float,
+    kinds: IntArray,
+    transitions: FloatArray,
+    noises: FloatArray,
+    filter_kind: int,
+    spreads: FloatArray,
+    sides: FloatArray,
+    centre_means: FloatArray,
+    centre_covs: FloatArray,
+    has_centre: bool,
+) -> tuple[int, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """Interaction, every model's prediction over dt (none when dt is 0) and the fused prior.
 
     Returns (status, means, covs, predicted probabilities c_j, fused mean, fused cov over common)."""
@@ -812,11 +999,27 @@ def predict_step(means: FloatArray, covs: FloatArray, probabilities: FloatArray,
     out_covs = np.empty((count, 8, 8))
     fused_mean = np.empty(nc)
     fused_cov = np.empty((nc, nc))
-    status = mix(means, covs, probabilities, transition, active, common, phi_slot, mixed_means, mixed_covs, predicted)
+    status = mix(
+        means, covs, probabilities, transition, active, common, phi_slot, mixed_means, mixed_covs, predicted
+    )
     if status == OK:
         if dt != 0.0:
-            status = predict_bank(mixed_means, mixed_covs, kinds, transitions, noises, dt, filter_kind, spreads,
-                                  sides, centre_means, centre_covs, has_centre, out_means, out_covs)
+            status = predict_bank(
+                mixed_means,
+                mixed_covs,
+                kinds,
+                transitions,
+                noises,
+                dt,
+                filter_kind,
+                spreads,
+                sides,
+                centre_means,
+                centre_covs,
+                has_centre,
+                out_means,
+                out_covs,
+            )
         else:
             out_means[:, :] = mixed_means
             out_covs[:, :, :] = mixed_covs
@@ -826,11 +1029,30 @@ def predict_step(means: FloatArray, covs: FloatArray, probabilities: FloatArray,
 
 
 @_jit
-def correct_step(means: FloatArray, covs: FloatArray, predicted: FloatArray, active: BoolArray, common: IntArray, phi_slot: int,
-                 priority: IntArray, others: IntArray, positions: FloatArray, observed_rsus: FloatArray, yaw_rates: FloatArray,
-                 range_variances: FloatArray, bearing_variances: FloatArray, gyro_variance: float, min_speed_sq: float,
-                 averaged: bool, filter_kind: int, spreads: FloatArray, sides: FloatArray, centre_means: FloatArray,
-                 centre_covs: FloatArray, has_centre: bool) -> tuple[int, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+def correct_step(
+    means: FloatArray,
+    covs: FloatArray,
+    predicted: FloatArray,
+    active: BoolArray,
+    common: IntArray,
+    phi_slot: int,
+    priority: IntArray,
+    others: IntArray,
+    positions: FloatArray,
+    observed_rsus: FloatArray,
+    yaw_rates: FloatArray,
+    range_variances: FloatArray,
+    bearing_variances: FloatArray,
+    gyro_variance: float,
+    min_speed_sq: float,
+    averaged: bool,
+    filter_kind: int,
+    spreads: FloatArray,
+    sides: FloatArray,
+    centre_means: FloatArray,
+    centre_covs: FloatArray,
+    has_centre: bool,
+) -> tuple[int, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """Every model's update, the model probabilities (IMM or 2IMM) and the fused posterior.
 
     Returns (status, means, covs, probabilities, log-likelihoods, NIS, fused mean, fused cov)."""
@@ -843,9 +1065,29 @@ def correct_step(means: FloatArray, covs: FloatArray, predicted: FloatArray, act
     probabilities = np.empty(count)
     fused_mean = np.empty(nc)
     fused_cov = np.empty((nc, nc))
-    status = correct_bank(means, covs, active, positions, observed_rsus, yaw_rates, range_variances,
-                          bearing_variances, gyro_variance, min_speed_sq, averaged, filter_kind, spreads, sides,
-                          centre_means, centre_covs, has_centre, out_means, out_covs, nis, log_likelihoods)
+    status = correct_bank(
+        means,
+        covs,
+        active,
+        positions,
+        observed_rsus,
+        yaw_rates,
+        range_variances,
+        bearing_variances,
+        gyro_variance,
+        min_speed_sq,
+        averaged,
+        filter_kind,
+        spreads,
+        sides,
+        centre_means,
+        centre_covs,
+        has_centre,
+        out_means,
+        out_covs,
+        nis,
+        log_likelihoods,
+    )
     if status == OK:
         model_probabilities(log_likelihoods, predicted, priority, others, probabilities)
         moment_match(probabilities, out_means, out_covs, common, phi_slot, fused_mean, fused_cov)

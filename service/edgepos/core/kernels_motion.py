@@ -241,7 +241,9 @@ def _place_axes(axis: FloatArray, order: int, out: FloatArray) -> None:
 
 
 @_jit
-def bank_step_matrices(kinds: IntArray, params: FloatArray, dt: float, out_transitions: FloatArray, out_noises: FloatArray) -> None:
+def bank_step_matrices(
+    kinds: IntArray, params: FloatArray, dt: float, out_transitions: FloatArray, out_noises: FloatArray
+) -> None:
     """Padded F and Q into ``out_transitions`` and ``out_noises`` (M, 8, 8) of the M models described by
     ``kinds`` (M,) and ``params`` (M, PARAMETER_COUNT) over the interval ``dt`` (see the module
     docstring). The caller allocates them: numba unpickles the dtype of every array it returns."""

@@ -97,7 +97,12 @@ class _KindCodec:
         self.decode = self._decoder(fields, numbers, texts, bit, bool(optional))
 
     def _encoder(
-        self, fields: list[_Field], numbers: list[_Field], texts: list[_Field], bit: dict[str, int], has_mask: bool
+        self,
+        fields: list[_Field],
+        numbers: list[_Field],
+        texts: list[_Field],
+        bit: dict[str, int],
+        has_mask: bool,
     ) -> Callable[[Any], bytes]:
         lines = ["def encode(o):"]
         lines += [f"    v_{f.name} = o.{f.name}" for f in fields]
@@ -138,7 +143,12 @@ class _KindCodec:
         return encode
 
     def _decoder(
-        self, fields: list[_Field], numbers: list[_Field], texts: list[_Field], bit: dict[str, int], has_mask: bool
+        self,
+        fields: list[_Field],
+        numbers: list[_Field],
+        texts: list[_Field],
+        bit: dict[str, int],
+        has_mask: bool,
     ) -> Callable[[bytes, int], tuple[Any, int]]:
         names = (["mask"] if has_mask else []) + [
             f"n_{f.name}_{i}" for f in numbers for i in range(int(f.form[1:]) if f.form[0] == "t" else 1)
@@ -179,7 +189,9 @@ class _KindCodec:
             "cls": self.cls,
         }
         exec("\n".join(lines), namespace)  # noqa: S102  # generated from the dataclass's own fields, as dataclasses does
-        decode: Callable[[bytes, int], tuple[Any, int]] = namespace["decode"]  # the function exec just defined
+        decode: Callable[[bytes, int], tuple[Any, int]] = namespace[
+            "decode"
+        ]  # the function exec just defined
         return decode
 
 
@@ -213,7 +225,8 @@ class _PseudorangeCodec:
 
 _PSEUDORANGE = _PseudorangeCodec()
 _BY_CLASS: dict[type, Any] = {
-    cls: _PSEUDORANGE if cls is PseudorangeObservation else _KindCodec(cls) for cls in typing.get_args(Observation)
+    cls: _PSEUDORANGE if cls is PseudorangeObservation else _KindCodec(cls)
+    for cls in typing.get_args(Observation)
 }
 _BY_NAME: dict[bytes, _KindCodec] = {
     **{codec.name: codec for codec in _BY_CLASS.values() if codec is not _PSEUDORANGE},

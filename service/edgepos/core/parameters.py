@@ -54,7 +54,9 @@ def check_parameters(owner: str, specs: Sequence[ParameterSpec], params: Mapping
         spec = by_name.get(name)
         if spec is None:
             known = ", ".join(sorted(by_name)) or "none"
-            raise ConfigurationError(f"{owner} has no parameter {name!r}; known: {known}", parameter=str(name))
+            raise ConfigurationError(
+                f"{owner} has no parameter {name!r}; known: {known}", parameter=str(name)
+            )
         checked[name] = _check(owner, spec, value)
     return checked
 
@@ -62,7 +64,9 @@ def check_parameters(owner: str, specs: Sequence[ParameterSpec], params: Mapping
 def _check(owner: str, spec: ParameterSpec, value: Any) -> Any:
     if spec.choices is not None:
         if value not in spec.choices:
-            raise ConfigurationError(f"{owner} {spec.name} must be one of {list(spec.choices)}", parameter=spec.name)
+            raise ConfigurationError(
+                f"{owner} {spec.name} must be one of {list(spec.choices)}", parameter=spec.name
+            )
         return value
     if value is None and spec.nullable:
         return None

@@ -66,7 +66,9 @@ def unpack(blob: bytes) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     counts = [math.prod(shape) for _, shape in shapes]
     total = sum(counts)
     if offset + 8 * total != len(blob):
-        raise StateFormatError("state is truncated" if offset + 8 * total > len(blob) else "state has trailing bytes")
+        raise StateFormatError(
+            "state is truncated" if offset + 8 * total > len(blob) else "state has trailing bytes"
+        )
     values = np.frombuffer(blob, dtype="<f8", count=total, offset=offset).astype(float)  # one writable copy
     arrays: dict[str, np.ndarray] = {}
     position = 0

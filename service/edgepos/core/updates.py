@@ -32,7 +32,9 @@ class JointCorrection(Correction):
         self.measurement = measurement
         self.observed = np.asarray(observed, dtype=float)
 
-    def apply(self, filt: GaussianFilter, means: np.ndarray, covs: np.ndarray, active: np.ndarray) -> UpdateResult:
+    def apply(
+        self, filt: GaussianFilter, means: np.ndarray, covs: np.ndarray, active: np.ndarray
+    ) -> UpdateResult:
         return filt.update(means, covs, active, self.measurement, self.observed)
 
 
@@ -44,14 +46,18 @@ class AveragedCorrection(Correction):
             raise ValueError("an averaged correction needs at least one part")
         self.parts = tuple(parts)
 
-    def apply(self, filt: GaussianFilter, means: np.ndarray, covs: np.ndarray, active: np.ndarray) -> UpdateResult:
+    def apply(
+        self, filt: GaussianFilter, means: np.ndarray, covs: np.ndarray, active: np.ndarray
+    ) -> UpdateResult:
         results = [part.apply(filt, means, covs, active) for part in self.parts]
         if len(results) == 1:
             return results[0]
         stacked = np.stack([r.means for r in results])  # (K, B, 8)
         mean = stacked.mean(axis=0)
         heading = layout.PHI
-        mean[:, heading] = np.arctan2(np.sin(stacked[:, :, heading]).mean(0), np.cos(stacked[:, :, heading]).mean(0))
+        mean[:, heading] = np.arctan2(
+            np.sin(stacked[:, :, heading]).mean(0), np.cos(stacked[:, :, heading]).mean(0)
+        )
         mean[:, heading] *= active[:, heading]
         return UpdateResult(
             means=mean,
@@ -105,7 +111,9 @@ class RsuGyroEpoch:
         observed = []
         if len(chosen):
             index = list(chosen)
-            parts.append(RsuRangeBearing(self.positions[index], self.range_std[index], self.bearing_std[index]))
+            parts.append(
+                RsuRangeBearing(self.positions[index], self.range_std[index], self.bearing_std[index])
+            )
             observed.append(self.observed[index].ravel())
         if self.yaw_rates.size:
             parts.extend([GyroYawRate(self.gyro_std, self.gyro_min_speed)] * int(self.yaw_rates.size))

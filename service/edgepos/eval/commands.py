@@ -42,16 +42,22 @@ def _common_options(parser: argparse.ArgumentParser, runs: int) -> None:
     """Options every Monte Carlo evaluation takes."""
     parser.add_argument("--runs", type=_positive_int, default=runs, help=f"Monte Carlo runs (default {runs})")
     parser.add_argument(
-        "--seed", type=_non_negative_int, default=1,
+        "--seed",
+        type=_non_negative_int,
+        default=1,
         help="base seed; run r uses numpy default_rng([seed, r]) (default 1)",
     )
     parser.add_argument(
-        "--workers", type=_positive_int, default=os.cpu_count() or 1,
+        "--workers",
+        type=_positive_int,
+        default=os.cpu_count() or 1,
         help="worker processes; results do not depend on it (default: CPU count)",
     )
     parser.add_argument("--json", metavar="FILE", default=None, help="also write the summary as JSON to FILE")
     parser.add_argument(
-        "--plots", metavar="DIR", default=None,
+        "--plots",
+        metavar="DIR",
+        default=None,
         help="write PNG figures to DIR (needs the edgepos[plots] extra)",
     )
 

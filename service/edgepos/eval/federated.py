@@ -36,7 +36,12 @@ PAPER = {
     "clean": {"GPS": 5.10, "GPS/DR": 3.50, "GPS/DR/V2X": 2.52},
     "multipath": {"GPS": 12.45, "GPS/DR": 7.02, "GPS/DR/V2X": 4.52},
 }
-PAPER_RATES = {("clean", "GPS"): 51.0, ("clean", "GPS/DR"): 28.0, ("multipath", "GPS"): 64.0, ("multipath", "GPS/DR"): 36.0}
+PAPER_RATES = {
+    ("clean", "GPS"): 51.0,
+    ("clean", "GPS/DR"): 28.0,
+    ("multipath", "GPS"): 64.0,
+    ("multipath", "GPS/DR"): 36.0,
+}
 
 
 class RunFailed(RuntimeError):
@@ -53,7 +58,9 @@ def assisting_tracks(run: FederatedRun) -> list[dict[str, NeighbourTrack]]:
     per_step = []
     for step_fixes in run.neighbour_fixes:
         for vid in run.neighbour_ids:
-            fixes, states[vid] = pipeline.process(states[vid], [step_fixes[vid]], StaticEnvironment(vehicle_id=vid))
+            fixes, states[vid] = pipeline.process(
+                states[vid], [step_fixes[vid]], StaticEnvironment(vehicle_id=vid)
+            )
             published[vid] = tracks.publish(vid, published[vid], fixes) or published[vid]
         per_step.append({vid: track for vid, track in published.items() if track is not None})
     return per_step
@@ -83,8 +90,6 @@ def run_method(
     return squared, elapsed
 
 
-
-
 _SEED = 1
 
 
@@ -109,8 +114,6 @@ def _work(chunk: range) -> Totals:
     return totals
 
 
-
-
 def monte_carlo(runs: int, seed: int, workers: int, progress: Progress | None = None) -> Totals:
     return run_chunks(_work, combine, chunk_runs(runs), workers, _init, (seed,), progress)
 
@@ -131,12 +134,18 @@ def rate(better: float, worse: float) -> float:
 
 
 def report(results: dict[str, dict[str, dict[str, float]]], runs: int, seed: int) -> str:
-    lines = [f"V2X federated filter (Wang et al. 2019, sec. 3): {runs} runs, seed {seed}, {STEPS} epochs of 0.2 s", ""]
+    lines = [
+        f"V2X federated filter (Wang et al. 2019, sec. 3): {runs} runs, seed {seed}, {STEPS} epochs of 0.2 s",
+        "",
+    ]
     rows = []
     for method in METHODS:
         row = [method]
         for scenario in SCENARIOS:
-            row += [number(results[scenario][method]["pos_rmse_m"], 2), number(PAPER[scenario].get(method), 2)]
+            row += [
+                number(results[scenario][method]["pos_rmse_m"], 2),
+                number(PAPER[scenario].get(method), 2),
+            ]
         row.append(number(results["clean"][method]["step_us"], 0))
         rows.append(row)
     headers = ["method", "clean RMSE m", "paper", "multipath RMSE m", "paper", "us/epoch"]
@@ -147,13 +156,27 @@ def report(results: dict[str, dict[str, dict[str, float]]], runs: int, seed: int
         for base in ("GPS", "GPS/DR"):
             ours = rate(results[scenario]["GPS/DR/V2X"]["pos_rmse_m"], results[scenario][base]["pos_rmse_m"])
             paper = PAPER_RATES[(scenario, base)]
-            rate_rows.append([scenario, f"over {base}", f"{ours:.1f}", f"{paper:.0f}", "yes" if ours >= paper - 5 else "NO"])
-    lines.append(format_table(["scenario", "", "ours %", "paper %", ">= paper-5"], rate_rows, [False, False, True, True, False]))
+            rate_rows.append(
+                [
+                    scenario,
+                    f"over {base}",
+                    f"{ours:.1f}",
+                    f"{paper:.0f}",
+                    "yes" if ours >= paper - 5 else "NO",
+                ]
+            )
+    lines.append(
+        format_table(
+            ["scenario", "", "ours %", "paper %", ">= paper-5"], rate_rows, [False, False, True, True, False]
+        )
+    )
     lines += ["", "Fig. 5, feedback on vs off (GPS/DR/V2X):"]
     for scenario in SCENARIOS:
         on = results[scenario]["GPS/DR/V2X"]["pos_rmse_m"]
         off = results[scenario]["GPS/DR/V2X-nofeedback"]["pos_rmse_m"]
-        lines.append(f"  {scenario}: feedback {on:.2f} m, no feedback {off:.2f} m ({rate(on, off):.1f} % better with)")
+        lines.append(
+            f"  {scenario}: feedback {on:.2f} m, no feedback {off:.2f} m ({rate(on, off):.1f} % better with)"
+        )
     return "\n".join(lines)
 
 

@@ -126,8 +126,10 @@ def report(
     lines = [
         f"{PROG}: scenario {scenario}, {args.runs} run(s), seed {args.seed}, {args.particles} particles"
         + (f", options {' '.join(args.option)}" if args.option else ""),
-        (f"satellites tracked per epoch (mean): {totals.los / totals.runs:.1f} line of sight, "
-        f"{totals.nlos / totals.runs:.1f} reflected only (NLOS)"),
+        (
+            f"satellites tracked per epoch (mean): {totals.los / totals.runs:.1f} line of sight, "
+            f"{totals.nlos / totals.runs:.1f} reflected only (NLOS)"
+        ),
         "",
         format_table(headers, rows, right=[False] + [True] * 10),
     ]
@@ -143,19 +145,23 @@ def report(
         verdict = "meets" if change >= TARGET_IMPROVEMENT_PERCENT else "does NOT meet"
         lines += [
             "",
-            (f"UPF+fuzzy vs PF: RMS {number(change, 1)} % lower (paper {PAPER_IMPROVEMENT_PERCENT} %), "
-            f"mean run max {number(percent_change(pf.mean_run_max_m, upf.mean_run_max_m), 1)} % lower "
-            f"(paper 29.46 %); {verdict} the {TARGET_IMPROVEMENT_PERCENT:.0f} % target."),
+            (
+                f"UPF+fuzzy vs PF: RMS {number(change, 1)} % lower (paper {PAPER_IMPROVEMENT_PERCENT} %), "
+                f"mean run max {number(percent_change(pf.mean_run_max_m, upf.mean_run_max_m), 1)} % lower "
+                f"(paper 29.46 %); {verdict} the {TARGET_IMPROVEMENT_PERCENT:.0f} % target."
+            ),
         ]
     lines += [
         "",
-        ("RMS and max over every GNSS epoch of every run; 'mean run max' is one drive's maximum averaged "
-        "over runs (the paper's max is from its single drive). 'no fix': GNSS epochs without a position. "
-        "'failed': batches the pipeline raised on (skipped, state kept, as the service would; for WLS, "
-        "epochs it could not solve). 'excluded': pseudoranges not used (mask, residual test). Epoch time: "
-        "wall time of "
-        f"pipeline.process per GNSS epoch inside the Monte Carlo ({args.workers} worker(s) on "
-        f"{os.cpu_count() or 1} core(s)), not the benchmark figure."),
+        (
+            "RMS and max over every GNSS epoch of every run; 'mean run max' is one drive's maximum averaged "
+            "over runs (the paper's max is from its single drive). 'no fix': GNSS epochs without a position. "
+            "'failed': batches the pipeline raised on (skipped, state kept, as the service would; for WLS, "
+            "epochs it could not solve). 'excluded': pseudoranges not used (mask, residual test). Epoch time: "
+            "wall time of "
+            f"pipeline.process per GNSS epoch inside the Monte Carlo ({args.workers} worker(s) on "
+            f"{os.cpu_count() or 1} core(s)), not the benchmark figure."
+        ),
     ]
     return "\n".join(lines)
 
@@ -258,7 +264,14 @@ def run(args: argparse.Namespace) -> int:
     progress = Progress(args.runs, label="runs")
     try:
         totals = monte_carlo(
-            algorithms, args.runs, args.seed, workers, args.scenario, args.short, args.particles, progress,
+            algorithms,
+            args.runs,
+            args.seed,
+            workers,
+            args.scenario,
+            args.short,
+            args.particles,
+            progress,
             overrides,
         )
     except RunFailed as exc:

@@ -191,7 +191,11 @@ def build_scenario(name: str, short: bool) -> GnssScenario:
 
 
 def _init_worker(
-    names: tuple[str, ...], seed: int, scenario: str, short: bool, particles: int,
+    names: tuple[str, ...],
+    seed: int,
+    scenario: str,
+    short: bool,
+    particles: int,
     overrides: dict[str, Any] | None = None,
 ) -> None:
     global _CONTEXT
@@ -203,7 +207,10 @@ def _init_worker(
             algorithms.append((name, {}))
             continue
         options = {
-            **ALGORITHMS[name].options, "particles": particles, "gps_week": built.gps_week, **(overrides or {})
+            **ALGORITHMS[name].options,
+            "particles": particles,
+            "gps_week": built.gps_week,
+            **(overrides or {}),
         }
         algorithms.append((name, pipeline.resolve_options(options)))
     environment = StaticEnvironment(origin=built.site)

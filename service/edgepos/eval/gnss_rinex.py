@@ -52,33 +52,56 @@ from edgepos.pipelines.gnss_tight import GnssTightPipeline
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--obs", required=True, help="RINEX 3 observation file")
     parser.add_argument("--nav", required=True, help="RINEX 3 navigation file (GPS / BeiDou / Galileo)")
-    parser.add_argument("--reference", required=True, help="reference CSV: week, seconds of week, lat deg, lon deg, height m")
+    parser.add_argument(
+        "--reference", required=True, help="reference CSV: week, seconds of week, lat deg, lon deg, height m"
+    )
     parser.add_argument("--json", metavar="FILE", default=None, help="also write the figures as JSON to FILE")
     parser.add_argument(
-        "--systems", type=_systems, default=ALL_SYSTEMS,
+        "--systems",
+        type=_systems,
+        default=ALL_SYSTEMS,
         help=f"constellations to use (default {ALL_SYSTEMS}: GPS, BeiDou and Galileo, all this project reads; GC: without "
         "Galileo)",
     )
     parser.add_argument("--filter", default="upf", choices=("upf", "pf", "ukf"), help="filter (default upf)")
     parser.add_argument("--particles", type=int, default=200, help="particles of pf / upf (default 200)")
-    parser.add_argument("--no-fuzzy", action="store_true", help="constant pseudorange noise instead of the fuzzy factor")
+    parser.add_argument(
+        "--no-fuzzy", action="store_true", help="constant pseudorange noise instead of the fuzzy factor"
+    )
     parser.add_argument("--seed", type=int, default=1, help="the filter's random seed (default 1)")
     parser.add_argument("--max-epochs", type=int, default=None, help="stop after this many epochs")
     parser.add_argument(
-        "--score-epochs", type=_epoch_range, default=None, metavar="A:B",
+        "--score-epochs",
+        type=_epoch_range,
+        default=None,
+        metavar="A:B",
         help="score only epochs A..B-1 (0-based; the run still starts at epoch 0), e.g. 0:150 and 150:300",
     )
-    parser.add_argument("--base", metavar="BASE.rnx", default=None,
-                        help="RINEX 3 observations of a reference station: differential corrections")
     parser.add_argument(
-        "--max-correction-age", type=float, default=DEFAULT_MAX_AGE_S, metavar="S",
+        "--base",
+        metavar="BASE.rnx",
+        default=None,
+        help="RINEX 3 observations of a reference station: differential corrections",
+    )
+    parser.add_argument(
+        "--max-correction-age",
+        type=float,
+        default=DEFAULT_MAX_AGE_S,
+        metavar="S",
         help=f"with --base: corrections older than S seconds are not applied (default {DEFAULT_MAX_AGE_S:g}; "
         "see docs/gnss.md)",
     )
-    parser.add_argument("--base-position", type=_position, default=None, metavar="X,Y,Z",
-                        help="the reference station's ECEF antenna position (m; default: from --base's header)")
     parser.add_argument(
-        "--carrier", action=argparse.BooleanOptionalAction, default=False,
+        "--base-position",
+        type=_position,
+        default=None,
+        metavar="X,Y,Z",
+        help="the reference station's ECEF antenna position (m; default: from --base's header)",
+    )
+    parser.add_argument(
+        "--carrier",
+        action=argparse.BooleanOptionalAction,
+        default=False,
         help="send each pseudorange's carrier phase (the L observation of its signal, cycles) and loss-of-lock "
         "indicator from the RINEX as carrier_cycles / lli (the pipeline's carrier_smoothing option says what "
         "it does with them; default: not sent)",
@@ -115,8 +138,13 @@ def _epoch_range(text: str) -> tuple[int, int]:
     return first, stop
 
 
-def _score(times: Sequence[float], positions: Sequence[np.ndarray | None], reference: tuple[np.ndarray, np.ndarray],
-           epochs: int, velocities: Sequence[np.ndarray | None] | None = None) -> dict[str, Any]:
+def _score(
+    times: Sequence[float],
+    positions: Sequence[np.ndarray | None],
+    reference: tuple[np.ndarray, np.ndarray],
+    epochs: int,
+    velocities: Sequence[np.ndarray | None] | None = None,
+) -> dict[str, Any]:
     """Horizontal position errors (m) at the reference epochs among ``times``; with ``velocities`` (east,
     north m/s per epoch, None without one) also their horizontal errors against the reference velocity."""
     ref_time, ref_ecef = reference
@@ -164,10 +192,16 @@ def _score(times: Sequence[float], positions: Sequence[np.ndarray | None], refer
 
 
 def evaluate(
-    obs_path: str, nav_path: str, reference_path: str, systems: str = ALL_SYSTEMS,
+    obs_path: str,
+    nav_path: str,
+    reference_path: str,
+    systems: str = ALL_SYSTEMS,
     options: Mapping[str, Any] | None = None,
-    max_epochs: int | None = None, score_epochs: tuple[int, int] | None = None, base_path: str | None = None,
-    base_position: Sequence[float] | None = None, max_correction_age_s: float = DEFAULT_MAX_AGE_S,
+    max_epochs: int | None = None,
+    score_epochs: tuple[int, int] | None = None,
+    base_path: str | None = None,
+    base_position: Sequence[float] | None = None,
+    max_correction_age_s: float = DEFAULT_MAX_AGE_S,
     carrier: bool = False,
 ) -> dict[str, Any]:
     """Run the pipeline and the WLS baseline over a recording; the figures as a dict (of epochs
@@ -183,10 +217,19 @@ def evaluate(
     resolved = pipeline.resolve_options({"systems": sorted(codes), **(options or {})})
     table = None
     if base_path is not None:
-        station = header_base_position(read_header(base_path)) if base_position is None else np.asarray(base_position, float)
+        station = (
+            header_base_position(read_header(base_path))
+            if base_position is None
+            else np.asarray(base_position, float)
+        )
         table = corrections_from_epochs(
-            read_epochs(base_path, codes), station, ephemerides.orbits, ephemerides.atmosphere, codes,
-            resolved["elevation_mask"], max_correction_age_s,
+            read_epochs(base_path, codes),
+            station,
+            ephemerides.orbits,
+            ephemerides.atmosphere,
+            codes,
+            resolved["elevation_mask"],
+            max_correction_age_s,
         )
     environment = StaticEnvironment(navigation=ephemerides, differential=table)
     use_doppler = bool(resolved["use_doppler"])
@@ -208,13 +251,28 @@ def evaluate(
         tow = epoch.gpst % SECONDS_PER_WEEK
         batch = [
             PseudorangeObservation(
-                tow, system, int(prn), float(pr), float(cn0) if math.isfinite(cn0) else 0.0,
-                doppler_hz=float(doppler) if math.isfinite(doppler) and abs(doppler) <= MAX_DOPPLER_HZ else None,
-                carrier_cycles=float(cycles) if carrier and math.isfinite(cycles) and abs(cycles) < MAX_CARRIER_CYCLES else None,
-                lli=int(lli) if carrier and math.isfinite(cycles) and abs(cycles) < MAX_CARRIER_CYCLES else None,
+                tow,
+                system,
+                int(prn),
+                float(pr),
+                float(cn0) if math.isfinite(cn0) else 0.0,
+                doppler_hz=float(doppler)
+                if math.isfinite(doppler) and abs(doppler) <= MAX_DOPPLER_HZ
+                else None,
+                carrier_cycles=float(cycles)
+                if carrier and math.isfinite(cycles) and abs(cycles) < MAX_CARRIER_CYCLES
+                else None,
+                lli=int(lli)
+                if carrier and math.isfinite(cycles) and abs(cycles) < MAX_CARRIER_CYCLES
+                else None,
             )
             for system, prn, pr, cn0, doppler, cycles, lli in zip(
-                epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz, epoch.doppler_hz, epoch.carrier_cycles,
+                epoch.systems,
+                epoch.prns,
+                epoch.pseudorange_m,
+                epoch.cn0_dbhz,
+                epoch.doppler_hz,
+                epoch.carrier_cycles,
                 epoch.lli,
             )
             if math.isfinite(pr) and 1.0e6 <= pr <= 1.0e8
@@ -240,7 +298,9 @@ def evaluate(
             solution = solve_epoch(prs, atmosphere, config, previous, corrected)
             previous = solution.position
             baseline.append(solution.position)
-            baseline_velocities.append(None if solution.velocity is None else solution.velocity.velocity_enu[:2])
+            baseline_velocities.append(
+                None if solution.velocity is None else solution.velocity.velocity_enu[:2]
+            )
         except SppError:
             baseline.append(None)
             baseline_velocities.append(None)
@@ -258,9 +318,15 @@ def evaluate(
     report["carrier_sent"] = carrier
     report["carrier_smoothing"] = resolved["carrier_smoothing"]
     report["score_epochs"] = None if score_epochs is None else list(score_epochs)
-    report["base"] = None if base_path is None else {
-        "file": base_path, "position_ecef_m": [float(v) for v in station], "corrections": len(table or ()),
-    }
+    report["base"] = (
+        None
+        if base_path is None
+        else {
+            "file": base_path,
+            "position_ecef_m": [float(v) for v in station],
+            "corrections": len(table or ()),
+        }
+    )
     report["baseline"] = {
         "method": "epoch-by-epoch WLS (gnss/spp.py)",
         **_score(times, baseline, reference, len(times), baseline_velocities if use_doppler else None),
@@ -273,10 +339,17 @@ def _format(value: Any) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    options: dict[str, Any] = {"filter": args.filter, "particles": args.particles, "fuzzy": not args.no_fuzzy,
-                               "seed": args.seed}
+    options: dict[str, Any] = {
+        "filter": args.filter,
+        "particles": args.particles,
+        "fuzzy": not args.no_fuzzy,
+        "seed": args.seed,
+    }
     if args.base_position is not None and args.base is None:
-        print("edgepos eval gnss-rinex: error: --base-position needs --base (the station's observations)", file=sys.stderr)
+        print(
+            "edgepos eval gnss-rinex: error: --base-position needs --base (the station's observations)",
+            file=sys.stderr,
+        )
         return 2
     if args.max_correction_age != DEFAULT_MAX_AGE_S and args.base is None:
         print("edgepos eval gnss-rinex: error: --max-correction-age needs --base", file=sys.stderr)
@@ -289,8 +362,17 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         report = evaluate(
-            args.obs, args.nav, args.reference, args.systems, options, args.max_epochs, args.score_epochs,
-            args.base, args.base_position, args.max_correction_age, args.carrier,
+            args.obs,
+            args.nav,
+            args.reference,
+            args.systems,
+            options,
+            args.max_epochs,
+            args.score_epochs,
+            args.base,
+            args.base_position,
+            args.max_correction_age,
+            args.carrier,
         )
     except (OSError, ValueError) as error:  # unreadable or malformed files (RinexError is a ValueError)
         print(f"edgepos eval gnss-rinex: error: {error}", file=sys.stderr)

@@ -10,7 +10,10 @@ from typing import Any
 def add_option_argument(parser: argparse.ArgumentParser, example: str) -> None:
     """Add the repeatable ``--option NAME=JSON`` argument (parsed by :func:`parse_overrides`)."""
     parser.add_argument(
-        "--option", action="append", default=[], metavar="NAME=JSON",
+        "--option",
+        action="append",
+        default=[],
+        metavar="NAME=JSON",
         help=f"a pipeline option to set, e.g. --option {example} (repeatable)",
     )
 

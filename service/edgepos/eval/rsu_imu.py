@@ -36,12 +36,17 @@ PROG = "edgepos eval rsu-imu"
 def configure(parser: argparse.ArgumentParser) -> None:
     """The options specific to this evaluation (the common ones come from commands.py)."""
     parser.add_argument(
-        "--algorithms", metavar="NAME,NAME...", default=None,
+        "--algorithms",
+        metavar="NAME,NAME...",
+        default=None,
         help=f"comma-separated subset to run (default: all): {', '.join(ALGORITHMS)}",
     )
     add_option_argument(parser, 'model_params=\'{"singer": {"sigma": 2}}\'')
     parser.add_argument(
-        "--smooth-lag", metavar="S", type=float, default=1.0,
+        "--smooth-lag",
+        metavar="S",
+        type=float,
+        default=1.0,
         help="also report the fixed-lag smoothed RMSE, each epoch smoothed with the data up to S seconds after "
         "it (default 1.0, the default lag window; 0: no smoothing column)",
     )
@@ -51,7 +56,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "the RMSE of the last fix received per epoch beside the in-order run and beside dropping them",
     )
     parser.add_argument(
-        "--batch-epochs", metavar="B", type=int, default=1,
+        "--batch-epochs",
+        metavar="B",
+        type=int,
+        default=1,
         help="with --delay-fraction, the vehicle sends a batch every B epochs (default 1: each epoch as it happens)",
     )
 
@@ -108,9 +116,7 @@ def run(args: argparse.Namespace) -> int:
     print(report(results_by_name, args.runs, args.seed, workers, late))
     if overrides:
         print(f"\noptions set on every algorithm (not the paper's defaults): {json.dumps(overrides)}")
-    diverged = [
-        name for name, r in results_by_name.items() if not math.isfinite(r.pos_mean + r.vel_mean)
-    ]
+    diverged = [name for name, r in results_by_name.items() if not math.isfinite(r.pos_mean + r.vel_mean)]
     if diverged:
         _error(f"non-finite RMSE for {', '.join(diverged)}; nothing written")
         return 1

@@ -43,8 +43,11 @@ class Sums:
         if self.probabilities is not None and other.probabilities is not None:
             probabilities = self.probabilities + other.probabilities
         return Sums(
-            self.pos_sq + other.pos_sq, self.vel_sq + other.vel_sq, probabilities,
-            self.seconds + other.seconds, self.epochs + other.epochs,
+            self.pos_sq + other.pos_sq,
+            self.vel_sq + other.vel_sq,
+            probabilities,
+            self.seconds + other.seconds,
+            self.epochs + other.epochs,
             {name: values + other.extra[name] for name, values in self.extra.items()},
         )
 
@@ -130,8 +133,13 @@ def _run_chunk(chunk: range) -> Totals:
                     [[fix.model_probabilities[model] for model in models] for fix in fixes], dtype=float
                 )
             extra = late_columns(
-                context.pipeline, options, context.initial, observations, context.environment,
-                np.column_stack([true_x, true_y, true_vx, true_vy]), context.late,
+                context.pipeline,
+                options,
+                context.initial,
+                observations,
+                context.environment,
+                np.column_stack([true_x, true_y, true_vx, true_vy]),
+                context.late,
                 np.random.default_rng([context.seed, run, 1]),  # the same deliveries for every algorithm
             )
             sums[name] = Sums(pos_sq, vel_sq, probabilities, elapsed, len(fixes), extra)
@@ -153,8 +161,13 @@ def monte_carlo(
     columns to add (``rsu_imu_late``)."""
     specs = tuple((algorithm.name, algorithm.options) for algorithm in algorithms)
     return montecarlo.run_chunks(
-        _run_chunk, combine, montecarlo.chunk_runs(runs), workers, _init_worker,
-        (specs, seed, late or LateSettings()), progress,
+        _run_chunk,
+        combine,
+        montecarlo.chunk_runs(runs),
+        workers,
+        _init_worker,
+        (specs, seed, late or LateSettings()),
+        progress,
     )
 
 

@@ -37,8 +37,13 @@ def paper_note() -> str:
 def results_table(results_by_name: dict[str, Result]) -> str:
     """Tables 2 and 4 side by side with ours."""
     headers = [
-        "algorithm", "pos RMSE (m)", "vel RMSE (m/s)", "step (us)",
-        "paper pos (m)", "paper vel (m/s)", "paper step (us)",
+        "algorithm",
+        "pos RMSE (m)",
+        "vel RMSE (m/s)",
+        "step (us)",
+        "paper pos (m)",
+        "paper vel (m/s)",
+        "paper step (us)",
     ]
     rows = []
     for result in results_by_name.values():
@@ -72,12 +77,15 @@ def _comparison_rows(results_by_name: dict[str, Result]) -> list[list[str]]:
                 number(percent_change(paper_ref.pos_rmse_m, paper_cand.pos_rmse_m), 1),
                 number(percent_change(paper_ref.vel_rmse_mps, paper_cand.vel_rmse_mps), 1),
             ]
-        rows.append([
-            label, handling,
-            number(percent_change(ref.pos_mean, cand.pos_mean), 1),
-            number(percent_change(ref.vel_mean, cand.vel_mean), 1),
-            *paper_cells,
-        ])
+        rows.append(
+            [
+                label,
+                handling,
+                number(percent_change(ref.pos_mean, cand.pos_mean), 1),
+                number(percent_change(ref.vel_mean, cand.vel_mean), 1),
+                *paper_cells,
+            ]
+        )
 
     paper_best_single = min(SINGLE_MODELS, key=lambda name: PAPER[name].pos_rmse_m)
     for handling, suffix in (("joint", ""), ("average", AVERAGE_SUFFIX)):
@@ -114,11 +122,16 @@ def late_table(results_by_name: dict[str, Result], late: LateSettings) -> str | 
             continue
         cells = [name, number(r.pos_mean, 4)]
         if "smooth_pos" in r.extra:
-            cells += [number(r.extra["smooth_pos"], 4), number(percent_change(r.pos_mean, r.extra["smooth_pos"]), 1)]
+            cells += [
+                number(r.extra["smooth_pos"], 4),
+                number(percent_change(r.pos_mean, r.extra["smooth_pos"]), 1),
+            ]
         if "late_pos" in r.extra:
             cells += [
-                number(r.extra["late_pos"], 4), number(r.extra["late_pos"] / r.pos_mean, 4),
-                number(r.extra["drop_pos"], 4), number(r.extra["drop_pos"] / r.pos_mean, 4),
+                number(r.extra["late_pos"], 4),
+                number(r.extra["late_pos"] / r.pos_mean, 4),
+                number(r.extra["drop_pos"], 4),
+                number(r.extra["drop_pos"] / r.pos_mean, 4),
             ]
         rows.append(cells)
     if not rows:
@@ -148,8 +161,10 @@ def report(
 ) -> str:
     """The whole text report."""
     parts = [
-        (f"RSU + IMU paper scenario (sec. 5): {runs} Monte Carlo run(s), seed {seed}; "
-        "mean over time steps of the RMSE over runs (eqs. 39-40)."),
+        (
+            f"RSU + IMU paper scenario (sec. 5): {runs} Monte Carlo run(s), seed {seed}; "
+            "mean over time steps of the RMSE over runs (eqs. 39-40)."
+        ),
         "",
         results_table(results_by_name),
         "",
@@ -166,8 +181,10 @@ def report(
     if comparisons is not None:
         parts += [
             "",
-            ("Improvement in mean RMSE, percent (positive: the candidate's error is lower than the "
-            "reference's):"),
+            (
+                "Improvement in mean RMSE, percent (positive: the candidate's error is lower than the "
+                "reference's):"
+            ),
             "",
             comparisons,
         ]
@@ -193,7 +210,9 @@ def to_json(
         "seed": seed,
         "algorithms": {
             name: {
-                "pos_rmse_m": r.pos_mean, "vel_rmse_mps": r.vel_mean, "step_us": r.step_us,
+                "pos_rmse_m": r.pos_mean,
+                "vel_rmse_mps": r.vel_mean,
+                "step_us": r.step_us,
                 **{
                     f"{column}_rmse_{'m' if column.endswith('pos') else 'mps'}": value
                     for column, value in r.extra.items()
@@ -219,14 +238,20 @@ def write_plots(results_by_name: dict[str, Result], scenario: Scenario, director
                 continue
             fig_pos, fig_vel = figures.split("-")
             for quantity, unit, attribute, fig in (
-                ("position", "m", "pos_rmse", fig_pos), ("velocity", "m/s", "vel_rmse", fig_vel)
+                ("position", "m", "pos_rmse", fig_pos),
+                ("velocity", "m/s", "vel_rmse", fig_vel),
             ):
                 series = {base: getattr(r, attribute) for base, r in members.items()}
-                written.append(plots.line_plot(
-                    directory / f"{quantity}_rmse_{group}_{tag}.png", t, series,
-                    f"{quantity.capitalize()} RMSE, {label}, RSU handling {handling} (cf. paper Fig. {fig})",
-                    f"{quantity} RMSE ({unit})", plots.readable_ylim(series),
-                ))
+                written.append(
+                    plots.line_plot(
+                        directory / f"{quantity}_rmse_{group}_{tag}.png",
+                        t,
+                        series,
+                        f"{quantity.capitalize()} RMSE, {label}, RSU handling {handling} (cf. paper Fig. {fig})",
+                        f"{quantity} RMSE ({unit})",
+                        plots.readable_ylim(series),
+                    )
+                )
         for base, fig in (("IMM-CKF", "12"), ("2IMM-CKF", "13")):
             result = results_by_name.get(base + suffix)
             if result is None or result.probabilities is None:
@@ -234,11 +259,14 @@ def write_plots(results_by_name: dict[str, Result], scenario: Scenario, director
             models = result.algorithm.options["models"]
             labels = [model.upper() if model != "singer" else "Singer" for model in models]
             series = {label: result.probabilities[:, j] for j, label in enumerate(labels)}
-            written.append(plots.line_plot(
-                directory / f"model_probabilities_{base.lower().replace('-', '_')}_{tag}.png",
-                t,
-                series,
-                f"Model probabilities, {base}, RSU handling {handling} (cf. paper Fig. {fig})",
-                "mean model probability", (0.0, 1.0),
-            ))
+            written.append(
+                plots.line_plot(
+                    directory / f"model_probabilities_{base.lower().replace('-', '_')}_{tag}.png",
+                    t,
+                    series,
+                    f"Model probabilities, {base}, RSU handling {handling} (cf. paper Fig. {fig})",
+                    "mean model probability",
+                    (0.0, 1.0),
+                )
+            )
     return written

@@ -78,8 +78,14 @@ def run_scenario_command(
             directory = Path(args.plots)
             directory.mkdir(parents=True, exist_ok=True)
             for scenario, (times, series) in curves(totals, args.runs).items():
-                path = plots.line_plot(directory / f"{plot_prefix}_{scenario}.png", times, series,
-                                       f"Position RMSE, {scenario}", "RMSE (m)", plots.readable_ylim(series))
+                path = plots.line_plot(
+                    directory / f"{plot_prefix}_{scenario}.png",
+                    times,
+                    series,
+                    f"Position RMSE, {scenario}",
+                    "RMSE (m)",
+                    plots.readable_ylim(series),
+                )
                 print(f"wrote {path}")
     except OSError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)

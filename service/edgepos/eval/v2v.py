@@ -35,8 +35,12 @@ PAPER = {
 }
 #: Table 2's improvement rates (eq. 31) of the augmented UKF over each other method, %.
 PAPER_RATES = {
-    ("straight", "GPS"): 60, ("straight", "GPS/DR"): 42, ("straight", "UKF"): 17,
-    ("ring", "GPS"): 53, ("ring", "GPS/DR"): 35, ("ring", "UKF"): 20,
+    ("straight", "GPS"): 60,
+    ("straight", "GPS/DR"): 42,
+    ("straight", "UKF"): 17,
+    ("ring", "GPS"): 53,
+    ("ring", "GPS/DR"): 35,
+    ("ring", "UKF"): 20,
 }
 
 
@@ -73,8 +77,6 @@ def run_method(run: V2vRun, method: str) -> tuple[np.ndarray, float, int]:
     return squared, elapsed, steps * len(VEHICLE_IDS)
 
 
-
-
 _SEED = 1
 
 
@@ -98,8 +100,6 @@ def _work(chunk: range) -> Totals:
     return totals
 
 
-
-
 def monte_carlo(runs: int, seed: int, workers: int, progress: Progress | None = None) -> Totals:
     return run_chunks(_work, combine, chunk_runs(runs), workers, _init, (seed,), progress)
 
@@ -121,8 +121,10 @@ def rate(better: float, worse: float) -> float:
 
 def report(results: dict[str, dict[str, dict[str, float]]], runs: int, seed: int) -> str:
     lines = [
-        (f"V2V cooperative positioning (Qiao & Qu 2021, sec. 4): {runs} runs, seed {seed}, "
-        f"{len(VEHICLE_IDS)} vehicles, {STEPS} epochs of {STEP:g} s"),
+        (
+            f"V2V cooperative positioning (Qiao & Qu 2021, sec. 4): {runs} runs, seed {seed}, "
+            f"{len(VEHICLE_IDS)} vehicles, {STEPS} epochs of {STEP:g} s"
+        ),
         "",
     ]
     rows = []
@@ -140,8 +142,20 @@ def report(results: dict[str, dict[str, dict[str, float]]], runs: int, seed: int
         for base in ("GPS", "GPS/DR", "UKF"):
             ours = rate(results[scenario]["augUKF"]["pos_rmse_m"], results[scenario][base]["pos_rmse_m"])
             paper = PAPER_RATES[(scenario, base)]
-            rate_rows.append([scenario, f"over {base}", f"{ours:.1f}", f"{paper:.0f}", "yes" if ours >= paper - 5 else "NO"])
-    lines.append(format_table(["scenario", "", "ours %", "paper %", ">= paper-5"], rate_rows, [False, False, True, True, False]))
+            rate_rows.append(
+                [
+                    scenario,
+                    f"over {base}",
+                    f"{ours:.1f}",
+                    f"{paper:.0f}",
+                    "yes" if ours >= paper - 5 else "NO",
+                ]
+            )
+    lines.append(
+        format_table(
+            ["scenario", "", "ours %", "paper %", ">= paper-5"], rate_rows, [False, False, True, True, False]
+        )
+    )
     return "\n".join(lines)
 
 

@@ -134,7 +134,13 @@ def hatch_update(
 
 
 def _slip(
-    track: CarrierTrack | None, t: float, code: float, cycles: float, lam: float, doppler: float | None, lli: int,
+    track: CarrierTrack | None,
+    t: float,
+    code: float,
+    cycles: float,
+    lam: float,
+    doppler: float | None,
+    lli: int,
     config: HatchConfig,
 ) -> str | None:
     """Why this satellite's smoothing must restart at this epoch (None: it continues, or starts)."""
@@ -165,7 +171,12 @@ def tracks_to_arrays(tracks: dict[str, CarrierTrack]) -> tuple[list[str], np.nda
         track = tracks[sat]
         has = track.doppler_hz is not None
         table[row] = (
-            track.t, track.count, track.smoothed_m, track.phase_cycles, track.doppler_hz if has else 0.0, float(has)
+            track.t,
+            track.count,
+            track.smoothed_m,
+            track.phase_cycles,
+            track.doppler_hz if has else 0.0,
+            float(has),
         )
     return sats, table
 

@@ -18,14 +18,20 @@ WGS84_B = WGS84_A * (1.0 - WGS84_F)
 """Semi-minor axis (m)."""
 
 
-def geodetic_to_ecef(lat: np.ndarray | float, lon: np.ndarray | float, height: np.ndarray | float) -> np.ndarray:
+def geodetic_to_ecef(
+    lat: np.ndarray | float, lon: np.ndarray | float, height: np.ndarray | float
+) -> np.ndarray:
     """Geodetic latitude, longitude (rad) and ellipsoidal height (m) -> ECEF (..., 3) in metres."""
     lat, lon, height = np.asarray(lat, float), np.asarray(lon, float), np.asarray(height, float)
     sin_lat = np.sin(lat)
     prime_vertical = WGS84_A / np.sqrt(1.0 - WGS84_E2 * sin_lat * sin_lat)
     horizontal = (prime_vertical + height) * np.cos(lat)
     return np.stack(
-        [horizontal * np.cos(lon), horizontal * np.sin(lon), (prime_vertical * (1.0 - WGS84_E2) + height) * sin_lat],
+        [
+            horizontal * np.cos(lon),
+            horizontal * np.sin(lon),
+            (prime_vertical * (1.0 - WGS84_E2) + height) * sin_lat,
+        ],
         axis=-1,
     )
 

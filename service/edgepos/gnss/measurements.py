@@ -53,8 +53,14 @@ class PseudorangeSet:
         """Rows where the boolean ``keep`` is true."""
         rows = np.flatnonzero(keep)
         return PseudorangeSet(
-            self.gpst, tuple(self.systems[i] for i in rows), self.prns[rows], self.pseudorange_m[rows],
-            self.cn0_dbhz[rows], self.sat_position[rows], self.sat_clock_s[rows], self.frequency_hz[rows],
+            self.gpst,
+            tuple(self.systems[i] for i in rows),
+            self.prns[rows],
+            self.pseudorange_m[rows],
+            self.cn0_dbhz[rows],
+            self.sat_position[rows],
+            self.sat_clock_s[rows],
+            self.frequency_hz[rows],
             None if self.range_rate_mps is None else self.range_rate_mps[rows],
             None if self.sat_velocity is None else self.sat_velocity[rows],
             None if self.sat_clock_drift is None else self.sat_clock_drift[rows],
@@ -71,7 +77,9 @@ class PseudorangeSet:
 def doppler_to_range_rate(doppler_hz: np.ndarray, frequency_hz: np.ndarray) -> np.ndarray:
     """Range rate (m/s) of Dopplers (Hz, RINEX sign: positive when the satellite approaches) on carriers (Hz):
     -D c / f."""
-    result: np.ndarray = -np.asarray(doppler_hz, dtype=float) * SPEED_OF_LIGHT / np.asarray(frequency_hz, dtype=float)
+    result: np.ndarray = (
+        -np.asarray(doppler_hz, dtype=float) * SPEED_OF_LIGHT / np.asarray(frequency_hz, dtype=float)
+    )
     return result
 
 
@@ -102,9 +110,16 @@ def prepare_epoch(
     range_rate = doppler_to_range_rate(epoch.doppler_hz[rows], frequency[rows])
     doppler = bool(np.any(np.isfinite(range_rate)))
     prepared = PseudorangeSet(
-        epoch.gpst, tuple(epoch.systems[i] for i in rows), epoch.prns[rows], epoch.pseudorange_m[rows],
-        epoch.cn0_dbhz[rows], states.position, states.clock_s, frequency[rows],
-        range_rate if doppler else None, states.velocity if doppler else None,
+        epoch.gpst,
+        tuple(epoch.systems[i] for i in rows),
+        epoch.prns[rows],
+        epoch.pseudorange_m[rows],
+        epoch.cn0_dbhz[rows],
+        states.position,
+        states.clock_s,
+        frequency[rows],
+        range_rate if doppler else None,
+        states.velocity if doppler else None,
         states.clock_drift if doppler else None,
     )
     return prepared, dropped

@@ -83,8 +83,31 @@ class BroadcastOrbits:
     def __init__(self, ephemerides: Sequence[KeplerEphemeris], healthy_only: bool = True) -> None:
         kept = [e for e in ephemerides if e.system in GM and (e.health == 0 or not healthy_only)]
         self.ephemerides: tuple[KeplerEphemeris, ...] = tuple(kept)
-        names = ("toc", "af0", "af1", "af2", "crs", "delta_n", "m0", "cuc", "e", "cus", "sqrt_a", "toe",
-                 "toe_sow", "cic", "omega0", "cis", "i0", "crc", "omega", "omega_dot", "idot", "tgd1", "tgd2")
+        names = (
+            "toc",
+            "af0",
+            "af1",
+            "af2",
+            "crs",
+            "delta_n",
+            "m0",
+            "cuc",
+            "e",
+            "cus",
+            "sqrt_a",
+            "toe",
+            "toe_sow",
+            "cic",
+            "omega0",
+            "cis",
+            "i0",
+            "crc",
+            "omega",
+            "omega_dot",
+            "idot",
+            "tgd1",
+            "tgd2",
+        )
         self._a = {n: np.array([getattr(e, n) for e in kept], dtype=float) for n in names}
         self._gm = np.array([GM[e.system] for e in kept], dtype=float)
         self._we = np.array([OMEGA_E_ICD[e.system] for e in kept], dtype=float)
@@ -138,7 +161,9 @@ class BroadcastOrbits:
         ecc = a["e"]
         ecc_anomaly = mean_anomaly.copy()
         for _ in range(30):
-            step = (ecc_anomaly - ecc * np.sin(ecc_anomaly) - mean_anomaly) / (1.0 - ecc * np.cos(ecc_anomaly))
+            step = (ecc_anomaly - ecc * np.sin(ecc_anomaly) - mean_anomaly) / (
+                1.0 - ecc * np.cos(ecc_anomaly)
+            )
             ecc_anomaly -= step
             if np.all(np.abs(step) < 1e-14):
                 break

@@ -125,7 +125,9 @@ def _orbit_fields(line: str, line_number: int) -> list[float]:
     return [_number(padded[4 + 19 * k : 23 + 19 * k], line_number, f"orbit field {k + 1}") for k in range(4)]
 
 
-def _parse_header(lines: list[str]) -> tuple[int, float, dict[str, tuple[float, float, float, float]], int | None]:
+def _parse_header(
+    lines: list[str],
+) -> tuple[int, float, dict[str, tuple[float, float, float, float]], int | None]:
     """Header -> (index of the first data line, version, ionosphere sets, leap seconds)."""
     if not lines or "RINEX VERSION / TYPE" not in lines[0]:
         raise RinexError(1, "first line must be the 'RINEX VERSION / TYPE' header line")
@@ -143,7 +145,9 @@ def _parse_header(lines: list[str]) -> tuple[int, float, dict[str, tuple[float, 
             return index + 1, version, ionosphere, leap
         if label == "IONOSPHERIC CORR":
             kind = line[:4].strip()
-            values = [_number(line[5 + 12 * k : 17 + 12 * k], number, f"{kind} coefficient {k}") for k in range(4)]
+            values = [
+                _number(line[5 + 12 * k : 17 + 12 * k], number, f"{kind} coefficient {k}") for k in range(4)
+            ]
             if any(math.isnan(v) for v in values):
                 raise RinexError(number, f"IONOSPHERIC CORR {kind}: blank coefficient")
             ionosphere[kind] = (values[0], values[1], values[2], values[3])
@@ -181,14 +185,49 @@ def _kepler_record(lines: list[str], first_number: int) -> KeplerEphemeris:
             raise RinexError(first_number + offset, "broadcast-orbit line must start with four blanks")
         orbit.extend(_orbit_fields(line, first_number + offset))
     required = {
-        "af0": clock[0], "af1": clock[1], "af2": clock[2], "Crs": orbit[1], "Delta n": orbit[2], "M0": orbit[3],
-        "Cuc": orbit[4], "e": orbit[5], "Cus": orbit[6], "sqrt(A)": orbit[7], "Toe": orbit[8], "Cic": orbit[9],
-        "OMEGA0": orbit[10], "Cis": orbit[11], "i0": orbit[12], "Crc": orbit[13], "omega": orbit[14],
-        "OMEGA DOT": orbit[15], "IDOT": orbit[16], "week": orbit[18],
+        "af0": clock[0],
+        "af1": clock[1],
+        "af2": clock[2],
+        "Crs": orbit[1],
+        "Delta n": orbit[2],
+        "M0": orbit[3],
+        "Cuc": orbit[4],
+        "e": orbit[5],
+        "Cus": orbit[6],
+        "sqrt(A)": orbit[7],
+        "Toe": orbit[8],
+        "Cic": orbit[9],
+        "OMEGA0": orbit[10],
+        "Cis": orbit[11],
+        "i0": orbit[12],
+        "Crc": orbit[13],
+        "omega": orbit[14],
+        "OMEGA DOT": orbit[15],
+        "IDOT": orbit[16],
+        "week": orbit[18],
     }
-    line_of = {"af0": 0, "af1": 0, "af2": 0, "Crs": 1, "Delta n": 1, "M0": 1, "Cuc": 2, "e": 2, "Cus": 2,
-               "sqrt(A)": 2, "Toe": 3, "Cic": 3, "OMEGA0": 3, "Cis": 3, "i0": 4, "Crc": 4, "omega": 4,
-               "OMEGA DOT": 4, "IDOT": 5, "week": 5}
+    line_of = {
+        "af0": 0,
+        "af1": 0,
+        "af2": 0,
+        "Crs": 1,
+        "Delta n": 1,
+        "M0": 1,
+        "Cuc": 2,
+        "e": 2,
+        "Cus": 2,
+        "sqrt(A)": 2,
+        "Toe": 3,
+        "Cic": 3,
+        "OMEGA0": 3,
+        "Cis": 3,
+        "i0": 4,
+        "Crc": 4,
+        "omega": 4,
+        "OMEGA DOT": 4,
+        "IDOT": 5,
+        "week": 5,
+    }
     for name, value in required.items():
         if not math.isfinite(value):
             raise RinexError(first_number + line_of[name], f"{system}{prn:02d}: field {name} is blank")
@@ -222,12 +261,37 @@ def _kepler_record(lines: list[str], first_number: int) -> KeplerEphemeris:
     # The week field goes with Toe; the clock epoch may sit across a week boundary from it.
     toe += SECONDS_PER_WEEK * round((toc - toe) / SECONDS_PER_WEEK)
     return KeplerEphemeris(
-        system=system, prn=prn, toc=toc, af0=clock[0], af1=clock[1], af2=clock[2],
-        iode=optional(orbit[0]), crs=orbit[1], delta_n=orbit[2], m0=orbit[3], cuc=orbit[4], e=orbit[5],
-        cus=orbit[6], sqrt_a=orbit[7], toe=toe, toe_sow=toe_sow, cic=orbit[9], omega0=orbit[10], cis=orbit[11],
-        i0=orbit[12], crc=orbit[13], omega=orbit[14], omega_dot=orbit[15], idot=orbit[16], week=week,
-        accuracy_m=optional(orbit[20], math.nan), health=int(optional(orbit[21])), tgd1=tgd1, tgd2=tgd2,
-        transmit_time=transmit, fit_interval_s=fit,
+        system=system,
+        prn=prn,
+        toc=toc,
+        af0=clock[0],
+        af1=clock[1],
+        af2=clock[2],
+        iode=optional(orbit[0]),
+        crs=orbit[1],
+        delta_n=orbit[2],
+        m0=orbit[3],
+        cuc=orbit[4],
+        e=orbit[5],
+        cus=orbit[6],
+        sqrt_a=orbit[7],
+        toe=toe,
+        toe_sow=toe_sow,
+        cic=orbit[9],
+        omega0=orbit[10],
+        cis=orbit[11],
+        i0=orbit[12],
+        crc=orbit[13],
+        omega=orbit[14],
+        omega_dot=orbit[15],
+        idot=orbit[16],
+        week=week,
+        accuracy_m=optional(orbit[20], math.nan),
+        health=int(optional(orbit[21])),
+        tgd1=tgd1,
+        tgd2=tgd2,
+        transmit_time=transmit,
+        fit_interval_s=fit,
         data_sources=int(optional(orbit[17])) if system == "E" else 0,
     )
 

@@ -121,7 +121,8 @@ def _parse_header(lines: Iterator[str]) -> tuple[ObservationHeader, int]:
             for system, (count, declared_at) in expected.items():
                 if len(obs_types[system]) != count:
                     raise RinexError(
-                        declared_at, f"system {system}: {len(obs_types[system])} observation types, header said {count}"
+                        declared_at,
+                        f"system {system}: {len(obs_types[system])} observation types, header said {count}",
                     )
             header = ObservationHeader(
                 version, {k: tuple(v) for k, v in obs_types.items()}, time_system, approx, interval, delta
@@ -204,11 +205,14 @@ def iter_epochs(
             continue
         if code not in types:
             if explicit:
-                raise RinexError(number, f"system {system} has no observation {code!r}; header lists {', '.join(types)}")
+                raise RinexError(
+                    number, f"system {system} has no observation {code!r}; header lists {', '.join(types)}"
+                )
             continue
         doppler_type, carrier_type = doppler_code(code), carrier_code(code)
         columns[system] = (
-            types.index(code), types.index(cn0_code) if cn0_code in types else None,
+            types.index(code),
+            types.index(cn0_code) if cn0_code in types else None,
             types.index(doppler_type) if doppler_type in types else None,
             types.index(carrier_type) if carrier_type in types else None,
         )
@@ -230,10 +234,17 @@ def iter_epochs(
                 number += 1
             continue
         try:
-            t = calendar_to_seconds(
-                int(line[2:6]), int(line[7:9]), int(line[10:12]), int(line[13:15]), int(line[16:18]),
-                float(line[18:29]),
-            ) + offset
+            t = (
+                calendar_to_seconds(
+                    int(line[2:6]),
+                    int(line[7:9]),
+                    int(line[10:12]),
+                    int(line[13:15]),
+                    int(line[16:18]),
+                    float(line[18:29]),
+                )
+                + offset
+            )
         except ValueError:
             raise RinexError(number, f"bad epoch time {line[2:29]!r}") from None
         epoch_line = number
@@ -248,9 +259,13 @@ def iter_epochs(
             sat_line = next(stream, None)
             number += 1
             if sat_line is None:
-                raise RinexError(number, f"file ends inside the epoch of line {epoch_line} ({count} satellites announced)")
+                raise RinexError(
+                    number, f"file ends inside the epoch of line {epoch_line} ({count} satellites announced)"
+                )
             if sat_line.startswith(">"):
-                raise RinexError(number, f"epoch of line {epoch_line} announced {count} satellites, found fewer")
+                raise RinexError(
+                    number, f"epoch of line {epoch_line} announced {count} satellites, found fewer"
+                )
             system = sat_line[0]
             if system not in columns:
                 continue
@@ -263,7 +278,11 @@ def iter_epochs(
                 doppler = _field(sat_line, doppler_index) if doppler_index is not None else math.nan
                 carrier_index = columns[system][3]
                 carrier = _field(sat_line, carrier_index) if carrier_index is not None else math.nan
-                lli = _lli(sat_line, carrier_index) if carrier_index is not None and math.isfinite(carrier) else 0
+                lli = (
+                    _lli(sat_line, carrier_index)
+                    if carrier_index is not None and math.isfinite(carrier)
+                    else 0
+                )
             except ValueError:
                 raise RinexError(number, f"cannot read observation of {sat_line[:3]!r}") from None
             if math.isnan(value) or value <= 0.0:
@@ -275,10 +294,20 @@ def iter_epochs(
             dopplers.append(doppler)
             carriers.append(carrier)
             llis.append(lli)
-        yield header, ObservationEpoch(
-            t, flag, epoch_line, tuple(systems), np.asarray(prns, dtype=int), np.asarray(ranges, dtype=float),
-            np.asarray(cn0s, dtype=float), np.asarray(dopplers, dtype=float), np.asarray(carriers, dtype=float),
-            np.asarray(llis, dtype=int),
+        yield (
+            header,
+            ObservationEpoch(
+                t,
+                flag,
+                epoch_line,
+                tuple(systems),
+                np.asarray(prns, dtype=int),
+                np.asarray(ranges, dtype=float),
+                np.asarray(cn0s, dtype=float),
+                np.asarray(dopplers, dtype=float),
+                np.asarray(carriers, dtype=float),
+                np.asarray(llis, dtype=int),
+            ),
         )
 
 
@@ -288,7 +317,9 @@ def read_header(path: str | Path) -> ObservationHeader:
         return _parse_header(line.rstrip("\r\n") for line in handle)[0]
 
 
-def read_epochs(path: str | Path, codes: Mapping[str, tuple[str, str]] | None = None) -> Iterator[ObservationEpoch]:
+def read_epochs(
+    path: str | Path, codes: Mapping[str, tuple[str, str]] | None = None
+) -> Iterator[ObservationEpoch]:
     """Stream the epochs of a RINEX 3 observation file (the file stays open while iterating)."""
     with open(path, encoding="ascii", errors="replace") as handle:
         for _, epoch in iter_epochs(handle, codes):

@@ -130,7 +130,11 @@ def _weights(elevation: np.ndarray, config: SppConfig, corrected: np.ndarray | N
 
 
 def _iterate(
-    prs: PseudorangeSet, active: np.ndarray, atmosphere: Atmosphere, config: SppConfig, start: np.ndarray,
+    prs: PseudorangeSet,
+    active: np.ndarray,
+    atmosphere: Atmosphere,
+    config: SppConfig,
+    start: np.ndarray,
     differential: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict[str, float], np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """Gauss-Newton on the rows in ``active``; returns position, clocks, and per-row (all rows) residuals,
@@ -187,13 +191,18 @@ def _dop(design: np.ndarray, position: np.ndarray) -> Dop:
     if not (np.all(np.isfinite(cov)) and np.all(diag > 0.0)):
         raise SppError("degenerate satellite geometry (no dilution of precision)")
     return Dop(
-        float(np.sqrt(np.trace(cov))), float(np.sqrt(diag[:3].sum())), float(np.sqrt(diag[:2].sum())),
+        float(np.sqrt(np.trace(cov))),
+        float(np.sqrt(diag[:3].sum())),
+        float(np.sqrt(diag[:2].sum())),
         float(np.sqrt(diag[2])),
     )
 
 
 def solve_epoch(
-    prs: PseudorangeSet, atmosphere: Atmosphere, config: SppConfig = SppConfig(), initial: np.ndarray | None = None,
+    prs: PseudorangeSet,
+    atmosphere: Atmosphere,
+    config: SppConfig = SppConfig(),
+    initial: np.ndarray | None = None,
     corrected: np.ndarray | None = None,
 ) -> SppSolution:
     """Solve one epoch; ``initial`` ECEF guess (m), the Earth's centre when None; ``corrected`` (boolean per
@@ -236,17 +245,29 @@ def solve_epoch(
         except SppError:
             velocity = None  # too few Dopplers or a singular geometry: the position stands on its own
     return SppSolution(
-        gpst=prs.gpst, position=x, lat=lat, lon=lon, height=height, clock_bias_m=clocks,
+        gpst=prs.gpst,
+        position=x,
+        lat=lat,
+        lon=lon,
+        height=height,
+        clock_bias_m=clocks,
         dop=_dop(design[rows][:, np.any(design[rows] != 0.0, axis=0)], x),
-        sats=tuple(sats[i] for i in rows), residuals_m=residual[rows], elevation_rad=elevation[rows],
-        excluded=tuple(sats[i] for i in excluded), iterations=iterations, chi2_passed=passed,
+        sats=tuple(sats[i] for i in rows),
+        residuals_m=residual[rows],
+        elevation_rad=elevation[rows],
+        excluded=tuple(sats[i] for i in excluded),
+        iterations=iterations,
+        chi2_passed=passed,
         masked=tuple(sats[i] for i in np.flatnonzero(active & ~used)),
         velocity=velocity,
     )
 
 
 def solve_velocity(
-    prs: PseudorangeSet, position: np.ndarray, elevation: np.ndarray, usable: np.ndarray,
+    prs: PseudorangeSet,
+    position: np.ndarray,
+    elevation: np.ndarray,
+    usable: np.ndarray,
     config: SppConfig = SppConfig(),
 ) -> VelocitySolution:
     """Velocity and receiver clock drift from the range rates of the rows in ``usable`` (boolean) that have
@@ -260,7 +281,10 @@ def solve_velocity(
         raise SppError("no Doppler in this epoch")
     active = usable & np.isfinite(prs.range_rate_mps) & np.isfinite(prs.sat_clock_drift)
     zero = np.zeros(3)
-    known = sagnac_range_rate(prs.sat_position, prs.sat_velocity, position, zero) - SPEED_OF_LIGHT * prs.sat_clock_drift
+    known = (
+        sagnac_range_rate(prs.sat_position, prs.sat_velocity, position, zero)
+        - SPEED_OF_LIGHT * prs.sat_clock_drift
+    )
     diff = prs.sat_position - position
     unit = diff / np.linalg.norm(diff, axis=1)[:, None]
     design = np.zeros((len(prs), 4))
@@ -295,14 +319,21 @@ def solve_velocity(
     lat, lon, _ = ecef_to_geodetic(position)
     sats = prs.sats
     return VelocitySolution(
-        velocity=solution[:3].copy(), velocity_enu=enu_rotation(float(lat), float(lon)) @ solution[:3],
-        clock_drift_mps=float(solution[3]), sats=tuple(sats[i] for i in rows), residuals_mps=residual[rows],
-        excluded=tuple(sats[i] for i in excluded), chi2_passed=passed,
+        velocity=solution[:3].copy(),
+        velocity_enu=enu_rotation(float(lat), float(lon)) @ solution[:3],
+        clock_drift_mps=float(solution[3]),
+        sats=tuple(sats[i] for i in rows),
+        residuals_mps=residual[rows],
+        excluded=tuple(sats[i] for i in excluded),
+        chi2_passed=passed,
     )
 
 
 def solve_recording(
-    obs_path: str, nav_path: str, config: SppConfig = SppConfig(), codes: Mapping[str, tuple[str, str]] | None = None
+    obs_path: str,
+    nav_path: str,
+    config: SppConfig = SppConfig(),
+    codes: Mapping[str, tuple[str, str]] | None = None,
 ) -> list[tuple[float, SppSolution | None, str]]:
     """Solve every epoch of a RINEX observation file: (GPS time, solution or None, reason when None).
 
@@ -335,7 +366,9 @@ def read_reference(path: str) -> tuple[np.ndarray, np.ndarray]:
     -> (GPS seconds (n,), ECEF positions (n, 3))."""
     data = np.loadtxt(path, delimiter=",", comments="#", ndmin=2)
     if data.shape[1] < 5:
-        raise ValueError(f"{path}: expected at least 5 columns (week, sow, lat, lon, height), got {data.shape[1]}")
+        raise ValueError(
+            f"{path}: expected at least 5 columns (week, sow, lat, lon, height), got {data.shape[1]}"
+        )
     gpst = data[:, 0] * 604800.0 + data[:, 1]
     return gpst, geodetic_to_ecef(np.radians(data[:, 2]), np.radians(data[:, 3]), data[:, 4])
 
@@ -355,7 +388,9 @@ def reference_velocity(ref_time: np.ndarray, ref_ecef: np.ndarray, max_gap_s: fl
 
 
 def horizontal_errors(
-    solutions: Iterable[tuple[float, SppSolution | None, str]], ref_time: np.ndarray, ref_ecef: np.ndarray,
+    solutions: Iterable[tuple[float, SppSolution | None, str]],
+    ref_time: np.ndarray,
+    ref_ecef: np.ndarray,
     tolerance_s: float = 0.05,
 ) -> tuple[np.ndarray, int, int]:
     """Horizontal errors (m) of solved epochs that have a reference within ``tolerance_s``; also the number of
@@ -390,13 +425,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m edgepos.gnss.spp", description=__doc__.splitlines()[0])
     parser.add_argument("--obs", required=True, help="RINEX 3 observation file")
     parser.add_argument("--nav", required=True, help="RINEX 3 navigation file (GPS/BeiDou/Galileo)")
-    parser.add_argument("--reference", help="reference CSV: week, seconds of week, lat deg, lon deg, height m")
     parser.add_argument(
-        "--systems", default=ALL_SYSTEMS, help=f"constellations to use (default {ALL_SYSTEMS}, all this project reads; e.g. GC)"
+        "--reference", help="reference CSV: week, seconds of week, lat deg, lon deg, height m"
+    )
+    parser.add_argument(
+        "--systems",
+        default=ALL_SYSTEMS,
+        help=f"constellations to use (default {ALL_SYSTEMS}, all this project reads; e.g. GC)",
     )
     parser.add_argument("--mask-deg", type=float, default=10.0, help="elevation mask (degrees)")
-    parser.add_argument("--max-exclusions", type=int, default=SppConfig.max_exclusions,
-                        help="outliers excluded per epoch at most (0: plain WLS without exclusion)")
+    parser.add_argument(
+        "--max-exclusions",
+        type=int,
+        default=SppConfig.max_exclusions,
+        help="outliers excluded per epoch at most (0: plain WLS without exclusion)",
+    )
     parser.add_argument("--json", action="store_true", help="print the figures as JSON")
     args = parser.parse_args(argv)
     try:

@@ -39,7 +39,9 @@ SCENARIO_PIPELINE = {"rsu-imu": "rsu_imu"}
 INITIAL_POSITION_STD = 1.0
 INITIAL_VELOCITY_STD = 1.0
 
-WireMeasurement = RsuMeasurement | GyroMeasurement | GnssFixMeasurement | OdometerMeasurement | V2vRangeMeasurement
+WireMeasurement = (
+    RsuMeasurement | GyroMeasurement | GnssFixMeasurement | OdometerMeasurement | V2vRangeMeasurement
+)
 
 
 def scenario_rsus(scenario: Scenario) -> list[Rsu]:
@@ -77,8 +79,10 @@ def to_wire(observation: Observation, peer_prefix: str = "") -> WireMeasurement:
         return OdometerMeasurement(t=observation.t, distance=observation.distance, speed=observation.speed)
     if isinstance(observation, V2vRangeObservation):
         return V2vRangeMeasurement(
-            t=observation.t, peer_vehicle_id=f"{peer_prefix}{observation.peer_vehicle_id}",
-            range=observation.range, toa=observation.toa,
+            t=observation.t,
+            peer_vehicle_id=f"{peer_prefix}{observation.peer_vehicle_id}",
+            range=observation.range,
+            toa=observation.toa,
         )
     if isinstance(observation, RsuObservation):
         return RsuMeasurement(

@@ -74,7 +74,9 @@ async def run_federated(
     sessions = []
     try:
         # (target or None for an assisting vehicle, client, session, batches), assisting vehicles before their target
-        lanes: list[tuple[FederatedVehicle | None, AsyncEdgeposClient, Session, list[list[common.WireMeasurement]]]] = []
+        lanes: list[
+            tuple[FederatedVehicle | None, AsyncEdgeposClient, Session, list[list[common.WireMeasurement]]]
+        ] = []
         for target, run in zip(targets, runs):
             prefix = f"{target.vehicle_id}-"
             for name in run.neighbour_ids:
@@ -88,7 +90,11 @@ async def run_federated(
             session = await client.create_session(target.vehicle_id, "v2x_federated", options=PAPER_OPTIONS)
             sessions.append((client, session))
             batches = [
-                [common.to_wire(o, prefix) for k in range(s, min(s + batch_epochs, count)) for o in run.observations[k]]
+                [
+                    common.to_wire(o, prefix)
+                    for k in range(s, min(s + batch_epochs, count))
+                    for o in run.observations[k]
+                ]
                 for s in range(0, count, batch_epochs)
             ]
             lanes.append((target, client, session, batches))
@@ -97,15 +103,24 @@ async def run_federated(
             if realtime:
                 due = t0 + min(start + batch_epochs, count) * STEP
                 await asyncio.sleep(max(0.0, due - time.perf_counter()))
-            await asyncio.gather(*(_send(client, session, b[group], None) for tgt, client, session, b in lanes if tgt is None))
-            await asyncio.gather(*(_send(client, session, b[group], tgt) for tgt, client, session, b in lanes if tgt is not None))
+            await asyncio.gather(
+                *(_send(client, session, b[group], None) for tgt, client, session, b in lanes if tgt is None)
+            )
+            await asyncio.gather(
+                *(
+                    _send(client, session, b[group], tgt)
+                    for tgt, client, session, b in lanes
+                    if tgt is not None
+                )
+            )
     finally:
         await asyncio.gather(*(c.delete_session(s) for c, s in sessions), return_exceptions=True)
         await asyncio.gather(*(c.close() for c in clients), return_exceptions=True)
     for target, run in zip(targets, runs):
         errors = [
             (f.x - run.truth[k, 0]) ** 2 + (f.y - run.truth[k, 3]) ** 2
-            for k, f in enumerate(target.fixes) if k >= 1 and f.x is not None
+            for k, f in enumerate(target.fixes)
+            if k >= 1 and f.x is not None
         ]
         target.position_rmse = math.sqrt(sum(errors) / len(errors)) if errors else None
     return targets, time.perf_counter() - started
@@ -130,8 +145,10 @@ async def _send(
 
 
 def report(targets: list[FederatedVehicle], seed: int, elapsed: float) -> str:
-    lines = [f"scenario federated (clean), seed {seed}, {len(targets)} target vehicles + 4 assisting each, {elapsed:.1f} s",
-             f"{'vehicle':<12} {'fixes':>6} {'position RMSE (m)':>18}  error"]
+    lines = [
+        f"scenario federated (clean), seed {seed}, {len(targets)} target vehicles + 4 assisting each, {elapsed:.1f} s",
+        f"{'vehicle':<12} {'fixes':>6} {'position RMSE (m)':>18}  error",
+    ]
     for v in targets:
         rmse = "-" if v.position_rmse is None else f"{v.position_rmse:.3f}"
         lines.append(f"{v.vehicle_id:<12} {len(v.fixes):>6} {rmse:>18}  {v.error or ''}")

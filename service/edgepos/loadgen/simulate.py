@@ -239,7 +239,10 @@ async def run_simulation(
     if delivery is None:
         batches = [common.wire_batches(stream, batch_epochs) for stream in streams]
     else:
-        batches = [_late_batches(stream, delivery, seed, i, batch_epochs, drop_late) for i, stream in enumerate(streams)]
+        batches = [
+            _late_batches(stream, delivery, seed, i, batch_epochs, drop_late)
+            for i, stream in enumerate(streams)
+        ]
     total = sum(len(stream) for stream in streams)
     runs = [VehicleRun(index=i, vehicle_id=f"sim-{i + 1}") for i in range(vehicles)]
     progress = Progress(total, vehicles, progress_stream)
@@ -279,10 +282,10 @@ async def run_simulation(
     )
 
 
-
 def _rmse(squares: list[float]) -> float | None:
     """Root mean of squared errors; None without any."""
     return math.sqrt(float(np.mean(squares))) if squares else None
+
 
 def _late_batches(
     epochs: list[list[Observation]],
@@ -330,14 +333,21 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--url", required=True, help="base URL of the server, e.g. http://127.0.0.1:8000")
     parser.add_argument("--vehicles", type=int, default=1, help="simulated vehicles (default 1)")
     parser.add_argument(
-        "--scenario", choices=sorted([*common.SCENARIOS, *federated_sim.SCENARIOS, *v2v_sim.SCENARIOS]),
-        default="rsu-imu", help="scenario (v2v: --vehicles groups of the paper's four vehicles)",
+        "--scenario",
+        choices=sorted([*common.SCENARIOS, *federated_sim.SCENARIOS, *v2v_sim.SCENARIOS]),
+        default="rsu-imu",
+        help="scenario (v2v: --vehicles groups of the paper's four vehicles)",
     )
     parser.add_argument(
-        "--layout", choices=("straight", "ring"), default="straight", help="v2v only: the paper's case (default straight)"
+        "--layout",
+        choices=("straight", "ring"),
+        default="straight",
+        help="v2v only: the paper's case (default straight)",
     )
     parser.add_argument(
-        "--method", choices=("gps", "gps_dr", "ukf", "aug_ukf"), default="aug_ukf",
+        "--method",
+        choices=("gps", "gps_dr", "ukf", "aug_ukf"),
+        default="aug_ukf",
         help="v2v only: the v2v_coop method every vehicle uses (default aug_ukf)",
     )
     parser.add_argument(
@@ -431,10 +441,18 @@ def _run_late(args: argparse.Namespace, key: str) -> int:
         try:
             results[label] = asyncio.run(
                 run_simulation(
-                    args.url, vehicles=args.vehicles, scenario_name=args.scenario, admin_key=key, seed=args.seed,
-                    batch_epochs=args.batch_epochs, realtime=args.realtime, epochs=args.epochs,
-                    progress_stream=sys.stderr, timeout=args.timeout,
-                    delivery=delivery if late else None, drop_late=drop,
+                    args.url,
+                    vehicles=args.vehicles,
+                    scenario_name=args.scenario,
+                    admin_key=key,
+                    seed=args.seed,
+                    batch_epochs=args.batch_epochs,
+                    realtime=args.realtime,
+                    epochs=args.epochs,
+                    progress_stream=sys.stderr,
+                    timeout=args.timeout,
+                    delivery=delivery if late else None,
+                    drop_late=drop,
                 )
             )
         except EdgeposError as error:
@@ -480,8 +498,14 @@ def _run_federated(args: argparse.Namespace) -> int:
     try:
         targets, elapsed = asyncio.run(
             federated_sim.run_federated(
-                args.url, vehicles=args.vehicles, seed=args.seed, batch_epochs=args.batch_epochs,
-                realtime=args.realtime, epochs=args.epochs, timeout=args.timeout, admin_key=args.admin_key,
+                args.url,
+                vehicles=args.vehicles,
+                seed=args.seed,
+                batch_epochs=args.batch_epochs,
+                realtime=args.realtime,
+                epochs=args.epochs,
+                timeout=args.timeout,
+                admin_key=args.admin_key,
             )
         )
     except EdgeposError as error:
@@ -492,8 +516,15 @@ def _run_federated(args: argparse.Namespace) -> int:
         document = {
             "scenario": "federated",
             "seed": args.seed,
-            "vehicles": [{"vehicle_id": v.vehicle_id, "fixes": len(v.fixes), "position_rmse": v.position_rmse,
-                          "error": v.error} for v in targets],
+            "vehicles": [
+                {
+                    "vehicle_id": v.vehicle_id,
+                    "fixes": len(v.fixes),
+                    "position_rmse": v.position_rmse,
+                    "error": v.error,
+                }
+                for v in targets
+            ],
         }
         args.json.write_text(json.dumps(document, indent=2) + "\n")
     return 1 if any(v.error for v in targets) else 0
@@ -507,8 +538,15 @@ def _run_v2v(args: argparse.Namespace) -> int:
     try:
         vehicles, elapsed = asyncio.run(
             v2v_sim.run_v2v(
-                args.url, groups=args.vehicles, seed=args.seed, layout=args.layout, method=args.method,
-                batch_epochs=args.batch_epochs, realtime=args.realtime, epochs=args.epochs, timeout=args.timeout,
+                args.url,
+                groups=args.vehicles,
+                seed=args.seed,
+                layout=args.layout,
+                method=args.method,
+                batch_epochs=args.batch_epochs,
+                realtime=args.realtime,
+                epochs=args.epochs,
+                timeout=args.timeout,
                 admin_key=args.admin_key,
             )
         )
@@ -522,8 +560,15 @@ def _run_v2v(args: argparse.Namespace) -> int:
             "layout": args.layout,
             "method": args.method,
             "seed": args.seed,
-            "vehicles": [{"vehicle_id": v.vehicle_id, "fixes": len(v.fixes), "position_rmse": v.position_rmse,
-                          "error": v.error} for v in vehicles],
+            "vehicles": [
+                {
+                    "vehicle_id": v.vehicle_id,
+                    "fixes": len(v.fixes),
+                    "position_rmse": v.position_rmse,
+                    "error": v.error,
+                }
+                for v in vehicles
+            ],
         }
         args.json.write_text(json.dumps(document, indent=2) + "\n")
     return 1 if any(v.error for v in vehicles) else 0

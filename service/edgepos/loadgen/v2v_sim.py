@@ -54,7 +54,9 @@ async def run_v2v(
     runs = [make_run(seed, g, layout) for g in range(groups)]
     count = len(runs[0].times) if epochs is None else min(epochs, len(runs[0].times))
     vehicles = [
-        V2vVehicle(g, i, f"v2v{seed}-{g + 1}-{vid}") for g in range(groups) for i, vid in enumerate(VEHICLE_IDS)
+        V2vVehicle(g, i, f"v2v{seed}-{g + 1}-{vid}")
+        for g in range(groups)
+        for i, vid in enumerate(VEHICLE_IDS)
     ]
     started = time.perf_counter()
     limits = httpx.Limits(max_connections=1, max_keepalive_connections=1)
@@ -73,13 +75,21 @@ async def run_v2v(
             stop = min(start + batch_epochs, count)
             if realtime:
                 await asyncio.sleep(max(0.0, t0 + stop * STEP - time.perf_counter()))
-            await asyncio.gather(*(
-                _send(client, session, vehicle, [
-                    common.to_wire(o, f"v2v{seed}-{vehicle.group + 1}-")
-                    for k in range(start, stop) for o in runs[vehicle.group].observations[vehicle.index][k]
-                ])
-                for vehicle, client, session in lanes
-            ))
+            await asyncio.gather(
+                *(
+                    _send(
+                        client,
+                        session,
+                        vehicle,
+                        [
+                            common.to_wire(o, f"v2v{seed}-{vehicle.group + 1}-")
+                            for k in range(start, stop)
+                            for o in runs[vehicle.group].observations[vehicle.index][k]
+                        ],
+                    )
+                    for vehicle, client, session in lanes
+                )
+            )
     finally:
         await asyncio.gather(*(c.delete_session(s) for _, c, s in lanes), return_exceptions=True)
         await asyncio.gather(*(c.close() for c in clients), return_exceptions=True)
@@ -87,7 +97,8 @@ async def run_v2v(
         truth = runs[vehicle.group].positions[vehicle.index]
         errors = [
             (f.x - truth[k, 0]) ** 2 + (f.y - truth[k, 1]) ** 2
-            for k, f in enumerate(vehicle.fixes) if k >= 1 and f.x is not None
+            for k, f in enumerate(vehicle.fixes)
+            if k >= 1 and f.x is not None
         ]
         vehicle.position_rmse = math.sqrt(sum(errors) / len(errors)) if errors else None
     return vehicles, time.perf_counter() - started

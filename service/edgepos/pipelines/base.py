@@ -251,7 +251,11 @@ class Pipeline(ABC):
     """Whether :meth:`smooth` is available: the session's track can be served smoothed."""
 
     def smooth(
-        self, state: bytes, observations: Sequence[Observation], environment: Environment, lag_s: float | None = None
+        self,
+        state: bytes,
+        observations: Sequence[Observation],
+        environment: Environment,
+        lag_s: float | None = None,
     ) -> list[Fix]:
         """Filter ``observations`` from ``state`` as :meth:`process` does, then smooth backwards: one
         smoothed fix per epoch (``lag_s`` None: each with all the data; else with the data up to
@@ -285,7 +289,9 @@ class Pipeline(ABC):
     def summarise(self, state: bytes) -> StateSummary:
         """The session's state in words and numbers, without filtering."""
 
-    def replayed_observations(self, state: bytes, observations: Sequence[Observation] | None) -> list[Observation]:
+    def replayed_observations(
+        self, state: bytes, observations: Sequence[Observation] | None
+    ) -> list[Observation]:
         """Stored observations that applying ``observations`` would filter again (``pipelines.lag``), or
         with None all that the session keeps: what the caller must look up and budget for beyond the
         batch. A pipeline that keeps no measurements keeps none."""
@@ -307,7 +313,17 @@ def is_finite_number(value: Any) -> bool:
 
 
 _FIX_NUMBERS = (
-    "x", "y", "vx", "vy", "speed", "heading", "yaw_rate", "nis", "latitude", "longitude", "height",
+    "x",
+    "y",
+    "vx",
+    "vy",
+    "speed",
+    "heading",
+    "yaw_rate",
+    "nis",
+    "latitude",
+    "longitude",
+    "height",
 )
 _FIX_ARRAYS = ("position_cov", "kinematic_cov", "state", "state_cov")
 _chain = itertools.chain.from_iterable

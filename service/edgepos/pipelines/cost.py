@@ -112,7 +112,8 @@ CALIBRATION: dict[str, dict[str, float]] = {
         "batch_particle": 0.0 * _US,
     },
     "v2v_coop": {
-        "gps.epoch": 314 * _US,  # the Kalman filter on the fixes (07ee333); refitted alone on 2026-11-26, load 0.4
+        "gps.epoch": 314
+        * _US,  # the Kalman filter on the fixes (07ee333); refitted alone on 2026-11-26, load 0.4
         "gps.range": 0.0 * _US,
         "gps.range2": 0.0 * _US,
         "gps_dr.epoch": 290 * _US,
@@ -202,14 +203,25 @@ class RsuImuCost(CostModel):
 
     pipeline = "rsu_imu"
     PATHS = ("compiled", "reference", "srukf")
-    REFERENCE_PATH: ClassVar[dict[str, str]] = {"ekf": "reference", "ukf": "reference", "ckf": "reference", "srukf": "srukf"}
+    REFERENCE_PATH: ClassVar[dict[str, str]] = {
+        "ekf": "reference",
+        "ukf": "reference",
+        "ckf": "reference",
+        "srukf": "srukf",
+    }
     """The constants a filter takes off the compiled kernels; every filter of ``core.filters.FILTERS`` needs
     an entry (checked on import)."""
     features = tuple(
         f"{path}.{name}"
         for path in PATHS
         for name in (
-            "epoch", "model", "joint.rsu", "joint.rsu_model", "joint.rsu2_model", "average.rsu", "average.rsu_model",
+            "epoch",
+            "model",
+            "joint.rsu",
+            "joint.rsu_model",
+            "joint.rsu2_model",
+            "average.rsu",
+            "average.rsu_model",
             "gyro_model",
         )
     ) + ("observation", "batch")
@@ -224,14 +236,18 @@ class RsuImuCost(CostModel):
         if unknown:
             raise RuntimeError(f"rsu_imu cost model: filters without constants: {unknown}")
         self.compiled_filters = frozenset(n for n in FILTERS if _filter_kind(make_filter(n)) is not None)
-        self.compiled_models = frozenset(n for n in MOTION_MODELS if _motion_kind(make_motion_model(n)) is not None)
+        self.compiled_models = frozenset(
+            n for n in MOTION_MODELS if _motion_kind(make_motion_model(n)) is not None
+        )
 
     def path(self, options: Mapping[str, Any]) -> str:
         """Which constants apply: the compiled kernels' when they cover the bank and are enabled."""
         from edgepos.core.compiled import compiled_enabled
 
         name = options["filter"]
-        covered = name in self.compiled_filters and all(model in self.compiled_models for model in options["models"])
+        covered = name in self.compiled_filters and all(
+            model in self.compiled_models for model in options["models"]
+        )
         return "compiled" if covered and compiled_enabled() else self.REFERENCE_PATH[name]
 
     def batch_features(self, options: Mapping[str, Any]) -> dict[str, float]:
@@ -269,7 +285,11 @@ class GnssTightCost(CostModel):
     pipeline = "gnss_tight"
     features = (
         tuple(f"{f}.{name}" for f in ("ukf", "pf", "upf") for name in ("epoch", "update", "pseudorange"))
-        + tuple(f"{f}.{name}" for f in ("pf", "upf") for name in ("particle", "particle_update", "particle_pseudorange"))
+        + tuple(
+            f"{f}.{name}"
+            for f in ("pf", "upf")
+            for name in ("particle", "particle_update", "particle_pseudorange")
+        )
         + ("exclusion_pseudorange", "observation", "batch", "batch_particle")
     )
 
@@ -329,7 +349,16 @@ class V2xFederatedCost(CostModel):
     every RSU and V2V range (a neighbour lookup each)."""
 
     pipeline = "v2x_federated"
-    features = ("epoch", "gnss_fix", "dead_reckoning", "range_update", "range", "range2", "observation", "batch")
+    features = (
+        "epoch",
+        "gnss_fix",
+        "dead_reckoning",
+        "range_update",
+        "range",
+        "range2",
+        "observation",
+        "batch",
+    )
 
     def batch_features(self, options: Mapping[str, Any]) -> dict[str, float]:
         return {"batch": 1.0}
@@ -448,7 +477,9 @@ def batch_cost_from_counts_s(
 
 
 def epoch_cost_s(
-    pipeline_name: str, options: Mapping[str, Any] | None, measurements_per_epoch: Mapping[str, int] | None = None
+    pipeline_name: str,
+    options: Mapping[str, Any] | None,
+    measurements_per_epoch: Mapping[str, int] | None = None,
 ) -> float:
     """Predicted CPU seconds of a batch of one epoch with ``measurements_per_epoch`` (default: the
     largest counts the service accepts, :data:`MAX_PER_EPOCH`), for the check at session creation."""
@@ -481,7 +512,9 @@ class EpochBoundViolation:
         )
 
 
-def epoch_bound_violations(pipeline_name: str, observations: Iterable[Observation]) -> list[EpochBoundViolation]:
+def epoch_bound_violations(
+    pipeline_name: str, observations: Iterable[Observation]
+) -> list[EpochBoundViolation]:
     """Every (epoch, kind) whose count exceeds :data:`MAX_PER_EPOCH`; empty when the batch is within."""
     return _violations(pipeline_name, _counts_by_time(observations))
 
@@ -538,7 +571,9 @@ def max_particles(
     return low
 
 
-def budget_fits(pipeline_name: str, options: Mapping[str, Any] | None, budget_s: float = DEFAULT_BUDGET_S) -> bool:
+def budget_fits(
+    pipeline_name: str, options: Mapping[str, Any] | None, budget_s: float = DEFAULT_BUDGET_S
+) -> bool:
     """Whether one epoch at the largest accepted counts fits ``budget_s`` (the session-creation check)."""
     return epoch_cost_s(pipeline_name, options) <= budget_s
 

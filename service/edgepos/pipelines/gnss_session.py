@@ -79,7 +79,9 @@ def decode_session(blob: bytes) -> GnssSession:
     try:
         carrier = tracks_from_arrays(meta.get("carrier_sats", []), arrays.get("carrier", np.zeros((0, 6))))
     except (ValueError, TypeError) as error:
-        raise state_format.StateFormatError(f"gnss_tight state's carrier tracks are corrupt: {error}") from None
+        raise state_format.StateFormatError(
+            f"gnss_tight state's carrier tracks are corrupt: {error}"
+        ) from None
     return GnssSession(
         meta["options"],
         int(meta["seed"]),

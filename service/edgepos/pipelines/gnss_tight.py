@@ -152,7 +152,9 @@ class GnssTightPipeline(Pipeline):
     def resolve_options(self, options: Mapping[str, Any] | None) -> dict[str, Any]:
         resolved = resolve_options(OPTION_SPECS, options)
         if not resolved["systems"]:
-            raise PipelineInputError([Problem(None, "options.systems", "must name at least one constellation")])
+            raise PipelineInputError(
+                [Problem(None, "options.systems", "must name at least one constellation")]
+            )
         return resolved
 
     def create(self, options: Mapping[str, Any], initial: InitialState | None) -> bytes:
@@ -191,7 +193,9 @@ def _validate(session: GnssSession, observations: Sequence[Observation]) -> None
             problems.append(Problem(index, "t", "must be a GPS time of week in [0, 604800) s"))
         elif session.t is not None and observation.t < session.t:
             problems.append(
-                Problem(index, "t", f"{observation.t!r} is older than the session's last epoch t={session.t!r}")
+                Problem(
+                    index, "t", f"{observation.t!r} is older than the session's last epoch t={session.t!r}"
+                )
             )
         if isinstance(observation, PseudorangeObservation):
             if observation.system not in SYSTEMS:
@@ -205,9 +209,13 @@ def _validate(session: GnssSession, observations: Sequence[Observation]) -> None
             if observation.sat_position is not None:
                 position = observation.sat_position
                 if len(position) != 3 or not all(is_finite_number(v) for v in position):
-                    problems.append(Problem(index, "sat_position", "must be three finite ECEF coordinates (m)"))
+                    problems.append(
+                        Problem(index, "sat_position", "must be three finite ECEF coordinates (m)")
+                    )
                 elif not _SAT_RADIUS_M[0] <= math.hypot(*position) <= _SAT_RADIUS_M[1]:
-                    problems.append(Problem(index, "sat_position", "must lie 1e7..5e7 m from the Earth's centre"))
+                    problems.append(
+                        Problem(index, "sat_position", "must lie 1e7..5e7 m from the Earth's centre")
+                    )
             if observation.sat_clock is not None and (
                 not is_finite_number(observation.sat_clock) or abs(observation.sat_clock) > 0.01
             ):
@@ -215,25 +223,42 @@ def _validate(session: GnssSession, observations: Sequence[Observation]) -> None
             if observation.doppler_hz is not None and (
                 not is_finite_number(observation.doppler_hz) or abs(observation.doppler_hz) > MAX_DOPPLER_HZ
             ):
-                problems.append(Problem(index, "doppler_hz", f"must be a finite Doppler within +-{MAX_DOPPLER_HZ:g} Hz"))
+                problems.append(
+                    Problem(index, "doppler_hz", f"must be a finite Doppler within +-{MAX_DOPPLER_HZ:g} Hz")
+                )
             if observation.carrier_cycles is not None and (
-                not is_finite_number(observation.carrier_cycles) or abs(observation.carrier_cycles) >= MAX_CARRIER_CYCLES
+                not is_finite_number(observation.carrier_cycles)
+                or abs(observation.carrier_cycles) >= MAX_CARRIER_CYCLES
             ):
                 problems.append(
-                    Problem(index, "carrier_cycles", f"must be a finite phase within +-{MAX_CARRIER_CYCLES:g} cycles")
+                    Problem(
+                        index,
+                        "carrier_cycles",
+                        f"must be a finite phase within +-{MAX_CARRIER_CYCLES:g} cycles",
+                    )
                 )
             if observation.lli is not None and (
-                isinstance(observation.lli, bool) or not isinstance(observation.lli, int)
+                isinstance(observation.lli, bool)
+                or not isinstance(observation.lli, int)
                 or not 0 <= observation.lli <= MAX_LLI
             ):
-                problems.append(Problem(index, "lli", f"must be an integer in [0, {MAX_LLI}] (RINEX loss-of-lock bits)"))
+                problems.append(
+                    Problem(index, "lli", f"must be an integer in [0, {MAX_LLI}] (RINEX loss-of-lock bits)")
+                )
         elif isinstance(observation, RissObservation):
-            for name, bound in (("wheel_speed", 100.0), ("accel_x", 50.0), ("accel_y", 50.0), ("gyro_z", 10.0)):
+            for name, bound in (
+                ("wheel_speed", 100.0),
+                ("accel_x", 50.0),
+                ("accel_y", 50.0),
+                ("gyro_z", 10.0),
+            ):
                 value = getattr(observation, name)
                 if not is_finite_number(value) or abs(value) > bound:
                     problems.append(Problem(index, name, f"must be finite and within +-{bound:g}"))
         else:
-            problems.append(Problem(index, "type", f"{observation.kind!r} is not used by the gnss_tight pipeline"))
+            problems.append(
+                Problem(index, "type", f"{observation.kind!r} is not used by the gnss_tight pipeline")
+            )
     if problems:
         raise PipelineInputError(problems)
 
@@ -242,8 +267,12 @@ def _validate(session: GnssSession, observations: Sequence[Observation]) -> None
 
 
 def _step(
-    session: GnssSession, epoch: list[int], observations: Sequence[Observation], ephemerides: Ephemerides | None,
-    origin: tuple[float, float, float] | None, corrections: CorrectionTable | None = None,
+    session: GnssSession,
+    epoch: list[int],
+    observations: Sequence[Observation],
+    ephemerides: Ephemerides | None,
+    origin: tuple[float, float, float] | None,
+    corrections: CorrectionTable | None = None,
 ) -> Fix:
     """One epoch through the filter; every Doppler sent is reported beside its pseudorange, and with
     corrections, each pseudorange's correction."""
@@ -268,15 +297,22 @@ def _step(
         if use.index in carrying:
             used, reason = doppler.get(use.index, (False, None))
             if not used and reason is None:
-                reason = f"its pseudorange was not used: {use.reason}" if not use.used else "not in this update"
+                reason = (
+                    f"its pseudorange was not used: {use.reason}" if not use.used else "not in this update"
+                )
             use = dataclasses.replace(use, doppler_used=used, doppler_reason=reason)
         reported.append(use)
     return dataclasses.replace(fix, measurements=reported)
 
 
 def _filter_epoch(
-    session: GnssSession, epoch: list[int], observations: Sequence[Observation], ephemerides: Ephemerides | None,
-    origin: tuple[float, float, float] | None, doppler: DopplerUses, corrections: CorrectionTable | None,
+    session: GnssSession,
+    epoch: list[int],
+    observations: Sequence[Observation],
+    ephemerides: Ephemerides | None,
+    origin: tuple[float, float, float] | None,
+    doppler: DopplerUses,
+    corrections: CorrectionTable | None,
     corrected: CorrectionUses,
 ) -> Fix:
     options = session.options
@@ -306,7 +342,15 @@ def _filter_epoch(
         session.initialised = False
     if not session.initialised:
         return _initialise(
-            session, t, satellites, atmosphere, origin, uses, doppler, rng, "waiting for enough satellites to initialise"
+            session,
+            t,
+            satellites,
+            atmosphere,
+            origin,
+            uses,
+            doppler,
+            rng,
+            "waiting for enough satellites to initialise",
         )
 
     assert session.anchor is not None
@@ -325,7 +369,9 @@ def _filter_epoch(
         rows = np.flatnonzero(elevation >= options["elevation_mask"])
         for row in np.flatnonzero(elevation < options["elevation_mask"]):
             i = satellites.indices[row]
-            uses[i] = MeasurementUse(i, "pseudorange", False, f"elevation {math.degrees(elevation[row]):.1f} deg below the mask")
+            uses[i] = MeasurementUse(
+                i, "pseudorange", False, f"elevation {math.degrees(elevation[row]):.1f} deg below the mask"
+            )
         prs = satellites.prs
         if prs.range_rate_mps is not None and prs.sat_clock_drift is not None:
             rate_rows = rows[np.isfinite(prs.range_rate_mps[rows]) & np.isfinite(prs.sat_clock_drift[rows])]
@@ -333,14 +379,30 @@ def _filter_epoch(
         factor = FuzzyNoise().factor(elevation, prs.cn0_dbhz) if options["fuzzy"] else np.ones(len(prs))
         std = options["pseudorange_std"] * factor * smoothing
         rows = snapshot_test(
-            session, centre, prs, known, snapshot_std(elevation, satellites.corrected), rows,
-            satellites.indices, uses,
+            session,
+            centre,
+            prs,
+            known,
+            snapshot_std(elevation, satellites.corrected),
+            rows,
+            satellites.indices,
+            uses,
         )
-        rows, lost = residual_test(session, centre, prs, known, std, rows, dt, model, satellites.indices, uses)
+        rows, lost = residual_test(
+            session, centre, prs, known, std, rows, dt, model, satellites.indices, uses
+        )
         if lost:
             session.initialised = False
             return _initialise(
-                session, t, satellites, atmosphere, origin, uses, doppler, rng, "track lost; waiting for enough satellites"
+                session,
+                t,
+                satellites,
+                atmosphere,
+                origin,
+                uses,
+                doppler,
+                rng,
+                "track lost; waiting for enough satellites",
             )
         rate_std = float(options.get("doppler_std_mps", DEFAULT_DOPPLER_STD_MPS)) * factor
         rate_model: RangeRateModel | None = None
@@ -351,8 +413,11 @@ def _filter_epoch(
         if rate_rows.size:
             assert prs.sat_velocity is not None and prs.sat_clock_drift is not None
             rate_model = RangeRateModel.build(
-                session.anchor, prs.sat_position[rate_rows], prs.sat_velocity[rate_rows],
-                prs.sat_clock_drift[rate_rows], rate_std[rate_rows],
+                session.anchor,
+                prs.sat_position[rate_rows],
+                prs.sat_velocity[rate_rows],
+                prs.sat_clock_drift[rate_rows],
+                rate_std[rate_rows],
             )
         if rows.size or rate_model is not None:
             systems = [prs.systems[r] for r in rows]
@@ -360,12 +425,17 @@ def _filter_epoch(
                 _reset_unseen_clocks(session, t, systems, centre, prs, known, rows, rng)
             for system in set(systems):
                 active[layout.CLOCK[system]] = True
-            model_pr = PseudorangeModel.build(session.anchor, prs.sat_position[rows], systems, known[rows], std[rows])
+            model_pr = PseudorangeModel.build(
+                session.anchor, prs.sat_position[rows], systems, known[rows], std[rows]
+            )
             measurement = _measurement(options, model_pr, prs.pseudorange_m[rows], rate_model, prs, rate_rows)
     filt = filter_for(options)
     result = filt.step(session.cloud, model, dt, active, measurement, rng)
-    if not (np.all(np.isfinite(result.mean)) and np.all(np.isfinite(result.cov))
-            and np.all(np.isfinite(result.cloud.particles))):
+    if not (
+        np.all(np.isfinite(result.mean))
+        and np.all(np.isfinite(result.cov))
+        and np.all(np.isfinite(result.cloud.particles))
+    ):
         raise NumericalError("the filter step gave a non-finite state")
     session.cloud = result.cloud
     session.filter_t = t
@@ -377,7 +447,9 @@ def _filter_epoch(
     for r in rate_rows:
         doppler[satellites.indices[r]] = (True, None)
     status = "tracking" if measurement is not None else "predicted"
-    return _fix(t, status, session, result.mean, result.cov, result, int(rows.size + rate_rows.size), uses, origin)
+    return _fix(
+        t, status, session, result.mean, result.cov, result, int(rows.size + rate_rows.size), uses, origin
+    )
 
 
 def _smooth(
@@ -403,21 +475,36 @@ def _smooth(
     )
     lli = np.array([o.lli or 0 for o in sent], dtype=int)
     config = HatchConfig(
-        options["hatch_window_s"], options["carrier_slip_cycles_per_s"], options["carrier_code_jump_m"],
+        options["hatch_window_s"],
+        options["carrier_slip_cycles_per_s"],
+        options["carrier_code_jump_m"],
         options["carrier_max_gap_s"],
     )
     result = hatch_update(
-        session.carrier, t, prs.sats, prs.pseudorange_m, carrier, SPEED_OF_LIGHT / prs.frequency_hz, doppler_hz, lli,
+        session.carrier,
+        t,
+        prs.sats,
+        prs.pseudorange_m,
+        carrier,
+        SPEED_OF_LIGHT / prs.frequency_hz,
+        doppler_hz,
+        lli,
         config,
     )
     smoothed = result.count >= 1.0
     factor[smoothed] = np.maximum(1.0 / np.sqrt(result.count[smoothed]), options["hatch_std_floor"])
-    return dataclasses.replace(satellites, prs=dataclasses.replace(prs, pseudorange_m=result.pseudorange_m)), factor
+    return dataclasses.replace(
+        satellites, prs=dataclasses.replace(prs, pseudorange_m=result.pseudorange_m)
+    ), factor
 
 
 def _measurement(
-    options: Mapping[str, Any], model_pr: PseudorangeModel, pseudoranges: np.ndarray,
-    rate_model: RangeRateModel | None, prs: PseudorangeSet, rate_rows: np.ndarray,
+    options: Mapping[str, Any],
+    model_pr: PseudorangeModel,
+    pseudoranges: np.ndarray,
+    rate_model: RangeRateModel | None,
+    prs: PseudorangeSet,
+    rate_rows: np.ndarray,
 ) -> Measurement:
     """The epoch's update: the pseudoranges, then the range rates when any pass, as one measurement (one
     update, so the filters see their correlation through the shared position and clocks)."""
@@ -425,23 +512,32 @@ def _measurement(
     pr_outlier = float(options.get("outlier_std", 30.0)) ** 2
     if rate_model is None:
         return Measurement(
-            model_pr.predict, pseudoranges, model_pr.variances(), outlier, pr_outlier if outlier > 0.0 else 0.0
+            model_pr.predict,
+            pseudoranges,
+            model_pr.variances(),
+            outlier,
+            pr_outlier if outlier > 0.0 else 0.0,
         )
     assert prs.range_rate_mps is not None
     rate_outlier = float(options.get("doppler_outlier_std_mps", DEFAULT_DOPPLER_OUTLIER_STD_MPS)) ** 2
-    outlier_variance = np.concatenate([np.full(model_pr.dim, pr_outlier), np.full(rate_model.dim, rate_outlier)])
+    outlier_variance = np.concatenate(
+        [np.full(model_pr.dim, pr_outlier), np.full(rate_model.dim, rate_outlier)]
+    )
     anchor = model_pr.anchor
 
     def predict(states: np.ndarray) -> np.ndarray:
         lat, lon, height = anchor.geodetic(states)
         receiver = geodetic_to_ecef(lat, lon, height)
         return np.concatenate(
-            [model_pr.predict_at(states, receiver), rate_model.predict_at(states, lat, lon, receiver)], axis=-1
+            [model_pr.predict_at(states, receiver), rate_model.predict_at(states, lat, lon, receiver)],
+            axis=-1,
         )
 
     return Measurement(
-        predict, np.concatenate([pseudoranges, prs.range_rate_mps[rate_rows]]),
-        np.concatenate([model_pr.variances(), rate_model.variances()]), outlier,
+        predict,
+        np.concatenate([pseudoranges, prs.range_rate_mps[rate_rows]]),
+        np.concatenate([model_pr.variances(), rate_model.variances()]),
+        outlier,
         outlier_variance if outlier > 0.0 else 0.0,
     )
 
@@ -493,13 +589,25 @@ def _model(session: GnssSession, t: float) -> RissModel | GnssOnlyModel:
     assert anchor is not None
     riss = session.riss
     if riss is not None and t - riss["t"] <= options["riss_timeout"] and session.heading_known:
-        u = RissInput(riss["wheel_speed"], riss["wheel_accel"], riss["accel_x"], riss["accel_y"], riss["gyro_z"])
+        u = RissInput(
+            riss["wheel_speed"], riss["wheel_accel"], riss["accel_x"], riss["accel_y"], riss["gyro_z"]
+        )
         return RissModel(
-            anchor, u, options["wheel_speed_std"], options["accelerometer_std"], options["gyro_std"],
-            options["clock_bias_psd"], options["clock_drift_psd"], options["gyro_bias_psd"],
+            anchor,
+            u,
+            options["wheel_speed_std"],
+            options["accelerometer_std"],
+            options["gyro_std"],
+            options["clock_bias_psd"],
+            options["clock_drift_psd"],
+            options["gyro_bias_psd"],
         )
     return GnssOnlyModel(
-        anchor, options["accel_std"], options["vertical_accel_std"], options["clock_bias_psd"], options["clock_drift_psd"]
+        anchor,
+        options["accel_std"],
+        options["vertical_accel_std"],
+        options["clock_bias_psd"],
+        options["clock_drift_psd"],
     )
 
 
@@ -510,14 +618,24 @@ def _take_riss(session: GnssSession, observation: RissObservation) -> None:
     if previous is not None and 0.0 < observation.t - previous["t"] <= session.options["riss_timeout"]:
         accel = (observation.wheel_speed - previous["wheel_speed"]) / (observation.t - previous["t"])
     session.riss = {
-        "t": observation.t, "wheel_speed": observation.wheel_speed, "wheel_accel": accel,
-        "accel_x": observation.accel_x, "accel_y": observation.accel_y, "gyro_z": observation.gyro_z,
+        "t": observation.t,
+        "wheel_speed": observation.wheel_speed,
+        "wheel_accel": accel,
+        "accel_x": observation.accel_x,
+        "accel_y": observation.accel_y,
+        "gyro_z": observation.gyro_z,
     }
 
 
 def _reset_unseen_clocks(
-    session: GnssSession, t: float, systems: list[str], centre: np.ndarray, prs: PseudorangeSet, known: np.ndarray,
-    rows: np.ndarray, rng: np.random.Generator,
+    session: GnssSession,
+    t: float,
+    systems: list[str],
+    centre: np.ndarray,
+    prs: PseudorangeSet,
+    known: np.ndarray,
+    rows: np.ndarray,
+    rng: np.random.Generator,
 ) -> None:
     """A constellation seen for the first time, or again after a while, restarts its clock bias from the
     median of its pseudoranges' residuals (a bias frozen while it was absent says nothing now)."""
@@ -550,21 +668,35 @@ def _reset_unseen_clocks(
 
 
 def _initialise(
-    session: GnssSession, t: float, satellites: EpochSatellites, atmosphere: Atmosphere,
-    origin: tuple[float, float, float] | None, uses: dict[int, MeasurementUse], doppler: DopplerUses,
-    rng: np.random.Generator, waiting: str,
+    session: GnssSession,
+    t: float,
+    satellites: EpochSatellites,
+    atmosphere: Atmosphere,
+    origin: tuple[float, float, float] | None,
+    uses: dict[int, MeasurementUse],
+    doppler: DopplerUses,
+    rng: np.random.Generator,
+    waiting: str,
 ) -> Fix:
     """Start the filter from this epoch's weighted least-squares fix, or report why it cannot yet. With
     Doppler the fix's least-squares velocity and clock drift start the velocity and drift states."""
     options = session.options
     prs = satellites.prs
-    start = None if session.anchor is None else geodetic_to_ecef(session.anchor.lat, session.anchor.lon, session.anchor.height)
+    start = (
+        None
+        if session.anchor is None
+        else geodetic_to_ecef(session.anchor.lat, session.anchor.lon, session.anchor.height)
+    )
     solution = None
     reason = waiting
     if len(prs) >= 3 + len(set(prs.systems)):
         try:
             solution = solve_epoch(
-                prs, atmosphere, SppConfig(elevation_mask_rad=options["elevation_mask"]), start, satellites.corrected
+                prs,
+                atmosphere,
+                SppConfig(elevation_mask_rad=options["elevation_mask"]),
+                start,
+                satellites.corrected,
             )
         except SppError as error:
             reason = f"{waiting} (least squares: {error})"
@@ -576,8 +708,10 @@ def _initialise(
         return Fix(t=t, status="uninitialised", measurements=[uses[i] for i in sorted(uses)])
 
     if session.anchor is None:
-        session.anchor = GeodeticAnchor(*origin) if origin is not None else GeodeticAnchor(
-            solution.lat, solution.lon, solution.height
+        session.anchor = (
+            GeodeticAnchor(*origin)
+            if origin is not None
+            else GeodeticAnchor(solution.lat, solution.lon, solution.height)
         )
     anchor = session.anchor
     mean = np.zeros(layout.DIM)
@@ -598,7 +732,9 @@ def _initialise(
     for system, index in layout.CLOCK.items():
         mean[index] = solution.clock_bias_m.get(system, 0.0)
         variances[index] = (sigma * solution.dop.gdop) ** 2
-    variances[layout.DRIFT] = (_INITIAL_CLOCK_DRIFT_STD if velocity is None else _INITIAL_DOPPLER_VELOCITY_STD) ** 2
+    variances[layout.DRIFT] = (
+        _INITIAL_CLOCK_DRIFT_STD if velocity is None else _INITIAL_DOPPLER_VELOCITY_STD
+    ) ** 2
     variances[layout.GYRO_BIAS] = options["gyro_bias_std"] ** 2
     variances[layout.WHEEL_SCALE] = options["wheel_scale_std"] ** 2
     cov = np.diag(variances)
@@ -630,18 +766,30 @@ def _initialise(
         for sat in velocity.sats:
             doppler[satellites.indices[row_of[sat]]] = (True, None)
         for sat in velocity.excluded:
-            doppler[satellites.indices[row_of[sat]]] = (False, "excluded by the least-squares Doppler residual test")
+            doppler[satellites.indices[row_of[sat]]] = (
+                False,
+                "excluded by the least-squares Doppler residual test",
+            )
     elif prs.has_doppler:
         for i in satellites.indices:
-            doppler.setdefault(i, (False, "too few Dopplers for the least-squares velocity that starts the filter"))
+            doppler.setdefault(
+                i, (False, "too few Dopplers for the least-squares velocity that starts the filter")
+            )
     weights = session.cloud.weights
     estimate = weights @ particles if count > 1 else mean
     return _fix(t, "initialised", session, estimate, cov, None, len(solution.sats), uses, origin)
 
 
 def _fix(
-    t: float, status: str, session: GnssSession, mean: np.ndarray, cov: np.ndarray, result: StepResult | None,
-    dof: int, uses: dict[int, MeasurementUse], origin: tuple[float, float, float] | None,
+    t: float,
+    status: str,
+    session: GnssSession,
+    mean: np.ndarray,
+    cov: np.ndarray,
+    result: StepResult | None,
+    dof: int,
+    uses: dict[int, MeasurementUse],
+    origin: tuple[float, float, float] | None,
 ) -> Fix:
     anchor = session.anchor
     assert anchor is not None
@@ -651,7 +799,9 @@ def _fix(
     east, north, _ = enu_rotation(anchor.lat, anchor.lon) @ (position - anchor_ecef)
     ve, vn = float(mean[layout.VE]), float(mean[layout.VN])
     riss = session.riss
-    yaw_rate = riss["gyro_z"] if riss is not None and t - riss["t"] <= session.options["riss_timeout"] else None
+    yaw_rate = (
+        riss["gyro_z"] if riss is not None and t - riss["t"] <= session.options["riss_timeout"] else None
+    )
     n, e = layout.NORTH, layout.EAST
     position_cov = [[float(cov[e, e]), float(cov[e, n])], [float(cov[n, e]), float(cov[n, n])]]
     del origin  # the anchor is the origin when one is configured

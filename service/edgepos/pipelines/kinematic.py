@@ -29,7 +29,9 @@ KINEMATIC = layout.KINEMATIC
 _TRACK_ORDER = [0, 3, 1, 4]  # [x, y, vx, vy] of the published track
 
 
-def kinematic_fix(t: float, status: str, mean: np.ndarray, cov: np.ndarray, uses: list[MeasurementUse]) -> Fix:
+def kinematic_fix(
+    t: float, status: str, mean: np.ndarray, cov: np.ndarray, uses: list[MeasurementUse]
+) -> Fix:
     """The fix of the kinematic state (mean (6,), cov (6, 6)) with its 4x4 [x, y, vx, vy] covariance,
     which is what the service publishes as the vehicle's track."""
     xp, xv, _, yp, yv, _ = (float(v) for v in mean)
@@ -56,25 +58,35 @@ def shared_point(t: float, mean: np.ndarray, cov: np.ndarray) -> TrackPoint:
     """The kinematic state (mean (6,), cov (6, 6)) as the track point a vehicle shares."""
     block = cov[np.ix_(_TRACK_ORDER, _TRACK_ORDER)]
     return TrackPoint(
-        t, float(mean[0]), float(mean[3]), float(mean[1]), float(mean[4]),
+        t,
+        float(mean[0]),
+        float(mean[3]),
+        float(mean[1]),
+        float(mean[4]),
         tuple(tuple(float(v) for v in row) for row in block),
     )
 
 
-def check_batch(pipeline: str, kinds: set[str], last_t: float | None, observations: Sequence[Observation]) -> None:
+def check_batch(
+    pipeline: str, kinds: set[str], last_t: float | None, observations: Sequence[Observation]
+) -> None:
     """Refuse, listing every problem: kinds the pipeline does not take, non-finite times, times
     going back (before the session's last epoch or within the batch), negative odometer distances."""
     problems: list[Problem] = []
     previous = last_t
     for index, obs in enumerate(observations):
         if obs.kind not in kinds:
-            problems.append(Problem(index, "kind", f"pipeline {pipeline} takes {sorted(kinds)}, not {obs.kind!r}"))
+            problems.append(
+                Problem(index, "kind", f"pipeline {pipeline} takes {sorted(kinds)}, not {obs.kind!r}")
+            )
             continue
         if not is_finite_number(obs.t):
             problems.append(Problem(index, "t", "must be a finite number"))
             continue
         if previous is not None and obs.t < previous:
-            problems.append(Problem(index, "t", f"time {obs.t} goes back before {previous} (observations in time order)"))
+            problems.append(
+                Problem(index, "t", f"time {obs.t} goes back before {previous} (observations in time order)")
+            )
         previous = obs.t if previous is None else max(previous, obs.t)
         if isinstance(obs, OdometerObservation) and obs.distance is not None and obs.distance < 0.0:
             problems.append(Problem(index, "distance", "must be >= 0"))
@@ -128,7 +140,9 @@ def dead_reckoning_update(
             values.append(obs.speed)
             uses[odos[0]] = MeasurementUse(odos[0], "odometer", True)
         elif odometer_t is None or t <= odometer_t:
-            uses[odos[0]] = MeasurementUse(odos[0], "odometer", False, "first distance reading: no previous reading starts its interval")
+            uses[odos[0]] = MeasurementUse(
+                odos[0], "odometer", False, "first distance reading: no previous reading starts its interval"
+            )
         else:
             parts.append(OdometerDistance(odometer_std, t - odometer_t))
             values.append(cast(float, obs.distance))  # speed is None: exactly one of the two is set
@@ -154,8 +168,11 @@ def heading_known(mean: np.ndarray, cov: np.ndarray) -> bool:
 
 
 def wait_for_heading(
-    epoch: Sequence[int], observations: Sequence[Observation], uses: dict[int, MeasurementUse],
-    odometer_t: float | None, t: float,
+    epoch: Sequence[int],
+    observations: Sequence[Observation],
+    uses: dict[int, MeasurementUse],
+    odometer_t: float | None,
+    t: float,
     reason: str = "heading not yet known (speed within 3 sigma of zero): dead reckoning waits for the fixes",
 ) -> float | None:
     """Report the epoch's gyro and odometer readings unused with ``reason`` (by default: until
@@ -166,7 +183,12 @@ def wait_for_heading(
         for i in readings[:1]:
             uses[i] = MeasurementUse(i, observations[i].kind, False, reason)
         for i in readings[1:]:
-            uses[i] = MeasurementUse(i, observations[i].kind, False, f"another {observations[i].kind} reading at the same time was used")
+            uses[i] = MeasurementUse(
+                i,
+                observations[i].kind,
+                False,
+                f"another {observations[i].kind} reading at the same time was used",
+            )
     odos = [i for i in epoch if isinstance(observations[i], OdometerObservation)]
     # odos index the odometer readings the isinstance filter found (cast: free at run time)
     if odos and cast(OdometerObservation, observations[odos[0]]).distance is not None:

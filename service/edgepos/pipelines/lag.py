@@ -517,7 +517,9 @@ def _too_late_uses(
         )
         doppler = getattr(observation, "doppler_hz", None) is not None
         uses.append(
-            MeasurementUse(i, observation.kind, False, reason, False if doppler else None, reason if doppler else None)
+            MeasurementUse(
+                i, observation.kind, False, reason, False if doppler else None, reason if doppler else None
+            )
         )
     return uses
 

@@ -115,7 +115,15 @@ def _pack_parts(
     count = len(times)
     parts: list[bytes | memoryview] = [
         _HEADER.pack(
-            MAGIC, VERSION, delay, epochs, lead, _NAN if newest is None else newest, len(checkpoints), len(current), count
+            MAGIC,
+            VERSION,
+            delay,
+            epochs,
+            lead,
+            _NAN if newest is None else newest,
+            len(checkpoints),
+            len(current),
+            count,
         )
     ]
     parts += [_CHECKPOINT.pack(_NAN if t is None else t, len(state)) for t, state in checkpoints]

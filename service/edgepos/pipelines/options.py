@@ -24,13 +24,17 @@ def resolve_options(specs: Sequence[OptionSpec], options: Mapping[str, Any] | No
     for name, value in (options or {}).items():
         spec = by_name.get(name)
         if spec is None:
-            problems.append(Problem(None, f"options.{name}", f"unknown option; known: {', '.join(sorted(by_name))}"))
+            problems.append(
+                Problem(None, f"options.{name}", f"unknown option; known: {', '.join(sorted(by_name))}")
+            )
             continue
         reason = _check(spec, value)
         if reason:
             problems.append(Problem(None, f"options.{name}", reason))
         else:
-            resolved[name] = float(value) if spec.type == "number" and value is not None else copy.deepcopy(value)
+            resolved[name] = (
+                float(value) if spec.type == "number" and value is not None else copy.deepcopy(value)
+            )
     if problems:
         raise PipelineInputError(problems)
     return resolved

@@ -69,67 +69,111 @@ def _parameters_text(owners: Mapping[str, Any]) -> str:
 
 OPTION_SPECS: tuple[OptionSpec, ...] = (
     OptionSpec(
-        "filter", "string", "ckf", "Filter inside every model: ekf, ukf, ckf or srukf.", choices=tuple(FILTERS)
+        "filter",
+        "string",
+        "ckf",
+        "Filter inside every model: ekf, ukf, ckf or srukf.",
+        choices=tuple(FILTERS),
     ),
     OptionSpec(
-        "filter_params", "object", {},
-        "Filter tuning, e.g. {\"alpha\": 1, \"beta\": 2, \"kappa\": null} for the UKF. Parameters by filter, "
+        "filter_params",
+        "object",
+        {},
+        'Filter tuning, e.g. {"alpha": 1, "beta": 2, "kappa": null} for the UKF. Parameters by filter, '
         f"with their bounds: {_parameters_text(FILTERS)}.",
     ),
     OptionSpec(
-        "models", "string[]", ["ca", "at", "singer"],
-        "Motion models of the bank, in order; one model means plain filtering.", choices=tuple(MOTION_MODELS),
+        "models",
+        "string[]",
+        ["ca", "at", "singer"],
+        "Motion models of the bank, in order; one model means plain filtering.",
+        choices=tuple(MOTION_MODELS),
     ),
     OptionSpec(
-        "model_params", "object", {},
-        "Per-model parameters by model name, e.g. {\"ct\": {\"omega\": 0.35}}; unset ones take the paper's values. "
+        "model_params",
+        "object",
+        {},
+        'Per-model parameters by model name, e.g. {"ct": {"omega": 0.35}}; unset ones take the paper\'s values. '
         f"Parameters by model, with their bounds: {_parameters_text(MOTION_MODELS)}.",
     ),
     OptionSpec(
-        "priority", "string[]", ["ca", "at"],
+        "priority",
+        "string[]",
+        ["ca", "at"],
         "2IMM priority set (eqs. 29-38): models that interact first. Empty or all models: plain IMM.",
         choices=tuple(MOTION_MODELS),
     ),
     OptionSpec(
-        "transition_diagonal", "number", 0.98,
+        "transition_diagonal",
+        "number",
+        0.98,
         "Probability of staying in a model per epoch; the rest is shared equally by the others.",
-        minimum=0.0, maximum=1.0,
+        minimum=0.0,
+        maximum=1.0,
     ),
     OptionSpec(
-        "transition", "matrix", None,
+        "transition",
+        "matrix",
+        None,
         "Full model transition matrix, row i = from model i (rows sum to 1); overrides transition_diagonal.",
-        minimum=0.0, maximum=1.0,
+        minimum=0.0,
+        maximum=1.0,
     ),
     OptionSpec(
-        "initial_probabilities", "number[]", None, "Initial model probabilities, one per model (sum 1); default uniform.",
-        minimum=0.0, maximum=1.0,
+        "initial_probabilities",
+        "number[]",
+        None,
+        "Initial model probabilities, one per model (sum 1); default uniform.",
+        minimum=0.0,
+        maximum=1.0,
     ),
     OptionSpec(
-        "rsu_handling", "string", "joint",
+        "rsu_handling",
+        "string",
+        "joint",
         "joint: one update with every RSU stacked; average: one update per RSU, estimates averaged (the paper).",
         choices=("joint", "average"),
     ),
-    OptionSpec("max_rsus", "integer", 4, "Use at most this many RSUs per epoch, the nearest by range.", 1, 64),
-    OptionSpec("comm_radius", "number", 160.0, "RSU communication radius (m) unless an RSU sets its own.", 1.0, 1e5),
+    OptionSpec(
+        "max_rsus", "integer", 4, "Use at most this many RSUs per epoch, the nearest by range.", 1, 64
+    ),
+    OptionSpec(
+        "comm_radius", "number", 160.0, "RSU communication radius (m) unless an RSU sets its own.", 1.0, 1e5
+    ),
     OptionSpec("range_std", "number", 0.6, "RSU range noise std (m) unless an RSU sets its own.", 1e-4, 1e4),
     OptionSpec(
-        "bearing_std", "number", math.radians(0.5), "RSU bearing noise std (rad) unless an RSU sets its own.",
-        1e-6, math.pi,
+        "bearing_std",
+        "number",
+        math.radians(0.5),
+        "RSU bearing noise std (rad) unless an RSU sets its own.",
+        1e-6,
+        math.pi,
     ),
     OptionSpec("gyro_std", "number", math.radians(0.3), "Gyro yaw-rate noise std (rad/s).", 1e-6, 10.0),
     OptionSpec(
-        "gate_probability", "number", 0.9999,
+        "gate_probability",
+        "number",
+        0.9999,
         "Mahalanobis gate: reject a measurement whose squared distance exceeds this chi-square quantile; 0 disables.",
-        0.0, 0.999999999,
+        0.0,
+        0.999999999,
     ),
     OptionSpec(
-        "max_gap", "number", 5.0,
+        "max_gap",
+        "number",
+        5.0,
         "Longest time (s) between epochs the filter predicts across; after a longer gap it starts again "
-        "from the next RSU measurements.", 0.01, 86400.0,
+        "from the next RSU measurements.",
+        0.01,
+        86400.0,
     ),
     OptionSpec(
-        "init_velocity_std", "number", 15.0,
-        "Velocity std (m/s) when the pipeline initialises itself from RSU measurements.", 0.01, 1000.0,
+        "init_velocity_std",
+        "number",
+        15.0,
+        "Velocity std (m/s) when the pipeline initialises itself from RSU measurements.",
+        0.01,
+        1000.0,
     ),
 )
 
@@ -217,7 +261,9 @@ class RsuImuPipeline(Pipeline):
         problems = _cross_check(resolved)
         if problems:
             raise PipelineInputError(problems)
-        problems = _parameter_problems(resolved)  # build models and filter now, so bad parameters surface here
+        problems = _parameter_problems(
+            resolved
+        )  # build models and filter now, so bad parameters surface here
         if problems:
             raise PipelineInputError(problems)
         return resolved
@@ -232,9 +278,14 @@ class RsuImuPipeline(Pipeline):
         heading = math.atan2(initial.vy, initial.vx) if math.hypot(initial.vx, initial.vy) > 0 else 0.0
         mean = np.array([initial.x, initial.vx, 0.0, initial.y, initial.vy, 0.0, heading, 0.0])
         stds = [
-            initial.position_std, initial.velocity_std, _INITIAL_ACCEL_STD,
-            initial.position_std, initial.velocity_std, _INITIAL_ACCEL_STD,
-            _INITIAL_HEADING_STD, _INITIAL_TURN_STD,
+            initial.position_std,
+            initial.velocity_std,
+            _INITIAL_ACCEL_STD,
+            initial.position_std,
+            initial.velocity_std,
+            _INITIAL_ACCEL_STD,
+            _INITIAL_HEADING_STD,
+            _INITIAL_TURN_STD,
         ]
         means, covs = bank.initial(mean, np.diag(np.square(stds)))
         return _SessionState(options, True, None, None, 0, probabilities, means, covs).to_bytes()
@@ -264,7 +315,11 @@ class RsuImuPipeline(Pipeline):
     smoother: ClassVar[bool] = True
 
     def smooth(
-        self, state: bytes, observations: Sequence[Observation], environment: Environment, lag_s: float | None = None
+        self,
+        state: bytes,
+        observations: Sequence[Observation],
+        environment: Environment,
+        lag_s: float | None = None,
     ) -> list[Fix]:
         """Filter ``observations`` from ``state`` exactly as process() does (same validation, same fixes'
         t/status/measurements), recording what the backward pass needs, then smooth backwards: one
@@ -295,7 +350,9 @@ def _cross_check(options: dict[str, Any]) -> list[Problem]:
     if options["transition"] is not None:
         matrix = np.array(options["transition"], dtype=object)
         if matrix.shape != (count, count):
-            problems.append(Problem(None, "options.transition", f"must be {count}x{count}, one row per model"))
+            problems.append(
+                Problem(None, "options.transition", f"must be {count}x{count}, one row per model")
+            )
         elif np.any(np.array(options["transition"]) < 0) or not np.allclose(
             np.sum(options["transition"], axis=1), 1.0, atol=1e-9
         ):
@@ -305,7 +362,9 @@ def _cross_check(options: dict[str, Any]) -> list[Problem]:
         if len(initial) != count:
             problems.append(Problem(None, "options.initial_probabilities", f"must have {count} entries"))
         elif min(initial) < 0 or not math.isclose(sum(initial), 1.0, abs_tol=1e-9):
-            problems.append(Problem(None, "options.initial_probabilities", "must be non-negative and sum to 1"))
+            problems.append(
+                Problem(None, "options.initial_probabilities", "must be non-negative and sum to 1")
+            )
     for name, params in options["model_params"].items():
         if not isinstance(params, dict):
             problems.append(Problem(None, f"options.model_params.{name}", "must be a JSON object"))
@@ -321,7 +380,9 @@ def _parameter_problems(options: dict[str, Any]) -> list[Problem]:
         try:
             models.append(make_motion_model(name, **options["model_params"].get(name, {})))
         except (ConfigurationError, ValueError, TypeError) as error:
-            problems.append(Problem(None, _parameter_field(f"options.model_params.{name}", error), str(error)))
+            problems.append(
+                Problem(None, _parameter_field(f"options.model_params.{name}", error), str(error))
+            )
     try:
         filt = make_filter(options["filter"], **options["filter_params"])
         if isinstance(filt, SigmaPointFilter):
@@ -337,7 +398,9 @@ def _parameter_field(prefix: str, error: Exception) -> str:
     return prefix if parameter is None else f"{prefix}.{parameter}"
 
 
-def _validate(session: _SessionState, observations: Sequence[Observation], environment: Environment) -> list[Rsu | None]:
+def _validate(
+    session: _SessionState, observations: Sequence[Observation], environment: Environment
+) -> list[Rsu | None]:
     """Check the whole batch before touching the filter; return each observation's RSU (or None)."""
     problems = []
     rsus: list[Rsu | None] = []
@@ -347,7 +410,9 @@ def _validate(session: _SessionState, observations: Sequence[Observation], envir
             problems.append(Problem(index, "t", "must be finite"))
         elif session.t is not None and observation.t < session.t:
             problems.append(
-                Problem(index, "t", f"{observation.t!r} is older than the session's last epoch t={session.t!r}")
+                Problem(
+                    index, "t", f"{observation.t!r} is older than the session's last epoch t={session.t!r}"
+                )
             )
         if isinstance(observation, RsuObservation):
             rsu = environment.rsu(observation.rsu_id)
@@ -361,13 +426,13 @@ def _validate(session: _SessionState, observations: Sequence[Observation], envir
             if not math.isfinite(observation.yaw_rate):
                 problems.append(Problem(index, "yaw_rate", "must be finite"))
         else:
-            problems.append(Problem(index, "type", f"{observation.kind!r} is not used by the rsu_imu pipeline"))
+            problems.append(
+                Problem(index, "type", f"{observation.kind!r} is not used by the rsu_imu pipeline")
+            )
         rsus.append(rsu)
     if problems:
         raise PipelineInputError(problems)
     return rsus
-
-
 
 
 # -- the bank ------------------------------------------------------------------------------------
@@ -426,7 +491,9 @@ def _decode(blob: bytes) -> _SessionState:
     except struct.error:
         raise state_format.StateFormatError("rsu_imu state is truncated") from None
     if version != _VERSION:
-        raise state_format.StateFormatError(f"rsu_imu state version {version} is not {_VERSION}: open a new session")
+        raise state_format.StateFormatError(
+            f"rsu_imu state version {version} is not {_VERSION}: open a new session"
+        )
     start = _STATE.size + key_length
     size = count * _FLOATS_PER_MODEL
     if not count or flags > _ALL_FLAGS or len(blob) != start + 8 * size:
@@ -464,8 +531,15 @@ def _decode_json(blob: bytes) -> _SessionState:
             options = meta["options"]
             key = _options_key(options)
         return _SessionState(
-            options, meta["initialised"], meta["t"], meta["filter_t"], meta["epochs"],
-            arrays["probabilities"], arrays["means"], arrays["covs"], key,
+            options,
+            meta["initialised"],
+            meta["t"],
+            meta["filter_t"],
+            meta["epochs"],
+            arrays["probabilities"],
+            arrays["means"],
+            arrays["covs"],
+            key,
         )
     except (KeyError, TypeError, ValueError) as error:
         raise state_format.StateFormatError(f"rsu_imu state is corrupt: {error!r}") from None
@@ -506,7 +580,9 @@ def _step(
     if not session.initialised:
         if not candidates:
             for i in epoch:
-                uses[i] = MeasurementUse(i, observations[i].kind, False, "waiting for an RSU measurement to initialise")
+                uses[i] = MeasurementUse(
+                    i, observations[i].kind, False, "waiting for an RSU measurement to initialise"
+                )
             return Fix(t=t, status="uninitialised", measurements=[uses[i] for i in sorted(uses)])
         _initialise(session, bank, candidates, gyros, observations, rsus)
         for i in candidates + gyros:
@@ -558,11 +634,13 @@ def _rsus_in_view(
             continue
         radius = cast(Rsu, rsus[i]).radius or options["comm_radius"]  # _validate found its station
         if observation.range > radius:
-            uses[i] = MeasurementUse(i, observation.kind, False, f"range beyond the {radius:g} m communication radius")
+            uses[i] = MeasurementUse(
+                i, observation.kind, False, f"range beyond the {radius:g} m communication radius"
+            )
         else:
             in_radius.append(i)
     in_radius.sort(key=lambda i: cast(RsuObservation, observations[i]).range)
-    for i in in_radius[options["max_rsus"]:]:
+    for i in in_radius[options["max_rsus"] :]:
         uses[i] = MeasurementUse(i, "rsu", False, f"not among the nearest {options['max_rsus']} RSUs")
     return in_radius[: options["max_rsus"]]
 
@@ -600,14 +678,18 @@ def _gate(
         kept_rsus = [i for i, bad in zip(candidates, failed) if not bad]
         for i, distance in zip(candidates, rsu_distance):
             if distance > threshold:
-                uses[i] = MeasurementUse(i, "rsu", False, f"failed the gate: d^2 = {distance:.1f} > {threshold:.1f}")
+                uses[i] = MeasurementUse(
+                    i, "rsu", False, f"failed the gate: d^2 = {distance:.1f} > {threshold:.1f}"
+                )
     if not gyros or layout.XA not in prior.components or layout.YA not in prior.components:
         return kept_rsus, gyros
     threshold = _gate_threshold(probability, 1)
     kept_gyros = []
     for i, distance in zip(gyros, gyro_distance):
         if distance > threshold:
-            uses[i] = MeasurementUse(i, "gyro", False, f"failed the gate: d^2 = {distance:.1f} > {threshold:.1f}")
+            uses[i] = MeasurementUse(
+                i, "gyro", False, f"failed the gate: d^2 = {distance:.1f} > {threshold:.1f}"
+            )
         else:
             kept_gyros.append(i)
     return kept_rsus, kept_gyros
@@ -631,8 +713,13 @@ def _epoch_measurements(
     range_std = np.array([rsu.range_std or default_range for rsu in chosen], dtype=float)
     bearing_std = np.array([rsu.bearing_std or default_bearing for rsu in chosen], dtype=float)
     return RsuGyroEpoch(
-        positions, observed, range_std, bearing_std, np.array([cast(GyroObservation, observations[i]).yaw_rate for i in gyros], dtype=float),
-        options["gyro_std"], averaged=options["rsu_handling"] == "average",
+        positions,
+        observed,
+        range_std,
+        bearing_std,
+        np.array([cast(GyroObservation, observations[i]).yaw_rate for i in gyros], dtype=float),
+        options["gyro_std"],
+        averaged=options["rsu_handling"] == "average",
     )
 
 
@@ -650,20 +737,30 @@ def _initialise(
     for i in candidates:  # RSU observations, whose stations _validate found
         observation, rsu = cast(RsuObservation, observations[i]), cast(Rsu, rsus[i])
         points.append(
-            [rsu.x + observation.range * math.cos(observation.bearing),
-             rsu.y + observation.range * math.sin(observation.bearing)]
+            [
+                rsu.x + observation.range * math.cos(observation.bearing),
+                rsu.y + observation.range * math.sin(observation.bearing),
+            ]
         )
         range_std = rsu.range_std or options["range_std"]
         bearing_std = rsu.bearing_std or options["bearing_std"]
         variances.append(range_std**2 + (observation.range * bearing_std) ** 2)
     x, y = np.mean(points, axis=0)
     position_var = float(np.mean(variances)) / len(points)
-    yaw_rate = float(np.mean([cast(GyroObservation, observations[i]).yaw_rate for i in gyros])) if gyros else 0.0
+    yaw_rate = (
+        float(np.mean([cast(GyroObservation, observations[i]).yaw_rate for i in gyros])) if gyros else 0.0
+    )
     velocity_var = options["init_velocity_std"] ** 2
     mean = np.array([x, 0.0, 0.0, y, 0.0, 0.0, 0.0, yaw_rate])
     variances8 = [
-        position_var, velocity_var, _INITIAL_ACCEL_STD**2, position_var, velocity_var, _INITIAL_ACCEL_STD**2,
-        _INITIAL_HEADING_STD**2, (options["gyro_std"] if gyros else _INITIAL_TURN_STD) ** 2,
+        position_var,
+        velocity_var,
+        _INITIAL_ACCEL_STD**2,
+        position_var,
+        velocity_var,
+        _INITIAL_ACCEL_STD**2,
+        _INITIAL_HEADING_STD**2,
+        (options["gyro_std"] if gyros else _INITIAL_TURN_STD) ** 2,
     ]
     session.means, session.covs = bank.initial(mean, np.diag(variances8))
     session.initialised = True
@@ -706,8 +803,10 @@ def _fix(
         speed=math.hypot(vx, vy),
         heading=math.atan2(vy, vx),
         yaw_rate=_yaw_rate(value, session, bank),
-        position_cov=[[state_cov[x_index][x_index], state_cov[x_index][y_index]],
-                      [state_cov[y_index][x_index], state_cov[y_index][y_index]]],
+        position_cov=[
+            [state_cov[x_index][x_index], state_cov[x_index][y_index]],
+            [state_cov[y_index][x_index], state_cov[y_index][y_index]],
+        ],
         kinematic_cov=output.cov.ravel()[kinematic_flat].reshape(4, 4).tolist(),
         state_components=names,
         state=state,
@@ -719,7 +818,9 @@ def _fix(
     )
 
 
-def _yaw_rate(value: dict[int, float], session: _SessionState, bank: InteractingMultipleModel) -> float | None:
+def _yaw_rate(
+    value: dict[int, float], session: _SessionState, bank: InteractingMultipleModel
+) -> float | None:
     """Turn rate of the velocity vector from the fused kinematics, else from models that carry omega.
 
     None when no model carries omega, or when those that do have no probability left: their
@@ -738,4 +839,3 @@ def _yaw_rate(value: dict[int, float], session: _SessionState, bank: Interacting
     if total <= 0.0:
         return None
     return float(np.dot(weights, session.means[carriers, layout.OMEGA]) / total)
-

@@ -88,7 +88,9 @@ def position_at(
     if self_id is not None and peer_id == self_id:
         raise NeighbourUnavailable("peer is this vehicle itself")
     if track is None:
-        raise NeighbourUnavailable("peer has no live session of a cooperative pipeline, or has published no estimate yet")
+        raise NeighbourUnavailable(
+            "peer has no live session of a cooperative pipeline, or has published no estimate yet"
+        )
     if self_id is not None and track.vehicle_id == self_id:
         raise NeighbourUnavailable("peer is this vehicle itself")
     points = track.points

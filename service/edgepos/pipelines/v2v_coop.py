@@ -80,55 +80,89 @@ _INITIAL_ACCEL_STD = 1.0
 
 OPTION_SPECS = (
     OptionSpec(
-        "method", "string", "aug_ukf",
+        "method",
+        "string",
+        "aug_ukf",
         "gps (fixes as they are), gps_dr (Kalman filter with dead reckoning), ukf (plus V2V ranges, "
         "neighbours' estimates taken as exact) or aug_ukf (neighbours' positions augmented into the state).",
         choices=METHODS,
     ),
     OptionSpec(
-        "gps_std", "number", 5.0 / math.sqrt(2.0),
+        "gps_std",
+        "number",
+        5.0 / math.sqrt(2.0),
         "GNSS fix total error 1-sigma per axis (m) when a fix carries none; gnss_bias_std of it is the "
         "time-correlated part, the rest white.",
-        minimum=1e-3, maximum=1e4,
+        minimum=1e-3,
+        maximum=1e4,
     ),
     OptionSpec(
-        "gnss_bias_tau", "number", GNSS_BIAS_TAU,
+        "gnss_bias_tau",
+        "number",
+        GNSS_BIAS_TAU,
         "Time constant (s) of the GNSS fix error's Gauss-Markov part (site x and y alike); measured on a "
         "real drive, docs/v2v.md.",
-        minimum=0.1, maximum=3600.0,
+        minimum=0.1,
+        maximum=3600.0,
     ),
     OptionSpec(
-        "gnss_bias_std", "number", GNSS_BIAS_STD,
+        "gnss_bias_std",
+        "number",
+        GNSS_BIAS_STD,
         "Stationary 1-sigma per axis (m) of the GNSS fix error's Gauss-Markov part, estimated as a state; "
         "0: fix errors white (independent from fix to fix).",
-        minimum=0.0, maximum=1e3,
+        minimum=0.0,
+        maximum=1e3,
     ),
     OptionSpec(
-        "accel_std", "number", 0.3, "Acceleration change 1-sigma per step (m/s^2), the DR model's noise.",
-        minimum=1e-4, maximum=100.0,
+        "accel_std",
+        "number",
+        0.3,
+        "Acceleration change 1-sigma per step (m/s^2), the DR model's noise.",
+        minimum=1e-4,
+        maximum=100.0,
     ),
     OptionSpec("gyro_std", "number", 0.005, "Gyro yaw-rate 1-sigma (rad/s).", minimum=1e-6, maximum=10.0),
     OptionSpec(
-        "odometer_std", "number", 0.1, "Odometer distance 1-sigma per reading (m); for speed readings (m/s).",
-        minimum=1e-6, maximum=1e3,
+        "odometer_std",
+        "number",
+        0.1,
+        "Odometer distance 1-sigma per reading (m); for speed readings (m/s).",
+        minimum=1e-6,
+        maximum=1e3,
     ),
     OptionSpec(
-        "range_std", "number", 2.0, "V2V range 1-sigma (m); a TOA's 1-sigma times c.", minimum=1e-3, maximum=1e4
+        "range_std",
+        "number",
+        2.0,
+        "V2V range 1-sigma (m); a TOA's 1-sigma times c.",
+        minimum=1e-3,
+        maximum=1e4,
     ),
     OptionSpec(
-        "neighbour_fusion", "string", "intersection",
+        "neighbour_fusion",
+        "string",
+        "intersection",
         "How a neighbour's estimate enters a range update: intersection (covariance intersection with this "
         "vehicle's own estimate: consistent whatever their correlation, e.g. GNSS errors they share) or "
         "independent (as independent information, the paper's; over-confident when they share errors).",
         choices=NEIGHBOUR_FUSION,
     ),
     OptionSpec(
-        "max_neighbour_age", "number", 1.0, "Oldest usable neighbour estimate (s) past its last point.",
-        minimum=0.0, maximum=60.0,
+        "max_neighbour_age",
+        "number",
+        1.0,
+        "Oldest usable neighbour estimate (s) past its last point.",
+        minimum=0.0,
+        maximum=60.0,
     ),
     OptionSpec(
-        "neighbour_accel_std", "number", 1.0, "White acceleration (m/s^2) for predicting a neighbour forward.",
-        minimum=0.0, maximum=100.0,
+        "neighbour_accel_std",
+        "number",
+        1.0,
+        "White acceleration (m/s^2) for predicting a neighbour forward.",
+        minimum=0.0,
+        maximum=100.0,
     ),
 )
 
@@ -161,8 +195,12 @@ class _SessionState:
             "odometer_t": self.odometer_t,
         }
         arrays = {
-            "mean": self.mean, "cov": self.cov, "own_mean": self.own_mean, "own_cov": self.own_cov,
-            "bias": self.bias.arrays(), "own_bias": self.own_bias.arrays(),
+            "mean": self.mean,
+            "cov": self.cov,
+            "own_mean": self.own_mean,
+            "own_cov": self.own_cov,
+            "bias": self.bias.arrays(),
+            "own_bias": self.own_bias.arrays(),
         }
         return state_format.pack(meta, arrays)
 
@@ -175,8 +213,15 @@ def _decode(blob: bytes) -> _SessionState:
     options = {**LEGACY_OPTIONS, **meta["options"]}
     white = Bias.stationary(0.0)
     return _SessionState(
-        options, bool(meta["initialised"]), meta["t"], int(meta["epochs"]), meta["odometer_t"],
-        arrays["mean"], arrays["cov"], arrays["own_mean"], arrays["own_cov"],
+        options,
+        bool(meta["initialised"]),
+        meta["t"],
+        int(meta["epochs"]),
+        meta["odometer_t"],
+        arrays["mean"],
+        arrays["cov"],
+        arrays["own_mean"],
+        arrays["own_cov"],
         Bias.from_arrays(arrays["bias"]) if "bias" in arrays else white,
         Bias.from_arrays(arrays["own_bias"]) if "own_bias" in arrays else white.copy(),
     )
@@ -191,7 +236,12 @@ class V2vCoopPipeline(Pipeline):
         "vehicles read from their sessions; the improved UKF augments their positions into the state "
         "(Qiao & Qu 2021)."
     )
-    measurement_kinds = (GnssFixObservation.kind, GyroObservation.kind, OdometerObservation.kind, V2vRangeObservation.kind)
+    measurement_kinds = (
+        GnssFixObservation.kind,
+        GyroObservation.kind,
+        OdometerObservation.kind,
+        V2vRangeObservation.kind,
+    )
     publishes_track = True
 
     def option_specs(self) -> list[OptionSpec]:
@@ -205,11 +255,23 @@ class V2vCoopPipeline(Pipeline):
         bias = Bias.stationary(options["gnss_bias_std"])
         if initial is None:
             return _SessionState(
-                options, False, None, 0, None, np.zeros(6), np.eye(6), np.zeros(6), np.eye(6), bias, bias.copy()
+                options,
+                False,
+                None,
+                0,
+                None,
+                np.zeros(6),
+                np.eye(6),
+                np.zeros(6),
+                np.eye(6),
+                bias,
+                bias.copy(),
             ).to_bytes()
         mean = np.array([initial.x, initial.vx, 0.0, initial.y, initial.vy, 0.0])
         cov = np.diag(np.square([initial.position_std, initial.velocity_std, _INITIAL_ACCEL_STD] * 2))
-        return _SessionState(options, True, None, 0, None, mean, cov, mean.copy(), cov.copy(), bias, bias.copy()).to_bytes()
+        return _SessionState(
+            options, True, None, 0, None, mean, cov, mean.copy(), cov.copy(), bias, bias.copy()
+        ).to_bytes()
 
     def summarise(self, state: bytes) -> StateSummary:
         session = _decode(state)
@@ -228,9 +290,9 @@ def _validate(session: _SessionState, observations: Sequence[Observation]) -> No
     check_batch(V2vCoopPipeline.name, set(V2vCoopPipeline.measurement_kinds), session.t, observations)
 
 
-
-
-def _step(session: _SessionState, epoch: list[int], observations: Sequence[Observation], environment: Environment) -> Fix:
+def _step(
+    session: _SessionState, epoch: list[int], observations: Sequence[Observation], environment: Environment
+) -> Fix:
     options = session.options
     method = options["method"]
     t = observations[epoch[0]].t
@@ -276,7 +338,9 @@ def _step(session: _SessionState, epoch: list[int], observations: Sequence[Obser
         status = "tracking" if used else "predicted"
     for i in epoch:
         if i not in uses:
-            uses[i] = MeasurementUse(i, observations[i].kind, False, f"method {method} does not use {observations[i].kind}")
+            uses[i] = MeasurementUse(
+                i, observations[i].kind, False, f"method {method} does not use {observations[i].kind}"
+            )
     session.t = t
     session.epochs += 1
     fix = kinematic_fix(t, status, session.mean, session.cov, [uses[i] for i in epoch])
@@ -302,17 +366,25 @@ def _initialise(
     session.epochs += 1
     if not fixes:
         for i in epoch:
-            uses[i] = MeasurementUse(i, observations[i].kind, False, "no estimate yet: waiting for a gnss_fix to start from")
+            uses[i] = MeasurementUse(
+                i, observations[i].kind, False, "no estimate yet: waiting for a gnss_fix to start from"
+            )
         return Fix(t, "uninitialised", measurements=[uses[i] for i in epoch])
     first = cast(GnssFixObservation, observations[fixes[0]])  # fixes: the epoch's gnss_fix observations
     session.mean, session.cov, session.bias = _start(session.options, first)
-    session.own_mean, session.own_cov, session.own_bias = session.mean.copy(), session.cov.copy(), session.bias.copy()
+    session.own_mean, session.own_cov, session.own_bias = (
+        session.mean.copy(),
+        session.cov.copy(),
+        session.bias.copy(),
+    )
     session.initialised = True
     for i in epoch:
         if i == fixes[0]:
             uses[i] = MeasurementUse(i, "gnss_fix", True)
         elif i not in uses:
-            uses[i] = MeasurementUse(i, observations[i].kind, False, "the session starts from this epoch's first gnss_fix")
+            uses[i] = MeasurementUse(
+                i, observations[i].kind, False, "the session starts from this epoch's first gnss_fix"
+            )
     return kinematic_fix(t, "initialised", session.mean, session.cov, [uses[i] for i in epoch])
 
 
@@ -334,7 +406,9 @@ def _gps_only(
         session.own_mean, session.own_cov, session.own_bias = _predict(
             options, session.own_mean, session.own_cov, session.own_bias, dt
         )
-        session.mean, session.cov = _KF.predict(session.mean, session.cov, ConstantAcceleration(options["accel_std"]), dt)
+        session.mean, session.cov = _KF.predict(
+            session.mean, session.cov, ConstantAcceleration(options["accel_std"]), dt
+        )
     if not fixes:
         return "predicted"
     obs = cast(GnssFixObservation, observations[fixes[0]])  # fixes: the epoch's gnss_fix observations
@@ -378,7 +452,11 @@ def _predict(
     motion = ConstantAcceleration(options["accel_std"])
     transition = motion.transition_matrix(mean, dt)
     mean, cov = _KF.predict(mean, cov, motion, dt)
-    return mean, cov, gnss_bias.predict(bias, transition, options["gnss_bias_tau"], options["gnss_bias_std"], dt)
+    return (
+        mean,
+        cov,
+        gnss_bias.predict(bias, transition, options["gnss_bias_tau"], options["gnss_bias_std"], dt),
+    )
 
 
 def _fix_update(
@@ -411,7 +489,15 @@ def _dr_update(
         return mean, cov, False
     filt = _KF if options["method"] == "gps_dr" else _UKF
     outcome = dead_reckoning_update(
-        filt, mean, cov, epoch, observations, uses, session.odometer_t, options["gyro_std"], options["odometer_std"]
+        filt,
+        mean,
+        cov,
+        epoch,
+        observations,
+        uses,
+        session.odometer_t,
+        options["gyro_std"],
+        options["odometer_std"],
     )
     session.odometer_t = outcome.odometer_t
     return outcome.mean, outcome.cov, outcome.used
@@ -434,8 +520,12 @@ def _range_update(
             continue
         try:
             neighbour = position_at(
-                environment.neighbour(obs.peer_vehicle_id), t, options["max_neighbour_age"],
-                options["neighbour_accel_std"], environment.vehicle_id, obs.peer_vehicle_id,
+                environment.neighbour(obs.peer_vehicle_id),
+                t,
+                options["max_neighbour_age"],
+                options["neighbour_accel_std"],
+                environment.vehicle_id,
+                obs.peer_vehicle_id,
             )
         except NeighbourUnavailable as reason:
             uses[i] = MeasurementUse(i, obs.kind, False, str(reason))
@@ -464,10 +554,14 @@ def _range_update(
     for k in range(count):
         neighbour_design[k, 2 * k : 2 * k + 2] = -directions[k]
     independent = options["neighbour_fusion"] == "independent"
-    weight = 1.0 if independent else range_weight(session.cov, design, neighbour_design, extra_cov, noise, count)
+    weight = (
+        1.0 if independent else range_weight(session.cov, design, neighbour_design, extra_cov, noise, count)
+    )
     if weight >= 1.0 and not independent:
         for i in used:
-            uses[i] = MeasurementUse(i, "v2v_range", False, "covariance intersection gives the ranges no weight here")
+            uses[i] = MeasurementUse(
+                i, "v2v_range", False, "covariance intersection gives the ranges no weight here"
+            )
         return False
     prior_mean, prior_cov = session.mean, session.cov / weight
     bias = Bias(session.bias.mean, session.bias.cov / weight, session.bias.cross / weight)
@@ -476,7 +570,11 @@ def _range_update(
     if options["method"] == "ukf":
         # The neighbours as points; intersected, their covariance along the line of sight is added to the
         # range's; taken as independent, they are exact (the paper's traditional UKF).
-        spread = 0.0 if independent else np.einsum("ki,kij,kj->k", directions, np.array(point_covs), directions) * inflation
+        spread = (
+            0.0
+            if independent
+            else np.einsum("ki,kij,kj->k", directions, np.array(point_covs), directions) * inflation
+        )
         model = RsuRange(points_array, np.sqrt(range_std**2 + spread))
         session.mean, session.cov, _, _ = _UKF.update_one(prior_mean, prior_cov, KINEMATIC, model, observed)
     else:
@@ -488,7 +586,14 @@ def _range_update(
             return distances
 
         session.mean, session.cov, _, _ = augmented_update(
-            _UKF, prior_mean, prior_cov, points_array.reshape(-1), extra_cov, ranges, noise, observed,
+            _UKF,
+            prior_mean,
+            prior_cov,
+            points_array.reshape(-1),
+            extra_cov,
+            ranges,
+            noise,
+            observed,
         )
     session.bias = gnss_bias.condition(bias, prior_mean, prior_cov, session.mean, session.cov)
     for i in used:

@@ -69,47 +69,81 @@ _INITIAL_VELOCITY_STD = 10.0
 _INITIAL_ACCEL_STD = 1.0
 
 OPTION_SPECS = (
-    OptionSpec("feedback", "boolean", True, "Reset the sub-filters with the fused estimate each epoch (eq. 16)."),
     OptionSpec(
-        "dr_share", "number", 0.5,
-        "Information-sharing factor beta_D of the DR sub-filter; beta_G/V = 1 - beta_D (eq. 16).",
-        minimum=0.05, maximum=0.95,
+        "feedback", "boolean", True, "Reset the sub-filters with the fused estimate each epoch (eq. 16)."
     ),
     OptionSpec(
-        "gps_std", "number", math.sqrt(15.0),
+        "dr_share",
+        "number",
+        0.5,
+        "Information-sharing factor beta_D of the DR sub-filter; beta_G/V = 1 - beta_D (eq. 16).",
+        minimum=0.05,
+        maximum=0.95,
+    ),
+    OptionSpec(
+        "gps_std",
+        "number",
+        math.sqrt(15.0),
         "GNSS fix total error 1-sigma per axis (m) when a fix carries none; gnss_bias_std of it is the "
         "time-correlated part, the rest white.",
-        minimum=1e-3, maximum=1e4,
+        minimum=1e-3,
+        maximum=1e4,
     ),
     OptionSpec(
-        "gnss_bias_tau", "number", GNSS_BIAS_TAU,
+        "gnss_bias_tau",
+        "number",
+        GNSS_BIAS_TAU,
         "Time constant (s) of the GNSS fix error's Gauss-Markov part (east and north alike); measured on a "
         "real drive, docs/v2v.md.",
-        minimum=0.1, maximum=3600.0,
+        minimum=0.1,
+        maximum=3600.0,
     ),
     OptionSpec(
-        "gnss_bias_std", "number", GNSS_BIAS_STD,
+        "gnss_bias_std",
+        "number",
+        GNSS_BIAS_STD,
         "Stationary 1-sigma per axis (m) of the GNSS fix error's Gauss-Markov part, a state of the GPS "
         "sub-filter; 0: fix errors white (independent from fix to fix).",
-        minimum=0.0, maximum=1e3,
+        minimum=0.0,
+        maximum=1e3,
     ),
     OptionSpec("gyro_std", "number", 0.005, "Gyro yaw-rate 1-sigma (rad/s).", minimum=1e-6, maximum=10.0),
     OptionSpec(
-        "odometer_std", "number", 0.1, "Odometer distance 1-sigma per reading (m); for speed readings (m/s).",
-        minimum=1e-6, maximum=1e3,
+        "odometer_std",
+        "number",
+        0.1,
+        "Odometer distance 1-sigma per reading (m); for speed readings (m/s).",
+        minimum=1e-6,
+        maximum=1e3,
     ),
     OptionSpec(
-        "range_std", "number", 3.0, "Range 1-sigma (m) to RSUs and neighbour vehicles.", minimum=1e-3, maximum=1e4
+        "range_std",
+        "number",
+        3.0,
+        "Range 1-sigma (m) to RSUs and neighbour vehicles.",
+        minimum=1e-3,
+        maximum=1e4,
     ),
     OptionSpec(
-        "cs_alpha", "number", 0.1, "Current-statistical manoeuvre frequency 1/tau (1/s).", minimum=1e-4, maximum=100.0
+        "cs_alpha",
+        "number",
+        0.1,
+        "Current-statistical manoeuvre frequency 1/tau (1/s).",
+        minimum=1e-4,
+        maximum=100.0,
     ),
     OptionSpec(
-        "cs_a_max", "number", 10.0, "Current-statistical maximum manoeuvre acceleration (m/s^2).",
-        minimum=0.1, maximum=100.0,
+        "cs_a_max",
+        "number",
+        10.0,
+        "Current-statistical maximum manoeuvre acceleration (m/s^2).",
+        minimum=0.1,
+        maximum=100.0,
     ),
     OptionSpec(
-        "neighbour_fusion", "string", "intersection",
+        "neighbour_fusion",
+        "string",
+        "intersection",
         "How a neighbour's estimate enters the V2X sub-filter's range update: intersection (covariance "
         "intersection with the sub-filter's estimate: consistent whatever their correlation, e.g. GNSS "
         "errors they share or earlier ranges between them) or independent (its covariance added to the "
@@ -117,12 +151,20 @@ OPTION_SPECS = (
         choices=NEIGHBOUR_FUSION,
     ),
     OptionSpec(
-        "max_neighbour_age", "number", 1.0, "Oldest usable neighbour estimate (s) past its last point.",
-        minimum=0.0, maximum=60.0,
+        "max_neighbour_age",
+        "number",
+        1.0,
+        "Oldest usable neighbour estimate (s) past its last point.",
+        minimum=0.0,
+        maximum=60.0,
     ),
     OptionSpec(
-        "neighbour_accel_std", "number", 1.0, "White acceleration (m/s^2) for predicting a neighbour forward.",
-        minimum=0.0, maximum=100.0,
+        "neighbour_accel_std",
+        "number",
+        1.0,
+        "White acceleration (m/s^2) for predicting a neighbour forward.",
+        minimum=0.0,
+        maximum=100.0,
     ),
 )
 
@@ -195,7 +237,12 @@ class _SessionState:
             "odometer_t": self.odometer_t,
             "dr_started": self.dr_started,
         }
-        arrays = {"means": self.means, "covs": self.covs, "noise_scales": self.noise_scales, "bias": self.bias.arrays()}
+        arrays = {
+            "means": self.means,
+            "covs": self.covs,
+            "noise_scales": self.noise_scales,
+            "bias": self.bias.arrays(),
+        }
         return state_format.pack(meta, arrays)
 
 
@@ -205,8 +252,14 @@ def _decode(blob: bytes) -> _SessionState:
         raise state_format.StateFormatError(f"state belongs to pipeline {meta.get('pipeline')!r}")
     # A session stored before the GNSS bias and covariance intersection goes on as it was created.
     return _SessionState(
-        {**LEGACY_OPTIONS, **meta["options"]}, bool(meta["initialised"]), meta["t"], int(meta["epochs"]),
-        meta["odometer_t"], arrays["means"], arrays["covs"], arrays["noise_scales"],
+        {**LEGACY_OPTIONS, **meta["options"]},
+        bool(meta["initialised"]),
+        meta["t"],
+        int(meta["epochs"]),
+        meta["odometer_t"],
+        arrays["means"],
+        arrays["covs"],
+        arrays["noise_scales"],
         Bias.from_arrays(arrays["bias"]) if "bias" in arrays else Bias.stationary(0.0),
         bool(meta.get("dr_started", True)),
     )
@@ -223,8 +276,11 @@ class V2xFederatedPipeline(Pipeline):
         "own sub-filter; the better of GNSS and V2X fused with DR and fed back (Wang et al. 2019)."
     )
     measurement_kinds = (
-        GnssFixObservation.kind, GyroObservation.kind, OdometerObservation.kind,
-        RsuRangeObservation.kind, V2vRangeObservation.kind,
+        GnssFixObservation.kind,
+        GyroObservation.kind,
+        OdometerObservation.kind,
+        RsuRangeObservation.kind,
+        V2vRangeObservation.kind,
     )
 
     def option_specs(self) -> list[OptionSpec]:
@@ -267,9 +323,9 @@ class V2xFederatedPipeline(Pipeline):
 
 
 def _validate(session: _SessionState, observations: Sequence[Observation]) -> None:
-    check_batch(V2xFederatedPipeline.name, set(V2xFederatedPipeline.measurement_kinds), session.t, observations)
-
-
+    check_batch(
+        V2xFederatedPipeline.name, set(V2xFederatedPipeline.measurement_kinds), session.t, observations
+    )
 
 
 # -- one epoch -----------------------------------------------------------------------------------
@@ -283,7 +339,9 @@ def _feedback_scales(options: Mapping[str, Any]) -> np.ndarray:
     return np.array([1.0 / (1.0 - beta_d), 1.0 / beta_d, 1.0 / (1.0 - beta_d)])
 
 
-def _step(session: _SessionState, epoch: list[int], observations: Sequence[Observation], environment: Environment) -> Fix:
+def _step(
+    session: _SessionState, epoch: list[int], observations: Sequence[Observation], environment: Environment
+) -> Fix:
     options = session.options
     t = observations[epoch[0]].t
     uses: dict[int, MeasurementUse] = {}
@@ -291,7 +349,9 @@ def _step(session: _SessionState, epoch: list[int], observations: Sequence[Obser
         fixes = [i for i in epoch if isinstance(observations[i], GnssFixObservation)]
         if not fixes:
             for i in epoch:
-                uses[i] = MeasurementUse(i, observations[i].kind, False, "no estimate yet: waiting for a gnss_fix to start from")
+                uses[i] = MeasurementUse(
+                    i, observations[i].kind, False, "no estimate yet: waiting for a gnss_fix to start from"
+                )
                 _note_odometer(session, observations[i])
             session.t = t
             session.epochs += 1
@@ -313,7 +373,12 @@ def _step(session: _SessionState, epoch: list[int], observations: Sequence[Obser
         session.epochs += 1
         for i in epoch:
             used = i == fixes[0]
-            uses[i] = MeasurementUse(i, observations[i].kind, used, None if used else "the session starts from this epoch's first gnss_fix")
+            uses[i] = MeasurementUse(
+                i,
+                observations[i].kind,
+                used,
+                None if used else "the session starts from this epoch's first gnss_fix",
+            )
             _note_odometer(session, observations[i])
         return kinematic_fix(t, "initialised", session.means[0], session.covs[0], [uses[i] for i in epoch])
 
@@ -322,10 +387,14 @@ def _step(session: _SessionState, epoch: list[int], observations: Sequence[Obser
     bias = session.bias
     if dt > 0.0:
         for k, filt in enumerate((_KF, _SRUKF, _SRUKF)):
-            model = SharedNoiseCurrentStatistical(options["cs_alpha"], options["cs_a_max"], session.noise_scales[k])
+            model = SharedNoiseCurrentStatistical(
+                options["cs_alpha"], options["cs_a_max"], session.noise_scales[k]
+            )
             if k == 0:
                 transition = model.transition_matrix(means[0], dt)
-                bias = gnss_bias.predict(bias, transition, options["gnss_bias_tau"], options["gnss_bias_std"], dt)
+                bias = gnss_bias.predict(
+                    bias, transition, options["gnss_bias_tau"], options["gnss_bias_std"], dt
+                )
             means[k], covs[k] = filt.predict(means[k], covs[k], model, dt)
 
     updated = [False, False, False]
@@ -404,11 +473,24 @@ def _dr_update(
     scene it hovers at 1.5-2.5 sigma (waiting for 2 sigma cost 0.5 m under multipath there)."""
     if not session.dr_started:
         session.odometer_t = wait_for_heading(
-            epoch, observations, uses, session.odometer_t, t, "no velocity yet: dead reckoning waits for a second gnss_fix"
+            epoch,
+            observations,
+            uses,
+            session.odometer_t,
+            t,
+            "no velocity yet: dead reckoning waits for a second gnss_fix",
         )
         return False
     outcome = dead_reckoning_update(
-        _SRUKF, means[1], covs[1], epoch, observations, uses, session.odometer_t, options["gyro_std"], options["odometer_std"]
+        _SRUKF,
+        means[1],
+        covs[1],
+        epoch,
+        observations,
+        uses,
+        session.odometer_t,
+        options["gyro_std"],
+        options["odometer_std"],
     )
     means[1], covs[1], session.odometer_t = outcome.mean, outcome.cov, outcome.odometer_t
     return outcome.used
@@ -443,8 +525,12 @@ def _v2x_update(
         elif isinstance(obs, V2vRangeObservation):
             try:
                 neighbour = position_at(
-                    environment.neighbour(obs.peer_vehicle_id), t, options["max_neighbour_age"],
-                    options["neighbour_accel_std"], environment.vehicle_id, obs.peer_vehicle_id,
+                    environment.neighbour(obs.peer_vehicle_id),
+                    t,
+                    options["max_neighbour_age"],
+                    options["neighbour_accel_std"],
+                    environment.vehicle_id,
+                    obs.peer_vehicle_id,
                 )
             except NeighbourUnavailable as reason:
                 uses[i] = MeasurementUse(i, obs.kind, False, str(reason))
@@ -473,13 +559,17 @@ def _v2x_update(
         neighbour_cov[2 * k : 2 * k + 2, 2 * k : 2 * k + 2] = cov
     weight, scale = 1.0, 1.0  # independent: the neighbour's covariance as independent range noise
     if options["neighbour_fusion"] == "intersection" and neighbours:
-        weight = range_weight(covs[2], design, neighbour_design, neighbour_cov, np.diag(variances), len(neighbours))
+        weight = range_weight(
+            covs[2], design, neighbour_design, neighbour_cov, np.diag(variances), len(neighbours)
+        )
         scale = len(neighbours) / (1.0 - weight) if weight < 1.0 else 0.0
     if weight >= 1.0 and scale == 0.0:
         # Intersected, the neighbours' ranges would carry no weight: only the RSUs' (exact points) are used.
         for k in neighbours:
             i, _ = used[k]
-            uses[i] = MeasurementUse(i, observations[i].kind, False, "covariance intersection gives the range no weight here")
+            uses[i] = MeasurementUse(
+                i, observations[i].kind, False, "covariance intersection gives the range no weight here"
+            )
         keep = [k for k in range(count) if k not in neighbours]
         if not keep:
             return False
@@ -489,15 +579,21 @@ def _v2x_update(
         point_covs = [point_covs[k] for k in keep]
         used = [used[k] for k in keep]
         weight = 1.0
-    total = [v + scale * float(d @ c @ d) for v, (d, c) in zip(variances, point_covs)]  # the nodes' own uncertainty
+    total = [
+        v + scale * float(d @ c @ d) for v, (d, c) in zip(variances, point_covs)
+    ]  # the nodes' own uncertainty
     model = RangesToPoints(np.array(points), np.array(total))
-    means[2], covs[2], _, _ = _SRUKF.update_one(means[2], covs[2] / weight, _KIN, model, np.array([v for _, v in used]))
+    means[2], covs[2], _, _ = _SRUKF.update_one(
+        means[2], covs[2] / weight, _KIN, model, np.array([v for _, v in used])
+    )
     for i, _ in used:
         uses[i] = MeasurementUse(i, observations[i].kind, True)
     return True
 
 
-def fuse(mean_a: np.ndarray, cov_a: np.ndarray, mean_b: np.ndarray, cov_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def fuse(
+    mean_a: np.ndarray, cov_a: np.ndarray, mean_b: np.ndarray, cov_b: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Eq. 15: P = (Pa^-1 + Pb^-1)^-1, x = P (Pa^-1 xa + Pb^-1 xb), through Cholesky solves."""
     try:
         info_a = np.linalg.inv(np.linalg.cholesky(cov_a))

@@ -40,10 +40,15 @@ def add_delivery_arguments(parser: argparse.ArgumentParser, fraction_help: str) 
     form of a :class:`LateDelivery` (see :func:`delivery_from`)."""
     parser.add_argument("--delay-fraction", metavar="F", type=float, default=None, help=fraction_help)
     parser.add_argument(
-        "--max-delay", metavar="S", type=float, default=0.5,
+        "--max-delay",
+        metavar="S",
+        type=float,
+        default=0.5,
         help="late RSU measurements arrive a uniform delay in [--min-delay, S] seconds late (default 0.5)",
     )
-    parser.add_argument("--min-delay", metavar="S", type=float, default=0.05, help="see --max-delay (default 0.05)")
+    parser.add_argument(
+        "--min-delay", metavar="S", type=float, default=0.05, help="see --max-delay (default 0.05)"
+    )
 
 
 def delivery_from(args: argparse.Namespace) -> LateDelivery | None:

@@ -96,9 +96,13 @@ def make_run(seed: int, run: int, scenario: str, steps: int = STEPS) -> Federate
         speed_sq = vx * vx + vy * vy
         yaw_rate = (vx * ay - ax * vy) / speed_sq
         epoch: list[Observation] = [
-            GnssFixObservation(float(t), float(x + gps_noise[k, 0]), float(y + gps_noise[k, 1]), GPS_STD[scenario]),
+            GnssFixObservation(
+                float(t), float(x + gps_noise[k, 0]), float(y + gps_noise[k, 1]), GPS_STD[scenario]
+            ),
             GyroObservation(float(t), float(yaw_rate + gyro_noise[k])),
-            OdometerObservation(float(t), distance=float(max(STEP * math.sqrt(speed_sq) + odo_noise[k], 0.0))),
+            OdometerObservation(
+                float(t), distance=float(max(STEP * math.sqrt(speed_sq) + odo_noise[k], 0.0))
+            ),
         ]
         step_fixes = {}
         for n, vid in enumerate(ids):

@@ -134,7 +134,10 @@ class GnssScenario:
 
 
 def urban_scenario(
-    *, short: bool = False, riss_rate_hz: float = 10.0, gnss_rate_hz: float = 1.0,
+    *,
+    short: bool = False,
+    riss_rate_hz: float = 10.0,
+    gnss_rate_hz: float = 1.0,
     heading0: float = START_HEADING,
 ) -> GnssScenario:
     """The Nanjing downtown drive (387 s; ``short``: about 70 s) in street canyons; ``heading0`` is the
@@ -143,7 +146,10 @@ def urban_scenario(
 
 
 def open_sky_scenario(
-    *, short: bool = False, riss_rate_hz: float = 10.0, gnss_rate_hz: float = 1.0,
+    *,
+    short: bool = False,
+    riss_rate_hz: float = 10.0,
+    gnss_rate_hz: float = 1.0,
     heading0: float = START_HEADING,
 ) -> GnssScenario:
     """The same drive with no buildings and open-sky multipath: the check that the filters are sound."""

@@ -236,7 +236,11 @@ def simulate(scenario: GnssScenario, rng: np.random.Generator) -> GnssRun:
                         prn=int(prns[j]),
                         pseudorange=float(pseudorange[k, j]),
                         cn0=float(round(cn0[k, j], 2)),
-                        sat_position=(float(transmit[k, j, 0]), float(transmit[k, j, 1]), float(transmit[k, j, 2])),
+                        sat_position=(
+                            float(transmit[k, j, 0]),
+                            float(transmit[k, j, 1]),
+                            float(transmit[k, j, 2]),
+                        ),
                         sat_clock=float(sat_clock[k, j]),
                     )
                 )

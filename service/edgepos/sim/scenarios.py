@@ -85,7 +85,14 @@ class Scenario:
         return tuple(
             float(value[0])
             for value in (
-                truth.x, truth.vx, truth.ax, truth.y, truth.vy, truth.ay, truth.heading, truth.yaw_rate
+                truth.x,
+                truth.vx,
+                truth.ax,
+                truth.y,
+                truth.vy,
+                truth.ay,
+                truth.heading,
+                truth.yaw_rate,
             )
         )
 

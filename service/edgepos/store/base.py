@@ -387,7 +387,9 @@ class SessionStore(ABC):
         """Remove a station and its corrections; False if it was not registered."""
 
     @abstractmethod
-    async def add_base_epochs(self, station_id: str, epochs: Sequence[tuple[float, str]], keep: int) -> int | None:
+    async def add_base_epochs(
+        self, station_id: str, epochs: Sequence[tuple[float, str]], keep: int
+    ) -> int | None:
         """Add correction epochs (GPS s, document) to a station's window, replacing any of the same time,
         then drop the oldest beyond the newest ``keep``, in one atomic step. The window's size after, None
         (nothing written) when the station is not registered."""

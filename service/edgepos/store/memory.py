@@ -280,7 +280,9 @@ class MemoryStore(SessionStore):
         self._base_epochs.pop(station_id, None)
         return self._base_stations.pop(station_id, None) is not None
 
-    async def add_base_epochs(self, station_id: str, epochs: Sequence[tuple[float, str]], keep: int) -> int | None:
+    async def add_base_epochs(
+        self, station_id: str, epochs: Sequence[tuple[float, str]], keep: int
+    ) -> int | None:
         window = self._base_epochs.get(station_id)
         if window is None:
             return None

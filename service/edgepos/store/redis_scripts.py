@@ -230,7 +230,6 @@ END_VEHICLE_SESSION = (
     + """
 return end_live_session(KEYS[1], KEYS[2], KEYS[3], ARGV[1], ARGV[2])
 """
-
 )
 
 # The fix stream (store.redis_fixlog.RedisFixLog). KEYS: the stream, its id counter (one slot: {fixes}).

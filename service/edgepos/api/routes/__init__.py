@@ -46,7 +46,10 @@ def known_query_parameters(*names: str) -> Callable[[Request], Awaitable[None]]:
             raise ApiError(
                 "invalid_request",
                 f"unknown query parameter{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))}",
-                [ProblemModel(index=None, field=name, reason=f"unknown query parameter; known: {known}") for name in unknown],
+                [
+                    ProblemModel(index=None, field=name, reason=f"unknown query parameter; known: {known}")
+                    for name in unknown
+                ],
             )
 
     return check
@@ -64,7 +67,9 @@ async def json_body(request: Request) -> None:
     message["content-type"] = declared or ""
     subtype = message.get_content_subtype()
     charset = (message.get_param("charset") or "utf-8") if declared else "utf-8"
-    json_type = message.get_content_maintype() == "application" and (subtype == "json" or subtype.endswith("+json"))
+    json_type = message.get_content_maintype() == "application" and (
+        subtype == "json" or subtype.endswith("+json")
+    )
     if declared and json_type and str(charset).lower() in ("utf-8", "utf8"):
         return
     what = f"Content-Type {declared!r}" if declared else "no Content-Type"

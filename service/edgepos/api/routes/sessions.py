@@ -87,14 +87,20 @@ async def create_session(
     "",
     response_model=SessionList,
     summary="List live sessions",
-    dependencies=[Depends(require_admin), Depends(known_query_parameters("after", "limit", "pipeline", "vehicle_id"))],
+    dependencies=[
+        Depends(require_admin),
+        Depends(known_query_parameters("after", "limit", "pipeline", "vehicle_id")),
+    ],
     responses=errors(401, 403, 422, 429, 503),
 )
 async def list_sessions(
     context: Context,
     after: Annotated[
         str | None,
-        Query(max_length=64, description="Only sessions with ids after this one (the previous page's next_after)."),
+        Query(
+            max_length=64,
+            description="Only sessions with ids after this one (the previous page's next_after).",
+        ),
     ] = None,
     limit: Annotated[int, Query(ge=1, le=1000, description="Sessions per page.")] = 100,
     pipeline: Annotated[
@@ -136,8 +142,10 @@ async def get_track(
     context: Context,
     smoothed: Annotated[
         bool,
-        Query(description="false: the filtered estimates; true: smoothed over the window (pipelines with a "
-              "smoother: GET /v1/pipelines lists smoother true)."),
+        Query(
+            description="false: the filtered estimates; true: smoothed over the window (pipelines with a "
+            "smoother: GET /v1/pipelines lists smoother true)."
+        ),
     ] = False,
 ) -> TrackOut:
     """The estimates of the session's lag window (the last max_delay_s seconds), one per epoch, oldest

@@ -52,12 +52,17 @@ def _issue(context: AppContext, vehicle_id: str) -> tuple[VehicleRecord, str]:
 
 def _issued(record: VehicleRecord, key: str) -> VehicleKeyIssued:
     return VehicleKeyIssued(
-        vehicle_id=record.vehicle_id, created_at=record.created_at, key_issued_at=record.key_issued_at, key=key
+        vehicle_id=record.vehicle_id,
+        created_at=record.created_at,
+        key_issued_at=record.key_issued_at,
+        key=key,
     )
 
 
 def _out(record: VehicleRecord) -> VehicleOut:
-    return VehicleOut(vehicle_id=record.vehicle_id, created_at=record.created_at, key_issued_at=record.key_issued_at)
+    return VehicleOut(
+        vehicle_id=record.vehicle_id, created_at=record.created_at, key_issued_at=record.key_issued_at
+    )
 
 
 def _not_registered(vehicle_id: str) -> ApiError:
@@ -116,7 +121,11 @@ async def import_vehicles(body: VehicleImport, context: Context) -> VehicleImpor
 async def list_vehicles(
     context: Context,
     after: Annotated[
-        str | None, Query(max_length=128, description="Only vehicles with ids after this one (the previous page's next_after).")
+        str | None,
+        Query(
+            max_length=128,
+            description="Only vehicles with ids after this one (the previous page's next_after).",
+        ),
     ] = None,
     limit: Annotated[int, Query(ge=1, le=1000, description="Vehicles per page.")] = 100,
 ) -> VehicleList:

@@ -14,7 +14,12 @@ from edgepos.core.parameters import check_parameters
 
 FILTERS: dict[str, type[GaussianFilter]] = {
     cls.name: cls
-    for cls in (ExtendedKalmanFilter, UnscentedKalmanFilter, CubatureKalmanFilter, SquareRootUnscentedKalmanFilter)
+    for cls in (
+        ExtendedKalmanFilter,
+        UnscentedKalmanFilter,
+        CubatureKalmanFilter,
+        SquareRootUnscentedKalmanFilter,
+    )
 }
 
 

@@ -164,7 +164,9 @@ def kalman_correct(
         chol = np.linalg.cholesky(innovation_cov)
     except np.linalg.LinAlgError:
         raise NumericalError("innovation covariance is not positive definite") from None
-    whitened = np.linalg.solve(chol, np.concatenate([cross_cov.transpose(0, 2, 1), residuals[:, :, None]], axis=2))
+    whitened = np.linalg.solve(
+        chol, np.concatenate([cross_cov.transpose(0, 2, 1), residuals[:, :, None]], axis=2)
+    )
     gain_factor, whitened_residual = whitened[:, :, :-1], whitened[:, :, -1:]
     new_means = means + (gain_factor.transpose(0, 2, 1) @ whitened_residual)[:, :, 0]
     new_means[:, layout.PHI] = wrap_angle(new_means[:, layout.PHI])

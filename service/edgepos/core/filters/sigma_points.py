@@ -87,7 +87,9 @@ class SigmaPointFilter(GaussianFilter):
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         offsets, mean_weights, cov_weights = self.bank_points(means, covs, active)
         count, points = offsets.shape[:2]
-        z = measurement.predict((means[:, None, :] + offsets).reshape(count * points, -1)).reshape(count, points, -1)
+        z = measurement.predict((means[:, None, :] + offsets).reshape(count * points, -1)).reshape(
+            count, points, -1
+        )
         predicted = (mean_weights[:, None, :] @ z)[:, 0, :]
         angles = measurement.angle_rows
         if angles.size:

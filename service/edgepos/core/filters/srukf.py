@@ -78,7 +78,9 @@ def triangular_factor(rows: np.ndarray, centre: np.ndarray | None, centre_weight
     if upper.shape[0] < dim:
         upper = np.vstack([upper, np.zeros((dim - upper.shape[0], dim))])
     if centre is not None and centre_weight != 0.0:
-        upper = cholesky_update(upper, np.sqrt(abs(centre_weight)) * centre, 1.0 if centre_weight > 0 else -1.0)
+        upper = cholesky_update(
+            upper, np.sqrt(abs(centre_weight)) * centre, 1.0 if centre_weight > 0 else -1.0
+        )
     return upper
 
 
@@ -113,7 +115,9 @@ class SquareRootUnscentedKalmanFilter(UnscentedKalmanFilter):
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         offsets, mean_weights, cov_weights = self.bank_points(means, covs, active)
         count, points = offsets.shape[:2]
-        z = measurement.predict((means[:, None, :] + offsets).reshape(count * points, -1)).reshape(count, points, -1)
+        z = measurement.predict((means[:, None, :] + offsets).reshape(count * points, -1)).reshape(
+            count, points, -1
+        )
         predicted = (mean_weights[:, None, :] @ z)[:, 0, :]
         angles = measurement.angle_rows
         if angles.size:

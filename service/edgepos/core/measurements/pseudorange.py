@@ -31,12 +31,19 @@ class PseudorangeModel:
 
     @classmethod
     def build(
-        cls, anchor: GeodeticAnchor, sat_position: np.ndarray, systems: list[str] | tuple[str, ...],
-        known_m: np.ndarray, std_m: np.ndarray,
+        cls,
+        anchor: GeodeticAnchor,
+        sat_position: np.ndarray,
+        systems: list[str] | tuple[str, ...],
+        known_m: np.ndarray,
+        std_m: np.ndarray,
     ) -> PseudorangeModel:
         return cls(
-            anchor, np.asarray(sat_position, float), np.array([CLOCK[s] for s in systems], dtype=int),
-            np.asarray(known_m, float), np.asarray(std_m, float),
+            anchor,
+            np.asarray(sat_position, float),
+            np.array([CLOCK[s] for s in systems], dtype=int),
+            np.asarray(known_m, float),
+            np.asarray(std_m, float),
         )
 
     @property

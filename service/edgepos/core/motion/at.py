@@ -42,7 +42,9 @@ class AdaptiveTurn(MotionModel):
         NOISE_PARAMETER,
     )
 
-    def __init__(self, q: float = 3.5, beta: float = 0.02, eta: float = 0.17, noise: str = "discrete") -> None:
+    def __init__(
+        self, q: float = 3.5, beta: float = 0.02, eta: float = 0.17, noise: str = "discrete"
+    ) -> None:
         self.q = check_positive("q", q)
         self.noise = check_noise_form(noise)
         self.beta = check_positive("beta", beta)

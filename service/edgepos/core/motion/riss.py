@@ -25,8 +25,21 @@ import numpy as np
 from edgepos.gnss.geodesy import WGS84_A, WGS84_E2, geodetic_to_ecef
 
 NAMES = (
-    "north", "east", "up", "v_east", "v_north", "v_up", "pitch", "roll", "azimuth",
-    "clock_gps", "clock_bds", "clock_gal", "clock_drift", "gyro_bias", "wheel_scale",
+    "north",
+    "east",
+    "up",
+    "v_east",
+    "v_north",
+    "v_up",
+    "pitch",
+    "roll",
+    "azimuth",
+    "clock_gps",
+    "clock_bds",
+    "clock_gal",
+    "clock_drift",
+    "gyro_bias",
+    "wheel_scale",
 )
 DIM = len(NAMES)
 NORTH, EAST, UP, VE, VN, VU, PITCH, ROLL, AZIMUTH = range(9)
@@ -112,7 +125,9 @@ def _move(anchor: GeodeticAnchor, states: np.ndarray, out: np.ndarray, dt: float
     lat_prev = anchor.lat + states[..., NORTH] / anchor.scale_north
     out[..., UP] = states[..., UP] + out[..., VU] * dt
     height = anchor.height + out[..., UP]
-    out[..., NORTH] = states[..., NORTH] + out[..., VN] * dt * anchor.scale_north / (meridian_radius(lat_prev) + height)
+    out[..., NORTH] = states[..., NORTH] + out[..., VN] * dt * anchor.scale_north / (
+        meridian_radius(lat_prev) + height
+    )
     lat = anchor.lat + out[..., NORTH] / anchor.scale_north
     out[..., EAST] = states[..., EAST] + out[..., VE] * dt * anchor.scale_east / (
         (normal_radius(lat) + height) * np.cos(lat)
@@ -211,17 +226,21 @@ class GnssOnlyModel:
 
     def propagate(self, states: np.ndarray, dt: float) -> np.ndarray:
         out = np.empty_like(states)
-        out[..., VE:VU + 1] = states[..., VE:VU + 1]
+        out[..., VE : VU + 1] = states[..., VE : VU + 1]
         _move(self.anchor, states, out, dt)
         _clocks(states, out, dt)
-        out[..., PITCH:AZIMUTH + 1] = states[..., PITCH:AZIMUTH + 1]
+        out[..., PITCH : AZIMUTH + 1] = states[..., PITCH : AZIMUTH + 1]
         out[..., GYRO_BIAS] = states[..., GYRO_BIAS]
         out[..., WHEEL_SCALE] = states[..., WHEEL_SCALE]
         return self.complete(out)
 
     def process_noise(self, dt: float) -> np.ndarray:
         q = np.zeros((DIM, DIM))
-        for pos, vel, std in ((NORTH, VN, self.accel_std), (EAST, VE, self.accel_std), (UP, VU, self.vertical_accel_std)):
+        for pos, vel, std in (
+            (NORTH, VN, self.accel_std),
+            (EAST, VE, self.accel_std),
+            (UP, VU, self.vertical_accel_std),
+        ):
             psd = std * std
             q[pos, pos] = psd * dt**3 / 3.0 + 1e-6
             q[pos, vel] = q[vel, pos] = psd * dt**2 / 2.0
@@ -237,6 +256,8 @@ class GnssOnlyModel:
         """Derive azimuth and pitch from the velocity where the vehicle moves (> 0.5 m/s)."""
         horizontal = np.hypot(states[..., VE], states[..., VN])
         moving = horizontal > 0.5
-        states[..., AZIMUTH] = np.where(moving, np.arctan2(states[..., VE], states[..., VN]), states[..., AZIMUTH])
+        states[..., AZIMUTH] = np.where(
+            moving, np.arctan2(states[..., VE], states[..., VN]), states[..., AZIMUTH]
+        )
         states[..., PITCH] = np.where(moving, np.arctan2(states[..., VU], horizontal), states[..., PITCH])
         return states

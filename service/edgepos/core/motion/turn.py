@@ -43,7 +43,9 @@ def turn_noise(q: float, noise_form: str, dt: float) -> np.ndarray:
     if noise_form == "discrete":
         axis = discrete_noise(q, 3, dt)
     else:
-        axis = q * np.array([[dt * dt * dt / 3.0, dt * dt / 2.0, 0.0], [dt * dt / 2.0, dt, 0.0], [0.0, 0.0, dt]])
+        axis = q * np.array(
+            [[dt * dt * dt / 3.0, dt * dt / 2.0, 0.0], [dt * dt / 2.0, dt, 0.0], [0.0, 0.0, dt]]
+        )
     noise = two_axes(axis)
     noise.setflags(write=False)
     return noise

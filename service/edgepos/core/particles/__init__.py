@@ -11,5 +11,12 @@ from edgepos.core.particles.upf import UnscentedParticleFilter
 PARTICLE_FILTERS = {"pf": ParticleFilter, "upf": UnscentedParticleFilter, "ukf": UnscentedKalmanFilter}
 """Filter name -> class; PF and UPF take ``resample_threshold``."""
 
-__all__ = ["PARTICLE_FILTERS", "Cloud", "Measurement", "ParticleFilter", "StepResult", "UnscentedKalmanFilter",
-           "UnscentedParticleFilter"]
+__all__ = [
+    "PARTICLE_FILTERS",
+    "Cloud",
+    "Measurement",
+    "ParticleFilter",
+    "StepResult",
+    "UnscentedKalmanFilter",
+    "UnscentedParticleFilter",
+]

@@ -60,7 +60,9 @@ class Measurement:
     def component_log_likelihoods(self, residual: np.ndarray) -> np.ndarray:
         """log of each component's mixture density (..., m)."""
         p = self.outlier_probability
-        inlier = math.log1p(-p) - 0.5 * (residual * residual / self.variances + np.log(self.variances) + _LOG_2PI)
+        inlier = math.log1p(-p) - 0.5 * (
+            residual * residual / self.variances + np.log(self.variances) + _LOG_2PI
+        )
         outlier = math.log(p) - 0.5 * (
             residual * residual / self.outlier_variance + np.log(self.outlier_variance) + _LOG_2PI
         )
@@ -128,7 +130,9 @@ def wrap(values: np.ndarray, angles: np.ndarray) -> np.ndarray:
     return values
 
 
-def weighted_moments(points: np.ndarray, weights: np.ndarray, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def weighted_moments(
+    points: np.ndarray, weights: np.ndarray, angles: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Mean and covariance of rows (N, D) with weights (N,) summing to one; circular mean for angles."""
     mean = weights @ points
     if angles.any():
@@ -175,7 +179,9 @@ def gaussian_logpdf(deviation: np.ndarray, chol: np.ndarray) -> np.ndarray:
 
 def diagonal_logpdf(residual: np.ndarray, variances: np.ndarray) -> np.ndarray:
     """log N(residual; 0, diag(variances)) over the last axis."""
-    log_pdf: FloatArray = -0.5 * np.sum(residual * residual / variances + np.log(variances) + _LOG_2PI, axis=-1)
+    log_pdf: FloatArray = -0.5 * np.sum(
+        residual * residual / variances + np.log(variances) + _LOG_2PI, axis=-1
+    )
     return log_pdf
 
 
@@ -205,7 +211,9 @@ class SigmaWeights:
         return w
 
 
-def sigma_points(means: np.ndarray, chols: np.ndarray, active: np.ndarray, weights: SigmaWeights) -> np.ndarray:
+def sigma_points(
+    means: np.ndarray, chols: np.ndarray, active: np.ndarray, weights: SigmaWeights
+) -> np.ndarray:
     """Eq. 10 for every particle: (N, 2k+1, D) points around means (N, D) along the columns of
     sqrt(k + lambda) L, L (k, k) shared or (N, k, k) per particle, in the ``active`` components."""
     _count, _dim = means.shape
@@ -265,8 +273,13 @@ class UnscentedUpdate:
 
 
 def unscented_predict(
-    means: np.ndarray, cov: np.ndarray | None, model: ParticleModel, dt: float, active: np.ndarray,
-    angles: np.ndarray, weights: SigmaWeights | None = None,
+    means: np.ndarray,
+    cov: np.ndarray | None,
+    model: ParticleModel,
+    dt: float,
+    active: np.ndarray,
+    angles: np.ndarray,
+    weights: SigmaWeights | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """UKF time update (eq. 11) of N Gaussians (means (N, D), full-state covariance ``cov`` (D, D) shared,
     or None for points): (f of each mean (N, D), predicted means (N, D), covariances (N, k, k))."""
@@ -286,8 +299,13 @@ def unscented_predict(
 
 
 def unscented_update(
-    predicted: np.ndarray, predicted_cov: np.ndarray, model: ParticleModel, active: np.ndarray,
-    angles: np.ndarray, measurement: Measurement, weights: SigmaWeights | None = None,
+    predicted: np.ndarray,
+    predicted_cov: np.ndarray,
+    model: ParticleModel,
+    active: np.ndarray,
+    angles: np.ndarray,
+    measurement: Measurement,
+    weights: SigmaWeights | None = None,
 ) -> UnscentedUpdate:
     """UKF measurement update (eqs. 12-14) of N Gaussians: means (N, D), active-block covariances (k, k)
     shared or (N, k, k). Sigma points are drawn around the prediction, so the process noise enters the
@@ -322,8 +340,14 @@ def unscented_update(
 
 
 def unscented_step(
-    means: np.ndarray, cov: np.ndarray | None, model: ParticleModel, dt: float, active: np.ndarray,
-    angles: np.ndarray, measurement: Measurement | None, weights: SigmaWeights | None = None,
+    means: np.ndarray,
+    cov: np.ndarray | None,
+    model: ParticleModel,
+    dt: float,
+    active: np.ndarray,
+    angles: np.ndarray,
+    measurement: Measurement | None,
+    weights: SigmaWeights | None = None,
 ) -> UnscentedStep:
     """Eqs. 9-14 for N Gaussians at once: UKF time update of each mean (with covariance ``cov`` of the
     full state, shared, (D, D); None for a point) and, given a measurement, the measurement update."""
@@ -343,7 +367,10 @@ def kernel_bandwidth(count: int, dim: int) -> float:
 
 
 def kernel_prior(
-    particles: np.ndarray, log_weights: np.ndarray, active: np.ndarray, angles: np.ndarray,
+    particles: np.ndarray,
+    log_weights: np.ndarray,
+    active: np.ndarray,
+    angles: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The weighted cloud as a Gaussian-kernel mixture that keeps its mean and covariance (Liu & West
     2001): kernel centres a x_i + (1 - a) mean and kernel covariance h^2 Sigma on the active components,
@@ -363,8 +390,12 @@ def kernel_prior(
 
 
 def regularised_resample(
-    particles: np.ndarray, log_weights: np.ndarray, active: np.ndarray, angles: np.ndarray,
-    rng: np.random.Generator, kernel: bool = True,
+    particles: np.ndarray,
+    log_weights: np.ndarray,
+    active: np.ndarray,
+    angles: np.ndarray,
+    rng: np.random.Generator,
+    kernel: bool = True,
 ) -> np.ndarray:
     """Resample (systematic) without losing the cloud's spread: N equally weighted particles whose mean
     and covariance on the active components are exactly those the weighted cloud stands for.

@@ -39,7 +39,12 @@ class ParticleFilter:
     name = "pf"
 
     def step(
-        self, cloud: Cloud, model: ParticleModel, dt: float, active: np.ndarray, measurement: Measurement | None,
+        self,
+        cloud: Cloud,
+        model: ParticleModel,
+        dt: float,
+        active: np.ndarray,
+        measurement: Measurement | None,
         rng: np.random.Generator,
     ) -> StepResult:
         index = np.flatnonzero(active)
@@ -60,10 +65,14 @@ class ParticleFilter:
             particles, log_weights = self._correct(particles, log_weights, model, active, measurement, rng)
         return _finish(particles, log_weights, cloud.cov, active, score, self.resample_threshold, rng)
 
-
     def _correct(
-        self, particles: np.ndarray, log_weights: np.ndarray, model: ParticleModel, active: np.ndarray,
-        measurement: Measurement, rng: np.random.Generator,
+        self,
+        particles: np.ndarray,
+        log_weights: np.ndarray,
+        model: ParticleModel,
+        active: np.ndarray,
+        measurement: Measurement,
+        rng: np.random.Generator,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Weigh by the likelihood with progressive correction (Oudjane & Musso 2000): the likelihood enters
         in powers alpha_1 + alpha_2 + ... = 1, each the largest that keeps the effective sample size at the
@@ -112,8 +121,13 @@ def _largest_power(
 
 
 def _finish(
-    particles: np.ndarray, log_weights: np.ndarray, previous_cov: np.ndarray, active: np.ndarray,
-    score: float | None, threshold: float, rng: np.random.Generator,
+    particles: np.ndarray,
+    log_weights: np.ndarray,
+    previous_cov: np.ndarray,
+    active: np.ndarray,
+    score: float | None,
+    threshold: float,
+    rng: np.random.Generator,
 ) -> StepResult:
     """Estimate from the weighted cloud (eq. 17), then resample when the ESS is low (eq. 18)."""
     weights = np.exp(log_weights)

@@ -25,7 +25,12 @@ class UnscentedKalmanFilter:
     name = "ukf"
 
     def step(
-        self, cloud: Cloud, model: ParticleModel, dt: float, active: np.ndarray, measurement: Measurement | None,
+        self,
+        cloud: Cloud,
+        model: ParticleModel,
+        dt: float,
+        active: np.ndarray,
+        measurement: Measurement | None,
         rng: np.random.Generator,
     ) -> StepResult:
         del rng  # deterministic

@@ -80,8 +80,13 @@ class UnscentedParticleFilter:
         return total
 
     def step(
-        self, cloud: Cloud, model: ParticleModel, dt: float, active: np.ndarray,
-        measurement: Measurement | None, rng: np.random.Generator,
+        self,
+        cloud: Cloud,
+        model: ParticleModel,
+        dt: float,
+        active: np.ndarray,
+        measurement: Measurement | None,
+        rng: np.random.Generator,
     ) -> StepResult:
         index = np.flatnonzero(active)
         count = len(cloud.particles)
