@@ -1,6 +1,7 @@
 # One command to run the service, one to run the tests; both set up .venv themselves.
 #   make serve   install and start the service on its embedded defaults with the demo RSU map
-#   make test    install and run the whole test suite (what .ci/run runs)
+#   make test    install and run the lint, the docs build and the whole test suite (what .ci/run runs)
+#   make lint    ruff check, ruff format --check and mypy (strict), as make test runs them
 #   make test-under-load  the whole suite 10 times in a row with every CPU core busy (must pass 10 of 10)
 #   make bench   install and run the benchmark scripts
 #   make openapi regenerate openapi.json from the app
@@ -11,7 +12,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: serve test test-under-load bench openapi docs clean redis-server chromium wrk
+.PHONY: serve test lint test-under-load bench openapi docs clean redis-server chromium wrk
 
 $(STAMP): pyproject.toml client/pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -22,8 +23,14 @@ $(STAMP): pyproject.toml client/pyproject.toml
 serve: $(STAMP)
 	EDGEPOS_DEMO_RSUS=$${EDGEPOS_DEMO_RSUS:-true} $(BIN)/edgepos serve
 
-test: $(STAMP) redis-server chromium docs
+test: $(STAMP) redis-server chromium lint docs
 	$(BIN)/python -m pytest
+
+# Style and types are held by tools: a finding fails the build (pyproject.toml configures both).
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/mypy
 
 # A test that leans on a quiet machine (fixed sleeps, wall-clock deadlines, unsynchronised threads)
 # fails here: one busy-loop process per core, the suite run 10 times with CI=true (bench/suite_under_load.py).
