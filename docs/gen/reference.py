@@ -220,6 +220,7 @@ def client_guide() -> str:
     """The Python client guide: the client package's README under the site's title for it."""
     text = (ROOT / "client" / "README.md").read_text(encoding="utf-8")
     body = text.split("\n", 1)[1] if text.startswith("# ") else text
+    body = body.replace("](../docs/", "](")  # the README's links into docs/ are links within the site here
     return "# The Python client\n" + body + "\nEvery class and method: [Client API](reference/client.md).\n"
 
 
