@@ -88,7 +88,7 @@ def consumer_main(url: str, key: str, count: int) -> int:
 
 # -- the bench -----------------------------------------------------------------------------------------
 @contextlib.contextmanager
-def attached(url: str, count: int):  # type: ignore[no-untyped-def]
+def attached(url: str, count: int):
     """``count`` consumers in a process of their own, connected before the block and counted after it."""
     result: dict[str, Any] = {}
     if count == 0:

@@ -25,14 +25,14 @@ class FailingPipeline(RsuImuPipeline):
 class ResolveFailingPipeline(RsuImuPipeline):
     """Its estimation core refuses the options with its own error type."""
 
-    def resolve_options(self, options):  # type: ignore[no-untyped-def]
+    def resolve_options(self, options):
         raise ConfigurationError("process noise must be positive")
 
 
 class CreateFailingPipeline(RsuImuPipeline):
     """Refuses to create a state (as the core does for parameters outside their domain)."""
 
-    def create(self, options, initial):  # type: ignore[no-untyped-def]
+    def create(self, options, initial):
         raise EstimationError("initial covariance is singular")
 
 

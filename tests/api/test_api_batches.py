@@ -357,7 +357,7 @@ def test_requests_for_one_session_never_interleave(tmp_path):
         arrived: list[str] = []
         second_waits = threading.Event()
 
-        def observed_lock(locked_id: str):  # type: ignore[no-untyped-def]
+        def observed_lock(locked_id: str):
             arrived.append(locked_id)
             if len(arrived) == 2:
                 second_waits.set()
@@ -395,7 +395,7 @@ class RacingStore(MemoryStore):
         super().__init__(ttl_s)
         self.raced = False
 
-    async def compare_and_set(self, record, expected_version):  # type: ignore[no-untyped-def]
+    async def compare_and_set(self, record, expected_version):
         if not self.raced and record.last_seq > 0:
             self.raced = True
             assert await super().compare_and_set(record, expected_version)

@@ -77,7 +77,7 @@ def _delete_every_session() -> None:
 sessions_schema = schema.include(path_regex="^/v1/sessions")
 
 
-class SessionWorkflow(sessions_schema.as_state_machine()):  # type: ignore[misc]
+class SessionWorkflow(sessions_schema.as_state_machine()):
     """Every call with the admin key; batches aimed at the next seq with known RSU ids so that many
     reach the filter; the session's state is compared before and after each call."""
 

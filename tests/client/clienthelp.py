@@ -38,7 +38,7 @@ def scenario_rsus() -> list[Rsu]:
 
 
 def make_app(tmp_path: Path, **overrides: Any) -> FastAPI:
-    settings = Settings(admin_key=ADMIN_KEY, admin_key_file=tmp_path / "admin.key", **overrides)  # type: ignore[arg-type]
+    settings = Settings(admin_key=ADMIN_KEY, admin_key_file=tmp_path / "admin.key", **overrides)
     return create_app(settings)
 
 

@@ -56,7 +56,9 @@ def test_every_constructor_parameter_is_published_and_its_bounds_build(owner: st
 
 def test_check_parameters_refuses_a_non_object() -> None:
     with pytest.raises(ConfigurationError):
-        check_parameters("x", (ParameterSpec("a", "a number", 0.0, 1.0),), [("a", 1.0)])  # type: ignore[arg-type]
+        check_parameters(
+            "x", (ParameterSpec("a", "a number", 0.0, 1.0),), [("a", 1.0)]
+        )  # deliberately the wrong type
 
 
 ANCHOR = GeodeticAnchor(math.radians(22.3), math.radians(114.2), 10.0)

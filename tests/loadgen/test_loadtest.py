@@ -16,8 +16,8 @@ def connection_attempts(monkeypatch: pytest.MonkeyPatch) -> list[str]:
     """Every attempt to resolve a host name or open a connection, refused and recorded."""
     attempts: list[str] = []
 
-    def refuse(what: str):  # type: ignore[no-untyped-def]
-        def refused(*args, **kwargs):  # type: ignore[no-untyped-def]
+    def refuse(what: str):
+        def refused(*args, **kwargs):
             attempts.append(f"{what}{args[-1:]!r}")
             raise ConnectionRefusedError(f"test: no {what} allowed")
 
@@ -131,7 +131,7 @@ def _vehicle(client: FakeClient, batches: int):
     from edgepos.sim.scenarios import rsu_imu_paper_scenario
 
     recorder = Recorder()
-    return Vehicle(0, client, [[None]] * batches, rsu_imu_paper_scenario(), recorder), recorder  # type: ignore[arg-type]
+    return Vehicle(0, client, [[None]] * batches, rsu_imu_paper_scenario(), recorder), recorder
 
 
 def test_vehicle_starts_a_new_trip_at_the_end_of_the_scenario() -> None:

@@ -62,7 +62,7 @@ def ephemerides() -> Ephemerides:
     return Ephemerides.from_navigation(read_navigation(FILES[1]))
 
 
-def _run(ephemerides: Ephemerides, table, batches, options=None):  # type: ignore[no-untyped-def]
+def _run(ephemerides: Ephemerides, table, batches, options=None):
     pipeline = GnssTightPipeline()
     state = pipeline.create(
         pipeline.resolve_options({"filter": "ukf", "systems": ["C", "G"], **(options or {})}), None

@@ -182,7 +182,7 @@ def test_every_bad_option_is_reported_at_once(pipeline) -> None:
 
 def test_options_must_be_a_mapping(pipeline) -> None:
     with pytest.raises(PipelineInputError) as caught:
-        pipeline.resolve_options(["filter", "ckf"])  # type: ignore[arg-type]
+        pipeline.resolve_options(["filter", "ckf"])  # deliberately the wrong type
     assert problem_fields(caught.value) == ["options"]
 
 

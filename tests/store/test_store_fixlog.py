@@ -88,8 +88,8 @@ def test_event_ids_and_gaps():
         with pytest.raises(ValueError):
             parse_event_id(bad)
     assert gap_between(5, 6, 10) is None
-    assert gap_between(3, 6, 10) == gap_between(3, 6, 10) and gap_between(3, 6, 10).missed == 2  # type: ignore[union-attr]
-    assert gap_between(11, 6, 10).reason == "unknown"  # type: ignore[union-attr]
+    assert gap_between(3, 6, 10) == gap_between(3, 6, 10) and gap_between(3, 6, 10).missed == 2
+    assert gap_between(11, 6, 10).reason == "unknown"
     assert gap_between(0, None, 0) is None
 
 

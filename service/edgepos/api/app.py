@@ -209,7 +209,7 @@ def create_app(
             location.add_problem_schema(document)
         return app.openapi_schema or default_openapi()
 
-    app.openapi = openapi  # type: ignore[method-assign]
+    app.openapi = openapi  # type: ignore[method-assign]  # FastAPI's documented way to extend the schema
     static_dir = resources.files("edgepos.api") / "static"
     app.mount(docs.STATIC_PREFIX, StaticFiles(directory=str(static_dir)), name="static")
 

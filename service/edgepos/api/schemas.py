@@ -750,14 +750,16 @@ class PseudorangeMeasurement(RequestModel):
     )
 
     def to_observation(self) -> Observation:
-        position = None if self.sat_position is None else tuple(self.sat_position)
+        position = None
+        if self.sat_position is not None:  # three items: the field's schema holds it to exactly three
+            position = (self.sat_position[0], self.sat_position[1], self.sat_position[2])
         return PseudorangeObservation(
             t=self.t,
             system=self.system,
             prn=self.prn,
             pseudorange=self.pseudorange_m,
             cn0=self.cn0_dbhz,
-            sat_position=position,  # type: ignore[arg-type]
+            sat_position=position,
             sat_clock=self.sat_clock,
             doppler_hz=self.doppler_hz,
             carrier_cycles=self.carrier_cycles,

@@ -286,8 +286,10 @@ def evaluate(
             fixes.append(None)
         else:
             fixes.append(geodetic_to_ecef(fix.latitude, fix.longitude, fix.height))
-        has_velocity = fix is not None and fix.vx is not None and fix.vy is not None
-        fix_velocities.append(np.array([fix.vx, fix.vy]) if has_velocity else None)  # type: ignore[union-attr]
+        if fix is not None and fix.vx is not None and fix.vy is not None:
+            fix_velocities.append(np.array([fix.vx, fix.vy]))
+        else:
+            fix_velocities.append(None)
         prs, _ = prepare_epoch(epoch, ephemerides.orbits, codes)
         corrected = None
         if table is not None:

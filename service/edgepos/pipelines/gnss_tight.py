@@ -321,8 +321,9 @@ def _filter_epoch(
     session.epochs += 1
     uses: dict[int, MeasurementUse] = {}
     for i in epoch:
-        if isinstance(observations[i], RissObservation):
-            _take_riss(session, observations[i])  # type: ignore[arg-type]
+        observation = observations[i]
+        if isinstance(observation, RissObservation):
+            _take_riss(session, observation)
             uses[i] = MeasurementUse(i, "riss", True)
     if ephemerides is not None:
         gpst = ephemerides.gpst(t)
