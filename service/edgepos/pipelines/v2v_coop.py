@@ -54,6 +54,11 @@ from edgepos.pipelines.base import (
     StateSummary,
     ensure_finite_fixes,
 )
+from edgepos.pipelines.cooperative_options import (
+    GNSS_BIAS_SPECS,
+    LEGACY_OPTIONS,
+    neighbour_specs,
+)
 from edgepos.pipelines.epochs import group_by_time
 from edgepos.pipelines.kinematic import (
     KINEMATIC,
@@ -68,13 +73,6 @@ from edgepos.pipelines.options import resolve_options
 from edgepos.pipelines.tracks import NeighbourUnavailable, position_at
 
 METHODS = ("gps", "gps_dr", "ukf", "aug_ukf")
-NEIGHBOUR_FUSION = ("intersection", "independent")
-GNSS_BIAS_TAU = 35.0
-"""s: the fix errors' autocorrelation on the real drive of tests/data/gnss-rover (docs/v2v.md)."""
-GNSS_BIAS_STD = 2.1
-"""m per axis: the same recording's fix errors less their white part (docs/v2v.md)."""
-#: What a session created before these options existed did: white fixes, neighbours as independent.
-LEGACY_OPTIONS = {"gnss_bias_tau": GNSS_BIAS_TAU, "gnss_bias_std": 0.0, "neighbour_fusion": "independent"}
 _INITIAL_VELOCITY_STD = 30.0
 _INITIAL_ACCEL_STD = 1.0
 
@@ -96,24 +94,7 @@ OPTION_SPECS = (
         minimum=1e-3,
         maximum=1e4,
     ),
-    OptionSpec(
-        "gnss_bias_tau",
-        "number",
-        GNSS_BIAS_TAU,
-        "Time constant (s) of the GNSS fix error's Gauss-Markov part (site x and y alike); measured on a "
-        "real drive, docs/v2v.md.",
-        minimum=0.1,
-        maximum=3600.0,
-    ),
-    OptionSpec(
-        "gnss_bias_std",
-        "number",
-        GNSS_BIAS_STD,
-        "Stationary 1-sigma per axis (m) of the GNSS fix error's Gauss-Markov part, estimated as a state; "
-        "0: fix errors white (independent from fix to fix).",
-        minimum=0.0,
-        maximum=1e3,
-    ),
+    *GNSS_BIAS_SPECS,
     OptionSpec(
         "accel_std",
         "number",
@@ -139,30 +120,10 @@ OPTION_SPECS = (
         minimum=1e-3,
         maximum=1e4,
     ),
-    OptionSpec(
-        "neighbour_fusion",
-        "string",
-        "intersection",
+    *neighbour_specs(
         "How a neighbour's estimate enters a range update: intersection (covariance intersection with this "
         "vehicle's own estimate: consistent whatever their correlation, e.g. GNSS errors they share) or "
-        "independent (as independent information, the paper's; over-confident when they share errors).",
-        choices=NEIGHBOUR_FUSION,
-    ),
-    OptionSpec(
-        "max_neighbour_age",
-        "number",
-        1.0,
-        "Oldest usable neighbour estimate (s) past its last point.",
-        minimum=0.0,
-        maximum=60.0,
-    ),
-    OptionSpec(
-        "neighbour_accel_std",
-        "number",
-        1.0,
-        "White acceleration (m/s^2) for predicting a neighbour forward.",
-        minimum=0.0,
-        maximum=100.0,
+        "independent (as independent information, the paper's; over-confident when they share errors)."
     ),
 )
 

@@ -52,6 +52,7 @@ from edgepos.pipelines.base import (
     StateSummary,
     ensure_finite_fixes,
 )
+from edgepos.pipelines.cooperative_options import GNSS_BIAS_SPECS, LEGACY_OPTIONS, neighbour_specs
 from edgepos.pipelines.epochs import group_by_time
 from edgepos.pipelines.kinematic import (
     check_batch,
@@ -61,7 +62,6 @@ from edgepos.pipelines.kinematic import (
 )
 from edgepos.pipelines.options import resolve_options
 from edgepos.pipelines.tracks import NeighbourUnavailable, position_at
-from edgepos.pipelines.v2v_coop import GNSS_BIAS_STD, GNSS_BIAS_TAU, LEGACY_OPTIONS, NEIGHBOUR_FUSION
 
 SUB_FILTERS = ("gps", "dr", "v2x")
 _KIN = layout.KINEMATIC
@@ -89,24 +89,7 @@ OPTION_SPECS = (
         minimum=1e-3,
         maximum=1e4,
     ),
-    OptionSpec(
-        "gnss_bias_tau",
-        "number",
-        GNSS_BIAS_TAU,
-        "Time constant (s) of the GNSS fix error's Gauss-Markov part (east and north alike); measured on a "
-        "real drive, docs/v2v.md.",
-        minimum=0.1,
-        maximum=3600.0,
-    ),
-    OptionSpec(
-        "gnss_bias_std",
-        "number",
-        GNSS_BIAS_STD,
-        "Stationary 1-sigma per axis (m) of the GNSS fix error's Gauss-Markov part, a state of the GPS "
-        "sub-filter; 0: fix errors white (independent from fix to fix).",
-        minimum=0.0,
-        maximum=1e3,
-    ),
+    *GNSS_BIAS_SPECS,
     OptionSpec("gyro_std", "number", 0.005, "Gyro yaw-rate 1-sigma (rad/s).", minimum=1e-6, maximum=10.0),
     OptionSpec(
         "odometer_std",
@@ -140,31 +123,11 @@ OPTION_SPECS = (
         minimum=0.1,
         maximum=100.0,
     ),
-    OptionSpec(
-        "neighbour_fusion",
-        "string",
-        "intersection",
+    *neighbour_specs(
         "How a neighbour's estimate enters the V2X sub-filter's range update: intersection (covariance "
         "intersection with the sub-filter's estimate: consistent whatever their correlation, e.g. GNSS "
         "errors they share or earlier ranges between them) or independent (its covariance added to the "
-        "range's as independent noise, the paper's reading).",
-        choices=NEIGHBOUR_FUSION,
-    ),
-    OptionSpec(
-        "max_neighbour_age",
-        "number",
-        1.0,
-        "Oldest usable neighbour estimate (s) past its last point.",
-        minimum=0.0,
-        maximum=60.0,
-    ),
-    OptionSpec(
-        "neighbour_accel_std",
-        "number",
-        1.0,
-        "White acceleration (m/s^2) for predicting a neighbour forward.",
-        minimum=0.0,
-        maximum=100.0,
+        "range's as independent noise, the paper's reading)."
     ),
 )
 

@@ -1,0 +1,61 @@
+"""Options the two cooperative pipelines (``v2v_coop``, ``v2x_federated``) share: the GNSS fix error's
+time-correlated part and how a neighbour's published estimate enters a range update."""
+
+from __future__ import annotations
+
+from edgepos.pipelines.base import OptionSpec
+
+NEIGHBOUR_FUSION = ("intersection", "independent")
+GNSS_BIAS_TAU = 35.0
+"""s: the fix errors' autocorrelation on the real drive of tests/data/gnss-rover (docs/v2v.md)."""
+GNSS_BIAS_STD = 2.1
+"""m per axis: the same recording's fix errors less their white part (docs/v2v.md)."""
+#: What a session created before these options existed did: white fixes, neighbours as independent.
+LEGACY_OPTIONS = {"gnss_bias_tau": GNSS_BIAS_TAU, "gnss_bias_std": 0.0, "neighbour_fusion": "independent"}
+
+GNSS_BIAS_SPECS = (
+    OptionSpec(
+        "gnss_bias_tau",
+        "number",
+        GNSS_BIAS_TAU,
+        "Time constant (s) of the GNSS fix error's Gauss-Markov part (site x and y alike); measured on a "
+        "real drive, docs/v2v.md.",
+        minimum=0.1,
+        maximum=3600.0,
+    ),
+    OptionSpec(
+        "gnss_bias_std",
+        "number",
+        GNSS_BIAS_STD,
+        "Stationary 1-sigma per axis (m) of the GNSS fix error's Gauss-Markov part, estimated as a state; "
+        "0: fix errors white (independent from fix to fix).",
+        minimum=0.0,
+        maximum=1e3,
+    ),
+)
+
+
+def neighbour_specs(fusion_description: str) -> tuple[OptionSpec, ...]:
+    """``neighbour_fusion`` (described as the pipeline uses it), ``max_neighbour_age`` and
+    ``neighbour_accel_std``."""
+    return (
+        OptionSpec(
+            "neighbour_fusion", "string", "intersection", fusion_description, choices=NEIGHBOUR_FUSION
+        ),
+        OptionSpec(
+            "max_neighbour_age",
+            "number",
+            1.0,
+            "Oldest usable neighbour estimate (s) past its last point.",
+            minimum=0.0,
+            maximum=60.0,
+        ),
+        OptionSpec(
+            "neighbour_accel_std",
+            "number",
+            1.0,
+            "White acceleration (m/s^2) for predicting a neighbour forward.",
+            minimum=0.0,
+            maximum=100.0,
+        ),
+    )
