@@ -19,7 +19,7 @@ from pathlib import Path
 
 from edgepos.api.app import create_app
 from edgepos.api.base_stations import batch_corrections
-from edgepos.api.schemas import PseudorangeMeasurement
+from edgepos.api.measurement_schemas import PseudorangeMeasurement
 from edgepos.api.settings import Settings
 from edgepos.eval.gnss_rinex import _score, evaluate
 from edgepos.gnss.geodesy import geodetic_to_ecef

@@ -20,15 +20,8 @@ from pathlib import Path
 
 import uvicorn
 from edgepos.api.convert import batch_body, fix_to_json
-from edgepos.api.schemas import (
-    BatchIn,
-    Health,
-    Ready,
-    RsuBulk,
-    SessionCreate,
-    SessionCreated,
-    Upserted,
-)
+from edgepos.api.measurement_schemas import BatchIn
+from edgepos.api.schemas import Health, Ready, RsuBulk, SessionCreate, SessionCreated, Upserted
 from edgepos.pipelines.base import Fix, MeasurementUse
 from fastapi import FastAPI, Response
 

@@ -514,7 +514,7 @@ def test_a_stale_prefetched_record_never_decides_a_batch(client):
     of the vehicle got in between): the next seq is checked again by the compare-and-set, anything
     else on a fresh read."""
     from edgepos.api import session_service
-    from edgepos.api.schemas import BatchIn
+    from edgepos.api.measurement_schemas import BatchIn
 
     session_id, token = open_session(client)
     context = client.app.state.context

@@ -20,7 +20,8 @@ from pathlib import Path
 import httpx
 import pytest
 from edgepos.api.convert import fix_to_json
-from edgepos.api.schemas import BatchIn, FixOut
+from edgepos.api.measurement_schemas import BatchIn
+from edgepos.api.schemas import FixOut
 from edgepos.api.settings import Settings
 from edgepos.loadgen import common
 from edgepos.pipelines import cost

@@ -41,8 +41,9 @@ from edgepos.api.errors import (
     store_unavailable_error,
 )
 from edgepos.api.logs import request_id_var
+from edgepos.api.measurement_schemas import BatchIn
 from edgepos.api.middleware import REQUEST_ID_HEADER, valid_request_id
-from edgepos.api.schemas import BatchIn, ProblemModel
+from edgepos.api.schemas import ProblemModel
 from edgepos.store.base import StoreUnavailable
 
 logger = logging.getLogger("edgepos.api")

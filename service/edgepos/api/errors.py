@@ -17,7 +17,8 @@ from fastapi.responses import Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from edgepos.api.location import problems as location_problems
-from edgepos.api.schemas import MEASUREMENT_TYPES, ErrorBody, ErrorDetail, ProblemModel
+from edgepos.api.measurement_schemas import MEASUREMENT_TYPES
+from edgepos.api.schemas import ErrorBody, ErrorDetail, ProblemModel
 from edgepos.pipelines.base import Problem
 from edgepos.store.base import NotReplicated, StoreUnavailable
 

@@ -24,8 +24,8 @@ from edgepos.api.context import AppContext
 from edgepos.api.convert import batch_body, fix_to_json, to_json
 from edgepos.api.ephemerides import LoadedEphemerides, satellite_problems
 from edgepos.api.errors import ApiError, pipeline_problems
+from edgepos.api.measurement_schemas import BatchIn
 from edgepos.api.schemas import (
-    BatchIn,
     FixOut,
     ProblemModel,
     SessionCreate,

@@ -17,11 +17,11 @@ from edgepos.api.auth import (
 )
 from edgepos.api.batch_socket import BatchSocket
 from edgepos.api.context import AppContext, Context
+from edgepos.api.measurement_schemas import BatchIn
 from edgepos.api.routes import errors, json_body, known_query_parameters
 from edgepos.api.schemas import (
     PIPELINE_NAME_PATTERN,
     VEHICLE_ID_PATTERN,
-    BatchIn,
     BatchOut,
     SessionCreate,
     SessionCreated,
