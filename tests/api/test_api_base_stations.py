@@ -198,7 +198,9 @@ def test_sessions_with_the_station_match_the_eval_with_base(client):
     pipeline = GnssTightPipeline()
     state = pipeline.create(pipeline.resolve_options({**OPTIONS, "base_station": "MARE"}), None)
     environment = StaticEnvironment(navigation=ephemerides, differential=table)
-    from edgepos.api.measurement_schemas import PseudorangeMeasurement  # the wire -> observation conversion of the API
+    from edgepos.api.measurement_schemas import (
+        PseudorangeMeasurement,  # the wire -> observation conversion of the API
+    )
 
     expected = []
     for first in range(0, COUNT, 10):
