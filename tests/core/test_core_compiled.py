@@ -326,11 +326,11 @@ def test_warm_up_compiles_every_kernel_once() -> None:
 def test_kernels_compile_in_memory_when_numba_has_nowhere_to_cache() -> None:
     """numba refuses cache=True for a function it cannot locate a writable cache for (here one
     without a source file); the kernels' decorator then compiles without a cache instead."""
-    from edgepos.core import kernels
+    from edgepos.core import kernels, kernels_base
 
     namespace: dict = {}
     exec("def twice(x):\n    return 2.0 * x\n", namespace)  # noqa: S102 - a function without a source file is the point
-    compiled = kernels._jit(namespace["twice"])
+    compiled = kernels_base._jit(namespace["twice"])
     assert compiled(2.5) == 5.0
     assert type(compiled._cache).__name__ == "NullCache"
     assert type(kernels.predict_step._cache).__name__ == "FunctionCache"  # the kernels themselves cache

@@ -72,22 +72,22 @@ class BankStepper:
 
 
 def _filter_kind(filt: GaussianFilter) -> int | None:
-    from edgepos.core import kernels
+    from edgepos.core import kernels_base
 
     if type(filt) is ExtendedKalmanFilter:
-        return kernels.EKF
+        return kernels_base.EKF
     if type(filt) in (CubatureKalmanFilter, UnscentedKalmanFilter):
-        return kernels.SIGMA
+        return kernels_base.SIGMA
     return None
 
 
 def _motion_kind(model: MotionModel) -> int | None:
-    from edgepos.core import kernels
+    from edgepos.core import kernels_base
 
     if isinstance(model, AdaptiveTurn) and model.components == layout.ALL:
-        return kernels.TURN
+        return kernels_base.TURN
     if model.linear and not model.state_dependent_noise:
-        return kernels.LINEAR
+        return kernels_base.LINEAR
     return None
 
 
@@ -137,13 +137,14 @@ class CompiledBankStepper(BankStepper):
     compiled = True
 
     def __init__(self, bank: InteractingMultipleModel) -> None:
-        from edgepos.core import kernels
+        from edgepos.core import kernels, kernels_base
 
         filter_kind = _filter_kind(bank.filter)
         if filter_kind is None or not covered(bank):
             raise ValueError("the compiled kernels do not cover this bank")
         super().__init__(bank)
         self._kernels = kernels
+        self._ok = kernels_base.OK
         count = len(bank.models)
         self._active = np.ascontiguousarray(bank.active)
         self._common = np.array(bank.common, dtype=np.int64)
@@ -211,7 +212,7 @@ class CompiledBankStepper(BankStepper):
             self._centre_covs,
             self._has_centre,
         )
-        if status != self._kernels.OK:
+        if status != self._ok:
             return super().predict(means, covs, probabilities, dt)  # repairs, or raises NumericalError
         return Prediction(new_means, new_covs, predicted, Gaussian(self.bank.common, mean, cov))
 
@@ -237,7 +238,7 @@ class CompiledBankStepper(BankStepper):
             self._centre_covs,
             self._has_centre,
         )
-        if status != self._kernels.OK:
+        if status != self._ok:
             return super().correct(prediction, epoch)  # repairs, or raises NumericalError
         return StepResult(
             means, covs, probabilities, Gaussian(self.bank.common, mean, cov), log_likelihoods, nis

@@ -28,7 +28,7 @@ import math
 
 import numpy as np
 
-from edgepos.core.kernels import IntArray, _jit
+from edgepos.core.kernels_base import IntArray, _jit
 from edgepos.core.motion.base import _MARKOV_TERMS, _chain_tables, _markov_tables
 from edgepos.core.numerics import FloatArray
 

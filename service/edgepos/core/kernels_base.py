@@ -1,0 +1,109 @@
+"""The kernels' shared ground: status and kind codes, the state layout, the array types, the numba
+decorator and small dense helpers (wrap, Cholesky, symmetrise, finiteness). See ``core.kernels``."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any, TypeVar, cast
+
+import numba
+import numpy as np
+import numpy.typing as npt
+
+from edgepos.core.numerics import FloatArray
+
+OK = 0
+FAILED = 1
+
+EKF = 0
+SIGMA = 1
+
+LINEAR = 0
+TURN = 1
+
+_TINY = 1e-300
+_LOG_TWO_PI = math.log(2.0 * math.pi)
+_TWO_PI = 2.0 * math.pi
+_MIN_DISTANCE = 1e-3  # as core.measurements.rsu: Jacobians below 1 mm are taken at 1 mm
+_SMALL_TURN = 1e-4  # as core.motion.turn
+_XP, _XV, _XA, _YP, _YV, _YA, _PHI, _OMEGA = range(8)
+
+#: The kernels' other array arguments (float64 states, covariances and scratch are FloatArray).
+IntArray = npt.NDArray[np.int64]
+BoolArray = npt.NDArray[np.bool_]
+
+_Function = TypeVar("_Function", bound=Callable[..., Any])
+
+
+def _jit(function: _Function) -> _Function:
+    """njit with an on-disk cache (so no request pays compilation), or in memory when numba finds no
+    writable cache directory (next to this file, NUMBA_CACHE_DIR or the user's cache directory):
+    the service then compiles at warm-up instead.
+
+    The kernels keep the GIL (no ``nogil``): each runs for microseconds, three times per epoch, and
+    releasing the GIL around them let the service's event loop take it at every call, the filter
+    thread then waiting up to a switch interval to get it back. Kept, a 20-epoch batch takes one
+    hand-off instead of up to sixty; the event loop still preempts the filter thread every switch
+    interval (5 ms). Measured: +8 % and +14 % closed-loop epochs/s of a 1-worker service, p99 at 100
+    vehicles unchanged."""
+    # numba ships no types: its dispatcher is called as the function it compiles, so it keeps that
+    # function's signature for the type checker.
+    try:
+        return cast(_Function, numba.njit(cache=True, error_model="numpy")(function))
+    except RuntimeError:  # "no locator available": nowhere to write the cache
+        return cast(_Function, numba.njit(error_model="numpy")(function))
+
+
+# -- small dense helpers -------------------------------------------------------------------------
+@_jit
+def wrap(angle: float) -> float:
+    """Wrap to [-pi, pi), as ``core.numerics.wrap_angle`` (Python's floored modulo)."""
+    return (angle + math.pi) % _TWO_PI - math.pi
+
+
+@_jit
+def cholesky(matrix: FloatArray, n: int, out: FloatArray) -> bool:
+    """Lower Cholesky factor of matrix[:n, :n] into out[:n, :n]; False when not positive definite."""
+    for j in range(n):
+        total = matrix[j, j]
+        for k in range(j):
+            total -= out[j, k] * out[j, k]
+        if not total > 0.0:  # also catches NaN
+            return False
+        diagonal = math.sqrt(total)
+        out[j, j] = diagonal
+        for i in range(j + 1, n):
+            total = matrix[i, j]
+            for k in range(j):
+                total -= out[i, k] * out[j, k]
+            out[i, j] = total / diagonal
+        for i in range(j):
+            out[i, j] = 0.0
+    return True
+
+
+@_jit
+def _symmetrize(matrix: FloatArray, n: int) -> None:
+    for i in range(n):
+        for j in range(i + 1, n):
+            value = 0.5 * (matrix[i, j] + matrix[j, i])
+            matrix[i, j] = value
+            matrix[j, i] = value
+
+
+@_jit
+def _all_finite(array: FloatArray) -> bool:
+    total = 0.0
+    for value in array.flat:
+        total += value
+    return math.isfinite(total)
+
+
+@_jit
+def _sinc(x: float) -> float:
+    """sin(pi x) / (pi x), exactly 1 at 0."""
+    if x == 0.0:
+        return 1.0
+    y = math.pi * x
+    return math.sin(y) / y

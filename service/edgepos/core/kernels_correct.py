@@ -1,0 +1,430 @@
+"""Compiled kernels of the bank's correction: the RSU range/bearing and gyro measurement functions,
+one model's joint update (EKF or sigma-point), the whole bank's, and the model probabilities from
+the innovations' likelihoods. See ``core.kernels`` for the conventions."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from edgepos.core.kernels_base import (
+    _LOG_TWO_PI,
+    _MIN_DISTANCE,
+    _PHI,
+    _TINY,
+    _XA,
+    _XP,
+    _XV,
+    _YA,
+    _YP,
+    _YV,
+    EKF,
+    FAILED,
+    OK,
+    BoolArray,
+    IntArray,
+    _all_finite,
+    _jit,
+    _symmetrize,
+    cholesky,
+    wrap,
+)
+from edgepos.core.numerics import FloatArray
+
+
+# -- measurements and the correction -------------------------------------------------------------
+@_jit
+def _measure(
+    state: FloatArray, positions: FloatArray, rsus: IntArray, gyros: int, min_speed_sq: float, out: FloatArray
+) -> None:
+    """h(x): the ranges and bearings of ``rsus`` (indices into positions), then the yaw rate per gyro."""
+    for r in range(rsus.shape[0]):
+        dx = state[_XP] - positions[rsus[r], 0]
+        dy = state[_YP] - positions[rsus[r], 1]
+        out[2 * r] = math.hypot(dx, dy)
+        out[2 * r + 1] = math.atan2(dy, dx)
+    if gyros > 0:
+        xv, xa, yv, ya = state[_XV], state[_XA], state[_YV], state[_YA]
+        rate = (xv * ya - xa * yv) / max(xv * xv + yv * yv, min_speed_sq)
+        for g in range(gyros):
+            out[2 * rsus.shape[0] + g] = rate
+
+
+@_jit
+def _measure_jacobian(
+    state: FloatArray, positions: FloatArray, rsus: IntArray, gyros: int, min_speed_sq: float, out: FloatArray
+) -> None:
+    """dh/dx at ``state`` (``RsuRangeBearing.jacobian`` and ``GyroYawRate.jacobian``)."""
+    out[:, :] = 0.0
+    for r in range(rsus.shape[0]):
+        dx = state[_XP] - positions[rsus[r], 0]
+        dy = state[_YP] - positions[rsus[r], 1]
+        distance = max(math.hypot(dx, dy), _MIN_DISTANCE)
+        out[2 * r, _XP] = dx / distance
+        out[2 * r, _YP] = dy / distance
+        out[2 * r + 1, _XP] = -dy / distance**2
+        out[2 * r + 1, _YP] = dx / distance**2
+    if gyros > 0:
+        xv, xa, yv, ya = state[_XV], state[_XA], state[_YV], state[_YA]
+        raw_speed_sq = xv * xv + yv * yv
+        moving = raw_speed_sq > min_speed_sq
+        speed_sq = raw_speed_sq if moving else min_speed_sq
+        cross_term = 2.0 * (xv * ya - xa * yv) / speed_sq**2 if moving else 0.0
+        for g in range(gyros):
+            row = 2 * rsus.shape[0] + g
+            out[row, _XA] = -yv / speed_sq
+            out[row, _YA] = xv / speed_sq
+            out[row, _XV] = ya / speed_sq - xv * cross_term
+            out[row, _YV] = -xa / speed_sq - yv * cross_term
+
+
+@_jit
+def _moments(
+    mean: FloatArray,
+    cov: FloatArray,
+    active_row: BoolArray,
+    positions: FloatArray,
+    rsus: IntArray,
+    gyros: int,
+    min_speed_sq: float,
+    variances: FloatArray,
+    filter_kind: int,
+    spread: float,
+    side: float,
+    centre_mean: float,
+    centre_cov: float,
+    has_centre: bool,
+    predicted: FloatArray,
+    innovation_cov: FloatArray,
+    cross_cov: FloatArray,
+) -> bool:
+    """Predicted measurement, S (with R, symmetrised) and C for one model (``measurement_moments``)."""
+    size = predicted.shape[0]
+    angle_rows = 2 * rsus.shape[0]
+    if filter_kind == EKF:
+        _measure(mean, positions, rsus, gyros, min_speed_sq, predicted)
+        jacobian = np.empty((size, 8))
+        _measure_jacobian(mean, positions, rsus, gyros, min_speed_sq, jacobian)
+        for r in range(size):
+            for k in range(8):
+                if not active_row[k]:
+                    jacobian[r, k] = 0.0
+        for i in range(8):
+            for r in range(size):
+                total = 0.0
+                for k in range(8):
+                    total += cov[i, k] * jacobian[r, k]
+                cross_cov[i, r] = total
+        for r in range(size):
+            for s in range(size):
+                total = 0.0
+                for k in range(8):
+                    total += jacobian[r, k] * cross_cov[k, s]
+                innovation_cov[r, s] = total
+    else:
+        padded = cov.copy()
+        for k in range(8):
+            if not active_row[k]:
+                padded[k, k] += 1.0
+        factor = np.zeros((8, 8))
+        if not cholesky(padded, 8, factor):
+            return False
+        first = 1 if has_centre else 0
+        count = first + 16
+        offsets = np.zeros((count, 8))
+        weights = np.zeros(count)
+        cov_weights = np.zeros(count)
+        if has_centre:
+            weights[0], cov_weights[0] = centre_mean, centre_cov
+        for i in range(8):
+            if active_row[i]:
+                weights[first + i] = side
+                weights[first + 8 + i] = side
+                cov_weights[first + i] = side
+                cov_weights[first + 8 + i] = side
+                for k in range(8):
+                    offsets[first + i, k] = spread * factor[k, i]
+                    offsets[first + 8 + i, k] = -(spread * factor[k, i])
+        z = np.empty((count, size))
+        point = np.empty(8)
+        for p in range(count):
+            for k in range(8):
+                point[k] = mean[k] + offsets[p, k]
+            _measure(point, positions, rsus, gyros, min_speed_sq, z[p])
+        for r in range(size):
+            total = 0.0
+            for p in range(count):
+                total += weights[p] * z[p, r]
+            predicted[r] = total
+        for r in range(1, angle_rows, 2):
+            sin_sum, cos_sum = 0.0, 0.0
+            for p in range(count):
+                sin_sum += weights[p] * math.sin(z[p, r])
+                cos_sum += weights[p] * math.cos(z[p, r])
+            predicted[r] = math.atan2(sin_sum, cos_sum)
+        for p in range(count):
+            for r in range(size):
+                z[p, r] -= predicted[r]
+            for r in range(1, angle_rows, 2):
+                z[p, r] = wrap(z[p, r])
+        for r in range(size):
+            for s in range(r, size):
+                total = 0.0
+                for p in range(count):
+                    total += z[p, r] * cov_weights[p] * z[p, s]
+                innovation_cov[r, s] = total
+                innovation_cov[s, r] = total
+        for k in range(8):
+            for r in range(size):
+                total = 0.0
+                for p in range(count):
+                    total += offsets[p, k] * (z[p, r] * cov_weights[p])
+                cross_cov[k, r] = total
+    for r in range(size):
+        innovation_cov[r, r] += variances[r]
+    _symmetrize(innovation_cov, size)
+    return True
+
+
+@_jit
+def _correct_one(
+    mean: FloatArray,
+    cov: FloatArray,
+    active_row: BoolArray,
+    positions: FloatArray,
+    rsus: IntArray,
+    observed: FloatArray,
+    gyros: int,
+    min_speed_sq: float,
+    variances: FloatArray,
+    filter_kind: int,
+    spread: float,
+    side: float,
+    centre_mean: float,
+    centre_cov: float,
+    has_centre: bool,
+    out_mean: FloatArray,
+    out_cov: FloatArray,
+    stats: FloatArray,
+) -> bool:
+    """One model's Kalman correction through the Cholesky factor of S (``kalman_correct``);
+    stats receives (NIS, log-likelihood)."""
+    size = observed.shape[0]
+    predicted = np.empty(size)
+    innovation_cov = np.empty((size, size))
+    cross_cov = np.empty((8, size))
+    if not _moments(
+        mean,
+        cov,
+        active_row,
+        positions,
+        rsus,
+        gyros,
+        min_speed_sq,
+        variances,
+        filter_kind,
+        spread,
+        side,
+        centre_mean,
+        centre_cov,
+        has_centre,
+        predicted,
+        innovation_cov,
+        cross_cov,
+    ):
+        return False
+    factor = np.zeros((size, size))
+    if not cholesky(innovation_cov, size, factor):
+        return False
+    # Solve L [U | e] = [C^T | r] by forward substitution.
+    rhs = np.empty((size, 9))
+    for r in range(size):
+        for k in range(8):
+            rhs[r, k] = cross_cov[k, r]
+        residual = observed[r] - predicted[r]
+        if r < 2 * rsus.shape[0] and r % 2 == 1:
+            residual = wrap(residual)
+        rhs[r, 8] = residual
+    for r in range(size):
+        for c in range(9):
+            total = rhs[r, c]
+            for k in range(r):
+                total -= factor[r, k] * rhs[k, c]
+            rhs[r, c] = total / factor[r, r]
+    nis = 0.0
+    log_det = 0.0
+    for r in range(size):
+        nis += rhs[r, 8] * rhs[r, 8]
+        log_det += math.log(factor[r, r])
+    for k in range(8):
+        total = 0.0
+        for r in range(size):
+            total += rhs[r, k] * rhs[r, 8]
+        out_mean[k] = mean[k] + total
+    out_mean[_PHI] = wrap(out_mean[_PHI])
+    for i in range(8):
+        for j in range(8):
+            total = 0.0
+            for r in range(size):
+                total += rhs[r, i] * rhs[r, j]
+            out_cov[i, j] = cov[i, j] - total
+    _symmetrize(out_cov, 8)
+    stats[0] = nis
+    stats[1] = -0.5 * (nis + 2.0 * log_det + size * _LOG_TWO_PI)
+    return True
+
+
+@_jit
+def correct_bank(
+    means: FloatArray,
+    covs: FloatArray,
+    active: BoolArray,
+    positions: FloatArray,
+    observed_rsus: FloatArray,
+    yaw_rates: FloatArray,
+    range_variances: FloatArray,
+    bearing_variances: FloatArray,
+    gyro_variance: float,
+    min_speed_sq: float,
+    averaged: bool,
+    filter_kind: int,
+    spreads: FloatArray,
+    sides: FloatArray,
+    centre_means: FloatArray,
+    centre_covs: FloatArray,
+    has_centre: bool,
+    out_means: FloatArray,
+    out_covs: FloatArray,
+    out_nis: FloatArray,
+    out_log_likelihood: FloatArray,
+) -> int:
+    """Every model's update with K RSUs (positions (K, 2), observed (K, 2) range and bearing) and G gyro
+    readings: one joint update, or with ``averaged`` one per RSU (each with the gyros), averaged
+    (``core.updates``)."""
+    count = means.shape[0]
+    rsu_count = positions.shape[0]
+    gyros = yaw_rates.shape[0]
+    parts = rsu_count if averaged and rsu_count > 1 else 1
+    per_part = rsu_count if parts == 1 else 1
+    size = 2 * per_part + gyros
+    rsus = np.empty(per_part, dtype=np.int64)
+    observed = np.empty(size)
+    variances = np.empty(size)
+    part_mean = np.empty(8)
+    part_cov = np.empty((8, 8))
+    stats = np.empty(2)
+    sin_sum = np.empty(count)
+    cos_sum = np.empty(count)
+    out_means[:, :] = 0.0
+    out_covs[:, :, :] = 0.0
+    out_nis[:] = 0.0
+    out_log_likelihood[:] = 0.0
+    sin_sum[:] = 0.0
+    cos_sum[:] = 0.0
+    for part in range(parts):
+        for r in range(per_part):
+            rsu = r if parts == 1 else part
+            rsus[r] = rsu
+            observed[2 * r] = observed_rsus[rsu, 0]
+            observed[2 * r + 1] = observed_rsus[rsu, 1]
+            variances[2 * r] = range_variances[rsu]
+            variances[2 * r + 1] = bearing_variances[rsu]
+        for g in range(gyros):
+            observed[2 * per_part + g] = yaw_rates[g]
+            variances[2 * per_part + g] = gyro_variance
+        for b in range(count):
+            if not _correct_one(
+                means[b],
+                covs[b],
+                active[b],
+                positions,
+                rsus,
+                observed,
+                gyros,
+                min_speed_sq,
+                variances,
+                filter_kind,
+                spreads[b],
+                sides[b],
+                centre_means[b],
+                centre_covs[b],
+                has_centre,
+                part_mean,
+                part_cov,
+                stats,
+            ):
+                return FAILED
+            if parts == 1:
+                out_means[b, :] = part_mean
+                out_covs[b, :, :] = part_cov
+                out_nis[b] = stats[0]
+                out_log_likelihood[b] = stats[1]
+            else:
+                for k in range(8):
+                    out_means[b, k] += part_mean[k]
+                    for j in range(8):
+                        out_covs[b, k, j] += part_cov[k, j]
+                sin_sum[b] += math.sin(part_mean[_PHI])
+                cos_sum[b] += math.cos(part_mean[_PHI])
+                out_nis[b] += stats[0]
+                out_log_likelihood[b] += stats[1]
+    if parts > 1:
+        for b in range(count):
+            for k in range(8):
+                out_means[b, k] /= parts
+                for j in range(8):
+                    out_covs[b, k, j] /= parts
+            heading = math.atan2(sin_sum[b] / parts, cos_sum[b] / parts)
+            out_means[b, _PHI] = heading if active[b, _PHI] else 0.0
+            out_nis[b] /= parts
+            out_log_likelihood[b] /= parts
+    if not (_all_finite(out_means) and _all_finite(out_covs) and _all_finite(out_log_likelihood)):
+        return FAILED
+    return OK
+
+
+# -- model probabilities -------------------------------------------------------------------------
+@_jit
+def _softmax_into(log_weights: FloatArray, out: FloatArray) -> None:
+    top = log_weights.max()
+    total = 0.0
+    for i in range(log_weights.shape[0]):
+        out[i] = math.exp(log_weights[i] - top)
+        total += out[i]
+    for i in range(log_weights.shape[0]):
+        out[i] /= total
+
+
+@_jit
+def model_probabilities(
+    log_likelihoods: FloatArray, predicted: FloatArray, priority: IntArray, others: IntArray, out: FloatArray
+) -> None:
+    """IMM (softmax of log c_j + log L_j) or, with ``others``, the 2IMM eqs. 30 and 33-38."""
+    count = log_likelihoods.shape[0]
+    log_predicted = np.empty(count)
+    for j in range(count):
+        log_predicted[j] = math.log(max(predicted[j], _TINY))
+    if others.shape[0] == 0:
+        _softmax_into(log_likelihoods + log_predicted, out)
+        return
+    first_count = priority.shape[0]
+    first = np.empty(first_count)
+    best_first = -np.inf
+    first_mass = 0.0
+    for a in range(first_count):
+        first[a] = log_likelihoods[priority[a]] + log_predicted[priority[a]]
+        best_first = max(best_first, log_likelihoods[priority[a]])
+        first_mass += math.exp(log_predicted[priority[a]])
+    first_probs = np.empty(first_count)
+    _softmax_into(first, first_probs)
+    second = np.empty(1 + others.shape[0])
+    second[0] = best_first + math.log(first_mass)
+    for a in range(others.shape[0]):
+        second[1 + a] = log_likelihoods[others[a]] + log_predicted[others[a]]
+    second_probs = np.empty(second.shape[0])
+    _softmax_into(second, second_probs)
+    for a in range(first_count):
+        out[priority[a]] = first_probs[a] * second_probs[0]
+    for a in range(others.shape[0]):
+        out[others[a]] = second_probs[1 + a]
