@@ -16,7 +16,7 @@ from edgepos.core.imm import InteractingMultipleModel
 from edgepos.core.motion import MOTION_MODELS, make_motion_model
 from edgepos.core.motion.base import MotionModel, dt_key
 from edgepos.core.motion.cv import ConstantVelocity
-from edgepos.pipelines.rsu_imu import OPTION_SPECS
+from edgepos.pipelines.rsu_imu_options import OPTION_SPECS
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
