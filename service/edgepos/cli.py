@@ -22,9 +22,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+def plain(text: str) -> str:
+    """A docstring's reST as the plain text of a --help: ``edgepos`` reads edgepos."""
+    return text.replace("``", "")
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The parser; only ``command``'s module is imported and configured (none for top-level help)."""
-    parser = argparse.ArgumentParser(prog="edgepos", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="edgepos", description=plain(__doc__.splitlines()[0]))
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (module_name, help_text) in COMMANDS.items():
         sub = subparsers.add_parser(name, help=help_text, description=help_text)

@@ -39,6 +39,7 @@ from typing import Any
 import httpx
 from edgepos_client import AsyncEdgeposClient, EdgeposError, Session
 
+from edgepos.eval.outputs import prepare_output, write_output
 from edgepos.loadgen import common
 from edgepos.loadgen.verify import Held, TripLedger, VerifyTally, judge
 from edgepos.sim.scenarios import Scenario, rsu_imu_paper_scenario
@@ -563,6 +564,8 @@ def run(args: argparse.Namespace) -> int:
         retries=args.retries,
     )
     problems = config.problems()
+    if args.json is not None and (problem := prepare_output(args.json)) is not None:
+        problems.append(f"--json: {problem}")
     if problems:
         for problem in problems:
             print(f"edgepos loadtest: {problem}", file=sys.stderr)
@@ -574,5 +577,5 @@ def run(args: argparse.Namespace) -> int:
         return 1
     print(summary(report))
     if args.json is not None:
-        args.json.write_text(json.dumps(report.to_json(), indent=2) + "\n")
+        write_output(args.json, json.dumps(report.to_json(), indent=2) + "\n")
     return 1 if config.verify and report.recorder.verify.failed else 0
