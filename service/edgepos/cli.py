@@ -17,7 +17,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve": ("edgepos.api.serve", "run the edge positioning service"),
     "eval": ("edgepos.eval.commands", "Monte Carlo evaluations beside the papers' tables"),
     "simulate": ("edgepos.loadgen.simulate", "drive a running server with simulated vehicles"),
-    "loadtest": ("edgepos.loadgen.loadtest", "load-test a running server (loopback only)"),
+    "loadtest": (
+        "edgepos.loadgen.loadtest",
+        "load-test a running server (loopback only unless --allow-remote)",
+    ),
     "vehicles": ("edgepos.cli_vehicles", "manage a running server's vehicle registry (admin key)"),
 }
 

@@ -249,14 +249,15 @@ def run(args: argparse.Namespace) -> int:
     except (UnknownAlgorithm, plots.PlotsUnavailable) as exc:
         _error(str(exc))
         return 2
-    if args.json is not None and (problem := prepare_output(args.json)) is not None:
-        _error(f"--json: {problem}")
-        return 2
     try:
         overrides = parse_overrides(args.option)
         get_pipeline(PIPELINE).resolve_options(overrides)
     except ValueError as exc:  # a malformed --option, or one the pipeline refuses (PipelineInputError)
         _error(str(exc))
+        return 2
+    # the arguments are sound: only now create the directories of --json
+    if args.json is not None and (problem := prepare_output(args.json)) is not None:
+        _error(f"--json: {problem}")
         return 2
     workers = args.workers or os.cpu_count() or 1
     args.workers = workers
