@@ -88,3 +88,17 @@ def test_a_first_start_prints_the_line_before_the_port_opens(tmp_path: Path) -> 
     assert len(lines) == 1
     assert "compiling the filter kernels the first time" in lines[0] and " done in " in lines[0]
     assert str(tmp_path / "numba") in lines[0]
+
+
+def test_the_documented_line_is_the_one_printed(monkeypatch: pytest.MonkeyPatch) -> None:
+    _fake(monkeypatch, cached=False, compiled_now=43, cache_dir="/c")
+    stream = io.StringIO()
+    serve.warm_up_kernels(stream)
+    printed = stream.getvalue()
+    documented = next(
+        line
+        for line in (Path(__file__).resolve().parents[2] / "docs" / "service.md").read_text().splitlines()
+        if line.startswith("edgepos serve: compiling")
+    )
+    assert printed.split("(")[0] == documented.split("(")[0]
+    assert printed.split(";", 1)[1].split(" done in ")[0] == documented.split(";", 1)[1].split(" done in ")[0]
