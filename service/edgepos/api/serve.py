@@ -100,7 +100,7 @@ def warm_up_kernels(stream: TextIO) -> float:
             else "no writable numba cache directory: every start compiles; set NUMBA_CACHE_DIR"
         )
         print(
-            f"edgepos serve: compiling the filter kernels the first time ({where}; about 20-60 s, "
+            f"edgepos serve: compiling the filter kernels the first time ({where}; tens of seconds, "
             "the port opens after) ...",
             end="",
             file=stream,
