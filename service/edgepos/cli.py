@@ -17,14 +17,22 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve": ("edgepos.api.serve", "run the edge positioning service"),
     "eval": ("edgepos.eval.commands", "Monte Carlo evaluations beside the papers' tables"),
     "simulate": ("edgepos.loadgen.simulate", "drive a running server with simulated vehicles"),
-    "loadtest": ("edgepos.loadgen.loadtest", "load-test a running server (loopback only)"),
+    "loadtest": (
+        "edgepos.loadgen.loadtest",
+        "load-test a running server (loopback only unless --allow-remote)",
+    ),
     "vehicles": ("edgepos.cli_vehicles", "manage a running server's vehicle registry (admin key)"),
 }
 
 
+def plain(text: str) -> str:
+    """A docstring's reST as the plain text of a --help: ``edgepos`` reads edgepos."""
+    return text.replace("``", "")
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The parser; only ``command``'s module is imported and configured (none for top-level help)."""
-    parser = argparse.ArgumentParser(prog="edgepos", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="edgepos", description=plain(__doc__.splitlines()[0]))
     subparsers = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (module_name, help_text) in COMMANDS.items():
         sub = subparsers.add_parser(name, help=help_text, description=help_text)

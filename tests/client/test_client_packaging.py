@@ -61,9 +61,9 @@ def test_dockerfile_shape_and_copied_paths_exist() -> None:
             )
     user = by_kind["USER"][-1]
     assert user not in ("root", "0")
-    assert "EXPOSE" in by_kind and by_kind["EXPOSE"] == ["8080"]
+    assert "EXPOSE" in by_kind and by_kind["EXPOSE"] == ["8000"]
     assert any("EDGEPOS_WORKERS=" in env for env in by_kind["ENV"])
-    assert any("EDGEPOS_PORT=8080" in env for env in by_kind["ENV"])
+    assert any("EDGEPOS_PORT=8000" in env for env in by_kind["ENV"])
     cmd = ast.literal_eval(by_kind["CMD"][-1])
     assert cmd == ["edgepos", "serve", "--host", "0.0.0.0"]
     healthcheck = by_kind["HEALTHCHECK"][-1]
@@ -80,7 +80,7 @@ def test_compose_runs_the_service_on_its_defaults() -> None:
     assert name == "edgepos"
     build = service["build"]
     assert (DOCKER / build["context"] / build["dockerfile"]).resolve() == (DOCKER / "Dockerfile").resolve()
-    assert any(str(port).endswith(":8080") for port in service["ports"])
+    assert any(str(port).endswith(":8000") for port in service["ports"])
     environment = service.get("environment", {})
     assert "EDGEPOS_STORE" not in environment and environment.get("EDGEPOS_WORKERS") == "1"
     for volume in service.get("volumes", []):

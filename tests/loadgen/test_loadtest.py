@@ -96,6 +96,7 @@ def test_tiny_bounded_load_has_no_errors(server_url: str, tmp_path, capsys) -> N
     assert report["epochs_per_s"] == pytest.approx(report["epochs"] / report["elapsed_s"])
     printed = capsys.readouterr().out
     assert "epochs/s" in printed and "p99" in printed and "lateness" in printed
+    assert "trips restarted 0 (vehicles that reached the scenario's end and reopened a session)" in printed
 
 
 class FakeClient:
@@ -242,3 +243,90 @@ def test_batches_due_counts_a_due_time_on_the_end_as_outside(duration, offset, i
     from edgepos.loadgen.loadtest import batches_due
 
     assert batches_due(duration, offset, interval) == due
+
+
+REMOTE = "http://192.0.2.7:8000"  # TEST-NET-1 (RFC 5737): never routed; and no test ever connects to it
+
+
+def test_the_refusal_names_the_flag_for_a_deployment_one_owns(capsys, connection_attempts: list[str]) -> None:
+    argv = [
+        "loadtest",
+        "--url",
+        REMOTE,
+        "--vehicles",
+        "1",
+        "--rate",
+        "20",
+        "--batch",
+        "20",
+        "--duration",
+        "1",
+    ]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "not loopback" in err and "pass --allow-remote" in err
+    assert connection_attempts == []
+
+
+def test_allow_remote_lifts_only_the_loopback_guard() -> None:
+    """Checked on the configuration alone: nothing here connects anywhere."""
+    from edgepos.loadgen.loadtest import LoadConfig
+
+    config = LoadConfig(url=REMOTE, vehicles=1, rate=20.0, batch=20, duration=1.0, admin_key="k")
+    assert any("not loopback" in problem and "--allow-remote" in problem for problem in config.problems())
+    allowed = LoadConfig(
+        url=REMOTE, vehicles=1, rate=20.0, batch=20, duration=1.0, admin_key="k", allow_remote=True
+    )
+    assert allowed.problems() == []
+    warning = allowed.remote_warning()
+    assert warning is not None and "192.0.2.7" in warning and "own" in warning
+    # the other checks stay: a malformed or non-HTTP URL and an unbounded run are still refused
+    for bad in ("ftp://192.0.2.7", "192.0.2.7:8000", "http://192.0.2.7:99999"):
+        assert LoadConfig(
+            url=bad, vehicles=1, rate=20.0, batch=20, duration=1.0, admin_key="k", allow_remote=True
+        ).problems()
+    unbounded = LoadConfig(
+        url=REMOTE, vehicles=1, rate=20.0, batch=20, duration=7200.0, admin_key="k", allow_remote=True
+    )
+    assert unbounded.problems() == ["--duration must be in (0, 3600] s"]
+    loopback = LoadConfig(
+        url="http://127.0.0.1:9",
+        vehicles=1,
+        rate=20.0,
+        batch=20,
+        duration=1.0,
+        admin_key="k",
+        allow_remote=True,
+    )
+    assert loopback.problems() == [] and loopback.remote_warning() is None
+
+
+def test_allow_remote_parses_and_reaches_the_configuration(capsys, connection_attempts: list[str]) -> None:
+    """With the flag the command gets past the guard to the next check (here: no admin key), still
+    before any connection."""
+    argv = [
+        "loadtest",
+        "--url",
+        REMOTE,
+        "--allow-remote",
+        "--vehicles",
+        "1",
+        "--rate",
+        "20",
+        "--batch",
+        "20",
+        "--duration",
+        "1",
+    ]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "not loopback" not in err and "admin key" in err
+    assert connection_attempts == []
+
+
+def test_help_explains_the_trips_and_the_remote_flag(capsys) -> None:
+    with pytest.raises(SystemExit):
+        main(["loadtest", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "'trips restarted' counts the vehicles that reached the end of the scenario" in out
+    assert "--allow-remote" in out and "deployment you own" in out

@@ -21,7 +21,7 @@ pytestmark = pytest.mark.slow
 
 
 def test_cli_reports_rmse_per_vehicle(server_url, tmp_path, capsys) -> None:
-    out = tmp_path / "sim.json"
+    out = tmp_path / "results" / "sim.json"  # --json creates the directory it names
     argv = [
         "simulate",
         "--url",
@@ -46,6 +46,13 @@ def test_cli_reports_rmse_per_vehicle(server_url, tmp_path, capsys) -> None:
     assert vehicle["fixes"] == 120 and vehicle["error"] is None
     assert 0 < vehicle["position_rmse_m"] < 2.0 and 0 < vehicle["velocity_rmse_m_s"] < 3.0
     assert result["mean"]["position_rmse_m"] == vehicle["position_rmse_m"]
+
+
+def test_cli_json_under_a_file_is_refused_before_any_request(tmp_path, capsys) -> None:
+    (tmp_path / "results").write_text("not a directory")
+    argv = ["simulate", "--url", "http://127.0.0.1:9", "--admin-key", ADMIN_KEY]
+    assert main([*argv, "--json", str(tmp_path / "results" / "sim.json")]) == 2
+    assert "--json: cannot create the directory" in capsys.readouterr().err
 
 
 def test_cli_needs_the_admin_key(server_url, monkeypatch, capsys) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from typing import TextIO
 
 from pydantic import ValidationError
 
@@ -75,6 +76,48 @@ GRACEFUL_SHUTDOWN_S = 10
 leave. Batches take milliseconds; consumers reconnect elsewhere with Last-Event-ID."""
 
 
+def warm_up_kernels(stream: TextIO) -> float:
+    """Compile the filter kernels (or load them from numba's on-disk cache) before the port opens, and
+    say so on ``stream`` when that compiles: the first start on a machine takes tens of seconds with
+    the port closed, which looks like a hang. One line, its end written when done. The workers then
+    load the kernels from the cache (or, in this process with one worker, have them already)."""
+    from edgepos.core.compiled import (
+        compiled_enabled,
+        kernel_cache_dir,
+        kernels_cached,
+        kernels_compiled,
+        warm_up,
+    )
+
+    if not compiled_enabled():
+        return 0.0
+    cold = not kernels_cached()
+    if cold:
+        cache = kernel_cache_dir()
+        where = (
+            f"numba's cache in {cache}, once"
+            if cache is not None
+            else "no writable numba cache directory: every start compiles; set NUMBA_CACHE_DIR"
+        )
+        print(
+            f"edgepos serve: compiling the filter kernels the first time ({where}; tens of seconds, "
+            "the port opens after) ...",
+            end="",
+            file=stream,
+            flush=True,
+        )
+    seconds = warm_up()
+    if cold:
+        print(f" done in {seconds:.1f} s", file=stream, flush=True)
+    elif kernels_compiled():  # the cache was there but stale (another CPU, changed sources)
+        print(
+            f"edgepos serve: compiled the filter kernels again (numba's cache was stale) in {seconds:.1f} s",
+            file=stream,
+            flush=True,
+        )
+    return seconds
+
+
 def run(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -118,6 +161,7 @@ def run(args: argparse.Namespace) -> int:
     os.environ["EDGEPOS_LOG_LEVEL"] = settings.log_level
     os.environ["EDGEPOS_LAB"] = "true" if settings.lab else "false"
     configure_logging(settings.log_level, secrets=[admin_key])
+    warm_up_kernels(sys.stderr)
     uvicorn.run(
         APP_FACTORY,
         factory=True,

@@ -21,6 +21,7 @@ import functools
 import logging
 import os
 import time
+from typing import Any
 
 import numpy as np
 
@@ -294,6 +295,51 @@ def stepper_for(bank: InteractingMultipleModel) -> BankStepper:
     if compiled_enabled() and covered(bank):
         return CompiledBankStepper(bank)
     return BankStepper(bank)
+
+
+_KERNEL_MODULES = ("kernels_base", "kernels", "kernels_correct", "kernels_motion")
+
+
+def _kernel_dispatchers() -> list[Any]:
+    """Every numba dispatcher of the kernel modules (imported here: numba must import)."""
+    import importlib
+
+    from numba.core.dispatcher import Dispatcher
+
+    found: dict[int, Any] = {}
+    for name in _KERNEL_MODULES:
+        module = importlib.import_module(f"edgepos.core.{name}")
+        found.update({id(value): value for value in vars(module).values() if isinstance(value, Dispatcher)})
+    return list(found.values())
+
+
+def kernel_cache_dir() -> str | None:
+    """Where numba keeps the compiled kernels between starts (NUMBA_CACHE_DIR, next to the sources or
+    the user's cache directory); None when it found nowhere writable and compiles at every start."""
+    cache = getattr(_kernel_dispatchers()[0], "_cache", None)
+    return getattr(cache, "cache_path", None) if getattr(cache, "_cache_file", None) is not None else None
+
+
+def kernels_cached() -> bool:
+    """Whether numba's on-disk cache has an entry for every kernel, so that :func:`warm_up` loads them
+    (about a second) instead of compiling them (tens of seconds: the first start on a machine, with a
+    fresh cache directory or after an upgrade). Only a CPU or source change it cannot see here makes a
+    cached kernel compile again; :func:`kernels_compiled` tells afterwards."""
+    if not compiled_enabled():
+        return True  # nothing to compile: the numpy reference runs
+    for dispatcher in _kernel_dispatchers():
+        cache_file = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)
+        if cache_file is None or not os.path.exists(cache_file._index_path):
+            return False
+    return True
+
+
+def kernels_compiled() -> int:
+    """Kernel signatures this process compiled rather than loaded from numba's cache (0 when numba's
+    cache had them all, or when the kernels are off)."""
+    if not compiled_enabled():
+        return 0
+    return sum(sum(dispatcher.stats.cache_misses.values()) for dispatcher in _kernel_dispatchers())
 
 
 def warm_up() -> float:

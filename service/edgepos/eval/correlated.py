@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from edgepos.eval.montecarlo import chunk_runs, run_chunks
+from edgepos.eval.outputs import prepare_output
 from edgepos.eval.progress import Progress
 from edgepos.eval.tables import format_table, number
 from edgepos.pipelines import tracks
@@ -220,8 +221,8 @@ def _positive_float(text: str) -> float:
 
 def run(args: argparse.Namespace, evaluation: str, prog: str) -> int:
     """The correlated scene's command: table on stdout, ``{"scene": ..., "methods": ...}`` to --json."""
-    if args.json is not None and not Path(args.json).resolve().parent.is_dir():
-        print(f"{prog}: error: --json: the directory of {args.json} does not exist", file=sys.stderr)
+    if args.json is not None and (problem := prepare_output(args.json)) is not None:
+        print(f"{prog}: error: --json: {problem}", file=sys.stderr)
         return 2
     errors = ErrorModel(
         args.common_tau,

@@ -31,6 +31,7 @@ from edgepos.eval.gnss_montecarlo import (
     results,
     select_algorithms,
 )
+from edgepos.eval.outputs import prepare_output
 from edgepos.eval.overrides import add_option_argument, parse_overrides
 from edgepos.eval.progress import Progress
 from edgepos.eval.tables import format_table, number, percent_change
@@ -248,14 +249,15 @@ def run(args: argparse.Namespace) -> int:
     except (UnknownAlgorithm, plots.PlotsUnavailable) as exc:
         _error(str(exc))
         return 2
-    if args.json is not None and not Path(args.json).resolve().parent.is_dir():
-        _error(f"--json: the directory of {args.json} does not exist")
-        return 2
     try:
         overrides = parse_overrides(args.option)
         get_pipeline(PIPELINE).resolve_options(overrides)
     except ValueError as exc:  # a malformed --option, or one the pipeline refuses (PipelineInputError)
         _error(str(exc))
+        return 2
+    # the arguments are sound: only now create the directories of --json
+    if args.json is not None and (problem := prepare_output(args.json)) is not None:
+        _error(f"--json: {problem}")
         return 2
     workers = args.workers or os.cpu_count() or 1
     args.workers = workers

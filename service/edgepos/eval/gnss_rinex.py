@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from edgepos.core.observations import PseudorangeObservation
+from edgepos.eval.outputs import prepare_output, write_output
 from edgepos.eval.overrides import add_option_argument, parse_overrides
 from edgepos.gnss.differential import DEFAULT_MAX_AGE_S, correct_set, corrections_from_epochs
 from edgepos.gnss.differential import base_position as header_base_position
@@ -356,6 +357,9 @@ def run(args: argparse.Namespace) -> int:
     if args.max_correction_age != DEFAULT_MAX_AGE_S and args.base is None:
         print("edgepos eval gnss-rinex: error: --max-correction-age needs --base", file=sys.stderr)
         return 2
+    if args.json and (problem := prepare_output(args.json)) is not None:
+        print(f"edgepos eval gnss-rinex: error: --json: {problem}", file=sys.stderr)
+        return 2
     try:
         options.update(parse_overrides(args.option))
         GnssTightPipeline().resolve_options(options)
@@ -401,6 +405,5 @@ def run(args: argparse.Namespace) -> int:
         )
     print(f"pipeline time per epoch: {1e3 * report['seconds_per_epoch']:.1f} ms")
     if args.json:
-        with open(args.json, "w", encoding="utf-8") as handle:
-            json.dump(report, handle, indent=2)
+        write_output(args.json, json.dumps(report, indent=2))
     return 0

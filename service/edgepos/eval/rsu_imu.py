@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 from edgepos.eval import plots
+from edgepos.eval.outputs import prepare_output
 from edgepos.eval.overrides import add_option_argument, parse_overrides
 from edgepos.eval.progress import Progress
 from edgepos.eval.rsu_imu_algorithms import (
@@ -97,8 +98,8 @@ def run(args: argparse.Namespace) -> int:
     except (UnknownAlgorithm, plots.PlotsUnavailable, ValueError) as exc:
         _error(str(exc))
         return 2
-    if args.json is not None and not Path(args.json).resolve().parent.is_dir():
-        _error(f"--json: the directory of {args.json} does not exist")
+    if args.json is not None and (problem := prepare_output(args.json)) is not None:
+        _error(f"--json: {problem}")
         return 2
     workers = args.workers or os.cpu_count() or 1
 

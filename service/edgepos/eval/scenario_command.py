@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from edgepos.eval import plots
+from edgepos.eval.outputs import prepare_output
 from edgepos.eval.progress import Progress
 
 Summary = dict[str, dict[str, dict[str, float]]]
@@ -52,8 +53,8 @@ def run_scenario_command(
     failure: type[Exception],
 ) -> int:
     """``curves(totals, runs)``: per scenario, the times and each method's RMSE over time."""
-    if args.json is not None and not Path(args.json).resolve().parent.is_dir():
-        print(f"{prog}: error: --json: the directory of {args.json} does not exist", file=sys.stderr)
+    if args.json is not None and (problem := prepare_output(args.json)) is not None:
+        print(f"{prog}: error: --json: {problem}", file=sys.stderr)
         return 2
     if args.plots is not None:
         try:

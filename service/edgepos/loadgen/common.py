@@ -108,8 +108,13 @@ def admin_key(given: str | None) -> str | None:
     return given or os.environ.get("EDGEPOS_ADMIN_KEY") or None
 
 
-def loopback_problem(url: str) -> str | None:
-    """Why ``url`` may not be load-tested (None if it is http(s) on a loopback host)."""
+REMOTE_FLAG = "--allow-remote"
+"""The loadtest option that lifts the loopback guard, for a deployment the user owns."""
+
+
+def loopback_problem(url: str, *, allow_remote: bool = False) -> str | None:
+    """Why ``url`` may not be load-tested (None if it is http(s) on a loopback host, or on any host
+    with ``allow_remote``: the user's word that the deployment is theirs to load)."""
     try:
         parts = urlsplit(url)
         host = parts.hostname
@@ -120,15 +125,22 @@ def loopback_problem(url: str) -> str | None:
         return f"URL {url!r} must start with http:// or https://"
     if not host:
         return f"URL {url!r} names no host"
-    if host.lower() == "localhost":
+    if allow_remote or is_loopback_host(host):
         return None
+    return (
+        f"host {host!r} is not loopback: only localhost, 127.0.0.0/8 and ::1 may be targeted (for a "
+        f"deployment you own elsewhere, pass {REMOTE_FLAG})"
+    )
+
+
+def is_loopback_host(host: str) -> bool:
+    """``localhost`` or a loopback address (a name other than localhost is never taken as loopback)."""
+    if host.lower() == "localhost":
+        return True
     try:
-        address = ipaddress.ip_address(host)
+        return ipaddress.ip_address(host).is_loopback
     except ValueError:
-        return f"host {host!r} is not loopback: only localhost, 127.0.0.0/8 and ::1 may be targeted"
-    if not address.is_loopback:
-        return f"host {host!r} is not loopback: only localhost, 127.0.0.0/8 and ::1 may be targeted"
-    return None
+        return False
 
 
 def percentile(values: Sequence[float], q: float) -> float | None:

@@ -1,4 +1,5 @@
-"""``edgepos loadtest``: N simulated vehicles against a server on this machine (loopback only).
+"""``edgepos loadtest``: N simulated vehicles against a server on this machine (loopback only, unless
+``--allow-remote`` for a deployment the user owns: the load is real traffic).
 
 Each vehicle opens a session at the paper scenario's start and sends batches of B epochs of its
 measurements (one of a few noise streams), so the server's filter does the real work. With rate R
@@ -35,10 +36,12 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import httpx
 from edgepos_client import AsyncEdgeposClient, EdgeposError, Session
 
+from edgepos.eval.outputs import prepare_output, write_output
 from edgepos.loadgen import common
 from edgepos.loadgen.verify import Held, TripLedger, VerifyTally, judge
 from edgepos.sim.scenarios import Scenario, rsu_imu_paper_scenario
@@ -73,10 +76,12 @@ class LoadConfig:
     retries: int = 0
     """Further attempts of a request after a 503, a dropped connection or a timeout (the client's
     bounded exponential backoff, same bytes and seq); 0 counts every such answer as an error."""
+    allow_remote: bool = False
+    """Let ``url`` name a non-loopback host (the user's own deployment); off, only loopback is loaded."""
 
     def problems(self) -> list[str]:
         found = []
-        loopback = common.loopback_problem(self.url)
+        loopback = common.loopback_problem(self.url, allow_remote=self.allow_remote)
         if loopback is not None:
             found.append(loopback)
         if self.vehicles < 1:
@@ -97,6 +102,17 @@ class LoadConfig:
                 "--admin-key or set EDGEPOS_ADMIN_KEY"
             )
         return found
+
+    def remote_warning(self) -> str | None:
+        """The warning for a load aimed past this machine (None for a loopback target)."""
+        host = urlsplit(self.url).hostname or ""
+        if common.is_loopback_host(host):
+            return None
+        return (
+            f"WARNING: {common.REMOTE_FLAG}: sending real load ({self.vehicles} vehicles x {self.rate:g} Hz for "
+            f"{self.duration:g} s) to {host}, not this machine; only to a deployment you own or are "
+            "authorised to load, and not one that serves real vehicles"
+        )
 
     @property
     def interval_s(self) -> float:
@@ -469,7 +485,8 @@ def summary(report: LoadReport) -> str:
         ),
         f"  errors          {data['errors']}" + (f" {data['errors_by_code']}" if data["errors"] else ""),
         *(f"    e.g. {sample}" for sample in data["error_samples"]),
-        f"  trips restarted {data['trips']['started']}"
+        f"  trips restarted {data['trips']['started']} (vehicles that reached the scenario's end and reopened "
+        "a session)"
         + (f", trip errors {data['trips']['errors_by_code']}" if data["trips"]["errors_by_code"] else ""),
     ]
     if not c["saturate"]:
@@ -506,8 +523,20 @@ def summary(report: LoadReport) -> str:
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = (
+        "Output: 'trips restarted' counts the vehicles that reached the end of the scenario and started "
+        "over (deleted their session and opened a fresh one); those calls are counted apart from the batches."
+    )
     parser.add_argument(
-        "--url", required=True, help="server base URL; loopback hosts only (127.0.0.0/8, localhost, ::1)"
+        "--url",
+        required=True,
+        help=f"server base URL; loopback hosts only (127.0.0.0/8, localhost, ::1) unless {common.REMOTE_FLAG}",
+    )
+    parser.add_argument(
+        common.REMOTE_FLAG,
+        action="store_true",
+        help="allow a --url on another machine: only for a deployment you own or are authorised to load "
+        "(the load is real traffic; a warning is printed)",
     )
     parser.add_argument("--vehicles", type=int, required=True, help="concurrent simulated vehicles")
     parser.add_argument(
@@ -561,12 +590,18 @@ def run(args: argparse.Namespace) -> int:
         seed=args.seed,
         verify=args.verify,
         retries=args.retries,
+        allow_remote=args.allow_remote,
     )
     problems = config.problems()
+    if not problems and args.json is not None and (problem := prepare_output(args.json)) is not None:
+        problems.append(f"--json: {problem}")
     if problems:
         for problem in problems:
             print(f"edgepos loadtest: {problem}", file=sys.stderr)
         return 2
+    warning = config.remote_warning()
+    if warning is not None:
+        print(f"edgepos loadtest: {warning}", file=sys.stderr)
     try:
         report = asyncio.run(run_load(config))
     except EdgeposError as error:
@@ -574,5 +609,5 @@ def run(args: argparse.Namespace) -> int:
         return 1
     print(summary(report))
     if args.json is not None:
-        args.json.write_text(json.dumps(report.to_json(), indent=2) + "\n")
+        write_output(args.json, json.dumps(report.to_json(), indent=2) + "\n")
     return 1 if config.verify and report.recorder.verify.failed else 0

@@ -30,6 +30,7 @@ import numpy as np
 from edgepos_client import AsyncEdgeposClient, EdgeposError, Fix, RateLimited, Session, TooManySessions
 
 from edgepos.core.observations import Observation
+from edgepos.eval.outputs import prepare_output, write_output
 from edgepos.loadgen import common, federated_sim, v2v_sim
 from edgepos.sim.delivery import (
     LateDelivery,
@@ -392,6 +393,9 @@ def run(args: argparse.Namespace) -> int:
         )
         return 2
     args.admin_key = key
+    if args.json is not None and (problem := prepare_output(args.json)) is not None:
+        print(f"edgepos simulate: --json: {problem}", file=sys.stderr)
+        return 2
     if args.scenario in federated_sim.SCENARIOS:
         return _run_federated(args)
     if args.scenario in v2v_sim.SCENARIOS:
@@ -421,7 +425,7 @@ def run(args: argparse.Namespace) -> int:
         return 1
     print(report(result))
     if args.json is not None:
-        args.json.write_text(json.dumps(result.to_json(), indent=2) + "\n")
+        write_output(args.json, json.dumps(result.to_json(), indent=2) + "\n")
     return 1 if any(v.error for v in result.vehicles) else 0
 
 
@@ -461,7 +465,7 @@ def _run_late(args: argparse.Namespace, key: str) -> int:
     print(late_report(results, delivery, args.batch_epochs))
     if args.json is not None:
         document = {label: result.to_json() for label, result in results.items()}
-        args.json.write_text(json.dumps(document, indent=2) + "\n")
+        write_output(args.json, json.dumps(document, indent=2) + "\n")
     return 1 if any(v.error for r in results.values() for v in r.vehicles) else 0
 
 
@@ -526,7 +530,7 @@ def _run_federated(args: argparse.Namespace) -> int:
                 for v in targets
             ],
         }
-        args.json.write_text(json.dumps(document, indent=2) + "\n")
+        write_output(args.json, json.dumps(document, indent=2) + "\n")
     return 1 if any(v.error for v in targets) else 0
 
 
@@ -570,5 +574,5 @@ def _run_v2v(args: argparse.Namespace) -> int:
                 for v in vehicles
             ],
         }
-        args.json.write_text(json.dumps(document, indent=2) + "\n")
+        write_output(args.json, json.dumps(document, indent=2) + "\n")
     return 1 if any(v.error for v in vehicles) else 0
