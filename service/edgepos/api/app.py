@@ -16,6 +16,7 @@ from typing import Any
 
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
+from fastapi.responses import RedirectResponse
 from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 
@@ -74,6 +75,12 @@ origin (EDGEPOS_ORIGIN_LAT/LON); its zones are defined by the operator with /v1/
 """
 
 
+def operation_id(route: APIRoute) -> str:
+    """An operation's OpenAPI id: its handler's name (``create_session``, ``post_batch``), short and stable
+    for generated clients; the handler names are unique across the API (tested)."""
+    return route.name
+
+
 def _demo_rsus() -> list[Rsu]:
     """The RSU map of the paper's scenario (the simulator's layout)."""
     from edgepos.sim.scenarios import rsu_imu_paper_scenario
@@ -91,6 +98,15 @@ async def _expire_periodically(store: SessionStore, period_s: float) -> None:
             continue
         if removed:
             logger.info("sessions expired", extra={"event": "sessions_expired", "count": removed})
+
+
+def add_pipeline_enum(document: dict[str, Any], names: list[str]) -> None:
+    """State in the schema which pipeline names this server accepts: the registered ones (a new
+    pipeline in the registry appears here by itself). The model keeps its name pattern, so the
+    refusal of any other name stays the route's documented 422."""
+    field = document["components"]["schemas"]["SessionCreate"]["properties"]["pipeline"]
+    field["enum"] = names
+    field["description"] = f"{field['description']} One of: {', '.join(names)}."
 
 
 def create_app(
@@ -175,6 +191,7 @@ def create_app(
         docs_url=None,
         redoc_url=None,
         lifespan=lifespan,
+        generate_unique_id_function=operation_id,
     )
     app.state.context = context
     install_error_handlers(app)
@@ -207,9 +224,16 @@ def create_app(
             document = default_openapi()
             streams.add_event_schemas(document)
             location.add_problem_schema(document)
+            add_pipeline_enum(document, sorted(context.pipelines))
         return app.openapi_schema or default_openapi()
 
     app.openapi = openapi  # type: ignore[method-assign]  # FastAPI's documented way to extend the schema
+
+    @app.get("/", include_in_schema=False)
+    async def root() -> RedirectResponse:
+        """People who open the bare address land on the API documentation (which links the map)."""
+        return RedirectResponse("/docs", status_code=307)
+
     static_dir = resources.files("edgepos.api") / "static"
     app.mount(docs.STATIC_PREFIX, StaticFiles(directory=str(static_dir)), name="static")
 

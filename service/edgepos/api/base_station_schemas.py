@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from pydantic import Field
+from pydantic import ConfigDict, Field
 
 from edgepos.api.schemas import GpsTimeOut, RequestModel, ResponseModel
 
@@ -37,6 +37,18 @@ class BaseStationIn(RequestModel):
     """Body of POST /v1/base-stations. The surveyed position is of the marker; with ``antenna_delta`` the
     corrections use the antenna reference point (the pseudoranges refer to the antenna). At most one of
     ``position_ecef`` and ``position_geodetic``; with neither, an RTCM 1005/1006 message may set it later."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "station_id": "BASE1",
+                    "position_geodetic": {"latitude": 0.8527, "longitude": 0.2008, "height": 120.0},
+                    "antenna_delta": {"up": 1.5},
+                }
+            ]
+        }
+    )
 
     station_id: str = Field(
         pattern=BASE_STATION_ID_PATTERN,

@@ -9,9 +9,9 @@ more model here (with its ``to_observation``) plus its entry in :data:`Measureme
 from __future__ import annotations
 
 import math
-from typing import Annotated, ClassVar, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import Field, ValidationInfo, field_validator
+from pydantic import ConfigDict, Field, ValidationInfo, field_validator
 
 from edgepos.api.schemas import (
     HARD_MAX_BATCH,
@@ -227,6 +227,14 @@ def _exactly_one(value: float | None, info: ValidationInfo, other: str, this: st
     return value
 
 
+def _one_of_schema(first: str, second: str) -> dict[str, Any]:
+    """JSON Schema for "exactly one of two numbers is given (the other absent or null)": the same
+    rule :func:`_exactly_one` enforces, stated so clients and schema-driven tests know it."""
+    return {
+        "oneOf": [{"required": [name], "properties": {name: {"type": "number"}}} for name in (first, second)]
+    }
+
+
 class RsuRangeMeasurement(RequestModel):
     """Range only from one registered RSU (a ranging node at a known position) to the vehicle."""
 
@@ -269,6 +277,8 @@ class GnssFixMeasurement(RequestModel):
 class OdometerMeasurement(RequestModel):
     """Wheel odometry: exactly one of distance (since the previous odometer reading) or speed."""
 
+    model_config = ConfigDict(json_schema_extra=_one_of_schema("distance", "speed"))
+
     type: Literal["odometer"] = Field(description="Discriminator: 'odometer'.")
     t: float = Field(ge=-MAX_TIME_S, le=MAX_TIME_S, description=_T_DESCRIPTION)
     distance: float | None = Field(
@@ -297,6 +307,8 @@ class OdometerMeasurement(RequestModel):
 
 class V2vRangeMeasurement(RequestModel):
     """Range to a neighbour vehicle (its own session, by vehicle id): metres, or one-way time of arrival."""
+
+    model_config = ConfigDict(json_schema_extra=_one_of_schema("range", "toa"))
 
     type: Literal["v2v_range"] = Field(description="Discriminator: 'v2v_range'.")
     t: float = Field(ge=-MAX_TIME_S, le=MAX_TIME_S, description=_T_DESCRIPTION)
@@ -356,6 +368,24 @@ MEASUREMENT_TYPES: tuple[str, ...] = (
 
 class BatchIn(RequestModel):
     """Body of POST /v1/sessions/{session_id}/batches."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "description": "Measurements for the session at the path. seq must be the session's last_seq + 1 "
+            "(else 409) and RSU ids must be registered (else 422 naming the measurement): rules of the "
+            "session's state that JSON Schema cannot state.",
+            "examples": [
+                {
+                    "seq": 1,
+                    "measurements": [
+                        {"type": "gyro", "t": 0.0, "yaw_rate": 0.0},
+                        {"type": "rsu", "t": 0.0, "rsu_id": "S+000", "range": 8.875, "bearing": 1.5708},
+                        {"type": "rsu", "t": 0.0, "rsu_id": "N+050", "range": 51.015, "bearing": -2.9418},
+                    ],
+                }
+            ],
+        }
+    )
 
     seq: int = Field(
         ge=1, le=MAX_SEQ, description="Batch number: the session's last_seq + 1 (1 for the first)."

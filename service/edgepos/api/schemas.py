@@ -114,6 +114,14 @@ class RsuModel(RsuFields):
 class RsuPut(RsuFields):
     """Body of PUT /v1/rsus/{rsu_id}: the RSU; ``id`` may be left out or must equal the path's."""
 
+    model_config = ConfigDict(
+        json_schema_extra={
+            "description": "The RSU at the path's rsu_id. An id in the body that differs from the path's "
+            "is refused (422, field 'id'): JSON Schema cannot compare a body field with the path.",
+            "examples": [{"id": "S+000", "x": 0.0, "y": -3.875}],
+        }
+    )
+
     id: str | None = Field(
         None, pattern=RSU_ID_PATTERN, description="Optional; when given it must equal the rsu_id in the path."
     )
@@ -121,6 +129,21 @@ class RsuPut(RsuFields):
 
 class RsuBulk(RequestModel):
     """Body of PUT /v1/rsus: RSUs to insert or replace, by id."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "description": "RSUs to insert or replace, by id. Each id at most once per request: a repeated "
+            "id is refused (422, field 'rsus[i].id'), which JSON Schema cannot state for objects.",
+            "examples": [
+                {
+                    "rsus": [
+                        {"id": "S+000", "x": 0.0, "y": -3.875},
+                        {"id": "N+050", "x": 50.0, "y": 15.125, "range_std": 0.5},
+                    ]
+                }
+            ],
+        }
+    )
 
     rsus: list[RsuModel] = Field(
         max_length=MAX_RSUS_PER_REQUEST, description="RSUs to upsert; ids must be unique within the request."
@@ -243,6 +266,19 @@ class InitialStateIn(RequestModel):
 
 class SessionCreate(RequestModel):
     """Body of POST /v1/sessions."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "vehicle_id": "bus-42",
+                    "pipeline": "rsu_imu",
+                    "options": {"range_std": 0.5},
+                    "initial_state": {"x": 0.0, "y": 5.0, "vx": 10.0, "vy": 0.0},
+                }
+            ]
+        }
+    )
 
     vehicle_id: str = Field(
         pattern=VEHICLE_ID_PATTERN,

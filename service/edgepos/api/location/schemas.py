@@ -170,6 +170,19 @@ _DEADLINE = "When the subscription ends by itself (server clock); a deadline alr
 class UserLocationEventSubscriptionIn(RequestModel):
     """Notify when the vehicle enters or leaves any of the operator's zones."""
 
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "subscriptionType": "UserLocationEventSubscription",
+                    "address": "acr:bus-42",
+                    "callbackReference": "http://127.0.0.1:9000/notify",
+                    "eventType": ["ENTERING_AREA_EVENT"],
+                }
+            ]
+        }
+    )
+
     subscriptionType: Literal["UserLocationEventSubscription"] = Field(
         description="Names the kind of subscription."
     )
@@ -198,6 +211,21 @@ class UserLocationEventSubscription(MecModel):
 
 class ZoneLocationEventSubscriptionIn(RequestModel):
     """Notify when vehicles enter or leave one of the operator's zones."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "description": "Notify when vehicles enter or leave one of the operator's zones. The zone must "
+            "exist (PUT /v1/zones/{zone_id}; the example's is the example zone 'depot'), else 404.",
+            "examples": [
+                {
+                    "subscriptionType": "ZoneLocationEventSubscription",
+                    "zoneId": "depot",
+                    "callbackReference": "http://127.0.0.1:9000/notify",
+                    "addressList": ["acr:bus-42"],
+                }
+            ],
+        }
+    )
 
     subscriptionType: Literal["ZoneLocationEventSubscription"] = Field(
         description="Names the kind of subscription."
@@ -298,6 +326,10 @@ class CircleIn(RequestModel):
 
 class ZoneIn(RequestModel):
     """A zone: exactly one of circle and polygon, in the site frame or WGS-84."""
+
+    model_config = ConfigDict(
+        json_schema_extra={"examples": [{"frame": "site", "circle": {"center": [0.0, 0.0], "radius": 50.0}}]}
+    )
 
     frame: Literal["site", "wgs84"] = Field(
         "site",

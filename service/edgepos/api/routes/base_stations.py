@@ -119,7 +119,7 @@ async def _registered(context: Context, station_id: str) -> Station:
     dependencies=[Depends(require_admin), Depends(json_body)],
     responses=errors(401, 403, 409, 413, 415, 422, 503),
 )
-async def register(body: BaseStationIn, context: Context) -> BaseStationOut:
+async def register_base_station(body: BaseStationIn, context: Context) -> BaseStationOut:
     """Register a station (admin key) with its surveyed marker position (ECEF or WGS-84) and optional antenna
     delta, or without a position (an RTCM 1005/1006 upload may set it). 409 when the id is taken."""
     if body.position_ecef is not None and body.position_geodetic is not None:
