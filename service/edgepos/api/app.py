@@ -68,6 +68,13 @@ POST /v1/vehicles, or a fleet-signed token: opens sessions for that vehicle only
 token (that session only). A vehicle has one live session: opening another supersedes the old one.
 Every error has the body `{"error": {"code", "message", "problems": [{"index", "field", "reason"}]}}`.
 
+Request bodies are strict JSON: an integer field takes an integer literal (41, not 41.0, although JSON
+Schema counts 41.0 as an integer) and a number is never a string. Some rules depend on state or on
+other requests and are stated in the descriptions, not the schema: the batch's seq and known RSU ids,
+a session's initial speed within its max_speed_mps option, base observations needing loaded
+ephemerides, uploaded files being RINEX or RTCM, ids unique within one request, a body id equal to
+the path's. The body limits (EDGEPOS_MAX_BODY_BYTES and the upload limits) answer 413.
+
 The ETSI GS MEC 013 location adapter under /location/v3 is the one exception: it follows that
 specification, so its angles are degrees, its speeds km/h and its errors RFC 7807 problem details
 (application/problem+json). It needs the admin key or the read key (EDGEPOS_READ_KEY) and the site

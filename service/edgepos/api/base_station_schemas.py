@@ -40,13 +40,18 @@ class BaseStationIn(RequestModel):
 
     model_config = ConfigDict(
         json_schema_extra={
+            # at most one of the two positions (the other absent or null), as the route refuses both
+            "not": {
+                "required": ["position_ecef", "position_geodetic"],
+                "properties": {"position_ecef": {"type": "array"}, "position_geodetic": {"type": "object"}},
+            },
             "examples": [
                 {
                     "station_id": "BASE1",
                     "position_geodetic": {"latitude": 0.8527, "longitude": 0.2008, "height": 120.0},
                     "antenna_delta": {"up": 1.5},
                 }
-            ]
+            ],
         }
     )
 
@@ -58,7 +63,8 @@ class BaseStationIn(RequestModel):
         None,
         min_length=3,
         max_length=3,
-        description="Surveyed marker position, Earth-centred Earth-fixed (WGS-84 / ITRF) x, y, z (m).",
+        description="Surveyed marker position, Earth-centred Earth-fixed (WGS-84 / ITRF) x, y, z (m); its "
+        "distance from the Earth's centre must be 6300-6400 km (a station on the ground), else 422.",
     )
     position_geodetic: GeodeticIn | None = Field(
         None, description="The same position as WGS-84 latitude, longitude, height."

@@ -295,7 +295,8 @@ class SessionCreate(RequestModel):
     )
     initial_state: InitialStateIn | None = Field(
         None,
-        description="Known initial position and velocity; null lets the pipeline initialise from RSU fixes.",
+        description="Known initial position and velocity; null lets the pipeline initialise from RSU fixes. "
+        "Its speed must not exceed the session's max_speed_mps option (else 422 naming initial_state.vx/vy).",
     )
 
     @field_validator("options")
@@ -382,7 +383,11 @@ class VehicleImport(RequestModel):
     """Body of POST /v1/vehicles/bulk: many vehicles at once (each id once)."""
 
     model_config = ConfigDict(
-        json_schema_extra={"examples": [{"vehicles": [{"vehicle_id": "bus-41"}, {"vehicle_id": "bus-42"}]}]}
+        json_schema_extra={
+            "description": "Many vehicles at once. Each vehicle_id at most once per request: a repeated id "
+            "is refused (422, field 'vehicles'), which JSON Schema cannot state for objects.",
+            "examples": [{"vehicles": [{"vehicle_id": "bus-41"}, {"vehicle_id": "bus-42"}]}],
+        }
     )
 
     vehicles: list[VehicleCreate] = Field(

@@ -328,7 +328,14 @@ class ZoneIn(RequestModel):
     """A zone: exactly one of circle and polygon, in the site frame or WGS-84."""
 
     model_config = ConfigDict(
-        json_schema_extra={"examples": [{"frame": "site", "circle": {"center": [0.0, 0.0], "radius": 50.0}}]}
+        json_schema_extra={
+            # exactly one of circle and polygon (the other absent or null), as the route requires
+            "oneOf": [
+                {"required": ["circle"], "properties": {"circle": {"type": "object"}}},
+                {"required": ["polygon"], "properties": {"polygon": {"type": "array"}}},
+            ],
+            "examples": [{"frame": "site", "circle": {"center": [0.0, 0.0], "radius": 50.0}}],
+        }
     )
 
     frame: Literal["site", "wgs84"] = Field(
@@ -341,7 +348,8 @@ class ZoneIn(RequestModel):
         None,
         min_length=3,
         max_length=MAX_POLYGON_VERTICES,
-        description="Vertices of a simple polygon (edges must not cross), in either order; the last edge closes it.",
+        description="Vertices of a simple polygon (edges must not cross, at least 3 distinct vertices "
+        "enclosing an area, else 422), in either order; the last edge closes it.",
     )
 
 
