@@ -85,11 +85,14 @@ def test_operation_ids_are_short_unique_identifiers():
 def test_schema_states_what_json_schema_can():
     pipeline = SCHEMAS["SessionCreate"]["properties"]["pipeline"]
     assert pipeline["enum"] == ["gnss_tight", "rsu_imu", "v2v_coop", "v2x_federated"]
-    assert SCHEMAS["OdometerMeasurement"]["oneOf"] == [
-        {"required": ["distance"], "properties": {"distance": {"type": "number"}}},
-        {"required": ["speed"], "properties": {"speed": {"type": "number"}}},
-    ]
-    assert [branch["required"] for branch in SCHEMAS["V2vRangeMeasurement"]["oneOf"]] == [["range"], ["toa"]]
+    for name, pair in (
+        ("OdometerMeasurement", ["distance", "speed"]),
+        ("V2vRangeMeasurement", ["range", "toa"]),
+        ("ZoneIn", ["circle", "polygon"]),
+    ):
+        both, neither = SCHEMAS[name]["not"]["anyOf"]
+        assert both["required"] == pair
+        assert neither["properties"] == {field: {"type": "null"} for field in pair}
     assert "repeated id is refused" in SCHEMAS["RsuBulk"]["description"]
     assert "differs from the path" in SCHEMAS["RsuPut"]["description"]
     for path in ("/v1/ephemerides", "/v1/base-stations/{station_id}/observations"):

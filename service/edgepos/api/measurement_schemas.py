@@ -9,7 +9,7 @@ more model here (with its ``to_observation``) plus its entry in :data:`Measureme
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any, ClassVar, Literal
+from typing import Annotated, ClassVar, Literal
 
 from pydantic import ConfigDict, Field, ValidationInfo, field_validator
 
@@ -21,6 +21,7 @@ from edgepos.api.schemas import (
     RSU_ID_PATTERN,
     VEHICLE_ID_PATTERN,
     RequestModel,
+    exactly_one_of,
 )
 from edgepos.core.observations import (
     GnssFixObservation,
@@ -227,14 +228,6 @@ def _exactly_one(value: float | None, info: ValidationInfo, other: str, this: st
     return value
 
 
-def _one_of_schema(first: str, second: str) -> dict[str, Any]:
-    """JSON Schema for "exactly one of two numbers is given (the other absent or null)": the same
-    rule :func:`_exactly_one` enforces, stated so clients and schema-driven tests know it."""
-    return {
-        "oneOf": [{"required": [name], "properties": {name: {"type": "number"}}} for name in (first, second)]
-    }
-
-
 class RsuRangeMeasurement(RequestModel):
     """Range only from one registered RSU (a ranging node at a known position) to the vehicle."""
 
@@ -277,7 +270,9 @@ class GnssFixMeasurement(RequestModel):
 class OdometerMeasurement(RequestModel):
     """Wheel odometry: exactly one of distance (since the previous odometer reading) or speed."""
 
-    model_config = ConfigDict(json_schema_extra=_one_of_schema("distance", "speed"))
+    model_config = ConfigDict(
+        json_schema_extra=exactly_one_of("distance", "speed", json_type=("number", "number"))
+    )
 
     type: Literal["odometer"] = Field(description="Discriminator: 'odometer'.")
     t: float = Field(ge=-MAX_TIME_S, le=MAX_TIME_S, description=_T_DESCRIPTION)
@@ -308,7 +303,9 @@ class OdometerMeasurement(RequestModel):
 class V2vRangeMeasurement(RequestModel):
     """Range to a neighbour vehicle (its own session, by vehicle id): metres, or one-way time of arrival."""
 
-    model_config = ConfigDict(json_schema_extra=_one_of_schema("range", "toa"))
+    model_config = ConfigDict(
+        json_schema_extra=exactly_one_of("range", "toa", json_type=("number", "number"))
+    )
 
     type: Literal["v2v_range"] = Field(description="Discriminator: 'v2v_range'.")
     t: float = Field(ge=-MAX_TIME_S, le=MAX_TIME_S, description=_T_DESCRIPTION)

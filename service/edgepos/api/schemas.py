@@ -30,6 +30,19 @@ class RequestModel(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
 
 
+def exactly_one_of(first: str, second: str, *, json_type: tuple[str, str]) -> dict[str, Any]:
+    """JSON Schema for "exactly one of two fields is given, the other absent or null" (``json_type`` are
+    their JSON types when given), for a model's ``json_schema_extra``. Written as ``not`` (both or
+    neither) rather than ``oneOf``: a ``oneOf`` beside the properties makes client generators
+    (openapi-python-client) split the model into partial variants, while ``not`` is left to validators."""
+    both = {
+        "required": [first, second],
+        "properties": {first: {"type": json_type[0]}, second: {"type": json_type[1]}},
+    }
+    neither = {"properties": {first: {"type": "null"}, second: {"type": "null"}}}
+    return {"not": {"anyOf": [both, neither]}}
+
+
 class ResponseModel(BaseModel):
     """Base of response bodies (floats are always finite)."""
 

@@ -13,7 +13,7 @@ from typing import Annotated, Literal
 
 from pydantic import ConfigDict, Field
 
-from edgepos.api.schemas import MAX_COORDINATE_M, RequestModel, ResponseModel
+from edgepos.api.schemas import MAX_COORDINATE_M, RequestModel, ResponseModel, exactly_one_of
 
 ADDRESS_PATTERN = r"^acr:[A-Za-z0-9._:+@/ -]{1,128}$"
 """A user's address: ``acr:`` and the vehicle id (the anonymous customer reference URI of MEC 013)."""
@@ -329,11 +329,7 @@ class ZoneIn(RequestModel):
 
     model_config = ConfigDict(
         json_schema_extra={
-            # exactly one of circle and polygon (the other absent or null), as the route requires
-            "oneOf": [
-                {"required": ["circle"], "properties": {"circle": {"type": "object"}}},
-                {"required": ["polygon"], "properties": {"polygon": {"type": "array"}}},
-            ],
+            **exactly_one_of("circle", "polygon", json_type=("object", "array")),
             "examples": [{"frame": "site", "circle": {"center": [0.0, 0.0], "radius": 50.0}}],
         }
     )
