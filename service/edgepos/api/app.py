@@ -16,6 +16,7 @@ from typing import Any
 
 from fastapi import FastAPI
 from fastapi.middleware.cors import CORSMiddleware
+from fastapi.responses import RedirectResponse
 from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 
@@ -67,11 +68,24 @@ POST /v1/vehicles, or a fleet-signed token: opens sessions for that vehicle only
 token (that session only). A vehicle has one live session: opening another supersedes the old one.
 Every error has the body `{"error": {"code", "message", "problems": [{"index", "field", "reason"}]}}`.
 
+Request bodies are strict JSON: an integer field takes an integer literal (41, not 41.0, although JSON
+Schema counts 41.0 as an integer) and a number is never a string. Some rules depend on state or on
+other requests and are stated in the descriptions, not the schema: the batch's seq and known RSU ids,
+a session's initial speed within its max_speed_mps option, base observations needing loaded
+ephemerides, uploaded files being RINEX or RTCM, ids unique within one request, a body id equal to
+the path's. The body limits (EDGEPOS_MAX_BODY_BYTES and the upload limits) answer 413.
+
 The ETSI GS MEC 013 location adapter under /location/v3 is the one exception: it follows that
 specification, so its angles are degrees, its speeds km/h and its errors RFC 7807 problem details
 (application/problem+json). It needs the admin key or the read key (EDGEPOS_READ_KEY) and the site
 origin (EDGEPOS_ORIGIN_LAT/LON); its zones are defined by the operator with /v1/zones.
 """
+
+
+def operation_id(route: APIRoute) -> str:
+    """An operation's OpenAPI id: its handler's name (``create_session``, ``post_batch``), short and stable
+    for generated clients; the handler names are unique across the API (tested)."""
+    return route.name
 
 
 def _demo_rsus() -> list[Rsu]:
@@ -91,6 +105,15 @@ async def _expire_periodically(store: SessionStore, period_s: float) -> None:
             continue
         if removed:
             logger.info("sessions expired", extra={"event": "sessions_expired", "count": removed})
+
+
+def add_pipeline_enum(document: dict[str, Any], names: list[str]) -> None:
+    """State in the schema which pipeline names this server accepts: the registered ones (a new
+    pipeline in the registry appears here by itself). The model keeps its name pattern, so the
+    refusal of any other name stays the route's documented 422."""
+    field = document["components"]["schemas"]["SessionCreate"]["properties"]["pipeline"]
+    field["enum"] = names
+    field["description"] = f"{field['description']} One of: {', '.join(names)}."
 
 
 def create_app(
@@ -175,6 +198,7 @@ def create_app(
         docs_url=None,
         redoc_url=None,
         lifespan=lifespan,
+        generate_unique_id_function=operation_id,
     )
     app.state.context = context
     install_error_handlers(app)
@@ -207,9 +231,16 @@ def create_app(
             document = default_openapi()
             streams.add_event_schemas(document)
             location.add_problem_schema(document)
+            add_pipeline_enum(document, sorted(context.pipelines))
         return app.openapi_schema or default_openapi()
 
     app.openapi = openapi  # type: ignore[method-assign]  # FastAPI's documented way to extend the schema
+
+    @app.get("/", include_in_schema=False)
+    async def root() -> RedirectResponse:
+        """People who open the bare address land on the API documentation (which links the map)."""
+        return RedirectResponse("/docs", status_code=307)
+
     static_dir = resources.files("edgepos.api") / "static"
     app.mount(docs.STATIC_PREFIX, StaticFiles(directory=str(static_dir)), name="static")
 

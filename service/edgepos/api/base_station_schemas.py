@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from pydantic import Field
+from pydantic import ConfigDict, Field
 
 from edgepos.api.schemas import GpsTimeOut, RequestModel, ResponseModel
 
@@ -38,6 +38,23 @@ class BaseStationIn(RequestModel):
     corrections use the antenna reference point (the pseudoranges refer to the antenna). At most one of
     ``position_ecef`` and ``position_geodetic``; with neither, an RTCM 1005/1006 message may set it later."""
 
+    model_config = ConfigDict(
+        json_schema_extra={
+            # at most one of the two positions (the other absent or null), as the route refuses both
+            "not": {
+                "required": ["position_ecef", "position_geodetic"],
+                "properties": {"position_ecef": {"type": "array"}, "position_geodetic": {"type": "object"}},
+            },
+            "examples": [
+                {
+                    "station_id": "BASE1",
+                    "position_geodetic": {"latitude": 0.8527, "longitude": 0.2008, "height": 120.0},
+                    "antenna_delta": {"up": 1.5},
+                }
+            ],
+        }
+    )
+
     station_id: str = Field(
         pattern=BASE_STATION_ID_PATTERN,
         description="Station identifier: 1-64 characters of A-Z a-z 0-9 . _ : + -.",
@@ -46,7 +63,8 @@ class BaseStationIn(RequestModel):
         None,
         min_length=3,
         max_length=3,
-        description="Surveyed marker position, Earth-centred Earth-fixed (WGS-84 / ITRF) x, y, z (m).",
+        description="Surveyed marker position, Earth-centred Earth-fixed (WGS-84 / ITRF) x, y, z (m); its "
+        "distance from the Earth's centre must be 6300-6400 km (a station on the ground), else 422.",
     )
     position_geodetic: GeodeticIn | None = Field(
         None, description="The same position as WGS-84 latitude, longitude, height."

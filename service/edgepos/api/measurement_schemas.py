@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from typing import Annotated, ClassVar, Literal
 
-from pydantic import Field, ValidationInfo, field_validator
+from pydantic import ConfigDict, Field, ValidationInfo, field_validator
 
 from edgepos.api.schemas import (
     HARD_MAX_BATCH,
@@ -21,6 +21,7 @@ from edgepos.api.schemas import (
     RSU_ID_PATTERN,
     VEHICLE_ID_PATTERN,
     RequestModel,
+    exactly_one_of,
 )
 from edgepos.core.observations import (
     GnssFixObservation,
@@ -269,6 +270,10 @@ class GnssFixMeasurement(RequestModel):
 class OdometerMeasurement(RequestModel):
     """Wheel odometry: exactly one of distance (since the previous odometer reading) or speed."""
 
+    model_config = ConfigDict(
+        json_schema_extra=exactly_one_of("distance", "speed", json_type=("number", "number"))
+    )
+
     type: Literal["odometer"] = Field(description="Discriminator: 'odometer'.")
     t: float = Field(ge=-MAX_TIME_S, le=MAX_TIME_S, description=_T_DESCRIPTION)
     distance: float | None = Field(
@@ -297,6 +302,10 @@ class OdometerMeasurement(RequestModel):
 
 class V2vRangeMeasurement(RequestModel):
     """Range to a neighbour vehicle (its own session, by vehicle id): metres, or one-way time of arrival."""
+
+    model_config = ConfigDict(
+        json_schema_extra=exactly_one_of("range", "toa", json_type=("number", "number"))
+    )
 
     type: Literal["v2v_range"] = Field(description="Discriminator: 'v2v_range'.")
     t: float = Field(ge=-MAX_TIME_S, le=MAX_TIME_S, description=_T_DESCRIPTION)
@@ -356,6 +365,24 @@ MEASUREMENT_TYPES: tuple[str, ...] = (
 
 class BatchIn(RequestModel):
     """Body of POST /v1/sessions/{session_id}/batches."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "description": "Measurements for the session at the path. seq must be the session's last_seq + 1 "
+            "(else 409) and RSU ids must be registered (else 422 naming the measurement): rules of the "
+            "session's state that JSON Schema cannot state.",
+            "examples": [
+                {
+                    "seq": 1,
+                    "measurements": [
+                        {"type": "gyro", "t": 0.0, "yaw_rate": 0.0},
+                        {"type": "rsu", "t": 0.0, "rsu_id": "S+000", "range": 8.875, "bearing": 1.5708},
+                        {"type": "rsu", "t": 0.0, "rsu_id": "N+050", "range": 51.015, "bearing": -2.9418},
+                    ],
+                }
+            ],
+        }
+    )
 
     seq: int = Field(
         ge=1, le=MAX_SEQ, description="Batch number: the session's last_seq + 1 (1 for the first)."

@@ -30,6 +30,19 @@ class RequestModel(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
 
 
+def exactly_one_of(first: str, second: str, *, json_type: tuple[str, str]) -> dict[str, Any]:
+    """JSON Schema for "exactly one of two fields is given, the other absent or null" (``json_type`` are
+    their JSON types when given), for a model's ``json_schema_extra``. Written as ``not`` (both or
+    neither) rather than ``oneOf``: a ``oneOf`` beside the properties makes client generators
+    (openapi-python-client) split the model into partial variants, while ``not`` is left to validators."""
+    both = {
+        "required": [first, second],
+        "properties": {first: {"type": json_type[0]}, second: {"type": json_type[1]}},
+    }
+    neither = {"properties": {first: {"type": "null"}, second: {"type": "null"}}}
+    return {"not": {"anyOf": [both, neither]}}
+
+
 class ResponseModel(BaseModel):
     """Base of response bodies (floats are always finite)."""
 
@@ -114,6 +127,14 @@ class RsuModel(RsuFields):
 class RsuPut(RsuFields):
     """Body of PUT /v1/rsus/{rsu_id}: the RSU; ``id`` may be left out or must equal the path's."""
 
+    model_config = ConfigDict(
+        json_schema_extra={
+            "description": "The RSU at the path's rsu_id. An id in the body that differs from the path's "
+            "is refused (422, field 'id'): JSON Schema cannot compare a body field with the path.",
+            "examples": [{"id": "S+000", "x": 0.0, "y": -3.875}],
+        }
+    )
+
     id: str | None = Field(
         None, pattern=RSU_ID_PATTERN, description="Optional; when given it must equal the rsu_id in the path."
     )
@@ -121,6 +142,21 @@ class RsuPut(RsuFields):
 
 class RsuBulk(RequestModel):
     """Body of PUT /v1/rsus: RSUs to insert or replace, by id."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "description": "RSUs to insert or replace, by id. Each id at most once per request: a repeated "
+            "id is refused (422, field 'rsus[i].id'), which JSON Schema cannot state for objects.",
+            "examples": [
+                {
+                    "rsus": [
+                        {"id": "S+000", "x": 0.0, "y": -3.875},
+                        {"id": "N+050", "x": 50.0, "y": 15.125, "range_std": 0.5},
+                    ]
+                }
+            ],
+        }
+    )
 
     rsus: list[RsuModel] = Field(
         max_length=MAX_RSUS_PER_REQUEST, description="RSUs to upsert; ids must be unique within the request."
@@ -244,6 +280,19 @@ class InitialStateIn(RequestModel):
 class SessionCreate(RequestModel):
     """Body of POST /v1/sessions."""
 
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "vehicle_id": "bus-42",
+                    "pipeline": "rsu_imu",
+                    "options": {"range_std": 0.5},
+                    "initial_state": {"x": 0.0, "y": 5.0, "vx": 10.0, "vy": 0.0},
+                }
+            ]
+        }
+    )
+
     vehicle_id: str = Field(
         pattern=VEHICLE_ID_PATTERN,
         description="The vehicle's own identifier: 1-128 characters of letters, digits, "
@@ -259,7 +308,8 @@ class SessionCreate(RequestModel):
     )
     initial_state: InitialStateIn | None = Field(
         None,
-        description="Known initial position and velocity; null lets the pipeline initialise from RSU fixes.",
+        description="Known initial position and velocity; null lets the pipeline initialise from RSU fixes. "
+        "Its speed must not exceed the session's max_speed_mps option (else 422 naming initial_state.vx/vy).",
     )
 
     @field_validator("options")
@@ -346,7 +396,11 @@ class VehicleImport(RequestModel):
     """Body of POST /v1/vehicles/bulk: many vehicles at once (each id once)."""
 
     model_config = ConfigDict(
-        json_schema_extra={"examples": [{"vehicles": [{"vehicle_id": "bus-41"}, {"vehicle_id": "bus-42"}]}]}
+        json_schema_extra={
+            "description": "Many vehicles at once. Each vehicle_id at most once per request: a repeated id "
+            "is refused (422, field 'vehicles'), which JSON Schema cannot state for objects.",
+            "examples": [{"vehicles": [{"vehicle_id": "bus-41"}, {"vehicle_id": "bus-42"}]}],
+        }
     )
 
     vehicles: list[VehicleCreate] = Field(

@@ -13,7 +13,7 @@ from typing import Annotated, Literal
 
 from pydantic import ConfigDict, Field
 
-from edgepos.api.schemas import MAX_COORDINATE_M, RequestModel, ResponseModel
+from edgepos.api.schemas import MAX_COORDINATE_M, RequestModel, ResponseModel, exactly_one_of
 
 ADDRESS_PATTERN = r"^acr:[A-Za-z0-9._:+@/ -]{1,128}$"
 """A user's address: ``acr:`` and the vehicle id (the anonymous customer reference URI of MEC 013)."""
@@ -170,6 +170,19 @@ _DEADLINE = "When the subscription ends by itself (server clock); a deadline alr
 class UserLocationEventSubscriptionIn(RequestModel):
     """Notify when the vehicle enters or leaves any of the operator's zones."""
 
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {
+                    "subscriptionType": "UserLocationEventSubscription",
+                    "address": "acr:bus-42",
+                    "callbackReference": "http://127.0.0.1:9000/notify",
+                    "eventType": ["ENTERING_AREA_EVENT"],
+                }
+            ]
+        }
+    )
+
     subscriptionType: Literal["UserLocationEventSubscription"] = Field(
         description="Names the kind of subscription."
     )
@@ -198,6 +211,21 @@ class UserLocationEventSubscription(MecModel):
 
 class ZoneLocationEventSubscriptionIn(RequestModel):
     """Notify when vehicles enter or leave one of the operator's zones."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "description": "Notify when vehicles enter or leave one of the operator's zones. The zone must "
+            "exist (PUT /v1/zones/{zone_id}; the example's is the example zone 'depot'), else 404.",
+            "examples": [
+                {
+                    "subscriptionType": "ZoneLocationEventSubscription",
+                    "zoneId": "depot",
+                    "callbackReference": "http://127.0.0.1:9000/notify",
+                    "addressList": ["acr:bus-42"],
+                }
+            ],
+        }
+    )
 
     subscriptionType: Literal["ZoneLocationEventSubscription"] = Field(
         description="Names the kind of subscription."
@@ -299,6 +327,13 @@ class CircleIn(RequestModel):
 class ZoneIn(RequestModel):
     """A zone: exactly one of circle and polygon, in the site frame or WGS-84."""
 
+    model_config = ConfigDict(
+        json_schema_extra={
+            **exactly_one_of("circle", "polygon", json_type=("object", "array")),
+            "examples": [{"frame": "site", "circle": {"center": [0.0, 0.0], "radius": 50.0}}],
+        }
+    )
+
     frame: Literal["site", "wgs84"] = Field(
         "site",
         description="site: points are [x, y] in metres (x east, y north of the origin); wgs84: [latitude, "
@@ -309,7 +344,8 @@ class ZoneIn(RequestModel):
         None,
         min_length=3,
         max_length=MAX_POLYGON_VERTICES,
-        description="Vertices of a simple polygon (edges must not cross), in either order; the last edge closes it.",
+        description="Vertices of a simple polygon (edges must not cross, at least 3 distinct vertices "
+        "enclosing an area, else 422), in either order; the last edge closes it.",
     )
 
 

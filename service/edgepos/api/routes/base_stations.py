@@ -119,7 +119,7 @@ async def _registered(context: Context, station_id: str) -> Station:
     dependencies=[Depends(require_admin), Depends(json_body)],
     responses=errors(401, 403, 409, 413, 415, 422, 503),
 )
-async def register(body: BaseStationIn, context: Context) -> BaseStationOut:
+async def register_base_station(body: BaseStationIn, context: Context) -> BaseStationOut:
     """Register a station (admin key) with its surveyed marker position (ECEF or WGS-84) and optional antenna
     delta, or without a position (an RTCM 1005/1006 upload may set it). 409 when the id is taken."""
     if body.position_ecef is not None and body.position_geodetic is not None:
@@ -282,7 +282,8 @@ async def _ephemerides(context: Context) -> Ephemerides:
 )
 async def post_observations(station_id: StationId, request: Request, context: Context) -> BaseObservationsOut:
     """Corrections of every epoch of the file, computed at the station's position with the loaded
-    ephemerides, added to the station's window (admin key). A malformed file is refused with its line."""
+    ephemerides, added to the station's window (admin key). A malformed file is refused with its line;
+    without loaded ephemerides (PUT /v1/ephemerides) any file is refused (422)."""
     station = await _registered(context, station_id)
     ephemerides = await _ephemerides(context)
     body = await request.body()
@@ -314,7 +315,8 @@ async def post_observations(station_id: StationId, request: Request, context: Co
 )
 async def post_rtcm(station_id: StationId, request: Request, context: Context) -> BaseObservationsOut:
     """Decode the frames with pyrtcm and add the corrections of their epochs (admin key). A frame that does
-    not parse is refused naming its index, message type and bytes, and nothing is stored."""
+    not parse is refused naming its index, message type and bytes, and nothing is stored. Without loaded
+    ephemerides (PUT /v1/ephemerides) any frames are refused (422)."""
     station = await _registered(context, station_id)
     ephemerides = await _ephemerides(context)
     body = await request.body()

@@ -34,9 +34,9 @@ router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 
 # OpenAPI links: how a client (and schemathesis' stateful tests) goes from one call to the next.
 _READ, _SEND, _DELETE = (
-    "get_session_v1_sessions__session_id__get",
-    "post_batch_v1_sessions__session_id__batches_post",
-    "delete_session_v1_sessions__session_id__delete",
+    "get_session",
+    "post_batch",
+    "delete_session",
 )
 
 

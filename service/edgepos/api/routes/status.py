@@ -20,7 +20,7 @@ router = APIRouter(tags=["health"])
     dependencies=[Depends(require_admin)],
     responses=errors(401, 403, 429, 503),
 )
-async def status(context: Context) -> StatusOut:
+async def get_status(context: Context) -> StatusOut:
     """Sessions, epochs/s, batches/s and the batch latency p99 of the last seconds, stream consumers, and the
     site's WGS-84 origin (admin key; a vehicle or session credential gets 403). Exact figures from one request,
     where /metrics has counters and bucketed histograms for Prometheus."""
