@@ -17,8 +17,9 @@ ALLOWED = {
     "pipelines": {"core", "gnss", "pipelines"},
     "sim": {"core", "gnss", "pipelines", "sim"},
     "store": {"pipelines", "store"},
-    "eval": {"core", "gnss", "pipelines", "sim", "eval"},
-    "loadgen": {"core", "gnss", "pipelines", "sim", "loadgen"},
+    # the commands' implementations, beside the service; cli_output is their --json/--plots helper
+    "eval": {"core", "gnss", "pipelines", "sim", "eval", "cli_output"},
+    "loadgen": {"core", "gnss", "pipelines", "sim", "loadgen", "cli_output"},
 }
 #: third-party packages of the web layer, which the estimation packages must not import
 WEB = {"fastapi", "starlette", "uvicorn", "httpx", "redis", "pydantic", "pydantic_settings", "websockets"}

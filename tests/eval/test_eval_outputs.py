@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 from edgepos.cli import main
-from edgepos.eval.outputs import prepare_output, write_output
+from edgepos.cli_output import prepare_output, write_output
 
 
 def test_prepare_output_creates_the_missing_parents(tmp_path: Path) -> None:

@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
+from edgepos.cli_output import prepare_output
 from edgepos.eval.montecarlo import chunk_runs, run_chunks
-from edgepos.eval.outputs import prepare_output
 from edgepos.eval.progress import Progress
 from edgepos.eval.tables import format_table, number
 from edgepos.pipelines import tracks

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from edgepos.cli_output import prepare_output
 from edgepos.eval import plots
 from edgepos.eval.gnss_montecarlo import (
     ALGORITHMS,
@@ -31,7 +32,6 @@ from edgepos.eval.gnss_montecarlo import (
     results,
     select_algorithms,
 )
-from edgepos.eval.outputs import prepare_output
 from edgepos.eval.overrides import add_option_argument, parse_overrides
 from edgepos.eval.progress import Progress
 from edgepos.eval.tables import format_table, number, percent_change

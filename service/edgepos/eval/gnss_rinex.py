@@ -33,8 +33,8 @@ from typing import Any
 
 import numpy as np
 
+from edgepos.cli_output import prepare_output, write_output
 from edgepos.core.observations import PseudorangeObservation
-from edgepos.eval.outputs import prepare_output, write_output
 from edgepos.eval.overrides import add_option_argument, parse_overrides
 from edgepos.gnss.differential import DEFAULT_MAX_AGE_S, correct_set, corrections_from_epochs
 from edgepos.gnss.differential import base_position as header_base_position

@@ -13,8 +13,8 @@ import os
 import sys
 from pathlib import Path
 
+from edgepos.cli_output import prepare_output
 from edgepos.eval import plots
-from edgepos.eval.outputs import prepare_output
 from edgepos.eval.overrides import add_option_argument, parse_overrides
 from edgepos.eval.progress import Progress
 from edgepos.eval.rsu_imu_algorithms import (

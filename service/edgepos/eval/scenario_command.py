@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from edgepos.cli_output import prepare_output
 from edgepos.eval import plots
-from edgepos.eval.outputs import prepare_output
 from edgepos.eval.progress import Progress
 
 Summary = dict[str, dict[str, dict[str, float]]]

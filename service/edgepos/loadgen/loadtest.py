@@ -41,7 +41,7 @@ from urllib.parse import urlsplit
 import httpx
 from edgepos_client import AsyncEdgeposClient, EdgeposError, Session
 
-from edgepos.eval.outputs import prepare_output, write_output
+from edgepos.cli_output import prepare_output, write_output
 from edgepos.loadgen import common
 from edgepos.loadgen.verify import Held, TripLedger, VerifyTally, judge
 from edgepos.sim.scenarios import Scenario, rsu_imu_paper_scenario

@@ -29,8 +29,8 @@ import httpx
 import numpy as np
 from edgepos_client import AsyncEdgeposClient, EdgeposError, Fix, RateLimited, Session, TooManySessions
 
+from edgepos.cli_output import prepare_output, write_output
 from edgepos.core.observations import Observation
-from edgepos.eval.outputs import prepare_output, write_output
 from edgepos.loadgen import common, federated_sim, v2v_sim
 from edgepos.sim.delivery import (
     LateDelivery,
