@@ -29,7 +29,7 @@ import os
 import threading
 import time
 from collections.abc import AsyncIterator, Callable
-from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import Executor, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from typing import Any, Literal, TypeVar
@@ -81,29 +81,202 @@ class _Job:
     label: str
     call: functools.partial[tuple[Any, float]]
     future: asyncio.Future[Any]
+    loop: asyncio.AbstractEventLoop
     queued_at: float
     executor: Executor | None = None
 
 
 @dataclass
-class _Lane:
-    """Jobs waiting per vehicle, the order vehicles are served in, and the executor that runs them."""
+class _RoundRobin:
+    """Jobs waiting per key and the order keys are served in: one job per turn, and a key with more
+    jobs goes to the back of the line after each."""
 
-    name: LaneName
-    capacity: int
-    make_executor: Callable[[], Executor]
-    executor: Executor | None = None
     waiting: dict[str, collections.deque[_Job]] = field(default_factory=dict)
     turns: collections.OrderedDict[str, None] = field(default_factory=collections.OrderedDict)
-    running: int = 0
+
+    def push(self, job: _Job) -> None:
+        self.waiting.setdefault(job.key, collections.deque()).append(job)
+        self.turns.setdefault(job.key, None)
+
+    def pop(self) -> _Job | None:
+        """The next job in turn, or None when nothing waits."""
+        if not self.turns:
+            return None
+        key, _ = self.turns.popitem(last=False)
+        jobs = self.waiting[key]
+        job = jobs.popleft()
+        if jobs:
+            self.turns[key] = None  # its next job waits for everyone else's turn
+        else:
+            del self.waiting[key]
+        return job
 
     def depth(self) -> int:
         return sum(len(jobs) for jobs in self.waiting.values())
+
+    def drain(self) -> list[_Job]:
+        jobs = [job for line in self.waiting.values() for job in line]
+        self.waiting.clear()
+        self.turns.clear()
+        return jobs
+
+
+def _settle(job: _Job, result: Any, error: BaseException | None) -> None:
+    """Hand a job's outcome to the request awaiting it (on the event loop's thread)."""
+    if job.future.cancelled():
+        return
+    if error is None:
+        job.future.set_result(result)
+    else:
+        job.future.set_exception(error)
+
+
+class _ThreadLane:
+    """One thread that takes the next job in turn itself, as soon as the last one ends.
+
+    Why not a ThreadPoolExecutor fed from the event loop: fed one job at a time (to keep the turns), the
+    thread sleeps after every job until the loop hands it the next, two thread wake-ups per job that cost
+    more CPU than a light batch's filter step (bench/scheduler_overhead.py); fed several, the executor's
+    queue would be first come, first served. Here the thread picks in turn under a lock, and only sleeps
+    when nothing waits; the loop is told of each result with ``call_soon_threadsafe``."""
+
+    def __init__(self, name: LaneName, metrics: Metrics, thread_name: str) -> None:
+        self.name = name
+        self.metrics = metrics
+        self.thread_name = thread_name
+        self._line = _RoundRobin()
+        self._ready = threading.Condition()
+        self._thread: threading.Thread | None = None
+        self._stopping = False
+        self._depth = metrics.queue_depth.labels(name)  # labelled once: labels() takes a lock each call
+        self._wait = metrics.queue_wait.labels(name)
+
+    def submit(self, job: _Job) -> None:
+        with self._ready:
+            self._line.push(job)
+            depth = self._line.depth()
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._serve, name=self.thread_name, daemon=True)
+                self._thread.start()
+            self._ready.notify()
+        self._depth.set(depth)
+
+    def _serve(self) -> None:
+        while True:
+            with self._ready:
+                job = self._line.pop()
+                while job is None and not self._stopping:
+                    self._ready.wait()
+                    job = self._line.pop()
+                if job is None:
+                    return
+                depth = self._line.depth()
+            if job.future.cancelled():  # the request went away while it waited
+                continue
+            self._depth.set(depth)
+            self._wait.observe(time.monotonic() - job.queued_at)
+            try:
+                result, cpu_s = job.call()
+            except BaseException as error:  # noqa: BLE001  # every error goes back to the request that waits for it
+                outcome: tuple[Any, BaseException | None] = (None, error)
+            else:
+                self.metrics.pipeline_cpu.labels(job.label).inc(cpu_s)
+                outcome = (result, None)
+            try:
+                job.loop.call_soon_threadsafe(_settle, job, *outcome)
+            except RuntimeError:  # the loop closed meanwhile (shutdown): nobody waits for the result
+                pass
+
+    def shutdown(self) -> None:
+        """Let the thread end after its current job; jobs still waiting are cancelled."""
+        with self._ready:
+            self._stopping = True
+            waiting = self._line.drain()
+            self._ready.notify_all()
+        for job in waiting:
+            try:
+                job.loop.call_soon_threadsafe(job.future.cancel)
+            except RuntimeError:  # the loop closed already: nobody waits for the job
+                pass
+
+
+class _PoolLane:
+    """Worker processes fed from the event loop, at most one job per worker at a time, vehicles in turn."""
+
+    def __init__(
+        self, name: LaneName, metrics: Metrics, capacity: int, make_executor: Callable[[], Executor]
+    ):
+        self.name = name
+        self.metrics = metrics
+        self.capacity = capacity
+        self.make_executor = make_executor
+        self.executor: Executor | None = None
+        self._line = _RoundRobin()
+        self.running = 0
 
     def get_executor(self) -> Executor:
         if self.executor is None:
             self.executor = self.make_executor()
         return self.executor
+
+    def submit(self, job: _Job) -> None:
+        self._line.push(job)
+        self.metrics.queue_depth.labels(self.name).set(self._line.depth())
+        self._dispatch()
+
+    def _dispatch(self) -> None:
+        """Start the next vehicles' jobs while the lane has room: the vehicle whose turn it is first."""
+        while self.running < self.capacity:
+            job = self._line.pop()
+            if job is None:
+                return
+            if job.future.cancelled():  # the request went away while it waited
+                continue
+            self.running += 1
+            self.metrics.queue_depth.labels(self.name).set(self._line.depth())
+            self.metrics.queue_wait.labels(self.name).observe(job.loop.time() - job.queued_at)
+            job.executor = self.get_executor()
+            try:
+                running = job.loop.run_in_executor(job.executor, job.call)
+            except BrokenProcessPool:  # a worker died since the last job: start a fresh pool
+                self._retire(job.executor)
+                job.executor = self.get_executor()
+                running = job.loop.run_in_executor(job.executor, job.call)
+            running.add_done_callback(functools.partial(self._finished, job))
+
+    def _retire(self, broken: Executor | None) -> None:
+        """A worker died (killed, out of memory): drop its pool, once, so the next job starts a fresh one
+        (other jobs of the same pool fail alike and must not retire its successor)."""
+        if broken is not None and self.executor is broken:
+            logger.error("heavy-lane worker pool broken; a new one starts", extra={"event": "pool_broken"})
+            self.executor = None
+            broken.shutdown(wait=False, cancel_futures=True)
+
+    def _finished(self, job: _Job, running: asyncio.Future[Any]) -> None:
+        self.running -= 1
+        if not job.future.cancelled():
+            error = running.exception()
+            if error is None:
+                result, cpu_s = running.result()
+                self.metrics.pipeline_cpu.labels(job.label).inc(cpu_s)
+                job.future.set_result(result)
+            elif isinstance(error, BrokenProcessPool):
+                self._retire(job.executor)
+                job.future.set_exception(
+                    ApiError("unavailable", "the worker filtering this batch stopped; retry the same batch")
+                )
+            else:
+                job.future.set_exception(error)
+        self._dispatch()
+
+    def shutdown(self) -> None:
+        """Worker processes are waited for (a heavy batch is bounded by the CPU budget), so none outlives
+        the service; jobs still waiting are cancelled."""
+        for job in self._line.drain():
+            job.future.cancel()
+        if self.executor is not None:
+            self.executor.shutdown(wait=True, cancel_futures=True)
+            self.executor = None
 
 
 class FairScheduler:
@@ -122,12 +295,14 @@ class FairScheduler:
         self.heavy_workers = heavy_workers
         self.max_queued_per_key = max_queued_per_key
         self._per_key: collections.Counter[str] = collections.Counter()
-        light = _Lane("light", 1, lambda: ThreadPoolExecutor(1, thread_name_prefix="edgepos-filter"))
-        if heavy_workers > 0:
-            heavy = _Lane("heavy", heavy_workers, self._process_pool)
-        else:
-            heavy = _Lane("heavy", 1, lambda: ThreadPoolExecutor(1, thread_name_prefix="edgepos-heavy"))
-        self._lanes: dict[LaneName, _Lane] = {"light": light, "heavy": heavy}
+        self._lanes: dict[LaneName, _ThreadLane | _PoolLane] = {
+            "light": _ThreadLane("light", metrics, "edgepos-filter"),
+            "heavy": (
+                _PoolLane("heavy", metrics, heavy_workers, self._process_pool)
+                if heavy_workers > 0
+                else _ThreadLane("heavy", metrics, "edgepos-heavy")
+            ),
+        }
 
     def _process_pool(self) -> Executor:
         # spawn, not fork: the parent runs threads (the light lane, the store's), which fork would copy
@@ -167,76 +342,18 @@ class FairScheduler:
     ) -> Result:
         """Run ``function(*args)`` for vehicle ``key`` in its turn, on the lane its predicted CPU cost
         ``cost_s`` chooses; ``label`` names the work in the metrics (the pipeline)."""
-        lane = self._lanes[self.lane_for(cost_s)]
         loop = asyncio.get_running_loop()
-        job = _Job(key, label, functools.partial(_timed, function, *args), loop.create_future(), loop.time())
-        lane.waiting.setdefault(key, collections.deque()).append(job)
-        lane.turns.setdefault(key, None)
-        self.metrics.queue_depth.labels(lane.name).set(lane.depth())
-        self._dispatch(lane)
+        call = functools.partial(_timed, function, *args)
+        job = _Job(key, label, call, loop.create_future(), loop, time.monotonic())
+        self._lanes[self.lane_for(cost_s)].submit(job)
         result: Result = await job.future
         return result
-
-    def _dispatch(self, lane: _Lane) -> None:
-        """Start the next vehicles' jobs while the lane has room: the vehicle whose turn it is first."""
-        loop = asyncio.get_running_loop()
-        while lane.running < lane.capacity and lane.turns:
-            key, _ = lane.turns.popitem(last=False)
-            jobs = lane.waiting[key]
-            job = jobs.popleft()
-            if jobs:
-                lane.turns[key] = None  # its next job waits for everyone else's turn
-            else:
-                del lane.waiting[key]
-            if job.future.cancelled():  # the request went away while it waited
-                continue
-            lane.running += 1
-            self.metrics.queue_depth.labels(lane.name).set(lane.depth())
-            self.metrics.queue_wait.labels(lane.name).observe(loop.time() - job.queued_at)
-            job.executor = lane.get_executor()
-            try:
-                running = loop.run_in_executor(job.executor, job.call)
-            except BrokenProcessPool:  # a worker died since the last job: start a fresh pool
-                self._retire(lane, job.executor)
-                job.executor = lane.get_executor()
-                running = loop.run_in_executor(job.executor, job.call)
-            running.add_done_callback(functools.partial(self._finished, lane, job))
-
-    def _retire(self, lane: _Lane, broken: Executor | None) -> None:
-        """A heavy worker died (killed, out of memory): drop its pool, once, so the next job starts
-        a fresh one (other jobs of the same pool fail alike and must not retire its successor)."""
-        if broken is not None and lane.executor is broken:
-            logger.error("heavy-lane worker pool broken; a new one starts", extra={"event": "pool_broken"})
-            lane.executor = None
-            broken.shutdown(wait=False, cancel_futures=True)
-
-    def _finished(self, lane: _Lane, job: _Job, running: asyncio.Future[Any]) -> None:
-        lane.running -= 1
-        if not job.future.cancelled():
-            error = running.exception()
-            if error is None:
-                result, cpu_s = running.result()
-                self.metrics.pipeline_cpu.labels(job.label).inc(cpu_s)
-                job.future.set_result(result)
-            elif isinstance(error, BrokenProcessPool):
-                self._retire(lane, job.executor)
-                job.future.set_exception(
-                    ApiError("unavailable", "the worker filtering this batch stopped; retry the same batch")
-                )
-            else:
-                job.future.set_exception(error)
-        self._dispatch(lane)
 
     def held(self, key: str) -> int:
         """Places ``key`` holds in its line."""
         return self._per_key.get(key, 0)
 
     def shutdown(self) -> None:
-        """Stop the lanes once their current work is done (app shutdown). Worker processes are waited
-        for (a heavy batch is bounded by the CPU budget), so none outlives the service."""
+        """Stop the lanes once their current work is done (app shutdown)."""
         for lane in self._lanes.values():
-            if lane.executor is not None:
-                lane.executor.shutdown(
-                    wait=isinstance(lane.executor, ProcessPoolExecutor), cancel_futures=True
-                )
-                lane.executor = None
+            lane.shutdown()
