@@ -21,10 +21,11 @@ import time
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
+
+from edgepos.store.sqlite_thread import SQLiteThread
 
 T = TypeVar("T")
 
@@ -189,26 +190,10 @@ class SQLiteFixLog(FixLog):
     def __init__(self, path: Path, buffer: int = DEFAULT_BUFFER) -> None:
         super().__init__(buffer)
         self.path = Path(path)
-        self._executor: ThreadPoolExecutor | None = None
-        self._connection: sqlite3.Connection | None = None
-
-    def _connect(self) -> sqlite3.Connection:
-        if self._connection is None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            connection = sqlite3.connect(
-                self.path, timeout=30.0, isolation_level=None, check_same_thread=False
-            )
-            connection.execute("PRAGMA busy_timeout = 30000")
-            connection.execute("PRAGMA journal_mode = WAL")
-            connection.execute("PRAGMA synchronous = NORMAL")
-            connection.executescript(_SCHEMA)
-            self._connection = connection
-        return self._connection
+        self._database = SQLiteThread(self.path, _SCHEMA, "edgepos-fixlog")
 
     async def _run(self, fn: Callable[[sqlite3.Connection], T]) -> T:
-        if self._executor is None:
-            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="edgepos-fixlog")
-        return await asyncio.get_running_loop().run_in_executor(self._executor, lambda: fn(self._connect()))
+        return await self._database.run(fn)
 
     @staticmethod
     def _newest(db: sqlite3.Connection) -> int:
@@ -267,14 +252,4 @@ class SQLiteFixLog(FixLog):
         return await self._run(work)
 
     async def close(self) -> None:
-        executor, self._executor = self._executor, None
-        if executor is None:
-            return
-
-        def work() -> None:
-            if self._connection is not None:
-                self._connection.close()
-                self._connection = None
-
-        await asyncio.get_running_loop().run_in_executor(executor, work)
-        executor.shutdown(wait=True)
+        await self._database.close()

@@ -13,12 +13,10 @@ that removes sessions; readers also treat a pointer to a missing or expired sess
 
 from __future__ import annotations
 
-import asyncio
 import json
 import sqlite3
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -41,6 +39,7 @@ from edgepos.store.fixlog import FixLog, SQLiteFixLog, fix_log_path
 from edgepos.store.ratelimit import RateLimit, gcra
 from edgepos.store.sqlite_base import SQLiteBaseStations
 from edgepos.store.sqlite_documents import SQLiteDocuments
+from edgepos.store.sqlite_thread import SQLiteThread
 
 T = TypeVar("T")
 
@@ -158,36 +157,14 @@ class SQLiteStore(SQLiteBaseStations, SQLiteDocuments, SessionStore):
     def __init__(self, path: str | Path, ttl_s: float, clock: Clock = time.time) -> None:
         super().__init__(ttl_s, clock)
         self.path = Path(path)
-        self._executor: ThreadPoolExecutor | None = None
-        self._connection: sqlite3.Connection | None = None
-
-    # plumbing -------------------------------------------------------------------------------
-    def _connect(self) -> sqlite3.Connection:
-        if self._connection is None:
-            if self.path.parent != Path(""):
-                self.path.parent.mkdir(parents=True, exist_ok=True)
-            connection = sqlite3.connect(
-                self.path, timeout=30.0, isolation_level=None, check_same_thread=False
-            )
-            connection.execute("PRAGMA busy_timeout = 30000")
-            connection.execute("PRAGMA journal_mode = WAL")
-            connection.execute("PRAGMA synchronous = NORMAL")
-            connection.executescript(_SCHEMA)
-            self._connection = connection
-        return self._connection
-
-    def _thread(self) -> ThreadPoolExecutor:
-        if self._executor is None:
-            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="edgepos-sqlite")
-        return self._executor
+        self._database = SQLiteThread(self.path, _SCHEMA, "edgepos-sqlite")
 
     def fix_log(self, buffer: int) -> FixLog:
         """The fix stream's log in a file beside this one (see ``edgepos.store.fixlog``)."""
         return SQLiteFixLog(fix_log_path(self.path), buffer)
 
     async def _run(self, fn: Callable[[sqlite3.Connection], T]) -> T:
-        loop = asyncio.get_running_loop()
-        return await loop.run_in_executor(self._thread(), lambda: fn(self._connect()))
+        return await self._database.run(fn)
 
     @staticmethod
     def _record(row: tuple[Any, ...]) -> SessionRecord:
@@ -658,14 +635,4 @@ class SQLiteStore(SQLiteBaseStations, SQLiteDocuments, SessionStore):
 
     async def close(self) -> None:
         """Close the connection and stop the thread; a later call reopens both."""
-        executor, self._executor = self._executor, None
-        if executor is None:
-            return
-
-        def work() -> None:
-            if self._connection is not None:
-                self._connection.close()
-                self._connection = None
-
-        await asyncio.get_running_loop().run_in_executor(executor, work)
-        executor.shutdown(wait=True)
+        await self._database.close()
