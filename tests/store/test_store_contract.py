@@ -89,6 +89,28 @@ def test_create_get_round_trip(store):
     asyncio.run(scenario())
 
 
+def test_a_record_read_or_written_shares_nothing_with_the_store(store):
+    """Changing the options of a record after writing it, or of one read back, changes nothing stored
+    (nested values included): the in-process store copies them instead of keeping the caller's dict."""
+
+    async def scenario() -> None:
+        options = {"filter": "ckf", "models": ["ca"], "model_params": {"singer": {"sigma": 1.0}}}
+        written = record(options=options)
+        await store.create(written, max_sessions=10)
+        options["models"].append("ct")
+        options["model_params"]["singer"]["sigma"] = 9.0
+        read = await store.get("s1")
+        assert read.options == {"filter": "ckf", "models": ["ca"], "model_params": {"singer": {"sigma": 1.0}}}
+        read.options["model_params"]["singer"]["sigma"] = 5.0
+        read.options["models"].clear()
+        assert await store.compare_and_set(dataclasses.replace(read, last_seq=1), expected_version=0)
+        read.options["filter"] = "ukf"
+        again = await store.get("s1")
+        assert again.options == {"filter": "ckf", "models": [], "model_params": {"singer": {"sigma": 5.0}}}
+
+    asyncio.run(scenario())
+
+
 def test_compare_and_set_bumps_the_version_once(store):
     async def scenario() -> None:
         await store.create(record(), max_sessions=10)
