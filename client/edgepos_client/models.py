@@ -292,6 +292,11 @@ class Fix(_Response):
     model_probabilities: dict[str, float] = Field(default_factory=dict)
     nis: float | None = None
     nis_dof: int = 0
+    protection_level_m: float | None = None
+    """Horizontal protection level (m) at the session's integrity risk; None when ``integrity`` is
+    "unavailable" (and from servers that predate it)."""
+    integrity: str = "unavailable"
+    """"ok", "alarm" (do not use the fix where integrity matters) or "unavailable"."""
     measurements: list[MeasurementUse] = Field(default_factory=list)
 
 

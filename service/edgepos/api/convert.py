@@ -78,6 +78,8 @@ def fix_to_json(fix: Fix, include_state: bool, origin: GeodeticOrigin | None) ->
         "model_probabilities": fix.model_probabilities,
         "nis": fix.nis,
         "nis_dof": fix.nis_dof,
+        "protection_level_m": fix.protection_level,
+        "integrity": fix.integrity,
         "measurements": [_use_to_json(use) for use in fix.measurements],
     }
 

@@ -33,6 +33,7 @@ from edgepos.core.errors import NumericalError
 from edgepos.core.filters import GaussianFilter, make_filter
 from edgepos.core.filters.sigma_points import SigmaPointFilter
 from edgepos.core.imm import Gaussian, InteractingMultipleModel, StepResult
+from edgepos.core.integrity import UNAVAILABLE, Protection
 from edgepos.core.motion import MotionModel, make_motion_model
 from edgepos.core.observations import GyroObservation, Observation, RsuObservation
 from edgepos.core.updates import RsuGyroEpoch
@@ -50,6 +51,7 @@ from edgepos.pipelines.base import (
     ensure_finite_fixes,
 )
 from edgepos.pipelines.epochs import group_by_time
+from edgepos.pipelines.integrity import RsuIntegrity
 from edgepos.pipelines.options import resolve_options
 from edgepos.pipelines.rsu_imu_options import OPTION_SPECS, cross_check, parameter_problems
 
@@ -416,17 +418,33 @@ def _step(
         if len(kept_rsus) < len(candidates) or len(kept_gyros) < len(gyros):
             candidates, gyros = kept_rsus, kept_gyros
             measured = _epoch_measurements(candidates, gyros, observations, rsus, options)
-    for i in candidates + gyros:
-        uses[i] = _used(i, observations[i].kind)
 
     result: StepResult = stepper.correct(prediction, measured)
+    monitor = RsuIntegrity.of(options)
+    protection = monitor.protect(result.output, candidates, observations, rsus)
+    if protection.faulty is not None and monitor.exclusion and len(candidates) > 1:
+        # one RSU's measurements disagree with the rest and the prior: filter the epoch again without them
+        excluded = candidates[protection.faulty]
+        uses[excluded] = MeasurementUse(
+            excluded,
+            "rsu",
+            False,
+            f"excluded by fault detection: separation {protection.statistic:.1f} sigma > {protection.threshold:.1f}",
+        )
+        candidates = [i for i in candidates if i != excluded]
+        measured = _epoch_measurements(candidates, gyros, observations, rsus, options)
+        result = stepper.correct(prediction, measured)
+        protection = monitor.protect(result.output, candidates, observations, rsus)
+    for i in candidates + gyros:
+        uses[i] = _used(i, observations[i].kind)
     coasting = not (candidates or gyros)
     session.means, session.covs = result.means, result.covs
     session.probabilities = result.probabilities
     session.filter_t = t
     nis = None if coasting else float(result.probabilities @ result.nis)
     dof = 0 if coasting else measured.dim
-    return _fix(t, "predicted" if coasting else "tracking", result.output, session, bank, uses, nis, dof)
+    status = "predicted" if coasting else "tracking"
+    return _fix(t, status, result.output, session, bank, uses, nis, dof, protection)
 
 
 @functools.lru_cache(maxsize=4096)
@@ -602,6 +620,7 @@ def _fix(
     uses: dict[int, MeasurementUse],
     nis: float | None,
     dof: int,
+    protection: Protection | None = None,
 ) -> Fix:
     components = tuple(output.components)
     x_index, y_index, kinematic_flat, names = _fix_layout(components)
@@ -631,6 +650,8 @@ def _fix(
         nis=nis,
         nis_dof=dof,
         measurements=[uses[i] for i in sorted(uses)],
+        protection_level=None if protection is None else protection.level,
+        integrity=UNAVAILABLE if protection is None else protection.state,
     )
 
 
