@@ -128,7 +128,7 @@ def _radial_factors(probability: float) -> tuple[float, ...]:
     return tuple(factors)
 
 
-def _radial_bound(m: Matrix2, probability: float) -> float:
+def radial_bound(m: Matrix2, probability: float) -> float:
     """R with P(|e| > R) <= probability for a zero-mean 2-D Gaussian e with covariance ``m`` (the exact
     tail of its radial error, tabulated by eigenvalue ratio; 0 when probability >= 1)."""
     if probability >= 1.0:
@@ -144,7 +144,7 @@ def _radial_bound(m: Matrix2, probability: float) -> float:
     return factors[math.ceil(ratio * (len(factors) - 1) - 1e-12)] * math.sqrt(largest)
 
 
-def _test_threshold(false_alarm_probability: float, tests: int) -> float:
+def test_threshold(false_alarm_probability: float, tests: int) -> float:
     """Square root of the chi-square (2 dof) quantile each of ``tests`` tests is compared with."""
     return math.sqrt(float(chi2.isf(false_alarm_probability / max(tests, 1), 2)))
 
@@ -163,8 +163,8 @@ def protect(
     if information is None:
         return Protection(None, UNAVAILABLE)
     fault_free_share = 0.5 * budget.integrity_risk
-    level = _radial_bound(covariance, fault_free_share)
-    threshold = _test_threshold(budget.false_alarm_probability, len(sources)) if sources else 0.0
+    level = radial_bound(covariance, fault_free_share)
+    threshold = test_threshold(budget.false_alarm_probability, len(sources)) if sources else 0.0
     per_hypothesis = fault_free_share / max(len(sources), 1)
     missed = per_hypothesis / budget.fault_probability
     worst: tuple[float, int] | None = None
@@ -174,7 +174,7 @@ def protect(
         statistic, separation, subset = hypothesis
         if statistic > threshold and (worst is None or statistic > worst[0]):
             worst = (statistic, index)
-        bound = threshold * math.sqrt(_largest_eigenvalue(separation)) + _radial_bound(subset, missed)
+        bound = threshold * math.sqrt(_largest_eigenvalue(separation)) + radial_bound(subset, missed)
         level = max(level, bound)
     if not math.isfinite(level):
         return Protection(None, UNAVAILABLE)

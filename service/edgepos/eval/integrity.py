@@ -106,7 +106,8 @@ class IntegrityTally:
 
 
 def _bin(value: float) -> int:
-    return int(min(np.searchsorted(STANFORD_BINS, value, side="right") - 1, STANFORD_BINS.size - 2))
+    index = int(np.searchsorted(STANFORD_BINS, value, side="right")) - 1
+    return min(index, STANFORD_BINS.size - 2)
 
 
 def tally(

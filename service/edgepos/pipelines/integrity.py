@@ -8,16 +8,32 @@ filtered again. Their defaults and the reasons for them are in docs/integrity.md
 
 from __future__ import annotations
 
+import dataclasses
 import functools
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
+
+import numpy as np
 
 from edgepos.core import layout
 from edgepos.core.imm import Gaussian
-from edgepos.core.integrity import IntegrityBudget, Protection, SourceEffect, protect, range_bearing_effect
+from edgepos.core.integrity import (
+    ALARM,
+    UNAVAILABLE,
+    IntegrityBudget,
+    Protection,
+    SourceEffect,
+    protect,
+    range_bearing_effect,
+)
+from edgepos.core.integrity_bank import RangeBearing, SeparationBank, protect_with_bank
 from edgepos.core.observations import Observation, RsuObservation
-from edgepos.pipelines.base import OptionSpec, Rsu
+from edgepos.pipelines.base import MeasurementUse, OptionSpec, Rsu
+
+#: Default jerk spectral density of the sub-filters (m^2/s^5), chosen on seeds 0-99 of the RSU + IMU
+#: scenario so that their position NEES is consistent (docs/integrity.md).
+JERK_PSD = 10.0
 
 INTEGRITY_SPECS: tuple[OptionSpec, ...] = (
     OptionSpec(
@@ -62,6 +78,23 @@ INTEGRITY_SPECS: tuple[OptionSpec, ...] = (
         True,
         "Exclude the RSU a failed fault test points at and filter the epoch again without it (one RSU per "
         "epoch); false: only report the alarm.",
+    ),
+    OptionSpec(
+        "fault_exclusion_s",
+        "number",
+        5.0,
+        "How long (s) an RSU found faulty stays excluded before it is tried again.",
+        0.0,
+        3600.0,
+    ),
+    OptionSpec(
+        "integrity_jerk_psd",
+        "number",
+        JERK_PSD,
+        "Spectral density (m^2/s^5) of the white jerk of the constant-acceleration sub-filters the protection "
+        "level runs one per RSU hypothesis (core.integrity_bank); larger is more conservative.",
+        1e-6,
+        1e4,
     ),
 )
 
@@ -133,3 +166,127 @@ def _monitor(
     return RsuIntegrity(
         IntegrityBudget(risk, false_alarm, fault, alert_limit), exclusion, range_std, bearing_std
     )
+
+
+EXCLUDED = "excluded by fault detection"
+_Result = TypeVar("_Result")
+
+
+def _rsu_id(index: int, observations: Sequence[Observation]) -> str:
+    observation = observations[index]
+    assert isinstance(observation, RsuObservation)  # candidates are RSU observations
+    return observation.rsu_id
+
+
+def _position(output: Gaussian) -> tuple[np.ndarray, np.ndarray]:
+    """The horizontal position (2,) and its covariance (2, 2) of a fix's Gaussian."""
+    components = list(output.components)
+    index = [components.index(layout.XP), components.index(layout.YP)]
+    return output.mean[index], output.cov[np.ix_(index, index)]
+
+
+def start_bank(output: Gaussian, t: float) -> SeparationBank:
+    """A bank whose reference starts at the fix ``output`` (its x, vx, ax, y, vy, ay; an acceleration the
+    models lack gets zero with a 3 m/s^2 std)."""
+    components = list(output.components)
+    mean = np.zeros(6)
+    cov = np.diag(np.full(6, 9.0))
+    present = [(k, components.index(c)) for k, c in enumerate(layout.KINEMATIC) if c in components]
+    target = [k for k, _ in present]
+    source = [j for _, j in present]
+    mean[target] = output.mean[source]
+    cov[np.ix_(target, target)] = output.cov[np.ix_(source, source)]
+    return SeparationBank.start(mean, cov, t)
+
+
+def _measurements(
+    candidates: Sequence[int],
+    observations: Sequence[Observation],
+    rsus: Sequence[Rsu | None],
+    options: Mapping[str, Any],
+) -> list[RangeBearing]:
+    out = []
+    for i in candidates:
+        observation, rsu = observations[i], rsus[i]
+        assert isinstance(observation, RsuObservation) and rsu is not None
+        out.append(
+            RangeBearing(
+                observation.rsu_id,
+                rsu.x,
+                rsu.y,
+                observation.range,
+                observation.bearing,
+                rsu.range_std or options["range_std"],
+                rsu.bearing_std or options["bearing_std"],
+            )
+        )
+    return out
+
+
+def monitored_update(
+    bank: SeparationBank | None,
+    t: float,
+    candidates: list[int],
+    observations: Sequence[Observation],
+    rsus: Sequence[Rsu | None],
+    options: Mapping[str, Any],
+    uses: dict[int, MeasurementUse],
+    correct: Callable[[list[int]], _Result],
+    output_of: Callable[[_Result], Gaussian],
+) -> tuple[_Result, list[int], Protection, SeparationBank]:
+    """One epoch's update with fault detection and exclusion and the fix's protection level.
+
+    ``correct(candidates)`` runs the pipeline's update with those RSUs; the RSUs excluded earlier are left
+    out, an RSU the epoch-wise test (``core.integrity.protect``) or the bank's test over time
+    (``core.integrity_bank``) finds faulty is excluded for ``fault_exclusion_s`` and the epoch filtered
+    again without it. Returns the update, the RSUs it used, the protection and the bank (started at the
+    first epoch, whose fix is then ``unavailable``)."""
+    monitor = RsuIntegrity.of(options)
+    if bank is not None:
+        held = bank.excluded_now(t)
+        for i in [i for i in candidates if _rsu_id(i, observations) in held]:
+            until = bank.excluded[_rsu_id(i, observations)]
+            uses[i] = MeasurementUse(i, "rsu", False, f"{EXCLUDED}: held out until t={until:.2f} s")
+            candidates = [j for j in candidates if j != i]
+    result = correct(candidates)
+    snapshot = monitor.protect(output_of(result), candidates, observations, rsus)
+    if snapshot.faulty is not None and monitor.exclusion and len(candidates) > 1:
+        # one RSU's measurements disagree with the rest and the prior: filter the epoch again without them
+        index = candidates[snapshot.faulty]
+        uses[index] = MeasurementUse(
+            index,
+            "rsu",
+            False,
+            f"{EXCLUDED}: separation {snapshot.statistic:.1f} sigma > {snapshot.threshold:.1f}",
+        )
+        candidates = [i for i in candidates if i != index]
+        result = correct(candidates)
+        if bank is not None:
+            bank.exclude(_rsu_id(index, observations), t + options["fault_exclusion_s"])
+    if bank is None:
+        return result, candidates, Protection(None, UNAVAILABLE), start_bank(output_of(result), t)
+    bank.predict(t, options["integrity_jerk_psd"])
+    measurements = _measurements(candidates, observations, rsus, options)
+    bank.spawn([m.rsu_id for m in measurements])
+    bank.update(measurements)
+    position, position_cov = _position(output_of(result))
+    protection, faulty = protect_with_bank(position, position_cov, bank, monitor.budget)
+    in_use = [m.rsu_id for m in measurements]
+    if faulty is not None and monitor.exclusion and faulty in in_use and len(candidates) > 1:
+        index = candidates[in_use.index(faulty)]
+        uses[index] = MeasurementUse(
+            index,
+            "rsu",
+            False,
+            f"{EXCLUDED}: filter separation {protection.statistic:.1f} sigma > {protection.threshold:.1f}",
+        )
+        candidates = [i for i in candidates if i != index]
+        result = correct(candidates)
+        bank.exclude(faulty, t + options["fault_exclusion_s"])
+        in_use.remove(faulty)
+        position, position_cov = _position(output_of(result))
+        protection, faulty = protect_with_bank(position, position_cov, bank, monitor.budget)
+    if faulty is not None:  # a failed test not acted on: the fix is not to be trusted
+        protection = dataclasses.replace(protection, state=ALARM)
+    bank.prune(in_use)
+    return result, candidates, protection, bank

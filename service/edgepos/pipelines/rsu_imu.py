@@ -34,6 +34,7 @@ from edgepos.core.filters import GaussianFilter, make_filter
 from edgepos.core.filters.sigma_points import SigmaPointFilter
 from edgepos.core.imm import Gaussian, InteractingMultipleModel, StepResult
 from edgepos.core.integrity import UNAVAILABLE, Protection
+from edgepos.core.integrity_bank import SeparationBank
 from edgepos.core.motion import MotionModel, make_motion_model
 from edgepos.core.observations import GyroObservation, Observation, RsuObservation
 from edgepos.core.updates import RsuGyroEpoch
@@ -51,7 +52,7 @@ from edgepos.pipelines.base import (
     ensure_finite_fixes,
 )
 from edgepos.pipelines.epochs import group_by_time
-from edgepos.pipelines.integrity import RsuIntegrity
+from edgepos.pipelines.integrity import monitored_update
 from edgepos.pipelines.options import resolve_options
 from edgepos.pipelines.rsu_imu_options import OPTION_SPECS, cross_check, parameter_problems
 
@@ -89,6 +90,7 @@ class _SessionState:
     means: np.ndarray  # (models, 8), zero where a model lacks a component
     covs: np.ndarray  # (models, 8, 8)
     options_key: str = ""  # the options as sorted JSON: the bank's cache key and their stored form
+    integrity_bank: SeparationBank | None = None  # the protection level's sub-filters (pipelines.integrity)
 
     def __post_init__(self) -> None:
         if not self.options_key:
@@ -124,7 +126,8 @@ class _SessionState:
             raise ValueError(f"state times are not finite: t={self.t!r}, filter_t={self.filter_t!r}")
         key = self.options_key.encode()
         header = _STATE.pack(_MAGIC, _VERSION, flags, t, filter_t, self.epochs, count, len(key))
-        return header + key + body
+        tail = b"" if self.integrity_bank is None else self.integrity_bank.to_bytes()
+        return header + key + body + tail
 
 
 class RsuImuPipeline(Pipeline):
@@ -314,7 +317,8 @@ def _decode(blob: bytes) -> _SessionState:
         )
     start = _STATE.size + key_length
     size = count * _FLOATS_PER_MODEL
-    if not count or flags > _ALL_FLAGS or len(blob) != start + 8 * size:
+    end = start + 8 * size
+    if not count or flags > _ALL_FLAGS or len(blob) < end:
         raise state_format.StateFormatError("rsu_imu state is truncated or corrupt")
     try:
         key = blob[_STATE.size : start].decode()
@@ -332,7 +336,22 @@ def _decode(blob: bytes) -> _SessionState:
         values[count : count * (1 + layout.FULL_DIM)].reshape(count, layout.FULL_DIM),
         values[count * (1 + layout.FULL_DIM) :].reshape(count, *_FULL_COV),
         key,
+        _decode_bank(blob[end:]),
     )
+
+
+def _decode_bank(tail: bytes) -> SeparationBank | None:
+    """The integrity bank after the filter's arrays (absent in states written before it: None)."""
+    if not tail:
+        return None
+    try:
+        return SeparationBank.from_bytes(tail)
+    except ValueError as error:
+        raise state_format.StateFormatError(f"rsu_imu state is corrupt: {error}") from None
+
+
+def _output(result: StepResult) -> Gaussian:
+    return result.output
 
 
 def _decode_json(blob: bytes) -> _SessionState:
@@ -403,6 +422,7 @@ def _step(
                 )
             return Fix(t=t, status="uninitialised", measurements=[uses[i] for i in sorted(uses)])
         _initialise(session, bank, candidates, gyros, observations, rsus)
+        session.integrity_bank = None
         for i in candidates + gyros:
             uses[i] = _used(i, observations[i].kind)
         output = bank.combine(session.means, session.covs, session.probabilities)
@@ -419,22 +439,18 @@ def _step(
             candidates, gyros = kept_rsus, kept_gyros
             measured = _epoch_measurements(candidates, gyros, observations, rsus, options)
 
-    result: StepResult = stepper.correct(prediction, measured)
-    monitor = RsuIntegrity.of(options)
-    protection = monitor.protect(result.output, candidates, observations, rsus)
-    if protection.faulty is not None and monitor.exclusion and len(candidates) > 1:
-        # one RSU's measurements disagree with the rest and the prior: filter the epoch again without them
-        excluded = candidates[protection.faulty]
-        uses[excluded] = MeasurementUse(
-            excluded,
-            "rsu",
-            False,
-            f"excluded by fault detection: separation {protection.statistic:.1f} sigma > {protection.threshold:.1f}",
+    last = [measured]  # the measurements of the last update (fault exclusion may filter the epoch again)
+
+    def correct(kept: list[int]) -> StepResult:
+        last[0] = (
+            measured if kept == candidates else _epoch_measurements(kept, gyros, observations, rsus, options)
         )
-        candidates = [i for i in candidates if i != excluded]
-        measured = _epoch_measurements(candidates, gyros, observations, rsus, options)
-        result = stepper.correct(prediction, measured)
-        protection = monitor.protect(result.output, candidates, observations, rsus)
+        return stepper.correct(prediction, last[0])
+
+    result, candidates, protection, session.integrity_bank = monitored_update(
+        session.integrity_bank, t, candidates, observations, rsus, options, uses, correct, _output
+    )
+    measured = last[0]
     for i in candidates + gyros:
         uses[i] = _used(i, observations[i].kind)
     coasting = not (candidates or gyros)

@@ -1,0 +1,300 @@
+"""Filter-based solution separation: a bank of cheap sub-filters, one per RSU-excluded hypothesis.
+
+An epoch-wise test on the posterior (``core.integrity.protect``) takes the prior as fault-free, so a
+fault that grows into the estimate over several epochs below its threshold escapes it. Here the
+hypotheses run over time (Brenner, "Integrated GPS/inertial fault detection availability",
+Navigation 43(2), 1996; Joerger and Pervan, "Kalman filter-based integrity monitoring against sensor
+faults", JGCD 36(2), 2013; ARAIM's multiple hypothesis solution separation, Blanch et al., ION GNSS
+2012): a reference filter uses every RSU the pipeline uses, and sub-filter i the same measurements
+except RSU i's, from the epoch RSU i was first heard. Under hypothesis i (RSU i faulty, all else
+sound) sub-filter i never saw the fault, however slowly it grew.
+
+* Each filter is a linear constant-acceleration (white-jerk) model on (x, vx, ax, y, vy, ay) in the
+  site frame, with range and bearing linearised at its own prediction (an EKF): one batched numpy
+  update for the whole bank, the RSU a sub-filter leaves out entering with zero rows (no gain, exact).
+* Detection: the separation d_i = x_i - x_0 of sub-filter i from the reference has covariance
+  P_i - P_0 without a fault (the reference is the efficient estimate of a superset of the data), so
+  q_i = d_i^T (P_i - P_0)^-1 d_i is chi-square with 2 degrees of freedom; a fault in RSU i is
+  detected when q_i exceeds the (1 - P_FA / N) quantile.
+* Protection level of the reported fix x (any estimator, here the pipeline's IMM): under hypothesis
+  i, |x - x_true| <= |x - x_i| + |x_i - x_true| and x_i is fault-free, so
+  PL_i = |x - x_i| + R(P_i, p_i) with p_i = (risk / 2 / N) / P_fault, and
+  PL = max(R(P, risk / 2), |x - x_0| + R(P_0, risk / 2), max_i PL_i), R(C, p) the exact radial bound
+  of ``core.integrity`` (the first two: fault-free, through the fix's and through the reference's
+  covariance, both taken so that neither needs to be trusted alone).
+  The union bound gives P(error > PL) <= risk / 2 + sum_i P_fault p_i = risk.
+
+A failed test excludes the RSU for a while (from the pipeline's filter and the whole bank). No
+sub-filter is dropped for it: under any single fault the sub-filter that never saw it is still there,
+so the bound holds even when the test pointed at the wrong RSU (with three RSUs a fault in one also
+moves the others' sub-filters), and the fix is in alarm only for a protection level above the alert
+limit or a failed test that could not be acted on. A sub-filter is dropped once RSU i is no longer used and its data no longer weigh on the reference
+(its position covariance within ``CONVERGED`` of the reference's): what RSU i contributed to the
+estimate then is below a percent of its own error. Plain arrays, so a session stores the bank as
+bytes and reads it back bit for bit (``to_bytes`` / ``from_bytes``).
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from edgepos.core.integrity import (
+    ALARM,
+    OK,
+    UNAVAILABLE,
+    IntegrityBudget,
+    Protection,
+    radial_bound,
+    test_threshold,
+)
+
+#: State order of every filter: x, vx, ax, y, vy, ay (site frame, m, m/s, m/s^2).
+DIM = 6
+_POS = (0, 3)
+#: A sub-filter whose position covariance exceeds the reference's by less than this fraction (trace)
+#: carries no weight any more and is dropped when its RSU is not in use.
+CONVERGED = 0.01
+_HEADER = struct.Struct("<4sBHd")
+_MAGIC = b"EPIB"
+_VERSION = 1
+
+
+@dataclass(frozen=True)
+class RangeBearing:
+    """One RSU's measurement of an epoch: range (m) and bearing from the RSU to the vehicle (rad, from
+    the site x axis), with their standard deviations."""
+
+    rsu_id: str
+    rsu_x: float
+    rsu_y: float
+    range: float
+    bearing: float
+    range_std: float
+    bearing_std: float
+
+
+@dataclass
+class SeparationBank:
+    """The reference filter (row 0) and one sub-filter per excluded RSU (rows 1..), in plain arrays."""
+
+    ids: list[str]  # ids[0] == "" (the reference); ids[i]: the RSU sub-filter i leaves out
+    means: np.ndarray  # (K, 6)
+    covs: np.ndarray  # (K, 6, 6)
+    t: float
+    excluded: dict[str, float] = field(default_factory=dict)  # RSU id -> time (s) its exclusion ends
+
+    @staticmethod
+    def start(mean: np.ndarray, cov: np.ndarray, t: float) -> SeparationBank:
+        """A bank with only the reference, from an estimate (x, vx, ax, y, vy, ay) and its covariance."""
+        return SeparationBank(
+            [""], np.array(mean, dtype=float)[None, :], np.array(cov, dtype=float)[None, :, :], t
+        )
+
+    def predict(self, t: float, jerk_density: float) -> None:
+        """Every filter to time ``t`` with white jerk of spectral density ``jerk_density`` (m^2/s^5) per axis."""
+        dt = t - self.t
+        if dt <= 0.0:
+            return
+        f = np.array([[1.0, dt, 0.5 * dt * dt], [0.0, 1.0, dt], [0.0, 0.0, 1.0]])
+        q = jerk_density * np.array(
+            [
+                [dt**5 / 20.0, dt**4 / 8.0, dt**3 / 6.0],
+                [dt**4 / 8.0, dt**3 / 3.0, dt**2 / 2.0],
+                [dt**3 / 6.0, dt**2 / 2.0, dt],
+            ]
+        )
+        transition = np.zeros((DIM, DIM))
+        noise = np.zeros((DIM, DIM))
+        transition[:3, :3] = transition[3:, 3:] = f
+        noise[:3, :3] = noise[3:, 3:] = q
+        self.means = self.means @ transition.T
+        self.covs = transition @ self.covs @ transition.T + noise
+        self.t = t
+
+    def spawn(self, rsu_ids: Sequence[str]) -> None:
+        """A sub-filter for every RSU in ``rsu_ids`` without one: a copy of the reference, which has not
+        used that RSU yet (call before the update that first uses it)."""
+        new = [rsu for rsu in dict.fromkeys(rsu_ids) if rsu not in self.ids]
+        if not new:
+            return
+        self.ids = self.ids + new
+        self.means = np.concatenate([self.means, np.repeat(self.means[:1], len(new), axis=0)])
+        self.covs = np.concatenate([self.covs, np.repeat(self.covs[:1], len(new), axis=0)])
+
+    def update(self, measurements: Sequence[RangeBearing]) -> None:
+        """One joint EKF update of every filter; sub-filter i skips RSU ids[i]'s rows."""
+        if not measurements:
+            return
+        count = len(self.ids)
+        rows = 2 * len(measurements)
+        rsu_xy = np.array([(m.rsu_x, m.rsu_y) for m in measurements])  # (M, 2)
+        # every filter linearised at the reference's prediction: the bank is then one linear system, in
+        # which the separations' covariances P_i - P_0 hold exactly
+        dx = self.means[0, 0] - rsu_xy[:, 0]  # (M,)
+        dy = self.means[0, 3] - rsu_xy[:, 1]
+        distance = np.maximum(np.hypot(dx, dy), 1e-3)
+        r2 = distance * distance
+        rows_h = np.zeros((len(measurements), 2, DIM))
+        rows_h[:, 0, 0] = dx / distance
+        rows_h[:, 0, 3] = dy / distance
+        rows_h[:, 1, 0] = -dy / r2
+        rows_h[:, 1, 3] = dx / r2
+        residual = np.empty((len(measurements), 2))  # z - h(x_0)
+        residual[:, 0] = np.array([m.range for m in measurements]) - distance
+        bearing = np.array([m.bearing for m in measurements])
+        residual[:, 1] = np.remainder(bearing - np.arctan2(dy, dx) + math.pi, math.tau) - math.pi
+        h_flat = rows_h.reshape(rows, DIM)
+        # z - h(x_0) - H (x_i - x_0) for every filter
+        innovation = (residual.reshape(rows)[None, :] - (self.means - self.means[:1]) @ h_flat.T).reshape(
+            count, len(measurements), 2
+        )
+        jacobian = np.repeat(rows_h[None], count, axis=0)
+        for i, rsu in enumerate(self.ids):
+            if rsu:
+                for j, m in enumerate(measurements):
+                    if m.rsu_id == rsu:
+                        jacobian[i, j] = 0.0
+                        innovation[i, j] = 0.0
+        h = jacobian.reshape(count, rows, DIM)
+        z = innovation.reshape(count, rows)
+        noise = np.diag([v for m in measurements for v in (m.range_std**2, m.bearing_std**2)])
+        pht = self.covs @ h.transpose(0, 2, 1)  # (K, 6, rows)
+        s = h @ pht + noise
+        gain = np.linalg.solve(s, pht.transpose(0, 2, 1)).transpose(0, 2, 1)  # P H^T S^-1 (S symmetric)
+        self.means = self.means + (gain @ z[:, :, None])[:, :, 0]
+        covs = self.covs - gain @ pht.transpose(0, 2, 1)
+        self.covs = 0.5 * (covs + covs.transpose(0, 2, 1))
+
+    def prune(self, in_use: Sequence[str]) -> None:
+        """Drop the sub-filters whose RSU is not in ``in_use`` and no longer weighs on the reference."""
+        reference = np.trace(self.covs[0][np.ix_(_POS, _POS)])
+        keep = [0]
+        for i in range(1, len(self.ids)):
+            excess = np.trace(self.covs[i][np.ix_(_POS, _POS)]) - reference
+            if self.ids[i] in in_use or excess > CONVERGED * reference:
+                keep.append(i)
+        if len(keep) < len(self.ids):
+            self.ids = [self.ids[i] for i in keep]
+            self.means, self.covs = self.means[keep], self.covs[keep]
+
+    def exclude(self, rsu_id: str, until: float) -> None:
+        """RSU ``rsu_id`` failed its test: the pipeline and the bank leave it out until ``until`` (s). Every
+        sub-filter stays, its own too (it never saw the fault), so the protection level keeps bounding what
+        the fault left in the estimate until that has faded, even if the test pointed at the wrong RSU."""
+        self.excluded[rsu_id] = until
+
+    def excluded_now(self, t: float) -> set[str]:
+        """The RSUs left out at time ``t``; forgets the exclusions that have ended."""
+        for rsu in [rsu for rsu, until in self.excluded.items() if until <= t]:
+            del self.excluded[rsu]
+        return set(self.excluded)
+
+    def separations(self) -> list[tuple[float, np.ndarray, np.ndarray]]:
+        """Per sub-filter: sqrt(q_i) (chi with 2 dof without a fault; NaN when P_i - P_0 is singular),
+        its position (2,) and position covariance (2, 2)."""
+        position = self.means[:, _POS]
+        block = self.covs[:, [[0], [3]], [0, 3]]  # (K, 2, 2)
+        out = []
+        for i in range(1, len(self.ids)):
+            d = position[i] - position[0]
+            sep = block[i] - block[0]
+            det = sep[0, 0] * sep[1, 1] - sep[0, 1] * sep[1, 0]
+            if not (sep[0, 0] > 0.0 and sep[1, 1] > 0.0 and det > 1e-12 * sep[0, 0] * sep[1, 1]):
+                statistic = 0.0 if float(np.abs(d).max()) < 1e-9 else math.nan
+            else:
+                q = (
+                    d[0] * (sep[1, 1] * d[0] - sep[0, 1] * d[1])
+                    + d[1] * (sep[0, 0] * d[1] - sep[1, 0] * d[0])
+                ) / det
+                statistic = math.sqrt(max(float(q), 0.0))
+            out.append((statistic, position[i], block[i]))
+        return out
+
+    def to_bytes(self) -> bytes:
+        """Little-endian: magic, version, K, t; the exclusions (count, then uint16 length, end time, UTF-8 id);
+        then K ids (uint16 length + UTF-8), means and covariances."""
+        parts = [_HEADER.pack(_MAGIC, _VERSION, len(self.ids), self.t), struct.pack("<H", len(self.excluded))]
+        for rsu, until in self.excluded.items():
+            raw = rsu.encode()
+            parts.append(struct.pack("<Hd", len(raw), until) + raw)
+        for rsu in self.ids:
+            raw = rsu.encode()
+            parts.append(struct.pack("<H", len(raw)) + raw)
+        parts.append(np.asarray(self.means, dtype="<f8").tobytes())
+        parts.append(np.asarray(self.covs, dtype="<f8").tobytes())
+        return b"".join(parts)
+
+    @staticmethod
+    def from_bytes(blob: bytes) -> SeparationBank:
+        """The bank ``to_bytes`` wrote; ValueError when ``blob`` is not one."""
+        try:
+            magic, version, count, t = _HEADER.unpack_from(blob)
+            if magic != _MAGIC or version != _VERSION or count < 1:
+                raise ValueError("not an integrity bank")
+            (excluded_count,) = struct.unpack_from("<H", blob, _HEADER.size)
+            offset = _HEADER.size + 2
+            excluded = {}
+            for _ in range(excluded_count):
+                length, until = struct.unpack_from("<Hd", blob, offset)
+                excluded[blob[offset + 10 : offset + 10 + length].decode()] = until
+                offset += 10 + length
+            ids = []
+            for _ in range(count):
+                (length,) = struct.unpack_from("<H", blob, offset)
+                ids.append(blob[offset + 2 : offset + 2 + length].decode())
+                offset += 2 + length
+            floats = count * (DIM + DIM * DIM)
+            if len(blob) != offset + 8 * floats:
+                raise ValueError("integrity bank is truncated")
+            values = np.frombuffer(blob, dtype="<f8", count=floats, offset=offset).astype(float)
+        except (struct.error, UnicodeDecodeError) as error:
+            raise ValueError(f"integrity bank is corrupt: {error!r}") from None
+        if not np.isfinite(values).all() or not math.isfinite(t):
+            raise ValueError("integrity bank is not finite")
+        means = values[: count * DIM].reshape(count, DIM)
+        return SeparationBank(ids, means, values[count * DIM :].reshape(count, DIM, DIM), t, excluded)
+
+
+def protect_with_bank(
+    position: Sequence[float] | np.ndarray,
+    position_cov: np.ndarray,
+    bank: SeparationBank,
+    budget: IntegrityBudget,
+) -> tuple[Protection, str | None]:
+    """Protection level of the fix at ``position`` (x, y) with covariance ``position_cov`` (2x2) from the
+    bank's hypotheses (see the module docstring), its state by the alert limit, and the RSU not excluded
+    already whose test failed worst (None if none: the caller excludes it or raises the alarm)."""
+    covariance = (float(position_cov[0, 0]), float(position_cov[0, 1]), float(position_cov[1, 1]))
+    if covariance[0] <= 0.0 or covariance[2] <= 0.0 or covariance[0] * covariance[2] <= covariance[1] ** 2:
+        return Protection(None, UNAVAILABLE), None
+    x, y = float(position[0]), float(position[1])
+    fault_free = 0.5 * budget.integrity_risk
+    reference = bank.covs[0]
+    reference_cov = (float(reference[0, 0]), float(reference[0, 3]), float(reference[3, 3]))
+    offset = math.hypot(x - float(bank.means[0, 0]), y - float(bank.means[0, 3]))
+    # the fault-free bound of the fix's own covariance, and through the reference (the fix within
+    # |x - x_0| of an estimate whose covariance is known to be the linear filter's)
+    level = max(radial_bound(covariance, fault_free), offset + radial_bound(reference_cov, fault_free))
+    hypotheses = bank.separations()
+    threshold = test_threshold(budget.false_alarm_probability, len(hypotheses)) if hypotheses else 0.0
+    missed = 0.5 * budget.integrity_risk / max(len(hypotheses), 1) / budget.fault_probability
+    worst: tuple[float, int] | None = None
+    for index, (statistic, subset_position, subset_cov) in enumerate(hypotheses):
+        failed = statistic > threshold and bank.ids[index + 1] not in bank.excluded
+        if failed and (worst is None or statistic > worst[0]):
+            worst = (statistic, index)
+        subset = (float(subset_cov[0, 0]), float(subset_cov[0, 1]), float(subset_cov[1, 1]))
+        offset = math.hypot(x - float(subset_position[0]), y - float(subset_position[1]))
+        level = max(level, offset + radial_bound(subset, missed))
+    if not math.isfinite(level):
+        return Protection(None, UNAVAILABLE), None
+    state = ALARM if level > budget.alert_limit else OK
+    if worst is not None:
+        protection = Protection(level, state, faulty=worst[1], statistic=worst[0], threshold=threshold)
+        return protection, bank.ids[worst[1] + 1]
+    return Protection(level, state), None
