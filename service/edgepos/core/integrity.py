@@ -144,6 +144,7 @@ def radial_bound(m: Matrix2, probability: float) -> float:
     return factors[math.ceil(ratio * (len(factors) - 1) - 1e-12)] * math.sqrt(largest)
 
 
+@functools.lru_cache(maxsize=256)
 def test_threshold(false_alarm_probability: float, tests: int) -> float:
     """Square root of the chi-square (2 dof) quantile each of ``tests`` tests is compared with."""
     return math.sqrt(float(chi2.isf(false_alarm_probability / max(tests, 1), 2)))

@@ -36,6 +36,7 @@ bytes and reads it back bit for bit (``to_bytes`` / ``from_bytes``).
 
 from __future__ import annotations
 
+import functools
 import math
 import struct
 from collections.abc import Sequence
@@ -55,7 +56,7 @@ from edgepos.core.integrity import (
 
 #: State order of every filter: x, vx, ax, y, vy, ay (site frame, m, m/s, m/s^2).
 DIM = 6
-_POS = (0, 3)
+_POS = [0, 3]
 #: A sub-filter whose position covariance exceeds the reference's by less than this fraction (trace)
 #: carries no weight any more and is dropped when its RSU is not in use.
 CONVERGED = 0.01
@@ -100,18 +101,7 @@ class SeparationBank:
         dt = t - self.t
         if dt <= 0.0:
             return
-        f = np.array([[1.0, dt, 0.5 * dt * dt], [0.0, 1.0, dt], [0.0, 0.0, 1.0]])
-        q = jerk_density * np.array(
-            [
-                [dt**5 / 20.0, dt**4 / 8.0, dt**3 / 6.0],
-                [dt**4 / 8.0, dt**3 / 3.0, dt**2 / 2.0],
-                [dt**3 / 6.0, dt**2 / 2.0, dt],
-            ]
-        )
-        transition = np.zeros((DIM, DIM))
-        noise = np.zeros((DIM, DIM))
-        transition[:3, :3] = transition[3:, 3:] = f
-        noise[:3, :3] = noise[3:, 3:] = q
+        transition, noise = _transition(dt, jerk_density)
         self.means = self.means @ transition.T
         self.covs = transition @ self.covs @ transition.T + noise
         self.t = t
@@ -130,54 +120,40 @@ class SeparationBank:
         """One joint EKF update of every filter; sub-filter i skips RSU ids[i]'s rows."""
         if not measurements:
             return
-        count = len(self.ids)
         rows = 2 * len(measurements)
-        rsu_xy = np.array([(m.rsu_x, m.rsu_y) for m in measurements])  # (M, 2)
+        data = np.array(
+            [(m.rsu_x, m.rsu_y, m.range, m.bearing, m.range_std, m.bearing_std) for m in measurements]
+        )
         # every filter linearised at the reference's prediction: the bank is then one linear system, in
-        # which the separations' covariances P_i - P_0 hold exactly
-        dx = self.means[0, 0] - rsu_xy[:, 0]  # (M,)
-        dy = self.means[0, 3] - rsu_xy[:, 1]
+        # which the separations' covariances P_i - P_0 hold exactly. H acts on x and y only.
+        dx = self.means[0, 0] - data[:, 0]
+        dy = self.means[0, 3] - data[:, 1]
         distance = np.maximum(np.hypot(dx, dy), 1e-3)
         r2 = distance * distance
-        rows_h = np.zeros((len(measurements), 2, DIM))
-        rows_h[:, 0, 0] = dx / distance
-        rows_h[:, 0, 3] = dy / distance
-        rows_h[:, 1, 0] = -dy / r2
-        rows_h[:, 1, 3] = dx / r2
-        residual = np.empty((len(measurements), 2))  # z - h(x_0)
-        residual[:, 0] = np.array([m.range for m in measurements]) - distance
-        bearing = np.array([m.bearing for m in measurements])
-        residual[:, 1] = np.remainder(bearing - np.arctan2(dy, dx) + math.pi, math.tau) - math.pi
-        h_flat = rows_h.reshape(rows, DIM)
-        # z - h(x_0) - H (x_i - x_0) for every filter
-        innovation = (residual.reshape(rows)[None, :] - (self.means - self.means[:1]) @ h_flat.T).reshape(
-            count, len(measurements), 2
-        )
-        jacobian = np.repeat(rows_h[None], count, axis=0)
-        for i, rsu in enumerate(self.ids):
-            if rsu:
-                for j, m in enumerate(measurements):
-                    if m.rsu_id == rsu:
-                        jacobian[i, j] = 0.0
-                        innovation[i, j] = 0.0
-        h = jacobian.reshape(count, rows, DIM)
-        z = innovation.reshape(count, rows)
-        noise = np.diag([v for m in measurements for v in (m.range_std**2, m.bearing_std**2)])
-        pht = self.covs @ h.transpose(0, 2, 1)  # (K, 6, rows)
-        s = h @ pht + noise
+        h_xy = np.empty((rows, 2))  # rows: range, bearing of each RSU; columns: x, y
+        h_xy[0::2, 0], h_xy[0::2, 1] = dx / distance, dy / distance
+        h_xy[1::2, 0], h_xy[1::2, 1] = -dy / r2, dx / r2
+        residual = np.empty(rows)  # z - h(x_0)
+        residual[0::2] = data[:, 2] - distance
+        residual[1::2] = np.remainder(data[:, 3] - np.arctan2(dy, dx) + math.pi, math.tau) - math.pi
+        # sub-filter i leaves RSU ids[i]'s rows out: zero rows of H and of the innovation add nothing
+        keep = np.repeat(np.array([[m.rsu_id != rsu for m in measurements] for rsu in self.ids]), 2, axis=1)
+        offsets = self.means[:, _POS] - self.means[0, _POS]  # (K, 2)
+        z = (residual[None, :] - offsets @ h_xy.T) * keep  # z - h(x_0) - H (x_i - x_0)
+        h = h_xy[None, :, :] * keep[:, :, None]  # (K, rows, 2)
+        pht = self.covs[:, :, _POS] @ h.transpose(0, 2, 1)  # P H^T (K, 6, rows)
+        s = h @ pht[:, _POS, :]
+        s[:, range(rows), range(rows)] += np.square(data[:, 4:6]).reshape(rows)
         gain = np.linalg.solve(s, pht.transpose(0, 2, 1)).transpose(0, 2, 1)  # P H^T S^-1 (S symmetric)
-        self.means = self.means + (gain @ z[:, :, None])[:, :, 0]
+        self.means = self.means + np.einsum("kij,kj->ki", gain, z)
         covs = self.covs - gain @ pht.transpose(0, 2, 1)
         self.covs = 0.5 * (covs + covs.transpose(0, 2, 1))
 
     def prune(self, in_use: Sequence[str]) -> None:
         """Drop the sub-filters whose RSU is not in ``in_use`` and no longer weighs on the reference."""
-        reference = np.trace(self.covs[0][np.ix_(_POS, _POS)])
-        keep = [0]
-        for i in range(1, len(self.ids)):
-            excess = np.trace(self.covs[i][np.ix_(_POS, _POS)]) - reference
-            if self.ids[i] in in_use or excess > CONVERGED * reference:
-                keep.append(i)
+        traces = self.covs[:, 0, 0] + self.covs[:, 3, 3]
+        weighs = traces - traces[0] > CONVERGED * traces[0]
+        keep = [i for i, rsu in enumerate(self.ids) if i == 0 or rsu in in_use or weighs[i]]
         if len(keep) < len(self.ids):
             self.ids = [self.ids[i] for i in keep]
             self.means, self.covs = self.means[keep], self.covs[keep]
@@ -194,26 +170,18 @@ class SeparationBank:
             del self.excluded[rsu]
         return set(self.excluded)
 
-    def separations(self) -> list[tuple[float, np.ndarray, np.ndarray]]:
-        """Per sub-filter: sqrt(q_i) (chi with 2 dof without a fault; NaN when P_i - P_0 is singular),
-        its position (2,) and position covariance (2, 2)."""
-        position = self.means[:, _POS]
-        block = self.covs[:, [[0], [3]], [0, 3]]  # (K, 2, 2)
-        out = []
-        for i in range(1, len(self.ids)):
-            d = position[i] - position[0]
-            sep = block[i] - block[0]
-            det = sep[0, 0] * sep[1, 1] - sep[0, 1] * sep[1, 0]
-            if not (sep[0, 0] > 0.0 and sep[1, 1] > 0.0 and det > 1e-12 * sep[0, 0] * sep[1, 1]):
-                statistic = 0.0 if float(np.abs(d).max()) < 1e-9 else math.nan
-            else:
-                q = (
-                    d[0] * (sep[1, 1] * d[0] - sep[0, 1] * d[1])
-                    + d[1] * (sep[0, 0] * d[1] - sep[1, 0] * d[0])
-                ) / det
-                statistic = math.sqrt(max(float(q), 0.0))
-            out.append((statistic, position[i], block[i]))
-        return out
+    def separations(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per sub-filter: sqrt(q_i) (chi with 2 dof without a fault; 0 while P_i - P_0 is singular, as right
+        after it starts), its position (K-1, 2) and position covariance as (K-1, 3) rows (xx, xy, yy)."""
+        px, py = self.means[:, 0], self.means[:, 3]
+        xx, xy, yy = self.covs[:, 0, 0], self.covs[:, 0, 3], self.covs[:, 3, 3]
+        dx, dy = px[1:] - px[0], py[1:] - py[0]
+        a, b, c = xx[1:] - xx[0], xy[1:] - xy[0], yy[1:] - yy[0]
+        det = a * c - b * b
+        regular = (a > 0.0) & (c > 0.0) & (det > 1e-12 * a * c)
+        q = (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / np.where(regular, det, 1.0)
+        statistic = np.sqrt(np.maximum(np.where(regular, q, 0.0), 0.0))
+        return statistic, np.column_stack([px[1:], py[1:]]), np.column_stack([xx[1:], xy[1:], yy[1:]])
 
     def to_bytes(self) -> bytes:
         """Little-endian: magic, version, K, t; the exclusions (count, then uint16 length, end time, UTF-8 id);
@@ -260,6 +228,25 @@ class SeparationBank:
         return SeparationBank(ids, means, values[count * DIM :].reshape(count, DIM, DIM), t, excluded)
 
 
+@functools.lru_cache(maxsize=64)
+def _transition(dt: float, jerk_density: float) -> tuple[np.ndarray, np.ndarray]:
+    """F and Q of the constant-acceleration model over ``dt`` on (x, vx, ax, y, vy, ay) (read only)."""
+    f = np.array([[1.0, dt, 0.5 * dt * dt], [0.0, 1.0, dt], [0.0, 0.0, 1.0]])
+    q = jerk_density * np.array(
+        [
+            [dt**5 / 20.0, dt**4 / 8.0, dt**3 / 6.0],
+            [dt**4 / 8.0, dt**3 / 3.0, dt**2 / 2.0],
+            [dt**3 / 6.0, dt**2 / 2.0, dt],
+        ]
+    )
+    transition = np.zeros((DIM, DIM))
+    noise = np.zeros((DIM, DIM))
+    transition[:3, :3] = transition[3:, 3:] = f
+    noise[:3, :3] = noise[3:, 3:] = q
+    transition.flags.writeable = noise.flags.writeable = False
+    return transition, noise
+
+
 def protect_with_bank(
     position: Sequence[float] | np.ndarray,
     position_cov: np.ndarray,
@@ -281,16 +268,17 @@ def protect_with_bank(
     # |x - x_0| of an estimate whose covariance is known to be the linear filter's)
     level = max(radial_bound(covariance, fault_free), offset + radial_bound(reference_cov, fault_free))
     hypotheses = bank.separations()
-    threshold = test_threshold(budget.false_alarm_probability, len(hypotheses)) if hypotheses else 0.0
-    missed = 0.5 * budget.integrity_risk / max(len(hypotheses), 1) / budget.fault_probability
+    count = len(bank.ids) - 1
+    threshold = test_threshold(budget.false_alarm_probability, count) if count else 0.0
+    missed = 0.5 * budget.integrity_risk / max(count, 1) / budget.fault_probability
     worst: tuple[float, int] | None = None
-    for index, (statistic, subset_position, subset_cov) in enumerate(hypotheses):
+    statistics, positions, covariances = hypotheses
+    offsets = np.hypot(positions[:, 0] - x, positions[:, 1] - y).tolist()
+    for index, (statistic, subset) in enumerate(zip(statistics.tolist(), covariances.tolist(), strict=True)):
         failed = statistic > threshold and bank.ids[index + 1] not in bank.excluded
         if failed and (worst is None or statistic > worst[0]):
             worst = (statistic, index)
-        subset = (float(subset_cov[0, 0]), float(subset_cov[0, 1]), float(subset_cov[1, 1]))
-        offset = math.hypot(x - float(subset_position[0]), y - float(subset_position[1]))
-        level = max(level, offset + radial_bound(subset, missed))
+        level = max(level, offsets[index] + radial_bound(tuple(subset), missed))
     if not math.isfinite(level):
         return Protection(None, UNAVAILABLE), None
     state = ALARM if level > budget.alert_limit else OK

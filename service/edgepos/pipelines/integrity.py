@@ -23,9 +23,6 @@ from edgepos.core.integrity import (
     UNAVAILABLE,
     IntegrityBudget,
     Protection,
-    SourceEffect,
-    protect,
-    range_bearing_effect,
 )
 from edgepos.core.integrity_bank import RangeBearing, SeparationBank, protect_with_bank
 from edgepos.core.observations import Observation, RsuObservation
@@ -101,12 +98,10 @@ INTEGRITY_SPECS: tuple[OptionSpec, ...] = (
 
 @dataclass(frozen=True)
 class RsuIntegrity:
-    """The session's integrity budget, applied to one epoch's RSU measurements."""
+    """The session's integrity budget and whether a faulty RSU is excluded."""
 
     budget: IntegrityBudget
     exclusion: bool
-    range_std: float
-    bearing_std: float
 
     @staticmethod
     def of(options: Mapping[str, Any]) -> RsuIntegrity:
@@ -117,40 +112,7 @@ class RsuIntegrity:
             options["fault_probability"],
             options["alert_limit_m"],
             bool(options["fault_exclusion"]),
-            options["range_std"],
-            options["bearing_std"],
         )
-
-    def protect(
-        self,
-        output: Gaussian,
-        candidates: Sequence[int],
-        observations: Sequence[Observation],
-        rsus: Sequence[Rsu | None],
-    ) -> Protection:
-        """Protection level and fault test of the posterior ``output`` shaped by the RSUs ``candidates``."""
-        components = list(output.components)
-        xi, yi = components.index(layout.XP), components.index(layout.YP)
-        mean, cov = output.mean, output.cov
-        x, y = float(mean[xi]), float(mean[yi])
-        position_cov = ((float(cov[xi, xi]), float(cov[xi, yi])), (float(cov[yi, xi]), float(cov[yi, yi])))
-        sources: list[SourceEffect] = []
-        for i in candidates:
-            observation, rsu = observations[i], rsus[i]
-            assert isinstance(observation, RsuObservation) and rsu is not None  # candidates are RSUs in view
-            sources.append(
-                range_bearing_effect(
-                    x,
-                    y,
-                    rsu.x,
-                    rsu.y,
-                    observation.range,
-                    observation.bearing,
-                    rsu.range_std or self.range_std,
-                    rsu.bearing_std or self.bearing_std,
-                )
-            )
-        return protect(position_cov, sources, self.budget)
 
 
 @functools.lru_cache(maxsize=256)
@@ -160,12 +122,8 @@ def _monitor(
     fault: float,
     alert_limit: float,
     exclusion: bool,
-    range_std: float,
-    bearing_std: float,
 ) -> RsuIntegrity:
-    return RsuIntegrity(
-        IntegrityBudget(risk, false_alarm, fault, alert_limit), exclusion, range_std, bearing_std
-    )
+    return RsuIntegrity(IntegrityBudget(risk, false_alarm, fault, alert_limit), exclusion)
 
 
 EXCLUDED = "excluded by fault detection"
@@ -237,8 +195,7 @@ def monitored_update(
     """One epoch's update with fault detection and exclusion and the fix's protection level.
 
     ``correct(candidates)`` runs the pipeline's update with those RSUs; the RSUs excluded earlier are left
-    out, an RSU the epoch-wise test (``core.integrity.protect``) or the bank's test over time
-    (``core.integrity_bank``) finds faulty is excluded for ``fault_exclusion_s`` and the epoch filtered
+    out, an RSU the bank's test over time (``core.integrity_bank``) finds faulty is excluded for ``fault_exclusion_s`` and the epoch filtered
     again without it. Returns the update, the RSUs it used, the protection and the bank (started at the
     first epoch, whose fix is then ``unavailable``)."""
     monitor = RsuIntegrity.of(options)
@@ -249,20 +206,6 @@ def monitored_update(
             uses[i] = MeasurementUse(i, "rsu", False, f"{EXCLUDED}: held out until t={until:.2f} s")
             candidates = [j for j in candidates if j != i]
     result = correct(candidates)
-    snapshot = monitor.protect(output_of(result), candidates, observations, rsus)
-    if snapshot.faulty is not None and monitor.exclusion and len(candidates) > 1:
-        # one RSU's measurements disagree with the rest and the prior: filter the epoch again without them
-        index = candidates[snapshot.faulty]
-        uses[index] = MeasurementUse(
-            index,
-            "rsu",
-            False,
-            f"{EXCLUDED}: separation {snapshot.statistic:.1f} sigma > {snapshot.threshold:.1f}",
-        )
-        candidates = [i for i in candidates if i != index]
-        result = correct(candidates)
-        if bank is not None:
-            bank.exclude(_rsu_id(index, observations), t + options["fault_exclusion_s"])
     if bank is None:
         return result, candidates, Protection(None, UNAVAILABLE), start_bank(output_of(result), t)
     bank.predict(t, options["integrity_jerk_psd"])
