@@ -49,14 +49,14 @@ def _linear_epoch(rng: np.random.Generator, bias: np.ndarray | None = None, faul
     return truth, estimate, covariance, sources
 
 
-def testradial_bound_matches_the_closed_forms_at_the_two_ends():
+def test_radial_bound_matches_the_closed_forms_at_the_two_ends():
     # circular: P(|e| > R) = exp(-R^2 / 2 sigma^2)
     assert radial_bound((1.0, 0.0, 1.0), 1e-5) == pytest.approx(math.sqrt(-2 * math.log(1e-5)), rel=1e-6)
     # one-dimensional: the two-sided normal quantile (4.4172 sigma at 1e-5)
     assert radial_bound((4.0, 0.0, 0.0), 1e-5) == pytest.approx(2.0 * 4.41717, rel=1e-4)
 
 
-def testradial_bound_holds_by_monte_carlo_for_an_elongated_ellipse():
+def test_radial_bound_holds_by_monte_carlo_for_an_elongated_ellipse():
     rng = np.random.default_rng(1)
     covariance = np.array([[1.0, 0.6], [0.6, 0.5]])
     bound = radial_bound((1.0, 0.6, 0.5), 1e-2)

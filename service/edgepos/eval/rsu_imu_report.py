@@ -320,7 +320,8 @@ def write_plots(results_by_name: dict[str, Result], scenario: Scenario, director
                     result.integrity,
                     result.algorithm_alert_limit,
                     f"Stanford diagram, {name}",
-                    directory / f"stanford_{name.lower().replace('-', '_').replace(' ', '_')}.png",
+                    directory
+                    / f"stanford_{name.lower().replace('-', '_').replace('/', '_').replace(' ', '_')}.png",
                 )
             )
     return written
