@@ -20,7 +20,6 @@ from edgepos.core import layout
 from edgepos.core.imm import Gaussian
 from edgepos.core.integrity import (
     ALARM,
-    UNAVAILABLE,
     IntegrityBudget,
     Protection,
 )
@@ -189,6 +188,7 @@ def monitored_update(
     rsus: Sequence[Rsu | None],
     options: Mapping[str, Any],
     uses: dict[int, MeasurementUse],
+    prior: Gaussian,
     correct: Callable[[list[int]], _Result],
     output_of: Callable[[_Result], Gaussian],
 ) -> tuple[_Result, list[int], Protection, SeparationBank]:
@@ -196,8 +196,8 @@ def monitored_update(
 
     ``correct(candidates)`` runs the pipeline's update with those RSUs; the RSUs excluded earlier are left
     out, an RSU the bank's test over time (``core.integrity_bank``) finds faulty is excluded for ``fault_exclusion_s`` and the epoch filtered
-    again without it. Returns the update, the RSUs it used, the protection and the bank (started at the
-    first epoch, whose fix is then ``unavailable``)."""
+    again without it. Returns the update, the RSUs it used, the protection and the bank (started from the
+    pipeline's ``prior`` of this epoch when the session has none yet)."""
     monitor = RsuIntegrity.of(options)
     if bank is not None:
         held = bank.excluded_now(t)
@@ -207,7 +207,7 @@ def monitored_update(
             candidates = [j for j in candidates if j != i]
     result = correct(candidates)
     if bank is None:
-        return result, candidates, Protection(None, UNAVAILABLE), start_bank(output_of(result), t)
+        bank = start_bank(prior, t)
     bank.predict(t, options["integrity_jerk_psd"])
     measurements = _measurements(candidates, observations, rsus, options)
     bank.spawn([m.rsu_id for m in measurements])

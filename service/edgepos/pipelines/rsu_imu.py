@@ -448,7 +448,16 @@ def _step(
         return stepper.correct(prediction, last[0])
 
     result, candidates, protection, session.integrity_bank = monitored_update(
-        session.integrity_bank, t, candidates, observations, rsus, options, uses, correct, _output
+        session.integrity_bank,
+        t,
+        candidates,
+        observations,
+        rsus,
+        options,
+        uses,
+        prediction.output,
+        correct,
+        _output,
     )
     measured = last[0]
     for i in candidates + gyros:
