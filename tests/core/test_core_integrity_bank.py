@@ -95,3 +95,23 @@ def test_protection_level_bounds_the_error_by_monte_carlo_and_is_not_vacuous():
     errors, levels = np.array(errors), np.array(levels)
     assert np.mean(errors > levels) <= 0.02
     assert np.median(levels) < 6.0 * math.sqrt(np.mean(errors**2))
+
+
+def test_the_compiled_kernels_match_the_numpy_reference():
+    import copy
+
+    *_, (_, _, _, bank) = _drive(3, 40)
+    measurements = [
+        RangeBearing("A", 0.0, 30.0, 31.0, -1.2, RANGE_STD, BEARING_STD),
+        RangeBearing("B", 60.0, -25.0, 40.0, 2.1, RANGE_STD, BEARING_STD),
+        RangeBearing("D", -40.0, 25.0, 70.0, -0.4, RANGE_STD, BEARING_STD),
+    ]
+    bank.predict(bank.t + PERIOD, 10.0)
+    bank.spawn(["D"])
+    reference = copy.deepcopy(bank)
+    bank.update(measurements)
+    reference.update_reference(measurements)
+    assert np.allclose(bank.means, reference.means, rtol=0, atol=1e-9)
+    assert np.allclose(bank.covs, reference.covs, rtol=0, atol=1e-12)
+    for compiled, numpy_form in zip(bank.separations(), bank.separations_reference(), strict=True):
+        assert np.allclose(compiled, numpy_form, rtol=1e-12, atol=1e-12)

@@ -117,7 +117,25 @@ class SeparationBank:
         self.covs = np.concatenate([self.covs, np.repeat(self.covs[:1], len(new), axis=0)])
 
     def update(self, measurements: Sequence[RangeBearing]) -> None:
-        """One joint EKF update of every filter; sub-filter i skips RSU ids[i]'s rows."""
+        """One joint EKF update of every filter; sub-filter i skips RSU ids[i]'s rows (on the compiled
+        kernel when the kernels are enabled, ``core.kernels_integrity``; else, or if it fails, numpy)."""
+        if not measurements:
+            return
+        if _compiled():
+            from edgepos.core.kernels_integrity import bank_update
+
+            keep = np.array([[m.rsu_id != rsu for m in measurements] for rsu in self.ids], dtype=np.bool_)
+            data = np.array(
+                [(m.rsu_x, m.rsu_y, m.range, m.bearing, m.range_std, m.bearing_std) for m in measurements]
+            )
+            means, covs = np.ascontiguousarray(self.means), np.ascontiguousarray(self.covs)
+            if bank_update(means, covs, keep, data) == 0:
+                self.means, self.covs = means, covs
+                return
+        self.update_reference(measurements)
+
+    def update_reference(self, measurements: Sequence[RangeBearing]) -> None:
+        """The numpy form of :meth:`update` (the reference the compiled kernel is tested against)."""
         if not measurements:
             return
         rows = 2 * len(measurements)
@@ -173,6 +191,16 @@ class SeparationBank:
     def separations(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Per sub-filter: sqrt(q_i) (chi with 2 dof without a fault; 0 while P_i - P_0 is singular, as right
         after it starts), its position (K-1, 2) and position covariance as (K-1, 3) rows (xx, xy, yy)."""
+        if _compiled():
+            from edgepos.core.kernels_integrity import bank_separations
+
+            out = np.empty((len(self.ids) - 1, 6))
+            bank_separations(np.ascontiguousarray(self.means), np.ascontiguousarray(self.covs), out)
+            return out[:, 0], out[:, 1:3], out[:, 3:6]
+        return self.separations_reference()
+
+    def separations_reference(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The numpy form of :meth:`separations`."""
         px, py = self.means[:, 0], self.means[:, 3]
         xx, xy, yy = self.covs[:, 0, 0], self.covs[:, 0, 3], self.covs[:, 3, 3]
         dx, dy = px[1:] - px[0], py[1:] - py[0]
@@ -226,6 +254,13 @@ class SeparationBank:
             raise ValueError("integrity bank is not finite")
         means = values[: count * DIM].reshape(count, DIM)
         return SeparationBank(ids, means, values[count * DIM :].reshape(count, DIM, DIM), t, excluded)
+
+
+@functools.lru_cache(maxsize=1)
+def _compiled() -> bool:
+    from edgepos.core.compiled import compiled_enabled
+
+    return compiled_enabled()
 
 
 @functools.lru_cache(maxsize=64)
