@@ -33,6 +33,8 @@ def _expected_wire(fix):
         "model_probabilities": fix.model_probabilities,
         "nis": fix.nis,
         "nis_dof": fix.nis_dof,
+        "protection_level_m": fix.protection_level,
+        "integrity": fix.integrity,
         "measurements": [
             {
                 "index": u.index,

@@ -575,7 +575,8 @@ class FixOut(ResponseModel):
     )
     integrity: Literal["ok", "alarm", "unavailable"] = Field(
         "unavailable",
-        description="ok: protection_level_m is within the session's alert_limit_m and every fault test passed; "
+        description="ok: protection_level_m is within the session's alert_limit_m and every fault test passed or "
+        "its RSU was excluded; "
         "alarm: do not use this fix for what needs integrity (the protection level exceeds the alert limit, a "
         "fault was detected that could not be excluded, or the fix diverged); unavailable: no bound for this "
         "fix (the first epochs of a session, or a pipeline without an integrity monitor: only rsu_imu has one "

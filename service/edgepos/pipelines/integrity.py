@@ -17,6 +17,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from edgepos.core import layout
+from edgepos.core import state as state_format
 from edgepos.core.imm import Gaussian
 from edgepos.core.integrity import (
     ALARM,
@@ -140,6 +141,16 @@ def _position(output: Gaussian) -> tuple[np.ndarray, np.ndarray]:
     components = list(output.components)
     index = [components.index(layout.XP), components.index(layout.YP)]
     return output.mean[index], output.cov[np.ix_(index, index)]
+
+
+def bank_from_tail(tail: bytes) -> SeparationBank | None:
+    """The integrity bank stored after a session's filter arrays (none in states written before it)."""
+    if not tail:
+        return None
+    try:
+        return SeparationBank.from_bytes(tail)
+    except ValueError as error:
+        raise state_format.StateFormatError(f"rsu_imu state is corrupt: {error}") from None
 
 
 def start_bank(output: Gaussian, t: float) -> SeparationBank:

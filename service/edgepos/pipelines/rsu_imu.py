@@ -52,7 +52,7 @@ from edgepos.pipelines.base import (
     ensure_finite_fixes,
 )
 from edgepos.pipelines.epochs import group_by_time
-from edgepos.pipelines.integrity import monitored_update
+from edgepos.pipelines.integrity import bank_from_tail, monitored_update
 from edgepos.pipelines.options import resolve_options
 from edgepos.pipelines.rsu_imu_options import OPTION_SPECS, cross_check, parameter_problems
 
@@ -336,18 +336,8 @@ def _decode(blob: bytes) -> _SessionState:
         values[count : count * (1 + layout.FULL_DIM)].reshape(count, layout.FULL_DIM),
         values[count * (1 + layout.FULL_DIM) :].reshape(count, *_FULL_COV),
         key,
-        _decode_bank(blob[end:]),
+        bank_from_tail(blob[end:]),
     )
-
-
-def _decode_bank(tail: bytes) -> SeparationBank | None:
-    """The integrity bank after the filter's arrays (absent in states written before it: None)."""
-    if not tail:
-        return None
-    try:
-        return SeparationBank.from_bytes(tail)
-    except ValueError as error:
-        raise state_format.StateFormatError(f"rsu_imu state is corrupt: {error}") from None
 
 
 def _output(result: StepResult) -> Gaussian:
