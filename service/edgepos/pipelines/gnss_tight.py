@@ -69,6 +69,7 @@ from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.geodesy import geodetic_to_ecef
 from edgepos.gnss.measurements import PseudorangeSet
 from edgepos.gnss.orbits import SPEED_OF_LIGHT
+from edgepos.gnss.pseudorange_noise import FITTED
 from edgepos.pipelines.base import (
     Environment,
     Fix,
@@ -83,6 +84,18 @@ from edgepos.pipelines.base import (
     is_finite_number,
 )
 from edgepos.pipelines.epochs import group_by_time
+from edgepos.pipelines.gnss_constraints import (
+    Constraint,
+    doppler_speed,
+    non_holonomic,
+    zero_velocity,
+)
+from edgepos.pipelines.gnss_faults import (
+    fault_settings,
+    range_innovations,
+    rate_innovations,
+    screen,
+)
 from edgepos.pipelines.gnss_motion import (
     initialise,
     maybe_start_riss,
@@ -122,6 +135,7 @@ from edgepos.pipelines.gnss_session import (
     decode_session,
     empty_cloud,
     filter_for,
+    session_covariance,
 )
 from edgepos.pipelines.options import resolve_options
 
@@ -184,8 +198,9 @@ class GnssTightPipeline(Pipeline):
         ephemerides = environment.ephemerides()
         origin = environment.site_origin()
         corrections = environment.corrections()
+        riss_in_batch = any(isinstance(o, RissObservation) for o in observations)
         fixes = [
-            _step(session, epoch, observations, ephemerides, origin, corrections)
+            _step(session, epoch, observations, ephemerides, origin, corrections, riss_in_batch)
             for epoch in group_by_time(observations)
         ]
         return ensure_finite_fixes(fixes), session.to_bytes()
@@ -279,12 +294,15 @@ def _step(
     ephemerides: Ephemerides | None,
     origin: tuple[float, float, float] | None,
     corrections: CorrectionTable | None = None,
+    riss_in_batch: bool = False,
 ) -> Fix:
     """One epoch through the filter; every Doppler sent is reported beside its pseudorange, and with
     corrections, each pseudorange's correction."""
     doppler: DopplerUses = {}
     corrected: CorrectionUses = {}
-    fix = _filter_epoch(session, epoch, observations, ephemerides, origin, doppler, corrections, corrected)
+    fix = _filter_epoch(
+        session, epoch, observations, ephemerides, origin, doppler, corrections, corrected, riss_in_batch
+    )
     if corrections is not None:
         uses = []
         for use in fix.measurements:
@@ -320,6 +338,7 @@ def _filter_epoch(
     doppler: DopplerUses,
     corrections: CorrectionTable | None,
     corrected: CorrectionUses,
+    riss_in_batch: bool = False,
 ) -> Fix:
     options = session.options
     t = observations[epoch[0]].t
@@ -368,6 +387,8 @@ def _filter_epoch(
     for system, index in layout.CLOCK.items():
         active[index] = False
     measurement = None
+    constraints: list[Constraint] = []
+    noise: dict[int, tuple[float, str]] = {}
     rows: np.ndarray = np.zeros(0, dtype=int)
     rate_rows: np.ndarray = np.zeros(0, dtype=int)
     if len(satellites.prs):
@@ -384,7 +405,21 @@ def _filter_epoch(
             rate_rows = rows[np.isfinite(prs.range_rate_mps[rows]) & np.isfinite(prs.sat_clock_drift[rows])]
         known = iono + tropo - SPEED_OF_LIGHT * prs.sat_clock_s
         factor = FuzzyNoise().factor(elevation, prs.cn0_dbhz) if options["fuzzy"] else np.ones(len(prs))
-        std = options["pseudorange_std"] * factor * smoothing
+        base_std, model_name = _pseudorange_noise(options, elevation, prs.cn0_dbhz, factor)
+        std = base_std * smoothing
+        predicted_cov = session_covariance(session) + model.process_noise(dt)
+        fault_reasons: dict[int, str] = {}
+        if rows.size and fault_settings(options)[0] > 0.0:
+            scores = range_innovations(session, centre, prs, known, std, rows, predicted_cov)
+            kept, inflation, fault_reasons = screen(
+                session, t, [prs.sats[r] for r in rows], scores, rows, "range"
+            )
+            for r in np.setdiff1d(rows, kept):
+                i = satellites.indices[r]
+                uses[i] = MeasurementUse(i, "pseudorange", False, fault_reasons[int(r)])
+            std = std.copy()
+            std[kept] *= inflation
+            rows = kept
         rows = snapshot_test(
             session,
             centre,
@@ -413,6 +448,16 @@ def _filter_epoch(
             )
         rate_std = float(options.get("doppler_std_mps", DEFAULT_DOPPLER_STD_MPS)) * factor
         rate_model: RangeRateModel | None = None
+        if rate_rows.size and fault_settings(options)[0] > 0.0:
+            scores = rate_innovations(session, centre, prs, rate_std, rate_rows, predicted_cov)
+            kept, inflation, rate_reasons = screen(
+                session, t, [prs.sats[r] + "/rate" for r in rate_rows], scores, rate_rows, "range rate"
+            )
+            for r in np.setdiff1d(rate_rows, kept):
+                doppler[satellites.indices[r]] = (False, rate_reasons[int(r)])
+            rate_std = rate_std.copy()
+            rate_std[kept] *= inflation
+            rate_rows = kept
         if rate_rows.size:
             rate_rows = range_rate_test(
                 session, centre, prs, rate_std, rate_rows, dt, model, satellites.indices, doppler
@@ -436,6 +481,21 @@ def _filter_epoch(
                 session.anchor, prs.sat_position[rows], systems, known[rows], std[rows]
             )
             measurement = _measurement(options, model_pr, prs.pseudorange_m[rows], rate_model, prs, rate_rows)
+            if not riss_in_batch and isinstance(model, GnssOnlyModel):
+                constraints = _constraints(
+                    session, centre, dt, prs, session.anchor.ecef(centre), elevation, rate_rows
+                )
+                measurement = _with_constraints(measurement, constraints)
+            for r in rows:
+                why = (
+                    f"{model_name} std {base_std[r]:.2f} m at elevation {math.degrees(elevation[r]):.0f} deg, "
+                    f"C/N0 {prs.cn0_dbhz[r]:.0f} dB-Hz"
+                )
+                if smoothing[r] < 1.0:
+                    why += f"; carrier-smoothed: x {smoothing[r]:.2f}"
+                if int(r) in fault_reasons:
+                    why += f"; {fault_reasons[int(r)]}"
+                noise[satellites.indices[r]] = (float(std[r]), why)
     filt = filter_for(options)
     result = filt.step(session.cloud, model, dt, active, measurement, rng)
     if not (
@@ -450,13 +510,20 @@ def _filter_epoch(
         maybe_start_riss(session, t, result)
     for r in rows:
         i = satellites.indices[r]
-        uses[i] = MeasurementUse(i, "pseudorange", True)
+        noted = noise.get(i)
+        uses[i] = MeasurementUse(
+            i,
+            "pseudorange",
+            True,
+            noise_std=None if noted is None else noted[0],
+            noise_reason=None if noted is None else noted[1],
+        )
     for r in rate_rows:
         doppler[satellites.indices[r]] = (True, None)
     status = "tracking" if measurement is not None else "predicted"
-    return session_fix(
-        t, status, session, result.mean, result.cov, result, int(rows.size + rate_rows.size), uses, origin
-    )
+    dof = int(rows.size + rate_rows.size + sum(len(c.variances) for c in constraints))
+    fix = session_fix(t, status, session, result.mean, result.cov, result, dof, uses, origin)
+    return dataclasses.replace(fix, constraints=tuple(c.name for c in constraints))
 
 
 def _smooth(
@@ -546,6 +613,71 @@ def _measurement(
         np.concatenate([model_pr.variances(), rate_model.variances()]),
         outlier,
         outlier_variance if outlier > 0.0 else 0.0,
+    )
+
+
+def _pseudorange_noise(
+    options: Mapping[str, Any], elevation: np.ndarray, cn0: np.ndarray, factor: np.ndarray
+) -> tuple[np.ndarray, str]:
+    """Each pseudorange's std (m) before carrier smoothing and the model's name for the report: the fitted
+    C/N0 and elevation model (gnss/pseudorange_noise.py) or R0 x the fuzzy factor. Sessions stored before
+    the option existed keep the fuzzy one."""
+    if options.get("noise_model", "fuzzy") == "fitted":
+        return FITTED.std(elevation, cn0), "fitted C/N0-elevation model:"
+    value: np.ndarray = options["pseudorange_std"] * factor
+    return value, "R0 x fuzzy factor:" if options["fuzzy"] else "pseudorange_std:"
+
+
+def _constraints(
+    session: GnssSession,
+    centre: np.ndarray,
+    dt: float,
+    prs: PseudorangeSet,
+    receiver: np.ndarray,
+    elevation: np.ndarray,
+    rate_rows: np.ndarray,
+) -> list[Constraint]:
+    """The vehicle constraints of an epoch without RISS input: zero velocity when the Doppler speed has
+    stayed low for ``zupt_epochs`` (counted here), else the non-holonomic constraint while moving. Sessions
+    stored before the options existed have neither."""
+    options = session.options
+    if options.get("zupt", False):
+        speed = doppler_speed(prs, receiver, elevation, rate_rows)
+        still = speed is not None and speed < options["zupt_speed_mps"]
+        session.still_epochs = session.still_epochs + 1 if still else 0
+        if session.still_epochs >= options["zupt_epochs"]:
+            return [zero_velocity(options["zupt_std_mps"])]
+    if options.get("nhc", False):
+        constraint = non_holonomic(
+            centre, dt, options["nhc_lateral_accel_std"], options["nhc_vertical_std_mps"]
+        )
+        if constraint is not None:
+            return [constraint]
+    return []
+
+
+def _with_constraints(measurement: Measurement, constraints: list[Constraint]) -> Measurement:
+    """The epoch's measurement with the constraints' zero-valued rows appended (their outlier variance is
+    their own: no heavy tail for a pseudo-measurement)."""
+    if not constraints:
+        return measurement
+    extra_var = np.concatenate([c.variances for c in constraints])
+    base_predict = measurement.predict
+
+    def predict(states: np.ndarray) -> np.ndarray:
+        return np.concatenate([base_predict(states)] + [c.predict(states) for c in constraints], axis=-1)
+
+    outlier_variance: float | np.ndarray = measurement.outlier_variance
+    if measurement.outlier_probability > 0.0:
+        outlier_variance = np.concatenate(
+            [np.broadcast_to(measurement.outlier_variance, measurement.z.shape), extra_var]
+        )
+    return Measurement(
+        predict,
+        np.concatenate([measurement.z, np.zeros(extra_var.size)]),
+        np.concatenate([measurement.variances, extra_var]),
+        measurement.outlier_probability,
+        outlier_variance,
     )
 
 
