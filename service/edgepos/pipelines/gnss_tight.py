@@ -85,6 +85,7 @@ from edgepos.pipelines.base import (
 )
 from edgepos.pipelines.epochs import group_by_time
 from edgepos.pipelines.gnss_constraints import (
+    NHC_MIN_SPEED_MPS,
     Constraint,
     doppler_speed,
     non_holonomic,
@@ -431,7 +432,7 @@ def _filter_epoch(
             uses,
         )
         rows, lost = residual_test(
-            session, centre, prs, known, std, rows, dt, model, satellites.indices, uses
+            session, centre, prs, known, std, rows, dt, model, satellites.indices, uses, predicted_cov
         )
         if lost:
             session.initialised = False
@@ -460,7 +461,16 @@ def _filter_epoch(
             rate_rows = kept
         if rate_rows.size:
             rate_rows = range_rate_test(
-                session, centre, prs, rate_std, rate_rows, dt, model, satellites.indices, doppler
+                session,
+                centre,
+                prs,
+                rate_std,
+                rate_rows,
+                dt,
+                model,
+                satellites.indices,
+                doppler,
+                predicted_cov,
             )
         if rate_rows.size:
             assert prs.sat_velocity is not None and prs.sat_clock_drift is not None
@@ -642,7 +652,10 @@ def _constraints(
     stored before the options existed have neither."""
     options = session.options
     if options.get("zupt", False):
-        speed = doppler_speed(prs, receiver, elevation, rate_rows)
+        # Solved only when the prediction is near rest: a car the filter sees moving faster than the
+        # heading threshold does not stand still within one epoch (the count starts at the next).
+        slow = math.hypot(centre[layout.VE], centre[layout.VN]) < NHC_MIN_SPEED_MPS
+        speed = doppler_speed(prs, receiver, elevation, rate_rows) if slow else None
         still = speed is not None and speed < options["zupt_speed_mps"]
         session.still_epochs = session.still_epochs + 1 if still else 0
         if session.still_epochs >= options["zupt_epochs"]:
