@@ -21,8 +21,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from edgepos.core.motion import riss as layout
+from edgepos.core.particles import Measurement
 from edgepos.gnss.measurements import PseudorangeSet
 from edgepos.gnss.spp import SppError, solve_velocity
+from edgepos.pipelines.gnss_session import GnssSession
 
 NHC_MIN_SPEED_MPS = 1.0
 """Below this predicted speed the heading, and so the non-holonomic frame, is not defined."""
@@ -83,3 +85,59 @@ def doppler_speed(
     if not solution.chi2_passed:
         return None
     return float(math.hypot(solution.velocity_enu[0], solution.velocity_enu[1]))
+
+
+def epoch_constraints(
+    session: GnssSession,
+    centre: np.ndarray,
+    dt: float,
+    prs: PseudorangeSet,
+    receiver: np.ndarray,
+    elevation: np.ndarray,
+    rate_rows: np.ndarray,
+) -> list[Constraint]:
+    """The vehicle constraints of an epoch without RISS input: zero velocity when the Doppler speed has
+    stayed low for ``zupt_epochs`` (counted here), else the non-holonomic constraint while moving. Sessions
+    stored before the options existed have neither."""
+    options = session.options
+    if options.get("zupt", False):
+        # Solved only when the prediction is near rest: a car the filter sees moving faster than the
+        # heading threshold does not stand still within one epoch (the count starts at the next).
+        slow = math.hypot(centre[layout.VE], centre[layout.VN]) < NHC_MIN_SPEED_MPS
+        speed = doppler_speed(prs, receiver, elevation, rate_rows) if slow else None
+        still = speed is not None and speed < options["zupt_speed_mps"]
+        session.still_epochs = session.still_epochs + 1 if still else 0
+        if session.still_epochs >= options["zupt_epochs"]:
+            return [zero_velocity(options["zupt_std_mps"])]
+    if options.get("nhc", False):
+        constraint = non_holonomic(
+            centre, dt, options["nhc_lateral_accel_std"], options["nhc_vertical_std_mps"]
+        )
+        if constraint is not None:
+            return [constraint]
+    return []
+
+
+def with_constraints(measurement: Measurement, constraints: list[Constraint]) -> Measurement:
+    """The epoch's measurement with the constraints' zero-valued rows appended (their outlier variance is
+    their own: no heavy tail for a pseudo-measurement)."""
+    if not constraints:
+        return measurement
+    extra_var = np.concatenate([c.variances for c in constraints])
+    base_predict = measurement.predict
+
+    def predict(states: np.ndarray) -> np.ndarray:
+        return np.concatenate([base_predict(states)] + [c.predict(states) for c in constraints], axis=-1)
+
+    outlier_variance: float | np.ndarray = measurement.outlier_variance
+    if measurement.outlier_probability > 0.0:
+        outlier_variance = np.concatenate(
+            [np.broadcast_to(measurement.outlier_variance, measurement.z.shape), extra_var]
+        )
+    return Measurement(
+        predict,
+        np.concatenate([measurement.z, np.zeros(extra_var.size)]),
+        np.concatenate([measurement.variances, extra_var]),
+        measurement.outlier_probability,
+        outlier_variance,
+    )

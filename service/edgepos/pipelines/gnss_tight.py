@@ -15,7 +15,8 @@ Per epoch (observations sharing ``t``):
 2. Each pseudorange gets its satellite's ECEF position and clock at transmit time: the client's
    ``sat_position``/``sat_clock`` when sent, else the broadcast ephemerides (Earth rotation, satellite
    clock with relativity and group delay); then elevation mask, C/N0 floor, Klobuchar and Saastamoinen at
-   the predicted position, and the fuzzy noise factor (Table 1, eq. 20) when ``fuzzy`` is on. When the
+   the predicted position, and the noise std: the C/N0-elevation model fitted by measurement
+   (``noise_model`` fitted, gnss/pseudorange_noise.py) or R0 x the fuzzy factor (Table 1, eq. 20). When the
    environment has differential corrections from the site's reference station (gnss/differential.py),
    each pseudorange with a valid one (same satellite and ephemeris issue, at most
    the correction source's maximum age old) has it added; the others are used uncorrected, and each says why.
@@ -23,7 +24,10 @@ Per epoch (observations sharing ``t``):
    replaced by its satellite's carrier-smoothed code (gnss/carrier.py: Hatch filter, a slip by ``lli``,
    Doppler, code-carrier jump or gap restarting only that satellite; the tracks live in the session state),
    its noise std scaled by max(1/sqrt(epochs averaged), ``hatch_std_floor``).
-3. A snapshot test like the least-squares baseline's (chi-square on this epoch's own least-squares
+3. The fault test over time (pipelines/gnss_faults.py): a satellite whose innovation against the prediction
+   stays beyond the ``fault_probability`` gate is down-weighted, then after ``fault_persistence`` epochs
+   excluded until it agrees for ``fault_recovery`` epochs (range and range rate separately). Then a
+   snapshot test like the least-squares baseline's (chi-square on this epoch's own least-squares
    residuals, worst pseudorange excluded while it fails; ``fde_probability``) finds biased (NLOS)
    pseudoranges whatever the filter believes; then a residual test against the prediction (per
    constellation, its median removed so a clock error cannot fail every satellite) excludes pseudoranges
@@ -34,10 +38,13 @@ Per epoch (observations sharing ``t``):
    (core/measurements/range_rate.py); above the elevation mask it goes through its own residual test
    (one receiver clock drift for all, so the median is removed) and into the same update as the
    pseudoranges, with std ``doppler_std_mps`` x the fuzzy factor.
-5. The filter step; before initialisation, the first epoch with enough satellites initialises the filter
+5. Without a ``riss`` sample in the batch (GNSS-only model), the vehicle constraints join the update as
+   pseudo-measurements (pipelines/gnss_constraints.py): zero velocity once the epoch's own Doppler speed has
+   stayed low (``zupt``), else, moving, no lateral or vertical velocity (``nhc``); the fix lists them.
+6. The filter step; before initialisation, the first epoch with enough satellites initialises the filter
    from a weighted least-squares fix (gnss/spp.py), its velocity and clock drift from the Dopplers when sent.
-Every pseudorange appears in the fix's measurement list, used or with the reason it was not, and with
-its Doppler's use when it carried one.
+Every pseudorange appears in the fix's measurement list, used (with its noise std and why) or with the
+reason it was not, and with its Doppler's use when it carried one.
 """
 
 from __future__ import annotations
@@ -85,11 +92,9 @@ from edgepos.pipelines.base import (
 )
 from edgepos.pipelines.epochs import group_by_time
 from edgepos.pipelines.gnss_constraints import (
-    NHC_MIN_SPEED_MPS,
     Constraint,
-    doppler_speed,
-    non_holonomic,
-    zero_velocity,
+    epoch_constraints,
+    with_constraints,
 )
 from edgepos.pipelines.gnss_faults import (
     fault_settings,
@@ -492,10 +497,10 @@ def _filter_epoch(
             )
             measurement = _measurement(options, model_pr, prs.pseudorange_m[rows], rate_model, prs, rate_rows)
             if not riss_in_batch and isinstance(model, GnssOnlyModel):
-                constraints = _constraints(
+                constraints = epoch_constraints(
                     session, centre, dt, prs, session.anchor.ecef(centre), elevation, rate_rows
                 )
-                measurement = _with_constraints(measurement, constraints)
+                measurement = with_constraints(measurement, constraints)
             for r in rows:
                 why = (
                     f"{model_name} std {base_std[r]:.2f} m at elevation {math.degrees(elevation[r]):.0f} deg, "
@@ -636,62 +641,6 @@ def _pseudorange_noise(
         return FITTED.std(elevation, cn0), "fitted C/N0-elevation model:"
     value: np.ndarray = options["pseudorange_std"] * factor
     return value, "R0 x fuzzy factor:" if options["fuzzy"] else "pseudorange_std:"
-
-
-def _constraints(
-    session: GnssSession,
-    centre: np.ndarray,
-    dt: float,
-    prs: PseudorangeSet,
-    receiver: np.ndarray,
-    elevation: np.ndarray,
-    rate_rows: np.ndarray,
-) -> list[Constraint]:
-    """The vehicle constraints of an epoch without RISS input: zero velocity when the Doppler speed has
-    stayed low for ``zupt_epochs`` (counted here), else the non-holonomic constraint while moving. Sessions
-    stored before the options existed have neither."""
-    options = session.options
-    if options.get("zupt", False):
-        # Solved only when the prediction is near rest: a car the filter sees moving faster than the
-        # heading threshold does not stand still within one epoch (the count starts at the next).
-        slow = math.hypot(centre[layout.VE], centre[layout.VN]) < NHC_MIN_SPEED_MPS
-        speed = doppler_speed(prs, receiver, elevation, rate_rows) if slow else None
-        still = speed is not None and speed < options["zupt_speed_mps"]
-        session.still_epochs = session.still_epochs + 1 if still else 0
-        if session.still_epochs >= options["zupt_epochs"]:
-            return [zero_velocity(options["zupt_std_mps"])]
-    if options.get("nhc", False):
-        constraint = non_holonomic(
-            centre, dt, options["nhc_lateral_accel_std"], options["nhc_vertical_std_mps"]
-        )
-        if constraint is not None:
-            return [constraint]
-    return []
-
-
-def _with_constraints(measurement: Measurement, constraints: list[Constraint]) -> Measurement:
-    """The epoch's measurement with the constraints' zero-valued rows appended (their outlier variance is
-    their own: no heavy tail for a pseudo-measurement)."""
-    if not constraints:
-        return measurement
-    extra_var = np.concatenate([c.variances for c in constraints])
-    base_predict = measurement.predict
-
-    def predict(states: np.ndarray) -> np.ndarray:
-        return np.concatenate([base_predict(states)] + [c.predict(states) for c in constraints], axis=-1)
-
-    outlier_variance: float | np.ndarray = measurement.outlier_variance
-    if measurement.outlier_probability > 0.0:
-        outlier_variance = np.concatenate(
-            [np.broadcast_to(measurement.outlier_variance, measurement.z.shape), extra_var]
-        )
-    return Measurement(
-        predict,
-        np.concatenate([measurement.z, np.zeros(extra_var.size)]),
-        np.concatenate([measurement.variances, extra_var]),
-        measurement.outlier_probability,
-        outlier_variance,
-    )
 
 
 def _cloud_mean(cloud: Cloud) -> np.ndarray:
