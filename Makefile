@@ -23,8 +23,11 @@ $(STAMP): pyproject.toml client/pyproject.toml
 serve: $(STAMP)
 	EDGEPOS_DEMO_RSUS=$${EDGEPOS_DEMO_RSUS:-true} $(BIN)/edgepos serve
 
+# Two test processes (pytest-xdist): most tests wait on a server, a socket or a subprocess, so two share
+# a 2-core box well (11.5 min instead of 15 for the whole suite, measured with other jobs running).
+# Every test picks its own free ports and temporary directories, so none depends on running alone.
 test: $(STAMP) redis-server chromium lint docs
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n 2
 
 # Style and types are held by tools: a finding fails the build (pyproject.toml configures both).
 lint: $(STAMP)

@@ -261,6 +261,8 @@ class MeasurementUse(_Response):
     doppler_reason: str | None = None
     correction_applied: bool | None = None  # a pseudorange of a session with options.base_station
     correction_reason: str | None = None  # why no reference-station correction was added (when not)
+    noise_std: float | None = None  # gnss_tight, a pseudorange used: its noise std in the update (m)
+    noise_reason: str | None = None  # why: noise model, carrier smoothing, down-weighting over time
 
 
 FixStatus = Literal["initialised", "tracking", "predicted", "uninitialised", "diverged"]
@@ -292,6 +294,8 @@ class Fix(_Response):
     model_probabilities: dict[str, float] = Field(default_factory=dict)
     nis: float | None = None
     nis_dof: int = 0
+    constraints: list[str] | None = None
+    """gnss_tight: vehicle pseudo-measurements in this epoch's update ("non-holonomic", "zero-velocity")."""
     protection_level_m: float | None = None
     """Horizontal protection level (m) at the session's integrity risk; None when ``integrity`` is
     "unavailable" (and from servers that predate it)."""

@@ -19,9 +19,12 @@ NO_DOPPLER = {
     "doppler_reason": None,
     "correction_applied": None,
     "correction_reason": None,
+    "noise_std": None,
+    "noise_reason": None,
 }
 """The Doppler fields of a measurement use that carried no Doppler (every kind but a pseudorange with one),
-and the correction fields, null while the site has no differential corrections."""
+and the correction fields, null while the site has no differential corrections, and the noise fields (set
+only for a gnss_tight pseudorange used in the update)."""
 
 
 @functools.lru_cache(maxsize=1)

@@ -33,6 +33,7 @@ def _expected_wire(fix):
         "model_probabilities": fix.model_probabilities,
         "nis": fix.nis,
         "nis_dof": fix.nis_dof,
+        "constraints": None if fix.constraints is None else list(fix.constraints),
         "protection_level_m": fix.protection_level,
         "integrity": fix.integrity,
         "measurements": [
@@ -45,6 +46,8 @@ def _expected_wire(fix):
                 "doppler_reason": u.doppler_reason,
                 "correction_applied": u.correction_applied,
                 "correction_reason": u.correction_reason,
+                "noise_std": u.noise_std,
+                "noise_reason": u.noise_reason,
             }
             for u in fix.measurements
         ],

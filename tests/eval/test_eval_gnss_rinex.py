@@ -28,7 +28,7 @@ def run_eval(*argv: str) -> int:
 
 
 @pytest.mark.parametrize(
-    ("filter_name", "label"), [("upf", "upf (50 particles, fuzzy)"), ("ukf", "ukf (fuzzy)")]
+    ("filter_name", "label"), [("upf", "upf (50 particles, fitted noise)"), ("ukf", "ukf (fitted noise)")]
 )
 def test_json_has_the_figures_of_filter_and_baseline(
     tmp_path: Path, filter_name: str, label: str, capsys: pytest.CaptureFixture[str]

@@ -78,6 +78,7 @@ def fix_to_json(fix: Fix, include_state: bool, origin: GeodeticOrigin | None) ->
         "model_probabilities": fix.model_probabilities,
         "nis": fix.nis,
         "nis_dof": fix.nis_dof,
+        "constraints": None if fix.constraints is None else list(fix.constraints),
         "protection_level_m": fix.protection_level,
         "integrity": fix.integrity,
         "measurements": [_use_to_json(use) for use in fix.measurements],
@@ -96,6 +97,8 @@ def _use_to_json(use: MeasurementUse) -> dict[str, Any]:
         "doppler_reason": use.doppler_reason,
         "correction_applied": use.correction_applied,
         "correction_reason": use.correction_reason,
+        "noise_std": use.noise_std,
+        "noise_reason": use.noise_reason,
     }
 
 

@@ -234,7 +234,7 @@ class _PoolLane:
                 continue
             self.running += 1
             self.metrics.queue_depth.labels(self.name).set(self._line.depth())
-            self.metrics.queue_wait.labels(self.name).observe(job.loop.time() - job.queued_at)
+            self.metrics.queue_wait.labels(self.name).observe(time.monotonic() - job.queued_at)
             job.executor = self.get_executor()
             try:
                 running = job.loop.run_in_executor(job.executor, job.call)

@@ -505,6 +505,17 @@ class MeasurementUseOut(ResponseModel):
         "max_correction_age_s), 'ephemeris issue mismatch: ...' (base and rover used different IODE/toe), or "
         "that the client sent the satellite's position; else null.",
     )
+    noise_std: float | None = Field(
+        None,
+        description="gnss_tight, a pseudorange used in the update: its noise std there (m); else null.",
+    )
+    noise_reason: str | None = Field(
+        None,
+        description="gnss_tight, with noise_std: why the std is what it is: the noise model at the "
+        "satellite's elevation (deg) and C/N0 (dB-Hz), the carrier smoothing factor, and, when its "
+        "innovation against the filter's prediction is suspect, the down-weighting (options fault_*). "
+        "An exclusion over time is in reason instead.",
+    )
 
 
 class FixOut(ResponseModel):
@@ -566,6 +577,13 @@ class FixOut(ResponseModel):
         "null without an update."
     )
     nis_dof: int = Field(description="Degrees of freedom of nis (the measurement dimension used).")
+    constraints: list[str] | None = Field(
+        None,
+        description="gnss_tight: the vehicle pseudo-measurements in this epoch's update when the batch had no "
+        "riss sample: 'non-holonomic' (zero lateral and vertical velocity in the vehicle frame, options nhc*), "
+        "'zero-velocity' (the Doppler speed stayed below zupt_speed_mps for zupt_epochs epochs, options "
+        "zupt*); an empty list when none. null for other pipelines.",
+    )
     protection_level_m: float | None = Field(
         None,
         description="Horizontal protection level (m, site frame x/y): the horizontal position error exceeds it, "

@@ -315,6 +315,7 @@ def evaluate(
     report["filter"] = resolved["filter"]
     report["particles"] = resolved["particles"] if resolved["filter"] != "ukf" else 1
     report["fuzzy"] = resolved["fuzzy"]
+    report["noise_model"] = resolved["noise_model"]
     report["systems"] = systems
     report["seconds_per_epoch"] = pipeline_seconds / max(len(times), 1)
     report["use_doppler"] = use_doppler
@@ -384,7 +385,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"edgepos eval gnss-rinex: error: {error}", file=sys.stderr)
         return 2
     details = [f"{report['particles']} particles"] if report["filter"] != "ukf" else []
-    details += ["fuzzy"] if report["fuzzy"] else []
+    if report["noise_model"] == "fitted":
+        details += ["fitted noise"]
+    else:
+        details += ["fuzzy"] if report["fuzzy"] else []
     label = f"gnss_tight {report['filter']}" + (f" ({', '.join(details)})" if details else "")
     label += " + Doppler" if report["use_doppler"] else " no Doppler"
     label += " + base" if report["base"] is not None else ""

@@ -163,6 +163,11 @@ class MeasurementUse:
     doppler_reason: str | None = None
     correction_applied: bool | None = None
     correction_reason: str | None = None
+    noise_std: float | None = None
+    """A pseudorange that entered the update: its noise std (m) there; None otherwise."""
+    noise_reason: str | None = None
+    """Why ``noise_std`` is what it is: the noise model at its elevation and C/N0, carrier smoothing, and a
+    down-weighting by the fault test over time (pipelines/gnss_faults.py)."""
 
 
 @dataclass(frozen=True)
@@ -207,6 +212,9 @@ class Fix:
     revised: bool = False
     """True for a fix of an epoch answered before, filtered again because late measurements arrived
     (``pipelines.lag``): it replaces the earlier fix of the same ``t``."""
+    constraints: tuple[str, ...] | None = None
+    """Vehicle pseudo-measurements in this epoch's update (gnss_tight: "non-holonomic", "zero-velocity");
+    None for pipelines without them."""
     divergence: str | None = None
     """Set with status "diverged" (``pipelines.plausibility``): which physical bound the estimate broke
     and what was done (the session reset, or only reported); None otherwise."""

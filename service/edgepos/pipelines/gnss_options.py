@@ -16,6 +16,11 @@ from edgepos.gnss.differential import DEFAULT_MAX_AGE_S, MAX_AGE_BOUNDS_S
 from edgepos.pipelines.base import (
     OptionSpec,
 )
+from edgepos.pipelines.gnss_faults import (
+    DEFAULT_FAULT_PERSISTENCE,
+    DEFAULT_FAULT_PROBABILITY,
+    DEFAULT_FAULT_RECOVERY,
+)
 
 NEAREST_BASE_STATION = "nearest"
 
@@ -30,6 +35,15 @@ MAX_LLI = 7
 CARRIER_SMOOTHING = ("hatch", "off")
 DEFAULT_CARRIER_SMOOTHING = "hatch"
 DEFAULT_HATCH_STD_FLOOR = 0.2
+NOISE_MODELS = ("fuzzy", "fitted")
+DEFAULT_NOISE_MODEL = "fitted"
+DEFAULT_NHC = False
+DEFAULT_NHC_LATERAL_ACCEL_STD = 1.0
+DEFAULT_NHC_VERTICAL_STD_MPS = 0.3
+DEFAULT_ZUPT = True
+DEFAULT_ZUPT_SPEED_MPS = 0.3
+DEFAULT_ZUPT_EPOCHS = 2
+DEFAULT_ZUPT_STD_MPS = 0.05
 MAX_DOPPLER_HZ = 20000.0
 """Largest |Doppler| accepted: a ground receiver sees at most about 5 kHz on L1 from satellite motion, plus
 its oscillator's offset (a few kHz for a poor one)."""
@@ -196,6 +210,104 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "Longest time (s) between a satellite's carrier phases its smoothing continues across.",
         0.01,
         600.0,
+    ),
+    OptionSpec(
+        "noise_model",
+        "string",
+        DEFAULT_NOISE_MODEL,
+        "Pseudorange noise std before carrier smoothing. fuzzy: pseudorange_std x the fuzzy factor of "
+        "elevation and C/N0 (Table 1, eq. 20; with fuzzy off, pseudorange_std alone). fitted: sqrt(a^2 + "
+        "b^2/sin^2(el) + c^2 10^((45 - C/N0)/10)) with a, b, c fitted to the pseudorange residuals at the "
+        "reference trajectory of the first half of tests/data/gnss-rover (gnss/pseudorange_noise.py, "
+        "docs/gnss.md); pseudorange_std is then unused. A Doppler's std keeps the fuzzy factor either way.",
+        choices=NOISE_MODELS,
+    ),
+    OptionSpec(
+        "fault_probability",
+        "number",
+        DEFAULT_FAULT_PROBABILITY,
+        "Faults caught over time (pipelines/gnss_faults.py): a pseudorange (or range rate) whose innovation "
+        "against the filter's prediction exceeds this chi-square(1) quantile is suspect and down-weighted "
+        "(std raised to put it on the gate); suspect for fault_persistence epochs in a row it is excluded "
+        "until it agrees for fault_recovery epochs. 0 disables. The reason is in the fix's measurement list.",
+        0.0,
+        0.999999,
+    ),
+    OptionSpec(
+        "fault_persistence",
+        "integer",
+        DEFAULT_FAULT_PERSISTENCE,
+        "Epochs in a row a satellite's innovation must be suspect before it is excluded: reflected (NLOS) "
+        "and multipath signals persist for seconds in a street canyon, noise does not.",
+        1,
+        100,
+    ),
+    OptionSpec(
+        "fault_recovery",
+        "integer",
+        DEFAULT_FAULT_RECOVERY,
+        "Epochs in a row an excluded satellite's innovation must agree with the prediction before it is "
+        "used again.",
+        1,
+        100,
+    ),
+    OptionSpec(
+        "nhc",
+        "boolean",
+        DEFAULT_NHC,
+        "Non-holonomic constraint when a batch has no riss sample: the lateral and vertical velocity in the "
+        "vehicle frame (heading = the predicted velocity's azimuth, above 1 m/s) are zero-valued "
+        "pseudo-measurements; the fix lists it under constraints.",
+    ),
+    OptionSpec(
+        "nhc_lateral_accel_std",
+        "number",
+        DEFAULT_NHC_LATERAL_ACCEL_STD,
+        "NHC: lateral velocity std per second of epoch interval (m/s^2): the heading turns during the "
+        "interval, so this is the lateral acceleration of a car in town relative to its previous heading.",
+        0.01,
+        100.0,
+    ),
+    OptionSpec(
+        "nhc_vertical_std_mps",
+        "number",
+        DEFAULT_NHC_VERTICAL_STD_MPS,
+        "NHC: vertical velocity std (m/s), for road grades (5 % at 10 m/s is 0.5 m/s).",
+        0.01,
+        100.0,
+    ),
+    OptionSpec(
+        "zupt",
+        "boolean",
+        DEFAULT_ZUPT,
+        "Zero-velocity update when a batch has no riss sample: when the epoch's own Doppler least-squares "
+        "velocity has been below zupt_speed_mps for zupt_epochs epochs in a row, the velocity is a zero-valued "
+        "pseudo-measurement (std zupt_std_mps); the fix lists it under constraints.",
+    ),
+    OptionSpec(
+        "zupt_speed_mps",
+        "number",
+        DEFAULT_ZUPT_SPEED_MPS,
+        "ZUPT: horizontal Doppler speed (m/s) below which an epoch counts as standing still; above the "
+        "Doppler velocity's noise (about 0.1-0.3 m/s here), below a car's creeping speed.",
+        0.01,
+        5.0,
+    ),
+    OptionSpec(
+        "zupt_epochs",
+        "integer",
+        DEFAULT_ZUPT_EPOCHS,
+        "ZUPT: epochs in a row the Doppler speed must stay below zupt_speed_mps.",
+        1,
+        100,
+    ),
+    OptionSpec(
+        "zupt_std_mps",
+        "number",
+        DEFAULT_ZUPT_STD_MPS,
+        "ZUPT: velocity std (m/s) of the zero-velocity pseudo-measurement (engine vibration, a creeping car).",
+        0.001,
+        10.0,
     ),
     OptionSpec(
         "systems",

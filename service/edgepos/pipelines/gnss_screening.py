@@ -37,10 +37,12 @@ def range_rate_test(
     model: RissModel | GnssOnlyModel,
     indices: list[int],
     doppler: DopplerUses,
+    predicted_cov: np.ndarray | None = None,
 ) -> np.ndarray:
     """The pseudorange residual test's counterpart for range rates: residual = measured - predicted, the
     median removed when three or more (one clock drift moves them all alike), else the drift's variance
-    added; variance std^2 + the predicted velocity variance (trace). Returns the rows kept."""
+    added; variance std^2 + the predicted velocity variance (trace; ``predicted_cov`` when the caller has
+    it). Returns the rows kept."""
     probability = session.options["gate_probability"]
     if probability <= 0.0 or rows.size == 0:
         return rows
@@ -50,7 +52,8 @@ def range_rate_test(
         session.anchor, prs.sat_position[rows], prs.sat_velocity[rows], prs.sat_clock_drift[rows], std[rows]
     )
     residual = prs.range_rate_mps[rows] - rate_model.predict(centre)
-    predicted_cov = session_covariance(session) + model.process_noise(dt)
+    if predicted_cov is None:
+        predicted_cov = session_covariance(session) + model.process_noise(dt)
     velocity = [layout.VE, layout.VN, layout.VU]
     variance = std[rows] ** 2 + float(np.trace(predicted_cov[np.ix_(velocity, velocity)]))
     if rows.size >= 3:
@@ -158,6 +161,7 @@ def residual_test(
     model: RissModel | GnssOnlyModel,
     indices: list[int],
     uses: dict[int, MeasurementUse],
+    predicted_cov: np.ndarray | None = None,
 ) -> tuple[np.ndarray, bool]:
     """RAIM-like screening of each pseudorange against the predicted state.
 
@@ -172,7 +176,8 @@ def residual_test(
     systems = [prs.systems[r] for r in rows]
     model_pr = PseudorangeModel.build(session.anchor, prs.sat_position[rows], systems, known[rows], std[rows])
     residual = prs.pseudorange_m[rows] - model_pr.predict(centre)
-    predicted_cov = session_covariance(session) + model.process_noise(dt)
+    if predicted_cov is None:
+        predicted_cov = session_covariance(session) + model.process_noise(dt)
     variance = std[rows] ** 2 + float(np.trace(predicted_cov[:3, :3]))
     for system in set(systems):
         members = np.array([s == system for s in systems])

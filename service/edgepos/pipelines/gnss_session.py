@@ -39,6 +39,11 @@ class GnssSession:
     """Per satellite, its carrier smoothing (gnss.carrier), independent of the filter (kept across a
     re-initialisation). Stored as the ``carrier_sats`` list and the ``carrier`` array; states written before
     carrier phase have neither and start with none."""
+    faults: dict[str, list[float]] = field(default_factory=dict)
+    """Per satellite (and ``<sat>/rate`` for its range rate), the fault test's history over time
+    (pipelines/gnss_faults.py); states written before it start with none."""
+    still_epochs: int = 0
+    """Epochs in a row whose own Doppler speed was below ``zupt_speed_mps`` (zero-velocity detection)."""
 
     def to_bytes(self) -> bytes:
         carrier_sats, carrier_table = tracks_to_arrays(self.carrier)
@@ -55,6 +60,8 @@ class GnssSession:
             "clock_seen": self.clock_seen,
             "heading_known": self.heading_known,
             "carrier_sats": carrier_sats,
+            "faults": self.faults,
+            "still_epochs": self.still_epochs,
         }
         arrays = {
             "particles": self.cloud.particles,
@@ -95,6 +102,8 @@ def decode_session(blob: bytes) -> GnssSession:
         cloud,
         bool(meta.get("heading_known", False)),
         carrier,
+        {str(k): [float(x) for x in v] for k, v in meta.get("faults", {}).items()},
+        int(meta.get("still_epochs", 0)),
     )
 
 

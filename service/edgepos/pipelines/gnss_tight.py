@@ -15,7 +15,8 @@ Per epoch (observations sharing ``t``):
 2. Each pseudorange gets its satellite's ECEF position and clock at transmit time: the client's
    ``sat_position``/``sat_clock`` when sent, else the broadcast ephemerides (Earth rotation, satellite
    clock with relativity and group delay); then elevation mask, C/N0 floor, Klobuchar and Saastamoinen at
-   the predicted position, and the fuzzy noise factor (Table 1, eq. 20) when ``fuzzy`` is on. When the
+   the predicted position, and the noise std: the C/N0-elevation model fitted by measurement
+   (``noise_model`` fitted, gnss/pseudorange_noise.py) or R0 x the fuzzy factor (Table 1, eq. 20). When the
    environment has differential corrections from the site's reference station (gnss/differential.py),
    each pseudorange with a valid one (same satellite and ephemeris issue, at most
    the correction source's maximum age old) has it added; the others are used uncorrected, and each says why.
@@ -23,7 +24,10 @@ Per epoch (observations sharing ``t``):
    replaced by its satellite's carrier-smoothed code (gnss/carrier.py: Hatch filter, a slip by ``lli``,
    Doppler, code-carrier jump or gap restarting only that satellite; the tracks live in the session state),
    its noise std scaled by max(1/sqrt(epochs averaged), ``hatch_std_floor``).
-3. A snapshot test like the least-squares baseline's (chi-square on this epoch's own least-squares
+3. The fault test over time (pipelines/gnss_faults.py): a satellite whose innovation against the prediction
+   stays beyond the ``fault_probability`` gate is down-weighted, then after ``fault_persistence`` epochs
+   excluded until it agrees for ``fault_recovery`` epochs (range and range rate separately). Then a
+   snapshot test like the least-squares baseline's (chi-square on this epoch's own least-squares
    residuals, worst pseudorange excluded while it fails; ``fde_probability``) finds biased (NLOS)
    pseudoranges whatever the filter believes; then a residual test against the prediction (per
    constellation, its median removed so a clock error cannot fail every satellite) excludes pseudoranges
@@ -34,10 +38,13 @@ Per epoch (observations sharing ``t``):
    (core/measurements/range_rate.py); above the elevation mask it goes through its own residual test
    (one receiver clock drift for all, so the median is removed) and into the same update as the
    pseudoranges, with std ``doppler_std_mps`` x the fuzzy factor.
-5. The filter step; before initialisation, the first epoch with enough satellites initialises the filter
+5. Without a ``riss`` sample in the batch (GNSS-only model), the vehicle constraints join the update as
+   pseudo-measurements (pipelines/gnss_constraints.py): zero velocity once the epoch's own Doppler speed has
+   stayed low (``zupt``), else, moving, no lateral or vertical velocity (``nhc``); the fix lists them.
+6. The filter step; before initialisation, the first epoch with enough satellites initialises the filter
    from a weighted least-squares fix (gnss/spp.py), its velocity and clock drift from the Dopplers when sent.
-Every pseudorange appears in the fix's measurement list, used or with the reason it was not, and with
-its Doppler's use when it carried one.
+Every pseudorange appears in the fix's measurement list, used (with its noise std and why) or with the
+reason it was not, and with its Doppler's use when it carried one.
 """
 
 from __future__ import annotations
@@ -69,6 +76,7 @@ from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.geodesy import geodetic_to_ecef
 from edgepos.gnss.measurements import PseudorangeSet
 from edgepos.gnss.orbits import SPEED_OF_LIGHT
+from edgepos.gnss.pseudorange_noise import FITTED
 from edgepos.pipelines.base import (
     Environment,
     Fix,
@@ -83,6 +91,17 @@ from edgepos.pipelines.base import (
     is_finite_number,
 )
 from edgepos.pipelines.epochs import group_by_time
+from edgepos.pipelines.gnss_constraints import (
+    Constraint,
+    epoch_constraints,
+    with_constraints,
+)
+from edgepos.pipelines.gnss_faults import (
+    fault_settings,
+    range_innovations,
+    rate_innovations,
+    screen,
+)
 from edgepos.pipelines.gnss_motion import (
     initialise,
     maybe_start_riss,
@@ -122,6 +141,7 @@ from edgepos.pipelines.gnss_session import (
     decode_session,
     empty_cloud,
     filter_for,
+    session_covariance,
 )
 from edgepos.pipelines.options import resolve_options
 
@@ -184,8 +204,9 @@ class GnssTightPipeline(Pipeline):
         ephemerides = environment.ephemerides()
         origin = environment.site_origin()
         corrections = environment.corrections()
+        riss_in_batch = any(isinstance(o, RissObservation) for o in observations)
         fixes = [
-            _step(session, epoch, observations, ephemerides, origin, corrections)
+            _step(session, epoch, observations, ephemerides, origin, corrections, riss_in_batch)
             for epoch in group_by_time(observations)
         ]
         return ensure_finite_fixes(fixes), session.to_bytes()
@@ -279,12 +300,15 @@ def _step(
     ephemerides: Ephemerides | None,
     origin: tuple[float, float, float] | None,
     corrections: CorrectionTable | None = None,
+    riss_in_batch: bool = False,
 ) -> Fix:
     """One epoch through the filter; every Doppler sent is reported beside its pseudorange, and with
     corrections, each pseudorange's correction."""
     doppler: DopplerUses = {}
     corrected: CorrectionUses = {}
-    fix = _filter_epoch(session, epoch, observations, ephemerides, origin, doppler, corrections, corrected)
+    fix = _filter_epoch(
+        session, epoch, observations, ephemerides, origin, doppler, corrections, corrected, riss_in_batch
+    )
     if corrections is not None:
         uses = []
         for use in fix.measurements:
@@ -320,6 +344,7 @@ def _filter_epoch(
     doppler: DopplerUses,
     corrections: CorrectionTable | None,
     corrected: CorrectionUses,
+    riss_in_batch: bool = False,
 ) -> Fix:
     options = session.options
     t = observations[epoch[0]].t
@@ -368,6 +393,8 @@ def _filter_epoch(
     for system, index in layout.CLOCK.items():
         active[index] = False
     measurement = None
+    constraints: list[Constraint] = []
+    noise: dict[int, tuple[float, str]] = {}
     rows: np.ndarray = np.zeros(0, dtype=int)
     rate_rows: np.ndarray = np.zeros(0, dtype=int)
     if len(satellites.prs):
@@ -384,7 +411,21 @@ def _filter_epoch(
             rate_rows = rows[np.isfinite(prs.range_rate_mps[rows]) & np.isfinite(prs.sat_clock_drift[rows])]
         known = iono + tropo - SPEED_OF_LIGHT * prs.sat_clock_s
         factor = FuzzyNoise().factor(elevation, prs.cn0_dbhz) if options["fuzzy"] else np.ones(len(prs))
-        std = options["pseudorange_std"] * factor * smoothing
+        base_std, model_name = _pseudorange_noise(options, elevation, prs.cn0_dbhz, factor)
+        std = base_std * smoothing
+        predicted_cov = session_covariance(session) + model.process_noise(dt)
+        fault_reasons: dict[int, str] = {}
+        if rows.size and fault_settings(options)[0] > 0.0:
+            scores = range_innovations(session, centre, prs, known, std, rows, predicted_cov)
+            kept, inflation, fault_reasons = screen(
+                session, t, [prs.sats[r] for r in rows], scores, rows, "range"
+            )
+            for r in np.setdiff1d(rows, kept):
+                i = satellites.indices[r]
+                uses[i] = MeasurementUse(i, "pseudorange", False, fault_reasons[int(r)])
+            std = std.copy()
+            std[kept] *= inflation
+            rows = kept
         rows = snapshot_test(
             session,
             centre,
@@ -396,7 +437,7 @@ def _filter_epoch(
             uses,
         )
         rows, lost = residual_test(
-            session, centre, prs, known, std, rows, dt, model, satellites.indices, uses
+            session, centre, prs, known, std, rows, dt, model, satellites.indices, uses, predicted_cov
         )
         if lost:
             session.initialised = False
@@ -413,9 +454,28 @@ def _filter_epoch(
             )
         rate_std = float(options.get("doppler_std_mps", DEFAULT_DOPPLER_STD_MPS)) * factor
         rate_model: RangeRateModel | None = None
+        if rate_rows.size and fault_settings(options)[0] > 0.0:
+            scores = rate_innovations(session, centre, prs, rate_std, rate_rows, predicted_cov)
+            kept, inflation, rate_reasons = screen(
+                session, t, [prs.sats[r] + "/rate" for r in rate_rows], scores, rate_rows, "range rate"
+            )
+            for r in np.setdiff1d(rate_rows, kept):
+                doppler[satellites.indices[r]] = (False, rate_reasons[int(r)])
+            rate_std = rate_std.copy()
+            rate_std[kept] *= inflation
+            rate_rows = kept
         if rate_rows.size:
             rate_rows = range_rate_test(
-                session, centre, prs, rate_std, rate_rows, dt, model, satellites.indices, doppler
+                session,
+                centre,
+                prs,
+                rate_std,
+                rate_rows,
+                dt,
+                model,
+                satellites.indices,
+                doppler,
+                predicted_cov,
             )
         if rate_rows.size:
             assert prs.sat_velocity is not None and prs.sat_clock_drift is not None
@@ -436,6 +496,21 @@ def _filter_epoch(
                 session.anchor, prs.sat_position[rows], systems, known[rows], std[rows]
             )
             measurement = _measurement(options, model_pr, prs.pseudorange_m[rows], rate_model, prs, rate_rows)
+            if not riss_in_batch and isinstance(model, GnssOnlyModel):
+                constraints = epoch_constraints(
+                    session, centre, dt, prs, session.anchor.ecef(centre), elevation, rate_rows
+                )
+                measurement = with_constraints(measurement, constraints)
+            for r in rows:
+                why = (
+                    f"{model_name} std {base_std[r]:.2f} m at elevation {math.degrees(elevation[r]):.0f} deg, "
+                    f"C/N0 {prs.cn0_dbhz[r]:.0f} dB-Hz"
+                )
+                if smoothing[r] < 1.0:
+                    why += f"; carrier-smoothed: x {smoothing[r]:.2f}"
+                if int(r) in fault_reasons:
+                    why += f"; {fault_reasons[int(r)]}"
+                noise[satellites.indices[r]] = (float(std[r]), why)
     filt = filter_for(options)
     result = filt.step(session.cloud, model, dt, active, measurement, rng)
     if not (
@@ -450,13 +525,20 @@ def _filter_epoch(
         maybe_start_riss(session, t, result)
     for r in rows:
         i = satellites.indices[r]
-        uses[i] = MeasurementUse(i, "pseudorange", True)
+        noted = noise.get(i)
+        uses[i] = MeasurementUse(
+            i,
+            "pseudorange",
+            True,
+            noise_std=None if noted is None else noted[0],
+            noise_reason=None if noted is None else noted[1],
+        )
     for r in rate_rows:
         doppler[satellites.indices[r]] = (True, None)
     status = "tracking" if measurement is not None else "predicted"
-    return session_fix(
-        t, status, session, result.mean, result.cov, result, int(rows.size + rate_rows.size), uses, origin
-    )
+    dof = int(rows.size + rate_rows.size + sum(len(c.variances) for c in constraints))
+    fix = session_fix(t, status, session, result.mean, result.cov, result, dof, uses, origin)
+    return dataclasses.replace(fix, constraints=tuple(c.name for c in constraints))
 
 
 def _smooth(
@@ -547,6 +629,18 @@ def _measurement(
         outlier,
         outlier_variance if outlier > 0.0 else 0.0,
     )
+
+
+def _pseudorange_noise(
+    options: Mapping[str, Any], elevation: np.ndarray, cn0: np.ndarray, factor: np.ndarray
+) -> tuple[np.ndarray, str]:
+    """Each pseudorange's std (m) before carrier smoothing and the model's name for the report: the fitted
+    C/N0 and elevation model (gnss/pseudorange_noise.py) or R0 x the fuzzy factor. Sessions stored before
+    the option existed keep the fuzzy one."""
+    if options.get("noise_model", "fuzzy") == "fitted":
+        return FITTED.std(elevation, cn0), "fitted C/N0-elevation model:"
+    value: np.ndarray = options["pseudorange_std"] * factor
+    return value, "R0 x fuzzy factor:" if options["fuzzy"] else "pseudorange_std:"
 
 
 def _cloud_mean(cloud: Cloud) -> np.ndarray:
