@@ -1,9 +1,9 @@
-"""Integrity options of a session and the RSU monitor of the ``rsu_imu`` pipeline (``core.integrity``).
+"""Integrity options of a session and the RSU monitor of the ``rsu_imu`` pipeline (``core.integrity_bank``).
 
 The options size the protection level every fix carries: the integrity risk per epoch, the alert
 limit that puts a fix in alarm, the prior probability that one RSU is faulty, the false-alarm
-probability the fault tests are sized to, and whether a detected RSU is excluded and the epoch
-filtered again. Their defaults and the reasons for them are in docs/integrity.md.
+probability the fault tests are sized to, whether and for how long a detected RSU is excluded, and
+the sub-filters' process noise. Their defaults and the reasons for them are in docs/integrity.md.
 """
 
 from __future__ import annotations
@@ -205,10 +205,12 @@ def monitored_update(
 ) -> tuple[_Result, list[int], Protection, SeparationBank]:
     """One epoch's update with fault detection and exclusion and the fix's protection level.
 
-    ``correct(candidates)`` runs the pipeline's update with those RSUs; the RSUs excluded earlier are left
-    out, an RSU the bank's test over time (``core.integrity_bank``) finds faulty is excluded for ``fault_exclusion_s`` and the epoch filtered
-    again without it. Returns the update, the RSUs it used, the protection and the bank (started from the
-    pipeline's ``prior`` of this epoch when the session has none yet)."""
+    ``correct(candidates)`` runs the pipeline's update with those RSUs. The RSUs excluded earlier are left
+    out; an RSU in use whose test over time (``core.integrity_bank``) fails is excluded for
+    ``fault_exclusion_s`` and the epoch filtered again without it; a failed test that cannot be acted on
+    (exclusion off, the only RSU, or an RSU not in use) puts the fix in alarm. Returns the update, the RSUs
+    it used, the protection and the bank (started from the pipeline's ``prior`` of this epoch when the
+    session has none yet)."""
     monitor = RsuIntegrity.of(options)
     if bank is not None:
         held = bank.excluded_now(t)
