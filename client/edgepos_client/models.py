@@ -296,6 +296,11 @@ class Fix(_Response):
     nis_dof: int = 0
     constraints: list[str] | None = None
     """gnss_tight: vehicle pseudo-measurements in this epoch's update ("non-holonomic", "zero-velocity")."""
+    protection_level_m: float | None = None
+    """Horizontal protection level (m) at the session's integrity risk; None when ``integrity`` is
+    "unavailable" (and from servers that predate it)."""
+    integrity: str = "unavailable"
+    """"ok", "alarm" (do not use the fix where integrity matters) or "unavailable"."""
     measurements: list[MeasurementUse] = Field(default_factory=list)
 
 

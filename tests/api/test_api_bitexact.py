@@ -34,6 +34,8 @@ def _expected_wire(fix):
         "nis": fix.nis,
         "nis_dof": fix.nis_dof,
         "constraints": None if fix.constraints is None else list(fix.constraints),
+        "protection_level_m": fix.protection_level,
+        "integrity": fix.integrity,
         "measurements": [
             {
                 "index": u.index,

@@ -66,15 +66,19 @@ def test_json_has_exactly_the_documented_shape(one_worker: Outcome) -> None:
     assert (document["scenario"], document["runs"], document["seed"]) == ("rsu-imu-paper", 2, 7)
     assert list(document["algorithms"]) == ["CV-CKF/avg", "2IMM-CKF"]
     for entry in document["algorithms"].values():
-        # the smoothed columns come by default (--smooth-lag 1.0); the late ones only with --delay-fraction
+        # the smoothed columns come by default (--smooth-lag 1.0); the late ones only with --delay-fraction;
+        # the integrity figures always (docs/integrity.md)
         assert set(entry) == {
             "pos_rmse_m",
             "vel_rmse_mps",
             "step_us",
             "smooth_pos_rmse_m",
             "smooth_vel_rmse_mps",
+            "integrity",
         }
         assert entry["smooth_pos_rmse_m"] < entry["pos_rmse_m"]
+        integrity = entry.pop("integrity")
+        assert integrity["epochs"] == 1600 and integrity["misleading"] == 0
         assert all(isinstance(value, float) for value in entry.values())
 
 
@@ -101,6 +105,8 @@ def test_plots_are_written(one_worker: Outcome) -> None:
         "model_probabilities_2imm_ckf_joint.png",
         "position_rmse_single_avg.png",
         "velocity_rmse_single_avg.png",
+        "stanford_2imm_ckf.png",  # Stanford diagrams: error against protection level (docs/integrity.md)
+        "stanford_cv_ckf_avg.png",
     }
     assert {path.name for path in one_worker.plots.iterdir()} == expected
     for name in expected:
@@ -281,3 +287,26 @@ def test_bad_late_flags_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
     ):
         assert run_eval("rsu-imu", "--runs", "1", "--algorithms", "2IMM-CKF", *flags) == 2
         assert "error" in capsys.readouterr().err
+
+
+def test_faults_add_integrity_figures_and_bad_fault_flags_are_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    json_path = tmp_path / "faults.json"
+    flags = ("rsu-imu", "--runs", "2", "--seed", "5", "--workers", "1", "--algorithms", "2IMM-CKF")
+    assert run_eval(*flags, "--faults", "--fault-runs", "1", "--json", str(json_path)) == 0
+    document = json.loads(json_path.read_text())
+    figures = document["algorithms"]["2IMM-CKF"]["integrity"]
+    assert figures["faulty_runs"] == 2 and figures["epochs"] == 1600
+    assert figures["misleading"] == 0 and figures["hazardous"] == 0
+    assert 0.9 < figures["availability"] <= 1.0
+    assert document["faults"]["run_fraction"] == 1.0
+    capsys.readouterr()
+    for bad in (
+        ("--fault-runs", "1.5"),
+        ("--fault-bearing-offset", "4"),
+        ("--fault-duration", "0"),
+        ("--fault-range-bias", "0", "--fault-bearing-offset", "0"),
+    ):
+        assert run_eval(*flags, "--faults", *bad) == 2
+        assert bad[0] in capsys.readouterr().err

@@ -261,11 +261,18 @@ def test_gross_outlier_range_fails_the_gate(pipeline) -> None:
     assert not use.used and "gate" in use.reason
     assert fixes[0].status == "tracking"
     assert position_error(fixes[0]) < 1.0
-    # with the gate disabled the outlier goes in and drags the estimate
-    _, state_nogate = run(pipeline, started(pipeline, {"gate_probability": 0.0}), 10, seed=9)
+    # with the gate and fault exclusion disabled the outlier goes in, drags the estimate and raises the alarm
+    options = {"gate_probability": 0.0, "fault_exclusion": False}
+    _, state_nogate = run(pipeline, started(pipeline, options), 10, seed=9)
     fixes_nogate, _ = pipeline.process(state_nogate, batch, ENV)
     assert next(u for u in fixes_nogate[0].measurements if u.index == bad).used
     assert position_error(fixes_nogate[0]) > position_error(fixes[0])
+    assert fixes_nogate[0].integrity == "alarm"
+    # with the gate disabled fault detection still excludes it
+    _, state_excluding = run(pipeline, started(pipeline, {"gate_probability": 0.0}), 10, seed=9)
+    fixes_excluding, _ = pipeline.process(state_excluding, batch, ENV)
+    use = next(u for u in fixes_excluding[0].measurements if u.index == bad)
+    assert not use.used and use.reason.startswith("excluded by fault detection")
 
 
 def test_absurd_gyro_reading_fails_the_gate(pipeline) -> None:
@@ -419,12 +426,16 @@ def test_the_binary_state_round_trips_exactly_and_the_json_layout_is_still_read(
         assert getattr(legacy, name) == getattr(session, name), name
     for name in ("probabilities", "means", "covs"):
         assert getattr(legacy, name).tobytes() == getattr(session, name).tobytes(), name
-    assert legacy.to_bytes() == inner
+    # the JSON layout predates the integrity bank (the binary state's tail): it reads as a session without one
+    assert session.integrity_bank is not None and legacy.integrity_bank is None
+    without_bank = dataclasses.replace(session, integrity_bank=None).to_bytes()
+    assert legacy.to_bytes() == without_bank and inner.startswith(without_bank)
     batch = epoch(7 * DT, np.random.default_rng(7))
     window = lag._unpack(state)
     window.current = wrap(envelope, _json_layout(inner))
     fixes_legacy, after_legacy = pipeline.process(lag._pack(window), batch, ENV)
-    fixes, after = pipeline.process(state, batch, ENV)
+    window.current = wrap(envelope, without_bank)
+    fixes, after = pipeline.process(lag._pack(window), batch, ENV)
     assert fixes_legacy == fixes
     assert lag._unpack(after_legacy).current == lag._unpack(after).current
 

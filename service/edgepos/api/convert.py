@@ -79,6 +79,8 @@ def fix_to_json(fix: Fix, include_state: bool, origin: GeodeticOrigin | None) ->
         "nis": fix.nis,
         "nis_dof": fix.nis_dof,
         "constraints": None if fix.constraints is None else list(fix.constraints),
+        "protection_level_m": fix.protection_level,
+        "integrity": fix.integrity,
         "measurements": [_use_to_json(use) for use in fix.measurements],
     }
 

@@ -584,6 +584,22 @@ class FixOut(ResponseModel):
         "'zero-velocity' (the Doppler speed stayed below zupt_speed_mps for zupt_epochs epochs, options "
         "zupt*); an empty list when none. null for other pipelines.",
     )
+    protection_level_m: float | None = Field(
+        None,
+        description="Horizontal protection level (m, site frame x/y): the horizontal position error exceeds it, "
+        "while integrity is not alarm, with at most the session's integrity_risk per epoch, even when one RSU is "
+        "faulty, however slowly its fault grew (rsu_imu: filter-based solution separation, one sub-filter per "
+        "RSU left out, docs/integrity.md). Null when integrity is unavailable.",
+    )
+    integrity: Literal["ok", "alarm", "unavailable"] = Field(
+        "unavailable",
+        description="ok: protection_level_m is within the session's alert_limit_m and every fault test passed or "
+        "its RSU was excluded; "
+        "alarm: do not use this fix for what needs integrity (the protection level exceeds the alert limit, a "
+        "fault was detected that could not be excluded, or the fix diverged); unavailable: no bound for this "
+        "fix (the first epochs of a session, or a pipeline without an integrity monitor: only rsu_imu has one "
+        "so far; v2v_coop, v2x_federated and gnss_tight report unavailable).",
+    )
     measurements: list[MeasurementUseOut] = Field(
         description="The batch's measurements of this epoch: used or why not (a revised fix lists only the "
         "late measurements this batch brought to its epoch). Measurements older than the lag window are "

@@ -297,7 +297,7 @@ def stepper_for(bank: InteractingMultipleModel) -> BankStepper:
     return BankStepper(bank)
 
 
-_KERNEL_MODULES = ("kernels_base", "kernels", "kernels_correct", "kernels_motion")
+_KERNEL_MODULES = ("kernels_base", "kernels", "kernels_correct", "kernels_motion", "kernels_integrity")
 
 
 def _kernel_dispatchers() -> list[Any]:
@@ -372,4 +372,12 @@ def warm_up() -> float:
         stepper.gate_distances(prediction.output, epoch)
         for averaged in (False, True):
             stepper.correct(prediction, dataclasses.replace(epoch, averaged=averaged))
+    from edgepos.core.kernels_integrity import bank_separations, bank_update
+
+    # the integrity bank's kernels (core.integrity_bank): a reference and one sub-filter, one RSU
+    bank_means, bank_covs = np.zeros((2, 6)), np.tile(np.eye(6), (2, 1, 1))
+    bank_update(
+        bank_means, bank_covs, np.array([[True], [False]]), np.array([[0.0, -3.875, 4.0, 1.4, 0.6, 0.01]])
+    )
+    bank_separations(bank_means, bank_covs, np.empty((1, 6)))
     return time.perf_counter() - started

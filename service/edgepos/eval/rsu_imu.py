@@ -7,6 +7,7 @@ The algorithms are in :mod:`rsu_imu_algorithms`, the runs and RMSE (eqs. 39-40) 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -29,6 +30,7 @@ from edgepos.eval.rsu_imu_montecarlo import PIPELINE, RunFailed, initial_state, 
 from edgepos.eval.rsu_imu_report import report, to_json, write_plots
 from edgepos.pipelines.registry import get_pipeline
 from edgepos.sim.delivery import add_delivery_arguments, delivery_from
+from edgepos.sim.faults import add_fault_arguments, faults_from
 from edgepos.sim.scenarios import rsu_imu_paper_scenario
 
 PROG = "edgepos eval rsu-imu"
@@ -63,6 +65,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=1,
         help="with --delay-fraction, the vehicle sends a batch every B epochs (default 1: each epoch as it happens)",
     )
+    add_fault_arguments(parser)
 
 
 def _error(message: str) -> None:
@@ -93,6 +96,7 @@ def run(args: argparse.Namespace) -> int:
         algorithms = with_overrides(select_algorithms(args.algorithms), overrides)
         _check_options(algorithms)
         late = _late_settings(args)
+        faults = faults_from(args)
         if args.plots is not None:
             plots.require_matplotlib()
     except (UnknownAlgorithm, plots.PlotsUnavailable, ValueError) as exc:
@@ -105,7 +109,7 @@ def run(args: argparse.Namespace) -> int:
 
     progress = Progress(args.runs, label="runs")
     try:
-        totals = monte_carlo(algorithms, args.runs, args.seed, workers, progress, late)
+        totals = monte_carlo(algorithms, args.runs, args.seed, workers, progress, late, faults)
     except RunFailed as exc:
         print(file=sys.stderr)
         _error(str(exc))
@@ -115,6 +119,11 @@ def run(args: argparse.Namespace) -> int:
     scenario = rsu_imu_paper_scenario()
     results_by_name = results(algorithms, totals)
     print(report(results_by_name, args.runs, args.seed, workers, late))
+    if faults is not None:
+        print(
+            f"\nfaults injected: in {faults.run_fraction:g} of runs one RSU's range +{faults.range_bias_m:g} m or bearing "
+            f"+{faults.bearing_offset_rad:g} rad for {faults.duration_s:g} s"
+        )
     if overrides:
         print(f"\noptions set on every algorithm (not the paper's defaults): {json.dumps(overrides)}")
     diverged = [name for name, r in results_by_name.items() if not math.isfinite(r.pos_mean + r.vel_mean)]
@@ -124,6 +133,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.json is not None:
             document = to_json(results_by_name, scenario, args.runs, args.seed, workers, late)
+            if faults is not None:
+                document["faults"] = dataclasses.asdict(faults)
             if overrides:
                 document["option_overrides"] = overrides
             Path(args.json).write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")

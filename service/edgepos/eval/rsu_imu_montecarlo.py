@@ -15,11 +15,13 @@ from typing import Any
 import numpy as np
 
 from edgepos.eval import montecarlo
+from edgepos.eval.integrity import IntegrityTally, tally
 from edgepos.eval.progress import Progress
 from edgepos.eval.rsu_imu_algorithms import Algorithm
 from edgepos.eval.rsu_imu_late import LateSettings, late_columns
 from edgepos.pipelines.base import Environment, InitialState, Pipeline
 from edgepos.pipelines.registry import get_pipeline
+from edgepos.sim.faults import RsuFaults, inject
 from edgepos.sim.scenarios import Scenario, rsu_imu_paper_scenario
 from edgepos.sim.sensors import environment, rsu_imu_epochs
 
@@ -37,6 +39,7 @@ class Sums:
     seconds: float
     epochs: int
     extra: dict[str, np.ndarray] = field(default_factory=dict)  # rsu_imu_late's columns, same shape
+    integrity: IntegrityTally = field(default_factory=IntegrityTally)
 
     def __add__(self, other: Sums) -> Sums:
         probabilities = None
@@ -49,6 +52,7 @@ class Sums:
             self.seconds + other.seconds,
             self.epochs + other.epochs,
             {name: values + other.extra[name] for name, values in self.extra.items()},
+            self.integrity + other.integrity,
         )
 
 
@@ -81,6 +85,7 @@ class _Context:
     algorithms: list[tuple[str, dict[str, Any]]]  # name, resolved options
     initial: InitialState
     late: LateSettings
+    faults: RsuFaults | None
 
 
 _CONTEXT: _Context | None = None
@@ -92,13 +97,15 @@ def initial_state(scenario: Scenario) -> InitialState:
     return InitialState(x=xp, y=yp, vx=xv, vy=yv, position_std=1.0, velocity_std=1.0)
 
 
-def _init_worker(specs: tuple[tuple[str, dict[str, Any]], ...], seed: int, late: LateSettings) -> None:
+def _init_worker(
+    specs: tuple[tuple[str, dict[str, Any]], ...], seed: int, late: LateSettings, faults: RsuFaults | None
+) -> None:
     global _CONTEXT
     scenario = rsu_imu_paper_scenario()
     pipeline = get_pipeline(PIPELINE)
     algorithms = [(name, pipeline.resolve_options(options)) for name, options in specs]
     _CONTEXT = _Context(
-        seed, scenario, environment(scenario), pipeline, algorithms, initial_state(scenario), late
+        seed, scenario, environment(scenario), pipeline, algorithms, initial_state(scenario), late, faults
     )
 
 
@@ -112,6 +119,11 @@ def _run_chunk(chunk: range) -> Totals:
     for run in chunk:
         rng = np.random.default_rng([context.seed, run])
         observations = [obs for epoch in rsu_imu_epochs(context.scenario, rng) for obs in epoch]
+        event = None
+        if context.faults is not None:  # its own generator: the noise of every run is as without faults
+            observations, event = inject(
+                observations, context.faults, np.random.default_rng([context.seed, run, 2])
+            )
         sums = {}
         for name, options in context.algorithms:
             state = context.pipeline.create(options, context.initial)
@@ -142,7 +154,15 @@ def _run_chunk(chunk: range) -> Totals:
                 context.late,
                 np.random.default_rng([context.seed, run, 1]),  # the same deliveries for every algorithm
             )
-            sums[name] = Sums(pos_sq, vel_sq, probabilities, elapsed, len(fixes), extra)
+            integrity = tally(
+                fixes,
+                np.column_stack([true_x, true_y]),
+                truth.t[1:],
+                observations,
+                options["alert_limit_m"],
+                event,
+            )
+            sums[name] = Sums(pos_sq, vel_sq, probabilities, elapsed, len(fixes), extra, integrity)
         run_totals = Totals(1, sums)
         totals = run_totals if totals is None else combine(totals, run_totals)
     assert totals is not None
@@ -156,9 +176,10 @@ def monte_carlo(
     workers: int,
     progress: Progress | None = None,
     late: LateSettings | None = None,
+    faults: RsuFaults | None = None,
 ) -> Totals:
     """Sums over ``runs`` runs, identical for any ``workers``; ``late``: the smoothing and late-delivery
-    columns to add (``rsu_imu_late``)."""
+    columns to add (``rsu_imu_late``); ``faults``: RSU faults to inject (``sim.faults``)."""
     specs = tuple((algorithm.name, algorithm.options) for algorithm in algorithms)
     return montecarlo.run_chunks(
         _run_chunk,
@@ -166,7 +187,7 @@ def monte_carlo(
         montecarlo.chunk_runs(runs),
         workers,
         _init_worker,
-        (specs, seed, late or LateSettings()),
+        (specs, seed, late or LateSettings(), faults),
         progress,
     )
 
@@ -181,6 +202,12 @@ class Result:
     probabilities: np.ndarray | None  # (K, models) mean over runs
     step_us: float
     extra: dict[str, float] = field(default_factory=dict)  # mean RMSE of each rsu_imu_late column
+    integrity: IntegrityTally = field(default_factory=IntegrityTally)
+
+    @property
+    def algorithm_alert_limit(self) -> float:
+        """The alert limit (m) the algorithm's sessions ran with."""
+        return float(get_pipeline(PIPELINE).resolve_options(self.algorithm.options)["alert_limit_m"])
 
     @property
     def pos_mean(self) -> float:
@@ -204,5 +231,6 @@ def results(algorithms: list[Algorithm], totals: Totals) -> dict[str, Result]:
             probabilities,
             sums.seconds / sums.epochs * 1e6,
             {name: float(np.mean(np.sqrt(values / totals.runs))) for name, values in sums.extra.items()},
+            sums.integrity,
         )
     return out

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from edgepos.eval import plots
+from edgepos.eval.integrity import stanford_plot
 from edgepos.eval.rsu_imu_algorithms import AVERAGE_SUFFIX, IMM_VARIANTS, PAPER, SINGLE_MODELS
 from edgepos.eval.rsu_imu_late import LateSettings
 from edgepos.eval.rsu_imu_montecarlo import Result
@@ -177,6 +178,12 @@ def report(
         note = late_note(late)
         if note:
             parts += ["Note: " + note]
+    parts += [
+        "",
+        "Integrity (protection levels against the truth; docs/integrity.md):",
+        "",
+        integrity_table(results_by_name),
+    ]
     comparisons = comparisons_table(results_by_name)
     if comparisons is not None:
         parts += [
@@ -217,11 +224,48 @@ def to_json(
                     f"{column}_rmse_{'m' if column.endswith('pos') else 'mps'}": value
                     for column, value in r.extra.items()
                 },
+                "integrity": r.integrity.summary(r.algorithm_alert_limit),
             }
             for name, r in results_by_name.items()
         },
         "notes": notes,
     }
+
+
+def integrity_table(results_by_name: dict[str, Result]) -> str:
+    """Availability, misleading and hazardous epochs, median protection level and detections per algorithm."""
+    rows = []
+    for name, r in results_by_name.items():
+        summary = r.integrity.summary(r.algorithm_alert_limit)
+        detected = (
+            f"{summary['detected_runs']} of {summary['faulty_runs']}" if summary["faulty_runs"] else "-"
+        )
+        delay = summary["mean_detection_delay_s"]
+        rows.append(
+            [
+                name,
+                f"{summary['availability']:.4f}",
+                f"{summary['misleading']}",
+                f"{summary['hazardous']}",
+                "-"
+                if summary["median_protection_level_m"] is None
+                else f"{summary['median_protection_level_m']:.3f}",
+                f"{summary['detections']} ({summary['false_exclusions']} false)",
+                detected,
+                "-" if delay is None else f"{delay:.2f}",
+            ]
+        )
+    header = [
+        "algorithm",
+        "availability",
+        "misleading",
+        "hazardous",
+        "median PL (m)",
+        "exclusions",
+        "faulty runs detected",
+        "mean delay (s)",
+    ]
+    return format_table(header, rows)
 
 
 def write_plots(results_by_name: dict[str, Result], scenario: Scenario, directory: Path) -> list[Path]:
@@ -267,6 +311,17 @@ def write_plots(results_by_name: dict[str, Result], scenario: Scenario, director
                     f"Model probabilities, {base}, RSU handling {handling} (cf. paper Fig. {fig})",
                     "mean model probability",
                     (0.0, 1.0),
+                )
+            )
+    for name, result in results_by_name.items():
+        if result.integrity.count("epochs"):
+            written.append(
+                stanford_plot(
+                    result.integrity,
+                    result.algorithm_alert_limit,
+                    f"Stanford diagram, {name}",
+                    directory
+                    / f"stanford_{name.lower().replace('-', '_').replace('/', '_').replace(' ', '_')}.png",
                 )
             )
     return written

@@ -218,6 +218,14 @@ class Fix:
     divergence: str | None = None
     """Set with status "diverged" (``pipelines.plausibility``): which physical bound the estimate broke
     and what was done (the session reset, or only reported); None otherwise."""
+    protection_level: float | None = None
+    """Horizontal protection level (m) at the session's integrity risk (``core.integrity_bank``); None when
+    the pipeline cannot bound its error (``integrity`` says so)."""
+    integrity: str = "unavailable"
+    """"ok" (protection level within the alert limit, no test failed or its RSU excluded), "alarm" (above
+    the alert limit, or a fault was detected and could not be excluded, or the fix diverged) or
+    "unavailable" (the pipeline has no bound for this fix: not yet initialised, or no integrity
+    monitor)."""
 
 
 @dataclass(frozen=True)

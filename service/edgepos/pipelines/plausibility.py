@@ -571,6 +571,7 @@ class _Judge:
                     dataclasses.replace(
                         fix,
                         status=DIVERGED,
+                        integrity="alarm",
                         divergence=f"{reason}; reported only (on_divergence=report): the filter goes on from this "
                         "estimate",
                     )
@@ -581,6 +582,7 @@ class _Judge:
                 dataclasses.replace(
                     fix,
                     status=DIVERGED,
+                    integrity="alarm",
                     divergence=f"{reason}; the session was reset (on_divergence=reset): it starts again from its "
                     "next measurements; do not use this estimate",
                 )

@@ -33,6 +33,8 @@ from edgepos.core.errors import NumericalError
 from edgepos.core.filters import GaussianFilter, make_filter
 from edgepos.core.filters.sigma_points import SigmaPointFilter
 from edgepos.core.imm import Gaussian, InteractingMultipleModel, StepResult
+from edgepos.core.integrity import UNAVAILABLE, Protection
+from edgepos.core.integrity_bank import SeparationBank
 from edgepos.core.motion import MotionModel, make_motion_model
 from edgepos.core.observations import GyroObservation, Observation, RsuObservation
 from edgepos.core.updates import RsuGyroEpoch
@@ -50,6 +52,7 @@ from edgepos.pipelines.base import (
     ensure_finite_fixes,
 )
 from edgepos.pipelines.epochs import group_by_time
+from edgepos.pipelines.integrity import bank_from_tail, monitored_update
 from edgepos.pipelines.options import resolve_options
 from edgepos.pipelines.rsu_imu_options import OPTION_SPECS, cross_check, parameter_problems
 
@@ -87,6 +90,7 @@ class _SessionState:
     means: np.ndarray  # (models, 8), zero where a model lacks a component
     covs: np.ndarray  # (models, 8, 8)
     options_key: str = ""  # the options as sorted JSON: the bank's cache key and their stored form
+    integrity_bank: SeparationBank | None = None  # the protection level's sub-filters (pipelines.integrity)
 
     def __post_init__(self) -> None:
         if not self.options_key:
@@ -122,7 +126,8 @@ class _SessionState:
             raise ValueError(f"state times are not finite: t={self.t!r}, filter_t={self.filter_t!r}")
         key = self.options_key.encode()
         header = _STATE.pack(_MAGIC, _VERSION, flags, t, filter_t, self.epochs, count, len(key))
-        return header + key + body
+        tail = b"" if self.integrity_bank is None else self.integrity_bank.to_bytes()
+        return header + key + body + tail
 
 
 class RsuImuPipeline(Pipeline):
@@ -312,7 +317,8 @@ def _decode(blob: bytes) -> _SessionState:
         )
     start = _STATE.size + key_length
     size = count * _FLOATS_PER_MODEL
-    if not count or flags > _ALL_FLAGS or len(blob) != start + 8 * size:
+    end = start + 8 * size
+    if not count or flags > _ALL_FLAGS or len(blob) < end:
         raise state_format.StateFormatError("rsu_imu state is truncated or corrupt")
     try:
         key = blob[_STATE.size : start].decode()
@@ -330,7 +336,12 @@ def _decode(blob: bytes) -> _SessionState:
         values[count : count * (1 + layout.FULL_DIM)].reshape(count, layout.FULL_DIM),
         values[count * (1 + layout.FULL_DIM) :].reshape(count, *_FULL_COV),
         key,
+        bank_from_tail(blob[end:]),
     )
+
+
+def _output(result: StepResult) -> Gaussian:
+    return result.output
 
 
 def _decode_json(blob: bytes) -> _SessionState:
@@ -401,6 +412,7 @@ def _step(
                 )
             return Fix(t=t, status="uninitialised", measurements=[uses[i] for i in sorted(uses)])
         _initialise(session, bank, candidates, gyros, observations, rsus)
+        session.integrity_bank = None
         for i in candidates + gyros:
             uses[i] = _used(i, observations[i].kind)
         output = bank.combine(session.means, session.covs, session.probabilities)
@@ -416,17 +428,38 @@ def _step(
         if len(kept_rsus) < len(candidates) or len(kept_gyros) < len(gyros):
             candidates, gyros = kept_rsus, kept_gyros
             measured = _epoch_measurements(candidates, gyros, observations, rsus, options)
+
+    last = [measured]  # the measurements of the last update (fault exclusion may filter the epoch again)
+
+    def correct(kept: list[int]) -> StepResult:
+        last[0] = (
+            measured if kept == candidates else _epoch_measurements(kept, gyros, observations, rsus, options)
+        )
+        return stepper.correct(prediction, last[0])
+
+    result, candidates, protection, session.integrity_bank = monitored_update(
+        session.integrity_bank,
+        t,
+        candidates,
+        observations,
+        rsus,
+        options,
+        uses,
+        prediction.output,
+        correct,
+        _output,
+    )
+    measured = last[0]
     for i in candidates + gyros:
         uses[i] = _used(i, observations[i].kind)
-
-    result: StepResult = stepper.correct(prediction, measured)
     coasting = not (candidates or gyros)
     session.means, session.covs = result.means, result.covs
     session.probabilities = result.probabilities
     session.filter_t = t
     nis = None if coasting else float(result.probabilities @ result.nis)
     dof = 0 if coasting else measured.dim
-    return _fix(t, "predicted" if coasting else "tracking", result.output, session, bank, uses, nis, dof)
+    status = "predicted" if coasting else "tracking"
+    return _fix(t, status, result.output, session, bank, uses, nis, dof, protection)
 
 
 @functools.lru_cache(maxsize=4096)
@@ -602,6 +635,7 @@ def _fix(
     uses: dict[int, MeasurementUse],
     nis: float | None,
     dof: int,
+    protection: Protection | None = None,
 ) -> Fix:
     components = tuple(output.components)
     x_index, y_index, kinematic_flat, names = _fix_layout(components)
@@ -631,6 +665,8 @@ def _fix(
         nis=nis,
         nis_dof=dof,
         measurements=[uses[i] for i in sorted(uses)],
+        protection_level=None if protection is None else protection.level,
+        integrity=UNAVAILABLE if protection is None else protection.state,
     )
 
 

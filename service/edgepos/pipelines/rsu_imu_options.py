@@ -17,6 +17,7 @@ from edgepos.pipelines.base import (
     OptionSpec,
     Problem,
 )
+from edgepos.pipelines.integrity import INTEGRITY_SPECS
 
 #: Standard deviations of the components an initial state does not give (acceleration m/s^2,
 #: heading rad, turn rate rad/s).
@@ -138,6 +139,7 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         0.01,
         1000.0,
     ),
+    *INTEGRITY_SPECS,
 )
 
 

@@ -1,0 +1,323 @@
+"""Filter-based solution separation: a bank of cheap sub-filters, one per RSU-excluded hypothesis.
+
+An epoch-wise test on the posterior (``core.integrity.protect``) takes the prior as fault-free, so a
+fault that grows into the estimate over several epochs below its threshold escapes it. Here the
+hypotheses run over time (Brenner, "Integrated GPS/inertial fault detection availability",
+Navigation 43(2), 1996; Joerger and Pervan, "Kalman filter-based integrity monitoring against sensor
+faults", JGCD 36(2), 2013; ARAIM's multiple hypothesis solution separation, Blanch et al., ION GNSS
+2012): a reference filter uses every RSU the pipeline uses, and sub-filter i the same measurements
+except RSU i's, from the epoch RSU i was first heard. Under hypothesis i (RSU i faulty, all else
+sound) sub-filter i never saw the fault, however slowly it grew.
+
+* Each filter is a linear constant-acceleration (white-jerk) model on (x, vx, ax, y, vy, ay) in the
+  site frame, with range and bearing linearised at its own prediction (an EKF): one batched numpy
+  update for the whole bank, the RSU a sub-filter leaves out entering with zero rows (no gain, exact).
+* Detection: the separation d_i = x_i - x_0 of sub-filter i from the reference has covariance
+  P_i - P_0 without a fault (the reference is the efficient estimate of a superset of the data), so
+  q_i = d_i^T (P_i - P_0)^-1 d_i is chi-square with 2 degrees of freedom; a fault in RSU i is
+  detected when q_i exceeds the (1 - P_FA / N) quantile.
+* Protection level of the reported fix x (any estimator, here the pipeline's IMM): under hypothesis
+  i, |x - x_true| <= |x - x_i| + |x_i - x_true| and x_i is fault-free, so
+  PL_i = |x - x_i| + R(P_i, p_i) with p_i = (risk / 2 / N) / P_fault, and
+  PL = max(R(P, risk / 2), |x - x_0| + R(P_0, risk / 2), max_i PL_i), R(C, p) the exact radial bound
+  of ``core.integrity`` (the first two: fault-free, through the fix's and through the reference's
+  covariance, both taken so that neither needs to be trusted alone).
+  The union bound gives P(error > PL) <= risk / 2 + sum_i P_fault p_i = risk.
+
+A failed test excludes the RSU for a while (from the pipeline's filter and the whole bank). No
+sub-filter is dropped for it: under any single fault the sub-filter that never saw it is still there,
+so the bound holds even when the test pointed at the wrong RSU (with three RSUs a fault in one also
+moves the others' sub-filters), and the fix is in alarm only for a protection level above the alert
+limit or a failed test that could not be acted on. A sub-filter is dropped once RSU i is no longer used and its data no longer weigh on the reference
+(its position covariance within ``CONVERGED`` of the reference's): what RSU i contributed to the
+estimate then is below a percent of its own error. Plain arrays, so a session stores the bank as
+bytes and reads it back bit for bit (``to_bytes`` / ``from_bytes``).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import struct
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from edgepos.core.integrity import (
+    ALARM,
+    OK,
+    UNAVAILABLE,
+    IntegrityBudget,
+    Protection,
+    radial_bound,
+    test_threshold,
+)
+
+#: State order of every filter: x, vx, ax, y, vy, ay (site frame, m, m/s, m/s^2).
+DIM = 6
+_POS = [0, 3]
+#: A sub-filter whose position covariance exceeds the reference's by less than this fraction (trace)
+#: carries no weight any more and is dropped when its RSU is not in use.
+CONVERGED = 0.01
+_HEADER = struct.Struct("<4sBHd")
+_MAGIC = b"EPIB"
+_VERSION = 1
+
+
+@dataclass(frozen=True)
+class RangeBearing:
+    """One RSU's measurement of an epoch: range (m) and bearing from the RSU to the vehicle (rad, from
+    the site x axis), with their standard deviations."""
+
+    rsu_id: str
+    rsu_x: float
+    rsu_y: float
+    range: float
+    bearing: float
+    range_std: float
+    bearing_std: float
+
+
+@dataclass
+class SeparationBank:
+    """The reference filter (row 0) and one sub-filter per excluded RSU (rows 1..), in plain arrays."""
+
+    ids: list[str]  # ids[0] == "" (the reference); ids[i]: the RSU sub-filter i leaves out
+    means: np.ndarray  # (K, 6)
+    covs: np.ndarray  # (K, 6, 6)
+    t: float
+    excluded: dict[str, float] = field(default_factory=dict)  # RSU id -> time (s) its exclusion ends
+
+    @staticmethod
+    def start(mean: np.ndarray, cov: np.ndarray, t: float) -> SeparationBank:
+        """A bank with only the reference, from an estimate (x, vx, ax, y, vy, ay) and its covariance."""
+        return SeparationBank(
+            [""], np.array(mean, dtype=float)[None, :], np.array(cov, dtype=float)[None, :, :], t
+        )
+
+    def predict(self, t: float, jerk_density: float) -> None:
+        """Every filter to time ``t`` with white jerk of spectral density ``jerk_density`` (m^2/s^5) per axis."""
+        dt = t - self.t
+        if dt <= 0.0:
+            return
+        transition, noise = _transition(dt, jerk_density)
+        self.means = self.means @ transition.T
+        self.covs = transition @ self.covs @ transition.T + noise
+        self.t = t
+
+    def spawn(self, rsu_ids: Sequence[str]) -> None:
+        """A sub-filter for every RSU in ``rsu_ids`` without one: a copy of the reference, which has not
+        used that RSU yet (call before the update that first uses it)."""
+        new = [rsu for rsu in dict.fromkeys(rsu_ids) if rsu not in self.ids]
+        if not new:
+            return
+        self.ids = self.ids + new
+        self.means = np.concatenate([self.means, np.repeat(self.means[:1], len(new), axis=0)])
+        self.covs = np.concatenate([self.covs, np.repeat(self.covs[:1], len(new), axis=0)])
+
+    def update(self, measurements: Sequence[RangeBearing]) -> None:
+        """One joint EKF update of every filter; sub-filter i skips RSU ids[i]'s rows (on the compiled
+        kernel when the kernels are enabled, ``core.kernels_integrity``; else, or if it fails, numpy)."""
+        if not measurements:
+            return
+        if _compiled():
+            from edgepos.core.kernels_integrity import bank_update
+
+            keep = np.array([[m.rsu_id != rsu for m in measurements] for rsu in self.ids], dtype=np.bool_)
+            data = np.array(
+                [(m.rsu_x, m.rsu_y, m.range, m.bearing, m.range_std, m.bearing_std) for m in measurements]
+            )
+            means, covs = np.ascontiguousarray(self.means), np.ascontiguousarray(self.covs)
+            if bank_update(means, covs, keep, data) == 0:
+                self.means, self.covs = means, covs
+                return
+        self.update_reference(measurements)
+
+    def update_reference(self, measurements: Sequence[RangeBearing]) -> None:
+        """The numpy form of :meth:`update` (the reference the compiled kernel is tested against)."""
+        if not measurements:
+            return
+        rows = 2 * len(measurements)
+        data = np.array(
+            [(m.rsu_x, m.rsu_y, m.range, m.bearing, m.range_std, m.bearing_std) for m in measurements]
+        )
+        # every filter linearised at the reference's prediction: the bank is then one linear system, in
+        # which the separations' covariances P_i - P_0 hold exactly. H acts on x and y only.
+        dx = self.means[0, 0] - data[:, 0]
+        dy = self.means[0, 3] - data[:, 1]
+        distance = np.maximum(np.hypot(dx, dy), 1e-3)
+        r2 = distance * distance
+        h_xy = np.empty((rows, 2))  # rows: range, bearing of each RSU; columns: x, y
+        h_xy[0::2, 0], h_xy[0::2, 1] = dx / distance, dy / distance
+        h_xy[1::2, 0], h_xy[1::2, 1] = -dy / r2, dx / r2
+        residual = np.empty(rows)  # z - h(x_0)
+        residual[0::2] = data[:, 2] - distance
+        residual[1::2] = np.remainder(data[:, 3] - np.arctan2(dy, dx) + math.pi, math.tau) - math.pi
+        # sub-filter i leaves RSU ids[i]'s rows out: zero rows of H and of the innovation add nothing
+        keep = np.repeat(np.array([[m.rsu_id != rsu for m in measurements] for rsu in self.ids]), 2, axis=1)
+        offsets = self.means[:, _POS] - self.means[0, _POS]  # (K, 2)
+        z = (residual[None, :] - offsets @ h_xy.T) * keep  # z - h(x_0) - H (x_i - x_0)
+        h = h_xy[None, :, :] * keep[:, :, None]  # (K, rows, 2)
+        pht = self.covs[:, :, _POS] @ h.transpose(0, 2, 1)  # P H^T (K, 6, rows)
+        s = h @ pht[:, _POS, :]
+        s[:, range(rows), range(rows)] += np.square(data[:, 4:6]).reshape(rows)
+        gain = np.linalg.solve(s, pht.transpose(0, 2, 1)).transpose(0, 2, 1)  # P H^T S^-1 (S symmetric)
+        self.means = self.means + np.einsum("kij,kj->ki", gain, z)
+        covs = self.covs - gain @ pht.transpose(0, 2, 1)
+        self.covs = 0.5 * (covs + covs.transpose(0, 2, 1))
+
+    def prune(self, in_use: Sequence[str]) -> None:
+        """Drop the sub-filters whose RSU is not in ``in_use`` and no longer weighs on the reference."""
+        traces = self.covs[:, 0, 0] + self.covs[:, 3, 3]
+        weighs = traces - traces[0] > CONVERGED * traces[0]
+        keep = [i for i, rsu in enumerate(self.ids) if i == 0 or rsu in in_use or weighs[i]]
+        if len(keep) < len(self.ids):
+            self.ids = [self.ids[i] for i in keep]
+            self.means, self.covs = self.means[keep], self.covs[keep]
+
+    def exclude(self, rsu_id: str, until: float) -> None:
+        """RSU ``rsu_id`` failed its test: the pipeline and the bank leave it out until ``until`` (s). Every
+        sub-filter stays, its own too (it never saw the fault), so the protection level keeps bounding what
+        the fault left in the estimate until that has faded, even if the test pointed at the wrong RSU."""
+        self.excluded[rsu_id] = until
+
+    def excluded_now(self, t: float) -> set[str]:
+        """The RSUs left out at time ``t``; forgets the exclusions that have ended."""
+        for rsu in [rsu for rsu, until in self.excluded.items() if until <= t]:
+            del self.excluded[rsu]
+        return set(self.excluded)
+
+    def separations(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per sub-filter: sqrt(q_i) (chi with 2 dof without a fault; 0 while P_i - P_0 is singular, as right
+        after it starts), its position (K-1, 2) and position covariance as (K-1, 3) rows (xx, xy, yy)."""
+        if _compiled():
+            from edgepos.core.kernels_integrity import bank_separations
+
+            out = np.empty((len(self.ids) - 1, 6))
+            bank_separations(np.ascontiguousarray(self.means), np.ascontiguousarray(self.covs), out)
+            return out[:, 0], out[:, 1:3], out[:, 3:6]
+        return self.separations_reference()
+
+    def separations_reference(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The numpy form of :meth:`separations`."""
+        px, py = self.means[:, 0], self.means[:, 3]
+        xx, xy, yy = self.covs[:, 0, 0], self.covs[:, 0, 3], self.covs[:, 3, 3]
+        dx, dy = px[1:] - px[0], py[1:] - py[0]
+        a, b, c = xx[1:] - xx[0], xy[1:] - xy[0], yy[1:] - yy[0]
+        det = a * c - b * b
+        regular = (a > 0.0) & (c > 0.0) & (det > 1e-12 * a * c)
+        q = (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / np.where(regular, det, 1.0)
+        statistic = np.sqrt(np.maximum(np.where(regular, q, 0.0), 0.0))
+        return statistic, np.column_stack([px[1:], py[1:]]), np.column_stack([xx[1:], xy[1:], yy[1:]])
+
+    def to_bytes(self) -> bytes:
+        """Little-endian: magic, version, K, t; the exclusions (count, then uint16 length, end time, UTF-8 id);
+        then K ids (uint16 length + UTF-8), means and covariances."""
+        parts = [_HEADER.pack(_MAGIC, _VERSION, len(self.ids), self.t), struct.pack("<H", len(self.excluded))]
+        for rsu, until in self.excluded.items():
+            raw = rsu.encode()
+            parts.append(struct.pack("<Hd", len(raw), until) + raw)
+        for rsu in self.ids:
+            raw = rsu.encode()
+            parts.append(struct.pack("<H", len(raw)) + raw)
+        parts.append(np.asarray(self.means, dtype="<f8").tobytes())
+        parts.append(np.asarray(self.covs, dtype="<f8").tobytes())
+        return b"".join(parts)
+
+    @staticmethod
+    def from_bytes(blob: bytes) -> SeparationBank:
+        """The bank ``to_bytes`` wrote; ValueError when ``blob`` is not one."""
+        try:
+            magic, version, count, t = _HEADER.unpack_from(blob)
+            if magic != _MAGIC or version != _VERSION or count < 1:
+                raise ValueError("not an integrity bank")
+            (excluded_count,) = struct.unpack_from("<H", blob, _HEADER.size)
+            offset = _HEADER.size + 2
+            excluded = {}
+            for _ in range(excluded_count):
+                length, until = struct.unpack_from("<Hd", blob, offset)
+                excluded[blob[offset + 10 : offset + 10 + length].decode()] = until
+                offset += 10 + length
+            ids = []
+            for _ in range(count):
+                (length,) = struct.unpack_from("<H", blob, offset)
+                ids.append(blob[offset + 2 : offset + 2 + length].decode())
+                offset += 2 + length
+            floats = count * (DIM + DIM * DIM)
+            if len(blob) != offset + 8 * floats:
+                raise ValueError("integrity bank is truncated")
+            values = np.frombuffer(blob, dtype="<f8", count=floats, offset=offset).astype(float)
+        except (struct.error, UnicodeDecodeError) as error:
+            raise ValueError(f"integrity bank is corrupt: {error!r}") from None
+        if not np.isfinite(values).all() or not math.isfinite(t):
+            raise ValueError("integrity bank is not finite")
+        means = values[: count * DIM].reshape(count, DIM)
+        return SeparationBank(ids, means, values[count * DIM :].reshape(count, DIM, DIM), t, excluded)
+
+
+@functools.lru_cache(maxsize=1)
+def _compiled() -> bool:
+    from edgepos.core.compiled import compiled_enabled
+
+    return compiled_enabled()
+
+
+@functools.lru_cache(maxsize=64)
+def _transition(dt: float, jerk_density: float) -> tuple[np.ndarray, np.ndarray]:
+    """F and Q of the constant-acceleration model over ``dt`` on (x, vx, ax, y, vy, ay) (read only)."""
+    f = np.array([[1.0, dt, 0.5 * dt * dt], [0.0, 1.0, dt], [0.0, 0.0, 1.0]])
+    q = jerk_density * np.array(
+        [
+            [dt**5 / 20.0, dt**4 / 8.0, dt**3 / 6.0],
+            [dt**4 / 8.0, dt**3 / 3.0, dt**2 / 2.0],
+            [dt**3 / 6.0, dt**2 / 2.0, dt],
+        ]
+    )
+    transition = np.zeros((DIM, DIM))
+    noise = np.zeros((DIM, DIM))
+    transition[:3, :3] = transition[3:, 3:] = f
+    noise[:3, :3] = noise[3:, 3:] = q
+    transition.flags.writeable = noise.flags.writeable = False
+    return transition, noise
+
+
+def protect_with_bank(
+    position: Sequence[float] | np.ndarray,
+    position_cov: np.ndarray,
+    bank: SeparationBank,
+    budget: IntegrityBudget,
+) -> tuple[Protection, str | None]:
+    """Protection level of the fix at ``position`` (x, y) with covariance ``position_cov`` (2x2) from the
+    bank's hypotheses (see the module docstring), its state by the alert limit, and the RSU not excluded
+    already whose test failed worst (None if none: the caller excludes it or raises the alarm)."""
+    covariance = (float(position_cov[0, 0]), float(position_cov[0, 1]), float(position_cov[1, 1]))
+    if covariance[0] <= 0.0 or covariance[2] <= 0.0 or covariance[0] * covariance[2] <= covariance[1] ** 2:
+        return Protection(None, UNAVAILABLE), None
+    x, y = float(position[0]), float(position[1])
+    fault_free = 0.5 * budget.integrity_risk
+    reference = bank.covs[0]
+    reference_cov = (float(reference[0, 0]), float(reference[0, 3]), float(reference[3, 3]))
+    offset = math.hypot(x - float(bank.means[0, 0]), y - float(bank.means[0, 3]))
+    # the fault-free bound of the fix's own covariance, and through the reference (the fix within
+    # |x - x_0| of an estimate whose covariance is known to be the linear filter's)
+    level = max(radial_bound(covariance, fault_free), offset + radial_bound(reference_cov, fault_free))
+    hypotheses = bank.separations()
+    count = len(bank.ids) - 1
+    threshold = test_threshold(budget.false_alarm_probability, count) if count else 0.0
+    missed = 0.5 * budget.integrity_risk / max(count, 1) / budget.fault_probability
+    worst: tuple[float, int] | None = None
+    statistics, positions, covariances = hypotheses
+    offsets = np.hypot(positions[:, 0] - x, positions[:, 1] - y).tolist()
+    for index, (statistic, subset) in enumerate(zip(statistics.tolist(), covariances.tolist(), strict=True)):
+        failed = statistic > threshold and bank.ids[index + 1] not in bank.excluded
+        if failed and (worst is None or statistic > worst[0]):
+            worst = (statistic, index)
+        level = max(level, offsets[index] + radial_bound(tuple(subset), missed))
+    if not math.isfinite(level):
+        return Protection(None, UNAVAILABLE), None
+    state = ALARM if level > budget.alert_limit else OK
+    if worst is not None:
+        protection = Protection(level, state, faulty=worst[1], statistic=worst[0], threshold=threshold)
+        return protection, bank.ids[worst[1] + 1]
+    return Protection(level, state), None

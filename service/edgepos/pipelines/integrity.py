@@ -1,0 +1,248 @@
+"""Integrity options of a session and the RSU monitor of the ``rsu_imu`` pipeline (``core.integrity_bank``).
+
+The options size the protection level every fix carries: the integrity risk per epoch, the alert
+limit that puts a fix in alarm, the prior probability that one RSU is faulty, the false-alarm
+probability the fault tests are sized to, whether and for how long a detected RSU is excluded, and
+the sub-filters' process noise. Their defaults and the reasons for them are in docs/integrity.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import numpy as np
+
+from edgepos.core import layout
+from edgepos.core import state as state_format
+from edgepos.core.imm import Gaussian
+from edgepos.core.integrity import (
+    ALARM,
+    IntegrityBudget,
+    Protection,
+)
+from edgepos.core.integrity_bank import RangeBearing, SeparationBank, protect_with_bank
+from edgepos.core.observations import Observation, RsuObservation
+from edgepos.pipelines.base import MeasurementUse, OptionSpec, Rsu
+
+#: Default jerk spectral density of the sub-filters (m^2/s^5), chosen on seeds 0-99 of the RSU + IMU
+#: scenario so that their position NEES is consistent (docs/integrity.md).
+JERK_PSD = 10.0
+
+INTEGRITY_SPECS: tuple[OptionSpec, ...] = (
+    OptionSpec(
+        "integrity_risk",
+        "number",
+        1e-5,
+        "Integrity risk per epoch: the probability that the horizontal error exceeds protection_level_m while "
+        "the fix is not in alarm, faults included.",
+        1e-9,
+        0.1,
+    ),
+    OptionSpec(
+        "alert_limit_m",
+        "number",
+        1.5,
+        "Alert limit (m): a fix whose protection level exceeds it is in alarm (1.5 m: half a lane, what lane "
+        "keeping tolerates).",
+        0.0,
+        1e4,
+    ),
+    OptionSpec(
+        "fault_probability",
+        "number",
+        1e-4,
+        "Prior probability that one RSU's range and bearing are faulty in an epoch (a wrong surveyed position, "
+        "a reflection, a biased clock); sizes each fault hypothesis' share of the integrity risk.",
+        1e-9,
+        0.1,
+    ),
+    OptionSpec(
+        "false_alarm_probability",
+        "number",
+        1e-4,
+        "Probability per epoch that a fault-free epoch fails a fault test (the tests' thresholds): lower "
+        "means fewer needless exclusions and a larger protection level.",
+        1e-9,
+        0.1,
+    ),
+    OptionSpec(
+        "fault_exclusion",
+        "boolean",
+        True,
+        "Exclude the RSU a failed fault test points at and filter the epoch again without it (one RSU per "
+        "epoch); false: only report the alarm.",
+    ),
+    OptionSpec(
+        "fault_exclusion_s",
+        "number",
+        5.0,
+        "How long (s) an RSU found faulty stays excluded before it is tried again.",
+        0.0,
+        3600.0,
+    ),
+    OptionSpec(
+        "integrity_jerk_psd",
+        "number",
+        JERK_PSD,
+        "Spectral density (m^2/s^5) of the white jerk of the constant-acceleration sub-filters the protection "
+        "level runs one per RSU hypothesis (core.integrity_bank); larger is more conservative.",
+        1e-6,
+        1e4,
+    ),
+)
+
+
+@dataclass(frozen=True)
+class RsuIntegrity:
+    """The session's integrity budget and whether a faulty RSU is excluded."""
+
+    budget: IntegrityBudget
+    exclusion: bool
+
+    @staticmethod
+    def of(options: Mapping[str, Any]) -> RsuIntegrity:
+        """The monitor for a session's options (cached: sessions share a handful of option sets)."""
+        return _monitor(
+            options["integrity_risk"],
+            options["false_alarm_probability"],
+            options["fault_probability"],
+            options["alert_limit_m"],
+            bool(options["fault_exclusion"]),
+        )
+
+
+@functools.lru_cache(maxsize=256)
+def _monitor(
+    risk: float,
+    false_alarm: float,
+    fault: float,
+    alert_limit: float,
+    exclusion: bool,
+) -> RsuIntegrity:
+    return RsuIntegrity(IntegrityBudget(risk, false_alarm, fault, alert_limit), exclusion)
+
+
+EXCLUDED = "excluded by fault detection"
+_Result = TypeVar("_Result")
+
+
+def _rsu_id(index: int, observations: Sequence[Observation]) -> str:
+    observation = observations[index]
+    assert isinstance(observation, RsuObservation)  # candidates are RSU observations
+    return observation.rsu_id
+
+
+def _position(output: Gaussian) -> tuple[np.ndarray, np.ndarray]:
+    """The horizontal position (2,) and its covariance (2, 2) of a fix's Gaussian."""
+    components = list(output.components)
+    index = [components.index(layout.XP), components.index(layout.YP)]
+    return output.mean[index], output.cov[np.ix_(index, index)]
+
+
+def bank_from_tail(tail: bytes) -> SeparationBank | None:
+    """The integrity bank stored after a session's filter arrays (none in states written before it)."""
+    if not tail:
+        return None
+    try:
+        return SeparationBank.from_bytes(tail)
+    except ValueError as error:
+        raise state_format.StateFormatError(f"rsu_imu state is corrupt: {error}") from None
+
+
+def start_bank(output: Gaussian, t: float) -> SeparationBank:
+    """A bank whose reference starts at the fix ``output`` (its x, vx, ax, y, vy, ay; an acceleration the
+    models lack gets zero with a 3 m/s^2 std)."""
+    components = list(output.components)
+    mean = np.zeros(6)
+    cov = np.diag(np.full(6, 9.0))
+    present = [(k, components.index(c)) for k, c in enumerate(layout.KINEMATIC) if c in components]
+    target = [k for k, _ in present]
+    source = [j for _, j in present]
+    mean[target] = output.mean[source]
+    cov[np.ix_(target, target)] = output.cov[np.ix_(source, source)]
+    return SeparationBank.start(mean, cov, t)
+
+
+def _measurements(
+    candidates: Sequence[int],
+    observations: Sequence[Observation],
+    rsus: Sequence[Rsu | None],
+    options: Mapping[str, Any],
+) -> list[RangeBearing]:
+    out = []
+    for i in candidates:
+        observation, rsu = observations[i], rsus[i]
+        assert isinstance(observation, RsuObservation) and rsu is not None
+        out.append(
+            RangeBearing(
+                observation.rsu_id,
+                rsu.x,
+                rsu.y,
+                observation.range,
+                observation.bearing,
+                rsu.range_std or options["range_std"],
+                rsu.bearing_std or options["bearing_std"],
+            )
+        )
+    return out
+
+
+def monitored_update(
+    bank: SeparationBank | None,
+    t: float,
+    candidates: list[int],
+    observations: Sequence[Observation],
+    rsus: Sequence[Rsu | None],
+    options: Mapping[str, Any],
+    uses: dict[int, MeasurementUse],
+    prior: Gaussian,
+    correct: Callable[[list[int]], _Result],
+    output_of: Callable[[_Result], Gaussian],
+) -> tuple[_Result, list[int], Protection, SeparationBank]:
+    """One epoch's update with fault detection and exclusion and the fix's protection level.
+
+    ``correct(candidates)`` runs the pipeline's update with those RSUs. The RSUs excluded earlier are left
+    out; an RSU in use whose test over time (``core.integrity_bank``) fails is excluded for
+    ``fault_exclusion_s`` and the epoch filtered again without it; a failed test that cannot be acted on
+    (exclusion off, the only RSU, or an RSU not in use) puts the fix in alarm. Returns the update, the RSUs
+    it used, the protection and the bank (started from the pipeline's ``prior`` of this epoch when the
+    session has none yet)."""
+    monitor = RsuIntegrity.of(options)
+    if bank is not None:
+        held = bank.excluded_now(t)
+        for i in [i for i in candidates if _rsu_id(i, observations) in held]:
+            until = bank.excluded[_rsu_id(i, observations)]
+            uses[i] = MeasurementUse(i, "rsu", False, f"{EXCLUDED}: held out until t={until:.2f} s")
+            candidates = [j for j in candidates if j != i]
+    result = correct(candidates)
+    if bank is None:
+        bank = start_bank(prior, t)
+    bank.predict(t, options["integrity_jerk_psd"])
+    measurements = _measurements(candidates, observations, rsus, options)
+    bank.spawn([m.rsu_id for m in measurements])
+    bank.update(measurements)
+    position, position_cov = _position(output_of(result))
+    protection, faulty = protect_with_bank(position, position_cov, bank, monitor.budget)
+    in_use = [m.rsu_id for m in measurements]
+    if faulty is not None and monitor.exclusion and faulty in in_use and len(candidates) > 1:
+        index = candidates[in_use.index(faulty)]
+        uses[index] = MeasurementUse(
+            index,
+            "rsu",
+            False,
+            f"{EXCLUDED}: filter separation {protection.statistic:.1f} sigma > {protection.threshold:.1f}",
+        )
+        candidates = [i for i in candidates if i != index]
+        result = correct(candidates)
+        bank.exclude(faulty, t + options["fault_exclusion_s"])
+        in_use.remove(faulty)
+        position, position_cov = _position(output_of(result))
+        protection, faulty = protect_with_bank(position, position_cov, bank, monitor.budget)
+    if faulty is not None:  # a failed test not acted on: the fix is not to be trusted
+        protection = dataclasses.replace(protection, state=ALARM)
+    bank.prune(in_use)
+    return result, candidates, protection, bank

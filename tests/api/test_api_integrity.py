@@ -1,0 +1,39 @@
+"""Integrity on the wire: every rsu_imu fix carries protection_level_m and integrity; bad integrity
+options are 422s naming the option."""
+
+from __future__ import annotations
+
+import pytest
+from apihelp import ADMIN, assert_error, batch_observations, open_session, wire
+
+
+@pytest.mark.parametrize(
+    ("options", "field"),
+    [
+        ({"integrity_risk": 0.5}, "options.integrity_risk"),
+        ({"integrity_risk": 1e-12}, "options.integrity_risk"),
+        ({"alert_limit_m": -1.0}, "options.alert_limit_m"),
+        ({"fault_probability": 0.2}, "options.fault_probability"),
+        ({"false_alarm_probability": 0.0}, "options.false_alarm_probability"),
+        ({"fault_exclusion_s": -1.0}, "options.fault_exclusion_s"),
+        ({"integrity_jerk_psd": 0.0}, "options.integrity_jerk_psd"),
+    ],
+)
+def test_integrity_options_out_of_bounds_are_422_naming_the_option(client, options, field):
+    response = client.post(
+        "/v1/sessions", json={"vehicle_id": "car-9", "pipeline": "rsu_imu", "options": options}, headers=ADMIN
+    )
+    error = assert_error(response, 422, "invalid_request")
+    assert field in {p["field"] for p in error["problems"]}, error
+
+
+def test_fixes_carry_a_protection_level_within_the_alert_limit(client):
+    session_id, token = open_session(client, pipeline="rsu_imu")
+    body = {"seq": 1, "measurements": [wire(o) for o in batch_observations(0, 60)]}
+    response = client.post(f"/v1/sessions/{session_id}/batches", json=body, headers=token)
+    assert response.status_code == 200, response.text
+    fixes = response.json()["fixes"]
+    assert fixes[0]["integrity"] == "unavailable" and fixes[0]["protection_level_m"] is None
+    settled = fixes[20:]
+    assert all(f["integrity"] == "ok" for f in settled), [f["integrity"] for f in settled]
+    assert all(0.0 < f["protection_level_m"] <= 1.5 for f in settled)

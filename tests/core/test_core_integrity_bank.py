@@ -1,0 +1,117 @@
+"""Filter-based solution separation (core.integrity_bank): exact state bytes, chi-square separations
+without a fault, a slowly growing fault detected, and the protection level against Monte Carlo."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from edgepos.core.integrity import OK, IntegrityBudget
+from edgepos.core.integrity_bank import RangeBearing, SeparationBank, protect_with_bank
+
+RSUS = {"A": (0.0, 30.0), "B": (60.0, -25.0), "C": (120.0, 20.0)}
+RANGE_STD, BEARING_STD = 0.6, math.radians(0.5)
+PERIOD = 0.05
+
+
+def _drive(seed: int, epochs: int, ramp: tuple[str, float, int] | None = None, risk: float = 1e-5):
+    """A vehicle at 15 m/s along x past three RSUs, the bank over ``epochs`` epochs; ``ramp``: (RSU, range
+    growth m per epoch, first epoch) of a fault. Yields per epoch the reference error, the protection of
+    the reference's own position and the RSU whose test failed."""
+    rng = np.random.default_rng(seed)
+    budget = IntegrityBudget(risk, 1e-4, 1e-2, 10.0)
+    bank = SeparationBank.start(
+        np.array([0.0, 15.0, 0.0, 0.0, 0.0, 0.0]), np.diag([1.0, 1.0, 9.0, 1.0, 1.0, 9.0]), 0.0
+    )
+    for k in range(1, epochs + 1):
+        t = k * PERIOD
+        truth = np.array([15.0 * t, 0.0])
+        measurements = []
+        for rsu, (x, y) in RSUS.items():
+            dx, dy = truth[0] - x, truth[1] - y
+            distance = math.hypot(dx, dy) + rng.normal(0.0, RANGE_STD)
+            if ramp is not None and rsu == ramp[0] and k >= ramp[2]:
+                distance += ramp[1] * (k - ramp[2])
+            bearing = math.atan2(dy, dx) + rng.normal(0.0, BEARING_STD)
+            measurements.append(RangeBearing(rsu, x, y, distance, bearing, RANGE_STD, BEARING_STD))
+        bank.predict(t, 10.0)
+        bank.spawn([m.rsu_id for m in measurements])
+        bank.update(measurements)
+        position = bank.means[0, [0, 3]]
+        protection, faulty = protect_with_bank(position, bank.covs[0][np.ix_([0, 3], [0, 3])], bank, budget)
+        yield float(np.hypot(*(position - truth))), protection, faulty, bank
+
+
+def test_bank_bytes_round_trip_exactly():
+    *_, (_, _, _, bank) = _drive(1, 30)
+    bank.exclude("B", 7.25)
+    blob = bank.to_bytes()
+    again = SeparationBank.from_bytes(blob)
+    assert again.to_bytes() == blob
+    assert again.ids == bank.ids and again.excluded == {"B": 7.25} and again.t == bank.t
+    assert np.array_equal(again.means, bank.means) and np.array_equal(again.covs, bank.covs)
+    with pytest.raises(ValueError):
+        SeparationBank.from_bytes(blob[:-1])
+
+
+def test_separations_are_chi_square_with_two_dof_without_a_fault():
+    squares = []
+    for seed in range(8):
+        for k, (_, _, _, bank) in enumerate(_drive(seed, 200)):
+            if k >= 20:
+                squares.extend(bank.separations()[0] ** 2)
+    squares = np.array(squares)
+    assert squares.size > 1000
+    assert 1.6 < squares.mean() < 2.4  # chi-square 2 dof: mean 2 (the samples are correlated in time)
+    assert np.mean(squares > 9.21) < 0.02  # its 99 % quantile
+
+
+def test_a_slowly_growing_range_fault_is_detected_and_bounded_until_then():
+    ramp = ("B", 0.02, 40)  # 2 cm per epoch: 0.4 m/s, under any one epoch's threshold
+    detected = None
+    for k, (error, protection, faulty, _) in enumerate(_drive(5, 200, ramp)):
+        if faulty is not None:
+            detected = (k, faulty)
+            break
+        assert protection.state != OK or error <= protection.level, (k, error, protection)
+    assert detected is not None, "the fault was never detected"
+    # with three RSUs the fault moves the others' sub-filters too, so the worst test may name another RSU;
+    # B's own separation is then past the threshold as well
+    *_, (_, _, _, bank) = _drive(5, detected[0] + 1, ramp)
+    statistics = dict(zip(bank.ids[1:], bank.separations()[0], strict=True))
+    assert statistics["B"] > 4.0, statistics
+    # nothing is detected in the same run without the fault
+    assert all(faulty is None for _, _, faulty, _ in _drive(5, 200))
+
+
+def test_protection_level_bounds_the_error_by_monte_carlo_and_is_not_vacuous():
+    errors, levels = [], []
+    for seed in range(20):
+        for k, (error, protection, _, _) in enumerate(_drive(100 + seed, 120, risk=0.02)):
+            if k >= 20:
+                errors.append(error)
+                levels.append(protection.level)
+    errors, levels = np.array(errors), np.array(levels)
+    assert np.mean(errors > levels) <= 0.02
+    assert np.median(levels) < 6.0 * math.sqrt(np.mean(errors**2))
+
+
+def test_the_compiled_kernels_match_the_numpy_reference():
+    import copy
+
+    *_, (_, _, _, bank) = _drive(3, 40)
+    measurements = [
+        RangeBearing("A", 0.0, 30.0, 31.0, -1.2, RANGE_STD, BEARING_STD),
+        RangeBearing("B", 60.0, -25.0, 40.0, 2.1, RANGE_STD, BEARING_STD),
+        RangeBearing("D", -40.0, 25.0, 70.0, -0.4, RANGE_STD, BEARING_STD),
+    ]
+    bank.predict(bank.t + PERIOD, 10.0)
+    bank.spawn(["D"])
+    reference = copy.deepcopy(bank)
+    bank.update(measurements)
+    reference.update_reference(measurements)
+    assert np.allclose(bank.means, reference.means, rtol=0, atol=1e-9)
+    assert np.allclose(bank.covs, reference.covs, rtol=0, atol=1e-12)
+    for compiled, numpy_form in zip(bank.separations(), bank.separations_reference(), strict=True):
+        assert np.allclose(compiled, numpy_form, rtol=1e-12, atol=1e-12)
