@@ -28,7 +28,7 @@ def test_integrity_options_out_of_bounds_are_422_naming_the_option(client, optio
 
 
 def test_fixes_carry_a_protection_level_within_the_alert_limit(client):
-    session_id, token = open_session(client, pipeline="rsu_imu")
+    session_id, token = open_session(client, pipeline="rsu_imu", options={"integrity": True})
     body = {"seq": 1, "measurements": [wire(o) for o in batch_observations(0, 60)]}
     response = client.post(f"/v1/sessions/{session_id}/batches", json=body, headers=token)
     assert response.status_code == 200, response.text
@@ -37,3 +37,20 @@ def test_fixes_carry_a_protection_level_within_the_alert_limit(client):
     settled = fixes[20:]
     assert all(f["integrity"] == "ok" for f in settled), [f["integrity"] for f in settled]
     assert all(0.0 < f["protection_level_m"] <= 1.5 for f in settled)
+
+
+def test_without_the_monitor_fixes_say_unavailable_and_the_state_has_no_bank(client):
+    """integrity off (the default): no protection level and no sub-filters in the stored state."""
+    session_id, token = open_session(client, pipeline="rsu_imu", vehicle_id="car-off")
+    body = {"seq": 1, "measurements": [wire(o) for o in batch_observations(0, 30)]}
+    response = client.post(f"/v1/sessions/{session_id}/batches", json=body, headers=token)
+    assert response.status_code == 200, response.text
+    fixes = response.json()["fixes"]
+    assert {f["integrity"] for f in fixes} == {"unavailable"}
+    assert {f["protection_level_m"] for f in fixes} == {None}
+    on_id, on_token = open_session(
+        client, pipeline="rsu_imu", vehicle_id="car-on", options={"integrity": True}
+    )
+    response = client.post(f"/v1/sessions/{on_id}/batches", json=body, headers=on_token)
+    assert response.status_code == 200, response.text
+    assert response.json()["fixes"][-1]["integrity"] == "ok"

@@ -137,6 +137,7 @@ def _check(pipeline_name: str, options: dict, state: bytes, batch: list, environ
     "options, epochs",
     [
         ({}, 20),  # the paper's 2IMM-CKF, compiled
+        ({"integrity": True}, 20),  # the same with the integrity monitor's bank of sub-filters
         ({"filter": "ekf", "models": ["ca"], "priority": [], "rsu_handling": "average"}, 20),
         (  # the current-statistical model: the numpy reference
             {

@@ -31,7 +31,7 @@ def _faulty_run(scenario, offset: float = 0.05, seed: int = 14):
 
 def _run(scene, observations, **options):
     scenario, env, pipeline = scene
-    state = pipeline.create(pipeline.resolve_options(options), initial_state(scenario))
+    state = pipeline.create(pipeline.resolve_options({"integrity": True, **options}), initial_state(scenario))
     fixes, state = pipeline.process(state, observations, env)
     return fixes, state
 

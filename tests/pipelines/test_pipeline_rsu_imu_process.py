@@ -262,14 +262,16 @@ def test_gross_outlier_range_fails_the_gate(pipeline) -> None:
     assert fixes[0].status == "tracking"
     assert position_error(fixes[0]) < 1.0
     # with the gate and fault exclusion disabled the outlier goes in, drags the estimate and raises the alarm
-    options = {"gate_probability": 0.0, "fault_exclusion": False}
+    options = {"gate_probability": 0.0, "fault_exclusion": False, "integrity": True}
     _, state_nogate = run(pipeline, started(pipeline, options), 10, seed=9)
     fixes_nogate, _ = pipeline.process(state_nogate, batch, ENV)
     assert next(u for u in fixes_nogate[0].measurements if u.index == bad).used
     assert position_error(fixes_nogate[0]) > position_error(fixes[0])
     assert fixes_nogate[0].integrity == "alarm"
     # with the gate disabled fault detection still excludes it
-    _, state_excluding = run(pipeline, started(pipeline, {"gate_probability": 0.0}), 10, seed=9)
+    _, state_excluding = run(
+        pipeline, started(pipeline, {"gate_probability": 0.0, "integrity": True}), 10, seed=9
+    )
     fixes_excluding, _ = pipeline.process(state_excluding, batch, ENV)
     use = next(u for u in fixes_excluding[0].measurements if u.index == bad)
     assert not use.used and use.reason.startswith("excluded by fault detection")
@@ -419,7 +421,7 @@ def test_the_binary_state_round_trips_exactly_and_the_json_layout_is_still_read(
     again = _decode(fresh.to_bytes())
     assert (again.t, again.filter_t, again.initialised, again.options) == (None, None, True, fresh.options)
     assert again.to_bytes() == fresh.to_bytes()
-    _, state = run(pipeline, started(pipeline), 6, seed=23)
+    _, state = run(pipeline, started(pipeline, {"integrity": True}), 6, seed=23)
     envelope, inner = unwrap(lag._unpack(state).current)
     session, legacy = _decode(inner), _decode(_json_layout(inner))
     for name in ("options", "options_key", "initialised", "t", "filter_t", "epochs"):

@@ -597,8 +597,9 @@ class FixOut(ResponseModel):
         "its RSU was excluded; "
         "alarm: do not use this fix for what needs integrity (the protection level exceeds the alert limit, a "
         "fault was detected that could not be excluded, or the fix diverged); unavailable: no bound for this "
-        "fix (the first epochs of a session, or a pipeline without an integrity monitor: only rsu_imu has one "
-        "so far; v2v_coop, v2x_federated and gnss_tight report unavailable).",
+        "fix (the first epochs of a session, a session without the monitor, or a pipeline without one: only "
+        "rsu_imu has one so far, run when the session's options.integrity is true; v2v_coop, v2x_federated and "
+        "gnss_tight report unavailable).",
     )
     measurements: list[MeasurementUseOut] = Field(
         description="The batch's measurements of this epoch: used or why not (a revised fix lists only the "

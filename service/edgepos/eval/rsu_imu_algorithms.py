@@ -76,7 +76,8 @@ def _catalogue() -> dict[str, Algorithm]:
     for name, group, options in bases:
         for handling, suffix in (("joint", ""), ("average", AVERAGE_SUFFIX)):
             full = name + suffix
-            options_here = {**options, "rsu_handling": handling}
+            # the evaluation measures integrity too: every algorithm runs the monitor
+            options_here = {**options, "rsu_handling": handling, "integrity": True}
             catalogue[full] = Algorithm(full, name, group, handling, options_here, PAPER[name])
     return catalogue
 

@@ -89,6 +89,12 @@ CALIBRATION: dict[str, dict[str, float]] = {
         "srukf.gyro_model": 130 * _US,
         "observation": 3.51 * _US,
         "batch": 118 * _US,
+        # options.integrity: the monitor's bank (a reference and one sub-filter per RSU used, each updated
+        # with the other RSUs jointly), measured on top of the same batches without it (2026-11-26,
+        # an upper envelope over 4, 8, 16 and 32 RSUs per epoch: 157, 283, 644 and 3074 us more per epoch)
+        "integrity.epoch": 210 * _US,
+        "integrity.rsu2": 0.6 * _US,
+        "integrity.rsu3": 0.069 * _US,
     },
     "gnss_tight": {
         "ukf.epoch": 205 * _US,
@@ -224,7 +230,7 @@ class RsuImuCost(CostModel):
             "average.rsu_model",
             "gyro_model",
         )
-    ) + ("observation", "batch")
+    ) + ("observation", "batch", "integrity.epoch", "integrity.rsu2", "integrity.rsu3")
 
     def __init__(self) -> None:
         super().__init__()
@@ -269,6 +275,8 @@ class RsuImuCost(CostModel):
         }
         if handling == "joint":
             features[f"{path}.joint.rsu2_model"] = rsus * rsus * models
+        if options.get("integrity"):
+            features.update({"integrity.epoch": 1.0, "integrity.rsu2": rsus**2, "integrity.rsu3": rsus**3})
         return features
 
 

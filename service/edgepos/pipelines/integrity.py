@@ -34,6 +34,14 @@ JERK_PSD = 10.0
 
 INTEGRITY_SPECS: tuple[OptionSpec, ...] = (
     OptionSpec(
+        "integrity",
+        "boolean",
+        False,
+        "Run the integrity monitor: a protection level with every fix, RSU fault detection and exclusion "
+        "(docs/integrity.md). Off by default because it about doubles the CPU time of an epoch (one sub-filter "
+        "per RSU in use beside the IMM); off, every fix's integrity is 'unavailable' and protection_level_m null.",
+    ),
+    OptionSpec(
         "integrity_risk",
         "number",
         1e-5,

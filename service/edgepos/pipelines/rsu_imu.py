@@ -429,27 +429,33 @@ def _step(
             candidates, gyros = kept_rsus, kept_gyros
             measured = _epoch_measurements(candidates, gyros, observations, rsus, options)
 
-    last = [measured]  # the measurements of the last update (fault exclusion may filter the epoch again)
+    protection: Protection | None = None
+    if options["integrity"]:
+        last = [measured]  # the measurements of the last update (fault exclusion may filter the epoch again)
 
-    def correct(kept: list[int]) -> StepResult:
-        last[0] = (
-            measured if kept == candidates else _epoch_measurements(kept, gyros, observations, rsus, options)
+        def correct(kept: list[int]) -> StepResult:
+            last[0] = (
+                measured
+                if kept == candidates
+                else _epoch_measurements(kept, gyros, observations, rsus, options)
+            )
+            return stepper.correct(prediction, last[0])
+
+        result, candidates, protection, session.integrity_bank = monitored_update(
+            session.integrity_bank,
+            t,
+            candidates,
+            observations,
+            rsus,
+            options,
+            uses,
+            prediction.output,
+            correct,
+            _output,
         )
-        return stepper.correct(prediction, last[0])
-
-    result, candidates, protection, session.integrity_bank = monitored_update(
-        session.integrity_bank,
-        t,
-        candidates,
-        observations,
-        rsus,
-        options,
-        uses,
-        prediction.output,
-        correct,
-        _output,
-    )
-    measured = last[0]
+        measured = last[0]
+    else:
+        result = stepper.correct(prediction, measured)
     for i in candidates + gyros:
         uses[i] = _used(i, observations[i].kind)
     coasting = not (candidates or gyros)
