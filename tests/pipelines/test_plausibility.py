@@ -271,7 +271,9 @@ def test_a_filter_running_off_is_diverged_reset_and_starts_again(paper) -> None:
     assert diverged == [1]
     fix = fixes[1]
     assert fix.speed > 1e4 and "max_speed_mps" in fix.divergence and "reset" in fix.divergence
-    assert fixes[1] == dataclasses.replace(runaway[1], status="diverged", divergence=fix.divergence)
+    assert fixes[1] == dataclasses.replace(
+        runaway[1], status="diverged", integrity="alarm", divergence=fix.divergence
+    )
     assert fixes[2].status == "initialised" and [f.status for f in fixes[3:]] == ["tracking"] * 5
     # the re-filtered epochs name their measurements by the batch's indices
     assert [u.index for u in fixes[2].measurements] == [
@@ -298,9 +300,10 @@ def test_report_marks_every_runaway_fix_and_filters_on(paper) -> None:
     own, _ = filt.process(filt.create(bare_options(options), initial), flat(epochs[:8]), environment)
     assert [f.status for f in fixes] == ["tracking"] + ["diverged"] * 7
     assert all("reported only" in f.divergence for f in fixes[1:])
-    # the estimates are the filter's own: nothing but the status and the reason changed
+    # the estimates are the filter's own: nothing but the status, the reason and the alarm changed
     assert fixes == [own[0]] + [
-        dataclasses.replace(b, status="diverged", divergence=f.divergence) for b, f in zip(own[1:], fixes[1:])
+        dataclasses.replace(b, status="diverged", integrity="alarm", divergence=f.divergence)
+        for b, f in zip(own[1:], fixes[1:])
     ]
 
 
