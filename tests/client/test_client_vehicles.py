@@ -15,7 +15,7 @@ import jwt
 import pytest
 from clienthelp import ADMIN_KEY, INITIAL_STATE, TestClientTransport, batch, make_app, scenario_rsus
 from cryptography.hazmat.primitives.asymmetric import ec
-from edgepos.api import schemas
+from edgepos.api import schemas, vehicle_schemas
 from edgepos_client import (
     AsyncEdgeposClient,
     Conflict,
@@ -412,7 +412,7 @@ def test_the_client_agrees_with_the_server_on_vehicle_ids() -> None:
     from edgepos_client import models
 
     assert models.VEHICLE_ID_PATTERN == schemas.VEHICLE_ID_PATTERN
-    assert protocol.MAX_VEHICLES_PER_IMPORT == schemas.MAX_VEHICLES_PER_IMPORT
+    assert protocol.MAX_VEHICLES_PER_IMPORT == vehicle_schemas.MAX_VEHICLES_PER_IMPORT
 
 
 def test_session_handle_keeps_superseded() -> None:

@@ -17,9 +17,8 @@ from edgepos.api.auth import hash_token, new_vehicle_key, require_admin
 from edgepos.api.context import AppContext, Context
 from edgepos.api.errors import ApiError
 from edgepos.api.routes import errors, json_body, known_query_parameters
-from edgepos.api.schemas import (
-    VEHICLE_ID_PATTERN,
-    ProblemModel,
+from edgepos.api.schemas import VEHICLE_ID_PATTERN, ProblemModel
+from edgepos.api.vehicle_schemas import (
     VehicleCreate,
     VehicleImport,
     VehicleImported,
