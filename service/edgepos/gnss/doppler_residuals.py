@@ -13,7 +13,6 @@ the pipeline's ``doppler_std_mps`` and the baseline's Doppler weights on the fir
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 from collections.abc import Sequence
@@ -26,7 +25,7 @@ from edgepos.gnss.measurements import prepare_epoch
 from edgepos.gnss.orbits import SPEED_OF_LIGHT, BroadcastOrbits, sagnac_range_rate
 from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import ALL_SYSTEMS, DEFAULT_CODES, read_epochs
-from edgepos.gnss.spp import read_reference, reference_velocity
+from edgepos.gnss.spp import epoch_range, read_reference, reference_velocity, residual_tool_parser
 
 
 def residuals(
@@ -81,18 +80,9 @@ def _line(label: str, values: np.ndarray) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m edgepos.gnss.doppler_residuals", description=__doc__.splitlines()[0]
-    )
-    parser.add_argument("--obs", required=True, help="RINEX 3 observation file")
-    parser.add_argument("--nav", required=True, help="RINEX 3 navigation file")
-    parser.add_argument(
-        "--reference", required=True, help="reference CSV: week, seconds of week, lat, lon, height"
-    )
-    parser.add_argument("--epochs", default="0:1000000", help="epochs A:B (0-based, B excluded)")
-    parser.add_argument("--systems", default=ALL_SYSTEMS, help=f"constellations (default {ALL_SYSTEMS})")
+    parser = residual_tool_parser("python -m edgepos.gnss.doppler_residuals", __doc__.splitlines()[0])
     args = parser.parse_args(argv)
-    first, stop = (int(v) for v in args.epochs.split(":"))
+    first, stop = epoch_range(args.epochs)
     values, elevation, cn0 = residuals(args.obs, args.nav, args.reference, first, stop, args.systems)
     print(_line(f"epochs {first}..{stop - 1}, residual m/s", values))
     degrees = np.degrees(elevation)

@@ -17,7 +17,6 @@ noise of corrected ranges; it came out close to ``FITTED``, whose tails are the 
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import math
 import sys
@@ -32,7 +31,7 @@ from edgepos.gnss.measurements import Atmosphere, prepare_epoch
 from edgepos.gnss.orbits import SPEED_OF_LIGHT, BroadcastOrbits, sagnac_range
 from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import ALL_SYSTEMS, DEFAULT_CODES, read_epochs, read_header
-from edgepos.gnss.spp import read_reference
+from edgepos.gnss.spp import epoch_range, read_reference, residual_tool_parser
 
 CN0_REFERENCE_DBHZ = 45.0
 ELEVATION_BINS_DEG = (10.0, 20.0, 35.0, 60.0, 90.0)
@@ -176,16 +175,7 @@ def fit(values: np.ndarray, elevation: np.ndarray, cn0: np.ndarray, robust: bool
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="python -m edgepos.gnss.pseudorange_noise", description=__doc__.splitlines()[0]
-    )
-    parser.add_argument("--obs", required=True, help="RINEX 3 observation file")
-    parser.add_argument("--nav", required=True, help="RINEX 3 navigation file")
-    parser.add_argument(
-        "--reference", required=True, help="reference CSV: week, seconds of week, lat, lon, height"
-    )
-    parser.add_argument("--epochs", default="0:1000000", help="epochs A:B (0-based, B excluded)")
-    parser.add_argument("--systems", default=ALL_SYSTEMS, help=f"constellations (default {ALL_SYSTEMS})")
+    parser = residual_tool_parser("python -m edgepos.gnss.pseudorange_noise", __doc__.splitlines()[0])
     parser.add_argument(
         "--base", default=None, help="a reference station's RINEX: fit the differentially corrected rows"
     )
@@ -196,7 +186,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="what each bin's variance is (default rms)",
     )
     args = parser.parse_args(argv)
-    first, stop = (int(v) for v in args.epochs.split(":"))
+    first, stop = epoch_range(args.epochs)
     values, elevation, cn0 = residuals(
         args.obs, args.nav, args.reference, first, stop, args.systems, base_path=args.base
     )

@@ -420,6 +420,26 @@ def summary(errors: np.ndarray) -> dict[str, float]:
     }
 
 
+def residual_tool_parser(prog: str, description: str) -> argparse.ArgumentParser:
+    """The command line the residual analyses at the reference share (``gnss.doppler_residuals``,
+    ``gnss.pseudorange_noise``): the recording, its reference, a range of epochs and the constellations."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    parser.add_argument("--obs", required=True, help="RINEX 3 observation file")
+    parser.add_argument("--nav", required=True, help="RINEX 3 navigation file")
+    parser.add_argument(
+        "--reference", required=True, help="reference CSV: week, seconds of week, lat, lon, height"
+    )
+    parser.add_argument("--epochs", default="0:1000000", help="epochs A:B (0-based, B excluded)")
+    parser.add_argument("--systems", default=ALL_SYSTEMS, help=f"constellations (default {ALL_SYSTEMS})")
+    return parser
+
+
+def epoch_range(text: str) -> tuple[int, int]:
+    """``A:B`` of ``--epochs`` as (first, stop)."""
+    first, stop = (int(v) for v in text.split(":"))
+    return first, stop
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Solve a recording; with ``--reference`` print horizontal RMS / p95 against it."""
     parser = argparse.ArgumentParser(prog="python -m edgepos.gnss.spp", description=__doc__.splitlines()[0])
