@@ -24,8 +24,14 @@ from edgepos.gnss.geodesy import elevation_azimuth
 from edgepos.gnss.measurements import prepare_epoch
 from edgepos.gnss.orbits import SPEED_OF_LIGHT, BroadcastOrbits, sagnac_range_rate
 from edgepos.gnss.rinex_nav import read_navigation
-from edgepos.gnss.rinex_obs import ALL_SYSTEMS, DEFAULT_CODES, read_epochs
-from edgepos.gnss.spp import epoch_range, read_reference, reference_velocity, residual_tool_parser
+from edgepos.gnss.rinex_obs import ALL_SYSTEMS, DEFAULT_CODES
+from edgepos.gnss.spp import (
+    epoch_range,
+    epochs_at_reference,
+    read_reference,
+    reference_velocity,
+    residual_tool_parser,
+)
 
 
 def residuals(
@@ -45,13 +51,8 @@ def residuals(
     values: list[np.ndarray] = []
     elevations: list[np.ndarray] = []
     cn0s: list[np.ndarray] = []
-    for number, epoch in enumerate(read_epochs(obs_path, codes)):
-        if number >= stop:
-            break
-        if number < first:
-            continue
-        row = int(np.argmin(np.abs(ref_time - epoch.gpst)))
-        if abs(ref_time[row] - epoch.gpst) > 0.05 or not np.all(np.isfinite(ref_velocity[row])):
+    for epoch, row in epochs_at_reference(obs_path, codes, ref_time, first, stop):
+        if not np.all(np.isfinite(ref_velocity[row])):
             continue
         prs, _ = prepare_epoch(epoch, orbits, codes)
         if prs.range_rate_mps is None or prs.sat_velocity is None or prs.sat_clock_drift is None:

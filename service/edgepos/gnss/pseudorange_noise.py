@@ -31,7 +31,7 @@ from edgepos.gnss.measurements import Atmosphere, prepare_epoch
 from edgepos.gnss.orbits import SPEED_OF_LIGHT, BroadcastOrbits, sagnac_range
 from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import ALL_SYSTEMS, DEFAULT_CODES, read_epochs, read_header
-from edgepos.gnss.spp import epoch_range, read_reference, residual_tool_parser
+from edgepos.gnss.spp import epoch_range, epochs_at_reference, read_reference, residual_tool_parser
 
 CN0_REFERENCE_DBHZ = 45.0
 ELEVATION_BINS_DEG = (10.0, 20.0, 35.0, 60.0, 90.0)
@@ -92,14 +92,7 @@ def residuals(
     values: list[np.ndarray] = []
     elevations: list[np.ndarray] = []
     cn0s: list[np.ndarray] = []
-    for number, epoch in enumerate(read_epochs(obs_path, codes)):
-        if number >= stop:
-            break
-        if number < first:
-            continue
-        row = int(np.argmin(np.abs(ref_time - epoch.gpst)))
-        if abs(ref_time[row] - epoch.gpst) > 0.05:
-            continue
+    for epoch, row in epochs_at_reference(obs_path, codes, ref_time, first, stop):
         prs, _ = prepare_epoch(epoch, orbits, codes)
         if not len(prs):
             continue

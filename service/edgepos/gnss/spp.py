@@ -19,7 +19,7 @@ import argparse
 import json
 import math
 import sys
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,7 +30,14 @@ from edgepos.gnss.geodesy import ecef_to_geodetic, enu_rotation, geodetic_to_ece
 from edgepos.gnss.measurements import Atmosphere, PseudorangeSet, prepare_epoch
 from edgepos.gnss.orbits import OMEGA_EARTH, SPEED_OF_LIGHT, BroadcastOrbits, sagnac_range, sagnac_range_rate
 from edgepos.gnss.rinex_nav import read_navigation
-from edgepos.gnss.rinex_obs import ALL_SYSTEMS, DEFAULT_CODES, parse_systems, read_epochs, read_header
+from edgepos.gnss.rinex_obs import (
+    ALL_SYSTEMS,
+    DEFAULT_CODES,
+    ObservationEpoch,
+    parse_systems,
+    read_epochs,
+    read_header,
+)
 
 _NEAR_SURFACE_M = (6.0e6, 7.0e6)
 """Geocentric distances between which the estimate counts as a ground receiver (mask and corrections on)."""
@@ -418,6 +425,21 @@ def summary(errors: np.ndarray) -> dict[str, float]:
         "horizontal_p95_m": float(np.percentile(errors, 95)),
         "horizontal_max_m": float(errors.max()),
     }
+
+
+def epochs_at_reference(
+    obs_path: str, codes: Mapping[str, tuple[str, str]], ref_time: np.ndarray, first: int, stop: int
+) -> Iterator[tuple[ObservationEpoch, int]]:
+    """Epochs ``first..stop-1`` of a recording that have a reference row within 0.05 s, each with that
+    row's index: what the residual analyses at the reference walk."""
+    for number, epoch in enumerate(read_epochs(obs_path, codes)):
+        if number >= stop:
+            break
+        if number < first:
+            continue
+        row = int(np.argmin(np.abs(ref_time - epoch.gpst)))
+        if abs(ref_time[row] - epoch.gpst) <= 0.05:
+            yield epoch, row
 
 
 def residual_tool_parser(prog: str, description: str) -> argparse.ArgumentParser:
