@@ -245,6 +245,23 @@ def rsu_imu_cases(quick: bool) -> Iterator[Case]:
                         )
             if quick:
                 break
+    # The integrity monitor (options.integrity): the paper's 2IMM-CKF with its bank of sub-filters, on the
+    # paper layout and with 8, 16 and 32 RSUs per epoch (one sub-filter per RSU used).
+    for max_rsus in (4, 8, 16, 32):
+        options = {"integrity": True, "max_rsus": max_rsus, "comm_radius": 2000.0}
+        scenario_epochs, scenario_env = (
+            (paper_epochs, paper_env) if max_rsus == 4 else (dense_epochs, dense_env)
+        )
+        for integrity in (False, True):
+            yield case(
+                f"ckf 3:ca,at,singer joint max_rsus={max_rsus}{' integrity' if integrity else ''}",
+                {**options, "integrity": integrity},
+                scenario_epochs,
+                scenario_env,
+                20 if max_rsus == 4 else 10,
+            )
+        if quick:
+            break
     # Epochs per batch: the fixed cost of a batch and linearity in epochs.
     for label in ("3:ca,at,singer", "6:all(cs)"):
         models, priority = RSU_MODEL_SETS[label]

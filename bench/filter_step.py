@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import os
 import platform
 import statistics
@@ -48,6 +49,7 @@ def percentile(values: list[float], q: float) -> float:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--iterations", type=int, default=3000)
+    parser.add_argument("--json", type=Path, help="also write the medians (us) to this file")
     args = parser.parse_args()
     load_before = os.getloadavg()
     compile_seconds = warm_up()  # compiles the kernels, or loads them from numba's on-disk cache
@@ -64,6 +66,12 @@ def main() -> int:
     # leaves in it (a few checkpoints and about a second of epochs), not one 200-epoch batch's records
     for first in range(0, warmup, 20):
         _, state = pipeline.process(state, [o for epoch in epochs[first : first + 20] for o in epoch], env)
+    monitored_options = pipeline.resolve_options({"integrity": True})
+    monitored = pipeline.create(monitored_options, InitialState(x0[0], x0[3], x0[1], x0[4]))
+    for first in range(0, warmup, 20):
+        _, monitored = pipeline.process(
+            monitored, [o for epoch in epochs[first : first + 20] for o in epoch], env
+        )
     # the registry wraps every pipeline's state: the lag window around the plausibility checks
     session = _decode(unwrap(lag._unpack(state).current)[1])
     bank = _bank(_options_key(options))
@@ -134,12 +142,16 @@ def main() -> int:
             ]
         )
     jittered = iter(jittered_batches)
+    jittered_monitored = iter(jittered_batches)  # the same batches, in the same order
 
     def pipeline_step():
         return pipeline.process(state, pipeline_epoch, env)
 
     def pipeline_jittered_batch_step():
         return pipeline.process(state, next(jittered), env)
+
+    def pipeline_monitored_step():
+        return pipeline.process(monitored, next(jittered_monitored), env)
 
     def pipeline_batch_step():
         return pipeline.process(state, pipeline_batch, env)
@@ -150,18 +162,23 @@ def main() -> int:
         "pipeline, 1-epoch batch": (pipeline_step, 1),
         f"pipeline, per epoch of {batch_epochs}": (pipeline_batch_step, batch_epochs),
         f"pipeline, per epoch of {batch_epochs}, jittered t": (pipeline_jittered_batch_step, batch_epochs),
+        "  the same with the integrity monitor": (pipeline_monitored_step, batch_epochs),
         "numpy baseline": (baseline_step, 1),
     }
     timings: dict[str, list[float]] = {name: [] for name in functions}
+    cpu: dict[str, list[float]] = {
+        name: [] for name in functions
+    }  # thread CPU: what other processes take is not in it
     for function, _ in functions.values():
         function()
     for iteration in range(args.iterations):
         for name, (function, per) in functions.items():
             if per > 1 and iteration % per:  # the batch runs 1/per as often: same total time
                 continue
-            start = time.perf_counter()
+            start, start_cpu = time.perf_counter(), time.thread_time()
             function()
             timings[name].append((time.perf_counter() - start) * 1e6 / per)
+            cpu[name].append((time.thread_time() - start_cpu) * 1e6 / per)
 
     _, _, base_probabilities, base_mean, base_cov = baseline_step()
 
@@ -194,6 +211,33 @@ def main() -> int:
     )
     verdict = "PASS" if compiled_median <= TARGET_US else "FAIL"
     print(f"compiled 2IMM-CKF step: {compiled_median:.1f} us median (target <= {TARGET_US:g} us) {verdict}")
+    jittered_name = f"pipeline, per epoch of {batch_epochs}, jittered t"
+    monitor_cost = median["  the same with the integrity monitor"] / median[jittered_name] - 1.0
+    pairs = [  # batch by batch, the two timed back to back: the load of the moment hits both alike
+        with_monitor / without - 1.0
+        for without, with_monitor in zip(
+            timings[jittered_name], timings["  the same with the integrity monitor"]
+        )
+    ]
+    monitored_name = "  the same with the integrity monitor"
+    monitor_cpu_cost = statistics.median(cpu[monitored_name]) / statistics.median(cpu[jittered_name]) - 1.0
+    print(
+        f"integrity monitor: +{100 * monitor_cost:.1f} % per epoch (medians), +{100 * statistics.median(pairs):.1f} % "
+        f"(median of back-to-back pairs), +{100 * monitor_cpu_cost:.1f} % in thread CPU time (medians); "
+        "target <= 25 %"
+    )
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        figures = {
+            "step_us": compiled_median,
+            "pipeline_epoch_us": median[f"pipeline, per epoch of {batch_epochs}"],
+            "pipeline_epoch_jittered_us": median[jittered_name],
+            "pipeline_epoch_jittered_integrity_us": median["  the same with the integrity monitor"],
+            "integrity_cost": monitor_cost,
+            "integrity_cost_cpu": monitor_cpu_cost,
+            "load_average": [load_before[0], os.getloadavg()[0]],
+        }
+        args.json.write_text(json.dumps(figures, indent=2) + "\n")
     for name, value in agreement.items():
         print(f"max |{name} - baseline| over fused mean, covariance, probabilities: {value:.2e}")
     return 0 if max(agreement.values()) < 1e-8 else 1

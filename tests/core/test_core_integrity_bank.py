@@ -115,3 +115,58 @@ def test_the_compiled_kernels_match_the_numpy_reference():
     assert np.allclose(bank.covs, reference.covs, rtol=0, atol=1e-12)
     for compiled, numpy_form in zip(bank.separations(), bank.separations_reference(), strict=True):
         assert np.allclose(compiled, numpy_form, rtol=1e-12, atol=1e-12)
+
+
+def _numpy_bank(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Run the bank on its numpy reference (the kernels off), as a service without numba would."""
+    import edgepos.core.integrity_bank as module
+
+    monkeypatch.setattr(module, "_compiled", lambda: False)
+
+
+@pytest.mark.parametrize("excluded", [False, True])
+def test_one_compiled_epoch_equals_the_numpy_steps(monkeypatch: pytest.MonkeyPatch, excluded: bool) -> None:
+    """``SeparationBank.step`` (one kernel call: predict, spawn, update, protect) gives the bank and the
+    protection that the numpy predict, spawn, update and ``protect_with_bank`` give, a failed test too."""
+    import copy
+
+    *_, (_, _, _, bank) = _drive(3, 40)
+    if excluded:
+        bank.exclude("B", 99.0)
+    budget = IntegrityBudget(1e-5, 1e-4, 1e-2, 10.0)
+    ids = ["A", "B", "D"]
+    arrays = (
+        np.array([[0.0, 30.0], [60.0, -25.0], [-40.0, 25.0]]),
+        np.array([[31.0, -1.2], [47.0, 2.1], [70.0, -0.4]]),  # B's range 7 m off: its test fails
+        np.full(3, RANGE_STD),
+        np.full(3, BEARING_STD),
+    )
+    reference = copy.deepcopy(bank)
+    fix = (float(bank.means[0, 0]) + 0.3, float(bank.means[0, 3]) - 0.2, 0.04, 0.002, 0.05)
+    compiled = bank.step(bank.t + PERIOD, 10.0, ids, arrays, fix, budget)
+    _numpy_bank(monkeypatch)
+    expected = reference.step(reference.t + PERIOD, 10.0, ids, arrays, fix, budget)
+    assert bank.ids == reference.ids == ["", "A", "B", "C", "D"]
+    assert np.allclose(bank.means, reference.means, rtol=0, atol=1e-9)
+    assert np.allclose(bank.covs, reference.covs, rtol=0, atol=1e-12)
+    assert compiled[1] == expected[1] is not None  # with B held out, the test points at another RSU
+    assert not excluded or compiled[1] != "B"  # an excluded RSU's failed test is not reported again
+    assert compiled[0].state == expected[0].state and compiled[0].faulty == expected[0].faulty
+    assert compiled[0].level == pytest.approx(expected[0].level, rel=1e-12)
+    assert compiled[0].statistic == pytest.approx(expected[0].statistic, rel=1e-9)
+
+
+def test_a_fix_without_a_proper_covariance_has_no_bound_and_the_bank_steps_on() -> None:
+    *_, (_, _, _, bank) = _drive(3, 5)
+    arrays = (
+        np.array([[0.0, 30.0]]),
+        np.array([[31.0, -1.2]]),
+        np.full(1, RANGE_STD),
+        np.full(1, BEARING_STD),
+    )
+    t = bank.t + PERIOD
+    protection, faulty = bank.step(
+        t, 10.0, ["A"], arrays, (0.0, 0.0, 1.0, 2.0, 1.0), IntegrityBudget(1e-5, 1e-4, 1e-2, 10.0)
+    )
+    assert protection.level is None and protection.state == "unavailable" and faulty is None
+    assert bank.t == t

@@ -53,9 +53,10 @@ Matrix2 = tuple[float, float, float]
 """A symmetric 2x2 matrix as (a, b, d): [[a, b], [b, d]]."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class IntegrityBudget:
-    """The risks a session's protection levels are sized to, per epoch."""
+    """The risks a session's protection levels are sized to, per epoch (hashed by identity: it keys the
+    caches of thresholds and tables every epoch, and sessions share one per option set)."""
 
     integrity_risk: float
     """Probability that the error exceeds the protection level while the fix is not in alarm."""
@@ -129,6 +130,15 @@ def _radial_factors(probability: float) -> tuple[float, ...]:
             brentq(lambda k, r=float(ratio): _radial_tail(k, r) - probability, 0.0, upper, xtol=1e-9)
         )
     return tuple(factors)
+
+
+@functools.lru_cache(maxsize=64)
+def radial_factor_table(probability: float) -> np.ndarray:
+    """The factors ``radial_bound`` uses for ``probability``, one per tabulated eigenvalue ratio, as a
+    read-only array for compiled code (all zero when the probability is 1 or more: no bound needed)."""
+    table = np.zeros(len(_RATIOS)) if probability >= 1.0 else np.array(_radial_factors(probability))
+    table.flags.writeable = False
+    return table
 
 
 def radial_bound(m: Matrix2, probability: float) -> float:

@@ -41,6 +41,7 @@ import math
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from types import ModuleType
 
 import numpy as np
 
@@ -51,6 +52,7 @@ from edgepos.core.integrity import (
     IntegrityBudget,
     Protection,
     radial_bound,
+    radial_factor_table,
     test_threshold,
 )
 
@@ -60,6 +62,11 @@ _POS = [0, 3]
 #: A sub-filter whose position covariance exceeds the reference's by less than this fraction (trace)
 #: carries no weight any more and is dropped when its RSU is not in use.
 CONVERGED = 0.01
+#: Indices into the epoch's scalars the compiled kernels read and write (``kernels_integrity.bank_epoch``,
+#: ``bank_protect``): the interval and jerk density of the prediction, the test threshold, the fix's x, y
+#: and covariance xx, xy, yy; then what the kernels write: the protection level, the worst failed
+#: sub-filter (-1: none) and its statistic. One array: numba's dispatch costs per argument.
+DT, JERK, THRESHOLD, FIX_X, FIX_Y, FIX_XX, FIX_XY, FIX_YY, LEVEL, WORST, STATISTIC = range(11)
 _HEADER = struct.Struct("<4sBHd")
 _MAGIC = b"EPIB"
 _VERSION = 1
@@ -101,14 +108,29 @@ class SeparationBank:
         dt = t - self.t
         if dt <= 0.0:
             return
+        if _compiled():
+            bank_predict = _kernels().bank_predict
+
+            self.means = np.ascontiguousarray(self.means)
+            self.covs = np.ascontiguousarray(self.covs)
+            bank_predict(self.means, self.covs, dt, jerk_density)
+            self.t = t
+            return
+        self.predict_reference(dt, jerk_density)
+        self.t = t
+
+    def predict_reference(self, dt: float, jerk_density: float) -> None:
+        """The numpy form of :meth:`predict`, over ``dt`` s (the reference the compiled kernel is tested
+        against)."""
         transition, noise = _transition(dt, jerk_density)
         self.means = self.means @ transition.T
         self.covs = transition @ self.covs @ transition.T + noise
-        self.t = t
 
     def spawn(self, rsu_ids: Sequence[str]) -> None:
         """A sub-filter for every RSU in ``rsu_ids`` without one: a copy of the reference, which has not
         used that RSU yet (call before the update that first uses it)."""
+        if len(self.ids) > len(rsu_ids) and set(rsu_ids).issubset(self.ids):
+            return
         new = [rsu for rsu in dict.fromkeys(rsu_ids) if rsu not in self.ids]
         if not new:
             return
@@ -119,29 +141,41 @@ class SeparationBank:
     def update(self, measurements: Sequence[RangeBearing]) -> None:
         """One joint EKF update of every filter; sub-filter i skips RSU ids[i]'s rows (on the compiled
         kernel when the kernels are enabled, ``core.kernels_integrity``; else, or if it fails, numpy)."""
-        if not measurements:
+        self.update_arrays(*_arrays(measurements))
+
+    def update_arrays(
+        self,
+        rsu_ids: Sequence[str],
+        positions: np.ndarray,
+        observed: np.ndarray,
+        range_std: np.ndarray,
+        bearing_std: np.ndarray,
+    ) -> None:
+        """:meth:`update` with the measurements as arrays (what the pipeline has built for its own filter
+        already): the RSUs' ids and positions (n, 2), the observed range and bearing (n, 2) and their
+        standard deviations (n,) each."""
+        if not rsu_ids:
             return
         if _compiled():
-            from edgepos.core.kernels_integrity import bank_update
+            bank_update = _kernels().bank_update
 
-            keep = np.array([[m.rsu_id != rsu for m in measurements] for rsu in self.ids], dtype=np.bool_)
-            data = np.array(
-                [(m.rsu_x, m.rsu_y, m.range, m.bearing, m.range_std, m.bearing_std) for m in measurements]
-            )
             means, covs = np.ascontiguousarray(self.means), np.ascontiguousarray(self.covs)
-            if bank_update(means, covs, keep, data) == 0:
+            if (
+                bank_update(means, covs, self._owners(rsu_ids), positions, observed, range_std, bearing_std)
+                == 0
+            ):
                 self.means, self.covs = means, covs
                 return
-        self.update_reference(measurements)
+        self._update_reference(rsu_ids, _data(positions, observed, range_std, bearing_std))
 
     def update_reference(self, measurements: Sequence[RangeBearing]) -> None:
         """The numpy form of :meth:`update` (the reference the compiled kernel is tested against)."""
-        if not measurements:
-            return
-        rows = 2 * len(measurements)
-        data = np.array(
-            [(m.rsu_x, m.rsu_y, m.range, m.bearing, m.range_std, m.bearing_std) for m in measurements]
-        )
+        if measurements:
+            ids, *arrays = _arrays(measurements)
+            self._update_reference(ids, _data(*arrays))
+
+    def _update_reference(self, rsu_ids: Sequence[str], data: np.ndarray) -> None:
+        rows = 2 * len(rsu_ids)
         # every filter linearised at the reference's prediction: the bank is then one linear system, in
         # which the separations' covariances P_i - P_0 hold exactly. H acts on x and y only.
         dx = self.means[0, 0] - data[:, 0]
@@ -155,7 +189,7 @@ class SeparationBank:
         residual[0::2] = data[:, 2] - distance
         residual[1::2] = np.remainder(data[:, 3] - np.arctan2(dy, dx) + math.pi, math.tau) - math.pi
         # sub-filter i leaves RSU ids[i]'s rows out: zero rows of H and of the innovation add nothing
-        keep = np.repeat(np.array([[m.rsu_id != rsu for m in measurements] for rsu in self.ids]), 2, axis=1)
+        keep = np.repeat(np.array([[m != rsu for m in rsu_ids] for rsu in self.ids]), 2, axis=1)
         offsets = self.means[:, _POS] - self.means[0, _POS]  # (K, 2)
         z = (residual[None, :] - offsets @ h_xy.T) * keep  # z - h(x_0) - H (x_i - x_0)
         h = h_xy[None, :, :] * keep[:, :, None]  # (K, rows, 2)
@@ -169,6 +203,8 @@ class SeparationBank:
 
     def prune(self, in_use: Sequence[str]) -> None:
         """Drop the sub-filters whose RSU is not in ``in_use`` and no longer weighs on the reference."""
+        if len(self.ids) - 1 <= len(in_use) and set(self.ids[1:]).issubset(in_use):
+            return
         traces = self.covs[:, 0, 0] + self.covs[:, 3, 3]
         weighs = traces - traces[0] > CONVERGED * traces[0]
         keep = [i for i, rsu in enumerate(self.ids) if i == 0 or rsu in in_use or weighs[i]]
@@ -192,7 +228,7 @@ class SeparationBank:
         """Per sub-filter: sqrt(q_i) (chi with 2 dof without a fault; 0 while P_i - P_0 is singular, as right
         after it starts), its position (K-1, 2) and position covariance as (K-1, 3) rows (xx, xy, yy)."""
         if _compiled():
-            from edgepos.core.kernels_integrity import bank_separations
+            bank_separations = _kernels().bank_separations
 
             out = np.empty((len(self.ids) - 1, 6))
             bank_separations(np.ascontiguousarray(self.means), np.ascontiguousarray(self.covs), out)
@@ -210,6 +246,98 @@ class SeparationBank:
         q = (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / np.where(regular, det, 1.0)
         statistic = np.sqrt(np.maximum(np.where(regular, q, 0.0), 0.0))
         return statistic, np.column_stack([px[1:], py[1:]]), np.column_stack([xx[1:], xy[1:], yy[1:]])
+
+    def _owners(self, rsu_ids: Sequence[str]) -> np.ndarray:
+        """Per measurement, the sub-filter that leaves it out (-1: none), for the compiled kernels."""
+        return _flags(tuple(self.ids), tuple(rsu_ids))[: len(rsu_ids)]
+
+    def _flags(self, rsu_ids: Sequence[str]) -> np.ndarray:
+        """The compiled ``bank_epoch``'s flags: the measurements' owners, then per filter 1 if its RSU is
+        excluded already."""
+        flags = _flags(tuple(self.ids), tuple(rsu_ids))
+        if not self.excluded:
+            return flags
+        flags = flags.copy()
+        flags[len(rsu_ids) :] = [rsu in self.excluded for rsu in self.ids]
+        return flags
+
+    def step(
+        self,
+        t: float,
+        jerk_density: float,
+        rsu_ids: Sequence[str],
+        arrays: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+        fix: Sequence[float],
+        budget: IntegrityBudget,
+    ) -> tuple[Protection, str | None]:
+        """One epoch: :meth:`predict` to ``t``, :meth:`spawn` and :meth:`update_arrays` with the epoch's RSUs
+        (``arrays``: their positions, observed range and bearing, range and bearing standard deviations),
+        then :meth:`protect_fix` for the fix (x, y, and its covariance's xx, xy, yy); on one compiled kernel
+        call when the kernels are enabled (what the pipeline runs every epoch), else those steps."""
+        self.spawn(rsu_ids)
+        if not _compiled() or not _proper(fix):  # numpy; or a fix without a bound (the bank steps on)
+            self.predict(t, jerk_density)
+            self.update_arrays(rsu_ids, *arrays)
+            return self.protect_fix(fix, budget)
+        bank_epoch = _kernels().bank_epoch
+
+        tables, threshold = _budget_tables(budget, len(self.ids) - 1)
+        scalars = np.array([t - self.t, jerk_density, threshold, *fix, 0.0, 0.0, 0.0])
+        self.t = max(t, self.t)
+        self.means = np.ascontiguousarray(self.means)
+        self.covs = np.ascontiguousarray(self.covs)
+        if bank_epoch(self.means, self.covs, scalars, tables, self._flags(rsu_ids), *arrays):
+            self._update_reference(rsu_ids, _data(*arrays))  # predicted already: the numpy update, the bound
+            return self.protect_fix(fix, budget)
+        return self._protection(scalars, budget)
+
+    def _protection(self, scalars: np.ndarray, budget: IntegrityBudget) -> tuple[Protection, str | None]:
+        """The outcome the compiled ``bank_protect`` wrote into ``scalars`` (level, worst failed sub-filter,
+        statistic)."""
+        values = scalars.tolist()
+        level = values[LEVEL]
+        if not math.isfinite(level):
+            return Protection(None, UNAVAILABLE), None
+        state = ALARM if level > budget.alert_limit else OK
+        worst = int(values[WORST])
+        if worst > 0:
+            protection = Protection(
+                level, state, faulty=worst - 1, statistic=values[STATISTIC], threshold=values[THRESHOLD]
+            )
+            return protection, self.ids[worst]
+        return Protection(level, state), None
+
+    def protect(
+        self, position: Sequence[float] | np.ndarray, position_cov: np.ndarray, budget: IntegrityBudget
+    ) -> tuple[Protection, str | None]:
+        """``protect_with_bank`` for this bank, on one compiled kernel when the kernels are enabled (the
+        module function is the numpy reference it is tested against)."""
+        fix = (
+            float(position[0]),
+            float(position[1]),
+            float(position_cov[0, 0]),
+            float(position_cov[0, 1]),
+            float(position_cov[1, 1]),
+        )
+        return self.protect_fix(fix, budget)
+
+    def protect_fix(self, fix: Sequence[float], budget: IntegrityBudget) -> tuple[Protection, str | None]:
+        """:meth:`protect` for a fix given as x, y and its covariance's xx, xy, yy (on the compiled kernel)."""
+        if not _compiled():
+            position = np.array(fix[:2], dtype=float)
+            position_cov = np.array([[fix[2], fix[3]], [fix[3], fix[4]]], dtype=float)
+            return protect_with_bank(position, position_cov, self, budget)
+        if not _proper(fix):
+            return Protection(None, UNAVAILABLE), None
+        bank_protect = _kernels().bank_protect
+
+        tables, threshold = _budget_tables(budget, len(self.ids) - 1)
+        scalars = np.array([0.0, 0.0, threshold, *fix, 0.0, 0.0, 0.0])
+        excluded = self._flags([])
+        bank_protect(
+            np.ascontiguousarray(self.means), np.ascontiguousarray(self.covs), scalars, tables, excluded
+        )
+        return self._protection(scalars, budget)
 
     def to_bytes(self) -> bytes:
         """Little-endian: magic, version, K, t; the exclusions (count, then uint16 length, end time, UTF-8 id);
@@ -254,6 +382,61 @@ class SeparationBank:
             raise ValueError("integrity bank is not finite")
         means = values[: count * DIM].reshape(count, DIM)
         return SeparationBank(ids, means, values[count * DIM :].reshape(count, DIM, DIM), t, excluded)
+
+
+@functools.lru_cache(maxsize=1024)
+def _flags(ids: tuple[str, ...], rsu_ids: tuple[str, ...]) -> np.ndarray:
+    """Per measurement the sub-filter that leaves it out (-1: none), then a zero per filter (no RSU
+    excluded), read only."""
+    index = {rsu: k for k, rsu in enumerate(ids) if k}
+    flags = np.array([index.get(rsu, -1) for rsu in rsu_ids] + [0] * len(ids), dtype=np.int64)
+    flags.flags.writeable = False
+    return flags
+
+
+def _proper(fix: Sequence[float]) -> bool:
+    """Whether a fix's position covariance (xx, xy, yy at fix[2:5]) is positive definite."""
+    return bool(fix[2] > 0.0 and fix[4] > 0.0 and fix[2] * fix[4] > fix[3] ** 2)
+
+
+@functools.lru_cache(maxsize=256)
+def _budget_tables(budget: IntegrityBudget, hypotheses: int) -> tuple[np.ndarray, float]:
+    """The fault-free and per-hypothesis radial factor tables (rows 0 and 1) and the test threshold of a
+    budget with ``hypotheses`` sub-filters (the split of the risk in the module docstring)."""
+    threshold = test_threshold(budget.false_alarm_probability, hypotheses) if hypotheses else 0.0
+    missed = 0.5 * budget.integrity_risk / max(hypotheses, 1) / budget.fault_probability
+    tables = np.array([radial_factor_table(0.5 * budget.integrity_risk), radial_factor_table(missed)])
+    tables.flags.writeable = False
+    return tables, threshold
+
+
+def _arrays(
+    measurements: Sequence[RangeBearing],
+) -> tuple[list[str], np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The ids and arrays of ``update_arrays`` for a list of measurements."""
+    count = len(measurements)
+    return (
+        [m.rsu_id for m in measurements],
+        np.array([(m.rsu_x, m.rsu_y) for m in measurements], dtype=float).reshape(count, 2),
+        np.array([(m.range, m.bearing) for m in measurements], dtype=float).reshape(count, 2),
+        np.array([m.range_std for m in measurements], dtype=float),
+        np.array([m.bearing_std for m in measurements], dtype=float),
+    )
+
+
+def _data(
+    positions: np.ndarray, observed: np.ndarray, range_std: np.ndarray, bearing_std: np.ndarray
+) -> np.ndarray:
+    """Rows of rsu_x, rsu_y, range, bearing, range_std, bearing_std, as the numpy reference reads them."""
+    return np.column_stack([positions, observed, range_std, bearing_std])
+
+
+@functools.lru_cache(maxsize=1)
+def _kernels() -> ModuleType:
+    """The bank's compiled kernels (imported on first use: numba loads only when they are enabled)."""
+    from edgepos.core import kernels_integrity
+
+    return kernels_integrity
 
 
 @functools.lru_cache(maxsize=1)

@@ -1,7 +1,7 @@
-"""Compiled (numba) kernels of the integrity bank (``core.integrity_bank``): its joint update and its
-separations, the same equations as the bank's numpy code written as loops. On 6x6 matrices and a
-handful of filters numpy spends its time in per-call overhead (about 180 us an epoch for the two);
-these take a few microseconds. ``core.integrity_bank`` calls them when the kernels are enabled
+"""Compiled (numba) kernels of the integrity bank (``core.integrity_bank``): its prediction, joint
+update, separations and protection level, the same equations as the bank's numpy code written as
+loops, and one call for a whole epoch (``bank_epoch``). On 6x6 matrices and a handful of filters numpy
+spends its time in per-call overhead (about 180 us an epoch); these take a few microseconds. ``core.integrity_bank`` calls them when the kernels are enabled
 (``core.compiled.compiled_enabled``) and keeps its numpy code as the reference."""
 
 from __future__ import annotations
@@ -10,90 +10,112 @@ import math
 
 import numpy as np
 
-from edgepos.core.kernels_base import FAILED, OK, BoolArray, _jit, cholesky
+from edgepos.core.integrity_bank import (
+    DT,
+    FIX_X,
+    FIX_XX,
+    FIX_XY,
+    FIX_Y,
+    FIX_YY,
+    JERK,
+    LEVEL,
+    STATISTIC,
+    THRESHOLD,
+    WORST,
+)
+from edgepos.core.kernels_base import FAILED, OK, IntArray, _jit
 from edgepos.core.numerics import FloatArray
 
 _MIN_DISTANCE = 1e-3  # as the bank's numpy update
 
 
 @_jit
-def bank_update(means: FloatArray, covs: FloatArray, keep: BoolArray, data: FloatArray) -> int:
-    """In place: every filter updated with the RSUs of ``data`` (rows: rsu_x, rsu_y, range, bearing,
-    range_std, bearing_std) it keeps (``keep[k, j]``), linearised at the reference's (row 0) mean.
-    Returns OK, or FAILED (nothing written) when an innovation covariance is not positive definite or
-    a result is not finite (the caller then runs the numpy reference)."""
-    count, dim = means.shape
-    measurements = data.shape[0]
-    rows = 2 * measurements
-    h = np.zeros((rows, 2))
-    residual = np.zeros(rows)
-    noise = np.zeros(rows)
+def bank_update(
+    means: FloatArray,
+    covs: FloatArray,
+    owner: IntArray,
+    positions: FloatArray,
+    observed: FloatArray,
+    range_std: FloatArray,
+    bearing_std: FloatArray,
+) -> int:
+    """In place: every filter k updated with the RSUs at ``positions`` (n, 2) whose range and bearing
+    (from the RSU to the vehicle) are ``observed`` (n, 2) with standard deviations ``range_std`` and
+    ``bearing_std`` (n,), but those whose ``owner`` is k (the sub-filter that leaves the RSU out; -1
+    for none), linearised at the reference's (row 0) mean.
+    Returns OK, or FAILED (nothing written) when a result is not finite (the caller then runs the numpy
+    reference).
+
+    The same update as the numpy reference's stacked one, in the position's information form: H acts on
+    x and y only and R is diagonal, so RSU j adds J_j = H_j^T R_j^-1 H_j (2x2) and g_j = H_j^T R_j^-1 r_j
+    (r_j its residual at the reference), and with C the filter's position covariance, Cx its columns
+    for x and y, and o its position's offset from the reference's (the linearisation point),
+    J = sum J_j, g = sum g_j - J o, M = (I + J C)^-1 give m += Cx M g and P -= Cx M J Cx^T (Woodbury:
+    the Kalman gain over the stacked rows, without their 2n x 2n innovation covariance)."""
+    count = means.shape[0]
+    measurements = positions.shape[0]
+    information = np.zeros((measurements, 3))  # J_j as xx, xy, yy
+    score = np.zeros((measurements, 2))  # g_j
     for j in range(measurements):
-        dx = means[0, 0] - data[j, 0]
-        dy = means[0, 3] - data[j, 1]
+        dx = means[0, 0] - positions[j, 0]
+        dy = means[0, 3] - positions[j, 1]
         distance = max(math.hypot(dx, dy), _MIN_DISTANCE)
         r2 = distance * distance
-        h[2 * j, 0] = dx / distance
-        h[2 * j, 1] = dy / distance
-        h[2 * j + 1, 0] = -dy / r2
-        h[2 * j + 1, 1] = dx / r2
-        residual[2 * j] = data[j, 2] - distance
-        wrapped = (data[j, 3] - math.atan2(dy, dx) + math.pi) % (2.0 * math.pi)
-        residual[2 * j + 1] = wrapped - math.pi
-        noise[2 * j] = data[j, 4] * data[j, 4]
-        noise[2 * j + 1] = data[j, 5] * data[j, 5]
+        rx, ry = dx / distance, dy / distance  # d range / d(x, y)
+        bx, by = -dy / r2, dx / r2  # d bearing / d(x, y)
+        wr = 1.0 / (range_std[j] * range_std[j])
+        wb = 1.0 / (bearing_std[j] * bearing_std[j])
+        range_residual = observed[j, 0] - distance
+        bearing_residual = (observed[j, 1] - math.atan2(dy, dx) + math.pi) % (2.0 * math.pi) - math.pi
+        information[j, 0] = wr * rx * rx + wb * bx * bx
+        information[j, 1] = wr * rx * ry + wb * bx * by
+        information[j, 2] = wr * ry * ry + wb * by * by
+        score[j, 0] = wr * rx * range_residual + wb * bx * bearing_residual
+        score[j, 1] = wr * ry * range_residual + wb * by * bearing_residual
     new_means = means.copy()
     new_covs = covs.copy()
-    hk = np.zeros((rows, 2))
-    z = np.zeros(rows)
-    pht = np.zeros((dim, rows))
-    s = np.zeros((rows, rows))
-    factor = np.zeros((rows, rows))
-    gain_t = np.zeros((rows, dim))
     for k in range(count):
+        ja = jb = jd = ga = gb = 0.0
+        for j in range(measurements):
+            if owner[j] != k:
+                ja += information[j, 0]
+                jb += information[j, 1]
+                jd += information[j, 2]
+                ga += score[j, 0]
+                gb += score[j, 1]
         ox = means[k, 0] - means[0, 0]
         oy = means[k, 3] - means[0, 3]
-        for r in range(rows):
-            kept = 1.0 if keep[k, r // 2] else 0.0
-            hk[r, 0] = h[r, 0] * kept
-            hk[r, 1] = h[r, 1] * kept
-            z[r] = (residual[r] - h[r, 0] * ox - h[r, 1] * oy) * kept
-        for i in range(dim):
-            for r in range(rows):
-                pht[i, r] = covs[k, i, 0] * hk[r, 0] + covs[k, i, 3] * hk[r, 1]
-        for a in range(rows):
-            for b in range(rows):
-                s[a, b] = hk[a, 0] * pht[0, b] + hk[a, 1] * pht[3, b]
-            s[a, a] += noise[a]
-        if not cholesky(s, rows, factor):
+        ga -= ja * ox + jb * oy
+        gb -= jb * ox + jd * oy
+        ca, cb, cd = covs[k, 0, 0], 0.5 * (covs[k, 0, 3] + covs[k, 3, 0]), covs[k, 3, 3]
+        # I + J C and its inverse (2x2)
+        a11 = 1.0 + ja * ca + jb * cb
+        a12 = ja * cb + jb * cd
+        a21 = jb * ca + jd * cb
+        a22 = 1.0 + jb * cb + jd * cd
+        det = a11 * a22 - a12 * a21
+        if not det > 0.0:
             return FAILED
-        # gain_t = S^-1 H P (rows x dim), the gain transposed: L Y = H P, then L^T X = Y
-        for i in range(dim):
-            for r in range(rows):
-                total = pht[i, r]
-                for c in range(r):
-                    total -= factor[r, c] * gain_t[c, i]
-                gain_t[r, i] = total / factor[r, r]
-            for r in range(rows - 1, -1, -1):
-                total = gain_t[r, i]
-                for c in range(r + 1, rows):
-                    total -= factor[c, r] * gain_t[c, i]
-                gain_t[r, i] = total / factor[r, r]
-        for i in range(dim):
-            total = 0.0
-            for r in range(rows):
-                total += gain_t[r, i] * z[r]
-            new_means[k, i] = means[k, i] + total
-        for i in range(dim):
-            for m in range(i, dim):
-                total = 0.0
-                for r in range(rows):
-                    total += gain_t[r, i] * pht[m, r] + gain_t[r, m] * pht[i, r]
-                value = 0.5 * (covs[k, i, m] + covs[k, m, i]) - 0.5 * total  # (C + C^T) / 2, as numpy's
+        i11, i12, i21, i22 = a22 / det, -a12 / det, -a21 / det, a11 / det
+        # v = M g; W = M J (symmetric: (C + J^-1)^-1 when J is regular)
+        v0, v1 = i11 * ga + i12 * gb, i21 * ga + i22 * gb
+        w11 = i11 * ja + i12 * jb
+        w12 = i11 * jb + i12 * jd
+        w21 = i21 * ja + i22 * jb
+        w22 = i21 * jb + i22 * jd
+        w12 = w21 = 0.5 * (w12 + w21)
+        for i in range(6):
+            new_means[k, i] = means[k, i] + covs[k, i, 0] * v0 + covs[k, i, 3] * v1
+        for i in range(6):
+            xi, yi = covs[k, i, 0], covs[k, i, 3]
+            ui = xi * w11 + yi * w21  # (Cx W)[i, 0]
+            vi = xi * w12 + yi * w22  # (Cx W)[i, 1]
+            for m in range(i, 6):
+                value = 0.5 * (covs[k, i, m] + covs[k, m, i]) - (ui * covs[k, m, 0] + vi * covs[k, m, 3])
                 new_covs[k, i, m] = value
                 new_covs[k, m, i] = value
     for k in range(count):
-        for i in range(dim):
+        for i in range(6):
             if not math.isfinite(new_means[k, i]):
                 return FAILED
     means[:, :] = new_means
@@ -122,3 +144,128 @@ def bank_separations(means: FloatArray, covs: FloatArray, out: FloatArray) -> No
         out[k - 1, 3] = covs[k, 0, 0]
         out[k - 1, 4] = covs[k, 0, 3]
         out[k - 1, 5] = covs[k, 3, 3]
+
+
+@_jit
+def bank_predict(means: FloatArray, covs: FloatArray, dt: float, jerk_density: float) -> None:
+    """In place: every filter to ``dt`` s later under white jerk of density ``jerk_density`` per axis, as
+    the bank's numpy ``predict`` (F m, F C F^T + Q with the constant-acceleration F and Q per axis)."""
+    transition = np.zeros((6, 6))
+    noise = np.zeros((6, 6))
+    dt2, dt3 = dt * dt, dt * dt * dt
+    for o in (0, 3):
+        transition[o, o] = transition[o + 1, o + 1] = transition[o + 2, o + 2] = 1.0
+        transition[o, o + 1] = transition[o + 1, o + 2] = dt
+        transition[o, o + 2] = 0.5 * dt2
+        noise[o, o] = jerk_density * dt2 * dt3 / 20.0
+        noise[o, o + 1] = noise[o + 1, o] = jerk_density * dt2 * dt2 / 8.0
+        noise[o, o + 2] = noise[o + 2, o] = jerk_density * dt3 / 6.0
+        noise[o + 1, o + 1] = jerk_density * dt3 / 3.0
+        noise[o + 1, o + 2] = noise[o + 2, o + 1] = jerk_density * dt2 / 2.0
+        noise[o + 2, o + 2] = jerk_density * dt
+    mean = np.zeros(6)
+    product = np.zeros((6, 6))
+    for k in range(means.shape[0]):
+        for i in range(6):
+            o = 3 * (i // 3)  # F is block diagonal: row i mixes only its own axis' three states
+            mean[i] = (
+                transition[i, o] * means[k, o]
+                + transition[i, o + 1] * means[k, o + 1]
+                + transition[i, o + 2] * means[k, o + 2]
+            )
+        means[k, :] = mean
+        for i in range(6):
+            o = 3 * (i // 3)
+            for j in range(6):
+                product[i, j] = (
+                    transition[i, o] * covs[k, o, j]
+                    + transition[i, o + 1] * covs[k, o + 1, j]
+                    + transition[i, o + 2] * covs[k, o + 2, j]
+                )
+        for i in range(6):
+            for j in range(6):
+                o = 3 * (j // 3)
+                covs[k, i, j] = (
+                    product[i, o] * transition[j, o]
+                    + product[i, o + 1] * transition[j, o + 1]
+                    + product[i, o + 2] * transition[j, o + 2]
+                    + noise[i, j]
+                )
+
+
+@_jit
+def radial_bound(a: float, b: float, d: float, factors: FloatArray) -> float:
+    """``core.integrity.radial_bound`` of the 2x2 covariance [[a, b], [b, d]] with the factors tabulated
+    for its probability (all zero when the probability needs no bound)."""
+    half = 0.5 * (a - d)
+    spread = math.sqrt(half * half + b * b)
+    largest = 0.5 * (a + d) + spread
+    if largest <= 0.0:
+        return 0.0
+    ratio = min(max((0.5 * (a + d) - spread) / largest, 0.0), 1.0)
+    factor: float = factors[math.ceil(ratio * (factors.shape[0] - 1) - 1e-12)]
+    return factor * math.sqrt(largest)
+
+
+@_jit
+def bank_protect(
+    means: FloatArray, covs: FloatArray, scalars: FloatArray, tables: FloatArray, excluded: IntArray
+) -> None:
+    """The protection level of the fix from the bank, as ``core.integrity_bank.protect_with_bank``: reads
+    the fix (x, y, covariance xx, xy, yy) and the test threshold from ``scalars`` (indices above), the
+    fault-free and per-hypothesis radial factors from ``tables`` rows 0 and 1, and whether each filter's
+    RSU is excluded already (nonzero) from ``excluded``; writes the level, the index k >= 1 of the worst
+    failed test not already excluded (-1: none) and its statistic into ``scalars``. The caller has
+    checked the fix's covariance."""
+    x, y, threshold = scalars[FIX_X], scalars[FIX_Y], scalars[THRESHOLD]
+    level = radial_bound(scalars[FIX_XX], scalars[FIX_XY], scalars[FIX_YY], tables[0])
+    offset = math.hypot(x - means[0, 0], y - means[0, 3])
+    level = max(level, offset + radial_bound(covs[0, 0, 0], covs[0, 0, 3], covs[0, 3, 3], tables[0]))
+    worst, worst_statistic = -1, 0.0
+    for k in range(1, means.shape[0]):
+        dx = means[k, 0] - means[0, 0]
+        dy = means[k, 3] - means[0, 3]
+        a = covs[k, 0, 0] - covs[0, 0, 0]
+        b = covs[k, 0, 3] - covs[0, 0, 3]
+        c = covs[k, 3, 3] - covs[0, 3, 3]
+        det = a * c - b * b
+        statistic = 0.0
+        if a > 0.0 and c > 0.0 and det > 1e-12 * a * c:
+            statistic = math.sqrt(max((c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / det, 0.0))
+        if statistic > threshold and excluded[k] == 0 and (worst < 0 or statistic > worst_statistic):
+            worst, worst_statistic = k, statistic
+        separation = math.hypot(means[k, 0] - x, means[k, 3] - y)
+        level = max(level, separation + radial_bound(covs[k, 0, 0], covs[k, 0, 3], covs[k, 3, 3], tables[1]))
+    scalars[LEVEL] = level
+    scalars[WORST] = worst
+    scalars[STATISTIC] = worst_statistic
+
+
+@_jit
+def bank_epoch(
+    means: FloatArray,
+    covs: FloatArray,
+    scalars: FloatArray,
+    tables: FloatArray,
+    flags: IntArray,
+    positions: FloatArray,
+    observed: FloatArray,
+    range_std: FloatArray,
+    bearing_std: FloatArray,
+) -> int:
+    """One epoch of the bank in one call: ``bank_predict`` over ``scalars[DT]`` (none when it is not
+    positive) with ``scalars[JERK]``, ``bank_update`` with the n RSUs of ``positions`` .. ``bearing_std``
+    (their owners in ``flags[:n]``) and ``bank_protect`` (the filters' exclusions in ``flags[n:]``).
+    Returns OK, or FAILED when the update failed: the bank is then predicted, not updated, and nothing
+    written to ``scalars`` (the caller finishes the epoch on the numpy reference). Few arguments: numba's
+    dispatch costs about half a microsecond per argument."""
+    if scalars[DT] > 0.0:
+        bank_predict(means, covs, scalars[DT], scalars[JERK])
+    count = positions.shape[0]
+    if (
+        count > 0
+        and bank_update(means, covs, flags[:count], positions, observed, range_std, bearing_std) != OK
+    ):
+        return FAILED
+    bank_protect(means, covs, scalars, tables, flags[count:])
+    return OK

@@ -89,12 +89,13 @@ CALIBRATION: dict[str, dict[str, float]] = {
         "srukf.gyro_model": 130 * _US,
         "observation": 3.51 * _US,
         "batch": 118 * _US,
-        # options.integrity: the monitor's bank (a reference and one sub-filter per RSU used, each updated
-        # with the other RSUs jointly), measured on top of the same batches without it (2026-11-26,
-        # an upper envelope over 4, 8, 16 and 32 RSUs per epoch: 157, 283, 644 and 3074 us more per epoch)
-        "integrity.epoch": 210 * _US,
-        "integrity.rsu2": 0.6 * _US,
-        "integrity.rsu3": 0.069 * _US,
+        # options.integrity: the monitor's bank (a reference and one sub-filter per RSU used), one compiled
+        # call per epoch; measured on top of the same batches without it by bench/batch_cost.py (thread CPU,
+        # 2026-11-26, load 0.5): 24, 43, 41 and 60 us more per epoch with 4, 8, 16 and 32 RSUs. An upper
+        # envelope with room for a loaded box at the paper's 4 RSUs: 45 us + 0.015 us x RSUs^2.
+        "integrity.epoch": 45 * _US,
+        "integrity.rsu2": 0.015 * _US,
+        "integrity.rsu3": 0.0 * _US,
     },
     "gnss_tight": {
         "ukf.epoch": 205 * _US,

@@ -12,7 +12,7 @@ import dataclasses
 import functools
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any, TypeVar, cast
 
 import numpy as np
 
@@ -24,9 +24,10 @@ from edgepos.core.integrity import (
     IntegrityBudget,
     Protection,
 )
-from edgepos.core.integrity_bank import RangeBearing, SeparationBank, protect_with_bank
+from edgepos.core.integrity_bank import SeparationBank
 from edgepos.core.observations import Observation, RsuObservation
-from edgepos.pipelines.base import MeasurementUse, OptionSpec, Rsu
+from edgepos.core.updates import RsuGyroEpoch
+from edgepos.pipelines.base import MeasurementUse, OptionSpec
 
 #: Default jerk spectral density of the sub-filters (m^2/s^5), chosen on seeds 0-99 of the RSU + IMU
 #: scenario so that their position NEES is consistent (docs/integrity.md).
@@ -38,8 +39,8 @@ INTEGRITY_SPECS: tuple[OptionSpec, ...] = (
         "boolean",
         False,
         "Run the integrity monitor: a protection level with every fix, RSU fault detection and exclusion "
-        "(docs/integrity.md). Off by default because it about doubles the CPU time of an epoch (one sub-filter "
-        "per RSU in use beside the IMM); off, every fix's integrity is 'unavailable' and protection_level_m null.",
+        "(docs/integrity.md). Off by default because it adds about a quarter to the CPU time of an epoch (one "
+        "sub-filter per RSU in use beside the IMM); off, every fix's integrity is 'unavailable' and protection_level_m null.",
     ),
     OptionSpec(
         "integrity_risk",
@@ -144,11 +145,16 @@ def _rsu_id(index: int, observations: Sequence[Observation]) -> str:
     return observation.rsu_id
 
 
-def _position(output: Gaussian) -> tuple[np.ndarray, np.ndarray]:
-    """The horizontal position (2,) and its covariance (2, 2) of a fix's Gaussian."""
-    components = list(output.components)
-    index = [components.index(layout.XP), components.index(layout.YP)]
-    return output.mean[index], output.cov[np.ix_(index, index)]
+def _fix(output: Gaussian) -> tuple[float, float, float, float, float]:
+    """The horizontal position of a fix's Gaussian and its covariance: x, y, xx, xy, yy."""
+    x, y = _position_index(output.components)
+    mean, cov = output.mean, output.cov
+    return mean.item(x), mean.item(y), cov.item(x, x), cov.item(x, y), cov.item(y, y)
+
+
+@functools.lru_cache(maxsize=16)
+def _position_index(components: tuple[int, ...]) -> tuple[int, int]:
+    return components.index(layout.XP), components.index(layout.YP)
 
 
 def bank_from_tail(tail: bytes) -> SeparationBank | None:
@@ -175,67 +181,44 @@ def start_bank(output: Gaussian, t: float) -> SeparationBank:
     return SeparationBank.start(mean, cov, t)
 
 
-def _measurements(
-    candidates: Sequence[int],
-    observations: Sequence[Observation],
-    rsus: Sequence[Rsu | None],
-    options: Mapping[str, Any],
-) -> list[RangeBearing]:
-    out = []
-    for i in candidates:
-        observation, rsu = observations[i], rsus[i]
-        assert isinstance(observation, RsuObservation) and rsu is not None
-        out.append(
-            RangeBearing(
-                observation.rsu_id,
-                rsu.x,
-                rsu.y,
-                observation.range,
-                observation.bearing,
-                rsu.range_std or options["range_std"],
-                rsu.bearing_std or options["bearing_std"],
-            )
-        )
-    return out
-
-
 def monitored_update(
     bank: SeparationBank | None,
     t: float,
     candidates: list[int],
+    measured: RsuGyroEpoch,
     observations: Sequence[Observation],
-    rsus: Sequence[Rsu | None],
     options: Mapping[str, Any],
     uses: dict[int, MeasurementUse],
     prior: Gaussian,
-    correct: Callable[[list[int]], _Result],
+    remeasure: Callable[[list[int]], RsuGyroEpoch],
+    correct: Callable[[RsuGyroEpoch], _Result],
     output_of: Callable[[_Result], Gaussian],
-) -> tuple[_Result, list[int], Protection, SeparationBank]:
+) -> tuple[_Result, list[int], RsuGyroEpoch, Protection, SeparationBank]:
     """One epoch's update with fault detection and exclusion and the fix's protection level.
 
-    ``correct(candidates)`` runs the pipeline's update with those RSUs. The RSUs excluded earlier are left
-    out; an RSU in use whose test over time (``core.integrity_bank``) fails is excluded for
-    ``fault_exclusion_s`` and the epoch filtered again without it; a failed test that cannot be acted on
-    (exclusion off, the only RSU, or an RSU not in use) puts the fix in alarm. Returns the update, the RSUs
-    it used, the protection and the bank (started from the pipeline's ``prior`` of this epoch when the
-    session has none yet)."""
+    ``measured`` holds the ``candidates``' measurement arrays (and the epoch's gyro readings),
+    ``remeasure(kept)`` gives them for fewer RSUs and ``correct(measured)`` runs the pipeline's update. The
+    RSUs excluded earlier are left out; an RSU in use whose test over time (``core.integrity_bank``) fails
+    is excluded for ``fault_exclusion_s`` and the epoch filtered again without it; a failed test that
+    cannot be acted on (exclusion off, the only RSU, or an RSU not in use) puts the fix in alarm. Returns
+    the update, the RSUs and measurements it used, the protection and the bank (started from the
+    pipeline's ``prior`` of this epoch when the session has none yet)."""
     monitor = RsuIntegrity.of(options)
-    if bank is not None:
+    if bank is not None and bank.excluded:
         held = bank.excluded_now(t)
-        for i in [i for i in candidates if _rsu_id(i, observations) in held]:
+        kept = [i for i in candidates if _rsu_id(i, observations) not in held]
+        for i in [i for i in candidates if i not in kept]:
             until = bank.excluded[_rsu_id(i, observations)]
             uses[i] = MeasurementUse(i, "rsu", False, f"{EXCLUDED}: held out until t={until:.2f} s")
-            candidates = [j for j in candidates if j != i]
-    result = correct(candidates)
+        if len(kept) < len(candidates):
+            candidates, measured = kept, remeasure(kept)
+    result = correct(measured)
     if bank is None:
         bank = start_bank(prior, t)
-    bank.predict(t, options["integrity_jerk_psd"])
-    measurements = _measurements(candidates, observations, rsus, options)
-    bank.spawn([m.rsu_id for m in measurements])
-    bank.update(measurements)
-    position, position_cov = _position(output_of(result))
-    protection, faulty = protect_with_bank(position, position_cov, bank, monitor.budget)
-    in_use = [m.rsu_id for m in measurements]
+    in_use = [cast(RsuObservation, observations[i]).rsu_id for i in candidates]  # candidates are RSUs
+    arrays = (measured.positions, measured.observed, measured.range_std, measured.bearing_std)
+    fix = _fix(output_of(result))
+    protection, faulty = bank.step(t, options["integrity_jerk_psd"], in_use, arrays, fix, monitor.budget)
     if faulty is not None and monitor.exclusion and faulty in in_use and len(candidates) > 1:
         index = candidates[in_use.index(faulty)]
         uses[index] = MeasurementUse(
@@ -245,12 +228,12 @@ def monitored_update(
             f"{EXCLUDED}: filter separation {protection.statistic:.1f} sigma > {protection.threshold:.1f}",
         )
         candidates = [i for i in candidates if i != index]
-        result = correct(candidates)
+        measured = remeasure(candidates)
+        result = correct(measured)
         bank.exclude(faulty, t + options["fault_exclusion_s"])
         in_use.remove(faulty)
-        position, position_cov = _position(output_of(result))
-        protection, faulty = protect_with_bank(position, position_cov, bank, monitor.budget)
+        protection, faulty = bank.protect_fix(_fix(output_of(result)), monitor.budget)
     if faulty is not None:  # a failed test not acted on: the fix is not to be trusted
         protection = dataclasses.replace(protection, state=ALARM)
     bank.prune(in_use)
-    return result, candidates, protection, bank
+    return result, candidates, measured, protection, bank

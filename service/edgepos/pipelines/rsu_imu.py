@@ -431,29 +431,19 @@ def _step(
 
     protection: Protection | None = None
     if options["integrity"]:
-        last = [measured]  # the measurements of the last update (fault exclusion may filter the epoch again)
-
-        def correct(kept: list[int]) -> StepResult:
-            last[0] = (
-                measured
-                if kept == candidates
-                else _epoch_measurements(kept, gyros, observations, rsus, options)
-            )
-            return stepper.correct(prediction, last[0])
-
-        result, candidates, protection, session.integrity_bank = monitored_update(
+        result, candidates, measured, protection, session.integrity_bank = monitored_update(
             session.integrity_bank,
             t,
             candidates,
+            measured,
             observations,
-            rsus,
             options,
             uses,
             prediction.output,
-            correct,
+            lambda kept: _epoch_measurements(kept, gyros, observations, rsus, options),
+            functools.partial(stepper.correct, prediction),
             _output,
         )
-        measured = last[0]
     else:
         result = stepper.correct(prediction, measured)
     for i in candidates + gyros:
