@@ -8,7 +8,6 @@ the sub-filters' process noise. Their defaults and the reasons for them are in d
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -234,6 +233,8 @@ def monitored_update(
         in_use.remove(faulty)
         protection, faulty = bank.protect_fix(_fix(output_of(result)), monitor.budget)
     if faulty is not None:  # a failed test not acted on: the fix is not to be trusted
-        protection = dataclasses.replace(protection, state=ALARM)
+        protection = Protection(
+            protection.level, ALARM, protection.faulty, protection.statistic, protection.threshold
+        )
     bank.prune(in_use)
     return result, candidates, measured, protection, bank
