@@ -58,7 +58,7 @@ def main() -> int:
     epochs = rsu_imu_epochs(scenario, np.random.default_rng(7))
     env = environment(scenario)
     pipeline = get_pipeline("rsu_imu")
-    options = pipeline.resolve_options({})
+    options = pipeline.resolve_options({"integrity": False})  # the monitor is timed apart, below
     x0 = scenario.initial_state
     state = pipeline.create(options, InitialState(x0[0], x0[3], x0[1], x0[4]))
     warmup = 200  # a realistic, converged state to time from
@@ -161,8 +161,11 @@ def main() -> int:
         "numpy reference bank step": (reference_step, 1),
         "pipeline, 1-epoch batch": (pipeline_step, 1),
         f"pipeline, per epoch of {batch_epochs}": (pipeline_batch_step, batch_epochs),
-        f"pipeline, per epoch of {batch_epochs}, jittered t": (pipeline_jittered_batch_step, batch_epochs),
-        "  the same with the integrity monitor": (pipeline_monitored_step, batch_epochs),
+        f"pipeline, per epoch of {batch_epochs}, jittered t, no monitor": (
+            pipeline_jittered_batch_step,
+            batch_epochs,
+        ),
+        "  the same with the integrity monitor (default)": (pipeline_monitored_step, batch_epochs),
         "numpy baseline": (baseline_step, 1),
     }
     timings: dict[str, list[float]] = {name: [] for name in functions}
@@ -211,15 +214,15 @@ def main() -> int:
     )
     verdict = "PASS" if compiled_median <= TARGET_US else "FAIL"
     print(f"compiled 2IMM-CKF step: {compiled_median:.1f} us median (target <= {TARGET_US:g} us) {verdict}")
-    jittered_name = f"pipeline, per epoch of {batch_epochs}, jittered t"
-    monitor_cost = median["  the same with the integrity monitor"] / median[jittered_name] - 1.0
+    jittered_name = f"pipeline, per epoch of {batch_epochs}, jittered t, no monitor"
+    monitor_cost = median["  the same with the integrity monitor (default)"] / median[jittered_name] - 1.0
     pairs = [  # batch by batch, the two timed back to back: the load of the moment hits both alike
         with_monitor / without - 1.0
         for without, with_monitor in zip(
-            timings[jittered_name], timings["  the same with the integrity monitor"]
+            timings[jittered_name], timings["  the same with the integrity monitor (default)"]
         )
     ]
-    monitored_name = "  the same with the integrity monitor"
+    monitored_name = "  the same with the integrity monitor (default)"
     monitor_cpu_cost = statistics.median(cpu[monitored_name]) / statistics.median(cpu[jittered_name]) - 1.0
     print(
         f"integrity monitor: +{100 * monitor_cost:.1f} % per epoch (medians), +{100 * statistics.median(pairs):.1f} % "
@@ -231,8 +234,10 @@ def main() -> int:
         figures = {
             "step_us": compiled_median,
             "pipeline_epoch_us": median[f"pipeline, per epoch of {batch_epochs}"],
-            "pipeline_epoch_jittered_us": median[jittered_name],
-            "pipeline_epoch_jittered_integrity_us": median["  the same with the integrity monitor"],
+            "pipeline_epoch_jittered_us": median[
+                "  the same with the integrity monitor (default)"
+            ],  # the default
+            "pipeline_epoch_jittered_without_integrity_us": median[jittered_name],
             "integrity_cost": monitor_cost,
             "integrity_cost_cpu": monitor_cpu_cost,
             "load_average": [load_before[0], os.getloadavg()[0]],

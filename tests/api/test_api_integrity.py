@@ -40,17 +40,17 @@ def test_fixes_carry_a_protection_level_within_the_alert_limit(client):
 
 
 def test_without_the_monitor_fixes_say_unavailable_and_the_state_has_no_bank(client):
-    """integrity off (the default): no protection level and no sub-filters in the stored state."""
-    session_id, token = open_session(client, pipeline="rsu_imu", vehicle_id="car-off")
+    """integrity off: no protection level and no sub-filters in the stored state; on (the default): both."""
+    session_id, token = open_session(
+        client, pipeline="rsu_imu", vehicle_id="car-off", options={"integrity": False}
+    )
     body = {"seq": 1, "measurements": [wire(o) for o in batch_observations(0, 30)]}
     response = client.post(f"/v1/sessions/{session_id}/batches", json=body, headers=token)
     assert response.status_code == 200, response.text
     fixes = response.json()["fixes"]
     assert {f["integrity"] for f in fixes} == {"unavailable"}
     assert {f["protection_level_m"] for f in fixes} == {None}
-    on_id, on_token = open_session(
-        client, pipeline="rsu_imu", vehicle_id="car-on", options={"integrity": True}
-    )
+    on_id, on_token = open_session(client, pipeline="rsu_imu", vehicle_id="car-on")
     response = client.post(f"/v1/sessions/{on_id}/batches", json=body, headers=on_token)
     assert response.status_code == 200, response.text
     assert response.json()["fixes"][-1]["integrity"] == "ok"

@@ -515,7 +515,7 @@ class FixOut(ResponseModel):
         "alarm: do not use this fix for what needs integrity (the protection level exceeds the alert limit, a "
         "fault was detected that could not be excluded, or the fix diverged); unavailable: no bound for this "
         "fix (the first epochs of a session, a session without the monitor, or a pipeline without one: only "
-        "rsu_imu has one so far, run when the session's options.integrity is true; v2v_coop, v2x_federated and "
+        "rsu_imu has one so far, run unless the session's options.integrity is false; v2v_coop, v2x_federated and "
         "gnss_tight report unavailable).",
     )
     measurements: list[MeasurementUseOut] = Field(

@@ -36,10 +36,10 @@ INTEGRITY_SPECS: tuple[OptionSpec, ...] = (
     OptionSpec(
         "integrity",
         "boolean",
-        False,
+        True,
         "Run the integrity monitor: a protection level with every fix, RSU fault detection and exclusion "
-        "(docs/integrity.md). Off by default because it adds about a quarter to the CPU time of an epoch (one "
-        "sub-filter per RSU in use beside the IMM); off, every fix's integrity is 'unavailable' and protection_level_m null.",
+        "(docs/integrity.md). It adds about a quarter to the CPU time of an epoch (one sub-filter per RSU in use "
+        "beside the IMM); off, every fix's integrity is 'unavailable' and protection_level_m null.",
     ),
     OptionSpec(
         "integrity_risk",
