@@ -281,7 +281,7 @@ class SeparationBank:
             return self.protect_fix(fix, budget)
         bank_epoch = _kernels().bank_epoch
 
-        tables, threshold = _budget_tables(budget, len(self.ids) - 1)
+        tables, threshold = budget_tables(budget, len(self.ids) - 1)
         scalars = np.array([t - self.t, jerk_density, threshold, *fix, 0.0, 0.0, 0.0])
         self.t = max(t, self.t)
         self.means = np.ascontiguousarray(self.means)
@@ -331,7 +331,7 @@ class SeparationBank:
             return Protection(None, UNAVAILABLE), None
         bank_protect = _kernels().bank_protect
 
-        tables, threshold = _budget_tables(budget, len(self.ids) - 1)
+        tables, threshold = budget_tables(budget, len(self.ids) - 1)
         scalars = np.array([0.0, 0.0, threshold, *fix, 0.0, 0.0, 0.0])
         excluded = self._flags([])
         bank_protect(
@@ -400,7 +400,7 @@ def _proper(fix: Sequence[float]) -> bool:
 
 
 @functools.lru_cache(maxsize=256)
-def _budget_tables(budget: IntegrityBudget, hypotheses: int) -> tuple[np.ndarray, float]:
+def budget_tables(budget: IntegrityBudget, hypotheses: int) -> tuple[np.ndarray, float]:
     """The fault-free and per-hypothesis radial factor tables (rows 0 and 1) and the test threshold of a
     budget with ``hypotheses`` sub-filters (the split of the risk in the module docstring)."""
     threshold = test_threshold(budget.false_alarm_probability, hypotheses) if hypotheses else 0.0

@@ -23,7 +23,7 @@ from edgepos.core.integrity import (
     IntegrityBudget,
     Protection,
 )
-from edgepos.core.integrity_bank import SeparationBank
+from edgepos.core.integrity_bank import SeparationBank, budget_tables
 from edgepos.core.observations import Observation, RsuObservation
 from edgepos.core.updates import RsuGyroEpoch
 from edgepos.pipelines.base import MeasurementUse, OptionSpec
@@ -132,6 +132,16 @@ def _monitor(
     exclusion: bool,
 ) -> RsuIntegrity:
     return RsuIntegrity(IntegrityBudget(risk, false_alarm, fault, alert_limit), exclusion)
+
+
+def warm_up_tables(max_hypotheses: int = 8) -> None:
+    """Tabulate the radial bounds and test thresholds of the default options' budget for 1 to
+    ``max_hypotheses`` sub-filters now (about 30 ms each, by quadrature), so that the first vehicles'
+    epochs do not stall the filter thread computing them (the tables are cached per process)."""
+    defaults = {spec.name: spec.default for spec in INTEGRITY_SPECS}
+    budget = RsuIntegrity.of(defaults).budget
+    for hypotheses in range(1, max_hypotheses + 1):
+        budget_tables(budget, hypotheses)
 
 
 EXCLUDED = "excluded by fault detection"
