@@ -21,6 +21,7 @@ from edgepos.pipelines.gnss_faults import (
     DEFAULT_FAULT_PROBABILITY,
     DEFAULT_FAULT_RECOVERY,
 )
+from edgepos.pipelines.gnss_integrity import INTEGRITY_SPECS
 
 NEAREST_BASE_STATION = "nearest"
 
@@ -449,4 +450,4 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         0,
         2**63 - 1,
     ),
-)
+) + INTEGRITY_SPECS
