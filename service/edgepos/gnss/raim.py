@@ -49,39 +49,48 @@ class RaimBudget:
 
 @dataclass(frozen=True)
 class Separations:
-    """One epoch's hypotheses: each one's rows left out, separation (east, north), its covariance S_j (2x2)
-    and prior fault probability; ``available`` False when the satellites cannot bound a fault."""
+    """One epoch's hypotheses: each one's rows left out, separation (east, north), its covariance S_j (2x2),
+    test statistic sqrt(q_j) and prior fault probability; ``available`` False when the satellites cannot bound
+    a fault."""
 
     available: bool
-    hypotheses: tuple[tuple[tuple[int, ...], np.ndarray, np.ndarray, float], ...]
+    hypotheses: tuple[tuple[tuple[int, ...], np.ndarray, np.ndarray, float, float], ...]
     threshold: float
 
-    def worst(self) -> tuple[int, float] | None:
-        """The hypothesis whose test fails most (its index and sqrt(q)), None when every test passes."""
-        best: tuple[int, float] | None = None
-        for index, (_, separation, covariance, _) in enumerate(self.hypotheses):
-            statistic = _statistic(separation, covariance)
-            if statistic > self.threshold and (best is None or statistic > best[1]):
-                best = (index, statistic)
-        return best
+    def worst(self, size: int | None = None) -> tuple[int, float] | None:
+        """The failed hypothesis to exclude first (its index and sqrt(q)), None when every test passes: the
+        satellite whose test fails most, or, when no satellite's fails, the constellation's (a satellite's
+        fault also fails its constellation's test, by more). ``size`` 1: satellites only; >1: only
+        constellations."""
+        best: tuple[int, float, int] | None = None
+        for index, hypothesis in enumerate(self.hypotheses):
+            statistic = hypothesis[3]
+            single = len(hypothesis[0]) == 1
+            if statistic <= self.threshold or (size is not None and single != (size == 1)):
+                continue
+            rank = 0 if single else 1
+            if best is None or (rank, -statistic) < (best[2], -best[1]):
+                best = (index, statistic, rank)
+        return None if best is None else (best[0], best[1])
 
 
 def _statistic(separation: np.ndarray, covariance: np.ndarray) -> float:
-    try:
-        value = float(separation @ np.linalg.solve(covariance, separation))
-    except np.linalg.LinAlgError:
-        return 0.0  # a hypothesis that changes no information cannot move the solution
-    return math.sqrt(max(value, 0.0))
+    """sqrt(s^T S^+ s): S's pseudo-inverse, since leaving one satellite out moves the solution along one
+    direction only (S of rank 1); |s| <= sqrt(q lmax(S)) either way, which the protection level relies on."""
+    values, vectors = np.linalg.eigh(covariance)
+    keep = values > 1e-9 * max(float(values[-1]), 1e-300)
+    projected = vectors[:, keep].T @ separation
+    return math.sqrt(float(np.sum(projected**2 / values[keep])))
 
 
-def _solve(
-    h: np.ndarray, w: np.ndarray, z: np.ndarray, prior: np.ndarray, keep: np.ndarray
+def _normal(
+    h: np.ndarray, w: np.ndarray, prior: np.ndarray, keep: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray] | None:
-    """The weighted least-squares solution (north, east) and its 2x2 covariance (east, north order) with
-    the rows ``keep`` and the position prior; None when it is not determined."""
+    """The normal matrix's inverse with the rows ``keep`` and the position prior, and the state columns it
+    has (position, then the clocks of the constellations left); None when it is not determined."""
     hk = h[keep]
-    columns = np.flatnonzero(np.any(hk[:, 3:] != 0.0, axis=0)) + 3
-    hk = hk[:, np.concatenate([[0, 1, 2], columns])]
+    columns = np.concatenate([[0, 1, 2], np.flatnonzero(np.any(hk[:, 3:] != 0.0, axis=0)) + 3])
+    hk = hk[:, columns]
     a = hk.T @ (w[keep, None] * hk)
     a[:3, :3] += prior
     try:
@@ -90,7 +99,19 @@ def _solve(
         return None
     if not np.all(np.isfinite(cov)):
         return None
-    d = cov @ (hk.T @ (w[keep] * z[keep]))
+    return cov, columns
+
+
+def _solve(
+    h: np.ndarray, w: np.ndarray, z: np.ndarray, prior: np.ndarray, keep: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The weighted least-squares solution (east, north) and its 2x2 covariance with the rows ``keep`` and
+    the position prior; None when it is not determined."""
+    normal = _normal(h, w, prior, keep)
+    if normal is None:
+        return None
+    cov, columns = normal
+    d = cov @ (h[keep][:, columns].T @ (w[keep] * z[keep]))
     order = [1, 0]  # east, north
     return d[order], cov[np.ix_(order, order)]
 
@@ -105,7 +126,12 @@ def separations(
 ) -> Separations:
     """The hypotheses of one epoch: ``h`` (n x (3 + clocks)) the Jacobian of the pseudoranges with respect
     to (north, east, up, clocks), ``z`` their prefit residuals and ``std`` their noise std (m),
-    ``prior_position_cov`` the filter's predicted (north, east, up) covariance (m^2)."""
+    ``prior_position_cov`` the filter's predicted (north, east, up) covariance (m^2).
+
+    A satellite's hypothesis is the all-in-view solution's rank-one downdate (leave-one-out: separation
+    -g w r / (1 - w s), covariance g g^T w / (1 - w s), g = P_0 h_j, s = h_j^T g, r the post-fit residual),
+    all satellites at once; a constellation's, and a satellite that alone fixes its constellation's clock,
+    are solved again without their rows."""
     n = len(z)
     groups = sorted(set(systems))
     if n < 3 + len(groups) + 1:
@@ -116,29 +142,58 @@ def separations(
     except np.linalg.LinAlgError:
         return Separations(False, (), 0.0)
     every = np.ones(n, dtype=bool)
-    full = _solve(h, w, z, prior, every)
-    if full is None:
+    normal = _normal(h, w, prior, every)
+    if normal is None:
         return Separations(False, (), 0.0)
-    d0, p0 = full
-    leave_out: list[tuple[tuple[int, ...], float]] = [
-        ((j,), budget.satellite_fault_probability) for j in range(n)
-    ]
+    p0, _ = normal
+    d0 = p0 @ (h.T @ (w * z))
+    order = [1, 0]  # east, north
+    east_north_0 = d0[order]
+    g = p0 @ h.T  # (states, n)
+    s = np.einsum("ij,ji->i", h, g)
+    denominator = 1.0 - w * s
+    residual = z - h @ d0
+    tests = n + (len(groups) if len(groups) > 1 else 0)
+    threshold = test_threshold(budget.false_alarm_probability, tests)
+    hypotheses: list[tuple[tuple[int, ...], np.ndarray, np.ndarray, float, float]] = []
+    gh = g[order].T  # (n, 2)
+    for j in range(n):
+        if denominator[j] > 1e-9:
+            scale = w[j] / denominator[j]
+            separation = -gh[j] * scale * residual[j]
+            covariance = scale * np.outer(gh[j], gh[j])
+            statistic = float(abs(residual[j]) * math.sqrt(scale))
+        else:  # the constellation's only satellite: its clock goes with it
+            keep = every.copy()
+            keep[j] = False
+            subset = _solve(h, w, z, prior, keep)
+            if subset is None:
+                return Separations(False, (), threshold)
+            separation = subset[0] - east_north_0
+            covariance = subset[1] - p0[np.ix_(order, order)]
+            covariance = 0.5 * (covariance + covariance.T)
+            statistic = _statistic(separation, covariance)
+        hypotheses.append(((j,), separation, covariance, statistic, budget.satellite_fault_probability))
     if len(groups) > 1:
         for group in groups:
             rows = tuple(j for j in range(n) if systems[j] == group)
-            leave_out.append((rows, budget.constellation_fault_probability))
-    threshold = test_threshold(budget.false_alarm_probability, len(leave_out))
-    hypotheses = []
-    for rows, probability in leave_out:
-        keep = every.copy()
-        keep[list(rows)] = False
-        subset = _solve(h, w, z, prior, keep)
-        if subset is None:
-            return Separations(False, (), threshold)
-        d, p = subset
-        covariance = p - p0
-        covariance = 0.5 * (covariance + covariance.T)
-        hypotheses.append((rows, d - d0, covariance, probability))
+            keep = every.copy()
+            keep[list(rows)] = False
+            subset = _solve(h, w, z, prior, keep)
+            if subset is None:
+                return Separations(False, (), threshold)
+            covariance = subset[1] - p0[np.ix_(order, order)]
+            covariance = 0.5 * (covariance + covariance.T)
+            separation = subset[0] - east_north_0
+            hypotheses.append(
+                (
+                    rows,
+                    separation,
+                    covariance,
+                    _statistic(separation, covariance),
+                    budget.constellation_fault_probability,
+                )
+            )
     return Separations(True, tuple(hypotheses), threshold)
 
 
@@ -154,8 +209,9 @@ def protection(separations_: Separations, fix_cov: np.ndarray, budget: RaimBudge
     hypotheses = separations_.hypotheses
     per_hypothesis = fault_free / max(len(hypotheses), 1)
     threshold = separations_.threshold
-    for _, _, separation_cov, probability in hypotheses:
-        largest = float(np.linalg.eigvalsh(separation_cov)[-1])
+    for _, _, separation_cov, _, probability in hypotheses:
+        a, b, d = _matrix(separation_cov)
+        largest = 0.5 * (a + d) + math.hypot(0.5 * (a - d), b)
         bound = threshold * math.sqrt(max(largest, 0.0)) + radial_bound(
             _matrix(covariance + separation_cov), per_hypothesis / probability
         )

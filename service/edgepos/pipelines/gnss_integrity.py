@@ -168,14 +168,24 @@ def detect_and_exclude(
 
     result = separate(rows)
     worst = result.worst() if result.available else None
-    if worst is None:
+    if worst is None or not bool(_option(options, "fault_exclusion")):
         return rows, result
-    index, statistic = worst
+    # the worst satellite; when the epoch still fails without it, the worst constellation instead
+    candidates = [worst]
+    constellation = result.worst(size=2)
+    if constellation is not None and constellation[0] != worst[0]:
+        candidates.append(constellation)
+    tried = []
+    for index, statistic in candidates:
+        kept = np.delete(rows, list(result.hypotheses[index][0]))
+        tried.append((index, statistic, kept, separate(kept)))
+        if tried[-1][3].available and tried[-1][3].worst() is None:
+            break
+    else:  # neither clears the epoch: exclude the satellite, and the retest's failure is the alarm
+        del tried[1:]
+    index, statistic, kept, retest = tried[-1]
     left_out = result.hypotheses[index][0]
-    if not bool(_option(options, "fault_exclusion")):
-        return rows, result
     excluded = rows[list(left_out)]
-    kept = np.setdiff1d(rows, excluded)
     what = (
         names[int(excluded[0])] if len(left_out) == 1 else f"constellation {system_of_row[int(excluded[0])]}"
     )
@@ -187,7 +197,7 @@ def detect_and_exclude(
             False,
             f"{EXCLUDED}: {what} separation {statistic:.1f} sigma > {result.threshold:.1f}",
         )
-    return kept, separate(kept)
+    return kept, retest
 
 
 def fix_protection(
