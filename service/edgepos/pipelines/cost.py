@@ -117,6 +117,11 @@ CALIBRATION: dict[str, dict[str, float]] = {
         "observation": 10.7 * _US,
         "batch": 283 * _US,
         "batch_particle": 0.0 * _US,
+        # options.integrity (pipelines/gnss_integrity.py): the separations at the prediction and the fix's
+        # protection level; thread CPU per epoch on tests/data/gnss-rover (18-22 pseudoranges, 2026-11-26,
+        # load 1): median 0.9 ms, 2.1 ms at most with an exclusion (three separations). An upper envelope:
+        "integrity.epoch": 2200 * _US,
+        "integrity.pseudorange": 20 * _US,
     },
     "v2v_coop": {
         "gps.epoch": 314
@@ -300,6 +305,7 @@ class GnssTightCost(CostModel):
             for name in ("particle", "particle_update", "particle_pseudorange")
         )
         + ("exclusion_pseudorange", "observation", "batch", "batch_particle")
+        + ("integrity.epoch", "integrity.pseudorange")
     )
 
     def batch_features(self, options: Mapping[str, Any]) -> dict[str, float]:
@@ -317,6 +323,8 @@ class GnssTightCost(CostModel):
             "exclusion_pseudorange": int(options["max_exclusions"]) * pseudoranges,
             "observation": _observations(counts),
         }
+        if options.get("integrity", True) and pseudoranges:
+            features.update({"integrity.epoch": 1.0, "integrity.pseudorange": pseudoranges})
         if name != "ukf":
             particles = int(options["particles"])
             features[f"{name}.particle"] = particles
