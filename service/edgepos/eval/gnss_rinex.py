@@ -13,6 +13,10 @@ site frame, against the reference's east and north velocity at its own position 
 the few kilometres' rotation, 1e-3 rad: 0.01 m/s at 10 m/s). ``--score-epochs A:B`` scores only epochs
 A..B-1 (0-based) of one run from the first epoch, so halves of a recording are scored on the same run.
 
+Integrity (eval/gnss_integrity.py): per scored epoch with a reference, the fix's error against its
+protection level and state (misleading, hazardous, availability, detections, median protection level) and
+the NEES of its covariance, raw and as the monitor inflates it; ``--plots DIR`` draws the Stanford diagram.
+
 ``--base BASE.rnx`` adds differential corrections from a reference station's observations
 (gnss/differential.py) at its known position (``--base-position X,Y,Z`` ECEF m, else the file header's
 APPROX POSITION XYZ plus its antenna delta): the pipeline gets them in its environment, as the service
