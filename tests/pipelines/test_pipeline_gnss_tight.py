@@ -78,11 +78,12 @@ def recording() -> tuple[list[list[PseudorangeObservation]], StaticEnvironment]:
 @pytest.mark.parametrize("filter_name", ["ukf", "upf", "pf"])
 def test_a_biased_pseudorange_is_excluded_by_the_snapshot_test(recording, filter_name: str) -> None:
     """A 60 m bias on the strongest satellite (an NLOS-like error) in the last epoch: the snapshot test drops
-    it; with both tests off it is used (so the exclusion is the snapshot test's)."""
+    it; with both tests and the integrity monitor off it is used (so the exclusion is the snapshot test's);
+    with the tests off and the monitor on, the monitor excludes it."""
     epochs, environment = recording
     pipeline = GnssTightPipeline()
 
-    def last_use(fde: float, gate: float) -> tuple[bool, str | None]:
+    def last_use(fde: float, gate: float, integrity: bool = True) -> tuple[bool, str | None]:
         options = pipeline.resolve_options(
             {
                 "filter": filter_name,
@@ -91,6 +92,7 @@ def test_a_biased_pseudorange_is_excluded_by_the_snapshot_test(recording, filter
                 "systems": ["C", "G"],
                 "fde_probability": fde,
                 "gate_probability": gate,
+                "integrity": integrity,
             }
         )
         state = pipeline.create(options, None)
@@ -106,8 +108,10 @@ def test_a_biased_pseudorange_is_excluded_by_the_snapshot_test(recording, filter
 
     used, reason = last_use(0.999, 0.0)
     assert not used and reason is not None and "snapshot" in reason
-    used, _ = last_use(0.0, 0.0)
+    used, _ = last_use(0.0, 0.0, integrity=False)
     assert used
+    used, reason = last_use(0.0, 0.0)
+    assert not used and reason is not None and reason.startswith("excluded by fault detection")
 
 
 def test_the_cloud_mean_averages_the_azimuth_on_the_circle() -> None:

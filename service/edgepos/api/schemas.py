@@ -506,7 +506,9 @@ class FixOut(ResponseModel):
         description="Horizontal protection level (m, site frame x/y): the horizontal position error exceeds it, "
         "while integrity is not alarm, with at most the session's integrity_risk per epoch, even when one RSU is "
         "faulty, however slowly its fault grew (rsu_imu: filter-based solution separation, one sub-filter per "
-        "RSU left out, docs/integrity.md). Null when integrity is unavailable.",
+        "RSU left out, docs/integrity.md; gnss_tight: solution separation of one-satellite and one-constellation "
+        "faults with the filter's prediction as prior, from the filter's covariance times integrity_inflation, "
+        "docs/integrity.md GNSS). Null when integrity is unavailable.",
     )
     integrity: Literal["ok", "alarm", "unavailable"] = Field(
         "unavailable",
@@ -514,9 +516,10 @@ class FixOut(ResponseModel):
         "its RSU was excluded; "
         "alarm: do not use this fix for what needs integrity (the protection level exceeds the alert limit, a "
         "fault was detected that could not be excluded, or the fix diverged); unavailable: no bound for this "
-        "fix (the first epochs of a session, a session without the monitor, or a pipeline without one: only "
-        "rsu_imu has one so far, run unless the session's options.integrity is false; v2v_coop, v2x_federated and "
-        "gnss_tight report unavailable).",
+        "fix (the first epochs of a session, a session without the monitor, or a pipeline without one: "
+        "rsu_imu and gnss_tight have one, run unless the session's options.integrity is false; gnss_tight is also "
+        "unavailable in an epoch with fewer than 4 + constellations satellites, too few to bound a fault; "
+        "v2v_coop and v2x_federated report unavailable).",
     )
     measurements: list[MeasurementUseOut] = Field(
         description="The batch's measurements of this epoch: used or why not (a revised fix lists only the "

@@ -2,7 +2,8 @@
 on the simulated Nanjing street-canyon drive.
 
 The runs and figures are in :mod:`gnss_montecarlo`; this module holds the options, the report beside
-Table 2, the ``--json`` document and the figures.
+Table 2, the ``--json`` document and the figures; ``--faults`` injects a satellite ramp (eval/gnss_ramp.py)
+and every pipeline algorithm's integrity counts are reported.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from edgepos.eval.gnss_montecarlo import (
     results,
     select_algorithms,
 )
+from edgepos.eval.gnss_ramp import RATE_BOUNDS, SIZE_BOUNDS, Ramp, bounded, summary
 from edgepos.eval.overrides import add_option_argument, parse_overrides
 from edgepos.eval.progress import Progress
 from edgepos.eval.tables import format_table, number, percent_change
@@ -71,6 +73,27 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=None,
         help=f"comma-separated subset (default: all): {', '.join(ALGORITHMS)}",
     )
+    parser.add_argument(
+        "--faults",
+        action="store_true",
+        help="inject a satellite ramp into every run (one GPS satellite, from 30 %% of the run; "
+        "eval/gnss_ramp.py); the integrity counts are reported either way",
+    )
+    parser.add_argument(
+        "--fault-rate",
+        type=bounded("--fault-rate", *RATE_BOUNDS),
+        default=1.0,
+        metavar="M/S",
+        help=f"with --faults: the ramp's rate (m/s, {RATE_BOUNDS[0]:g}..{RATE_BOUNDS[1]:g}; default 1)",
+    )
+    parser.add_argument(
+        "--fault-size",
+        type=bounded("--fault-size", *SIZE_BOUNDS),
+        default=50.0,
+        metavar="M",
+        help=f"with --faults: the bias the ramp stops growing at (m, {SIZE_BOUNDS[0]:g}..{SIZE_BOUNDS[1]:g}; "
+        "default 50)",
+    )
     add_option_argument(parser, "spread_fraction=0.1")
 
 
@@ -88,6 +111,19 @@ def _particle_count(result: Result, particles: int) -> int | None:
 def _particle_cell(result: Result, particles: int) -> str:
     count = _particle_count(result, particles)
     return "-" if count is None else str(count)
+
+
+def integrity_blocks(totals: Totals, args: argparse.Namespace) -> dict[str, dict[str, Any]]:
+    """Per pipeline algorithm, its integrity counts (eval/gnss_ramp.py) at its alert limit."""
+    pipeline = get_pipeline(PIPELINE)
+    overrides = parse_overrides(args.option)
+    out = {}
+    for name, sums in totals.sums.items():
+        if sums.integrity is None:
+            continue
+        options = pipeline.resolve_options({**ALGORITHMS[name].options, **overrides})
+        out[name] = summary(sums.integrity, options["alert_limit_m"])
+    return out
 
 
 def report(
@@ -134,6 +170,14 @@ def report(
         "",
         format_table(headers, rows, right=[False] + [True] * 10),
     ]
+    for name, block in integrity_blocks(totals, args).items():
+        lines.append(
+            f"{name} integrity (alert limit {block['alert_limit_m']:g} m): availability "
+            f"{block['availability']:.3f}, misleading {block['misleading']}, hazardous {block['hazardous']} "
+            f"of {block['epochs']} epochs; detections {block['detections']} (false {block['false_exclusions']}); "
+            f"faulty runs detected {block['detected_runs']}/{block['faulty_runs']}; median PL "
+            f"{number(block['median_protection_level_m'], 2)} m"
+        )
     for result in results_by_name.values():
         if result.failures:
             lines.append(
@@ -188,7 +232,10 @@ def to_json(
             if paper is None
             else {"horizontal_rms_m": paper.rms_m, "horizontal_max_m": paper.max_m},
         }
+    for name, block in integrity_blocks(totals, args).items():
+        algorithms[name]["integrity"] = block
     return {
+        "faults": None if not args.faults else {"ramp_mps": args.fault_rate, "size_m": args.fault_size},
         "scenario": scenario,
         "runs": args.runs,
         "seed": args.seed,
@@ -275,6 +322,7 @@ def run(args: argparse.Namespace) -> int:
             args.particles,
             progress,
             overrides,
+            Ramp(args.fault_rate, args.fault_size) if args.faults else None,
         )
     except RunFailed as exc:
         print(file=sys.stderr)

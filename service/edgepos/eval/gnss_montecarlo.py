@@ -20,11 +20,13 @@ import numpy as np
 
 from edgepos.core.observations import Observation, PseudorangeObservation
 from edgepos.eval import montecarlo
+from edgepos.eval.gnss_ramp import Ramp, inject
+from edgepos.eval.gnss_ramp import tally as ramp_tally
 from edgepos.eval.progress import Progress
 from edgepos.gnss.geodesy import ecef_to_enu, geodetic_to_ecef
 from edgepos.gnss.measurements import Atmosphere, PseudorangeSet
 from edgepos.gnss.spp import SppConfig, solve_epoch
-from edgepos.pipelines.base import Pipeline, StaticEnvironment
+from edgepos.pipelines.base import Fix, Pipeline, StaticEnvironment
 from edgepos.pipelines.registry import get_pipeline
 from edgepos.sim.gnss_scenario import SCENARIOS, GnssScenario
 from edgepos.sim.gnss_sensors import FREQUENCY_HZ, GnssRun, simulate
@@ -138,6 +140,8 @@ class Sums:
     failures: list[str]
     """Batches the pipeline raised on (run, time, error): the service would answer 500 and keep the
     session's previous state, so the run goes on from there and those epochs have no fix."""
+    integrity: np.ndarray | None = None
+    """The pipeline's integrity counts (eval/gnss_ramp.py); None for the WLS baseline."""
 
     def __add__(self, other: Sums) -> Sums:
         return Sums(
@@ -150,6 +154,7 @@ class Sums:
             self.seconds + other.seconds,
             self.epochs + other.epochs,
             self.failures + other.failures,
+            None if self.integrity is None or other.integrity is None else self.integrity + other.integrity,
         )
 
 
@@ -181,6 +186,7 @@ class _Context:
     pipeline: Pipeline
     environment: StaticEnvironment
     algorithms: list[tuple[str, dict[str, Any]]]
+    ramp: Ramp | None = None
 
 
 _CONTEXT: _Context | None = None
@@ -197,6 +203,7 @@ def _init_worker(
     short: bool,
     particles: int,
     overrides: dict[str, Any] | None = None,
+    ramp: Ramp | None = None,
 ) -> None:
     global _CONTEXT
     built = build_scenario(scenario, short)
@@ -214,7 +221,7 @@ def _init_worker(
         }
         algorithms.append((name, pipeline.resolve_options(options)))
     environment = StaticEnvironment(origin=built.site)
-    _CONTEXT = _Context(seed, built, pipeline, environment, algorithms)
+    _CONTEXT = _Context(seed, built, pipeline, environment, algorithms, ramp)
 
 
 def batches(run: GnssRun, every: int) -> list[list[Observation]]:
@@ -243,14 +250,19 @@ def _run_chunk(chunk: range) -> Totals:
         epoch_of = {round(float(t), 6): k for k, t in enumerate(run.gnss_tow)}
         count = run.gnss_tow.size
         run_batches = batches(run, scenario.gnss_every)
+        victim: str | None = None
+        start: float | None = None
+        if context.ramp is not None:  # the pipeline's batches only: the WLS baseline sees the clean run
+            run_batches, victim, start = inject(run_batches, context.ramp)
         sums: dict[str, Sums] = {}
         track: dict[str, np.ndarray] = {"truth": np.stack([run.truth_east, run.truth_north], axis=-1)}
         for name, options in context.algorithms:
             started = time.perf_counter()
+            located: list[tuple[int, Fix, frozenset[str]]] = []
             if name == WLS:
                 outcome = _least_squares(context, run)
             else:
-                outcome = _pipeline(context, options, filter_seed, run_batches, epoch_of, count)
+                outcome = _pipeline(context, options, filter_seed, run_batches, epoch_of, count, located)
             estimates, excluded, pseudoranges, failures = outcome
             seconds = time.perf_counter() - started
             error = np.hypot(estimates[:, 0] - run.truth_east, estimates[:, 1] - run.truth_north)
@@ -270,6 +282,15 @@ def _run_chunk(chunk: range) -> Totals:
                 seconds,
                 count,
                 [f"run {run_index} {message}" for message in failures],
+                None
+                if name == WLS
+                else ramp_tally(
+                    [(fix, screened) for _, fix, screened in located],
+                    [float(error[k]) for k, _, _ in located],
+                    options["alert_limit_m"],
+                    victim,
+                    start,
+                ),
             )
             track[name] = estimates
         run_totals = Totals(
@@ -291,6 +312,7 @@ def _pipeline(
     run_batches: list[list[Observation]],
     epoch_of: dict[float, int],
     count: int,
+    located: list[tuple[int, Fix, frozenset[str]]] | None = None,
 ) -> tuple[np.ndarray, int, int, list[str]]:
     """One session of the pipeline over the run's batches: (east, north) per GNSS epoch (NaN without a
     fix), pseudoranges not used, pseudoranges reported, failed batches."""
@@ -308,11 +330,26 @@ def _pipeline(
             k = epoch_of.get(round(fix.t, 6))
             if k is not None and fix.x is not None and fix.y is not None:
                 estimates[k] = (fix.x, fix.y)
+                if located is not None:
+                    located.append((k, fix, screened(fix, batch)))
             for use in fix.measurements:
                 if use.kind == "pseudorange":
                     pseudoranges += 1
                     excluded += not use.used
     return estimates, excluded, pseudoranges, failures
+
+
+def screened(fix: Fix, batch: list[Observation]) -> frozenset[str]:
+    """The satellites (e.g. G05) whose pseudorange a fault screen of the pipeline or its integrity monitor
+    left out of this fix (not those below the mask or C/N0 floor)."""
+    out = set()
+    for use in fix.measurements:
+        observation = batch[use.index]
+        if use.used or use.reason is None or not isinstance(observation, PseudorangeObservation):
+            continue
+        if use.reason.startswith(("excluded", "failed the residual test")):
+            out.add(f"{observation.system}{observation.prn:02d}")
+    return frozenset(out)
 
 
 def _least_squares(context: _Context, run: GnssRun) -> tuple[np.ndarray, int, int, list[str]]:
@@ -360,6 +397,7 @@ def monte_carlo(
     particles: int,
     progress: Progress | None = None,
     overrides: dict[str, Any] | None = None,
+    ramp: Ramp | None = None,
 ) -> Totals:
     """Totals over ``runs`` runs, identical for any ``workers`` (times aside); ``overrides``: pipeline
     options set for every filter on top of each algorithm's own (``--option``)."""
@@ -370,7 +408,7 @@ def monte_carlo(
         montecarlo.chunk_runs(runs),
         workers,
         _init_worker,
-        (names, seed, scenario, short, particles, dict(overrides or {})),
+        (names, seed, scenario, short, particles, dict(overrides or {}), ramp),
         progress,
     )
 

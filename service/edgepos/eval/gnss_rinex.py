@@ -13,6 +13,10 @@ site frame, against the reference's east and north velocity at its own position 
 the few kilometres' rotation, 1e-3 rad: 0.01 m/s at 10 m/s). ``--score-epochs A:B`` scores only epochs
 A..B-1 (0-based) of one run from the first epoch, so halves of a recording are scored on the same run.
 
+Integrity (eval/gnss_integrity.py): per scored epoch with a reference, the fix's error against its
+protection level and state (misleading, hazardous, availability, detections, median protection level) and
+the NEES of its covariance, raw and as the monitor inflates it; ``--plots DIR`` draws the Stanford diagram.
+
 ``--base BASE.rnx`` adds differential corrections from a reference station's observations
 (gnss/differential.py) at its known position (``--base-position X,Y,Z`` ECEF m, else the file header's
 APPROX POSITION XYZ plus its antenna delta): the pipeline gets them in its environment, as the service
@@ -29,12 +33,14 @@ import math
 import sys
 import time
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from edgepos.cli_output import prepare_output, write_output
 from edgepos.core.observations import PseudorangeObservation
+from edgepos.eval.gnss_integrity import GnssIntegrity, error_en, integrity_lines
 from edgepos.eval.overrides import add_option_argument, parse_overrides
 from edgepos.gnss.differential import DEFAULT_MAX_AGE_S, correct_set, corrections_from_epochs
 from edgepos.gnss.differential import base_position as header_base_position
@@ -45,7 +51,7 @@ from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import ALL_SYSTEMS, DEFAULT_CODES, parse_systems, read_epochs, read_header
 from edgepos.gnss.spp import SppConfig, SppError, read_reference, reference_velocity, solve_epoch
 from edgepos.gnss.timesys import SECONDS_PER_WEEK
-from edgepos.pipelines.base import StaticEnvironment
+from edgepos.pipelines.base import Fix, StaticEnvironment
 from edgepos.pipelines.gnss_options import MAX_CARRIER_CYCLES, MAX_DOPPLER_HZ
 from edgepos.pipelines.gnss_tight import GnssTightPipeline
 
@@ -106,6 +112,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="send each pseudorange's carrier phase (the L observation of its signal, cycles) and loss-of-lock "
         "indicator from the RINEX as carrier_cycles / lli (the pipeline's carrier_smoothing option says what "
         "it does with them; default: not sent)",
+    )
+    parser.add_argument(
+        "--plots",
+        metavar="DIR",
+        default=None,
+        help="write a Stanford diagram (error against protection level) of the run to DIR",
     )
     add_option_argument(parser, "pseudorange_std=3")
 
@@ -204,6 +216,7 @@ def evaluate(
     base_position: Sequence[float] | None = None,
     max_correction_age_s: float = DEFAULT_MAX_AGE_S,
     carrier: bool = False,
+    plots: str | None = None,
 ) -> dict[str, Any]:
     """Run the pipeline and the WLS baseline over a recording; the figures as a dict (of epochs
     ``score_epochs`` = (A, B), A..B-1, when given; the run then stops after epoch B-1). With ``base_path``
@@ -242,6 +255,7 @@ def evaluate(
     times: list[float] = []
     fixes: list[np.ndarray | None] = []
     fix_velocities: list[np.ndarray | None] = []
+    fix_objects: list[Fix | None] = []
     baseline: list[np.ndarray | None] = []
     baseline_velocities: list[np.ndarray | None] = []
     previous: np.ndarray | None = None
@@ -283,6 +297,7 @@ def evaluate(
         pipeline_seconds += time.perf_counter() - started
         times.append(epoch.gpst)
         fix = epoch_fixes[0] if epoch_fixes else None
+        fix_objects.append(fix)
         if fix is None or fix.latitude is None or fix.longitude is None or fix.height is None:
             fixes.append(None)
         else:
@@ -310,8 +325,22 @@ def evaluate(
     if score_epochs is not None:
         keep = slice(score_epochs[0], score_epochs[1])
         times, fixes, fix_velocities = times[keep], fixes[keep], fix_velocities[keep]
+        fix_objects = fix_objects[keep]
         baseline, baseline_velocities = baseline[keep], baseline_velocities[keep]
     report = _score(times, fixes, reference, len(times), fix_velocities)
+    report["integrity"] = _integrity(times, fixes, fix_objects, reference).summary(
+        resolved["alert_limit_m"], resolved["integrity_inflation"]
+    )
+    if plots is not None:
+        title = f"gnss_tight {resolved['filter']}" + (" + base" if base_path is not None else "")
+        name = (
+            f"stanford-gnss-rinex-{resolved['filter']}" + ("-base" if base_path is not None else "") + ".png"
+        )
+        report["integrity"]["stanford_plot"] = str(
+            _integrity(times, fixes, fix_objects, reference).stanford_plot(
+                resolved["alert_limit_m"], title, Path(plots) / name
+            )
+        )
     report["filter"] = resolved["filter"]
     report["particles"] = resolved["particles"] if resolved["filter"] != "ukf" else 1
     report["fuzzy"] = resolved["fuzzy"]
@@ -336,6 +365,25 @@ def evaluate(
         **_score(times, baseline, reference, len(times), baseline_velocities if use_doppler else None),
     }
     return report
+
+
+def _integrity(
+    times: Sequence[float],
+    positions: Sequence[np.ndarray | None],
+    fixes: Sequence[Fix | None],
+    reference: tuple[np.ndarray, np.ndarray],
+) -> GnssIntegrity:
+    """The integrity tally of the fixes at the reference epochs (as ``_score`` matches them)."""
+    ref_time, ref_ecef = reference
+    truth = {round(float(t), 1): p for t, p in zip(ref_time, ref_ecef)}
+    tally = GnssIntegrity()
+    for t, position, fix in zip(times, positions, fixes, strict=True):
+        true = truth.get(round(t, 1))
+        if true is None or position is None or fix is None or fix.position_cov is None:
+            continue
+        lat, lon, _ = ecef_to_geodetic(true)
+        tally.add(error_en(position, true, enu_rotation(float(lat), float(lon))), fix)
+    return tally
 
 
 def _format(value: Any) -> str:
@@ -380,6 +428,7 @@ def run(args: argparse.Namespace) -> int:
             args.base_position,
             args.max_correction_age,
             args.carrier,
+            args.plots,
         )
     except (OSError, ValueError) as error:  # unreadable or malformed files (RinexError is a ValueError)
         print(f"edgepos eval gnss-rinex: error: {error}", file=sys.stderr)
@@ -408,6 +457,8 @@ def run(args: argparse.Namespace) -> int:
             f"{_format(row.get('velocity_rms_mps')):>11}"
         )
     print(f"pipeline time per epoch: {1e3 * report['seconds_per_epoch']:.1f} ms")
+    for line in integrity_lines(report["integrity"]):
+        print(line)
     if args.json:
         write_output(args.json, json.dumps(report, indent=2))
     return 0

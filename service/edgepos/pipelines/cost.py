@@ -117,6 +117,12 @@ CALIBRATION: dict[str, dict[str, float]] = {
         "observation": 10.7 * _US,
         "batch": 283 * _US,
         "batch_particle": 0.0 * _US,
+        # options.integrity (pipelines/gnss_integrity.py): the separations at the prediction and the fix's
+        # protection level; thread CPU per epoch on tests/data/gnss-rover (18-22 pseudoranges, 2026-11-26,
+        # load 1): median 0.9 ms, p90 1.3 ms; an epoch with an exclusion (three separations) up to 2.1 ms.
+        # Above the p90 (1.8 ms at 20 pseudoranges, 2.1 ms at 40), not the rare exclusion epochs' maximum:
+        "integrity.epoch": 1500 * _US,
+        "integrity.pseudorange": 15 * _US,
     },
     "v2v_coop": {
         "gps.epoch": 314
@@ -300,6 +306,7 @@ class GnssTightCost(CostModel):
             for name in ("particle", "particle_update", "particle_pseudorange")
         )
         + ("exclusion_pseudorange", "observation", "batch", "batch_particle")
+        + ("integrity.epoch", "integrity.pseudorange")
     )
 
     def batch_features(self, options: Mapping[str, Any]) -> dict[str, float]:
@@ -317,6 +324,8 @@ class GnssTightCost(CostModel):
             "exclusion_pseudorange": int(options["max_exclusions"]) * pseudoranges,
             "observation": _observations(counts),
         }
+        if options.get("integrity", True) and pseudoranges:
+            features.update({"integrity.epoch": 1.0, "integrity.pseudorange": pseudoranges})
         if name != "ukf":
             particles = int(options["particles"])
             features[f"{name}.particle"] = particles

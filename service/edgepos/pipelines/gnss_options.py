@@ -21,6 +21,7 @@ from edgepos.pipelines.gnss_faults import (
     DEFAULT_FAULT_PROBABILITY,
     DEFAULT_FAULT_RECOVERY,
 )
+from edgepos.pipelines.gnss_integrity import INTEGRITY_SPECS
 
 NEAREST_BASE_STATION = "nearest"
 
@@ -66,9 +67,10 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         200,
         "Particles of the pf and upf filters (ignored by ukf). The maximum keeps one epoch of the most "
         "pseudoranges accepted (40) within the default CPU budget per batch (EDGEPOS_BATCH_CPU_BUDGET_MS, "
-        "50 ms) for the pf; the upf costs about twice as much per particle, and a session whose options "
-        "would not fit one such epoch in the server's budget (about 350 upf particles at 50 ms) is refused "
-        "with 422 saying how many fit.",
+        "50 ms) for the pf without the integrity monitor (about 690 with it); the upf costs about twice as "
+        "much per particle, and a session whose options would not fit one such epoch in the server's budget "
+        "(about 330 upf particles at 50 ms with the monitor, 350 without) is refused with 422 saying how "
+        "many fit.",
         10,
         700,
     ),
@@ -449,4 +451,4 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         0,
         2**63 - 1,
     ),
-)
+) + INTEGRITY_SPECS

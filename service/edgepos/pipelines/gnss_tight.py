@@ -32,7 +32,10 @@ Per epoch (observations sharing ``t``):
    pseudoranges whatever the filter believes; then a residual test against the prediction (per
    constellation, its median removed so a clock error cannot fail every satellite) excludes pseudoranges
    beyond the ``gate_probability`` quantile; when more than half fail the track is lost and the pipeline
-   starts again from this epoch's least-squares fix.
+   starts again from this epoch's least-squares fix. Last, the integrity monitor (``integrity``,
+   pipelines/gnss_integrity.py, gnss/raim.py): solution separation of one-satellite and one-constellation
+   hypotheses with the prediction as a prior; the satellite or constellation a failed test points at is
+   excluded, and after the update the fix gets its protection level and integrity state.
 4. A pseudorange's optional ``doppler_hz`` (with ``use_doppler``) becomes a range rate, -D x wavelength,
    modelled with the satellite's velocity and clock drift from the ephemerides
    (core/measurements/range_rate.py); above the elevation mask it goes through its own residual test
@@ -77,6 +80,7 @@ from edgepos.gnss.geodesy import geodetic_to_ecef
 from edgepos.gnss.measurements import PseudorangeSet
 from edgepos.gnss.orbits import SPEED_OF_LIGHT
 from edgepos.gnss.pseudorange_noise import FITTED
+from edgepos.gnss.raim import Separations
 from edgepos.pipelines.base import (
     Environment,
     Fix,
@@ -102,6 +106,8 @@ from edgepos.pipelines.gnss_faults import (
     rate_innovations,
     screen,
 )
+from edgepos.pipelines.gnss_integrity import detect_and_exclude, fix_protection
+from edgepos.pipelines.gnss_integrity import enabled as integrity_enabled
 from edgepos.pipelines.gnss_motion import (
     initialise,
     maybe_start_riss,
@@ -397,6 +403,7 @@ def _filter_epoch(
     noise: dict[int, tuple[float, str]] = {}
     rows: np.ndarray = np.zeros(0, dtype=int)
     rate_rows: np.ndarray = np.zeros(0, dtype=int)
+    separated: Separations | None = None
     if len(satellites.prs):
         receiver = session.anchor.ecef(centre)
         iono, tropo, elevation, _ = atmosphere.delays(receiver, satellites.prs)
@@ -451,6 +458,22 @@ def _filter_epoch(
                 doppler,
                 rng,
                 "track lost; waiting for enough satellites",
+            )
+        if rows.size and integrity_enabled(options):
+            rows, separated = detect_and_exclude(
+                options,
+                session.anchor,
+                centre,
+                predicted_cov,
+                prs.sat_position,
+                prs.systems,
+                known,
+                prs.pseudorange_m,
+                std,
+                rows,
+                satellites.indices,
+                prs.sats,
+                uses,
             )
         rate_std = float(options.get("doppler_std_mps", DEFAULT_DOPPLER_STD_MPS)) * factor
         rate_model: RangeRateModel | None = None
@@ -538,7 +561,13 @@ def _filter_epoch(
     status = "tracking" if measurement is not None else "predicted"
     dof = int(rows.size + rate_rows.size + sum(len(c.variances) for c in constraints))
     fix = session_fix(t, status, session, result.mean, result.cov, result, dof, uses, origin)
-    return dataclasses.replace(fix, constraints=tuple(c.name for c in constraints))
+    guard = fix_protection(separated if rows.size else None, fix.position_cov, options)
+    return dataclasses.replace(
+        fix,
+        constraints=tuple(c.name for c in constraints),
+        protection_level=guard.level,
+        integrity=guard.state,
+    )
 
 
 def _smooth(

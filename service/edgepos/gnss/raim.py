@@ -1,0 +1,228 @@
+"""Solution-separation RAIM for a GNSS filter: one-satellite and one-constellation fault hypotheses, fault
+detection and the horizontal protection level (pure numpy; docs/integrity.md, "GNSS (gnss_tight)").
+
+Per epoch, linearised at the filter's prediction x^- (Blanch et al., "Baseline advanced RAIM user
+algorithm", ION GNSS 2012; the prior as a pseudo-measurement as in Joerger and Pervan, "Kalman
+filter-based integrity monitoring against sensor faults", JGCD 2013):
+
+* Unknowns d = (north, east, up, one clock per constellation) (m) about x^-; the pseudoranges' prefit
+  residuals z = rho - h(x^-) with Jacobian H and weights W = diag(1 / sigma^2); the prior's position
+  information Lambda = (k P^-_pos)^-1 (k the covariance inflation); the clocks have no prior (a
+  constellation's clock is whatever its satellites say).
+* All-in-view: A_0 = H^T W H + Lambda, d_0 = A_0^-1 H^T W z, P_0 = A_0^-1. Hypothesis j (satellite j, or
+  constellation c with its clock column) leaves its rows out: A_j, d_j, P_j the same way.
+* Separation s_j = d_j - d_0 (horizontal), fault-free covariance S_j = P_j - P_0 (horizontal 2x2);
+  test q_j = s_j^T S_j^-1 s_j against T^2, the chi-square (2 dof) quantile at P_FA / N.
+* Protection level, from the filter's posterior horizontal covariance C (times k): the largest of
+  R(k C, risk / 2) and, per hypothesis, T sqrt(lmax(S_j)) + R(k C + S_j, risk / 2 / N / p_j), R(C, p) the
+  radius a 2-D Gaussian with covariance C exceeds with probability p (core.integrity.radial_bound) and p_j
+  the hypothesis' prior fault probability.
+
+Too few satellites (no redundancy without the prior: fewer than 3 + constellations + 1) leave the fault
+unbounded except by the prior, which may already hold the fault: the epoch is ``unavailable``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from edgepos.core.integrity import ALARM, OK, UNAVAILABLE, Protection, radial_bound, test_threshold
+
+
+@dataclass(frozen=True)
+class RaimBudget:
+    """The risks a GNSS protection level is sized to, per epoch."""
+
+    integrity_risk: float
+    false_alarm_probability: float
+    satellite_fault_probability: float
+    constellation_fault_probability: float
+    alert_limit: float
+    inflation: float
+    """Factor k on the filter's covariances (prior and posterior): covers time-correlated range errors the
+    filter treats as white."""
+
+
+@dataclass(frozen=True)
+class Separations:
+    """One epoch's hypotheses: each one's rows left out, separation (east, north), its covariance S_j (2x2),
+    test statistic sqrt(q_j) and prior fault probability; ``available`` False when the satellites cannot bound
+    a fault."""
+
+    available: bool
+    hypotheses: tuple[tuple[tuple[int, ...], np.ndarray, np.ndarray, float, float], ...]
+    threshold: float
+
+    def worst(self, size: int | None = None) -> tuple[int, float] | None:
+        """The failed hypothesis to exclude first (its index and sqrt(q)), None when every test passes: the
+        satellite whose test fails most, or, when no satellite's fails, the constellation's (a satellite's
+        fault also fails its constellation's test, by more). ``size`` 1: satellites only; >1: only
+        constellations."""
+        best: tuple[int, float, int] | None = None
+        for index, hypothesis in enumerate(self.hypotheses):
+            statistic = hypothesis[3]
+            single = len(hypothesis[0]) == 1
+            if statistic <= self.threshold or (size is not None and single != (size == 1)):
+                continue
+            rank = 0 if single else 1
+            if best is None or (rank, -statistic) < (best[2], -best[1]):
+                best = (index, statistic, rank)
+        return None if best is None else (best[0], best[1])
+
+
+def _statistic(separation: np.ndarray, covariance: np.ndarray) -> float:
+    """sqrt(s^T S^+ s): S's pseudo-inverse, since leaving one satellite out moves the solution along one
+    direction only (S of rank 1); |s| <= sqrt(q lmax(S)) either way, which the protection level relies on."""
+    values, vectors = np.linalg.eigh(covariance)
+    keep = values > 1e-9 * max(float(values[-1]), 1e-300)
+    projected = vectors[:, keep].T @ separation
+    return math.sqrt(float(np.sum(projected**2 / values[keep])))
+
+
+def _normal(
+    h: np.ndarray, w: np.ndarray, prior: np.ndarray, keep: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The normal matrix's inverse with the rows ``keep`` and the position prior, and the state columns it
+    has (position, then the clocks of the constellations left); None when it is not determined."""
+    hk = h[keep]
+    columns = np.concatenate([[0, 1, 2], np.flatnonzero(np.any(hk[:, 3:] != 0.0, axis=0)) + 3])
+    hk = hk[:, columns]
+    a = hk.T @ (w[keep, None] * hk)
+    a[:3, :3] += prior
+    try:
+        cov = np.linalg.inv(a)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(cov)):
+        return None
+    return cov, columns
+
+
+def _solve(
+    h: np.ndarray, w: np.ndarray, z: np.ndarray, prior: np.ndarray, keep: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The weighted least-squares solution (east, north) and its 2x2 covariance with the rows ``keep`` and
+    the position prior; None when it is not determined."""
+    normal = _normal(h, w, prior, keep)
+    if normal is None:
+        return None
+    cov, columns = normal
+    d = cov @ (h[keep][:, columns].T @ (w[keep] * z[keep]))
+    order = [1, 0]  # east, north
+    return d[order], cov[np.ix_(order, order)]
+
+
+def separations(
+    h: np.ndarray,
+    systems: Sequence[str],
+    z: np.ndarray,
+    std: np.ndarray,
+    prior_position_cov: np.ndarray,
+    budget: RaimBudget,
+) -> Separations:
+    """The hypotheses of one epoch: ``h`` (n x (3 + clocks)) the Jacobian of the pseudoranges with respect
+    to (north, east, up, clocks), ``z`` their prefit residuals and ``std`` their noise std (m),
+    ``prior_position_cov`` the filter's predicted (north, east, up) covariance (m^2).
+
+    A satellite's hypothesis is the all-in-view solution's rank-one downdate (leave-one-out: separation
+    -g w r / (1 - w s), covariance g g^T w / (1 - w s), g = P_0 h_j, s = h_j^T g, r the post-fit residual),
+    all satellites at once; a constellation's, and a satellite that alone fixes its constellation's clock,
+    are solved again without their rows."""
+    n = len(z)
+    groups = sorted(set(systems))
+    if n < 3 + len(groups) + 1:
+        return Separations(False, (), 0.0)
+    w = 1.0 / np.asarray(std, float) ** 2
+    try:
+        prior = np.linalg.inv(budget.inflation * np.asarray(prior_position_cov, float))
+    except np.linalg.LinAlgError:
+        return Separations(False, (), 0.0)
+    every = np.ones(n, dtype=bool)
+    normal = _normal(h, w, prior, every)
+    if normal is None:
+        return Separations(False, (), 0.0)
+    p0, _ = normal
+    d0 = p0 @ (h.T @ (w * z))
+    order = [1, 0]  # east, north
+    east_north_0 = d0[order]
+    g = p0 @ h.T  # (states, n)
+    s = np.einsum("ij,ji->i", h, g)
+    denominator = 1.0 - w * s
+    residual = z - h @ d0
+    tests = n + (len(groups) if len(groups) > 1 else 0)
+    threshold = test_threshold(budget.false_alarm_probability, tests)
+    hypotheses: list[tuple[tuple[int, ...], np.ndarray, np.ndarray, float, float]] = []
+    gh = g[order].T  # (n, 2)
+    for j in range(n):
+        if denominator[j] > 1e-9:
+            scale = w[j] / denominator[j]
+            separation = -gh[j] * scale * residual[j]
+            covariance = scale * np.outer(gh[j], gh[j])
+            statistic = float(abs(residual[j]) * math.sqrt(scale))
+        else:  # the constellation's only satellite: its clock goes with it
+            keep = every.copy()
+            keep[j] = False
+            subset = _solve(h, w, z, prior, keep)
+            if subset is None:
+                return Separations(False, (), threshold)
+            separation = subset[0] - east_north_0
+            covariance = subset[1] - p0[np.ix_(order, order)]
+            covariance = 0.5 * (covariance + covariance.T)
+            statistic = _statistic(separation, covariance)
+        hypotheses.append(((j,), separation, covariance, statistic, budget.satellite_fault_probability))
+    if len(groups) > 1:
+        for group in groups:
+            rows = tuple(j for j in range(n) if systems[j] == group)
+            keep = every.copy()
+            keep[list(rows)] = False
+            subset = _solve(h, w, z, prior, keep)
+            if subset is None:
+                return Separations(False, (), threshold)
+            covariance = subset[1] - p0[np.ix_(order, order)]
+            covariance = 0.5 * (covariance + covariance.T)
+            separation = subset[0] - east_north_0
+            hypotheses.append(
+                (
+                    rows,
+                    separation,
+                    covariance,
+                    _statistic(separation, covariance),
+                    budget.constellation_fault_probability,
+                )
+            )
+    return Separations(True, tuple(hypotheses), threshold)
+
+
+def protection(separations_: Separations, fix_cov: np.ndarray, budget: RaimBudget) -> Protection:
+    """The protection level of a fix with horizontal covariance ``fix_cov`` (east, north; m^2) and its
+    state: ``alarm`` when a test fails or the level exceeds the alert limit."""
+    if not separations_.available:
+        return Protection(None, UNAVAILABLE)
+    covariance = budget.inflation * np.asarray(fix_cov, float)
+    covariance = 0.5 * (covariance + covariance.T)
+    fault_free = 0.5 * budget.integrity_risk
+    level = radial_bound(_matrix(covariance), fault_free)
+    hypotheses = separations_.hypotheses
+    per_hypothesis = fault_free / max(len(hypotheses), 1)
+    threshold = separations_.threshold
+    for _, _, separation_cov, _, probability in hypotheses:
+        a, b, d = _matrix(separation_cov)
+        largest = 0.5 * (a + d) + math.hypot(0.5 * (a - d), b)
+        bound = threshold * math.sqrt(max(largest, 0.0)) + radial_bound(
+            _matrix(covariance + separation_cov), per_hypothesis / probability
+        )
+        level = max(level, bound)
+    if not math.isfinite(level):
+        return Protection(None, UNAVAILABLE)
+    worst = separations_.worst()
+    if worst is not None:
+        return Protection(level, ALARM, faulty=worst[0], statistic=worst[1], threshold=threshold)
+    return Protection(level, ALARM if level > budget.alert_limit else OK)
+
+
+def _matrix(m: np.ndarray) -> tuple[float, float, float]:
+    return float(m[0, 0]), float(m[0, 1]), float(m[1, 1])

@@ -1,0 +1,212 @@
+"""The ``gnss_tight`` integrity monitor: its session options, and the glue between the pipeline's epoch
+and the solution-separation RAIM of gnss/raim.py (fault detection and exclusion on the pseudoranges before
+the filter's update, the protection level from its posterior after it). Formulas and the defaults' reasons
+are in docs/integrity.md ("GNSS (gnss_tight)")."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from edgepos.core.integrity import UNAVAILABLE, Protection
+from edgepos.core.measurements.pseudorange import PseudorangeModel
+from edgepos.core.motion import riss as layout
+from edgepos.gnss.raim import RaimBudget, Separations, protection, separations
+from edgepos.pipelines.base import MeasurementUse, OptionSpec
+
+EXCLUDED = "excluded by fault detection"
+DEFAULT_INFLATION = 8.0
+"""Default covariance inflation k; see the option's description and docs/integrity.md for the measurement."""
+
+INTEGRITY_SPECS: tuple[OptionSpec, ...] = (
+    OptionSpec(
+        "integrity",
+        "boolean",
+        True,
+        "Run the integrity monitor: solution-separation RAIM (one-satellite and one-constellation fault "
+        "hypotheses) with the filter, a protection level with every fix, fault detection and exclusion "
+        "(docs/integrity.md, GNSS). Off: every fix's integrity is 'unavailable' and protection_level_m null.",
+    ),
+    OptionSpec(
+        "integrity_risk",
+        "number",
+        1e-5,
+        "Integrity risk per epoch: the probability that the horizontal error exceeds protection_level_m while "
+        "the fix is not in alarm, faults included.",
+        1e-9,
+        0.1,
+    ),
+    OptionSpec(
+        "alert_limit_m",
+        "number",
+        5.0,
+        "Alert limit (m): a fix whose protection level exceeds it is in alarm (5 m: which road a vehicle is on, "
+        "what a GNSS-only fix can support).",
+        0.0,
+        1e4,
+    ),
+    OptionSpec(
+        "satellite_fault_probability",
+        "number",
+        1e-4,
+        "Prior probability per epoch that one given satellite's pseudorange is faulty beyond its noise model "
+        "and the pipeline's own screening (a reflection, an orbit or clock fault); sizes each one-satellite "
+        "hypothesis' share of the integrity risk.",
+        1e-9,
+        0.1,
+    ),
+    OptionSpec(
+        "constellation_fault_probability",
+        "number",
+        1e-4,
+        "Prior probability per epoch that one constellation is faulty as a whole (a wrong broadcast, a "
+        "common clock or ephemeris fault; ARAIM's P_const); sizes each one-constellation hypothesis' share.",
+        1e-9,
+        0.1,
+    ),
+    OptionSpec(
+        "false_alarm_probability",
+        "number",
+        1e-4,
+        "Probability per epoch that a fault-free epoch fails a fault test (the tests' thresholds): lower "
+        "means fewer needless exclusions and a larger protection level.",
+        1e-9,
+        0.1,
+    ),
+    OptionSpec(
+        "fault_exclusion",
+        "boolean",
+        True,
+        "Exclude the satellite or constellation a failed separation test points at from the epoch's update "
+        "and test again (one exclusion per epoch); false: only report the alarm.",
+    ),
+    OptionSpec(
+        "integrity_inflation",
+        "number",
+        DEFAULT_INFLATION,
+        "Factor on the filter's covariance (its prior and posterior) the protection level is computed from: "
+        "pseudorange errors are correlated over seconds (multipath) where the filter treats them as white, "
+        "so its covariance is too small on some stretches of a drive. 8: the worst 30-epoch mean NEES on the "
+        "first half of tests/data/gnss-rover needs 5, other minutes of that drive (mean NEES 15, issue 21) "
+        "need 7.5 (docs/integrity.md).",
+        1.0,
+        1000.0,
+    ),
+)
+
+_DEFAULTS = {spec.name: spec.default for spec in INTEGRITY_SPECS}
+
+
+def _option(options: Mapping[str, Any], name: str) -> Any:
+    """An integrity option; sessions stored before the monitor existed get the defaults."""
+    return options.get(name, _DEFAULTS[name])
+
+
+def enabled(options: Mapping[str, Any]) -> bool:
+    return bool(_option(options, "integrity"))
+
+
+def budget_of(options: Mapping[str, Any]) -> RaimBudget:
+    return RaimBudget(
+        float(_option(options, "integrity_risk")),
+        float(_option(options, "false_alarm_probability")),
+        float(_option(options, "satellite_fault_probability")),
+        float(_option(options, "constellation_fault_probability")),
+        float(_option(options, "alert_limit_m")),
+        float(_option(options, "integrity_inflation")),
+    )
+
+
+def _jacobian(model: PseudorangeModel, centre: np.ndarray, systems: Sequence[str]) -> np.ndarray:
+    """d pseudorange / d (north, east, up, clock per constellation in ``groups`` order) at ``centre``
+    (position by 1 m differences: the ranges are linear over a metre to 1e-7 m)."""
+    groups = sorted(set(systems))
+    states = np.repeat(centre[None, :], 4, axis=0)
+    for k, index in enumerate((layout.NORTH, layout.EAST, layout.UP)):
+        states[k + 1, index] += 1.0
+    predicted = model.predict(states)
+    h = np.zeros((len(systems), 3 + len(groups)))
+    h[:, :3] = (predicted[1:] - predicted[0]).T
+    for row, system in enumerate(systems):
+        h[row, 3 + groups.index(system)] = 1.0
+    return h
+
+
+def detect_and_exclude(
+    options: Mapping[str, Any],
+    anchor: Any,
+    centre: np.ndarray,
+    predicted_cov: np.ndarray,
+    sat_position: np.ndarray,
+    system_of_row: Sequence[str],
+    known: np.ndarray,
+    pseudorange: np.ndarray,
+    std: np.ndarray,
+    rows: np.ndarray,
+    indices: Sequence[int],
+    names: Sequence[str],
+    uses: dict[int, MeasurementUse],
+) -> tuple[np.ndarray, Separations]:
+    """Test the epoch's pseudoranges ``rows`` (after the pipeline's screening) against the prediction
+    ``centre``; with exclusion on, leave out the satellite or constellation the worst failed test points at
+    and test again. Returns the rows to update with and their separations (a test that still fails puts
+    the fix in alarm)."""
+    budget = budget_of(options)
+    position = [layout.NORTH, layout.EAST, layout.UP]
+    prior = predicted_cov[np.ix_(position, position)]
+
+    def separate(kept: np.ndarray) -> Separations:
+        systems = [system_of_row[r] for r in kept]
+        if kept.size == 0:
+            return Separations(False, (), 0.0)
+        model = PseudorangeModel.build(anchor, sat_position[kept], systems, known[kept], std[kept])
+        z = pseudorange[kept] - model.predict(centre[None, :])[0]
+        h = _jacobian(model, centre, systems)
+        return separations(h, systems, z, std[kept], prior, budget)
+
+    result = separate(rows)
+    worst = result.worst() if result.available else None
+    if worst is None or not bool(_option(options, "fault_exclusion")):
+        return rows, result
+    # the worst satellite; when the epoch still fails without it, the worst constellation instead
+    candidates = [worst]
+    constellation = result.worst(size=2)
+    if constellation is not None and constellation[0] != worst[0]:
+        candidates.append(constellation)
+    tried = []
+    for index, statistic in candidates:
+        kept = np.delete(rows, list(result.hypotheses[index][0]))
+        tried.append((index, statistic, kept, separate(kept)))
+        if tried[-1][3].available and tried[-1][3].worst() is None:
+            break
+    else:  # neither clears the epoch: exclude the satellite, and the retest's failure is the alarm
+        del tried[1:]
+    index, statistic, kept, retest = tried[-1]
+    left_out = result.hypotheses[index][0]
+    excluded = rows[list(left_out)]
+    what = (
+        names[int(excluded[0])] if len(left_out) == 1 else f"constellation {system_of_row[int(excluded[0])]}"
+    )
+    for r in excluded:
+        i = indices[int(r)]
+        uses[i] = MeasurementUse(
+            i,
+            "pseudorange",
+            False,
+            f"{EXCLUDED}: {what} separation {statistic:.1f} sigma > {result.threshold:.1f}",
+        )
+    return kept, retest
+
+
+def fix_protection(
+    separations_: Separations | None,
+    position_cov: Sequence[Sequence[float]] | None,
+    options: Mapping[str, Any],
+) -> Protection:
+    """The protection of a fix with horizontal covariance ``position_cov`` (east, north); unavailable
+    without separations (the monitor off, or no pseudorange in the update)."""
+    if separations_ is None or position_cov is None:
+        return Protection(None, UNAVAILABLE)
+    return protection(separations_, np.asarray(position_cov, float), budget_of(options))
