@@ -506,17 +506,18 @@ class FixOut(ResponseModel):
         description="Horizontal protection level (m, site frame x/y): the horizontal position error exceeds it, "
         "while integrity is not alarm, with at most the session's integrity_risk per epoch, even when one RSU is "
         "faulty, however slowly its fault grew (rsu_imu: filter-based solution separation, one sub-filter per "
-        "RSU left out, docs/integrity.md). Null when integrity is unavailable.",
+        "RSU left out; v2v_coop and v2x_federated: solution separation of the fix's GNSS fix and each neighbour "
+        "or RSU ranged to, at the epoch, docs/integrity.md). Null when integrity is unavailable.",
     )
     integrity: Literal["ok", "alarm", "unavailable"] = Field(
         "unavailable",
         description="ok: protection_level_m is within the session's alert_limit_m and every fault test passed or "
-        "its RSU was excluded; "
+        "its RSU or neighbour was excluded; "
         "alarm: do not use this fix for what needs integrity (the protection level exceeds the alert limit, a "
         "fault was detected that could not be excluded, or the fix diverged); unavailable: no bound for this "
-        "fix (the first epochs of a session, a session without the monitor, or a pipeline without one: only "
-        "rsu_imu has one so far, run unless the session's options.integrity is false; v2v_coop, v2x_federated and "
-        "gnss_tight report unavailable).",
+        "fix (the first epochs of a session, a session without the monitor, or a pipeline without one: rsu_imu, "
+        "v2v_coop and v2x_federated have one, run unless the session's options.integrity is false; the v2v_coop "
+        "method gps, whose fix nothing checks, and gnss_tight report unavailable).",
     )
     measurements: list[MeasurementUseOut] = Field(
         description="The batch's measurements of this epoch: used or why not (a revised fix lists only the "
