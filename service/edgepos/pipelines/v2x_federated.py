@@ -395,7 +395,7 @@ def _step(
 
         # The fused fix rests on DR and the chosen sub-filter: its sources are that sub-filter's.
         fixes = [i for i in epoch if isinstance(observations[i], GnssFixObservation)]
-        epoch_fix = cast(GnssFixObservation, observations[fixes[0]]) if fixes and chosen == 0 else None
+        epoch_fix = cast(GnssFixObservation, observations[fixes[0]]) if fixes else None
         protection = monitor(
             options,
             lambda: (float(fused_mean[0]), float(fused_mean[3]), fused_cov[np.ix_([0, 3], [0, 3])].tolist()),
