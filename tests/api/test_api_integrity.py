@@ -54,3 +54,38 @@ def test_without_the_monitor_fixes_say_unavailable_and_the_state_has_no_bank(cli
     response = client.post(f"/v1/sessions/{on_id}/batches", json=body, headers=on_token)
     assert response.status_code == 200, response.text
     assert response.json()["fixes"][-1]["integrity"] == "ok"
+
+
+@pytest.mark.parametrize("pipeline", ["v2v_coop", "v2x_federated"])
+@pytest.mark.parametrize(
+    ("options", "field"),
+    [
+        ({"integrity_risk": 0.5}, "options.integrity_risk"),
+        ({"alert_limit_m": -1.0}, "options.alert_limit_m"),
+        ({"fault_probability": 0.0}, "options.fault_probability"),
+        ({"false_alarm_probability": 0.2}, "options.false_alarm_probability"),
+    ],
+)
+def test_cooperative_integrity_options_out_of_bounds_are_422_naming_the_option(
+    client, pipeline, options, field
+):
+    response = client.post(
+        "/v1/sessions", json={"vehicle_id": "car-9", "pipeline": pipeline, "options": options}, headers=ADMIN
+    )
+    error = assert_error(response, 422, "invalid_request")
+    assert field in {p["field"] for p in error["problems"]}, error
+
+
+def test_cooperative_fixes_carry_a_protection_level(client):
+    session_id, token = open_session(
+        client, vehicle_id="car-a", pipeline="v2v_coop", options={"method": "gps_dr", "integrity": True}
+    )
+    batch = [{"type": "gnss_fix", "t": 0.2 * k, "x": 3.0 * k, "y": 0.0} for k in range(10)]
+    response = client.post(
+        f"/v1/sessions/{session_id}/batches", json={"seq": 1, "measurements": batch}, headers=token
+    )
+    assert response.status_code == 200, response.text
+    fixes = response.json()["fixes"]
+    assert fixes[0]["integrity"] == "unavailable" and fixes[0]["protection_level_m"] is None
+    # a fix checked against the prediction from the earlier ones: a bound, metres at a 3.5 m receiver
+    assert all(f["integrity"] in ("ok", "alarm") and f["protection_level_m"] > 1.0 for f in fixes[1:])

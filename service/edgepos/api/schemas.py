@@ -508,18 +508,20 @@ class FixOut(ResponseModel):
         "faulty, however slowly its fault grew (rsu_imu: filter-based solution separation, one sub-filter per "
         "RSU left out, docs/integrity.md; gnss_tight: solution separation of one-satellite and one-constellation "
         "faults with the filter's prediction as prior, from the filter's covariance times integrity_inflation, "
-        "docs/integrity.md GNSS). Null when integrity is unavailable.",
+        "docs/integrity.md GNSS; v2v_coop and v2x_federated: solution separation of the fix's GNSS fix and each "
+        "neighbour or RSU ranged to, at the epoch). Null when integrity is unavailable.",
     )
     integrity: Literal["ok", "alarm", "unavailable"] = Field(
         "unavailable",
         description="ok: protection_level_m is within the session's alert_limit_m and every fault test passed or "
-        "its RSU was excluded; "
+        "its RSU or neighbour was excluded; "
         "alarm: do not use this fix for what needs integrity (the protection level exceeds the alert limit, a "
         "fault was detected that could not be excluded, or the fix diverged); unavailable: no bound for this "
         "fix (the first epochs of a session, a session without the monitor, or a pipeline without one: "
-        "rsu_imu and gnss_tight have one, run unless the session's options.integrity is false; gnss_tight is also "
-        "unavailable in an epoch with fewer than 4 + constellations satellites, too few to bound a fault; "
-        "v2v_coop and v2x_federated report unavailable).",
+        "rsu_imu and gnss_tight run theirs unless the session's options.integrity is false, v2v_coop and "
+        "v2x_federated only when it is true; gnss_tight is also unavailable in an epoch with fewer than "
+        "4 + constellations satellites, too few to bound a fault; the v2v_coop method gps, whose fix nothing "
+        "checks, always).",
     )
     measurements: list[MeasurementUseOut] = Field(
         description="The batch's measurements of this epoch: used or why not (a revised fix lists only the "

@@ -219,12 +219,9 @@ def _positive_float(text: str) -> float:
     return value
 
 
-def run(args: argparse.Namespace, evaluation: str, prog: str) -> int:
-    """The correlated scene's command: table on stdout, ``{"scene": ..., "methods": ...}`` to --json."""
-    if args.json is not None and (problem := prepare_output(args.json)) is not None:
-        print(f"{prog}: error: --json: {problem}", file=sys.stderr)
-        return 2
-    errors = ErrorModel(
+def errors_from(args: argparse.Namespace) -> ErrorModel:
+    """The correlated scene's error model from its flags."""
+    return ErrorModel(
         args.common_tau,
         args.common_std,
         args.vehicle_tau,
@@ -232,6 +229,14 @@ def run(args: argparse.Namespace, evaluation: str, prog: str) -> int:
         args.white_std,
         args.fix_interval,
     )
+
+
+def run(args: argparse.Namespace, evaluation: str, prog: str) -> int:
+    """The correlated scene's command: table on stdout, ``{"scene": ..., "methods": ...}`` to --json."""
+    if args.json is not None and (problem := prepare_output(args.json)) is not None:
+        print(f"{prog}: error: --json: {problem}", file=sys.stderr)
+        return 2
+    errors = errors_from(args)
     progress = Progress(args.runs, label="runs")
     try:
         sums = monte_carlo(evaluation, args.runs, args.seed, args.workers, errors, progress)

@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from edgepos.eval import correlated
+from edgepos.eval import cooperative_integrity, correlated
 from edgepos.eval.montecarlo import chunk_runs, run_chunks
 from edgepos.eval.progress import Progress
 from edgepos.eval.scenario_command import Totals, combine, run_scenario_command
@@ -183,6 +183,7 @@ def report(results: dict[str, dict[str, dict[str, float]]], runs: int, seed: int
 def configure(parser: argparse.ArgumentParser) -> None:
     """``--scene`` (the paper's or the correlated-error one) and the correlated scene's options."""
     correlated.configure(parser)
+    cooperative_integrity.configure(parser)
 
 
 def curves(totals: Totals, runs: int) -> dict[str, tuple[np.ndarray, dict[str, np.ndarray]]]:
@@ -192,6 +193,8 @@ def curves(totals: Totals, runs: int) -> dict[str, tuple[np.ndarray, dict[str, n
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.faults:
+        return cooperative_integrity.run(args, "federated", PROG)
     if args.scene == "correlated":
         return correlated.run(args, "federated", PROG)
     return run_scenario_command(args, PROG, monte_carlo, summary, report, curves, "federated", RunFailed)

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from edgepos.core.integrity import ALARM, OK
-from edgepos.core.observations import Observation, RsuObservation
+from edgepos.core.observations import Observation, RsuObservation, V2vRangeObservation
 from edgepos.eval.plots import require_matplotlib
 from edgepos.pipelines.base import Fix
 from edgepos.sim.faults import FaultEvent
@@ -61,9 +61,11 @@ class IntegrityTally:
 
     counts: np.ndarray = field(default_factory=_empty_counts)
     diagram: np.ndarray = field(default_factory=_empty_diagram)
+    scale: float = 1.0
+    """The diagram's bins are STANFORD_BINS times this (m): 1 for rsu_imu, larger for metre-level fixes."""
 
     def __add__(self, other: IntegrityTally) -> IntegrityTally:
-        return IntegrityTally(self.counts + other.counts, self.diagram + other.diagram)
+        return IntegrityTally(self.counts + other.counts, self.diagram + other.diagram, self.scale)
 
     def count(self, name: str) -> float:
         return float(self.counts[COUNTERS.index(name)])
@@ -79,7 +81,7 @@ class IntegrityTally:
         index = int(np.searchsorted(cumulative, total / 2.0))
         below = cumulative[index - 1] if index else 0.0
         width = STANFORD_BINS[index + 1] - STANFORD_BINS[index]
-        return float(STANFORD_BINS[index] + width * (total / 2.0 - below) / marginal[index])
+        return self.scale * float(STANFORD_BINS[index] + width * (total / 2.0 - below) / marginal[index])
 
     def summary(self, alert_limit: float) -> dict[str, Any]:
         """The figures the evaluation's JSON carries."""
@@ -110,6 +112,15 @@ def _bin(value: float) -> int:
     return min(index, STANFORD_BINS.size - 2)
 
 
+def _source(observation: Observation) -> str | None:
+    """The RSU or neighbour vehicle a measurement depends on (what a fault event names)."""
+    if isinstance(observation, RsuObservation):
+        return observation.rsu_id
+    if isinstance(observation, V2vRangeObservation):
+        return observation.peer_vehicle_id
+    return None
+
+
 def tally(
     fixes: Sequence[Fix],
     truth_xy: np.ndarray,
@@ -117,10 +128,11 @@ def tally(
     observations: Sequence[Observation],
     alert_limit: float,
     event: FaultEvent | None,
+    scale: float = 1.0,
 ) -> IntegrityTally:
     """The integrity figures of one run: ``fixes`` against the truth ``truth_xy`` (K x 2) at ``times``
     (the fixes' epochs, in order), with the run's ``observations`` (one batch) and its fault ``event``."""
-    result = IntegrityTally()
+    result = IntegrityTally(scale=scale)
     counts = dict.fromkeys(COUNTERS, 0.0)
     detected_at: float | None = None
     for fix, (true_x, true_y), t in zip(fixes, truth_xy, times, strict=True):
@@ -131,12 +143,7 @@ def tally(
                 continue
             counts["exclusions"] += 1
             observation = observations[use.index]
-            hit = (
-                event is not None
-                and isinstance(observation, RsuObservation)
-                and observation.rsu_id == event.rsu_id
-                and event.active(observation.t)
-            )
+            hit = event is not None and _source(observation) == event.rsu_id and event.active(observation.t)
             if not hit:
                 counts["false_exclusions"] += 1
             elif detected_at is None:
@@ -149,7 +156,7 @@ def tally(
         if fix.integrity == OK:
             counts["misleading"] += error > fix.protection_level
             counts["hazardous"] += error > alert_limit
-        result.diagram[_bin(error), _bin(fix.protection_level)] += 1
+        result.diagram[_bin(error / scale), _bin(fix.protection_level / scale)] += 1
     if event is not None:
         counts["faulty_runs"] = 1
         if detected_at is not None:
@@ -169,9 +176,10 @@ def stanford_plot(tally_: IntegrityTally, alert_limit: float, title: str, path: 
     try:
         counts = np.ma.masked_equal(tally_.diagram.T, 0)  # rows: protection level, columns: error
         if counts.count():
-            mesh = axes.pcolormesh(STANFORD_BINS, STANFORD_BINS, counts, norm=LogNorm(), cmap="viridis")
+            bins = STANFORD_BINS * tally_.scale
+            mesh = axes.pcolormesh(bins, bins, counts, norm=LogNorm(), cmap="viridis")
             figure.colorbar(mesh, ax=axes, label="epochs")
-        top = STANFORD_MAX_M
+        top = STANFORD_MAX_M * tally_.scale
         axes.plot([0, top], [0, top], color="black", linewidth=1)
         axes.axvline(alert_limit, color="red", linewidth=1, linestyle="--")
         axes.axhline(alert_limit, color="red", linewidth=1, linestyle="--")

@@ -29,9 +29,11 @@ import numpy as np
 from edgepos.core import gnss_bias
 from edgepos.core import state as state_format
 from edgepos.core.augmented import augmented_update
+from edgepos.core.cooperative_integrity import RangeSource
 from edgepos.core.filters.ekf import ExtendedKalmanFilter
 from edgepos.core.filters.ukf import UnscentedKalmanFilter
 from edgepos.core.gnss_bias import Bias
+from edgepos.core.integrity import UNAVAILABLE, Protection
 from edgepos.core.intersection import range_weight
 from edgepos.core.measurements.gnss_fix import GnssPosition
 from edgepos.core.measurements.rsu import RsuRange
@@ -53,6 +55,13 @@ from edgepos.pipelines.base import (
     Pipeline,
     StateSummary,
     ensure_finite_fixes,
+)
+from edgepos.pipelines.cooperative_integrity import (
+    COOPERATIVE_INTEGRITY_SPECS,
+    LEGACY_INTEGRITY,
+    fix_source,
+    monitor,
+    with_protection,
 )
 from edgepos.pipelines.cooperative_options import (
     GNSS_BIAS_SPECS,
@@ -125,6 +134,7 @@ OPTION_SPECS = (
         "vehicle's own estimate: consistent whatever their correlation, e.g. GNSS errors they share) or "
         "independent (as independent information, the paper's; over-confident when they share errors)."
     ),
+    *COOPERATIVE_INTEGRITY_SPECS,
 )
 
 _KF = ExtendedKalmanFilter()  # exact for the linear motion and fixes; linearises the DR measurements
@@ -171,7 +181,7 @@ def _decode(blob: bytes) -> _SessionState:
     if meta.get("pipeline") != V2vCoopPipeline.name:
         raise state_format.StateFormatError(f"state belongs to pipeline {meta.get('pipeline')!r}")
     # A session stored before the GNSS bias and covariance intersection goes on as it was created.
-    options = {**LEGACY_OPTIONS, **meta["options"]}
+    options = {**LEGACY_OPTIONS, **LEGACY_INTEGRITY, **meta["options"]}
     white = Bias.stationary(0.0)
     return _SessionState(
         options,
@@ -264,6 +274,8 @@ def _step(
     if not session.initialised:
         return _initialise(session, epoch, observations, fixes, uses, t)
     dt = 0.0 if session.t is None else t - session.t
+    # The gps method's fix is the receiver's, with nothing to check it against: no bound.
+    protection: Protection | None = Protection(None, UNAVAILABLE) if options["integrity"] else None
     if method == "gps":
         status = _gps_only(session, epoch, observations, fixes, uses, dt)
     else:
@@ -291,12 +303,34 @@ def _step(
             updated.append((mean, cov, bias))
             used = used or dr_used
         session.mean, session.cov, session.bias = updated[0]
+        ranges: list[tuple[int, RangeSource]] = []
+        before = (session.mean, session.cov, session.bias)
         if cooperative:
             session.own_mean, session.own_cov, session.own_bias = updated[1]
-            used = _range_update(session, epoch, observations, uses, environment, t) or used
+            ranges = _range_update(session, epoch, observations, uses, environment, t, frozenset())
+            used = bool(ranges) or used
         else:
             session.own_mean, session.own_cov, session.own_bias = session.mean, session.cov, session.bias
         status = "tracking" if used else "predicted"
+        if options["integrity"]:
+
+            def redo(excluded: frozenset[str]) -> list[tuple[int, RangeSource]]:
+                session.mean, session.cov, session.bias = before
+                return _range_update(session, epoch, observations, uses, environment, t, excluded)
+
+            epoch_fix = cast(GnssFixObservation, observations[fixes[0]]) if fixes else None
+            protection = monitor(
+                options,
+                lambda: (
+                    float(session.mean[0]),
+                    float(session.mean[3]),
+                    session.cov[np.ix_([0, 3], [0, 3])].tolist(),
+                ),
+                lambda x, y: fix_source(options, session.bias, epoch_fix, x, y),
+                ranges,
+                redo,
+                uses,
+            )
     for i in epoch:
         if i not in uses:
             uses[i] = MeasurementUse(
@@ -305,6 +339,7 @@ def _step(
     session.t = t
     session.epochs += 1
     fix = kinematic_fix(t, status, session.mean, session.cov, [uses[i] for i in epoch])
+    fix = with_protection(fix, protection)
     if method in ("ukf", "aug_ukf"):
         fix = dataclasses.replace(fix, shared=shared_point(t, session.own_mean, session.own_cov))
     return fix
@@ -471,13 +506,15 @@ def _range_update(
     uses: dict[int, MeasurementUse],
     environment: Environment,
     t: float,
-) -> bool:
-    """V2V ranges to the neighbours available at ``t``: exact points (ukf) or augmented (aug_ukf)."""
+    excluded: frozenset[str],
+) -> list[tuple[int, RangeSource]]:
+    """V2V ranges to the neighbours available at ``t`` but ``excluded``: exact points (ukf) or augmented
+    (aug_ukf). Returns the ranges used with the 1-sigma the update gave each (for the fault monitor)."""
     options = session.options
     points, point_covs, values, used = [], [], [], []
     for i in epoch:
         obs = observations[i]
-        if not isinstance(obs, V2vRangeObservation):
+        if not isinstance(obs, V2vRangeObservation) or obs.peer_vehicle_id in excluded:
             continue
         try:
             neighbour = position_at(
@@ -496,7 +533,7 @@ def _range_update(
         values.append(obs.metres)
         used.append(i)
     if not used:
-        return False
+        return []
     points_array = np.array(points)
     observed = np.array(values)
     range_std = options["range_std"]
@@ -523,7 +560,7 @@ def _range_update(
             uses[i] = MeasurementUse(
                 i, "v2v_range", False, "covariance intersection gives the ranges no weight here"
             )
-        return False
+        return []
     prior_mean, prior_cov = session.mean, session.cov / weight
     bias = Bias(session.bias.mean, session.bias.cov / weight, session.bias.cross / weight)
     inflation = 1.0 if independent else count / (1.0 - weight)
@@ -559,4 +596,20 @@ def _range_update(
     session.bias = gnss_bias.condition(bias, prior_mean, prior_cov, session.mean, session.cov)
     for i in used:
         uses[i] = MeasurementUse(i, "v2v_range", True)
-    return True
+    exact = independent and options["method"] == "ukf"
+    spreads = (
+        np.zeros(count) if exact else np.einsum("ki,kij,kj->k", directions, np.array(point_covs), directions)
+    )
+    stds = np.sqrt(range_std**2 + spreads * inflation)
+    return [
+        (
+            i,
+            RangeSource(
+                cast(V2vRangeObservation, observations[i]).peer_vehicle_id,
+                (float(points_array[k, 0]), float(points_array[k, 1])),
+                float(observed[k]),
+                float(stds[k]),
+            ),
+        )
+        for k, i in enumerate(used)
+    ]

@@ -25,10 +25,12 @@ import numpy as np
 
 from edgepos.core import gnss_bias, layout
 from edgepos.core import state as state_format
+from edgepos.core.cooperative_integrity import RangeSource
 from edgepos.core.errors import NumericalError
 from edgepos.core.filters.ekf import ExtendedKalmanFilter
 from edgepos.core.filters.srukf import SquareRootUnscentedKalmanFilter
 from edgepos.core.gnss_bias import Bias
+from edgepos.core.integrity import Protection
 from edgepos.core.intersection import range_weight
 from edgepos.core.measurements.base import MeasurementModel
 from edgepos.core.measurements.gnss_fix import GnssPosition
@@ -51,6 +53,13 @@ from edgepos.pipelines.base import (
     Pipeline,
     StateSummary,
     ensure_finite_fixes,
+)
+from edgepos.pipelines.cooperative_integrity import (
+    COOPERATIVE_INTEGRITY_SPECS,
+    LEGACY_INTEGRITY,
+    fix_source,
+    monitor,
+    with_protection,
 )
 from edgepos.pipelines.cooperative_options import GNSS_BIAS_SPECS, LEGACY_OPTIONS, neighbour_specs
 from edgepos.pipelines.epochs import group_by_time
@@ -129,6 +138,7 @@ OPTION_SPECS = (
         "errors they share or earlier ranges between them) or independent (its covariance added to the "
         "range's as independent noise, the paper's reading)."
     ),
+    *COOPERATIVE_INTEGRITY_SPECS,
 )
 
 
@@ -215,7 +225,7 @@ def _decode(blob: bytes) -> _SessionState:
         raise state_format.StateFormatError(f"state belongs to pipeline {meta.get('pipeline')!r}")
     # A session stored before the GNSS bias and covariance intersection goes on as it was created.
     return _SessionState(
-        {**LEGACY_OPTIONS, **meta["options"]},
+        {**LEGACY_OPTIONS, **LEGACY_INTEGRITY, **meta["options"]},
         bool(meta["initialised"]),
         meta["t"],
         int(meta["epochs"]),
@@ -365,10 +375,35 @@ def _step(
     updated[0] = gps
     session.dr_started = session.dr_started or gps
     updated[1] = _dr_update(session, means, covs, epoch, observations, options, uses, t)
-    updated[2] = _v2x_update(means, covs, epoch, observations, options, uses, environment, t)
+    v2x_prior = (means[2].copy(), covs[2].copy())
+    ranges = _v2x_update(means, covs, epoch, observations, options, uses, environment, t, frozenset())
+    updated[2] = bool(ranges)
 
     chosen = 0 if np.trace(covs[0]) <= np.trace(covs[2]) else 2
     fused_mean, fused_cov = fuse(means[chosen], covs[chosen], means[1], covs[1])
+    protection: Protection | None = None
+    if options["integrity"]:
+
+        def redo(excluded: frozenset[str]) -> list[tuple[int, RangeSource]]:
+            nonlocal chosen, fused_mean, fused_cov
+            means[2], covs[2] = v2x_prior[0].copy(), v2x_prior[1].copy()
+            kept = _v2x_update(means, covs, epoch, observations, options, uses, environment, t, excluded)
+            updated[2] = bool(kept)
+            chosen = 0 if np.trace(covs[0]) <= np.trace(covs[2]) else 2
+            fused_mean, fused_cov = fuse(means[chosen], covs[chosen], means[1], covs[1])
+            return kept if chosen == 2 else []
+
+        # The fused fix rests on DR and the chosen sub-filter: its sources are that sub-filter's.
+        fixes = [i for i in epoch if isinstance(observations[i], GnssFixObservation)]
+        epoch_fix = cast(GnssFixObservation, observations[fixes[0]]) if fixes else None
+        protection = monitor(
+            options,
+            lambda: (float(fused_mean[0]), float(fused_mean[3]), fused_cov[np.ix_([0, 3], [0, 3])].tolist()),
+            lambda x, y: fix_source(options, bias, epoch_fix if chosen == 0 else None, x, y),
+            ranges if chosen == 2 else [],
+            redo,
+            uses,
+        )
     if options["feedback"]:
         scales = _feedback_scales(options)
         before_mean, before_cov = means[0].copy(), covs[0].copy()
@@ -381,7 +416,8 @@ def _step(
     session.t = t
     session.epochs += 1
     status = "tracking" if any(updated) else "predicted"
-    return kinematic_fix(t, status, fused_mean, fused_cov, [uses[i] for i in epoch])
+    fix = kinematic_fix(t, status, fused_mean, fused_cov, [uses[i] for i in epoch])
+    return with_protection(fix, protection)
 
 
 def _note_odometer(session: _SessionState, obs: Observation) -> None:
@@ -468,14 +504,20 @@ def _v2x_update(
     uses: dict[int, MeasurementUse],
     environment: Environment,
     t: float,
-) -> bool:
+    excluded: frozenset[str],
+) -> list[tuple[int, RangeSource]]:
     """Ranges to RSUs (known points) and neighbours (their published estimates, weighted by covariance
     intersection against this sub-filter: both rest on GNSS errors in common and on one another's
-    ranges, so neither is taken as independent of the other)."""
+    ranges, so neither is taken as independent of the other), but those to ``excluded`` RSU or vehicle
+    ids. Returns the ranges used with the 1-sigma the update gave each (for the fault monitor)."""
     points, variances, point_covs, used = [], [], [], []
+    names: list[str] = []
     range_var = options["range_std"] ** 2
     for i in epoch:
         obs = observations[i]
+        source = getattr(obs, "rsu_id", None) or getattr(obs, "peer_vehicle_id", None)
+        if source in excluded:
+            continue
         if isinstance(obs, RsuRangeObservation):
             rsu = environment.rsu(obs.rsu_id)
             if rsu is None:
@@ -509,8 +551,9 @@ def _v2x_update(
         variances.append(variance)
         point_covs.append((direction, point_cov))
         used.append((i, value))
+        names.append(str(source))
     if not used:
-        return False
+        return []
     count = len(used)
     neighbours = [k for k, (_, cov) in enumerate(point_covs) if np.any(cov)]
     design = np.zeros((count, 6))
@@ -535,12 +578,13 @@ def _v2x_update(
             )
         keep = [k for k in range(count) if k not in neighbours]
         if not keep:
-            return False
+            return []
         # one comprehension per list (not one over the four): each keeps its element type
         points = [points[k] for k in keep]
         variances = [variances[k] for k in keep]
         point_covs = [point_covs[k] for k in keep]
         used = [used[k] for k in keep]
+        names = [names[k] for k in keep]
         weight = 1.0
     total = [
         v + scale * float(d @ c @ d) for v, (d, c) in zip(variances, point_covs)
@@ -551,7 +595,10 @@ def _v2x_update(
     )
     for i, _ in used:
         uses[i] = MeasurementUse(i, observations[i].kind, True)
-    return True
+    return [
+        (i, RangeSource(name, (float(p[0]), float(p[1])), float(value), math.sqrt(var)))
+        for (i, value), name, p, var in zip(used, names, points, total, strict=True)
+    ]
 
 
 def fuse(

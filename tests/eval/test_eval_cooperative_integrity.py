@@ -1,0 +1,54 @@
+"""``edgepos eval v2v|federated --faults``: the integrity block per scene and method, the faulty runs
+counted, and out-of-range fault flags refused with exit 2 naming the flag."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from edgepos.cli import main
+from edgepos.eval.integrity import IntegrityTally
+
+
+def test_v2v_faults_writes_the_integrity_block_per_scene_and_method(tmp_path, capsys):
+    path = tmp_path / "out.json"
+    code = main(
+        ["eval", "v2v", "--faults", "--runs", "1", "--seed", "2", "--workers", "1", "--json", str(path)]
+    )
+    assert code == 0
+    blocks = json.loads(path.read_text())["integrity"]
+    assert set(blocks) == {f"{s} {m}" for s in ("straight", "ring") for m in ("UKF", "augUKF")}
+    for block in blocks.values():
+        # one run, every run faulty: the three vehicles ranging to the faulty one are its faulty runs
+        assert block["epochs"] == 400 and block["faulty_runs"] == 3
+        assert 0.0 <= block["availability"] <= 1.0 and block["alert_limit_m"] == 5.0
+        assert block["median_protection_level_m"] > 0.0
+        assert set(block) >= {
+            "misleading",
+            "hazardous",
+            "detections",
+            "detected_runs",
+            "mean_detection_delay_s",
+        }
+    assert "Cooperative integrity" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("flags", "named"),
+    [
+        (["--fault-runs", "1.5"], "--fault-runs"),
+        (["--fault-offset", "-3"], "--fault-offset"),
+        (["--fault-duration", "0"], "--fault-duration"),
+    ],
+)
+@pytest.mark.parametrize("evaluation", ["v2v", "federated"])
+def test_out_of_range_fault_flags_exit_2_naming_the_flag(evaluation, flags, named, capsys):
+    code = main(["eval", evaluation, "--faults", "--runs", "1", *flags])
+    assert code == 2
+    assert named in capsys.readouterr().err
+
+
+def test_a_scaled_tally_reads_its_median_in_metres():
+    tally = IntegrityTally(scale=4.0)
+    tally.diagram[0, 100] = 1.0  # bin 100 of 0-3 m in 2 cm steps, times 4: 8.00-8.08 m
+    assert 8.0 <= tally.median_protection_level() <= 8.08
