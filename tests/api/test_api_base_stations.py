@@ -27,6 +27,7 @@ BASE = DATA / "base-0-5min.rnx"
 TEXT = {**ADMIN, "Content-Type": "text/plain"}
 BINARY = {**ADMIN, "Content-Type": "application/octet-stream"}
 OPTIONS = {**QUICK, "use_doppler": False}
+BATCH_EPOCHS = 5  # within the default CPU budget per batch with the integrity monitor (10 are not)
 MARE = {
     "station_id": "MARE",
     "position_ecef": [4777633.8950, 203108.9850, 4206595.1490],  # the file header's marker
@@ -47,8 +48,9 @@ def _setup(client, station=MARE, observations=True):
     return None
 
 
-def _run(client, vehicle, options, count, per_batch=10):
+def _run(client, vehicle, options, count, per_batch=None):
     session_id, token = open_session(client, vehicle_id=vehicle, pipeline="gnss_tight", options=options)
+    per_batch = per_batch or BATCH_EPOCHS
     fixes = []
     for seq, first in enumerate(range(0, count, per_batch), start=1):
         items = [m for _, epoch in epochs(count)[first : first + per_batch] for m in epoch]
@@ -181,12 +183,12 @@ def test_sessions_with_the_station_match_the_eval_with_base(client):
     }
     assert reasons and all(r.startswith("no correction for this satellite") for r in reasons), reasons
     # 'nearest' needs a position: the first batch has none (no fix yet, no site origin), the next ones do
-    first = {u["correction_reason"] for fix in nearest[:10] for u in fix["measurements"]}
+    first = {u["correction_reason"] for fix in nearest[:BATCH_EPOCHS] for u in fix["measurements"]}
     assert first == {
         "no base data: the session has no fix yet and the site no origin, so no station is nearest"
     }
-    later = [u["correction_applied"] for fix in nearest[10:] for u in fix["measurements"]]
-    assert later == [u["correction_applied"] for fix in corrected[10:] for u in fix["measurements"]]
+    later = [u["correction_applied"] for fix in nearest[BATCH_EPOCHS:] for u in fix["measurements"]]
+    assert later == [u["correction_applied"] for fix in corrected[BATCH_EPOCHS:] for u in fix["measurements"]]
 
     # the eval's table and the pipeline, as evaluate() runs them
     codes = {s: DEFAULT_CODES[s] for s in "GC"}
@@ -203,10 +205,10 @@ def test_sessions_with_the_station_match_the_eval_with_base(client):
     )
 
     expected = []
-    for first in range(0, COUNT, 10):
+    for first in range(0, COUNT, BATCH_EPOCHS):
         items = [
             PseudorangeMeasurement(**m).to_observation()
-            for _, epoch in epochs(COUNT)[first : first + 10]
+            for _, epoch in epochs(COUNT)[first : first + BATCH_EPOCHS]
             for m in epoch
         ]
         fixes, state = pipeline.process(state, items, environment)
