@@ -124,21 +124,26 @@ def bank_update(
 
 
 @_jit
+def _separation(means: FloatArray, covs: FloatArray, k: int) -> float:
+    """sqrt(q_k) of sub-filter k against the reference (row 0): its position's separation in units of the
+    separation's covariance P_k - P_0; 0 while that is singular, as right after the sub-filter starts."""
+    dx = means[k, 0] - means[0, 0]
+    dy = means[k, 3] - means[0, 3]
+    a = covs[k, 0, 0] - covs[0, 0, 0]
+    b = covs[k, 0, 3] - covs[0, 0, 3]
+    c = covs[k, 3, 3] - covs[0, 3, 3]
+    det = a * c - b * b
+    if a > 0.0 and c > 0.0 and det > 1e-12 * a * c:
+        return math.sqrt(max((c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / det, 0.0))
+    return 0.0
+
+
+@_jit
 def bank_separations(means: FloatArray, covs: FloatArray, out: FloatArray) -> None:
     """Per sub-filter k >= 1, into out[k - 1]: sqrt(q_k) (0 while P_k - P_0 is singular), x, y and the
     position covariance's xx, xy, yy; as the bank's numpy ``separations``."""
     for k in range(1, means.shape[0]):
-        dx = means[k, 0] - means[0, 0]
-        dy = means[k, 3] - means[0, 3]
-        a = covs[k, 0, 0] - covs[0, 0, 0]
-        b = covs[k, 0, 3] - covs[0, 0, 3]
-        c = covs[k, 3, 3] - covs[0, 3, 3]
-        det = a * c - b * b
-        statistic = 0.0
-        if a > 0.0 and c > 0.0 and det > 1e-12 * a * c:
-            q = (c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / det
-            statistic = math.sqrt(max(q, 0.0))
-        out[k - 1, 0] = statistic
+        out[k - 1, 0] = _separation(means, covs, k)
         out[k - 1, 1] = means[k, 0]
         out[k - 1, 2] = means[k, 3]
         out[k - 1, 3] = covs[k, 0, 0]
@@ -223,15 +228,7 @@ def bank_protect(
     level = max(level, offset + radial_bound(covs[0, 0, 0], covs[0, 0, 3], covs[0, 3, 3], tables[0]))
     worst, worst_statistic = -1, 0.0
     for k in range(1, means.shape[0]):
-        dx = means[k, 0] - means[0, 0]
-        dy = means[k, 3] - means[0, 3]
-        a = covs[k, 0, 0] - covs[0, 0, 0]
-        b = covs[k, 0, 3] - covs[0, 0, 3]
-        c = covs[k, 3, 3] - covs[0, 3, 3]
-        det = a * c - b * b
-        statistic = 0.0
-        if a > 0.0 and c > 0.0 and det > 1e-12 * a * c:
-            statistic = math.sqrt(max((c * dx * dx - 2.0 * b * dx * dy + a * dy * dy) / det, 0.0))
+        statistic = _separation(means, covs, k)
         if statistic > threshold and excluded[k] == 0 and (worst < 0 or statistic > worst_statistic):
             worst, worst_statistic = k, statistic
         separation = math.hypot(means[k, 0] - x, means[k, 3] - y)

@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 
 from edgepos.core.integrity import OK
-from edgepos.eval.plots import require_matplotlib
-from edgepos.pipelines.gnss_integrity import EXCLUDED
+from edgepos.eval.integrity import stanford_figure
+from edgepos.pipelines.integrity import EXCLUDED
 
 STANFORD_MAX_M = 30.0
 STANFORD_BINS = np.linspace(0.0, STANFORD_MAX_M, 151)  # 0.2 m
@@ -93,9 +93,6 @@ class GnssIntegrity:
 
     def stanford_plot(self, alert_limit: float, title: str, path: Path) -> Path:
         """Error against protection level (epochs by colour, log scale), the diagonal and the alert limit."""
-        from matplotlib.colors import LogNorm
-
-        pyplot = require_matplotlib()
         errors = np.array([float(np.hypot(*e)) for e in self.errors])
         level = np.array([np.nan if v is None else v for v in self.levels], dtype=float)
         have = np.isfinite(level)
@@ -103,35 +100,12 @@ class GnssIntegrity:
         histogram, _, _ = np.histogram2d(
             np.minimum(errors[have], top - 1e-9), np.minimum(level[have], top - 1e-9), [STANFORD_BINS] * 2
         )
-        figure, axes = pyplot.subplots(figsize=(6, 5), dpi=110)
-        try:
-            counts = np.ma.masked_equal(histogram.T, 0)
-            if counts.count():
-                mesh = axes.pcolormesh(STANFORD_BINS, STANFORD_BINS, counts, norm=LogNorm(), cmap="viridis")
-                figure.colorbar(mesh, ax=axes, label="epochs")
-            axes.plot([0, top], [0, top], color="black", linewidth=1)
-            axes.axvline(alert_limit, color="red", linewidth=1, linestyle="--")
-            axes.axhline(alert_limit, color="red", linewidth=1, linestyle="--")
-            s = self.summary(alert_limit, 1.0)
-            axes.text(
-                0.98 * top,
-                0.04 * top,
-                f"misleading {s['misleading']}, hazardous {s['hazardous']} of {s['epochs']} epochs\n"
-                f"availability {s['availability'] or 0.0:.3f}, unavailable {s['unavailable_rate'] or 0.0:.3f}",
-                ha="right",
-                fontsize=8,
-            )
-            axes.set_xlim(0, top)
-            axes.set_ylim(0, top)
-            axes.set_xlabel("horizontal position error (m)")
-            axes.set_ylabel("horizontal protection level (m)")
-            axes.set_title(title)
-            figure.tight_layout()
-            path.parent.mkdir(parents=True, exist_ok=True)
-            figure.savefig(path)
-        finally:
-            pyplot.close(figure)
-        return path
+        s = self.summary(alert_limit, 1.0)
+        caption = (
+            f"misleading {s['misleading']}, hazardous {s['hazardous']} of {s['epochs']} epochs\n"
+            f"availability {s['availability'] or 0.0:.3f}, unavailable {s['unavailable_rate'] or 0.0:.3f}"
+        )
+        return stanford_figure(histogram, STANFORD_BINS, alert_limit, caption, title, path)
 
 
 def error_en(fix_ecef: np.ndarray, truth_ecef: np.ndarray, rotation: np.ndarray) -> np.ndarray:

@@ -19,25 +19,13 @@ import numpy as np
 
 from edgepos.core.integrity import ALARM, OK
 from edgepos.core.observations import Observation, PseudorangeObservation
+from edgepos.eval.integrity import COUNTERS
 from edgepos.pipelines.base import Fix
-from edgepos.pipelines.gnss_integrity import EXCLUDED
+from edgepos.pipelines.integrity import EXCLUDED
 
 START_FRACTION = 0.3
 RATE_BOUNDS = (0.01, 100.0)
 SIZE_BOUNDS = (0.1, 10000.0)
-COUNTERS = (
-    "epochs",
-    "ok",
-    "alarm",
-    "unavailable",
-    "misleading",
-    "hazardous",
-    "exclusions",
-    "false_exclusions",
-    "faulty_runs",
-    "detected_runs",
-    "detection_delay_s",
-)
 PL_BINS = np.linspace(0.0, 100.0, 401)  # 0.25 m; the median protection level is read from it
 
 

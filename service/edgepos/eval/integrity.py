@@ -169,29 +169,34 @@ def tally(
 def stanford_plot(tally_: IntegrityTally, alert_limit: float, title: str, path: Path) -> Path:
     """A Stanford diagram of ``tally_`` (error against protection level, epochs by colour on a log
     scale) with the diagonal, the alert limit and the counts of its regions."""
+    summary = tally_.summary(alert_limit)
+    caption = (
+        f"misleading {summary['misleading']}, hazardous {summary['hazardous']} of {summary['epochs']} epochs\n"
+        f"availability {summary['availability']:.4f}"
+    )
+    return stanford_figure(tally_.diagram, STANFORD_BINS * tally_.scale, alert_limit, caption, title, path)
+
+
+def stanford_figure(
+    histogram: np.ndarray, bins: np.ndarray, alert_limit: float, caption: str, title: str, path: Path
+) -> Path:
+    """Draw a Stanford diagram to ``path``: ``histogram`` counts epochs by error bin (rows) and
+    protection-level bin (columns) over ``bins`` (m), shown on a log colour scale with the diagonal, the
+    alert limit and ``caption`` (the regions' counts)."""
     from matplotlib.colors import LogNorm
 
     pyplot = require_matplotlib()
+    top = float(bins[-1])
     figure, axes = pyplot.subplots(figsize=(6, 5), dpi=110)
     try:
-        counts = np.ma.masked_equal(tally_.diagram.T, 0)  # rows: protection level, columns: error
+        counts = np.ma.masked_equal(histogram.T, 0)  # rows: protection level, columns: error
         if counts.count():
-            bins = STANFORD_BINS * tally_.scale
             mesh = axes.pcolormesh(bins, bins, counts, norm=LogNorm(), cmap="viridis")
             figure.colorbar(mesh, ax=axes, label="epochs")
-        top = STANFORD_MAX_M * tally_.scale
         axes.plot([0, top], [0, top], color="black", linewidth=1)
         axes.axvline(alert_limit, color="red", linewidth=1, linestyle="--")
         axes.axhline(alert_limit, color="red", linewidth=1, linestyle="--")
-        summary = tally_.summary(alert_limit)
-        axes.text(
-            0.98 * top,
-            0.04 * top,
-            f"misleading {summary['misleading']}, hazardous {summary['hazardous']} of {summary['epochs']} epochs\n"
-            f"availability {summary['availability']:.4f}",
-            ha="right",
-            fontsize=8,
-        )
+        axes.text(0.98 * top, 0.04 * top, caption, ha="right", fontsize=8)
         axes.set_xlim(0, top)
         axes.set_ylim(0, top)
         axes.set_xlabel("horizontal position error (m)")

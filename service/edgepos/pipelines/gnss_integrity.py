@@ -5,6 +5,7 @@ are in docs/integrity.md ("GNSS (gnss_tight)")."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -15,8 +16,10 @@ from edgepos.core.measurements.pseudorange import PseudorangeModel
 from edgepos.core.motion import riss as layout
 from edgepos.gnss.raim import RaimBudget, Separations, protection, separations
 from edgepos.pipelines.base import MeasurementUse, OptionSpec
+from edgepos.pipelines.integrity import EXCLUDED
+from edgepos.pipelines.integrity import INTEGRITY_SPECS as RSU_INTEGRITY_SPECS
 
-EXCLUDED = "excluded by fault detection"
+_RSU_SPECS = {spec.name: spec for spec in RSU_INTEGRITY_SPECS}  # the options that mean the same as rsu_imu's
 DEFAULT_INFLATION = 8.0
 """Default covariance inflation k; see the option's description and docs/integrity.md for the measurement."""
 
@@ -29,23 +32,12 @@ INTEGRITY_SPECS: tuple[OptionSpec, ...] = (
         "hypotheses) with the filter, a protection level with every fix, fault detection and exclusion "
         "(docs/integrity.md, GNSS). Off: every fix's integrity is 'unavailable' and protection_level_m null.",
     ),
-    OptionSpec(
-        "integrity_risk",
-        "number",
-        1e-5,
-        "Integrity risk per epoch: the probability that the horizontal error exceeds protection_level_m while "
-        "the fix is not in alarm, faults included.",
-        1e-9,
-        0.1,
-    ),
-    OptionSpec(
-        "alert_limit_m",
-        "number",
-        5.0,
-        "Alert limit (m): a fix whose protection level exceeds it is in alarm (5 m: which road a vehicle is on, "
-        "what a GNSS-only fix can support).",
-        0.0,
-        1e4,
+    _RSU_SPECS["integrity_risk"],
+    dataclasses.replace(
+        _RSU_SPECS["alert_limit_m"],
+        default=5.0,
+        description="Alert limit (m): a fix whose protection level exceeds it is in alarm (5 m: which road a "
+        "vehicle is on, what a GNSS-only fix can support).",
     ),
     OptionSpec(
         "satellite_fault_probability",
@@ -66,21 +58,11 @@ INTEGRITY_SPECS: tuple[OptionSpec, ...] = (
         1e-9,
         0.1,
     ),
-    OptionSpec(
-        "false_alarm_probability",
-        "number",
-        1e-4,
-        "Probability per epoch that a fault-free epoch fails a fault test (the tests' thresholds): lower "
-        "means fewer needless exclusions and a larger protection level.",
-        1e-9,
-        0.1,
-    ),
-    OptionSpec(
-        "fault_exclusion",
-        "boolean",
-        True,
-        "Exclude the satellite or constellation a failed separation test points at from the epoch's update "
-        "and test again (one exclusion per epoch); false: only report the alarm.",
+    _RSU_SPECS["false_alarm_probability"],
+    dataclasses.replace(
+        _RSU_SPECS["fault_exclusion"],
+        description="Exclude the satellite or constellation a failed separation test points at from the "
+        "epoch's update and test again (one exclusion per epoch); false: only report the alarm.",
     ),
     OptionSpec(
         "integrity_inflation",
