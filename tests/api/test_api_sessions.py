@@ -218,3 +218,20 @@ def test_estimation_core_refusals_at_creation_are_422(tmp_path, pipeline, field)
         error = assert_error(client.post("/v1/sessions", json=body, headers=ADMIN), 422, "invalid_request")
         assert [p["field"] for p in error["problems"]] == [field]
         assert "edgepos_active_sessions 0.0" in client.get("/metrics").text  # nothing was created
+
+
+@pytest.mark.parametrize("name", ["rsu_imu", "gnss_tight", "v2v_coop", "v2x_federated"])
+def test_a_session_can_be_opened_with_every_option_it_reports(client, name):
+    """A client may send back all of a pipeline's effective options (gnss_tight has 69, more than the old
+    limit of 64 keys, which refused such a body: the option fuzz test found it)."""
+    from edgepos.api.schemas import MAX_OPTIONS
+
+    options = get_pipeline(name).resolve_options({})
+    assert len(options) < MAX_OPTIONS
+    response = client.post(
+        "/v1/sessions",
+        json={"vehicle_id": f"all-{name}", "pipeline": name, "options": options},
+        headers=ADMIN,
+    )
+    assert response.status_code == 201, response.text
+    assert response.json()["options"] == options
