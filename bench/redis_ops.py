@@ -110,6 +110,16 @@ def _cpu(client: redis.Redis) -> float:
     return float(info["used_cpu_sys"]) + float(info["used_cpu_user"])
 
 
+def _command_us(client: redis.Redis) -> dict[str, float]:
+    """Microseconds spent inside each command since the last CONFIG RESETSTAT (INFO commandstats)."""
+    stats = client.info("commandstats")
+    return {
+        name.removeprefix("cmdstat_").upper(): float(values["usec"])
+        for name, values in stats.items()
+        if name.startswith("cmdstat_") and name.removeprefix("cmdstat_").upper() not in {"INFO", "CONFIG"}
+    }
+
+
 def _batches(url: str) -> float:
     """Applied batches so far, from the service's metrics."""
     text = httpx.get(f"{url}/metrics", headers={"Authorization": f"Bearer {ADMIN_KEY}"}).text
@@ -168,6 +178,7 @@ def main() -> int:
                     monitor.close()
                     largest = sizes.stop()
                     batches = _batches(url) - before_batches
+                    client.config_resetstat()
                     before_batches, before_cpu, before_service = (
                         _batches(url),
                         _cpu(client),
@@ -177,6 +188,7 @@ def main() -> int:
                     cpu_batches = _batches(url) - before_batches
                     cpu_us = (_cpu(client) - before_cpu) * 1e6
                     service_us = (service_cpu_s(url) - before_service) * 1e6
+                    command_us = _command_us(client)
                     total = sum(counts.values())
                     per_batch = ", ".join(
                         f"{name} {count / batches:.2f}" for name, count in counts.most_common(6)
@@ -192,6 +204,16 @@ def main() -> int:
                         f"{scenario:10s} largest session: state {largest['state']:,} B, stored answer "
                         f"{largest['last_response']:,} B, the hash in Redis {largest['memory']:,} B; service CPU "
                         f"{service_us / cpu_batches:.0f} us per batch",
+                        flush=True,
+                    )
+                    inside = ", ".join(
+                        f"{name} {spent / cpu_batches:.0f}"
+                        for name, spent in sorted(command_us.items(), key=lambda item: -item[1])[:8]
+                    )
+                    print(
+                        f"{scenario:10s} Redis CPU inside commands, us per batch (INFO commandstats, a script's "
+                        f"own calls within its EVALSHA): {inside}; the rest of the CPU is network I/O, "
+                        "parsing and the append-only file",
                         flush=True,
                     )
             client.close()

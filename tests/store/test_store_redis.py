@@ -121,6 +121,33 @@ def test_key_layout_binary_state_and_replay_fields(store: RedisStore, prefix: st
     )
 
 
+def test_a_write_goes_through_a_staged_hash_that_never_outlives_it(
+    redis_server: RedisServer, prefix: str, clock: Clock, raw: redis.Redis
+):
+    """The new record is staged beside the session's key and renamed into place only if the version is
+    still the one read: a losing writer leaves the session and no staged key behind, and a server that lost
+    the script (SCRIPT FLUSH, a restart) gets it again without failing the write."""
+
+    store = RedisStore(redis_server.url(prefix), 600.0, clock)
+
+    async def scenario() -> None:
+        await store.create(record(), max_sessions=10)
+        current = await store.get("s1")
+        assert await store.compare_and_set(dataclasses.replace(current, last_seq=1, batches=1), 0)
+        stale = dataclasses.replace(current, last_seq=7, last_response=b"lost")
+        assert not await store.compare_and_set(stale, 0)  # version 0 is gone
+        assert (await store.get("s1")).last_seq == 1
+        raw.script_flush()
+        assert await store.compare_and_set(dataclasses.replace(current, last_seq=2, batches=2), 1)
+        assert (await store.get("s1")).version == 2
+        await store.close()
+
+    asyncio.run(scenario())
+    assert list(raw.scan_iter(match=f"{prefix}session:*")) == [f"{prefix}session:s1".encode()]
+    assert raw.hget(f"{prefix}session:s1", "last_seq") == b"2"
+    assert raw.pttl(f"{prefix}session:s1") > 60_000  # the session's TTL (600 s), not the staged hash's (60 s)
+
+
 def test_key_layout_of_vehicles_live_pointers_and_supersessions(
     store: RedisStore, prefix: str, raw: redis.Redis
 ):

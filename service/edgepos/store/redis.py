@@ -24,6 +24,7 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+import secrets
 import time
 from collections.abc import AsyncGenerator, AsyncIterator, Iterable, Mapping, Sequence
 from contextlib import asynccontextmanager
@@ -85,6 +86,9 @@ _UNAVAILABLE_REPLIES = ("MISCONF", "LOADING", "MASTERDOWN", "NOREPLICAS", "BUSY"
 
 
 _DISCARD_GRACE_S = 5.0
+STAGED_TTL_MS = 60_000
+"""How long a staged session record outlives a lost connection (the compare-and-set renames or drops it
+in the same round trip otherwise)."""
 
 
 def _leaked_transport_error(error: BaseException) -> bool:
@@ -203,7 +207,7 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
 
     SCRIPTS: Mapping[str, str] = {
         "create": scripts.CREATE,
-        "cas": scripts.COMPARE_AND_SET,
+        "cas": scripts.COMPARE_AND_RENAME,
         "count": scripts.PURGE_AND_COUNT,
         "take": scripts.TAKE_REQUEST,
         "delete": scripts.DELETE,
@@ -473,37 +477,62 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
         return None if self.is_expired(record, self.clock()) else record
 
     async def compare_and_set(self, record: SessionRecord, expected_version: int) -> bool:
+        session_key = self._session_key(record.session_id)
         keys = [
-            self._session_key(record.session_id),
+            session_key,
             self._index_key(record.session_id),
             self._live_key(record.vehicle_id, record.session_id),
+            # beside the session's key (its hash slot on a cluster), unique to this attempt
+            f"{session_key}:staged:{secrets.token_hex(8)}",
         ]
         args: list[bytes | str | int] = [
             str(int(expected_version)),
             self._ttl_ms,
             repr(float(record.updated_at)),
             record.session_id,
-            *_fields(record, expected_version + 1),
         ]
+        fields = _fields(record, expected_version + 1)
         async with self._guard():
-            client = await self._redis()
-            if not self.wait_replicas:
-                return bool(await self._scripts["cas"](keys=keys, args=args, client=client) == 1)
-            applied, replicas = await self._cas_then_wait(client, keys, args)
-        if applied == 1:
-            self._check_replicas(int(replicas), "the batch")
-        return bool(applied == 1)
+            applied, replicas = await self._staged_write(await self._redis(), keys, args, fields)
+        if applied < 0:
+            raise StoreUnavailable("Redis did not take the session's new record; send the same batch again")
+        if applied == 1 and self.wait_replicas:
+            self._check_replicas(replicas, "the batch")
+        return applied == 1
 
-    async def _cas_then_wait(
-        self, client: Any, keys: list[str], args: list[bytes | str | int]
+    async def _staged_write(
+        self, client: Any, keys: list[str], args: list[bytes | str | int], fields: list[bytes]
     ) -> tuple[int, int]:
-        """The compare-and-set script, then WAIT: (applied, replicas that acknowledged)."""
-        # The script and WAIT on one connection in one round trip: WAIT covers this connection's writes.
-        pipe = client.pipeline(transaction=False)
-        await self._scripts["cas"](keys=keys, args=args, client=pipe)
-        pipe.execute_command("WAIT", self.wait_replicas, self.wait_timeout_ms)
-        applied, replicas = await pipe.execute()
-        return int(applied), int(replicas)
+        """The new record as a staged hash, then the compare-and-rename script, in one pipeline (one round
+        trip); with ``wait_replicas``, WAIT on the same connection: (applied, replicas that have it)."""
+        replies = await self._staged_pipeline(client, keys, args, fields, wait=bool(self.wait_replicas))
+        return int(replies[2]), int(replies[3]) if self.wait_replicas else 0
+
+    async def _staged_pipeline(
+        self, client: Any, keys: list[str], args: list[bytes | str | int], fields: list[bytes], *, wait: bool
+    ) -> list[Any]:
+        """Sends HSET staged, PEXPIRE staged (a staged hash orphaned by a lost connection goes by itself),
+        EVALSHA compare-and-rename and, with ``wait``, WAIT; the replies. The script is sent by its digest
+        (redis-py's pipelined scripts would ask SCRIPT EXISTS first: a second round trip per batch) and
+        loaded again only if the server lost it (restart, SCRIPT FLUSH)."""
+        script = self._scripts["cas"]
+        for _attempt in range(2):
+            pipe = client.pipeline(transaction=False)
+            pipe.hset(keys[3], items=fields)
+            pipe.pexpire(keys[3], STAGED_TTL_MS)
+            # by name: a cluster pipeline blocks its evalsha method, not the command
+            pipe.execute_command("EVALSHA", script.sha, len(keys), *keys, *args)
+            if wait:
+                pipe.execute_command("WAIT", self.wait_replicas, self.wait_timeout_ms)
+            replies = list(await pipe.execute(raise_on_error=False))
+            if isinstance(replies[2], redis_errors.NoScriptError):
+                await client.script_load(script.script)
+                continue
+            for reply in replies:
+                if isinstance(reply, Exception):
+                    raise reply
+            return replies
+        raise StoreUnavailable("Redis kept losing the compare-and-set script; send the same batch again")
 
     async def make_durable(self, session_id: str) -> None:
         """A write of this connection's own, then WAIT: the replication stream is ordered, so once the

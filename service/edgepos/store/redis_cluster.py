@@ -307,12 +307,16 @@ class RedisClusterStore(RedisStore):
         self._counts = (time.monotonic(), counts)
         return sum(int(gone) for gone, _ in replies), sum(counts)
 
-    async def _cas_then_wait(
-        self, client: Any, keys: list[str], args: list[bytes | str | int]
+    async def _staged_write(
+        self, client: Any, keys: list[str], args: list[bytes | str | int], fields: list[bytes]
     ) -> tuple[int, int]:
-        applied = int(await self._scripts["cas"](keys=keys, args=args, client=client))
+        """As the single server's, the three commands to the session's slot in one pipeline; WAIT then goes
+        to the primary that holds the slot (a cluster pipeline cannot route WAIT)."""
+        replies = await self._staged_pipeline(client, keys, args, fields, wait=False)
+        applied = int(replies[2])
         session_id = str(args[3])
-        return applied, (await self._wait_on_shard(session_id) if applied == 1 else 0)
+        replicas = await self._wait_on_shard(session_id) if applied == 1 and self.wait_replicas else 0
+        return applied, replicas
 
     async def make_durable(self, session_id: str) -> None:
         if not self.wait_replicas:
