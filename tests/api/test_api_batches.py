@@ -491,9 +491,9 @@ def _count_reads(client, monkeypatch) -> list[str]:
     reads: list[str] = []
     real_get = store.get
 
-    async def counted(session_id):
-        reads.append(session_id)
-        return await real_get(session_id)
+    async def counted(session_id, *, with_response=True):
+        reads.append(session_id if with_response else f"{session_id} without its stored answer")
+        return await real_get(session_id, with_response=with_response)
 
     monkeypatch.setattr(store, "get", counted)
     return reads
@@ -503,10 +503,12 @@ def test_a_batch_with_a_session_token_reads_the_session_once(client, monkeypatch
     session_id, token = open_session(client)
     reads = _count_reads(client, monkeypatch)
     assert _post(client, session_id, batch_body(1, 0, 3), token).status_code == 200
-    assert reads == [session_id]  # the token check's read is the one the batch is applied on
+    # the token check's read is the one the batch is applied on, and it need not carry the stored answer
+    assert reads == [f"{session_id} without its stored answer"]
     reads.clear()
     assert _post(client, session_id, batch_body(1, 0, 3), token).status_code == 200  # a replay
-    assert reads == [session_id, session_id]  # a replay or a refusal is decided on a fresh read
+    # a replay or a refusal is decided on a fresh read, with the answer to give back
+    assert reads == [f"{session_id} without its stored answer", session_id]
 
 
 def test_a_stale_prefetched_record_never_decides_a_batch(client):

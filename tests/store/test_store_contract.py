@@ -128,9 +128,20 @@ def test_compare_and_set_bumps_the_version_once(store):
         )
         assert await store.compare_and_set(updated, expected_version=0)
         assert await store.get("s1") == dataclasses.replace(updated, version=1)
+        # a read without the stored answer is the same record, the answer left out or not
+        light = await store.get("s1", with_response=False)
+        assert light in (
+            dataclasses.replace(updated, version=1),
+            dataclasses.replace(updated, version=1, last_response=None),
+        )
+        # a write from such a read stores the answer it carries
+        assert await store.compare_and_set(dataclasses.replace(light, last_response=b'{"seq":2}'), 1)
+        assert (await store.get("s1")).last_response == b'{"seq":2}'
+        assert (await store.get("missing", with_response=False)) is None
+        updated = dataclasses.replace(updated, last_response=b'{"seq":2}', version=2)
         # a second writer holding the old version loses
         assert not await store.compare_and_set(
-            dataclasses.replace(updated, state=b"lost"), expected_version=0
+            dataclasses.replace(updated, state=b"lost"), expected_version=1
         )
         assert (await store.get("s1")).state == b"new"
         assert not await store.compare_and_set(record("missing"), expected_version=0)

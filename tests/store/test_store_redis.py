@@ -102,6 +102,10 @@ def test_key_layout_binary_state_and_replay_fields(store: RedisStore, prefix: st
         )
         assert await store.compare_and_set(replayed, 0)
         assert await store.get("s1") == dataclasses.replace(replayed, version=1)
+        # the batch route's token check reads without the stored answer (HMGET of the other fields)
+        assert await store.get("s1", with_response=False) == dataclasses.replace(
+            replayed, version=1, last_response=None
+        )
         # a later write without replay data clears the old fields rather than keeping them
         cleared = dataclasses.replace(replayed, last_request_hash=None, last_response=None, last_fix=None)
         assert await store.compare_and_set(cleared, 1)

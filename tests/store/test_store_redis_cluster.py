@@ -70,8 +70,8 @@ class IdMapping:
     async def create(self, rec: SessionRecord, max_sessions: int, **kwargs: Any) -> str | None:
         return self._out(await self.inner.create(self._record_in(rec), max_sessions, **kwargs))
 
-    async def get(self, session_id: str) -> SessionRecord | None:
-        got = await self.inner.get(self._in(session_id))
+    async def get(self, session_id: str, *, with_response: bool = True) -> SessionRecord | None:
+        got = await self.inner.get(self._in(session_id), with_response=with_response)
         return None if got is None else dataclasses.replace(got, session_id=session_id)
 
     async def compare_and_set(self, rec: SessionRecord, expected_version: int) -> bool:

@@ -413,7 +413,9 @@ async def authenticate_session(
         if await _valid_session_token(context, secret):
             raise ApiError("forbidden", "a session token opens only its own session")
         raise await _refuse(context, connection, secret, "invalid", _unauthorized())
-    record = await context.store.get(session_id)
+    # the stored answer is left out: the batch routes apply the next seq on this record, and read afresh
+    # (answer included) for anything else, a replay among them
+    record = await context.store.get(session_id, with_response=False)
     if record is None:
         superseded = await context.store.supersession(session_id)
         if superseded is not None and _token_matches(secret, superseded.token_hash):

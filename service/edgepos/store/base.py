@@ -279,8 +279,11 @@ class SessionStore(ABC):
         ``limit``, optionally only of one pipeline and/or one vehicle."""
 
     @abstractmethod
-    async def get(self, session_id: str) -> SessionRecord | None:
-        """The live session, or None if unknown or expired."""
+    async def get(self, session_id: str, *, with_response: bool = True) -> SessionRecord | None:
+        """The live session, or None if unknown or expired. ``with_response=False`` lets the store leave
+        the stored answer of the last batch out (``last_response`` None): for readers that only check the
+        token or apply the next seq, which never replay it (the Redis store then reads 30 kB less per
+        20-epoch batch)."""
 
     @abstractmethod
     async def compare_and_set(self, record: SessionRecord, expected_version: int) -> bool:

@@ -149,7 +149,7 @@ class MemoryStore(SessionStore):
                 break
         return found
 
-    async def get(self, session_id: str) -> SessionRecord | None:
+    async def get(self, session_id: str, *, with_response: bool = True) -> SessionRecord | None:
         record = self._sessions.get(session_id)
         if record is None:
             return None

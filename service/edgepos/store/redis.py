@@ -179,6 +179,12 @@ def _record(session_id: str, raw: Mapping[bytes, bytes]) -> SessionRecord:
     )
 
 
+_RECORD_FIELDS = (
+    "vehicle_id", "pipeline", "options", "token_hash", "state", "created_at", "updated_at", "last_seq",
+    "batches", "epochs", "version", "last_request_hash", "last_fix",
+)  # fmt: skip
+"""The hash fields of a record but its stored answer (``last_response``), for ``get(with_response=False)``."""
+
 _SUMMARY_FIELDS = (
     "vehicle_id", "pipeline", "created_at", "updated_at", "last_seq", "batches", "epochs", "last_fix"
 )  # fmt: skip
@@ -468,9 +474,17 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
         members = await client.zrangebyscore(self.index_key, self._cutoff(), "+inf")
         return [bytes(member).decode() for member in members]
 
-    async def get(self, session_id: str) -> SessionRecord | None:
+    async def get(self, session_id: str, *, with_response: bool = True) -> SessionRecord | None:
         async with self._guard():
-            raw = await (await self._redis()).hgetall(self._session_key(session_id))
+            client = await self._redis()
+            key = self._session_key(session_id)
+            if with_response:
+                raw = await client.hgetall(key)
+            else:
+                values = await client.hmget(key, _RECORD_FIELDS)
+                raw = {
+                    name.encode(): value for name, value in zip(_RECORD_FIELDS, values) if value is not None
+                }
         if not raw:
             return None
         record = _record(session_id, raw)

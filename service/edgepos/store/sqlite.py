@@ -338,7 +338,7 @@ class SQLiteStore(SQLiteBaseStations, SQLiteDocuments, SessionStore):
 
         return await self._run(work)
 
-    async def get(self, session_id: str) -> SessionRecord | None:
+    async def get(self, session_id: str, *, with_response: bool = True) -> SessionRecord | None:
         def work(db: sqlite3.Connection) -> SessionRecord | None:
             row = db.execute(
                 f"SELECT {_SESSION_COLUMNS} FROM sessions WHERE session_id = ? AND updated_at >= ?",
