@@ -8,8 +8,9 @@ import math
 
 import pytest
 from apihelp import epochs, scenario
-from edgepos.api.convert import batch_body, fix_to_json
-from edgepos.api.schemas import BatchOut, FixOut
+from edgepos.api.convert import fix_to_json, joined_batch_body, to_json
+from edgepos.api.schemas import BatchOut, FixEventOut, FixOut
+from edgepos.api.streams import fix_event_data
 from edgepos.geo import GeodeticOrigin
 from edgepos.pipelines.base import Fix, MeasurementUse, StaticEnvironment
 from edgepos.pipelines.registry import get_pipeline
@@ -40,11 +41,22 @@ def test_batch_body_is_what_the_response_models_write(
     wire = [fix_to_json(fix, include_state, origin) for fix in _fixes()]
     models = [FixOut.model_validate(fix) for fix in wire]
     assert [model.model_dump(mode="json") for model in models] == wire  # same fields, same order
-    assert batch_body(7, wire) == BatchOut(seq=7, fixes=models).model_dump_json().encode()
+    written = [to_json(fix) for fix in wire]
+    assert joined_batch_body(7, written) == BatchOut(seq=7, fixes=models).model_dump_json().encode()
+    assert joined_batch_body(7, written) == to_json({"seq": 7, "fixes": wire})
+    assert joined_batch_body(3, []) == to_json({"seq": 3, "fixes": []})
+
+
+def test_a_fix_event_is_the_json_of_the_whole_event_around_the_fix_written_once() -> None:
+    for fix in (fix_to_json(fix, False, None) for fix in _fixes()):
+        event = fix_event_data("s-1", 'car "7"', "rsu_imu", 12, to_json(fix))
+        whole = {"session_id": "s-1", "vehicle_id": 'car "7"', "pipeline": "rsu_imu", "seq": 12, "fix": fix}
+        assert event == to_json(whole)
+        assert FixEventOut.model_validate_json(event).model_dump(mode="json") == whole
 
 
 @pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
 def test_non_finite_numbers_are_refused(value: float) -> None:
     fix = dataclasses.replace(_fixes()[-2], nis=value)
     with pytest.raises(ValueError, match="non-finite"):
-        batch_body(1, [fix_to_json(fix, False, None)])
+        to_json(fix_to_json(fix, False, None))

@@ -21,7 +21,7 @@ from typing import Any
 from edgepos.api.auth import hash_token, new_session_token, superseded_error
 from edgepos.api.base_stations import batch_corrections, check_base_station
 from edgepos.api.context import AppContext
-from edgepos.api.convert import batch_body, fix_to_json, to_json
+from edgepos.api.convert import fix_to_json, joined_batch_body, to_json
 from edgepos.api.ephemerides import LoadedEphemerides, satellite_problems
 from edgepos.api.errors import ApiError, pipeline_problems
 from edgepos.api.measurement_schemas import BatchIn
@@ -460,10 +460,13 @@ async def _apply_in_turn(
                 ) from None
             elapsed = time.perf_counter() - started
             wire_fixes = [fix_to_json(fix, batch.include_state, context.origin) for fix in fixes]
-            body = batch_body(batch.seq, wire_fixes)
-            last_fix = record.last_fix
-            if wire_fixes:
-                last_fix = to_json({**wire_fixes[-1], "state": None}).decode()
+            # each fix written once: the answer, the fix events and the last fix are joined from these
+            fix_json = [to_json(fix) for fix in wire_fixes]
+            stateless = (
+                [to_json({**fix, "state": None}) for fix in wire_fixes] if batch.include_state else fix_json
+            )
+            body = joined_batch_body(batch.seq, fix_json)
+            last_fix = stateless[-1].decode() if stateless else record.last_fix
             updated = dataclasses.replace(
                 record,
                 state=state,
@@ -477,7 +480,7 @@ async def _apply_in_turn(
             )
             if await context.store.compare_and_set(updated, record.version):
                 metrics.observe_batch(len(fixes), elapsed)
-                _publish_fixes(context, record, batch.seq, wire_fixes)
+                _publish_fixes(context, record, batch.seq, wire_fixes, stateless)
                 if pipeline.publishes_track:
                     await _publish_track(context, record, published.get(record.vehicle_id), fixes)
                 return body
@@ -486,10 +489,14 @@ async def _apply_in_turn(
 
 
 def _publish_fixes(
-    context: AppContext, record: SessionRecord, seq: int, wire_fixes: list[dict[str, Any]]
+    context: AppContext,
+    record: SessionRecord,
+    seq: int,
+    wire_fixes: list[dict[str, Any]],
+    stateless_json: list[bytes],
 ) -> None:
-    """Hand the applied batch's fixes to the fix stream: queued for this worker's publisher, so the answer
-    never waits for the stream (see api.streams)."""
+    """Hand the applied batch's fixes (and their JSON with a null state) to the fix stream: queued for this
+    worker's publisher, so the answer never waits for the stream (see api.streams)."""
     context.streams.publish(
         [
             NewFix(
@@ -497,9 +504,9 @@ def _publish_fixes(
                 record.vehicle_id,
                 record.pipeline,
                 float(fix["t"]),
-                fix_event_data(record.session_id, record.vehicle_id, record.pipeline, seq, fix),
+                fix_event_data(record.session_id, record.vehicle_id, record.pipeline, seq, written),
             )
-            for fix in wire_fixes
+            for fix, written in zip(wire_fixes, stateless_json, strict=True)
         ]
     )
 

@@ -18,7 +18,6 @@ import logging
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 from edgepos.api.convert import to_json
 from edgepos.api.errors import ApiError
@@ -42,17 +41,11 @@ SEND_CHUNK = 256
 _TOLERANCE_S = 1e-6
 
 
-def fix_event_data(session_id: str, vehicle_id: str, pipeline: str, seq: int, fix: dict[str, Any]) -> bytes:
-    """The JSON of a ``fix`` event (:class:`FixEventOut`) from a wire fix of the batch's answer."""
-    return to_json(
-        {
-            "session_id": session_id,
-            "vehicle_id": vehicle_id,
-            "pipeline": pipeline,
-            "seq": seq,
-            "fix": {**fix, "state": None},
-        }
-    )
+def fix_event_data(session_id: str, vehicle_id: str, pipeline: str, seq: int, fix_json: bytes) -> bytes:
+    """The JSON of a ``fix`` event (:class:`FixEventOut`) around a wire fix's compact JSON with a null
+    ``state`` (already written for the batch's answer): the bytes of ``to_json`` of the whole event."""
+    head = to_json({"session_id": session_id, "vehicle_id": vehicle_id, "pipeline": pipeline, "seq": seq})
+    return head[:-1] + b',"fix":' + fix_json + b"}"
 
 
 def sse(event: str, data: bytes, event_id: int | None = None) -> bytes:
