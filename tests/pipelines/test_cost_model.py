@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-import math
 import statistics
 import time
 from pathlib import Path
@@ -81,6 +80,7 @@ def gnss_workload():
     from edgepos.gnss.ephemerides import Ephemerides
     from edgepos.gnss.rinex_nav import read_navigation
     from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
+    from edgepos.pipelines.gnss_recording import epoch_pseudoranges
 
     codes = {s: DEFAULT_CODES[s] for s in "GCE"}
     navigation = Ephemerides.from_navigation(read_navigation(str(GNSS_DATA / "broadcast-nav.rnx")))
@@ -88,22 +88,7 @@ def gnss_workload():
     for number, epoch in enumerate(read_epochs(str(GNSS_DATA / "rover-0-5min.rnx"), codes)):
         if number >= 16:
             break
-        epochs.append(
-            [
-                PseudorangeObservation(
-                    epoch.gpst % 604800.0,
-                    s,
-                    int(prn),
-                    float(pr),
-                    float(cn0) if math.isfinite(cn0) else 0.0,
-                    doppler_hz=float(doppler) if math.isfinite(doppler) else None,
-                )
-                for s, prn, pr, cn0, doppler in zip(
-                    epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz, epoch.doppler_hz
-                )
-                if math.isfinite(pr) and 1.0e6 <= pr <= 1.0e8
-            ]
-        )
+        epochs.append(epoch_pseudoranges(epoch, carrier=False))
     return epochs, StaticEnvironment(navigation=navigation)
 
 

@@ -6,7 +6,6 @@ refused naming the field."""
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import pytest
 from edgepos.core import state as state_format
@@ -16,6 +15,7 @@ from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
 from edgepos.pipelines.base import PipelineInputError, StaticEnvironment
+from edgepos.pipelines.gnss_recording import epoch_pseudoranges
 from edgepos.pipelines.gnss_session import decode_session
 from edgepos.pipelines.gnss_tight import GnssTightPipeline
 
@@ -45,29 +45,7 @@ def recording() -> tuple[list[list[PseudorangeObservation]], StaticEnvironment]:
     for number, epoch in enumerate(read_epochs(FILES[0], codes)):
         if number >= 8:
             break
-        epochs.append(
-            [
-                PseudorangeObservation(
-                    epoch.gpst % 604800.0,
-                    s,
-                    int(prn),
-                    float(pr),
-                    float(cn0),
-                    doppler_hz=float(d),
-                    carrier_cycles=float(cycles) if math.isfinite(cycles) else None,
-                    lli=int(lli),
-                )
-                for s, prn, pr, cn0, d, cycles, lli in zip(
-                    epoch.systems,
-                    epoch.prns,
-                    epoch.pseudorange_m,
-                    epoch.cn0_dbhz,
-                    epoch.doppler_hz,
-                    epoch.carrier_cycles,
-                    epoch.lli,
-                )
-            ]
-        )
+        epochs.append(epoch_pseudoranges(epoch))
     return epochs, environment
 
 

@@ -19,6 +19,7 @@ from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
 from edgepos.gnss.spp import read_reference, reference_velocity
 from edgepos.pipelines.base import Fix, StaticEnvironment
 from edgepos.pipelines.gnss_faults import judge
+from edgepos.pipelines.gnss_recording import epoch_pseudoranges
 from edgepos.pipelines.gnss_session import decode_session
 from edgepos.pipelines.gnss_tight import GnssTightPipeline
 
@@ -83,29 +84,7 @@ def recording() -> tuple[list[list[PseudorangeObservation]], StaticEnvironment, 
     epochs, times = [], []
     for epoch in read_epochs(DATA + "rover-0-5min.rnx", codes):
         times.append(epoch.gpst)
-        epochs.append(
-            [
-                PseudorangeObservation(
-                    epoch.gpst % 604800.0,
-                    s,
-                    int(prn),
-                    float(pr),
-                    float(cn0) if math.isfinite(cn0) else 0.0,
-                    doppler_hz=float(d) if math.isfinite(d) else None,
-                    carrier_cycles=float(cycles) if math.isfinite(cycles) else None,
-                    lli=int(lli),
-                )
-                for s, prn, pr, cn0, d, cycles, lli in zip(
-                    epoch.systems,
-                    epoch.prns,
-                    epoch.pseudorange_m,
-                    epoch.cn0_dbhz,
-                    epoch.doppler_hz,
-                    epoch.carrier_cycles,
-                    epoch.lli,
-                )
-            ]
-        )
+        epochs.append(epoch_pseudoranges(epoch))
     return epochs, environment, np.array(times)
 
 

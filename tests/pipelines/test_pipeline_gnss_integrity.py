@@ -16,6 +16,7 @@ from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
 from edgepos.pipelines.base import Fix, StaticEnvironment
 from edgepos.pipelines.gnss_integrity import EXCLUDED
+from edgepos.pipelines.gnss_recording import epoch_pseudoranges
 from edgepos.pipelines.gnss_session import decode_session
 from edgepos.pipelines.gnss_tight import GnssTightPipeline
 
@@ -42,22 +43,7 @@ def load() -> tuple[list[list[PseudorangeObservation]], StaticEnvironment]:
     for number, epoch in enumerate(read_epochs(DATA + "rover-0-5min.rnx", codes)):
         if number >= EPOCHS:
             break
-        epochs.append(
-            [
-                PseudorangeObservation(
-                    epoch.gpst % 604800.0,
-                    s,
-                    int(prn),
-                    float(pr),
-                    float(cn0) if math.isfinite(cn0) else 0.0,
-                    doppler_hz=float(d) if math.isfinite(d) else None,
-                )
-                for s, prn, pr, cn0, d in zip(
-                    epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz, epoch.doppler_hz
-                )
-                if math.isfinite(pr)
-            ]
-        )
+        epochs.append(epoch_pseudoranges(epoch, carrier=False))
     return epochs, environment
 
 

@@ -39,7 +39,6 @@ from typing import Any
 import numpy as np
 
 from edgepos.cli_output import prepare_output, write_output
-from edgepos.core.observations import PseudorangeObservation
 from edgepos.eval.gnss_integrity import GnssIntegrity, error_en, integrity_lines
 from edgepos.eval.overrides import add_option_argument, parse_overrides
 from edgepos.gnss.differential import DEFAULT_MAX_AGE_S, correct_set, corrections_from_epochs
@@ -50,9 +49,8 @@ from edgepos.gnss.measurements import prepare_epoch
 from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import ALL_SYSTEMS, DEFAULT_CODES, parse_systems, read_epochs, read_header
 from edgepos.gnss.spp import SppConfig, SppError, read_reference, reference_velocity, solve_epoch
-from edgepos.gnss.timesys import SECONDS_PER_WEEK
 from edgepos.pipelines.base import Fix, StaticEnvironment
-from edgepos.pipelines.gnss_options import MAX_CARRIER_CYCLES, MAX_DOPPLER_HZ
+from edgepos.pipelines.gnss_recording import epoch_pseudoranges
 from edgepos.pipelines.gnss_tight import GnssTightPipeline
 
 
@@ -263,35 +261,7 @@ def evaluate(
     for count, epoch in enumerate(read_epochs(obs_path, codes)):
         if max_epochs is not None and count >= max_epochs:
             break
-        tow = epoch.gpst % SECONDS_PER_WEEK
-        batch = [
-            PseudorangeObservation(
-                tow,
-                system,
-                int(prn),
-                float(pr),
-                float(cn0) if math.isfinite(cn0) else 0.0,
-                doppler_hz=float(doppler)
-                if math.isfinite(doppler) and abs(doppler) <= MAX_DOPPLER_HZ
-                else None,
-                carrier_cycles=float(cycles)
-                if carrier and math.isfinite(cycles) and abs(cycles) < MAX_CARRIER_CYCLES
-                else None,
-                lli=int(lli)
-                if carrier and math.isfinite(cycles) and abs(cycles) < MAX_CARRIER_CYCLES
-                else None,
-            )
-            for system, prn, pr, cn0, doppler, cycles, lli in zip(
-                epoch.systems,
-                epoch.prns,
-                epoch.pseudorange_m,
-                epoch.cn0_dbhz,
-                epoch.doppler_hz,
-                epoch.carrier_cycles,
-                epoch.lli,
-            )
-            if math.isfinite(pr) and 1.0e6 <= pr <= 1.0e8
-        ]
+        batch = epoch_pseudoranges(epoch, carrier=carrier)
         started = time.perf_counter()
         epoch_fixes, state = pipeline.process(state, batch, environment)
         pipeline_seconds += time.perf_counter() - started
