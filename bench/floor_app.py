@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 import uvicorn
-from edgepos.api.convert import batch_body, fix_to_json
+from edgepos.api.convert import fix_to_json, joined_batch_body, to_json
 from edgepos.api.measurement_schemas import BatchIn
 from edgepos.api.schemas import Health, Ready, RsuBulk, SessionCreate, SessionCreated, Upserted
 from edgepos.pipelines.base import Fix, MeasurementUse
@@ -87,7 +87,8 @@ def create_app() -> FastAPI:
         fixes = [
             fix_to_json(_fixed_fix(t, uses), body.include_state, None) for t, uses in sorted(epochs.items())
         ]
-        return Response(batch_body(body.seq, fixes), media_type="application/json")
+        body_bytes = joined_batch_body(body.seq, [to_json(fix) for fix in fixes])  # as the service writes it
+        return Response(body_bytes, media_type="application/json")
 
     return app
 

@@ -5,7 +5,8 @@ sending ``rsu_imu`` batches of 20 epochs of the RSU + IMU paper's scenario (4 RS
 timestamps jittered by a few milliseconds as real clocks are, against
 
 * the service (``edgepos serve``, the demo RSU map, rate limit off: capacity, not policy) on the
-  in-process store, or on a ``redis-server`` started here (append-only file, ``appendfsync everysec``);
+  in-process store, on a ``redis-server`` started here (append-only file, ``appendfsync everysec``), or,
+  with ``--store memory,redis``, on each in turn (then also Redis ÷ in-process per round);
 * the floor (``bench/floor_app.py``): the same routes and request schemas, fixed answers of the same
   shape, no filter, no store.
 
@@ -14,7 +15,7 @@ same background load; the ratio service ÷ floor is taken per round. wrk's laten
 the few session creations (one per 40 batches per vehicle). wrk is Debian's package (``make bench``
 installs it).
 
-    python bench/wrk_load.py [--workers 1] [--store memory|redis] [--vehicles 16] [--duration 10]
+    python bench/wrk_load.py [--workers 1] [--store memory|redis|memory,redis] [--vehicles 16] [--duration 10]
         [--rounds 3] [--batch 20] [--jitter-ms 3] [--json FILE]
 """
 
@@ -86,10 +87,25 @@ def run_wrk(url: str, directory: Path, vehicles: int, duration_s: float) -> dict
     return result
 
 
+STORES = ("memory", "redis")
+
+
+def _stores(text: str) -> tuple[str, ...]:
+    stores = tuple(dict.fromkeys(part.strip() for part in text.split(",") if part.strip()))
+    if not stores or any(store not in STORES for store in stores):
+        raise argparse.ArgumentTypeError(f"comma-separated stores of {', '.join(STORES)}, got {text!r}")
+    return stores
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workers", type=int, default=1)
-    parser.add_argument("--store", choices=("memory", "redis"), default="memory")
+    parser.add_argument(
+        "--store",
+        type=_stores,
+        default=("memory",),
+        help="memory, redis, or both comma-separated (each measured in every round)",
+    )
     parser.add_argument("--vehicles", type=int, default=16)
     parser.add_argument("--duration", type=float, default=10.0, help="seconds per run")
     parser.add_argument("--rounds", type=int, default=3)
@@ -104,11 +120,12 @@ def main() -> int:
     print(
         f"wrk load: {os.cpu_count()} cores, {platform.python_implementation()} {platform.python_version()}, "
         f"{args.vehicles} vehicles closed loop, {args.batch}-epoch batches, jitter +-{args.jitter_ms:g} ms, "
-        f"{args.workers} worker(s), store {args.store}, {args.duration:g} s x {args.rounds} rounds, "
+        f"{args.workers} worker(s), store {','.join(args.store)}, {args.duration:g} s x {args.rounds} rounds, "
         f"load average {load_before:.2f} at start",
         flush=True,
     )
-    results: dict[str, list[dict[str, Any]]] = {"service": [], "floor": []}
+    services = {store: f"service {store}" if len(args.store) > 1 else "service" for store in args.store}
+    results: dict[str, list[dict[str, Any]]] = {name: [] for name in [*services.values(), "floor"]}
     with tempfile.TemporaryDirectory(prefix="edgepos-wrk-") as tmp, contextlib.ExitStack() as stack:
         workdir = Path(tmp)
         write_batches(workdir, args.batch, args.jitter_ms / 1e3, seed=1)
@@ -118,7 +135,8 @@ def main() -> int:
             EDGEPOS_DEMO_RSUS="true",
             EDGEPOS_RATE_LIMIT_PER_S="0",  # capacity, not policy
         )
-        if args.store == "redis":
+        environments = {"memory": env}
+        if "redis" in args.store:
             binary = redis_binary()
             if binary is None:
                 print("redis-server is not installed: `make redis-server` installs it", file=sys.stderr)
@@ -126,40 +144,62 @@ def main() -> int:
             redis = stack.enter_context(
                 RedisServer(binary, workdir / "redis", "--appendonly", "yes", "--appendfsync", "everysec")
             )
-            env["EDGEPOS_STORE"] = redis.url(prefix="wrk")
+            environments["redis"] = {**env, "EDGEPOS_STORE": redis.url(prefix="wrk")}
         floor = [sys.executable, str(BENCH_DIR / "floor_app.py"), "--port", PORT_PLACEHOLDER]
         floor += ["--workers", str(args.workers)]
-        targets = {"service": serve_command(args.workers), "floor": floor}
+        targets = {
+            name: (serve_command(args.workers), environments[store]) for store, name in services.items()
+        }
+        targets["floor"] = (floor, env)
         for round_index in range(args.rounds):
-            for name, command in targets.items():
-                with running(command, env, workdir / f"{name}.log", ready_timeout_s=300.0) as url:
+            for name, (command, target_env) in targets.items():
+                log = workdir / f"{name.replace(' ', '-')}.log"
+                with running(command, target_env, log, ready_timeout_s=300.0) as url:
                     run_wrk(
                         url, workdir, args.vehicles, min(2.0, args.duration)
                     )  # warm-up (compiles, caches)
                     result = run_wrk(url, workdir, args.vehicles, args.duration)
                 results[name].append(result)
                 print(
-                    f"  round {round_index + 1} {name:8s} {result['epochs_per_s']:9.0f} epochs/s  "
+                    f"  round {round_index + 1} {name:14s} {result['epochs_per_s']:9.0f} epochs/s  "
                     f"p50 {result['p50_us'] / 1e3:6.1f} ms  p99 {result['p99_us'] / 1e3:6.1f} ms  "
                     f"errors {result['errors'] + result['socket_errors']}",
                     flush=True,
                 )
-    ratios = [s["epochs_per_s"] / f["epochs_per_s"] for s, f in zip(results["service"], results["floor"])]
-    service = statistics.median(r["epochs_per_s"] for r in results["service"])
+    ratios: dict[str, list[float]] = {}
     floor_rate = statistics.median(r["epochs_per_s"] for r in results["floor"])
-    print(
-        f"service {service:.0f} epochs/s, floor {floor_rate:.0f} (medians of rounds); service / floor per round: "
-        + ", ".join(f"{ratio:.2f}" for ratio in ratios)
-        + f"; load average {load_before:.2f} before, {os.getloadavg()[0]:.2f} after"
-    )
+    for name in services.values():
+        ratios[f"{name} / floor"] = _per_round(results[name], results["floor"])
+        service = statistics.median(r["epochs_per_s"] for r in results[name])
+        p99 = statistics.median(r["p99_us"] for r in results[name]) / 1e3
+        errors = sum(r["errors"] + r["socket_errors"] for r in results[name])
+        print(
+            f"{name} {service:.0f} epochs/s (p99 {p99:.1f} ms, {errors} errors), floor {floor_rate:.0f} "
+            f"(medians of rounds); {name} / floor per round: "
+            + ", ".join(f"{ratio:.2f}" for ratio in ratios[f"{name} / floor"])
+        )
+    if len(services) > 1:
+        ratios["redis / memory"] = _per_round(results[services["redis"]], results[services["memory"]])
+        print(
+            "Redis / in-process per round: " + ", ".join(f"{ratio:.2f}" for ratio in ratios["redis / memory"])
+        )
+    print(f"load average {load_before:.2f} before, {os.getloadavg()[0]:.2f} after")
     if args.json:
         args.json.write_text(
             json.dumps(
-                {"args": vars(args) | {"json": str(args.json)}, "results": results, "ratios": ratios},
+                {
+                    "args": vars(args) | {"json": str(args.json), "store": list(args.store)},
+                    "results": results,
+                    "ratios": ratios,
+                },
                 indent=2,
             )
         )
     return 0
+
+
+def _per_round(numerators: list[dict[str, Any]], denominators: list[dict[str, Any]]) -> list[float]:
+    return [a["epochs_per_s"] / b["epochs_per_s"] for a, b in zip(numerators, denominators)]
 
 
 if __name__ == "__main__":
