@@ -86,7 +86,8 @@ def run_method(
     """One run of one method in lockstep: a tally per vehicle."""
     resolved = pipeline.resolve_options(options)
     states = {vid: pipeline.create(resolved, None) for vid in vehicle_ids}
-    published: dict[str, NeighbourTrack] = {}
+    published: dict[str, NeighbourTrack] = {}  # as broadcast
+    own: dict[str, NeighbourTrack] = {}  # as each vehicle's session published it
     history: dict[str, tuple[list[Fix], list[Observation], list[int]]] = {
         vid: ([], [], []) for vid in vehicle_ids
     }
@@ -109,8 +110,11 @@ def run_method(
             steps.append(k)
             fixes_now[vid] = fixes
         for vid, fixes in fixes_now.items():
-            track = tracks.publish(vid, published.get(vid), fixes)
+            # The track is built on the vehicle's own earlier points and offset as broadcast, once: offsetting
+            # the broadcast track again would move its older points by the offset at every step.
+            track = tracks.publish(vid, own.get(vid), fixes)
             if track is not None:
+                own[vid] = track
                 published[vid] = track if fault is None or vid != fault.event.rsu_id else fault.apply(track)
     out = []
     for i, vid in enumerate(vehicle_ids):
