@@ -1,7 +1,8 @@
 """The cooperative monitor over time: a neighbour whose broadcast position jumps 20 m is excluded within
 1 s whatever the direction, including across the line of sight where the range barely changes (the
 geometry the epoch-wise separation test missed), it stays excluded for fault_exclusion_s, and the
-session's holds round-trip in its state."""
+session's holds round-trip in its state; the screen tests every track point newer than the last one
+tested, once, and holds RSUs as well as neighbours."""
 
 from __future__ import annotations
 
@@ -10,10 +11,12 @@ import math
 import numpy as np
 import pytest
 from edgepos.core import state as state_format
+from edgepos.core.observations import RsuRangeObservation, V2vRangeObservation
 from edgepos.eval.cooperative_integrity import run_method
 from edgepos.eval.integrity import EXCLUDED
 from edgepos.pipelines import v2v_coop, v2x_federated
-from edgepos.pipelines.base import PipelineInputError, StaticEnvironment
+from edgepos.pipelines.base import NeighbourTrack, PipelineInputError, StaticEnvironment, TrackPoint
+from edgepos.pipelines.cooperative_integrity import screen_neighbours
 from edgepos.pipelines.registry import get_pipeline
 from edgepos.sim import v2v as sim
 from edgepos.sim.cooperative_faults import NeighbourFault
@@ -125,3 +128,49 @@ def test_holds_round_trip_exactly_and_a_state_without_them_decodes(module, raw, 
     environment = StaticEnvironment(tracks={}, vehicle_id="veh-1")
     fixes, _ = raw.process(old.to_bytes(), run.observations[0][0], environment)
     assert fixes
+
+
+def _track(jump_at: int | None, points: int = 10) -> NeighbourTrack:
+    """A neighbour driving at 15 m/s along x, one point every 0.2 s, 20 m off sideways from point
+    ``jump_at`` on."""
+    cov = ((1.0, 0.0, 0.0, 0.0), (0.0, 1.0, 0.0, 0.0), (0.0, 0.0, 0.25, 0.0), (0.0, 0.0, 0.0, 0.25))
+    return NeighbourTrack(
+        "veh-2",
+        tuple(
+            TrackPoint(
+                0.2 * k, 3.0 * k, 20.0 if jump_at is not None and k >= jump_at else 0.0, 15.0, 0.0, cov
+            )
+            for k in range(points)
+        ),
+    )
+
+
+def _screen(held: dict, seen: dict, track: NeighbourTrack, t: float = 2.0):
+    options = PIPELINE_OPTIONS
+    observations = [V2vRangeObservation(t, "veh-2", range=30.0), RsuRangeObservation(t, "rsu-1", 12.0)]
+    uses: dict = {}
+    environment = StaticEnvironment(tracks={"veh-2": track}, vehicle_id="veh-1")
+    excluded, alarm = screen_neighbours(options, held, seen, [0, 1], observations, environment, t, uses)
+    return excluded, alarm, uses
+
+
+PIPELINE_OPTIONS = v2x_federated.V2xFederatedPipeline().resolve_options({"integrity": True})
+
+
+def test_every_step_newer_than_the_last_tested_point_is_screened():
+    """Two points arrived since the last epoch (a batch): a jump at the earlier one is caught too; a
+    jump already tested is not tested again, and a smooth track passes."""
+    seen = {"veh-2": 1.5}  # points 0..7 (t <= 1.4) tested; 8 and 9 are new, the jump at 8
+    excluded, alarm, uses = _screen({}, seen, _track(8))
+    assert excluded == {"veh-2"} and not alarm and "broadcast track stepped" in (uses[0].reason or "")
+    assert seen == {"veh-2": 1.8}
+    excluded, _, uses = _screen({}, {"veh-2": 1.7}, _track(8))  # the jump (t = 1.6) was tested before
+    assert excluded == frozenset() and uses == {}
+    assert _screen({}, {"veh-2": 1.5}, _track(None))[0] == frozenset()
+
+
+def test_a_held_rsu_or_neighbour_stays_out_until_its_hold_ends():
+    held = {"rsu-1": 3.0, "veh-2": 1.9}  # veh-2's hold has ended at t = 2
+    excluded, _, uses = _screen(held, {}, _track(None))
+    assert excluded == {"rsu-1"} and "held out until t=3.00 s" in (uses[1].reason or "")
+    assert held == {"rsu-1": 3.0} and 0 not in uses
