@@ -2,7 +2,7 @@
 
 A prior, a GNSS fix and three ranges, each drawn from its model: fault-free the tests fail at about
 the false-alarm rate and the error stays within the protection level; a neighbour 20 m off along
-the line of sight is pointed at."""
+the line of sight is pointed at; a filtered track's steps pass the step test and a 20 m jump fails it."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from edgepos.core.cooperative_integrity import (
     cooperative_protection,
     fix_effect,
     separation_statistic,
+    track_step_statistic,
 )
 from edgepos.core.integrity import IntegrityBudget
 
@@ -72,3 +73,45 @@ def test_a_neighbour_20_m_off_along_the_line_of_sight_is_pointed_at():
 def test_a_rank_one_separation_uses_its_one_direction():
     assert math.isclose(separation_statistic((4.0, 0.0, 0.0), 6.0, 0.0), 3.0)
     assert math.isclose(separation_statistic((4.0, 0.0, 1.0), 0.0, 2.0), 2.0)
+
+
+def _filtered_track(rng: np.random.Generator, steps: int, dt: float = 0.2, fix_std: float = 3.5):
+    """A constant-velocity Kalman filter on noisy position fixes of a vehicle driving at (15, 15) m/s with
+    white acceleration 0.5 m/s^2: its estimates as track points (t, x, y, vx, vy, 4x4 cov of
+    [x, y, vx, vy])."""
+    f = np.eye(4)
+    f[0, 2] = f[1, 3] = dt
+    g = np.array([[dt * dt / 2, 0], [0, dt * dt / 2], [dt, 0], [0, dt]])
+    q = g @ g.T * 0.5**2
+    h = np.eye(2, 4)
+    truth = np.array([0.0, 0.0, 15.0, 15.0])
+    mean, cov = truth + rng.standard_normal(4) * [3.0, 3.0, 1.0, 1.0], np.diag([9.0, 9.0, 1.0, 1.0])
+    points = []
+    for k in range(steps):
+        truth = f @ truth + g @ rng.standard_normal(2) * 0.5
+        mean, cov = f @ mean, f @ cov @ f.T + q
+        gain = cov @ h.T @ np.linalg.inv(h @ cov @ h.T + np.eye(2) * fix_std**2)
+        mean = mean + gain @ (truth[:2] + rng.standard_normal(2) * fix_std - h @ mean)
+        cov = (np.eye(4) - gain @ h) @ cov
+        points.append((k * dt, *mean, tuple(map(tuple, cov))))
+    return points
+
+
+def test_a_filtered_track_passes_the_step_test_and_a_20_m_jump_in_any_direction_fails_it():
+    rng = np.random.default_rng(4)
+    threshold = math.sqrt(-2.0 * math.log(1e-4))  # chi-square, 2 dof, 1e-4
+    statistics, jumps = [], []
+    for run in range(20):
+        points = _filtered_track(rng, 100)
+        for k in range(1, len(points)):
+            t0, x0, y0, vx, vy, p = points[k - 1]
+            t1, x1, y1, _, _, c = points[k]
+            statistics.append(track_step_statistic((t0, x0, y0, vx, vy, p), (t1, x1, y1, c), 0.5))
+            angle = rng.uniform(-math.pi, math.pi)
+            moved = (t1, x1 + 20.0 * math.cos(angle), y1 + 20.0 * math.sin(angle), c)
+            jumps.append(track_step_statistic((t0, x0, y0, vx, vy, p), moved, 0.5))
+    statistics, jumps = np.array(statistics), np.array(jumps)
+    # Consecutive estimates' errors are correlated: the bound's statistic is smaller than chi-square's.
+    assert np.mean(statistics > threshold) <= 1e-4 and np.mean(statistics**2) < 2.0
+    assert np.all(jumps > threshold)
+    assert track_step_statistic((1.0, 0.0, 0.0, 1.0, 0.0, np.eye(4)), (1.0, 50.0, 0.0, np.eye(4)), 1.0) == 0.0

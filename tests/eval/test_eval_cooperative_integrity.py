@@ -29,7 +29,9 @@ def test_v2v_faults_writes_the_integrity_block_per_scene_and_method(tmp_path, ca
             "detections",
             "detected_runs",
             "mean_detection_delay_s",
+            "excluded_within_1s",
         }
+        assert block["excluded_within_1s"] <= block["detected_within_1s"]
     assert "Cooperative integrity" in capsys.readouterr().out
 
 

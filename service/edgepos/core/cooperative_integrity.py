@@ -21,6 +21,15 @@ and per-hypothesis bounds) with one change: a range's information has rank 1, so
 covariance is singular and q_i uses the pseudo-inverse (the separation lies along one direction:
 q_i is chi-square with 1 degree of freedom, still compared with the 2-dof threshold, which is
 conservative for false alarms).
+
+A fault across the line of sight barely changes the range (a 20 m offset at 30 m, 80 degrees off the
+line of sight, moves it by 2-5 m, within 2 sigma of a V2V range), so the snapshot test cannot see it.
+What the receiver also has is the neighbour's broadcast over time: ``track_step_statistic`` tests each
+new step of a published track against the constant-velocity prediction from the point before it.
+Consecutive estimates of one filter have positively correlated errors, so the sum of the two
+points' position covariances (the earlier one carried forward) plus the prediction's own noise bounds
+the step's covariance; a broadcast position that jumps (a wrong map match, a receiver locking on a
+reflection) fails it whatever its direction (docs/integrity.md, "Cooperative pipelines").
 """
 
 from __future__ import annotations
@@ -125,6 +134,36 @@ def separation_statistic(separation: Matrix2, dx: float, dy: float) -> float:
     if small > 1e-9 * large:
         q += (second[0] * dx + second[1] * dy) ** 2 / small
     return math.sqrt(q)
+
+
+def track_step_statistic(
+    earlier: tuple[float, float, float, float, float, Sequence[Sequence[float]]],
+    later: tuple[float, float, float, Sequence[Sequence[float]]],
+    accel_std: float,
+) -> float:
+    """sqrt(d^T S^-1 d) for the step d from ``earlier`` (t, x, y, vx, vy, 4x4 covariance of
+    [x, y, vx, vy]) predicted at constant velocity to ``later`` (t, x, y, its 4x4 covariance): S is
+    F P F^T (the earlier point carried forward) + the later point's position covariance + white
+    acceleration ``accel_std`` (m/s^2) over the interval. 0 for a step that does not advance in time or
+    whose covariance is not positive definite (nothing to test)."""
+    t0, x0, y0, vx, vy, p = earlier
+    t1, x1, y1, c = later
+    dt = t1 - t0
+    if not dt > 0.0:
+        return 0.0
+    noise = accel_std * accel_std * dt**4 / 4.0
+    a = p[0][0] + dt * (p[0][2] + p[2][0]) + dt * dt * p[2][2] + c[0][0] + noise
+    d = p[1][1] + dt * (p[1][3] + p[3][1]) + dt * dt * p[3][3] + c[1][1] + noise
+    b = 0.5 * (
+        p[0][1] + p[1][0] + dt * (p[0][3] + p[2][1] + p[1][2] + p[3][0]) + dt * dt * (p[2][3] + p[3][2])
+    )
+    b += 0.5 * (c[0][1] + c[1][0])
+    inverse = _inverse((float(a), float(b), float(d)))
+    if inverse is None:
+        return 0.0
+    ia, ib, id_ = inverse
+    dx, dy = x1 - (x0 + vx * dt), y1 - (y0 + vy * dt)
+    return math.sqrt(max(ia * dx * dx + 2.0 * ib * dx * dy + id_ * dy * dy, 0.0))
 
 
 def protect_sources(

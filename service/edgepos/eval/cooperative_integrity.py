@@ -6,7 +6,9 @@ published with the service's rule and, in a faulty run, the faulty vehicle's tra
 offset (``sim.cooperative_faults``). Each other vehicle's fixes are tallied against the truth with
 ``eval.integrity`` (one faulty run per vehicle that ranges to the faulty one); the faulty vehicle's own
 fixes are tallied as fault-free. Beside the counts: the share of faulty vehicle-runs detected within
-DETECTION_S of the fault's start.
+DETECTION_S of the fault's start (an exclusion of the faulty neighbour or an alarm), and the share in
+which the faulty neighbour was excluded within it (an alarm alone proves nothing where every fix is in
+alarm, as on the correlated scene at the 5 m alert limit).
 """
 
 from __future__ import annotations
@@ -23,9 +25,9 @@ from typing import Any
 import numpy as np
 
 from edgepos.cli_output import prepare_output
-from edgepos.core.observations import Observation
+from edgepos.core.observations import Observation, V2vRangeObservation
 from edgepos.eval import correlated
-from edgepos.eval.integrity import IntegrityTally, stanford_plot, tally
+from edgepos.eval.integrity import EXCLUDED, IntegrityTally, stanford_plot, tally
 from edgepos.eval.montecarlo import chunk_runs, run_chunks
 from edgepos.eval.plots import PlotsUnavailable, require_matplotlib
 from edgepos.eval.progress import Progress
@@ -41,6 +43,7 @@ from edgepos.sim.cooperative_faults import (
     draw,
     neighbour_faults_from,
 )
+from edgepos.sim.faults import FaultEvent
 
 #: The Stanford diagram's bins for metre-level cooperative fixes: 0-12 m in 8 cm steps.
 SCALE = 4.0
@@ -56,19 +59,23 @@ class Tallies:
 
     tallies: dict[str, IntegrityTally] = field(default_factory=dict)
     prompt: dict[str, int] = field(default_factory=dict)
+    excluded: dict[str, int] = field(default_factory=dict)
+    """Faulty vehicle-runs in which the faulty neighbour was excluded within DETECTION_S."""
     runs: int = 0
     alert_limit: float = 0.0
     """The sessions' alert limit (m), their option's default."""
 
-    def add(self, method: str, result: IntegrityTally, prompt: bool) -> None:
+    def add(self, method: str, result: IntegrityTally, prompt: bool, excluded: bool) -> None:
         self.tallies[method] = self.tallies.get(method, IntegrityTally(scale=SCALE)) + result
         self.prompt[method] = self.prompt.get(method, 0) + int(prompt)
+        self.excluded[method] = self.excluded.get(method, 0) + int(excluded)
 
 
 def combine(a: Tallies, b: Tallies) -> Tallies:
     for method, result in b.tallies.items():
         a.tallies[method] = a.tallies.get(method, IntegrityTally(scale=SCALE)) + result
         a.prompt[method] = a.prompt.get(method, 0) + b.prompt.get(method, 0)
+        a.excluded[method] = a.excluded.get(method, 0) + b.excluded.get(method, 0)
     a.runs += b.runs
     a.alert_limit = max(a.alert_limit, b.alert_limit)
     return a
@@ -82,11 +89,13 @@ def run_method(
     kinds: set[str],
     fault: NeighbourFault | None,
     alert_limit: float,
-) -> list[IntegrityTally]:
-    """One run of one method in lockstep: a tally per vehicle."""
+) -> list[tuple[IntegrityTally, float | None]]:
+    """One run of one method in lockstep: per vehicle a tally and how long after the fault's start the
+    faulty neighbour was first excluded (None: never while active, or no fault to range to)."""
     resolved = pipeline.resolve_options(options)
     states = {vid: pipeline.create(resolved, None) for vid in vehicle_ids}
-    published: dict[str, NeighbourTrack] = {}
+    published: dict[str, NeighbourTrack] = {}  # as broadcast
+    own: dict[str, NeighbourTrack] = {}  # as each vehicle's session published it
     history: dict[str, tuple[list[Fix], list[Observation], list[int]]] = {
         vid: ([], [], []) for vid in vehicle_ids
     }
@@ -109,8 +118,11 @@ def run_method(
             steps.append(k)
             fixes_now[vid] = fixes
         for vid, fixes in fixes_now.items():
-            track = tracks.publish(vid, published.get(vid), fixes)
+            # The track is built on the vehicle's own earlier points and offset as broadcast, once: offsetting
+            # the broadcast track again would move its older points by the offset at every step.
+            track = tracks.publish(vid, own.get(vid), fixes)
             if track is not None:
+                own[vid] = track
                 published[vid] = track if fault is None or vid != fault.event.rsu_id else fault.apply(track)
     out = []
     for i, vid in enumerate(vehicle_ids):
@@ -118,10 +130,30 @@ def run_method(
         if not kept:
             continue
         event = fault.event if fault is not None and vid != fault.event.rsu_id else None
-        out.append(
-            tally(kept, run.positions[i, steps], run.times[steps], observations, alert_limit, event, SCALE)
+        result = tally(
+            kept, run.positions[i, steps], run.times[steps], observations, alert_limit, event, SCALE
         )
+        out.append((result, None if event is None else exclusion_delay(kept, observations, event)))
     return out
+
+
+def exclusion_delay(
+    fixes: Sequence[Fix], observations: Sequence[Observation], event: FaultEvent
+) -> float | None:
+    """Seconds from the fault's start to the first fix that excluded a range to the faulty neighbour
+    while the fault was active (None: never)."""
+    for fix in fixes:
+        if not event.active(fix.t):
+            continue
+        for use in fix.measurements:
+            observation = observations[use.index]
+            if (
+                (use.reason or "").startswith(EXCLUDED)
+                and isinstance(observation, V2vRangeObservation)
+                and observation.peer_vehicle_id == event.rsu_id
+            ):
+                return fix.t - event.start
+    return None
 
 
 _CONFIG: dict[str, Any] = {}
@@ -153,10 +185,12 @@ def _work(chunk: range) -> Tallies:
                 options = {**options, "integrity": True}  # the monitor is opt-in for these pipelines
                 alert = cls().resolve_options(options)["alert_limit_m"]
                 out.alert_limit = alert
-                for result in run_method(run, vehicle_ids, cls(), options, kinds, fault, alert):
+                for result, excluded in run_method(run, vehicle_ids, cls(), options, kinds, fault, alert):
                     delay = result.count("detection_delay_s")
                     prompt = result.count("detected_runs") > 0 and delay <= DETECTION_S
-                    out.add(f"{scene} {method}", result, prompt)
+                    out.add(
+                        f"{scene} {method}", result, prompt, excluded is not None and excluded <= DETECTION_S
+                    )
         out.runs += 1
     return out
 
@@ -168,6 +202,7 @@ def summary(totals: Tallies) -> dict[str, dict[str, Any]]:
         block = result.summary(totals.alert_limit)
         faulty = block["faulty_runs"]
         block["detected_within_1s"] = totals.prompt[key] / faulty if faulty else None
+        block["excluded_within_1s"] = totals.excluded[key] / faulty if faulty else None
         out[key] = block
     return out
 
@@ -182,6 +217,7 @@ def report(results: dict[str, dict[str, Any]], runs: int, seed: int, faults: Nei
             str(block["hazardous"]),
             f"{block['detected_runs']}/{block['faulty_runs']}",
             "-" if block["detected_within_1s"] is None else number(block["detected_within_1s"], 3),
+            "-" if block["excluded_within_1s"] is None else number(block["excluded_within_1s"], 3),
             "-"
             if block["median_protection_level_m"] is None
             else number(block["median_protection_level_m"], 2),
@@ -197,6 +233,7 @@ def report(results: dict[str, dict[str, Any]], runs: int, seed: int, faults: Nei
         "hazard",
         "detected",
         "<=1 s",
+        "excl <=1 s",
         "PL med m",
         "false excl",
     ]
@@ -204,7 +241,7 @@ def report(results: dict[str, dict[str, Any]], runs: int, seed: int, faults: Nei
         f"Cooperative integrity: {runs} runs, seed {seed}, a neighbour {faults.offset_m:g} m off for "
         f"{faults.duration_s:g} s in {faults.run_fraction:g} of runs (per vehicle ranging to it)"
     )
-    return title + "\n\n" + format_table(headers, rows, [False] + [True] * 8)
+    return title + "\n\n" + format_table(headers, rows, [False] + [True] * 9)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:

@@ -33,7 +33,7 @@ from edgepos.core.cooperative_integrity import RangeSource
 from edgepos.core.filters.ekf import ExtendedKalmanFilter
 from edgepos.core.filters.ukf import UnscentedKalmanFilter
 from edgepos.core.gnss_bias import Bias
-from edgepos.core.integrity import UNAVAILABLE, Protection
+from edgepos.core.integrity import ALARM, UNAVAILABLE, Protection
 from edgepos.core.intersection import range_weight
 from edgepos.core.measurements.gnss_fix import GnssPosition
 from edgepos.core.measurements.rsu import RsuRange
@@ -61,6 +61,7 @@ from edgepos.pipelines.cooperative_integrity import (
     LEGACY_INTEGRITY,
     fix_source,
     monitor,
+    screen_neighbours,
     with_protection,
 )
 from edgepos.pipelines.cooperative_options import (
@@ -155,6 +156,8 @@ class _SessionState:
     own_cov: np.ndarray  # (6, 6)
     bias: Bias  # the GNSS fix error's Gauss-Markov part beside mean/cov
     own_bias: Bias  # and beside own_mean/own_cov
+    held: dict[str, float] = dataclasses.field(default_factory=dict)  # neighbours held out: id -> until t
+    seen: dict[str, float] = dataclasses.field(default_factory=dict)  # neighbours' last track point tested
 
     def to_bytes(self) -> bytes:
         meta = {
@@ -164,6 +167,8 @@ class _SessionState:
             "t": self.t,
             "epochs": self.epochs,
             "odometer_t": self.odometer_t,
+            "held": self.held,
+            "seen": self.seen,
         }
         arrays = {
             "mean": self.mean,
@@ -195,6 +200,8 @@ def _decode(blob: bytes) -> _SessionState:
         arrays["own_cov"],
         Bias.from_arrays(arrays["bias"]) if "bias" in arrays else white,
         Bias.from_arrays(arrays["own_bias"]) if "own_bias" in arrays else white.copy(),
+        {str(k): float(v) for k, v in meta.get("held", {}).items()},
+        {str(k): float(v) for k, v in meta.get("seen", {}).items()},
     )
 
 
@@ -305,9 +312,14 @@ def _step(
         session.mean, session.cov, session.bias = updated[0]
         ranges: list[tuple[int, RangeSource]] = []
         before = (session.mean, session.cov, session.bias)
+        screened, unexcluded = frozenset[str](), False
         if cooperative:
             session.own_mean, session.own_cov, session.own_bias = updated[1]
-            ranges = _range_update(session, epoch, observations, uses, environment, t, frozenset())
+            if options["integrity"]:
+                screened, unexcluded = screen_neighbours(
+                    options, session.held, session.seen, epoch, observations, environment, t, uses
+                )
+            ranges = _range_update(session, epoch, observations, uses, environment, t, screened)
             used = bool(ranges) or used
         else:
             session.own_mean, session.own_cov, session.own_bias = session.mean, session.cov, session.bias
@@ -316,7 +328,7 @@ def _step(
 
             def redo(excluded: frozenset[str]) -> list[tuple[int, RangeSource]]:
                 session.mean, session.cov, session.bias = before
-                return _range_update(session, epoch, observations, uses, environment, t, excluded)
+                return _range_update(session, epoch, observations, uses, environment, t, screened | excluded)
 
             epoch_fix = cast(GnssFixObservation, observations[fixes[0]]) if fixes else None
             protection = monitor(
@@ -330,7 +342,11 @@ def _step(
                 ranges,
                 redo,
                 uses,
+                session.held,
+                t,
             )
+            if unexcluded:  # a neighbour's track failed its test and exclusion is off
+                protection = dataclasses.replace(protection, state=ALARM)
     for i in epoch:
         if i not in uses:
             uses[i] = MeasurementUse(

@@ -16,6 +16,7 @@ With feedback off the sub-filters run independently and the fused estimate is ou
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -30,7 +31,7 @@ from edgepos.core.errors import NumericalError
 from edgepos.core.filters.ekf import ExtendedKalmanFilter
 from edgepos.core.filters.srukf import SquareRootUnscentedKalmanFilter
 from edgepos.core.gnss_bias import Bias
-from edgepos.core.integrity import Protection
+from edgepos.core.integrity import ALARM, Protection
 from edgepos.core.intersection import range_weight
 from edgepos.core.measurements.base import MeasurementModel
 from edgepos.core.measurements.gnss_fix import GnssPosition
@@ -59,6 +60,7 @@ from edgepos.pipelines.cooperative_integrity import (
     LEGACY_INTEGRITY,
     fix_source,
     monitor,
+    screen_neighbours,
     with_protection,
 )
 from edgepos.pipelines.cooperative_options import GNSS_BIAS_SPECS, LEGACY_OPTIONS, neighbour_specs
@@ -199,6 +201,8 @@ class _SessionState:
     noise_scales: np.ndarray  # (3,): each sub-filter's process-noise factor 1/beta_i (1 without feedback)
     bias: Bias  # the GNSS fix error's Gauss-Markov part, beside the GPS sub-filter
     dr_started: bool = False  # a fix after the first has given the filter a velocity (see _dr_update)
+    held: dict[str, float] = dataclasses.field(default_factory=dict)  # sources held out: id -> until t
+    seen: dict[str, float] = dataclasses.field(default_factory=dict)  # neighbours' last track point tested
 
     def to_bytes(self) -> bytes:
         meta = {
@@ -209,6 +213,8 @@ class _SessionState:
             "epochs": self.epochs,
             "odometer_t": self.odometer_t,
             "dr_started": self.dr_started,
+            "held": self.held,
+            "seen": self.seen,
         }
         arrays = {
             "means": self.means,
@@ -235,6 +241,8 @@ def _decode(blob: bytes) -> _SessionState:
         arrays["noise_scales"],
         Bias.from_arrays(arrays["bias"]) if "bias" in arrays else Bias.stationary(0.0),
         bool(meta.get("dr_started", True)),
+        {str(k): float(v) for k, v in meta.get("held", {}).items()},
+        {str(k): float(v) for k, v in meta.get("seen", {}).items()},
     )
 
 
@@ -376,7 +384,12 @@ def _step(
     session.dr_started = session.dr_started or gps
     updated[1] = _dr_update(session, means, covs, epoch, observations, options, uses, t)
     v2x_prior = (means[2].copy(), covs[2].copy())
-    ranges = _v2x_update(means, covs, epoch, observations, options, uses, environment, t, frozenset())
+    screened, unexcluded = frozenset[str](), False
+    if options["integrity"]:
+        screened, unexcluded = screen_neighbours(
+            options, session.held, session.seen, epoch, observations, environment, t, uses
+        )
+    ranges = _v2x_update(means, covs, epoch, observations, options, uses, environment, t, screened)
     updated[2] = bool(ranges)
 
     chosen = 0 if np.trace(covs[0]) <= np.trace(covs[2]) else 2
@@ -387,7 +400,9 @@ def _step(
         def redo(excluded: frozenset[str]) -> list[tuple[int, RangeSource]]:
             nonlocal chosen, fused_mean, fused_cov
             means[2], covs[2] = v2x_prior[0].copy(), v2x_prior[1].copy()
-            kept = _v2x_update(means, covs, epoch, observations, options, uses, environment, t, excluded)
+            kept = _v2x_update(
+                means, covs, epoch, observations, options, uses, environment, t, screened | excluded
+            )
             updated[2] = bool(kept)
             chosen = 0 if np.trace(covs[0]) <= np.trace(covs[2]) else 2
             fused_mean, fused_cov = fuse(means[chosen], covs[chosen], means[1], covs[1])
@@ -403,7 +418,11 @@ def _step(
             ranges if chosen == 2 else [],
             redo,
             uses,
+            session.held,
+            t,
         )
+        if unexcluded:  # a neighbour's track failed its test and exclusion is off
+            protection = dataclasses.replace(protection, state=ALARM)
     if options["feedback"]:
         scales = _feedback_scales(options)
         before_mean, before_cov = means[0].copy(), covs[0].copy()
