@@ -8,6 +8,7 @@ averaged on the circle. Everything is plain numpy with the particle axis first, 
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -60,15 +61,25 @@ class Measurement:
 
     def component_log_likelihoods(self, residual: np.ndarray) -> np.ndarray:
         """log of each component's mixture density (..., m)."""
-        p = self.outlier_probability
-        inlier = math.log1p(-p) - 0.5 * (
-            residual * residual / self.variances + np.log(self.variances) + _LOG_2PI
+        inlier_scale, inlier_offset, outlier_scale, outlier_offset = self._mixture
+        squared = residual * residual
+        mixture: FloatArray = np.logaddexp(
+            squared * inlier_scale + inlier_offset, squared * outlier_scale + outlier_offset
         )
-        outlier = math.log(p) - 0.5 * (
-            residual * residual / self.outlier_variance + np.log(self.outlier_variance) + _LOG_2PI
-        )
-        mixture: FloatArray = np.logaddexp(inlier, outlier)
         return mixture
+
+    @functools.cached_property
+    def _mixture(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The two Gaussians' log-densities as a r^2 + b per component, computed once per measurement: log
+        (1 - p) - (r^2 / v + log v + log 2 pi) / 2 for the inlier, the same with p and the outlier variance."""
+        p = self.outlier_probability
+        outlier = np.broadcast_to(np.asarray(self.outlier_variance, float), self.variances.shape)
+        return (
+            -0.5 / self.variances,
+            math.log1p(-p) - 0.5 * (np.log(self.variances) + _LOG_2PI),
+            -0.5 / outlier,
+            math.log(p) - 0.5 * (np.log(outlier) + _LOG_2PI),
+        )
 
 
 @dataclass
