@@ -27,11 +27,12 @@ enters the importance weights only.
 The particles' UKF updates share one linearisation (``shared_linearisation``, the default): with one
 covariance for all, their sigma points differ only by where they are centred, and over the metres between
 particles the measurement function's curvature (range / 20,000 km) changes the deviations by micrometres.
-So the sigma-point deviations, innovation covariance, gain and posterior covariance are computed once at
-the cloud's mean, and each particle's predicted measurement is h at its own centre (plus the second-order
-sigma-point term): h at N + 2k + 1 states instead of N (2k + 1), one (m, m) solve instead of N. The
-per-particle update stays as the reference it is tested against (tests/core/test_core_upf_shared.py: the
-same particles to a millimetre, weights to 1 %, estimate to 0.1 mm, on the pipeline's range models).
+So the sigma-point deviations, innovation covariance, gain and posterior covariance are computed once, at
+the cloud's mean carried over the step (the time update's central sigma point), and each particle's
+predicted measurement is h at its own centre plus the second-order sigma-point term: h at N + 2k + 1 states
+instead of N (2k + 1), one (m, m) solve instead of N. The per-particle update stays as the reference it is
+tested against (tests/core/test_core_upf_shared.py: the same particles to a millimetre, weights to 1 %,
+estimate to 0.1 mm, on the pipeline's range models).
 """
 
 from __future__ import annotations
@@ -67,10 +68,18 @@ def predicted_own_covariance(cloud: Cloud, model: ParticleModel, dt: float, acti
     """The particles' own covariance carried over ``dt`` (k, k): the UKF time update of N(weighted mean,
     cloud.cov). The dynamics are nearly linear over a step and the particles close together, so one
     linearisation point serves every particle."""
+    return _own_prediction(cloud, model, dt, active)[1]
+
+
+def _own_prediction(
+    cloud: Cloud, model: ParticleModel, dt: float, active: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The cloud's weighted mean carried over ``dt`` (D,), where the shared update linearises, and
+    :func:`predicted_own_covariance`."""
     centre, _ = weighted_moments(cloud.particles, cloud.weights, ANGLES)
-    _, _, cov = unscented_predict(centre[None, :], cloud.cov, model, dt, active, ANGLES)
+    moved, _, cov = unscented_predict(centre[None, :], cloud.cov, model, dt, active, ANGLES)
     own: FloatArray = cov[0]
-    return own
+    return model.complete(wrap(moved, ANGLES))[0], own
 
 
 @dataclass(frozen=True)
@@ -78,7 +87,7 @@ class UnscentedParticleFilter:
     """UKF proposal per particle. ``resample_threshold``: the ESS fraction that triggers resampling;
     ``spread_fraction``: the fraction of each proposal's covariance the particles carry as their spread
     (the rest stays their own covariance); ``shared_linearisation``: the particles' UKF updates take their
-    sigma-point deviations once, at the cloud's mean (``base.shared_unscented_update``, the particles
+    sigma-point deviations once, at the cloud's propagated mean (``base.shared_unscented_update``, the particles
     sharing one covariance and lying metres apart), instead of around each particle (False: the
     reference the shared one is tested against, about 20 times slower with 200 particles)."""
 
@@ -105,7 +114,7 @@ class UnscentedParticleFilter:
         index = np.flatnonzero(active)
         count = len(cloud.particles)
         angles = ANGLES[index]
-        predicted_cov = predicted_own_covariance(cloud, model, dt, active)
+        reference, predicted_cov = _own_prediction(cloud, model, dt, active)
         centres = model.complete(wrap(model.propagate(cloud.particles, dt), ANGLES))
         if measurement is None:
             own = embed(cloud.cov, predicted_cov, active)
@@ -115,7 +124,6 @@ class UnscentedParticleFilter:
 
         gaussian = replace(measurement, outlier_probability=0.0, outlier_variance=0.0)
         if self.shared_linearisation:
-            reference, _ = weighted_moments(centres, cloud.weights, ANGLES)
             update = shared_unscented_update(
                 centres, predicted_cov, model, active, ANGLES, gaussian, reference
             )
