@@ -9,7 +9,7 @@ from edgepos.core.measurements.range_rate import RangeRateModel, enu_velocity_to
 from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GeodeticAnchor, GnssOnlyModel
 from edgepos.gnss.geodesy import geodetic_to_ecef
-from edgepos.gnss.orbits import SPEED_OF_LIGHT, sagnac_range_rate
+from edgepos.gnss.orbits import SPEED_OF_LIGHT, sagnac_range, sagnac_range_rate
 
 ANCHOR = GeodeticAnchor(np.radians(41.64), np.radians(2.35), 250.0)
 SATELLITES = np.array([[1.5e7, -3.0e6, 2.1e7], [2.2e7, 1.2e7, 8.0e6], [-4.0e6, 1.6e7, 2.0e7]])
@@ -71,3 +71,20 @@ def test_range_rate_is_vectorised_over_particles() -> None:
     direct = sagnac_range_rate(SATELLITES, SAT_VELOCITY, receiver[..., None, :], velocity[..., None, :])
     expected = direct + states[..., layout.DRIFT, None] - SPEED_OF_LIGHT * SAT_DRIFT
     assert batch == pytest.approx(expected, abs=1e-6)
+
+
+def test_pseudorange_models_product_form_is_the_direct_formula() -> None:
+    """PseudorangeModel's matrix-product form (|s|^2 - 2 r.s + |r|^2 and the Sagnac term as r . turn)
+    equals orbits.sagnac_range to the rounding of 2e7 m ranges, vectorised over leading axes; a wrong
+    Sagnac sign or term would be off by metres (omega |s| |r| / c is about 30 m)."""
+    rng = np.random.default_rng(9)
+    states = np.stack([_state(rng) for _ in range(6)]).reshape(2, 3, layout.DIM)
+    known = np.array([3.0, -2.0, 7.5])
+    model = PseudorangeModel.build(ANCHOR, SATELLITES, ["G", "G", "G"], known, np.ones(3))
+    receiver = ANCHOR.ecef(states)
+    direct = sagnac_range(SATELLITES, receiver[..., None, :]) + states[..., layout.CLOCK["G"], None] + known
+    batch = model.predict(states)
+    assert batch.shape == (2, 3, 3)
+    np.testing.assert_allclose(batch, direct, rtol=0.0, atol=1e-6)
+    geometric = np.linalg.norm(SATELLITES - receiver[..., None, :], axis=-1)
+    assert np.min(np.abs(batch - geometric - states[..., layout.CLOCK["G"], None] - known)) > 1.0

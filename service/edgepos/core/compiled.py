@@ -297,7 +297,14 @@ def stepper_for(bank: InteractingMultipleModel) -> BankStepper:
     return BankStepper(bank)
 
 
-_KERNEL_MODULES = ("kernels_base", "kernels", "kernels_correct", "kernels_motion", "kernels_integrity")
+_KERNEL_MODULES = (
+    "kernels_base",
+    "kernels",
+    "kernels_correct",
+    "kernels_motion",
+    "kernels_integrity",
+    "measurements.gnss_kernel",
+)
 
 
 def _kernel_dispatchers() -> list[Any]:
@@ -346,7 +353,8 @@ def warm_up() -> float:
     """Compile (or load from the on-disk cache) every kernel signature the service uses, so that no
     request pays it; returns the seconds it took. Runs one epoch of each covered filter kind, with
     the paper's 2IMM-CKF bank, joint and averaged, and the gate; the predictions also compile the
-    F and Q kernel (``core.kernels_motion``, one signature for every bank)."""
+    F and Q kernel (``core.kernels_motion``, one signature for every bank); then the integrity bank's
+    kernels and gnss_tight's range kernel (``core.measurements.gnss_kernel``)."""
     started = time.perf_counter()
     if not compiled_enabled():
         return 0.0
@@ -385,4 +393,7 @@ def warm_up() -> float:
     scalars = np.array([0.05, 10.0, 3.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0])
     bank_protect(bank_means, bank_covs, scalars, tables, np.zeros(2, dtype=np.int64))
     bank_epoch(bank_means, bank_covs, scalars, tables, np.array([1, 0, 0]), *rsu)
+    from edgepos.core.measurements import gnss_kernel
+
+    gnss_kernel.warm_up()  # gnss_tight's pseudorange and range-rate kernel
     return time.perf_counter() - started

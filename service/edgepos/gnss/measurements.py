@@ -8,6 +8,7 @@ position. Estimators (the WLS baseline here, filters elsewhere) only add geometr
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -44,9 +45,9 @@ class PseudorangeSet:
     def __len__(self) -> int:
         return len(self.systems)
 
-    @property
+    @functools.cached_property
     def sats(self) -> tuple[str, ...]:
-        """RINEX satellite identifiers per row."""
+        """RINEX satellite identifiers per row (formatted once per set: gnss_tight reads them per row)."""
         return tuple(f"{s}{int(p):02d}" for s, p in zip(self.systems, self.prns))
 
     def subset(self, keep: np.ndarray) -> PseudorangeSet:

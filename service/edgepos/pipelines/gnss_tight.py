@@ -62,6 +62,7 @@ import numpy as np
 
 from edgepos.core.errors import NumericalError
 from edgepos.core.fuzzy import FuzzyNoise
+from edgepos.core.measurements.gnss_kernel import epoch_predict
 from edgepos.core.measurements.pseudorange import PseudorangeModel
 from edgepos.core.measurements.range_rate import RangeRateModel
 from edgepos.core.motion import riss as layout
@@ -76,7 +77,6 @@ from edgepos.gnss.carrier import (
 )
 from edgepos.gnss.differential import CorrectionTable
 from edgepos.gnss.ephemerides import Ephemerides
-from edgepos.gnss.geodesy import geodetic_to_ecef
 from edgepos.gnss.measurements import PseudorangeSet
 from edgepos.gnss.orbits import SPEED_OF_LIGHT
 from edgepos.gnss.pseudorange_noise import FITTED
@@ -628,29 +628,16 @@ def _measurement(
     update, so the filters see their correlation through the shared position and clocks)."""
     outlier = float(options.get("outlier_probability", 0.0)) if options["filter"] != "ukf" else 0.0
     pr_outlier = float(options.get("outlier_std", 30.0)) ** 2
+    predict = epoch_predict(model_pr, rate_model)
     if rate_model is None:
         return Measurement(
-            model_pr.predict,
-            pseudoranges,
-            model_pr.variances(),
-            outlier,
-            pr_outlier if outlier > 0.0 else 0.0,
+            predict, pseudoranges, model_pr.variances(), outlier, pr_outlier if outlier > 0.0 else 0.0
         )
     assert prs.range_rate_mps is not None
     rate_outlier = float(options.get("doppler_outlier_std_mps", DEFAULT_DOPPLER_OUTLIER_STD_MPS)) ** 2
     outlier_variance = np.concatenate(
         [np.full(model_pr.dim, pr_outlier), np.full(rate_model.dim, rate_outlier)]
     )
-    anchor = model_pr.anchor
-
-    def predict(states: np.ndarray) -> np.ndarray:
-        lat, lon, height = anchor.geodetic(states)
-        receiver = geodetic_to_ecef(lat, lon, height)
-        return np.concatenate(
-            [model_pr.predict_at(states, receiver), rate_model.predict_at(states, lat, lon, receiver)],
-            axis=-1,
-        )
-
     return Measurement(
         predict,
         np.concatenate([pseudoranges, prs.range_rate_mps[rate_rows]]),

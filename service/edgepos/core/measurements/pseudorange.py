@@ -9,13 +9,14 @@ axes of the states (particles, sigma points).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 
 from edgepos.core.motion.riss import CLOCK, GeodeticAnchor
 from edgepos.core.numerics import FloatArray
-from edgepos.gnss.orbits import sagnac_range
+from edgepos.gnss.orbits import OMEGA_EARTH, SPEED_OF_LIGHT
 
 
 @dataclass(frozen=True)
@@ -57,9 +58,27 @@ class PseudorangeModel:
     def predict_at(self, states: np.ndarray, receiver: np.ndarray) -> np.ndarray:
         """:meth:`predict` with the states' ECEF positions (..., 3) already computed (shared with the
         range-rate model when both are updated together)."""
-        ranges = sagnac_range(self.sat_position, receiver[..., None, :])
-        pseudoranges: FloatArray = ranges + states[..., self.clock_index] + self.known_m
+        square, turn = self._geometry
+        # orbits.sagnac_range written as matrix products with the satellites' (3, m) columns, so that the
+        # states x satellites terms need no (..., m, 3) temporaries: |s - r|^2 = |s|^2 - 2 r.s + |r|^2 (the
+        # cancellation costs 1e-8 m of range) and the Sagnac term omega (x_s y_r - y_s x_r) / c = r . turn.
+        distance = np.sqrt(
+            np.maximum(
+                square
+                - 2.0 * (receiver @ self.sat_position.T)
+                + np.sum(receiver * receiver, axis=-1)[..., None],
+                0.0,
+            )
+        )
+        pseudoranges: FloatArray = distance + receiver @ turn.T + states[..., self.clock_index] + self.known_m
         return pseudoranges
+
+    @functools.cached_property
+    def _geometry(self) -> tuple[np.ndarray, np.ndarray]:
+        """|s|^2 (m,) and the Sagnac term's rows (m, 3), computed once per model."""
+        s = self.sat_position
+        turn = OMEGA_EARTH / SPEED_OF_LIGHT * np.stack([-s[:, 1], s[:, 0], np.zeros(len(s))], axis=1)
+        return np.sum(s * s, axis=1), turn
 
     def variances(self) -> np.ndarray:
         return self.std_m**2

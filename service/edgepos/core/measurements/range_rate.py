@@ -16,6 +16,7 @@ leading axes of the states (particles, sigma points).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -88,23 +89,26 @@ class RangeRateModel:
         # orbits.sagnac_range_rate written as products with the satellites' (3, m) columns, so that the
         # particles x sigma points x satellites terms are matrix products, not (..., m, 3) temporaries:
         # |s - r|^2 = |s|^2 - 2 r.s + |r|^2 (the cancellation costs 1e-9 m of range, nothing of the rate).
+        square, s_dot_vs, turn_s, turn_r = self._geometry
         r_dot_s = receiver @ s.T
         distance = np.sqrt(
-            np.maximum(
-                np.sum(s * s, axis=1) - 2.0 * r_dot_s + np.sum(receiver * receiver, axis=-1)[..., None], 0.0
-            )
+            np.maximum(square - 2.0 * r_dot_s + np.sum(receiver * receiver, axis=-1)[..., None], 0.0)
         )
-        along = (
-            np.sum(s * vs, axis=1)
-            - receiver @ vs.T
-            - velocity @ s.T
-            + np.sum(receiver * velocity, axis=-1)[..., None]
-        )
-        turn_s = np.stack([-vs[:, 1], vs[:, 0], np.zeros(len(vs))], axis=1)  # omega x-terms of v_s with r
-        turn_r = np.stack([-s[:, 1], s[:, 0], np.zeros(len(s))], axis=1)  # ... and of s with v_r
-        sagnac = OMEGA_EARTH * (receiver @ turn_s.T + velocity @ turn_r.T) / SPEED_OF_LIGHT
+        along = s_dot_vs - receiver @ vs.T - velocity @ s.T + np.sum(receiver * velocity, axis=-1)[..., None]
+        sagnac = receiver @ turn_s.T + velocity @ turn_r.T
         rates: FloatArray = along / distance + sagnac + states[..., DRIFT, None] + self.known_mps
         return rates
 
     def variances(self) -> np.ndarray:
         return self.std_mps**2
+
+    @functools.cached_property
+    def _geometry(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per satellite, computed once per model: |s|^2, s . v_s, and the Sagnac rate's rows (m, 3) that
+        multiply the receiver's position and velocity (omega / c included)."""
+        s, vs = self.sat_position, self.sat_velocity
+        zeros = np.zeros(len(s))
+        scale = OMEGA_EARTH / SPEED_OF_LIGHT
+        turn_s = scale * np.stack([-vs[:, 1], vs[:, 0], zeros], axis=1)  # omega x-terms of v_s with r
+        turn_r = scale * np.stack([-s[:, 1], s[:, 0], zeros], axis=1)  # ... and of s with v_r
+        return np.sum(s * s, axis=1), np.sum(s * vs, axis=1), turn_s, turn_r

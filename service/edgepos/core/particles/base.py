@@ -8,12 +8,14 @@ averaged on the circle. Everything is plain numpy with the particle axis first, 
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+from scipy.linalg import solve_triangular
 
 from edgepos.core.errors import NumericalError
 from edgepos.core.numerics import FloatArray
@@ -59,15 +61,25 @@ class Measurement:
 
     def component_log_likelihoods(self, residual: np.ndarray) -> np.ndarray:
         """log of each component's mixture density (..., m)."""
-        p = self.outlier_probability
-        inlier = math.log1p(-p) - 0.5 * (
-            residual * residual / self.variances + np.log(self.variances) + _LOG_2PI
+        inlier_scale, inlier_offset, outlier_scale, outlier_offset = self._mixture
+        squared = residual * residual
+        mixture: FloatArray = np.logaddexp(
+            squared * inlier_scale + inlier_offset, squared * outlier_scale + outlier_offset
         )
-        outlier = math.log(p) - 0.5 * (
-            residual * residual / self.outlier_variance + np.log(self.outlier_variance) + _LOG_2PI
-        )
-        mixture: FloatArray = np.logaddexp(inlier, outlier)
         return mixture
+
+    @functools.cached_property
+    def _mixture(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The two Gaussians' log-densities as a r^2 + b per component, computed once per measurement: log
+        (1 - p) - (r^2 / v + log v + log 2 pi) / 2 for the inlier, the same with p and the outlier variance."""
+        p = self.outlier_probability
+        outlier = np.broadcast_to(np.asarray(self.outlier_variance, float), self.variances.shape)
+        return (
+            -0.5 / self.variances,
+            math.log1p(-p) - 0.5 * (np.log(self.variances) + _LOG_2PI),
+            -0.5 / outlier,
+            math.log(p) - 0.5 * (np.log(outlier) + _LOG_2PI),
+        )
 
 
 @dataclass
@@ -168,9 +180,11 @@ def batched_cholesky(matrices: np.ndarray) -> np.ndarray:
 
 def gaussian_logpdf(deviation: np.ndarray, chol: np.ndarray) -> np.ndarray:
     """log N(deviation; 0, L L^T) for deviations (..., k) and lower factors (k, k) or (..., k, k)."""
-    if chol.ndim == 2:
-        chol = np.broadcast_to(chol, deviation.shape[:-1] + chol.shape)
-    whitened = np.linalg.solve(chol, deviation[..., None])[..., 0]
+    if chol.ndim == 2:  # one factor for all: one triangular solve, not a batch of general ones
+        flat = deviation.reshape(-1, deviation.shape[-1])
+        whitened = solve_triangular(chol, flat.T, lower=True, check_finite=False).T.reshape(deviation.shape)
+    else:
+        whitened = np.linalg.solve(chol, deviation[..., None])[..., 0]
     log_det = np.sum(np.log(np.diagonal(chol, axis1=-2, axis2=-1)), axis=-1)
     k = deviation.shape[-1]
     log_pdf: FloatArray = -0.5 * np.sum(whitened * whitened, axis=-1) - log_det - 0.5 * k * _LOG_2PI
@@ -264,7 +278,8 @@ class UnscentedStep:
 @dataclass(frozen=True)
 class UnscentedUpdate:
     """The measurement update of N Gaussians: posterior means (N, D) and covariances (N, k, k) of the
-    active components, predicted measurements (N, m) and their covariances (N, m, m)."""
+    active components, predicted measurements (N, m) and their covariances (N, m, m); the covariances are
+    (k, k) and (m, m) when all share them (:func:`shared_unscented_update`)."""
 
     posterior: np.ndarray
     posterior_cov: np.ndarray
@@ -334,6 +349,58 @@ def unscented_update(
         posterior[:, index] = wrap(posterior[:, index], active_angles)
     posterior = model.complete(posterior)
     posterior_cov = 0.5 * (posterior_cov + np.swapaxes(posterior_cov, -1, -2))
+    if not (np.all(np.isfinite(posterior)) and np.all(np.isfinite(posterior_cov))):
+        raise NumericalError("the measurement update is not finite")
+    return UnscentedUpdate(posterior, posterior_cov, z_hat, z_cov)
+
+
+def shared_unscented_update(
+    predicted: np.ndarray,
+    predicted_cov: np.ndarray,
+    model: ParticleModel,
+    active: np.ndarray,
+    angles: np.ndarray,
+    measurement: Measurement,
+    reference: np.ndarray,
+    weights: SigmaWeights | None = None,
+) -> UnscentedUpdate:
+    """:func:`unscented_update` of N Gaussians that share one covariance (k, k), with the sigma-point
+    deviations taken once, around ``reference`` (D,), instead of around every mean.
+
+    With a shared covariance the state deviations of the sigma points are the same for every particle;
+    their measurement deviations differ only through h's curvature over the distance between the particles
+    (metres, against 20,000 km to a satellite: micrometres of range). So one innovation covariance, gain
+    and posterior covariance serve all, and each particle's predicted measurement is h at its own mean plus
+    the reference's second-order sigma-point term. h is evaluated at N + 2k + 1 states instead of
+    N (2k + 1), and one (m, m) system is solved instead of N. Exact for a linear h. Returns the posterior
+    means (N, D), and the posterior covariance (k, k), predicted measurements (N, m) and their covariance
+    (m, m) shared by all."""
+    index = np.flatnonzero(active)
+    weights = weights or SigmaWeights(len(index))
+    wm, wc = weights.mean, weights.cov
+    active_angles = angles[index]
+    count = len(predicted)
+    points = sigma_points(reference[None, :], batched_cholesky(predicted_cov), active, weights)[0]
+    predictions = measurement.predict(np.concatenate([predicted, points]))
+    z_points = predictions[count:]
+    z_ref = wm @ z_points
+    z_hat = predictions[:count] + (z_ref - z_points[0])
+    dz = z_points - z_ref
+    dx = wrap(points[:, index] - reference[index], active_angles)
+    z_cov = (dz.T * wc) @ dz + np.diag(measurement.variances)
+    cross = (dx.T * wc) @ dz
+    posterior = predicted.copy()
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):  # non-finite results raise below
+        try:
+            gain = np.linalg.solve(z_cov, cross.T).T  # (k, m)
+        except np.linalg.LinAlgError:
+            raise NumericalError("singular innovation covariance") from None
+        posterior[:, index] += (measurement.z - z_hat) @ gain.T
+        posterior_cov = predicted_cov - gain @ cross.T
+    if active_angles.any():
+        posterior[:, index] = wrap(posterior[:, index], active_angles)
+    posterior = model.complete(posterior)
+    posterior_cov = 0.5 * (posterior_cov + posterior_cov.T)
     if not (np.all(np.isfinite(posterior)) and np.all(np.isfinite(posterior_cov))):
         raise NumericalError("the measurement update is not finite")
     return UnscentedUpdate(posterior, posterior_cov, z_hat, z_cov)

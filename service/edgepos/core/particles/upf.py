@@ -23,6 +23,16 @@ tens of seconds in a street canyon.
 
 The proposal is the Gaussian UKF update; a heavy-tailed likelihood (``Measurement.outlier_probability``)
 enters the importance weights only.
+
+The particles' UKF updates share one linearisation (``shared_linearisation``, the default): with one
+covariance for all, their sigma points differ only by where they are centred, and over the metres between
+particles the measurement function's curvature (range / 20,000 km) changes the deviations by micrometres.
+So the sigma-point deviations, innovation covariance, gain and posterior covariance are computed once, at
+the cloud's mean carried over the step (the time update's central sigma point), and each particle's
+predicted measurement is h at its own centre plus the second-order sigma-point term: h at N + 2k + 1 states
+instead of N (2k + 1), one (m, m) solve instead of N. The per-particle update stays as the reference it is
+tested against (tests/core/test_core_upf_shared.py: the same particles to a millimetre, weights to 1 %,
+estimate to 0.1 mm, on the pipeline's range models).
 """
 
 from __future__ import annotations
@@ -46,6 +56,7 @@ from edgepos.core.particles.base import (
     nis,
     normalise,
     regularised_resample,
+    shared_unscented_update,
     unscented_predict,
     unscented_update,
     weighted_moments,
@@ -57,20 +68,32 @@ def predicted_own_covariance(cloud: Cloud, model: ParticleModel, dt: float, acti
     """The particles' own covariance carried over ``dt`` (k, k): the UKF time update of N(weighted mean,
     cloud.cov). The dynamics are nearly linear over a step and the particles close together, so one
     linearisation point serves every particle."""
+    return _own_prediction(cloud, model, dt, active)[1]
+
+
+def _own_prediction(
+    cloud: Cloud, model: ParticleModel, dt: float, active: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The cloud's weighted mean carried over ``dt`` (D,), where the shared update linearises, and
+    :func:`predicted_own_covariance`."""
     centre, _ = weighted_moments(cloud.particles, cloud.weights, ANGLES)
-    _, _, cov = unscented_predict(centre[None, :], cloud.cov, model, dt, active, ANGLES)
+    moved, _, cov = unscented_predict(centre[None, :], cloud.cov, model, dt, active, ANGLES)
     own: FloatArray = cov[0]
-    return own
+    return model.complete(wrap(moved, ANGLES))[0], own
 
 
 @dataclass(frozen=True)
 class UnscentedParticleFilter:
     """UKF proposal per particle. ``resample_threshold``: the ESS fraction that triggers resampling;
     ``spread_fraction``: the fraction of each proposal's covariance the particles carry as their spread
-    (the rest stays their own covariance)."""
+    (the rest stays their own covariance); ``shared_linearisation``: the particles' UKF updates take their
+    sigma-point deviations once, at the cloud's propagated mean (``base.shared_unscented_update``, the particles
+    sharing one covariance and lying metres apart), instead of around each particle (False: the
+    reference the shared one is tested against, about 20 times slower with 200 particles)."""
 
     resample_threshold: float = 0.5
     spread_fraction: float = 0.02
+    shared_linearisation: bool = True
     name = "upf"
 
     def covariance(self, cloud: Cloud) -> np.ndarray:
@@ -91,7 +114,7 @@ class UnscentedParticleFilter:
         index = np.flatnonzero(active)
         count = len(cloud.particles)
         angles = ANGLES[index]
-        predicted_cov = predicted_own_covariance(cloud, model, dt, active)
+        reference, predicted_cov = _own_prediction(cloud, model, dt, active)
         centres = model.complete(wrap(model.propagate(cloud.particles, dt), ANGLES))
         if measurement is None:
             own = embed(cloud.cov, predicted_cov, active)
@@ -100,9 +123,18 @@ class UnscentedParticleFilter:
             return StepResult(Cloud(centres, cloud.log_weights, own), mean, spread + own, None, ess, False)
 
         gaussian = replace(measurement, outlier_probability=0.0, outlier_variance=0.0)
-        update = unscented_update(centres, predicted_cov, model, active, ANGLES, gaussian)
+        if self.shared_linearisation:
+            update = shared_unscented_update(
+                centres, predicted_cov, model, active, ANGLES, gaussian, reference
+            )
+        else:
+            update = unscented_update(centres, predicted_cov, model, active, ANGLES, gaussian)
         proposal_chol = batched_cholesky(update.posterior_cov)
-        deviation = (proposal_chol @ rng.standard_normal((count, len(index), 1)))[:, :, 0]
+        draws = rng.standard_normal((count, len(index), 1))
+        if proposal_chol.ndim == 2:
+            deviation = draws[:, :, 0] @ proposal_chol.T
+        else:
+            deviation = (proposal_chol @ draws)[:, :, 0]
         sampled = update.posterior.copy()
         sampled[:, index] += deviation
         sampled = model.complete(wrap(sampled, ANGLES))
@@ -123,7 +155,11 @@ class UnscentedParticleFilter:
         particles = update.posterior.copy()
         particles[:, index] += math.sqrt(fraction) * deviation
         particles = model.complete(wrap(particles, ANGLES))
-        own = embed(cloud.cov, (1.0 - fraction) * np.tensordot(weights, update.posterior_cov, axes=1), active)
+        if update.posterior_cov.ndim == 2:
+            posterior_cov = update.posterior_cov  # shared: the weighted average of one matrix
+        else:
+            posterior_cov = np.tensordot(weights, update.posterior_cov, axes=1)
+        own = embed(cloud.cov, (1.0 - fraction) * posterior_cov, active)
         mean, spread = weighted_moments(particles, weights, ANGLES)
         ess = effective_sample_size(log_weights)
         resampled = ess < self.resample_threshold * count
@@ -140,5 +176,6 @@ def _innovation_score(
     update)."""
     mean = weights @ z_hat
     spread = z_hat - mean
-    cov = np.tensordot(weights, z_cov, axes=1) + (spread * weights[:, None]).T @ spread
+    shared = z_cov if z_cov.ndim == 2 else np.tensordot(weights, z_cov, axes=1)
+    cov = shared + (spread * weights[:, None]).T @ spread
     return nis(measurement.z - mean, cov)
