@@ -298,6 +298,7 @@ def gnss_inputs(epochs: int) -> tuple[list[list[PseudorangeObservation]], Static
     from edgepos.gnss.ephemerides import Ephemerides
     from edgepos.gnss.rinex_nav import read_navigation
     from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
+    from edgepos.pipelines.gnss_recording import epoch_pseudoranges
 
     codes = {s: DEFAULT_CODES[s] for s in "GCE"}
     navigation = Ephemerides.from_navigation(read_navigation(str(GNSS_DATA / "broadcast-nav.rnx")))
@@ -305,21 +306,7 @@ def gnss_inputs(epochs: int) -> tuple[list[list[PseudorangeObservation]], Static
     for number, epoch in enumerate(read_epochs(str(GNSS_DATA / "rover-0-5min.rnx"), codes)):
         if number >= epochs:
             break
-        out.append(
-            [
-                PseudorangeObservation(
-                    epoch.gpst % 604800.0,
-                    system,
-                    int(prn),
-                    float(pr),
-                    float(cn0) if math.isfinite(cn0) else 0.0,
-                )
-                for system, prn, pr, cn0 in zip(
-                    epoch.systems, epoch.prns, epoch.pseudorange_m, epoch.cn0_dbhz
-                )
-                if math.isfinite(pr) and 1.0e6 <= pr <= 1.0e8
-            ]
-        )
+        out.append(epoch_pseudoranges(epoch, doppler=False, carrier=False))  # code only, as the model's rows
         gpst.append(float(epoch.gpst))
     return out, StaticEnvironment(navigation=navigation), gpst
 

@@ -12,7 +12,6 @@ milliseconds per epoch of each repetition and of all.
 from __future__ import annotations
 
 import argparse
-import math
 import statistics
 import time
 from pathlib import Path
@@ -22,6 +21,7 @@ from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
 from edgepos.pipelines.base import StaticEnvironment
+from edgepos.pipelines.gnss_recording import epoch_pseudoranges
 from edgepos.pipelines.gnss_tight import GnssTightPipeline
 
 DATA = Path(__file__).resolve().parent.parent / "tests" / "data" / "gnss-rover"
@@ -40,29 +40,7 @@ def load(epochs: int) -> tuple[list[list[PseudorangeObservation]], StaticEnviron
     for number, epoch in enumerate(read_epochs(str(DATA / "rover-0-5min.rnx"), codes)):
         if number >= epochs:
             break
-        out.append(
-            [
-                PseudorangeObservation(
-                    epoch.gpst % 604800.0,
-                    s,
-                    int(prn),
-                    float(pr),
-                    float(cn0) if math.isfinite(cn0) else 0.0,
-                    doppler_hz=float(d) if math.isfinite(d) else None,
-                    carrier_cycles=float(cycles) if math.isfinite(cycles) else None,
-                    lli=int(lli),
-                )
-                for s, prn, pr, cn0, d, cycles, lli in zip(
-                    epoch.systems,
-                    epoch.prns,
-                    epoch.pseudorange_m,
-                    epoch.cn0_dbhz,
-                    epoch.doppler_hz,
-                    epoch.carrier_cycles,
-                    epoch.lli,
-                )
-            ]
-        )
+        out.append(epoch_pseudoranges(epoch))
     return out, environment
 
 
