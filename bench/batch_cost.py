@@ -361,7 +361,12 @@ def pseudorange_subset(epoch: Sequence[PseudorangeObservation], count: int) -> l
     return chosen
 
 
-GNSS_PARTICLES = (50, 200, 1000, 5000)
+GNSS_PARTICLES = (
+    50,
+    200,
+    next(s.maximum for s in get_pipeline("gnss_tight").option_specs() if s.name == "particles"),
+)
+"""Particle counts timed: a few, the default and the most a session may ask for."""
 PF_WORST = "pf: 8 likelihood stages forced"
 """Note of the cases timed with the PF's progressive correction forced to its most stages (the cost model's
 assumption for the PF)."""
@@ -374,7 +379,7 @@ def gnss_cases(quick: bool) -> Iterator[Case]:
     pipeline = get_pipeline("gnss_tight")
     warmup = 12
     configs: list[tuple[str, int]] = [("ukf", 1)]
-    particles = GNSS_PARTICLES if not quick else (200, 1000)
+    particles = GNSS_PARTICLES if not quick else GNSS_PARTICLES[1:]
     configs += [(f, n) for f in ("pf", "upf") for n in particles]
     for filter_name, count in configs:
         options = {"filter": filter_name, "seed": 1}
@@ -385,17 +390,14 @@ def gnss_cases(quick: bool) -> Iterator[Case]:
         fresh = pipeline.create(resolved, None)
         after_init = advance("gnss_tight", fresh, epochs[:1], env)
         converged = advance("gnss_tight", after_init, epochs[1:warmup], env)
-        big = count >= 5000
-        sizes = (1,) if big else ((1, 3) if count >= 1000 else (1, 5, 20))
+        sizes = (1, 3) if count > 200 else (1, 5, 20)
         for prs in GNSS_PSEUDORANGES:
             for size in sizes:
                 batch = flatten(pseudorange_subset(e, prs) for e in epochs[warmup : warmup + size])
                 yield Case("gnss_tight", f"{label} {prs}pr", options, converged, batch, env)
         if filter_name == "pf":
             for prs in (6, 22, 40):
-                batch = flatten(
-                    pseudorange_subset(e, prs) for e in epochs[warmup : warmup + (1 if big else 3)]
-                )
+                batch = flatten(pseudorange_subset(e, prs) for e in epochs[warmup : warmup + 3])
                 yield Case(
                     "gnss_tight", f"{label} {prs}pr 8 stages forced", options, converged, batch, env, PF_WORST
                 )
@@ -449,7 +451,7 @@ def gnss_cases(quick: bool) -> Iterator[Case]:
         index = {round(g[0].t, 3): n for n, g in enumerate(grouped)}
         start = index[round(epochs[warmup][0].t, 3)]
         riss_state = advance("gnss_tight", fresh, grouped[:start], env)
-        sizes = (10,) if big else (10, 30)
+        sizes = (10, 30)
         for size in sizes:
             yield Case(
                 "gnss_tight",

@@ -10,8 +10,11 @@ import numpy as np
 import pytest
 from apihelp import ADMIN, NO_DOPPLER, assert_error, make_settings, open_session
 from edgepos.api.app import create_app
+from edgepos.core.observations import PseudorangeObservation
 from edgepos.gnss.ephemerides import DEFAULT_SIGNAL, parse_ephemerides
 from edgepos.gnss.orbits import group_delay_factors
+from edgepos.pipelines import cost
+from edgepos.pipelines.registry import get_pipeline
 from fastapi.testclient import TestClient
 from gnsswire import QUICK, epochs, horizontal_error, measurements, nav_text, with_carrier, with_doppler
 
@@ -401,21 +404,42 @@ def test_dopplers_are_used_and_reported(client):
     )
 
 
-def test_an_epoch_too_costly_with_its_dopplers_is_refused_saying_what_to_change(client):
-    """At the defaults (UPF, 200 particles) one epoch of 40 pseudoranges, each with a Doppler, is predicted
-    over the default CPU budget (each Doppler adds an update row; 54 ms against 50 ms, 30 ms without the
-    Dopplers): 422 saying so and what to change, the session unchanged."""
-    assert upload(client).status_code == 200
-    session_id, token = open_session(client, pipeline="gnss_tight", options={"seed": 1})
+def test_an_epoch_too_costly_with_its_dopplers_is_refused_saying_what_to_change(tmp_path):
+    """On a server whose CPU budget per batch sits between the predicted cost of one epoch of 40 pseudoranges
+    at the defaults (UPF, 200 particles) without their Dopplers and with them (each Doppler adds an update
+    row), that epoch with Dopplers is refused: 422 saying so and what to change, the session unchanged."""
+    pipeline = get_pipeline("gnss_tight")
+    options = pipeline.resolve_options({"seed": 1})
     template = measurements(0, 1)[0]
     sats = [("G", prn) for prn in range(1, 33)] + [("C", prn) for prn in range(1, 9)]
     epoch = [{**template, "system": system, "prn": prn, "doppler_hz": 100.0} for system, prn in sats]
-    error = assert_error(post(client, session_id, token, 1, epoch), 422, "invalid_request")
-    assert "too costly" in error["message"]
-    assert "one epoch like these alone" in error["problems"][0]["reason"]
-    assert "use_doppler" in error["problems"][0]["reason"]
-    described = client.get(f"/v1/sessions/{session_id}", headers=token).json()
-    assert described["last_seq"] == 0 and described["epochs"] == 0
+    with_doppler = cost.batch_cost_s("gnss_tight", options, [_observation(m) for m in epoch])
+    without = max(
+        cost.batch_cost_s("gnss_tight", options, [_observation({**m, "doppler_hz": None}) for m in epoch]),
+        cost.epoch_cost_s("gnss_tight", options, {"pseudorange": 40, "riss": 4}),  # what a session must fit
+    )
+    assert without < with_doppler
+    budget_ms = 1e3 * (without + with_doppler) / 2
+    with TestClient(create_app(make_settings(tmp_path, batch_cpu_budget_ms=budget_ms))) as client:
+        assert upload(client).status_code == 200
+        session_id, token = open_session(client, pipeline="gnss_tight", options={"seed": 1})
+        error = assert_error(post(client, session_id, token, 1, epoch), 422, "invalid_request")
+        assert "too costly" in error["message"]
+        assert "one epoch like these alone" in error["problems"][0]["reason"]
+        assert "use_doppler" in error["problems"][0]["reason"]
+        described = client.get(f"/v1/sessions/{session_id}", headers=token).json()
+        assert described["last_seq"] == 0 and described["epochs"] == 0
+
+
+def _observation(wire: dict) -> PseudorangeObservation:
+    return PseudorangeObservation(
+        wire["t"],
+        wire["system"],
+        wire["prn"],
+        wire["pseudorange_m"],
+        wire["cn0_dbhz"],
+        doppler_hz=wire["doppler_hz"],
+    )
 
 
 def test_riss_samples_drive_the_motion_model(client):
