@@ -22,11 +22,10 @@ timeouts (one reconnect attempt), never as a hang.
 from __future__ import annotations
 
 import asyncio
-import json
 import math
 import secrets
 import time
-from collections.abc import AsyncGenerator, AsyncIterator, Iterable, Mapping, Sequence
+from collections.abc import AsyncGenerator, AsyncIterator, Iterable, Mapping
 from contextlib import asynccontextmanager
 from typing import Any
 from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
@@ -56,6 +55,14 @@ from edgepos.store.base import (
 from edgepos.store.fixlog import FixLog
 from edgepos.store.ratelimit import SLACK_S, RateLimit, gcra
 from edgepos.store.redis_base import RedisBaseStations
+from edgepos.store.redis_records import (
+    RECORD_FIELDS,
+    SUMMARY_FIELDS,
+    record_fields,
+    record_from_hash,
+    record_pairs,
+    summary_from_fields,
+)
 from edgepos.store.redis_registry import RedisRegistry
 
 DEFAULT_PREFIX = "edgepos:"
@@ -121,91 +128,6 @@ def parse_url(url: str) -> tuple[str, str]:
     query.setdefault("max_connections", str(DEFAULT_MAX_CONNECTIONS))
     query.setdefault("timeout", str(DEFAULT_POOL_TIMEOUT_S))
     return urlunsplit(parts._replace(query=urlencode(query))), prefix
-
-
-def _pairs(record: SessionRecord, version: int) -> list[tuple[bytes, bytes]]:
-    """The record's hash fields as bytes (absent optional values are left out)."""
-    pairs: list[tuple[str, str | bytes]] = [
-        ("vehicle_id", record.vehicle_id),
-        ("pipeline", record.pipeline),
-        ("options", json.dumps(record.options, allow_nan=False)),
-        ("token_hash", record.token_hash),
-        ("state", bytes(record.state)),
-        ("created_at", repr(float(record.created_at))),
-        ("updated_at", repr(float(record.updated_at))),
-        ("last_seq", str(int(record.last_seq))),
-        ("batches", str(int(record.batches))),
-        ("epochs", str(int(record.epochs))),
-        ("version", str(int(version))),
-    ]
-    optional = (
-        ("last_request_hash", record.last_request_hash),
-        ("last_response", None if record.last_response is None else bytes(record.last_response)),
-        ("last_fix", record.last_fix),
-    )
-    pairs.extend((name, value) for name, value in optional if value is not None)
-    return [(name.encode(), value if isinstance(value, bytes) else value.encode()) for name, value in pairs]
-
-
-def _fields(record: SessionRecord, version: int) -> list[bytes]:
-    """The record as a flat field/value list for HSET."""
-    return [item for pair in _pairs(record, version) for item in pair]
-
-
-def _record(session_id: str, raw: Mapping[bytes, bytes]) -> SessionRecord:
-    """A record from the hash HGETALL returned (keys and values are bytes)."""
-    text = {key.decode(): value for key, value in raw.items()}
-
-    def optional_text(name: str) -> str | None:
-        value = text.get(name)
-        return None if value is None else value.decode()
-
-    return SessionRecord(
-        session_id=session_id,
-        vehicle_id=text["vehicle_id"].decode(),
-        pipeline=text["pipeline"].decode(),
-        options=json.loads(text["options"]),
-        token_hash=text["token_hash"].decode(),
-        state=bytes(text["state"]),
-        created_at=float(text["created_at"]),
-        updated_at=float(text["updated_at"]),
-        last_seq=int(text["last_seq"]),
-        last_request_hash=optional_text("last_request_hash"),
-        last_response=text.get("last_response"),
-        batches=int(text["batches"]),
-        epochs=int(text["epochs"]),
-        last_fix=optional_text("last_fix"),
-        version=int(text["version"]),
-    )
-
-
-_RECORD_FIELDS = (
-    "vehicle_id", "pipeline", "options", "token_hash", "state", "created_at", "updated_at", "last_seq",
-    "batches", "epochs", "version", "last_request_hash", "last_fix",
-)  # fmt: skip
-"""The hash fields of a record but its stored answer (``last_response``), for ``get(with_response=False)``."""
-
-_SUMMARY_FIELDS = (
-    "vehicle_id", "pipeline", "created_at", "updated_at", "last_seq", "batches", "epochs", "last_fix"
-)  # fmt: skip
-
-
-def _summary(session_id: str, values: Sequence[bytes | None]) -> SessionSummary | None:
-    """A summary from HMGET of :data:`_SUMMARY_FIELDS`; None when the session hash is gone."""
-    vehicle, pipeline, created, updated, last_seq, batches, epochs, last_fix = values
-    if vehicle is None or pipeline is None or created is None or updated is None:
-        return None
-    return SessionSummary(
-        session_id=session_id,
-        vehicle_id=vehicle.decode(),
-        pipeline=pipeline.decode(),
-        created_at=float(created),
-        updated_at=float(updated),
-        last_seq=int(last_seq or 0),
-        batches=int(batches or 0),
-        epochs=int(epochs or 0),
-        last_fix=None if last_fix is None else last_fix.decode(),
-    )
 
 
 class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
@@ -387,14 +309,14 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
                     "" if vehicle_key_hash is None else vehicle_key_hash,
                     self._superseded_key(record.session_id)[: -len(record.session_id)],
                     repr(float(self.clock())),
-                    *_fields(record, record.version),
+                    *record_fields(record, record.version),
                 ],
                 client=client,
             )
             code = int(outcome[0])
             # A reconnect retry may resend a create that had already been applied: that one is ours
             # (which session it superseded, if any, is then not known any more).
-            ours = code == -1 and await client.hgetall(key) == dict(_pairs(record, record.version))
+            ours = code == -1 and await client.hgetall(key) == dict(record_pairs(record, record.version))
         if code == -3:
             raise VehicleNotRegistered(record.vehicle_id)
         if code == -2:
@@ -454,10 +376,10 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
                 chunk = candidates[start : start + step]
                 async with client.pipeline(transaction=False) as pipe:
                     for sid in chunk:
-                        pipe.hmget(self._session_key(sid), list(_SUMMARY_FIELDS))
+                        pipe.hmget(self._session_key(sid), list(SUMMARY_FIELDS))
                     replies = await pipe.execute()
                 for sid, values in zip(chunk, replies):
-                    summary = _summary(sid, values)
+                    summary = summary_from_fields(sid, values)
                     if summary is None or now - summary.updated_at > self.ttl_s:
                         continue  # vanished or expired since the index was read
                     if pipeline is not None and summary.pipeline != pipeline:
@@ -481,13 +403,13 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
             if with_response:
                 raw = await client.hgetall(key)
             else:
-                values = await client.hmget(key, _RECORD_FIELDS)
+                values = await client.hmget(key, RECORD_FIELDS)
                 raw = {
-                    name.encode(): value for name, value in zip(_RECORD_FIELDS, values) if value is not None
+                    name.encode(): value for name, value in zip(RECORD_FIELDS, values) if value is not None
                 }
         if not raw:
             return None
-        record = _record(session_id, raw)
+        record = record_from_hash(session_id, raw)
         return None if self.is_expired(record, self.clock()) else record
 
     async def compare_and_set(self, record: SessionRecord, expected_version: int) -> bool:
@@ -505,7 +427,7 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
             repr(float(record.updated_at)),
             record.session_id,
         ]
-        fields = _fields(record, expected_version + 1)
+        fields = record_fields(record, expected_version + 1)
         async with self._guard():
             applied, replicas = await self._staged_write(await self._redis(), keys, args, fields)
         if applied < 0:
