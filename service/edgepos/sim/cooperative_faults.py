@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from edgepos.pipelines.base import NeighbourTrack
-from edgepos.sim.faults import EARLIEST_START_S, FaultEvent
+from edgepos.sim.faults import EARLIEST_START_S, FaultEvent, add_fault_flags
 
 
 @dataclass(frozen=True)
@@ -73,31 +73,19 @@ def draw(
 def add_neighbour_fault_arguments(parser: argparse.ArgumentParser) -> None:
     """``--faults`` and the rate, size and duration of the injected neighbour faults."""
     defaults = NeighbourFaults()
-    parser.add_argument(
-        "--faults",
-        action="store_true",
-        help="inject a neighbour broadcasting a wrong position and report the integrity figures against it",
-    )
-    parser.add_argument(
-        "--fault-runs",
-        metavar="F",
-        type=float,
-        default=defaults.run_fraction,
-        help=f"with --faults, the fraction of runs with a fault (default {defaults.run_fraction:g})",
-    )
-    parser.add_argument(
-        "--fault-offset",
-        metavar="M",
-        type=float,
-        default=defaults.offset_m,
-        help=f"with --faults, how far off the faulty neighbour's broadcast position is (m, default {defaults.offset_m:g})",
-    )
-    parser.add_argument(
-        "--fault-duration",
-        metavar="S",
-        type=float,
-        default=defaults.duration_s,
-        help=f"with --faults, how long a fault lasts (s, default {defaults.duration_s:g})",
+    add_fault_flags(
+        parser,
+        "inject a neighbour broadcasting a wrong position and report the integrity figures against it",
+        defaults.run_fraction,
+        [
+            (
+                "--fault-offset",
+                "M",
+                defaults.offset_m,
+                "how far off the faulty neighbour's broadcast position is (m, default {default})",
+            )
+        ],
+        defaults.duration_s,
     )
 
 

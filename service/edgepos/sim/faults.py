@@ -108,41 +108,54 @@ def inject(
     return faulted, event
 
 
+def add_fault_flags(
+    parser: argparse.ArgumentParser,
+    faults_help: str,
+    run_fraction: float,
+    sizes: Sequence[tuple[str, str, float, str]],
+    duration_s: float,
+) -> None:
+    """The flags every ``edgepos eval ... --faults`` shares: ``--faults`` (``faults_help``), ``--fault-runs``,
+    one flag per fault size (flag, metavar, default, what it sets, with ``{default}`` where its default goes)
+    and ``--fault-duration``."""
+    parser.add_argument("--faults", action="store_true", help=faults_help)
+    flags = [
+        ("--fault-runs", "F", run_fraction, "the fraction of runs with a fault (default {default})"),
+        *sizes,
+        ("--fault-duration", "S", duration_s, "how long a fault lasts (s, default {default})"),
+    ]
+    for flag, metavar, default, what in flags:
+        parser.add_argument(
+            flag,
+            metavar=metavar,
+            type=float,
+            default=default,
+            help="with --faults, " + what.format(default=f"{default:g}"),
+        )
+
+
 def add_fault_arguments(parser: argparse.ArgumentParser) -> None:
     """``--faults`` and the sizes and rates of the injected faults (see :func:`faults_from`)."""
     defaults = RsuFaults()
-    parser.add_argument(
-        "--faults",
-        action="store_true",
-        help="inject RSU faults (range bias steps or bearing offsets) and report the integrity figures against them",
-    )
-    parser.add_argument(
-        "--fault-runs",
-        metavar="F",
-        type=float,
-        default=defaults.run_fraction,
-        help=f"with --faults, the fraction of runs with a fault (default {defaults.run_fraction:g})",
-    )
-    parser.add_argument(
-        "--fault-range-bias",
-        metavar="M",
-        type=float,
-        default=defaults.range_bias_m,
-        help=f"with --faults, the range step of a faulty RSU (m, default {defaults.range_bias_m:g}; 0: none)",
-    )
-    parser.add_argument(
-        "--fault-bearing-offset",
-        metavar="RAD",
-        type=float,
-        default=defaults.bearing_offset_rad,
-        help=f"with --faults, the bearing offset of a faulty RSU (rad, default {defaults.bearing_offset_rad:g}; 0: none)",
-    )
-    parser.add_argument(
-        "--fault-duration",
-        metavar="S",
-        type=float,
-        default=defaults.duration_s,
-        help=f"with --faults, how long a fault lasts (s, default {defaults.duration_s:g})",
+    add_fault_flags(
+        parser,
+        "inject RSU faults (range bias steps or bearing offsets) and report the integrity figures against them",
+        defaults.run_fraction,
+        [
+            (
+                "--fault-range-bias",
+                "M",
+                defaults.range_bias_m,
+                "the range step of a faulty RSU (m, default {default}; 0: none)",
+            ),
+            (
+                "--fault-bearing-offset",
+                "RAD",
+                defaults.bearing_offset_rad,
+                "the bearing offset of a faulty RSU (rad, default {default}; 0: none)",
+            ),
+        ],
+        defaults.duration_s,
     )
 
 
