@@ -159,3 +159,15 @@ def test_base_file_without_a_position_exits_2(tmp_path: Path, capsys: pytest.Cap
         == 2
     )
     assert "maximum correction age must be in [1, 600] s" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("flags", "sent"), [((), True), (("--no-carrier",), False)])
+def test_the_receivers_carrier_phase_is_sent_unless_told_not_to(
+    tmp_path: Path, flags: tuple[str, ...], sent: bool, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The eval sends what the receiver recorded, as a vehicle client would: the phase too by default."""
+    path = tmp_path / "rinex.json"
+    arguments = ("gnss-rinex", *FILES, "--filter", "ukf", "--max-epochs", "5", "--json", str(path), *flags)
+    assert run_eval(*arguments) == 0
+    assert json.loads(path.read_text())["carrier_sent"] is sent
+    assert ("+ carrier" in capsys.readouterr().out) is sent

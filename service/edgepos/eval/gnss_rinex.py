@@ -106,10 +106,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--carrier",
         action=argparse.BooleanOptionalAction,
-        default=False,
+        default=True,
         help="send each pseudorange's carrier phase (the L observation of its signal, cycles) and loss-of-lock "
-        "indicator from the RINEX as carrier_cycles / lli (the pipeline's carrier_smoothing option says what "
-        "it does with them; default: not sent)",
+        "indicator from the RINEX as carrier_cycles / lli, as a client sends what its receiver records (the "
+        "pipeline's carrier_smoothing option says what it does with them; default: sent; --no-carrier sends "
+        "code and Doppler only)",
     )
     parser.add_argument(
         "--plots",
