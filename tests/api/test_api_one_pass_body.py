@@ -1,0 +1,172 @@
+"""Bodies validated in one pass from their bytes (``api/one_pass_body.py``): taken for valid batches, left
+for every other body, and never accepting what FastAPI's own two-pass validation refuses."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from typing import Any
+
+import pytest
+from apihelp import ADMIN, assert_error, batch_body, open_session, rsu_payload
+from edgepos.api import one_pass_body
+from edgepos.api.measurement_schemas import BatchIn
+from edgepos.api.one_pass_body import OnePassBodyRoute, one_pass_model
+from edgepos.api.routes import sessions
+from edgepos.api.session_service import batch_hash
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from pydantic import TypeAdapter, ValidationError
+
+TWO_PASS = TypeAdapter(BatchIn)
+
+
+def _two_pass(document: bytes) -> BatchIn:
+    """What FastAPI does with a JSON body: the standard library's decoding, then the model's validation."""
+    return TWO_PASS.validate_python(json.loads(document), from_attributes=True)
+
+
+def test_the_batch_route_and_session_creation_take_their_model_in_one_pass() -> None:
+    models = {
+        (route.path, method): one_pass_model(route)
+        for route in sessions.router.routes
+        if isinstance(route, OnePassBodyRoute)
+        for method in route.methods
+    }
+    assert models[("/v1/sessions/{session_id}/batches", "POST")] is BatchIn
+    assert models[("/v1/sessions", "POST")] is not None
+    assert models[("/v1/sessions/{session_id}", "GET")] is None  # no body: FastAPI's handler as is
+
+
+def test_a_valid_batch_is_not_decoded_by_the_standard_library(client, monkeypatch) -> None:
+    client.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)
+    session_id, token = open_session(client)
+
+    def refuse(*_args: Any, **_kwargs: Any) -> Any:
+        raise AssertionError("a valid batch took the usual decoding")
+
+    monkeypatch.setattr(one_pass_body, "usual_decoding", refuse)
+    response = client.post(f"/v1/sessions/{session_id}/batches", json=batch_body(1, 0, 5), headers=token)
+    assert response.status_code == 200, response.text
+    assert len(response.json()["fixes"]) == 5
+
+
+@pytest.mark.parametrize(
+    ("content", "field"),
+    [
+        (b'{"seq": 1, "measurements": [{"type": "gyro", "t": "0", "yaw_rate": 0.0}]}', "measurements[0].t"),
+        (b'{"seq": 1, "measurements": [', "body"),
+        (b'\xef\xbb\xbf{"seq": 0, "measurements": [{"type": "gyro", "t": 0.0, "yaw_rate": 0.0}]}', "seq"),
+    ],
+)
+def test_a_body_that_fails_in_one_pass_gets_fastapis_own_refusal(client, content, field) -> None:
+    session_id, token = open_session(client)
+    response = client.post(
+        f"/v1/sessions/{session_id}/batches",
+        content=content,
+        headers={**token, "content-type": "application/json"},
+    )
+    error = assert_error(response, 422, "invalid_request")
+    assert any(problem["field"].startswith(field) for problem in error["problems"]), error
+
+
+_FINITE = st.floats(allow_nan=False, allow_infinity=False, width=64)
+_NUMBER = st.one_of(_FINITE, st.integers(-(2**70), 2**70), st.sampled_from([math.inf, -math.inf, math.nan]))
+_VALUE = st.one_of(
+    _NUMBER, st.booleans(), st.none(), st.text(max_size=8), st.sampled_from(["S+000", "rsu-1"])
+)
+
+
+@st.composite
+def _measurement(draw: st.DrawFn) -> dict[str, Any]:
+    kind = draw(st.sampled_from(["rsu", "gyro", "odometer", "nonsense"]))
+    fields = {"rsu": ["t", "rsu_id", "range", "bearing"], "gyro": ["t", "yaw_rate"]}.get(kind, ["t", "speed"])
+    item: dict[str, Any] = {"type": kind}
+    for name in fields:
+        if draw(st.integers(0, 9)) > 0:  # now and then a field is missing
+            item[name] = draw(_NUMBER) if name != "rsu_id" else draw(_VALUE)
+    if draw(st.integers(0, 19)) == 0:
+        item["extra"] = draw(_VALUE)
+    return item
+
+
+@st.composite
+def _document(draw: st.DrawFn) -> bytes:
+    body: dict[str, Any] = {
+        "seq": draw(st.one_of(st.integers(-2, 2**64), _VALUE)),
+        "measurements": draw(st.lists(_measurement(), max_size=4)),
+    }
+    if draw(st.booleans()):
+        body["include_state"] = draw(_VALUE)
+    return json.dumps(body).encode()  # NaN and Infinity as the standard library writes them
+
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(_document())
+def test_one_pass_accepts_only_what_two_passes_accept_and_builds_the_same_batch(document: bytes) -> None:
+    try:
+        one = BatchIn.model_validate_json(document)
+    except ValidationError:
+        return  # the route falls back to the two passes, whose answer stands
+    two = _two_pass(document)  # must not raise: the one pass accepted it
+    assert one == two
+    for first, second in zip(one.measurements, two.measurements):
+        for name, value in first:
+            other = getattr(second, name)
+            assert type(value) is type(other) and value == other, name  # (NaN is refused by both)
+
+
+@given(st.lists(_FINITE, min_size=1, max_size=8))
+def test_floats_come_out_bit_for_bit_as_the_standard_library_reads_them(values: list[float]) -> None:
+    measurements = [{"type": "gyro", "t": 0.0, "yaw_rate": 0.0}] + [
+        {
+            "type": "rsu",
+            "t": 0.0,
+            "rsu_id": "S+000",
+            "range": abs(v) % 1e6,
+            "bearing": math.remainder(v, math.pi),
+        }
+        for v in values
+    ]
+    document = json.dumps({"seq": 1, "measurements": measurements}).encode()
+    one, two = BatchIn.model_validate_json(document), _two_pass(document)
+    for first, second in zip(one.measurements, two.measurements):
+        assert first.model_dump() == second.model_dump()
+        assert [math.copysign(1.0, v) for v in first.model_dump().values() if isinstance(v, float)] == [
+            math.copysign(1.0, v) for v in second.model_dump().values() if isinstance(v, float)
+        ]
+
+
+EVERY_TYPE = [
+    {"type": "rsu", "t": 0.5, "rsu_id": "S+000", "range": 8.875, "bearing": 1.5708},
+    {"type": "gyro", "t": 0.5, "yaw_rate": -0.01},
+    {"type": "rsu_range", "t": 0.5, "rsu_id": "S+000", "range": 8.0},
+    {"type": "gnss_fix", "t": 0.5, "x": 1.0, "y": -2.0, "std": 3.0},
+    {"type": "gnss_fix", "t": 0.5, "x": 1.0, "y": -2.0},
+    {"type": "odometer", "t": 0.5, "speed": 15.0},
+    {"type": "odometer", "t": 0.5, "distance": 3.0},
+    {"type": "v2v_range", "t": 0.5, "peer_vehicle_id": "car-2", "range": 120.0},
+    {"type": "v2v_range", "t": 0.5, "peer_vehicle_id": "car-2", "toa": 4.0e-7},
+    {"type": "pseudorange", "t": 1.0, "system": "G", "prn": 5, "pseudorange_m": 2.1e7, "cn0_dbhz": 40.0},
+    {
+        "type": "pseudorange",
+        "t": 1.0,
+        "system": "E",
+        "prn": 12,
+        "pseudorange_m": 2.4e7,
+        "cn0_dbhz": 35.5,
+        "doppler_hz": -1200.5,
+        "carrier_cycles": 1.26e8,
+        "lli": 1,
+    },
+    {"type": "riss", "t": 1.0, "wheel_speed": 10.0, "accel_x": 0.1, "accel_y": -0.2, "gyro_z": 0.01},
+]
+
+
+@pytest.mark.parametrize("include_state", [False, True])
+def test_the_batch_digest_hashes_the_same_bytes_as_the_models_json(include_state: bool) -> None:
+    """Stored digests stay valid: the faster serialisation writes what model_dump_json() writes."""
+    batch = BatchIn.model_validate({"seq": 3, "measurements": EVERY_TYPE, "include_state": include_state})
+    assert {m.type for m in batch.measurements} == {m["type"] for m in EVERY_TYPE}
+    assert batch_hash(batch) == hashlib.sha256(batch.model_dump_json().encode()).hexdigest()
