@@ -314,3 +314,18 @@ def test_a_bug_while_applying_is_a_500_frame_and_the_link_stays_open(client, mon
         assert (failed["status"], failed["body"]["error"]["code"]) == (500, "internal_error")
         assert "a bug" not in failed["body"]["error"]["message"]
         assert exchange(websocket, compact(batch_body(1, 0, 1)))["status"] == 200
+
+
+def test_a_valid_frame_is_validated_in_one_pass_without_decoding_it_first(client, monkeypatch):
+    from edgepos.api import batch_socket
+
+    client.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)
+    session_id, token = open_session(client)
+
+    def refuse(text: str) -> Any:
+        raise AssertionError(f"a valid frame was decoded first: {text[:40]}")
+
+    monkeypatch.setattr(batch_socket, "decode_frame", refuse)
+    with client.websocket_connect(ws_path(session_id), headers=token) as websocket:
+        answer = exchange(websocket, compact(batch_body(1, 0, 3)))
+    assert answer["status"] == 200, answer
