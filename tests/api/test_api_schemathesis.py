@@ -17,7 +17,7 @@ from edgepos.api.app import create_app
 from edgepos.api.settings import Settings
 from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, given, settings
-from schemathesis.checks import positive_data_acceptance
+from schemathesis.checks import negative_data_rejection, positive_data_acceptance
 
 # Schemathesis sends thousands of requests without or with wrong credentials on purpose: the failure
 # budget (tested in test_api_vehicles) is lifted so that every answer is the route's own.
@@ -34,7 +34,14 @@ client.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)
 # The fix stream's 200 never ends (server-sent events until the consumer leaves): schemathesis would wait for
 # its end forever. Its refusals and events are tested in test_api_streams.
 schema = schemathesis.openapi.from_asgi("/openapi.json", app).exclude(path="/v1/stream/fixes")
-EXCLUDED = [positive_data_acceptance]
+# Both tests send every case with a valid credential of their own, replacing an Authorization header that a
+# negative case may have dropped or mangled on purpose; and a negative query's extra parameter can be one the
+# client leaves out (a null value). The request that goes out is then valid, so "negative data must be
+# rejected" judged a valid request: it failed on GET /v1/vehicles?after=e whenever hypothesis's pool of
+# constants from the code happened to generate that case. What a route refuses is tested where each refusal
+# is specified (the test_api_* files of each route, and the fuzz tests of options, GNSS and cooperative
+# schemas); these tests hold every answer to its documented schema and status, and no answer to be a 5xx.
+EXCLUDED = [positive_data_acceptance, negative_data_rejection]
 RSU_IDS = [rsu.id for rsu in scenario().rsus]
 BOUNDED = settings(max_examples=40, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
 
