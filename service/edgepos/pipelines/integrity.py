@@ -226,8 +226,17 @@ def monitored_update(
         bank = start_bank(prior, t)
     in_use = [cast(RsuObservation, observations[i]).rsu_id for i in candidates]  # candidates are RSUs
     arrays = (measured.positions, measured.observed, measured.range_std, measured.bearing_std)
-    fix = _fix(output_of(result))
-    protection, faulty = bank.step(t, options["integrity_jerk_psd"], in_use, arrays, fix, monitor.budget)
+    output = output_of(result)
+    protection, faulty = bank.epoch(
+        t,
+        options["integrity_jerk_psd"],
+        in_use,
+        arrays,
+        output.mean,
+        output.cov,
+        _position_index(output.components),
+        monitor.budget,
+    )
     if faulty is not None and monitor.exclusion and faulty in in_use and len(candidates) > 1:
         index = candidates[in_use.index(faulty)]
         uses[index] = MeasurementUse(
