@@ -464,24 +464,46 @@ class _Plan:
         C-contiguous float64, which the bank's methods then keep them (the kernel writes them in place)."""
         bank.means = np.ascontiguousarray(bank.means, dtype=float)
         bank.covs = np.ascontiguousarray(bank.covs, dtype=float)
-        tables, threshold = budget_tables(budget, len(bank.ids) - 1)
-        tables = tables.copy()  # writable: numba types a read-only argument on its slow path, every call
-        flags = np.concatenate([bank._flags(rsu_ids), np.array(position, dtype=np.int64)])
+        excluded = frozenset(bank.excluded)
+        flags, tables, threshold, covered = _plan_arrays(
+            tuple(bank.ids), tuple(rsu_ids), excluded, budget, position
+        )
         scalars = np.zeros(STATISTIC + 1)
         scalars[JERK], scalars[THRESHOLD] = jerk_density, threshold
         return _Plan(
             bank.ids,
             list(rsu_ids),
-            frozenset(bank.excluded),
+            excluded,
             budget,
             jerk_density,
             position,
-            _covered(bank.ids, rsu_ids),
+            covered,
             flags,
             tables,
             scalars,
             _kernels().bank_epoch,
         )
+
+
+@functools.lru_cache(maxsize=1024)
+def _plan_arrays(
+    ids: tuple[str, ...],
+    rsu_ids: tuple[str, ...],
+    excluded: frozenset[str],
+    budget: IntegrityBudget,
+    position: tuple[int, int],
+) -> tuple[np.ndarray, np.ndarray, float, bool]:
+    """A plan's flags, tables, test threshold and ``covered``, shared by the banks with the same sub-filters,
+    RSUs in use, exclusions, budget and fix layout (sessions rebuild their plan every batch, the bank decoded
+    anew). The arrays are writable, since numba types a read-only argument on its slow path every call;
+    nothing writes them."""
+    index = {rsu: k for k, rsu in enumerate(ids) if k}
+    flags = np.array(
+        [index.get(rsu, -1) for rsu in rsu_ids] + [rsu in excluded for rsu in ids] + list(position),
+        dtype=np.int64,
+    )
+    tables, threshold = budget_tables(budget, len(ids) - 1)
+    return flags, tables.copy(), threshold, _covered(ids, rsu_ids)
 
 
 @functools.lru_cache(maxsize=1024)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, TypeVar, cast
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -224,7 +224,7 @@ def monitored_update(
     result = correct(measured)
     if bank is None:
         bank = start_bank(prior, t)
-    in_use = [cast(RsuObservation, observations[i]).rsu_id for i in candidates]  # candidates are RSUs
+    in_use: list[str] = [observations[i].rsu_id for i in candidates]  # type: ignore[union-attr]  # RSUs all
     arrays = (measured.positions, measured.observed, measured.range_std, measured.bearing_std)
     output = output_of(result)
     protection, faulty = bank.epoch(
