@@ -299,13 +299,6 @@ class SeparationBank:
         the kernels are enabled (``kernels_integrity.bank_epoch``), with what only changes with the RSUs in
         use, the sub-filters, the exclusions or the options kept from the epoch before (``_Plan``); else
         the numpy steps."""
-        if not _compiled():
-            x, y = position
-            fix = (float(mean[x]), float(mean[y]), float(cov[x, x]), float(cov[x, y]), float(cov[y, y]))
-            self.spawn(rsu_ids)
-            self.predict(t, jerk_density)
-            self.update_arrays(rsu_ids, *arrays)
-            return self.protect_fix(fix, budget)
         plan = self._plan
         if (  # the plan of the epoch before serves (inline: this runs every epoch of every session)
             plan is None
@@ -316,6 +309,13 @@ class SeparationBank:
             or plan.position != position
             or plan.excluded != self.excluded.keys()
         ):
+            if not _compiled():  # (a plan exists only when the kernels are enabled)
+                x, y = position
+                fix = (float(mean[x]), float(mean[y]), float(cov[x, x]), float(cov[x, y]), float(cov[y, y]))
+                self.spawn(rsu_ids)
+                self.predict(t, jerk_density)
+                self.update_arrays(rsu_ids, *arrays)
+                return self.protect_fix(fix, budget)
             self.spawn(rsu_ids)
             plan = self._plan = _Plan.make(self, rsu_ids, jerk_density, budget, position)
         scalars = plan.scalars
@@ -328,6 +328,9 @@ class SeparationBank:
             x, y = position
             fix = (float(mean[x]), float(mean[y]), float(cov[x, x]), float(cov[x, y]), float(cov[y, y]))
             return self.protect_fix(fix, budget)
+        level, worst = scalars.tolist()[LEVEL:STATISTIC]  # as _protection, inline: every epoch
+        if worst < 0.0 and level <= budget.alert_limit:  # the usual outcome: no test failed, within the limit
+            return Protection(level, OK), None
         return self._protection(scalars, budget)
 
     def _protection(self, scalars: np.ndarray, budget: IntegrityBudget) -> tuple[Protection, str | None]:
