@@ -38,7 +38,7 @@ INTEGRITY_SPECS: tuple[OptionSpec, ...] = (
         "boolean",
         True,
         "Run the integrity monitor: a protection level with every fix, RSU fault detection and exclusion "
-        "(docs/integrity.md). It adds about a quarter to the CPU time of an epoch (one sub-filter per RSU in use "
+        "(docs/integrity.md). It adds about a fifth to the CPU time of an epoch (one sub-filter per RSU in use "
         "beside the IMM); off, every fix's integrity is 'unavailable' and protection_level_m null.",
     ),
     OptionSpec(
