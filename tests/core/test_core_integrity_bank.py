@@ -170,3 +170,60 @@ def test_a_fix_without_a_proper_covariance_has_no_bound_and_the_bank_steps_on() 
     )
     assert protection.level is None and protection.state == "unavailable" and faulty is None
     assert bank.t == t
+
+
+def test_epochs_on_the_kept_plan_equal_the_numpy_steps_as_the_rsus_change(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """``SeparationBank.epoch`` keeps what the kernel needs between epochs (``_Plan``) and rebuilds it when
+    an RSU comes or goes, one is excluded or its exclusion ends: epoch by epoch the bank and the
+    protection equal the numpy steps', and the bytes round-trip with the plan left out."""
+    import copy
+
+    import edgepos.core.integrity_bank as module
+
+    *_, (_, _, _, bank) = _drive(3, 40)
+    numpy_bank = copy.deepcopy(bank)
+    budget = IntegrityBudget(1e-5, 1e-4, 1e-2, 10.0)
+    sites = {**RSUS, "D": (-40.0, 25.0)}
+    heard = [["A", "B", "C"]] * 4 + [["A", "B", "C", "D"]] * 4 + [["A", "D"]] * 6 + [["A", "B", "D"]] * 4
+    rng = np.random.default_rng(9)
+    plan, rebuilt = None, 0
+    for k, ids in enumerate(heard):
+        t = bank.t + PERIOD
+        truth = (15.0 * t, 0.0)
+        positions = np.array([sites[rsu] for rsu in ids])
+        dx, dy = truth[0] - positions[:, 0], truth[1] - positions[:, 1]
+        observed = np.column_stack(
+            [np.hypot(dx, dy) + rng.normal(0.0, RANGE_STD, len(ids)), np.arctan2(dy, dx)]
+        )
+        arrays = (positions, observed, np.full(len(ids), RANGE_STD), np.full(len(ids), BEARING_STD))
+        if k == 10:
+            bank.exclude("C", t + 3 * PERIOD)
+            numpy_bank.exclude("C", t + 3 * PERIOD)
+        for each in (bank, numpy_bank):
+            each.excluded_now(t)
+        # the reported estimate: 8 states with x and y at 0 and 3, as the pipeline's output
+        mean = np.zeros(8)
+        mean[[0, 3]] = bank.means[0, [0, 3]] + [0.1, -0.05]
+        cov = np.eye(8) * 0.05
+        cov[0, 3] = cov[3, 0] = 0.004
+        compiled = bank.epoch(t, 10.0, ids, arrays, mean, cov, (0, 3), budget)
+        rebuilt += bank._plan is not plan
+        plan = bank._plan
+        monkeypatch.setattr(module, "_compiled", lambda: False)
+        expected = numpy_bank.epoch(t, 10.0, ids, arrays, mean, cov, (0, 3), budget)
+        monkeypatch.undo()
+        assert bank.ids == numpy_bank.ids and bank.t == numpy_bank.t, k
+        assert np.allclose(bank.means, numpy_bank.means, rtol=0, atol=1e-9), k
+        assert np.allclose(bank.covs, numpy_bank.covs, rtol=0, atol=1e-12), k
+        assert compiled[1] == expected[1] and compiled[0].state == expected[0].state, k
+        assert compiled[0].level == pytest.approx(expected[0].level, rel=1e-12), k
+        bank.prune(ids)
+        numpy_bank.prune(ids)
+        assert bank.ids == numpy_bank.ids, k
+    # kept while the RSUs stay; rebuilt at the first epoch, when D comes, when B and C go, at C's
+    # exclusion and its end, when B is back (and whenever prune drops a sub-filter)
+    assert 6 <= rebuilt < len(heard) // 2, rebuilt
+    again = SeparationBank.from_bytes(bank.to_bytes())
+    assert again._plan is None and again.to_bytes() == bank.to_bytes()

@@ -39,7 +39,7 @@ from __future__ import annotations
 import functools
 import math
 import struct
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from types import ModuleType
 
@@ -95,6 +95,8 @@ class SeparationBank:
     covs: np.ndarray  # (K, 6, 6)
     t: float
     excluded: dict[str, float] = field(default_factory=dict)  # RSU id -> time (s) its exclusion ends
+    # what the last epoch's kernel call needed (not state: rebuilt after decoding, or when it no longer fits)
+    _plan: _Plan | None = field(default=None, init=False, repr=False, compare=False)
 
     @staticmethod
     def start(mean: np.ndarray, cov: np.ndarray, t: float) -> SeparationBank:
@@ -203,7 +205,10 @@ class SeparationBank:
 
     def prune(self, in_use: Sequence[str]) -> None:
         """Drop the sub-filters whose RSU is not in ``in_use`` and no longer weighs on the reference."""
-        if len(self.ids) - 1 <= len(in_use) and set(self.ids[1:]).issubset(in_use):
+        plan = self._plan
+        if plan is not None and plan.covered and plan.ids is self.ids and plan.rsu_ids == in_use:
+            return  # the RSUs the last epoch's plan was made for, every sub-filter's among them
+        if _covered(self.ids, in_use):
             return
         traces = self.covs[:, 0, 0] + self.covs[:, 3, 3]
         weighs = traces - traces[0] > CONVERGED * traces[0]
@@ -272,23 +277,60 @@ class SeparationBank:
     ) -> tuple[Protection, str | None]:
         """One epoch: :meth:`predict` to ``t``, :meth:`spawn` and :meth:`update_arrays` with the epoch's RSUs
         (``arrays``: their positions, observed range and bearing, range and bearing standard deviations),
-        then :meth:`protect_fix` for the fix (x, y, and its covariance's xx, xy, yy); on one compiled kernel
-        call when the kernels are enabled (what the pipeline runs every epoch), else those steps."""
-        self.spawn(rsu_ids)
-        if not _compiled() or not _proper(fix):  # numpy; or a fix without a bound (the bank steps on)
-            self.predict(t, jerk_density)
-            self.update_arrays(rsu_ids, *arrays)
-            return self.protect_fix(fix, budget)
-        bank_epoch = _kernels().bank_epoch
+        then :meth:`protect_fix` for the fix (x, y, and its covariance's xx, xy, yy); :meth:`epoch` with the
+        fix as a 2-vector and its 2x2 covariance."""
+        mean = np.array([fix[0], fix[1]], dtype=float)
+        cov = np.array([[fix[2], fix[3]], [fix[3], fix[4]]], dtype=float)
+        return self.epoch(t, jerk_density, rsu_ids, arrays, mean, cov, (0, 1), budget)
 
-        tables, threshold = budget_tables(budget, len(self.ids) - 1)
-        scalars = np.array([t - self.t, jerk_density, threshold, *fix, 0.0, 0.0, 0.0])
+    def epoch(
+        self,
+        t: float,
+        jerk_density: float,
+        rsu_ids: Sequence[str],
+        arrays: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+        mean: np.ndarray,
+        cov: np.ndarray,
+        position: tuple[int, int],
+        budget: IntegrityBudget,
+    ) -> tuple[Protection, str | None]:
+        """:meth:`step` for the fix of an estimate whose x and y are ``mean[position]`` with covariance
+        ``cov`` (what the pipeline has: its output Gaussian, read in place). On one compiled kernel call when
+        the kernels are enabled (``kernels_integrity.bank_epoch``), with what only changes with the RSUs in
+        use, the sub-filters, the exclusions or the options kept from the epoch before (``_Plan``); else
+        the numpy steps."""
+        plan = self._plan
+        if (  # the plan of the epoch before serves (inline: this runs every epoch of every session)
+            plan is None
+            or plan.ids is not self.ids
+            or plan.rsu_ids != rsu_ids
+            or plan.budget is not budget
+            or plan.jerk_density != jerk_density
+            or plan.position != position
+            or plan.excluded != self.excluded.keys()
+        ):
+            if not _compiled():  # (a plan exists only when the kernels are enabled)
+                x, y = position
+                fix = (float(mean[x]), float(mean[y]), float(cov[x, x]), float(cov[x, y]), float(cov[y, y]))
+                self.spawn(rsu_ids)
+                self.predict(t, jerk_density)
+                self.update_arrays(rsu_ids, *arrays)
+                return self.protect_fix(fix, budget)
+            self.spawn(rsu_ids)
+            plan = self._plan = _Plan.make(self, rsu_ids, jerk_density, budget, position)
+        scalars = plan.scalars
+        scalars[DT] = t - self.t
         self.t = max(t, self.t)
-        self.means = np.ascontiguousarray(self.means)
-        self.covs = np.ascontiguousarray(self.covs)
-        if bank_epoch(self.means, self.covs, scalars, tables, self._flags(rsu_ids), *arrays):
+        # the bank's arrays are C-contiguous float64 as every method leaves them; the estimate's are made so
+        mean, cov = np.ascontiguousarray(mean), np.ascontiguousarray(cov)
+        if plan.kernel(self.means, self.covs, scalars, plan.tables, plan.flags, *arrays, mean, cov):
             self._update_reference(rsu_ids, _data(*arrays))  # predicted already: the numpy update, the bound
+            x, y = position
+            fix = (float(mean[x]), float(mean[y]), float(cov[x, x]), float(cov[x, y]), float(cov[y, y]))
             return self.protect_fix(fix, budget)
+        level, worst = scalars.tolist()[LEVEL:STATISTIC]  # as _protection, inline: every epoch
+        if worst < 0.0 and level <= budget.alert_limit:  # the usual outcome: no test failed, within the limit
+            return Protection(level, OK), None
         return self._protection(scalars, budget)
 
     def _protection(self, scalars: np.ndarray, budget: IntegrityBudget) -> tuple[Protection, str | None]:
@@ -333,9 +375,13 @@ class SeparationBank:
 
         tables, threshold = budget_tables(budget, len(self.ids) - 1)
         scalars = np.array([0.0, 0.0, threshold, *fix, 0.0, 0.0, 0.0])
-        excluded = self._flags([])
+        excluded = np.array(self._flags([]))  # writable, as the tables: the kernel signature warm-up compiles
         bank_protect(
-            np.ascontiguousarray(self.means), np.ascontiguousarray(self.covs), scalars, tables, excluded
+            np.ascontiguousarray(self.means),
+            np.ascontiguousarray(self.covs),
+            scalars,
+            tables.copy(),
+            excluded,
         )
         return self._protection(scalars, budget)
 
@@ -382,6 +428,85 @@ class SeparationBank:
             raise ValueError("integrity bank is not finite")
         means = values[: count * DIM].reshape(count, DIM)
         return SeparationBank(ids, means, values[count * DIM :].reshape(count, DIM, DIM), t, excluded)
+
+
+def _covered(ids: Sequence[str], rsu_ids: Sequence[str]) -> bool:
+    """Whether every sub-filter's RSU (``ids[1:]``) is among ``rsu_ids`` (then ``prune`` drops none)."""
+    return len(ids) - 1 <= len(rsu_ids) and set(ids[1:]).issubset(rsu_ids)
+
+
+@dataclass
+class _Plan:
+    """What ``SeparationBank.epoch`` hands the compiled kernel besides the filters and the epoch's data: the
+    per-measurement owners, the exclusions and the fix's indices (``flags``), the radial factor tables,
+    and the scalars array with the jerk density and test threshold filled in. It changes only with the
+    RSUs in use, the sub-filters, the exclusions, the options or the fix's layout, so one serves epoch
+    after epoch; what was an allocation of id tuples, flags and scalars per epoch is a few comparisons."""
+
+    ids: list[str]  # the bank's ids list it was made for (spawn and prune replace the list, never mutate it)
+    rsu_ids: list[str]
+    excluded: frozenset[str]
+    budget: IntegrityBudget
+    jerk_density: float
+    position: tuple[int, int]
+    covered: bool  # every sub-filter's RSU is in use: prune has nothing to drop
+    flags: np.ndarray
+    tables: np.ndarray
+    scalars: np.ndarray
+    kernel: Callable[..., int]  # kernels_integrity.bank_epoch
+
+    @staticmethod
+    def make(
+        bank: SeparationBank,
+        rsu_ids: Sequence[str],
+        jerk_density: float,
+        budget: IntegrityBudget,
+        position: tuple[int, int],
+    ) -> _Plan:
+        """The plan for ``bank`` (its sub-filters spawned for ``rsu_ids`` already); makes the bank's arrays
+        C-contiguous float64, which the bank's methods then keep them (the kernel writes them in place)."""
+        bank.means = np.ascontiguousarray(bank.means, dtype=float)
+        bank.covs = np.ascontiguousarray(bank.covs, dtype=float)
+        excluded = frozenset(bank.excluded)
+        flags, tables, threshold, covered = _plan_arrays(
+            tuple(bank.ids), tuple(rsu_ids), excluded, budget, position
+        )
+        scalars = np.zeros(STATISTIC + 1)
+        scalars[JERK], scalars[THRESHOLD] = jerk_density, threshold
+        return _Plan(
+            bank.ids,
+            list(rsu_ids),
+            excluded,
+            budget,
+            jerk_density,
+            position,
+            covered,
+            flags,
+            tables,
+            scalars,
+            _kernels().bank_epoch,
+        )
+
+
+@functools.lru_cache(maxsize=1024)
+def _plan_arrays(
+    ids: tuple[str, ...],
+    rsu_ids: tuple[str, ...],
+    excluded: frozenset[str],
+    budget: IntegrityBudget,
+    position: tuple[int, int],
+) -> tuple[np.ndarray, np.ndarray, float, bool]:
+    """A plan's flags, tables, test threshold and ``covered``, shared by the banks with the same sub-filters,
+    RSUs in use, exclusions, budget and fix layout (sessions rebuild their plan every batch, the bank decoded
+    anew). The arrays are writable, since numba types a read-only argument on its slow path every call;
+    nothing writes them."""
+    index = {rsu: k for k, rsu in enumerate(ids) if k}
+    flags = np.array(
+        [index.get(rsu, -1) for rsu in rsu_ids] + [rsu in excluded for rsu in ids] + list(position),
+        dtype=np.int64,
+    )
+    tables, threshold = budget_tables(budget, len(ids) - 1)
+    return flags, tables.copy(), threshold, _covered(ids, rsu_ids)
 
 
 @functools.lru_cache(maxsize=1024)

@@ -249,13 +249,18 @@ def bank_epoch(
     observed: FloatArray,
     range_std: FloatArray,
     bearing_std: FloatArray,
+    fix_mean: FloatArray,
+    fix_cov: FloatArray,
 ) -> int:
     """One epoch of the bank in one call: ``bank_predict`` over ``scalars[DT]`` (none when it is not
     positive) with ``scalars[JERK]``, ``bank_update`` with the n RSUs of ``positions`` .. ``bearing_std``
-    (their owners in ``flags[:n]``) and ``bank_protect`` (the filters' exclusions in ``flags[n:]``).
-    Returns OK, or FAILED when the update failed: the bank is then predicted, not updated, and nothing
-    written to ``scalars`` (the caller finishes the epoch on the numpy reference). Few arguments: numba's
-    dispatch costs about half a microsecond per argument."""
+    (their owners in ``flags[:n]``), then the fix read from the reported estimate's mean and covariance
+    (x and y at the indices ``flags[n + K]`` and ``flags[n + K + 1]``, K the filters) into ``scalars``
+    and ``bank_protect`` for it (the filters' exclusions in ``flags[n:n + K]``). A fix whose position
+    covariance is not positive definite has no bound: the level written is NaN (the bank steps on).
+    Returns OK, or FAILED when the update failed: the bank is then predicted, not updated, and no
+    outcome written (the caller finishes the epoch on the numpy reference). Few arguments: numba's
+    dispatch costs about a tenth of a microsecond per array."""
     if scalars[DT] > 0.0:
         bank_predict(means, covs, scalars[DT], scalars[JERK])
     count = positions.shape[0]
@@ -264,5 +269,13 @@ def bank_epoch(
         and bank_update(means, covs, flags[:count], positions, observed, range_std, bearing_std) != OK
     ):
         return FAILED
-    bank_protect(means, covs, scalars, tables, flags[count:])
+    filters = means.shape[0]
+    x, y = flags[count + filters], flags[count + filters + 1]
+    xx, xy, yy = fix_cov[x, x], fix_cov[x, y], fix_cov[y, y]
+    scalars[FIX_X], scalars[FIX_Y] = fix_mean[x], fix_mean[y]
+    scalars[FIX_XX], scalars[FIX_XY], scalars[FIX_YY] = xx, xy, yy
+    if not (xx > 0.0 and yy > 0.0 and xx * yy > xy * xy):  # as core.integrity_bank._proper
+        scalars[LEVEL], scalars[WORST], scalars[STATISTIC] = math.nan, -1.0, 0.0
+        return OK
+    bank_protect(means, covs, scalars, tables, flags[count : count + filters])
     return OK
