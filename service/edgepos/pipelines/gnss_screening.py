@@ -38,20 +38,29 @@ def range_rate_test(
     indices: list[int],
     doppler: DopplerUses,
     predicted_cov: np.ndarray | None = None,
+    predicted: np.ndarray | None = None,
 ) -> np.ndarray:
     """The pseudorange residual test's counterpart for range rates: residual = measured - predicted, the
     median removed when three or more (one clock drift moves them all alike), else the drift's variance
     added; variance std^2 + the predicted velocity variance (trace; ``predicted_cov`` when the caller has
-    it). Returns the rows kept."""
+    it). ``predicted``: every row's range rate at ``centre`` (gnss_faults.centre_rates) when the caller has
+    it. Returns the rows kept."""
     probability = session.options["gate_probability"]
     if probability <= 0.0 or rows.size == 0:
         return rows
     assert session.anchor is not None and prs.range_rate_mps is not None
     assert prs.sat_velocity is not None and prs.sat_clock_drift is not None
-    rate_model = RangeRateModel.build(
-        session.anchor, prs.sat_position[rows], prs.sat_velocity[rows], prs.sat_clock_drift[rows], std[rows]
-    )
-    residual = prs.range_rate_mps[rows] - rate_model.predict(centre)
+    if predicted is None:
+        rate_model = RangeRateModel.build(
+            session.anchor,
+            prs.sat_position[rows],
+            prs.sat_velocity[rows],
+            prs.sat_clock_drift[rows],
+            std[rows],
+        )
+        residual = prs.range_rate_mps[rows] - rate_model.predict(centre)
+    else:
+        residual = prs.range_rate_mps[rows] - predicted[rows]
     if predicted_cov is None:
         predicted_cov = session_covariance(session) + model.process_noise(dt)
     velocity = [layout.VE, layout.VN, layout.VU]
@@ -162,20 +171,27 @@ def residual_test(
     indices: list[int],
     uses: dict[int, MeasurementUse],
     predicted_cov: np.ndarray | None = None,
+    predicted: np.ndarray | None = None,
 ) -> tuple[np.ndarray, bool]:
     """RAIM-like screening of each pseudorange against the predicted state.
 
     Residual = measured - predicted; per constellation with three or more satellites its median is
     removed (a clock error moves them all alike), otherwise the clock variance widens the test. The
     variance is std^2 plus the predicted position variance (trace). Returns the rows kept and whether the
-    prediction is lost (more than half of at least four pseudoranges fail)."""
+    prediction is lost (more than half of at least four pseudoranges fail). ``predicted``: every row's
+    pseudorange at ``centre`` when the caller has it."""
     probability = session.options["gate_probability"]
     if probability <= 0.0 or rows.size == 0:
         return rows, False
     assert session.anchor is not None
     systems = [prs.systems[r] for r in rows]
-    model_pr = PseudorangeModel.build(session.anchor, prs.sat_position[rows], systems, known[rows], std[rows])
-    residual = prs.pseudorange_m[rows] - model_pr.predict(centre)
+    if predicted is None:
+        model_pr = PseudorangeModel.build(
+            session.anchor, prs.sat_position[rows], systems, known[rows], std[rows]
+        )
+        residual = prs.pseudorange_m[rows] - model_pr.predict(centre)
+    else:
+        residual = prs.pseudorange_m[rows] - predicted[rows]
     if predicted_cov is None:
         predicted_cov = session_covariance(session) + model.process_noise(dt)
     variance = std[rows] ** 2 + float(np.trace(predicted_cov[:3, :3]))

@@ -101,12 +101,13 @@ from edgepos.pipelines.gnss_constraints import (
     with_constraints,
 )
 from edgepos.pipelines.gnss_faults import (
+    centre_rates,
     fault_settings,
     range_innovations,
     rate_innovations,
     screen,
 )
-from edgepos.pipelines.gnss_integrity import detect_and_exclude, fix_protection
+from edgepos.pipelines.gnss_integrity import detect_and_exclude, fix_protection, linearisation_ranges
 from edgepos.pipelines.gnss_integrity import enabled as integrity_enabled
 from edgepos.pipelines.gnss_motion import (
     initialise,
@@ -421,9 +422,12 @@ def _filter_epoch(
         base_std, model_name = _pseudorange_noise(options, elevation, prs.cn0_dbhz, factor)
         std = base_std * smoothing
         predicted_cov = session_covariance(session) + model.process_noise(dt)
+        # one prediction at the centre (and 1 m off it, RAIM's Jacobian) for every test of the epoch
+        ranges = linearisation_ranges(session.anchor, centre, prs.sat_position, prs.systems, known)
+        rates = centre_rates(session.anchor, centre, prs, rate_rows) if rate_rows.size else None
         fault_reasons: dict[int, str] = {}
         if rows.size and fault_settings(options)[0] > 0.0:
-            scores = range_innovations(session, centre, prs, known, std, rows, predicted_cov)
+            scores = range_innovations(session, centre, prs, known, std, rows, predicted_cov, ranges[0])
             kept, inflation, fault_reasons = screen(
                 session, t, [prs.sats[r] for r in rows], scores, rows, "range"
             )
@@ -444,7 +448,18 @@ def _filter_epoch(
             uses,
         )
         rows, lost = residual_test(
-            session, centre, prs, known, std, rows, dt, model, satellites.indices, uses, predicted_cov
+            session,
+            centre,
+            prs,
+            known,
+            std,
+            rows,
+            dt,
+            model,
+            satellites.indices,
+            uses,
+            predicted_cov,
+            ranges[0],
         )
         if lost:
             session.initialised = False
@@ -474,11 +489,12 @@ def _filter_epoch(
                 satellites.indices,
                 prs.sats,
                 uses,
+                ranges,
             )
         rate_std = float(options.get("doppler_std_mps", DEFAULT_DOPPLER_STD_MPS)) * factor
         rate_model: RangeRateModel | None = None
         if rate_rows.size and fault_settings(options)[0] > 0.0:
-            scores = rate_innovations(session, centre, prs, rate_std, rate_rows, predicted_cov)
+            scores = rate_innovations(session, centre, prs, rate_std, rate_rows, predicted_cov, rates)
             kept, inflation, rate_reasons = screen(
                 session, t, [prs.sats[r] + "/rate" for r in rate_rows], scores, rate_rows, "range rate"
             )
@@ -499,6 +515,7 @@ def _filter_epoch(
                 satellites.indices,
                 doppler,
                 predicted_cov,
+                rates,
             )
         if rate_rows.size:
             assert prs.sat_velocity is not None and prs.sat_clock_drift is not None
