@@ -19,6 +19,8 @@ from edgepos.pipelines import gnss_tight
 from edgepos.pipelines.base import Fix, StaticEnvironment
 from edgepos.pipelines.gnss_integrity import EXCLUDED
 from edgepos.pipelines.gnss_recording import epoch_pseudoranges
+from edgepos.pipelines.gnss_screening import median
+from edgepos.pipelines.gnss_tight import _left_out
 
 DATA = "tests/data/gnss-rover/"
 EPOCHS = 45
@@ -116,3 +118,19 @@ def test_shared_predictions_give_what_each_test_computes_alone(
     assert len(seen["detect_and_exclude"]) > EPOCHS // 2 and len(seen["range_rate_test"]) > EPOCHS // 2
     if options.get("fault_probability", 1.0) != 0.0:
         assert len(seen["range_innovations"]) > EPOCHS // 2 and len(seen["rate_innovations"]) > EPOCHS // 2
+
+
+def test_the_screens_median_is_numpys() -> None:
+    rng = np.random.default_rng(5)
+    for count in range(1, 12):
+        for _ in range(20):
+            values = rng.normal(0.0, 30.0, count) + rng.integers(-3, 3, count)  # with ties now and then
+            assert median(values) == float(np.median(values))
+
+
+def test_rows_left_out_are_setdiff1d() -> None:
+    rng = np.random.default_rng(6)
+    for _ in range(50):
+        rows = np.flatnonzero(rng.random(25) < 0.7)
+        kept = rows[rng.random(rows.size) < 0.8]
+        assert _left_out(rows, kept) == np.setdiff1d(rows, kept).tolist()

@@ -26,7 +26,7 @@ from edgepos.core.measurements.pseudorange import PseudorangeModel
 from edgepos.core.measurements.range_rate import RangeRateModel
 from edgepos.core.motion import riss as layout
 from edgepos.gnss.measurements import PseudorangeSet
-from edgepos.pipelines.gnss_screening import chi2_threshold
+from edgepos.pipelines.gnss_screening import chi2_threshold, median
 from edgepos.pipelines.gnss_session import GnssSession
 
 History = dict[str, list[float]]
@@ -55,7 +55,7 @@ def normalised_scores(residual: np.ndarray, variance: np.ndarray, groups: Sequen
     for group in set(groups):
         members = labels == group
         if members.sum() >= 3:
-            centred[members] -= np.median(centred[members])
+            centred[members] -= median(centred[members])
     scores: np.ndarray = centred**2 / variance
     return scores
 

@@ -66,7 +66,7 @@ def range_rate_test(
     velocity = [layout.VE, layout.VN, layout.VU]
     variance = std[rows] ** 2 + float(np.trace(predicted_cov[np.ix_(velocity, velocity)]))
     if rows.size >= 3:
-        residual = residual - np.median(residual)
+        residual = residual - median(residual)
     else:
         variance = variance + predicted_cov[layout.DRIFT, layout.DRIFT]
     score = residual**2 / variance
@@ -198,7 +198,7 @@ def residual_test(
     for system in set(systems):
         members = np.array([s == system for s in systems])
         if members.sum() >= 3:
-            residual[members] -= np.median(residual[members])
+            residual[members] -= median(residual[members])
         else:
             clock = layout.CLOCK[system]
             variance[members] += predicted_cov[clock, clock] if system in session.clock_seen else 1e12
@@ -219,6 +219,16 @@ def residual_test(
 
 
 _THRESHOLDS: dict[tuple[float, int], float] = {}
+
+
+def median(values: np.ndarray) -> float:
+    """np.median of a short 1-D array, the same value (the middle element, or the two middle ones' mean)
+    without its general machinery: the screens take several medians of a few satellites every epoch."""
+    ordered = np.sort(values)
+    half = len(ordered) // 2
+    if len(ordered) % 2:
+        return float(ordered[half])
+    return float((ordered[half - 1] + ordered[half]) / 2.0)
 
 
 def chi2_threshold(probability: float, dof: int = 1) -> float:
