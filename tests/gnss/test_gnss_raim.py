@@ -4,9 +4,11 @@ too few satellites are unavailable, and the protection level bounds the fault-fr
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
-from edgepos.core.integrity import ALARM, OK, UNAVAILABLE
+from edgepos.core.integrity import ALARM, OK, UNAVAILABLE, radial_bound
 from edgepos.gnss.raim import RaimBudget, _solve, _statistic, protection, separations
 
 BUDGET = RaimBudget(1e-5, 1e-4, 1e-4, 1e-4, 1000.0, 1.0)
@@ -100,6 +102,38 @@ def test_a_constellation_fault_points_at_the_constellation() -> None:
     assert worst is not None
     assert {names[r] for r in result.hypotheses[worst[0]][0]} == {"C"}
     assert len(result.hypotheses[worst[0]][0]) == names.count("C")
+
+
+def _level_one_by_one(result, fix_cov: np.ndarray, budget: RaimBudget) -> float:
+    """The protection level as raim.protection computed it before its hypotheses were taken as arrays."""
+    covariance = budget.inflation * fix_cov
+    covariance = 0.5 * (covariance + covariance.T)
+    fault_free = 0.5 * budget.integrity_risk
+    level = radial_bound((covariance[0, 0], covariance[0, 1], covariance[1, 1]), fault_free)
+    per_hypothesis = fault_free / max(len(result.hypotheses), 1)
+    for _, _, s, _, probability in result.hypotheses:
+        a, b, d = float(s[0, 0]), float(s[0, 1]), float(s[1, 1])
+        largest = 0.5 * (a + d) + math.hypot(0.5 * (a - d), b)
+        m = covariance + s
+        bound = result.threshold * math.sqrt(max(largest, 0.0)) + radial_bound(
+            (float(m[0, 0]), float(m[0, 1]), float(m[1, 1])), per_hypothesis / probability
+        )
+        level = max(level, bound)
+    return level
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_protection_level_is_the_one_by_one_maximum(seed: int) -> None:
+    """Satellite and constellation hypotheses with different prior fault probabilities, one of them 1e-9 (a
+    per-hypothesis probability of 1 or more needs no bound): the arrays give the loop's level exactly."""
+    h, names = _geometry(8 + 3 * seed, "GCE", seed=seed)
+    rng = np.random.default_rng(seed)
+    budget = RaimBudget(1e-5, 1e-4, 10.0 ** -rng.uniform(2, 6), 1e-9 if seed == 5 else 1e-4, 1000.0, 3.0)
+    result = separations(
+        h, names, rng.normal(0, 2, len(names)), rng.uniform(1, 3, len(names)), np.eye(3) * 9.0, budget
+    )
+    fix_cov = np.array([[2.0, 0.3 * seed - 0.5], [0.3 * seed - 0.5, 1.5 + seed]])
+    assert protection(result, fix_cov, budget).level == _level_one_by_one(result, fix_cov, budget)
 
 
 def test_too_few_satellites_are_unavailable() -> None:

@@ -30,7 +30,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from edgepos.core.integrity import ALARM, OK, UNAVAILABLE, Protection, radial_bound, test_threshold
+from edgepos.core.integrity import (
+    ALARM,
+    OK,
+    UNAVAILABLE,
+    Protection,
+    radial_bound,
+    radial_factor_table,
+    test_threshold,
+)
 
 
 @dataclass(frozen=True)
@@ -261,21 +269,51 @@ def protection(separations_: Separations, fix_cov: np.ndarray, budget: RaimBudge
     fault_free = 0.5 * budget.integrity_risk
     level = radial_bound(_matrix(covariance), fault_free)
     hypotheses = separations_.hypotheses
-    per_hypothesis = fault_free / max(len(hypotheses), 1)
-    threshold = separations_.threshold
-    for _, _, separation_cov, _, probability in hypotheses:
-        a, b, d = _matrix(separation_cov)
-        largest = 0.5 * (a + d) + math.hypot(0.5 * (a - d), b)
-        bound = threshold * math.sqrt(max(largest, 0.0)) + radial_bound(
-            _matrix(covariance + separation_cov), per_hypothesis / probability
-        )
-        level = max(level, bound)
+    if hypotheses:
+        level = max(level, _hypothesis_bound(hypotheses, covariance, fault_free, separations_.threshold))
     if not math.isfinite(level):
         return Protection(None, UNAVAILABLE)
     worst = separations_.worst()
     if worst is not None:
-        return Protection(level, ALARM, faulty=worst[0], statistic=worst[1], threshold=threshold)
+        return Protection(level, ALARM, faulty=worst[0], statistic=worst[1], threshold=separations_.threshold)
     return Protection(level, ALARM if level > budget.alert_limit else OK)
+
+
+def _hypothesis_bound(
+    hypotheses: Sequence[tuple[tuple[int, ...], np.ndarray, np.ndarray, float, float]],
+    covariance: np.ndarray,
+    fault_free: float,
+    threshold: float,
+) -> float:
+    """The largest over the hypotheses of T sqrt(lmax(S_j)) + R(k C + S_j, risk / 2 / N / p_j), all at once:
+    :func:`core.integrity.radial_bound`'s formula on arrays, with its tables (``radial_factor_table``) per
+    prior fault probability. NaN bounds are skipped, as the one-by-one maximum did."""
+    separation_cov = np.array([hypothesis[2] for hypothesis in hypotheses])
+    a, b, d = separation_cov[:, 0, 0], separation_cov[:, 0, 1], separation_cov[:, 1, 1]
+    largest = 0.5 * (a + d) + np.array(
+        [math.hypot(x, y) for x, y in zip((0.5 * (a - d)).tolist(), b.tolist())]
+    )
+    bounds = threshold * np.sqrt(np.maximum(largest, 0.0))
+    total = covariance + separation_cov
+    a, b, d = total[:, 0, 0], total[:, 0, 1], total[:, 1, 1]
+    half = 0.5 * (a - d)
+    spread = np.sqrt(half * half + b * b)
+    top = 0.5 * (a + d) + spread
+    positive = top > 0.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.minimum(np.maximum((0.5 * (a + d) - spread) / np.where(positive, top, 1.0), 0.0), 1.0)
+        root = np.sqrt(np.where(positive, top, 0.0))
+    per_hypothesis = fault_free / len(hypotheses)
+    probabilities = np.array([hypothesis[4] for hypothesis in hypotheses])
+    radial = np.zeros(len(hypotheses))
+    for probability in set(probabilities.tolist()):
+        rows = (probabilities == probability) & positive
+        table = radial_factor_table(per_hypothesis / probability)
+        slot = np.ceil(ratio[rows] * (len(table) - 1) - 1e-12).astype(int)
+        radial[rows] = table[slot] * root[rows]
+    bounds = bounds + radial
+    bounds = bounds[~np.isnan(bounds)]
+    return float(bounds.max()) if bounds.size else -math.inf
 
 
 def _matrix(m: np.ndarray) -> tuple[float, float, float]:
