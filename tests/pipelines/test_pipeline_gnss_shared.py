@@ -10,6 +10,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from edgepos.core.integrity import _radial_factors, radial_factor_table
 from edgepos.core.observations import PseudorangeObservation
 from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.raim import Separations
@@ -17,7 +18,7 @@ from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
 from edgepos.pipelines import gnss_tight
 from edgepos.pipelines.base import Fix, StaticEnvironment
-from edgepos.pipelines.gnss_integrity import EXCLUDED
+from edgepos.pipelines.gnss_integrity import EXCLUDED, WARM_HYPOTHESES, warm_up_gnss_tables
 from edgepos.pipelines.gnss_recording import epoch_pseudoranges
 from edgepos.pipelines.gnss_screening import median
 from edgepos.pipelines.gnss_tight import _left_out
@@ -134,3 +135,18 @@ def test_rows_left_out_are_setdiff1d() -> None:
         rows = np.flatnonzero(rng.random(25) < 0.7)
         kept = rows[rng.random(rows.size) < 0.8]
         assert _left_out(rows, kept) == np.setdiff1d(rows, kept).tolist()
+
+
+def test_the_warmed_up_raim_tables_serve_the_recording(recording) -> None:
+    """After the start-up warm-up, epochs of the recording (about 20 satellites, three constellations)
+    compute no radial table of their own (each would cost about 50 ms of quadrature in the filter thread)."""
+    _radial_factors.cache_clear()
+    radial_factor_table.cache_clear()
+    warm_up_gnss_tables()
+    warmed = _radial_factors.cache_info().misses
+    assert warmed == 1 + len(
+        WARM_HYPOTHESES
+    )  # the fault-free share and one per count (default P_sat = P_const)
+    fixes = _run(*recording, {"filter": "upf"})
+    assert sum(f.protection_level is not None for f in fixes) > EPOCHS // 2
+    assert _radial_factors.cache_info().misses == warmed

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from edgepos.core.integrity import UNAVAILABLE, Protection
+from edgepos.core.integrity import UNAVAILABLE, Protection, radial_factor_table
 from edgepos.core.measurements.pseudorange import PseudorangeModel
 from edgepos.core.motion import riss as layout
 from edgepos.gnss.raim import RaimBudget, Separations, protection, separations
@@ -99,6 +99,24 @@ def budget_of(options: Mapping[str, Any]) -> RaimBudget:
         float(_option(options, "alert_limit_m")),
         float(_option(options, "integrity_inflation")),
     )
+
+
+WARM_HYPOTHESES = range(8, 33)
+"""Hypothesis counts (satellites in the update + constellations) whose radial tables the service computes
+at start-up: 5 to 29 satellites with three constellations, 8 to 32 with one, what the recording in
+tests/data/gnss-rover and a car under open sky give on the defaults."""
+
+
+def warm_up_gnss_tables(hypotheses: Sequence[int] = WARM_HYPOTHESES) -> None:
+    """Tabulate the protection level's radial bounds of the default budget for each hypothesis count now:
+    each new count costs about 50 ms of quadrature (core.integrity's tables, cached per process) the first
+    time an epoch has it, which would stall the filter thread in the middle of a drive."""
+    budget = budget_of({})
+    fault_free = 0.5 * budget.integrity_risk
+    radial_factor_table(fault_free)
+    for count in hypotheses:
+        for probability in {budget.satellite_fault_probability, budget.constellation_fault_probability}:
+            radial_factor_table(fault_free / count / probability)
 
 
 def linearisation_ranges(
