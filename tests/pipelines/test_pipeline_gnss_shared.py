@@ -20,8 +20,7 @@ from edgepos.pipelines import gnss_tight
 from edgepos.pipelines.base import Fix, StaticEnvironment
 from edgepos.pipelines.gnss_integrity import EXCLUDED, WARM_HYPOTHESES, warm_up_gnss_tables
 from edgepos.pipelines.gnss_recording import epoch_pseudoranges
-from edgepos.pipelines.gnss_screening import median
-from edgepos.pipelines.gnss_tight import _left_out
+from edgepos.pipelines.gnss_screening import left_out, median
 
 DATA = "tests/data/gnss-rover/"
 EPOCHS = 45
@@ -134,7 +133,7 @@ def test_rows_left_out_are_setdiff1d() -> None:
     for _ in range(50):
         rows = np.flatnonzero(rng.random(25) < 0.7)
         kept = rows[rng.random(rows.size) < 0.8]
-        assert _left_out(rows, kept) == np.setdiff1d(rows, kept).tolist()
+        assert left_out(rows, kept) == np.setdiff1d(rows, kept).tolist()
 
 
 def test_the_warmed_up_raim_tables_serve_the_recording(recording) -> None:

@@ -13,6 +13,7 @@ from edgepos.core import state as state_format
 from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GeodeticAnchor
 from edgepos.core.particles import PARTICLE_FILTERS, Cloud
+from edgepos.core.particles.base import weighted_moments
 from edgepos.gnss.carrier import CarrierTrack, tracks_from_arrays, tracks_to_arrays
 
 PIPELINE_NAME = "gnss_tight"
@@ -134,3 +135,17 @@ def filter_for(options: Mapping[str, Any]) -> Any:
         spread = options.get("spread_fraction", 1.0)
         return cls(resample_threshold=options["resample_threshold"], spread_fraction=spread)
     return cls(resample_threshold=options["resample_threshold"])
+
+
+def cloud_moments(session: GnssSession) -> tuple[np.ndarray, np.ndarray]:
+    """The cloud's weighted mean, the azimuth averaged on the circle (a plain average of particles at +179
+    and -179 deg, a vehicle heading south, would point north), and the covariance it stands for
+    (``session_covariance``); the UPF's, its spread plus their own covariance, from the same moments."""
+    cloud = session.cloud
+    if len(cloud.particles) == 1:
+        single: np.ndarray = cloud.particles[0].copy()
+        return single, session_covariance(session)
+    mean, spread = weighted_moments(cloud.particles, cloud.weights, layout.ANGLES)
+    if session.options["filter"] == "upf":  # UnscentedParticleFilter.covariance without a second pass
+        return mean, spread + cloud.cov
+    return mean, session_covariance(session)

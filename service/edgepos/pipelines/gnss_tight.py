@@ -67,10 +67,8 @@ from edgepos.core.measurements.pseudorange import PseudorangeModel
 from edgepos.core.measurements.range_rate import RangeRateModel
 from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GnssOnlyModel
-from edgepos.core.numerics import FloatArray
 from edgepos.core.observations import Observation, PseudorangeObservation, RissObservation
-from edgepos.core.particles import Cloud, Measurement
-from edgepos.core.particles.base import weighted_moments
+from edgepos.core.particles import Measurement
 from edgepos.gnss.carrier import (
     HatchConfig,
     hatch_update,
@@ -137,6 +135,7 @@ from edgepos.pipelines.gnss_satellites import (
 )
 from edgepos.pipelines.gnss_screening import (
     DopplerUses,
+    left_out,
     range_rate_test,
     residual_test,
     snapshot_std,
@@ -145,10 +144,10 @@ from edgepos.pipelines.gnss_screening import (
 from edgepos.pipelines.gnss_session import (
     PIPELINE_NAME,
     GnssSession,
+    cloud_moments,
     decode_session,
     empty_cloud,
     filter_for,
-    session_covariance,
 )
 from edgepos.pipelines.options import resolve_options
 
@@ -401,7 +400,8 @@ def _filter_epoch(
     assert session.anchor is not None
     dt = t - session.filter_t if session.filter_t is not None else 0.0
     model = motion_model(session, t)
-    centre = model.propagate(_cloud_mean(session.cloud)[None, :], dt)[0]
+    mean, cloud_cov = cloud_moments(session)
+    centre = model.propagate(mean[None, :], dt)[0]
     active = model.active.copy()
     for system, index in layout.CLOCK.items():
         active[index] = False
@@ -427,7 +427,7 @@ def _filter_epoch(
         factor = FuzzyNoise().factor(elevation, prs.cn0_dbhz) if options["fuzzy"] else np.ones(len(prs))
         base_std, model_name = _pseudorange_noise(options, elevation, prs.cn0_dbhz, factor)
         std = base_std * smoothing
-        predicted_cov = session_covariance(session) + model.process_noise(dt)
+        predicted_cov = cloud_cov + model.process_noise(dt)
         # one prediction at the centre (and 1 m off it, RAIM's Jacobian) for every test of the epoch
         ranges = linearisation_ranges(session.anchor, centre, prs.sat_position, prs.systems, known)
         rates = centre_rates(session.anchor, centre, prs, rate_rows) if rate_rows.size else None
@@ -437,7 +437,7 @@ def _filter_epoch(
             kept, inflation, fault_reasons = screen(
                 session, t, [prs.sats[r] for r in rows], scores, rows, "range"
             )
-            for r in _left_out(rows, kept):
+            for r in left_out(rows, kept):
                 i = satellites.indices[r]
                 uses[i] = MeasurementUse(i, "pseudorange", False, fault_reasons[int(r)])
             std = std.copy()
@@ -504,7 +504,7 @@ def _filter_epoch(
             kept, inflation, rate_reasons = screen(
                 session, t, [prs.sats[r] + "/rate" for r in rate_rows], scores, rate_rows, "range rate"
             )
-            for r in _left_out(rate_rows, kept):
+            for r in left_out(rate_rows, kept):
                 doppler[satellites.indices[r]] = (False, rate_reasons[int(r)])
             rate_std = rate_std.copy()
             rate_std[kept] *= inflation
@@ -680,19 +680,3 @@ def _pseudorange_noise(
         return FITTED.std(elevation, cn0), "fitted C/N0-elevation model:"
     value: np.ndarray = options["pseudorange_std"] * factor
     return value, "R0 x fuzzy factor:" if options["fuzzy"] else "pseudorange_std:"
-
-
-def _left_out(rows: np.ndarray, kept: np.ndarray) -> list[int]:
-    """The rows (ascending) not in ``kept``: np.setdiff1d's answer for a handful of rows, without its sorts."""
-    keep = set(kept.tolist())
-    return [r for r in rows.tolist() if r not in keep]
-
-
-def _cloud_mean(cloud: Cloud) -> np.ndarray:
-    """The cloud's weighted mean, the azimuth averaged on the circle: a plain average of particles at
-    +179 and -179 deg (a vehicle heading south) would point north."""
-    if len(cloud.particles) == 1:
-        single: FloatArray = cloud.particles[0].copy()
-        return single
-    mean: FloatArray = weighted_moments(cloud.particles, cloud.weights, layout.ANGLES)[0]
-    return mean
