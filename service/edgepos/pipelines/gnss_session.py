@@ -42,7 +42,8 @@ class GnssSession:
     carrier phase have neither and start with none."""
     faults: dict[str, list[float]] = field(default_factory=dict)
     """Per satellite (and ``<sat>/rate`` for its range rate), the fault test's history over time
-    (pipelines/gnss_faults.py); states written before it start with none."""
+    (pipelines/gnss_faults.py); states written before it start with none. Stored as the ``fault_keys`` list
+    and the ``faults`` array (n, 4); states written before that layout have the dict in their metadata."""
     still_epochs: int = 0
     """Epochs in a row whose own Doppler speed was below ``zupt_speed_mps`` (zero-velocity detection)."""
 
@@ -61,7 +62,7 @@ class GnssSession:
             "clock_seen": self.clock_seen,
             "heading_known": self.heading_known,
             "carrier_sats": carrier_sats,
-            "faults": self.faults,
+            "fault_keys": list(self.faults),
             "still_epochs": self.still_epochs,
         }
         arrays = {
@@ -69,6 +70,11 @@ class GnssSession:
             "log_weights": self.cloud.log_weights,
             "cov": self.cloud.cov,
             "carrier": carrier_table,
+            # an array, not JSON: some forty histories of four floats each were a third of the header's
+            # encoding and decoding time, every epoch
+            "faults": np.array(list(self.faults.values()), dtype=float).reshape(
+                len(self.faults), _FAULT_FIELDS
+            ),
         }
         return state_format.pack(meta, arrays)
 
@@ -103,9 +109,26 @@ def decode_session(blob: bytes) -> GnssSession:
         cloud,
         bool(meta.get("heading_known", False)),
         carrier,
-        {str(k): [float(x) for x in v] for k, v in meta.get("faults", {}).items()},
+        _faults(meta, arrays),
         int(meta.get("still_epochs", 0)),
     )
+
+
+_FAULT_FIELDS = 4
+"""Per fault history: epochs beyond the gate in a row, epochs agreeing in a row, excluded (0/1), last seen t."""
+
+
+def _faults(meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> dict[str, list[float]]:
+    """The fault histories of a decoded state, whichever layout wrote them."""
+    if "fault_keys" in meta:
+        keys = [str(key) for key in meta["fault_keys"]]
+        table = arrays.get("faults", np.zeros((0, _FAULT_FIELDS)))
+        if table.shape != (len(keys), _FAULT_FIELDS):
+            raise state_format.StateFormatError(
+                f"gnss_tight state's fault histories are corrupt: {len(keys)} keys, array {table.shape}"
+            )
+        return dict(zip(keys, table.tolist(), strict=True))
+    return {str(k): [float(x) for x in v] for k, v in meta.get("faults", {}).items()}
 
 
 def empty_cloud() -> Cloud:
