@@ -29,8 +29,26 @@ BEIDOU_GEO_PRNS = frozenset({1, 2, 3, 4, 5, 59, 60, 61, 62, 63})
 MAX_AGE_S = {"G": None, "J": None, "E": 4 * 3600.0, "C": 3 * 3600.0}
 """Largest |t - toe| an ephemeris is used for; None = half the broadcast fit interval (GPS, QZSS)."""
 _GEO_TILT = np.deg2rad(-5.0)
-_CLOCK_TERMS = frozenset({"toc", "af0", "af1", "af2", "tgd1", "tgd2"})
-"""Record fields the orbit formulas do not read (``position`` leaves them out of its per-call gather)."""
+_ORBIT_FIELDS = (
+    "crs",
+    "delta_n",
+    "m0",
+    "cuc",
+    "e",
+    "cus",
+    "sqrt_a",
+    "toe",
+    "toe_sow",
+    "cic",
+    "omega0",
+    "cis",
+    "i0",
+    "crc",
+    "omega",
+    "omega_dot",
+    "idot",
+)
+"""The record fields the orbit formulas read (``position``), the clock's and group delays' left out."""
 VELOCITY_STEP_S = 0.5
 """Half-width (s) of the central difference giving satellite velocity and clock drift. Its truncation error
 is h^2/6 times the position's third derivative, about n |a| = 8e-5 m/s^3 for a MEO orbit (mean motion
@@ -111,6 +129,11 @@ class BroadcastOrbits:
             "tgd2",
         )
         self._a = {n: np.array([getattr(e, n) for e in kept], dtype=float) for n in names}
+        # the orbit formulas' fields as rows of one matrix: position() gathers a batch's records with one
+        # fancy index instead of one per field
+        self._orbit_table = np.array([self._a[n] for n in _ORBIT_FIELDS]).reshape(
+            len(_ORBIT_FIELDS), len(kept)
+        )
         self._gm = np.array([GM[e.system] for e in kept], dtype=float)
         self._we = np.array([OMEGA_E_ICD[e.system] for e in kept], dtype=float)
         self._geo = np.array([e.system == "C" and e.prn in BEIDOU_GEO_PRNS for e in kept], dtype=bool)
@@ -155,7 +178,7 @@ class BroadcastOrbits:
 
     def position(self, index: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """ECEF positions (n, 3) at GPS times ``t`` and the relativistic clock term (s) per satellite."""
-        a = {k: v[index] for k, v in self._a.items() if k not in _CLOCK_TERMS}
+        a = dict(zip(_ORBIT_FIELDS, self._orbit_table[:, index]))
         gm, we, geo = self._gm[index], self._we[index], self._geo[index]
         tk = np.asarray(t, dtype=float) - a["toe"]
         semi_major = a["sqrt_a"] ** 2
