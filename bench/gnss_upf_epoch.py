@@ -6,7 +6,9 @@ The real rover recording (tests/data/gnss-rover: GPS + BeiDou + Galileo with Dop
 package can be compared; the runs are interleaved repetition by repetition (before, now, before, now, ...)
 so that load on the machine hits both alike. Prints, per filter and code, the median ms per epoch (whole
 ``process`` call) and of the filter's ``step`` alone over all repetitions, each repetition's epoch median,
-and the load average before and after.
+and the load average before and after; wall-clock time and the CPU time of the thread
+(``time.thread_time``), which waiting for a core on a loaded machine does not inflate (shared caches and
+hyperthreads still slow it).
 
     git -C /work/main archive <commit> service | tar -x -C /tmp/upf-base     # the code to compare with
     python bench/gnss_upf_epoch.py --before /tmp/upf-base/service [--epochs 300] [--reps 3] \\
@@ -38,29 +40,33 @@ def child(filter_name: str, particles: int, epochs: int) -> None:
     from gnss_tight_options import load
 
     step_ms: list[float] = []
+    step_cpu: list[float] = []
     cls = PARTICLE_FILTERS[filter_name]
     original = cls.step
 
     def timed(self, *args, **kwargs):  # type: ignore[no-untyped-def]
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.thread_time()
         try:
             return original(self, *args, **kwargs)
         finally:
             step_ms.append(1000.0 * (time.perf_counter() - start))
+            step_cpu.append(1000.0 * (time.thread_time() - cpu))
 
     cls.step = timed  # type: ignore[method-assign]
     observations, environment = load(epochs)
     pipeline = GnssTightPipeline()
     options = pipeline.resolve_options({"seed": 1, "filter": filter_name, "particles": particles})
     state = pipeline.create(options, None)
-    epoch_ms, steps = [], []
+    epoch_ms, steps, epoch_cpu, steps_cpu = [], [], [], []
     for epoch in observations:
         before = len(step_ms)
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.thread_time()
         _, state = pipeline.process(state, epoch, environment)
         epoch_ms.append(1000.0 * (time.perf_counter() - start))
+        epoch_cpu.append(1000.0 * (time.thread_time() - cpu))
         steps.append(sum(step_ms[before:]))
-    print(json.dumps({"epoch": epoch_ms, "step": steps}))
+        steps_cpu.append(sum(step_cpu[before:]))
+    print(json.dumps({"epoch": epoch_ms, "step": steps, "epoch_cpu": epoch_cpu, "step_cpu": steps_cpu}))
 
 
 def run(service: Path, filter_name: str, particles: int, epochs: int) -> dict[str, list[float]]:
@@ -97,9 +103,9 @@ def main() -> None:
             for code, service in codes.items():
                 times = run(service, filter_name, args.particles, args.epochs)
                 key = (filter_name, code)
-                bucket = results.setdefault(key, {"epoch": [], "step": []})
-                bucket["epoch"].extend(times["epoch"])
-                bucket["step"].extend(times["step"])
+                bucket = results.setdefault(key, {name: [] for name in times})
+                for name, values in times.items():
+                    bucket[name].extend(values)
                 per_rep.setdefault(key, []).append(statistics.median(times["epoch"]))
     load_after = os.getloadavg()
     print(
@@ -107,12 +113,16 @@ def main() -> None:
         f"{load_before[0]:.2f} {load_before[1]:.2f} {load_before[2]:.2f} before, "
         f"{load_after[0]:.2f} {load_after[1]:.2f} {load_after[2]:.2f} after"
     )
-    print(f"{'filter':6s} {'code':6s} {'epoch ms':>9s} {'step ms':>8s}  epoch median per repetition")
+    print(
+        f"{'filter':6s} {'code':6s} {'epoch ms':>9s} {'step ms':>8s} {'epoch cpu':>9s} {'step cpu':>8s}"
+        "  epoch median per repetition (wall)"
+    )
     for (filter_name, code), times in results.items():
         reps = ", ".join(f"{m:.2f}" for m in per_rep[(filter_name, code)])
         print(
             f"{filter_name:6s} {code:6s} {statistics.median(times['epoch']):9.2f} "
-            f"{statistics.median(times['step']):8.2f}  {reps}"
+            f"{statistics.median(times['step']):8.2f} {statistics.median(times['epoch_cpu']):9.2f} "
+            f"{statistics.median(times['step_cpu']):8.2f}  {reps}"
         )
 
 

@@ -165,10 +165,41 @@ def test_velocity_and_clock_drift(orbits: BroadcastOrbits, sat: str, hour: float
 
 
 def test_transmit_states_carry_rates(orbits: BroadcastOrbits) -> None:
-    index = np.array([_index(orbits, "G05", 12.0)])
-    states = orbits.transmit_states(index, T0, np.array([2.2e7]), np.array([[1.0, 0.0]]))
+    """transmit_states evaluates the transmit time and the rates' two points in one stacked call: every
+    satellite valid at T0 (GPS, BeiDou GEO/IGSO/MEO, Galileo) gets what position and rates give alone."""
+    sats = sorted({(e.system, e.prn) for e in orbits.ephemerides})
+    index = orbits.select([s for s, _ in sats], [p for _, p in sats], T0)
+    index = index[index >= 0]
+    assert len(index) > 20 and orbits._geo[index].any()
+    pseudoranges = np.linspace(2.0e7, 3.9e7, len(index))
+    factors = np.tile([[1.0, 0.0]], (len(index), 1))
+    states = orbits.transmit_states(index, T0, pseudoranges, factors)
     velocity, drift = orbits.rates(index, states.t_transmit)
-    assert np.array_equal(states.velocity, velocity) and np.array_equal(states.clock_drift, drift)
+    assert np.allclose(states.velocity, velocity, rtol=0.0, atol=1e-9)
+    assert np.allclose(states.clock_drift, drift, rtol=0.0, atol=1e-18)
+    for k, i in enumerate(index):  # each satellite as if alone
+        position, relativistic = orbits.position(np.array([i]), states.t_transmit[k : k + 1])
+        clock = orbits.clock_polynomial(np.array([i]), states.t_transmit[k : k + 1]) + relativistic
+        clock -= orbits.group_delay(np.array([i]), factors[k : k + 1])
+        assert np.allclose(states.position[k], position[0], rtol=0.0, atol=1e-6)
+        assert states.clock_s[k] == pytest.approx(clock[0], abs=1e-15)
+
+
+def test_selection_matches_a_plain_search(orbits: BroadcastOrbits) -> None:
+    """select against the rule written out: the valid record with the nearest toe, the later one on a tie."""
+    sats = sorted({(e.system, e.prn) for e in orbits.ephemerides}) + [("G", 99)]
+    toe = np.array([e.toe for e in orbits.ephemerides])
+    for hours in np.arange(-6.0, 8.0, 0.25):
+        t = T0 + 3600.0 * hours
+        chosen = orbits.select([s for s, _ in sats], [p for _, p in sats], t)
+        for (system, prn), index in zip(sats, chosen):
+            valid = [
+                i
+                for i, e in enumerate(orbits.ephemerides)
+                if (e.system, e.prn) == (system, prn) and abs(t - toe[i]) <= orbits._max_age[i]
+            ]
+            expected = min(valid, key=lambda i: (abs(t - toe[i]), -i)) if valid else -1
+            assert index == expected, (system, prn, hours)
 
 
 def test_dopplers_consistent_at_reference(orbits: BroadcastOrbits, epochs: list[ObservationEpoch]) -> None:

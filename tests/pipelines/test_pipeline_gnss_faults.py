@@ -214,7 +214,17 @@ def test_states_stored_before_the_fault_history_decode(recording) -> None:
     session = decode_session(state)
     assert session.faults  # the history is kept between batches
     meta, arrays = state_format.unpack(state)
-    del meta["faults"], meta["still_epochs"]
+    # the layout before the histories moved to the array section: a dict in the metadata
+    keys, table = meta.pop("fault_keys"), arrays.pop("faults")
+    json_layout = decode_session(
+        state_format.pack({**meta, "faults": dict(zip(keys, table.tolist()))}, arrays)
+    )
+    assert json_layout.faults == session.faults
+    del meta["still_epochs"]  # and before the histories existed at all
     old = decode_session(state_format.pack(meta, arrays))
     assert old.faults == {} and old.still_epochs == 0
     assert decode_session(session.to_bytes()).faults == session.faults
+    meta, arrays = state_format.unpack(state)
+    meta["fault_keys"] = meta["fault_keys"][1:]
+    with pytest.raises(state_format.StateFormatError, match="fault histories"):
+        decode_session(state_format.pack(meta, arrays))

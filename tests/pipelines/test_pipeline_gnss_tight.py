@@ -114,19 +114,25 @@ def test_a_biased_pseudorange_is_excluded_by_the_snapshot_test(recording, filter
     assert not used and reason is not None and reason.startswith("excluded by fault detection")
 
 
-def test_the_cloud_mean_averages_the_azimuth_on_the_circle() -> None:
+@pytest.mark.parametrize("filter_name", ["upf", "pf"])
+def test_the_cloud_mean_averages_the_azimuth_on_the_circle(filter_name: str) -> None:
     """Particles heading south straddle +-pi: their mean azimuth is south, not the plain average (north)
-    the prediction used to be linearised at."""
+    the prediction used to be linearised at. The covariance beside it is session_covariance's (the UPF's
+    taken from the same moments)."""
     from edgepos.core.motion import riss as layout
     from edgepos.core.particles import Cloud
-    from edgepos.pipelines.gnss_tight import _cloud_mean
+    from edgepos.pipelines.gnss_session import GnssSession, cloud_moments, session_covariance
 
     particles = np.zeros((4, layout.DIM))
     particles[:, layout.AZIMUTH] = [math.pi - 0.01, -math.pi + 0.01, math.pi - 0.02, -math.pi + 0.02]
     particles[:, layout.NORTH] = [1.0, 2.0, 3.0, 4.0]
-    mean = _cloud_mean(Cloud(particles, np.full(4, -math.log(4)), np.eye(layout.DIM)))
-    assert abs(abs(mean[layout.AZIMUTH]) - math.pi) < 1e-9
-    assert mean[layout.NORTH] == pytest.approx(2.5)
+    cloud = Cloud(particles, np.log([0.1, 0.2, 0.3, 0.4]), np.eye(layout.DIM) * 2.0)
+    options = GnssTightPipeline().resolve_options({"filter": filter_name})
+    session = GnssSession(options, 1, True, 0.0, 0.0, 1, None, None, {}, cloud)
+    mean, cov = cloud_moments(session)
+    assert abs(abs(mean[layout.AZIMUTH]) - math.pi) < 0.02  # south; the plain average is near 0 (north)
+    assert mean[layout.NORTH] == pytest.approx(3.0)
+    assert np.array_equal(cov, session_covariance(session))
 
 
 def test_outlier_likelihood_options_have_documented_defaults_and_bounds() -> None:

@@ -51,6 +51,7 @@ from edgepos.api.settings import Settings, ensure_admin_key
 from edgepos.api.vehicle_jwt import load_vehicle_jwks
 from edgepos.core.compiled import warm_up as warm_up_kernels
 from edgepos.pipelines.base import Pipeline, Rsu
+from edgepos.pipelines.gnss_integrity import warm_up_gnss_tables
 from edgepos.pipelines.integrity import warm_up_tables
 from edgepos.store import SessionStore, open_store
 from edgepos.store.base import StoreUnavailable
@@ -171,6 +172,8 @@ def create_app(
         # The integrity monitor's tables by quadrature (about 30 ms per number of sub-filters): now, not
         # in the filter thread while the first vehicles wait behind it.
         await context.run_filter(warm_up_tables)
+        # ... and gnss_tight's RAIM tables, one per hypothesis count (about 50 ms each, 25 counts).
+        await context.run_filter(warm_up_gnss_tables)
         # The ~150k objects of the imported libraries and compiled kernels live as long as the process:
         # move them out of the collector's sight, or every full collection walks them all and stalls every
         # request for 50-100 ms (measured: the p99 latency at 100 vehicles x 20 Hz was those pauses).

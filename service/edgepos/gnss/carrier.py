@@ -183,10 +183,10 @@ def tracks_to_arrays(tracks: dict[str, CarrierTrack]) -> tuple[list[str], np.nda
 
 def tracks_from_arrays(sats: Sequence[str], table: np.ndarray) -> dict[str, CarrierTrack]:
     """Inverse of :func:`tracks_to_arrays`."""
-    table = np.asarray(table, dtype=float).reshape(len(sats), _COLUMNS)
+    rows = (
+        np.asarray(table, dtype=float).reshape(len(sats), _COLUMNS).tolist()
+    )  # Python floats, the same values
     return {
-        str(sat): CarrierTrack(
-            float(row[0]), float(row[1]), float(row[2]), float(row[3]), float(row[4]) if row[5] else None
-        )
-        for sat, row in zip(sats, table, strict=True)
+        str(sat): CarrierTrack(row[0], row[1], row[2], row[3], row[4] if row[5] else None)
+        for sat, row in zip(sats, rows, strict=True)
     }

@@ -42,6 +42,11 @@ class Ephemerides:
 
     def validity(self) -> tuple[float, float] | None:
         """(first, last) GPS second at which some healthy ephemeris is valid; None without any."""
+        return self._validity
+
+    @functools.cached_property
+    def _validity(self) -> tuple[float, float] | None:
+        """:meth:`validity`, computed once: ``gpst`` asks for it at every epoch of every session."""
         usable = self.orbits.ephemerides
         if not usable:
             return None

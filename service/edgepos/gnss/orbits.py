@@ -29,6 +29,26 @@ BEIDOU_GEO_PRNS = frozenset({1, 2, 3, 4, 5, 59, 60, 61, 62, 63})
 MAX_AGE_S = {"G": None, "J": None, "E": 4 * 3600.0, "C": 3 * 3600.0}
 """Largest |t - toe| an ephemeris is used for; None = half the broadcast fit interval (GPS, QZSS)."""
 _GEO_TILT = np.deg2rad(-5.0)
+_ORBIT_FIELDS = (
+    "crs",
+    "delta_n",
+    "m0",
+    "cuc",
+    "e",
+    "cus",
+    "sqrt_a",
+    "toe",
+    "toe_sow",
+    "cic",
+    "omega0",
+    "cis",
+    "i0",
+    "crc",
+    "omega",
+    "omega_dot",
+    "idot",
+)
+"""The record fields the orbit formulas read (``position``), the clock's and group delays' left out."""
 VELOCITY_STEP_S = 0.5
 """Half-width (s) of the central difference giving satellite velocity and clock drift. Its truncation error
 is h^2/6 times the position's third derivative, about n |a| = 8e-5 m/s^3 for a MEO orbit (mean motion
@@ -109,6 +129,11 @@ class BroadcastOrbits:
             "tgd2",
         )
         self._a = {n: np.array([getattr(e, n) for e in kept], dtype=float) for n in names}
+        # the orbit formulas' fields as rows of one matrix: position() gathers a batch's records with one
+        # fancy index instead of one per field
+        self._orbit_table = np.array([self._a[n] for n in _ORBIT_FIELDS]).reshape(
+            len(_ORBIT_FIELDS), len(kept)
+        )
         self._gm = np.array([GM[e.system] for e in kept], dtype=float)
         self._we = np.array([OMEGA_E_ICD[e.system] for e in kept], dtype=float)
         self._geo = np.array([e.system == "C" and e.prn in BEIDOU_GEO_PRNS for e in kept], dtype=bool)
@@ -117,10 +142,13 @@ class BroadcastOrbits:
             limit = MAX_AGE_S[e.system]
             max_age.append(e.fit_interval_s / 2.0 if limit is None else limit)
         self._max_age = np.array(max_age, dtype=float)
-        self._by_sat: dict[tuple[str, int], np.ndarray] = {}
+        # per satellite, its records as (toe, maximum age, index) in file order: plain floats, since
+        # select runs every epoch on a handful of records per satellite, where numpy's per-call cost dominates
+        self._by_sat: dict[tuple[str, int], list[tuple[float, float, int]]] = {}
         for index, e in enumerate(kept):
-            self._by_sat.setdefault((e.system, e.prn), np.empty(0, dtype=int))
-            self._by_sat[(e.system, e.prn)] = np.append(self._by_sat[(e.system, e.prn)], index)
+            self._by_sat.setdefault((e.system, e.prn), []).append(
+                (float(self._a["toe"][index]), float(self._max_age[index]), index)
+            )
 
     def __len__(self) -> int:
         return len(self.ephemerides)
@@ -129,18 +157,16 @@ class BroadcastOrbits:
         """Per satellite, the index of the healthy ephemeris whose toe is nearest to ``t`` (GPS s) among those
         within their validity (|t - toe| <= fit interval / 2, or the system's maximum age); -1 if none."""
         out = np.full(len(systems), -1, dtype=int)
-        toe = self._a["toe"]
+        t = float(t)
         for row, (system, prn) in enumerate(zip(systems, prns)):
-            candidates = self._by_sat.get((system, int(prn)))
-            if candidates is None:
-                continue
-            age = np.abs(t - toe[candidates])
-            valid = age <= self._max_age[candidates]
-            if valid.any():
+            best: tuple[float, int] | None = None
+            for toe, max_age, index in self._by_sat.get((system, int(prn)), ()):
+                age = abs(t - toe)
                 # Nearest toe; among equal toes the later record in the file (newest upload) wins.
-                best = np.flatnonzero(valid)
-                order = np.lexsort((-best, age[best]))
-                out[row] = candidates[best[order[0]]]
+                if age <= max_age and (best is None or (age, -index) < (best[0], -best[1])):
+                    best = (age, index)
+            if best is not None:
+                out[row] = best[1]
         return out
 
     def clock_polynomial(self, index: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -152,7 +178,7 @@ class BroadcastOrbits:
 
     def position(self, index: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """ECEF positions (n, 3) at GPS times ``t`` and the relativistic clock term (s) per satellite."""
-        a = {k: v[index] for k, v in self._a.items()}
+        a = dict(zip(_ORBIT_FIELDS, self._orbit_table[:, index]))
         gm, we, geo = self._gm[index], self._we[index], self._geo[index]
         tk = np.asarray(t, dtype=float) - a["toe"]
         semi_major = a["sqrt_a"] ** 2
@@ -211,9 +237,16 @@ class BroadcastOrbits:
         dt = self.clock_polynomial(index, t_sv)
         dt = self.clock_polynomial(index, t_sv - dt)
         t_tx = t_sv - dt
-        position, relativistic = self.position(index, t_tx)
+        # the transmit time and the two of the rates' central difference (:meth:`rates`) in one evaluation
+        n, h = len(index), VELOCITY_STEP_S
+        index3 = np.concatenate([index, index, index])
+        t3 = np.concatenate([t_tx, t_tx + h, t_tx - h])
+        positions, relativistic3 = self.position(index3, t3)
+        clocks = self.clock_polynomial(index3, t3) + relativistic3
+        position, relativistic = positions[:n], relativistic3[:n]
         clock = self.clock_polynomial(index, t_tx) + relativistic - self.group_delay(index, delay_factors)
-        velocity, drift = self.rates(index, t_tx)
+        velocity = (positions[n : 2 * n] - positions[2 * n :]) / (2.0 * h)
+        drift = (clocks[n : 2 * n] - clocks[2 * n :]) / (2.0 * h)
         return SatelliteStates(position, clock, t_tx, index, velocity, drift)
 
     def rates(self, index: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

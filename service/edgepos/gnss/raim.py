@@ -30,7 +30,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from edgepos.core.integrity import ALARM, OK, UNAVAILABLE, Protection, radial_bound, test_threshold
+from edgepos.core.integrity import (
+    ALARM,
+    OK,
+    UNAVAILABLE,
+    Protection,
+    radial_bound,
+    radial_factor_table,
+    test_threshold,
+)
 
 
 @dataclass(frozen=True)
@@ -116,6 +124,59 @@ def _solve(
     return d[order], cov[np.ix_(order, order)]
 
 
+def _constellation_solves(
+    h: np.ndarray, w: np.ndarray, z: np.ndarray, prior: np.ndarray, systems: Sequence[str], groups: list[str]
+) -> list[tuple[tuple[int, ...], np.ndarray, np.ndarray]] | None:
+    """Each constellation's hypothesis: :func:`_solve` without its rows and its clock column, the normal
+    matrices (all of one size: three position columns and the other constellations' clocks) inverted in one
+    call. Per constellation its rows, solution (east, north) and 2x2 covariance; None when one is not
+    determined."""
+    labels = np.array(systems)
+    normals: list[np.ndarray] = []
+    rights: list[np.ndarray] = []
+    row_sets: list[tuple[int, ...]] = []
+    for group in groups:
+        keep = labels != group
+        hk = h[keep]
+        # the columns _normal keeps: position, and the clocks some row left still has
+        columns = np.concatenate([[0, 1, 2], np.flatnonzero(np.any(hk[:, 3:] != 0.0, axis=0)) + 3])
+        if normals and len(columns) != len(normals[0]):  # clock columns not one per constellation
+            return _each_solved(h, w, z, prior, labels, groups)
+        hk = hk[:, columns]
+        a = hk.T @ (w[keep, None] * hk)
+        a[:3, :3] += prior
+        normals.append(a)
+        rights.append(hk.T @ (w[keep] * z[keep]))
+        row_sets.append(tuple(np.flatnonzero(~keep).tolist()))
+    try:
+        covs = np.linalg.inv(np.array(normals))
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(covs)):
+        return None
+    order = [1, 0]  # east, north
+    out = []
+    for rows, cov, right in zip(row_sets, covs, rights):
+        d = cov @ right
+        out.append((rows, d[order], cov[np.ix_(order, order)]))
+    return out
+
+
+def _each_solved(
+    h: np.ndarray, w: np.ndarray, z: np.ndarray, prior: np.ndarray, labels: np.ndarray, groups: list[str]
+) -> list[tuple[tuple[int, ...], np.ndarray, np.ndarray]] | None:
+    """:func:`_constellation_solves` one :func:`_solve` at a time, for a Jacobian whose normal matrices
+    differ in size."""
+    out = []
+    for group in groups:
+        keep = labels != group
+        subset = _solve(h, w, z, prior, keep)
+        if subset is None:
+            return None
+        out.append((tuple(np.flatnonzero(~keep).tolist()), subset[0], subset[1]))
+    return out
+
+
 def separations(
     h: np.ndarray,
     systems: Sequence[str],
@@ -157,12 +218,16 @@ def separations(
     threshold = test_threshold(budget.false_alarm_probability, tests)
     hypotheses: list[tuple[tuple[int, ...], np.ndarray, np.ndarray, float, float]] = []
     gh = g[order].T  # (n, 2)
+    # every satellite's downdate at once (the same operations, row by row, as one satellite's)
+    downdated = denominator > 1e-9
+    scale = np.where(downdated, w / np.where(downdated, denominator, 1.0), 0.0)
+    separation_all = -gh * scale[:, None] * residual[:, None]
+    covariance_all = scale[:, None, None] * (gh[:, :, None] * gh[:, None, :])
+    statistic_all = (np.abs(residual) * np.sqrt(scale)).tolist()
+    p0_horizontal = p0[np.ix_(order, order)]
     for j in range(n):
-        if denominator[j] > 1e-9:
-            scale = w[j] / denominator[j]
-            separation = -gh[j] * scale * residual[j]
-            covariance = scale * np.outer(gh[j], gh[j])
-            statistic = float(abs(residual[j]) * math.sqrt(scale))
+        if downdated[j]:
+            separation, covariance, statistic = separation_all[j], covariance_all[j], statistic_all[j]
         else:  # the constellation's only satellite: its clock goes with it
             keep = every.copy()
             keep[j] = False
@@ -170,21 +235,18 @@ def separations(
             if subset is None:
                 return Separations(False, (), threshold)
             separation = subset[0] - east_north_0
-            covariance = subset[1] - p0[np.ix_(order, order)]
+            covariance = subset[1] - p0_horizontal
             covariance = 0.5 * (covariance + covariance.T)
             statistic = _statistic(separation, covariance)
         hypotheses.append(((j,), separation, covariance, statistic, budget.satellite_fault_probability))
     if len(groups) > 1:
-        for group in groups:
-            rows = tuple(j for j in range(n) if systems[j] == group)
-            keep = every.copy()
-            keep[list(rows)] = False
-            subset = _solve(h, w, z, prior, keep)
-            if subset is None:
-                return Separations(False, (), threshold)
-            covariance = subset[1] - p0[np.ix_(order, order)]
+        solved = _constellation_solves(h, w, z, prior, systems, groups)
+        if solved is None:
+            return Separations(False, (), threshold)
+        for rows, east_north, subset_cov in solved:
+            covariance = subset_cov - p0_horizontal
             covariance = 0.5 * (covariance + covariance.T)
-            separation = subset[0] - east_north_0
+            separation = east_north - east_north_0
             hypotheses.append(
                 (
                     rows,
@@ -207,21 +269,51 @@ def protection(separations_: Separations, fix_cov: np.ndarray, budget: RaimBudge
     fault_free = 0.5 * budget.integrity_risk
     level = radial_bound(_matrix(covariance), fault_free)
     hypotheses = separations_.hypotheses
-    per_hypothesis = fault_free / max(len(hypotheses), 1)
-    threshold = separations_.threshold
-    for _, _, separation_cov, _, probability in hypotheses:
-        a, b, d = _matrix(separation_cov)
-        largest = 0.5 * (a + d) + math.hypot(0.5 * (a - d), b)
-        bound = threshold * math.sqrt(max(largest, 0.0)) + radial_bound(
-            _matrix(covariance + separation_cov), per_hypothesis / probability
-        )
-        level = max(level, bound)
+    if hypotheses:
+        level = max(level, _hypothesis_bound(hypotheses, covariance, fault_free, separations_.threshold))
     if not math.isfinite(level):
         return Protection(None, UNAVAILABLE)
     worst = separations_.worst()
     if worst is not None:
-        return Protection(level, ALARM, faulty=worst[0], statistic=worst[1], threshold=threshold)
+        return Protection(level, ALARM, faulty=worst[0], statistic=worst[1], threshold=separations_.threshold)
     return Protection(level, ALARM if level > budget.alert_limit else OK)
+
+
+def _hypothesis_bound(
+    hypotheses: Sequence[tuple[tuple[int, ...], np.ndarray, np.ndarray, float, float]],
+    covariance: np.ndarray,
+    fault_free: float,
+    threshold: float,
+) -> float:
+    """The largest over the hypotheses of T sqrt(lmax(S_j)) + R(k C + S_j, risk / 2 / N / p_j), all at once:
+    :func:`core.integrity.radial_bound`'s formula on arrays, with its tables (``radial_factor_table``) per
+    prior fault probability. NaN bounds are skipped, as the one-by-one maximum did."""
+    separation_cov = np.array([hypothesis[2] for hypothesis in hypotheses])
+    a, b, d = separation_cov[:, 0, 0], separation_cov[:, 0, 1], separation_cov[:, 1, 1]
+    largest = 0.5 * (a + d) + np.array(
+        [math.hypot(x, y) for x, y in zip((0.5 * (a - d)).tolist(), b.tolist())]
+    )
+    bounds = threshold * np.sqrt(np.maximum(largest, 0.0))
+    total = covariance + separation_cov
+    a, b, d = total[:, 0, 0], total[:, 0, 1], total[:, 1, 1]
+    half = 0.5 * (a - d)
+    spread = np.sqrt(half * half + b * b)
+    top = 0.5 * (a + d) + spread
+    positive = top > 0.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.minimum(np.maximum((0.5 * (a + d) - spread) / np.where(positive, top, 1.0), 0.0), 1.0)
+        root = np.sqrt(np.where(positive, top, 0.0))
+    per_hypothesis = fault_free / len(hypotheses)
+    probabilities = np.array([hypothesis[4] for hypothesis in hypotheses])
+    radial = np.zeros(len(hypotheses))
+    for probability in set(probabilities.tolist()):
+        rows = (probabilities == probability) & positive
+        table = radial_factor_table(per_hypothesis / probability)
+        slot = np.ceil(ratio[rows] * (len(table) - 1) - 1e-12).astype(int)
+        radial[rows] = table[slot] * root[rows]
+    bounds = bounds + radial
+    bounds = bounds[~np.isnan(bounds)]
+    return float(bounds.max()) if bounds.size else -math.inf
 
 
 def _matrix(m: np.ndarray) -> tuple[float, float, float]:

@@ -16,6 +16,7 @@ clock drift (m/s) by weighted least squares on the range rates at the solved pos
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import sys
@@ -232,7 +233,7 @@ def solve_epoch(
         dof = len(rows) - h.shape[1]
         normalised = residual[rows] * np.sqrt(weight[rows])
         statistic = float(normalised @ normalised)
-        passed = dof <= 0 or statistic <= chi2.ppf(config.outlier_probability, dof)
+        passed = dof <= 0 or statistic <= _chi2_quantile(config.outlier_probability, dof)
         if passed or len(excluded) >= config.max_exclusions or dof < 2:
             break
         # Standardised residuals: divide by sqrt(1 - leverage) of the weighted design.
@@ -268,6 +269,13 @@ def solve_epoch(
         masked=tuple(sats[i] for i in np.flatnonzero(active & ~used)),
         velocity=velocity,
     )
+
+
+@functools.lru_cache(maxsize=256)
+def _chi2_quantile(probability: float, dof: int) -> float:
+    """chi2.ppf, cached: the Doppler velocity runs every gnss_tight epoch (its zero-velocity detection), and
+    scipy's quantile costs more than the solve."""
+    return float(chi2.ppf(probability, dof))
 
 
 def solve_velocity(
@@ -309,13 +317,14 @@ def solve_velocity(
         if dof < 0:
             raise SppError(f"{rows.size} usable Dopplers for 4 unknowns")
         weighted = design[rows] * root[rows, None]
-        solution, *_ = np.linalg.lstsq(weighted, observed[rows] * root[rows], rcond=None)
-        if not np.all(np.isfinite(solution)) or np.linalg.matrix_rank(weighted) < 4:
+        # lstsq's rank (rcond None) counts the singular values above the tolerance matrix_rank uses
+        solution, _, rank, _ = np.linalg.lstsq(weighted, observed[rows] * root[rows], rcond=None)
+        if not np.all(np.isfinite(solution)) or rank < 4:
             raise SppError("singular Doppler geometry")
         residual = observed - design @ solution
         normalised = residual[rows] * root[rows]
         statistic = float(normalised @ normalised)
-        passed = dof == 0 or statistic <= chi2.ppf(config.outlier_probability, dof)
+        passed = dof == 0 or statistic <= _chi2_quantile(config.outlier_probability, dof)
         if passed or len(excluded) >= config.max_exclusions or dof < 2:
             break
         leverage = np.einsum("ij,jk,ik->i", weighted, np.linalg.pinv(weighted.T @ weighted), weighted)

@@ -26,7 +26,7 @@ from edgepos.core.measurements.pseudorange import PseudorangeModel
 from edgepos.core.measurements.range_rate import RangeRateModel
 from edgepos.core.motion import riss as layout
 from edgepos.gnss.measurements import PseudorangeSet
-from edgepos.pipelines.gnss_screening import chi2_threshold
+from edgepos.pipelines.gnss_screening import chi2_threshold, median
 from edgepos.pipelines.gnss_session import GnssSession
 
 History = dict[str, list[float]]
@@ -55,7 +55,7 @@ def normalised_scores(residual: np.ndarray, variance: np.ndarray, groups: Sequen
     for group in set(groups):
         members = labels == group
         if members.sum() >= 3:
-            centred[members] -= np.median(centred[members])
+            centred[members] -= median(centred[members])
     scores: np.ndarray = centred**2 / variance
     return scores
 
@@ -148,14 +148,21 @@ def range_innovations(
     std: np.ndarray,
     rows: np.ndarray,
     predicted_cov: np.ndarray,
+    predicted: np.ndarray | None = None,
 ) -> np.ndarray:
     """Normalised squared innovations of the pseudoranges in ``rows`` against the predicted state: per
     constellation the median removed (three or more) or the clock's predicted variance added; variance
-    std^2 + the predicted position variance (trace), as the residual test's."""
+    std^2 + the predicted position variance (trace), as the residual test's. ``predicted``: every row's
+    pseudorange predicted at ``centre`` when the caller has it (one prediction serves the epoch's tests)."""
     assert session.anchor is not None
     systems = [prs.systems[r] for r in rows]
-    model_pr = PseudorangeModel.build(session.anchor, prs.sat_position[rows], systems, known[rows], std[rows])
-    residual = prs.pseudorange_m[rows] - model_pr.predict(centre)
+    if predicted is None:
+        model_pr = PseudorangeModel.build(
+            session.anchor, prs.sat_position[rows], systems, known[rows], std[rows]
+        )
+        residual = prs.pseudorange_m[rows] - model_pr.predict(centre)
+    else:
+        residual = prs.pseudorange_m[rows] - predicted[rows]
     variance = std[rows] ** 2 + float(np.trace(predicted_cov[:3, :3]))
     for system in set(systems):
         members = np.array([s == system for s in systems])
@@ -172,15 +179,15 @@ def rate_innovations(
     std: np.ndarray,
     rows: np.ndarray,
     predicted_cov: np.ndarray,
+    predicted: np.ndarray | None = None,
 ) -> np.ndarray:
     """The same for range rates: one clock drift for all (median removed), variance std^2 + the predicted
-    velocity variance (trace)."""
+    velocity variance (trace); ``predicted`` every row's range rate at ``centre`` when the caller has it."""
     assert session.anchor is not None and prs.range_rate_mps is not None
     assert prs.sat_velocity is not None and prs.sat_clock_drift is not None
-    rate_model = RangeRateModel.build(
-        session.anchor, prs.sat_position[rows], prs.sat_velocity[rows], prs.sat_clock_drift[rows], std[rows]
-    )
-    residual = prs.range_rate_mps[rows] - rate_model.predict(centre)
+    if predicted is None:
+        predicted = centre_rates(session.anchor, centre, prs, rows)
+    residual = prs.range_rate_mps[rows] - predicted[rows]
     velocity = [layout.VE, layout.VN, layout.VU]
     variance = std[rows] ** 2 + float(np.trace(predicted_cov[np.ix_(velocity, velocity)]))
     if rows.size < 3:
@@ -203,3 +210,15 @@ def screen(
     reasons = {int(r): why for r, why in zip(rows, verdict.reasons) if why is not None}
     keep = ~verdict.excluded
     return rows[keep], verdict.inflation[keep], reasons
+
+
+def centre_rates(anchor: Any, centre: np.ndarray, prs: PseudorangeSet, rows: np.ndarray) -> np.ndarray:
+    """Range rates predicted at ``centre`` for the rows ``rows`` of ``prs`` (others NaN), indexed by row: the
+    range-rate tests of an epoch share one prediction."""
+    assert prs.sat_velocity is not None and prs.sat_clock_drift is not None
+    predicted = np.full(len(prs), np.nan)
+    rate_model = RangeRateModel.build(
+        anchor, prs.sat_position[rows], prs.sat_velocity[rows], prs.sat_clock_drift[rows], np.ones(rows.size)
+    )
+    predicted[rows] = rate_model.predict(centre)
+    return predicted

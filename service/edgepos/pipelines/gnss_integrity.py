@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from edgepos.core.integrity import UNAVAILABLE, Protection
+from edgepos.core.integrity import UNAVAILABLE, Protection, radial_factor_table
 from edgepos.core.measurements.pseudorange import PseudorangeModel
 from edgepos.core.motion import riss as layout
 from edgepos.gnss.raim import RaimBudget, Separations, protection, separations
@@ -101,16 +101,51 @@ def budget_of(options: Mapping[str, Any]) -> RaimBudget:
     )
 
 
-def _jacobian(model: PseudorangeModel, centre: np.ndarray, systems: Sequence[str]) -> np.ndarray:
-    """d pseudorange / d (north, east, up, clock per constellation in ``groups`` order) at ``centre``
-    (position by 1 m differences: the ranges are linear over a metre to 1e-7 m)."""
-    groups = sorted(set(systems))
+WARM_HYPOTHESES = range(8, 33)
+"""Hypothesis counts (satellites in the update + constellations) whose radial tables the service computes
+at start-up: 5 to 29 satellites with three constellations, 8 to 32 with one, what the recording in
+tests/data/gnss-rover and a car under open sky give on the defaults."""
+
+
+def warm_up_gnss_tables(hypotheses: Sequence[int] = WARM_HYPOTHESES) -> None:
+    """Tabulate the protection level's radial bounds of the default budget for each hypothesis count now:
+    each new count costs about 50 ms of quadrature (core.integrity's tables, cached per process) the first
+    time an epoch has it, which would stall the filter thread in the middle of a drive."""
+    budget = budget_of({})
+    fault_free = 0.5 * budget.integrity_risk
+    radial_factor_table(fault_free)
+    for count in hypotheses:
+        for probability in {budget.satellite_fault_probability, budget.constellation_fault_probability}:
+            radial_factor_table(fault_free / count / probability)
+
+
+def linearisation_ranges(
+    anchor: Any, centre: np.ndarray, sat_position: np.ndarray, systems: Sequence[str], known: np.ndarray
+) -> np.ndarray:
+    """Row 0: the pseudoranges (n,) predicted at ``centre``, which the epoch's tests compare with (the prefit
+    residuals of every hypothesis); rows 1-3: their derivatives (n,) by north, east and up, by 1 m differences
+    (the ranges are linear over a metre to 1e-7 m). One model for all the rows and hypotheses of an epoch.
+
+    Row 0 is evaluated on its own: the four-state matrix product rounds differently (in the last bit) from
+    the one-state one the tests used before these were shared, and the filters amplify such bits over
+    epochs; this keeps the pipeline's results bit-identical."""
+    model = PseudorangeModel.build(anchor, sat_position, list(systems), known, np.ones(len(known)))
     states = np.repeat(centre[None, :], 4, axis=0)
     for k, index in enumerate((layout.NORTH, layout.EAST, layout.UP)):
         states[k + 1, index] += 1.0
-    predicted = model.predict(states)
+    predicted: np.ndarray = model.predict(states)
+    jacobian = predicted[1:] - predicted[0]
+    predicted[0] = model.predict(centre)
+    predicted[1:] = jacobian
+    return predicted
+
+
+def _jacobian(ranges: np.ndarray, systems: Sequence[str]) -> np.ndarray:
+    """d pseudorange / d (north, east, up, clock per constellation in ``groups`` order) from the rows'
+    :func:`linearisation_ranges`."""
+    groups = sorted(set(systems))
     h = np.zeros((len(systems), 3 + len(groups)))
-    h[:, :3] = (predicted[1:] - predicted[0]).T
+    h[:, :3] = ranges[1:].T
     for row, system in enumerate(systems):
         h[row, 3 + groups.index(system)] = 1.0
     return h
@@ -130,23 +165,25 @@ def detect_and_exclude(
     indices: Sequence[int],
     names: Sequence[str],
     uses: dict[int, MeasurementUse],
+    ranges: np.ndarray | None = None,
 ) -> tuple[np.ndarray, Separations]:
     """Test the epoch's pseudoranges ``rows`` (after the pipeline's screening) against the prediction
     ``centre``; with exclusion on, leave out the satellite or constellation the worst failed test points at
     and test again. Returns the rows to update with and their separations (a test that still fails puts
-    the fix in alarm)."""
+    the fix in alarm). ``ranges``: :func:`linearisation_ranges` of every row when the caller has them."""
     budget = budget_of(options)
     position = [layout.NORTH, layout.EAST, layout.UP]
     prior = predicted_cov[np.ix_(position, position)]
+    if ranges is None:
+        ranges = linearisation_ranges(anchor, centre, sat_position, system_of_row, known)
 
     def separate(kept: np.ndarray) -> Separations:
         systems = [system_of_row[r] for r in kept]
         if kept.size == 0:
             return Separations(False, (), 0.0)
-        model = PseudorangeModel.build(anchor, sat_position[kept], systems, known[kept], std[kept])
-        z = pseudorange[kept] - model.predict(centre[None, :])[0]
-        h = _jacobian(model, centre, systems)
-        return separations(h, systems, z, std[kept], prior, budget)
+        at = ranges[:, kept]
+        z = pseudorange[kept] - at[0]
+        return separations(_jacobian(at, systems), systems, z, std[kept], prior, budget)
 
     result = separate(rows)
     worst = result.worst() if result.available else None

@@ -41,6 +41,10 @@ class EpochSatellites:
     """Per row, whether a differential correction was added to its pseudorange (None: no corrections)."""
 
 
+_FREQUENCY = {system: carrier_frequency(system, code) for system, code in DEFAULT_SIGNAL.items()}
+_DELAY_FACTORS = {system: group_delay_factors(system, code) for system, code in DEFAULT_SIGNAL.items()}
+"""Per system, the carrier (Hz) and group-delay factors of its default signal, looked up once."""
+
 NO_SAT_VELOCITY = (
     "no satellite velocity: with sat_position and sat_clock sent the service computes no orbit, and the "
     "range-rate model needs the satellite's velocity and clock drift from the broadcast ephemerides"
@@ -127,24 +131,29 @@ def epoch_satellites(
                     f"second {gpst % SECONDS_PER_WEEK:.1f}",
                 )
             if have.size:
-                factors = np.array(
-                    [group_delay_factors(systems[r], DEFAULT_SIGNAL[systems[r]]) for r in have]
-                )
-                pseudoranges = np.array([observed[r].pseudorange for r in have])
+                factors = np.array([_DELAY_FACTORS[systems[r]] for r in have])
+                picked = [observed[r] for r in have]
+                pseudoranges = np.array([o.pseudorange for o in picked])
                 states = ephemerides.orbits.transmit_states(
                     ephemeris_index[have], gpst, pseudoranges, factors
                 )
-                for k, r in enumerate(have):
-                    o = observed[r]
+                frequencies = [_FREQUENCY[o.system] for o in picked]
+                # one vectorised conversion (element-wise, so each row's value is as if alone)
+                rates = doppler_to_range_rate(
+                    np.array(
+                        [
+                            o.doppler_hz if (o.doppler_hz is not None and use_doppler) else math.nan
+                            for o in picked
+                        ]
+                    ),
+                    np.array(frequencies),
+                ).tolist()
+                clock_s = states.clock_s.tolist()
+                clock_drift = states.clock_drift.tolist()
+                for k, (r, o) in enumerate(zip(have.tolist(), picked)):
                     position = (
                         states.position[k] if o.sat_position is None else np.asarray(o.sat_position, float)
                     )
-                    frequency = carrier_frequency(o.system, DEFAULT_SIGNAL[o.system])
-                    rate = math.nan
-                    if o.doppler_hz is not None and use_doppler:
-                        rate = float(
-                            doppler_to_range_rate(np.array([o.doppler_hz]), np.array([frequency]))[0]
-                        )
                     rows.append(
                         (
                             need_orbit[r],
@@ -153,11 +162,11 @@ def epoch_satellites(
                             o.pseudorange,
                             o.cn0,
                             position,
-                            float(states.clock_s[k]),
-                            frequency,
-                            rate,
+                            clock_s[k],
+                            frequencies[k],
+                            rates[k],
                             states.velocity[k],
-                            float(states.clock_drift[k]),
+                            clock_drift[k],
                             None if o.sat_position is not None else issues[r],
                         )
                     )

@@ -38,26 +38,35 @@ def range_rate_test(
     indices: list[int],
     doppler: DopplerUses,
     predicted_cov: np.ndarray | None = None,
+    predicted: np.ndarray | None = None,
 ) -> np.ndarray:
     """The pseudorange residual test's counterpart for range rates: residual = measured - predicted, the
     median removed when three or more (one clock drift moves them all alike), else the drift's variance
     added; variance std^2 + the predicted velocity variance (trace; ``predicted_cov`` when the caller has
-    it). Returns the rows kept."""
+    it). ``predicted``: every row's range rate at ``centre`` (gnss_faults.centre_rates) when the caller has
+    it. Returns the rows kept."""
     probability = session.options["gate_probability"]
     if probability <= 0.0 or rows.size == 0:
         return rows
     assert session.anchor is not None and prs.range_rate_mps is not None
     assert prs.sat_velocity is not None and prs.sat_clock_drift is not None
-    rate_model = RangeRateModel.build(
-        session.anchor, prs.sat_position[rows], prs.sat_velocity[rows], prs.sat_clock_drift[rows], std[rows]
-    )
-    residual = prs.range_rate_mps[rows] - rate_model.predict(centre)
+    if predicted is None:
+        rate_model = RangeRateModel.build(
+            session.anchor,
+            prs.sat_position[rows],
+            prs.sat_velocity[rows],
+            prs.sat_clock_drift[rows],
+            std[rows],
+        )
+        residual = prs.range_rate_mps[rows] - rate_model.predict(centre)
+    else:
+        residual = prs.range_rate_mps[rows] - predicted[rows]
     if predicted_cov is None:
         predicted_cov = session_covariance(session) + model.process_noise(dt)
     velocity = [layout.VE, layout.VN, layout.VU]
     variance = std[rows] ** 2 + float(np.trace(predicted_cov[np.ix_(velocity, velocity)]))
     if rows.size >= 3:
-        residual = residual - np.median(residual)
+        residual = residual - median(residual)
     else:
         variance = variance + predicted_cov[layout.DRIFT, layout.DRIFT]
     score = residual**2 / variance
@@ -162,27 +171,34 @@ def residual_test(
     indices: list[int],
     uses: dict[int, MeasurementUse],
     predicted_cov: np.ndarray | None = None,
+    predicted: np.ndarray | None = None,
 ) -> tuple[np.ndarray, bool]:
     """RAIM-like screening of each pseudorange against the predicted state.
 
     Residual = measured - predicted; per constellation with three or more satellites its median is
     removed (a clock error moves them all alike), otherwise the clock variance widens the test. The
     variance is std^2 plus the predicted position variance (trace). Returns the rows kept and whether the
-    prediction is lost (more than half of at least four pseudoranges fail)."""
+    prediction is lost (more than half of at least four pseudoranges fail). ``predicted``: every row's
+    pseudorange at ``centre`` when the caller has it."""
     probability = session.options["gate_probability"]
     if probability <= 0.0 or rows.size == 0:
         return rows, False
     assert session.anchor is not None
     systems = [prs.systems[r] for r in rows]
-    model_pr = PseudorangeModel.build(session.anchor, prs.sat_position[rows], systems, known[rows], std[rows])
-    residual = prs.pseudorange_m[rows] - model_pr.predict(centre)
+    if predicted is None:
+        model_pr = PseudorangeModel.build(
+            session.anchor, prs.sat_position[rows], systems, known[rows], std[rows]
+        )
+        residual = prs.pseudorange_m[rows] - model_pr.predict(centre)
+    else:
+        residual = prs.pseudorange_m[rows] - predicted[rows]
     if predicted_cov is None:
         predicted_cov = session_covariance(session) + model.process_noise(dt)
     variance = std[rows] ** 2 + float(np.trace(predicted_cov[:3, :3]))
     for system in set(systems):
         members = np.array([s == system for s in systems])
         if members.sum() >= 3:
-            residual[members] -= np.median(residual[members])
+            residual[members] -= median(residual[members])
         else:
             clock = layout.CLOCK[system]
             variance[members] += predicted_cov[clock, clock] if system in session.clock_seen else 1e12
@@ -205,8 +221,24 @@ def residual_test(
 _THRESHOLDS: dict[tuple[float, int], float] = {}
 
 
+def median(values: np.ndarray) -> float:
+    """np.median of a short 1-D array, the same value (the middle element, or the two middle ones' mean)
+    without its general machinery: the screens take several medians of a few satellites every epoch."""
+    ordered = np.sort(values)
+    half = len(ordered) // 2
+    if len(ordered) % 2:
+        return float(ordered[half])
+    return float((ordered[half - 1] + ordered[half]) / 2.0)
+
+
 def chi2_threshold(probability: float, dof: int = 1) -> float:
     key = (probability, dof)
     if key not in _THRESHOLDS:
         _THRESHOLDS[key] = float(chi2.ppf(probability, dof))
     return _THRESHOLDS[key]
+
+
+def left_out(rows: np.ndarray, kept: np.ndarray) -> list[int]:
+    """The rows (ascending) not in ``kept``: np.setdiff1d's answer for a handful of rows, without its sorts."""
+    keep = set(kept.tolist())
+    return [r for r in rows.tolist() if r not in keep]

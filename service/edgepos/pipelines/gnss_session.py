@@ -13,6 +13,7 @@ from edgepos.core import state as state_format
 from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GeodeticAnchor
 from edgepos.core.particles import PARTICLE_FILTERS, Cloud
+from edgepos.core.particles.base import weighted_moments
 from edgepos.gnss.carrier import CarrierTrack, tracks_from_arrays, tracks_to_arrays
 
 PIPELINE_NAME = "gnss_tight"
@@ -41,7 +42,8 @@ class GnssSession:
     carrier phase have neither and start with none."""
     faults: dict[str, list[float]] = field(default_factory=dict)
     """Per satellite (and ``<sat>/rate`` for its range rate), the fault test's history over time
-    (pipelines/gnss_faults.py); states written before it start with none."""
+    (pipelines/gnss_faults.py); states written before it start with none. Stored as the ``fault_keys`` list
+    and the ``faults`` array (n, 4); states written before that layout have the dict in their metadata."""
     still_epochs: int = 0
     """Epochs in a row whose own Doppler speed was below ``zupt_speed_mps`` (zero-velocity detection)."""
 
@@ -60,7 +62,7 @@ class GnssSession:
             "clock_seen": self.clock_seen,
             "heading_known": self.heading_known,
             "carrier_sats": carrier_sats,
-            "faults": self.faults,
+            "fault_keys": list(self.faults),
             "still_epochs": self.still_epochs,
         }
         arrays = {
@@ -68,6 +70,11 @@ class GnssSession:
             "log_weights": self.cloud.log_weights,
             "cov": self.cloud.cov,
             "carrier": carrier_table,
+            # an array, not JSON: some forty histories of four floats each were a third of the header's
+            # encoding and decoding time, every epoch
+            "faults": np.array(list(self.faults.values()), dtype=float).reshape(
+                len(self.faults), _FAULT_FIELDS
+            ),
         }
         return state_format.pack(meta, arrays)
 
@@ -102,9 +109,26 @@ def decode_session(blob: bytes) -> GnssSession:
         cloud,
         bool(meta.get("heading_known", False)),
         carrier,
-        {str(k): [float(x) for x in v] for k, v in meta.get("faults", {}).items()},
+        _faults(meta, arrays),
         int(meta.get("still_epochs", 0)),
     )
+
+
+_FAULT_FIELDS = 4
+"""Per fault history: epochs beyond the gate in a row, epochs agreeing in a row, excluded (0/1), last seen t."""
+
+
+def _faults(meta: dict[str, Any], arrays: dict[str, np.ndarray]) -> dict[str, list[float]]:
+    """The fault histories of a decoded state, whichever layout wrote them."""
+    if "fault_keys" in meta:
+        keys = [str(key) for key in meta["fault_keys"]]
+        table = arrays.get("faults", np.zeros((0, _FAULT_FIELDS)))
+        if table.shape != (len(keys), _FAULT_FIELDS):
+            raise state_format.StateFormatError(
+                f"gnss_tight state's fault histories are corrupt: {len(keys)} keys, array {table.shape}"
+            )
+        return dict(zip(keys, table.tolist(), strict=True))
+    return {str(k): [float(x) for x in v] for k, v in meta.get("faults", {}).items()}
 
 
 def empty_cloud() -> Cloud:
@@ -134,3 +158,17 @@ def filter_for(options: Mapping[str, Any]) -> Any:
         spread = options.get("spread_fraction", 1.0)
         return cls(resample_threshold=options["resample_threshold"], spread_fraction=spread)
     return cls(resample_threshold=options["resample_threshold"])
+
+
+def cloud_moments(session: GnssSession) -> tuple[np.ndarray, np.ndarray]:
+    """The cloud's weighted mean, the azimuth averaged on the circle (a plain average of particles at +179
+    and -179 deg, a vehicle heading south, would point north), and the covariance it stands for
+    (``session_covariance``); the UPF's, its spread plus their own covariance, from the same moments."""
+    cloud = session.cloud
+    if len(cloud.particles) == 1:
+        single: np.ndarray = cloud.particles[0].copy()
+        return single, session_covariance(session)
+    mean, spread = weighted_moments(cloud.particles, cloud.weights, layout.ANGLES)
+    if session.options["filter"] == "upf":  # UnscentedParticleFilter.covariance without a second pass
+        return mean, spread + cloud.cov
+    return mean, session_covariance(session)

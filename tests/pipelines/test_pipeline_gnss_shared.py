@@ -1,0 +1,151 @@
+"""gnss_tight's per-epoch sharing (issue 16's speed target): one prediction at the centre serves the fault
+test over time, the residual tests and RAIM, instead of each building its own model. Held to the
+computations each did alone (the functions without the shared argument) on the real recording, UPF and UKF,
+with a ramp on one satellite so that RAIM's exclusion retests a subset of rows."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+
+import numpy as np
+import pytest
+from edgepos.core.integrity import _radial_factors, radial_factor_table
+from edgepos.core.observations import PseudorangeObservation
+from edgepos.gnss.ephemerides import Ephemerides
+from edgepos.gnss.raim import Separations
+from edgepos.gnss.rinex_nav import read_navigation
+from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
+from edgepos.pipelines import gnss_tight
+from edgepos.pipelines.base import Fix, StaticEnvironment
+from edgepos.pipelines.gnss_integrity import EXCLUDED, WARM_HYPOTHESES, warm_up_gnss_tables
+from edgepos.pipelines.gnss_recording import epoch_pseudoranges
+from edgepos.pipelines.gnss_screening import left_out, median
+
+DATA = "tests/data/gnss-rover/"
+EPOCHS = 45
+
+
+@pytest.fixture(scope="module")
+def recording() -> tuple[list[list[PseudorangeObservation]], StaticEnvironment]:
+    """The first EPOCHS epochs with carrier phase, one GPS satellite's pseudorange ramped from epoch 15."""
+    codes = {s: DEFAULT_CODES[s] for s in "GCE"}
+    environment = StaticEnvironment(
+        navigation=Ephemerides.from_navigation(read_navigation(DATA + "broadcast-nav.rnx"))
+    )
+    epochs = []
+    for number, epoch in enumerate(read_epochs(DATA + "rover-0-5min.rnx", codes)):
+        if number >= EPOCHS:
+            break
+        epochs.append(epoch_pseudoranges(epoch))
+    victim = min((o.system, o.prn) for o in epochs[0] if o.system == "G")
+    ramped = [
+        [
+            dataclasses.replace(o, pseudorange=o.pseudorange + 4.0 * max(k - 15, 0))
+            if (o.system, o.prn) == victim
+            else o
+            for o in epoch
+        ]
+        for k, epoch in enumerate(epochs)
+    ]
+    return ramped, environment
+
+
+def _run(epochs, environment, options) -> list[Fix]:
+    pipeline = gnss_tight.GnssTightPipeline()
+    state = pipeline.create(pipeline.resolve_options({"seed": 3, **options}), None)
+    fixes = []
+    for epoch in epochs:
+        (fix,), state = pipeline.process(state, epoch, environment)
+        fixes.append(fix)
+    return fixes
+
+
+def _held_to_alone(function, shared_position: int, seen: list[int]):  # type: ignore[no-untyped-def]
+    """``function`` called with the shared prediction (positional ``shared_position``) and again without it
+    (its own model), on copies of whatever it writes to: both must return and write the same."""
+
+    def call(*args):  # type: ignore[no-untyped-def]
+        assert len(args) == shared_position + 1 and args[shared_position] is not None
+        own_args = copy.deepcopy(args[:shared_position])
+        result = function(*args)
+        own = function(*own_args)
+        for a, b in zip(
+            result if isinstance(result, tuple) else (result,), own if isinstance(own, tuple) else (own,)
+        ):
+            if isinstance(a, Separations):
+                assert a.available == b.available and a.threshold == b.threshold
+                assert len(a.hypotheses) == len(b.hypotheses)
+                for x, y in zip(a.hypotheses, b.hypotheses):
+                    assert x[0] == y[0] and x[4] == y[4]
+                    assert np.allclose(x[1], y[1], rtol=1e-9, atol=1e-9)
+                    assert np.allclose(x[2], y[2], rtol=1e-9, atol=1e-12)
+                    assert x[3] == pytest.approx(y[3], rel=1e-9, abs=1e-9)
+            else:
+                assert np.allclose(a, b, rtol=1e-12, atol=1e-9)
+        for written, own_written in zip(args[:shared_position], own_args):
+            if isinstance(written, dict):  # the uses and Doppler reports
+                assert written == own_written
+        seen.append(1)
+        return result
+
+    return call
+
+
+ONLY_RAIM = {"fault_probability": 0.0, "fde_probability": 0.0, "gate_probability": 0.0}
+"""The other screens off, so that RAIM excludes the ramp and retests the rows left."""
+
+
+@pytest.mark.parametrize(
+    ("options", "reason"),
+    [({"filter": "upf"}, "excluded over time"), ({"filter": "ukf", **ONLY_RAIM}, EXCLUDED)],
+)
+def test_shared_predictions_give_what_each_test_computes_alone(
+    recording, monkeypatch, options, reason
+) -> None:
+    seen: dict[str, list[int]] = {}
+    for name, position in (
+        ("range_innovations", 7),
+        ("rate_innovations", 6),
+        ("residual_test", 11),
+        ("range_rate_test", 10),
+        ("detect_and_exclude", 13),
+    ):
+        seen[name] = []
+        monkeypatch.setattr(gnss_tight, name, _held_to_alone(getattr(gnss_tight, name), position, seen[name]))
+    fixes = _run(*recording, options)
+    assert any(use.reason and use.reason.startswith(reason) for f in fixes for use in f.measurements)
+    assert len(seen["detect_and_exclude"]) > EPOCHS // 2 and len(seen["range_rate_test"]) > EPOCHS // 2
+    if options.get("fault_probability", 1.0) != 0.0:
+        assert len(seen["range_innovations"]) > EPOCHS // 2 and len(seen["rate_innovations"]) > EPOCHS // 2
+
+
+def test_the_screens_median_is_numpys() -> None:
+    rng = np.random.default_rng(5)
+    for count in range(1, 12):
+        for _ in range(20):
+            values = rng.normal(0.0, 30.0, count) + rng.integers(-3, 3, count)  # with ties now and then
+            assert median(values) == float(np.median(values))
+
+
+def test_rows_left_out_are_setdiff1d() -> None:
+    rng = np.random.default_rng(6)
+    for _ in range(50):
+        rows = np.flatnonzero(rng.random(25) < 0.7)
+        kept = rows[rng.random(rows.size) < 0.8]
+        assert left_out(rows, kept) == np.setdiff1d(rows, kept).tolist()
+
+
+def test_the_warmed_up_raim_tables_serve_the_recording(recording) -> None:
+    """After the start-up warm-up, epochs of the recording (about 20 satellites, three constellations)
+    compute no radial table of their own (each would cost about 50 ms of quadrature in the filter thread)."""
+    _radial_factors.cache_clear()
+    radial_factor_table.cache_clear()
+    warm_up_gnss_tables()
+    warmed = _radial_factors.cache_info().misses
+    assert warmed == 1 + len(
+        WARM_HYPOTHESES
+    )  # the fault-free share and one per count (default P_sat = P_const)
+    fixes = _run(*recording, {"filter": "upf"})
+    assert sum(f.protection_level is not None for f in fixes) > EPOCHS // 2
+    assert _radial_factors.cache_info().misses == warmed
