@@ -103,31 +103,7 @@ class BroadcastOrbits:
     def __init__(self, ephemerides: Sequence[KeplerEphemeris], healthy_only: bool = True) -> None:
         kept = [e for e in ephemerides if e.system in GM and (e.health == 0 or not healthy_only)]
         self.ephemerides: tuple[KeplerEphemeris, ...] = tuple(kept)
-        names = (
-            "toc",
-            "af0",
-            "af1",
-            "af2",
-            "crs",
-            "delta_n",
-            "m0",
-            "cuc",
-            "e",
-            "cus",
-            "sqrt_a",
-            "toe",
-            "toe_sow",
-            "cic",
-            "omega0",
-            "cis",
-            "i0",
-            "crc",
-            "omega",
-            "omega_dot",
-            "idot",
-            "tgd1",
-            "tgd2",
-        )
+        names = ("toc", "af0", "af1", "af2", *_ORBIT_FIELDS, "tgd1", "tgd2")
         self._a = {n: np.array([getattr(e, n) for e in kept], dtype=float) for n in names}
         # the orbit formulas' fields as rows of one matrix: position() gathers a batch's records with one
         # fancy index instead of one per field

@@ -22,11 +22,10 @@ from typing import Any
 
 import numpy as np
 
-from edgepos.core.measurements.pseudorange import PseudorangeModel
 from edgepos.core.measurements.range_rate import RangeRateModel
 from edgepos.core.motion import riss as layout
 from edgepos.gnss.measurements import PseudorangeSet
-from edgepos.pipelines.gnss_screening import chi2_threshold, median
+from edgepos.pipelines.gnss_screening import chi2_threshold, median, range_residuals
 from edgepos.pipelines.gnss_session import GnssSession
 
 History = dict[str, list[float]]
@@ -154,15 +153,7 @@ def range_innovations(
     constellation the median removed (three or more) or the clock's predicted variance added; variance
     std^2 + the predicted position variance (trace), as the residual test's. ``predicted``: every row's
     pseudorange predicted at ``centre`` when the caller has it (one prediction serves the epoch's tests)."""
-    assert session.anchor is not None
-    systems = [prs.systems[r] for r in rows]
-    if predicted is None:
-        model_pr = PseudorangeModel.build(
-            session.anchor, prs.sat_position[rows], systems, known[rows], std[rows]
-        )
-        residual = prs.pseudorange_m[rows] - model_pr.predict(centre)
-    else:
-        residual = prs.pseudorange_m[rows] - predicted[rows]
+    residual, systems = range_residuals(session, centre, prs, known, std, rows, predicted)
     variance = std[rows] ** 2 + float(np.trace(predicted_cov[:3, :3]))
     for system in set(systems):
         members = np.array([s == system for s in systems])

@@ -159,6 +159,28 @@ def snapshot_test(
     return keep
 
 
+def range_residuals(
+    session: GnssSession,
+    centre: np.ndarray,
+    prs: PseudorangeSet,
+    known: np.ndarray,
+    std: np.ndarray,
+    rows: np.ndarray,
+    predicted: np.ndarray | None = None,
+) -> tuple[np.ndarray, list[str]]:
+    """The pseudoranges in ``rows`` minus their prediction at ``centre``, and each row's constellation;
+    ``predicted``: every row's pseudorange at ``centre`` when the caller has it (one prediction per epoch
+    serves the residual test and the fault test over time), else predicted here."""
+    assert session.anchor is not None
+    systems = [prs.systems[r] for r in rows]
+    if predicted is None:
+        model_pr = PseudorangeModel.build(
+            session.anchor, prs.sat_position[rows], systems, known[rows], std[rows]
+        )
+        return prs.pseudorange_m[rows] - model_pr.predict(centre), systems
+    return prs.pseudorange_m[rows] - predicted[rows], systems
+
+
 def residual_test(
     session: GnssSession,
     centre: np.ndarray,
@@ -183,15 +205,7 @@ def residual_test(
     probability = session.options["gate_probability"]
     if probability <= 0.0 or rows.size == 0:
         return rows, False
-    assert session.anchor is not None
-    systems = [prs.systems[r] for r in rows]
-    if predicted is None:
-        model_pr = PseudorangeModel.build(
-            session.anchor, prs.sat_position[rows], systems, known[rows], std[rows]
-        )
-        residual = prs.pseudorange_m[rows] - model_pr.predict(centre)
-    else:
-        residual = prs.pseudorange_m[rows] - predicted[rows]
+    residual, systems = range_residuals(session, centre, prs, known, std, rows, predicted)
     if predicted_cov is None:
         predicted_cov = session_covariance(session) + model.process_noise(dt)
     variance = std[rows] ** 2 + float(np.trace(predicted_cov[:3, :3]))
