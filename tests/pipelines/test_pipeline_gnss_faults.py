@@ -12,18 +12,13 @@ import numpy as np
 import pytest
 from edgepos.core import state as state_format
 from edgepos.core.observations import PseudorangeObservation, RissObservation
-from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.geodesy import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
-from edgepos.gnss.rinex_nav import read_navigation
-from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
 from edgepos.gnss.spp import read_reference, reference_velocity
 from edgepos.pipelines.base import Fix, StaticEnvironment
 from edgepos.pipelines.gnss_faults import judge
-from edgepos.pipelines.gnss_recording import epoch_pseudoranges
 from edgepos.pipelines.gnss_session import decode_session
 from edgepos.pipelines.gnss_tight import GnssTightPipeline
-
-DATA = "tests/data/gnss-rover/"
+from gnssrecording import DATA, recording_epochs
 
 
 # -- the persistence rule --------------------------------------------------------------------------------
@@ -77,15 +72,7 @@ def test_a_satellite_gone_for_long_is_forgotten() -> None:
 # -- on the recording ---------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def recording() -> tuple[list[list[PseudorangeObservation]], StaticEnvironment, np.ndarray]:
-    codes = {s: DEFAULT_CODES[s] for s in "GCE"}
-    environment = StaticEnvironment(
-        navigation=Ephemerides.from_navigation(read_navigation(DATA + "broadcast-nav.rnx"))
-    )
-    epochs, times = [], []
-    for epoch in read_epochs(DATA + "rover-0-5min.rnx", codes):
-        times.append(epoch.gpst)
-        epochs.append(epoch_pseudoranges(epoch))
-    return epochs, environment, np.array(times)
+    return recording_epochs()
 
 
 def _run(recording, options) -> list[Fix]:
@@ -106,7 +93,7 @@ def defaults(recording) -> list[Fix]:
 
 def _reference_speed(times: np.ndarray) -> np.ndarray:
     """Reference horizontal speed (m/s) at each epoch time (NaN without a reference velocity)."""
-    ref_time, ref_ecef = read_reference(DATA + "reference-0-5min.csv")
+    ref_time, ref_ecef = read_reference(str(DATA / "reference-0-5min.csv"))
     velocity = reference_velocity(ref_time, ref_ecef)
     lat, lon, _ = ecef_to_geodetic(ref_ecef[0])
     enu = velocity @ enu_rotation(float(lat), float(lon)).T
@@ -119,7 +106,7 @@ def _reference_speed(times: np.ndarray) -> np.ndarray:
 
 
 def _horizontal_rms(fixes: list[Fix], times: np.ndarray, span: slice) -> float:
-    ref_time, ref_ecef = read_reference(DATA + "reference-0-5min.csv")
+    ref_time, ref_ecef = read_reference(str(DATA / "reference-0-5min.csv"))
     errors = []
     for fix, t in zip(fixes[span], times[span]):
         row = int(np.argmin(np.abs(ref_time - t)))

@@ -11,16 +11,12 @@ import math
 import numpy as np
 import pytest
 from edgepos.core.observations import PseudorangeObservation
-from edgepos.gnss.ephemerides import Ephemerides
-from edgepos.gnss.rinex_nav import read_navigation
-from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
 from edgepos.pipelines.base import Fix, StaticEnvironment
 from edgepos.pipelines.gnss_integrity import EXCLUDED
-from edgepos.pipelines.gnss_recording import epoch_pseudoranges
 from edgepos.pipelines.gnss_session import decode_session
 from edgepos.pipelines.gnss_tight import GnssTightPipeline
+from gnssrecording import recording_epochs
 
-DATA = "tests/data/gnss-rover/"
 EPOCHS = 60
 RAMP_START = 20
 RAMP_RATE = 3.0  # m/s on one satellite: a slowly growing reflection or clock fault
@@ -35,15 +31,7 @@ def recording() -> tuple[list[list[PseudorangeObservation]], StaticEnvironment]:
 
 def load() -> tuple[list[list[PseudorangeObservation]], StaticEnvironment]:
     """The first EPOCHS epochs of the recording (GPS, BeiDou, Galileo) and an environment with its ephemerides."""
-    codes = {s: DEFAULT_CODES[s] for s in "GCE"}
-    environment = StaticEnvironment(
-        navigation=Ephemerides.from_navigation(read_navigation(DATA + "broadcast-nav.rnx"))
-    )
-    epochs = []
-    for number, epoch in enumerate(read_epochs(DATA + "rover-0-5min.rnx", codes)):
-        if number >= EPOCHS:
-            break
-        epochs.append(epoch_pseudoranges(epoch, carrier=False))
+    epochs, environment, _ = recording_epochs(EPOCHS, carrier=False)
     return epochs, environment
 
 

@@ -12,32 +12,20 @@ import numpy as np
 import pytest
 from edgepos.core.integrity import _radial_factors, radial_factor_table
 from edgepos.core.observations import PseudorangeObservation
-from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.raim import Separations
-from edgepos.gnss.rinex_nav import read_navigation
-from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
 from edgepos.pipelines import gnss_tight
 from edgepos.pipelines.base import Fix, StaticEnvironment
 from edgepos.pipelines.gnss_integrity import EXCLUDED, WARM_HYPOTHESES, warm_up_gnss_tables
-from edgepos.pipelines.gnss_recording import epoch_pseudoranges
 from edgepos.pipelines.gnss_screening import left_out, median
+from gnssrecording import recording_epochs
 
-DATA = "tests/data/gnss-rover/"
 EPOCHS = 45
 
 
 @pytest.fixture(scope="module")
 def recording() -> tuple[list[list[PseudorangeObservation]], StaticEnvironment]:
     """The first EPOCHS epochs with carrier phase, one GPS satellite's pseudorange ramped from epoch 15."""
-    codes = {s: DEFAULT_CODES[s] for s in "GCE"}
-    environment = StaticEnvironment(
-        navigation=Ephemerides.from_navigation(read_navigation(DATA + "broadcast-nav.rnx"))
-    )
-    epochs = []
-    for number, epoch in enumerate(read_epochs(DATA + "rover-0-5min.rnx", codes)):
-        if number >= EPOCHS:
-            break
-        epochs.append(epoch_pseudoranges(epoch))
+    epochs, environment, _ = recording_epochs(EPOCHS)
     victim = min((o.system, o.prn) for o in epochs[0] if o.system == "G")
     ramped = [
         [
