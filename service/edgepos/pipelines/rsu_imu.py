@@ -190,11 +190,11 @@ class RsuImuPipeline(Pipeline):
         self, state: bytes, observations: Sequence[Observation], environment: Environment
     ) -> tuple[list[Fix], bytes]:
         session = _decode(state)
-        rsus = _validate(session, observations, environment)
+        batch = _validate(session, observations, environment)
         bank = _bank(session.options_key)
         fixes = []
         for epoch in group_by_time(observations):
-            fixes.append(_step(session, bank, epoch, observations, rsus))
+            fixes.append(_step(session, bank, epoch, observations, batch))
         return ensure_finite_fixes(fixes), session.to_bytes()
 
     smoother: ClassVar[bool] = True
@@ -219,12 +219,36 @@ class RsuImuPipeline(Pipeline):
         return rsu_imu_smoothing.smooth(state, observations, environment, lag_s)
 
 
+class _Batch:
+    """A batch's observations as the epochs read them: each RSU observation's station, and per
+    observation its row of the measurement arrays (station position, range and bearing, their noise
+    standard deviations with the options' defaults filled in, the communication radius; zeros for a
+    gyro) and the gyro's yaw rate. Read once per batch (``_validate``), so that an epoch's measurement
+    arrays are a few index operations instead of array building from Python lists."""
+
+    __slots__ = ("bearing_std", "observed", "positions", "radii", "range_std", "rsus", "yaw_rates")
+
+    def __init__(self, rsus: list[Rsu | None], rows: list[tuple[float, ...]]) -> None:
+        self.rsus = rsus
+        table = np.array(rows, dtype=float).reshape(len(rows), 8)
+        self.positions = np.ascontiguousarray(table[:, 0:2])
+        self.observed = np.ascontiguousarray(table[:, 2:4])
+        self.range_std = np.ascontiguousarray(table[:, 4])
+        self.bearing_std = np.ascontiguousarray(table[:, 5])
+        self.yaw_rates = np.ascontiguousarray(table[:, 6])
+        self.radii: list[float] = table[:, 7].tolist()
+
+
 def _validate(
     session: _SessionState, observations: Sequence[Observation], environment: Environment
-) -> list[Rsu | None]:
-    """Check the whole batch before touching the filter; return each observation's RSU (or None)."""
+) -> _Batch:
+    """Check the whole batch before touching the filter; return its observations' stations and arrays."""
     problems = []
     rsus: list[Rsu | None] = []
+    rows: list[tuple[float, ...]] = []
+    options = session.options
+    default_range, default_bearing = options["range_std"], options["bearing_std"]
+    default_radius = options["comm_radius"]
     for index, observation in enumerate(observations):
         rsu = None
         if not math.isfinite(observation.t):
@@ -239,6 +263,19 @@ def _validate(
             rsu = environment.rsu(observation.rsu_id)
             if rsu is None:
                 problems.append(Problem(index, "rsu_id", f"unknown RSU {observation.rsu_id!r}"))
+            else:
+                rows.append(
+                    (
+                        rsu.x,
+                        rsu.y,
+                        observation.range,
+                        observation.bearing,
+                        rsu.range_std or default_range,
+                        rsu.bearing_std or default_bearing,
+                        0.0,
+                        rsu.radius or default_radius,
+                    )
+                )
             if not (math.isfinite(observation.range) and observation.range >= 0.0):
                 problems.append(Problem(index, "range", "must be a finite distance >= 0 m"))
             if not (math.isfinite(observation.bearing) and abs(observation.bearing) <= math.pi + 1e-9):
@@ -246,6 +283,7 @@ def _validate(
         elif isinstance(observation, GyroObservation):
             if not math.isfinite(observation.yaw_rate):
                 problems.append(Problem(index, "yaw_rate", "must be finite"))
+            rows.append((0.0, 0.0, 0.0, 0.0, 0.0, 0.0, observation.yaw_rate, 0.0))
         else:
             problems.append(
                 Problem(index, "type", f"{observation.kind!r} is not used by the rsu_imu pipeline")
@@ -253,7 +291,7 @@ def _validate(
         rsus.append(rsu)
     if problems:
         raise PipelineInputError(problems)
-    return rsus
+    return _Batch(rsus, rows)
 
 
 # -- the bank ------------------------------------------------------------------------------------
@@ -392,14 +430,14 @@ def _step(
     bank: InteractingMultipleModel,
     epoch: list[int],
     observations: Sequence[Observation],
-    rsus: list[Rsu | None],
+    batch: _Batch,
 ) -> Fix:
     options = session.options
     t = observations[epoch[0]].t
     session.t = t
     session.epochs += 1
     uses: dict[int, MeasurementUse] = {}
-    candidates = _rsus_in_view(epoch, observations, rsus, options, uses)
+    candidates = _rsus_in_view(epoch, observations, batch, options, uses)
     gyros = [i for i in epoch if isinstance(observations[i], GyroObservation)]
 
     if session.initialised and session.filter_t is not None and t - session.filter_t > options["max_gap"]:
@@ -411,7 +449,7 @@ def _step(
                     i, observations[i].kind, False, "waiting for an RSU measurement to initialise"
                 )
             return Fix(t=t, status="uninitialised", measurements=[uses[i] for i in sorted(uses)])
-        _initialise(session, bank, candidates, gyros, observations, rsus)
+        _initialise(session, bank, candidates, gyros, observations, batch.rsus)
         session.integrity_bank = None
         for i in candidates + gyros:
             uses[i] = _used(i, observations[i].kind)
@@ -421,13 +459,13 @@ def _step(
     dt = None if session.filter_t is None else t - session.filter_t
     stepper = _stepper(bank)
     prediction = stepper.predict(session.means, session.covs, session.probabilities, dt)
-    measured = _epoch_measurements(candidates, gyros, observations, rsus, options)
+    measured = _epoch_measurements(candidates, gyros, batch, options)
     gate = options["gate_probability"]
     if gate > 0.0 and (candidates or gyros):
         kept_rsus, kept_gyros = _gate(candidates, gyros, measured, prediction.output, gate, uses, stepper)
         if len(kept_rsus) < len(candidates) or len(kept_gyros) < len(gyros):
             candidates, gyros = kept_rsus, kept_gyros
-            measured = _epoch_measurements(candidates, gyros, observations, rsus, options)
+            measured = _epoch_measurements(candidates, gyros, batch, options)
 
     protection: Protection | None = None
     if options["integrity"]:
@@ -440,7 +478,7 @@ def _step(
             options,
             uses,
             prediction.output,
-            lambda kept: _epoch_measurements(kept, gyros, observations, rsus, options),
+            lambda kept: _epoch_measurements(kept, gyros, batch, options),
             functools.partial(stepper.correct, prediction),
             _output,
         )
@@ -467,7 +505,7 @@ def _used(index: int, kind: str) -> MeasurementUse:
 def _rsus_in_view(
     epoch: list[int],
     observations: Sequence[Observation],
-    rsus: list[Rsu | None],
+    batch: _Batch,
     options: Mapping[str, Any],
     uses: dict[int, MeasurementUse],
 ) -> list[int]:
@@ -477,7 +515,7 @@ def _rsus_in_view(
         observation = observations[i]
         if not isinstance(observation, RsuObservation):
             continue
-        radius = cast(Rsu, rsus[i]).radius or options["comm_radius"]  # _validate found its station
+        radius = batch.radii[i]
         if observation.range > radius:
             uses[i] = MeasurementUse(
                 i, observation.kind, False, f"range beyond the {radius:g} m communication radius"
@@ -541,28 +579,16 @@ def _gate(
 
 
 def _epoch_measurements(
-    candidates: list[int],
-    gyros: list[int],
-    observations: Sequence[Observation],
-    rsus: list[Rsu | None],
-    options: Mapping[str, Any],
+    candidates: list[int], gyros: list[int], batch: _Batch, options: Mapping[str, Any]
 ) -> RsuGyroEpoch:
     """The chosen RSU pairs and gyro readings as plain arrays, with their noise and the RSU handling."""
-    count = len(candidates)
-    # candidates are RSU observations, whose stations _validate found; gyros are gyro observations
-    chosen = cast("list[Rsu]", [rsus[i] for i in candidates])
-    measured = cast("list[RsuObservation]", [observations[i] for i in candidates])
-    positions = np.array([(rsu.x, rsu.y) for rsu in chosen], dtype=float).reshape(count, 2)
-    observed = np.array([(o.range, o.bearing) for o in measured], dtype=float).reshape(count, 2)
-    default_range, default_bearing = options["range_std"], options["bearing_std"]
-    range_std = np.array([rsu.range_std or default_range for rsu in chosen], dtype=float)
-    bearing_std = np.array([rsu.bearing_std or default_bearing for rsu in chosen], dtype=float)
+    rows = np.array(candidates, dtype=np.intp)
     return RsuGyroEpoch(
-        positions,
-        observed,
-        range_std,
-        bearing_std,
-        np.array([cast(GyroObservation, observations[i]).yaw_rate for i in gyros], dtype=float),
+        batch.positions[rows],
+        batch.observed[rows],
+        batch.range_std[rows],
+        batch.bearing_std[rows],
+        batch.yaw_rates[np.array(gyros, dtype=np.intp)],
         options["gyro_std"],
         averaged=options["rsu_handling"] == "average",
     )
