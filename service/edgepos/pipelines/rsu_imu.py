@@ -15,6 +15,7 @@ else on the numpy reference; both give the same fixes to rounding.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import math
@@ -639,13 +640,32 @@ def _initialise(
 
 
 @functools.lru_cache(maxsize=64)
-def _fix_layout(components: tuple[int, ...]) -> tuple[int, int, np.ndarray, tuple[str, ...]]:
-    """For an output over ``components``: the indices of x and y, the flat indices of the [x, y, vx, vy]
-    block of its covariance, and the components' names."""
+def _fix_layout(components: tuple[int, ...]) -> tuple[tuple[int, ...], int, int, tuple[str, ...]]:
+    """For an output over ``components``: the indices of x, y, vx and vy (the kinematic block's order),
+    of ax and ay (-1 when the output lacks them), and the components' names."""
     order = list(components)
-    kinematic = [order.index(c) for c in (layout.XP, layout.YP, layout.XV, layout.YV)]
-    flat = np.array([i * len(order) + j for i in kinematic for j in kinematic], dtype=np.intp)
-    return kinematic[0], kinematic[1], flat, tuple(layout.NAMES[c] for c in order)
+    kinematic = tuple(order.index(c) for c in (layout.XP, layout.YP, layout.XV, layout.YV))
+    ax = order.index(layout.XA) if layout.XA in order else -1
+    ay = order.index(layout.YA) if layout.YA in order else -1
+    return kinematic, ax, ay, tuple(layout.NAMES[c] for c in order)
+
+
+#: Every field of a Fix in its order, with its default (None for those ``_new_fix`` is always given).
+_FIX_DEFAULTS = {
+    f.name: None if f.default is dataclasses.MISSING else f.default for f in dataclasses.fields(Fix)
+}
+
+
+def _new_fix(values: dict[str, Any]) -> Fix:
+    """A ``Fix`` of ``values`` (every field without a default among them) without its generated
+    ``__init__``: being frozen, that sets each of its 27 fields through ``object.__setattr__``, about
+    3 us a fix, a tenth of the Python around an epoch's filter step. The same object otherwise (equal,
+    pickled and serialised alike; tests/pipelines/test_pipeline_rsu_imu_process.py compares)."""
+    fix = object.__new__(Fix)
+    fields = fix.__dict__
+    fields.update(_FIX_DEFAULTS)
+    fields.update(values)
+    return fix
 
 
 def _fix(
@@ -659,50 +679,48 @@ def _fix(
     dof: int,
     protection: Protection | None = None,
 ) -> Fix:
-    components = tuple(output.components)
-    x_index, y_index, kinematic_flat, names = _fix_layout(components)
+    kinematic, ax, ay, names = _fix_layout(tuple(output.components))
     state = output.mean.tolist()
     state_cov = output.cov.tolist()
-    value = dict(zip(components, state))
-    vx, vy = value[layout.XV], value[layout.YV]
-    return Fix(
-        t=t,
-        status=status,
-        x=value[layout.XP],
-        y=value[layout.YP],
-        vx=vx,
-        vy=vy,
-        speed=math.hypot(vx, vy),
-        heading=math.atan2(vy, vx),
-        yaw_rate=_yaw_rate(value, session, bank),
-        position_cov=[
-            [state_cov[x_index][x_index], state_cov[x_index][y_index]],
-            [state_cov[y_index][x_index], state_cov[y_index][y_index]],
-        ],
-        kinematic_cov=output.cov.ravel()[kinematic_flat].reshape(4, 4).tolist(),
-        state_components=names,
-        state=state,
-        state_cov=state_cov,
-        model_probabilities=dict(zip(session.options["models"], session.probabilities.tolist())),
-        nis=nis,
-        nis_dof=dof,
-        measurements=[uses[i] for i in sorted(uses)],
-        protection_level=None if protection is None else protection.level,
-        integrity=UNAVAILABLE if protection is None else protection.state,
+    i_x, i_y, i_vx, i_vy = kinematic
+    vx, vy = state[i_vx], state[i_vy]
+    if ax >= 0 and ay >= 0:  # the turn rate of the velocity vector from the fused kinematics
+        yaw_rate = float((vx * state[ay] - state[ax] * vy) / max(vx * vx + vy * vy, 0.01))
+    else:
+        yaw_rate = _carried_yaw_rate(session, bank)
+    rows = [state_cov[i] for i in kinematic]
+    return _new_fix(
+        {
+            "t": t,
+            "status": status,
+            "x": state[i_x],
+            "y": state[i_y],
+            "vx": vx,
+            "vy": vy,
+            "speed": math.hypot(vx, vy),
+            "heading": math.atan2(vy, vx),
+            "yaw_rate": yaw_rate,
+            "position_cov": [[rows[0][i_x], rows[0][i_y]], [rows[1][i_x], rows[1][i_y]]],
+            "kinematic_cov": [[row[i_x], row[i_y], row[i_vx], row[i_vy]] for row in rows],
+            "state_components": names,
+            "state": state,
+            "state_cov": state_cov,
+            "model_probabilities": dict(zip(session.options["models"], session.probabilities.tolist())),
+            "nis": nis,
+            "nis_dof": dof,
+            "measurements": [uses[i] for i in sorted(uses)],
+            "protection_level": None if protection is None else protection.level,
+            "integrity": UNAVAILABLE if protection is None else protection.state,
+        }
     )
 
 
-def _yaw_rate(
-    value: dict[int, float], session: _SessionState, bank: InteractingMultipleModel
-) -> float | None:
-    """Turn rate of the velocity vector from the fused kinematics, else from models that carry omega.
+def _carried_yaw_rate(session: _SessionState, bank: InteractingMultipleModel) -> float | None:
+    """The turn rate from the models that carry omega, when the fused output has no acceleration.
 
     None when no model carries omega, or when those that do have no probability left: their
     probabilities can underflow to exactly 0 when the others explain the measurements far better
     (measured: all six models and a 1e4 m initial position std), and 0/0 is no turn rate."""
-    if layout.XA in value and layout.YA in value:
-        vx, vy, ax, ay = value[layout.XV], value[layout.YV], value[layout.XA], value[layout.YA]
-        return float((vx * ay - ax * vy) / max(vx * vx + vy * vy, 0.01))
     carriers = [j for j, m in enumerate(bank.models) if layout.OMEGA in m.components]
     if not carriers:
         return None
