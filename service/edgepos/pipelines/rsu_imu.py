@@ -227,7 +227,7 @@ class _Batch:
     gyro) and the gyro's yaw rate. Read once per batch (``_validate``), so that an epoch's measurement
     arrays are a few index operations instead of array building from Python lists."""
 
-    __slots__ = ("bearing_std", "observed", "positions", "radii", "range_std", "rsus", "yaw_rates")
+    __slots__ = ("bearing_std", "observed", "positions", "radii", "range_std", "ranges", "rsus", "yaw_rates")
 
     def __init__(self, rsus: list[Rsu | None], rows: list[tuple[float, ...]]) -> None:
         self.rsus = rsus
@@ -238,6 +238,8 @@ class _Batch:
         self.bearing_std = np.ascontiguousarray(table[:, 5])
         self.yaw_rates = np.ascontiguousarray(table[:, 6])
         self.radii: list[float] = table[:, 7].tolist()
+        #: each observation's measured range, None for a gyro (what an epoch sorts its RSUs by)
+        self.ranges: list[float | None] = [None if rsu is None else row[2] for rsu, row in zip(rsus, rows)]
 
 
 def _validate(
@@ -438,8 +440,7 @@ def _step(
     session.t = t
     session.epochs += 1
     uses: dict[int, MeasurementUse] = {}
-    candidates = _rsus_in_view(epoch, observations, batch, options, uses)
-    gyros = [i for i in epoch if isinstance(observations[i], GyroObservation)]
+    candidates, gyros = _epoch_parts(epoch, batch, options, uses)
 
     if session.initialised and session.filter_t is not None and t - session.filter_t > options["max_gap"]:
         session.initialised = False  # too long without data: the old estimate says nothing any more
@@ -503,30 +504,28 @@ def _used(index: int, kind: str) -> MeasurementUse:
     return MeasurementUse(index, kind, True)
 
 
-def _rsus_in_view(
-    epoch: list[int],
-    observations: Sequence[Observation],
-    batch: _Batch,
-    options: Mapping[str, Any],
-    uses: dict[int, MeasurementUse],
-) -> list[int]:
-    """RSU observations inside their radius, nearest ``max_rsus`` by measured range."""
-    in_radius = []
+def _epoch_parts(
+    epoch: list[int], batch: _Batch, options: Mapping[str, Any], uses: dict[int, MeasurementUse]
+) -> tuple[list[int], list[int]]:
+    """The epoch's RSU observations inside their radius, nearest ``max_rsus`` by measured range (the
+    rest recorded in ``uses`` as not used), and its gyro observations."""
+    ranges, radii = batch.ranges, batch.radii
+    in_radius: list[int] = []
+    gyros: list[int] = []
     for i in epoch:
-        observation = observations[i]
-        if not isinstance(observation, RsuObservation):
-            continue
-        radius = batch.radii[i]
-        if observation.range > radius:
-            uses[i] = MeasurementUse(
-                i, observation.kind, False, f"range beyond the {radius:g} m communication radius"
-            )
+        measured = ranges[i]
+        if measured is None:
+            gyros.append(i)
+        elif measured > radii[i]:
+            uses[i] = MeasurementUse(i, "rsu", False, f"range beyond the {radii[i]:g} m communication radius")
         else:
             in_radius.append(i)
-    in_radius.sort(key=lambda i: cast(RsuObservation, observations[i]).range)
-    for i in in_radius[options["max_rsus"] :]:
-        uses[i] = MeasurementUse(i, "rsu", False, f"not among the nearest {options['max_rsus']} RSUs")
-    return in_radius[: options["max_rsus"]]
+    limit = options["max_rsus"]
+    if len(in_radius) > 1:
+        in_radius.sort(key=ranges.__getitem__)
+        for i in in_radius[limit:]:
+            uses[i] = MeasurementUse(i, "rsu", False, f"not among the nearest {limit} RSUs")
+    return in_radius[:limit], gyros
 
 
 @functools.lru_cache(maxsize=64)
@@ -583,13 +582,13 @@ def _epoch_measurements(
     candidates: list[int], gyros: list[int], batch: _Batch, options: Mapping[str, Any]
 ) -> RsuGyroEpoch:
     """The chosen RSU pairs and gyro readings as plain arrays, with their noise and the RSU handling."""
-    rows = np.array(candidates, dtype=np.intp)
+    rows = np.array(candidates, dtype=np.intp)  # take(): about half the time of fancy indexing
     return RsuGyroEpoch(
-        batch.positions[rows],
-        batch.observed[rows],
-        batch.range_std[rows],
-        batch.bearing_std[rows],
-        batch.yaw_rates[np.array(gyros, dtype=np.intp)],
+        batch.positions.take(rows, 0),
+        batch.observed.take(rows, 0),
+        batch.range_std.take(rows),
+        batch.bearing_std.take(rows),
+        batch.yaw_rates.take(np.array(gyros, dtype=np.intp)),
         options["gyro_std"],
         averaged=options["rsu_handling"] == "average",
     )
