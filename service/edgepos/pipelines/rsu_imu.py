@@ -229,7 +229,7 @@ class _Batch:
 
     __slots__ = ("bearing_std", "observed", "positions", "radii", "range_std", "ranges", "rsus", "yaw_rates")
 
-    def __init__(self, rsus: list[Rsu | None], rows: list[float], ranges: list[float | None]) -> None:
+    def __init__(self, rsus: list[Rsu | None], rows: list[float], ranges: list[float]) -> None:
         self.rsus = rsus
         table = np.array(rows, dtype=float).reshape(len(rsus), 8)  # a flat list: half the time of tuples
         self.positions = np.ascontiguousarray(table[:, 0:2])
@@ -238,7 +238,7 @@ class _Batch:
         self.bearing_std = np.ascontiguousarray(table[:, 5])
         self.yaw_rates = np.ascontiguousarray(table[:, 6])
         self.radii: list[float] = table[:, 7].tolist()
-        self.ranges = ranges  # each observation's measured range, None for a gyro (what epochs sort by)
+        self.ranges = ranges  # each observation's measured range, -1 for a gyro (ranges are >= 0)
 
 
 def _validate(
@@ -248,7 +248,7 @@ def _validate(
     problems = []
     rsus: list[Rsu | None] = []
     rows: list[float] = []  # eight numbers per observation, see _Batch
-    ranges: list[float | None] = []
+    ranges: list[float] = []
     options = session.options
     default_range, default_bearing = options["range_std"], options["bearing_std"]
     default_radius = options["comm_radius"]
@@ -287,7 +287,7 @@ def _validate(
         elif isinstance(observation, GyroObservation):
             if not math.isfinite(observation.yaw_rate):
                 problems.append(Problem(index, "yaw_rate", "must be finite"))
-            ranges.append(None)
+            ranges.append(-1.0)
             rows.extend((0.0, 0.0, 0.0, 0.0, 0.0, 0.0, observation.yaw_rate, 0.0))
         else:
             problems.append(
@@ -516,7 +516,7 @@ def _epoch_parts(
     gyros: list[int] = []
     for i in epoch:
         measured = ranges[i]
-        if measured is None:
+        if measured < 0.0:  # a gyro: _validate refused negative ranges
             gyros.append(i)
         elif measured > radii[i]:
             uses[i] = MeasurementUse(i, "rsu", False, f"range beyond the {radii[i]:g} m communication radius")
@@ -524,7 +524,7 @@ def _epoch_parts(
             in_radius.append(i)
     limit = options["max_rsus"]
     if len(in_radius) > 1:
-        in_radius.sort(key=ranges.__getitem__)
+        in_radius.sort(key=lambda i: ranges[i])
         for i in in_radius[limit:]:
             uses[i] = MeasurementUse(i, "rsu", False, f"not among the nearest {limit} RSUs")
     return in_radius[:limit], gyros
@@ -685,6 +685,7 @@ def _fix(
     state_cov = output.cov.tolist()
     i_x, i_y, i_vx, i_vy = kinematic
     vx, vy = state[i_vx], state[i_vy]
+    yaw_rate: float | None
     if ax >= 0 and ay >= 0:  # the turn rate of the velocity vector from the fused kinematics
         yaw_rate = float((vx * state[ay] - state[ax] * vy) / max(vx * vx + vy * vy, 0.01))
     else:
