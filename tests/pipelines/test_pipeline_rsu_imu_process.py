@@ -370,6 +370,23 @@ def test_fix_covariances_are_symmetric_positive_definite(pipeline) -> None:
         assert fix.nis is not None and fix.nis >= 0.0
 
 
+def test_fixes_are_the_objects_their_constructor_makes(pipeline) -> None:
+    """rsu_imu builds its fixes without Fix.__init__ (rsu_imu._new_fix): each must equal the one the
+    constructor makes from its fields, with every field set, in the constructor's order, and be read
+    from the kinematic block of its own state covariance."""
+    fixes, _ = run(pipeline, started(pipeline), 30, seed=23)
+    names = [field.name for field in dataclasses.fields(Fix)]
+    for fix in fixes:
+        assert list(vars(fix)) == names
+        assert Fix(**vars(fix)) == fix
+        order = [fix.state_components.index(name) for name in ("xp", "yp", "xv", "yv")]
+        cov = np.array(fix.state_cov)
+        assert fix.kinematic_cov == cov[np.ix_(order, order)].tolist()
+        assert fix.position_cov == cov[np.ix_(order[:2], order[:2])].tolist()
+        assert (fix.x, fix.y, fix.vx, fix.vy) == tuple(fix.state[k] for k in order)
+        assert fix.speed == math.hypot(fix.vx, fix.vy)
+
+
 # -- state bytes and determinism ---------------------------------------------------------------------
 def test_state_reencodes_byte_identically(pipeline) -> None:
     from edgepos.pipelines.plausibility import unwrap, wrap

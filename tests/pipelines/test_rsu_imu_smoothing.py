@@ -93,8 +93,8 @@ def test_the_forward_pass_is_process(pipeline, scenario, env) -> None:
     observations = flat(run_epochs(scenario, 0, 200))
     fixes, after = pipeline.process(state, observations, env)
     session = _decode(state)
-    rsus = _validate(session, observations, env)
-    run = filter_run(session, _bank(_options_key(session.options)), observations, rsus)
+    batch = _validate(session, observations, env)
+    run = filter_run(session, _bank(_options_key(session.options)), observations, batch)
     assert run.fixes == fixes
     assert session.to_bytes() == after
 

@@ -27,9 +27,18 @@ from edgepos.core import layout
 from edgepos.core.imm import InteractingMultipleModel
 from edgepos.core.observations import Observation
 from edgepos.core.smoothing import bank_pair_predictions, imm_smooth, lag_ends
-from edgepos.pipelines.base import Environment, Fix, PipelineInputError, Problem, Rsu, ensure_finite_fixes
+from edgepos.pipelines.base import Environment, Fix, PipelineInputError, Problem, ensure_finite_fixes
 from edgepos.pipelines.epochs import group_by_time
-from edgepos.pipelines.rsu_imu import _bank, _decode, _fix, _options_key, _SessionState, _step, _validate
+from edgepos.pipelines.rsu_imu import (
+    _bank,
+    _Batch,
+    _decode,
+    _fix,
+    _options_key,
+    _SessionState,
+    _step,
+    _validate,
+)
 
 
 @dataclass
@@ -50,9 +59,9 @@ def smooth(
     if lag_s is not None and not (isinstance(lag_s, (int, float)) and math.isfinite(lag_s) and lag_s >= 0.0):
         raise PipelineInputError([Problem(None, "lag_s", "must be a finite number of seconds >= 0")])
     session = _decode(state)
-    rsus = _validate(session, observations, environment)
+    batch = _validate(session, observations, environment)
     bank = _bank(_options_key(session.options))
-    run = filter_run(session, bank, observations, rsus)
+    run = filter_run(session, bank, observations, batch)
     return smooth_run(run, session, bank, lag_s)
 
 
@@ -60,13 +69,13 @@ def filter_run(
     session: _SessionState,
     bank: InteractingMultipleModel,
     observations: Sequence[Observation],
-    rsus: list[Rsu | None],
+    batch: _Batch,
 ) -> FilteredRun:
     """Filter a validated batch from ``session`` (advanced in place) exactly as process() does,
     keeping each epoch's bank."""
     run = FilteredRun([], [], [], [])
     for epoch in group_by_time(observations):
-        fix = _step(session, bank, epoch, observations, rsus)
+        fix = _step(session, bank, epoch, observations, batch)
         kept = fix.status != "uninitialised"
         run.fixes.append(fix)
         run.means.append(session.means.copy() if kept else None)
