@@ -140,7 +140,7 @@ def linearisation_ranges(
     return predicted
 
 
-def _jacobian(ranges: np.ndarray, systems: Sequence[str]) -> np.ndarray:
+def jacobian(ranges: np.ndarray, systems: Sequence[str]) -> np.ndarray:
     """d pseudorange / d (north, east, up, clock per constellation in ``groups`` order) from the rows'
     :func:`linearisation_ranges`."""
     groups = sorted(set(systems))
@@ -183,7 +183,7 @@ def detect_and_exclude(
             return Separations(False, (), 0.0)
         at = ranges[:, kept]
         z = pseudorange[kept] - at[0]
-        return separations(_jacobian(at, systems), systems, z, std[kept], prior, budget)
+        return separations(jacobian(at, systems), systems, z, std[kept], prior, budget)
 
     result = separate(rows)
     worst = result.worst() if result.available else None

@@ -13,6 +13,7 @@ from edgepos.gnss.carrier import (
     DEFAULT_WINDOW_S,
 )
 from edgepos.gnss.differential import DEFAULT_MAX_AGE_S, MAX_AGE_BOUNDS_S
+from edgepos.gnss.error_correlation import FITTED_CORRELATION
 from edgepos.pipelines.base import (
     OptionSpec,
 )
@@ -36,6 +37,8 @@ MAX_LLI = 7
 CARRIER_SMOOTHING = ("hatch", "off")
 DEFAULT_CARRIER_SMOOTHING = "hatch"
 DEFAULT_HATCH_STD_FLOOR = 0.2
+ERROR_CORRELATIONS = ("gauss_markov", "white")
+DEFAULT_ERROR_CORRELATION = "gauss_markov"
 NOISE_MODELS = ("fuzzy", "fitted")
 DEFAULT_NOISE_MODEL = "fitted"
 DEFAULT_NHC = False
@@ -162,7 +165,8 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         DEFAULT_CARRIER_SMOOTHING,
         "What a pseudorange's carrier_cycles is used for. hatch: carrier-smoothed code (Hatch filter per "
         "satellite, gnss/carrier.py): the smoothed pseudorange replaces the raw one in the update with its "
-        "noise std scaled by max(1/sqrt(epochs averaged), hatch_std_floor); a cycle slip (lli bit 0, phase "
+        "noise std scaled by the std of an average of that many epochs' errors (error_correlation), at least "
+        "hatch_std_floor; a cycle slip (lli bit 0, phase "
         "change against the integrated Doppler, code-carrier jump, a gap) restarts that satellite's average "
         "only. off: carrier phase is ignored. Sessions stored before the option existed keep off.",
         choices=CARRIER_SMOOTHING,
@@ -181,10 +185,45 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "hatch_std_floor",
         "number",
         DEFAULT_HATCH_STD_FLOOR,
-        "Smallest fraction of the raw pseudorange std a smoothed pseudorange gets: averaging n epochs divides "
-        "white noise by sqrt(n), but street-canyon multipath is correlated over tens of seconds and does not "
-        "average down that fast. Chosen on the first half of tests/data/gnss-rover (docs/gnss.md).",
+        "Smallest fraction of the raw pseudorange std a smoothed pseudorange gets. With error_correlation "
+        "white the fraction is 1/sqrt(epochs averaged) and this floor binds after 25 epochs; with "
+        "gauss_markov the correlated errors' own rule stays above it (0.63 after 100 epochs at the defaults).",
         0.01,
+        1.0,
+    ),
+    OptionSpec(
+        "error_correlation",
+        "string",
+        DEFAULT_ERROR_CORRELATION,
+        "How the pipeline treats pseudorange errors over time. gauss_markov: a white part plus a first-order "
+        "Gauss-Markov part (code_error_tau_s, code_error_correlated_fraction; gnss/error_correlation.py), "
+        "so (1) a carrier-smoothed range's std is that of an average of correlated errors, not std/sqrt(n), "
+        "and (2) each pseudorange's variance in the update is raised by the factor that an average over the "
+        "filter's memory (about 1 + the epoch's own least-squares horizontal variance over the predicted one, "
+        "in epochs) of such errors has over the white noise the filter assumes; the screening tests keep the "
+        "uninflated std. The fix's covariance is then consistent with its error (docs/gnss.md). white: "
+        "errors independent between epochs (the filters' own assumption; the fix's covariance is then several "
+        "times too small on the recording). Sessions stored before the option existed keep white.",
+        choices=ERROR_CORRELATIONS,
+    ),
+    OptionSpec(
+        "code_error_tau_s",
+        "number",
+        FITTED_CORRELATION.tau_s,
+        "gauss_markov: correlation time (s) of the pseudorange error's correlated part (multipath, residual "
+        "atmosphere and orbit errors). 58 s: fitted to the autocorrelation of the standardised pseudorange "
+        "residuals at the reference trajectory of the first half of tests/data/gnss-rover (0.93 at 1 s, 0.49 "
+        "at 10 s, 0.27 at 60 s; python -m edgepos.gnss.error_correlation, docs/gnss.md).",
+        0.01,
+        3600.0,
+    ),
+    OptionSpec(
+        "code_error_correlated_fraction",
+        "number",
+        FITTED_CORRELATION.fraction,
+        "gauss_markov: the fraction of a pseudorange's error variance that is correlated over "
+        "code_error_tau_s (the rest is white). 0.57: the same fit. 0 makes the errors white.",
+        0.0,
         1.0,
     ),
     OptionSpec(

@@ -1,0 +1,84 @@
+"""The ``gnss_tight`` pipeline's treatment of time-correlated pseudorange errors (``error_correlation``):
+the options as a model, and the factor that makes the fix's covariance honest about them. The formulas
+are in gnss/error_correlation.py; why this design and what it measured in docs/gnss.md."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from edgepos.core.motion import riss as layout
+from edgepos.gnss.error_correlation import (
+    ErrorCorrelation,
+    consider_factor,
+    filter_memory,
+    memory_factors,
+)
+from edgepos.pipelines.gnss_integrity import jacobian
+
+_POSITION = np.array([layout.NORTH, layout.EAST, layout.UP])
+
+
+def model_of(options: Mapping[str, Any]) -> ErrorCorrelation | None:
+    """The session's error model; None for white errors (also sessions stored before the option)."""
+    if options.get("error_correlation", "white") != "gauss_markov":
+        return None
+    return ErrorCorrelation(
+        float(options["code_error_tau_s"]), float(options["code_error_correlated_fraction"])
+    )
+
+
+@dataclass(frozen=True)
+class Honesty:
+    """The factor on the filter's position covariance that makes it the covariance of the fix's error
+    under the correlated error model, and the filter memory (epochs) it was computed for."""
+
+    factor: float = 1.0
+    memory: float = 1.0
+
+    def scale(self, cov: np.ndarray) -> np.ndarray:
+        """``cov`` (state order) with its position rows and columns times sqrt(factor): the position block
+        times the factor, its correlations with the rest kept."""
+        if self.factor == 1.0:
+            return cov
+        scale = np.ones(cov.shape[0])
+        scale[_POSITION] = np.sqrt(self.factor)
+        out: np.ndarray = cov * scale[:, None] * scale[None, :]
+        return out
+
+
+def honesty(
+    options: Mapping[str, Any],
+    std: np.ndarray,
+    smoothing: np.ndarray,
+    count: np.ndarray,
+    ranges: np.ndarray,
+    systems: Sequence[str],
+    predicted_horizontal: np.ndarray,
+    dt: float,
+) -> Honesty:
+    """The epoch's :class:`Honesty` for the update rows with the filter's noise ``std``, carrier-smoothing
+    factors ``smoothing`` (in ``std``) over ``count`` epochs (0: raw code), linearisation ``ranges``
+    (gnss_integrity.linearisation_ranges), constellations ``systems``, the prediction's north-east
+    covariance and the interval since the previous epoch. The filter weighs the rows as white with std
+    ``std``; under the model a row's error variance is std^2 x (V_smoothed(n) / smoothing^2) x its
+    memory factor (gnss/error_correlation.py: the smoothed code's own variance, then the average over the
+    filter's memory M of correlated errors); the factor is the consider covariance's horizontal trace over
+    the white one. 1 for white errors, and when the rows alone do not fix the position."""
+    model = model_of(options)
+    if model is None or std.size == 0 or dt <= 0.0:
+        return Honesty()
+    h = jacobian(ranges, systems)
+    variance = std**2
+    memory = filter_memory(h, variance, predicted_horizontal)
+    if memory is None:
+        return Honesty()
+    smoothed = np.where(count >= 1.0, model.smoothed_variance(np.maximum(count, 1.0), dt), 1.0)
+    true_variance = variance * smoothed / smoothing**2 * memory_factors(count, memory, model, dt)
+    factor = consider_factor(h, variance, true_variance)
+    if factor is None:
+        return Honesty()
+    return Honesty(factor, memory)
