@@ -53,12 +53,18 @@ def mean_variance(n: float | np.ndarray, rho: float | np.ndarray) -> np.ndarray:
     (1/n) [1 + 2 rho / (1 - rho) - 2 rho (1 - rho^n) / (n (1 - rho)^2)]; 1/n for rho = 0, 1 for rho = 1.
     Non-integer n (the Hatch filter's count capped by its window) is used as is."""
     count, lag_one = np.broadcast_arrays(np.asarray(n, dtype=float), np.asarray(rho, dtype=float))
-    count = np.maximum(count, 1.0)
-    out = np.ones_like(count)
-    inner = lag_one < 1.0
-    r, m = lag_one[inner], count[inner]
-    out[inner] = (1.0 + 2.0 * r / (1.0 - r) - 2.0 * r * (1.0 - r**m) / (m * (1.0 - r) ** 2)) / m
-    value: np.ndarray = np.minimum(out, 1.0)
+    shape = count.shape
+    count, lag_one = np.maximum(count.ravel(), 1.0), lag_one.ravel()
+    eps = 1.0 - np.minimum(lag_one, 1.0)
+    # near rho = 1 the closed form subtracts two numbers of order 1/(1 - rho): its first-order expansion
+    # in eps = 1 - rho, 1 - eps (n^2 - 1) / (3 n), is exact to (n eps)^2 there
+    out = 1.0 - eps * (count**2 - 1.0) / (3.0 * count)
+    exact = count * eps >= 1e-4
+    r, m, e = lag_one[exact], count[exact], eps[exact]
+    with np.errstate(divide="ignore"):  # rho = 0: log1p(-1) = -inf, r^m = 0
+        rest = -np.expm1(m * np.log1p(-e))  # 1 - r^m without cancellation
+    out[exact] = (1.0 + 2.0 * r / e - 2.0 * r * rest / (m * e**2)) / m
+    value: np.ndarray = np.clip(out, 0.0, 1.0).reshape(shape)
     return value
 
 

@@ -46,6 +46,9 @@ Per epoch (observations sharing ``t``):
    stayed low (``zupt``), else, moving, no lateral or vertical velocity (``nhc``); the fix lists them.
 6. The filter step; before initialisation, the first epoch with enough satellites initialises the filter
    from a weighted least-squares fix (gnss/spp.py), its velocity and clock drift from the Dopplers when sent.
+7. The fix's position covariance (and the prior RAIM tests against) is the filter's times the factor the
+   ``error_correlation`` model gives for time-correlated errors (pipelines/gnss_correlation.py); the
+   filter's own covariance and gains stay those of white errors.
 Every pseudorange appears in the fix's measurement list, used (with its noise std and why) or with the
 reason it was not, and with its Doppler's use when it carried one.
 """
