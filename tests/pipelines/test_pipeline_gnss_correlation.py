@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from edgepos.eval.gnss_rinex import evaluate
 from edgepos.pipelines.gnss_correlation import Honesty, model_of
+from edgepos.pipelines.gnss_integrity import budget_of
 from edgepos.pipelines.gnss_tight import GnssTightPipeline
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "gnss-rover"
@@ -43,6 +44,10 @@ def test_defaults_and_older_sessions() -> None:
     assert model_of(resolved) is not None
     stored = {k: v for k, v in resolved.items() if not k.startswith(("error_", "code_error_"))}
     assert model_of(stored) is None  # a session stored before the option keeps the white covariance
+    assert budget_of(resolved).inflation == 5.0
+    # ... and the integrity inflation chosen for it, unless it stored its own
+    assert budget_of({k: v for k, v in stored.items() if k != "integrity_inflation"}).inflation == 8.0
+    assert budget_of(stored).inflation == 5.0
 
 
 def test_honesty_scales_the_position_block_only() -> None:
