@@ -11,13 +11,19 @@ import pytest
 from edgepos.gnss.error_correlation import (
     FITTED_CORRELATION,
     ErrorCorrelation,
-    consider_factor,
+    averaged_variance,
     correlation,
-    filter_memory,
+    honest_factor,
     long_run_factor,
     mean_variance,
-    memory_factors,
 )
+
+
+def memory_factors(count: np.ndarray, memory: float, model: ErrorCorrelation, dt: float) -> np.ndarray:
+    """The variance of each row's errors over ``memory`` epochs against the 1/memory of white errors."""
+    averaged, own = averaged_variance(count, memory, model, dt)
+    np.testing.assert_allclose(own, model.smoothed_variance(np.maximum(count, 1.0), dt))
+    return averaged / own
 
 
 def _direct(n: int, rho: float) -> float:
@@ -80,13 +86,17 @@ def _geometry(rng: np.random.Generator, n: int = 8) -> np.ndarray:
     return np.column_stack([-los, np.ones(n)])
 
 
-def test_consider_factor_closed_cases() -> None:
+def test_honest_factor_closed_cases() -> None:
     h = _geometry(np.random.default_rng(1))
     variance = np.linspace(1.0, 4.0, len(h))
-    assert consider_factor(h, variance, variance) == pytest.approx(1.0)
-    assert consider_factor(h, variance, 3.0 * variance) == pytest.approx(3.0)
-    assert consider_factor(h[:4], variance[:4], variance[:4]) is None  # no redundancy: not computed
-    assert filter_memory(h, variance, np.eye(2) * 1e9) == pytest.approx(1.0, abs=1e-6)
+    vague = np.eye(2) * 1e9
+    factor, memory = honest_factor(h, variance, vague, lambda m: variance)
+    assert factor == pytest.approx(1.0) and memory == pytest.approx(1.0, abs=1e-6)
+    assert honest_factor(h, variance, vague, lambda m: 3.0 * variance)[0] == pytest.approx(3.0)
+    # a prior as informative as the epoch: the filter averages two epochs
+    own = np.linalg.inv(h.T @ (h / variance[:, None]))[:2, :2]
+    assert honest_factor(h, variance, own, lambda m: m * variance) == pytest.approx((2.0, 2.0))
+    assert honest_factor(h[:4], variance[:4], vague, lambda m: variance[:4]) is None  # no redundancy
 
 
 def test_kalman_filter_nees_with_the_factor() -> None:
@@ -113,11 +123,11 @@ def test_kalman_filter_nees_with_the_factor() -> None:
             )
             z = h @ truth + error
             p_prior = p + q
-            memory = filter_memory(h, variance, p_prior[:2, :2])
-            assert memory is not None
-            factors = memory_factors(np.zeros(n), memory, model, 1.0)
-            factor = consider_factor(h, variance, variance * factors)
-            assert factor is not None
+            result = honest_factor(
+                h, variance, p_prior[:2, :2], lambda m: variance * memory_factors(np.zeros(n), m, model, 1.0)
+            )
+            assert result is not None
+            factor = result[0]
             s = h @ p_prior @ h.T + np.diag(variance)
             gain = p_prior @ h.T @ np.linalg.inv(s)
             x = x + gain @ (z - h @ x)

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,19 +52,18 @@ def mean_variance(n: float | np.ndarray, rho: float | np.ndarray) -> np.ndarray:
     correlation rho, (1/n) [1 + 2 sum_{k=1}^{n-1} (1 - k/n) rho^k], in closed form
     (1/n) [1 + 2 rho / (1 - rho) - 2 rho (1 - rho^n) / (n (1 - rho)^2)]; 1/n for rho = 0, 1 for rho = 1.
     Non-integer n (the Hatch filter's count capped by its window) is used as is."""
-    count, lag_one = np.broadcast_arrays(np.asarray(n, dtype=float), np.asarray(rho, dtype=float))
-    shape = count.shape
-    count, lag_one = np.maximum(count.ravel(), 1.0), lag_one.ravel()
-    eps = 1.0 - np.minimum(lag_one, 1.0)
+    count = np.maximum(np.asarray(n, dtype=float), 1.0)
+    lag_one = np.minimum(np.asarray(rho, dtype=float), 1.0)
+    eps = (1.0 - lag_one) + 0.0 * count  # broadcast to both shapes
+    count = count + 0.0 * eps
     # near rho = 1 the closed form subtracts two numbers of order 1/(1 - rho): its first-order expansion
     # in eps = 1 - rho, 1 - eps (n^2 - 1) / (3 n), is exact to (n eps)^2 there
-    out = 1.0 - eps * (count**2 - 1.0) / (3.0 * count)
     exact = count * eps >= 1e-4
-    r, m, e = lag_one[exact], count[exact], eps[exact]
-    with np.errstate(divide="ignore"):  # rho = 0: log1p(-1) = -inf, r^m = 0
-        rest = -np.expm1(m * np.log1p(-e))  # 1 - r^m without cancellation
-    out[exact] = (1.0 + 2.0 * r / e - 2.0 * r * rest / (m * e**2)) / m
-    value: np.ndarray = np.clip(out, 0.0, 1.0).reshape(shape)
+    e = np.where(exact, eps, 1.0)
+    r = 1.0 - e
+    closed = (1.0 + 2.0 * r / e - 2.0 * r * (1.0 - r**count) / (count * e**2)) / count
+    out = np.where(exact, closed, 1.0 - eps * (count**2 - 1.0) / (3.0 * count))
+    value: np.ndarray = np.minimum(np.maximum(out, 0.0), 1.0)
     return value
 
 
@@ -99,61 +98,58 @@ class ErrorCorrelation:
         return value
 
 
-def filter_memory(jacobian: np.ndarray, variance: np.ndarray, prior_horizontal: np.ndarray) -> float | None:
-    """About how many epochs a filter averages: M = 1 + tr(P_meas) / tr(P_prior), horizontal, P_meas the
-    epoch's own weighted least-squares covariance (``jacobian`` n x (3 + clocks) by north, east, up and the
-    clocks, ``variance`` the weights' variances) and P_prior the prediction's north-east covariance (a
-    steady-state filter's information is the measurement's times M). None when the rows alone do not fix
-    the position (no more rows than unknowns)."""
-    rows, unknowns = jacobian.shape
-    prior_trace = float(np.trace(prior_horizontal))
-    own = _horizontal_lsq(jacobian, variance)
-    if rows <= unknowns or own is None or prior_trace <= 0.0:
-        return None
-    return 1.0 + float(np.trace(own)) / prior_trace
-
-
-def memory_factors(count: np.ndarray, memory: float, model: ErrorCorrelation, dt: float) -> np.ndarray:
-    """Per row, the variance of its errors averaged over ``memory`` (M) epochs over the 1/M the white
-    assumption gives: sum_i s_i M V(M, r_i) / sum_i s_i over the error's components. For a row smoothed over
-    n epochs (``count``; below 1: raw code, n = 1): the white part, share (1 - a) / n, and the Gauss-Markov
-    part, share a V(n, rho), whose running means overlap by (n - 1) / n between epochs, so lag-one
-    correlations r = 1 - 1/n and max(rho, 1 - 1/n). 1 for M = 1 or white errors."""
+def averaged_variance(
+    count: np.ndarray, memory: float, model: ErrorCorrelation, dt: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per row, over one raw error's variance: (the variance of its error as a filter of memory M averages
+    it, times M; its own variance). For a row smoothed over n epochs (``count``; below 1: raw code, n = 1)
+    the error has a white part, variance share (1 - a) / n, and a Gauss-Markov part, share a V(n, rho)
+    (their sum, V_smoothed(n), is its own variance); their running means overlap by (n - 1) / n between
+    epochs, so lag-one correlations r = 1 - 1/n and max(rho, 1 - 1/n); the first value is
+    sum_i s_i M V(M, r_i)."""
     n = np.maximum(np.asarray(count, dtype=float), 1.0)
     rho = float(correlation(dt, model.tau_s))
     overlap = 1.0 - 1.0 / n
-    shares = np.stack([(1.0 - model.fraction) / n, model.fraction * mean_variance(n, rho)])
-    lag_one = np.stack([overlap, np.maximum(rho, overlap)])
-    value: np.ndarray = (shares * memory * mean_variance(memory, lag_one)).sum(axis=0) / shares.sum(axis=0)
-    return value
+    gm = model.fraction * mean_variance(n, rho)
+    white = (1.0 - model.fraction) / n
+    spread = mean_variance(memory, np.concatenate([overlap, np.maximum(rho, overlap)]))
+    averaged: np.ndarray = memory * (white * spread[: n.size] + gm * spread[n.size :])
+    return averaged, white + gm
 
 
-def consider_factor(jacobian: np.ndarray, variance: np.ndarray, true_variance: np.ndarray) -> float | None:
-    """How much larger the horizontal error of a weighted least-squares solution (weights 1/``variance``)
-    is when the rows' errors have ``true_variance``: tr(A H'W R W H A) / tr(A), A = (H'WH)^-1, horizontal
-    block (the consider, or sandwich, covariance of an estimator whose weights are not the errors'). None
-    when the rows do not fix the position."""
-    own = _horizontal_lsq(jacobian, variance)
-    if own is None or jacobian.shape[0] <= jacobian.shape[1]:
+def honest_factor(
+    jacobian: np.ndarray,
+    variance: np.ndarray,
+    prior_horizontal: np.ndarray,
+    true_variance: Callable[[float], np.ndarray],
+) -> tuple[float, float] | None:
+    """(factor, memory) of a filter's epoch, None when the rows alone do not fix the position (no more rows
+    than unknowns).
+
+    memory: about how many epochs the filter averages, M = 1 + tr(P_meas) / tr(P_prior), horizontal, P_meas
+    the epoch's own weighted least-squares covariance (``jacobian`` n x (3 + clocks) by north, east, up and
+    the clocks, weights 1/``variance``) and P_prior the prediction's north-east covariance (a steady-state
+    filter's information is the measurement's times M).
+
+    factor: how much larger the horizontal error of that weighted solution is when the rows' errors have
+    variances ``true_variance(M)``: tr(G R G') / tr(A), A = (H'WH)^-1, G = A H'W, horizontal rows (the
+    consider, or sandwich, covariance of an estimator whose weights are not the errors')."""
+    rows, unknowns = jacobian.shape
+    prior_trace = float(np.trace(prior_horizontal))
+    if rows <= unknowns or prior_trace <= 0.0:
         return None
     weighted = jacobian / variance[:, None]
     try:
         a = np.linalg.inv(jacobian.T @ weighted)
     except np.linalg.LinAlgError:
         return None
-    gain = a @ weighted.T
-    true = (gain * true_variance) @ gain.T
-    return float(np.trace(true[:2, :2]) / np.trace(own))
-
-
-def _horizontal_lsq(jacobian: np.ndarray, variance: np.ndarray) -> np.ndarray | None:
-    """North-east block of (H' diag(1/variance) H)^-1, None when singular."""
-    try:
-        full = np.linalg.inv(jacobian.T @ (jacobian / variance[:, None]))
-    except np.linalg.LinAlgError:
+    own = float(a[0, 0] + a[1, 1])
+    if not math.isfinite(own) or own <= 0.0:
         return None
-    block: np.ndarray = full[:2, :2]
-    return block if np.all(np.isfinite(block)) and np.trace(block) > 0.0 else None
+    memory = 1.0 + own / prior_trace
+    gain = a[:2] @ weighted.T
+    true = float(np.sum(gain * gain * true_variance(memory)))
+    return true / own, memory
 
 
 FITTED_CORRELATION = ErrorCorrelation(tau_s=58.0, fraction=0.57)

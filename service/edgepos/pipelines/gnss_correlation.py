@@ -11,12 +11,7 @@ from typing import Any
 import numpy as np
 
 from edgepos.core.motion import riss as layout
-from edgepos.gnss.error_correlation import (
-    ErrorCorrelation,
-    consider_factor,
-    filter_memory,
-    memory_factors,
-)
+from edgepos.gnss.error_correlation import ErrorCorrelation, averaged_variance, honest_factor
 from edgepos.pipelines.gnss_integrity import jacobian
 
 _POSITION = np.array([layout.NORTH, layout.EAST, layout.UP])
@@ -71,14 +66,12 @@ def honesty(
     model = model_of(options)
     if model is None or std.size == 0 or dt <= 0.0:
         return Honesty()
-    h = jacobian(ranges, systems)
     variance = std**2
-    memory = filter_memory(h, variance, predicted_horizontal)
-    if memory is None:
-        return Honesty()
-    smoothed = np.where(count >= 1.0, model.smoothed_variance(np.maximum(count, 1.0), dt), 1.0)
-    true_variance = variance * smoothed / smoothing**2 * memory_factors(count, memory, model, dt)
-    factor = consider_factor(h, variance, true_variance)
-    if factor is None:
-        return Honesty()
-    return Honesty(factor, memory)
+    scale = variance / smoothing**2  # each row's raw-code variance as the filter's noise model has it
+
+    def true_variance(memory: float) -> np.ndarray:
+        value: np.ndarray = scale * averaged_variance(count, memory, model, dt)[0]
+        return value
+
+    result = honest_factor(jacobian(ranges, systems), variance, predicted_horizontal, true_variance)
+    return Honesty() if result is None else Honesty(*result)
