@@ -9,6 +9,11 @@ epochs beyond the 99.9 % bound, the worst 30-epoch mean NEES, and the integrity 
 and median protection level.
 
     python bench/gnss_nees_table.py [--filters upf,pf,ukf] [--carrier both|on|off] [--option NAME=JSON ...]
+        [--integrity]
+
+``--integrity`` prints instead the integrity block of each cell (misleading and hazardous epochs,
+availability at the alert limit, median protection level, the largest error over protection level, the
+monitor's exclusions).
 """
 
 from __future__ import annotations
@@ -27,8 +32,14 @@ HALVES = {"first half (0-149)": (0, 150), "second half (150-299)": (150, 300), "
 CARRIER = {"both": (True, False), "on": (True,), "off": (False,)}
 
 
-def _cell(report: dict[str, Any]) -> str:
+def _cell(report: dict[str, Any], integrity: bool = False) -> str:
     block = report["integrity"]
+    if integrity:
+        return (
+            f"{block['epochs']} epochs: misleading {block['misleading']}, hazardous {block['hazardous']}, "
+            f"availability {block['availability']:.3f}, median PL {block['median_protection_level_m']:.1f} m, "
+            f"largest error/PL {block['max_error_over_protection_level']:.2f}, detections {block['detections']}"
+        )
     return (
         f"{report['horizontal_rms_m']:.2f} m, NEES {block['mean_nees']:.2f} "
         f"({100 * block['beyond_999_fraction']:.1f} %, worst {block['worst_window_mean_nees']:.1f}), "
@@ -41,6 +52,9 @@ def main() -> None:
     parser.add_argument("--filters", default="upf,pf,ukf")
     parser.add_argument("--carrier", default="both", choices=tuple(CARRIER))
     parser.add_argument("--option", action="append", default=[], metavar="NAME=JSON")
+    parser.add_argument(
+        "--integrity", action="store_true", help="the integrity block's counts instead of RMS and NEES"
+    )
     parser.add_argument(
         "--data", type=Path, default=Path(__file__).resolve().parents[1] / "tests/data/gnss-rover"
     )
@@ -61,7 +75,8 @@ def main() -> None:
                     options={**CLI_DEFAULTS, **overrides, "filter": filter_name},
                     score_epochs=scored,
                     carrier=carrier,
-                )
+                ),
+                args.integrity,
             )
             for scored in HALVES.values()
         ]

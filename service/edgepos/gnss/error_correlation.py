@@ -266,21 +266,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     acf = pooled_acf(raw, lags)
     fit = fit_gauss_markov(acf, lags)
     count = sum(len(v) for v in raw.values())
-    print(f"epochs {first}..{stop - 1}: {count} raw-code residuals of {len(raw)} satellites (standardised)")
+    mean_square = float(np.mean(np.array([v for s in raw.values() for v in s.values()]) ** 2))
+    print(
+        f"epochs {first}..{stop - 1}: {count} raw-code residuals of {len(raw)} satellites, standardised by "
+        f"the fitted noise model: mean square {mean_square:.2f}"
+    )
     print("lag s: " + "  ".join(f"{lag}:{acf[lag - 1]:.2f}" for lag in (1, 2, 5, 10, 20, 30, 45, 60)))
     print(f"Gauss-Markov fit: tau = {fit.tau_s:.1f} s, correlated fraction a = {fit.fraction:.2f}")
     print(f"long-run variance factor at 1 s: {float(fit.long_run(1.0)):.1f}")
     if smoothed:
         values = np.array([v for s in smoothed.values() for v, _ in s.values()])
         counts = np.array([n for s in smoothed.values() for _, n in s.values()])
-        raw_ms = float(np.mean(np.array([v for s in raw.values() for v in s.values()]) ** 2))
         print("smoothed code: epochs averaged  count  variance / raw  white 1/n  correlated rule")
         for low, high in ((1, 2), (2, 5), (5, 10), (10, 20), (20, 40), (40, 70), (70, 101)):
             member = (counts >= low) & (counts < high)
             if member.sum() < 20:
                 continue
             n = float(np.median(counts[member]))
-            ratio = float(np.mean(values[member] ** 2)) / raw_ms
+            ratio = float(np.mean(values[member] ** 2)) / mean_square
             rule = float(fit.smoothed_variance(np.array([n]), 1.0)[0])
             print(
                 f"{low:>3}-{high - 1:<3} (median {n:5.1f})  {int(member.sum()):5d}  {ratio:14.3f}  {1 / n:9.3f}  {rule:15.3f}"
