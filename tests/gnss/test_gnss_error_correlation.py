@@ -90,12 +90,13 @@ def test_honest_factor_closed_cases() -> None:
     h = _geometry(np.random.default_rng(1))
     variance = np.linspace(1.0, 4.0, len(h))
     vague = np.eye(2) * 1e9
-    factor, memory = honest_factor(h, variance, vague, lambda m: variance)
+    factor, memory, own = honest_factor(h, variance, vague, lambda m: variance)
     assert factor == pytest.approx(1.0) and memory == pytest.approx(1.0, abs=1e-6)
+    np.testing.assert_allclose(own, np.linalg.inv(h.T @ (h / variance[:, None]))[:2, :2])
     assert honest_factor(h, variance, vague, lambda m: 3.0 * variance)[0] == pytest.approx(3.0)
     # a prior as informative as the epoch: the filter averages two epochs
     own = np.linalg.inv(h.T @ (h / variance[:, None]))[:2, :2]
-    assert honest_factor(h, variance, own, lambda m: m * variance) == pytest.approx((2.0, 2.0))
+    assert honest_factor(h, variance, own, lambda m: m * variance)[:2] == pytest.approx((2.0, 2.0))
     assert honest_factor(h[:4], variance[:4], vague, lambda m: variance[:4]) is None  # no redundancy
 
 

@@ -21,14 +21,15 @@ FILES = (
 )
 
 
-def _run(carrier: bool, correlation: str) -> dict:
-    options = {"filter": "ukf", "seed": 1, "error_correlation": correlation}
+def _run(carrier: bool, correlation: str, filter_name: str) -> dict:
+    options = {"filter": filter_name, "seed": 1, "particles": 100, "error_correlation": correlation}
     return evaluate(*FILES, options=options, score_epochs=(0, 60), carrier=carrier)
 
 
-@pytest.mark.parametrize("carrier", [True, False])
-def test_fix_nees_is_consistent_on_the_recording(carrier: bool) -> None:
-    honest, white = _run(carrier, "gauss_markov"), _run(carrier, "white")
+@pytest.mark.parametrize(("carrier", "filter_name"), [(True, "ukf"), (False, "ukf"), (False, "pf")])
+def test_fix_nees_is_consistent_on_the_recording(carrier: bool, filter_name: str) -> None:
+    honest = _run(carrier, "gauss_markov", filter_name)
+    white = _run(carrier, "white", filter_name)
     nees = honest["integrity"]["mean_nees"]
     assert 1.0 <= nees <= 4.0, nees
     # the white covariance is too small (by 8x with the Hatch average counted as independent samples)
@@ -60,3 +61,16 @@ def test_honesty_scales_the_position_block_only() -> None:
     np.testing.assert_allclose(scaled[:3, 3:], 2.0 * cov[:3, 3:])
     assert np.all(np.linalg.eigvalsh(scaled) > 0.0)
     assert Honesty().scale(cov) is cov
+
+
+def test_the_floor_raises_a_collapsed_covariance_to_the_bound() -> None:
+    bound = np.array([[4.0, 1.0], [1.0, 2.0]])
+    cov = np.diag([0.5, 0.5, 1.0, 1.0])
+    floored = Honesty(2.0, 1.2, bound).floored(cov)
+    reported = floored.scale(cov)[:2, :2]
+    assert floored.factor > 2.0
+    # at least bound in every direction (times the factor's own 2), tight in one
+    eigenvalues = np.linalg.eigvalsh(reported - 2.0 * bound)
+    assert eigenvalues.min() == pytest.approx(0.0, abs=1e-9) and eigenvalues.max() >= 0.0
+    assert Honesty(2.0, 1.2, bound).floored(np.diag([10.0, 10.0, 1.0])).factor == 2.0  # already above
+    assert Honesty(2.0, 1.2).floored(cov).factor == 2.0

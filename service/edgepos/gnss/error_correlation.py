@@ -122,9 +122,9 @@ def honest_factor(
     variance: np.ndarray,
     prior_horizontal: np.ndarray,
     true_variance: Callable[[float], np.ndarray],
-) -> tuple[float, float] | None:
-    """(factor, memory) of a filter's epoch, None when the rows alone do not fix the position (no more rows
-    than unknowns).
+) -> tuple[float, float, np.ndarray] | None:
+    """(factor, memory, the epoch's own horizontal covariance A) of a filter's epoch, None when the rows
+    alone do not fix the position (no more rows than unknowns).
 
     memory: about how many epochs the filter averages, M = 1 + tr(P_meas) / tr(P_prior), horizontal, P_meas
     the epoch's own weighted least-squares covariance (``jacobian`` n x (3 + clocks) by north, east, up and
@@ -149,7 +149,8 @@ def honest_factor(
     memory = 1.0 + own / prior_trace
     gain = a[:2] @ weighted.T
     true = float(np.sum(gain * gain * true_variance(memory)))
-    return true / own, memory
+    horizontal: np.ndarray = a[:2, :2]
+    return true / own, memory, horizontal
 
 
 FITTED_CORRELATION = ErrorCorrelation(tau_s=58.0, fraction=0.57)

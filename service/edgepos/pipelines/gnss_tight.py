@@ -591,6 +591,8 @@ def _filter_epoch(
         )
     for r in rate_rows:
         doppler[satellites.indices[r]] = (True, None)
+    if options["filter"] == "pf":  # its particles' covariance collapses (pipelines/gnss_correlation.py)
+        honest = honest.floored(result.cov)
     status = "tracking" if measurement is not None else "predicted"
     dof = int(rows.size + rate_rows.size + sum(len(c.variances) for c in constraints))
     fix = session_fix(t, status, session, result.mean, honest.scale(result.cov), result, dof, uses, origin)
