@@ -70,25 +70,29 @@ class Honesty:
 
 def honesty(
     options: Mapping[str, Any],
+    rows: np.ndarray,
     std: np.ndarray,
     smoothing: np.ndarray,
     count: np.ndarray,
     ranges: np.ndarray,
     systems: Sequence[str],
-    predicted_horizontal: np.ndarray,
+    predicted_cov: np.ndarray,
     dt: float,
 ) -> Honesty:
-    """The epoch's :class:`Honesty` for the update rows with the filter's noise ``std``, carrier-smoothing
-    factors ``smoothing`` (in ``std``) over ``count`` epochs (0: raw code), linearisation ``ranges``
-    (gnss_integrity.linearisation_ranges), constellations ``systems``, the prediction's north-east
-    covariance and the interval since the previous epoch. The filter weighs the rows as white with std
-    ``std``; under the model a row's error variance is std^2 x (V_smoothed(n) / smoothing^2) x its
-    memory factor (gnss/error_correlation.py: the smoothed code's own variance, then the average over the
-    filter's memory M of correlated errors); the factor is the consider covariance's horizontal trace over
-    the white one. 1 for white errors, and when the rows alone do not fix the position."""
+    """The epoch's :class:`Honesty` for the update ``rows`` of the epoch's pseudoranges with the filter's
+    noise ``std``, carrier-smoothing factors ``smoothing`` (in ``std``) over ``count`` epochs (0: raw
+    code), linearisation ``ranges`` (gnss_integrity.linearisation_ranges), constellations ``systems``, the
+    prediction's covariance (state order) and the interval since the previous epoch. The filter weighs the
+    rows as white with std ``std``; under the model a row's error variance is std^2 x (V_smoothed(n) /
+    smoothing^2) x its memory factor (gnss/error_correlation.py: the smoothed code's own variance, then the
+    average over the filter's memory M of correlated errors); the factor is the consider covariance's
+    horizontal trace over the white one. 1 for white errors, and when the rows alone do not fix the
+    position."""
     model = model_of(options)
-    if model is None or std.size == 0 or dt <= 0.0:
+    if model is None or rows.size == 0 or dt <= 0.0:
         return Honesty()
+    std, smoothing, count = std[rows], smoothing[rows], count[rows]
+    predicted_horizontal = predicted_cov[np.ix_(_POSITION[:2], _POSITION[:2])]
     variance = std**2
     scale = variance / smoothing**2  # each row's raw-code variance as the filter's noise model has it
 
@@ -96,7 +100,8 @@ def honesty(
         value: np.ndarray = scale * averaged_variance(count, memory, model, dt)[0]
         return value
 
-    result = honest_factor(jacobian(ranges, systems), variance, predicted_horizontal, true_variance)
+    h = jacobian(ranges[:, rows], [systems[r] for r in rows])
+    result = honest_factor(h, variance, predicted_horizontal, true_variance)
     if result is None:
         return Honesty()
     factor, memory, own = result

@@ -485,11 +485,7 @@ def _filter_epoch(
                 rng,
                 "track lost; waiting for enough satellites",
             )
-        systems_of = [prs.systems[r] for r in rows]
-        honest = honesty(
-            options, std[rows], smoothing[rows], averaged[rows], ranges[:, rows], systems_of,
-            predicted_cov[:2, :2], dt,
-        )  # fmt: skip
+        honest = honesty(options, rows, std, smoothing, averaged, ranges, prs.systems, predicted_cov, dt)
         if rows.size and integrity_enabled(options):
             rows, separated = detect_and_exclude(
                 options,
