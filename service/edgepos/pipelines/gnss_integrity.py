@@ -20,8 +20,11 @@ from edgepos.pipelines.integrity import EXCLUDED
 from edgepos.pipelines.integrity import INTEGRITY_SPECS as RSU_INTEGRITY_SPECS
 
 _RSU_SPECS = {spec.name: spec for spec in RSU_INTEGRITY_SPECS}  # the options that mean the same as rsu_imu's
-DEFAULT_INFLATION = 8.0
+DEFAULT_INFLATION = 5.0
 """Default covariance inflation k; see the option's description and docs/integrity.md for the measurement."""
+WHITE_INFLATION = 8.0
+"""k for the filter's own (white-error) covariance, the default before error_correlation existed: sessions
+stored before then, which report that covariance, keep it."""
 
 INTEGRITY_SPECS: tuple[OptionSpec, ...] = (
     OptionSpec(
@@ -68,11 +71,13 @@ INTEGRITY_SPECS: tuple[OptionSpec, ...] = (
         "integrity_inflation",
         "number",
         DEFAULT_INFLATION,
-        "Factor on the filter's covariance (its prior and posterior) the protection level is computed from: "
-        "pseudorange errors are correlated over seconds (multipath) where the filter treats them as white, "
-        "so its covariance is too small on some stretches of a drive. 8: the worst 30-epoch mean NEES on the "
-        "first half of tests/data/gnss-rover needs 5, other minutes of that drive (mean NEES 15, issue 21) "
-        "need 7.5 (docs/integrity.md).",
+        "Factor on the fix's covariance (the prediction's and the posterior's, as error_correlation reports "
+        "them) the protection level is computed from: the error model holds on average, not on every stretch "
+        "of a drive (multipath comes and goes). 5: with error_correlation gauss_markov the worst 30-epoch "
+        "mean NEES on the first half of tests/data/gnss-rover needs 3 (6.1 / 2, without the carrier), and "
+        "other minutes of that drive (mean NEES 15 with the white covariance, issue 21; the factor multiplies "
+        "that covariance by 1.45 on this recording without the carrier) would need 5 (docs/integrity.md). "
+        "With error_correlation white use 8.",
         1.0,
         1000.0,
     ),
@@ -82,7 +87,10 @@ _DEFAULTS = {spec.name: spec.default for spec in INTEGRITY_SPECS}
 
 
 def _option(options: Mapping[str, Any], name: str) -> Any:
-    """An integrity option; sessions stored before the monitor existed get the defaults."""
+    """An integrity option; sessions stored before the monitor existed get the defaults (k of the white
+    covariance when they also predate error_correlation)."""
+    if name == "integrity_inflation" and name not in options and "error_correlation" not in options:
+        return WHITE_INFLATION
     return options.get(name, _DEFAULTS[name])
 
 
@@ -140,7 +148,7 @@ def linearisation_ranges(
     return predicted
 
 
-def _jacobian(ranges: np.ndarray, systems: Sequence[str]) -> np.ndarray:
+def jacobian(ranges: np.ndarray, systems: Sequence[str]) -> np.ndarray:
     """d pseudorange / d (north, east, up, clock per constellation in ``groups`` order) from the rows'
     :func:`linearisation_ranges`."""
     groups = sorted(set(systems))
@@ -183,7 +191,7 @@ def detect_and_exclude(
             return Separations(False, (), 0.0)
         at = ranges[:, kept]
         z = pseudorange[kept] - at[0]
-        return separations(_jacobian(at, systems), systems, z, std[kept], prior, budget)
+        return separations(jacobian(at, systems), systems, z, std[kept], prior, budget)
 
     result = separate(rows)
     worst = result.worst() if result.available else None

@@ -13,6 +13,7 @@ from edgepos.gnss.carrier import (
     DEFAULT_WINDOW_S,
 )
 from edgepos.gnss.differential import DEFAULT_MAX_AGE_S, MAX_AGE_BOUNDS_S
+from edgepos.gnss.error_correlation import FITTED_CORRELATION
 from edgepos.pipelines.base import (
     OptionSpec,
 )
@@ -36,6 +37,8 @@ MAX_LLI = 7
 CARRIER_SMOOTHING = ("hatch", "off")
 DEFAULT_CARRIER_SMOOTHING = "hatch"
 DEFAULT_HATCH_STD_FLOOR = 0.2
+ERROR_CORRELATIONS = ("gauss_markov", "white")
+DEFAULT_ERROR_CORRELATION = "gauss_markov"
 NOISE_MODELS = ("fuzzy", "fitted")
 DEFAULT_NOISE_MODEL = "fitted"
 DEFAULT_NHC = False
@@ -162,7 +165,8 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         DEFAULT_CARRIER_SMOOTHING,
         "What a pseudorange's carrier_cycles is used for. hatch: carrier-smoothed code (Hatch filter per "
         "satellite, gnss/carrier.py): the smoothed pseudorange replaces the raw one in the update with its "
-        "noise std scaled by max(1/sqrt(epochs averaged), hatch_std_floor); a cycle slip (lli bit 0, phase "
+        "noise std scaled by max(1/sqrt(epochs averaged), hatch_std_floor) (the fix's covariance then counts "
+        "the average's correlated errors: error_correlation); a cycle slip (lli bit 0, phase "
         "change against the integrated Doppler, code-carrier jump, a gap) restarts that satellite's average "
         "only. off: carrier phase is ignored. Sessions stored before the option existed keep off.",
         choices=CARRIER_SMOOTHING,
@@ -181,10 +185,52 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "hatch_std_floor",
         "number",
         DEFAULT_HATCH_STD_FLOOR,
-        "Smallest fraction of the raw pseudorange std a smoothed pseudorange gets: averaging n epochs divides "
-        "white noise by sqrt(n), but street-canyon multipath is correlated over tens of seconds and does not "
-        "average down that fast. Chosen on the first half of tests/data/gnss-rover (docs/gnss.md).",
+        "Smallest fraction of the raw pseudorange std a smoothed pseudorange gets in the filter's update (the "
+        "weights): averaging n epochs divides white noise by sqrt(n), but street-canyon multipath is "
+        "correlated over tens of seconds. Chosen on the first half of tests/data/gnss-rover (docs/gnss.md). "
+        "The covariance the fix reports does not rely on it (error_correlation): there a smoothed range's "
+        "error is the average of correlated errors (std 0.59 of the raw code's after 100 epochs at the "
+        "defaults, against this floor's 0.2).",
         0.01,
+        1.0,
+    ),
+    OptionSpec(
+        "error_correlation",
+        "string",
+        DEFAULT_ERROR_CORRELATION,
+        "What the fix's covariance assumes about pseudorange errors over time. The filters weigh the "
+        "pseudoranges as independent between epochs (white) either way, so the fixes are the same. "
+        "gauss_markov: each error is a white part plus a first-order Gauss-Markov part (code_error_tau_s, "
+        "code_error_correlated_fraction; gnss/error_correlation.py), and the position covariance the fix "
+        "reports (and the prior the integrity monitor tests against) is the filter's times the factor by "
+        "which the error of its weighted solution grows under that model (a consider covariance): a "
+        "carrier-smoothed range's error is an average of correlated errors (not std/sqrt(n)), and the filter's "
+        "memory (about 1 + the epoch's own least-squares horizontal variance over the predicted one, in "
+        "epochs) averages correlated errors, which do not fall as 1/memory. Mean NEES (2 dof) of the UPF's "
+        "fixes on tests/data/gnss-rover 3.6, not 25 (docs/gnss.md). With filter pf the reported horizontal "
+        "covariance is also at least that factor times a Gaussian update's of the same prediction (a couple "
+        "of hundred particles' covariance collapses on resampling). white: the filter's own covariance. "
+        "Sessions stored before the option existed keep white.",
+        choices=ERROR_CORRELATIONS,
+    ),
+    OptionSpec(
+        "code_error_tau_s",
+        "number",
+        FITTED_CORRELATION.tau_s,
+        "gauss_markov: correlation time (s) of the pseudorange error's correlated part (multipath, residual "
+        "atmosphere and orbit errors). 58 s: fitted to the autocorrelation of the standardised pseudorange "
+        "residuals at the reference trajectory of the first half of tests/data/gnss-rover (0.93 at 1 s, 0.49 "
+        "at 10 s, 0.27 at 60 s; python -m edgepos.gnss.error_correlation, docs/gnss.md).",
+        0.01,
+        3600.0,
+    ),
+    OptionSpec(
+        "code_error_correlated_fraction",
+        "number",
+        FITTED_CORRELATION.fraction,
+        "gauss_markov: the fraction of a pseudorange's error variance that is correlated over "
+        "code_error_tau_s (the rest is white). 0.57: the same fit. 0 makes the errors white.",
+        0.0,
         1.0,
     ),
     OptionSpec(

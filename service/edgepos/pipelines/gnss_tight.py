@@ -46,6 +46,9 @@ Per epoch (observations sharing ``t``):
    stayed low (``zupt``), else, moving, no lateral or vertical velocity (``nhc``); the fix lists them.
 6. The filter step; before initialisation, the first epoch with enough satellites initialises the filter
    from a weighted least-squares fix (gnss/spp.py), its velocity and clock drift from the Dopplers when sent.
+7. The fix's position covariance (and the prior RAIM tests against) is the filter's times the factor the
+   ``error_correlation`` model gives for time-correlated errors (pipelines/gnss_correlation.py); the
+   filter's own covariance and gains stay those of white errors.
 Every pseudorange appears in the fix's measurement list, used (with its noise std and why) or with the
 reason it was not, and with its Doppler's use when it carried one.
 """
@@ -98,6 +101,7 @@ from edgepos.pipelines.gnss_constraints import (
     epoch_constraints,
     with_constraints,
 )
+from edgepos.pipelines.gnss_correlation import Honesty, honesty
 from edgepos.pipelines.gnss_faults import (
     centre_rates,
     fault_settings,
@@ -374,7 +378,7 @@ def _filter_epoch(
         gpst = (options["gps_week"] or 0) * SECONDS_PER_WEEK + t
     satellites = epoch_satellites(epoch, observations, ephemerides, gpst, options, uses)
     doppler.update({i: (False, reason) for i, reason in satellites.doppler_reasons.items()})
-    satellites, smoothing = _smooth(session, t, satellites, observations)
+    satellites, smoothing, averaged = _smooth(session, t, satellites, observations)
     atmosphere = atmosphere_of(options, ephemerides)
     if corrections is not None:
         satellites = apply_corrections(
@@ -411,6 +415,7 @@ def _filter_epoch(
     rows: np.ndarray = np.zeros(0, dtype=int)
     rate_rows: np.ndarray = np.zeros(0, dtype=int)
     separated: Separations | None = None
+    honest = Honesty()
     if len(satellites.prs):
         receiver = session.anchor.ecef(centre)
         iono, tropo, elevation, _ = atmosphere.delays(receiver, satellites.prs)
@@ -480,12 +485,13 @@ def _filter_epoch(
                 rng,
                 "track lost; waiting for enough satellites",
             )
+        honest = honesty(options, rows, std, smoothing, averaged, ranges, prs.systems, predicted_cov, dt)
         if rows.size and integrity_enabled(options):
             rows, separated = detect_and_exclude(
                 options,
                 session.anchor,
                 centre,
-                predicted_cov,
+                honest.scale(predicted_cov),
                 prs.sat_position,
                 prs.systems,
                 known,
@@ -581,9 +587,11 @@ def _filter_epoch(
         )
     for r in rate_rows:
         doppler[satellites.indices[r]] = (True, None)
+    if options["filter"] == "pf":  # its particles' covariance collapses (pipelines/gnss_correlation.py)
+        honest = honest.floored(result.cov)
     status = "tracking" if measurement is not None else "predicted"
     dof = int(rows.size + rate_rows.size + sum(len(c.variances) for c in constraints))
-    fix = session_fix(t, status, session, result.mean, result.cov, result, dof, uses, origin)
+    fix = session_fix(t, status, session, result.mean, honest.scale(result.cov), result, dof, uses, origin)
     guard = fix_protection(separated if rows.size else None, fix.position_cov, options)
     return dataclasses.replace(
         fix,
@@ -595,21 +603,21 @@ def _filter_epoch(
 
 def _smooth(
     session: GnssSession, t: float, satellites: EpochSatellites, observations: Sequence[Observation]
-) -> tuple[EpochSatellites, np.ndarray]:
+) -> tuple[EpochSatellites, np.ndarray, np.ndarray]:
     """Carrier-smoothed code (``carrier_smoothing`` hatch): each row with carrier_cycles advances its
     satellite's Hatch filter and gets the smoothed pseudorange; returns the epoch with them and, per row, the
-    factor on its noise std (1 for raw code). Runs before differential corrections, which change with the
-    base's epoch and must not be averaged."""
+    factor on its noise std (1 for raw code) and the epochs averaged (0 for raw code). Runs before
+    differential corrections, which change with the base's epoch and must not be averaged."""
     prs = satellites.prs
     factor = np.ones(len(prs))
     options = session.options
     if options.get("carrier_smoothing", "off") != "hatch" or not len(prs):
-        return satellites, factor
+        return satellites, factor, np.zeros(len(prs))
     # satellites.indices are the epoch's pseudoranges (satellite_states keeps no other kind)
     sent = [cast(PseudorangeObservation, observations[i]) for i in satellites.indices]
     carrier = np.array([np.nan if o.carrier_cycles is None else o.carrier_cycles for o in sent], dtype=float)
     if not np.isfinite(carrier).any():
-        return satellites, factor
+        return satellites, factor, np.zeros(len(prs))
     use_doppler = bool(options.get("use_doppler", True))
     doppler_hz = np.array(
         [o.doppler_hz if (o.doppler_hz is not None and use_doppler) else np.nan for o in sent], dtype=float
@@ -634,9 +642,8 @@ def _smooth(
     )
     smoothed = result.count >= 1.0
     factor[smoothed] = np.maximum(1.0 / np.sqrt(result.count[smoothed]), options["hatch_std_floor"])
-    return dataclasses.replace(
-        satellites, prs=dataclasses.replace(prs, pseudorange_m=result.pseudorange_m)
-    ), factor
+    prs = dataclasses.replace(prs, pseudorange_m=result.pseudorange_m)
+    return dataclasses.replace(satellites, prs=prs), factor, result.count
 
 
 def _measurement(

@@ -1,0 +1,112 @@
+"""The ``gnss_tight`` pipeline's treatment of time-correlated pseudorange errors (``error_correlation``):
+the options as a model, and the factor that makes the fix's covariance honest about them. The formulas
+are in gnss/error_correlation.py; why this design and what it measured in docs/gnss.md."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from edgepos.core.motion import riss as layout
+from edgepos.gnss.error_correlation import ErrorCorrelation, averaged_variance, honest_factor
+from edgepos.pipelines.gnss_integrity import jacobian
+
+_POSITION = np.array([layout.NORTH, layout.EAST, layout.UP])
+
+
+def model_of(options: Mapping[str, Any]) -> ErrorCorrelation | None:
+    """The session's error model; None for white errors (also sessions stored before the option)."""
+    if options.get("error_correlation", "white") != "gauss_markov":
+        return None
+    return ErrorCorrelation(
+        float(options["code_error_tau_s"]), float(options["code_error_correlated_fraction"])
+    )
+
+
+@dataclass(frozen=True)
+class Honesty:
+    """The factor on the filter's position covariance that makes it the covariance of the fix's error
+    under the correlated error model, the filter memory (epochs) it was computed for, and ``bound``, the
+    north-east covariance a Gaussian update of the prediction's horizontal marginal with the epoch's own
+    least-squares one would give, inv(inv(P_prior) + inv(P_ls)) (None when not computed). ``bound`` leaves
+    out what the Dopplers and the prior's vertical and clock parts tell about the horizontal position, so
+    it is somewhat larger than a Kalman update's posterior (on the recording's first half, flooring the
+    UKF's covariance at it would take its mean NEES from 1.73 to 1.16): a conservative floor for the
+    particle filter, whose covariance from a couple of hundred particles collapses when they are
+    resampled (its mean NEES was 2.7 times the UKF's before any factor)."""
+
+    factor: float = 1.0
+    memory: float = 1.0
+    bound: np.ndarray | None = None
+
+    def floored(self, cov: np.ndarray) -> Honesty:
+        """This honesty with its factor raised until the posterior ``cov``'s north-east block C is at
+        least ``bound`` (times s, the smallest with s C >= bound: the largest eigenvalue of C^-1 bound)."""
+        if self.bound is None:
+            return self
+        block = cov[np.ix_(_POSITION[:2], _POSITION[:2])]
+        try:
+            ratio = float(np.max(np.linalg.eigvals(np.linalg.solve(block, self.bound)).real))
+        except np.linalg.LinAlgError:
+            return self
+        if not math.isfinite(ratio) or ratio <= 1.0:
+            return self
+        return Honesty(self.factor * ratio, self.memory, self.bound)
+
+    def scale(self, cov: np.ndarray) -> np.ndarray:
+        """``cov`` (state order) with its position rows and columns times sqrt(factor): the position block
+        times the factor, its correlations with the rest kept."""
+        if self.factor == 1.0:
+            return cov
+        scale = np.ones(cov.shape[0])
+        scale[_POSITION] = np.sqrt(self.factor)
+        out: np.ndarray = cov * scale[:, None] * scale[None, :]
+        return out
+
+
+def honesty(
+    options: Mapping[str, Any],
+    rows: np.ndarray,
+    std: np.ndarray,
+    smoothing: np.ndarray,
+    count: np.ndarray,
+    ranges: np.ndarray,
+    systems: Sequence[str],
+    predicted_cov: np.ndarray,
+    dt: float,
+) -> Honesty:
+    """The epoch's :class:`Honesty` for the update ``rows`` of the epoch's pseudoranges with the filter's
+    noise ``std``, carrier-smoothing factors ``smoothing`` (in ``std``) over ``count`` epochs (0: raw
+    code), linearisation ``ranges`` (gnss_integrity.linearisation_ranges), constellations ``systems``, the
+    prediction's covariance (state order) and the interval since the previous epoch. The filter weighs the
+    rows as white with std ``std``; under the model a row's error variance is std^2 x (V_smoothed(n) /
+    smoothing^2) x its memory factor (gnss/error_correlation.py: the smoothed code's own variance, then the
+    average over the filter's memory M of correlated errors); the factor is the consider covariance's
+    horizontal trace over the white one. 1 for white errors, and when the rows alone do not fix the
+    position."""
+    model = model_of(options)
+    if model is None or rows.size == 0 or dt <= 0.0:
+        return Honesty()
+    std, smoothing, count = std[rows], smoothing[rows], count[rows]
+    predicted_horizontal = predicted_cov[np.ix_(_POSITION[:2], _POSITION[:2])]
+    variance = std**2
+    scale = variance / smoothing**2  # each row's raw-code variance as the filter's noise model has it
+
+    def true_variance(memory: float) -> np.ndarray:
+        value: np.ndarray = scale * averaged_variance(count, memory, model, dt)[0]
+        return value
+
+    h = jacobian(ranges[:, rows], [systems[r] for r in rows])
+    result = honest_factor(h, variance, predicted_horizontal, true_variance)
+    if result is None:
+        return Honesty()
+    factor, memory, own = result
+    try:
+        bound = np.linalg.inv(np.linalg.inv(predicted_horizontal) + np.linalg.inv(own))
+    except np.linalg.LinAlgError:
+        return Honesty(factor, memory)
+    return Honesty(factor, memory, bound)

@@ -1,0 +1,54 @@
+"""gnss_tight's time-correlated error options on the wire (issue 21): out of bounds they are 422s naming
+the option; on the real recording the default reports a larger position covariance than the white model
+for the same fixes."""
+
+from __future__ import annotations
+
+import pytest
+from apihelp import ADMIN, assert_error, open_session
+from gnsswire import QUICK, measurements, nav_text
+
+
+@pytest.mark.parametrize(
+    ("options", "field"),
+    [
+        ({"error_correlation": "pink"}, "options.error_correlation"),
+        ({"code_error_tau_s": 0.0}, "options.code_error_tau_s"),
+        ({"code_error_tau_s": 1e5}, "options.code_error_tau_s"),
+        ({"code_error_correlated_fraction": 1.5}, "options.code_error_correlated_fraction"),
+        ({"code_error_correlated_fraction": -0.1}, "options.code_error_correlated_fraction"),
+    ],
+)
+def test_correlation_options_out_of_bounds_are_422_naming_the_option(client, options, field):
+    response = client.post(
+        "/v1/sessions",
+        json={"vehicle_id": "car-9", "pipeline": "gnss_tight", "options": {**QUICK, **options}},
+        headers=ADMIN,
+    )
+    error = assert_error(response, 422, "invalid_request")
+    assert field in {p["field"] for p in error["problems"]}, error
+
+
+def _fixes(client, vehicle: str, options: dict) -> list[dict]:
+    session_id, token = open_session(client, pipeline="gnss_tight", vehicle_id=vehicle, options=options)
+    fixes = []
+    for seq, first in enumerate((0, 4, 8), start=1):  # batches within the CPU budget
+        body = {"seq": seq, "measurements": measurements(first, min(4, 10 - first))}
+        response = client.post(f"/v1/sessions/{session_id}/batches", json=body, headers=token)
+        assert response.status_code == 200, response.text
+        fixes += response.json()["fixes"]
+    return fixes
+
+
+def test_the_default_covariance_counts_correlated_errors(client):
+    upload = client.put(
+        "/v1/ephemerides", content=nav_text(), headers={"Content-Type": "text/plain", **ADMIN}
+    )
+    assert upload.status_code == 200, upload.text
+    honest = _fixes(client, "car-1", QUICK)
+    white = _fixes(client, "car-2", {**QUICK, "error_correlation": "white"})
+    assert [(f["x"], f["y"]) for f in honest] == [(f["x"], f["y"]) for f in white]
+    ratios = [
+        h["position_covariance"][0][0] / w["position_covariance"][0][0] for h, w in zip(honest[2:], white[2:])
+    ]
+    assert all(r > 1.0 for r in ratios), ratios

@@ -1,0 +1,76 @@
+"""gnss_tight's covariance under time-correlated errors (issue 21, ``error_correlation``): on the real
+recording's first minute the fixes' own horizontal covariance has a mean NEES in the consistent range and
+the fixes are those of the white model; older sessions keep the white covariance."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from edgepos.eval.gnss_rinex import evaluate
+from edgepos.pipelines.gnss_correlation import Honesty, model_of
+from edgepos.pipelines.gnss_integrity import budget_of
+from edgepos.pipelines.gnss_tight import GnssTightPipeline
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "gnss-rover"
+FILES = (
+    str(DATA / "rover-0-5min.rnx"),
+    str(DATA / "broadcast-nav.rnx"),
+    str(DATA / "reference-0-5min.csv"),
+)
+
+
+def _run(carrier: bool, correlation: str, filter_name: str) -> dict:
+    options = {"filter": filter_name, "seed": 1, "particles": 100, "error_correlation": correlation}
+    return evaluate(*FILES, options=options, score_epochs=(0, 60), carrier=carrier)
+
+
+@pytest.mark.parametrize(("carrier", "filter_name"), [(True, "ukf"), (False, "ukf"), (False, "pf")])
+def test_fix_nees_is_consistent_on_the_recording(carrier: bool, filter_name: str) -> None:
+    honest = _run(carrier, "gauss_markov", filter_name)
+    white = _run(carrier, "white", filter_name)
+    nees = honest["integrity"]["mean_nees"]
+    assert 1.0 <= nees <= 4.0, nees
+    # the white covariance is too small (by 8x with the Hatch average counted as independent samples)
+    assert white["integrity"]["mean_nees"] > (4.0 if carrier else 1.2) * nees
+    # the filter's gains are the white ones: the same fixes, only the covariance differs
+    assert honest["horizontal_rms_m"] == white["horizontal_rms_m"]
+    assert honest["integrity"]["misleading"] == 0
+
+
+def test_defaults_and_older_sessions() -> None:
+    resolved = GnssTightPipeline().resolve_options({})
+    assert resolved["error_correlation"] == "gauss_markov"
+    assert model_of(resolved) is not None
+    stored = {k: v for k, v in resolved.items() if not k.startswith(("error_", "code_error_"))}
+    assert model_of(stored) is None  # a session stored before the option keeps the white covariance
+    assert budget_of(resolved).inflation == 5.0
+    # ... and the integrity inflation chosen for it, unless it stored its own
+    assert budget_of({k: v for k, v in stored.items() if k != "integrity_inflation"}).inflation == 8.0
+    assert budget_of(stored).inflation == 5.0
+
+
+def test_honesty_scales_the_position_block_only() -> None:
+    rng = np.random.default_rng(2)
+    a = rng.standard_normal((12, 12))
+    cov = a @ a.T + np.eye(12)
+    scaled = Honesty(4.0, 1.5).scale(cov)
+    np.testing.assert_allclose(scaled[:3, :3], 4.0 * cov[:3, :3])
+    np.testing.assert_allclose(scaled[3:, 3:], cov[3:, 3:])
+    np.testing.assert_allclose(scaled[:3, 3:], 2.0 * cov[:3, 3:])
+    assert np.all(np.linalg.eigvalsh(scaled) > 0.0)
+    assert Honesty().scale(cov) is cov
+
+
+def test_the_floor_raises_a_collapsed_covariance_to_the_bound() -> None:
+    bound = np.array([[4.0, 1.0], [1.0, 2.0]])
+    cov = np.diag([0.5, 0.5, 1.0, 1.0])
+    floored = Honesty(2.0, 1.2, bound).floored(cov)
+    reported = floored.scale(cov)[:2, :2]
+    assert floored.factor > 2.0
+    # at least bound in every direction (times the factor's own 2), tight in one
+    eigenvalues = np.linalg.eigvalsh(reported - 2.0 * bound)
+    assert eigenvalues.min() == pytest.approx(0.0, abs=1e-9) and eigenvalues.max() >= 0.0
+    assert Honesty(2.0, 1.2, bound).floored(np.diag([10.0, 10.0, 1.0])).factor == 2.0  # already above
+    assert Honesty(2.0, 1.2).floored(cov).factor == 2.0
