@@ -511,7 +511,8 @@ class FixOut(ResponseModel):
         "while integrity is not alarm, with at most the session's integrity_risk per epoch, even when one RSU is "
         "faulty, however slowly its fault grew (rsu_imu: filter-based solution separation, one sub-filter per "
         "RSU left out, docs/integrity.md; gnss_tight: solution separation of one-satellite and one-constellation "
-        "faults with the filter's prediction as prior, from the filter's covariance times integrity_inflation, "
+        "faults with the filter's prediction as prior, from the fix's covariance (the filter's, with "
+        "error_correlation's factor for time-correlated errors) times integrity_inflation, "
         "docs/integrity.md GNSS; v2v_coop and v2x_federated: solution separation of the fix's GNSS fix and each "
         "neighbour or RSU ranged to, at the epoch). Null when integrity is unavailable.",
     )
