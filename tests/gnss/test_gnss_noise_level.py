@@ -111,3 +111,16 @@ def test_plain_data_round_trips_and_bad_data_is_refused() -> None:
     for bad in ([1.0, 2.0], [1.0, -1.0, 3.0], [math.nan, 1.0, 2.0]):
         with pytest.raises(ValueError):
             NoiseLevel.from_list(bad)
+
+
+def test_the_snooped_estimate_is_the_fit_without_the_faulty_row() -> None:
+    """The rank-one downdate gives what fitting the other rows again gives."""
+    rng = np.random.default_rng(8)
+    h, variance = _geometry(rng, 14)
+    residuals = np.sqrt(variance) * rng.standard_normal(14)
+    residuals[6] += 40.0 * math.sqrt(variance[6])
+    estimate, redundancy = epoch_scale(h, residuals, variance)
+    keep = np.arange(14) != 6
+    again = studentised_squares(h[keep], residuals[keep], variance[keep])
+    assert redundancy == 14 - 1 - 5
+    assert estimate == pytest.approx(float(np.median(again)) / expected_median(again.size), rel=1e-9)

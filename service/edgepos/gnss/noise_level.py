@@ -42,60 +42,81 @@ def expected_median(count: int) -> float:
     return 0.5 * (order_statistic(count // 2) + order_statistic(count // 2 + 1))
 
 
-def studentised_squares(jacobian: np.ndarray, residuals: np.ndarray, variance: np.ndarray) -> np.ndarray:
-    """u_i^2 of the weighted least-squares fit of ``residuals`` (prefit, rows of ``jacobian``) with weights
-    1/``variance``: r_i^2 / (v_i (1 - h_ii)); empty when the rows do not exceed the unknowns."""
+def _fit(
+    jacobian: np.ndarray, residuals: np.ndarray, variance: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(post-fit residuals, leverages h_ii, (H'WH)^-1) of the weighted least-squares fit; None when the rows
+    do not exceed the unknowns or the geometry is singular."""
     rows, unknowns = jacobian.shape
     if rows <= unknowns:
-        return np.zeros(0)
+        return None
     weighted = jacobian / variance[:, None]
     try:
         normal_inverse = np.linalg.inv(jacobian.T @ weighted)
     except np.linalg.LinAlgError:
-        return np.zeros(0)
-    correction = normal_inverse @ (weighted.T @ residuals)
-    post_fit = residuals - jacobian @ correction
+        return None
+    post_fit = residuals - jacobian @ (normal_inverse @ (weighted.T @ residuals))
     leverage = np.einsum("ij,jk,ik->i", weighted, normal_inverse, jacobian)
+    return post_fit, leverage, normal_inverse
+
+
+def _squares(post_fit: np.ndarray, leverage: np.ndarray, variance: np.ndarray) -> np.ndarray:
     remaining = 1.0 - leverage
     keep = remaining > 1e-9  # a row the fit must pass through says nothing about the noise
     value: np.ndarray = post_fit[keep] ** 2 / (variance[keep] * remaining[keep])
     return value
 
 
+def studentised_squares(jacobian: np.ndarray, residuals: np.ndarray, variance: np.ndarray) -> np.ndarray:
+    """u_i^2 of the weighted least-squares fit of ``residuals`` (prefit, rows of ``jacobian``) with weights
+    1/``variance``: r_i^2 / (v_i (1 - h_ii)); empty when the rows do not exceed the unknowns."""
+    fit = _fit(jacobian, residuals, variance)
+    return np.zeros(0) if fit is None else _squares(fit[0], fit[1], variance)
+
+
+def _scale(squares: np.ndarray) -> float:
+    return float(np.median(squares)) / expected_median(int(squares.size))
+
+
 SNOOPING_SIGMA = 5.0
-"""A row whose studentised residual exceeds this many times the epoch's median scale is left out and the
-rest fitted again (one row per epoch, Baarda's data snooping: under a single fault the largest studentised
-residual is the faulty row's). A clean row exceeds it with probability 6e-7."""
+"""The row with the largest studentised residual is left out when that residual exceeds this many times
+the scale of the other rows' fit (one row per epoch, Baarda's data snooping: under a single fault the
+largest studentised residual is the faulty row's, and a fault large enough to drag the fit also inflates
+the other rows' residuals, so it is judged against the fit without it). A clean row exceeds 5 sigma with
+probability 6e-7."""
 
 
 def epoch_scale(jacobian: np.ndarray, residuals: np.ndarray, variance: np.ndarray) -> tuple[float, int]:
     """(the epoch's median-based estimate of s^2, its redundancy rows - unknowns); (nan, 0) when the rows do
-    not exceed the unknowns. A large fault on one row also moves the fit, and so every other row's residual
-    (by its leverage on them): that row is left out first (:data:`SNOOPING_SIGMA`)."""
+    not exceed the unknowns. The fit without the worst row comes from the full one by a rank-one downdate:
+    with c = H A h_i (A = (H'WH)^-1), the others' residuals become r + c w_i r_i / (1 - h_ii) and their
+    leverages h_jj + w_j c_j^2 w_i / (1 - h_ii); the left-out row's deleted residual r_i / (1 - h_ii) has
+    variance v_i / (1 - h_ii), so its test statistic is its studentised square u_i^2."""
     rows, unknowns = jacobian.shape
-    squares = studentised_squares(jacobian, residuals, variance)
-    if squares.size == 0 or rows <= unknowns:
+    fit = _fit(jacobian, residuals, variance)
+    if fit is None:
         return math.nan, 0
-    estimate = float(np.median(squares)) / expected_median(int(squares.size))
+    post_fit, leverage, normal_inverse = fit
+    squares = _squares(post_fit, leverage, variance)
+    if squares.size == 0:
+        return math.nan, 0
+    estimate = _scale(squares)
     if rows - 1 <= unknowns or squares.size != rows:
         return estimate, rows - unknowns
-    # the row with the largest studentised residual, tested against the fit of the others (its deleted
-    # residual over that fit's scale), so that its own pull on the fit cannot hide it
     worst = int(np.argmax(squares))
+    remaining = 1.0 - leverage[worst]
+    coupling = jacobian @ (normal_inverse @ jacobian[worst])
+    pull = coupling / (variance[worst] * remaining)
     keep = np.arange(rows) != worst
-    others = studentised_squares(jacobian[keep], residuals[keep], variance[keep])
+    others = _squares(
+        (post_fit + pull * post_fit[worst])[keep],
+        (leverage + coupling * pull / variance)[keep],
+        variance[keep],
+    )
     if others.size == 0:
         return estimate, rows - unknowns
-    scale = float(np.median(others)) / expected_median(int(others.size))
-    weighted = jacobian[keep] / variance[keep, None]
-    try:
-        normal_inverse = np.linalg.inv(jacobian[keep].T @ weighted)
-    except np.linalg.LinAlgError:
-        return estimate, rows - unknowns
-    row = jacobian[worst]
-    deleted = residuals[worst] - row @ (normal_inverse @ (weighted.T @ residuals[keep]))
-    deleted_variance = variance[worst] + row @ normal_inverse @ row
-    if deleted**2 / deleted_variance > SNOOPING_SIGMA**2 * scale:
+    scale = _scale(others)
+    if squares[worst] > SNOOPING_SIGMA**2 * scale:
         return scale, rows - 1 - unknowns
     return estimate, rows - unknowns
 
