@@ -213,7 +213,7 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "carrier-smoothed range's error is an average of correlated errors (not std/sqrt(n)), and the filter's "
         "memory (about 1 + the epoch's own least-squares horizontal variance over the predicted one, in "
         "epochs) averages correlated errors, which do not fall as 1/memory. Mean NEES (2 dof) of the UPF's "
-        "fixes on tests/data/gnss-rover 3.6, not 25 (docs/gnss.md). With filter pf the reported horizontal "
+        "fixes on tests/data/gnss-rover 3.6, not 25 (2.3 with noise_level adaptive; docs/gnss.md). With filter pf the reported horizontal "
         "covariance is also at least that factor times a Gaussian update's of the same prediction (a couple "
         "of hundred particles' covariance collapses on resampling). white: the filter's own covariance. "
         "Sessions stored before the option existed keep white.",
