@@ -25,13 +25,13 @@ FILES = (
 )
 
 
-def _run(carrier: bool, correlation: str, filter_name: str) -> dict:
+def _run(carrier: bool, correlation: str, filter_name: str, level: str = "model") -> dict:
     options = {
         "filter": filter_name,
         "seed": 1,
         "particles": 100,
         "error_correlation": correlation,
-        "noise_level": "model",  # the correlation model alone (the level: the tests below)
+        "noise_level": level,  # the correlation model alone unless asked
     }
     return evaluate(*FILES, options=options, score_epochs=(0, 60), carrier=carrier)
 
@@ -47,6 +47,10 @@ def test_fix_nees_is_consistent_on_the_recording(carrier: bool, filter_name: str
     # the filter's gains are the white ones: the same fixes, only the covariance differs
     assert honest["horizontal_rms_m"] == white["horizontal_rms_m"]
     assert honest["integrity"]["misleading"] == 0
+    # the defaults (the adaptive noise level too): still within 1-4, never below the model's covariance
+    default = _run(carrier, "gauss_markov", filter_name, "adaptive")
+    assert 1.0 <= default["integrity"]["mean_nees"] <= nees
+    assert default["horizontal_rms_m"] == honest["horizontal_rms_m"]
 
 
 def test_defaults_and_older_sessions() -> None:
