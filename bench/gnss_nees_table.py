@@ -11,6 +11,7 @@ and median protection level.
     python bench/gnss_nees_table.py [--filters upf,pf,ukf] [--carrier both|on|off] [--option NAME=JSON ...]
         [--integrity]
 
+``--option 'noise_level="model"'`` gives the figures before the adaptive noise level (docs/gnss.md).
 ``--integrity`` prints instead the integrity block of each cell (misleading and hazardous epochs,
 availability at the alert limit, median protection level, the largest error over protection level, the
 monitor's exclusions).

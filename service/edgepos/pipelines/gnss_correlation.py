@@ -13,6 +13,7 @@ import numpy as np
 
 from edgepos.core.motion import riss as layout
 from edgepos.gnss.error_correlation import ErrorCorrelation, averaged_variance, honest_factor
+from edgepos.gnss.noise_level import NoiseLevel, epoch_scale
 from edgepos.pipelines.gnss_integrity import jacobian
 
 _POSITION = np.array([layout.NORTH, layout.EAST, layout.UP])
@@ -56,6 +57,12 @@ class Honesty:
         if not math.isfinite(ratio) or ratio <= 1.0:
             return self
         return Honesty(self.factor * ratio, self.memory, self.bound)
+
+    def times(self, level: float) -> Honesty:
+        """This honesty with its factor times the noise ``level`` (the variance scale the errors showed)."""
+        if level == 1.0:
+            return self
+        return Honesty(self.factor * level, self.memory, self.bound)
 
     def scale(self, cov: np.ndarray) -> np.ndarray:
         """``cov`` (state order) with its position rows and columns times sqrt(factor): the position block
@@ -110,3 +117,41 @@ def honesty(
     except np.linalg.LinAlgError:
         return Honesty(factor, memory)
     return Honesty(factor, memory, bound)
+
+
+def adaptive(options: Mapping[str, Any]) -> bool:
+    """Whether the session follows the noise level (``noise_level`` adaptive); sessions stored before the
+    option keep the model's level."""
+    return bool(options.get("noise_level", "model") == "adaptive")
+
+
+def noise_level(
+    options: Mapping[str, Any],
+    level: NoiseLevel,
+    t: float,
+    dt: float,
+    rows: np.ndarray,
+    std: np.ndarray,
+    smoothing: np.ndarray,
+    count: np.ndarray,
+    ranges: np.ndarray,
+    systems: Sequence[str],
+    pseudorange: np.ndarray,
+) -> NoiseLevel:
+    """``level`` updated with the epoch's update ``rows`` (gnss/noise_level.py): their residuals after the
+    epoch's own least-squares fit, each standardised by its error variance as the session's model has it
+    (the filter's std^2 for white errors; under error_correlation the smoothed code's own variance,
+    (std / smoothing)^2 V_smoothed(n), so that the level and the correlation factor do not count the same
+    thing twice). ``level`` itself when the session does not adapt or the rows do not exceed the unknowns.
+    The estimate is stored relative to ``noise_level_reference`` (its value where the model holds), so the
+    memory's scale is the factor on the covariance."""
+    if not adaptive(options) or rows.size == 0:
+        return level
+    variance = std[rows] ** 2
+    model = model_of(options)
+    if model is not None and dt > 0.0:
+        variance = variance / smoothing[rows] ** 2 * model.smoothed_variance(count[rows], dt)
+    h = jacobian(ranges[:, rows], [systems[r] for r in rows])
+    estimate, redundancy = epoch_scale(h, pseudorange[rows] - ranges[0, rows], variance)
+    relative = estimate / float(options["noise_level_reference"])
+    return level.updated(t, relative, redundancy, float(options["noise_level_time_constant_s"]))

@@ -39,6 +39,12 @@ DEFAULT_CARRIER_SMOOTHING = "hatch"
 DEFAULT_HATCH_STD_FLOOR = 0.2
 ERROR_CORRELATIONS = ("gauss_markov", "white")
 DEFAULT_ERROR_CORRELATION = "gauss_markov"
+NOISE_LEVELS = ("adaptive", "model")
+DEFAULT_NOISE_TIME_CONSTANT_S = 60.0
+"""One correlation time of the errors (code_error_tau_s 58 s), six of the epoch estimates' own (about 10 s);
+the reasoning and the first half's figures are in docs/gnss.md ("Following the noise level")."""
+DEFAULT_NOISE_REFERENCE = 0.15
+"""The estimate's level on the first half of tests/data/gnss-rover, raw code (0.152 at the defaults)."""
 NOISE_MODELS = ("fuzzy", "fitted")
 DEFAULT_NOISE_MODEL = "fitted"
 DEFAULT_NHC = False
@@ -207,7 +213,7 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "carrier-smoothed range's error is an average of correlated errors (not std/sqrt(n)), and the filter's "
         "memory (about 1 + the epoch's own least-squares horizontal variance over the predicted one, in "
         "epochs) averages correlated errors, which do not fall as 1/memory. Mean NEES (2 dof) of the UPF's "
-        "fixes on tests/data/gnss-rover 3.6, not 25 (docs/gnss.md). With filter pf the reported horizontal "
+        "fixes on tests/data/gnss-rover 3.6, not 25 (2.3 with noise_level adaptive; docs/gnss.md). With filter pf the reported horizontal "
         "covariance is also at least that factor times a Gaussian update's of the same prediction (a couple "
         "of hundred particles' covariance collapses on resampling). white: the filter's own covariance. "
         "Sessions stored before the option existed keep white.",
@@ -232,6 +238,46 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "code_error_tau_s (the rest is white). 0.57: the same fit. 0 makes the errors white.",
         0.0,
         1.0,
+    ),
+    OptionSpec(
+        "noise_level",
+        "string",
+        "adaptive",
+        "Whether the fix's covariance follows the pseudoranges' noise level of the moment. adaptive: each "
+        "epoch's update rows are fitted by least squares on their own, their residuals standardised by the "
+        "error variance the noise model and error_correlation give them (leverage-corrected, so the fit's "
+        "lost degrees of freedom are counted), the median of their squares over its expectation is the "
+        "epoch's variance scale (one reflected satellite cannot blow it up), and the epochs' scales are "
+        "averaged with exponential memory (noise_level_time_constant_s, weights rows - unknowns); the "
+        "position covariance the fix reports (and its protection level) is multiplied by that average over "
+        "noise_level_reference when above 1, never reduced. The filters' weights and the fixes are the same either way. On the second "
+        "half of tests/data/gnss-rover the errors are 2.4 times the first half's variance (docs/gnss.md). "
+        "model: the noise model's level. Sessions stored before the option existed keep model.",
+        choices=NOISE_LEVELS,
+    ),
+    OptionSpec(
+        "noise_level_time_constant_s",
+        "number",
+        DEFAULT_NOISE_TIME_CONSTANT_S,
+        "adaptive noise level: the time constant (s) of its exponential memory. The errors are correlated "
+        "over about a minute (code_error_tau_s), so a shorter memory sees one error, not its spread; a longer "
+        "one follows a changing street late. 60 s: one correlation time of the errors, about six of the "
+        "epoch estimates' own (their autocorrelation is 0.19 at 10 s on the first half of "
+        "tests/data/gnss-rover; docs/gnss.md).",
+        10.0,
+        3600.0,
+    ),
+    OptionSpec(
+        "noise_level_reference",
+        "number",
+        DEFAULT_NOISE_REFERENCE,
+        "adaptive noise level: the estimate's value where the noise model and error_correlation hold; the "
+        "covariance is scaled by estimate / reference. Below 1 because the residuals after the epoch's own "
+        "fit do not show the errors the fix absorbs (correlated between satellites) and the screens remove "
+        "the heavy tail the noise model's mean-square fit includes. 0.15: the estimate's level on the first "
+        "half of tests/data/gnss-rover, raw code, where the model was fitted (0.15; with the carrier 0.18).",
+        0.001,
+        100.0,
     ),
     OptionSpec(
         "carrier_slip_cycles_per_s",

@@ -15,6 +15,7 @@ from edgepos.core.motion.riss import GeodeticAnchor
 from edgepos.core.particles import PARTICLE_FILTERS, Cloud
 from edgepos.core.particles.base import weighted_moments
 from edgepos.gnss.carrier import CarrierTrack, tracks_from_arrays, tracks_to_arrays
+from edgepos.gnss.noise_level import NoiseLevel
 
 PIPELINE_NAME = "gnss_tight"
 
@@ -46,6 +47,9 @@ class GnssSession:
     and the ``faults`` array (n, 4); states written before that layout have the dict in their metadata."""
     still_epochs: int = 0
     """Epochs in a row whose own Doppler speed was below ``zupt_speed_mps`` (zero-velocity detection)."""
+    noise: NoiseLevel = field(default_factory=NoiseLevel)
+    """The pseudoranges' running noise level (``noise_level`` adaptive, gnss/noise_level.py), kept across a
+    re-initialisation. Stored as the ``noise_level`` list; states written before it have none: no history."""
 
     def to_bytes(self) -> bytes:
         carrier_sats, carrier_table = tracks_to_arrays(self.carrier)
@@ -64,6 +68,7 @@ class GnssSession:
             "carrier_sats": carrier_sats,
             "fault_keys": list(self.faults),
             "still_epochs": self.still_epochs,
+            "noise_level": self.noise.to_list(),
         }
         arrays = {
             "particles": self.cloud.particles,
@@ -111,7 +116,16 @@ def decode_session(blob: bytes) -> GnssSession:
         carrier,
         _faults(meta, arrays),
         int(meta.get("still_epochs", 0)),
+        _noise(meta),
     )
+
+
+def _noise(meta: dict[str, Any]) -> NoiseLevel:
+    """The noise level of a decoded state (no history when written before it)."""
+    try:
+        return NoiseLevel.from_list(meta.get("noise_level"))
+    except (ValueError, TypeError) as error:
+        raise state_format.StateFormatError(f"gnss_tight state's noise level is corrupt: {error}") from None
 
 
 _FAULT_FIELDS = 4

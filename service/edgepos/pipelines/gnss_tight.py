@@ -47,8 +47,9 @@ Per epoch (observations sharing ``t``):
 6. The filter step; before initialisation, the first epoch with enough satellites initialises the filter
    from a weighted least-squares fix (gnss/spp.py), its velocity and clock drift from the Dopplers when sent.
 7. The fix's position covariance (and the prior RAIM tests against) is the filter's times the factor the
-   ``error_correlation`` model gives for time-correlated errors (pipelines/gnss_correlation.py); the
-   filter's own covariance and gains stay those of white errors.
+   ``error_correlation`` model gives for time-correlated errors (pipelines/gnss_correlation.py), the fix's
+   also times the running noise level (``noise_level``, gnss/noise_level.py); the filter's own covariance
+   and gains stay those of white errors.
 Every pseudorange appears in the fix's measurement list, used (with its noise std and why) or with the
 reason it was not, and with its Doppler's use when it carried one.
 """
@@ -101,7 +102,7 @@ from edgepos.pipelines.gnss_constraints import (
     epoch_constraints,
     with_constraints,
 )
-from edgepos.pipelines.gnss_correlation import Honesty, honesty
+from edgepos.pipelines.gnss_correlation import Honesty, honesty, noise_level
 from edgepos.pipelines.gnss_faults import (
     centre_rates,
     fault_settings,
@@ -503,6 +504,8 @@ def _filter_epoch(
                 uses,
                 ranges,
             )
+        level_in = (rows, std, smoothing, averaged, ranges, prs.systems, prs.pseudorange_m)
+        session.noise = noise_level(options, session.noise, t, dt, *level_in)
         rate_std = float(options.get("doppler_std_mps", DEFAULT_DOPPLER_STD_MPS)) * factor
         rate_model: RangeRateModel | None = None
         if rate_rows.size and fault_settings(options)[0] > 0.0:
@@ -589,6 +592,7 @@ def _filter_epoch(
         doppler[satellites.indices[r]] = (True, None)
     if options["filter"] == "pf":  # its particles' covariance collapses (pipelines/gnss_correlation.py)
         honest = honest.floored(result.cov)
+    honest = honest.times(session.noise.scale if rows.size else 1.0)
     status = "tracking" if measurement is not None else "predicted"
     dof = int(rows.size + rate_rows.size + sum(len(c.variances) for c in constraints))
     fix = session_fix(t, status, session, result.mean, honest.scale(result.cov), result, dof, uses, origin)
