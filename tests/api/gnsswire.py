@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from apihelp import ADMIN, assert_error, open_session
 from edgepos.gnss.geodesy import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
 from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
 from edgepos.gnss.spp import read_reference
@@ -25,6 +26,38 @@ QUICK = {"filter": "ukf", "seed": 1, "systems": ["G", "C"]}
 @functools.lru_cache(maxsize=1)
 def nav_text() -> str:
     return NAV.read_text(encoding="ascii")
+
+
+def upload_ephemerides(client: Any) -> None:
+    """PUT the recording's navigation file as the site's ephemerides (admin)."""
+    upload = client.put(
+        "/v1/ephemerides", content=nav_text(), headers={"Content-Type": "text/plain", **ADMIN}
+    )
+    assert upload.status_code == 200, upload.text
+
+
+def quick_fixes(client: Any, vehicle: str, options: dict[str, Any]) -> list[dict[str, Any]]:
+    """The fixes of a new gnss_tight session for ``vehicle`` fed the recording's first ten epochs in three
+    batches (each within the session's CPU budget)."""
+    session_id, token = open_session(client, pipeline="gnss_tight", vehicle_id=vehicle, options=options)
+    fixes: list[dict[str, Any]] = []
+    for seq, first in enumerate((0, 4, 8), start=1):
+        body = {"seq": seq, "measurements": measurements(first, min(4, 10 - first))}
+        response = client.post(f"/v1/sessions/{session_id}/batches", json=body, headers=token)
+        assert response.status_code == 200, response.text
+        fixes += response.json()["fixes"]
+    return fixes
+
+
+def assert_option_refused(client: Any, options: dict[str, Any], field: str) -> None:
+    """Opening a quick gnss_tight session with ``options`` is a 422 whose problems name ``field``."""
+    response = client.post(
+        "/v1/sessions",
+        json={"vehicle_id": "car-9", "pipeline": "gnss_tight", "options": {**QUICK, **options}},
+        headers=ADMIN,
+    )
+    error = assert_error(response, 422, "invalid_request")
+    assert field in {p["field"] for p in error["problems"]}, error
 
 
 @functools.lru_cache(maxsize=2)

@@ -5,8 +5,7 @@ covariance than the white model for the same fixes, and the adaptive noise level
 from __future__ import annotations
 
 import pytest
-from apihelp import ADMIN, assert_error, open_session
-from gnsswire import QUICK, measurements, nav_text
+from gnsswire import QUICK, assert_option_refused, quick_fixes, upload_ephemerides
 
 
 @pytest.mark.parametrize(
@@ -25,41 +24,21 @@ from gnsswire import QUICK, measurements, nav_text
     ],
 )
 def test_correlation_options_out_of_bounds_are_422_naming_the_option(client, options, field):
-    response = client.post(
-        "/v1/sessions",
-        json={"vehicle_id": "car-9", "pipeline": "gnss_tight", "options": {**QUICK, **options}},
-        headers=ADMIN,
-    )
-    error = assert_error(response, 422, "invalid_request")
-    assert field in {p["field"] for p in error["problems"]}, error
-
-
-def _fixes(client, vehicle: str, options: dict) -> list[dict]:
-    session_id, token = open_session(client, pipeline="gnss_tight", vehicle_id=vehicle, options=options)
-    fixes = []
-    for seq, first in enumerate((0, 4, 8), start=1):  # batches within the CPU budget
-        body = {"seq": seq, "measurements": measurements(first, min(4, 10 - first))}
-        response = client.post(f"/v1/sessions/{session_id}/batches", json=body, headers=token)
-        assert response.status_code == 200, response.text
-        fixes += response.json()["fixes"]
-    return fixes
+    assert_option_refused(client, options, field)
 
 
 def test_the_default_covariance_counts_correlated_errors(client):
-    upload = client.put(
-        "/v1/ephemerides", content=nav_text(), headers={"Content-Type": "text/plain", **ADMIN}
-    )
-    assert upload.status_code == 200, upload.text
+    upload_ephemerides(client)
     fixed = {**QUICK, "noise_level": "model"}  # the correlation factor alone
-    honest = _fixes(client, "car-1", fixed)
-    white = _fixes(client, "car-2", {**fixed, "error_correlation": "white"})
+    honest = quick_fixes(client, "car-1", fixed)
+    white = quick_fixes(client, "car-2", {**fixed, "error_correlation": "white"})
     assert [(f["x"], f["y"]) for f in honest] == [(f["x"], f["y"]) for f in white]
     ratios = [
         h["position_covariance"][0][0] / w["position_covariance"][0][0] for h, w in zip(honest[2:], white[2:])
     ]
     assert all(r > 1.0 for r in ratios), ratios
     # the adaptive noise level (the default) only ever raises it, for the same fixes
-    adaptive = _fixes(client, "car-3", QUICK)
+    adaptive = quick_fixes(client, "car-3", QUICK)
     assert [(f["x"], f["y"]) for f in adaptive] == [(f["x"], f["y"]) for f in honest]
     assert all(
         a["position_covariance"][0][0] >= h["position_covariance"][0][0] for a, h in zip(adaptive, honest)

@@ -4,8 +4,8 @@ fixes of the real recording carry protection_level_m and integrity."""
 from __future__ import annotations
 
 import pytest
-from apihelp import ADMIN, assert_error, open_session
-from gnsswire import QUICK, measurements, nav_text
+from apihelp import open_session
+from gnsswire import QUICK, assert_option_refused, measurements, quick_fixes, upload_ephemerides
 
 
 @pytest.mark.parametrize(
@@ -22,29 +22,12 @@ from gnsswire import QUICK, measurements, nav_text
     ],
 )
 def test_gnss_integrity_options_out_of_bounds_are_422_naming_the_option(client, options, field):
-    response = client.post(
-        "/v1/sessions",
-        json={"vehicle_id": "car-9", "pipeline": "gnss_tight", "options": {**QUICK, **options}},
-        headers=ADMIN,
-    )
-    error = assert_error(response, 422, "invalid_request")
-    assert field in {p["field"] for p in error["problems"]}, error
+    assert_option_refused(client, options, field)
 
 
 def test_tracked_gnss_fixes_carry_a_protection_level(client):
-    upload = client.put(
-        "/v1/ephemerides", content=nav_text(), headers={"Content-Type": "text/plain", **ADMIN}
-    )
-    assert upload.status_code == 200, upload.text
-    session_id, token = open_session(
-        client, pipeline="gnss_tight", options={**QUICK, "alert_limit_m": 1000.0}
-    )
-    fixes = []
-    for seq, first in enumerate((0, 4, 8), start=1):  # batches within the CPU budget
-        body = {"seq": seq, "measurements": measurements(first, min(4, 10 - first))}
-        response = client.post(f"/v1/sessions/{session_id}/batches", json=body, headers=token)
-        assert response.status_code == 200, response.text
-        fixes += response.json()["fixes"]
+    upload_ephemerides(client)
+    fixes = quick_fixes(client, "car-1", {**QUICK, "alert_limit_m": 1000.0})
     assert fixes[0]["integrity"] == "unavailable" and fixes[0]["protection_level_m"] is None
     assert all(f["integrity"] == "ok" for f in fixes[2:]), [f["integrity"] for f in fixes]
     assert all(f["protection_level_m"] > 0.0 for f in fixes[2:])
