@@ -21,7 +21,7 @@ import functools
 import logging
 import os
 import time
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -33,14 +33,20 @@ from edgepos.core.filters import (
     UnscentedKalmanFilter,
 )
 from edgepos.core.filters.sigma_points import SigmaPointFilter
-from edgepos.core.imm import Gaussian, InteractingMultipleModel, Prediction, StepResult
+from edgepos.core.imm import (
+    Gaussian,
+    InteractingMultipleModel,
+    Prediction,
+    StepResult,
+    new_gaussian,
+    new_step_result,
+)
 from edgepos.core.motion.at import AdaptiveTurn
 from edgepos.core.motion.base import MotionModel, dt_key, padded_linear_step
 from edgepos.core.motion.ca import ConstantAcceleration
 from edgepos.core.motion.ct import CoordinatedTurn
 from edgepos.core.motion.cv import ConstantVelocity
 from edgepos.core.motion.singer import Singer
-from edgepos.core.numerics import FloatArray
 from edgepos.core.updates import RsuGyroEpoch, gate_distances
 
 _log = logging.getLogger(__name__)
@@ -170,6 +176,9 @@ class CompiledBankStepper(BankStepper):
             np.ascontiguousarray(w) for w in weights
         )
         self._has_centre = bool(getattr(bank.filter, "has_centre_point", False))
+        self._sizes = (count, len(bank.common))
+        self._prediction_size = kernels.prediction_size(*self._sizes)
+        self._correction_size = kernels.correction_size(*self._sizes)
 
     @functools.lru_cache(maxsize=64)  # noqa: B019 (steppers live as long as their cached bank)
     def _step_matrices(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -194,7 +203,8 @@ class CompiledBankStepper(BankStepper):
         self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray, dt: float | None
     ) -> Prediction:
         transitions, noises = self._step_matrices(dt_key(dt) if dt else 0.0)  # the reference's rounding of dt
-        status, new_means, new_covs, predicted, mean, cov = self._kernels.predict_step(
+        out = np.empty(self._prediction_size)  # fresh per call: the Prediction may outlive the next epoch
+        status = self._kernels.predict_step(
             np.ascontiguousarray(means, dtype=float),
             np.ascontiguousarray(covs, dtype=float),
             np.ascontiguousarray(probabilities, dtype=float),
@@ -212,24 +222,40 @@ class CompiledBankStepper(BankStepper):
             self._centre_means,
             self._centre_covs,
             self._has_centre,
+            out,
         )
         if status != self._ok:
             return super().predict(means, covs, probabilities, dt)  # repairs, or raises NumericalError
-        return Prediction(new_means, new_covs, predicted, Gaussian(self.bank.common, mean, cov))
+        return _packed_prediction(out, self._sizes, self.bank.common)
+
+    def _packed(self, prediction: Prediction) -> np.ndarray:
+        """``prediction`` as ``predict_step``'s output array (one the reference made is packed here)."""
+        packed = getattr(prediction, "packed", None)
+        if packed is not None:
+            return cast(np.ndarray, packed)
+        output = prediction.output
+        return np.concatenate(
+            [
+                np.ravel(prediction.means),
+                np.ravel(prediction.covs),
+                np.ravel(prediction.predicted_probabilities),
+                np.ravel(output.mean),
+                np.ravel(output.cov),
+            ]
+        ).astype(float)
 
     def correct(self, prediction: Prediction, epoch: RsuGyroEpoch) -> StepResult:
         if epoch.rsu_count == 0 and epoch.yaw_rates.size == 0:
             return self.bank.coast(prediction)
-        status, means, covs, probabilities, log_likelihoods, nis, mean, cov = self._kernels.correct_step(
-            np.ascontiguousarray(prediction.means),
-            np.ascontiguousarray(prediction.covs),
-            np.ascontiguousarray(prediction.predicted_probabilities),
+        out = np.empty(self._correction_size)  # fresh per call, as in predict
+        status = self._kernels.correct_step(
+            self._packed(prediction),
             self._active,
             self._common,
             self._phi_slot,
             self._priority,
             self._others,
-            *_epoch_arrays(epoch),
+            *epoch.kernel_arrays,
             epoch.gyro_min_speed**2,
             bool(epoch.averaged),
             self._filter_kind,
@@ -238,23 +264,44 @@ class CompiledBankStepper(BankStepper):
             self._centre_means,
             self._centre_covs,
             self._has_centre,
+            out,
         )
         if status != self._ok:
             return super().correct(prediction, epoch)  # repairs, or raises NumericalError
-        return StepResult(
-            means, covs, probabilities, Gaussian(self.bank.common, mean, cov), log_likelihoods, nis
+        means, covs, probabilities, mean, cov = self._kernels.prediction_views(out, *self._sizes)
+        tail = self._prediction_size
+        count = self._sizes[0]
+        return new_step_result(
+            means,
+            covs,
+            probabilities,
+            new_gaussian(self.bank.common, mean, cov),
+            out[tail : tail + count],
+            out[tail + count : tail + 2 * count],
         )
 
     def gate_distances(self, prior: Gaussian, epoch: RsuGyroEpoch) -> tuple[np.ndarray, np.ndarray]:
-        mean = np.zeros(layout.FULL_DIM)
-        mean[self._common] = prior.mean
         rsu = np.empty(epoch.rsu_count)
         gyro = np.empty(epoch.yaw_rates.size)
+        packed = getattr(prior, "packed", None)
+        if packed is not None:  # the fused prior of a compiled prediction: read from its output array
+            self._kernels.gate_prediction(
+                packed,
+                self._sizes[0],
+                self._common,
+                *epoch.kernel_arrays,
+                epoch.gyro_min_speed**2,
+                rsu,
+                gyro,
+            )
+            return rsu, gyro
+        mean = np.zeros(layout.FULL_DIM)
+        mean[self._common] = prior.mean
         self._kernels.gate_distances(
             mean,
             np.ascontiguousarray(prior.cov),
             self._common,
-            *_epoch_arrays(epoch),
+            *epoch.kernel_arrays,
             epoch.gyro_min_speed**2,
             rsu,
             gyro,
@@ -262,20 +309,55 @@ class CompiledBankStepper(BankStepper):
         return rsu, gyro
 
 
-def _epoch_arrays(
-    epoch: RsuGyroEpoch,
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, float]:
-    """positions (K, 2), observed (K, 2), yaw rates (G,), range and bearing variances (K,), gyro
-    variance: as the kernels take them."""
-    range_variances, bearing_variances, gyro_variance = epoch.variances
-    return (
-        np.ascontiguousarray(epoch.positions, dtype=float),
-        np.ascontiguousarray(epoch.observed, dtype=float),
-        np.ascontiguousarray(epoch.yaw_rates, dtype=float),
-        np.ascontiguousarray(range_variances, dtype=float),
-        np.ascontiguousarray(bearing_variances, dtype=float),
-        float(gyro_variance),
-    )
+class _PackedGaussian(Gaussian):
+    """The fused prior of a compiled prediction: its mean and covariance are views of the
+    prediction's output array, made when first read (the gate and the correction read the array)."""
+
+    packed: np.ndarray
+    _sizes: tuple[int, int]
+
+    @functools.cached_property
+    def mean(self) -> np.ndarray:  # type: ignore[override]
+        return self._views[3]
+
+    @functools.cached_property
+    def cov(self) -> np.ndarray:  # type: ignore[override]
+        return self._views[4]
+
+    @functools.cached_property
+    def _views(self) -> tuple[np.ndarray, ...]:
+        from edgepos.core.kernels import prediction_views
+
+        return prediction_views(self.packed, *self._sizes)
+
+
+class _PackedPrediction(Prediction):
+    """A compiled prediction: its arrays are views of ``predict_step``'s output array ``packed``, made
+    when first read. The pipeline's epoch reads none of them: the gate and the correction take the
+    array itself (``CompiledBankStepper``), which saves five views an epoch."""
+
+    packed: np.ndarray
+
+    @functools.cached_property
+    def means(self) -> np.ndarray:  # type: ignore[override]
+        return cast(_PackedGaussian, self.output)._views[0]
+
+    @functools.cached_property
+    def covs(self) -> np.ndarray:  # type: ignore[override]
+        return cast(_PackedGaussian, self.output)._views[1]
+
+    @functools.cached_property
+    def predicted_probabilities(self) -> np.ndarray:  # type: ignore[override]
+        return cast(_PackedGaussian, self.output)._views[2]
+
+
+def _packed_prediction(out: np.ndarray, sizes: tuple[int, int], common: tuple[int, ...]) -> Prediction:
+    """A Prediction over ``predict_step``'s output array ``out``, its arrays made when first read."""
+    output = object.__new__(_PackedGaussian)
+    output.__dict__.update(components=common, packed=out, _sizes=sizes)
+    prediction = object.__new__(_PackedPrediction)
+    prediction.__dict__.update(output=output, packed=out)
+    return prediction
 
 
 def compiled_enabled() -> bool:

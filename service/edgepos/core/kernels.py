@@ -505,6 +505,38 @@ def gate_distances(
 
 
 # -- the two entry points of an epoch ------------------------------------------------------------
+# Each writes its results into one flat array the caller allocates per call (fresh memory: a
+# Prediction or StepResult stays valid however long it is kept): a compiled function returning
+# arrays boxes each one, about 0.7 us apiece through numba's unpickling of the array type, twelve
+# per epoch. The layout: means (B, 8), covs (B, 8, 8), probabilities (B,), fused mean (nc,), fused
+# cov (nc, nc); a correction then also log-likelihoods (B,) and NIS (B,).
+def prediction_size(count: int, nc: int) -> int:
+    """Length of ``predict_step``'s output array for ``count`` models and ``nc`` common components."""
+    return count * (1 + 8 + 64) + nc * (1 + nc)
+
+
+def correction_size(count: int, nc: int) -> int:
+    """Length of ``correct_step``'s output array."""
+    return count * (1 + 8 + 64) + nc * (1 + nc) + 2 * count
+
+
+def prediction_views(
+    out: FloatArray, count: int, nc: int
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """means, covs, probabilities, fused mean and fused cov: views of an output array (either kind)."""
+    a, b, c = 8 * count, 72 * count, 73 * count
+    return (
+        out[:a].reshape(count, 8),
+        out[a:b].reshape(count, 8, 8),
+        out[b:c],
+        out[c : c + nc],
+        out[c + nc : c + nc * (1 + nc)].reshape(nc, nc),
+    )
+
+
+_prediction_parts = _jit(prediction_views)
+
+
 @_jit
 def predict_step(
     means: FloatArray,
@@ -524,19 +556,18 @@ def predict_step(
     centre_means: FloatArray,
     centre_covs: FloatArray,
     has_centre: bool,
-) -> tuple[int, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    out: FloatArray,
+) -> int:
     """Interaction, every model's prediction over dt (none when dt is 0) and the fused prior.
 
-    Returns (status, means, covs, predicted probabilities c_j, fused mean, fused cov over common)."""
+    Writes into ``out`` (flat, ``prediction_size`` long) the means, covs, predicted probabilities c_j,
+    fused mean and fused cov over common, in that order (``prediction_views`` gives them back as
+    arrays): the caller allocates one array, where returning five cost a boxing each. Returns the status."""
     count = means.shape[0]
     nc = common.shape[0]
     mixed_means = np.empty((count, 8))
     mixed_covs = np.empty((count, 8, 8))
-    predicted = np.empty(count)
-    out_means = np.empty((count, 8))
-    out_covs = np.empty((count, 8, 8))
-    fused_mean = np.empty(nc)
-    fused_cov = np.empty((nc, nc))
+    out_means, out_covs, predicted, fused_mean, fused_cov = _prediction_parts(out, count, nc)
     status = mix(
         means, covs, probabilities, transition, active, common, phi_slot, mixed_means, mixed_covs, predicted
     )
@@ -563,14 +594,12 @@ def predict_step(
             out_covs[:, :, :] = mixed_covs
     if status == OK:
         moment_match(predicted, out_means, out_covs, common, phi_slot, fused_mean, fused_cov)
-    return status, out_means, out_covs, predicted, fused_mean, fused_cov
+    return status
 
 
 @_jit
 def correct_step(
-    means: FloatArray,
-    covs: FloatArray,
-    predicted: FloatArray,
+    prediction: FloatArray,
     active: BoolArray,
     common: IntArray,
     phi_slot: int,
@@ -590,19 +619,21 @@ def correct_step(
     centre_means: FloatArray,
     centre_covs: FloatArray,
     has_centre: bool,
-) -> tuple[int, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Every model's update, the model probabilities (IMM or 2IMM) and the fused posterior.
+    out: FloatArray,
+) -> int:
+    """Every model's update, the model probabilities (IMM or 2IMM) and the fused posterior, from
+    ``prediction``, the output array of ``predict_step``.
 
-    Returns (status, means, covs, probabilities, log-likelihoods, NIS, fused mean, fused cov)."""
-    count = means.shape[0]
+    Writes into ``out`` (flat, ``correction_size`` long) the means, covs, probabilities, fused mean
+    and fused cov as ``predict_step`` lays them out, then the log-likelihoods and NIS. Returns the
+    status."""
+    count = active.shape[0]
     nc = common.shape[0]
-    out_means = np.empty((count, 8))
-    out_covs = np.empty((count, 8, 8))
-    nis = np.empty(count)
-    log_likelihoods = np.empty(count)
-    probabilities = np.empty(count)
-    fused_mean = np.empty(nc)
-    fused_cov = np.empty((nc, nc))
+    means, covs, predicted, _, _ = _prediction_parts(prediction, count, nc)
+    out_means, out_covs, probabilities, fused_mean, fused_cov = _prediction_parts(out, count, nc)
+    tail = 73 * count + nc * (1 + nc)  # prediction_size
+    log_likelihoods = out[tail : tail + count]
+    nis = out[tail + count : tail + 2 * count]
     status = correct_bank(
         means,
         covs,
@@ -629,4 +660,41 @@ def correct_step(
     if status == OK:
         model_probabilities(log_likelihoods, predicted, priority, others, probabilities)
         moment_match(probabilities, out_means, out_covs, common, phi_slot, fused_mean, fused_cov)
-    return status, out_means, out_covs, probabilities, log_likelihoods, nis, fused_mean, fused_cov
+    return status
+
+
+@_jit
+def gate_prediction(
+    prediction: FloatArray,
+    count: int,
+    common: IntArray,
+    positions: FloatArray,
+    observed_rsus: FloatArray,
+    yaw_rates: FloatArray,
+    range_variances: FloatArray,
+    bearing_variances: FloatArray,
+    gyro_variance: float,
+    min_speed_sq: float,
+    rsu_out: FloatArray,
+    gyro_out: FloatArray,
+) -> None:
+    """``gate_distances`` against the fused prior of ``prediction`` (``predict_step``'s output array)."""
+    nc = common.shape[0]
+    _, _, _, fused_mean, fused_cov = _prediction_parts(prediction, count, nc)
+    mean = np.zeros(8)
+    for a in range(nc):
+        mean[common[a]] = fused_mean[a]
+    gate_distances(
+        mean,
+        fused_cov,
+        common,
+        positions,
+        observed_rsus,
+        yaw_rates,
+        range_variances,
+        bearing_variances,
+        gyro_variance,
+        min_speed_sq,
+        rsu_out,
+        gyro_out,
+    )

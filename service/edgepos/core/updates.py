@@ -91,6 +91,21 @@ class RsuGyroEpoch:
         """Range variances (K,), bearing variances (K,) and the gyro variance."""
         return np.square(self.range_std), np.square(self.bearing_std), self.gyro_std**2
 
+    @functools.cached_property
+    def kernel_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+        """positions (K, 2), observed (K, 2), yaw rates (G,), range and bearing variances (K,) as
+        contiguous float64, and the gyro variance: the compiled kernels' arguments (``core.compiled``),
+        made once for the gate and the correction of an epoch."""
+        range_variances, bearing_variances, gyro_variance = self.variances
+        return (
+            np.ascontiguousarray(self.positions, dtype=float),
+            np.ascontiguousarray(self.observed, dtype=float),
+            np.ascontiguousarray(self.yaw_rates, dtype=float),
+            np.ascontiguousarray(range_variances, dtype=float),
+            np.ascontiguousarray(bearing_variances, dtype=float),
+            float(gyro_variance),
+        )
+
     @property
     def rsu_count(self) -> int:
         return int(self.positions.shape[0])
