@@ -8,8 +8,10 @@ the bank is covered: an EKF, UKF or CKF over models that are linear with a fixed
 (CV, CA, CT, Singer) or the adaptive turn (AT). Anything else, and any step where the kernels meet
 a Cholesky factor that does not exist or a non-finite number, runs on the numpy reference, which
 repairs a nearly singular covariance or raises ``NumericalError``: the compiled path never decides
-about bad numbers on its own. The models' F and Q for each interval come from one compiled call too
-(``core.kernels_motion``), so timestamps that jitter, which make every interval new, stay cheap.
+about bad numbers on its own. The models' F and Q for each interval are computed inside the prediction's
+compiled call (``core.kernels_motion``), so timestamps that jitter, which make every interval new, stay
+cheap. Each call writes its results into one array allocated per call; a compiled Prediction's arrays
+are views of it, made when read (the gate and the correction take the array itself).
 
 Set ``EDGEPOS_NUMBA=0`` to run everything on the numpy reference.
 """
@@ -202,28 +204,55 @@ class CompiledBankStepper(BankStepper):
     def predict(
         self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray, dt: float | None
     ) -> Prediction:
-        transitions, noises = self._step_matrices(dt_key(dt) if dt else 0.0)  # the reference's rounding of dt
         out = np.empty(self._prediction_size)  # fresh per call: the Prediction may outlive the next epoch
-        status = self._kernels.predict_step(
-            np.ascontiguousarray(means, dtype=float),
-            np.ascontiguousarray(covs, dtype=float),
-            np.ascontiguousarray(probabilities, dtype=float),
-            self._transition,
-            self._active,
-            self._common,
-            self._phi_slot,
-            float(dt) if dt else 0.0,
-            self._kinds,
-            transitions,
-            noises,
-            self._filter_kind,
-            self._spreads,
-            self._sides,
-            self._centre_means,
-            self._centre_covs,
-            self._has_centre,
-            out,
-        )
+        means = np.ascontiguousarray(means, dtype=float)
+        covs = np.ascontiguousarray(covs, dtype=float)
+        probabilities = np.ascontiguousarray(probabilities, dtype=float)
+        step_dt = dt_key(dt) if dt else 0.0  # the reference's rounding of dt for F and Q
+        if self._uncovered:  # F and Q from the Python closed forms for some model: passed in
+            transitions, noises = self._step_matrices(step_dt)
+            status = self._kernels.predict_step(
+                means,
+                covs,
+                probabilities,
+                self._transition,
+                self._active,
+                self._common,
+                self._phi_slot,
+                float(dt) if dt else 0.0,
+                self._kinds,
+                transitions,
+                noises,
+                self._filter_kind,
+                self._spreads,
+                self._sides,
+                self._centre_means,
+                self._centre_covs,
+                self._has_centre,
+                out,
+            )
+        else:  # F and Q in the same compiled call
+            status = self._kernels.predict_epoch(
+                means,
+                covs,
+                probabilities,
+                self._transition,
+                self._active,
+                self._common,
+                self._phi_slot,
+                float(dt) if dt else 0.0,
+                step_dt,
+                self._motion_kinds,
+                self._motion_params,
+                self._kinds,
+                self._filter_kind,
+                self._spreads,
+                self._sides,
+                self._centre_means,
+                self._centre_covs,
+                self._has_centre,
+                out,
+            )
         if status != self._ok:
             return super().predict(means, covs, probabilities, dt)  # repairs, or raises NumericalError
         return _packed_prediction(out, self._sizes, self.bank.common)

@@ -57,6 +57,7 @@ from edgepos.core.kernels_correct import (
     correct_bank,
     model_probabilities,
 )
+from edgepos.core.kernels_motion import bank_step_matrices
 from edgepos.core.numerics import FloatArray
 
 
@@ -595,6 +596,59 @@ def predict_step(
     if status == OK:
         moment_match(predicted, out_means, out_covs, common, phi_slot, fused_mean, fused_cov)
     return status
+
+
+@_jit
+def predict_epoch(
+    means: FloatArray,
+    covs: FloatArray,
+    probabilities: FloatArray,
+    transition: FloatArray,
+    active: BoolArray,
+    common: IntArray,
+    phi_slot: int,
+    dt: float,
+    step_dt: float,
+    motion_kinds: IntArray,
+    motion_params: FloatArray,
+    kinds: IntArray,
+    filter_kind: int,
+    spreads: FloatArray,
+    sides: FloatArray,
+    centre_means: FloatArray,
+    centre_covs: FloatArray,
+    has_centre: bool,
+    out: FloatArray,
+) -> int:
+    """``predict_step`` with the models' F and Q over ``step_dt`` (dt as the reference rounds it for
+    discretisation) from ``kernels_motion.bank_step_matrices`` in the same call: with jittered
+    timestamps every interval is new, and a separate call (two arrays, a cache lookup) cost more than
+    the matrices."""
+    count = means.shape[0]
+    transitions = np.zeros((count, 8, 8))
+    noises = np.zeros((count, 8, 8))
+    if dt != 0.0:
+        bank_step_matrices(motion_kinds, motion_params, step_dt, transitions, noises)
+    return predict_step(
+        means,
+        covs,
+        probabilities,
+        transition,
+        active,
+        common,
+        phi_slot,
+        dt,
+        kinds,
+        transitions,
+        noises,
+        filter_kind,
+        spreads,
+        sides,
+        centre_means,
+        centre_covs,
+        has_centre,
+        out,
+    )
 
 
 @_jit
