@@ -20,7 +20,7 @@ from edgepos.core.errors import NumericalError
 from edgepos.core.filters import CubatureKalmanFilter, ExtendedKalmanFilter, UnscentedKalmanFilter
 from edgepos.core.imm import Gaussian, InteractingMultipleModel, Prediction, StepResult
 from edgepos.core.motion import make_motion_model
-from edgepos.core.updates import RsuGyroEpoch
+from edgepos.core.updates import RsuGyroEpoch, new_epoch
 
 TOLERANCE = 1e-12
 #: NIS and log-likelihoods go through S^-1; S mixes range variances (~0.4 m^2) with bearing ones
@@ -377,3 +377,28 @@ def test_kernels_compile_in_memory_when_numba_has_nowhere_to_cache() -> None:
     assert compiled(2.5) == 5.0
     assert type(compiled._cache).__name__ == "NullCache"
     assert type(kernels.predict_step._cache).__name__ == "FunctionCache"  # the kernels themselves cache
+
+
+def test_an_epoch_built_without_its_init_equals_one_built_with_it() -> None:
+    """``updates.new_epoch`` (the rsu_imu pipeline's per-epoch constructor) gives the fields, variances
+    and kernel arguments that ``RsuGyroEpoch(...)`` and its cached properties give."""
+    rng = np.random.default_rng(8)
+    made = make_epoch(rng, 3, 2, True, np.array([10.0, 0.0]))
+    fast = new_epoch(
+        made.positions,
+        made.observed,
+        made.range_std,
+        made.bearing_std,
+        made.yaw_rates,
+        made.gyro_std,
+        made.averaged,
+        np.square(made.range_std),
+        np.square(made.bearing_std),
+    )
+    assert type(fast) is RsuGyroEpoch
+    for field in dataclasses.fields(RsuGyroEpoch):
+        assert np.array_equal(getattr(fast, field.name), getattr(made, field.name)), field.name
+    for name in ("variances", "kernel_arrays"):
+        for got, expected in zip(getattr(fast, name), getattr(made, name), strict=True):
+            assert np.array_equal(got, expected) and type(got) is type(expected), name
+    assert fast.dim == made.dim
