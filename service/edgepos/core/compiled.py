@@ -174,9 +174,7 @@ class CompiledBankStepper(BankStepper):
         if isinstance(bank.filter, SigmaPointFilter):
             for j, model in enumerate(bank.models):
                 weights[:, j] = bank.filter.point_weights(model.dim)
-        self._spreads, self._sides, self._centre_means, self._centre_covs = (
-            np.ascontiguousarray(w) for w in weights
-        )
+        self._weights = np.ascontiguousarray(weights)  # spreads, side, centre mean and cov weights
         self._has_centre = bool(getattr(bank.filter, "has_centre_point", False))
         self._sizes = (count, len(bank.common))
         self._prediction_size = kernels.prediction_size(*self._sizes)
@@ -224,10 +222,7 @@ class CompiledBankStepper(BankStepper):
                 transitions,
                 noises,
                 self._filter_kind,
-                self._spreads,
-                self._sides,
-                self._centre_means,
-                self._centre_covs,
+                self._weights,
                 self._has_centre,
                 out,
             )
@@ -246,10 +241,7 @@ class CompiledBankStepper(BankStepper):
                 self._motion_params,
                 self._kinds,
                 self._filter_kind,
-                self._spreads,
-                self._sides,
-                self._centre_means,
-                self._centre_covs,
+                self._weights,
                 self._has_centre,
                 out,
             )
@@ -288,10 +280,7 @@ class CompiledBankStepper(BankStepper):
             epoch.gyro_min_speed**2,
             bool(epoch.averaged),
             self._filter_kind,
-            self._spreads,
-            self._sides,
-            self._centre_means,
-            self._centre_covs,
+            self._weights,
             self._has_centre,
             out,
         )

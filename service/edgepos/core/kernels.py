@@ -14,7 +14,10 @@ Conventions shared with the caller:
   side weights, plus a centre point when ``has_centre``): CKF and UKF;
 - motion kinds per model: ``LINEAR`` (padded F, Q of the interval) or ``TURN`` (the adaptive-turn
   model: the turn kinematics at the state's own omega, F_omega in the [phi, omega] block of F);
-- measurement vector: [range_1, bearing_1, ..., range_K, bearing_K, yaw_rate_1, ..., yaw_rate_G].
+- measurement vector: [range_1, bearing_1, ..., range_K, bearing_K, yaw_rate_1, ..., yaw_rate_G];
+- ``weights`` (4, B) of the entry points: per model the sigma-point spread s, the side points'
+  weight, and the centre point's mean and covariance weights (one argument: each costs a call
+  about 0.1 us to type).
 
 This module holds the mixing, the prediction, the gate and the epoch's two entry points
 (``predict_step``, ``correct_step``); ``kernels_correct`` the correction and the model probabilities;
@@ -552,10 +555,7 @@ def predict_step(
     transitions: FloatArray,
     noises: FloatArray,
     filter_kind: int,
-    spreads: FloatArray,
-    sides: FloatArray,
-    centre_means: FloatArray,
-    centre_covs: FloatArray,
+    weights: FloatArray,
     has_centre: bool,
     out: FloatArray,
 ) -> int:
@@ -582,10 +582,10 @@ def predict_step(
                 noises,
                 dt,
                 filter_kind,
-                spreads,
-                sides,
-                centre_means,
-                centre_covs,
+                weights[0],
+                weights[1],
+                weights[2],
+                weights[3],
                 has_centre,
                 out_means,
                 out_covs,
@@ -613,10 +613,7 @@ def predict_epoch(
     motion_params: FloatArray,
     kinds: IntArray,
     filter_kind: int,
-    spreads: FloatArray,
-    sides: FloatArray,
-    centre_means: FloatArray,
-    centre_covs: FloatArray,
+    weights: FloatArray,
     has_centre: bool,
     out: FloatArray,
 ) -> int:
@@ -642,10 +639,7 @@ def predict_epoch(
         transitions,
         noises,
         filter_kind,
-        spreads,
-        sides,
-        centre_means,
-        centre_covs,
+        weights,
         has_centre,
         out,
     )
@@ -668,10 +662,7 @@ def correct_step(
     min_speed_sq: float,
     averaged: bool,
     filter_kind: int,
-    spreads: FloatArray,
-    sides: FloatArray,
-    centre_means: FloatArray,
-    centre_covs: FloatArray,
+    weights: FloatArray,
     has_centre: bool,
     out: FloatArray,
 ) -> int:
@@ -701,10 +692,10 @@ def correct_step(
         min_speed_sq,
         averaged,
         filter_kind,
-        spreads,
-        sides,
-        centre_means,
-        centre_covs,
+        weights[0],
+        weights[1],
+        weights[2],
+        weights[3],
         has_centre,
         out_means,
         out_covs,
