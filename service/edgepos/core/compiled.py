@@ -335,11 +335,11 @@ class _PackedGaussian(Gaussian):
     _sizes: tuple[int, int]
 
     @functools.cached_property
-    def mean(self) -> np.ndarray:  # type: ignore[override]
+    def mean(self) -> np.ndarray:
         return self._views[3]
 
     @functools.cached_property
-    def cov(self) -> np.ndarray:  # type: ignore[override]
+    def cov(self) -> np.ndarray:
         return self._views[4]
 
     @functools.cached_property
@@ -357,15 +357,15 @@ class _PackedPrediction(Prediction):
     packed: np.ndarray
 
     @functools.cached_property
-    def means(self) -> np.ndarray:  # type: ignore[override]
+    def means(self) -> np.ndarray:
         return cast(_PackedGaussian, self.output)._views[0]
 
     @functools.cached_property
-    def covs(self) -> np.ndarray:  # type: ignore[override]
+    def covs(self) -> np.ndarray:
         return cast(_PackedGaussian, self.output)._views[1]
 
     @functools.cached_property
-    def predicted_probabilities(self) -> np.ndarray:  # type: ignore[override]
+    def predicted_probabilities(self) -> np.ndarray:
         return cast(_PackedGaussian, self.output)._views[2]
 
 
