@@ -402,6 +402,7 @@ _KERNEL_MODULES = (
     "kernels",
     "kernels_correct",
     "kernels_motion",
+    "kernels_turn",
     "kernels_integrity",
     "measurements.gnss_kernel",
 )
