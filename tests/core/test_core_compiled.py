@@ -18,9 +18,9 @@ from edgepos.core import layout
 from edgepos.core.compiled import BankStepper, CompiledBankStepper, covered, stepper_for, warm_up
 from edgepos.core.errors import NumericalError
 from edgepos.core.filters import CubatureKalmanFilter, ExtendedKalmanFilter, UnscentedKalmanFilter
-from edgepos.core.imm import InteractingMultipleModel
+from edgepos.core.imm import Gaussian, InteractingMultipleModel, Prediction, StepResult
 from edgepos.core.motion import make_motion_model
-from edgepos.core.updates import RsuGyroEpoch
+from edgepos.core.updates import RsuGyroEpoch, new_epoch
 
 TOLERANCE = 1e-12
 #: NIS and log-likelihoods go through S^-1; S mixes range variances (~0.4 m^2) with bearing ones
@@ -138,16 +138,59 @@ def assert_same_result(fast, slow) -> None:
 def compare_epoch(bank, means, covs, probabilities, epoch, dt=DT):
     slow, fast = BankStepper(bank), CompiledBankStepper(bank)
     prediction = slow.predict(means, covs, probabilities, dt)
-    assert_same_prediction(fast.predict(means, covs, probabilities, dt), prediction)
+    fast_prediction = fast.predict(means, covs, probabilities, dt)
     if epoch.rsu_count or epoch.yaw_rates.size:
         rsu_slow, gyro_slow = slow.gate_distances(prediction.output, epoch)
-        rsu_fast, gyro_fast = fast.gate_distances(prediction.output, epoch)
-        assert_agree(rsu_fast, rsu_slow, "RSU gate distances")
-        assert_agree(gyro_fast, gyro_slow, "gyro gate distances")
+        # the compiled stepper gates the reference's prior and its own (read from its output array)
+        for prior in (prediction.output, fast_prediction.output):
+            rsu_fast, gyro_fast = fast.gate_distances(prior, epoch)
+            assert_agree(rsu_fast, rsu_slow, "RSU gate distances")
+            assert_agree(gyro_fast, gyro_slow, "gyro gate distances")
+    assert_same_prediction(fast_prediction, prediction)  # after the gate: its arrays made when read
     expected = slow.correct(prediction, epoch)
+    assert_same_result(fast.correct(fast_prediction, epoch), expected)
     result = fast.correct(prediction, epoch)
     assert_same_result(result, expected)
     return result
+
+
+def test_compiled_prediction_reads_the_same_from_its_array_as_a_plain_one() -> None:
+    """A compiled prediction's gate and correction read its output array; the same numbers handed over
+    as a plain Prediction (as after a fallback to the reference) give bit-identical answers, and the
+    objects built without the dataclasses' __init__ equal those built with it."""
+    rng = np.random.default_rng(3)
+    bank = make_bank("ckf", "2imm-ca-at-singer")
+    fast = CompiledBankStepper(bank)
+    means, covs, probabilities = random_bank_state(bank, rng)
+    epoch = make_epoch(rng, 3, 1, False, means[0, [layout.XP, layout.YP]])
+    packed = fast.predict(means, covs, probabilities, DT)
+    output = packed.output
+    plain = Prediction(
+        packed.means.copy(),
+        packed.covs.copy(),
+        packed.predicted_probabilities.copy(),
+        Gaussian(output.components, output.mean.copy(), output.cov.copy()),
+    )
+    for got, expected in zip(
+        fast.gate_distances(packed.output, epoch), fast.gate_distances(plain.output, epoch)
+    ):
+        assert np.array_equal(got, expected)
+    result, expected = fast.correct(packed, epoch), fast.correct(plain, epoch)
+    assert type(result) is StepResult and type(result.output) is Gaussian
+    for name in ("means", "covs", "probabilities", "log_likelihoods", "nis"):
+        assert np.array_equal(getattr(result, name), getattr(expected, name)), name
+    assert np.array_equal(result.output.mean, expected.output.mean)
+    assert np.array_equal(result.output.cov, expected.output.cov)
+    rebuilt = StepResult(
+        result.means,
+        result.covs,
+        result.probabilities,
+        Gaussian(result.output.components, result.output.mean, result.output.cov),
+        result.log_likelihoods,
+        result.nis,
+    )
+    assert vars(rebuilt).keys() == vars(result).keys() and vars(rebuilt.output) == vars(result.output)
+    assert all(getattr(rebuilt, k) is getattr(result, k) for k in vars(result) if k != "output")
 
 
 @pytest.mark.parametrize("filter_name", FILTERS)
@@ -334,3 +377,28 @@ def test_kernels_compile_in_memory_when_numba_has_nowhere_to_cache() -> None:
     assert compiled(2.5) == 5.0
     assert type(compiled._cache).__name__ == "NullCache"
     assert type(kernels.predict_step._cache).__name__ == "FunctionCache"  # the kernels themselves cache
+
+
+def test_an_epoch_built_without_its_init_equals_one_built_with_it() -> None:
+    """``updates.new_epoch`` (the rsu_imu pipeline's per-epoch constructor) gives the fields, variances
+    and kernel arguments that ``RsuGyroEpoch(...)`` and its cached properties give."""
+    rng = np.random.default_rng(8)
+    made = make_epoch(rng, 3, 2, True, np.array([10.0, 0.0]))
+    fast = new_epoch(
+        made.positions,
+        made.observed,
+        made.range_std,
+        made.bearing_std,
+        made.yaw_rates,
+        made.gyro_std,
+        made.averaged,
+        np.square(made.range_std),
+        np.square(made.bearing_std),
+    )
+    assert type(fast) is RsuGyroEpoch
+    for field in dataclasses.fields(RsuGyroEpoch):
+        assert np.array_equal(getattr(fast, field.name), getattr(made, field.name)), field.name
+    for name in ("variances", "kernel_arrays"):
+        for got, expected in zip(getattr(fast, name), getattr(made, name), strict=True):
+            assert np.array_equal(got, expected) and type(got) is type(expected), name
+    assert fast.dim == made.dim

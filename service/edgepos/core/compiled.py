@@ -8,8 +8,10 @@ the bank is covered: an EKF, UKF or CKF over models that are linear with a fixed
 (CV, CA, CT, Singer) or the adaptive turn (AT). Anything else, and any step where the kernels meet
 a Cholesky factor that does not exist or a non-finite number, runs on the numpy reference, which
 repairs a nearly singular covariance or raises ``NumericalError``: the compiled path never decides
-about bad numbers on its own. The models' F and Q for each interval come from one compiled call too
-(``core.kernels_motion``), so timestamps that jitter, which make every interval new, stay cheap.
+about bad numbers on its own. The models' F and Q for each interval are computed inside the prediction's
+compiled call (``core.kernels_motion``), so timestamps that jitter, which make every interval new, stay
+cheap. Each call writes its results into one array allocated per call; a compiled Prediction's arrays
+are views of it, made when read (the gate and the correction take the array itself).
 
 Set ``EDGEPOS_NUMBA=0`` to run everything on the numpy reference.
 """
@@ -21,7 +23,7 @@ import functools
 import logging
 import os
 import time
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -33,14 +35,20 @@ from edgepos.core.filters import (
     UnscentedKalmanFilter,
 )
 from edgepos.core.filters.sigma_points import SigmaPointFilter
-from edgepos.core.imm import Gaussian, InteractingMultipleModel, Prediction, StepResult
+from edgepos.core.imm import (
+    Gaussian,
+    InteractingMultipleModel,
+    Prediction,
+    StepResult,
+    new_gaussian,
+    new_step_result,
+)
 from edgepos.core.motion.at import AdaptiveTurn
 from edgepos.core.motion.base import MotionModel, dt_key, padded_linear_step
 from edgepos.core.motion.ca import ConstantAcceleration
 from edgepos.core.motion.ct import CoordinatedTurn
 from edgepos.core.motion.cv import ConstantVelocity
 from edgepos.core.motion.singer import Singer
-from edgepos.core.numerics import FloatArray
 from edgepos.core.updates import RsuGyroEpoch, gate_distances
 
 _log = logging.getLogger(__name__)
@@ -166,10 +174,11 @@ class CompiledBankStepper(BankStepper):
         if isinstance(bank.filter, SigmaPointFilter):
             for j, model in enumerate(bank.models):
                 weights[:, j] = bank.filter.point_weights(model.dim)
-        self._spreads, self._sides, self._centre_means, self._centre_covs = (
-            np.ascontiguousarray(w) for w in weights
-        )
+        self._weights = np.ascontiguousarray(weights)  # spreads, side, centre mean and cov weights
         self._has_centre = bool(getattr(bank.filter, "has_centre_point", False))
+        self._sizes = (count, len(bank.common))
+        self._prediction_size = kernels.prediction_size(*self._sizes)
+        self._correction_size = kernels.correction_size(*self._sizes)
 
     @functools.lru_cache(maxsize=64)  # noqa: B019 (steppers live as long as their cached bank)
     def _step_matrices(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -193,68 +202,124 @@ class CompiledBankStepper(BankStepper):
     def predict(
         self, means: np.ndarray, covs: np.ndarray, probabilities: np.ndarray, dt: float | None
     ) -> Prediction:
-        transitions, noises = self._step_matrices(dt_key(dt) if dt else 0.0)  # the reference's rounding of dt
-        status, new_means, new_covs, predicted, mean, cov = self._kernels.predict_step(
-            np.ascontiguousarray(means, dtype=float),
-            np.ascontiguousarray(covs, dtype=float),
-            np.ascontiguousarray(probabilities, dtype=float),
-            self._transition,
-            self._active,
-            self._common,
-            self._phi_slot,
-            float(dt) if dt else 0.0,
-            self._kinds,
-            transitions,
-            noises,
-            self._filter_kind,
-            self._spreads,
-            self._sides,
-            self._centre_means,
-            self._centre_covs,
-            self._has_centre,
-        )
+        out = np.empty(self._prediction_size)  # fresh per call: the Prediction may outlive the next epoch
+        means = np.ascontiguousarray(means, dtype=float)
+        covs = np.ascontiguousarray(covs, dtype=float)
+        probabilities = np.ascontiguousarray(probabilities, dtype=float)
+        step_dt = dt_key(dt) if dt else 0.0  # the reference's rounding of dt for F and Q
+        if self._uncovered:  # F and Q from the Python closed forms for some model: passed in
+            transitions, noises = self._step_matrices(step_dt)
+            status = self._kernels.predict_step(
+                means,
+                covs,
+                probabilities,
+                self._transition,
+                self._active,
+                self._common,
+                self._phi_slot,
+                float(dt) if dt else 0.0,
+                self._kinds,
+                transitions,
+                noises,
+                self._filter_kind,
+                self._weights,
+                self._has_centre,
+                out,
+            )
+        else:  # F and Q in the same compiled call
+            status = self._kernels.predict_epoch(
+                means,
+                covs,
+                probabilities,
+                self._transition,
+                self._active,
+                self._common,
+                self._phi_slot,
+                float(dt) if dt else 0.0,
+                step_dt,
+                self._motion_kinds,
+                self._motion_params,
+                self._kinds,
+                self._filter_kind,
+                self._weights,
+                self._has_centre,
+                out,
+            )
         if status != self._ok:
             return super().predict(means, covs, probabilities, dt)  # repairs, or raises NumericalError
-        return Prediction(new_means, new_covs, predicted, Gaussian(self.bank.common, mean, cov))
+        return _packed_prediction(out, self._sizes, self.bank.common)
+
+    def _packed(self, prediction: Prediction) -> np.ndarray:
+        """``prediction`` as ``predict_step``'s output array (one the reference made is packed here)."""
+        packed = getattr(prediction, "packed", None)
+        if packed is not None:
+            return cast(np.ndarray, packed)
+        output = prediction.output
+        return np.concatenate(
+            [
+                np.ravel(prediction.means),
+                np.ravel(prediction.covs),
+                np.ravel(prediction.predicted_probabilities),
+                np.ravel(output.mean),
+                np.ravel(output.cov),
+            ]
+        ).astype(float)
 
     def correct(self, prediction: Prediction, epoch: RsuGyroEpoch) -> StepResult:
         if epoch.rsu_count == 0 and epoch.yaw_rates.size == 0:
             return self.bank.coast(prediction)
-        status, means, covs, probabilities, log_likelihoods, nis, mean, cov = self._kernels.correct_step(
-            np.ascontiguousarray(prediction.means),
-            np.ascontiguousarray(prediction.covs),
-            np.ascontiguousarray(prediction.predicted_probabilities),
+        out = np.empty(self._correction_size)  # fresh per call, as in predict
+        status = self._kernels.correct_step(
+            self._packed(prediction),
             self._active,
             self._common,
             self._phi_slot,
             self._priority,
             self._others,
-            *_epoch_arrays(epoch),
+            *epoch.kernel_arrays,
             epoch.gyro_min_speed**2,
             bool(epoch.averaged),
             self._filter_kind,
-            self._spreads,
-            self._sides,
-            self._centre_means,
-            self._centre_covs,
+            self._weights,
             self._has_centre,
+            out,
         )
         if status != self._ok:
             return super().correct(prediction, epoch)  # repairs, or raises NumericalError
-        return StepResult(
-            means, covs, probabilities, Gaussian(self.bank.common, mean, cov), log_likelihoods, nis
+        means, covs, probabilities, mean, cov = self._kernels.prediction_views(out, *self._sizes)
+        tail = self._prediction_size
+        count = self._sizes[0]
+        return new_step_result(
+            means,
+            covs,
+            probabilities,
+            new_gaussian(self.bank.common, mean, cov),
+            out[tail : tail + count],
+            out[tail + count : tail + 2 * count],
         )
 
     def gate_distances(self, prior: Gaussian, epoch: RsuGyroEpoch) -> tuple[np.ndarray, np.ndarray]:
-        mean = np.zeros(layout.FULL_DIM)
-        mean[self._common] = prior.mean
         rsu = np.empty(epoch.rsu_count)
         gyro = np.empty(epoch.yaw_rates.size)
+        packed = getattr(prior, "packed", None)
+        if packed is not None:  # the fused prior of a compiled prediction: read from its output array
+            self._kernels.gate_prediction(
+                packed,
+                self._sizes[0],
+                self._common,
+                *epoch.kernel_arrays,
+                epoch.gyro_min_speed**2,
+                rsu,
+                gyro,
+            )
+            return rsu, gyro
+        mean = np.zeros(layout.FULL_DIM)
+        mean[self._common] = prior.mean
         self._kernels.gate_distances(
             mean,
             np.ascontiguousarray(prior.cov),
             self._common,
-            *_epoch_arrays(epoch),
+            *epoch.kernel_arrays,
             epoch.gyro_min_speed**2,
             rsu,
             gyro,
@@ -262,20 +327,55 @@ class CompiledBankStepper(BankStepper):
         return rsu, gyro
 
 
-def _epoch_arrays(
-    epoch: RsuGyroEpoch,
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, float]:
-    """positions (K, 2), observed (K, 2), yaw rates (G,), range and bearing variances (K,), gyro
-    variance: as the kernels take them."""
-    range_variances, bearing_variances, gyro_variance = epoch.variances
-    return (
-        np.ascontiguousarray(epoch.positions, dtype=float),
-        np.ascontiguousarray(epoch.observed, dtype=float),
-        np.ascontiguousarray(epoch.yaw_rates, dtype=float),
-        np.ascontiguousarray(range_variances, dtype=float),
-        np.ascontiguousarray(bearing_variances, dtype=float),
-        float(gyro_variance),
-    )
+class _PackedGaussian(Gaussian):
+    """The fused prior of a compiled prediction: its mean and covariance are views of the
+    prediction's output array, made when first read (the gate and the correction read the array)."""
+
+    packed: np.ndarray
+    _sizes: tuple[int, int]
+
+    @functools.cached_property
+    def mean(self) -> np.ndarray:
+        return self._views[3]
+
+    @functools.cached_property
+    def cov(self) -> np.ndarray:
+        return self._views[4]
+
+    @functools.cached_property
+    def _views(self) -> tuple[np.ndarray, ...]:
+        from edgepos.core.kernels import prediction_views
+
+        return prediction_views(self.packed, *self._sizes)
+
+
+class _PackedPrediction(Prediction):
+    """A compiled prediction: its arrays are views of ``predict_step``'s output array ``packed``, made
+    when first read. The pipeline's epoch reads none of them: the gate and the correction take the
+    array itself (``CompiledBankStepper``), which saves five views an epoch."""
+
+    packed: np.ndarray
+
+    @functools.cached_property
+    def means(self) -> np.ndarray:
+        return cast(_PackedGaussian, self.output)._views[0]
+
+    @functools.cached_property
+    def covs(self) -> np.ndarray:
+        return cast(_PackedGaussian, self.output)._views[1]
+
+    @functools.cached_property
+    def predicted_probabilities(self) -> np.ndarray:
+        return cast(_PackedGaussian, self.output)._views[2]
+
+
+def _packed_prediction(out: np.ndarray, sizes: tuple[int, int], common: tuple[int, ...]) -> Prediction:
+    """A Prediction over ``predict_step``'s output array ``out``, its arrays made when first read."""
+    output = object.__new__(_PackedGaussian)
+    output.__dict__.update(components=common, packed=out, _sizes=sizes)
+    prediction = object.__new__(_PackedPrediction)
+    prediction.__dict__.update(output=output, packed=out)
+    return prediction
 
 
 def compiled_enabled() -> bool:
@@ -302,6 +402,7 @@ _KERNEL_MODULES = (
     "kernels",
     "kernels_correct",
     "kernels_motion",
+    "kernels_turn",
     "kernels_integrity",
     "measurements.gnss_kernel",
 )

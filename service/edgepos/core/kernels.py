@@ -14,10 +14,14 @@ Conventions shared with the caller:
   side weights, plus a centre point when ``has_centre``): CKF and UKF;
 - motion kinds per model: ``LINEAR`` (padded F, Q of the interval) or ``TURN`` (the adaptive-turn
   model: the turn kinematics at the state's own omega, F_omega in the [phi, omega] block of F);
-- measurement vector: [range_1, bearing_1, ..., range_K, bearing_K, yaw_rate_1, ..., yaw_rate_G].
+- measurement vector: [range_1, bearing_1, ..., range_K, bearing_K, yaw_rate_1, ..., yaw_rate_G];
+- ``weights`` (4, B) of the entry points: per model the sigma-point spread s, the side points'
+  weight, and the centre point's mean and covariance weights (one argument: each costs a call
+  about 0.1 us to type).
 
-This module holds the mixing, the prediction, the gate and the epoch's two entry points
-(``predict_step``, ``correct_step``); ``kernels_correct`` the correction and the model probabilities;
+This module holds the mixing, the prediction, the gate and the epoch's entry points
+(``predict_epoch`` and ``predict_step``, ``correct_step``); ``kernels_turn`` the adaptive-turn model's
+prediction; ``kernels_correct`` the correction and the model probabilities;
 ``kernels_base`` the codes above, the decorator and the small dense helpers all of them use.
 """
 
@@ -28,16 +32,8 @@ import math
 import numpy as np
 
 from edgepos.core.kernels_base import (
-    _OMEGA,
     _PHI,
-    _SMALL_TURN,
     _TINY,
-    _XA,
-    _XP,
-    _XV,
-    _YA,
-    _YP,
-    _YV,
     FAILED,
     LINEAR,
     OK,
@@ -46,7 +42,6 @@ from edgepos.core.kernels_base import (
     IntArray,
     _all_finite,
     _jit,
-    _sinc,
     _symmetrize,
     cholesky,
     wrap,
@@ -57,6 +52,8 @@ from edgepos.core.kernels_correct import (
     correct_bank,
     model_probabilities,
 )
+from edgepos.core.kernels_motion import bank_step_matrices
+from edgepos.core.kernels_turn import _turn_jacobian, _turn_predict_sigma, _turn_propagate
 from edgepos.core.numerics import FloatArray
 
 
@@ -270,130 +267,6 @@ def _linear_predict(
 
 
 @_jit
-def _turn_coefficients(omega: float, dt: float) -> tuple[float, float, float, float]:
-    angle = omega * dt
-    half_sinc = _sinc(angle / (2.0 * math.pi))
-    return (
-        math.sin(angle),
-        math.cos(angle),
-        dt * _sinc(angle / math.pi),
-        0.5 * angle * dt * half_sinc * half_sinc,
-    )
-
-
-@_jit
-def _turn_propagate(state: FloatArray, f_omega: FloatArray, dt: float, out: FloatArray) -> None:
-    """The adaptive-turn transition of one full state (``AdaptiveTurn.propagate``)."""
-    omega = state[_OMEGA]
-    sin, cos, sin_over, one_minus_cos_over = _turn_coefficients(omega, dt)
-    xp, xv, yp, yv = state[_XP], state[_XV], state[_YP], state[_YV]
-    vx_new = cos * xv - sin * yv
-    vy_new = sin * xv + cos * yv
-    out[_XP] = xp + sin_over * xv - one_minus_cos_over * yv
-    out[_XV] = vx_new
-    out[_XA] = -omega * vy_new
-    out[_YP] = yp + one_minus_cos_over * xv + sin_over * yv
-    out[_YV] = vy_new
-    out[_YA] = omega * vx_new
-    phi, rate = state[_PHI], state[_OMEGA]
-    out[_PHI] = wrap(f_omega[0, 0] * phi + f_omega[0, 1] * rate)
-    out[_OMEGA] = f_omega[1, 0] * phi + f_omega[1, 1] * rate
-
-
-@_jit
-def _turn_jacobian(state: FloatArray, f_omega: FloatArray, dt: float, out: FloatArray) -> None:
-    """``AdaptiveTurn.transition_matrix``: the turn matrix at the state's omega, its omega column."""
-    omega = state[_OMEGA]
-    sin, cos, sin_over, one_minus_cos_over = _turn_coefficients(omega, dt)
-    out[:, :] = 0.0
-    out[_XP, _XP], out[_XP, _XV], out[_XP, _YV] = 1.0, sin_over, -one_minus_cos_over
-    out[_XV, _XV], out[_XV, _YV] = cos, -sin
-    out[_XA, _XV], out[_XA, _YV] = -omega * sin, -omega * cos
-    out[_YP, _XV], out[_YP, _YP], out[_YP, _YV] = one_minus_cos_over, 1.0, sin_over
-    out[_YV, _XV], out[_YV, _YV] = sin, cos
-    out[_YA, _XV], out[_YA, _YV] = omega * cos, -omega * sin
-    angle = omega * dt
-    s, c = math.sin(angle), math.cos(angle)
-    if abs(angle) < _SMALL_TURN:
-        d_sin_over = -omega * dt**3 / 3.0
-        d_one_minus_cos_over = 0.5 * dt * dt * (1.0 - angle * angle / 4.0)
-    else:
-        d_sin_over = (dt * c * omega - s) / omega**2
-        d_one_minus_cos_over = (dt * s * omega - (1.0 - c)) / omega**2
-    xv, yv = state[_XV], state[_YV]
-    d_cos, d_sin = -dt * s, dt * c
-    d_vx = d_cos * xv - d_sin * yv
-    d_vy = d_sin * xv + d_cos * yv
-    out[_XP, _OMEGA] = d_sin_over * xv - d_one_minus_cos_over * yv
-    out[_XV, _OMEGA] = d_vx
-    out[_XA, _OMEGA] = -(s * xv + c * yv) - omega * d_vy
-    out[_YP, _OMEGA] = d_one_minus_cos_over * xv + d_sin_over * yv
-    out[_YV, _OMEGA] = d_vy
-    out[_YA, _OMEGA] = (c * xv - s * yv) + omega * d_vx
-    for i in range(2):
-        for j in range(2):
-            out[6 + i, 6 + j] = f_omega[i, j]
-
-
-@_jit
-def _turn_predict_sigma(
-    mean: FloatArray,
-    cov: FloatArray,
-    f_omega: FloatArray,
-    noise: FloatArray,
-    dt: float,
-    spread: float,
-    side: float,
-    centre_mean: float,
-    centre_cov: float,
-    has_centre: bool,
-    out_mean: FloatArray,
-    out_cov: FloatArray,
-) -> bool:
-    """Sigma-point prediction of the adaptive-turn model over all 8 components."""
-    factor = np.zeros((8, 8))
-    if not cholesky(cov, 8, factor):
-        return False
-    first = 1 if has_centre else 0
-    count = first + 16
-    moved = np.empty((count, 8))
-    mean_weights = np.full(count, side)
-    cov_weights = np.full(count, side)
-    point = np.empty(8)
-    if has_centre:
-        _turn_propagate(mean, f_omega, dt, moved[0])
-        mean_weights[0], cov_weights[0] = centre_mean, centre_cov
-    for i in range(8):
-        for sign in range(2):
-            for k in range(8):
-                offset = spread * factor[k, i]
-                point[k] = mean[k] + offset if sign == 0 else mean[k] + (-offset)
-            _turn_propagate(point, f_omega, dt, moved[first + i + 8 * sign])
-    for k in range(8):
-        total = 0.0
-        for p in range(count):
-            total += mean_weights[p] * moved[p, k]
-        out_mean[k] = total
-    sin_sum, cos_sum = 0.0, 0.0
-    for p in range(count):
-        sin_sum += mean_weights[p] * math.sin(moved[p, _PHI])
-        cos_sum += mean_weights[p] * math.cos(moved[p, _PHI])
-    out_mean[_PHI] = math.atan2(sin_sum, cos_sum)
-    for p in range(count):
-        for k in range(8):
-            moved[p, k] -= out_mean[k]
-        moved[p, _PHI] = wrap(moved[p, _PHI])
-    for i in range(8):
-        for j in range(8):
-            total = 0.0
-            for p in range(count):
-                total += cov_weights[p] * moved[p, i] * moved[p, j]
-            out_cov[i, j] = total + noise[i, j]
-    _symmetrize(out_cov, 8)
-    return True
-
-
-@_jit
 def predict_bank(
     means: FloatArray,
     covs: FloatArray,
@@ -505,6 +378,38 @@ def gate_distances(
 
 
 # -- the two entry points of an epoch ------------------------------------------------------------
+# Each writes its results into one flat array the caller allocates per call (fresh memory: a
+# Prediction or StepResult stays valid however long it is kept): a compiled function returning
+# arrays boxes each one, about 0.7 us apiece through numba's unpickling of the array type, twelve
+# per epoch. The layout: means (B, 8), covs (B, 8, 8), probabilities (B,), fused mean (nc,), fused
+# cov (nc, nc); a correction then also log-likelihoods (B,) and NIS (B,).
+def prediction_size(count: int, nc: int) -> int:
+    """Length of ``predict_step``'s output array for ``count`` models and ``nc`` common components."""
+    return count * (1 + 8 + 64) + nc * (1 + nc)
+
+
+def correction_size(count: int, nc: int) -> int:
+    """Length of ``correct_step``'s output array."""
+    return count * (1 + 8 + 64) + nc * (1 + nc) + 2 * count
+
+
+def prediction_views(
+    out: FloatArray, count: int, nc: int
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    """means, covs, probabilities, fused mean and fused cov: views of an output array (either kind)."""
+    a, b, c = 8 * count, 72 * count, 73 * count
+    return (
+        out[:a].reshape(count, 8),
+        out[a:b].reshape(count, 8, 8),
+        out[b:c],
+        out[c : c + nc],
+        out[c + nc : c + nc * (1 + nc)].reshape(nc, nc),
+    )
+
+
+_prediction_parts = _jit(prediction_views)
+
+
 @_jit
 def predict_step(
     means: FloatArray,
@@ -519,24 +424,20 @@ def predict_step(
     transitions: FloatArray,
     noises: FloatArray,
     filter_kind: int,
-    spreads: FloatArray,
-    sides: FloatArray,
-    centre_means: FloatArray,
-    centre_covs: FloatArray,
+    weights: FloatArray,
     has_centre: bool,
-) -> tuple[int, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
+    out: FloatArray,
+) -> int:
     """Interaction, every model's prediction over dt (none when dt is 0) and the fused prior.
 
-    Returns (status, means, covs, predicted probabilities c_j, fused mean, fused cov over common)."""
+    Writes into ``out`` (flat, ``prediction_size`` long) the means, covs, predicted probabilities c_j,
+    fused mean and fused cov over common, in that order (``prediction_views`` gives them back as
+    arrays): the caller allocates one array, where returning five cost a boxing each. Returns the status."""
     count = means.shape[0]
     nc = common.shape[0]
     mixed_means = np.empty((count, 8))
     mixed_covs = np.empty((count, 8, 8))
-    predicted = np.empty(count)
-    out_means = np.empty((count, 8))
-    out_covs = np.empty((count, 8, 8))
-    fused_mean = np.empty(nc)
-    fused_cov = np.empty((nc, nc))
+    out_means, out_covs, predicted, fused_mean, fused_cov = _prediction_parts(out, count, nc)
     status = mix(
         means, covs, probabilities, transition, active, common, phi_slot, mixed_means, mixed_covs, predicted
     )
@@ -550,10 +451,10 @@ def predict_step(
                 noises,
                 dt,
                 filter_kind,
-                spreads,
-                sides,
-                centre_means,
-                centre_covs,
+                weights[0],
+                weights[1],
+                weights[2],
+                weights[3],
                 has_centre,
                 out_means,
                 out_covs,
@@ -563,14 +464,59 @@ def predict_step(
             out_covs[:, :, :] = mixed_covs
     if status == OK:
         moment_match(predicted, out_means, out_covs, common, phi_slot, fused_mean, fused_cov)
-    return status, out_means, out_covs, predicted, fused_mean, fused_cov
+    return status
+
+
+@_jit
+def predict_epoch(
+    means: FloatArray,
+    covs: FloatArray,
+    probabilities: FloatArray,
+    transition: FloatArray,
+    active: BoolArray,
+    common: IntArray,
+    phi_slot: int,
+    dt: float,
+    step_dt: float,
+    motion_kinds: IntArray,
+    motion_params: FloatArray,
+    kinds: IntArray,
+    filter_kind: int,
+    weights: FloatArray,
+    has_centre: bool,
+    out: FloatArray,
+) -> int:
+    """``predict_step`` with the models' F and Q over ``step_dt`` (dt as the reference rounds it for
+    discretisation) from ``kernels_motion.bank_step_matrices`` in the same call: with jittered
+    timestamps every interval is new, and a separate call (two arrays, a cache lookup) cost more than
+    the matrices."""
+    count = means.shape[0]
+    transitions = np.zeros((count, 8, 8))
+    noises = np.zeros((count, 8, 8))
+    if dt != 0.0:
+        bank_step_matrices(motion_kinds, motion_params, step_dt, transitions, noises)
+    return predict_step(
+        means,
+        covs,
+        probabilities,
+        transition,
+        active,
+        common,
+        phi_slot,
+        dt,
+        kinds,
+        transitions,
+        noises,
+        filter_kind,
+        weights,
+        has_centre,
+        out,
+    )
 
 
 @_jit
 def correct_step(
-    means: FloatArray,
-    covs: FloatArray,
-    predicted: FloatArray,
+    prediction: FloatArray,
     active: BoolArray,
     common: IntArray,
     phi_slot: int,
@@ -585,24 +531,23 @@ def correct_step(
     min_speed_sq: float,
     averaged: bool,
     filter_kind: int,
-    spreads: FloatArray,
-    sides: FloatArray,
-    centre_means: FloatArray,
-    centre_covs: FloatArray,
+    weights: FloatArray,
     has_centre: bool,
-) -> tuple[int, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Every model's update, the model probabilities (IMM or 2IMM) and the fused posterior.
+    out: FloatArray,
+) -> int:
+    """Every model's update, the model probabilities (IMM or 2IMM) and the fused posterior, from
+    ``prediction``, the output array of ``predict_step``.
 
-    Returns (status, means, covs, probabilities, log-likelihoods, NIS, fused mean, fused cov)."""
-    count = means.shape[0]
+    Writes into ``out`` (flat, ``correction_size`` long) the means, covs, probabilities, fused mean
+    and fused cov as ``predict_step`` lays them out, then the log-likelihoods and NIS. Returns the
+    status."""
+    count = active.shape[0]
     nc = common.shape[0]
-    out_means = np.empty((count, 8))
-    out_covs = np.empty((count, 8, 8))
-    nis = np.empty(count)
-    log_likelihoods = np.empty(count)
-    probabilities = np.empty(count)
-    fused_mean = np.empty(nc)
-    fused_cov = np.empty((nc, nc))
+    means, covs, predicted, _, _ = _prediction_parts(prediction, count, nc)
+    out_means, out_covs, probabilities, fused_mean, fused_cov = _prediction_parts(out, count, nc)
+    tail = 73 * count + nc * (1 + nc)  # prediction_size
+    log_likelihoods = out[tail : tail + count]
+    nis = out[tail + count : tail + 2 * count]
     status = correct_bank(
         means,
         covs,
@@ -616,10 +561,10 @@ def correct_step(
         min_speed_sq,
         averaged,
         filter_kind,
-        spreads,
-        sides,
-        centre_means,
-        centre_covs,
+        weights[0],
+        weights[1],
+        weights[2],
+        weights[3],
         has_centre,
         out_means,
         out_covs,
@@ -629,4 +574,41 @@ def correct_step(
     if status == OK:
         model_probabilities(log_likelihoods, predicted, priority, others, probabilities)
         moment_match(probabilities, out_means, out_covs, common, phi_slot, fused_mean, fused_cov)
-    return status, out_means, out_covs, probabilities, log_likelihoods, nis, fused_mean, fused_cov
+    return status
+
+
+@_jit
+def gate_prediction(
+    prediction: FloatArray,
+    count: int,
+    common: IntArray,
+    positions: FloatArray,
+    observed_rsus: FloatArray,
+    yaw_rates: FloatArray,
+    range_variances: FloatArray,
+    bearing_variances: FloatArray,
+    gyro_variance: float,
+    min_speed_sq: float,
+    rsu_out: FloatArray,
+    gyro_out: FloatArray,
+) -> None:
+    """``gate_distances`` against the fused prior of ``prediction`` (``predict_step``'s output array)."""
+    nc = common.shape[0]
+    _, _, _, fused_mean, fused_cov = _prediction_parts(prediction, count, nc)
+    mean = np.zeros(8)
+    for a in range(nc):
+        mean[common[a]] = fused_mean[a]
+    gate_distances(
+        mean,
+        fused_cov,
+        common,
+        positions,
+        observed_rsus,
+        yaw_rates,
+        range_variances,
+        bearing_variances,
+        gyro_variance,
+        min_speed_sq,
+        rsu_out,
+        gyro_out,
+    )

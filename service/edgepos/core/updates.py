@@ -67,6 +67,9 @@ class AveragedCorrection(Correction):
         )
 
 
+_GYRO_MIN_SPEED = 0.1
+
+
 @dataclass(frozen=True)
 class RsuGyroEpoch:
     """One epoch's RSU range/bearing pairs and gyro yaw rates, as plain arrays.
@@ -84,12 +87,27 @@ class RsuGyroEpoch:
     yaw_rates: np.ndarray
     gyro_std: float
     averaged: bool = False
-    gyro_min_speed: float = 0.1
+    gyro_min_speed: float = _GYRO_MIN_SPEED
 
     @functools.cached_property
     def variances(self) -> tuple[np.ndarray, np.ndarray, float]:
         """Range variances (K,), bearing variances (K,) and the gyro variance."""
         return np.square(self.range_std), np.square(self.bearing_std), self.gyro_std**2
+
+    @functools.cached_property
+    def kernel_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+        """positions (K, 2), observed (K, 2), yaw rates (G,), range and bearing variances (K,) as
+        contiguous float64, and the gyro variance: the compiled kernels' arguments (``core.compiled``),
+        made once for the gate and the correction of an epoch."""
+        range_variances, bearing_variances, gyro_variance = self.variances
+        return (
+            np.ascontiguousarray(self.positions, dtype=float),
+            np.ascontiguousarray(self.observed, dtype=float),
+            np.ascontiguousarray(self.yaw_rates, dtype=float),
+            np.ascontiguousarray(range_variances, dtype=float),
+            np.ascontiguousarray(bearing_variances, dtype=float),
+            float(gyro_variance),
+        )
 
     @property
     def rsu_count(self) -> int:
@@ -133,6 +151,45 @@ class RsuGyroEpoch:
             return AveragedCorrection(corrections)
         model, observed = self.measurement()
         return None if model is None or observed is None else JointCorrection(model, observed)
+
+
+def new_epoch(
+    positions: np.ndarray,
+    observed: np.ndarray,
+    range_std: np.ndarray,
+    bearing_std: np.ndarray,
+    yaw_rates: np.ndarray,
+    gyro_std: float,
+    averaged: bool,
+    range_variances: np.ndarray,
+    bearing_variances: np.ndarray,
+) -> RsuGyroEpoch:
+    """``RsuGyroEpoch(...)`` (the default ``gyro_min_speed``) without the frozen ``__init__``, which sets
+    its eight fields through ``object.__setattr__``, with its ``variances`` and ``kernel_arrays`` given:
+    a pipeline that squared its batch's standard deviations once takes each epoch's rows of them.
+    Every array must be contiguous float64 and the variances the squares of the standard deviations."""
+    epoch = object.__new__(RsuGyroEpoch)
+    gyro_variance = gyro_std**2
+    epoch.__dict__.update(
+        positions=positions,
+        observed=observed,
+        range_std=range_std,
+        bearing_std=bearing_std,
+        yaw_rates=yaw_rates,
+        gyro_std=gyro_std,
+        averaged=averaged,
+        gyro_min_speed=_GYRO_MIN_SPEED,
+        variances=(range_variances, bearing_variances, gyro_variance),
+        kernel_arrays=(
+            positions,
+            observed,
+            yaw_rates,
+            range_variances,
+            bearing_variances,
+            float(gyro_variance),
+        ),
+    )
+    return epoch
 
 
 def gate_distances(prior: Gaussian, epoch: RsuGyroEpoch) -> tuple[np.ndarray, np.ndarray]:

@@ -38,7 +38,7 @@ from edgepos.core.integrity import UNAVAILABLE, Protection
 from edgepos.core.integrity_bank import SeparationBank
 from edgepos.core.motion import MotionModel, make_motion_model
 from edgepos.core.observations import GyroObservation, Observation, RsuObservation
-from edgepos.core.updates import RsuGyroEpoch
+from edgepos.core.updates import RsuGyroEpoch, new_epoch
 from edgepos.pipelines.base import (
     Environment,
     Fix,
@@ -227,7 +227,18 @@ class _Batch:
     gyro) and the gyro's yaw rate. Read once per batch (``_validate``), so that an epoch's measurement
     arrays are a few index operations instead of array building from Python lists."""
 
-    __slots__ = ("bearing_std", "observed", "positions", "radii", "range_std", "ranges", "rsus", "yaw_rates")
+    __slots__ = (
+        "bearing_std",
+        "bearing_variances",
+        "observed",
+        "positions",
+        "radii",
+        "range_std",
+        "range_variances",
+        "ranges",
+        "rsus",
+        "yaw_rates",
+    )
 
     def __init__(self, rsus: list[Rsu | None], rows: list[float], ranges: list[float]) -> None:
         self.rsus = rsus
@@ -236,6 +247,8 @@ class _Batch:
         self.observed = np.ascontiguousarray(table[:, 2:4])
         self.range_std = np.ascontiguousarray(table[:, 4])
         self.bearing_std = np.ascontiguousarray(table[:, 5])
+        self.range_variances = np.square(self.range_std)  # as RsuGyroEpoch.variances squares them
+        self.bearing_variances = np.square(self.bearing_std)
         self.yaw_rates = np.ascontiguousarray(table[:, 6])
         self.radii: list[float] = table[:, 7].tolist()
         self.ranges = ranges  # each observation's measured range, -1 for a gyro (ranges are >= 0)
@@ -585,14 +598,16 @@ def _epoch_measurements(
 ) -> RsuGyroEpoch:
     """The chosen RSU pairs and gyro readings as plain arrays, with their noise and the RSU handling."""
     rows = np.array(candidates, dtype=np.intp)  # take(): about half the time of fancy indexing
-    return RsuGyroEpoch(
+    return new_epoch(  # RsuGyroEpoch(...) without its frozen __init__, the variances taken too
         batch.positions.take(rows, 0),
         batch.observed.take(rows, 0),
         batch.range_std.take(rows),
         batch.bearing_std.take(rows),
         batch.yaw_rates.take(np.array(gyros, dtype=np.intp)),
         options["gyro_std"],
-        averaged=options["rsu_handling"] == "average",
+        options["rsu_handling"] == "average",
+        batch.range_variances.take(rows),
+        batch.bearing_variances.take(rows),
     )
 
 
