@@ -210,9 +210,16 @@ class SeparationBank:
             return  # the RSUs the last epoch's plan was made for, every sub-filter's among them
         if _covered(self.ids, in_use):
             return
-        traces = self.covs[:, 0, 0] + self.covs[:, 3, 3]
-        weighs = traces - traces[0] > CONVERGED * traces[0]
-        keep = [i for i, rsu in enumerate(self.ids) if i == 0 or rsu in in_use or weighs[i]]
+        # on Python floats: a handful of sub-filters, every epoch while an RSU out of view still weighs
+        # (numpy's per-call overhead was most of this method's time); the same double arithmetic
+        xx, yy = self.covs[:, 0, 0].tolist(), self.covs[:, 3, 3].tolist()
+        reference = xx[0] + yy[0]
+        bound = CONVERGED * reference
+        keep = [
+            i
+            for i, rsu in enumerate(self.ids)
+            if i == 0 or rsu in in_use or (xx[i] + yy[i]) - reference > bound
+        ]
         if len(keep) < len(self.ids):
             self.ids = [self.ids[i] for i in keep]
             self.means, self.covs = self.means[keep], self.covs[keep]
