@@ -17,7 +17,8 @@ from edgepos.core.observations import RsuObservation
 from edgepos.core.smoothing import rts_smooth
 from edgepos.eval.rsu_imu_montecarlo import initial_state
 from edgepos.pipelines.base import PipelineInputError
-from edgepos.pipelines.rsu_imu import RsuImuPipeline, _bank, _decode, _options_key, _validate
+from edgepos.pipelines.rsu_imu import RsuImuPipeline, _bank, _decode, _options_key
+from edgepos.pipelines.rsu_imu_batch import read_batch
 from edgepos.pipelines.rsu_imu_smoothing import filter_run, segments
 from edgepos.sim.scenarios import rsu_imu_paper_scenario
 from edgepos.sim.sensors import environment, rsu_imu_epochs
@@ -93,7 +94,7 @@ def test_the_forward_pass_is_process(pipeline, scenario, env) -> None:
     observations = flat(run_epochs(scenario, 0, 200))
     fixes, after = pipeline.process(state, observations, env)
     session = _decode(state)
-    batch = _validate(session, observations, env)
+    batch = read_batch(session.options, session.t, observations, env)
     run = filter_run(session, _bank(_options_key(session.options)), observations, batch)
     assert run.fixes == fixes
     assert session.to_bytes() == after

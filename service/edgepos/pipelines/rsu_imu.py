@@ -38,7 +38,7 @@ from edgepos.core.integrity import UNAVAILABLE, Protection
 from edgepos.core.integrity_bank import SeparationBank
 from edgepos.core.motion import MotionModel, make_motion_model
 from edgepos.core.observations import GyroObservation, Observation, RsuObservation
-from edgepos.core.updates import RsuGyroEpoch, new_epoch
+from edgepos.core.updates import RsuGyroEpoch
 from edgepos.pipelines.base import (
     Environment,
     Fix,
@@ -47,7 +47,6 @@ from edgepos.pipelines.base import (
     OptionSpec,
     Pipeline,
     PipelineInputError,
-    Problem,
     Rsu,
     StateSummary,
     ensure_finite_fixes,
@@ -55,6 +54,7 @@ from edgepos.pipelines.base import (
 from edgepos.pipelines.epochs import group_by_time
 from edgepos.pipelines.integrity import bank_from_tail, monitored_update
 from edgepos.pipelines.options import resolve_options
+from edgepos.pipelines.rsu_imu_batch import Batch, epoch_measurements, epoch_parts, read_batch
 from edgepos.pipelines.rsu_imu_options import OPTION_SPECS, cross_check, parameter_problems
 
 #: Standard deviations of the components an initial state does not give (acceleration m/s^2,
@@ -191,7 +191,7 @@ class RsuImuPipeline(Pipeline):
         self, state: bytes, observations: Sequence[Observation], environment: Environment
     ) -> tuple[list[Fix], bytes]:
         session = _decode(state)
-        batch = _validate(session, observations, environment)
+        batch = read_batch(session.options, session.t, observations, environment)
         bank = _bank(session.options_key)
         fixes = []
         for epoch in group_by_time(observations):
@@ -218,98 +218,6 @@ class RsuImuPipeline(Pipeline):
         from edgepos.pipelines import rsu_imu_smoothing  # it builds on this module's helpers
 
         return rsu_imu_smoothing.smooth(state, observations, environment, lag_s)
-
-
-class _Batch:
-    """A batch's observations as the epochs read them: each RSU observation's station, and per
-    observation its row of the measurement arrays (station position, range and bearing, their noise
-    standard deviations with the options' defaults filled in, the communication radius; zeros for a
-    gyro) and the gyro's yaw rate. Read once per batch (``_validate``), so that an epoch's measurement
-    arrays are a few index operations instead of array building from Python lists."""
-
-    __slots__ = (
-        "bearing_std",
-        "bearing_variances",
-        "observed",
-        "positions",
-        "radii",
-        "range_std",
-        "range_variances",
-        "ranges",
-        "rsus",
-        "yaw_rates",
-    )
-
-    def __init__(self, rsus: list[Rsu | None], rows: list[float], ranges: list[float]) -> None:
-        self.rsus = rsus
-        table = np.array(rows, dtype=float).reshape(len(rsus), 8)  # a flat list: half the time of tuples
-        self.positions = np.ascontiguousarray(table[:, 0:2])
-        self.observed = np.ascontiguousarray(table[:, 2:4])
-        self.range_std = np.ascontiguousarray(table[:, 4])
-        self.bearing_std = np.ascontiguousarray(table[:, 5])
-        self.range_variances = np.square(self.range_std)  # as RsuGyroEpoch.variances squares them
-        self.bearing_variances = np.square(self.bearing_std)
-        self.yaw_rates = np.ascontiguousarray(table[:, 6])
-        self.radii: list[float] = table[:, 7].tolist()
-        self.ranges = ranges  # each observation's measured range, -1 for a gyro (ranges are >= 0)
-
-
-def _validate(
-    session: _SessionState, observations: Sequence[Observation], environment: Environment
-) -> _Batch:
-    """Check the whole batch before touching the filter; return its observations' stations and arrays."""
-    problems = []
-    rsus: list[Rsu | None] = []
-    rows: list[float] = []  # eight numbers per observation, see _Batch
-    ranges: list[float] = []
-    options = session.options
-    default_range, default_bearing = options["range_std"], options["bearing_std"]
-    default_radius = options["comm_radius"]
-    for index, observation in enumerate(observations):
-        rsu = None
-        if not math.isfinite(observation.t):
-            problems.append(Problem(index, "t", "must be finite"))
-        elif session.t is not None and observation.t < session.t:
-            problems.append(
-                Problem(
-                    index, "t", f"{observation.t!r} is older than the session's last epoch t={session.t!r}"
-                )
-            )
-        if isinstance(observation, RsuObservation):
-            rsu = environment.rsu(observation.rsu_id)
-            if rsu is None:
-                problems.append(Problem(index, "rsu_id", f"unknown RSU {observation.rsu_id!r}"))
-            else:
-                ranges.append(observation.range)
-                rows.extend(
-                    (
-                        rsu.x,
-                        rsu.y,
-                        observation.range,
-                        observation.bearing,
-                        rsu.range_std or default_range,
-                        rsu.bearing_std or default_bearing,
-                        0.0,
-                        rsu.radius or default_radius,
-                    )
-                )
-            if not (math.isfinite(observation.range) and observation.range >= 0.0):
-                problems.append(Problem(index, "range", "must be a finite distance >= 0 m"))
-            if not (math.isfinite(observation.bearing) and abs(observation.bearing) <= math.pi + 1e-9):
-                problems.append(Problem(index, "bearing", "must be a finite angle in [-pi, pi] rad"))
-        elif isinstance(observation, GyroObservation):
-            if not math.isfinite(observation.yaw_rate):
-                problems.append(Problem(index, "yaw_rate", "must be finite"))
-            ranges.append(-1.0)
-            rows.extend((0.0, 0.0, 0.0, 0.0, 0.0, 0.0, observation.yaw_rate, 0.0))
-        else:
-            problems.append(
-                Problem(index, "type", f"{observation.kind!r} is not used by the rsu_imu pipeline")
-            )
-        rsus.append(rsu)
-    if problems:
-        raise PipelineInputError(problems)
-    return _Batch(rsus, rows, ranges)
 
 
 # -- the bank ------------------------------------------------------------------------------------
@@ -448,14 +356,14 @@ def _step(
     bank: InteractingMultipleModel,
     epoch: list[int],
     observations: Sequence[Observation],
-    batch: _Batch,
+    batch: Batch,
 ) -> Fix:
     options = session.options
     t = observations[epoch[0]].t
     session.t = t
     session.epochs += 1
     uses: dict[int, MeasurementUse] = {}
-    candidates, gyros = _epoch_parts(epoch, batch, options, uses)
+    candidates, gyros = epoch_parts(epoch, batch, options, uses)
 
     if session.initialised and session.filter_t is not None and t - session.filter_t > options["max_gap"]:
         session.initialised = False  # too long without data: the old estimate says nothing any more
@@ -476,13 +384,13 @@ def _step(
     dt = None if session.filter_t is None else t - session.filter_t
     stepper = _stepper(bank)
     prediction = stepper.predict(session.means, session.covs, session.probabilities, dt)
-    measured = _epoch_measurements(candidates, gyros, batch, options)
+    measured = epoch_measurements(candidates, gyros, batch, options)
     gate = options["gate_probability"]
     if gate > 0.0 and (candidates or gyros):
         kept_rsus, kept_gyros = _gate(candidates, gyros, measured, prediction.output, gate, uses, stepper)
         if len(kept_rsus) < len(candidates) or len(kept_gyros) < len(gyros):
             candidates, gyros = kept_rsus, kept_gyros
-            measured = _epoch_measurements(candidates, gyros, batch, options)
+            measured = epoch_measurements(candidates, gyros, batch, options)
 
     protection: Protection | None = None
     if options["integrity"]:
@@ -495,7 +403,7 @@ def _step(
             options,
             uses,
             prediction.output,
-            lambda kept: _epoch_measurements(kept, gyros, batch, options),
+            lambda kept: epoch_measurements(kept, gyros, batch, options),
             functools.partial(stepper.correct, prediction),
             _output,
         )
@@ -517,30 +425,6 @@ def _step(
 def _used(index: int, kind: str) -> MeasurementUse:
     """The record of a measurement that entered the filter (immutable, so one instance serves every fix)."""
     return MeasurementUse(index, kind, True)
-
-
-def _epoch_parts(
-    epoch: list[int], batch: _Batch, options: Mapping[str, Any], uses: dict[int, MeasurementUse]
-) -> tuple[list[int], list[int]]:
-    """The epoch's RSU observations inside their radius, nearest ``max_rsus`` by measured range (the
-    rest recorded in ``uses`` as not used), and its gyro observations."""
-    ranges, radii = batch.ranges, batch.radii
-    in_radius: list[int] = []
-    gyros: list[int] = []
-    for i in epoch:
-        measured = ranges[i]
-        if measured < 0.0:  # a gyro: _validate refused negative ranges
-            gyros.append(i)
-        elif measured > radii[i]:
-            uses[i] = MeasurementUse(i, "rsu", False, f"range beyond the {radii[i]:g} m communication radius")
-        else:
-            in_radius.append(i)
-    limit = options["max_rsus"]
-    if len(in_radius) > 1:
-        in_radius.sort(key=lambda i: ranges[i])
-        for i in in_radius[limit:]:
-            uses[i] = MeasurementUse(i, "rsu", False, f"not among the nearest {limit} RSUs")
-    return in_radius[:limit], gyros
 
 
 @functools.lru_cache(maxsize=64)
@@ -593,24 +477,6 @@ def _gate(
     return kept_rsus, kept_gyros
 
 
-def _epoch_measurements(
-    candidates: list[int], gyros: list[int], batch: _Batch, options: Mapping[str, Any]
-) -> RsuGyroEpoch:
-    """The chosen RSU pairs and gyro readings as plain arrays, with their noise and the RSU handling."""
-    rows = np.array(candidates, dtype=np.intp)  # take(): about half the time of fancy indexing
-    return new_epoch(  # RsuGyroEpoch(...) without its frozen __init__, the variances taken too
-        batch.positions.take(rows, 0),
-        batch.observed.take(rows, 0),
-        batch.range_std.take(rows),
-        batch.bearing_std.take(rows),
-        batch.yaw_rates.take(np.array(gyros, dtype=np.intp)),
-        options["gyro_std"],
-        options["rsu_handling"] == "average",
-        batch.range_variances.take(rows),
-        batch.bearing_variances.take(rows),
-    )
-
-
 def _initialise(
     session: _SessionState,
     bank: InteractingMultipleModel,
@@ -622,7 +488,7 @@ def _initialise(
     """Start the filter from this epoch: position from the RSU fixes, velocity unknown."""
     options = session.options
     points, variances = [], []
-    for i in candidates:  # RSU observations, whose stations _validate found
+    for i in candidates:  # RSU observations, whose stations read_batch found
         observation, rsu = cast(RsuObservation, observations[i]), cast(Rsu, rsus[i])
         points.append(
             [

@@ -29,16 +29,8 @@ from edgepos.core.observations import Observation
 from edgepos.core.smoothing import bank_pair_predictions, imm_smooth, lag_ends
 from edgepos.pipelines.base import Environment, Fix, PipelineInputError, Problem, ensure_finite_fixes
 from edgepos.pipelines.epochs import group_by_time
-from edgepos.pipelines.rsu_imu import (
-    _bank,
-    _Batch,
-    _decode,
-    _fix,
-    _options_key,
-    _SessionState,
-    _step,
-    _validate,
-)
+from edgepos.pipelines.rsu_imu import _bank, _decode, _fix, _options_key, _SessionState, _step
+from edgepos.pipelines.rsu_imu_batch import Batch, read_batch
 
 
 @dataclass
@@ -59,7 +51,7 @@ def smooth(
     if lag_s is not None and not (isinstance(lag_s, (int, float)) and math.isfinite(lag_s) and lag_s >= 0.0):
         raise PipelineInputError([Problem(None, "lag_s", "must be a finite number of seconds >= 0")])
     session = _decode(state)
-    batch = _validate(session, observations, environment)
+    batch = read_batch(session.options, session.t, observations, environment)
     bank = _bank(_options_key(session.options))
     run = filter_run(session, bank, observations, batch)
     return smooth_run(run, session, bank, lag_s)
@@ -69,7 +61,7 @@ def filter_run(
     session: _SessionState,
     bank: InteractingMultipleModel,
     observations: Sequence[Observation],
-    batch: _Batch,
+    batch: Batch,
 ) -> FilteredRun:
     """Filter a validated batch from ``session`` (advanced in place) exactly as process() does,
     keeping each epoch's bank."""

@@ -1,0 +1,151 @@
+"""A batch of ``rsu_imu`` observations as its epochs read them: checked once (``read_batch``), its rows as
+arrays (``Batch``), and per epoch the RSUs in view and the gyros (``epoch_parts``) and their measurement
+arrays (``epoch_measurements``). Reading the batch once makes an epoch's arrays a few index operations
+instead of arrays built from Python lists."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from edgepos.core.observations import GyroObservation, Observation, RsuObservation
+from edgepos.core.updates import RsuGyroEpoch, new_epoch
+from edgepos.pipelines.base import Environment, MeasurementUse, PipelineInputError, Problem, Rsu
+
+
+class Batch:
+    """A batch's observations as the epochs read them: each RSU observation's station, and per
+    observation its row of the measurement arrays (station position, range and bearing, their noise
+    standard deviations with the options' defaults filled in, the communication radius; zeros for a
+    gyro) and the gyro's yaw rate. Read once per batch (``read_batch``), so that an epoch's measurement
+    arrays are a few index operations instead of array building from Python lists."""
+
+    __slots__ = (
+        "bearing_std",
+        "bearing_variances",
+        "observed",
+        "positions",
+        "radii",
+        "range_std",
+        "range_variances",
+        "ranges",
+        "rsus",
+        "yaw_rates",
+    )
+
+    def __init__(self, rsus: list[Rsu | None], rows: list[float], ranges: list[float]) -> None:
+        self.rsus = rsus
+        table = np.array(rows, dtype=float).reshape(len(rsus), 8)  # a flat list: half the time of tuples
+        self.positions = np.ascontiguousarray(table[:, 0:2])
+        self.observed = np.ascontiguousarray(table[:, 2:4])
+        self.range_std = np.ascontiguousarray(table[:, 4])
+        self.bearing_std = np.ascontiguousarray(table[:, 5])
+        self.range_variances = np.square(self.range_std)  # as RsuGyroEpoch.variances squares them
+        self.bearing_variances = np.square(self.bearing_std)
+        self.yaw_rates = np.ascontiguousarray(table[:, 6])
+        self.radii: list[float] = table[:, 7].tolist()
+        self.ranges = ranges  # each observation's measured range, -1 for a gyro (ranges are >= 0)
+
+
+def read_batch(
+    options: Mapping[str, Any],
+    last_t: float | None,
+    observations: Sequence[Observation],
+    environment: Environment,
+) -> Batch:
+    """Check the whole batch before touching the filter (every observation finite, none older than the
+    session's last epoch ``last_t``, every RSU known); return its observations' stations and arrays."""
+    problems = []
+    rsus: list[Rsu | None] = []
+    rows: list[float] = []  # eight numbers per observation, see Batch
+    ranges: list[float] = []
+    default_range, default_bearing = options["range_std"], options["bearing_std"]
+    default_radius = options["comm_radius"]
+    for index, observation in enumerate(observations):
+        rsu = None
+        if not math.isfinite(observation.t):
+            problems.append(Problem(index, "t", "must be finite"))
+        elif last_t is not None and observation.t < last_t:
+            problems.append(
+                Problem(index, "t", f"{observation.t!r} is older than the session's last epoch t={last_t!r}")
+            )
+        if isinstance(observation, RsuObservation):
+            rsu = environment.rsu(observation.rsu_id)
+            if rsu is None:
+                problems.append(Problem(index, "rsu_id", f"unknown RSU {observation.rsu_id!r}"))
+            else:
+                ranges.append(observation.range)
+                rows.extend(
+                    (
+                        rsu.x,
+                        rsu.y,
+                        observation.range,
+                        observation.bearing,
+                        rsu.range_std or default_range,
+                        rsu.bearing_std or default_bearing,
+                        0.0,
+                        rsu.radius or default_radius,
+                    )
+                )
+            if not (math.isfinite(observation.range) and observation.range >= 0.0):
+                problems.append(Problem(index, "range", "must be a finite distance >= 0 m"))
+            if not (math.isfinite(observation.bearing) and abs(observation.bearing) <= math.pi + 1e-9):
+                problems.append(Problem(index, "bearing", "must be a finite angle in [-pi, pi] rad"))
+        elif isinstance(observation, GyroObservation):
+            if not math.isfinite(observation.yaw_rate):
+                problems.append(Problem(index, "yaw_rate", "must be finite"))
+            ranges.append(-1.0)
+            rows.extend((0.0, 0.0, 0.0, 0.0, 0.0, 0.0, observation.yaw_rate, 0.0))
+        else:
+            problems.append(
+                Problem(index, "type", f"{observation.kind!r} is not used by the rsu_imu pipeline")
+            )
+        rsus.append(rsu)
+    if problems:
+        raise PipelineInputError(problems)
+    return Batch(rsus, rows, ranges)
+
+
+def epoch_parts(
+    epoch: list[int], batch: Batch, options: Mapping[str, Any], uses: dict[int, MeasurementUse]
+) -> tuple[list[int], list[int]]:
+    """The epoch's RSU observations inside their radius, nearest ``max_rsus`` by measured range (the
+    rest recorded in ``uses`` as not used), and its gyro observations."""
+    ranges, radii = batch.ranges, batch.radii
+    in_radius: list[int] = []
+    gyros: list[int] = []
+    for i in epoch:
+        measured = ranges[i]
+        if measured < 0.0:  # a gyro: read_batch refused negative ranges
+            gyros.append(i)
+        elif measured > radii[i]:
+            uses[i] = MeasurementUse(i, "rsu", False, f"range beyond the {radii[i]:g} m communication radius")
+        else:
+            in_radius.append(i)
+    limit = options["max_rsus"]
+    if len(in_radius) > 1:
+        in_radius.sort(key=lambda i: ranges[i])
+        for i in in_radius[limit:]:
+            uses[i] = MeasurementUse(i, "rsu", False, f"not among the nearest {limit} RSUs")
+    return in_radius[:limit], gyros
+
+
+def epoch_measurements(
+    candidates: list[int], gyros: list[int], batch: Batch, options: Mapping[str, Any]
+) -> RsuGyroEpoch:
+    """The chosen RSU pairs and gyro readings as plain arrays, with their noise and the RSU handling."""
+    rows = np.array(candidates, dtype=np.intp)  # take(): about half the time of fancy indexing
+    return new_epoch(  # RsuGyroEpoch(...) without its frozen __init__, the variances taken too
+        batch.positions.take(rows, 0),
+        batch.observed.take(rows, 0),
+        batch.range_std.take(rows),
+        batch.bearing_std.take(rows),
+        batch.yaw_rates.take(np.array(gyros, dtype=np.intp)),
+        options["gyro_std"],
+        options["rsu_handling"] == "average",
+        batch.range_variances.take(rows),
+        batch.bearing_variances.take(rows),
+    )
