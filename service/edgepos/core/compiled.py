@@ -207,43 +207,25 @@ class CompiledBankStepper(BankStepper):
         covs = np.ascontiguousarray(covs, dtype=float)
         probabilities = np.ascontiguousarray(probabilities, dtype=float)
         step_dt = dt_key(dt) if dt else 0.0  # the reference's rounding of dt for F and Q
+        # both kernels start with the filters, the bank's mixing and the interval, and end with the filter's
+        # weights and the output array; in between, F and Q or what computes them
+        head = (
+            means,
+            covs,
+            probabilities,
+            self._transition,
+            self._active,
+            self._common,
+            self._phi_slot,
+            float(dt) if dt else 0.0,
+        )
+        tail = (self._filter_kind, self._weights, self._has_centre, out)
         if self._uncovered:  # F and Q from the Python closed forms for some model: passed in
             transitions, noises = self._step_matrices(step_dt)
-            status = self._kernels.predict_step(
-                means,
-                covs,
-                probabilities,
-                self._transition,
-                self._active,
-                self._common,
-                self._phi_slot,
-                float(dt) if dt else 0.0,
-                self._kinds,
-                transitions,
-                noises,
-                self._filter_kind,
-                self._weights,
-                self._has_centre,
-                out,
-            )
+            status = self._kernels.predict_step(*head, self._kinds, transitions, noises, *tail)
         else:  # F and Q in the same compiled call
             status = self._kernels.predict_epoch(
-                means,
-                covs,
-                probabilities,
-                self._transition,
-                self._active,
-                self._common,
-                self._phi_slot,
-                float(dt) if dt else 0.0,
-                step_dt,
-                self._motion_kinds,
-                self._motion_params,
-                self._kinds,
-                self._filter_kind,
-                self._weights,
-                self._has_centre,
-                out,
+                *head, step_dt, self._motion_kinds, self._motion_params, self._kinds, *tail
             )
         if status != self._ok:
             return super().predict(means, covs, probabilities, dt)  # repairs, or raises NumericalError
