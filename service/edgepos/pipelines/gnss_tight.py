@@ -60,7 +60,7 @@ import dataclasses
 import math
 import secrets
 from collections.abc import Mapping, Sequence
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 
@@ -73,10 +73,6 @@ from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GnssOnlyModel
 from edgepos.core.observations import Observation, PseudorangeObservation, RissObservation
 from edgepos.core.particles import Measurement
-from edgepos.gnss.carrier import (
-    HatchConfig,
-    hatch_update,
-)
 from edgepos.gnss.differential import CorrectionTable
 from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.measurements import PseudorangeSet
@@ -133,9 +129,9 @@ from edgepos.pipelines.gnss_options import (
 )
 from edgepos.pipelines.gnss_satellites import (
     CorrectionUses,
-    EpochSatellites,
     apply_corrections,
     atmosphere_of,
+    carrier_smoothed,
     epoch_satellites,
 )
 from edgepos.pipelines.gnss_screening import (
@@ -379,7 +375,7 @@ def _filter_epoch(
         gpst = (options["gps_week"] or 0) * SECONDS_PER_WEEK + t
     satellites = epoch_satellites(epoch, observations, ephemerides, gpst, options, uses)
     doppler.update({i: (False, reason) for i, reason in satellites.doppler_reasons.items()})
-    satellites, smoothing, averaged = _smooth(session, t, satellites, observations)
+    satellites, smoothing, averaged = carrier_smoothed(session, t, satellites, observations)
     atmosphere = atmosphere_of(options, ephemerides)
     if corrections is not None:
         satellites = apply_corrections(
@@ -504,7 +500,16 @@ def _filter_epoch(
                 uses,
                 ranges,
             )
-        level_in = (rows, std, smoothing, averaged, ranges, prs.systems, prs.pseudorange_m)
+        level_in = (
+            rows,
+            std,
+            smoothing,
+            averaged,
+            ranges,
+            prs.systems,
+            prs.pseudorange_m,
+            satellites.corrected,
+        )
         session.noise = noise_level(options, session.noise, t, dt, *level_in)
         rate_std = float(options.get("doppler_std_mps", DEFAULT_DOPPLER_STD_MPS)) * factor
         rate_model: RangeRateModel | None = None
@@ -603,51 +608,6 @@ def _filter_epoch(
         protection_level=guard.level,
         integrity=guard.state,
     )
-
-
-def _smooth(
-    session: GnssSession, t: float, satellites: EpochSatellites, observations: Sequence[Observation]
-) -> tuple[EpochSatellites, np.ndarray, np.ndarray]:
-    """Carrier-smoothed code (``carrier_smoothing`` hatch): each row with carrier_cycles advances its
-    satellite's Hatch filter and gets the smoothed pseudorange; returns the epoch with them and, per row, the
-    factor on its noise std (1 for raw code) and the epochs averaged (0 for raw code). Runs before
-    differential corrections, which change with the base's epoch and must not be averaged."""
-    prs = satellites.prs
-    factor = np.ones(len(prs))
-    options = session.options
-    if options.get("carrier_smoothing", "off") != "hatch" or not len(prs):
-        return satellites, factor, np.zeros(len(prs))
-    # satellites.indices are the epoch's pseudoranges (satellite_states keeps no other kind)
-    sent = [cast(PseudorangeObservation, observations[i]) for i in satellites.indices]
-    carrier = np.array([np.nan if o.carrier_cycles is None else o.carrier_cycles for o in sent], dtype=float)
-    if not np.isfinite(carrier).any():
-        return satellites, factor, np.zeros(len(prs))
-    use_doppler = bool(options.get("use_doppler", True))
-    doppler_hz = np.array(
-        [o.doppler_hz if (o.doppler_hz is not None and use_doppler) else np.nan for o in sent], dtype=float
-    )
-    lli = np.array([o.lli or 0 for o in sent], dtype=int)
-    config = HatchConfig(
-        options["hatch_window_s"],
-        options["carrier_slip_cycles_per_s"],
-        options["carrier_code_jump_m"],
-        options["carrier_max_gap_s"],
-    )
-    result = hatch_update(
-        session.carrier,
-        t,
-        prs.sats,
-        prs.pseudorange_m,
-        carrier,
-        SPEED_OF_LIGHT / prs.frequency_hz,
-        doppler_hz,
-        lli,
-        config,
-    )
-    smoothed = result.count >= 1.0
-    factor[smoothed] = np.maximum(1.0 / np.sqrt(result.count[smoothed]), options["hatch_std_floor"])
-    prs = dataclasses.replace(prs, pseudorange_m=result.pseudorange_m)
-    return dataclasses.replace(satellites, prs=prs), factor, result.count
 
 
 def _measurement(
