@@ -231,6 +231,67 @@ def apply_corrections(
     )
 
 
+MIXED_MIN_CORRECTED = 2
+"""A constellation's uncorrected rows are left out (``mixed_corrections`` exclude) only while at least this
+many of its rows are corrected: two corrected rows still add geometry beyond their own clock, one would
+only fix it."""
+
+
+def leave_out_mixed(
+    satellites: EpochSatellites, rows: np.ndarray, uses: dict[int, MeasurementUse]
+) -> np.ndarray:
+    """``rows`` without the uncorrected ones of a constellation with at least MIXED_MIN_CORRECTED corrected
+    rows among ``rows``, each left out with its reason. A correction is relative to the base's per-
+    constellation median model error (gnss/differential.py), so the corrected rows' clock carries that
+    median and an uncorrected row of the same constellation sits its own model error minus the median
+    away from it (2.0 m median for BeiDou C36 on tests/data/gnss-rover): a bias the filter's one clock per
+    constellation cannot absorb. Its own clock would take its whole range, which for a lone satellite is
+    leaving it out; so is this, without a filter state per constellation and correction state. ``rows``
+    itself without corrections."""
+    corrected = satellites.corrected
+    if corrected is None or rows.size == 0 or corrected[rows].all():
+        return rows
+    systems = np.array(satellites.prs.systems)
+    out = np.zeros(len(systems), dtype=bool)
+    for system in set(systems[rows].tolist()):
+        member = rows[systems[rows] == system]
+        count = int(corrected[member].sum())
+        if count < MIXED_MIN_CORRECTED:
+            continue
+        for row in member[~corrected[member]]:
+            out[row] = True
+            i = satellites.indices[row]
+            uses[i] = MeasurementUse(
+                i,
+                "pseudorange",
+                False,
+                f"no differential correction while {count} {system} satellites have one: its range would sit "
+                "its own broadcast-model error from their clock, which holds the base's median "
+                "(options.mixed_corrections exclude)",
+            )
+    kept: np.ndarray = rows[~out[rows]]
+    return kept
+
+
+def without_mixed(satellites: EpochSatellites, uses: dict[int, MeasurementUse]) -> EpochSatellites:
+    """The epoch without the rows :func:`leave_out_mixed` leaves out, judged over all its rows (the
+    least-squares start, before any position for an elevation mask)."""
+    everything = np.arange(len(satellites.prs))
+    kept = leave_out_mixed(satellites, everything, uses)
+    if kept.size == everything.size:
+        return satellites
+    keep = np.zeros(everything.size, dtype=bool)
+    keep[kept] = True
+    corrected = satellites.corrected
+    return EpochSatellites(
+        satellites.prs.subset(keep),
+        [satellites.indices[r] for r in kept],
+        satellites.doppler_reasons,
+        [satellites.issues[r] for r in kept] if satellites.issues else [],
+        None if corrected is None else corrected[kept],
+    )
+
+
 def atmosphere_of(options: Mapping[str, Any], ephemerides: Ephemerides | None) -> Atmosphere:
     klobuchar = (
         ephemerides.navigation.klobuchar_gps if (ephemerides is not None and options["ionosphere"]) else None

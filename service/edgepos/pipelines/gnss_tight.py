@@ -133,6 +133,7 @@ from edgepos.pipelines.gnss_satellites import (
     atmosphere_of,
     carrier_smoothed,
     epoch_satellites,
+    leave_out_mixed,
 )
 from edgepos.pipelines.gnss_screening import (
     DopplerUses,
@@ -429,6 +430,8 @@ def _filter_epoch(
         factor = FuzzyNoise().factor(elevation, prs.cn0_dbhz) if options["fuzzy"] else np.ones(len(prs))
         base_std, model_name = _pseudorange_noise(options, elevation, prs.cn0_dbhz, factor)
         std = base_std * smoothing
+        if options.get("mixed_corrections", "use") == "exclude":  # sessions stored before it: use
+            rows = leave_out_mixed(satellites, rows, uses)
         predicted_cov = cloud_cov + model.process_noise(dt)
         # one prediction at the centre (and 1 m off it, RAIM's Jacobian) for every test of the epoch
         ranges = linearisation_ranges(session.anchor, centre, prs.sat_position, prs.systems, known)
