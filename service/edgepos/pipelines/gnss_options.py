@@ -560,9 +560,10 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "constellation, so the corrected satellites' clock is offset from an uncorrected one's by that "
         "satellite's own orbit, clock and atmosphere model error (2.0 m median for BeiDou C36 on "
         "tests/data/gnss-rover). exclude: leave it out, the same as giving it its own clock (its Doppler is "
-        "still used); use: use it with the others' clock. Chosen on the first half of the recording: UPF "
-        "2.16 -> 2.13 m, UKF 2.15 -> 2.12 m, raw code 2.44 -> 2.38 m (docs/gnss.md). Sessions stored "
-        "before the option keep use.",
+        "still used); use: use it with the others' clock. Chosen on the first half of the recording (horizontal "
+        "RMS with the carrier: UPF 2.16 -> 2.13 m, UKF 2.15 -> 2.13 m, PF 2.13 -> 2.09 m); on the second half "
+        "the UPF and UKF lose 3 cm, the PF gains 6 cm (docs/gnss.md). Sessions stored before the option "
+        "keep use.",
         choices=MIXED_CORRECTIONS,
     ),
     OptionSpec(
