@@ -20,9 +20,11 @@ from edgepos.gnss.differential import (
     epoch_corrections,
 )
 from edgepos.gnss.ephemerides import Ephemerides
+from edgepos.gnss.measurements import PseudorangeSet
 from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs, read_header
 from edgepos.pipelines.base import StaticEnvironment
+from edgepos.pipelines.gnss_satellites import EpochSatellites, leave_out_mixed
 from edgepos.pipelines.gnss_tight import GnssTightPipeline
 
 DATA = "tests/data/gnss-rover/"
@@ -180,3 +182,58 @@ def test_an_uncorrected_satellite_no_longer_pulls_the_fix_by_its_constellations_
             assert all(not use.used and "no differential correction while" in use.reason for use in c36)
     assert moved["exclude"] < 1e-3
     assert moved["use"] > 0.1
+
+
+def _epoch(systems: str, corrected: list[bool] | None) -> EpochSatellites:
+    n = len(systems)
+    prs = PseudorangeSet(
+        0.0,
+        tuple(systems),
+        np.arange(1, n + 1),
+        np.full(n, 2.2e7),
+        np.full(n, 40.0),
+        np.ones((n, 3)),
+        np.zeros(n),
+        np.full(n, 1.57542e9),
+    )
+    return EpochSatellites(
+        prs, list(range(10, 10 + n)), {}, [], None if corrected is None else np.array(corrected)
+    )
+
+
+def test_only_uncorrected_rows_of_a_constellation_with_two_corrected_are_left_out() -> None:
+    """GPS: two corrected, one not -> that one out, with its reason; BeiDou: one corrected, one not -> both
+    kept (one corrected row only fixes its clock); Galileo: none corrected -> kept; rows not passed
+    (below the mask) neither count nor are judged; without corrections nothing changes."""
+    satellites = _epoch("GGGCCEEG", [True, True, False, True, False, False, False, False])
+    uses: dict = {}
+    rows = np.arange(7)  # the last GPS row is below the mask
+    kept = leave_out_mixed(satellites, rows, uses)
+    assert kept.tolist() == [0, 1, 3, 4, 5, 6]
+    assert list(uses) == [12] and not uses[12].used
+    assert uses[12].reason.startswith("no differential correction while 2 G satellites have one")
+    assert leave_out_mixed(satellites, np.array([0, 2, 3, 4]), {}).tolist() == [0, 2, 3, 4]  # one G corrected
+    assert leave_out_mixed(_epoch("GGG", None), np.arange(3), {}).tolist() == [0, 1, 2]
+
+
+def test_sessions_stored_before_the_option_use_every_satellite(ephemerides: Ephemerides) -> None:
+    """A session whose stored options have no mixed_corrections keeps C36 (as mixed_corrections use)."""
+    station = base_position(read_header(BASE))
+    table = corrections_from_epochs(
+        list(read_epochs(BASE, CODES))[:12], station, ephemerides.orbits, ephemerides.atmosphere, CODES
+    )
+    batches = _batches(10)
+    pipeline = GnssTightPipeline()
+    resolved = pipeline.resolve_options({"filter": "ukf", "systems": ["C", "G"]})
+    del resolved["mixed_corrections"]
+    state = pipeline.create(resolved, None)
+    environment = StaticEnvironment(navigation=ephemerides, differential=table)
+    older = []
+    for batch in batches:
+        out, state = pipeline.process(state, batch, environment)
+        older.extend(out)
+    use = _run(ephemerides, table, batches, {"mixed_corrections": "use"})
+    assert [f.latitude for f in older] == [f.latitude for f in use]
+    assert [[u.used for u in f.measurements] for f in older] == [
+        [u.used for u in f.measurements] for f in use
+    ]

@@ -19,7 +19,9 @@ Per epoch (observations sharing ``t``):
    (``noise_model`` fitted, gnss/pseudorange_noise.py) or R0 x the fuzzy factor (Table 1, eq. 20). When the
    environment has differential corrections from the site's reference station (gnss/differential.py),
    each pseudorange with a valid one (same satellite and ephemeris issue, at most
-   the correction source's maximum age old) has it added; the others are used uncorrected, and each says why.
+   the correction source's maximum age old) has it added; the others are used uncorrected, and each says why,
+   except (``mixed_corrections`` exclude) one of a constellation with two or more corrected satellites: it
+   would sit its own model error from their clock, so it is left out (gnss_satellites.leave_out_mixed).
    Before the corrections, a pseudorange with ``carrier_cycles`` (with ``carrier_smoothing`` hatch) is
    replaced by its satellite's carrier-smoothed code (gnss/carrier.py: Hatch filter, a slip by ``lli``,
    Doppler, code-carrier jump or gap restarting only that satellite; the tracks live in the session state),
@@ -48,8 +50,9 @@ Per epoch (observations sharing ``t``):
    from a weighted least-squares fix (gnss/spp.py), its velocity and clock drift from the Dopplers when sent.
 7. The fix's position covariance (and the prior RAIM tests against) is the filter's times the factor the
    ``error_correlation`` model gives for time-correlated errors (pipelines/gnss_correlation.py), the fix's
-   also times the running noise level (``noise_level``, gnss/noise_level.py); the filter's own covariance
-   and gains stay those of white errors.
+   also times the running noise level (``noise_level``, gnss/noise_level.py; corrected rows judged by their
+   own reference, pipelines/gnss_correlation.py); the filter's own covariance and gains stay those of
+   white errors.
 Every pseudorange appears in the fix's measurement list, used (with its noise std and why) or with the
 reason it was not, and with its Doppler's use when it carried one.
 """
