@@ -9,12 +9,13 @@ epochs beyond the 99.9 % bound, the worst 30-epoch mean NEES, and the integrity 
 and median protection level.
 
     python bench/gnss_nees_table.py [--filters upf,pf,ukf] [--carrier both|on|off] [--option NAME=JSON ...]
-        [--integrity]
+        [--integrity] [--base]
 
 ``--option 'noise_level="model"'`` gives the figures before the adaptive noise level (docs/gnss.md).
 ``--integrity`` prints instead the integrity block of each cell (misleading and hazardous epochs,
 availability at the alert limit, median protection level, the largest error over protection level, the
-monitor's exclusions).
+monitor's exclusions). ``--base`` adds differential corrections from the recording's reference station
+(tests/data/gnss-rover/base-0-5min.rnx, ``eval gnss-rinex --base``).
 """
 
 from __future__ import annotations
@@ -57,6 +58,9 @@ def main() -> None:
         "--integrity", action="store_true", help="the integrity block's counts instead of RMS and NEES"
     )
     parser.add_argument(
+        "--base", action="store_true", help="differential corrections from the reference station's file"
+    )
+    parser.add_argument(
         "--data", type=Path, default=Path(__file__).resolve().parents[1] / "tests/data/gnss-rover"
     )
     args = parser.parse_args()
@@ -76,18 +80,23 @@ def main() -> None:
                     options={**CLI_DEFAULTS, **overrides, "filter": filter_name},
                     score_epochs=scored,
                     carrier=carrier,
+                    base_path=str(args.data / "base-0-5min.rnx") if args.base else None,
                 ),
                 args.integrity,
             )
             for scored in HALVES.values()
         ]
-        label = f"{filter_name.upper()}" + ("" if carrier else ", --no-carrier")
+        label = (
+            f"{filter_name.upper()}"
+            + ("" if carrier else ", --no-carrier")
+            + (", --base" if args.base else "")
+        )
         print(f"| {label} | " + " | ".join(cells) + " |", flush=True)
     flags = " ".join(f"--option {o}" for o in args.option)
     print(
         "\nEach cell: D=tests/data/gnss-rover; edgepos eval gnss-rinex --obs $D/rover-0-5min.rnx --nav "
         "$D/broadcast-nav.rnx --reference $D/reference-0-5min.csv --filter F [--no-carrier] "
-        f"[--score-epochs 0:150|150:300] {flags}".rstrip()
+        f"[--score-epochs 0:150|150:300] {'--base $D/base-0-5min.rnx ' if args.base else ''}{flags}".rstrip()
     )
 
 

@@ -21,7 +21,7 @@ from edgepos.gnss.timesys import SECONDS_PER_WEEK
 from edgepos.pipelines.base import StaticEnvironment
 from edgepos.pipelines.gnss_tight import GnssTightPipeline
 from fastapi.testclient import TestClient
-from gnsswire import DATA, NAV, OBS, QUICK, REFERENCE, epochs, nav_text
+from gnsswire import DATA, NAV, OBS, QUICK, REFERENCE, assert_option_refused, epochs, nav_text
 
 BASE = DATA / "base-0-5min.rnx"
 TEXT = {**ADMIN, "Content-Type": "text/plain"}
@@ -231,6 +231,11 @@ def test_sessions_with_the_station_match_the_eval_with_base(client):
     assert rms(plain) == pytest.approx(without["horizontal_rms_m"], rel=1e-9)
     assert rms(corrected) == pytest.approx(with_base["horizontal_rms_m"], rel=1e-9)
     assert rms(corrected) < rms(plain)
+
+
+@pytest.mark.parametrize("value", ["drop", 1, None])
+def test_mixed_corrections_out_of_its_choices_is_422_naming_it(client, value):
+    assert_option_refused(client, {"mixed_corrections": value}, "options.mixed_corrections")
 
 
 def _rtcm_of(first, count, msm7=True):

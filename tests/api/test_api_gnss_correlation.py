@@ -21,6 +21,9 @@ from gnsswire import QUICK, assert_option_refused, quick_fixes, upload_ephemerid
         ({"noise_level_time_constant_s": 1e5}, "options.noise_level_time_constant_s"),
         ({"noise_level_reference": 0.0}, "options.noise_level_reference"),
         ({"noise_level_reference": 1e3}, "options.noise_level_reference"),
+        ({"noise_level_reference_corrected": 0.0}, "options.noise_level_reference_corrected"),
+        ({"noise_level_reference_corrected": 1e3}, "options.noise_level_reference_corrected"),
+        ({"noise_level_reference_corrected": "low"}, "options.noise_level_reference_corrected"),
     ],
 )
 def test_correlation_options_out_of_bounds_are_422_naming_the_option(client, options, field):

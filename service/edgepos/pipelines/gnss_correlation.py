@@ -125,6 +125,35 @@ def adaptive(options: Mapping[str, Any]) -> bool:
     return bool(options.get("noise_level", "model") == "adaptive")
 
 
+def level_inputs(
+    options: Mapping[str, Any],
+    dt: float,
+    rows: np.ndarray,
+    std: np.ndarray,
+    smoothing: np.ndarray,
+    count: np.ndarray,
+    ranges: np.ndarray,
+    systems: Sequence[str],
+    pseudorange: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(Jacobian, prefit residuals, error variances) of the update ``rows`` as the noise level fits them:
+    each row's variance as the session's model has it (the filter's std^2 for white errors; under
+    error_correlation the smoothed code's own variance, (std / smoothing)^2 V_smoothed(n), so that the level
+    and the correlation factor do not count the same thing twice)."""
+    variance = std[rows] ** 2
+    model = model_of(options)
+    if model is not None and dt > 0.0:
+        variance = variance / smoothing[rows] ** 2 * model.smoothed_variance(count[rows], dt)
+    h = jacobian(ranges[:, rows], [systems[r] for r in rows])
+    return h, pseudorange[rows] - ranges[0, rows], variance
+
+
+def corrected_reference(options: Mapping[str, Any]) -> float:
+    """The level's reference for rows with a differential correction; sessions stored before the option
+    keep the raw-code reference for them (as they did)."""
+    return float(options.get("noise_level_reference_corrected", options["noise_level_reference"]))
+
+
 def noise_level(
     options: Mapping[str, Any],
     level: NoiseLevel,
@@ -137,21 +166,29 @@ def noise_level(
     ranges: np.ndarray,
     systems: Sequence[str],
     pseudorange: np.ndarray,
+    corrected: np.ndarray | None = None,
 ) -> NoiseLevel:
     """``level`` updated with the epoch's update ``rows`` (gnss/noise_level.py): their residuals after the
-    epoch's own least-squares fit, each standardised by its error variance as the session's model has it
-    (the filter's std^2 for white errors; under error_correlation the smoothed code's own variance,
-    (std / smoothing)^2 V_smoothed(n), so that the level and the correlation factor do not count the same
-    thing twice). ``level`` itself when the session does not adapt or the rows do not exceed the unknowns.
-    The estimate is stored relative to ``noise_level_reference`` (its value where the model holds), so the
-    memory's scale is the factor on the covariance."""
+    epoch's own least-squares fit, standardised as :func:`level_inputs` says. ``level`` itself when the
+    session does not adapt or the rows do not exceed the unknowns. The estimate is stored relative to the
+    reference (its value where the model holds), so the memory's scale is the factor on the covariance.
+
+    Rows with a differential correction (``corrected``, per row of the epoch; None without corrections)
+    have their own reference, ``noise_level_reference_corrected``: their post-fit residuals are smaller
+    than raw code's. The epoch's rows are a mix whose share changes from epoch to epoch (a satellite the
+    base does not track, a stale correction), so the reference is applied per row, not to the epoch's
+    estimate: each corrected row's variance is multiplied by the ratio of the two references, which makes
+    every row's studentised square relative to its own kind's reference and the median one level, whatever
+    the mix. Without corrected rows nothing changes (the same numbers as before the option)."""
     if not adaptive(options) or rows.size == 0:
         return level
-    variance = std[rows] ** 2
-    model = model_of(options)
-    if model is not None and dt > 0.0:
-        variance = variance / smoothing[rows] ** 2 * model.smoothed_variance(count[rows], dt)
-    h = jacobian(ranges[:, rows], [systems[r] for r in rows])
-    estimate, redundancy = epoch_scale(h, pseudorange[rows] - ranges[0, rows], variance)
-    relative = estimate / float(options["noise_level_reference"])
-    return level.updated(t, relative, redundancy, float(options["noise_level_time_constant_s"]))
+    h, residual, variance = level_inputs(
+        options, dt, rows, std, smoothing, count, ranges, systems, pseudorange
+    )
+    reference = float(options["noise_level_reference"])
+    if corrected is not None:
+        ratio = corrected_reference(options) / reference
+        if ratio != 1.0 and corrected[rows].any():
+            variance = variance * np.where(corrected[rows], ratio, 1.0)
+    estimate, redundancy = epoch_scale(h, residual, variance)
+    return level.updated(t, estimate / reference, redundancy, float(options["noise_level_time_constant_s"]))

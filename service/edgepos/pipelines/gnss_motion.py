@@ -24,6 +24,7 @@ from edgepos.pipelines.base import (
 )
 from edgepos.pipelines.gnss_satellites import (
     EpochSatellites,
+    without_mixed,
 )
 from edgepos.pipelines.gnss_screening import (
     DopplerUses,
@@ -178,6 +179,8 @@ def initialise(
     """Start the filter from this epoch's weighted least-squares fix, or report why it cannot yet. With
     Doppler the fix's least-squares velocity and clock drift start the velocity and drift states."""
     options = session.options
+    if options.get("mixed_corrections", "use") == "exclude":  # as the filter's epochs do
+        satellites = without_mixed(satellites, uses)
     prs = satellites.prs
     start = (
         None

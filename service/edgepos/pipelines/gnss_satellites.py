@@ -9,18 +9,20 @@ import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
 from edgepos.core.observations import Observation, PseudorangeObservation
+from edgepos.gnss.carrier import HatchConfig, hatch_update
 from edgepos.gnss.corrections import carrier_frequency
 from edgepos.gnss.differential import CorrectionTable, Issue, ephemeris_issues
 from edgepos.gnss.ephemerides import DEFAULT_SIGNAL, Ephemerides
 from edgepos.gnss.measurements import Atmosphere, PseudorangeSet, doppler_to_range_rate
-from edgepos.gnss.orbits import group_delay_factors
+from edgepos.gnss.orbits import SPEED_OF_LIGHT, group_delay_factors
 from edgepos.gnss.timesys import SECONDS_PER_WEEK
 from edgepos.pipelines.base import MeasurementUse
+from edgepos.pipelines.gnss_session import GnssSession
 
 CorrectionUses = dict[int, tuple[bool, str | None]]
 """Per observation index: whether a differential correction was added, and why not (None when it was)."""
@@ -229,8 +231,114 @@ def apply_corrections(
     )
 
 
+MIXED_MIN_CORRECTED = 2
+"""A constellation's uncorrected rows are left out (``mixed_corrections`` exclude) only while at least this
+many of its rows are corrected: two corrected rows still add geometry beyond their own clock, one would
+only fix it."""
+
+
+def leave_out_mixed(
+    satellites: EpochSatellites, rows: np.ndarray, uses: dict[int, MeasurementUse]
+) -> np.ndarray:
+    """``rows`` without the uncorrected ones of a constellation with at least MIXED_MIN_CORRECTED corrected
+    rows among ``rows``, each left out with its reason. A correction is relative to the base's per-
+    constellation median model error (gnss/differential.py), so the corrected rows' clock carries that
+    median and an uncorrected row of the same constellation sits its own model error minus the median
+    away from it (2.0 m median for BeiDou C36 on tests/data/gnss-rover): a bias the filter's one clock per
+    constellation cannot absorb. Its own clock would take its whole range, which for a lone satellite is
+    leaving it out; so is this, without a filter state per constellation and correction state. ``rows``
+    itself without corrections."""
+    corrected = satellites.corrected
+    if corrected is None or rows.size == 0 or corrected[rows].all():
+        return rows
+    systems = np.array(satellites.prs.systems)
+    out = np.zeros(len(systems), dtype=bool)
+    for system in set(systems[rows].tolist()):
+        member = rows[systems[rows] == system]
+        count = int(corrected[member].sum())
+        if count < MIXED_MIN_CORRECTED:
+            continue
+        for row in member[~corrected[member]]:
+            out[row] = True
+            i = satellites.indices[row]
+            uses[i] = MeasurementUse(
+                i,
+                "pseudorange",
+                False,
+                f"no differential correction while {count} {system} satellites have one: its range would sit "
+                "its own broadcast-model error from their clock, which holds the base's median "
+                "(options.mixed_corrections exclude)",
+            )
+    kept: np.ndarray = rows[~out[rows]]
+    return kept
+
+
+def without_mixed(satellites: EpochSatellites, uses: dict[int, MeasurementUse]) -> EpochSatellites:
+    """The epoch without the rows :func:`leave_out_mixed` leaves out, judged over all its rows (the
+    least-squares start, before any position for an elevation mask)."""
+    everything = np.arange(len(satellites.prs))
+    kept = leave_out_mixed(satellites, everything, uses)
+    if kept.size == everything.size:
+        return satellites
+    keep = np.zeros(everything.size, dtype=bool)
+    keep[kept] = True
+    corrected = satellites.corrected
+    return EpochSatellites(
+        satellites.prs.subset(keep),
+        [satellites.indices[r] for r in kept],
+        satellites.doppler_reasons,
+        [satellites.issues[r] for r in kept] if satellites.issues else [],
+        None if corrected is None else corrected[kept],
+    )
+
+
 def atmosphere_of(options: Mapping[str, Any], ephemerides: Ephemerides | None) -> Atmosphere:
     klobuchar = (
         ephemerides.navigation.klobuchar_gps if (ephemerides is not None and options["ionosphere"]) else None
     )
     return Atmosphere(klobuchar, options["troposphere"])
+
+
+def carrier_smoothed(
+    session: GnssSession, t: float, satellites: EpochSatellites, observations: Sequence[Observation]
+) -> tuple[EpochSatellites, np.ndarray, np.ndarray]:
+    """Carrier-smoothed code (``carrier_smoothing`` hatch): each row with carrier_cycles advances its
+    satellite's Hatch filter and gets the smoothed pseudorange; returns the epoch with them and, per row, the
+    factor on its noise std (1 for raw code) and the epochs averaged (0 for raw code). Runs before
+    differential corrections, which change with the base's epoch and must not be averaged."""
+    prs = satellites.prs
+    factor = np.ones(len(prs))
+    options = session.options
+    if options.get("carrier_smoothing", "off") != "hatch" or not len(prs):
+        return satellites, factor, np.zeros(len(prs))
+    # satellites.indices are the epoch's pseudoranges (satellite_states keeps no other kind)
+    sent = [cast(PseudorangeObservation, observations[i]) for i in satellites.indices]
+    carrier = np.array([np.nan if o.carrier_cycles is None else o.carrier_cycles for o in sent], dtype=float)
+    if not np.isfinite(carrier).any():
+        return satellites, factor, np.zeros(len(prs))
+    use_doppler = bool(options.get("use_doppler", True))
+    doppler_hz = np.array(
+        [o.doppler_hz if (o.doppler_hz is not None and use_doppler) else np.nan for o in sent], dtype=float
+    )
+    lli = np.array([o.lli or 0 for o in sent], dtype=int)
+    config = HatchConfig(
+        options["hatch_window_s"],
+        options["carrier_slip_cycles_per_s"],
+        options["carrier_code_jump_m"],
+        options["carrier_max_gap_s"],
+    )
+    result = hatch_update(
+        session.carrier,
+        t,
+        prs.sats,
+        prs.pseudorange_m,
+        carrier,
+        SPEED_OF_LIGHT / prs.frequency_hz,
+        doppler_hz,
+        lli,
+        config,
+    )
+    smoothed = result.count >= 1.0
+    factor[smoothed] = np.maximum(1.0 / np.sqrt(result.count[smoothed]), options["hatch_std_floor"])
+    prs = dataclasses.replace(prs, pseudorange_m=result.pseudorange_m)
+    return dataclasses.replace(satellites, prs=prs), factor, result.count

@@ -19,7 +19,9 @@ Per epoch (observations sharing ``t``):
    (``noise_model`` fitted, gnss/pseudorange_noise.py) or R0 x the fuzzy factor (Table 1, eq. 20). When the
    environment has differential corrections from the site's reference station (gnss/differential.py),
    each pseudorange with a valid one (same satellite and ephemeris issue, at most
-   the correction source's maximum age old) has it added; the others are used uncorrected, and each says why.
+   the correction source's maximum age old) has it added; the others are used uncorrected, and each says why,
+   except (``mixed_corrections`` exclude) one of a constellation with two or more corrected satellites: it
+   would sit its own model error from their clock, so it is left out (gnss_satellites.leave_out_mixed).
    Before the corrections, a pseudorange with ``carrier_cycles`` (with ``carrier_smoothing`` hatch) is
    replaced by its satellite's carrier-smoothed code (gnss/carrier.py: Hatch filter, a slip by ``lli``,
    Doppler, code-carrier jump or gap restarting only that satellite; the tracks live in the session state),
@@ -48,8 +50,9 @@ Per epoch (observations sharing ``t``):
    from a weighted least-squares fix (gnss/spp.py), its velocity and clock drift from the Dopplers when sent.
 7. The fix's position covariance (and the prior RAIM tests against) is the filter's times the factor the
    ``error_correlation`` model gives for time-correlated errors (pipelines/gnss_correlation.py), the fix's
-   also times the running noise level (``noise_level``, gnss/noise_level.py); the filter's own covariance
-   and gains stay those of white errors.
+   also times the running noise level (``noise_level``, gnss/noise_level.py; corrected rows judged by their
+   own reference, pipelines/gnss_correlation.py); the filter's own covariance and gains stay those of
+   white errors.
 Every pseudorange appears in the fix's measurement list, used (with its noise std and why) or with the
 reason it was not, and with its Doppler's use when it carried one.
 """
@@ -60,7 +63,7 @@ import dataclasses
 import math
 import secrets
 from collections.abc import Mapping, Sequence
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 
@@ -73,10 +76,6 @@ from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GnssOnlyModel
 from edgepos.core.observations import Observation, PseudorangeObservation, RissObservation
 from edgepos.core.particles import Measurement
-from edgepos.gnss.carrier import (
-    HatchConfig,
-    hatch_update,
-)
 from edgepos.gnss.differential import CorrectionTable
 from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.measurements import PseudorangeSet
@@ -133,10 +132,11 @@ from edgepos.pipelines.gnss_options import (
 )
 from edgepos.pipelines.gnss_satellites import (
     CorrectionUses,
-    EpochSatellites,
     apply_corrections,
     atmosphere_of,
+    carrier_smoothed,
     epoch_satellites,
+    leave_out_mixed,
 )
 from edgepos.pipelines.gnss_screening import (
     DopplerUses,
@@ -379,7 +379,7 @@ def _filter_epoch(
         gpst = (options["gps_week"] or 0) * SECONDS_PER_WEEK + t
     satellites = epoch_satellites(epoch, observations, ephemerides, gpst, options, uses)
     doppler.update({i: (False, reason) for i, reason in satellites.doppler_reasons.items()})
-    satellites, smoothing, averaged = _smooth(session, t, satellites, observations)
+    satellites, smoothing, averaged = carrier_smoothed(session, t, satellites, observations)
     atmosphere = atmosphere_of(options, ephemerides)
     if corrections is not None:
         satellites = apply_corrections(
@@ -433,6 +433,8 @@ def _filter_epoch(
         factor = FuzzyNoise().factor(elevation, prs.cn0_dbhz) if options["fuzzy"] else np.ones(len(prs))
         base_std, model_name = _pseudorange_noise(options, elevation, prs.cn0_dbhz, factor)
         std = base_std * smoothing
+        if options.get("mixed_corrections", "use") == "exclude":  # sessions stored before it: use
+            rows = leave_out_mixed(satellites, rows, uses)
         predicted_cov = cloud_cov + model.process_noise(dt)
         # one prediction at the centre (and 1 m off it, RAIM's Jacobian) for every test of the epoch
         ranges = linearisation_ranges(session.anchor, centre, prs.sat_position, prs.systems, known)
@@ -504,7 +506,16 @@ def _filter_epoch(
                 uses,
                 ranges,
             )
-        level_in = (rows, std, smoothing, averaged, ranges, prs.systems, prs.pseudorange_m)
+        level_in = (
+            rows,
+            std,
+            smoothing,
+            averaged,
+            ranges,
+            prs.systems,
+            prs.pseudorange_m,
+            satellites.corrected,
+        )
         session.noise = noise_level(options, session.noise, t, dt, *level_in)
         rate_std = float(options.get("doppler_std_mps", DEFAULT_DOPPLER_STD_MPS)) * factor
         rate_model: RangeRateModel | None = None
@@ -603,51 +614,6 @@ def _filter_epoch(
         protection_level=guard.level,
         integrity=guard.state,
     )
-
-
-def _smooth(
-    session: GnssSession, t: float, satellites: EpochSatellites, observations: Sequence[Observation]
-) -> tuple[EpochSatellites, np.ndarray, np.ndarray]:
-    """Carrier-smoothed code (``carrier_smoothing`` hatch): each row with carrier_cycles advances its
-    satellite's Hatch filter and gets the smoothed pseudorange; returns the epoch with them and, per row, the
-    factor on its noise std (1 for raw code) and the epochs averaged (0 for raw code). Runs before
-    differential corrections, which change with the base's epoch and must not be averaged."""
-    prs = satellites.prs
-    factor = np.ones(len(prs))
-    options = session.options
-    if options.get("carrier_smoothing", "off") != "hatch" or not len(prs):
-        return satellites, factor, np.zeros(len(prs))
-    # satellites.indices are the epoch's pseudoranges (satellite_states keeps no other kind)
-    sent = [cast(PseudorangeObservation, observations[i]) for i in satellites.indices]
-    carrier = np.array([np.nan if o.carrier_cycles is None else o.carrier_cycles for o in sent], dtype=float)
-    if not np.isfinite(carrier).any():
-        return satellites, factor, np.zeros(len(prs))
-    use_doppler = bool(options.get("use_doppler", True))
-    doppler_hz = np.array(
-        [o.doppler_hz if (o.doppler_hz is not None and use_doppler) else np.nan for o in sent], dtype=float
-    )
-    lli = np.array([o.lli or 0 for o in sent], dtype=int)
-    config = HatchConfig(
-        options["hatch_window_s"],
-        options["carrier_slip_cycles_per_s"],
-        options["carrier_code_jump_m"],
-        options["carrier_max_gap_s"],
-    )
-    result = hatch_update(
-        session.carrier,
-        t,
-        prs.sats,
-        prs.pseudorange_m,
-        carrier,
-        SPEED_OF_LIGHT / prs.frequency_hz,
-        doppler_hz,
-        lli,
-        config,
-    )
-    smoothed = result.count >= 1.0
-    factor[smoothed] = np.maximum(1.0 / np.sqrt(result.count[smoothed]), options["hatch_std_floor"])
-    prs = dataclasses.replace(prs, pseudorange_m=result.pseudorange_m)
-    return dataclasses.replace(satellites, prs=prs), factor, result.count
 
 
 def _measurement(
