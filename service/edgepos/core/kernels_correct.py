@@ -156,21 +156,26 @@ def _moments(
                 slot += 1
         z = np.empty((count, size))
         point = np.empty(8)
+        sin_sums = np.zeros(rsus.shape[0])
+        cos_sums = np.zeros(rsus.shape[0])
         for p in range(count):
             for k in range(8):
                 point[k] = mean[k] + offsets[p, k]
             _measure(point, positions, rsus, gyros, min_speed_sq, z[p])
+            for j in range(rsus.shape[0]):
+                distance = z[p, 2 * j]
+                if distance > 0.0:
+                    cos_sums[j] += weights[p] * ((point[_XP] - positions[rsus[j], 0]) / distance)
+                    sin_sums[j] += weights[p] * ((point[_YP] - positions[rsus[j], 1]) / distance)
+                else:
+                    cos_sums[j] += weights[p]
         for r in range(size):
             total = 0.0
             for p in range(count):
                 total += weights[p] * z[p, r]
             predicted[r] = total
-        for r in range(1, angle_rows, 2):
-            sin_sum, cos_sum = 0.0, 0.0
-            for p in range(count):
-                sin_sum += weights[p] * math.sin(z[p, r])
-                cos_sum += weights[p] * math.cos(z[p, r])
-            predicted[r] = math.atan2(sin_sum, cos_sum)
+        for j in range(rsus.shape[0]):
+            predicted[2 * j + 1] = math.atan2(sin_sums[j], cos_sums[j])
         for p in range(count):
             for r in range(size):
                 z[p, r] -= predicted[r]
