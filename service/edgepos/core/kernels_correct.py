@@ -130,39 +130,52 @@ def _moments(
         factor = np.zeros((8, 8))
         if not cholesky(padded, 8, factor):
             return False
+        # Only the active components' points: an inactive one's would sit at the mean with weight 0 and
+        # add exact zeros to every sum below (a model over 6 of the 8 components skips 4 of 16 points).
         first = 1 if has_centre else 0
-        count = first + 16
+        dims = 0
+        for i in range(8):
+            if active_row[i]:
+                dims += 1
+        count = first + 2 * dims
         offsets = np.zeros((count, 8))
         weights = np.zeros(count)
         cov_weights = np.zeros(count)
         if has_centre:
             weights[0], cov_weights[0] = centre_mean, centre_cov
+        slot = 0
         for i in range(8):
             if active_row[i]:
-                weights[first + i] = side
-                weights[first + 8 + i] = side
-                cov_weights[first + i] = side
-                cov_weights[first + 8 + i] = side
+                weights[first + slot] = side
+                weights[first + dims + slot] = side
+                cov_weights[first + slot] = side
+                cov_weights[first + dims + slot] = side
                 for k in range(8):
-                    offsets[first + i, k] = spread * factor[k, i]
-                    offsets[first + 8 + i, k] = -(spread * factor[k, i])
+                    offsets[first + slot, k] = spread * factor[k, i]
+                    offsets[first + dims + slot, k] = -(spread * factor[k, i])
+                slot += 1
         z = np.empty((count, size))
         point = np.empty(8)
+        sin_sums = np.zeros(rsus.shape[0])
+        cos_sums = np.zeros(rsus.shape[0])
         for p in range(count):
             for k in range(8):
                 point[k] = mean[k] + offsets[p, k]
             _measure(point, positions, rsus, gyros, min_speed_sq, z[p])
+            for j in range(rsus.shape[0]):
+                distance = z[p, 2 * j]
+                if distance > 0.0:
+                    cos_sums[j] += weights[p] * ((point[_XP] - positions[rsus[j], 0]) / distance)
+                    sin_sums[j] += weights[p] * ((point[_YP] - positions[rsus[j], 1]) / distance)
+                else:
+                    cos_sums[j] += weights[p]
         for r in range(size):
             total = 0.0
             for p in range(count):
                 total += weights[p] * z[p, r]
             predicted[r] = total
-        for r in range(1, angle_rows, 2):
-            sin_sum, cos_sum = 0.0, 0.0
-            for p in range(count):
-                sin_sum += weights[p] * math.sin(z[p, r])
-                cos_sum += weights[p] * math.cos(z[p, r])
-            predicted[r] = math.atan2(sin_sum, cos_sum)
+        for j in range(rsus.shape[0]):
+            predicted[2 * j + 1] = math.atan2(sin_sums[j], cos_sums[j])
         for p in range(count):
             for r in range(size):
                 z[p, r] -= predicted[r]
