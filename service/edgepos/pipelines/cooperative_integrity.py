@@ -220,6 +220,7 @@ def monitor(
     uses: dict[int, MeasurementUse],
     held: dict[str, float],
     t: float,
+    scale: float = 1.0,
 ) -> Protection:
     """Test the epoch's fix and, when a neighbour is faulty and exclusion is on, exclude it.
 
@@ -227,12 +228,14 @@ def monitor(
     fix source at it, ``ranges`` the ranges used (observation index, source) and ``redo(excluded)`` runs
     the range update again from the same prior without the ``excluded`` sources (neighbours or RSUs by
     id, beside those screened out before), returning the ranges it used. The measurement uses of an
-    excluded source's ranges say so, and it is held out (``held``) for ``fault_exclusion_s`` from ``t``."""
+    excluded source's ranges say so, and it is held out (``held``) for ``fault_exclusion_s`` from ``t``.
+    ``scale``: the filter's consistency scale on the protection level's error bounds (1: none; the tests
+    use the filter's own covariance either way, ``core.cooperative_integrity.protect_sources``)."""
     budget = budget_of(options)
     x, y, cov = fix_of()
     sources = [source for _, source in ranges]
     own = fix_source(x, y)
-    protection = cooperative_protection(x, y, cov, own, sources, budget)
+    protection = cooperative_protection(x, y, cov, own, sources, budget, scale)
     offset = 1 if own is not None else 0
     if protection.faulty is None or protection.faulty < offset:
         return protection
@@ -251,7 +254,7 @@ def monitor(
                 f"{EXCLUDED}: solution separation {statistic:.1f} sigma > {threshold:.1f}",
             )
     x, y, cov = fix_of()
-    after = cooperative_protection(x, y, cov, fix_source(x, y), [s for _, s in kept], budget)
+    after = cooperative_protection(x, y, cov, fix_source(x, y), [s for _, s in kept], budget, scale)
     if after.faulty is not None:  # a second fault: beyond the one-at-a-time model
         return Protection(after.level, ALARM, after.faulty, after.statistic, after.threshold)
     return after
