@@ -53,8 +53,9 @@ COOPERATIVE_INTEGRITY_SPECS: tuple[OptionSpec, ...] = (
             "Run the integrity monitor: a protection level with every fix, detection of a faulty neighbour "
             "or own GNSS fix by solution separation, and exclusion of a faulty neighbour (docs/integrity.md). "
             "Off by default: on the honest defaults its protection level (about 10 m) is above the 5 m alert "
-            "limit at every epoch, with the papers' options its bound does not hold (docs/integrity.md), and it "
-            "costs up to 60 % of an epoch. Off, every fix's integrity is 'unavailable' and protection_level_m null."
+            "limit at every epoch, with the papers' options its bound does not hold (consistency_scale narrows "
+            "that, docs/integrity.md), and it costs up to 60 % of an epoch. Off, every fix's integrity is "
+            "'unavailable' and protection_level_m null."
         ),
     ),
     _SPECS["integrity_risk"],
