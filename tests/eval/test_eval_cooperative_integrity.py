@@ -1,5 +1,6 @@
 """``edgepos eval v2v|federated --faults``: the integrity block per scene and method, the faulty runs
-counted, and out-of-range fault flags refused with exit 2 naming the flag."""
+counted, the fixes' RMSE and mean NEES, out-of-range fault flags and pipeline options refused with exit
+2 naming them, and ``--option`` refused where it would be ignored."""
 
 from __future__ import annotations
 
@@ -32,7 +33,39 @@ def test_v2v_faults_writes_the_integrity_block_per_scene_and_method(tmp_path, ca
             "excluded_within_1s",
         }
         assert block["excluded_within_1s"] <= block["detected_within_1s"]
+        assert 0.5 < block["pos_rmse_m"] < 5.0 and block["mean_nees"] > 0.0
     assert "Cooperative integrity" in capsys.readouterr().out
+
+
+def test_an_option_changes_what_is_reported_not_the_fixes(tmp_path):
+    blocks = {}
+    for value in ("false", "true"):
+        path = tmp_path / f"{value}.json"
+        flags = ["--runs", "1", "--seed", "2", "--workers", "1", "--json", str(path)]
+        code = main(["eval", "v2v", "--faults", *flags, "--option", f"consistency_scale={value}"])
+        assert code == 0
+        blocks[value] = json.loads(path.read_text())["integrity"]
+    for key, before in blocks["false"].items():
+        after = blocks["true"][key]
+        assert after["pos_rmse_m"] == before["pos_rmse_m"]
+        assert after["mean_nees"] <= before["mean_nees"]
+        assert after["median_protection_level_m"] >= before["median_protection_level_m"]
+
+
+@pytest.mark.parametrize(
+    ("flags", "named"),
+    [
+        (["--faults", "--option", "consistency_time_constant_s=0.1"], "consistency_time_constant_s"),
+        (["--faults", "--option", "consistency_scale"], "NAME=JSON"),
+        (["--scene", "correlated", "--option", "no_such_option=1"], "no_such_option"),
+        (["--option", "consistency_scale=true"], "--option applies"),
+    ],
+)
+@pytest.mark.parametrize("evaluation", ["v2v", "federated"])
+def test_bad_or_ignored_options_exit_2_naming_them(evaluation, flags, named, capsys):
+    code = main(["eval", evaluation, "--runs", "1", "--workers", "1", *flags])
+    assert code == 2
+    assert named in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(

@@ -98,11 +98,13 @@ def cooperative_protection(
     fix: SourceEffect | None,
     ranges: Sequence[RangeSource],
     budget: IntegrityBudget,
+    scale: float = 1.0,
 ) -> Protection:
     """Protection of a fix at (x, y) with posterior position covariance ``position_cov``: the sources
-    are the GNSS fix (first, when given) and the ranges; ``Protection.faulty`` indexes that list."""
+    are the GNSS fix (first, when given) and the ranges; ``Protection.faulty`` indexes that list.
+    ``scale``: the filter's consistency scale (see :func:`protect_sources`)."""
     sources = ([fix] if fix is not None else []) + [range_effect(x, y, r) for r in ranges]
-    return protect_sources(position_cov, sources, budget)
+    return protect_sources(position_cov, sources, budget, scale)
 
 
 def _inverse(m: Matrix2) -> Matrix2 | None:
@@ -167,10 +169,19 @@ def track_step_statistic(
 
 
 def protect_sources(
-    position_cov: Sequence[Sequence[float]], sources: Sequence[SourceEffect], budget: IntegrityBudget
+    position_cov: Sequence[Sequence[float]],
+    sources: Sequence[SourceEffect],
+    budget: IntegrityBudget,
+    scale: float = 1.0,
 ) -> Protection:
     """Protection level and fault detection of a posterior with covariance ``position_cov`` (2x2, m^2)
-    shaped by ``sources`` of rank 1 or 2 (see the module docstring)."""
+    shaped by ``sources`` of rank 1 or 2 (see the module docstring).
+
+    ``scale`` >= 1 is how much larger than the filter's covariance its error is (``core.consistency``):
+    the tests keep the filter's own covariances (a test that passes bounds its separation by T sqrt(lambda)
+    whatever the scale, and the fix's exclusions stay those of the filter), while the error bounds of the
+    fault-free solution and of each subset solution are those of ``scale`` times their covariance,
+    sqrt(scale) times the radius."""
     covariance: Matrix2 = (
         float(position_cov[0][0]),
         0.5 * (float(position_cov[0][1]) + float(position_cov[1][0])),
@@ -180,7 +191,8 @@ def protect_sources(
     if information is None:
         return Protection(None, UNAVAILABLE)
     fault_free_share = 0.5 * budget.integrity_risk
-    level = radial_bound(covariance, fault_free_share)
+    inflation = math.sqrt(scale)
+    level = inflation * radial_bound(covariance, fault_free_share)
     threshold = test_threshold(budget.false_alarm_probability, len(sources)) if sources else 0.0
     missed = fault_free_share / max(len(sources), 1) / budget.fault_probability
     worst: tuple[float, int] | None = None
@@ -198,7 +210,7 @@ def protect_sources(
         if statistic > threshold and (worst is None or statistic > worst[0]):
             worst = (statistic, index)
         spread = max(_eigen(separation)[2], 0.0)
-        level = max(level, threshold * math.sqrt(spread) + radial_bound(subset, missed))
+        level = max(level, threshold * math.sqrt(spread) + inflation * radial_bound(subset, missed))
     if not math.isfinite(level):
         return Protection(None, UNAVAILABLE)
     if worst is not None:

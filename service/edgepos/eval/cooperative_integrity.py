@@ -8,7 +8,10 @@ offset (``sim.cooperative_faults``). Each other vehicle's fixes are tallied agai
 fixes are tallied as fault-free. Beside the counts: the share of faulty vehicle-runs detected within
 DETECTION_S of the fault's start (an exclusion of the faulty neighbour or an alarm), and the share in
 which the faulty neighbour was excluded within it (an alarm alone proves nothing where every fix is in
-alarm, as on the correlated scene at the 5 m alert limit).
+alarm, as on the correlated scene at the 5 m alert limit). And the fixes' position RMSE and mean NEES (2
+dof, 2 when consistent) over every fix but each vehicle's first (the fix it starts from): the consistency
+the protection level rests on, and the check that an option changing only what a fix reports
+(``consistency_scale``) leaves the positions as they were.
 """
 
 from __future__ import annotations
@@ -61,6 +64,8 @@ class Tallies:
     prompt: dict[str, int] = field(default_factory=dict)
     excluded: dict[str, int] = field(default_factory=dict)
     """Faulty vehicle-runs in which the faulty neighbour was excluded within DETECTION_S."""
+    errors: dict[str, np.ndarray] = field(default_factory=dict)
+    """Per method: [fixes, sum of squared 2-D errors, sum of NEES] over every fix but each vehicle's first."""
     runs: int = 0
     alert_limit: float = 0.0
     """The sessions' alert limit (m), their option's default."""
@@ -70,12 +75,17 @@ class Tallies:
         self.prompt[method] = self.prompt.get(method, 0) + int(prompt)
         self.excluded[method] = self.excluded.get(method, 0) + int(excluded)
 
+    def add_errors(self, method: str, sums: np.ndarray) -> None:
+        self.errors[method] = self.errors.get(method, np.zeros(3)) + sums
+
 
 def combine(a: Tallies, b: Tallies) -> Tallies:
     for method, result in b.tallies.items():
         a.tallies[method] = a.tallies.get(method, IntegrityTally(scale=SCALE)) + result
         a.prompt[method] = a.prompt.get(method, 0) + b.prompt.get(method, 0)
         a.excluded[method] = a.excluded.get(method, 0) + b.excluded.get(method, 0)
+    for method, sums in b.errors.items():
+        a.add_errors(method, sums)
     a.runs += b.runs
     a.alert_limit = max(a.alert_limit, b.alert_limit)
     return a
@@ -89,9 +99,11 @@ def run_method(
     kinds: set[str],
     fault: NeighbourFault | None,
     alert_limit: float,
+    errors: np.ndarray | None = None,
 ) -> list[tuple[IntegrityTally, float | None]]:
     """One run of one method in lockstep: per vehicle a tally and how long after the fault's start the
-    faulty neighbour was first excluded (None: never while active, or no fault to range to)."""
+    faulty neighbour was first excluded (None: never while active, or no fault to range to). ``errors``
+    ([fixes, squared errors, NEES]), when given, gains every fix but each vehicle's first."""
     resolved = pipeline.resolve_options(options)
     states = {vid: pipeline.create(resolved, None) for vid in vehicle_ids}
     published: dict[str, NeighbourTrack] = {}  # as broadcast
@@ -112,6 +124,10 @@ def run_method(
             kept, observations, steps = history[vid]
             offset = len(observations)
             fix = fixes[-1]
+            if errors is not None and kept and fix.x is not None and fix.y is not None and fix.position_cov:
+                error = np.array([fix.x - run.positions[i, k, 0], fix.y - run.positions[i, k, 1]])
+                nees = float(error @ np.linalg.solve(np.array(fix.position_cov), error))
+                errors += (1.0, float(error @ error), nees)
             uses = [dataclasses.replace(use, index=use.index + offset) for use in fix.measurements]
             kept.append(dataclasses.replace(fix, measurements=uses))
             observations.extend(batch)
@@ -182,10 +198,13 @@ def _work(chunk: range) -> Tallies:
                 cls, options, kinds = correlated.METHODS[evaluation][method]
                 if _CONFIG["scene"] != "correlated" and evaluation == "v2v":
                     options = {**options, **_CONFIG["paper_options"]}
-                options = {**options, "integrity": True}  # the monitor is opt-in for these pipelines
+                options = {**options, "integrity": True, **_CONFIG["overrides"]}  # the monitor is opt-in
                 alert = cls().resolve_options(options)["alert_limit_m"]
                 out.alert_limit = alert
-                for result, excluded in run_method(run, vehicle_ids, cls(), options, kinds, fault, alert):
+                errors = np.zeros(3)
+                results = run_method(run, vehicle_ids, cls(), options, kinds, fault, alert, errors)
+                out.add_errors(f"{scene} {method}", errors)
+                for result, excluded in results:
                     delay = result.count("detection_delay_s")
                     prompt = result.count("detected_runs") > 0 and delay <= DETECTION_S
                     out.add(
@@ -203,6 +222,9 @@ def summary(totals: Tallies) -> dict[str, dict[str, Any]]:
         faulty = block["faulty_runs"]
         block["detected_within_1s"] = totals.prompt[key] / faulty if faulty else None
         block["excluded_within_1s"] = totals.excluded[key] / faulty if faulty else None
+        fixes, squared, nees = totals.errors[key]
+        block["pos_rmse_m"] = float(np.sqrt(squared / fixes)) if fixes else None
+        block["mean_nees"] = float(nees / fixes) if fixes else None
         out[key] = block
     return out
 
@@ -222,6 +244,8 @@ def report(results: dict[str, dict[str, Any]], runs: int, seed: int, faults: Nei
             if block["median_protection_level_m"] is None
             else number(block["median_protection_level_m"], 2),
             str(block["false_exclusions"]),
+            "-" if block["pos_rmse_m"] is None else number(block["pos_rmse_m"], 3),
+            "-" if block["mean_nees"] is None else number(block["mean_nees"], 2),
         ]
         for key, block in results.items()
     ]
@@ -236,12 +260,14 @@ def report(results: dict[str, dict[str, Any]], runs: int, seed: int, faults: Nei
         "excl <=1 s",
         "PL med m",
         "false excl",
+        "RMSE m",
+        "NEES",
     ]
     title = (
         f"Cooperative integrity: {runs} runs, seed {seed}, a neighbour {faults.offset_m:g} m off for "
         f"{faults.duration_s:g} s in {faults.run_fraction:g} of runs (per vehicle ranging to it)"
     )
-    return title + "\n\n" + format_table(headers, rows, [False] + [True] * 9)
+    return title + "\n\n" + format_table(headers, rows, [False] + [True] * 11)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -253,6 +279,7 @@ def run(args: argparse.Namespace, evaluation: str, prog: str) -> int:
     """The ``--faults`` form of ``edgepos eval v2v|federated``."""
     try:
         faults = neighbour_faults_from(args)
+        overrides = correlated.checked_overrides(args, evaluation)
     except ValueError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         return 2
@@ -273,6 +300,7 @@ def run(args: argparse.Namespace, evaluation: str, prog: str) -> int:
         "scene": args.scene,
         "errors": correlated.errors_from(args),
         "paper_options": dict(v2v_sim.PAPER_OPTIONS),
+        "overrides": overrides,
     }
     progress = Progress(args.runs, label="runs")
     totals = run_chunks(_work, combine, chunk_runs(args.runs), args.workers, _init, (config,), progress)

@@ -6,7 +6,8 @@ would be; after each step every vehicle's track is published with the service's 
 the next step the others range against it. Per method: the 2-D position RMSE and the mean NEES of
 the position (error^T P^-1 error with the fix's 2x2 covariance; 2 when consistent), over every
 vehicle and every epoch from WARMUP_S on that it sent a batch (the GPS-only methods
-send one only with a fix), of the runs of seeds ``seed .. seed + runs - 1``.
+send one only with a fix), of the runs of seeds ``seed .. seed + runs - 1``. ``--option NAME=JSON`` sets
+a pipeline option for every method (here and with ``--faults``; e.g. ``consistency_scale=true``).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ import numpy as np
 
 from edgepos.cli_output import prepare_output
 from edgepos.eval.montecarlo import chunk_runs, run_chunks
+from edgepos.eval.overrides import add_option_argument, parse_overrides
 from edgepos.eval.progress import Progress
 from edgepos.eval.tables import format_table, number
 from edgepos.pipelines import tracks
@@ -113,8 +115,8 @@ def run_method(
 _CONFIG: dict[str, Any] = {}
 
 
-def _init(evaluation: str, seed: int, errors: ErrorModel) -> None:
-    _CONFIG.update(evaluation=evaluation, seed=seed, errors=errors)
+def _init(evaluation: str, seed: int, errors: ErrorModel, overrides: dict[str, Any]) -> None:
+    _CONFIG.update(evaluation=evaluation, seed=seed, errors=errors, overrides=overrides)
 
 
 def _work(chunk: range) -> Sums:
@@ -124,7 +126,7 @@ def _work(chunk: range) -> Sums:
         run = make_run(seed, _CONFIG["errors"])
         for method, (cls, options, kinds) in METHODS[_CONFIG["evaluation"]].items():
             try:
-                squared, nees, counts = run_method(run, cls(), options, kinds)
+                squared, nees, counts = run_method(run, cls(), {**options, **_CONFIG["overrides"]}, kinds)
             except Exception as error:  # an estimation error names its run
                 raise RunFailed(f"seed {seed} {method}: {error}") from error
             sums.add(method, squared, nees, counts)
@@ -133,9 +135,16 @@ def _work(chunk: range) -> Sums:
 
 
 def monte_carlo(
-    evaluation: str, runs: int, seed: int, workers: int, errors: ErrorModel, progress: Progress | None = None
+    evaluation: str,
+    runs: int,
+    seed: int,
+    workers: int,
+    errors: ErrorModel,
+    progress: Progress | None = None,
+    overrides: dict[str, Any] | None = None,
 ) -> Sums:
-    return run_chunks(_work, combine, chunk_runs(runs), workers, _init, (evaluation, seed, errors), progress)
+    config = (evaluation, seed, errors, overrides or {})
+    return run_chunks(_work, combine, chunk_runs(runs), workers, _init, config, progress)
 
 
 def summary(sums: Sums) -> dict[str, dict[str, float]]:
@@ -207,6 +216,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
             default=getattr(defaults, attr),
             help=f"correlated scene: {text} (default {getattr(defaults, attr):g})",
         )
+    add_option_argument(parser, "consistency_scale=true (with --scene correlated or --faults)")
+
+
+def checked_overrides(args: argparse.Namespace, evaluation: str) -> dict[str, Any]:
+    """The ``--option`` overrides, checked against the evaluation's pipeline; ValueError names a bad one
+    (malformed, or refused by the pipeline)."""
+    overrides = parse_overrides(args.option)
+    pipeline = METHODS[evaluation][next(iter(METHODS[evaluation]))][0]
+    pipeline().resolve_options(overrides)  # PipelineInputError is a ValueError naming the option
+    return overrides
 
 
 def _positive_float(text: str) -> float:
@@ -233,13 +252,18 @@ def errors_from(args: argparse.Namespace) -> ErrorModel:
 
 def run(args: argparse.Namespace, evaluation: str, prog: str) -> int:
     """The correlated scene's command: table on stdout, ``{"scene": ..., "methods": ...}`` to --json."""
+    try:
+        overrides = checked_overrides(args, evaluation)
+    except ValueError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return 2
     if args.json is not None and (problem := prepare_output(args.json)) is not None:
         print(f"{prog}: error: --json: {problem}", file=sys.stderr)
         return 2
     errors = errors_from(args)
     progress = Progress(args.runs, label="runs")
     try:
-        sums = monte_carlo(evaluation, args.runs, args.seed, args.workers, errors, progress)
+        sums = monte_carlo(evaluation, args.runs, args.seed, args.workers, errors, progress, overrides)
     except RunFailed as exc:
         print(f"\n{prog}: error: {exc}", file=sys.stderr)
         return 1
@@ -248,10 +272,9 @@ def run(args: argparse.Namespace, evaluation: str, prog: str) -> int:
     print(report(results, evaluation, args.runs, args.seed, errors))
     if args.json is not None:
         scene = {"name": "correlated", "seeds": [args.seed, args.seed + args.runs - 1], **vars(errors)}
+        document = {"scene": scene, "option_overrides": overrides, "methods": results}
         try:
-            Path(args.json).write_text(
-                json.dumps({"scene": scene, "methods": results}, indent=2) + "\n", encoding="utf-8"
-            )
+            Path(args.json).write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
         except OSError as exc:
             print(f"{prog}: error: {exc}", file=sys.stderr)
             return 1

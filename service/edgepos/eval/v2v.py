@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
 
 import numpy as np
@@ -177,4 +178,7 @@ def run(args: argparse.Namespace) -> int:
         return cooperative_integrity.run(args, "v2v", PROG)
     if args.scene == "correlated":
         return correlated.run(args, "v2v", PROG)
+    if args.option:
+        print(f"{PROG}: error: --option applies with --scene correlated or --faults", file=sys.stderr)
+        return 2
     return run_scenario_command(args, PROG, monte_carlo, summary, report, curves, "v2v", RunFailed)

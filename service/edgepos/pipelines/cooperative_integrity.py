@@ -53,8 +53,9 @@ COOPERATIVE_INTEGRITY_SPECS: tuple[OptionSpec, ...] = (
             "Run the integrity monitor: a protection level with every fix, detection of a faulty neighbour "
             "or own GNSS fix by solution separation, and exclusion of a faulty neighbour (docs/integrity.md). "
             "Off by default: on the honest defaults its protection level (about 10 m) is above the 5 m alert "
-            "limit at every epoch, with the papers' options its bound does not hold (docs/integrity.md), and it "
-            "costs up to 60 % of an epoch. Off, every fix's integrity is 'unavailable' and protection_level_m null."
+            "limit at every epoch, with the papers' options its bound does not hold (consistency_scale narrows "
+            "that, docs/integrity.md), and it costs up to 60 % of an epoch. Off, every fix's integrity is "
+            "'unavailable' and protection_level_m null."
         ),
     ),
     _SPECS["integrity_risk"],
@@ -220,6 +221,7 @@ def monitor(
     uses: dict[int, MeasurementUse],
     held: dict[str, float],
     t: float,
+    scale: float = 1.0,
 ) -> Protection:
     """Test the epoch's fix and, when a neighbour is faulty and exclusion is on, exclude it.
 
@@ -227,12 +229,14 @@ def monitor(
     fix source at it, ``ranges`` the ranges used (observation index, source) and ``redo(excluded)`` runs
     the range update again from the same prior without the ``excluded`` sources (neighbours or RSUs by
     id, beside those screened out before), returning the ranges it used. The measurement uses of an
-    excluded source's ranges say so, and it is held out (``held``) for ``fault_exclusion_s`` from ``t``."""
+    excluded source's ranges say so, and it is held out (``held``) for ``fault_exclusion_s`` from ``t``.
+    ``scale``: the filter's consistency scale on the protection level's error bounds (1: none; the tests
+    use the filter's own covariance either way, ``core.cooperative_integrity.protect_sources``)."""
     budget = budget_of(options)
     x, y, cov = fix_of()
     sources = [source for _, source in ranges]
     own = fix_source(x, y)
-    protection = cooperative_protection(x, y, cov, own, sources, budget)
+    protection = cooperative_protection(x, y, cov, own, sources, budget, scale)
     offset = 1 if own is not None else 0
     if protection.faulty is None or protection.faulty < offset:
         return protection
@@ -251,7 +255,7 @@ def monitor(
                 f"{EXCLUDED}: solution separation {statistic:.1f} sigma > {threshold:.1f}",
             )
     x, y, cov = fix_of()
-    after = cooperative_protection(x, y, cov, fix_source(x, y), [s for _, s in kept], budget)
+    after = cooperative_protection(x, y, cov, fix_source(x, y), [s for _, s in kept], budget, scale)
     if after.faulty is not None:  # a second fault: beyond the one-at-a-time model
         return Protection(after.level, ALARM, after.faulty, after.statistic, after.threshold)
     return after

@@ -59,3 +59,34 @@ def neighbour_specs(fusion_description: str) -> tuple[OptionSpec, ...]:
             maximum=100.0,
         ),
     )
+
+
+CONSISTENCY_TIME_CONSTANT_S = 20.0
+"""s: the consistency scale's memory (docs/integrity.md, "The fix's consistency scale": chosen on seeds 0
+and 1 of the papers' scenes between 5 and 40 s)."""
+#: What a session stored before the consistency scale existed goes on with: its covariance as reported then.
+LEGACY_CONSISTENCY = {"consistency_scale": False, "consistency_time_constant_s": CONSISTENCY_TIME_CONSTANT_S}
+
+
+def consistency_specs(default: bool, what: str) -> tuple[OptionSpec, ...]:
+    """``consistency_scale`` (on by ``default``; ``what`` says which estimate it scales) and its memory."""
+    return (
+        OptionSpec(
+            "consistency_scale",
+            "boolean",
+            default,
+            "Multiply the fix's reported position covariance (and the protection level built on it) by the "
+            "filter's own consistency scale: how much larger the GNSS fix innovations are than the predicted "
+            f"covariance and the fix's noise explain, never below 1 ({what}). The estimate and its gains are "
+            "unchanged, so the fix's position is the same either way (docs/integrity.md, \"The fix's "
+            'consistency scale").',
+        ),
+        OptionSpec(
+            "consistency_time_constant_s",
+            "number",
+            CONSISTENCY_TIME_CONSTANT_S,
+            "Memory (s) of the consistency scale: each GNSS fix innovation's weight decays as exp(-age / this).",
+            minimum=1.0,
+            maximum=3600.0,
+        ),
+    )

@@ -29,6 +29,7 @@ import numpy as np
 from edgepos.core import gnss_bias
 from edgepos.core import state as state_format
 from edgepos.core.augmented import augmented_update
+from edgepos.core.consistency import ConsistencyScale, scaled_position
 from edgepos.core.cooperative_integrity import RangeSource
 from edgepos.core.filters.ekf import ExtendedKalmanFilter
 from edgepos.core.filters.ukf import UnscentedKalmanFilter
@@ -56,6 +57,7 @@ from edgepos.pipelines.base import (
     StateSummary,
     ensure_finite_fixes,
 )
+from edgepos.pipelines.cooperative_consistency import factor, observe
 from edgepos.pipelines.cooperative_integrity import (
     COOPERATIVE_INTEGRITY_SPECS,
     LEGACY_INTEGRITY,
@@ -66,7 +68,9 @@ from edgepos.pipelines.cooperative_integrity import (
 )
 from edgepos.pipelines.cooperative_options import (
     GNSS_BIAS_SPECS,
+    LEGACY_CONSISTENCY,
     LEGACY_OPTIONS,
+    consistency_specs,
     neighbour_specs,
 )
 from edgepos.pipelines.epochs import group_by_time
@@ -85,6 +89,7 @@ from edgepos.pipelines.tracks import NeighbourUnavailable, position_at
 METHODS = ("gps", "gps_dr", "ukf", "aug_ukf")
 _INITIAL_VELOCITY_STD = 30.0
 _INITIAL_ACCEL_STD = 1.0
+CONSISTENCY_DEFAULT = False
 
 OPTION_SPECS = (
     OptionSpec(
@@ -136,6 +141,10 @@ OPTION_SPECS = (
         "independent (as independent information, the paper's; over-confident when they share errors)."
     ),
     *COOPERATIVE_INTEGRITY_SPECS,
+    *consistency_specs(
+        CONSISTENCY_DEFAULT,
+        "the fix filter's; not for method gps, whose fix is the receiver's with the receiver's std",
+    ),
 )
 
 _KF = ExtendedKalmanFilter()  # exact for the linear motion and fixes; linearises the DR measurements
@@ -158,6 +167,9 @@ class _SessionState:
     own_bias: Bias  # and beside own_mean/own_cov
     held: dict[str, float] = dataclasses.field(default_factory=dict)  # neighbours held out: id -> until t
     seen: dict[str, float] = dataclasses.field(default_factory=dict)  # neighbours' last track point tested
+    consistency: ConsistencyScale = dataclasses.field(
+        default_factory=ConsistencyScale
+    )  # the fix filter's, from its GNSS fix innovations
 
     def to_bytes(self) -> bytes:
         meta = {
@@ -169,6 +181,7 @@ class _SessionState:
             "odometer_t": self.odometer_t,
             "held": self.held,
             "seen": self.seen,
+            "consistency": self.consistency.to_list(),
         }
         arrays = {
             "mean": self.mean,
@@ -186,7 +199,7 @@ def _decode(blob: bytes) -> _SessionState:
     if meta.get("pipeline") != V2vCoopPipeline.name:
         raise state_format.StateFormatError(f"state belongs to pipeline {meta.get('pipeline')!r}")
     # A session stored before the GNSS bias and covariance intersection goes on as it was created.
-    options = {**LEGACY_OPTIONS, **LEGACY_INTEGRITY, **meta["options"]}
+    options = {**LEGACY_OPTIONS, **LEGACY_INTEGRITY, **LEGACY_CONSISTENCY, **meta["options"]}
     white = Bias.stationary(0.0)
     return _SessionState(
         options,
@@ -202,6 +215,7 @@ def _decode(blob: bytes) -> _SessionState:
         Bias.from_arrays(arrays["own_bias"]) if "own_bias" in arrays else white.copy(),
         {str(k): float(v) for k, v in meta.get("held", {}).items()},
         {str(k): float(v) for k, v in meta.get("seen", {}).items()},
+        ConsistencyScale.from_list(meta.get("consistency")),
     )
 
 
@@ -294,12 +308,14 @@ def _step(
         updated = []
         used = False
         odometer_t = session.odometer_t
-        for mean, cov, bias in gaussians:
+        for k, (mean, cov, bias) in enumerate(gaussians):
             session.odometer_t = odometer_t
             mean, cov, bias = _predict(options, mean, cov, bias, dt)
             if fixes:
                 # fixes index the gnss_fix observations its isinstance filter found (cast: free at run time)
                 gnss_fix = cast(GnssFixObservation, observations[fixes[0]])
+                if k == 0:  # the fix's filter: its innovation tests its predicted covariance
+                    session.consistency = observe(options, session.consistency, mean, cov, bias, gnss_fix)
                 mean, cov, bias = _fix_update(options, mean, cov, bias, gnss_fix)
                 uses[fixes[0]] = MeasurementUse(fixes[0], "gnss_fix", True)
                 used = True
@@ -344,6 +360,7 @@ def _step(
                 uses,
                 session.held,
                 t,
+                factor(options, session.consistency),
             )
             if unexcluded:  # a neighbour's track failed its test and exclusion is off
                 protection = dataclasses.replace(protection, state=ALARM)
@@ -354,10 +371,15 @@ def _step(
             )
     session.t = t
     session.epochs += 1
-    fix = kinematic_fix(t, status, session.mean, session.cov, [uses[i] for i in epoch])
+    # The gps method's fix is the receiver's, reported with the receiver's std.
+    scale = 1.0 if method == "gps" else factor(options, session.consistency)
+    reported = scaled_position(session.cov, (0, 3), scale)
+    fix = kinematic_fix(t, status, session.mean, reported, [uses[i] for i in epoch])
     fix = with_protection(fix, protection)
     if method in ("ukf", "aug_ukf"):
         fix = dataclasses.replace(fix, shared=shared_point(t, session.own_mean, session.own_cov))
+    elif scale != 1.0:  # neighbours get the filter's own covariance, as without the scale
+        fix = dataclasses.replace(fix, shared=shared_point(t, session.mean, session.cov))
     return fix
 
 

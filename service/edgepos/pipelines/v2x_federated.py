@@ -26,6 +26,7 @@ import numpy as np
 
 from edgepos.core import gnss_bias, layout
 from edgepos.core import state as state_format
+from edgepos.core.consistency import ConsistencyScale, scaled_position
 from edgepos.core.cooperative_integrity import RangeSource
 from edgepos.core.errors import NumericalError
 from edgepos.core.filters.ekf import ExtendedKalmanFilter
@@ -55,6 +56,7 @@ from edgepos.pipelines.base import (
     StateSummary,
     ensure_finite_fixes,
 )
+from edgepos.pipelines.cooperative_consistency import factor, observe
 from edgepos.pipelines.cooperative_integrity import (
     COOPERATIVE_INTEGRITY_SPECS,
     LEGACY_INTEGRITY,
@@ -63,12 +65,19 @@ from edgepos.pipelines.cooperative_integrity import (
     screen_neighbours,
     with_protection,
 )
-from edgepos.pipelines.cooperative_options import GNSS_BIAS_SPECS, LEGACY_OPTIONS, neighbour_specs
+from edgepos.pipelines.cooperative_options import (
+    GNSS_BIAS_SPECS,
+    LEGACY_CONSISTENCY,
+    LEGACY_OPTIONS,
+    consistency_specs,
+    neighbour_specs,
+)
 from edgepos.pipelines.epochs import group_by_time
 from edgepos.pipelines.kinematic import (
     check_batch,
     dead_reckoning_update,
     kinematic_fix,
+    shared_point,
     wait_for_heading,
 )
 from edgepos.pipelines.options import resolve_options
@@ -78,6 +87,7 @@ SUB_FILTERS = ("gps", "dr", "v2x")
 _KIN = layout.KINEMATIC
 _INITIAL_VELOCITY_STD = 10.0
 _INITIAL_ACCEL_STD = 1.0
+CONSISTENCY_DEFAULT = False
 
 OPTION_SPECS = (
     OptionSpec(
@@ -141,6 +151,11 @@ OPTION_SPECS = (
         "range's as independent noise, the paper's reading)."
     ),
     *COOPERATIVE_INTEGRITY_SPECS,
+    *consistency_specs(
+        CONSISTENCY_DEFAULT,
+        "the fused estimate's, with feedback on; with feedback off the fix's innovation tests the GPS "
+        "sub-filter, not the fused estimate, and the fix is reported as the filter gives it",
+    ),
 )
 
 
@@ -203,6 +218,8 @@ class _SessionState:
     dr_started: bool = False  # a fix after the first has given the filter a velocity (see _dr_update)
     held: dict[str, float] = dataclasses.field(default_factory=dict)  # sources held out: id -> until t
     seen: dict[str, float] = dataclasses.field(default_factory=dict)  # neighbours' last track point tested
+    # the fused estimate's, from the GNSS fix innovations (with feedback)
+    consistency: ConsistencyScale = dataclasses.field(default_factory=ConsistencyScale)
 
     def to_bytes(self) -> bytes:
         meta = {
@@ -215,6 +232,7 @@ class _SessionState:
             "dr_started": self.dr_started,
             "held": self.held,
             "seen": self.seen,
+            "consistency": self.consistency.to_list(),
         }
         arrays = {
             "means": self.means,
@@ -231,7 +249,7 @@ def _decode(blob: bytes) -> _SessionState:
         raise state_format.StateFormatError(f"state belongs to pipeline {meta.get('pipeline')!r}")
     # A session stored before the GNSS bias and covariance intersection goes on as it was created.
     return _SessionState(
-        {**LEGACY_OPTIONS, **LEGACY_INTEGRITY, **meta["options"]},
+        {**LEGACY_OPTIONS, **LEGACY_INTEGRITY, **LEGACY_CONSISTENCY, **meta["options"]},
         bool(meta["initialised"]),
         meta["t"],
         int(meta["epochs"]),
@@ -243,6 +261,7 @@ def _decode(blob: bytes) -> _SessionState:
         bool(meta.get("dr_started", True)),
         {str(k): float(v) for k, v in meta.get("held", {}).items()},
         {str(k): float(v) for k, v in meta.get("seen", {}).items()},
+        ConsistencyScale.from_list(meta.get("consistency")),
     )
 
 
@@ -379,6 +398,18 @@ def _step(
             means[k], covs[k] = filt.predict(means[k], covs[k], model, dt)
 
     updated = [False, False, False]
+    epoch_fixes = [i for i in epoch if isinstance(observations[i], GnssFixObservation)]
+    if options["feedback"] and epoch_fixes:
+        # With feedback the GPS sub-filter's prediction is the fused one times its noise scale 1/beta.
+        session.consistency = observe(
+            options,
+            session.consistency,
+            means[0],
+            covs[0],
+            bias,
+            cast(GnssFixObservation, observations[epoch_fixes[0]]),  # the epoch's first gnss_fix
+            float(session.noise_scales[0]),
+        )
     gps, bias = _gps_update(means, covs, bias, epoch, observations, options, uses)
     updated[0] = gps
     session.dr_started = session.dr_started or gps
@@ -420,6 +451,7 @@ def _step(
             uses,
             session.held,
             t,
+            factor(options, session.consistency),
         )
         if unexcluded:  # a neighbour's track failed its test and exclusion is off
             protection = dataclasses.replace(protection, state=ALARM)
@@ -435,8 +467,14 @@ def _step(
     session.t = t
     session.epochs += 1
     status = "tracking" if any(updated) else "predicted"
-    fix = kinematic_fix(t, status, fused_mean, fused_cov, [uses[i] for i in epoch])
-    return with_protection(fix, protection)
+    scale = factor(options, session.consistency)
+    reported = scaled_position(fused_cov, (0, 3), scale)
+    fix = with_protection(
+        kinematic_fix(t, status, fused_mean, reported, [uses[i] for i in epoch]), protection
+    )
+    if scale != 1.0:  # neighbours get the filter's own covariance, as without the scale
+        fix = dataclasses.replace(fix, shared=shared_point(t, fused_mean, fused_cov))
+    return fix
 
 
 def _note_odometer(session: _SessionState, obs: Observation) -> None:
