@@ -11,6 +11,7 @@ import numba
 import numpy as np
 import numpy.typing as npt
 
+from edgepos.core import kernel_cache  # noqa: F401  # imported for its effect: installs the kernels' cache stamps before the first kernel below
 from edgepos.core.numerics import FloatArray
 
 OK = 0
