@@ -64,14 +64,12 @@ _POS = [0, 3]
 #: carries no weight any more and is dropped when its RSU is not in use.
 CONVERGED = 0.01
 #: Indices into the epoch's scalars the compiled kernels read and write (``kernels_integrity.bank_epoch``,
-#: ``bank_protect``): the interval and jerk density of the prediction, the test threshold, the fix's x, y
-#: and covariance xx, xy, yy; then what the kernels write: the protection level, the worst failed
-#: sub-filter (-1: none) and its statistic, and how many sub-filters ``prune`` would drop; ``bank_epoch``
-#: also reads the length of a radial factor table (what follows the scalars in its ``work`` vector). One
-#: array: numba's dispatch costs per argument.
-DT, JERK, THRESHOLD, FIX_X, FIX_Y, FIX_XX, FIX_XY, FIX_YY, LEVEL, WORST, STATISTIC, DROPPABLE, TABLE = range(
-    13
-)
+#: ``bank_protect``): the jerk density of the prediction, the test threshold, the fix's x, y and
+#: covariance xx, xy, yy; then what the kernels write: the protection level, the worst failed sub-filter
+#: (-1: none) and its statistic, and how many sub-filters ``prune`` would drop; ``bank_epoch`` also reads
+#: the length of a radial factor table (what follows the scalars in its ``work`` vector). One array:
+#: numba's dispatch costs per argument.
+JERK, THRESHOLD, FIX_X, FIX_Y, FIX_XX, FIX_XY, FIX_YY, LEVEL, WORST, STATISTIC, DROPPABLE, TABLE = range(12)
 SCALARS = TABLE + 1
 #: What ``kernels_integrity.bank_epoch`` returns instead of the protection level when a test failed (the
 #: outcome is in the scalars) or the update did (the bank is predicted only); levels are never negative.
@@ -352,11 +350,11 @@ class SeparationBank:
             self.spawn(rsu_ids)
             plan = self._plan = _Plan.make(self, rsu_ids, jerk_density, budget, position)
         scalars = plan.scalars
-        scalars[DT] = t - self.t
+        dt = t - self.t
         self.t = max(t, self.t)
         # the bank's arrays are C-contiguous float64 as every method leaves them; the estimate's are read as
         # they come (the pipeline's are fresh C-contiguous float64 arrays; another layout compiles once)
-        level = plan.kernel(self.means, self.covs, scalars, *arrays, mean, cov)
+        level = plan.kernel(self.means, self.covs, scalars, dt, *arrays, mean, cov)
         # prune has nothing to drop with these RSUs in use when every sub-filter's RSU is among them or
         # the kernel found none converged
         self._settled = plan.rsu_ids if plan.covered or not scalars[DROPPABLE] else None
@@ -410,7 +408,8 @@ class SeparationBank:
         bank_protect = _kernels().bank_protect
 
         tables, threshold = budget_tables(budget, len(self.ids) - 1)
-        scalars = np.array([0.0, 0.0, threshold, *fix, 0.0, 0.0, 0.0, 0.0, tables.shape[1]])
+        # JERK, THRESHOLD, the fix (FIX_X .. FIX_YY), LEVEL, WORST, STATISTIC, DROPPABLE, TABLE
+        scalars = np.array([0.0, threshold, *fix, 0.0, 0.0, 0.0, 0.0, tables.shape[1]])
         excluded = np.array(self._flags([]))  # writable, as the tables: the kernel signature warm-up compiles
         bank_protect(
             np.ascontiguousarray(self.means),
@@ -460,9 +459,10 @@ class SeparationBank:
             values = np.frombuffer(blob, dtype=_FLOAT, count=floats, offset=offset).astype(float)
         except (struct.error, UnicodeDecodeError) as error:
             raise ValueError(f"integrity bank is corrupt: {error!r}") from None
-        # the sum is finite when every value is (one numpy call, every batch); only when it is not, which a
-        # sum of huge finite values could be as well, the values one by one
-        if not math.isfinite(t) or (not math.isfinite(values.sum()) and not np.isfinite(values).all()):
+        # on the compiled kernel when the kernels are enabled: every batch decodes the bank, and numpy's
+        # isfinite and reduction cost several microseconds there
+        finite = _kernels().all_finite(values) if _compiled() else bool(np.isfinite(values).all())
+        if not finite or not math.isfinite(t):
             raise ValueError("integrity bank is not finite")
         means = values[: count * DIM].reshape(count, DIM)
         return SeparationBank(ids, means, values[count * DIM :].reshape(count, DIM, DIM), t, excluded)
@@ -500,10 +500,9 @@ class _Plan:
         budget: IntegrityBudget,
         position: tuple[int, int],
     ) -> _Plan:
-        """The plan for ``bank`` (its sub-filters spawned for ``rsu_ids`` already); makes the bank's arrays
-        C-contiguous float64, which the bank's methods then keep them (the kernel writes them in place)."""
-        bank.means = np.ascontiguousarray(bank.means, dtype=float)
-        bank.covs = np.ascontiguousarray(bank.covs, dtype=float)
+        """The plan for ``bank`` (its sub-filters spawned for ``rsu_ids`` already). The kernel writes the
+        bank's arrays in place, as they are: C-contiguous float64 as every method and ``from_bytes`` leave
+        them (arrays of another layout, given to the constructor, compile another signature once)."""
         excluded = frozenset(bank.excluded)
         work, covered = _plan_work(tuple(bank.ids), tuple(rsu_ids), excluded, budget, position, jerk_density)
         kernel = _kernels().bank_epoch

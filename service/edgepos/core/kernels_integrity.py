@@ -13,7 +13,6 @@ import numpy as np
 from edgepos.core.integrity_bank import (
     CONVERGED,
     DROPPABLE,
-    DT,
     FIX_X,
     FIX_XX,
     FIX_XY,
@@ -307,6 +306,15 @@ def droppable(means: FloatArray, covs: FloatArray, owner: FloatArray) -> int:
     return count
 
 
+@_jit
+def all_finite(values: FloatArray) -> bool:
+    """Whether every value is finite (the bank's decoding checks its arrays)."""
+    for value in values:
+        if not math.isfinite(value):
+            return False
+    return True
+
+
 def work_size(measurements: int, filters: int, table: int) -> int:
     """Length of ``bank_epoch``'s ``work`` vector for ``measurements`` RSUs, ``filters`` filters and
     radial factor tables of ``table`` entries."""
@@ -323,6 +331,7 @@ def bank_epoch(
     means: FloatArray,
     covs: FloatArray,
     work: FloatArray,
+    dt: float,
     positions: FloatArray,
     observed: FloatArray,
     range_std: FloatArray,
@@ -330,8 +339,8 @@ def bank_epoch(
     fix_mean: FloatArray,
     fix_cov: FloatArray,
 ) -> float:
-    """One epoch of the bank in one call: ``bank_predict`` over ``work[DT]`` (none when it is not
-    positive) with ``work[JERK]``, ``bank_update`` with the n RSUs of ``positions`` .. ``bearing_std``,
+    """One epoch of the bank in one call: ``bank_predict`` over ``dt`` s (none when it is not positive)
+    with ``work[JERK]``, ``bank_update`` with the n RSUs of ``positions`` .. ``bearing_std``,
     the count of sub-filters prune would drop into ``work[DROPPABLE]`` (``droppable``), then the fix read
     from the reported estimate's mean and covariance into ``work`` (``FIX_X`` ..) and ``bank_protect``
     for it. A fix whose position covariance is not positive definite has no bound: the level written is
@@ -357,11 +366,11 @@ def bank_epoch(
     excluded = work[start + count : start + count + filters]
     x, y = int(work[start + count + filters]), int(work[start + count + filters + 1])
     scratch = start + count + filters + 2
-    if work[DT] > 0.0:
+    if dt > 0.0:
         _predict(
             means,
             covs,
-            work[DT],
+            dt,
             work[JERK],
             work[scratch : scratch + 36].reshape((6, 6)),
             work[scratch + 36 : scratch + 72].reshape((6, 6)),
@@ -415,7 +424,7 @@ def warm_up() -> None:
     bank_separations(means, covs, np.empty((1, 6)))
     tables = np.array([radial_factor_table(5e-6), radial_factor_table(0.05)])
     scalars = np.zeros(SCALARS)
-    scalars[DT], scalars[JERK], scalars[THRESHOLD] = 0.05, 10.0, 3.0
+    scalars[JERK], scalars[THRESHOLD] = 10.0, 3.0
     scalars[FIX_XX], scalars[FIX_YY] = 1.0, 1.0
     bank_protect(means, covs, scalars, tables, np.zeros(2, dtype=np.int64))
     table = tables.shape[1]
@@ -424,4 +433,5 @@ def warm_up() -> None:
     work[TABLE] = table
     work[SCALARS : SCALARS + 2 * table] = tables.ravel()
     work[SCALARS + 2 * table : SCALARS + 2 * table + 5] = [1, 0, 0, 0, 3]  # owner, exclusions, x and y
-    bank_epoch(means, covs, work, *rsu, np.zeros(8), np.eye(8))
+    bank_epoch(means, covs, work, 0.05, *rsu, np.zeros(8), np.eye(8))
+    all_finite(np.zeros(6))
