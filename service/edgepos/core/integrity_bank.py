@@ -74,7 +74,7 @@ SCALARS = TABLE + 1
 #: What ``kernels_integrity.bank_epoch`` returns instead of the protection level when a test failed (the
 #: outcome is in the scalars) or the update did (the bank is predicted only); levels are never negative.
 TEST_FAILED, UPDATE_FAILED = -2.0, -1.0
-_HEADER = struct.Struct("<4sBHd")
+_HEADER = struct.Struct("<4sBHdH")  # magic, version, K, t, the exclusions' count
 _LENGTH = struct.Struct("<H")
 _EXCLUSION = struct.Struct("<Hd")
 _FLOAT = np.dtype("<f8")
@@ -423,7 +423,7 @@ class SeparationBank:
     def to_bytes(self) -> bytes:
         """Little-endian: magic, version, K, t; the exclusions (count, then uint16 length, end time, UTF-8 id);
         then K ids (uint16 length + UTF-8), means and covariances."""
-        parts = [_HEADER.pack(_MAGIC, _VERSION, len(self.ids), self.t), _LENGTH.pack(len(self.excluded))]
+        parts = [_HEADER.pack(_MAGIC, _VERSION, len(self.ids), self.t, len(self.excluded))]
         for rsu, until in self.excluded.items():
             raw = rsu.encode()
             parts.append(_EXCLUSION.pack(len(raw), until) + raw)
@@ -438,11 +438,10 @@ class SeparationBank:
     def from_bytes(blob: bytes) -> SeparationBank:
         """The bank ``to_bytes`` wrote; ValueError when ``blob`` is not one."""
         try:
-            magic, version, count, t = _HEADER.unpack_from(blob)
+            magic, version, count, t, excluded_count = _HEADER.unpack_from(blob)
             if magic != _MAGIC or version != _VERSION or count < 1:
                 raise ValueError("not an integrity bank")
-            (excluded_count,) = _LENGTH.unpack_from(blob, _HEADER.size)
-            offset = _HEADER.size + 2
+            offset = _HEADER.size
             excluded = {}
             for _ in range(excluded_count):
                 length, until = _EXCLUSION.unpack_from(blob, offset)
