@@ -9,7 +9,6 @@ the sub-filters' process noise. Their defaults and the reasons for them are in d
 from __future__ import annotations
 
 import functools
-import operator
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -164,7 +163,6 @@ def warm_up_tables(max_hypotheses: int = 8) -> None:
 
 
 EXCLUDED = "excluded by fault detection"
-_RSU_ID = operator.attrgetter("rsu_id")  # of the candidates, RSU observations all
 _Result = TypeVar("_Result")
 
 
@@ -244,8 +242,7 @@ def monitored_update(
     result = correct(measured)
     if bank is None:
         bank = start_bank(prior, t)
-    # the RSUs' ids (C-level iteration: no comprehension frame every epoch)
-    in_use: list[str] = list(map(_RSU_ID, map(observations.__getitem__, candidates)))
+    in_use: list[str] = [observations[i].rsu_id for i in candidates]  # type: ignore[union-attr]  # RSUs all
     arrays = (measured.positions, measured.observed, measured.range_std, measured.bearing_std)
     output = output_of(result)
     protection, faulty = bank.epoch(
