@@ -107,9 +107,6 @@ class SeparationBank:
     excluded: dict[str, float] = field(default_factory=dict)  # RSU id -> time (s) its exclusion ends
     # what the last epoch's kernel call needed (not state: rebuilt after decoding, or when it no longer fits)
     _plan: _Plan | None = field(default=None, init=False, repr=False, compare=False)
-    # the RSUs in use for which the last epoch's kernel found no sub-filter to prune (None: unknown; every
-    # other method that moves the filters resets it)
-    _settled: list[str] | None = field(default=None, init=False, repr=False, compare=False)
 
     @staticmethod
     def start(mean: np.ndarray, cov: np.ndarray, t: float) -> SeparationBank:
@@ -123,7 +120,6 @@ class SeparationBank:
         dt = t - self.t
         if dt <= 0.0:
             return
-        self._settled = None
         if _compiled():
             bank_predict = _kernels().bank_predict
 
@@ -139,7 +135,6 @@ class SeparationBank:
         """The numpy form of :meth:`predict`, over ``dt`` s (the reference the compiled kernel is tested
         against)."""
         transition, noise = _transition(dt, jerk_density)
-        self._settled = None
         self.means = self.means @ transition.T
         self.covs = transition @ self.covs @ transition.T + noise
 
@@ -151,7 +146,6 @@ class SeparationBank:
         new = [rsu for rsu in dict.fromkeys(rsu_ids) if rsu not in self.ids]
         if not new:
             return
-        self._settled = None
         count = len(self.ids)
         self.ids = self.ids + new
         # filled in place (fewer numpy calls than concatenating copies: this runs at a batch's first epochs)
@@ -179,7 +173,6 @@ class SeparationBank:
         standard deviations (n,) each."""
         if not rsu_ids:
             return
-        self._settled = None
         if _compiled():
             bank_update = _kernels().bank_update
 
@@ -199,7 +192,6 @@ class SeparationBank:
             self._update_reference(ids, _data(*arrays))
 
     def _update_reference(self, rsu_ids: Sequence[str], data: np.ndarray) -> None:
-        self._settled = None
         rows = 2 * len(rsu_ids)
         # every filter linearised at the reference's prediction: the bank is then one linear system, in
         # which the separations' covariances P_i - P_0 hold exactly. H acts on x and y only.
@@ -228,9 +220,6 @@ class SeparationBank:
 
     def prune(self, in_use: Sequence[str]) -> None:
         """Drop the sub-filters whose RSU is not in ``in_use`` and no longer weighs on the reference."""
-        settled = self._settled
-        if settled is not None and settled == in_use:
-            return  # the last epoch's kernel found none to drop with these RSUs in use (most epochs)
         if _covered(self.ids, in_use):
             return
         # on Python floats: a handful of sub-filters, every epoch while an RSU out of view still weighs
@@ -244,7 +233,6 @@ class SeparationBank:
             if i == 0 or rsu in in_use or (xx[i] + yy[i]) - reference > bound
         ]
         if len(keep) < len(self.ids):
-            self._settled = None
             self.ids = [self.ids[i] for i in keep]
             self.means, self.covs = self.means[keep], self.covs[keep]
 
@@ -324,12 +312,14 @@ class SeparationBank:
         cov: np.ndarray,
         position: tuple[int, int],
         budget: IntegrityBudget,
+        prune: bool = False,
     ) -> tuple[Protection, str | None]:
         """:meth:`step` for the fix of an estimate whose x and y are ``mean[position]`` with covariance
         ``cov`` (what the pipeline has: its output Gaussian, read in place). On one compiled kernel call when
         the kernels are enabled (``kernels_integrity.bank_epoch``), with what only changes with the RSUs in
         use, the sub-filters, the exclusions or the options kept from the epoch before (``_Plan``); else
-        the numpy steps."""
+        the numpy steps. ``prune``: when no test failed (no RSU to exclude), :meth:`prune` for ``rsu_ids``
+        too, after the outcome (the kernel counts what it would drop, so the usual epoch skips it)."""
         plan = self._plan
         if (  # the plan of the epoch before serves (inline: this runs every epoch of every session)
             plan is None
@@ -346,7 +336,7 @@ class SeparationBank:
                 self.spawn(rsu_ids)
                 self.predict(t, jerk_density)
                 self.update_arrays(rsu_ids, *arrays)
-                return self.protect_fix(fix, budget)
+                return self._pruned(self.protect_fix(fix, budget), rsu_ids, prune)
             self.spawn(rsu_ids)
             plan = self._plan = _Plan.make(self, rsu_ids, jerk_density, budget, position)
         scalars = plan.scalars
@@ -355,17 +345,25 @@ class SeparationBank:
         # the bank's arrays are C-contiguous float64 as every method leaves them; the estimate's are read as
         # they come (the pipeline's are fresh C-contiguous float64 arrays; another layout compiles once)
         level = plan.kernel(self.means, self.covs, scalars, dt, *arrays, mean, cov)
-        # prune has nothing to drop with these RSUs in use when every sub-filter's RSU is among them or
-        # the kernel found none converged
-        self._settled = plan.rsu_ids if plan.covered or not scalars[DROPPABLE] else None
         if 0.0 <= level <= budget.alert_limit:  # the usual outcome: every test passed, within the limit
+            # prune drops nothing when every sub-filter's RSU is in use or the kernel found none converged
+            if prune and not plan.covered and scalars[DROPPABLE]:
+                self.prune(rsu_ids)
             return new_protection(level, OK), None
         if level == UPDATE_FAILED:
             self._update_reference(rsu_ids, _data(*arrays))  # predicted already: the numpy update, the bound
             x, y = position
             fix = (float(mean[x]), float(mean[y]), float(cov[x, x]), float(cov[x, y]), float(cov[y, y]))
-            return self.protect_fix(fix, budget)
-        return self._protection(scalars, budget)
+            return self._pruned(self.protect_fix(fix, budget), rsu_ids, prune)
+        return self._pruned(self._protection(scalars, budget), rsu_ids, prune)
+
+    def _pruned(
+        self, outcome: tuple[Protection, str | None], rsu_ids: Sequence[str], prune: bool
+    ) -> tuple[Protection, str | None]:
+        """``outcome``, after :meth:`prune` for ``rsu_ids`` when asked to and no test failed."""
+        if prune and outcome[1] is None:
+            self.prune(rsu_ids)
+        return outcome
 
     def _protection(self, scalars: np.ndarray, budget: IntegrityBudget) -> tuple[Protection, str | None]:
         """The outcome the compiled ``bank_protect`` wrote into ``scalars`` (level, worst failed sub-filter,

@@ -254,8 +254,11 @@ def monitored_update(
         output.cov,
         _position_index(output.components),
         monitor.budget,
+        prune=True,  # when no test failed: the usual epoch's prune decided by the kernel
     )
-    if faulty is not None and monitor.exclusion and faulty in in_use and len(candidates) > 1:
+    if faulty is None:
+        return result, candidates, measured, protection, bank
+    if monitor.exclusion and faulty in in_use and len(candidates) > 1:
         index = candidates[in_use.index(faulty)]
         uses[index] = MeasurementUse(
             index,
