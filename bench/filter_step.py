@@ -228,10 +228,11 @@ def main() -> int:
     ]
     monitored_name = "  the same with the integrity monitor (default)"
     monitor_cpu_cost = statistics.median(cpu[monitored_name]) / statistics.median(cpu[jittered_name]) - 1.0
+    monitor_min_cost = min(timings[monitored_name]) / min(timings[jittered_name]) - 1.0
     print(
         f"integrity monitor: +{100 * monitor_cost:.1f} % per epoch (medians), +{100 * statistics.median(pairs):.1f} % "
-        f"(median of back-to-back pairs), +{100 * monitor_cpu_cost:.1f} % in thread CPU time (medians); "
-        "target <= 25 %"
+        f"(median of back-to-back pairs), +{100 * monitor_cpu_cost:.1f} % in thread CPU time (medians), "
+        f"+{100 * monitor_min_cost:.1f} % (minimums); target <= 25 %"
     )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

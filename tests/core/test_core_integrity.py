@@ -11,7 +11,9 @@ from edgepos.core.integrity import (
     OK,
     UNAVAILABLE,
     IntegrityBudget,
+    Protection,
     SourceEffect,
+    new_protection,
     protect,
     radial_bound,
     separation_statistics,
@@ -120,3 +122,20 @@ def test_the_protection_level_above_the_alert_limit_is_an_alarm():
 def test_a_singular_covariance_is_unavailable_not_a_number():
     result = protect([[0.0, 0.0], [0.0, 0.0]], [], BUDGET)
     assert result.state == UNAVAILABLE and result.level is None
+
+
+def test_the_trusted_constructor_gives_the_same_protection() -> None:
+    """``new_protection`` (the RSU monitor's per-epoch constructor) builds what ``Protection(level, state)``
+    does: equal both ways, hashed, pickled and printed alike, still frozen and ``dataclasses.replace``-able."""
+    import dataclasses
+    import pickle
+
+    for level, state in ((0.8, OK), (None, UNAVAILABLE), (2.5, ALARM)):
+        built, trusted = Protection(level, state), new_protection(level, state)
+        assert trusted == built and built == trusted and hash(trusted) == hash(built)
+        assert repr(trusted) == repr(built) and pickle.loads(pickle.dumps(trusted)) == built
+        assert trusted.faulty is None and trusted.statistic is None and trusted.threshold is None
+        assert dataclasses.replace(trusted, state=ALARM) == Protection(level, ALARM)
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            trusted.level = 1.0  # type: ignore[misc]
+    assert new_protection(0.8, OK) != Protection(0.8, OK, faulty=1)

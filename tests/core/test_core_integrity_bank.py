@@ -227,3 +227,63 @@ def test_epochs_on_the_kept_plan_equal_the_numpy_steps_as_the_rsus_change(
     assert 6 <= rebuilt < len(heard) // 2, rebuilt
     again = SeparationBank.from_bytes(bank.to_bytes())
     assert again._plan is None and again.to_bytes() == bank.to_bytes()
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_epoch_with_prune_equals_epoch_then_prune(monkeypatch: pytest.MonkeyPatch, compiled: bool) -> None:
+    """``epoch(..., prune=True)`` (what the pipeline calls: the kernel counts the sub-filters prune would
+    drop, so the usual epoch skips it) leaves the bank and gives the outcome that ``epoch`` then ``prune``
+    give, epoch by epoch, as RSUs leave and their sub-filters converge and are dropped, and with a failed
+    test (no prune then: the caller excludes first)."""
+    import copy
+
+    if not compiled:
+        _numpy_bank(monkeypatch)
+    *_, (_, _, _, bank) = _drive(3, 40)
+    separate = copy.deepcopy(bank)
+    budget = IntegrityBudget(1e-5, 1e-4, 1e-2, 10.0)
+    sites = {**RSUS, "D": (-40.0, 25.0)}
+    heard = [["A", "B", "C", "D"]] * 4 + [["A", "D"]] * 60 + [["A", "B", "D"]] * 4
+    rng = np.random.default_rng(4)
+    dropped = failed = 0
+    for k, ids in enumerate(heard):
+        t = bank.t + PERIOD
+        truth = (15.0 * t, 0.0)
+        positions = np.array([sites[rsu] for rsu in ids])
+        dx, dy = truth[0] - positions[:, 0], truth[1] - positions[:, 1]
+        ranges = np.hypot(dx, dy) + rng.normal(0.0, RANGE_STD, len(ids))
+        if k == 66:
+            ranges[ids.index("B")] += 8.0  # B's range biased: its test fails
+        observed = np.column_stack([ranges, np.arctan2(dy, dx)])
+        arrays = (positions, observed, np.full(len(ids), RANGE_STD), np.full(len(ids), BEARING_STD))
+        mean = np.zeros(8)
+        mean[[0, 3]] = bank.means[0, [0, 3]] + [0.1, -0.05]
+        cov = np.eye(8) * 0.05
+        cov[0, 3] = cov[3, 0] = 0.004
+        count = len(bank.ids)
+        together = bank.epoch(t, 10.0, ids, arrays, mean, cov, (0, 3), budget, prune=True)
+        apart = separate.epoch(t, 10.0, ids, arrays, mean, cov, (0, 3), budget)
+        if apart[1] is None:
+            separate.prune(ids)
+        dropped += len(bank.ids) < count
+        failed += together[1] is not None
+        assert together == apart, k
+        assert bank.ids == separate.ids and bank.t == separate.t, k
+        assert np.array_equal(bank.means, separate.means) and np.array_equal(bank.covs, separate.covs), k
+    assert dropped >= 2 and failed >= 1, (dropped, failed)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_bank_with_a_value_not_finite_does_not_decode(
+    monkeypatch: pytest.MonkeyPatch, compiled: bool
+) -> None:
+    if not compiled:
+        _numpy_bank(monkeypatch)
+    *_, (_, _, _, bank) = _drive(2, 10)
+    blob = bank.to_bytes()
+    assert SeparationBank.from_bytes(blob).to_bytes() == blob
+    for value in (math.nan, math.inf, -math.inf):
+        for at in (len(blob) - 8 * bank.covs.size - 8, len(blob) - 8):  # the last mean, the last covariance
+            broken = blob[:at] + np.array([value], dtype="<f8").tobytes() + blob[at + 8 :]
+            with pytest.raises(ValueError, match="not finite"):
+                SeparationBank.from_bytes(broken)

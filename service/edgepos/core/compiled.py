@@ -463,22 +463,9 @@ def warm_up() -> float:
         stepper.gate_distances(prediction.output, epoch)
         for averaged in (False, True):
             stepper.correct(prediction, dataclasses.replace(epoch, averaged=averaged))
-    from edgepos.core.integrity import radial_factor_table
-    from edgepos.core.kernels_integrity import bank_epoch, bank_protect, bank_separations, bank_update
+    from edgepos.core import kernels_integrity
 
-    # the integrity bank's kernels (core.integrity_bank): a reference and one sub-filter, one RSU, with the
-    # argument types the bank passes (the owners of update_arrays read only, all else writable)
-    bank_means, bank_covs = np.zeros((2, 6)), np.tile(np.eye(6), (2, 1, 1))
-    rsu = (np.array([[0.0, -3.875]]), np.array([[4.0, 1.4]]), np.array([0.6]), np.array([0.01]))
-    owners = np.array([1])
-    owners.flags.writeable = False
-    bank_update(bank_means, bank_covs, owners, *rsu)
-    bank_separations(bank_means, bank_covs, np.empty((1, 6)))
-    tables = np.array([radial_factor_table(5e-6), radial_factor_table(0.05)])
-    scalars = np.array([0.05, 10.0, 3.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0])
-    bank_protect(bank_means, bank_covs, scalars, tables, np.zeros(2, dtype=np.int64))
-    flags = np.array([1, 0, 0, 0, 3])  # the owner, the exclusions, the fix's x and y in its mean
-    bank_epoch(bank_means, bank_covs, scalars, tables, flags, *rsu, np.zeros(8), np.eye(8))
+    kernels_integrity.warm_up()  # the integrity bank's kernels (core.integrity_bank)
     from edgepos.core.measurements import gnss_kernel
 
     gnss_kernel.warm_up()  # gnss_tight's pseudorange and range-rate kernel

@@ -51,6 +51,7 @@ from edgepos.core.integrity import (
     UNAVAILABLE,
     IntegrityBudget,
     Protection,
+    new_protection,
     radial_bound,
     radial_factor_table,
     test_threshold,
@@ -63,11 +64,20 @@ _POS = [0, 3]
 #: carries no weight any more and is dropped when its RSU is not in use.
 CONVERGED = 0.01
 #: Indices into the epoch's scalars the compiled kernels read and write (``kernels_integrity.bank_epoch``,
-#: ``bank_protect``): the interval and jerk density of the prediction, the test threshold, the fix's x, y
-#: and covariance xx, xy, yy; then what the kernels write: the protection level, the worst failed
-#: sub-filter (-1: none) and its statistic. One array: numba's dispatch costs per argument.
-DT, JERK, THRESHOLD, FIX_X, FIX_Y, FIX_XX, FIX_XY, FIX_YY, LEVEL, WORST, STATISTIC = range(11)
-_HEADER = struct.Struct("<4sBHd")
+#: ``bank_protect``): the jerk density of the prediction, the test threshold, the fix's x, y and
+#: covariance xx, xy, yy; then what the kernels write: the protection level, the worst failed sub-filter
+#: (-1: none) and its statistic, and how many sub-filters ``prune`` would drop; ``bank_epoch`` also reads
+#: the length of a radial factor table (what follows the scalars in its ``work`` vector). One array:
+#: numba's dispatch costs per argument.
+JERK, THRESHOLD, FIX_X, FIX_Y, FIX_XX, FIX_XY, FIX_YY, LEVEL, WORST, STATISTIC, DROPPABLE, TABLE = range(12)
+SCALARS = TABLE + 1
+#: What ``kernels_integrity.bank_epoch`` returns instead of the protection level when a test failed (the
+#: outcome is in the scalars) or the update did (the bank is predicted only); levels are never negative.
+TEST_FAILED, UPDATE_FAILED = -2.0, -1.0
+_HEADER = struct.Struct("<4sBHdH")  # magic, version, K, t, the exclusions' count
+_LENGTH = struct.Struct("<H")
+_EXCLUSION = struct.Struct("<Hd")
+_FLOAT = np.dtype("<f8")
 _MAGIC = b"EPIB"
 _VERSION = 1
 
@@ -136,9 +146,14 @@ class SeparationBank:
         new = [rsu for rsu in dict.fromkeys(rsu_ids) if rsu not in self.ids]
         if not new:
             return
+        count = len(self.ids)
         self.ids = self.ids + new
-        self.means = np.concatenate([self.means, np.repeat(self.means[:1], len(new), axis=0)])
-        self.covs = np.concatenate([self.covs, np.repeat(self.covs[:1], len(new), axis=0)])
+        # filled in place (fewer numpy calls than concatenating copies: this runs at a batch's first epochs)
+        means = np.empty((count + len(new), DIM))
+        covs = np.empty((count + len(new), DIM, DIM))
+        means[:count], covs[:count] = self.means, self.covs
+        means[count:], covs[count:] = self.means[0], self.covs[0]
+        self.means, self.covs = means, covs
 
     def update(self, measurements: Sequence[RangeBearing]) -> None:
         """One joint EKF update of every filter; sub-filter i skips RSU ids[i]'s rows (on the compiled
@@ -205,9 +220,6 @@ class SeparationBank:
 
     def prune(self, in_use: Sequence[str]) -> None:
         """Drop the sub-filters whose RSU is not in ``in_use`` and no longer weighs on the reference."""
-        plan = self._plan
-        if plan is not None and plan.covered and plan.ids is self.ids and plan.rsu_ids == in_use:
-            return  # the RSUs the last epoch's plan was made for, every sub-filter's among them
         if _covered(self.ids, in_use):
             return
         # on Python floats: a handful of sub-filters, every epoch while an RSU out of view still weighs
@@ -222,7 +234,8 @@ class SeparationBank:
         ]
         if len(keep) < len(self.ids):
             self.ids = [self.ids[i] for i in keep]
-            self.means, self.covs = self.means[keep], self.covs[keep]
+            rows = np.array(keep, dtype=np.intp)  # take(): far cheaper than fancy indexing with a list
+            self.means, self.covs = self.means.take(rows, 0), self.covs.take(rows, 0)
 
     def exclude(self, rsu_id: str, until: float) -> None:
         """RSU ``rsu_id`` failed its test: the pipeline and the bank leave it out until ``until`` (s). Every
@@ -300,12 +313,14 @@ class SeparationBank:
         cov: np.ndarray,
         position: tuple[int, int],
         budget: IntegrityBudget,
+        prune: bool = False,
     ) -> tuple[Protection, str | None]:
         """:meth:`step` for the fix of an estimate whose x and y are ``mean[position]`` with covariance
         ``cov`` (what the pipeline has: its output Gaussian, read in place). On one compiled kernel call when
         the kernels are enabled (``kernels_integrity.bank_epoch``), with what only changes with the RSUs in
         use, the sub-filters, the exclusions or the options kept from the epoch before (``_Plan``); else
-        the numpy steps."""
+        the numpy steps. ``prune``: when no test failed (no RSU to exclude), :meth:`prune` for ``rsu_ids``
+        too, after the outcome (the kernel counts what it would drop, so the usual epoch skips it)."""
         plan = self._plan
         if (  # the plan of the epoch before serves (inline: this runs every epoch of every session)
             plan is None
@@ -314,7 +329,7 @@ class SeparationBank:
             or plan.budget is not budget
             or plan.jerk_density != jerk_density
             or plan.position != position
-            or plan.excluded != self.excluded.keys()
+            or ((plan.excluded or self.excluded) and plan.excluded != self.excluded.keys())
         ):
             if not _compiled():  # (a plan exists only when the kernels are enabled)
                 x, y = position
@@ -322,28 +337,40 @@ class SeparationBank:
                 self.spawn(rsu_ids)
                 self.predict(t, jerk_density)
                 self.update_arrays(rsu_ids, *arrays)
-                return self.protect_fix(fix, budget)
+                return self._pruned(self.protect_fix(fix, budget), rsu_ids, prune)
             self.spawn(rsu_ids)
             plan = self._plan = _Plan.make(self, rsu_ids, jerk_density, budget, position)
         scalars = plan.scalars
-        scalars[DT] = t - self.t
-        self.t = max(t, self.t)
-        # the bank's arrays are C-contiguous float64 as every method leaves them; the estimate's are made so
-        mean, cov = np.ascontiguousarray(mean), np.ascontiguousarray(cov)
-        if plan.kernel(self.means, self.covs, scalars, plan.tables, plan.flags, *arrays, mean, cov):
+        dt = t - self.t
+        if not self.t > t:  # self.t = max(t, self.t), NaN alike, without the builtin's call (every epoch)
+            self.t = t
+        # the bank's arrays are C-contiguous float64 as every method leaves them; the estimate's are read as
+        # they come (the pipeline's are fresh C-contiguous float64 arrays; another layout compiles once)
+        level = plan.kernel(self.means, self.covs, scalars, dt, *arrays, mean, cov)
+        if 0.0 <= level <= budget.alert_limit:  # the usual outcome: every test passed, within the limit
+            # prune drops nothing when every sub-filter's RSU is in use or the kernel found none converged
+            if prune and not plan.covered and scalars[DROPPABLE]:
+                self.prune(rsu_ids)
+            return new_protection(level, OK), None
+        if level == UPDATE_FAILED:
             self._update_reference(rsu_ids, _data(*arrays))  # predicted already: the numpy update, the bound
             x, y = position
             fix = (float(mean[x]), float(mean[y]), float(cov[x, x]), float(cov[x, y]), float(cov[y, y]))
-            return self.protect_fix(fix, budget)
-        level, worst = scalars.tolist()[LEVEL:STATISTIC]  # as _protection, inline: every epoch
-        if worst < 0.0 and level <= budget.alert_limit:  # the usual outcome: no test failed, within the limit
-            return Protection(level, OK), None
-        return self._protection(scalars, budget)
+            return self._pruned(self.protect_fix(fix, budget), rsu_ids, prune)
+        return self._pruned(self._protection(scalars, budget), rsu_ids, prune)
+
+    def _pruned(
+        self, outcome: tuple[Protection, str | None], rsu_ids: Sequence[str], prune: bool
+    ) -> tuple[Protection, str | None]:
+        """``outcome``, after :meth:`prune` for ``rsu_ids`` when asked to and no test failed."""
+        if prune and outcome[1] is None:
+            self.prune(rsu_ids)
+        return outcome
 
     def _protection(self, scalars: np.ndarray, budget: IntegrityBudget) -> tuple[Protection, str | None]:
         """The outcome the compiled ``bank_protect`` wrote into ``scalars`` (level, worst failed sub-filter,
         statistic)."""
-        values = scalars.tolist()
+        values = scalars[:SCALARS].tolist()
         level = values[LEVEL]
         if not math.isfinite(level):
             return Protection(None, UNAVAILABLE), None
@@ -381,7 +408,8 @@ class SeparationBank:
         bank_protect = _kernels().bank_protect
 
         tables, threshold = budget_tables(budget, len(self.ids) - 1)
-        scalars = np.array([0.0, 0.0, threshold, *fix, 0.0, 0.0, 0.0])
+        # JERK, THRESHOLD, the fix (FIX_X .. FIX_YY), LEVEL, WORST, STATISTIC, DROPPABLE, TABLE
+        scalars = np.array([0.0, threshold, *fix, 0.0, 0.0, 0.0, 0.0, tables.shape[1]])
         excluded = np.array(self._flags([]))  # writable, as the tables: the kernel signature warm-up compiles
         bank_protect(
             np.ascontiguousarray(self.means),
@@ -395,43 +423,45 @@ class SeparationBank:
     def to_bytes(self) -> bytes:
         """Little-endian: magic, version, K, t; the exclusions (count, then uint16 length, end time, UTF-8 id);
         then K ids (uint16 length + UTF-8), means and covariances."""
-        parts = [_HEADER.pack(_MAGIC, _VERSION, len(self.ids), self.t), struct.pack("<H", len(self.excluded))]
+        parts = [_HEADER.pack(_MAGIC, _VERSION, len(self.ids), self.t, len(self.excluded))]
         for rsu, until in self.excluded.items():
             raw = rsu.encode()
-            parts.append(struct.pack("<Hd", len(raw), until) + raw)
+            parts.append(_EXCLUSION.pack(len(raw), until) + raw)
         for rsu in self.ids:
             raw = rsu.encode()
-            parts.append(struct.pack("<H", len(raw)) + raw)
-        parts.append(np.asarray(self.means, dtype="<f8").tobytes())
-        parts.append(np.asarray(self.covs, dtype="<f8").tobytes())
+            parts.append(_LENGTH.pack(len(raw)) + raw)
+        parts.append(np.asarray(self.means, dtype=_FLOAT).tobytes())
+        parts.append(np.asarray(self.covs, dtype=_FLOAT).tobytes())
         return b"".join(parts)
 
     @staticmethod
     def from_bytes(blob: bytes) -> SeparationBank:
         """The bank ``to_bytes`` wrote; ValueError when ``blob`` is not one."""
         try:
-            magic, version, count, t = _HEADER.unpack_from(blob)
+            magic, version, count, t, excluded_count = _HEADER.unpack_from(blob)
             if magic != _MAGIC or version != _VERSION or count < 1:
                 raise ValueError("not an integrity bank")
-            (excluded_count,) = struct.unpack_from("<H", blob, _HEADER.size)
-            offset = _HEADER.size + 2
+            offset = _HEADER.size
             excluded = {}
             for _ in range(excluded_count):
-                length, until = struct.unpack_from("<Hd", blob, offset)
+                length, until = _EXCLUSION.unpack_from(blob, offset)
                 excluded[blob[offset + 10 : offset + 10 + length].decode()] = until
                 offset += 10 + length
             ids = []
             for _ in range(count):
-                (length,) = struct.unpack_from("<H", blob, offset)
+                (length,) = _LENGTH.unpack_from(blob, offset)
                 ids.append(blob[offset + 2 : offset + 2 + length].decode())
                 offset += 2 + length
             floats = count * (DIM + DIM * DIM)
             if len(blob) != offset + 8 * floats:
                 raise ValueError("integrity bank is truncated")
-            values = np.frombuffer(blob, dtype="<f8", count=floats, offset=offset).astype(float)
+            values = np.frombuffer(blob, dtype=_FLOAT, count=floats, offset=offset).astype(float)
         except (struct.error, UnicodeDecodeError) as error:
             raise ValueError(f"integrity bank is corrupt: {error!r}") from None
-        if not np.isfinite(values).all() or not math.isfinite(t):
+        # on the compiled kernel when the kernels are enabled: every batch decodes the bank, and numpy's
+        # isfinite and reduction cost several microseconds there
+        finite = _kernels().all_finite(values) if _compiled() else bool(np.isfinite(values).all())
+        if not finite or not math.isfinite(t):
             raise ValueError("integrity bank is not finite")
         means = values[: count * DIM].reshape(count, DIM)
         return SeparationBank(ids, means, values[count * DIM :].reshape(count, DIM, DIM), t, excluded)
@@ -442,13 +472,14 @@ def _covered(ids: Sequence[str], rsu_ids: Sequence[str]) -> bool:
     return len(ids) - 1 <= len(rsu_ids) and set(ids[1:]).issubset(rsu_ids)
 
 
-@dataclass
+@dataclass(slots=True)
 class _Plan:
-    """What ``SeparationBank.epoch`` hands the compiled kernel besides the filters and the epoch's data: the
-    per-measurement owners, the exclusions and the fix's indices (``flags``), the radial factor tables,
-    and the scalars array with the jerk density and test threshold filled in. It changes only with the
-    RSUs in use, the sub-filters, the exclusions, the options or the fix's layout, so one serves epoch
-    after epoch; what was an allocation of id tuples, flags and scalars per epoch is a few comparisons."""
+    """What ``SeparationBank.epoch`` hands the compiled kernel besides the filters and the epoch's data: one
+    vector (``kernels_integrity.bank_epoch``'s ``work``) with the jerk density, the test threshold, the
+    radial factor tables, the per-measurement owners, the exclusions and the fix's indices filled in, and
+    room for the kernel's outcome and scratch. It changes only with the RSUs in use, the sub-filters, the
+    exclusions, the options or the fix's layout, so one serves epoch after epoch; what was an allocation
+    of id tuples, flags and scalars per epoch is a few comparisons."""
 
     ids: list[str]  # the bank's ids list it was made for (spawn and prune replace the list, never mutate it)
     rsu_ids: list[str]
@@ -457,10 +488,8 @@ class _Plan:
     jerk_density: float
     position: tuple[int, int]
     covered: bool  # every sub-filter's RSU is in use: prune has nothing to drop
-    flags: np.ndarray
-    tables: np.ndarray
-    scalars: np.ndarray
-    kernel: Callable[..., int]  # kernels_integrity.bank_epoch
+    scalars: np.ndarray  # the kernel's work vector, the scalars at its head
+    kernel: Callable[..., float]  # kernels_integrity.bank_epoch
 
     @staticmethod
     def make(
@@ -470,50 +499,39 @@ class _Plan:
         budget: IntegrityBudget,
         position: tuple[int, int],
     ) -> _Plan:
-        """The plan for ``bank`` (its sub-filters spawned for ``rsu_ids`` already); makes the bank's arrays
-        C-contiguous float64, which the bank's methods then keep them (the kernel writes them in place)."""
-        bank.means = np.ascontiguousarray(bank.means, dtype=float)
-        bank.covs = np.ascontiguousarray(bank.covs, dtype=float)
+        """The plan for ``bank`` (its sub-filters spawned for ``rsu_ids`` already). The kernel writes the
+        bank's arrays in place, as they are: C-contiguous float64 as every method and ``from_bytes`` leave
+        them (arrays of another layout, given to the constructor, compile another signature once)."""
         excluded = frozenset(bank.excluded)
-        flags, tables, threshold, covered = _plan_arrays(
-            tuple(bank.ids), tuple(rsu_ids), excluded, budget, position
-        )
-        scalars = np.zeros(STATISTIC + 1)
-        scalars[JERK], scalars[THRESHOLD] = jerk_density, threshold
+        work, covered = _plan_work(tuple(bank.ids), tuple(rsu_ids), excluded, budget, position, jerk_density)
+        kernel = _kernels().bank_epoch
         return _Plan(
-            bank.ids,
-            list(rsu_ids),
-            excluded,
-            budget,
-            jerk_density,
-            position,
-            covered,
-            flags,
-            tables,
-            scalars,
-            _kernels().bank_epoch,
+            bank.ids, list(rsu_ids), excluded, budget, jerk_density, position, covered, work.copy(), kernel
         )
 
 
 @functools.lru_cache(maxsize=1024)
-def _plan_arrays(
+def _plan_work(
     ids: tuple[str, ...],
     rsu_ids: tuple[str, ...],
     excluded: frozenset[str],
     budget: IntegrityBudget,
     position: tuple[int, int],
-) -> tuple[np.ndarray, np.ndarray, float, bool]:
-    """A plan's flags, tables, test threshold and ``covered``, shared by the banks with the same sub-filters,
-    RSUs in use, exclusions, budget and fix layout (sessions rebuild their plan every batch, the bank decoded
-    anew). The arrays are writable, since numba types a read-only argument on its slow path every call;
-    nothing writes them."""
+    jerk_density: float,
+) -> tuple[np.ndarray, bool]:
+    """A plan's work vector as it starts (read only: each plan writes its own copy) and ``covered``, shared by
+    the banks with the same sub-filters, RSUs in use, exclusions, options and fix layout (sessions rebuild
+    their plan every batch, the bank decoded anew)."""
     index = {rsu: k for k, rsu in enumerate(ids) if k}
-    flags = np.array(
-        [index.get(rsu, -1) for rsu in rsu_ids] + [rsu in excluded for rsu in ids] + list(position),
-        dtype=np.int64,
-    )
+    flags = [index.get(rsu, -1) for rsu in rsu_ids] + [rsu in excluded for rsu in ids] + list(position)
     tables, threshold = budget_tables(budget, len(ids) - 1)
-    return flags, tables.copy(), threshold, _covered(ids, rsu_ids)
+    table = tables.shape[1]
+    work = np.zeros(_kernels().work_size(len(rsu_ids), len(ids), table))
+    work[JERK], work[THRESHOLD], work[TABLE] = jerk_density, threshold, table
+    work[SCALARS : SCALARS + 2 * table] = tables.ravel()
+    work[SCALARS + 2 * table : SCALARS + 2 * table + len(flags)] = flags
+    work.flags.writeable = False
+    return work, _covered(ids, rsu_ids)
 
 
 @functools.lru_cache(maxsize=1024)

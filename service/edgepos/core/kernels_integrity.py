@@ -11,7 +11,8 @@ import math
 import numpy as np
 
 from edgepos.core.integrity_bank import (
-    DT,
+    CONVERGED,
+    DROPPABLE,
     FIX_X,
     FIX_XX,
     FIX_XY,
@@ -19,8 +20,12 @@ from edgepos.core.integrity_bank import (
     FIX_YY,
     JERK,
     LEVEL,
+    SCALARS,
     STATISTIC,
+    TABLE,
+    TEST_FAILED,
     THRESHOLD,
+    UPDATE_FAILED,
     WORST,
 )
 from edgepos.core.kernels_base import FAILED, OK, IntArray, _jit
@@ -52,10 +57,41 @@ def bank_update(
     for x and y, and o its position's offset from the reference's (the linearisation point),
     J = sum J_j, g = sum g_j - J o, M = (I + J C)^-1 give m += Cx M g and P -= Cx M J Cx^T (Woodbury:
     the Kalman gain over the stacked rows, without their 2n x 2n innovation covariance)."""
+    measurements = positions.shape[0]
+    return _update(
+        means,
+        covs,
+        owner,
+        positions,
+        observed,
+        range_std,
+        bearing_std,
+        np.empty((measurements, 3)),
+        np.empty((measurements, 2)),
+        np.empty_like(means),
+        np.empty_like(covs),
+    )
+
+
+@_jit
+def _update(
+    means: FloatArray,
+    covs: FloatArray,
+    owner: FloatArray | IntArray,
+    positions: FloatArray,
+    observed: FloatArray,
+    range_std: FloatArray,
+    bearing_std: FloatArray,
+    information: FloatArray,
+    score: FloatArray,
+    new_means: FloatArray,
+    new_covs: FloatArray,
+) -> int:
+    """``bank_update`` with its scratch given: ``information`` (n, 3) for J_j as xx, xy, yy, ``score``
+    (n, 2) for g_j, ``new_means`` and ``new_covs`` shaped as the bank's (every element written before
+    they are copied back)."""
     count = means.shape[0]
     measurements = positions.shape[0]
-    information = np.zeros((measurements, 3))  # J_j as xx, xy, yy
-    score = np.zeros((measurements, 2))  # g_j
     for j in range(measurements):
         dx = means[0, 0] - positions[j, 0]
         dy = means[0, 3] - positions[j, 1]
@@ -72,8 +108,6 @@ def bank_update(
         information[j, 2] = wr * ry * ry + wb * by * by
         score[j, 0] = wr * rx * range_residual + wb * bx * bearing_residual
         score[j, 1] = wr * ry * range_residual + wb * by * bearing_residual
-    new_means = means.copy()
-    new_covs = covs.copy()
     for k in range(count):
         ja = jb = jd = ga = gb = 0.0
         for j in range(measurements):
@@ -155,8 +189,22 @@ def bank_separations(means: FloatArray, covs: FloatArray, out: FloatArray) -> No
 def bank_predict(means: FloatArray, covs: FloatArray, dt: float, jerk_density: float) -> None:
     """In place: every filter to ``dt`` s later under white jerk of density ``jerk_density`` per axis, as
     the bank's numpy ``predict`` (F m, F C F^T + Q with the constant-acceleration F and Q per axis)."""
-    transition = np.zeros((6, 6))
-    noise = np.zeros((6, 6))
+    _predict(means, covs, dt, jerk_density, np.zeros((6, 6)), np.zeros((6, 6)), np.zeros(6), np.zeros((6, 6)))
+
+
+@_jit
+def _predict(
+    means: FloatArray,
+    covs: FloatArray,
+    dt: float,
+    jerk_density: float,
+    transition: FloatArray,
+    noise: FloatArray,
+    mean: FloatArray,
+    product: FloatArray,
+) -> None:
+    """``bank_predict`` with its scratch given: ``transition`` and ``noise`` (6x6, zero but where F and Q
+    are written: the same entries every call), ``mean`` (6) and ``product`` (6x6)."""
     dt2, dt3 = dt * dt, dt * dt * dt
     for o in (0, 3):
         transition[o, o] = transition[o + 1, o + 1] = transition[o + 2, o + 2] = 1.0
@@ -168,8 +216,6 @@ def bank_predict(means: FloatArray, covs: FloatArray, dt: float, jerk_density: f
         noise[o + 1, o + 1] = jerk_density * dt3 / 3.0
         noise[o + 1, o + 2] = noise[o + 2, o + 1] = jerk_density * dt2 / 2.0
         noise[o + 2, o + 2] = jerk_density * dt
-    mean = np.zeros(6)
-    product = np.zeros((6, 6))
     for k in range(means.shape[0]):
         for i in range(6):
             o = 3 * (i // 3)  # F is block diagonal: row i mixes only its own axis' three states
@@ -214,7 +260,11 @@ def radial_bound(a: float, b: float, d: float, factors: FloatArray) -> float:
 
 @_jit
 def bank_protect(
-    means: FloatArray, covs: FloatArray, scalars: FloatArray, tables: FloatArray, excluded: IntArray
+    means: FloatArray,
+    covs: FloatArray,
+    scalars: FloatArray,
+    tables: FloatArray,
+    excluded: FloatArray | IntArray,
 ) -> None:
     """The protection level of the fix from the bank, as ``core.integrity_bank.protect_with_bank``: reads
     the fix (x, y, covariance xx, xy, yy) and the test threshold from ``scalars`` (indices above), the
@@ -239,43 +289,149 @@ def bank_protect(
 
 
 @_jit
+def droppable(means: FloatArray, covs: FloatArray, owner: FloatArray) -> int:
+    """How many sub-filters ``SeparationBank.prune`` would drop after this epoch: those no measurement's
+    ``owner`` names (their RSU not in use) whose position covariance (trace) exceeds the reference's by
+    no more than ``CONVERGED`` of it; the same comparison as prune's, in the same double arithmetic."""
+    reference = covs[0, 0, 0] + covs[0, 3, 3]
+    bound = CONVERGED * reference
+    count = 0
+    for k in range(1, means.shape[0]):
+        in_use = False
+        for j in range(owner.shape[0]):
+            if owner[j] == k:
+                in_use = True
+        if not in_use and not (covs[k, 0, 0] + covs[k, 3, 3]) - reference > bound:
+            count += 1
+    return count
+
+
+@_jit
+def all_finite(values: FloatArray) -> bool:
+    """Whether every value is finite (the bank's decoding checks its arrays)."""
+    for value in values:
+        if not math.isfinite(value):
+            return False
+    return True
+
+
+def work_size(measurements: int, filters: int, table: int) -> int:
+    """Length of ``bank_epoch``'s ``work`` vector for ``measurements`` RSUs, ``filters`` filters and
+    radial factor tables of ``table`` entries."""
+    return (
+        SCALARS + 2 * table + measurements + filters + 2 + _PREDICT_SCRATCH + 5 * measurements + 42 * filters
+    )
+
+
+_PREDICT_SCRATCH = 3 * 36 + 6  # bank_predict's F, Q, F C rows and F m
+
+
+@_jit
 def bank_epoch(
     means: FloatArray,
     covs: FloatArray,
-    scalars: FloatArray,
-    tables: FloatArray,
-    flags: IntArray,
+    work: FloatArray,
+    dt: float,
     positions: FloatArray,
     observed: FloatArray,
     range_std: FloatArray,
     bearing_std: FloatArray,
     fix_mean: FloatArray,
     fix_cov: FloatArray,
-) -> int:
-    """One epoch of the bank in one call: ``bank_predict`` over ``scalars[DT]`` (none when it is not
-    positive) with ``scalars[JERK]``, ``bank_update`` with the n RSUs of ``positions`` .. ``bearing_std``
-    (their owners in ``flags[:n]``), then the fix read from the reported estimate's mean and covariance
-    (x and y at the indices ``flags[n + K]`` and ``flags[n + K + 1]``, K the filters) into ``scalars``
-    and ``bank_protect`` for it (the filters' exclusions in ``flags[n:n + K]``). A fix whose position
-    covariance is not positive definite has no bound: the level written is NaN (the bank steps on).
-    Returns OK, or FAILED when the update failed: the bank is then predicted, not updated, and no
-    outcome written (the caller finishes the epoch on the numpy reference). Few arguments: numba's
-    dispatch costs about a tenth of a microsecond per array."""
-    if scalars[DT] > 0.0:
-        bank_predict(means, covs, scalars[DT], scalars[JERK])
+) -> float:
+    """One epoch of the bank in one call: ``bank_predict`` over ``dt`` s (none when it is not positive)
+    with ``work[JERK]``, ``bank_update`` with the n RSUs of ``positions`` .. ``bearing_std``,
+    the count of sub-filters prune would drop into ``work[DROPPABLE]`` (``droppable``), then the fix read
+    from the reported estimate's mean and covariance into ``work`` (``FIX_X`` ..) and ``bank_protect``
+    for it. A fix whose position covariance is not positive definite has no bound: the level written is
+    NaN (the bank steps on).
+
+    ``work`` holds, after the scalars (``core.integrity_bank``'s indices, ``TABLE`` the length of a radial
+    factor table), the fault-free and per-hypothesis tables, then as whole numbers the RSUs' owners (the
+    sub-filter that leaves each out, -1: none), per filter 1 if its RSU is excluded already, and the
+    indices of x and y in the estimate; then the kernels' scratch (``work_size``). One array for all the
+    epoch's constants and temporaries: numba's dispatch costs about a tenth of a microsecond per array
+    argument, and an allocation in the kernels about as much.
+
+    Returns the protection level when every test passed (NaN for a fix without a bound), ``TEST_FAILED``
+    when one failed (the outcome in ``work``), or ``UPDATE_FAILED`` when the update failed: the bank is
+    then predicted, not updated, and no outcome written (the caller finishes the epoch on the numpy
+    reference). The level as the return value saves the caller reading it back in the usual epoch."""
     count = positions.shape[0]
-    if (
-        count > 0
-        and bank_update(means, covs, flags[:count], positions, observed, range_std, bearing_std) != OK
-    ):
-        return FAILED
     filters = means.shape[0]
-    x, y = flags[count + filters], flags[count + filters + 1]
+    table = int(work[TABLE])
+    tables = work[SCALARS : SCALARS + 2 * table].reshape((2, table))
+    start = SCALARS + 2 * table  # the owners, the exclusions, x and y
+    owner = work[start : start + count]
+    excluded = work[start + count : start + count + filters]
+    x, y = int(work[start + count + filters]), int(work[start + count + filters + 1])
+    scratch = start + count + filters + 2
+    if dt > 0.0:
+        _predict(
+            means,
+            covs,
+            dt,
+            work[JERK],
+            work[scratch : scratch + 36].reshape((6, 6)),
+            work[scratch + 36 : scratch + 72].reshape((6, 6)),
+            work[scratch + 72 : scratch + 78],
+            work[scratch + 78 : scratch + 114].reshape((6, 6)),
+        )
+    scratch += _PREDICT_SCRATCH
+    if count > 0:
+        status = _update(
+            means,
+            covs,
+            owner,
+            positions,
+            observed,
+            range_std,
+            bearing_std,
+            work[scratch : scratch + 3 * count].reshape((count, 3)),
+            work[scratch + 3 * count : scratch + 5 * count].reshape((count, 2)),
+            work[scratch + 5 * count : scratch + 5 * count + 6 * filters].reshape((filters, 6)),
+            work[scratch + 5 * count + 6 * filters : scratch + 5 * count + 42 * filters].reshape(
+                (filters, 6, 6)
+            ),
+        )
+        if status != OK:
+            return UPDATE_FAILED
+    work[DROPPABLE] = droppable(means, covs, owner)
     xx, xy, yy = fix_cov[x, x], fix_cov[x, y], fix_cov[y, y]
-    scalars[FIX_X], scalars[FIX_Y] = fix_mean[x], fix_mean[y]
-    scalars[FIX_XX], scalars[FIX_XY], scalars[FIX_YY] = xx, xy, yy
+    work[FIX_X], work[FIX_Y] = fix_mean[x], fix_mean[y]
+    work[FIX_XX], work[FIX_XY], work[FIX_YY] = xx, xy, yy
     if not (xx > 0.0 and yy > 0.0 and xx * yy > xy * xy):  # as core.integrity_bank._proper
-        scalars[LEVEL], scalars[WORST], scalars[STATISTIC] = math.nan, -1.0, 0.0
-        return OK
-    bank_protect(means, covs, scalars, tables, flags[count : count + filters])
-    return OK
+        work[LEVEL], work[WORST], work[STATISTIC] = math.nan, -1.0, 0.0
+        return math.nan
+    bank_protect(means, covs, work, tables, excluded)
+    if work[WORST] >= 0.0:
+        return TEST_FAILED
+    level: float = work[LEVEL]
+    return level
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the signatures the bank calls: a reference and one sub-filter,
+    one RSU, with the argument types the bank passes (the owners of ``update_arrays`` read only, all else
+    writable). ``core.compiled.warm_up`` calls it."""
+    from edgepos.core.integrity import radial_factor_table
+
+    means, covs = np.zeros((2, 6)), np.tile(np.eye(6), (2, 1, 1))
+    rsu = (np.array([[0.0, -3.875]]), np.array([[4.0, 1.4]]), np.array([0.6]), np.array([0.01]))
+    owners = np.array([1])
+    owners.flags.writeable = False
+    bank_update(means, covs, owners, *rsu)
+    bank_separations(means, covs, np.empty((1, 6)))
+    tables = np.array([radial_factor_table(5e-6), radial_factor_table(0.05)])
+    scalars = np.zeros(SCALARS)
+    scalars[JERK], scalars[THRESHOLD] = 10.0, 3.0
+    scalars[FIX_XX], scalars[FIX_YY] = 1.0, 1.0
+    bank_protect(means, covs, scalars, tables, np.zeros(2, dtype=np.int64))
+    table = tables.shape[1]
+    work = np.zeros(work_size(1, 2, table))
+    work[:SCALARS] = scalars
+    work[TABLE] = table
+    work[SCALARS : SCALARS + 2 * table] = tables.ravel()
+    work[SCALARS + 2 * table : SCALARS + 2 * table + 5] = [1, 0, 0, 0, 3]  # owner, exclusions, x and y
+    bank_epoch(means, covs, work, 0.05, *rsu, np.zeros(8), np.eye(8))
+    all_finite(np.zeros(6))

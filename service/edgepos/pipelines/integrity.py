@@ -123,6 +123,24 @@ class RsuIntegrity:
         )
 
 
+# The monitor and jerk density of the options last seen, by identity: a session's options are the dict
+# ``rsu_imu`` decodes once per options key and shares (never changed), so consecutive epochs find it here
+# for one comparison where ``RsuIntegrity.of`` reads five options and hashes them. One tuple, replaced
+# whole: a thread reads a consistent entry.
+_last: tuple[Mapping[str, Any] | None, RsuIntegrity | None, float] = (None, None, 0.0)
+
+
+def _monitor_of(options: Mapping[str, Any]) -> tuple[RsuIntegrity, float]:
+    """The monitor of a session's options (``RsuIntegrity.of``) and the sub-filters' jerk density."""
+    global _last
+    last = _last
+    if last[0] is options:
+        return last[1], last[2]  # type: ignore[return-value]  # set together with last[0]
+    monitor, jerk_density = RsuIntegrity.of(options), options["integrity_jerk_psd"]
+    _last = (options, monitor, jerk_density)
+    return monitor, jerk_density
+
+
 @functools.lru_cache(maxsize=256)
 def _monitor(
     risk: float,
@@ -212,7 +230,7 @@ def monitored_update(
     cannot be acted on (exclusion off, the only RSU, or an RSU not in use) puts the fix in alarm. Returns
     the update, the RSUs and measurements it used, the protection and the bank (started from the
     pipeline's ``prior`` of this epoch when the session has none yet)."""
-    monitor = RsuIntegrity.of(options)
+    monitor, jerk_density = _monitor_of(options)
     if bank is not None and bank.excluded:
         held = bank.excluded_now(t)
         kept = [i for i in candidates if _rsu_id(i, observations) not in held]
@@ -229,15 +247,18 @@ def monitored_update(
     output = output_of(result)
     protection, faulty = bank.epoch(
         t,
-        options["integrity_jerk_psd"],
+        jerk_density,
         in_use,
         arrays,
         output.mean,
         output.cov,
         _position_index(output.components),
         monitor.budget,
+        prune=True,  # when no test failed: the usual epoch's prune decided by the kernel
     )
-    if faulty is not None and monitor.exclusion and faulty in in_use and len(candidates) > 1:
+    if faulty is None:
+        return result, candidates, measured, protection, bank
+    if monitor.exclusion and faulty in in_use and len(candidates) > 1:
         index = candidates[in_use.index(faulty)]
         uses[index] = MeasurementUse(
             index,
