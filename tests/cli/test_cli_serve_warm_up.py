@@ -88,6 +88,14 @@ def test_a_first_start_prints_the_line_before_the_port_opens(tmp_path: Path) -> 
     assert len(lines) == 1
     assert "compiling the filter kernels the first time" in lines[0] and " done in " in lines[0]
     assert str(tmp_path / "numba") in lines[0]
+    # every kernel was compiled and cached by the warm-up, none left for a request to compile: checked on
+    # the fresh directory, where no earlier test or run can have cached one
+    indexed = {path.name.split("-")[0] for path in (tmp_path / "numba").rglob("*.nbi")}
+    kernels = {
+        f"{Path(d.py_func.__code__.co_filename).stem}.{d.py_func.__qualname__}"
+        for d in compiled._kernel_dispatchers()
+    }
+    assert kernels - indexed == set()
 
 
 def test_the_documented_line_is_the_one_printed(monkeypatch: pytest.MonkeyPatch) -> None:

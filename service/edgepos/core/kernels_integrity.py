@@ -420,6 +420,7 @@ def warm_up() -> None:
     rsu = (np.array([[0.0, -3.875]]), np.array([[4.0, 1.4]]), np.array([0.6]), np.array([0.01]))
     owners = np.array([1])
     owners.flags.writeable = False
+    bank_predict(means, covs, 0.05, 10.0)
     bank_update(means, covs, owners, *rsu)
     bank_separations(means, covs, np.empty((1, 6)))
     tables = np.array([radial_factor_table(5e-6), radial_factor_table(0.05)])
