@@ -191,3 +191,21 @@ def test_the_risk_share_out_of_bounds_is_refused_by_field(name: str, option: str
     with pytest.raises(PipelineInputError) as caught:
         get_pipeline(name).resolve_options({option: value})
     assert option in str(caught.value.problems)
+
+
+def test_federated_without_feedback_keeps_the_filters_protection_level() -> None:
+    # Without feedback the fix's innovation tests the GPS sub-filter, not the fused fix: nothing measures
+    # the fused fix's scale, and its protection level is the filter's (not unavailable for want of a bound).
+    pipeline = v2x_federated.V2xFederatedPipeline()
+    run = sim.make_run(0, 0, "straight")
+    options = {"feedback": False, "integrity": True}
+    levels = {}
+    for scale in (False, True):
+        state = pipeline.create(pipeline.resolve_options({**options, "consistency_scale": scale}), None)
+        out = []
+        for k in range(15):
+            batch = [o for o in run.observations[0][k] if o.kind in OWN]
+            fixes, state = pipeline.process(state, batch, StaticEnvironment(vehicle_id="veh-1"))
+            out.append(fixes[-1].protection_level)
+        levels[scale] = out
+    assert levels[True] == levels[False] and levels[True][-1] is not None
