@@ -34,8 +34,8 @@ def _feed(
     memory = memory or ConsistencyScale()
     root = np.linalg.cholesky(true_scale * state_part + noise)
     for k in range(epochs):
-        nis, share = innovation_terms(root @ rng.standard_normal(2), state_part, noise)
-        memory = memory.updated(start + dt * k, nis, 2, share, TAU)
+        nis, share, square = innovation_terms(root @ rng.standard_normal(2), state_part, noise)
+        memory = memory.updated(start + dt * k, nis, 2, share, TAU, square=square)
     return memory
 
 
@@ -63,8 +63,8 @@ def test_nis_over_its_dof_alone_would_hide_what_the_scale_finds() -> None:
     nis = np.array([d[0] for d in draws])
     assert nis.mean() / 2.0 < 1.15  # the plain check barely moves
     memory = ConsistencyScale()
-    for k, (e, a) in enumerate(draws):
-        memory = memory.updated(float(k), e, 2, a, 1e6)
+    for k, (e, a, b) in enumerate(draws):
+        memory = memory.updated(float(k), e, 2, a, 1e6, square=b)
     assert memory.estimate == pytest.approx(4.0, rel=0.15)
 
 
@@ -74,9 +74,9 @@ def test_one_outlier_barely_moves_it() -> None:
     rng = np.random.default_rng(3)
     memory = _feed(rng, 1.0, state_part, noise, 200)
     before = memory.estimate
-    nis, share = innovation_terms(np.array([60.0, -40.0]), state_part, noise)  # a 70 m reflection
+    nis, share, square = innovation_terms(np.array([60.0, -40.0]), state_part, noise)  # a 70 m reflection
     assert nis > 1000.0
-    after = memory.updated(200 * 0.2, nis, 2, share, TAU)
+    after = memory.updated(200 * 0.2, nis, 2, share, TAU, square=square)
     assert after.estimate - before < 0.15
     # without the clip the same epoch would have added (nis - (2 - a)) / sum(a)
     assert (nis - (2.0 - share)) / (memory.share + share) > 10.0
@@ -101,10 +101,12 @@ def test_memory_follows_a_change_over_its_time_constant() -> None:
 
 def test_updates_that_say_nothing_leave_it() -> None:
     memory = ConsistencyScale(3.0, 1.5, 2.0)
-    assert memory.updated(3.0, math.nan, 2, 0.5, TAU) is memory
-    assert memory.updated(3.0, 1.0, 2, 0.0, TAU) is memory
+    assert memory.updated(3.0, math.nan, 2, 0.5, TAU, square=0.2) is memory
+    assert memory.updated(3.0, 1.0, 2, 0.0, TAU, square=0.0) is memory
+    assert memory.updated(3.0, 1.0, 2, 0.5, TAU, square=math.nan) is memory
     assert innovation_terms(np.zeros(2), np.zeros((2, 2)), -np.eye(2)) == (
         pytest.approx(math.nan, nan_ok=True),
+        0.0,
         0.0,
     )
 
@@ -116,7 +118,10 @@ def test_plain_data_round_trip_and_old_states() -> None:
     assert ConsistencyScale.from_list(values) == memory
     assert ConsistencyScale.from_list(None) == ConsistencyScale()  # stored before the scale existed
     assert ConsistencyScale.from_list([]) == ConsistencyScale()
-    for bad in ([1.0, 2.0], [1.0, -2.0, 3.0], [math.inf, 1.0, 1.0]):
+    assert len(values) == 6 and memory.spread_square > 0.0
+    # three numbers: written before the bound, the estimate's sums alone
+    assert ConsistencyScale.from_list(values[:3]) == ConsistencyScale(*values[:3])
+    for bad in ([1.0, 2.0], [1.0, -2.0, 3.0], [math.inf, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0, -1.0, 1.0]):
         with pytest.raises(ValueError):
             ConsistencyScale.from_list(bad)
 
@@ -127,12 +132,14 @@ def test_gnss_fix_terms_count_the_bias_beside_the_state() -> None:
     bias = Bias(np.array([0.5, -0.5]), np.diag([4.0, 4.0]), np.zeros((6, 2)))
     bias.cross[0, 0] = bias.cross[3, 1] = -0.5
     fix = np.array([12.0, -6.0])
-    nis, share = gnss_fix_terms(mean, cov, bias, fix, 1.0)
+    nis, share, square = gnss_fix_terms(mean, cov, bias, fix, 1.0)
     state_part = np.diag([1.0 + 4.0 - 1.0, 2.0 + 4.0 - 1.0])
     innovation = fix - mean[[0, 3]] - bias.mean
     total = state_part + np.eye(2)
     assert nis == pytest.approx(float(innovation @ np.linalg.solve(total, innovation)))
-    assert share == pytest.approx(float(np.trace(np.linalg.solve(total, state_part))))
+    ratio = np.linalg.solve(total, state_part)
+    assert share == pytest.approx(float(np.trace(ratio)))
+    assert square == pytest.approx(float(np.trace(ratio @ ratio)))
 
 
 def test_scaled_position_scales_the_block_and_keeps_the_correlations() -> None:
@@ -146,3 +153,45 @@ def test_scaled_position_scales_the_block_and_keeps_the_correlations() -> None:
     correlation = out / np.sqrt(np.outer(np.diag(out), np.diag(out)))
     assert correlation == pytest.approx(cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov))))
     assert scaled_position(cov, (0, 3), 1.0) is cov
+
+
+@pytest.mark.parametrize(
+    ("true_scale", "noise_std"),
+    [
+        (3.0, 3.5),
+        pytest.param(3.0, 0.3, marks=pytest.mark.slow),
+        pytest.param(6.0, 3.5, marks=pytest.mark.slow),
+    ],
+)
+def test_the_upper_bound_covers_the_true_scale_in_its_stated_share(
+    true_scale: float, noise_std: float
+) -> None:
+    # 300 sessions of 300 fixes each (60 s at 5 Hz, 3 memories of 20 s): the papers' proportions (noise 3.5
+    # m, a about 0.06) and a sharp case (0.3 m). The bound is below the true scale in about 1 - c of them.
+    state_part = np.array([[0.5, 0.1], [0.1, 0.4]])
+    noise = noise_std**2 * np.eye(2)
+    rng = np.random.default_rng(1)
+    memories = [_feed(rng, true_scale, state_part, noise, 300) for _ in range(300)]
+    for confidence, (low, high) in ((0.5001, (0.42, 0.58)), (0.9, (0.86, 0.94)), (0.99, (0.975, 1.0))):
+        covered = np.mean([m.upper(confidence) >= true_scale for m in memories])
+        assert low <= covered <= high, (confidence, covered)
+    # the point estimate alone covers about half of them: what the bound is for
+    assert 0.35 <= np.mean([m.estimate >= true_scale for m in memories]) <= 0.65
+
+
+def test_the_upper_bound_grows_with_the_confidence_and_shrinks_with_information() -> None:
+    state_part = np.array([[0.5, 0.1], [0.1, 0.4]])
+    rng = np.random.default_rng(9)
+    short = _feed(rng, 2.0, state_part, 12.25 * np.eye(2), 60)
+    long = _feed(rng, 2.0, state_part, 12.25 * np.eye(2), 60, memory=short, start=12.0)
+    for memory in (short, long):
+        bounds = [memory.upper(c) for c in (0.6, 0.9, 0.99, 0.999, 1.0 - 1e-6)]
+        assert all(b >= memory.scale for b in bounds)
+        assert bounds == sorted(bounds) and bounds[-1] > bounds[0]
+    sharp = _feed(rng, 2.0, state_part, 0.09 * np.eye(2), 60)  # the same fixes count, far more information
+    assert sharp.upper(0.99) - sharp.estimate < (short.upper(0.99) - short.estimate) / 5.0
+    assert ConsistencyScale().upper(0.99) == math.inf  # no history: nothing bounds it
+    one = ConsistencyScale().updated(0.0, 2.0, 2, 0.05, TAU, square=0.0013)
+    assert one.upper(0.99) == math.inf  # one fix of the papers' proportions cannot bound it
+    with pytest.raises(ValueError):
+        short.upper(1.0)

@@ -56,6 +56,7 @@ def test_an_over_confident_filter_reports_a_covariance_its_error_fits() -> None:
     nees_after, misleading_after = _figures(after, truth)
     assert nees_before > 20.0 and misleading_before > 50
     assert nees_after < nees_before / 4.0 and misleading_after == 0
+    assert after[0].integrity == "unavailable"  # nothing bounds the scale before the first fixes
     assert [(f.x, f.y, f.vx, f.vy) for f in after] == [(f.x, f.y, f.vx, f.vy) for f in before]
     # what the vehicle publishes is the filter's own estimate, as without the scale
     assert tracks.track_points(after) == tracks.track_points(before)
@@ -100,6 +101,42 @@ def test_cooperative_fixes_keep_their_positions_and_their_bound_only_grows(name:
     assert median_level(after) > median_level(before)
 
 
+def test_the_bound_widens_only_the_protection_level_and_grows_with_its_confidence() -> None:
+    options = {"method": "gps_dr", **sim.PAPER_OPTIONS, "accel_std": 0.1, "integrity": True}
+    point, truth = _drive({**options, "consistency_scale": True, "consistency_bound": False})
+    bound, _ = _drive({**options, "consistency_scale": True})
+    assert [(f.x, f.y, f.position_cov) for f in bound] == [(f.x, f.y, f.position_cov) for f in point]
+    assert _figures(bound, truth)[0] == _figures(point, truth)[0]  # the covariance keeps the estimate
+    assert sum(f.integrity == "ok" for f in point) > 0
+    for p, b in zip(point, bound, strict=True):
+        if b.protection_level is not None:
+            assert p.protection_level is not None and b.protection_level > p.protection_level
+    # a larger share of the risk for the scale: a lower confidence, a lower bound
+    looser, _ = _drive({**options, "consistency_scale": True, "consistency_risk_share": 0.99})
+    tighter, _ = _drive({**options, "consistency_scale": True, "consistency_risk_share": 0.01})
+    pairs = [(a.protection_level, b.protection_level) for a, b in zip(looser, tighter, strict=True)]
+    assert all(a < b for a, b in pairs if a is not None and b is not None)
+    assert sum(a is not None for a, _ in pairs) >= sum(b is not None for _, b in pairs)
+
+
+def test_the_bound_covers_the_misleading_epochs_of_the_estimate() -> None:
+    # The papers' scene and model, a run (seed 1, run 1, ring, augUKF) where a protection level on the
+    # noisy estimate is exceeded while ok: on the upper bound none is.
+    run = sim.make_run(1, 1, "ring")
+    pipeline = get_pipeline("v2v_coop")
+    options = {**sim.PAPER_OPTIONS, "method": "aug_ukf", "integrity": True, "consistency_scale": True}
+
+    def summary(extra: dict) -> dict:
+        results = run_method(
+            run, sim.VEHICLE_IDS, pipeline, {**options, **extra}, OWN | {"v2v_range"}, None, 5.0
+        )
+        return sum((r for r, _ in results[1:]), results[0][0]).summary(5.0)
+
+    point, bound = summary({"consistency_bound": False}), summary({})
+    assert point["misleading"] > 0 and bound["misleading"] == 0
+    assert bound["availability"] <= point["availability"]
+
+
 @pytest.mark.parametrize(
     ("module", "options"),
     [
@@ -116,10 +153,17 @@ def test_the_scale_round_trips_and_an_old_state_decodes_without_one(module, opti
         batch = [o for o in run.observations[0][k] if o.kind in OWN]
         _, state = pipeline.process(state, batch, StaticEnvironment(vehicle_id="veh-1"))
     session = module._decode(state)
-    assert session.consistency.t is not None and session.consistency.share > 0.0
+    assert session.consistency.t is not None and session.consistency.spread_square > 0.0
     assert module._decode(session.to_bytes()).consistency == session.consistency
     assert session.to_bytes() == state
     meta, arrays = state_format.unpack(state)
+    assert len(meta["consistency"]) == 6
+    three = dict(meta, consistency=meta["consistency"][:3], options=dict(meta["options"]))
+    del three["options"]["consistency_bound"], three["options"]["consistency_risk_share"]
+    before_bound = module._decode(state_format.pack(three, arrays))  # stored before the bound existed
+    assert before_bound.consistency.estimate == session.consistency.estimate
+    assert before_bound.options["consistency_scale"] is True
+    assert before_bound.options["consistency_bound"] is False  # its protection level as it was
     del meta["consistency"]
     for name in ("consistency_scale", "consistency_time_constant_s"):
         del meta["options"][name]
@@ -136,3 +180,32 @@ def test_the_time_constant_out_of_bounds_is_refused_by_field(name: str, value: o
     with pytest.raises(PipelineInputError) as caught:
         get_pipeline(name).resolve_options({"consistency_time_constant_s": value})
     assert "consistency_time_constant_s" in str(caught.value.problems)
+
+
+@pytest.mark.parametrize(
+    ("option", "value"),
+    [("consistency_risk_share", 0.0), ("consistency_risk_share", 1.0), ("consistency_risk_share", "half")],
+)
+@pytest.mark.parametrize("name", ["v2v_coop", "v2x_federated"])
+def test_the_risk_share_out_of_bounds_is_refused_by_field(name: str, option: str, value: object) -> None:
+    with pytest.raises(PipelineInputError) as caught:
+        get_pipeline(name).resolve_options({option: value})
+    assert option in str(caught.value.problems)
+
+
+def test_federated_without_feedback_keeps_the_filters_protection_level() -> None:
+    # Without feedback the fix's innovation tests the GPS sub-filter, not the fused fix: nothing measures
+    # the fused fix's scale, and its protection level is the filter's (not unavailable for want of a bound).
+    pipeline = v2x_federated.V2xFederatedPipeline()
+    run = sim.make_run(0, 0, "straight")
+    options = {"feedback": False, "integrity": True}
+    levels = {}
+    for scale in (False, True):
+        state = pipeline.create(pipeline.resolve_options({**options, "consistency_scale": scale}), None)
+        out = []
+        for k in range(15):
+            batch = [o for o in run.observations[0][k] if o.kind in OWN]
+            fixes, state = pipeline.process(state, batch, StaticEnvironment(vehicle_id="veh-1"))
+            out.append(fixes[-1].protection_level)
+        levels[scale] = out
+    assert levels[True] == levels[False] and levels[True][-1] is not None

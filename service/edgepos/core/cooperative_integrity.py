@@ -181,7 +181,8 @@ def protect_sources(
     the tests keep the filter's own covariances (a test that passes bounds its separation by T sqrt(lambda)
     whatever the scale, and the fix's exclusions stay those of the filter), while the error bounds of the
     fault-free solution and of each subset solution are those of ``scale`` times their covariance,
-    sqrt(scale) times the radius."""
+    sqrt(scale) times the radius. An infinite ``scale`` (one not yet bounded) leaves the fix unavailable
+    without a fault, and still runs the tests: a failed one is an alarm pointing at its source."""
     covariance: Matrix2 = (
         float(position_cov[0][0]),
         0.5 * (float(position_cov[0][1]) + float(position_cov[1][0])),
@@ -212,6 +213,8 @@ def protect_sources(
         spread = max(_eigen(separation)[2], 0.0)
         level = max(level, threshold * math.sqrt(spread) + inflation * radial_bound(subset, missed))
     if not math.isfinite(level):
+        if worst is not None:
+            return Protection(None, ALARM, faulty=worst[1], statistic=worst[0], threshold=threshold)
         return Protection(None, UNAVAILABLE)
     if worst is not None:
         return Protection(level, ALARM, faulty=worst[1], statistic=worst[0], threshold=threshold)

@@ -48,8 +48,10 @@ from edgepos.sim.cooperative_faults import (
 )
 from edgepos.sim.faults import FaultEvent
 
-#: The Stanford diagram's bins for metre-level cooperative fixes: 0-12 m in 8 cm steps.
-SCALE = 4.0
+#: The Stanford diagram's bins for metre-level cooperative fixes: 0-30 m in 20 cm steps (the honest
+#: defaults' protection levels lie near 12 m and the consistency scale's upper bound beyond; the median
+#: is read within its bin, and one in the last bin would only say "beyond").
+SCALE = 10.0
 DETECTION_S = 1.0
 """The issue's target: a 20 m neighbour fault detected within this long in >= 99 % of runs."""
 #: Methods whose fixes use neighbours' positions, per evaluation.

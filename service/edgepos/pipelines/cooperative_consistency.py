@@ -9,7 +9,12 @@ exists for): measured on the papers' scenes with the papers' options, the ranges
 for augUKF, whose position NEES per dof was 3-5 (docs/integrity.md, "The fix's consistency scale").
 
 Only what is reported changes: the fix's position covariance (and its correlations with the velocity,
-kept) times the scale, and the protection level's error bounds. The filter's state, its gains, the fault
+kept) times the scale's estimate, and the protection level's error bounds times its upper confidence
+bound (option ``consistency_bound``, on by default): the covariance is the best estimate of the error's
+spread (mean NEES near 2), while a protection level must bound the error also when the scale, estimated
+from little information, is larger than its estimate. The bound's confidence spends a share
+``consistency_risk_share`` of the integrity risk, and the protection level is sized with the rest, so
+the two together stay within ``integrity_risk`` (a union bound). The filter's state, its gains, the fault
 tests and what the vehicle publishes for its neighbours are the filter's own.
 """
 
@@ -48,10 +53,25 @@ def observe(
     std = fix.std if fix.std is not None else options["gps_std"]
     sigma = options["gnss_bias_std"]
     white = gnss_bias.white_variance(std, sigma) if sigma > 0.0 else std * std
-    nis, share = gnss_fix_terms(mean, cov, bias, np.array([fix.x, fix.y]), white)
-    return scale.updated(fix.t, nis, 2, share, options["consistency_time_constant_s"])
+    nis, share, square = gnss_fix_terms(mean, cov, bias, np.array([fix.x, fix.y]), white)
+    return scale.updated(fix.t, nis, 2, share, options["consistency_time_constant_s"], square=square)
 
 
 def factor(options: Mapping[str, Any], scale: ConsistencyScale) -> float:
     """The factor on the fix's reported position covariance: the scale, or 1 when the option is off."""
     return scale.scale if options["consistency_scale"] else 1.0
+
+
+def protection_scale(
+    options: Mapping[str, Any], scale: ConsistencyScale, applies: bool = True
+) -> tuple[float, float]:
+    """(factor on the protection level's error bounds, share of the integrity risk it spends): (1, 0) when
+    the option is off or does not apply (``applies`` false: nothing measured the scale), the estimate's
+    factor and 0 with ``consistency_bound`` off, else the upper bound at confidence 1 - share x
+    ``integrity_risk`` (infinite, and so the fix unavailable, until the fixes bound it)."""
+    if not (options["consistency_scale"] and applies):
+        return 1.0, 0.0
+    if not options["consistency_bound"]:
+        return scale.scale, 0.0
+    share = float(options["consistency_risk_share"])
+    return scale.upper(1.0 - share * float(options["integrity_risk"])), share

@@ -98,10 +98,11 @@ def _budget(risk: float, false_alarm: float, fault: float, alert_limit: float) -
     return IntegrityBudget(risk, false_alarm, fault, alert_limit)
 
 
-def budget_of(options: Mapping[str, Any]) -> IntegrityBudget:
-    """The session's budget (cached: sessions share a handful of option sets)."""
+def budget_of(options: Mapping[str, Any], risk_left: float = 1.0) -> IntegrityBudget:
+    """The session's budget (cached: sessions share a handful of option sets), with ``risk_left`` of its
+    integrity risk (what another bound has not spent)."""
     return _budget(
-        options["integrity_risk"],
+        options["integrity_risk"] * risk_left,
         options["false_alarm_probability"],
         options["fault_probability"],
         options["alert_limit_m"],
@@ -222,6 +223,7 @@ def monitor(
     held: dict[str, float],
     t: float,
     scale: float = 1.0,
+    scale_risk_share: float = 0.0,
 ) -> Protection:
     """Test the epoch's fix and, when a neighbour is faulty and exclusion is on, exclude it.
 
@@ -231,8 +233,10 @@ def monitor(
     id, beside those screened out before), returning the ranges it used. The measurement uses of an
     excluded source's ranges say so, and it is held out (``held``) for ``fault_exclusion_s`` from ``t``.
     ``scale``: the filter's consistency scale on the protection level's error bounds (1: none; the tests
-    use the filter's own covariance either way, ``core.cooperative_integrity.protect_sources``)."""
-    budget = budget_of(options)
+    use the filter's own covariance either way, ``core.cooperative_integrity.protect_sources``);
+    ``scale_risk_share``: the share of ``integrity_risk`` that ``scale``'s confidence bound spends, the
+    protection level being sized with the rest (``pipelines.cooperative_consistency``)."""
+    budget = budget_of(options, 1.0 - scale_risk_share)
     x, y, cov = fix_of()
     sources = [source for _, source in ranges]
     own = fix_source(x, y)

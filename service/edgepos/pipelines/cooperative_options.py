@@ -64,8 +64,18 @@ def neighbour_specs(fusion_description: str) -> tuple[OptionSpec, ...]:
 CONSISTENCY_TIME_CONSTANT_S = 20.0
 """s: the consistency scale's memory (docs/integrity.md, "The fix's consistency scale": chosen on seeds 0
 and 1 of the papers' scenes between 5 and 40 s)."""
-#: What a session stored before the consistency scale existed goes on with: its covariance as reported then.
-LEGACY_CONSISTENCY = {"consistency_scale": False, "consistency_time_constant_s": CONSISTENCY_TIME_CONSTANT_S}
+CONSISTENCY_RISK_SHARE = 0.25
+"""The share of the integrity risk the scale's upper bound spends: half of the fault-free half (the
+protection level gives half the risk to the fault-free solution, half to the fault hypotheses; a scale
+larger than its bound is a fault-free failure, as likely a priori as the error leaving its radius)."""
+#: What a session stored before the consistency scale (or its bound) existed goes on with: its covariance
+#: and protection level as reported then.
+LEGACY_CONSISTENCY = {
+    "consistency_scale": False,
+    "consistency_time_constant_s": CONSISTENCY_TIME_CONSTANT_S,
+    "consistency_bound": False,
+    "consistency_risk_share": CONSISTENCY_RISK_SHARE,
+}
 
 
 def consistency_specs(default: bool, what: str) -> tuple[OptionSpec, ...]:
@@ -88,5 +98,23 @@ def consistency_specs(default: bool, what: str) -> tuple[OptionSpec, ...]:
             "Memory (s) of the consistency scale: each GNSS fix innovation's weight decays as exp(-age / this).",
             minimum=1.0,
             maximum=3600.0,
+        ),
+        OptionSpec(
+            "consistency_bound",
+            "boolean",
+            True,
+            "With consistency_scale: the protection level's error bounds use an upper confidence bound of the "
+            "scale (estimated from little information, it may be larger than its estimate) rather than the "
+            "estimate, which the reported covariance keeps; the fix is unavailable until its GNSS fixes bound "
+            'the scale (docs/integrity.md, "The scale\'s upper bound").',
+        ),
+        OptionSpec(
+            "consistency_risk_share",
+            "number",
+            CONSISTENCY_RISK_SHARE,
+            "With consistency_bound: the share of integrity_risk allotted to the scale exceeding its upper "
+            "bound (whose confidence is 1 - this x integrity_risk); the protection level is sized with the rest.",
+            minimum=0.01,
+            maximum=0.99,
         ),
     )

@@ -56,7 +56,7 @@ from edgepos.pipelines.base import (
     StateSummary,
     ensure_finite_fixes,
 )
-from edgepos.pipelines.cooperative_consistency import factor, observe
+from edgepos.pipelines.cooperative_consistency import factor, observe, protection_scale
 from edgepos.pipelines.cooperative_integrity import (
     COOPERATIVE_INTEGRITY_SPECS,
     LEGACY_INTEGRITY,
@@ -451,7 +451,7 @@ def _step(
             uses,
             session.held,
             t,
-            factor(options, session.consistency),
+            *protection_scale(options, session.consistency, applies=bool(options["feedback"])),
         )
         if unexcluded:  # a neighbour's track failed its test and exclusion is off
             protection = dataclasses.replace(protection, state=ALARM)
