@@ -330,3 +330,36 @@ def test_help_explains_the_trips_and_the_remote_flag(capsys) -> None:
     out = " ".join(capsys.readouterr().out.split())
     assert "'trips restarted' counts the vehicles that reached the end of the scenario" in out
     assert "--allow-remote" in out and "deployment you own" in out
+
+
+def test_the_rsu_map_is_loaded_with_the_vehicles_retries(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A 503 while the service warms up (Redis Cluster under load) must not end the run before it starts:
+    the admin call that loads the RSU map retries as the vehicles' calls do."""
+    import asyncio
+    from typing import Self
+
+    from edgepos.loadgen import loadtest
+    from edgepos_client import EdgeposError
+
+    built: list[int] = []
+
+    class Answering503:
+        def __init__(self, url: str, key: str | None, *, timeout: float, retries: int, **_: object) -> None:
+            built.append(retries)
+
+        async def __aenter__(self) -> Self:
+            return self
+
+        async def __aexit__(self, *_: object) -> None:
+            return None
+
+        async def put_rsus(self, rsus: object) -> int:
+            raise EdgeposError("unavailable", "the session store does not answer", status=503)
+
+    monkeypatch.setattr(loadtest, "AsyncEdgeposClient", Answering503)
+    config = loadtest.LoadConfig(
+        url="http://127.0.0.1:9", vehicles=1, rate=1.0, batch=1, duration=1.0, admin_key=ADMIN_KEY, retries=4
+    )
+    with pytest.raises(EdgeposError):
+        asyncio.run(loadtest.run_load(config))
+    assert built == [4]

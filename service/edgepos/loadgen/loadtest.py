@@ -420,9 +420,11 @@ async def run_load(config: LoadConfig) -> LoadReport:
     own_connection = httpx.Limits(max_connections=1, max_keepalive_connections=1)
     async with contextlib.AsyncExitStack() as stack:
         admin = await stack.enter_async_context(
-            AsyncEdgeposClient(config.url, config.admin_key, timeout=config.timeout, retries=0)
+            AsyncEdgeposClient(config.url, config.admin_key, timeout=config.timeout, retries=config.retries)
         )
-        await _ensure_rsus(admin, scenario)
+        await _ensure_rsus(
+            admin, scenario
+        )  # a 503 while the service warms up is retried as the vehicles retry
         vehicles = []
         for i in range(config.vehicles):
             client = await stack.enter_async_context(
