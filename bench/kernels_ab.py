@@ -25,9 +25,11 @@ from typing import Any
 
 import numpy as np
 from edgepos.core.compiled import CompiledBankStepper, warm_up
-from edgepos.core.updates import RsuGyroEpoch
 from edgepos.pipelines.registry import get_pipeline
 from edgepos.pipelines.rsu_imu import _bank, _options_key
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from stepper_ab import example_epoch, example_state
 
 FILES = ("kernels", "kernels_correct")
 
@@ -58,17 +60,8 @@ def main() -> int:
     warm_up()
     bank = _bank(_options_key(get_pipeline("rsu_imu").resolve_options({})))
     stepper = CompiledBankStepper(bank)
-    means, covs = bank.initial(np.array([10.0, 10.0, 0.1, 0.5, 0.2, 0.0, 0.02, 0.01]), np.eye(8) * 0.5)
-    means, covs = np.ascontiguousarray(means), np.ascontiguousarray(covs)
-    probabilities = np.array([0.5, 0.3, 0.2])
-    measured = RsuGyroEpoch(
-        np.array([[0.0, -3.875], [50.0, 3.875], [100.0, -3.875], [-50.0, 3.875]]),
-        np.array([[10.4, 0.4], [40.0, -3.0], [90.0, 0.05], [60.0, -3.1]]),
-        np.full(4, 0.6),
-        np.full(4, 0.01),
-        np.array([0.01]),
-        0.005,
-    )
+    means, covs, probabilities = example_state(bank)
+    measured = example_epoch()
     dt = 0.0503
     predicted = np.empty(stepper._prediction_size)
     corrected = np.empty(stepper._correction_size)

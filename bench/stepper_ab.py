@@ -22,6 +22,7 @@ from types import ModuleType
 
 import numpy as np
 from edgepos.core.compiled import CompiledBankStepper, warm_up
+from edgepos.core.imm import InteractingMultipleModel
 from edgepos.core.updates import RsuGyroEpoch
 from edgepos.pipelines.registry import get_pipeline
 from edgepos.pipelines.rsu_imu import _bank, _options_key
@@ -34,6 +35,25 @@ def load(name: str, path: Path) -> ModuleType:
     sys.modules[name] = module
     spec.loader.exec_module(module)
     return module
+
+
+def example_epoch() -> RsuGyroEpoch:
+    """Four RSUs beside the road and a gyro reading: the epoch both A/B scripts time (a new one per call,
+    as the pipeline builds them)."""
+    return RsuGyroEpoch(
+        np.array([[0.0, -3.875], [50.0, 3.875], [100.0, -3.875], [-50.0, 3.875]]),
+        np.array([[10.4, 0.4], [40.0, -3.0], [90.0, 0.05], [60.0, -3.1]]),
+        np.full(4, 0.6),
+        np.full(4, 0.01),
+        np.array([0.01]),
+        0.005,
+    )
+
+
+def example_state(bank: InteractingMultipleModel) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The bank's means, covariances and model probabilities the A/B scripts step from."""
+    means, covs = bank.initial(np.array([10.0, 10.0, 0.1, 0.5, 0.2, 0.0, 0.02, 0.01]), np.eye(8) * 0.5)
+    return np.ascontiguousarray(means), np.ascontiguousarray(covs), np.array([0.5, 0.3, 0.2])
 
 
 def main() -> int:
@@ -53,20 +73,11 @@ def main() -> int:
     branch = CompiledBankStepper(bank)
     base = base_compiled.CompiledBankStepper(bank)
     base._kernels = base_kernels  # it imports the package's kernels by name: give it its own
-    means, covs = bank.initial(np.array([10.0, 10.0, 0.1, 0.5, 0.2, 0.0, 0.02, 0.01]), np.eye(8) * 0.5)
-    probabilities = np.array([0.5, 0.3, 0.2])
+    means, covs, probabilities = example_state(bank)
     jitter = np.random.default_rng(1).uniform(-0.002, 0.002, 5000)
     intervals = itertools.cycle([0.05] if args.fixed_dt else (0.05 + jitter).tolist())
 
-    def epoch() -> RsuGyroEpoch:  # a new one per call, as the pipeline builds them
-        return RsuGyroEpoch(
-            np.array([[0.0, -3.875], [50.0, 3.875], [100.0, -3.875], [-50.0, 3.875]]),
-            np.array([[10.4, 0.4], [40.0, -3.0], [90.0, 0.05], [60.0, -3.1]]),
-            np.full(4, 0.6),
-            np.full(4, 0.01),
-            np.array([0.01]),
-            0.005,
-        )
+    epoch = example_epoch
 
     def step(stepper, dt: float | None = None):
         measured = epoch()
