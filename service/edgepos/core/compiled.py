@@ -387,6 +387,7 @@ _KERNEL_MODULES = (
     "kernels_turn",
     "kernels_integrity",
     "measurements.gnss_kernel",
+    "measurements.gnss_geometry",
 )
 
 
@@ -437,7 +438,8 @@ def warm_up() -> float:
     request pays it; returns the seconds it took. Runs one epoch of each covered filter kind, with
     the paper's 2IMM-CKF bank, joint and averaged, and the gate; the predictions also compile the
     F and Q kernel (``core.kernels_motion``, one signature for every bank); then the integrity bank's
-    kernels and gnss_tight's range kernel (``core.measurements.gnss_kernel``)."""
+    kernels, gnss_tight's range kernel (``core.measurements.gnss_kernel``) and its satellite geometry
+    (``core.measurements.gnss_geometry``)."""
     started = time.perf_counter()
     if not compiled_enabled():
         return 0.0
@@ -469,4 +471,7 @@ def warm_up() -> float:
     from edgepos.core.measurements import gnss_kernel
 
     gnss_kernel.warm_up()  # gnss_tight's pseudorange and range-rate kernel
+    from edgepos.core.measurements import gnss_geometry
+
+    gnss_geometry.warm_up()  # gnss_tight's satellite orbits and atmosphere
     return time.perf_counter() - started

@@ -69,6 +69,7 @@ import numpy as np
 
 from edgepos.core.errors import NumericalError
 from edgepos.core.fuzzy import FuzzyNoise
+from edgepos.core.measurements.gnss_geometry import delays as epoch_delays
 from edgepos.core.measurements.gnss_kernel import epoch_predict
 from edgepos.core.measurements.pseudorange import PseudorangeModel
 from edgepos.core.measurements.range_rate import RangeRateModel
@@ -419,7 +420,7 @@ def _filter_epoch(
     honest = Honesty()
     if len(satellites.prs):
         receiver = session.anchor.ecef(centre)
-        iono, tropo, elevation, _ = atmosphere.delays(receiver, satellites.prs)
+        iono, tropo, elevation, _ = epoch_delays(atmosphere, receiver, satellites.prs)
         rows = np.flatnonzero(elevation >= options["elevation_mask"])
         for row in np.flatnonzero(elevation < options["elevation_mask"]):
             i = satellites.indices[row]
