@@ -35,6 +35,7 @@ KERNEL_FILES = tuple(
         "kernels_integrity.py",
         "measurements/gnss_kernel.py",
         "measurements/gnss_geometry.py",
+        "particles/upf_kernel.py",
     )
 )
 #: The modules whose globals the kernels read (numba freezes a global into the machine code) or whose

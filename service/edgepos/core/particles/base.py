@@ -68,6 +68,11 @@ class Measurement:
         )
         return mixture
 
+    def mixture_terms(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The mixture's two log-densities per component as (inlier a, inlier b, outlier a, outlier b) of
+        a r^2 + b, each (m,) (what the compiled UPF weights read; computed once per measurement)."""
+        return self._mixture
+
     @functools.cached_property
     def _mixture(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The two Gaussians' log-densities as a r^2 + b per component, computed once per measurement: log
