@@ -388,6 +388,7 @@ _KERNEL_MODULES = (
     "kernels_integrity",
     "measurements.gnss_kernel",
     "measurements.gnss_geometry",
+    "measurements.gnss_raim_kernel",
     "particles.upf_kernel",
 )
 
@@ -439,8 +440,9 @@ def warm_up() -> float:
     request pays it; returns the seconds it took. Runs one epoch of each covered filter kind, with
     the paper's 2IMM-CKF bank, joint and averaged, and the gate; the predictions also compile the
     F and Q kernel (``core.kernels_motion``, one signature for every bank); then the integrity bank's
-    kernels, gnss_tight's range kernel (``core.measurements.gnss_kernel``) its satellite geometry
-    (``core.measurements.gnss_geometry``) and the UPF's weights (``core.particles.upf_kernel``)."""
+    kernels, gnss_tight's range kernel (``core.measurements.gnss_kernel``), its satellite geometry
+    (``core.measurements.gnss_geometry``), RAIM (``core.measurements.gnss_raim_kernel``) and the
+    UPF's weights (``core.particles.upf_kernel``)."""
     started = time.perf_counter()
     if not compiled_enabled():
         return 0.0
@@ -475,6 +477,9 @@ def warm_up() -> float:
     from edgepos.core.measurements import gnss_geometry
 
     gnss_geometry.warm_up()  # gnss_tight's satellite orbits and atmosphere
+    from edgepos.core.measurements import gnss_raim_kernel
+
+    gnss_raim_kernel.warm_up()  # gnss_tight's RAIM hypotheses
     from edgepos.core.particles import upf_kernel
 
     upf_kernel.warm_up()  # the UPF's importance weights

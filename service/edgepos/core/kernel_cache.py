@@ -35,6 +35,7 @@ KERNEL_FILES = tuple(
         "kernels_integrity.py",
         "measurements/gnss_kernel.py",
         "measurements/gnss_geometry.py",
+        "measurements/gnss_raim_kernel.py",
         "particles/upf_kernel.py",
     )
 )
