@@ -389,6 +389,7 @@ _KERNEL_MODULES = (
     "measurements.gnss_kernel",
     "measurements.gnss_geometry",
     "measurements.gnss_raim_kernel",
+    "measurements.gnss_noise_kernel",
     "particles.upf_kernel",
 )
 
@@ -441,8 +442,9 @@ def warm_up() -> float:
     the paper's 2IMM-CKF bank, joint and averaged, and the gate; the predictions also compile the
     F and Q kernel (``core.kernels_motion``, one signature for every bank); then the integrity bank's
     kernels, gnss_tight's range kernel (``core.measurements.gnss_kernel``), its satellite geometry
-    (``core.measurements.gnss_geometry``), RAIM (``core.measurements.gnss_raim_kernel``) and the
-    UPF's weights (``core.particles.upf_kernel``)."""
+    (``core.measurements.gnss_geometry``), RAIM and noise level
+    (``core.measurements.gnss_raim_kernel``, ``gnss_noise_kernel``) and the UPF's weights
+    (``core.particles.upf_kernel``)."""
     started = time.perf_counter()
     if not compiled_enabled():
         return 0.0
@@ -480,6 +482,9 @@ def warm_up() -> float:
     from edgepos.core.measurements import gnss_raim_kernel
 
     gnss_raim_kernel.warm_up()  # gnss_tight's RAIM hypotheses
+    from edgepos.core.measurements import gnss_noise_kernel
+
+    gnss_noise_kernel.warm_up()  # gnss_tight's noise level fit
     from edgepos.core.particles import upf_kernel
 
     upf_kernel.warm_up()  # the UPF's importance weights

@@ -36,6 +36,7 @@ KERNEL_FILES = tuple(
         "measurements/gnss_kernel.py",
         "measurements/gnss_geometry.py",
         "measurements/gnss_raim_kernel.py",
+        "measurements/gnss_noise_kernel.py",
         "particles/upf_kernel.py",
     )
 )
