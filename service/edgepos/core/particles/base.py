@@ -101,6 +101,26 @@ class Cloud:
         weights: FloatArray = np.exp(self.log_weights)
         return weights
 
+    def moments(self, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`weighted_moments` of the particles with their weights, computed once per cloud: the
+        pipeline's prediction and the UPF's time update both start from them. Remembered with the arrays
+        and ``angles`` they came from (a cloud given new arrays computes them again) and returned read-only,
+        as the arrays of a cloud are never changed in place (each step makes a new cloud)."""
+        cached = self.__dict__.get("_moments")
+        if (
+            cached is not None
+            and cached[0] is self.particles
+            and cached[1] is self.log_weights
+            and cached[2] is angles
+        ):
+            result: tuple[np.ndarray, np.ndarray] = cached[3]
+            return result
+        mean, cov = weighted_moments(self.particles, self.weights, angles)
+        mean.flags.writeable = False
+        cov.flags.writeable = False
+        self.__dict__["_moments"] = (self.particles, self.log_weights, angles, (mean, cov))
+        return mean, cov
+
 
 @dataclass(frozen=True)
 class StepResult:

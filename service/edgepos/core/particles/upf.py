@@ -77,7 +77,7 @@ def _own_prediction(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The cloud's weighted mean carried over ``dt`` (D,), where the shared update linearises, and
     :func:`predicted_own_covariance`."""
-    centre, _ = weighted_moments(cloud.particles, cloud.weights, ANGLES)
+    centre, _ = cloud.moments(ANGLES)
     moved, _, cov = unscented_predict(centre[None, :], cloud.cov, model, dt, active, ANGLES)
     own: FloatArray = cov[0]
     return model.complete(wrap(moved, ANGLES))[0], own
@@ -99,7 +99,7 @@ class UnscentedParticleFilter:
 
     def covariance(self, cloud: Cloud) -> np.ndarray:
         """The state covariance the cloud stands for: spread of the centres plus their own covariance."""
-        _, spread = weighted_moments(cloud.particles, cloud.weights, ANGLES)
+        _, spread = cloud.moments(ANGLES)
         total: FloatArray = spread + cloud.cov
         return total
 
