@@ -84,3 +84,47 @@ def test_the_kernel_declines_and_the_numpy_form_decides(monkeypatch) -> None:  #
     got = epoch_scale(jacobian, residuals, variance)
     want = _reference(jacobian, residuals, variance, monkeypatch)
     assert got[1] == want[1] and (got[0] == want[0] or (math.isnan(got[0]) and math.isnan(want[0])))
+
+
+def _honesty_inputs(seed: int, rows: int, tau: float):  # type: ignore[no-untyped-def]
+    from edgepos.core.motion import riss as layout
+
+    rng = np.random.default_rng(seed)
+    options = {
+        "error_correlation": "gauss_markov",
+        "code_error_tau_s": tau,
+        "code_error_correlated_fraction": 0.57,
+    }
+    lines = rng.normal(size=(3, rows))
+    lines /= np.linalg.norm(lines, axis=0)
+    ranges = np.vstack([rng.uniform(2e7, 2.6e7, rows), lines])
+    systems = [("G", "C", "E")[k % 3] for k in range(rows)]
+    std = rng.uniform(0.5, 5.0, rows)
+    smoothing = rng.uniform(0.2, 1.0, rows)
+    count = np.where(rng.random(rows) < 0.3, 0.0, rng.uniform(1.0, 100.0, rows))
+    a = rng.normal(size=(layout.DIM, layout.DIM))
+    predicted_cov = a @ a.T + np.eye(layout.DIM)
+    return options, np.arange(rows), std, smoothing, count, ranges, systems, predicted_cov
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize(
+    ("rows", "tau", "dt"), [(20, 58.0, 1.0), (9, 58.0, 0.2), (12, 0.0, 1.0), (7, 58.0, 5.0), (6, 58.0, 1.0)]
+)
+def test_honesty_matches_the_numpy_form(seed: int, rows: int, tau: float, dt: float, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """pipelines.gnss_correlation.honesty's factor, memory and bound to 1e-9 relative by the compiled
+    kernel and by the numpy form: smoothed and raw rows, white errors (tau 0), and no redundancy (6 rows, 6
+    unknowns: factor 1, no bound)."""
+    from edgepos.pipelines.gnss_correlation import honesty
+
+    inputs = _honesty_inputs(seed, rows, tau)
+    got = honesty(*inputs, dt)
+    monkeypatch.setenv("EDGEPOS_NUMBA", "0")
+    want = honesty(*inputs, dt)
+    assert got.factor == pytest.approx(want.factor, rel=1e-9)
+    assert got.memory == pytest.approx(want.memory, rel=1e-9)
+    assert (got.bound is None) == (want.bound is None)
+    if want.bound is not None:
+        np.testing.assert_allclose(got.bound, want.bound, rtol=1e-9, atol=1e-12)
+    if rows > 6:
+        assert want.factor != 1.0 and want.bound is not None  # compared on real numbers, not defaults

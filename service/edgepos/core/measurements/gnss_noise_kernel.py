@@ -1,11 +1,18 @@
-"""The noise level's per-epoch fit in one compiled loop (numba): the weighted least-squares fit of the
-update's rows, their studentised squared residuals, the rank-one downdate without the worst row, and the
-two medians ``gnss.noise_level.epoch_scale`` compares (data snooping).
+"""The pseudorange noise model's per-epoch numbers in compiled loops (numba):
 
-The same equations as ``gnss.noise_level`` (it stays the reference the kernel is tested against, runs
-when ``EDGEPOS_NUMBA=0``, and takes every epoch the kernel declines); some forty numpy calls on (n, 4-7)
-arrays there. The normal matrix is inverted by Cholesky where numpy inverts by LU: the squares agree to
-about 1e-12 relative (tested), and the medians are the same order statistics of them.
+* the noise level's fit (``scale_kernel``): the weighted least-squares fit of the update's rows, their
+  studentised squared residuals, the rank-one downdate without the worst row, and the two medians
+  ``gnss.noise_level.epoch_scale`` compares (data snooping);
+* the correlation factor (``honesty_kernel``): ``pipelines.gnss_correlation.honesty``'s consider
+  covariance of the epoch's weighted solution under the Gauss-Markov error model
+  (``gnss.error_correlation``: ``honest_factor``, ``averaged_variance``, ``mean_variance``) and the
+  Gaussian-update bound.
+
+The same equations as the numpy forms (they stay the reference the kernels are tested against, run when
+``EDGEPOS_NUMBA=0``, and take every epoch a kernel declines); some forty numpy calls on (n, 4-7) arrays
+each there. The normal matrices are inverted by Cholesky where numpy inverts by LU, sums run in index order
+and powers are the C library's: the numbers agree to about 1e-12 relative (tested), and the medians are the
+same order statistics.
 """
 
 from __future__ import annotations
@@ -99,6 +106,124 @@ def scale_kernel(jacobian: FloatArray, residuals: FloatArray, variance: FloatArr
     return OK
 
 
+@_jit
+def _mean_variance(n: float, rho: float) -> float:
+    """``gnss.error_correlation.mean_variance`` of one count and correlation."""
+    count = max(n, 1.0)
+    eps = 1.0 - min(rho, 1.0)
+    if count * eps >= 1e-4:
+        r = 1.0 - eps
+        out = (1.0 + 2.0 * r / eps - 2.0 * r * (1.0 - r**count) / (count * eps**2)) / count
+    else:
+        out = 1.0 - eps * (count**2 - 1.0) / (3.0 * count)
+    return float(min(max(out, 0.0), 1.0))
+
+
+NO_FACTOR = 2
+"""``honesty_kernel``'s status when the rows fix no position (the factor is 1, no bound)."""
+
+
+@_jit
+def honesty_kernel(
+    jacobian: FloatArray,
+    variance: FloatArray,
+    scale: FloatArray,
+    count: FloatArray,
+    prior: FloatArray,
+    tau_s: float,
+    fraction: float,
+    dt: float,
+    out: FloatArray,
+) -> int:
+    """``out`` = (factor, memory, the epoch's own north-east covariance (nn, ne, ee), the bound's (nn, ne,
+    en, ee), 1 when the bound exists) for the rows of ``jacobian`` with model variances ``variance``, raw-code
+    variances ``scale``, smoothing counts ``count`` and the prediction's north-east covariance ``prior``.
+    Returns OK, NO_FACTOR (``honest_factor`` gives None), or FAILED (the numpy form decides)."""
+    rows, unknowns = jacobian.shape
+    out[:] = 0.0
+    normal = np.zeros((unknowns, unknowns))
+    for r in range(rows):
+        for i in range(unknowns):
+            weighted = jacobian[r, i] / variance[r]
+            for j in range(unknowns):
+                normal[i, j] += weighted * jacobian[r, j]
+    inverse = np.empty((unknowns, unknowns))
+    if not _invert_spd(normal, inverse):
+        return FAILED
+    own = inverse[0, 0] + inverse[1, 1]
+    if not math.isfinite(own) or own <= 0.0:
+        return NO_FACTOR
+    memory = 1.0 + own / (prior[0, 0] + prior[1, 1])
+    rho = math.exp(-max(dt, 0.0) / tau_s) if tau_s > 0.0 else 0.0
+    true = 0.0
+    for r in range(rows):
+        n = max(count[r], 1.0)
+        overlap = 1.0 - 1.0 / n
+        correlated = fraction * _mean_variance(n, rho)
+        white = (1.0 - fraction) / n
+        averaged = memory * (
+            white * _mean_variance(memory, overlap) + correlated * _mean_variance(memory, max(rho, overlap))
+        )
+        north = 0.0
+        east = 0.0
+        for j in range(unknowns):
+            north += inverse[0, j] * jacobian[r, j]
+            east += inverse[1, j] * jacobian[r, j]
+        north /= variance[r]
+        east /= variance[r]
+        true += (north * north + east * east) * (scale[r] * averaged)
+    out[0], out[1] = true / own, memory
+    a, b, d = inverse[0, 0], 0.5 * (inverse[0, 1] + inverse[1, 0]), inverse[1, 1]
+    out[2], out[3], out[4] = a, b, d
+    # inv(inv(P) + inv(A)) in closed form (2x2)
+    det_p = prior[0, 0] * prior[1, 1] - prior[0, 1] * prior[1, 0]
+    det_a = a * d - inverse[0, 1] * inverse[1, 0]
+    if det_p == 0.0 or det_a == 0.0:
+        return OK
+    s00 = prior[1, 1] / det_p + d / det_a
+    s01 = -prior[0, 1] / det_p - inverse[0, 1] / det_a
+    s10 = -prior[1, 0] / det_p - inverse[1, 0] / det_a
+    s11 = prior[0, 0] / det_p + a / det_a
+    det_s = s00 * s11 - s01 * s10
+    if det_s == 0.0:
+        return OK
+    out[5], out[6], out[7], out[8] = s11 / det_s, -s01 / det_s, -s10 / det_s, s00 / det_s
+    out[9] = 1.0
+    return OK
+
+
+def honesty_numbers(
+    jacobian: np.ndarray,
+    variance: np.ndarray,
+    scale: np.ndarray,
+    count: np.ndarray,
+    prior: np.ndarray,
+    tau_s: float,
+    fraction: float,
+    dt: float,
+) -> tuple[float, float, FloatArray | None] | None:
+    """:func:`honesty_kernel` as (factor, memory, bound or None); (1, 1, None) when the rows fix no
+    position; None when it declines."""
+    out = np.empty(10)
+    status = honesty_kernel(
+        np.ascontiguousarray(jacobian, dtype=float),
+        np.ascontiguousarray(variance, dtype=float),
+        np.ascontiguousarray(scale, dtype=float),
+        np.ascontiguousarray(count, dtype=float),
+        np.ascontiguousarray(prior, dtype=float),
+        float(tau_s),
+        float(fraction),
+        float(dt),
+        out,
+    )
+    if status == FAILED:
+        return None
+    if status == NO_FACTOR:
+        return 1.0, 1.0, None
+    bound = np.array([[out[5], out[6]], [out[7], out[8]]]) if out[9] else None
+    return float(out[0]), float(out[1]), bound
+
+
 def epoch_medians(
     jacobian: np.ndarray, residuals: np.ndarray, variance: np.ndarray
 ) -> tuple[float, int, float, int, float] | None:
@@ -116,10 +241,11 @@ def epoch_medians(
 
 
 def warm_up() -> float:
-    """Compile (or load from numba's on-disk cache) the kernel's one signature; returns the seconds."""
+    """Compile (or load from numba's on-disk cache) the kernels' one signature each; returns the seconds."""
     started = time.perf_counter()
     jacobian = np.array(
         [[1.0, 0.0, 1.0], [0.0, 1.0, 1.0], [1.0, 1.0, 1.0], [0.5, -1.0, 1.0], [-1.0, 0.2, 1.0]]
     )
     epoch_medians(jacobian, np.arange(5.0), np.ones(5))
+    honesty_numbers(jacobian, np.ones(5), np.ones(5), np.ones(5), np.eye(2), 58.0, 0.5, 1.0)
     return time.perf_counter() - started
