@@ -84,13 +84,17 @@ ONLY_RAIM = {"fault_probability": 0.0, "fde_probability": 0.0, "gate_probability
 """The other screens off, so that RAIM excludes the ramp and retests the rows left."""
 
 
+@pytest.mark.parametrize("numba", ["1", "0"])
 @pytest.mark.parametrize(
     ("options", "reason"),
     [({"filter": "upf"}, "excluded over time"), ({"filter": "ukf", **ONLY_RAIM}, EXCLUDED)],
 )
 def test_shared_predictions_give_what_each_test_computes_alone(
-    recording, monkeypatch, options, reason
+    recording, monkeypatch, options, reason, numba
 ) -> None:
+    """With the compiled predictions (core/measurements/gnss_kernel.py ``pseudoranges_at``,
+    ``range_rates_at``) and with the numpy models (EDGEPOS_NUMBA=0)."""
+    monkeypatch.setenv("EDGEPOS_NUMBA", numba)
     seen: dict[str, list[int]] = {}
     for name, position in (
         ("range_innovations", 7),

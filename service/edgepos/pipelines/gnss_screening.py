@@ -10,6 +10,7 @@ import math
 import numpy as np
 from scipy.stats import chi2
 
+from edgepos.core.measurements.gnss_kernel import pseudoranges_at, range_rates_at
 from edgepos.core.measurements.pseudorange import PseudorangeModel
 from edgepos.core.measurements.range_rate import RangeRateModel
 from edgepos.core.motion import riss as layout
@@ -51,14 +52,24 @@ def range_rate_test(
     assert session.anchor is not None and prs.range_rate_mps is not None
     assert prs.sat_velocity is not None and prs.sat_clock_drift is not None
     if predicted is None:
-        rate_model = RangeRateModel.build(
+        compiled = range_rates_at(
             session.anchor,
+            centre[None, :],
             prs.sat_position[rows],
             prs.sat_velocity[rows],
             prs.sat_clock_drift[rows],
-            std[rows],
         )
-        residual = prs.range_rate_mps[rows] - rate_model.predict(centre)
+        if compiled is not None:  # the kernel, as gnss_faults.centre_rates
+            residual = prs.range_rate_mps[rows] - compiled[0]
+        else:
+            rate_model = RangeRateModel.build(
+                session.anchor,
+                prs.sat_position[rows],
+                prs.sat_velocity[rows],
+                prs.sat_clock_drift[rows],
+                std[rows],
+            )
+            residual = prs.range_rate_mps[rows] - rate_model.predict(centre)
     else:
         residual = prs.range_rate_mps[rows] - predicted[rows]
     if predicted_cov is None:
@@ -174,6 +185,11 @@ def range_residuals(
     assert session.anchor is not None
     systems = [prs.systems[r] for r in rows]
     if predicted is None:
+        compiled = pseudoranges_at(
+            session.anchor, centre[None, :], prs.sat_position[rows], systems, known[rows]
+        )
+        if compiled is not None:  # the kernel, as gnss_integrity.linearisation_ranges
+            return prs.pseudorange_m[rows] - compiled[0], systems
         model_pr = PseudorangeModel.build(
             session.anchor, prs.sat_position[rows], systems, known[rows], std[rows]
         )
