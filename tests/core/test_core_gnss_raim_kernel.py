@@ -90,3 +90,61 @@ def test_the_kernel_declines_and_the_numpy_form_decides(monkeypatch) -> None:  #
     for a, b in zip(got.hypotheses, want.hypotheses, strict=True):
         assert a[0] == b[0] and a[3] == b[3]
         np.testing.assert_array_equal(a[1], b[1])
+
+
+def _snapshot_inputs(seed: int, count: int, fault: float):  # type: ignore[no-untyped-def]
+    from edgepos.gnss.geodesy import geodetic_to_ecef
+    from edgepos.gnss.measurements import PseudorangeSet
+
+    rng = np.random.default_rng(seed)
+    receiver = geodetic_to_ecef(np.radians(41.4), np.radians(2.1), 80.0)
+    directions = rng.normal(size=(count, 3))
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    directions[:, 2] = np.abs(directions[:, 2])
+    satellites = receiver + directions * rng.uniform(2.0e7, 2.6e7, count)[:, None]
+    systems = tuple(("G", "C", "E")[k % 3] for k in range(count))
+    pseudorange = np.linalg.norm(satellites - receiver, axis=1) + rng.normal(0.0, 3.0, count)
+    pseudorange[rng.integers(count)] += fault
+    known = rng.normal(0.0, 5.0, count)
+    prs = PseudorangeSet(
+        1.0e5,
+        systems,
+        np.arange(count),
+        pseudorange + known,
+        np.full(count, 40.0),
+        satellites,
+        np.zeros(count),
+        np.full(count, 1575.42e6),
+    )
+    return receiver, prs, known, rng.uniform(1.0, 5.0, count)
+
+
+@pytest.mark.parametrize("seed", range(5))
+@pytest.mark.parametrize(("count", "fault"), [(20, 0.0), (20, 60.0), (9, 40.0), (8, 0.0), (6, 0.0)])
+def test_snapshot_rounds_match_the_numpy_round(seed: int, count: int, fault: float) -> None:
+    """The snapshot test's compiled round (statistic, degrees of freedom, worst row and its standardised
+    residual) against its numpy round, on the subsets the test tries (the worst row left out in turn while
+    the statistic exceeds its chi-square median, far below any threshold the test uses: past that, rows fit
+    to 1e-13 and the largest two standardised residuals tie to rounding); both None when fewer than 2
+    degrees of freedom remain."""
+    from edgepos.pipelines.gnss_screening import _SnapshotFit
+    from scipy.stats import chi2
+
+    fit = _SnapshotFit(*_snapshot_inputs(seed, count, fault))
+    assert fit.compiled
+    keep = np.arange(count)
+    compared = 0
+    while True:
+        got, want = fit.round(keep), fit._numpy_round(keep)
+        if want is None:
+            assert got is None
+            break
+        assert got is not None
+        assert got[1] == want[1]
+        assert got[0] == pytest.approx(want[0], rel=1e-9) and got[3] == pytest.approx(want[3], rel=1e-9)
+        if want[0] < chi2.ppf(0.5, want[1]):
+            break
+        assert got[2] == want[2]
+        compared += 1
+        keep = np.delete(keep, want[2])
+    assert compared or fault == 0.0

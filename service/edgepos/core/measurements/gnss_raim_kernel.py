@@ -1,6 +1,8 @@
 """gnss_tight's solution-separation hypotheses in one compiled loop (numba): the all-in-view solution, every
 satellite's leave-one-out downdate, a constellation's lone satellite and every constellation solved again
-without their rows, and each hypothesis' test statistic, for ``gnss.raim.separations``.
+without their rows, and each hypothesis' test statistic, for ``gnss.raim.separations``; and one round of
+the snapshot test's least-squares fit (``snapshot_kernel``, for ``pipelines.gnss_screening.snapshot_test``,
+whose numpy round stays its reference the same way).
 
 The same equations as ``gnss.raim`` (see its docstring; it stays the reference the kernel is tested against,
 runs when ``EDGEPOS_NUMBA=0``, and takes every epoch the kernel declines). The numpy form costs some hundred
@@ -21,6 +23,7 @@ import numpy as np
 
 from edgepos.core.kernels_base import FAILED, OK, _jit
 from edgepos.core.numerics import FloatArray
+from edgepos.gnss.orbits import OMEGA_EARTH, SPEED_OF_LIGHT
 
 
 @_jit
@@ -261,6 +264,112 @@ def _store(
     statistic[row] = _statistic(separation[row, 0], separation[row, 1], a, b, d)
 
 
+@_jit
+def snapshot_kernel(
+    receiver: FloatArray,
+    satellites: FloatArray,
+    pseudorange: FloatArray,
+    known: FloatArray,
+    std: FloatArray,
+    group: np.ndarray,
+    keep: np.ndarray,
+    out: FloatArray,
+) -> int:
+    """One round of the snapshot test on the rows ``keep``: ``out`` = (the weighted post-fit residuals'
+    chi-square statistic, its degrees of freedom, the position in ``keep`` of the largest standardised
+    residual, that residual). Linearised at the ECEF ``receiver`` (Sagnac range), unknowns the position
+    and one clock per constellation present (``group`` per row, ascending). Returns OK; FAILED when the
+    degrees of freedom are below 2 or the normal matrix is not positive definite (the numpy round
+    decides)."""
+    count = keep.shape[0]
+    groups = 0
+    for k in range(count):
+        groups = max(groups, group[keep[k]] + 1)
+    column = np.full(groups, -1, dtype=np.int64)
+    for k in range(count):
+        column[group[keep[k]]] = 0
+    width = 3
+    for g in range(groups):
+        if column[g] == 0:
+            column[g] = width
+            width += 1
+    out[1] = count - width
+    if count - width < 2:
+        return FAILED
+    design = np.zeros((count, width))
+    residual = np.empty(count)
+    root = np.empty(count)
+    for k in range(count):
+        r = keep[k]
+        dx = satellites[r, 0] - receiver[0]
+        dy = satellites[r, 1] - receiver[1]
+        dz = satellites[r, 2] - receiver[2]
+        sagnac = OMEGA_EARTH * (satellites[r, 0] * receiver[1] - satellites[r, 1] * receiver[0])
+        geometric = math.sqrt(dx * dx + dy * dy + dz * dz) + sagnac / SPEED_OF_LIGHT
+        residual[k] = pseudorange[r] - geometric - known[r]
+        design[k, 0], design[k, 1], design[k, 2] = -dx / geometric, -dy / geometric, -dz / geometric
+        design[k, column[group[r]]] = 1.0
+        root[k] = 1.0 / std[r]
+    normal = np.zeros((width, width))
+    right = np.zeros(width)
+    for k in range(count):
+        weight = root[k] * root[k]
+        for i in range(width):
+            right[i] += design[k, i] * weight * residual[k]
+            for j in range(width):
+                normal[i, j] += design[k, i] * weight * design[k, j]
+    inverse = np.empty((width, width))
+    if not _invert_spd(normal, inverse):
+        return FAILED
+    solution = inverse @ right
+    statistic = 0.0
+    worst, largest = 0, -1.0
+    for k in range(count):
+        fitted = 0.0
+        leverage = 0.0
+        for i in range(width):
+            fitted += design[k, i] * solution[i]
+            row_inverse = 0.0
+            for j in range(width):
+                row_inverse += inverse[i, j] * design[k, j]
+            leverage += design[k, i] * row_inverse
+        leverage *= root[k] * root[k]
+        normalised = (residual[k] - fitted) * root[k]
+        statistic += normalised * normalised
+        standardised = abs(normalised) / math.sqrt(max(1.0 - leverage, 1e-6))
+        if standardised > largest:
+            worst, largest = k, standardised
+    out[0], out[2], out[3] = statistic, worst, largest
+    return OK
+
+
+def snapshot_round(
+    receiver: np.ndarray,
+    satellites: np.ndarray,
+    pseudorange: np.ndarray,
+    known: np.ndarray,
+    std: np.ndarray,
+    group: np.ndarray,
+    keep: np.ndarray,
+) -> tuple[float, int, int, float] | None:
+    """:func:`snapshot_kernel`'s (statistic, dof, worst position, its standardised residual); None when it
+    declines."""
+    out = np.zeros(4)
+    status = snapshot_kernel(
+        np.ascontiguousarray(receiver, dtype=float),
+        np.ascontiguousarray(satellites, dtype=float),
+        np.ascontiguousarray(pseudorange, dtype=float),
+        np.ascontiguousarray(known, dtype=float),
+        np.ascontiguousarray(std, dtype=float),
+        np.ascontiguousarray(group, dtype=np.int64),
+        np.ascontiguousarray(keep, dtype=np.int64),
+        out,
+    )
+    if status != OK:
+        return None
+    return float(out[0]), int(out[1]), int(out[2]), float(out[3])
+
+
 def separations(
     h: np.ndarray, group: np.ndarray, groups: int, z: np.ndarray, w: np.ndarray, prior: np.ndarray
 ) -> tuple[FloatArray, FloatArray, FloatArray] | None:
@@ -283,8 +392,18 @@ def separations(
 
 
 def warm_up() -> float:
-    """Compile (or load from numba's on-disk cache) the kernel's one signature; returns the seconds."""
+    """Compile (or load from numba's on-disk cache) the kernels' one signature each; returns the seconds."""
     started = time.perf_counter()
     h = np.array([[1.0, 0.0, 0.0, 1.0], [0.0, 1.0, 0.0, 1.0], [0.0, 0.0, 1.0, 1.0], [0.5, 0.5, 0.5, 1.0]])
     separations(h, np.zeros(4, dtype=np.int64), 1, np.zeros(4), np.ones(4), np.eye(3))
+    satellites = np.array([[2.0e7, 1.0e7, 1.5e7], [-1.5e7, 2.0e7, 1.0e7], [1.0e7, -2.0e7, 1.5e7]] * 3)
+    snapshot_round(
+        np.array([4.0e6, 1.0e5, 4.9e6]),
+        satellites,
+        np.full(9, 2.2e7),
+        np.zeros(9),
+        np.ones(9),
+        np.zeros(9, dtype=np.int64),
+        np.arange(9),
+    )
     return time.perf_counter() - started
