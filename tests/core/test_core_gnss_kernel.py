@@ -72,3 +72,32 @@ def test_numpy_reference_when_numba_is_off(monkeypatch) -> None:
     monkeypatch.setenv("EDGEPOS_NUMBA", "1")
     assert gnss_kernel.epoch_predict(ranges, None) != ranges.predict
     assert gnss_kernel.warm_up() >= 0.0
+
+
+def test_centre_predictions_match_the_models_and_their_subsets() -> None:
+    """``pseudoranges_at`` and ``range_rates_at`` (the pipeline's shared predictions at the centre) give the
+    numpy models' values (1e-6 m, 1e-8 m/s), and a subset of the satellites or states exactly the same
+    numbers as the whole (each value is computed alone: a test predicting for itself agrees bit for bit)."""
+    rng = np.random.default_rng(11)
+    ranges, rate_model = _models(rng, True)
+    assert rate_model is not None
+    states = _states(rng, (4,))
+    systems = [next(s for s, i in layout.CLOCK.items() if i == c) for c in ranges.clock_index]
+    compiled = gnss_kernel.pseudoranges_at(ANCHOR, states, ranges.sat_position, systems, ranges.known_m)
+    assert compiled is not None
+    np.testing.assert_allclose(compiled, ranges.predict(states), rtol=0.0, atol=1e-6)
+    subset = gnss_kernel.pseudoranges_at(
+        ANCHOR, states[2:3], ranges.sat_position[3:7], systems[3:7], ranges.known_m[3:7]
+    )
+    assert subset is not None
+    np.testing.assert_array_equal(subset[0], compiled[2, 3:7])
+    drift = -rate_model.known_mps / 299792458.0
+    rates = gnss_kernel.range_rates_at(
+        ANCHOR, states, rate_model.sat_position, rate_model.sat_velocity, drift
+    )
+    assert rates is not None
+    np.testing.assert_allclose(rates, rate_model.predict(states), rtol=0.0, atol=1e-8)
+    alone = gnss_kernel.range_rates_at(
+        ANCHOR, states[1:2], rate_model.sat_position[2:3], rate_model.sat_velocity[2:3], drift[2:3]
+    )
+    assert alone is not None and alone[0, 0] == rates[1, 2]

@@ -14,7 +14,12 @@ from edgepos.core.measurements.range_rate import RangeRateModel
 from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GeodeticAnchor, GnssOnlyModel, RissInput, RissModel
 from edgepos.core.particles import Cloud, Measurement, UnscentedParticleFilter
-from edgepos.core.particles.base import ParticleModel, shared_unscented_update, unscented_update
+from edgepos.core.particles.base import (
+    ParticleModel,
+    shared_unscented_update,
+    unscented_update,
+    weighted_moments,
+)
 from edgepos.gnss.geodesy import geodetic_to_ecef
 
 ANCHOR = GeodeticAnchor(math.radians(41.64), math.radians(2.35), 250.0)
@@ -159,3 +164,26 @@ def test_shared_update_is_the_kalman_update_on_a_linear_model() -> None:
     for i in range(len(means)):
         np.testing.assert_allclose(shared.posterior_cov, each.posterior_cov[i], atol=1e-9)
         np.testing.assert_allclose(shared.z_cov, each.z_cov[i], atol=1e-9)
+
+
+def test_cloud_moments_are_computed_once_and_follow_new_arrays() -> None:
+    """``Cloud.moments`` is ``weighted_moments`` of the cloud, remembered for the same arrays and angles,
+    computed again for new ones, and read-only (a caller writing into it would corrupt the next)."""
+    rng = np.random.default_rng(5)
+    angles = layout.ANGLES
+    particles = rng.normal(size=(50, len(angles)))
+    log_weights = np.log(np.full(50, 1.0 / 50))
+    cloud = Cloud(particles, log_weights, np.eye(len(angles)))
+    first = cloud.moments(angles)
+    want = weighted_moments(particles, np.exp(log_weights), angles)
+    np.testing.assert_array_equal(first[0], want[0])
+    np.testing.assert_array_equal(first[1], want[1])
+    assert cloud.moments(angles)[0] is first[0]
+    with pytest.raises(ValueError):
+        first[0][0] = 1.0
+    cloud.particles = particles + 1.0
+    moved = cloud.moments(angles)
+    assert moved[0] is not first[0]
+    np.testing.assert_array_equal(moved[0], weighted_moments(cloud.particles, cloud.weights, angles)[0])
+    other = np.zeros(len(angles), dtype=bool)
+    assert not np.array_equal(cloud.moments(other)[0], moved[0])  # the angles count too

@@ -14,7 +14,7 @@ from edgepos.core.integrity import _radial_factors, radial_factor_table
 from edgepos.core.observations import PseudorangeObservation
 from edgepos.gnss.raim import Separations
 from edgepos.pipelines import gnss_tight
-from edgepos.pipelines.base import Fix, StaticEnvironment
+from edgepos.pipelines.base import Fix, MeasurementUse, StaticEnvironment
 from edgepos.pipelines.gnss_integrity import EXCLUDED, WARM_HYPOTHESES, warm_up_gnss_tables
 from edgepos.pipelines.gnss_screening import left_out, median
 from gnssrecording import recording_epochs
@@ -84,13 +84,17 @@ ONLY_RAIM = {"fault_probability": 0.0, "fde_probability": 0.0, "gate_probability
 """The other screens off, so that RAIM excludes the ramp and retests the rows left."""
 
 
+@pytest.mark.parametrize("numba", ["1", "0"])
 @pytest.mark.parametrize(
     ("options", "reason"),
     [({"filter": "upf"}, "excluded over time"), ({"filter": "ukf", **ONLY_RAIM}, EXCLUDED)],
 )
 def test_shared_predictions_give_what_each_test_computes_alone(
-    recording, monkeypatch, options, reason
+    recording, monkeypatch, options, reason, numba
 ) -> None:
+    """With the compiled predictions (core/measurements/gnss_kernel.py ``pseudoranges_at``,
+    ``range_rates_at``) and with the numpy models (EDGEPOS_NUMBA=0)."""
+    monkeypatch.setenv("EDGEPOS_NUMBA", numba)
     seen: dict[str, list[int]] = {}
     for name, position in (
         ("range_innovations", 7),
@@ -137,3 +141,18 @@ def test_the_warmed_up_raim_tables_serve_the_recording(recording) -> None:
     fixes = _run(*recording, {"filter": "upf"})
     assert sum(f.protection_level is not None for f in fixes) > EPOCHS // 2
     assert _radial_factors.cache_info().misses == warmed
+
+
+@pytest.mark.parametrize("cls", [MeasurementUse, Fix])
+def test_reports_are_copied_as_dataclasses_replace_would(cls: type) -> None:
+    """gnss_tight's ``_with`` copies a fix or a measurement report without running ``__init__``; that holds
+    only while the class has no ``__post_init__`` and no slots, and it must give replace's result."""
+    assert not hasattr(cls, "__post_init__") and not hasattr(cls, "__slots__")
+    original = cls(4.0, "tracking") if cls is Fix else cls(4, "pseudorange", True, noise_std=1.5)
+    changes = {"nis": 2.5, "nis_dof": 3} if cls is Fix else {"doppler_used": False, "doppler_reason": "why"}
+    before = dict(original.__dict__)
+    copied = gnss_tight._with(original, **changes)
+    assert copied == dataclasses.replace(original, **changes) and copied is not original
+    assert type(copied) is cls and original.__dict__ == before  # the original unchanged
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        copied.index = 1  # type: ignore[misc]  # still frozen

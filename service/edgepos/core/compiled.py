@@ -387,6 +387,10 @@ _KERNEL_MODULES = (
     "kernels_turn",
     "kernels_integrity",
     "measurements.gnss_kernel",
+    "measurements.gnss_geometry",
+    "measurements.gnss_raim_kernel",
+    "measurements.gnss_noise_kernel",
+    "particles.upf_kernel",
 )
 
 
@@ -437,7 +441,10 @@ def warm_up() -> float:
     request pays it; returns the seconds it took. Runs one epoch of each covered filter kind, with
     the paper's 2IMM-CKF bank, joint and averaged, and the gate; the predictions also compile the
     F and Q kernel (``core.kernels_motion``, one signature for every bank); then the integrity bank's
-    kernels and gnss_tight's range kernel (``core.measurements.gnss_kernel``)."""
+    kernels, gnss_tight's range kernel (``core.measurements.gnss_kernel``), its satellite geometry
+    (``core.measurements.gnss_geometry``), RAIM and noise level
+    (``core.measurements.gnss_raim_kernel``, ``gnss_noise_kernel``) and the UPF's weights
+    (``core.particles.upf_kernel``)."""
     started = time.perf_counter()
     if not compiled_enabled():
         return 0.0
@@ -469,4 +476,16 @@ def warm_up() -> float:
     from edgepos.core.measurements import gnss_kernel
 
     gnss_kernel.warm_up()  # gnss_tight's pseudorange and range-rate kernel
+    from edgepos.core.measurements import gnss_geometry
+
+    gnss_geometry.warm_up()  # gnss_tight's satellite orbits and atmosphere
+    from edgepos.core.measurements import gnss_raim_kernel
+
+    gnss_raim_kernel.warm_up()  # gnss_tight's RAIM hypotheses
+    from edgepos.core.measurements import gnss_noise_kernel
+
+    gnss_noise_kernel.warm_up()  # gnss_tight's noise level fit
+    from edgepos.core.particles import upf_kernel
+
+    upf_kernel.warm_up()  # the UPF's importance weights
     return time.perf_counter() - started

@@ -34,6 +34,10 @@ KERNEL_FILES = tuple(
         "kernels_turn.py",
         "kernels_integrity.py",
         "measurements/gnss_kernel.py",
+        "measurements/gnss_geometry.py",
+        "measurements/gnss_raim_kernel.py",
+        "measurements/gnss_noise_kernel.py",
+        "particles/upf_kernel.py",
     )
 )
 #: The modules whose globals the kernels read (numba freezes a global into the machine code) or whose
@@ -44,6 +48,7 @@ READ_FILES = tuple(
         "core/integrity_bank.py",
         "core/motion/base.py",
         "core/motion/riss.py",
+        "gnss/corrections.py",
         "gnss/geodesy.py",
         "gnss/orbits.py",
     )

@@ -12,6 +12,9 @@ with exponential memory of time constant T, each epoch weighted by its redundanc
 errors are correlated over about a minute (gnss/error_correlation.py), so an estimate needs several
 correlation times of data to mean anything, and T sets how fast it follows a street that changes.
 What is reported is max(1, estimate): the level never claims the errors are smaller than the model's.
+
+The per-epoch fit runs as a compiled kernel (core/measurements/gnss_noise_kernel.py) unless
+``EDGEPOS_NUMBA=0``; :func:`epoch_scale`'s numpy form is its reference.
 """
 
 from __future__ import annotations
@@ -22,6 +25,9 @@ from functools import lru_cache
 
 import numpy as np
 from scipy import special, stats
+
+from edgepos.core.compiled import compiled_enabled
+from edgepos.core.measurements.gnss_noise_kernel import epoch_medians
 
 _NODES, _WEIGHTS = np.polynomial.legendre.leggauss(200)
 _P = 0.5 * (_NODES + 1.0)
@@ -104,6 +110,19 @@ def epoch_scale(jacobian: np.ndarray, residuals: np.ndarray, variance: np.ndarra
     leverages h_jj + w_j c_j^2 w_i / (1 - h_ii); the left-out row's deleted residual r_i / (1 - h_ii) has
     variance v_i / (1 - h_ii), so its test statistic is its studentised square u_i^2."""
     rows, unknowns = jacobian.shape
+    if rows > unknowns and compiled_enabled():
+        medians = epoch_medians(jacobian, residuals, variance)
+        if medians is not None:  # the compiled fit (None: the numpy form below decides)
+            median, count, others_median, others_count, worst_square = medians
+            if count == 0:
+                return math.nan, 0
+            estimate = median / expected_median(count)
+            if others_count == 0:
+                return estimate, rows - unknowns
+            scale = others_median / expected_median(others_count)
+            if worst_square > SNOOPING_SIGMA**2 * scale:
+                return scale, rows - 1 - unknowns
+            return estimate, rows - unknowns
     fit = _fit(jacobian, residuals, variance)
     if fit is None:
         return math.nan, 0

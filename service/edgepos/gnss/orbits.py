@@ -9,6 +9,7 @@ Times are continuous GPS seconds; BeiDou's 14 s offset is already folded into ``
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -128,6 +129,16 @@ class BroadcastOrbits:
 
     def __len__(self) -> int:
         return len(self.ephemerides)
+
+    @functools.cached_property
+    def kernel_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The records as the compiled geometry (``core.measurements.gnss_geometry``) reads them: the orbit
+        fields (17, n) in ``_ORBIT_FIELDS`` order, the clock's (6, n: toc, af0, af1, af2, tgd1, tgd2), and
+        per record GM, the ICD's Earth rotation rate and whether it is a BeiDou GEO; built once."""
+        clock = np.array([self._a[n] for n in ("toc", "af0", "af1", "af2", "tgd1", "tgd2")]).reshape(
+            6, len(self.ephemerides)
+        )
+        return np.ascontiguousarray(self._orbit_table), clock, self._gm, self._we, self._geo
 
     def select(self, systems: Sequence[str], prns: Sequence[int] | np.ndarray, t: float) -> np.ndarray:
         """Per satellite, the index of the healthy ephemeris whose toe is nearest to ``t`` (GPS s) among those

@@ -20,6 +20,9 @@ filter-based integrity monitoring against sensor faults", JGCD 2013):
 
 Too few satellites (no redundancy without the prior: fewer than 3 + constellations + 1) leave the fault
 unbounded except by the prior, which may already hold the fault: the epoch is ``unavailable``.
+
+The hypotheses are computed by a compiled kernel (core/measurements/gnss_raim_kernel.py) unless
+``EDGEPOS_NUMBA=0``; the numpy code here is its reference and decides every epoch the kernel declines.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from edgepos.core.compiled import compiled_enabled
 from edgepos.core.integrity import (
     ALARM,
     OK,
@@ -39,6 +43,7 @@ from edgepos.core.integrity import (
     radial_factor_table,
     test_threshold,
 )
+from edgepos.core.measurements.gnss_raim_kernel import separations as kernel_separations
 
 
 @dataclass(frozen=True)
@@ -202,6 +207,10 @@ def separations(
         prior = np.linalg.inv(budget.inflation * np.asarray(prior_position_cov, float))
     except np.linalg.LinAlgError:
         return Separations(False, (), 0.0)
+    if compiled_enabled():
+        compiled = _compiled_separations(h, systems, groups, z, w, prior, budget)
+        if compiled is not None:
+            return compiled
     every = np.ones(n, dtype=bool)
     normal = _normal(h, w, prior, every)
     if normal is None:
@@ -257,6 +266,46 @@ def separations(
                 )
             )
     return Separations(True, tuple(hypotheses), threshold)
+
+
+def _compiled_separations(
+    h: np.ndarray,
+    systems: Sequence[str],
+    groups: list[str],
+    z: np.ndarray,
+    w: np.ndarray,
+    prior: np.ndarray,
+    budget: RaimBudget,
+) -> Separations | None:
+    """:func:`separations` by the compiled kernel (core/measurements/gnss_raim_kernel.py), the same
+    hypotheses in the same order; None when the kernel declines (a normal matrix not positive definite, a
+    solution not finite), and the numpy form decides."""
+    number = {system: k for k, system in enumerate(groups)}
+    group = np.array([number[s] for s in systems], dtype=np.int64)
+    solved = kernel_separations(h, group, len(groups), z, w, prior)
+    if solved is None:
+        return None
+    separation, covariance, statistic = solved
+    n = len(z)
+    tests = n + (len(groups) if len(groups) > 1 else 0)
+    statistics = statistic.tolist()
+    single = budget.satellite_fault_probability
+    hypotheses: list[tuple[tuple[int, ...], np.ndarray, np.ndarray, float, float]] = [
+        ((j,), separation[j], covariance[j], statistics[j], single) for j in range(n)
+    ]
+    if len(groups) > 1:
+        for k in range(len(groups)):
+            rows = tuple(np.flatnonzero(group == k).tolist())
+            hypotheses.append(
+                (
+                    rows,
+                    separation[n + k],
+                    covariance[n + k],
+                    statistics[n + k],
+                    budget.constellation_fault_probability,
+                )
+            )
+    return Separations(True, tuple(hypotheses), test_threshold(budget.false_alarm_probability, tests))
 
 
 def protection(separations_: Separations, fix_cov: np.ndarray, budget: RaimBudget) -> Protection:

@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from edgepos.core.compiled import compiled_enabled
+from edgepos.core.measurements.gnss_noise_kernel import honesty_numbers
 from edgepos.core.motion import riss as layout
 from edgepos.gnss.error_correlation import ErrorCorrelation, averaged_variance, honest_factor
 from edgepos.gnss.noise_level import NoiseLevel, epoch_scale
@@ -108,6 +110,14 @@ def honesty(
         return value
 
     h = jacobian(ranges[:, rows], [systems[r] for r in rows])
+    if compiled_enabled():
+        if h.shape[0] <= h.shape[1] or float(np.trace(predicted_horizontal)) <= 0.0:
+            return Honesty()  # honest_factor's None: the rows alone do not fix the position
+        numbers = honesty_numbers(
+            h, variance, scale, count, predicted_horizontal, model.tau_s, model.fraction, dt
+        )
+        if numbers is not None:  # the compiled form (None: the numpy form below decides)
+            return Honesty(*numbers)
     result = honest_factor(h, variance, predicted_horizontal, true_variance)
     if result is None:
         return Honesty()

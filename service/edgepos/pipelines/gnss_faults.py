@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from edgepos.core.measurements.gnss_kernel import range_rates_at
 from edgepos.core.measurements.range_rate import RangeRateModel
 from edgepos.core.motion import riss as layout
 from edgepos.gnss.measurements import PseudorangeSet
@@ -208,6 +209,12 @@ def centre_rates(anchor: Any, centre: np.ndarray, prs: PseudorangeSet, rows: np.
     range-rate tests of an epoch share one prediction."""
     assert prs.sat_velocity is not None and prs.sat_clock_drift is not None
     predicted = np.full(len(prs), np.nan)
+    compiled = range_rates_at(
+        anchor, centre[None, :], prs.sat_position[rows], prs.sat_velocity[rows], prs.sat_clock_drift[rows]
+    )
+    if compiled is not None:  # the kernel; each row's rate alone, as range_rate_test's own prediction
+        predicted[rows] = compiled[0]
+        return predicted
     rate_model = RangeRateModel.build(
         anchor, prs.sat_position[rows], prs.sat_velocity[rows], prs.sat_clock_drift[rows], np.ones(rows.size)
     )

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from edgepos.core.integrity import UNAVAILABLE, Protection, radial_factor_table
+from edgepos.core.measurements.gnss_kernel import pseudoranges_at
 from edgepos.core.measurements.pseudorange import PseudorangeModel
 from edgepos.core.motion import riss as layout
 from edgepos.gnss.raim import RaimBudget, Separations, protection, separations
@@ -135,13 +136,18 @@ def linearisation_ranges(
     residuals of every hypothesis); rows 1-3: their derivatives (n,) by north, east and up, by 1 m differences
     (the ranges are linear over a metre to 1e-7 m). One model for all the rows and hypotheses of an epoch.
 
-    Row 0 is evaluated on its own: the four-state matrix product rounds differently (in the last bit) from
-    the one-state one the tests used before these were shared, and the filters amplify such bits over
-    epochs; this keeps the pipeline's results bit-identical."""
-    model = PseudorangeModel.build(anchor, sat_position, list(systems), known, np.ones(len(known)))
+    By the compiled kernel (core/measurements/gnss_kernel.py ``pseudoranges_at``), which computes each
+    state's ranges alone, as the tests do when they predict for themselves. Without it (``EDGEPOS_NUMBA=0``)
+    the numpy model, row 0 evaluated on its own: the four-state matrix product rounds differently (in the
+    last bit) from the one-state one the tests use alone, and the filters amplify such bits over epochs."""
     states = np.repeat(centre[None, :], 4, axis=0)
     for k, index in enumerate((layout.NORTH, layout.EAST, layout.UP)):
         states[k + 1, index] += 1.0
+    compiled = pseudoranges_at(anchor, states, sat_position, systems, known)
+    if compiled is not None:  # the kernel: each state's ranges alone, row 0 as a one-state call gives
+        compiled[1:] -= compiled[0]
+        return compiled
+    model = PseudorangeModel.build(anchor, sat_position, list(systems), known, np.ones(len(known)))
     predicted: np.ndarray = model.predict(states)
     jacobian = predicted[1:] - predicted[0]
     predicted[0] = model.predict(centre)

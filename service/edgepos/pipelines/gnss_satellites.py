@@ -13,6 +13,7 @@ from typing import Any, cast
 
 import numpy as np
 
+from edgepos.core.measurements.gnss_geometry import transmit_states
 from edgepos.core.observations import Observation, PseudorangeObservation
 from edgepos.gnss.carrier import HatchConfig, hatch_update
 from edgepos.gnss.corrections import carrier_frequency
@@ -136,8 +137,8 @@ def epoch_satellites(
                 factors = np.array([_DELAY_FACTORS[systems[r]] for r in have])
                 picked = [observed[r] for r in have]
                 pseudoranges = np.array([o.pseudorange for o in picked])
-                states = ephemerides.orbits.transmit_states(
-                    ephemeris_index[have], gpst, pseudoranges, factors
+                states = transmit_states(
+                    ephemerides.orbits, ephemeris_index[have], gpst, pseudoranges, factors
                 )
                 frequencies = [_FREQUENCY[o.system] for o in picked]
                 # one vectorised conversion (element-wise, so each row's value is as if alone)

@@ -10,6 +10,9 @@ import math
 import numpy as np
 from scipy.stats import chi2
 
+from edgepos.core.compiled import compiled_enabled
+from edgepos.core.measurements.gnss_kernel import pseudoranges_at, range_rates_at
+from edgepos.core.measurements.gnss_raim_kernel import snapshot_round
 from edgepos.core.measurements.pseudorange import PseudorangeModel
 from edgepos.core.measurements.range_rate import RangeRateModel
 from edgepos.core.motion import riss as layout
@@ -51,14 +54,24 @@ def range_rate_test(
     assert session.anchor is not None and prs.range_rate_mps is not None
     assert prs.sat_velocity is not None and prs.sat_clock_drift is not None
     if predicted is None:
-        rate_model = RangeRateModel.build(
+        compiled = range_rates_at(
             session.anchor,
+            centre[None, :],
             prs.sat_position[rows],
             prs.sat_velocity[rows],
             prs.sat_clock_drift[rows],
-            std[rows],
         )
-        residual = prs.range_rate_mps[rows] - rate_model.predict(centre)
+        if compiled is not None:  # the kernel, as gnss_faults.centre_rates
+            residual = prs.range_rate_mps[rows] - compiled[0]
+        else:
+            rate_model = RangeRateModel.build(
+                session.anchor,
+                prs.sat_position[rows],
+                prs.sat_velocity[rows],
+                prs.sat_clock_drift[rows],
+                std[rows],
+            )
+            residual = prs.range_rate_mps[rows] - rate_model.predict(centre)
     else:
         residual = prs.range_rate_mps[rows] - predicted[rows]
     if predicted_cov is None:
@@ -119,12 +132,61 @@ def snapshot_test(
         return rows
     assert session.anchor is not None
     receiver = session.anchor.ecef(centre)
-    systems = np.array(prs.systems)
-    geometric = sagnac_range(prs.sat_position, receiver)
-    residual = prs.pseudorange_m - geometric - known
-    line_of_sight = (receiver - prs.sat_position) / geometric[:, None]
+    fit = _SnapshotFit(receiver, prs, known, std)
     keep = rows.copy()
     for _ in range(options["max_exclusions"]):
+        result = fit.round(keep)
+        if result is None:
+            break  # too few rows, or a singular geometry: nothing to test against
+        statistic, dof, worst, standardised = result
+        if not math.isfinite(statistic) or statistic <= chi2_threshold(probability, dof):
+            break
+        i = indices[keep[worst]]
+        uses[i] = MeasurementUse(
+            i,
+            "pseudorange",
+            False,
+            f"excluded by the snapshot test: {statistic:.1f} > {chi2_threshold(probability, dof):.1f} "
+            f"(chi-square, {dof} dof), largest standardised residual {standardised:.1f}",
+        )
+        keep = np.delete(keep, worst)
+    return keep
+
+
+class _SnapshotFit:
+    """The snapshot test's weighted least-squares rounds at one receiver position: by the compiled kernel
+    (core/measurements/gnss_raim_kernel.py ``snapshot_kernel``) unless ``EDGEPOS_NUMBA=0`` or it declines a
+    round, else by the numpy round here (its reference)."""
+
+    def __init__(self, receiver: np.ndarray, prs: PseudorangeSet, known: np.ndarray, std: np.ndarray) -> None:
+        self.receiver, self.prs, self.known, self.std = receiver, prs, known, std
+        self.compiled = compiled_enabled()
+        labels = sorted(set(prs.systems))
+        self.group = np.array([labels.index(s) for s in prs.systems], dtype=np.int64)
+        self._geometry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def round(self, keep: np.ndarray) -> tuple[float, int, int, float] | None:
+        """(chi-square statistic of the weighted post-fit residuals, its degrees of freedom, the position in
+        ``keep`` of the largest standardised residual (divided by sqrt(1 - leverage)), that residual); None
+        when there are fewer than 2 degrees of freedom or the geometry is singular."""
+        if self.compiled:
+            prs = self.prs
+            result = snapshot_round(
+                self.receiver, prs.sat_position, prs.pseudorange_m, self.known, self.std, self.group, keep
+            )
+            if result is not None:
+                return result
+            if keep.size - 3 - len(set(self.group[keep].tolist())) < 2:
+                return None
+        return self._numpy_round(keep)
+
+    def _numpy_round(self, keep: np.ndarray) -> tuple[float, int, int, float] | None:
+        if self._geometry is None:
+            geometric = sagnac_range(self.prs.sat_position, self.receiver)
+            residual = self.prs.pseudorange_m - geometric - self.known
+            line_of_sight = (self.receiver - self.prs.sat_position) / geometric[:, None]
+            self._geometry = (np.array(self.prs.systems), residual, line_of_sight)
+        systems, residual, line_of_sight = self._geometry
         present = sorted(set(systems[keep]))
         design = np.zeros((keep.size, 3 + len(present)))
         design[:, :3] = line_of_sight[keep]
@@ -132,31 +194,20 @@ def snapshot_test(
             design[systems[keep] == system, 3 + column] = 1.0
         dof = keep.size - design.shape[1]
         if dof < 2:
-            break
-        root = 1.0 / std[keep]
+            return None
+        root = 1.0 / self.std[keep]
         weighted = design * root[:, None]
         normal = weighted.T @ weighted
         try:
             inverse = np.linalg.inv(normal)
         except np.linalg.LinAlgError:
-            break  # singular geometry: nothing to test against
+            return None
         normalised = (residual[keep] - design @ (inverse @ (weighted.T @ (residual[keep] * root)))) * root
         statistic = float(normalised @ normalised)
-        if not math.isfinite(statistic) or statistic <= chi2_threshold(probability, dof):
-            break
         leverage = np.einsum("ij,jk,ik->i", weighted, inverse, weighted)
         standardised = np.abs(normalised) / np.sqrt(np.maximum(1.0 - leverage, 1e-6))
         worst = int(np.argmax(standardised))
-        i = indices[keep[worst]]
-        uses[i] = MeasurementUse(
-            i,
-            "pseudorange",
-            False,
-            f"excluded by the snapshot test: {statistic:.1f} > {chi2_threshold(probability, dof):.1f} "
-            f"(chi-square, {dof} dof), largest standardised residual {standardised[worst]:.1f}",
-        )
-        keep = np.delete(keep, worst)
-    return keep
+        return statistic, dof, worst, float(standardised[worst])
 
 
 def range_residuals(
@@ -174,6 +225,11 @@ def range_residuals(
     assert session.anchor is not None
     systems = [prs.systems[r] for r in rows]
     if predicted is None:
+        compiled = pseudoranges_at(
+            session.anchor, centre[None, :], prs.sat_position[rows], systems, known[rows]
+        )
+        if compiled is not None:  # the kernel, as gnss_integrity.linearisation_ranges
+            return prs.pseudorange_m[rows] - compiled[0], systems
         model_pr = PseudorangeModel.build(
             session.anchor, prs.sat_position[rows], systems, known[rows], std[rows]
         )

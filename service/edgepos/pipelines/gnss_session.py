@@ -13,7 +13,6 @@ from edgepos.core import state as state_format
 from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GeodeticAnchor
 from edgepos.core.particles import PARTICLE_FILTERS, Cloud
-from edgepos.core.particles.base import weighted_moments
 from edgepos.gnss.carrier import CarrierTrack, tracks_from_arrays, tracks_to_arrays
 from edgepos.gnss.noise_level import NoiseLevel
 
@@ -182,7 +181,7 @@ def cloud_moments(session: GnssSession) -> tuple[np.ndarray, np.ndarray]:
     if len(cloud.particles) == 1:
         single: np.ndarray = cloud.particles[0].copy()
         return single, session_covariance(session)
-    mean, spread = weighted_moments(cloud.particles, cloud.weights, layout.ANGLES)
+    mean, spread = cloud.moments(layout.ANGLES)
     if session.options["filter"] == "upf":  # UnscentedParticleFilter.covariance without a second pass
         return mean, spread + cloud.cov
     return mean, session_covariance(session)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -21,7 +21,7 @@ from edgepos.core.compiled import compiled_enabled
 from edgepos.core.kernels_base import _jit
 from edgepos.core.measurements.pseudorange import PseudorangeModel
 from edgepos.core.measurements.range_rate import RangeRateModel
-from edgepos.core.motion.riss import DIM, DRIFT, EAST, NORTH, UP, VE, VN, VU, GeodeticAnchor
+from edgepos.core.motion.riss import CLOCK, DIM, DRIFT, EAST, NORTH, UP, VE, VN, VU, GeodeticAnchor
 from edgepos.core.numerics import FloatArray
 from edgepos.gnss.geodesy import WGS84_A, WGS84_E2, geodetic_to_ecef
 from edgepos.gnss.orbits import OMEGA_EARTH, SPEED_OF_LIGHT
@@ -135,6 +135,56 @@ def epoch_predict(
         )
 
     return reference
+
+
+def pseudoranges_at(
+    anchor: GeodeticAnchor,
+    states: np.ndarray,
+    sat_position: np.ndarray,
+    systems: Sequence[str],
+    known_m: np.ndarray,
+) -> FloatArray | None:
+    """The pseudoranges (k, m) of states (k, DIM) by the kernel (``PseudorangeModel.predict``'s equation:
+    satellites (m, 3), their constellations and known terms); None when the kernels are off. Each state's
+    and satellite's value is computed alone, so a subset of the rows or states gives the same numbers (the
+    pipeline's shared prediction and a test's own agree exactly)."""
+    if not compiled_enabled():
+        return None
+    empty = np.zeros((0, 3))
+    return predict(
+        np.asarray(states, dtype=float),
+        anchor_array(anchor),
+        np.ascontiguousarray(sat_position, dtype=float).reshape(-1, 3),
+        np.array([CLOCK[s] for s in systems], dtype=np.int64),
+        np.ascontiguousarray(known_m, dtype=float),
+        empty,
+        empty,
+        np.zeros(0),
+    )
+
+
+def range_rates_at(
+    anchor: GeodeticAnchor,
+    states: np.ndarray,
+    sat_position: np.ndarray,
+    sat_velocity: np.ndarray,
+    sat_clock_drift: np.ndarray,
+) -> FloatArray | None:
+    """The range rates (k, m) of states (k, DIM) by the kernel (``RangeRateModel.build(...).predict``'s
+    equation, from the satellites' positions, velocities and clock drifts (s/s)); None when the kernels are
+    off. Each value is computed alone, as in :func:`pseudoranges_at`."""
+    if not compiled_enabled():
+        return None
+    return predict(
+        np.asarray(states, dtype=float),
+        anchor_array(anchor),
+        np.zeros((0, 3)),
+        np.zeros(0, dtype=np.int64),
+        np.zeros(0),
+        np.ascontiguousarray(sat_position, dtype=float).reshape(-1, 3),
+        np.ascontiguousarray(sat_velocity, dtype=float).reshape(-1, 3),
+        -SPEED_OF_LIGHT * np.ascontiguousarray(sat_clock_drift, dtype=float),
+    )
 
 
 def warm_up() -> float:

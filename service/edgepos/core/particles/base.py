@@ -68,6 +68,11 @@ class Measurement:
         )
         return mixture
 
+    def mixture_terms(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The mixture's two log-densities per component as (inlier a, inlier b, outlier a, outlier b) of
+        a r^2 + b, each (m,) (what the compiled UPF weights read; computed once per measurement)."""
+        return self._mixture
+
     @functools.cached_property
     def _mixture(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The two Gaussians' log-densities as a r^2 + b per component, computed once per measurement: log
@@ -95,6 +100,26 @@ class Cloud:
     def weights(self) -> np.ndarray:
         weights: FloatArray = np.exp(self.log_weights)
         return weights
+
+    def moments(self, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`weighted_moments` of the particles with their weights, computed once per cloud: the
+        pipeline's prediction and the UPF's time update both start from them. Remembered with the arrays
+        and ``angles`` they came from (a cloud given new arrays computes them again) and returned read-only,
+        as the arrays of a cloud are never changed in place (each step makes a new cloud)."""
+        cached = self.__dict__.get("_moments")
+        if (
+            cached is not None
+            and cached[0] is self.particles
+            and cached[1] is self.log_weights
+            and cached[2] is angles
+        ):
+            result: tuple[np.ndarray, np.ndarray] = cached[3]
+            return result
+        mean, cov = weighted_moments(self.particles, self.weights, angles)
+        mean.flags.writeable = False
+        cov.flags.writeable = False
+        self.__dict__["_moments"] = (self.particles, self.log_weights, angles, (mean, cov))
+        return mean, cov
 
 
 @dataclass(frozen=True)

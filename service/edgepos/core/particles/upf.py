@@ -62,6 +62,7 @@ from edgepos.core.particles.base import (
     weighted_moments,
     wrap,
 )
+from edgepos.core.particles.upf_kernel import log_weights as compiled_log_weights
 
 
 def predicted_own_covariance(cloud: Cloud, model: ParticleModel, dt: float, active: np.ndarray) -> np.ndarray:
@@ -76,7 +77,7 @@ def _own_prediction(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The cloud's weighted mean carried over ``dt`` (D,), where the shared update linearises, and
     :func:`predicted_own_covariance`."""
-    centre, _ = weighted_moments(cloud.particles, cloud.weights, ANGLES)
+    centre, _ = cloud.moments(ANGLES)
     moved, _, cov = unscented_predict(centre[None, :], cloud.cov, model, dt, active, ANGLES)
     own: FloatArray = cov[0]
     return model.complete(wrap(moved, ANGLES))[0], own
@@ -98,7 +99,7 @@ class UnscentedParticleFilter:
 
     def covariance(self, cloud: Cloud) -> np.ndarray:
         """The state covariance the cloud stands for: spread of the centres plus their own covariance."""
-        _, spread = weighted_moments(cloud.particles, cloud.weights, ANGLES)
+        _, spread = cloud.moments(ANGLES)
         total: FloatArray = spread + cloud.cov
         return total
 
@@ -139,13 +140,24 @@ class UnscentedParticleFilter:
         sampled[:, index] += deviation
         sampled = model.complete(wrap(sampled, ANGLES))
 
-        likelihood = measurement.log_likelihood(measurement.z - measurement.predict(sampled))
+        residual = measurement.z - measurement.predict(sampled)
         prior_chol = batched_cholesky(predicted_cov)
-        prior = gaussian_logpdf(wrap(sampled[:, index] - centres[:, index], angles), prior_chol)
-        proposal = gaussian_logpdf(
-            wrap(sampled[:, index] - update.posterior[:, index], angles), proposal_chol
+        prior_deviation = wrap(sampled[:, index] - centres[:, index], angles)
+        proposal_deviation = wrap(sampled[:, index] - update.posterior[:, index], angles)
+        log_weights = compiled_log_weights(
+            cloud.log_weights,
+            measurement,
+            residual,
+            prior_deviation,
+            prior_chol,
+            proposal_deviation,
+            proposal_chol,
         )
-        log_weights = normalise(cloud.log_weights + likelihood + prior - proposal)
+        if log_weights is None:  # the reference: numpy, and particles with covariances of their own
+            likelihood = measurement.log_likelihood(residual)
+            prior = gaussian_logpdf(prior_deviation, prior_chol)
+            proposal = gaussian_logpdf(proposal_deviation, proposal_chol)
+            log_weights = normalise(cloud.log_weights + likelihood + prior - proposal)
         score = _innovation_score(measurement, cloud.weights, update.z_hat, update.z_cov)
 
         # Keep sqrt(f) of each sample's deviation as spread and (1 - f) of the proposal covariance as the
