@@ -10,6 +10,9 @@ timestamps jittered by a few milliseconds as real clocks are, against
 * the floor (``bench/floor_app.py``): the same routes and request schemas, fixed answers of the same
   shape, no filter, no store.
 
+Each service run also prints the server's own CPU time per epoch (its processes', from /proc), which a
+busy machine disturbs far less than the epochs per second.
+
 Each round runs every target once, so a service and its floor are measured close together under the
 same background load; the ratio service ÷ floor is taken per round. wrk's latency percentiles include
 the few session creations (one per 40 batches per vehicle). wrk is Debian's package (``make bench``
@@ -40,7 +43,13 @@ from typing import Any
 import numpy as np
 from edgepos.loadgen import common
 from edgepos.loadgen.localredis import RedisServer, redis_binary
-from edgepos.loadgen.localserver import PORT_PLACEHOLDER, clean_environment, running, serve_command
+from edgepos.loadgen.localserver import (
+    PORT_PLACEHOLDER,
+    clean_environment,
+    running,
+    serve_command,
+    service_cpu_s,
+)
 from edgepos.sim.scenarios import rsu_imu_paper_scenario
 
 BENCH_DIR = Path(__file__).resolve().parent
@@ -186,12 +195,18 @@ def main() -> int:
                     run_wrk(
                         url, workdir, args.vehicles, min(2.0, args.duration)
                     )  # warm-up (compiles, caches)
+                    cpu_before = service_cpu_s(url) if name != "floor" else 0.0
                     result = run_wrk(url, workdir, args.vehicles, args.duration)
+                    if name != "floor":  # the server's own CPU (its workers too): steadier than epochs/s
+                        cpu_s = service_cpu_s(url) - cpu_before
+                        result["server_cpu_us_per_epoch"] = cpu_s / max(1, result["epochs"]) * 1e6
                 results[name].append(result)
+                cpu = result.get("server_cpu_us_per_epoch")
                 print(
                     f"  round {round_index + 1} {name:21s} {result['epochs_per_s']:9.0f} epochs/s  "
                     f"p50 {result['p50_us'] / 1e3:6.1f} ms  p99 {result['p99_us'] / 1e3:6.1f} ms  "
-                    f"errors {result['errors'] + result['socket_errors']}",
+                    f"errors {result['errors'] + result['socket_errors']}"
+                    + (f"  server CPU {cpu:6.1f} us/epoch" if cpu is not None else ""),
                     flush=True,
                 )
     ratios: dict[str, list[float]] = {}
@@ -219,6 +234,14 @@ def main() -> int:
         )
         print(
             f"light lane thread / loop{suffix} per round: " + ", ".join(f"{ratio:.2f}" for ratio in per_round)
+        )
+        cpu_ratios = ratios["thread / loop server CPU per epoch" + suffix] = [
+            a["server_cpu_us_per_epoch"] / b["server_cpu_us_per_epoch"]
+            for a, b in zip(results[services[store, "thread"]], results[services[store, "loop"]])
+        ]
+        print(
+            f"server CPU per epoch, thread / loop{suffix} per round: "
+            + ", ".join(f"{ratio:.2f}" for ratio in cpu_ratios)
         )
     print(f"load average {load_before:.2f} before, {os.getloadavg()[0]:.2f} after")
     if args.json:
