@@ -242,6 +242,9 @@ class _LoopLane:
                     result, cpu_s = job.call()
                 except Exception as error:  # noqa: BLE001  # every error goes back to the request that waits for it
                     job.future.set_exception(error)
+                except BaseException:
+                    job.future.cancel()  # KeyboardInterrupt, SystemExit: free the request, then stop the loop
+                    raise
                 else:
                     self.metrics.pipeline_cpu.labels(job.label).inc(cpu_s)
                     job.future.set_result(result)
