@@ -9,7 +9,8 @@ p99, and the heavy vehicles' batches per second; with the machine's load average
 
 Configurations, started one after another on loopback:
   * 1 worker, in-process store, every batch on the one filter thread as before the scheduler's lanes
-    (EDGEPOS_SCHEDULER_SLICE_MS=10000, EDGEPOS_HEAVY_WORKERS=0; vehicles still served in turn);
+    (EDGEPOS_SCHEDULER_SLICE_MS=10000, EDGEPOS_HEAVY_WORKERS=0, EDGEPOS_LIGHT_LANE=thread; vehicles still
+    served in turn);
   * 1 worker, in-process store, heavy batches on a second thread (EDGEPOS_HEAVY_WORKERS=0);
   * 1 worker, in-process store, heavy batches in a worker process (the default);
   * 2 workers on Redis (when redis-server is installed), the default lanes.
@@ -266,7 +267,12 @@ def main(argv: list[str] | None = None) -> int:
     before = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="edgepos-fairness-") as tmp:
         workdir = Path(tmp)
-        one_lane = {**budget, "EDGEPOS_HEAVY_WORKERS": "0", "EDGEPOS_SCHEDULER_SLICE_MS": "10000"}
+        one_lane = {
+            **budget,
+            "EDGEPOS_HEAVY_WORKERS": "0",
+            "EDGEPOS_SCHEDULER_SLICE_MS": "10000",
+            "EDGEPOS_LIGHT_LANE": "thread",
+        }
         rows.append(
             run_target("1 worker, one lane (as before)", 1, "memory", one_lane, args.duration, workdir)
         )

@@ -10,7 +10,12 @@ service, the middleware, fix serialisation, uvicorn's HTTP protocol), and the sh
 Samples of the idle filter thread are left out; the event loop waiting inside uvloop's C code shows
 as "event loop in C" (socket I/O and idle time cannot be told apart from Python stacks).
 
-    python bench/profile_service.py [--store memory|redis] [--seconds S] [--raw FILE]
+With ``--gil`` only the thread holding the GIL is sampled. One worker runs its event loop and its
+filter thread under one GIL, and under saturating load it holds the GIL nearly all the time, so these
+shares are those of the worker's CPU, the figure that bounds its throughput; the samples' total over
+the most it could be (seconds x 200) is printed as the GIL's busy share.
+
+    python bench/profile_service.py [--store memory|redis] [--seconds S] [--raw FILE] [--gil]
 """
 
 from __future__ import annotations
@@ -46,6 +51,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
         ("logging/", "prometheus_client", "edgepos/api/logs.py", "edgepos/api/metrics.py"),
     ),
     ("middleware (request id, admission, body limit)", ("edgepos/api/middleware.py",)),
+    ("scheduler (the vehicles' turns, the filter lane around the pipeline)", ("edgepos/api/scheduler.py",)),
     ("FastAPI/Starlette routing and dependencies", ("starlette", "fastapi", "edgepos/api/routes")),
     ("HTTP protocol (uvicorn, httptools)", ("uvicorn", "httptools", "h11")),
 )
@@ -72,7 +78,7 @@ def shares(raw: Path) -> tuple[collections.Counter[str], int]:
         samples, frames = int(count), stack.split(";")
         if "Pipeline.process" in stack:
             counts[PIPELINE] += samples
-        elif "_worker (concurrent/futures/thread.py" in stack:
+        elif "_ThreadLane._serve" in stack and frames[-1].startswith("Condition.wait "):
             continue  # the filter thread waiting for work
         elif frames[-1].startswith(("Runner.run ", "select ")):
             counts[LOOP_IN_C] += samples
@@ -101,6 +107,12 @@ def main() -> int:
     parser.add_argument("--store", choices=("memory", "redis"), default="redis")
     parser.add_argument("--seconds", type=float, default=12.0, help="sampling time (default 12)")
     parser.add_argument("--raw", type=Path, default=None, help="keep py-spy's raw stacks in FILE")
+    parser.add_argument(
+        "--gil",
+        action="store_true",
+        help="sample only the thread holding the GIL: the shares of the worker's Python CPU (one worker runs "
+        "its event loop and its filter thread under one GIL, so this is what bounds its throughput)",
+    )
     args = parser.parse_args()
     py_spy = shutil.which("py-spy") or str(Path(sys.executable).with_name("py-spy"))
     if not Path(py_spy).exists():
@@ -191,6 +203,7 @@ def main() -> int:
                     "-o",
                     str(raw),
                     "--nonblocking",
+                    *(["--gil"] if args.gil else []),
                 ],
                 check=True,
                 stdout=subprocess.DEVNULL,
@@ -205,12 +218,17 @@ def main() -> int:
         counts, total = shares(raw)
     print(
         f"profile of 1 worker on the {args.store} store, closed loop of 20 vehicles x 20-epoch batches, "
-        f"{args.seconds:g} s at 200 Hz, {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}"
+        f"{args.seconds:g} s at 200 Hz{', GIL holder only' if args.gil else ''}, {os.cpu_count()} cores, "
+        f"load average {os.getloadavg()[0]:.2f}"
     )
     print("\n".join(line for line in report.splitlines()[1:5]))
     for name, samples in counts.most_common():
         print(f"  {100.0 * samples / total:5.1f} %  {name}")
-    print(f"  ({total} samples)")
+    if args.gil:
+        busy = total / (200.0 * args.seconds)
+        print(f"  ({total} samples: the GIL held {100.0 * busy:.0f} % of the time)")
+    else:
+        print(f"  ({total} samples)")
     return 0
 
 

@@ -10,13 +10,19 @@ timestamps jittered by a few milliseconds as real clocks are, against
 * the floor (``bench/floor_app.py``): the same routes and request schemas, fixed answers of the same
   shape, no filter, no store.
 
+Each service run also prints the server's own CPU time per epoch (its processes', from /proc), which a
+busy machine disturbs far less than the epochs per second.
+
 Each round runs every target once, so a service and its floor are measured close together under the
 same background load; the ratio service ÷ floor is taken per round. wrk's latency percentiles include
 the few session creations (one per 40 batches per vehicle). wrk is Debian's package (``make bench``
 installs it).
 
-    python bench/wrk_load.py [--workers 1] [--store memory|redis|memory,redis] [--vehicles 16] [--duration 10]
-        [--rounds 3] [--batch 20] [--jitter-ms 3] [--json FILE]
+With ``--light-lane loop,thread`` each store's service is measured with the light lane on the event loop
+(the default) and on the filter thread (``EDGEPOS_LIGHT_LANE``), and thread ÷ loop printed per round.
+
+    python bench/wrk_load.py [--workers 1] [--store memory|redis|memory,redis] [--light-lane loop|thread|loop,thread]
+        [--vehicles 16] [--duration 10] [--rounds 3] [--batch 20] [--jitter-ms 3] [--json FILE]
 """
 
 from __future__ import annotations
@@ -37,7 +43,13 @@ from typing import Any
 import numpy as np
 from edgepos.loadgen import common
 from edgepos.loadgen.localredis import RedisServer, redis_binary
-from edgepos.loadgen.localserver import PORT_PLACEHOLDER, clean_environment, running, serve_command
+from edgepos.loadgen.localserver import (
+    PORT_PLACEHOLDER,
+    clean_environment,
+    running,
+    serve_command,
+    service_cpu_s,
+)
 from edgepos.sim.scenarios import rsu_imu_paper_scenario
 
 BENCH_DIR = Path(__file__).resolve().parent
@@ -88,13 +100,20 @@ def run_wrk(url: str, directory: Path, vehicles: int, duration_s: float) -> dict
 
 
 STORES = ("memory", "redis")
+LANES = ("loop", "thread")
 
 
-def _stores(text: str) -> tuple[str, ...]:
-    stores = tuple(dict.fromkeys(part.strip() for part in text.split(",") if part.strip()))
-    if not stores or any(store not in STORES for store in stores):
-        raise argparse.ArgumentTypeError(f"comma-separated stores of {', '.join(STORES)}, got {text!r}")
-    return stores
+def _choices(allowed: tuple[str, ...], what: str) -> Any:
+    def parse(text: str) -> tuple[str, ...]:
+        chosen = tuple(dict.fromkeys(part.strip() for part in text.split(",") if part.strip()))
+        if not chosen or any(choice not in allowed for choice in chosen):
+            raise argparse.ArgumentTypeError(f"comma-separated {what} of {', '.join(allowed)}, got {text!r}")
+        return chosen
+
+    return parse
+
+
+_stores = _choices(STORES, "stores")
 
 
 def main() -> int:
@@ -105,6 +124,12 @@ def main() -> int:
         type=_stores,
         default=("memory",),
         help="memory, redis, or both comma-separated (each measured in every round)",
+    )
+    parser.add_argument(
+        "--light-lane",
+        type=_choices(LANES, "light lanes"),
+        default=("loop",),
+        help="loop (the default), thread, or both comma-separated (EDGEPOS_LIGHT_LANE; each measured in every round)",
     )
     parser.add_argument("--vehicles", type=int, default=16)
     parser.add_argument("--duration", type=float, default=10.0, help="seconds per run")
@@ -120,11 +145,22 @@ def main() -> int:
     print(
         f"wrk load: {os.cpu_count()} cores, {platform.python_implementation()} {platform.python_version()}, "
         f"{args.vehicles} vehicles closed loop, {args.batch}-epoch batches, jitter +-{args.jitter_ms:g} ms, "
-        f"{args.workers} worker(s), store {','.join(args.store)}, {args.duration:g} s x {args.rounds} rounds, "
+        f"{args.workers} worker(s), store {','.join(args.store)}, light lane {','.join(args.light_lane)}, "
+        f"{args.duration:g} s x {args.rounds} rounds, "
         f"load average {load_before:.2f} at start",
         flush=True,
     )
-    services = {store: f"service {store}" if len(args.store) > 1 else "service" for store in args.store}
+    services = {
+        (store, lane): " ".join(
+            [
+                "service",
+                *([store] if len(args.store) > 1 else []),
+                *([lane] if len(args.light_lane) > 1 else []),
+            ]
+        )
+        for store in args.store
+        for lane in args.light_lane
+    }
     results: dict[str, list[dict[str, Any]]] = {name: [] for name in [*services.values(), "floor"]}
     with tempfile.TemporaryDirectory(prefix="edgepos-wrk-") as tmp, contextlib.ExitStack() as stack:
         workdir = Path(tmp)
@@ -148,7 +184,8 @@ def main() -> int:
         floor = [sys.executable, str(BENCH_DIR / "floor_app.py"), "--port", PORT_PLACEHOLDER]
         floor += ["--workers", str(args.workers)]
         targets = {
-            name: (serve_command(args.workers), environments[store]) for store, name in services.items()
+            name: (serve_command(args.workers), {**environments[store], "EDGEPOS_LIGHT_LANE": lane})
+            for (store, lane), name in services.items()
         }
         targets["floor"] = (floor, env)
         for round_index in range(args.rounds):
@@ -158,12 +195,18 @@ def main() -> int:
                     run_wrk(
                         url, workdir, args.vehicles, min(2.0, args.duration)
                     )  # warm-up (compiles, caches)
+                    cpu_before = service_cpu_s(url) if name != "floor" else 0.0
                     result = run_wrk(url, workdir, args.vehicles, args.duration)
+                    if name != "floor":  # the server's own CPU (its workers too): steadier than epochs/s
+                        cpu_s = service_cpu_s(url) - cpu_before
+                        result["server_cpu_us_per_epoch"] = cpu_s / max(1, result["epochs"]) * 1e6
                 results[name].append(result)
+                cpu = result.get("server_cpu_us_per_epoch")
                 print(
-                    f"  round {round_index + 1} {name:14s} {result['epochs_per_s']:9.0f} epochs/s  "
+                    f"  round {round_index + 1} {name:21s} {result['epochs_per_s']:9.0f} epochs/s  "
                     f"p50 {result['p50_us'] / 1e3:6.1f} ms  p99 {result['p99_us'] / 1e3:6.1f} ms  "
-                    f"errors {result['errors'] + result['socket_errors']}",
+                    f"errors {result['errors'] + result['socket_errors']}"
+                    + (f"  server CPU {cpu:6.1f} us/epoch" if cpu is not None else ""),
                     flush=True,
                 )
     ratios: dict[str, list[float]] = {}
@@ -178,17 +221,39 @@ def main() -> int:
             f"(medians of rounds); {name} / floor per round: "
             + ", ".join(f"{ratio:.2f}" for ratio in ratios[f"{name} / floor"])
         )
-    if len(services) > 1:
-        ratios["redis / memory"] = _per_round(results[services["redis"]], results[services["memory"]])
+    for lane in args.light_lane if len(args.store) > 1 else ():
+        suffix = f" ({lane})" if len(args.light_lane) > 1 else ""
+        per_round = ratios["redis / memory" + suffix] = _per_round(
+            results[services["redis", lane]], results[services["memory", lane]]
+        )
+        print(f"Redis / in-process{suffix} per round: " + ", ".join(f"{ratio:.2f}" for ratio in per_round))
+    for store in args.store if len(args.light_lane) > 1 else ():
+        suffix = f" ({store})" if len(args.store) > 1 else ""
+        per_round = ratios["thread / loop" + suffix] = _per_round(
+            results[services[store, "thread"]], results[services[store, "loop"]]
+        )
         print(
-            "Redis / in-process per round: " + ", ".join(f"{ratio:.2f}" for ratio in ratios["redis / memory"])
+            f"light lane thread / loop{suffix} per round: " + ", ".join(f"{ratio:.2f}" for ratio in per_round)
+        )
+        cpu_ratios = ratios["thread / loop server CPU per epoch" + suffix] = [
+            a["server_cpu_us_per_epoch"] / b["server_cpu_us_per_epoch"]
+            for a, b in zip(results[services[store, "thread"]], results[services[store, "loop"]])
+        ]
+        print(
+            f"server CPU per epoch, thread / loop{suffix} per round: "
+            + ", ".join(f"{ratio:.2f}" for ratio in cpu_ratios)
         )
     print(f"load average {load_before:.2f} before, {os.getloadavg()[0]:.2f} after")
     if args.json:
         args.json.write_text(
             json.dumps(
                 {
-                    "args": vars(args) | {"json": str(args.json), "store": list(args.store)},
+                    "args": vars(args)
+                    | {
+                        "json": str(args.json),
+                        "store": list(args.store),
+                        "light_lane": list(args.light_lane),
+                    },
                     "results": results,
                     "ratios": ratios,
                 },

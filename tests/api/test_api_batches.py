@@ -346,7 +346,10 @@ def test_fixes_carry_latitude_longitude_with_an_origin(tmp_path):
 
 def test_requests_for_one_session_never_interleave(tmp_path):
     pipeline = GatedPipeline()
-    with TestClient(create_app(make_settings(tmp_path), pipelines={"rsu_imu": pipeline})) as client:
+    # The filter thread's lane: a gated pipeline on the loop lane would hold the very loop that must
+    # bring the second request to the session's lock (the lock is the same whichever lane filters).
+    settings = make_settings(tmp_path, light_lane="thread")
+    with TestClient(create_app(settings, pipelines={"rsu_imu": pipeline})) as client:
         client.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)
         session_id, token = open_session(client)
         # The gate opens only once the second request waits on the session's lock: opened any earlier

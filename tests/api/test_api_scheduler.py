@@ -1,5 +1,6 @@
 """The fair scheduler: vehicles served in turn, a bounded line per vehicle, heavy jobs in a worker
-process that cannot hold this interpreter's lock, and a worker that dies replaced by a fresh one.
+process that cannot hold this interpreter's lock, and a worker that dies replaced by a fresh one; the
+light lane on the event loop (the default) or on a thread, the site's work always on a thread.
 
 Orders are checked with events, never with sleeps or timings: a job that must not start yet waits
 on an event the test sets."""
@@ -13,7 +14,7 @@ import threading
 import pytest
 from edgepos.api.errors import ApiError
 from edgepos.api.metrics import Metrics
-from edgepos.api.scheduler import FairScheduler
+from edgepos.api.scheduler import FairScheduler, LightLane
 
 
 def _record(order: list[str], name: str, gate: threading.Event | None = None) -> str:
@@ -27,7 +28,7 @@ def test_vehicles_are_served_in_turn_not_in_arrival_order() -> None:
     """While the lane is busy, A queues three jobs and then B one: B's runs second, not fourth."""
 
     async def scenario() -> list[str]:
-        scheduler = FairScheduler(Metrics(), heavy_workers=0)
+        scheduler = FairScheduler(Metrics(), heavy_workers=0, light_lane="thread")
         order: list[str] = []
         gate = threading.Event()
         blocker = asyncio.ensure_future(scheduler.run("Z", 0.0, "test", _record, order, "Z", gate))
@@ -51,7 +52,7 @@ def test_the_light_lane_runs_the_next_job_without_waiting_for_the_event_loop() -
     wake-ups per job, the cost bench/scheduler_overhead.py measures.)"""
 
     async def scenario() -> list[str]:
-        scheduler = FairScheduler(Metrics(), heavy_workers=0)
+        scheduler = FairScheduler(Metrics(), heavy_workers=0, light_lane="thread")
         order: list[str] = []
         gate = threading.Event()
         all_ran = threading.Event()
@@ -75,6 +76,83 @@ def test_the_light_lane_runs_the_next_job_without_waiting_for_the_event_loop() -
     assert asyncio.run(scenario()) == ["A", "B", "C"]
 
 
+def test_on_the_loop_jobs_that_arrive_together_are_served_in_turn() -> None:
+    """The loop lane takes every job through its line: Z, three of A's and one of B's, all ready in
+    the same turn of the loop, run Z, A1, B1, A2, A3 (arrival order would put B1 last)."""
+
+    async def scenario() -> list[str]:
+        scheduler = FairScheduler(Metrics(), heavy_workers=0, light_lane="loop")
+        order: list[str] = []
+        keys = [("Z", "Z"), ("A", "A1"), ("A", "A2"), ("A", "A3"), ("B", "B1")]
+        jobs = [
+            asyncio.ensure_future(scheduler.run(key, 0.0, "test", _record, order, name)) for key, name in keys
+        ]
+        await asyncio.gather(*jobs)
+        scheduler.shutdown()
+        return order
+
+    assert asyncio.run(scenario()) == ["Z", "A1", "B1", "A2", "A3"]
+
+
+def test_the_loop_lane_runs_jobs_on_the_loop_and_serves_the_loop_between_two() -> None:
+    """Each job runs on the event loop's thread, and a callback the first one schedules runs before
+    the second job: the loop reads its sockets between two jobs, not after the whole line."""
+
+    async def scenario() -> tuple[list[str], set[int]]:
+        loop = asyncio.get_running_loop()
+        scheduler = FairScheduler(Metrics(), heavy_workers=0, light_lane="loop")
+        order: list[str] = []
+        threads: set[int] = set()
+
+        def job(name: str) -> str:
+            threads.add(threading.get_ident())
+            if name == "A":
+                loop.call_soon(order.append, "callback")
+            order.append(name)
+            return name
+
+        jobs = [asyncio.ensure_future(scheduler.run(key, 0.0, "test", job, key)) for key in ("A", "B")]
+        await asyncio.gather(*jobs)
+        scheduler.shutdown()
+        return order, threads
+
+    order, threads = asyncio.run(scenario())
+    assert order == ["A", "callback", "B"]
+    assert threads == {threading.get_ident()}  # asyncio.run's loop runs on this thread
+
+
+def test_a_request_that_went_away_leaves_its_job_unrun() -> None:
+    async def scenario() -> list[str]:
+        scheduler = FairScheduler(Metrics(), heavy_workers=0, light_lane="loop")
+        order: list[str] = []
+        gone = asyncio.ensure_future(scheduler.run("A", 0.0, "test", _record, order, "A"))
+        kept = asyncio.ensure_future(scheduler.run("B", 0.0, "test", _record, order, "B"))
+        await asyncio.sleep(0)  # both queued, neither run: the lane serves on the next turn of the loop
+        gone.cancel()
+        assert await kept == "B"
+        scheduler.shutdown()
+        return order
+
+    assert asyncio.run(scenario()) == ["B"]
+
+
+@pytest.mark.parametrize("light_lane", ["loop", "thread"])
+def test_the_sites_work_never_runs_on_the_loop(light_lane: LightLane) -> None:
+    """Kernel warm-up and file parsing have no predicted cost: always a thread, the light lane's own
+    when it has one."""
+
+    async def scenario() -> tuple[int, int]:
+        scheduler = FairScheduler(Metrics(), heavy_workers=0, light_lane=light_lane)
+        site = await scheduler.run_site(threading.get_ident)
+        light = await scheduler.run("car", 0.0, "test", threading.get_ident)
+        scheduler.shutdown()
+        return site, light
+
+    site, light = asyncio.run(scenario())
+    assert site != threading.get_ident()
+    assert (light == site) == (light_lane == "thread")
+
+
 def test_a_vehicle_holds_a_bounded_number_of_places() -> None:
     async def scenario() -> None:
         metrics = Metrics()
@@ -95,11 +173,12 @@ def test_a_vehicle_holds_a_bounded_number_of_places() -> None:
     asyncio.run(scenario())
 
 
-def test_light_and_heavy_jobs_take_separate_lanes() -> None:
-    """A heavy job stuck in its lane does not hold up a light one (both lanes threads here)."""
+@pytest.mark.parametrize("light_lane", ["loop", "thread"])
+def test_light_and_heavy_jobs_take_separate_lanes(light_lane: LightLane) -> None:
+    """A heavy job stuck in its lane (a thread here) does not hold up a light one."""
 
     async def scenario() -> list[str]:
-        scheduler = FairScheduler(Metrics(), slice_s=0.010, heavy_workers=0)
+        scheduler = FairScheduler(Metrics(), slice_s=0.010, heavy_workers=0, light_lane=light_lane)
         assert scheduler.lane_for(0.010) == "light" and scheduler.lane_for(0.011) == "heavy"
         order: list[str] = []
         gate = threading.Event()
@@ -114,10 +193,11 @@ def test_light_and_heavy_jobs_take_separate_lanes() -> None:
     assert asyncio.run(scenario()) == ["light", "heavy"]
 
 
-def test_heavy_jobs_run_in_a_worker_process_and_count_their_cpu() -> None:
+@pytest.mark.parametrize("light_lane", ["loop", "thread"])
+def test_heavy_jobs_run_in_a_worker_process_and_count_their_cpu(light_lane: LightLane) -> None:
     async def scenario() -> tuple[int, int, float]:
         metrics = Metrics()
-        scheduler = FairScheduler(metrics, slice_s=0.0, heavy_workers=1)
+        scheduler = FairScheduler(metrics, slice_s=0.0, heavy_workers=1, light_lane=light_lane)
         heavy_pid = await scheduler.run("truck", 1.0, "gnss_tight", os.getpid)
         light_pid = await scheduler.run("car", 0.0, "rsu_imu", os.getpid)
         scheduler.shutdown()
@@ -143,9 +223,10 @@ def test_a_worker_that_dies_fails_its_job_with_503_and_is_replaced() -> None:
     assert asyncio.run(scenario()) != os.getpid()
 
 
-def test_an_error_in_a_job_reaches_the_caller_unchanged() -> None:
+@pytest.mark.parametrize("light_lane", ["loop", "thread"])
+def test_an_error_in_a_job_reaches_the_caller_unchanged(light_lane: LightLane) -> None:
     async def scenario() -> None:
-        scheduler = FairScheduler(Metrics(), heavy_workers=0)
+        scheduler = FairScheduler(Metrics(), heavy_workers=0, light_lane=light_lane)
         with pytest.raises(ZeroDivisionError):
             await scheduler.run("car", 0.0, "test", divmod, 1, 0)
         assert await scheduler.run("car", 0.0, "test", divmod, 7, 2) == (3, 1)  # the lane goes on

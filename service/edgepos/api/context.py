@@ -89,13 +89,14 @@ class AppContext:
                 slice_s=self.settings.scheduler_slice_ms / 1000.0,
                 heavy_workers=self.settings.heavy_workers,
                 max_queued_per_key=self.settings.max_queued_per_vehicle,
+                light_lane=self.settings.light_lane,
             )
         return self._scheduler
 
     async def run_filter(self, function: Callable[..., Result], *args: Any) -> Result:
         """Run the site's own CPU work (parsing ephemerides, warming the kernels) off the event loop, on
-        the filter thread, in turn with the vehicles' batches."""
-        return await self.scheduler.run("site", 0.0, "site", function, *args)
+        a thread (FairScheduler.run_site)."""
+        return await self.scheduler.run_site(function, *args)
 
     def stop_filter_thread(self) -> None:
         """Let the scheduler's thread and worker processes end once their current work is done."""

@@ -1,10 +1,12 @@
 """Fair scheduling of estimation work: no vehicle's batches can stall another's.
 
-Estimation never runs on the event loop. Each job carries the vehicle it is for and its predicted CPU
-cost (``pipelines.cost``), and goes to one of two lanes:
+Each job carries the vehicle it is for and its predicted CPU cost (``pipelines.cost``), and goes to one
+of two lanes:
 
-- the **light lane**, one thread of this process, takes jobs predicted to fit a slice
-  (EDGEPOS_SCHEDULER_SLICE_MS): almost every batch, at no more cost than a thread hop;
+- the **light lane** takes jobs predicted to fit a slice (EDGEPOS_SCHEDULER_SLICE_MS): almost every
+  batch. By default (EDGEPOS_LIGHT_LANE=loop) it runs them on the event loop's own thread, one job per
+  turn, the loop serving its sockets between two jobs; with ``thread`` on one filter thread of this
+  process;
 - the **heavy lane**, a pool of worker processes (EDGEPOS_HEAVY_WORKERS), takes the rest, so that a
   batch of thousands of particles runs where it cannot hold this process's interpreter lock against
   the light lane. With no heavy workers the heavy lane is a second thread (the lock is then shared).
@@ -15,6 +17,15 @@ waiting or running is bounded (EDGEPOS_MAX_QUEUED_PER_VEHICLE) and beyond it the
 Retry-After. Why processes and not sub-interpreters: on CPython 3.11, which this service runs on,
 sub-interpreters share one interpreter lock (a lock per interpreter came with 3.12), so they could not
 keep a heavy batch from holding the light lane's lock; processes can.
+
+Why the light lane runs on the event loop by default: a thread gains no parallelism under the one
+interpreter lock, and the loop and a busy filter thread hand the lock back and forth (the loop asks for
+it whenever a socket is ready; the thread gives it up every switch interval and in every release by a
+C call), which costs more than it hides: under a saturating load one worker spent about 13 % more CPU
+per epoch and served 13-40 % fewer epochs with the thread (docs/benchmarks.md). A light job holds the
+loop for at most about a slice; the thread lane stays for deployments that would rather keep the loop
+free. The site's own work (kernel warm-up, parsing uploaded files) has no predicted cost and always
+runs on a thread, never on the loop.
 """
 
 from __future__ import annotations
@@ -40,7 +51,8 @@ from edgepos.api.metrics import Metrics
 logger = logging.getLogger("edgepos.api")
 
 Result = TypeVar("Result")
-LaneName = Literal["light", "heavy"]
+LaneName = Literal["light", "heavy", "site"]
+LightLane = Literal["loop", "thread"]
 
 
 def _timed(function: Callable[..., Result], *args: Any) -> tuple[Result, float]:
@@ -200,6 +212,54 @@ class _ThreadLane:
                 pass
 
 
+class _LoopLane:
+    """The event loop's own thread, vehicles in turn: one task takes the next job in turn, runs it and
+    yields to the loop (its sockets, the requests that queue meanwhile) before the next. Every job goes
+    through the line, even on an idle lane, so jobs that become ready together are served in turn."""
+
+    def __init__(self, name: LaneName, metrics: Metrics) -> None:
+        self.name = name
+        self.metrics = metrics
+        self._line = _RoundRobin()
+        self._serving: asyncio.Task[None] | None = None
+        self._depth = metrics.queue_depth.labels(name)
+        self._wait = metrics.queue_wait.labels(name)
+
+    def submit(self, job: _Job) -> None:
+        self._line.push(job)
+        self._depth.set(self._line.depth())
+        if self._serving is None or self._serving.get_loop() is not job.loop:  # none, or of a closed loop
+            self._serving = job.loop.create_task(self._serve())
+
+    async def _serve(self) -> None:
+        try:
+            while (job := self._line.pop()) is not None:
+                self._depth.set(self._line.depth())
+                if job.future.cancelled():  # the request went away while it waited
+                    continue
+                self._wait.observe(time.monotonic() - job.queued_at)
+                try:
+                    result, cpu_s = job.call()
+                except Exception as error:  # noqa: BLE001  # every error goes back to the request that waits for it
+                    job.future.set_exception(error)
+                except BaseException:
+                    job.future.cancel()  # KeyboardInterrupt, SystemExit: free the request, then stop the loop
+                    raise
+                else:
+                    self.metrics.pipeline_cpu.labels(job.label).inc(cpu_s)
+                    job.future.set_result(result)
+                await asyncio.sleep(0)  # the loop's sockets and callbacks before the next job
+        finally:
+            self._serving = None
+
+    def shutdown(self) -> None:
+        """Jobs still waiting are cancelled; the job running, if any, ends first (it holds the loop)."""
+        for job in self._line.drain():
+            job.future.cancel()
+        if self._serving is not None:
+            self._serving.cancel()
+
+
 class _PoolLane:
     """Worker processes fed from the event loop, at most one job per worker at a time, vehicles in turn."""
 
@@ -289,19 +349,28 @@ class FairScheduler:
         slice_s: float = 0.010,
         heavy_workers: int = 1,
         max_queued_per_key: int = 4,
+        light_lane: LightLane = "loop",
     ) -> None:
         self.metrics = metrics
         self.slice_s = slice_s
         self.heavy_workers = heavy_workers
         self.max_queued_per_key = max_queued_per_key
         self._per_key: collections.Counter[str] = collections.Counter()
-        self._lanes: dict[LaneName, _ThreadLane | _PoolLane] = {
-            "light": _ThreadLane("light", metrics, "edgepos-filter"),
+        light: _LoopLane | _ThreadLane = (
+            _LoopLane("light", metrics)
+            if light_lane == "loop"
+            else _ThreadLane("light", metrics, "edgepos-filter")
+        )
+        self._lanes: dict[LaneName, _LoopLane | _ThreadLane | _PoolLane] = {
+            "light": light,
             "heavy": (
                 _PoolLane("heavy", metrics, heavy_workers, self._process_pool)
                 if heavy_workers > 0
                 else _ThreadLane("heavy", metrics, "edgepos-heavy")
             ),
+            # the site's own work, of no predicted cost, never on the loop: the light lane's thread if it
+            # has one, else a thread of its own (started with the first such job)
+            "site": light if isinstance(light, _ThreadLane) else _ThreadLane("site", metrics, "edgepos-site"),
         }
 
     def _process_pool(self) -> Executor:
@@ -342,10 +411,20 @@ class FairScheduler:
     ) -> Result:
         """Run ``function(*args)`` for vehicle ``key`` in its turn, on the lane its predicted CPU cost
         ``cost_s`` chooses; ``label`` names the work in the metrics (the pipeline)."""
+        return await self._run_on(self.lane_for(cost_s), key, label, function, *args)
+
+    async def run_site(self, function: Callable[..., Result], *args: Any) -> Result:
+        """Run the site's own CPU work (kernel warm-up, parsing an uploaded file: no predicted cost) on a
+        thread, never on the event loop; with a thread light lane, in turn with the vehicles' batches."""
+        return await self._run_on("site", "site", "site", function, *args)
+
+    async def _run_on(
+        self, lane: LaneName, key: str, label: str, function: Callable[..., Result], *args: Any
+    ) -> Result:
         loop = asyncio.get_running_loop()
         call = functools.partial(_timed, function, *args)
         job = _Job(key, label, call, loop.create_future(), loop, time.monotonic())
-        self._lanes[self.lane_for(cost_s)].submit(job)
+        self._lanes[lane].submit(job)
         result: Result = await job.future
         return result
 
@@ -355,5 +434,7 @@ class FairScheduler:
 
     def shutdown(self) -> None:
         """Stop the lanes once their current work is done (app shutdown)."""
-        for lane in self._lanes.values():
+        for lane in {
+            id(lane): lane for lane in self._lanes.values()
+        }.values():  # the site lane may be the light
             lane.shutdown()

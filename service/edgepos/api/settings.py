@@ -174,7 +174,14 @@ class Settings(BaseSettings):
         le=10_000.0,
         allow_inf_nan=False,
         description="Batches predicted to cost more CPU than this (ms) are filtered in the heavy lane (worker "
-        "processes), the rest on this process's filter thread, so a heavy batch never delays a light one.",
+        "processes), the rest in the light lane (EDGEPOS_LIGHT_LANE), so a heavy batch never delays a light one.",
+    )
+    light_lane: Literal["loop", "thread"] = Field(
+        "loop",
+        description="Where the light lane filters its batches: 'loop', on the event loop's own thread between "
+        "two reads of its sockets (a batch holds the loop for at most about the slice); 'thread', on one filter "
+        "thread of this process, which keeps the loop free but contends with it for the interpreter lock "
+        "(measured: about 13 % more CPU per epoch under a saturating load, docs/benchmarks.md).",
     )
     heavy_workers: int = Field(
         1,
