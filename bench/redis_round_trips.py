@@ -1,0 +1,155 @@
+"""Benchmark: Redis round trips per ``rsu_imu`` batch, counted in the client (the latency a batch waits on).
+
+A command is one round trip; a pipeline or transaction is one round trip however many commands it holds.
+Starts ``redis-server`` on loopback, builds the service in this process on it (``create_app``, the
+paper scenario's RSU map), opens ``--vehicles`` sessions and sends each ``--batches`` 20-epoch batches
+with its session token, counting every await on the Redis client (``execute_command`` and pipeline
+``execute``, patched) by command name. The fix stream's appends run in the worker's publisher task, off
+the answer's path, shared by the batches that arrive together: they are counted apart.
+
+    python bench/redis_round_trips.py [--batches 20] [--vehicles 2] [--rate-limit 0]
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import os
+import sys
+import tempfile
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from edgepos.api.app import create_app
+from edgepos.api.settings import Settings
+from edgepos.core.observations import GyroObservation, RsuObservation
+from edgepos.loadgen.localredis import RedisServer, redis_binary
+from edgepos.sim.scenarios import rsu_imu_paper_scenario
+from edgepos.sim.sensors import rsu_imu_epochs
+from edgepos.store.redis import RedisStore
+from fastapi.testclient import TestClient
+from redis.asyncio.client import Pipeline, Redis
+
+ADMIN_KEY = "round-trip-bench-" + os.urandom(8).hex()
+ADMIN = {"Authorization": f"Bearer {ADMIN_KEY}"}
+
+
+class RoundTrips:
+    """Counts the Redis client's round trips by what they carry (patched into redis-py's asyncio client)."""
+
+    def __init__(self) -> None:
+        self.counts: Counter[str] = Counter()
+        self.counting = False
+
+    def install(self) -> None:
+        command, execute = Redis.execute_command, Pipeline.execute
+        counter = self
+
+        async def counted_command(client: Any, *args: Any, **options: Any) -> Any:
+            if counter.counting:
+                counter.counts[_name(args)] += 1
+            return await command(client, *args, **options)
+
+        async def counted_execute(pipe: Any, *args: Any, **options: Any) -> Any:
+            if counter.counting:
+                names = "+".join(_name(c[0]) for c in pipe.command_stack)
+                counter.counts[f"pipeline[{names}]"] += 1
+            return await execute(pipe, *args, **options)
+
+        Redis.execute_command = counted_command  # type: ignore[method-assign]
+        Pipeline.execute = counted_execute  # type: ignore[method-assign]
+
+
+_SCRIPTS = {hashlib.sha1(source.encode()).hexdigest(): name for name, source in RedisStore.SCRIPTS.items()}
+
+
+def _name(args: Any) -> str:
+    """The command's name; for EVALSHA, the store's name of the script too."""
+    name = str(args[0]).upper() if args else "?"
+    if name == "EVALSHA" and len(args) > 1:
+        name += f"({_SCRIPTS.get(str(args[1]), '?')})"
+    return name
+
+
+def _wire(observation: Any) -> dict[str, Any]:
+    if isinstance(observation, RsuObservation):
+        return {
+            "type": "rsu",
+            "t": observation.t,
+            "rsu_id": observation.rsu_id,
+            "range": observation.range,
+            "bearing": observation.bearing,
+        }
+    assert isinstance(observation, GyroObservation)
+    return {"type": "gyro", "t": observation.t, "yaw_rate": observation.yaw_rate}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--batches", type=int, default=20, help="batches per vehicle")
+    parser.add_argument("--vehicles", type=int, default=2)
+    parser.add_argument("--rate-limit", type=float, default=0.0, help="EDGEPOS_RATE_LIMIT_PER_S (0: off)")
+    args = parser.parse_args()
+    binary = redis_binary()
+    if binary is None:
+        print("redis-server is not installed (apt-get install -y redis-server)", file=sys.stderr)
+        return 2
+    scenario = rsu_imu_paper_scenario()
+    epochs = rsu_imu_epochs(scenario, np.random.default_rng(7))
+    rsus = {
+        "rsus": [
+            {
+                "id": r.id,
+                "x": r.x,
+                "y": r.y,
+                "range_std": r.range_std,
+                "bearing_std": r.bearing_std,
+                "radius": r.radius,
+            }
+            for r in scenario.rsus
+        ]
+    }
+    counter = RoundTrips()
+    counter.install()
+    with (
+        tempfile.TemporaryDirectory(prefix="edgepos-rt-") as tmp,
+        RedisServer(binary, Path(tmp) / "redis", "--save", "", "--appendonly", "no") as server,
+    ):
+        settings = Settings(
+            admin_key=ADMIN_KEY,
+            admin_key_file=Path(tmp) / "admin.key",
+            store=server.url("rt:"),
+            rate_limit_per_s=args.rate_limit,
+        )
+        with TestClient(create_app(settings)) as client:
+            assert client.put("/v1/rsus", json=rsus, headers=ADMIN).status_code == 200
+            sessions = []
+            for vehicle in range(args.vehicles):
+                created = client.post(
+                    "/v1/sessions", json={"vehicle_id": f"rt-{vehicle}", "pipeline": "rsu_imu"}, headers=ADMIN
+                ).json()
+                sessions.append((created["session_id"], {"Authorization": f"Bearer {created['token']}"}))
+            counter.counting = True
+            sent = 0
+            for seq in range(1, args.batches + 1):
+                first = (seq - 1) * 20
+                body = {"seq": seq, "measurements": [_wire(o) for e in epochs[first : first + 20] for o in e]}
+                for session_id, token in sessions:
+                    response = client.post(f"/v1/sessions/{session_id}/batches", json=body, headers=token)
+                    assert response.status_code == 200, response.text
+                    sent += 1
+            counter.counting = False
+    total = sum(counter.counts.values())
+    print(
+        f"rsu_imu, {sent} batches of 20 epochs, rate limit {args.rate_limit:g}/s: "
+        f"{total / sent:.2f} Redis round trips per batch in all"
+    )
+    for name, count in counter.counts.most_common():
+        print(f"  {count / sent:5.2f} per batch  {name}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
