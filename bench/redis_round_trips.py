@@ -5,9 +5,11 @@ Starts ``redis-server`` on loopback, builds the service in this process on it (`
 paper scenario's RSU map), opens ``--vehicles`` sessions and sends each ``--batches`` 20-epoch batches
 with its session token, counting every await on the Redis client (``execute_command`` and pipeline
 ``execute``, patched) by command name. The fix stream's appends run in the worker's publisher task, off
-the answer's path, shared by the batches that arrive together: they are counted apart.
+the answer's path, shared by the batches that arrive together: they are counted apart. Also prints the
+median answer time of a batch and this process's CPU per batch (one request at a time; the Redis
+server's CPU is not in it), and with ``--memory`` the same on the in-process store for comparison.
 
-    python bench/redis_round_trips.py [--batches 20] [--vehicles 2] [--rate-limit 0]
+    python bench/redis_round_trips.py [--batches 20] [--vehicles 2] [--rate-limit 0] [--memory]
 """
 
 from __future__ import annotations
@@ -15,8 +17,10 @@ from __future__ import annotations
 import argparse
 import hashlib
 import os
+import statistics
 import sys
 import tempfile
+import time
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -91,6 +95,7 @@ def main() -> int:
     parser.add_argument("--batches", type=int, default=20, help="batches per vehicle")
     parser.add_argument("--vehicles", type=int, default=2)
     parser.add_argument("--rate-limit", type=float, default=0.0, help="EDGEPOS_RATE_LIMIT_PER_S (0: off)")
+    parser.add_argument("--memory", action="store_true", help="time the in-process store too")
     args = parser.parse_args()
     binary = redis_binary()
     if binary is None:
@@ -111,44 +116,71 @@ def main() -> int:
             for r in scenario.rsus
         ]
     }
+    bodies = [
+        {"seq": seq, "measurements": [_wire(o) for e in epochs[(seq - 1) * 20 : seq * 20] for o in e]}
+        for seq in range(1, args.batches + 1)
+    ]
     counter = RoundTrips()
     counter.install()
+    print(f"load average {os.getloadavg()[0]:.2f}", flush=True)
     with (
         tempfile.TemporaryDirectory(prefix="edgepos-rt-") as tmp,
         RedisServer(binary, Path(tmp) / "redis", "--save", "", "--appendonly", "no") as server,
     ):
-        settings = Settings(
-            admin_key=ADMIN_KEY,
-            admin_key_file=Path(tmp) / "admin.key",
-            store=server.url("rt:"),
-            rate_limit_per_s=args.rate_limit,
-        )
-        with TestClient(create_app(settings)) as client:
-            assert client.put("/v1/rsus", json=rsus, headers=ADMIN).status_code == 200
-            sessions = []
-            for vehicle in range(args.vehicles):
-                created = client.post(
-                    "/v1/sessions", json={"vehicle_id": f"rt-{vehicle}", "pipeline": "rsu_imu"}, headers=ADMIN
-                ).json()
-                sessions.append((created["session_id"], {"Authorization": f"Bearer {created['token']}"}))
-            counter.counting = True
-            sent = 0
-            for seq in range(1, args.batches + 1):
-                first = (seq - 1) * 20
-                body = {"seq": seq, "measurements": [_wire(o) for e in epochs[first : first + 20] for o in e]}
-                for session_id, token in sessions:
-                    response = client.post(f"/v1/sessions/{session_id}/batches", json=body, headers=token)
-                    assert response.status_code == 200, response.text
-                    sent += 1
-            counter.counting = False
-    total = sum(counter.counts.values())
-    print(
-        f"rsu_imu, {sent} batches of 20 epochs, rate limit {args.rate_limit:g}/s: "
-        f"{total / sent:.2f} Redis round trips per batch in all"
-    )
-    for name, count in counter.counts.most_common():
-        print(f"  {count / sent:5.2f} per batch  {name}")
+        stores = {"redis": server.url("rt:")} | ({"memory": "memory"} if args.memory else {})
+        for name, store in stores.items():
+            settings = Settings(
+                admin_key=ADMIN_KEY,
+                admin_key_file=Path(tmp) / f"{name}.key",
+                store=store,
+                rate_limit_per_s=args.rate_limit,
+                log_level="warning",
+            )
+            times, cpu = _drive(settings, rsus, bodies, args.vehicles, counter if name == "redis" else None)
+            print(
+                f"{name:6s} rsu_imu, {len(times)} batches of 20 epochs one at a time, rate limit "
+                f"{args.rate_limit:g}/s: answer {statistics.median(times) * 1e3:.2f} ms median, service CPU "
+                f"{cpu / len(times) * 1e3:.2f} ms per batch",
+                flush=True,
+            )
+            if name == "redis":
+                total = sum(counter.counts.values())
+                print(f"       {total / len(times):.2f} Redis round trips per batch in all:")
+                for command, count in counter.counts.most_common():
+                    print(f"         {count / len(times):5.2f} per batch  {command}")
     return 0
+
+
+def _drive(
+    settings: Settings,
+    rsus: dict[str, Any],
+    bodies: list[dict[str, Any]],
+    vehicles: int,
+    counter: RoundTrips | None,
+) -> tuple[list[float], float]:
+    """Open the sessions and send every body to each in turn: the answer times and the CPU seconds."""
+    times: list[float] = []
+    with TestClient(create_app(settings)) as client:
+        assert client.put("/v1/rsus", json=rsus, headers=ADMIN).status_code == 200
+        sessions = []
+        for vehicle in range(vehicles):
+            created = client.post(
+                "/v1/sessions", json={"vehicle_id": f"rt-{vehicle}", "pipeline": "rsu_imu"}, headers=ADMIN
+            ).json()
+            sessions.append((created["session_id"], {"Authorization": f"Bearer {created['token']}"}))
+        if counter is not None:
+            counter.counting = True
+        cpu = time.process_time()
+        for body in bodies:
+            for session_id, token in sessions:
+                started = time.perf_counter()
+                response = client.post(f"/v1/sessions/{session_id}/batches", json=body, headers=token)
+                times.append(time.perf_counter() - started)
+                assert response.status_code == 200, response.text
+        cpu = time.process_time() - cpu
+        if counter is not None:
+            counter.counting = False
+    return times, cpu
 
 
 if __name__ == "__main__":

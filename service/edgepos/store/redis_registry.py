@@ -128,8 +128,11 @@ class RedisRegistry:
     async def _new_rsu_token(self) -> None:
         """After every RSU write (not before: a map read with the new token is then the new map): a fresh
         random token, so that a batch computed on a map cached before the write is refused by its
-        compare-and-set. Random, not a counter: a map cached before Redis lost its data never matches."""
+        compare-and-set. Random, not a counter: a map cached before Redis lost its data never matches.
+        None on a store that does not cache the map (a Redis Cluster)."""
         self._rsus = None
+        if not self.cache_rsus:
+            return
         async with self._guard():
             await (await self._redis()).set(self.rsu_token_key, secrets.token_hex(8))
 
