@@ -157,10 +157,10 @@ def test_a_batch_on_a_cached_rsu_map_is_refused_once_the_map_changed(workers, cl
     run(first.create(record("s1"), 10))
 
     async def batch(store: RedisStore, tag: bytes) -> tuple[bool, float]:
-        """One attempt as the batch path makes it: the RSUs, then the write on the cached record."""
-        rsus = await store.get_rsus(["r1"])
+        """One attempt as the batch path makes it: the token check's record, the RSUs, the write."""
         current = await store.get_for_batch("s1")
         assert current is not None
+        rsus = await store.get_rsus(["r1"])
         return await store.compare_and_set(next_batch(current, clock, tag), current.version), rsus["r1"].x
 
     assert run(batch(first, b"a")) == (True, 0.0)  # first now holds the map
@@ -207,3 +207,21 @@ def raw_client(redis_server: RedisServer) -> Iterator[redis.Redis]:
     client = redis.Redis(host="127.0.0.1", port=redis_server.port, db=0)
     yield client
     client.close()
+
+
+def test_an_rsu_map_read_by_a_batch_that_wrote_nothing_never_marks_the_next(workers):
+    """A WebSocket's frames share one task: a frame refused after reading the RSUs must not leave the
+    map's token for the next frame's write to be checked against."""
+    first, _ = workers
+    run(first.upsert_rsus([Rsu("r1", 0.0, 0.0, 1.0, 0.1, 100.0)]))
+    run(first.create(record("s1"), 10))
+
+    async def frames() -> tuple[str | None, str | None]:
+        await first.get_for_batch("s1")
+        await first.get_rsus(["r1"])  # then refused (422, 409...): no compare-and-set
+        left = RSUS_USED.get()
+        await first.get_for_batch("s1")  # the next frame's token check
+        return left, RSUS_USED.get()
+
+    left, next_frame = run(frames())
+    assert left is not None and next_frame is None

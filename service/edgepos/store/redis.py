@@ -445,6 +445,7 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
     async def get_for_batch(self, session_id: str) -> SessionRecord | None:
         """The record this worker wrote last for the session, if it has it and it is not expired by its
         ``updated_at``; else a read. The batch's compare-and-set refuses a stale one (store.redis_cache)."""
+        RSUS_USED.set(None)  # a new batch (a WebSocket's frames share one task): no RSU map used yet
         record = self.records.get(session_id)
         if record is not None and not self.is_expired(record, self.clock()):
             return record
