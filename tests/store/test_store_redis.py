@@ -121,7 +121,13 @@ def test_key_layout_binary_state_and_replay_fields(store: RedisStore, prefix: st
     assert raw.type(f"{prefix}rsus") == b"hash"
     assert raw.get(f"{prefix}live:v-s1") == b"s1"
     assert sorted(raw.scan_iter(match=f"{prefix}*")) == sorted(
-        [key.encode(), f"{prefix}sessions".encode(), f"{prefix}rsus".encode(), f"{prefix}live:v-s1".encode()]
+        [
+            key.encode(),
+            f"{prefix}sessions".encode(),
+            f"{prefix}rsus".encode(),
+            f"{prefix}rsus:token".encode(),
+            f"{prefix}live:v-s1".encode(),
+        ]
     )
 
 

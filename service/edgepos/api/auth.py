@@ -130,7 +130,8 @@ async def _valid_session_token(context: AppContext, secret: str) -> bool:
 
 
 _LAB = Principal(admin=True)
-_INVALID = "the bearer credential is not valid (unknown, revoked or expired key or token)"
+INVALID_CREDENTIAL = "the bearer credential is not valid (unknown, revoked or expired key or token)"
+_INVALID = INVALID_CREDENTIAL
 
 
 def _auth_off(context: AppContext) -> bool:
@@ -377,7 +378,20 @@ async def require_session(
 
     A token of a session that a newer session of its vehicle replaced gets 409 naming the newer one."""
     secret = None if credentials is None else credentials.credentials
-    principal, record = await authenticate_session(context, request, session_id, secret)
+    principal, _record = await authenticate_session(context, request, session_id, secret)
+    return principal
+
+
+async def require_batch_session(
+    request: Request,
+    session_id: Annotated[str, Path(description="Session identifier returned by POST /v1/sessions.")],
+    context: Context,
+    credentials: Credentials,
+) -> Principal:
+    """:func:`require_session` for the batch route: the record the check read is kept for the batch to
+    apply on, and it may be the one this worker wrote last (see ``SessionStore.get_for_batch``)."""
+    secret = None if credentials is None else credentials.credentials
+    principal, record = await authenticate_session(context, request, session_id, secret, for_batch=True)
     if record is not None:
         request.state.session_record = (
             record  # the batch route applies on it (see session_service.apply_batch)
@@ -393,11 +407,19 @@ def bearer_secret(connection: HTTPConnection) -> str | None:
 
 
 async def authenticate_session(
-    context: AppContext, connection: HTTPConnection, session_id: str, secret: str | None
+    context: AppContext,
+    connection: HTTPConnection,
+    session_id: str,
+    secret: str | None,
+    *,
+    for_batch: bool = False,
 ) -> tuple[Principal, SessionRecord | None]:
     """The check of :func:`require_session`, shared by the HTTP routes and the WebSocket handshake: the
     principal, and the session's record when a session token was checked against it (None for the
-    admin). Charges the session's request-rate budget once for a session token."""
+    admin). Charges the session's request-rate budget once for a session token. ``for_batch``: the
+    record may be the one this worker wrote last, not read now (``SessionStore.get_for_batch``); a batch
+    applies only on the version it names, and a session gone meanwhile is refused as here
+    (``session_service.apply_batch``)."""
     if _auth_off(context):
         return _LAB, None
     if not secret:
@@ -415,7 +437,10 @@ async def authenticate_session(
         raise await _refuse(context, connection, secret, "invalid", _unauthorized())
     # the stored answer is left out: the batch routes apply the next seq on this record, and read afresh
     # (answer included) for anything else, a replay among them
-    record = await context.store.get(session_id, with_response=False)
+    if for_batch:
+        record = await context.store.get_for_batch(session_id)
+    else:
+        record = await context.store.get(session_id, with_response=False)
     if record is None:
         superseded = await context.store.supersession(session_id)
         if superseded is not None and _token_matches(secret, superseded.token_hash):

@@ -248,7 +248,7 @@ class BatchSocket:
             return error.status, seq, error_body(error.code, error.message), error
         try:
             _principal, record = await authenticate_session(
-                self.context, self.websocket, self.session_id, self.secret
+                self.context, self.websocket, self.session_id, self.secret, for_batch=True
             )
             if text is None:
                 raise ApiError(

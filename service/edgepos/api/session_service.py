@@ -18,7 +18,7 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
-from edgepos.api.auth import hash_token, new_session_token, superseded_error
+from edgepos.api.auth import INVALID_CREDENTIAL, hash_token, new_session_token, superseded_error
 from edgepos.api.base_stations import batch_corrections, check_base_station
 from edgepos.api.context import AppContext
 from edgepos.api.convert import fix_to_json, joined_batch_body, to_json
@@ -209,11 +209,15 @@ async def create_session(
     )
 
 
-async def _session_gone(context: AppContext, session_id: str) -> ApiError:
-    """409 superseded when a newer session of the vehicle replaced this one, else 404."""
+async def _session_gone(context: AppContext, session_id: str, token_checked: bool = False) -> ApiError:
+    """409 superseded when a newer session of the vehicle replaced this one, else 404; or, for a batch
+    whose session token was checked against a record of a session gone since (deleted, revoked, expired;
+    the record may be the one this worker cached), 401 as the token check now answers."""
     superseded = await context.store.supersession(session_id)
     if superseded is not None:
         return superseded_error(session_id, superseded.superseded_by)
+    if token_checked:
+        return ApiError("unauthorized", INVALID_CREDENTIAL)
     return ApiError("not_found", f"no session {session_id!r} (it may have expired or been deleted)")
 
 
@@ -362,6 +366,7 @@ async def _apply_in_turn(
     prefetched: SessionRecord | None = None,
 ) -> bytes:
     metrics = context.metrics
+    checked = prefetched is not None  # the token was checked against a record (perhaps a cached one)
     if context.store.locks.busy(session_id):
         prefetched = None  # another request of this session goes first: what the token check read is old
     for _attempt in range(MAX_ATTEMPTS):
@@ -372,7 +377,7 @@ async def _apply_in_turn(
             ):  # only the next seq goes on a prefetched read
                 record = await context.store.get(session_id)
             if record is None:
-                raise await _session_gone(context, session_id)
+                raise await _session_gone(context, session_id, checked)
             try:
                 replay = _replay_or_refuse(record, batch, digest)
             except ApiError:

@@ -285,6 +285,14 @@ class SessionStore(ABC):
         token or apply the next seq, which never replay it (the Redis store then reads 30 kB less per
         20-epoch batch)."""
 
+    async def get_for_batch(self, session_id: str) -> SessionRecord | None:
+        """The record a batch's token check reads and the batch applies its next seq on (its stored answer
+        may be left out). A store may answer from the record it last wrote for the session without asking
+        its server: the batch's compare-and-set on the record's version then refuses one that went stale
+        (another worker wrote; the session was deleted, superseded, revoked or expired), and the batch is
+        redone on a fresh read. Default: ``get(with_response=False)``."""
+        return await self.get(session_id, with_response=False)
+
     @abstractmethod
     async def compare_and_set(self, record: SessionRecord, expected_version: int) -> bool:
         """Replace the session if its stored version is still ``expected_version``; the stored

@@ -55,6 +55,7 @@ from edgepos.store.base import (
 from edgepos.store.fixlog import FixLog
 from edgepos.store.ratelimit import SLACK_S, RateLimit, gcra
 from edgepos.store.redis_base import RedisBaseStations
+from edgepos.store.redis_cache import DEFAULT_RECORD_CACHE, RSUS_USED, RecordCache, RsuSnapshot
 from edgepos.store.redis_records import (
     RECORD_FIELDS,
     SUMMARY_FIELDS,
@@ -92,6 +93,8 @@ _UNAVAILABLE = (
 _UNAVAILABLE_REPLIES = ("MISCONF", "LOADING", "MASTERDOWN", "NOREPLICAS", "BUSY", "CLUSTERDOWN", "TRYAGAIN")
 
 
+RSUS_CHANGED = -2
+"""The compare-and-set's answer when the RSU map's token is not the one the batch was computed on."""
 _DISCARD_GRACE_S = 5.0
 STAGED_TTL_MS = 60_000
 """How long a staged session record outlives a lost connection (the compare-and-set renames or drops it
@@ -110,16 +113,34 @@ def _leaked_transport_error(error: BaseException) -> bool:
     return False
 
 
+def take_record_cache(url: str) -> tuple[str, int]:
+    """The URL without our ``record_cache`` parameter (the session records a worker keeps, see
+    store.redis_cache; default 2048, 0: none), and its value."""
+    parts = urlsplit(url)
+    query = dict(parse_qsl(parts.query, keep_blank_values=True))
+    text = query.pop("record_cache", None)
+    try:
+        size = DEFAULT_RECORD_CACHE if text is None else int(text)
+    except ValueError:
+        raise ValueError(
+            f"record_cache in the Redis store URL must be a whole number, got {text!r}"
+        ) from None
+    if size < 0:
+        raise ValueError(f"record_cache in the Redis store URL must be >= 0, got {size}")
+    return urlunsplit(parts._replace(query=urlencode(query))), size
+
+
 def parse_url(url: str) -> tuple[str, str]:
     """Split ``redis://host:port/db?prefix=name:&socket_timeout=1`` into (client URL, key prefix).
 
-    ``prefix`` is ours; every other query parameter is redis-py's. Connect and socket timeouts
-    default to short values so that an unreachable server fails fast.
+    ``prefix`` and ``record_cache`` are ours; every other query parameter is redis-py's. Connect and
+    socket timeouts default to short values so that an unreachable server fails fast.
     """
     parts = urlsplit(url)
     if parts.scheme not in _SCHEMES:
         raise ValueError(f"not a Redis store URL (want redis://host:port/db): {url!r}")
     query = dict(parse_qsl(parts.query, keep_blank_values=True))
+    query.pop("record_cache", None)
     prefix = query.pop("prefix", DEFAULT_PREFIX)
     if not prefix:
         raise ValueError("the Redis key prefix must not be empty")
@@ -160,13 +181,19 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
         wait_timeout_ms: int = 500,
     ) -> None:
         super().__init__(ttl_s, clock)
+        url, record_cache = take_record_cache(url)
         self.url, self.prefix = self._parse_url(url)
+        # one round trip per batch (store.redis_cache): the records this worker wrote, the RSU map it read
+        self.records = RecordCache(record_cache)
+        self.cache_rsus = True
+        self._rsus: RsuSnapshot | None = None
         # WAIT: a batch is acknowledged only once this many replicas have it (0: once the primary has it)
         self.wait_replicas, self.wait_timeout_ms = int(wait_replicas), int(wait_timeout_ms)
         self.durable_key = f"{self.prefix}durable"
         self.session_prefix = f"{self.prefix}session:"
         self.index_key = f"{self.prefix}sessions"
         self.rsu_key = f"{self.prefix}rsus"
+        self.rsu_token_key = f"{self.prefix}rsus:token"
         self.rate_prefix = f"{self.prefix}rate:"
         self.ephemerides_key = f"{self.prefix}ephemerides"
         self.documents_prefix = f"{self.prefix}documents:"
@@ -325,7 +352,10 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
             if ours:
                 return None
             raise ValueError(f"session {record.session_id!r} already exists")
+        self.records.put(record, record.version)
         superseded = bytes(outcome[1]).decode()
+        if superseded:
+            self.records.drop(superseded)
         return superseded or None
 
     async def live_session(self, vehicle_id: str) -> str | None:
@@ -412,7 +442,20 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
         record = record_from_hash(session_id, raw)
         return None if self.is_expired(record, self.clock()) else record
 
+    async def get_for_batch(self, session_id: str) -> SessionRecord | None:
+        """The record this worker wrote last for the session, if it has it and it is not expired by its
+        ``updated_at``; else a read. The batch's compare-and-set refuses a stale one (store.redis_cache)."""
+        RSUS_USED.set(None)  # a new batch (a WebSocket's frames share one task): no RSU map used yet
+        record = self.records.get(session_id)
+        if record is not None and not self.is_expired(record, self.clock()):
+            return record
+        self.records.drop(session_id)
+        return await self.get(session_id, with_response=False)
+
     async def compare_and_set(self, record: SessionRecord, expected_version: int) -> bool:
+        # the token of the RSU map this request's batch was computed on, if it used this worker's copy
+        rsus_used = RSUS_USED.get()
+        RSUS_USED.set(None)
         session_key = self._session_key(record.session_id)
         keys = [
             session_key,
@@ -427,10 +470,23 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
             repr(float(record.updated_at)),
             record.session_id,
         ]
+        if rsus_used is not None:
+            keys.append(self.rsu_token_key)
+            args.append(rsus_used)
         fields = record_fields(record, expected_version + 1)
-        async with self._guard():
-            applied, replicas = await self._staged_write(await self._redis(), keys, args, fields)
-        if applied < 0:
+        try:
+            async with self._guard():
+                applied, replicas = await self._staged_write(await self._redis(), keys, args, fields)
+        except BaseException:
+            self.records.drop(record.session_id)  # whether it was written is not known
+            raise
+        if applied == 1:
+            self.records.put(record, expected_version + 1)
+        elif applied == RSUS_CHANGED:
+            self.forget_rsus()  # the session is as cached; the batch is redone on the new map
+        else:
+            self.records.drop(record.session_id)
+        if applied == -1:
             raise StoreUnavailable("Redis did not take the session's new record; send the same batch again")
         if applied == 1 and self.wait_replicas:
             self._check_replicas(replicas, "the batch")
@@ -492,6 +548,7 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
             )
 
     async def delete(self, session_id: str) -> bool:
+        self.records.drop(session_id)
         async with self._guard():
             client = await self._redis()
             removed = await self._scripts["delete"](
@@ -534,6 +591,7 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
         if int(outcome[0]) == 0:
             return None
         ended = bytes(outcome[1]).decode()
+        self.records.drop(ended)
         return Revocation(vehicle_id, ended or None)
 
     # neighbour tracks: one string key per vehicle, replaced whole by SET (atomic), expiring by itself

@@ -68,7 +68,7 @@ _REDIRECT_ATTEMPTS = 3
 _SPARE_CONNECTIONS = 32
 """Connections per node beyond the operations a worker runs at once, for the shard sweeps that one
 operation fans out (the cluster client refuses, rather than waits, past its connection limit)."""
-_OPTIONS = {"prefix", "socket_timeout", "socket_connect_timeout", "max_connections", "ssl"}
+_OPTIONS = {"prefix", "record_cache", "socket_timeout", "socket_connect_timeout", "max_connections", "ssl"}
 
 
 def parse_cluster_url(url: str) -> dict[str, Any]:
@@ -162,6 +162,9 @@ class RedisClusterStore(RedisStore):
         self._node_clients: dict[str, Redis] = {}
         self._counts: tuple[float, list[int]] | None = None  # (monotonic time, sessions per shard)
         self._permits = asyncio.Semaphore(1)  # replaced with the client, per event loop
+        # the RSU map's token lives in another slot than a session's keys, which the compare-and-set
+        # script alone may touch here: every batch reads the RSUs it needs (store.redis_cache)
+        self.cache_rsus = False
 
     @staticmethod
     def _parse_url(url: str) -> tuple[str, str]:
@@ -381,6 +384,7 @@ class RedisClusterStore(RedisStore):
                 client=client,
             )
         ended_id = bytes(ended).decode()
+        self.records.drop(ended_id)
         return Revocation(vehicle_id, ended_id or None)
 
     # neighbour tracks -----------------------------------------------------------------------

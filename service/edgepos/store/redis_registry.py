@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import json
 import math
+import secrets
 from collections.abc import Iterable, Mapping, Sequence
 from contextlib import AbstractAsyncContextManager
 from typing import TYPE_CHECKING, Any
 
 from edgepos.pipelines.base import Rsu
 from edgepos.store.base import StoredEphemerides, VehicleRecord
+from edgepos.store.redis_cache import RSUS_USED, RsuSnapshot
 
 _CHUNK = 500
 
@@ -46,6 +48,9 @@ class RedisRegistry:
     vehicles_key: str
     vehicle_keys_key: str
     rsu_key: str
+    rsu_token_key: str
+    cache_rsus: bool
+    _rsus: RsuSnapshot | None
     ephemerides_key: str
     documents_prefix: str
     lease_prefix: str
@@ -117,12 +122,30 @@ class RedisRegistry:
             for start in range(0, len(items), _CHUNK):
                 pipe.hset(self.rsu_key, mapping=dict(items[start : start + _CHUNK]))
             await pipe.execute()
+        await self._new_rsu_token()
         return len(mapping)
+
+    async def _new_rsu_token(self) -> None:
+        """After every RSU write (not before: a map read with the new token is then the new map): a fresh
+        random token, so that a batch computed on a map cached before the write is refused by its
+        compare-and-set. Random, not a counter: a map cached before Redis lost its data never matches.
+        None on a store that does not cache the map (a Redis Cluster)."""
+        self._rsus = None
+        if not self.cache_rsus:
+            return
+        async with self._guard():
+            await (await self._redis()).set(self.rsu_token_key, secrets.token_hex(8))
 
     async def get_rsu(self, rsu_id: str) -> Rsu | None:
         return (await self.get_rsus([rsu_id])).get(rsu_id)
 
     async def get_rsus(self, rsu_ids: Iterable[str]) -> Mapping[str, Rsu]:
+        """The RSUs of ``rsu_ids`` that are registered. With ``cache_rsus``, from this worker's copy of the
+        whole map, read once per RSU write (its token marks the batch's compare-and-set: see redis_cache)."""
+        if self.cache_rsus:
+            snapshot = self._rsus if self._rsus is not None else await self._read_rsu_map()
+            RSUS_USED.set(snapshot.token)
+            return {rsu_id: snapshot.rsus[rsu_id] for rsu_id in set(rsu_ids) if rsu_id in snapshot.rsus}
         wanted = sorted(set(rsu_ids))
         found: dict[str, Rsu] = {}
         async with self._guard():
@@ -133,6 +156,23 @@ class RedisRegistry:
                 found.update({rid: _rsu(rid, value) for rid, value in zip(chunk, values) if value})
         return found
 
+    async def _read_rsu_map(self) -> RsuSnapshot:
+        """The whole map and its token in one transaction (one round trip), kept as this worker's copy."""
+        async with self._guard(), (await self._redis()).pipeline(transaction=True) as pipe:
+            pipe.get(self.rsu_token_key)
+            pipe.hgetall(self.rsu_key)
+            token, raw = await pipe.execute()
+        snapshot = RsuSnapshot(
+            "" if token is None else bytes(token).decode(),
+            {key.decode(): _rsu(key.decode(), value) for key, value in raw.items()},
+        )
+        self._rsus = snapshot
+        return snapshot
+
+    def forget_rsus(self) -> None:
+        """Drop this worker's copy of the RSU map (a write refused its token: the map changed)."""
+        self._rsus = None
+
     async def list_rsus(self) -> list[Rsu]:
         async with self._guard():
             raw = await (await self._redis()).hgetall(self.rsu_key)
@@ -141,7 +181,9 @@ class RedisRegistry:
 
     async def delete_rsu(self, rsu_id: str) -> bool:
         async with self._guard():
-            return bool(await (await self._redis()).hdel(self.rsu_key, rsu_id))
+            removed = bool(await (await self._redis()).hdel(self.rsu_key, rsu_id))
+        await self._new_rsu_token()
+        return removed
 
     # broadcast ephemerides ------------------------------------------------------------------
     async def put_ephemerides(self, document: StoredEphemerides) -> None:

@@ -66,19 +66,25 @@ return {1, old or ''}
 """
 )
 
-# KEYS: session hash, index, the vehicle's live pointer, the staged hash. ARGV: expected version, ttl ms,
-# score, id. The new record arrives as the staged hash, written by a plain HSET just before this script in
+# KEYS: session hash, index, the vehicle's live pointer, the staged hash and, when the batch was computed on a
+# worker's cached RSU map, the map's token. ARGV: expected version, ttl ms, score, id, and that cached map's
+# token. The new record arrives as the staged hash, written by a plain HSET just before this script in
 # the same pipeline; the script moves it in place of the session's (RENAME: no copy) only if the version is
 # still the expected one, else drops it. The state and the stored answer (some 50 kB for a 20-epoch batch)
 # never pass through Lua, whose argument handling costs Redis about 1.6 ns per byte: twice the CPU of the
-# whole write (bench/redis_ops.py). Returns 1 if applied, 0 if the version moved, -1 if the staged hash is
-# missing (its HSET failed: nothing written).
+# whole write (bench/redis_ops.py). Returns 1 if applied, 0 if the version moved (or the session is gone:
+# deleted, superseded, revoked, expired), -1 if the staged hash is missing (its HSET failed: nothing
+# written), -2 if the RSU map changed since the worker cached it (nothing written).
 COMPARE_AND_RENAME = """
 if redis.call('EXISTS', KEYS[4]) == 0 then return -1 end
 local version = redis.call('HGET', KEYS[1], 'version')
 if (not version) or version ~= ARGV[1] then
   redis.call('DEL', KEYS[4])
   return 0
+end
+if KEYS[5] and (redis.call('GET', KEYS[5]) or '') ~= ARGV[5] then
+  redis.call('DEL', KEYS[4])
+  return -2
 end
 redis.call('RENAME', KEYS[4], KEYS[1])
 redis.call('PEXPIRE', KEYS[1], ARGV[2])

@@ -12,6 +12,7 @@ from edgepos.api.auth import (
     Principal,
     authorise_session_creation,
     require_admin,
+    require_batch_session,
     require_session,
     require_vehicle,
 )
@@ -174,7 +175,7 @@ async def delete_session(session_id: str, context: Context) -> Response:
     "/{session_id}/batches",
     response_model=BatchOut,
     summary="Send a batch of measurements",
-    dependencies=[Depends(require_session), Depends(json_body)],
+    dependencies=[Depends(require_batch_session), Depends(json_body)],
     responses={
         **errors(401, 403, 404, 409, 413, 415, 422, 429, 503),
         200: {"links": _links(_FROM_PATH, _READ_IT, _SEND_TO_IT, _DELETE_IT)},
