@@ -21,8 +21,9 @@ keep a heavy batch from holding the light lane's lock; processes can.
 Why the light lane runs on the event loop by default: a thread gains no parallelism under the one
 interpreter lock, and the loop and a busy filter thread hand the lock back and forth (the loop asks for
 it whenever a socket is ready; the thread gives it up every switch interval and in every release by a
-C call), which costs more than it hides: under a saturating load one worker spent about 13 % more CPU
-per epoch and served 13-40 % fewer epochs with the thread (docs/benchmarks.md). A light job holds the
+C call), which costs more than it hides: under a saturating load one worker spent 24-53 % more CPU per
+epoch and served 19-33 % fewer epochs with the thread, two workers 7-8 % more CPU and 9 % fewer epochs
+(docs/benchmarks.md). A light job holds the
 loop for at most about a slice; the thread lane stays for deployments that would rather keep the loop
 free. The site's own work (kernel warm-up, parsing uploaded files) has no predicted cost and always
 runs on a thread, never on the loop.

@@ -181,7 +181,7 @@ class Settings(BaseSettings):
         description="Where the light lane filters its batches: 'loop', on the event loop's own thread between "
         "two reads of its sockets (a batch holds the loop for at most about the slice); 'thread', on one filter "
         "thread of this process, which keeps the loop free but contends with it for the interpreter lock "
-        "(measured: about 13 % more CPU per epoch under a saturating load, docs/benchmarks.md).",
+        "(measured: 24-53 % more CPU per epoch for one worker under a saturating load, docs/benchmarks.md).",
     )
     heavy_workers: int = Field(
         1,
