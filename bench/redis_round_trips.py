@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 from edgepos.api.app import create_app
 from edgepos.api.settings import Settings
-from edgepos.core.observations import GyroObservation, RsuObservation
+from edgepos.loadgen import common
 from edgepos.loadgen.localredis import RedisServer, redis_binary
 from edgepos.pipelines.base import Rsu
 from edgepos.sim.scenarios import rsu_imu_paper_scenario
@@ -83,16 +83,9 @@ def _name(args: Any) -> str:
 
 
 def _wire(observation: Any) -> dict[str, Any]:
-    if isinstance(observation, RsuObservation):
-        return {
-            "type": "rsu",
-            "t": observation.t,
-            "rsu_id": observation.rsu_id,
-            "range": observation.range,
-            "bearing": observation.bearing,
-        }
-    assert isinstance(observation, GyroObservation)
-    return {"type": "gyro", "t": observation.t, "yaw_rate": observation.yaw_rate}
+    """An observation as a batch's JSON measurement (the load generator's own conversion)."""
+    wire: dict[str, Any] = common.to_wire(observation).model_dump(mode="json", exclude_none=True)
+    return wire
 
 
 def main() -> int:

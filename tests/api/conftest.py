@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -10,6 +11,7 @@ import pytest
 from apihelp import ADMIN, make_settings, rsu_payload
 from edgepos.api.app import create_app
 from edgepos.api.settings import Settings
+from edgepos.loadgen.localredis import RedisServer
 from fastapi.testclient import TestClient
 
 
@@ -33,3 +35,15 @@ def client(settings: Settings) -> Iterator[TestClient]:
         response = test_client.put("/v1/rsus", json=rsu_payload(), headers=ADMIN)
         assert response.status_code == 200, response.text
         yield test_client
+
+
+@pytest.fixture(scope="module")
+def redis_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RedisServer]:
+    """An in-memory redis-server (no persistence) for one test module; its tests keep apart by key prefix."""
+    binary = shutil.which("redis-server")
+    if binary is None:
+        pytest.skip("redis-server is not installed (apt-get install -y redis-server)")
+    server = RedisServer(binary, tmp_path_factory.mktemp("redis"), "--save", "", "--appendonly", "no")
+    server.start()
+    yield server
+    server.stop()

@@ -6,7 +6,6 @@ deleted, superseded or revoked through one worker refuses the next batch sent to
 from __future__ import annotations
 
 import itertools
-import shutil
 from collections.abc import Iterator
 from contextlib import ExitStack
 from pathlib import Path
@@ -18,17 +17,6 @@ from edgepos.loadgen.localredis import RedisServer
 from fastapi.testclient import TestClient
 
 _prefixes = itertools.count()
-
-
-@pytest.fixture(scope="module")
-def redis_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RedisServer]:
-    binary = shutil.which("redis-server")
-    if binary is None:
-        pytest.skip("redis-server is not installed (apt-get install -y redis-server)")
-    server = RedisServer(binary, tmp_path_factory.mktemp("redis-batches"), "--save", "", "--appendonly", "no")
-    server.start()
-    yield server
-    server.stop()
 
 
 @pytest.fixture

@@ -4,9 +4,7 @@ notifier holds the store lease), and its deletion holds everywhere."""
 
 from __future__ import annotations
 
-import shutil
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -18,19 +16,6 @@ from edgepos.loadgen.localserver import clean_environment, running, serve_comman
 from test_api_location_events import GATE, zone_subscription
 
 pytestmark = pytest.mark.slow
-
-
-@pytest.fixture(scope="module")
-def redis_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RedisServer]:
-    binary = shutil.which("redis-server")
-    if binary is None:
-        pytest.skip("redis-server is not installed (apt-get install -y redis-server)")
-    server = RedisServer(
-        binary, tmp_path_factory.mktemp("redis-location"), "--save", "", "--appendonly", "no"
-    )
-    server.start()
-    yield server
-    server.stop()
 
 
 def test_two_workers_on_redis_notify_each_crossing_once(tmp_path: Path, redis_server: RedisServer):

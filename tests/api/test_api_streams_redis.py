@@ -5,8 +5,6 @@ workers exactly once to one consumer (whichever worker serves it)."""
 from __future__ import annotations
 
 import itertools
-import shutil
-from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -20,17 +18,6 @@ from ssehelp import events, take, until_ping
 
 STREAM = "/v1/stream/fixes"
 _prefixes = itertools.count()
-
-
-@pytest.fixture(scope="module")
-def redis_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RedisServer]:
-    binary = shutil.which("redis-server")
-    if binary is None:
-        pytest.skip("redis-server is not installed (apt-get install -y redis-server)")
-    server = RedisServer(binary, tmp_path_factory.mktemp("redis-streams"), "--save", "", "--appendonly", "no")
-    server.start()
-    yield server
-    server.stop()
 
 
 def test_stream_and_resume_on_redis(tmp_path: Path, redis_server: RedisServer):
