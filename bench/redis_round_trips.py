@@ -101,19 +101,7 @@ def main() -> int:
         return 2
     scenario = rsu_imu_paper_scenario()
     epochs = rsu_imu_epochs(scenario, np.random.default_rng(7))
-    rsus = {
-        "rsus": [
-            {
-                "id": r.id,
-                "x": r.x,
-                "y": r.y,
-                "range_std": r.range_std,
-                "bearing_std": r.bearing_std,
-                "radius": r.radius,
-            }
-            for r in scenario.rsus
-        ]
-    }
+    rsus = {"rsus": [r.model_dump(mode="json", exclude_none=True) for r in common.scenario_rsus(scenario)]}
     bodies = [
         {"seq": seq, "measurements": [_wire(o) for e in epochs[(seq - 1) * 20 : seq * 20] for o in e]}
         for seq in range(1, args.batches + 1)
