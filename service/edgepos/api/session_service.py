@@ -15,9 +15,9 @@ import hmac
 import json
 import logging
 import time
-from collections.abc import Mapping
 from typing import Any
 
+from edgepos.api.admission import admit_batch, too_heavy_options
 from edgepos.api.auth import INVALID_CREDENTIAL, hash_token, new_session_token, superseded_error
 from edgepos.api.base_stations import batch_corrections, check_base_station
 from edgepos.api.context import AppContext
@@ -93,7 +93,7 @@ def _resolve_and_create(
     epoch_s = cost.epoch_cost_s(pipeline.name, options)
     if epoch_s > budget_s:
         raise PipelineInputError(
-            [_problem("options", _too_heavy_options(pipeline.name, options, epoch_s, budget_s))]
+            [_problem("options", too_heavy_options(pipeline.name, options, epoch_s, budget_s))]
         )
     initial = None
     if body.initial_state is not None:
@@ -103,21 +103,6 @@ def _resolve_and_create(
     except EstimationError as error:
         raise PipelineInputError([_problem("initial_state", str(error))]) from None
     return options, state
-
-
-def _too_heavy_options(pipeline: str, options: Mapping[str, Any], epoch_s: float, budget_s: float) -> str:
-    counts = ", ".join(f"{count} {kind}" for kind, count in cost.MAX_PER_EPOCH[pipeline].items())
-    reason = (
-        f"one epoch of the most measurements a batch may carry ({counts}) would cost about "
-        f"{epoch_s * 1e3:.0f} ms of CPU under these options, over the server's budget of {budget_s * 1e3:g} ms "
-        "per batch (EDGEPOS_BATCH_CPU_BUDGET_MS)"
-    )
-    if pipeline == "gnss_tight" and options.get("filter") in ("pf", "upf"):
-        most = cost.max_particles(str(options["filter"]), budget_s)
-        reason += f"; with filter {options['filter']!r} use at most {most} particles"
-    else:
-        reason += "; choose a lighter filter or fewer motion models"
-    return reason
 
 
 def _unreadable_state(session_id: str, error: StateFormatError) -> ApiError:
@@ -397,7 +382,9 @@ async def _apply_in_turn(
                 replayed = pipeline.replayed_observations(record.state, observations)
             except StateFormatError as error:
                 raise _unreadable_state(session_id, error) from None
-            cost_s = _admit(context, pipeline, record.options, observations, replayed)
+            cost_s = admit_batch(
+                context.settings.batch_cpu_budget_s, pipeline.name, record.options, observations, replayed
+            )
             if replayed:
                 rsu_ids = rsu_ids | _rsu_ids(replayed)
                 peer_ids = peer_ids | _peer_ids(replayed)
@@ -526,54 +513,6 @@ def _rsu_ids(observations: list[Any]) -> set[str]:
 
 def _peer_ids(observations: list[Any]) -> set[str]:
     return {o.peer_vehicle_id for o in observations if isinstance(o, V2vRangeObservation)}
-
-
-def _admit(
-    context: AppContext,
-    pipeline: Pipeline,
-    options: Mapping[str, Any],
-    observations: list[Any],
-    replayed: list[Any] | None = None,
-) -> float:
-    """The batch's predicted CPU seconds (with the stored observations a late measurement makes the lag
-    window filter again), after refusing (422) an epoch with more measurements of a kind than the
-    pipeline accepts per epoch, or a batch predicted to cost more than the budget."""
-    predicted, violations = cost.admit(pipeline.name, options, observations)
-    if replayed:
-        predicted += cost.batch_cost_s(pipeline.name, options, replayed)
-    if violations:
-        problems = [ProblemModel(index=None, field="measurements", reason=v.reason) for v in violations[:20]]
-        raise ApiError(
-            "invalid_request",
-            "the batch has epochs with too many measurements; the session is unchanged",
-            problems,
-        )
-    budget_s = context.settings.batch_cpu_budget_s
-    if predicted > budget_s:
-        epochs = len({o.t for o in observations} | {o.t for o in replayed or ()})
-        fit = int(budget_s / (predicted / epochs)) if epochs else 0
-        again = (
-            f", {len({o.t for o in replayed})} of them filtered again for late measurements"
-            if replayed
-            else ""
-        )
-        advice = (
-            f"send at most about {fit} epochs like these per batch"
-            if fit >= 1
-            else "one epoch like these alone is over it: send fewer measurements per epoch, or open a session with "
-            "cheaper options (fewer particles; for gnss_tight also use_doppler false: each Doppler adds a row to "
-            "the update)"
-        )
-        reason = (
-            f"this batch would cost about {predicted * 1e3:.0f} ms of CPU ({epochs} epochs{again}), over the server's "
-            f"budget of {budget_s * 1e3:g} ms per batch (EDGEPOS_BATCH_CPU_BUDGET_MS): {advice}"
-        )
-        raise ApiError(
-            "invalid_request",
-            "the batch is too costly to filter at once; the session is unchanged",
-            [ProblemModel(index=None, field="measurements", reason=reason)],
-        )
-    return predicted
 
 
 def _check_satellites(observations: list[Any], loaded: LoadedEphemerides | None, systems_used: Any) -> None:
