@@ -23,10 +23,9 @@ interpreter lock, and the loop and a busy filter thread hand the lock back and f
 it whenever a socket is ready; the thread gives it up every switch interval and in every release by a
 C call), which costs more than it hides: under a saturating load one worker spent 24-53 % more CPU per
 epoch and served 19-33 % fewer epochs with the thread, two workers 7-8 % more CPU and 9 % fewer epochs
-(docs/benchmarks.md). A light job holds the
-loop for at most about a slice; the thread lane stays for deployments that would rather keep the loop
-free. The site's own work (kernel warm-up, parsing uploaded files) has no predicted cost and always
-runs on a thread, never on the loop.
+(docs/benchmarks.md). A light job holds the loop for at most about a slice; the thread lane stays for
+deployments that would rather keep the loop free. The site's own work (kernel warm-up, parsing uploaded
+files) has no predicted cost and always runs on a thread, never on the loop.
 """
 
 from __future__ import annotations
@@ -435,7 +434,6 @@ class FairScheduler:
 
     def shutdown(self) -> None:
         """Stop the lanes once their current work is done (app shutdown)."""
-        for lane in {
-            id(lane): lane for lane in self._lanes.values()
-        }.values():  # the site lane may be the light
+        distinct = {id(lane): lane for lane in self._lanes.values()}  # the site lane may be the light one
+        for lane in distinct.values():
             lane.shutdown()
