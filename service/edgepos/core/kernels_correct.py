@@ -169,11 +169,14 @@ def _moments(
                     sin_sums[j] += weights[p] * ((point[_YP] - positions[rsus[j], 1]) / distance)
                 else:
                     cos_sums[j] += weights[p]
-        for r in range(size):
-            total = 0.0
-            for p in range(count):
-                total += weights[p] * z[p, r]
-            predicted[r] = total
+        # The sums below run point by point in the outer loop: each element still adds its terms in
+        # point order (the same numbers to the last bit as a sum per element), but the inner loops'
+        # additions are independent of one another, where a sum per element waits on its previous add.
+        predicted[:size] = 0.0
+        for p in range(count):
+            weight = weights[p]
+            for r in range(size):
+                predicted[r] += weight * z[p, r]
         for j in range(rsus.shape[0]):
             predicted[2 * j + 1] = math.atan2(sin_sums[j], cos_sums[j])
         for p in range(count):
@@ -181,19 +184,22 @@ def _moments(
                 z[p, r] -= predicted[r]
             for r in range(1, angle_rows, 2):
                 z[p, r] = wrap(z[p, r])
-        for r in range(size):
-            for s in range(r, size):
-                total = 0.0
-                for p in range(count):
-                    total += z[p, r] * cov_weights[p] * z[p, s]
-                innovation_cov[r, s] = total
-                innovation_cov[s, r] = total
-        for k in range(8):
+        innovation_cov[:, :] = 0.0
+        cross_cov[:, :] = 0.0
+        weighted = np.empty(size)
+        for p in range(count):
             for r in range(size):
-                total = 0.0
-                for p in range(count):
-                    total += offsets[p, k] * (z[p, r] * cov_weights[p])
-                cross_cov[k, r] = total
+                weighted[r] = z[p, r] * cov_weights[p]
+            for r in range(size):
+                for s in range(r, size):
+                    innovation_cov[r, s] += weighted[r] * z[p, s]
+            for k in range(8):
+                offset = offsets[p, k]
+                for r in range(size):
+                    cross_cov[k, r] += offset * weighted[r]
+        for r in range(size):
+            for s in range(r + 1, size):
+                innovation_cov[s, r] = innovation_cov[r, s]
     for r in range(size):
         innovation_cov[r, r] += variances[r]
     _symmetrize(innovation_cov, size)
@@ -259,29 +265,34 @@ def _correct_one(
         if r < 2 * rsus.shape[0] and r % 2 == 1:
             residual = wrap(residual)
         rhs[r, 8] = residual
-    for r in range(size):
+    for r in range(size):  # row by row, each element's terms subtracted in the same order as a sum
+        for k in range(r):
+            coefficient = factor[r, k]
+            for c in range(9):
+                rhs[r, c] -= coefficient * rhs[k, c]
+        diagonal = factor[r, r]
         for c in range(9):
-            total = rhs[r, c]
-            for k in range(r):
-                total -= factor[r, k] * rhs[k, c]
-            rhs[r, c] = total / factor[r, r]
+            rhs[r, c] = rhs[r, c] / diagonal
     nis = 0.0
     log_det = 0.0
     for r in range(size):
         nis += rhs[r, 8] * rhs[r, 8]
         log_det += math.log(factor[r, r])
+    gain = np.zeros(8)  # K r, and below K S K^T, each element summed over r in order
+    reduction = np.zeros((8, 8))
+    for r in range(size):
+        for k in range(8):
+            gain[k] += rhs[r, k] * rhs[r, 8]
+        for i in range(8):
+            left = rhs[r, i]
+            for j in range(8):
+                reduction[i, j] += left * rhs[r, j]
     for k in range(8):
-        total = 0.0
-        for r in range(size):
-            total += rhs[r, k] * rhs[r, 8]
-        out_mean[k] = mean[k] + total
+        out_mean[k] = mean[k] + gain[k]
     out_mean[_PHI] = wrap(out_mean[_PHI])
     for i in range(8):
         for j in range(8):
-            total = 0.0
-            for r in range(size):
-                total += rhs[r, i] * rhs[r, j]
-            out_cov[i, j] = cov[i, j] - total
+            out_cov[i, j] = cov[i, j] - reduction[i, j]
     _symmetrize(out_cov, 8)
     stats[0] = nis
     stats[1] = -0.5 * (nis + 2.0 * log_det + size * _LOG_TWO_PI)
