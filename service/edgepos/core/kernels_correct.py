@@ -54,11 +54,36 @@ def _measure(
         dy = state[_YP] - positions[rsus[r], 1]
         out[2 * r] = math.sqrt(dx * dx + dy * dy)  # hypot's care for overflow costs 5x, and ranges are metres
         out[2 * r + 1] = math.atan2(dy, dx)
+    _measure_gyros(state, gyros, min_speed_sq, 2 * rsus.shape[0], out)
+
+
+@_jit
+def _measure_rsus(state: FloatArray, positions: FloatArray, rsus: IntArray, out: FloatArray) -> None:
+    """Per RSU of ``rsus``: the range and bearing ``_measure`` gives, then the unit vector from the RSU
+    (zero at zero range), as the sigma-point moments use it."""
+    for r in range(rsus.shape[0]):
+        dx = state[_XP] - positions[rsus[r], 0]
+        dy = state[_YP] - positions[rsus[r], 1]
+        distance = math.sqrt(dx * dx + dy * dy)
+        out[r, 0] = distance
+        out[r, 1] = math.atan2(dy, dx)
+        if distance > 0.0:
+            inverse = 1.0 / distance
+            out[r, 2] = dx * inverse
+            out[r, 3] = dy * inverse
+        else:
+            out[r, 2] = 0.0
+            out[r, 3] = 0.0
+
+
+@_jit
+def _measure_gyros(state: FloatArray, gyros: int, min_speed_sq: float, first: int, out: FloatArray) -> None:
+    """The yaw-rate rows of ``_measure``, written from ``out[first]`` on."""
     if gyros > 0:
         xv, xa, yv, ya = state[_XV], state[_XA], state[_YV], state[_YA]
         rate = (xv * ya - xa * yv) / max(xv * xv + yv * yv, min_speed_sq)
         for g in range(gyros):
-            out[2 * rsus.shape[0] + g] = rate
+            out[first + g] = rate
 
 
 @_jit
@@ -168,9 +193,29 @@ def _moments(
         point = np.empty(8)
         sin_sums = np.zeros(rsus.shape[0])
         cos_sums = np.zeros(rsus.shape[0])
+        # A point whose offset leaves x and y as they are (the factor's columns past y's: half of an
+        # 8-component model's points) sees the RSUs exactly as the mean does: their ranges, bearings and
+        # unit vectors are measured once, at the mean, and copied (the same numbers, without the atan2s).
+        at_mean = np.empty((rsus.shape[0], 4))  # range, bearing, unit vector x, y
+        at_mean_measured = False
         for p in range(count):
             for k in range(8):
                 point[k] = mean[k] + offsets[p, k]
+            if offsets[p, _XP] == 0.0 and offsets[p, _YP] == 0.0:
+                if not at_mean_measured:
+                    _measure_rsus(point, positions, rsus, at_mean)
+                    at_mean_measured = True
+                for j in range(rsus.shape[0]):
+                    z[p, 2 * j] = at_mean[j, 0]
+                    z[p, 2 * j + 1] = at_mean[j, 1]
+                _measure_gyros(point, gyros, min_speed_sq, 2 * rsus.shape[0], z[p])
+                for j in range(rsus.shape[0]):
+                    if at_mean[j, 0] > 0.0:
+                        cos_sums[j] += weights[p] * at_mean[j, 2]
+                        sin_sums[j] += weights[p] * at_mean[j, 3]
+                    else:
+                        cos_sums[j] += weights[p]
+                continue
             _measure(point, positions, rsus, gyros, min_speed_sq, z[p])
             for j in range(rsus.shape[0]):
                 distance = z[p, 2 * j]
