@@ -110,13 +110,18 @@ def child(rounds: int) -> dict[str, float]:
 def run_child(python: str) -> dict[str, Any]:
     environment = {**os.environ, "PYTHONPATH": str(ROOT / "service")}
     environment.setdefault("NUMBA_CACHE_DIR", str(Path("/tmp") / f"numba-interpreter-ab-{os.getuid()}"))
-    result = subprocess.run([python, __file__, "--child"], env=environment, capture_output=True, text=True)
+    result = subprocess.run(
+        [python, __file__, "--child"], env=environment, capture_output=True, text=True, check=False
+    )
     if result.returncode != 0:
         raise SystemExit(f"{python} failed (is the project installed in its venv?):\n{result.stderr}")
     output = result.stdout
     figures: dict[str, Any] = json.loads(output.strip().splitlines()[-1])
     figures["version"] = subprocess.run(
-        [python, "-c", "import sys; print(sys.version.split()[0])"], capture_output=True, text=True, check=True
+        [python, "-c", "import sys; print(sys.version.split()[0])"],
+        capture_output=True,
+        text=True,
+        check=True,
     ).stdout.strip()
     return figures
 
@@ -139,16 +144,25 @@ def main() -> int:
         for python in order:
             runs[python].append(run_child(python))
     names = ("pure_python_ms", "pipeline_epoch_us", "parse_batch_us")
-    print(f"{args.rounds} rounds alternated; load average {load_before[0]:.2f} before, {os.getloadavg()[0]:.2f} after")
-    best = {python: {name: min(run[name] for run in runs[python]) for name in names} for python in args.python}
+    print(
+        f"{args.rounds} rounds alternated; load average {load_before[0]:.2f} before, {os.getloadavg()[0]:.2f} after"
+    )
+    best = {
+        python: {name: min(run[name] for run in runs[python]) for name in names} for python in args.python
+    }
     print(f"{'interpreter':52} {'pure Python ms':>15} {'pipeline us/epoch':>18} {'parse us/batch':>15}")
     for python in args.python:
         label = f"{python} ({runs[python][0]['version']})"
-        print(f"{label[:52]:52} " + " ".join(f"{best[python][name]:>{w}.2f}" for name, w in zip(names, (15, 18, 15))))
+        print(
+            f"{label[:52]:52} "
+            + " ".join(f"{best[python][name]:>{w}.2f}" for name, w in zip(names, (15, 18, 15)))
+        )
     first, second = args.python
     print(
         f"{'first / second':52} "
-        + " ".join(f"{best[first][name] / best[second][name]:>{w}.2f}" for name, w in zip(names, (15, 18, 15)))
+        + " ".join(
+            f"{best[first][name] / best[second][name]:>{w}.2f}" for name, w in zip(names, (15, 18, 15))
+        )
     )
     return 0
 
