@@ -33,7 +33,7 @@ from edgepos.core.compiled import BankStepper, stepper_for
 from edgepos.core.errors import NumericalError
 from edgepos.core.filters import GaussianFilter, make_filter
 from edgepos.core.filters.sigma_points import SigmaPointFilter
-from edgepos.core.imm import Gaussian, InteractingMultipleModel, StepResult
+from edgepos.core.imm import Gaussian, InteractingMultipleModel, Prediction, StepResult
 from edgepos.core.integrity import UNAVAILABLE, Protection
 from edgepos.core.integrity_bank import SeparationBank
 from edgepos.core.motion import MotionModel, make_motion_model
@@ -383,10 +383,18 @@ def _step(
 
     dt = None if session.filter_t is None else t - session.filter_t
     stepper = _stepper(bank)
-    prediction = stepper.predict(session.means, session.covs, session.probabilities, dt)
     measured = epoch_measurements(candidates, gyros, batch, options)
     gate = options["gate_probability"]
-    if gate > 0.0 and (candidates or gyros):
+    gated = gate > 0.0 and bool(candidates or gyros)
+    if options["integrity"] and _held_out(session.integrity_bank, t, candidates, observations):
+        # the monitor leaves one of them out (monitored_update): the per-call path below
+        prediction, fused = stepper.predict(session.means, session.covs, session.probabilities, dt), None
+    else:  # in one compiled call when the gate keeps every measurement (fused None: it would not)
+        thresholds = _gate_thresholds(gate, bank.common) if gated else _UNGATED
+        prediction, fused = stepper.step(
+            session.means, session.covs, session.probabilities, dt, measured, thresholds
+        )
+    if fused is None and gated:
         kept_rsus, kept_gyros = _gate(candidates, gyros, measured, prediction.output, gate, uses, stepper)
         if len(kept_rsus) < len(candidates) or len(kept_gyros) < len(gyros):
             candidates, gyros = kept_rsus, kept_gyros
@@ -404,11 +412,11 @@ def _step(
             uses,
             prediction.output,
             lambda kept: epoch_measurements(kept, gyros, batch, options),
-            functools.partial(stepper.correct, prediction),
+            functools.partial(_correct, stepper, prediction, measured, fused),
             _output,
         )
     else:
-        result = stepper.correct(prediction, measured)
+        result = fused if fused is not None else stepper.correct(prediction, measured)
     for i in candidates + gyros:
         uses[i] = _used(i, observations[i].kind)
     coasting = not (candidates or gyros)
@@ -419,6 +427,43 @@ def _step(
     dof = 0 if coasting else measured.dim
     status = "predicted" if coasting else "tracking"
     return _fix(t, status, result.output, session, bank, uses, nis, dof, protection)
+
+
+def _correct(
+    stepper: BankStepper,
+    prediction: Prediction,
+    measured: RsuGyroEpoch,
+    fused: StepResult | None,
+    epoch: RsuGyroEpoch,
+) -> StepResult:
+    """The correction of ``prediction`` with ``epoch``: ``fused``, the one compiled call's, when that
+    corrected with these very measurements (``measured``), else the stepper's."""
+    if fused is not None and epoch is measured:
+        return fused
+    return stepper.correct(prediction, epoch)
+
+
+def _held_out(
+    bank: SeparationBank | None, t: float, candidates: list[int], observations: Sequence[Observation]
+) -> bool:
+    """Whether the integrity monitor holds one of the RSU observations ``candidates`` out at ``t``
+    (``SeparationBank.excluded_now``, which ``monitored_update`` asks again)."""
+    if bank is None or not bank.excluded:
+        return False
+    held = bank.excluded_now(t)
+    return any(cast(RsuObservation, observations[i]).rsu_id in held for i in candidates)
+
+
+#: ``BankStepper.step``'s thresholds when nothing is gated.
+_UNGATED = (-1.0, -1.0)
+
+
+@functools.lru_cache(maxsize=64)
+def _gate_thresholds(probability: float, components: tuple[int, ...]) -> tuple[float, float]:
+    """The gate's thresholds of an RSU pair and of a gyro reading (-1: gyros not gated, as ``_gate``
+    leaves them when the output lacks an acceleration) for ``BankStepper.step``."""
+    gyros = layout.XA in components and layout.YA in components
+    return _gate_threshold(probability, 2), _gate_threshold(probability, 1) if gyros else -1.0
 
 
 @functools.lru_cache(maxsize=4096)
