@@ -12,6 +12,8 @@ about bad numbers on its own. The models' F and Q for each interval are computed
 compiled call (``core.kernels_motion``), so timestamps that jitter, which make every interval new, stay
 cheap. Each call writes its results into one array allocated per call; a compiled Prediction's arrays
 are views of it, made when read (the gate and the correction take the array itself).
+``CompiledBankStepper.step`` runs the usual epoch (prediction, gate, correction with every
+measurement) in one compiled call (``core.kernels_epoch``) and leaves the rest to the calls above.
 
 Set ``EDGEPOS_NUMBA=0`` to run everything on the numpy reference.
 """
