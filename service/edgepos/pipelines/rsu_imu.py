@@ -51,10 +51,9 @@ from edgepos.pipelines.base import (
     StateSummary,
     ensure_finite_fixes,
 )
-from edgepos.pipelines.epochs import group_by_time
 from edgepos.pipelines.integrity import bank_from_tail, monitored_update
 from edgepos.pipelines.options import resolve_options
-from edgepos.pipelines.rsu_imu_batch import Batch, epoch_measurements, epoch_parts, read_batch
+from edgepos.pipelines.rsu_imu_batch import Batch, EpochParts, batch_epochs, epoch_measurements, read_batch
 from edgepos.pipelines.rsu_imu_options import OPTION_SPECS, cross_check, parameter_problems
 
 #: Standard deviations of the components an initial state does not give (acceleration m/s^2,
@@ -194,8 +193,8 @@ class RsuImuPipeline(Pipeline):
         batch = read_batch(session.options, session.t, observations, environment)
         bank = _bank(session.options_key)
         fixes = []
-        for epoch in group_by_time(observations):
-            fixes.append(_step(session, bank, epoch, observations, batch))
+        for parts in batch_epochs(observations, batch, session.options):
+            fixes.append(_step(session, bank, parts, observations, batch))
         return ensure_finite_fixes(fixes), session.to_bytes()
 
     smoother: ClassVar[bool] = True
@@ -354,16 +353,16 @@ def _parsed_options(key: str) -> Any:
 def _step(
     session: _SessionState,
     bank: InteractingMultipleModel,
-    epoch: list[int],
+    parts: EpochParts,
     observations: Sequence[Observation],
     batch: Batch,
 ) -> Fix:
     options = session.options
+    epoch = parts.indices
     t = observations[epoch[0]].t
     session.t = t
     session.epochs += 1
-    uses: dict[int, MeasurementUse] = {}
-    candidates, gyros = epoch_parts(epoch, batch, options, uses)
+    uses, candidates, gyros = parts.uses, parts.candidates, parts.gyros
 
     if session.initialised and session.filter_t is not None and t - session.filter_t > options["max_gap"]:
         session.initialised = False  # too long without data: the old estimate says nothing any more
@@ -383,7 +382,7 @@ def _step(
 
     dt = None if session.filter_t is None else t - session.filter_t
     stepper = _stepper(bank)
-    measured = epoch_measurements(candidates, gyros, batch, options)
+    measured = parts.measured
     gate = options["gate_probability"]
     gated = gate > 0.0 and bool(candidates or gyros)
     if options["integrity"] and _held_out(session.integrity_bank, t, candidates, observations):
