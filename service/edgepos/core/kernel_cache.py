@@ -33,6 +33,7 @@ KERNEL_FILES = tuple(
         "kernels_motion.py",
         "kernels_turn.py",
         "kernels_integrity.py",
+        "kernels_epoch.py",
         "measurements/gnss_kernel.py",
         "measurements/gnss_geometry.py",
         "measurements/gnss_raim_kernel.py",
