@@ -63,7 +63,7 @@ from edgepos.core.particles.base import (
     wrap,
 )
 from edgepos.core.particles.upf_kernel import log_weights as compiled_log_weights
-from edgepos.core.particles.upf_step_kernel import Proposal, compiled_proposal
+from edgepos.core.particles.upf_step_kernel import Proposal, Weighed, compiled_proposal, compiled_weights
 
 
 def predicted_own_covariance(cloud: Cloud, model: ParticleModel, dt: float, active: np.ndarray) -> np.ndarray:
@@ -190,6 +190,36 @@ class UnscentedParticleFilter:
         and resampling when the effective sample size is low."""
         count = len(cloud.particles)
         residual = measurement.z - measurement.predict(proposal.sampled)
+        fraction = self.spread_fraction
+        particles = proposal.particles
+        weighed = compiled_weights(
+            cloud.log_weights, measurement, residual, proposal, cloud.cov, active, fraction
+        )
+        if weighed is None:  # the reference: numpy, and particles with covariances of their own
+            weighed = self._numpy_weights(cloud, measurement, residual, proposal, active)
+        elif math.isnan(weighed.score):  # the kernel found no Cholesky factor: numpy's solve decides
+            score = _innovation_score(measurement, cloud.weights, proposal.z_hat, proposal.z_cov)
+            weighed = replace(weighed, score=score)
+        log_weights, mean, spread, own = weighed.log_weights, weighed.mean, weighed.spread, weighed.own
+        resampled = weighed.ess < self.resample_threshold * count
+        if resampled:
+            particles = model.complete(regularised_resample(particles, log_weights, active, ANGLES, rng))
+            log_weights = np.full(count, -math.log(count))
+        new = Cloud(particles, log_weights, own)
+        if not resampled:  # the next step and the pipeline's prediction start from these very moments
+            new.remember_moments(ANGLES, mean, spread)
+        return StepResult(new, mean, spread + own, weighed.score, weighed.ess, bool(resampled))
+
+    def _numpy_weights(
+        self,
+        cloud: Cloud,
+        measurement: Measurement,
+        residual: np.ndarray,
+        proposal: Proposal,
+        active: np.ndarray,
+    ) -> Weighed:
+        """The importance weights (likelihood x prior / proposal), the innovation's NIS, the particles' own
+        covariance and the new cloud's moments, in numpy (``upf_step_kernel.weigh_kernel`` is held to it)."""
         log_weights = compiled_log_weights(
             cloud.log_weights,
             measurement,
@@ -199,27 +229,20 @@ class UnscentedParticleFilter:
             proposal.proposal_deviation,
             proposal.proposal_chol,
         )
-        if log_weights is None:  # the reference: numpy, and particles with covariances of their own
+        if log_weights is None:
             likelihood = measurement.log_likelihood(residual)
             prior = gaussian_logpdf(proposal.prior_deviation, proposal.prior_chol)
             density = gaussian_logpdf(proposal.proposal_deviation, proposal.proposal_chol)
             log_weights = normalise(cloud.log_weights + likelihood + prior - density)
         score = _innovation_score(measurement, cloud.weights, proposal.z_hat, proposal.z_cov)
         weights = np.exp(log_weights)
-        fraction = self.spread_fraction
-        particles = proposal.particles
         if proposal.posterior_cov.ndim == 2:
             posterior_cov = proposal.posterior_cov  # shared: the weighted average of one matrix
         else:
             posterior_cov = np.tensordot(weights, proposal.posterior_cov, axes=1)
-        own = embed(cloud.cov, (1.0 - fraction) * posterior_cov, active)
-        mean, spread = weighted_moments(particles, weights, ANGLES)
-        ess = effective_sample_size(log_weights)
-        resampled = ess < self.resample_threshold * count
-        if resampled:
-            particles = model.complete(regularised_resample(particles, log_weights, active, ANGLES, rng))
-            log_weights = np.full(count, -math.log(count))
-        return StepResult(Cloud(particles, log_weights, own), mean, spread + own, score, ess, bool(resampled))
+        own = embed(cloud.cov, (1.0 - self.spread_fraction) * posterior_cov, active)
+        mean, spread = weighted_moments(proposal.particles, weights, ANGLES)
+        return Weighed(log_weights, score, own, mean, spread, effective_sample_size(log_weights))
 
 
 def _innovation_score(

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from edgepos.core.compiled import compiled_enabled
+from edgepos.core.errors import NumericalError
 from edgepos.core.kernels_base import FAILED, OK, _jit, cholesky
 from edgepos.core.measurements.gnss_kernel import anchor_array
 from edgepos.core.motion.riss import (
@@ -52,6 +53,7 @@ from edgepos.core.motion.riss import (
 )
 from edgepos.core.numerics import FloatArray
 from edgepos.core.particles.base import Cloud, Measurement, SigmaWeights
+from edgepos.core.particles.upf_kernel import log_weights_kernel
 from edgepos.gnss.geodesy import WGS84_A, WGS84_E2
 
 POINT = 2
@@ -328,6 +330,120 @@ def update_kernel(
     return OK
 
 
+@_jit
+def weigh_kernel(
+    previous: FloatArray,
+    residual: FloatArray,
+    mixture: FloatArray,
+    variances: FloatArray,
+    outliers: bool,
+    prior_deviation: FloatArray,
+    prior_chol: FloatArray,
+    proposal_deviation: FloatArray,
+    proposal_chol: FloatArray,
+    z_hat: FloatArray,
+    z_cov: FloatArray,
+    z: FloatArray,
+    particles: FloatArray,
+    angles: np.ndarray,
+    cloud_cov: FloatArray,
+    posterior_cov: FloatArray,
+    index: np.ndarray,
+    fraction: float,
+    log_weights: FloatArray,
+    own: FloatArray,
+    mean: FloatArray,
+    spread: FloatArray,
+) -> tuple[float, float, float]:
+    """The UPF step after its proposal (``upf.UnscentedParticleFilter._weigh`` without resampling): the
+    normalised ``log_weights`` (``upf_kernel.log_weights_kernel``), the particles' ``own`` covariance
+    (``base.embed`` of (1 - f) ``posterior_cov``), their weighted ``mean`` and ``spread``
+    (``base.weighted_moments``). Returns (the largest unnormalised log-weight: not finite when every particle
+    is lost, the rest then not computed; the innovation's NIS against the prior mixture, NaN when its
+    covariance has no Cholesky factor; the effective sample size)."""
+    count, m = z_hat.shape
+    dim = particles.shape[1]
+    top = log_weights_kernel(
+        previous,
+        residual,
+        mixture,
+        variances,
+        outliers,
+        prior_deviation,
+        prior_chol,
+        proposal_deviation,
+        proposal_chol,
+        log_weights,
+    )
+    if not math.isfinite(top):
+        return top, math.nan, math.nan
+    # NIS of the innovation against the prior mixture's predicted measurement (upf._innovation_score)
+    prior = np.empty(count)
+    for i in range(count):
+        prior[i] = math.exp(previous[i])
+    centre = np.zeros(m)
+    for i in range(count):
+        for j in range(m):
+            centre[j] += prior[i] * z_hat[i, j]
+    deviation = np.empty((count, m))
+    weighted = np.empty((count, m))
+    for i in range(count):
+        for j in range(m):
+            deviation[i, j] = z_hat[i, j] - centre[j]
+            weighted[i, j] = deviation[i, j] * prior[i]
+    innovation_cov = z_cov + np.dot(weighted.T, deviation)
+    root = np.empty((m, m))
+    score = math.nan
+    if cholesky(innovation_cov, m, root):
+        score = 0.0
+        work = np.empty(m)
+        for j in range(m):
+            value = z[j] - centre[j]
+            for col in range(j):
+                value -= root[j, col] * work[col]
+            work[j] = value / root[j, j]
+            score += work[j] * work[j]
+    # the new weights, their effective sample size, and the cloud's moments
+    weights = np.empty(count)
+    squares = 0.0
+    for i in range(count):
+        weights[i] = math.exp(log_weights[i])
+        squares += math.exp(2.0 * log_weights[i])
+    for c in range(dim):
+        total = 0.0
+        if angles[c]:
+            sines = 0.0
+            for i in range(count):
+                sines += weights[i] * math.sin(particles[i, c])
+                total += weights[i] * math.cos(particles[i, c])
+            mean[c] = math.atan2(sines, total)
+        else:
+            for i in range(count):
+                total += weights[i] * particles[i, c]
+            mean[c] = total
+    offsets = np.empty((count, dim))
+    scaled = np.empty((count, dim))
+    for i in range(count):
+        for c in range(dim):
+            value = particles[i, c] - mean[c]
+            offsets[i, c] = _wrap(value) if angles[c] else value
+            scaled[i, c] = offsets[i, c] * weights[i]
+    product = np.dot(scaled.T, offsets)
+    for a in range(dim):
+        for b in range(dim):
+            spread[a, b] = 0.5 * (product[a, b] + product[b, a])
+    own[:, :] = cloud_cov
+    k = index.size
+    for a in range(k):
+        for c in range(dim):
+            own[index[a], c] = 0.0
+            own[c, index[a]] = 0.0
+    for a in range(k):
+        for b in range(k):
+            own[index[a], index[b]] = (1.0 - fraction) * posterior_cov[a, b]
+    return top, score, 1.0 / squares
+
+
 @dataclass(frozen=True)
 class Proposal:
     """A UPF step up to its weights: the particles propagated (``centres``, N x D), the shared posterior
@@ -454,6 +570,74 @@ def compiled_proposal(
     )
 
 
+@dataclass(frozen=True)
+class Weighed:
+    """A UPF step's weights and new cloud before resampling: normalised log-weights (N,), the NIS of the
+    innovation, the particles' own covariance (D, D), the weighted mean and spread of the particles and the
+    effective sample size."""
+
+    log_weights: np.ndarray
+    score: float
+    own: np.ndarray
+    mean: np.ndarray
+    spread: np.ndarray
+    ess: float
+
+
+def compiled_weights(
+    previous: np.ndarray,
+    measurement: Measurement,
+    residual: np.ndarray,
+    proposal: Proposal,
+    cloud_cov: np.ndarray,
+    active: np.ndarray,
+    fraction: float,
+) -> Weighed | None:
+    """``upf.UnscentedParticleFilter._weigh``'s weights, score, own covariance, moments and effective
+    sample size by :func:`weigh_kernel`; None when the kernels are off or the covariances are per particle
+    (the caller's numpy runs). Every particle lost raises NumericalError, as ``base.normalise`` does; the
+    score is None here when the kernel's innovation covariance has no Cholesky factor (the caller's numpy
+    score decides)."""
+    if proposal.posterior_cov.ndim != 2 or residual.ndim != 2 or not compiled_enabled():
+        return None
+    count, dim = proposal.particles.shape
+    outliers = measurement.outlier_probability > 0.0
+    mixture = (
+        np.array(measurement.mixture_terms(), dtype=float) if outliers else np.zeros((4, residual.shape[1]))
+    )
+    log_weights = np.empty(count)
+    own = np.empty((dim, dim))
+    mean = np.empty(dim)
+    spread = np.empty((dim, dim))
+    top, score, ess = weigh_kernel(
+        _array(previous),
+        _array(residual),
+        mixture,
+        _array(measurement.variances),
+        outliers,
+        _array(proposal.prior_deviation),
+        _array(proposal.prior_chol),
+        _array(proposal.proposal_deviation),
+        _array(proposal.proposal_chol),
+        _array(proposal.z_hat),
+        _array(proposal.z_cov),
+        _array(measurement.z),
+        _array(proposal.particles),
+        ANGLES,
+        _array(cloud_cov),
+        _array(proposal.posterior_cov),
+        np.flatnonzero(active),
+        float(fraction),
+        log_weights,
+        own,
+        mean,
+        spread,
+    )
+    if not math.isfinite(top):
+        raise NumericalError("every particle has zero weight")
+    return Weighed(log_weights, score, own, mean, spread, ess)
+
+
 def warm_up() -> float:
     """Compile (or load from numba's on-disk cache) the kernels' one signature each, on a small cloud of the
     GNSS-only model; returns the seconds."""
@@ -464,5 +648,10 @@ def warm_up() -> float:
     model = GnssOnlyModel(anchor)
     cloud = Cloud(np.zeros((3, DIM)), np.full(3, -math.log(3.0)), np.eye(DIM))
     measurement = Measurement(lambda states: states[..., :2].copy(), np.zeros(2), np.ones(2))
-    compiled_proposal(cloud, model, 1.0, model.active, measurement, np.random.default_rng(0), 0.02)
+    proposal = compiled_proposal(cloud, model, 1.0, model.active, measurement, np.random.default_rng(0), 0.02)
+    if proposal is not None:
+        for outliers in (0.0, 0.05):
+            mixed = Measurement(measurement.predict, measurement.z, measurement.variances, outliers, 4.0)
+            residual = mixed.z - mixed.predict(proposal.sampled)
+            compiled_weights(cloud.log_weights, mixed, residual, proposal, cloud.cov, model.active, 0.02)
     return time.perf_counter() - started
