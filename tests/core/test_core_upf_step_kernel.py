@@ -14,8 +14,15 @@ from edgepos.core.measurements.pseudorange import PseudorangeModel
 from edgepos.core.measurements.range_rate import RangeRateModel
 from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GeodeticAnchor, GnssOnlyModel, RissInput, RissModel
-from edgepos.core.particles import Cloud, Measurement, UnscentedParticleFilter, upf_step_kernel
+from edgepos.core.particles import (
+    Cloud,
+    Measurement,
+    UnscentedParticleFilter,
+    upf_resample_kernel,
+    upf_step_kernel,
+)
 from edgepos.core.particles import upf as upf_module
+from edgepos.core.particles.base import normalise, regularised_resample, weighted_moments
 from edgepos.core.particles.upf_step_kernel import Proposal, compiled_proposal
 from edgepos.gnss.geodesy import geodetic_to_ecef
 
@@ -235,18 +242,64 @@ def test_a_declined_update_leaves_the_stream_and_the_decision_to_numpy(
 
 
 def test_warm_up_compiles_the_signature_the_step_uses() -> None:
-    """After the warm-up a step of the pipeline's kind compiles nothing new: one signature per kernel."""
+    """After the warm-up a step of the pipeline's kind, resampling, compiles nothing new: one signature per
+    kernel."""
     upf_step_kernel.warm_up()
     rng = np.random.default_rng(8)
     cloud, truth = _cloud(rng, 1.0)
     model = GnssOnlyModel(ANCHOR)
-    UnscentedParticleFilter().step(
+    UnscentedParticleFilter(resample_threshold=1.01).step(
         cloud, model, 1.0, model.active.copy(), _measurement(rng, truth, 0.05), rng
     )
+    upf_resample_kernel.warm_up()
     kernels = (
         upf_step_kernel.time_update_kernel,
         upf_step_kernel.update_kernel,
         upf_step_kernel.weigh_kernel,
+        upf_resample_kernel.resample_kernel,
     )
     for kernel in kernels:
         assert len(kernel.signatures) == 1
+
+
+@pytest.mark.parametrize("angles_active", [False, True])
+def test_compiled_resampling_is_the_numpy_one(angles_active: bool) -> None:
+    """``upf_resample_kernel.compiled_resample`` against ``base.regularised_resample`` from the same
+    weighted cloud and stream: the same particles to 1e-9 (the angles wrapped alike, with a heading near
+    +-180 deg and the angles among the sampled components or not), the stream left where numpy leaves it."""
+    rng = np.random.default_rng(12)
+    cloud, _ = _cloud(rng, 3.0)
+    log_weights = normalise(rng.normal(0.0, 2.0, len(cloud.particles)))  # an ESS well below half
+    active = GnssOnlyModel(ANCHOR).active.copy()
+    active[[layout.AZIMUTH, layout.PITCH]] = angles_active
+    mean, cov = weighted_moments(cloud.particles, np.exp(log_weights), layout.ANGLES)
+    streams = [np.random.default_rng(4), np.random.default_rng(4)]
+    kernel = upf_resample_kernel.compiled_resample(
+        cloud.particles, log_weights, mean, cov, active, layout.ANGLES, streams[0]
+    )
+    numpy = regularised_resample(cloud.particles, log_weights, active, layout.ANGLES, streams[1])
+    assert kernel is not None
+    assert streams[0].bit_generator.state == streams[1].bit_generator.state
+    np.testing.assert_allclose(kernel, numpy, rtol=0.0, atol=1e-9)
+    assert len({tuple(row) for row in np.round(numpy[:, :3], 6)}) > 100  # spread, not copies
+    assert np.abs(numpy[:, layout.AZIMUTH]).max() > 3.0  # headings on both sides of +-180 deg
+
+
+def test_compiled_resampling_declines_a_degenerate_kernel() -> None:
+    """A cloud of one repeated particle (no spread, the kernel's covariance zero): None and the stream as
+    it was; the numpy form decides."""
+    particles = np.zeros((20, layout.DIM))
+    stream = np.random.default_rng(5)
+    start = stream.bit_generator.state
+    active = GnssOnlyModel(ANCHOR).active.copy()
+    log_weights = np.full(20, -math.log(20.0))
+    result = upf_resample_kernel.compiled_resample(
+        particles,
+        log_weights,
+        np.zeros(layout.DIM),
+        np.zeros((layout.DIM, layout.DIM)),
+        active,
+        layout.ANGLES,
+        stream,
+    )
+    assert result is None and stream.bit_generator.state == start

