@@ -474,8 +474,12 @@ def _sigma_weights(k: int) -> tuple[FloatArray, FloatArray, float]:
 
 
 def _array(values: np.ndarray) -> FloatArray:
-    """A writable C-ordered float64 array (the kernels' one signature), copied only when it is not."""
-    return np.require(values, dtype=np.float64, requirements=("C", "W"))
+    """A writable C-ordered float64 array (the kernels' one signature), copied only when it is not (the
+    flags read directly: ``np.require`` costs five times as much, some twenty times a step)."""
+    flags = values.flags
+    if values.dtype == np.float64 and flags.c_contiguous and flags.writeable:
+        return values
+    return np.array(values, dtype=np.float64, order="C")
 
 
 def compiled_proposal(
