@@ -33,6 +33,11 @@ predicted measurement is h at its own centre plus the second-order sigma-point t
 instead of N (2k + 1), one (m, m) solve instead of N. The per-particle update stays as the reference it is
 tested against (tests/core/test_core_upf_shared.py: the same particles to a millimetre, weights to 1 %,
 estimate to 0.1 mm, on the pipeline's range models).
+
+With the GNSS-only motion model the step runs in compiled loops (``upf_step_kernel``: the time update, the
+shared update and the draws, then the weights, NIS and moments; ``upf_resample_kernel``: the resampling),
+around the measurement's own prediction; the numpy step here stays their reference and runs wherever they
+decline or the kernels are off (``EDGEPOS_NUMBA=0``).
 """
 
 from __future__ import annotations
