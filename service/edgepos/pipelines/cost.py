@@ -103,20 +103,22 @@ CALIBRATION: dict[str, dict[str, float]] = {
         # of 40 pseudoranges with Doppler), with every case of the grid also timed with Doppler:
         # bench/batch_cost.py --only gnss_tight --json (three runs, load 4.8-5.5 on the 2-core box) then
         # --from-json, 203 rows at their median, envelope / measured 1.00-3.66 (median 1.51). The envelope
-        # puts nothing on a Doppler row of its own: the per-pseudorange constants cover the epochs with and
-        # without Doppler alike.
+        # puts nothing on a Doppler row of its own (the per-pseudorange constants cover the epochs with and
+        # without Doppler alike); the Doppler constants are instead the measured increment, the median over
+        # the grid's paired cases of (CPU with the Dopplers - without) / Dopplers (UKF 12, PF 32, UPF 32
+        # pairs), added on top, so that a client's Dopplers count at admission.
         "ukf.epoch": 237 * _US,
         "ukf.update": 246 * _US,
         "ukf.pseudorange": 114 * _US,
-        "ukf.doppler": 0 * _US,
+        "ukf.doppler": 8.6 * _US,
         "pf.epoch": 368 * _US,
         "pf.update": 4.33e03 * _US,
         "pf.pseudorange": 0 * _US,
-        "pf.doppler": 0 * _US,
+        "pf.doppler": 216 * _US,
         "upf.epoch": 383 * _US,
         "upf.update": 0 * _US,
         "upf.pseudorange": 122 * _US,
-        "upf.doppler": 0 * _US,
+        "upf.doppler": 19.1 * _US,
         "pf.particle": 0 * _US,
         "pf.particle_update": 7.68 * _US,
         "pf.particle_pseudorange": 0.22 * _US,
