@@ -37,6 +37,7 @@ from edgepos.core.measurements.gnss_kernel import anchor_array
 from edgepos.core.motion.riss import (
     ANGLES,
     AZIMUTH,
+    CLOCK,
     DIM,
     DRIFT,
     EAST,
@@ -60,7 +61,7 @@ POINT = 2
 """:func:`time_update_kernel`'s status when the cloud has no covariance of its own (the numpy step's point
 prior)."""
 _TWO_PI = 2.0 * math.pi
-_CLOCKS = (9, 10, 11)
+_CLOCKS = tuple(CLOCK.values())  # the constellations' clock biases, each integrating the drift
 _MOVING_MPS = 0.5  # as GnssOnlyModel.complete
 
 
