@@ -479,6 +479,8 @@ _KERNEL_MODULES = (
     "measurements.gnss_raim_kernel",
     "measurements.gnss_noise_kernel",
     "particles.upf_kernel",
+    "particles.upf_step_kernel",
+    "particles.upf_resample_kernel",
 )
 
 
@@ -532,8 +534,9 @@ def warm_up() -> float:
     F and Q kernel (``core.kernels_motion``, one signature for every bank); then the integrity bank's
     kernels, gnss_tight's range kernel (``core.measurements.gnss_kernel``), its satellite geometry
     (``core.measurements.gnss_geometry``), RAIM and noise level
-    (``core.measurements.gnss_raim_kernel``, ``gnss_noise_kernel``) and the UPF's weights
-    (``core.particles.upf_kernel``)."""
+    (``core.measurements.gnss_raim_kernel``, ``gnss_noise_kernel``), the UPF's weights
+    (``core.particles.upf_kernel``), its GNSS-only step (``core.particles.upf_step_kernel``) and its
+    resampling (``core.particles.upf_resample_kernel``)."""
     started = time.perf_counter()
     if not compiled_enabled():
         return 0.0
@@ -578,4 +581,10 @@ def warm_up() -> float:
     from edgepos.core.particles import upf_kernel
 
     upf_kernel.warm_up()  # the UPF's importance weights
+    from edgepos.core.particles import upf_step_kernel
+
+    upf_step_kernel.warm_up()  # the UPF's time update, shared update and draws with the GNSS-only model
+    from edgepos.core.particles import upf_resample_kernel
+
+    upf_resample_kernel.warm_up()  # the UPF's regularised resampling
     return time.perf_counter() - started

@@ -39,6 +39,8 @@ KERNEL_FILES = tuple(
         "measurements/gnss_raim_kernel.py",
         "measurements/gnss_noise_kernel.py",
         "particles/upf_kernel.py",
+        "particles/upf_step_kernel.py",
+        "particles/upf_resample_kernel.py",
     )
 )
 #: The modules whose globals the kernels read (numba freezes a global into the machine code) or whose
