@@ -294,7 +294,9 @@ def rsu_imu_cases(quick: bool) -> Iterator[Case]:
 
 
 # -- gnss_tight ----------------------------------------------------------------------------------
-def gnss_inputs(epochs: int) -> tuple[list[list[PseudorangeObservation]], StaticEnvironment, list[float]]:
+def gnss_inputs(
+    epochs: int, doppler: bool = False
+) -> tuple[list[list[PseudorangeObservation]], StaticEnvironment, list[float]]:
     from edgepos.gnss.ephemerides import Ephemerides
     from edgepos.gnss.rinex_nav import read_navigation
     from edgepos.gnss.rinex_obs import DEFAULT_CODES, read_epochs
@@ -306,7 +308,7 @@ def gnss_inputs(epochs: int) -> tuple[list[list[PseudorangeObservation]], Static
     for number, epoch in enumerate(read_epochs(str(GNSS_DATA / "rover-0-5min.rnx"), codes)):
         if number >= epochs:
             break
-        out.append(epoch_pseudoranges(epoch, doppler=False, carrier=False))  # code only, as the model's rows
+        out.append(epoch_pseudoranges(epoch, doppler=doppler, carrier=False))  # code (and Doppler) only
         gpst.append(float(epoch.gpst))
     return out, StaticEnvironment(navigation=navigation), gpst
 
@@ -375,6 +377,7 @@ GNSS_PSEUDORANGES = (6, 15, 22, 40)
 
 def gnss_cases(quick: bool) -> Iterator[Case]:
     epochs, env, gpst = gnss_inputs(40)
+    with_doppler, _, _ = gnss_inputs(40, doppler=True)  # each Doppler one more row of the update
     riss = riss_samples(gpst)
     pipeline = get_pipeline("gnss_tight")
     warmup = 12
@@ -395,6 +398,8 @@ def gnss_cases(quick: bool) -> Iterator[Case]:
             for size in sizes:
                 batch = flatten(pseudorange_subset(e, prs) for e in epochs[warmup : warmup + size])
                 yield Case("gnss_tight", f"{label} {prs}pr", options, converged, batch, env)
+                batch = flatten(pseudorange_subset(e, prs) for e in with_doppler[warmup : warmup + size])
+                yield Case("gnss_tight", f"{label} {prs}pr+doppler", options, converged, batch, env)
         if filter_name == "pf":
             for prs in (6, 22, 40):
                 batch = flatten(pseudorange_subset(e, prs) for e in epochs[warmup : warmup + 3])
@@ -798,10 +803,14 @@ def main() -> int:
 
 
 def _epoch_counts(batch: Sequence[Observation]) -> list[Counter]:
-    per_epoch: dict[float, Counter] = {}
-    for observation in batch:
-        per_epoch.setdefault(observation.t, Counter())[observation.kind] += 1
-    return [per_epoch[t] for t in sorted(per_epoch)]
+    """Per epoch (by time), the observations of each kind and the Dopplers they carry, as the cost model
+    counts them (``cost.epoch_counts``)."""
+    from edgepos.pipelines import cost
+
+    by_time = {observation.t: None for observation in batch}
+    counts = cost.epoch_counts(batch)
+    ordered = dict(zip(by_time, counts, strict=True))
+    return [Counter(ordered[t]) for t in sorted(ordered)]
 
 
 if __name__ == "__main__":

@@ -8,8 +8,10 @@ with its session token, counting every await on the Redis client (``execute_comm
 the answer's path, shared by the batches that arrive together: they are counted apart. Also prints the
 median answer time of a batch and this process's CPU per batch (one request at a time; the Redis
 server's CPU is not in it), and with ``--memory`` the same on the in-process store for comparison.
-Last, the two reads a batch on a cached record skips (the token check's ``HMGET`` of a 20 kB state, the
-RSUs' ``HMGET``), timed alone on this process's event loop: wall and CPU time per batch.
+Last, timed alone on this process's event loop: the two reads a batch on a cached record skips (the
+token check's ``HMGET`` of a 20 kB state, the RSUs' ``HMGET``), wall and CPU time per batch; and what a
+batch's answer and fixes cost this process on Redis (the compare-and-set's pipeline and a 20-fix append
+to the fix stream, on a record of the run: its state, stored answer and last fix), thread CPU per batch.
 
     python bench/redis_round_trips.py [--batches 20] [--vehicles 2] [--rate-limit 0] [--memory]
 """
@@ -18,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import hashlib
 import os
 import statistics
@@ -37,6 +40,7 @@ from edgepos.pipelines.base import Rsu
 from edgepos.sim.scenarios import rsu_imu_paper_scenario
 from edgepos.sim.sensors import rsu_imu_epochs
 from edgepos.store.base import SessionRecord
+from edgepos.store.fixlog import NewFix
 from edgepos.store.redis import RedisStore
 from fastapi.testclient import TestClient
 from redis.asyncio.client import Pipeline, Redis
@@ -139,6 +143,11 @@ def main() -> int:
             f"the reads a cached batch skips (HMGET of the session, HMGET of 4 RSUs), alone: {wall * 1e6:.0f} us "
             f"wall, {cpu * 1e6:.0f} us of this process's CPU per batch (median of 5 x 300)"
         )
+        best, median, size = asyncio.run(_write_path(server.url("rt:")))
+        print(
+            f"a batch's write (compare-and-set pipeline) and 20-fix append ({size / 1e3:.0f} kB), alone: "
+            f"{best * 1e6:.0f} us min, {median * 1e6:.0f} us median of this thread's CPU per batch (5 x 300)"
+        )
     return 0
 
 
@@ -161,6 +170,40 @@ async def _skipped_reads(url: str, rsu_ids: list[str]) -> tuple[float, float]:
         cpus.append((time.process_time() - cpu) / 300)
     await store.close()
     return statistics.median(walls), statistics.median(cpus)
+
+
+async def _write_path(url: str) -> tuple[float, float, int]:
+    """Thread CPU seconds per batch (min and median of 5 x 300) of ``compare_and_set`` and a 20-fix
+    ``append`` on a record the run wrote, and that record's size in bytes."""
+    store = RedisStore(url, 60.0)
+    log = store.fix_log(1000)
+    (summary,) = (await store.list_sessions(limit=1))[:1]
+    stored = await store.get(summary.session_id)
+    assert stored is not None and stored.last_response is not None and stored.last_fix is not None
+    record = dataclasses.replace(stored, session_id="write-path", vehicle_id="write-path", version=0)
+    await store.create(dataclasses.replace(record, last_response=None), 10)
+    fix = NewFix(record.session_id, record.vehicle_id, record.pipeline, 1.0, stored.last_fix.encode())
+    fixes = [dataclasses.replace(fix, t=float(i)) for i in range(20)]
+    version = 0
+
+    async def batch() -> None:
+        nonlocal version
+        assert await store.compare_and_set(dataclasses.replace(record, updated_at=time.time()), version)
+        version += 1
+        await log.append(fixes)
+
+    for _ in range(50):
+        await batch()
+    cpus = []
+    for _ in range(5):
+        cpu = time.thread_time()
+        for _ in range(300):
+            await batch()
+        cpus.append((time.thread_time() - cpu) / 300)
+    await store.close()
+    await log.close()
+    size = len(record.state) + len(stored.last_response) + len(stored.last_fix) * 20
+    return min(cpus), statistics.median(cpus), size
 
 
 def _drive(

@@ -281,7 +281,7 @@ def test_two_workers_sharing_a_store_send_each_notification_once(tmp_path: Path)
 
 
 def test_a_subscription_ends_at_its_expiry_deadline(client: TestClient):
-    deadline = time.time() + 0.5
+    deadline = time.time() + 3.0  # the creation must land before it on a loaded machine (seen late at 0.5 s)
     seconds = int(deadline)
     body = user_subscription(
         "http://127.0.0.1:9/notify",
@@ -292,7 +292,7 @@ def test_a_subscription_ends_at_its_expiry_deadline(client: TestClient):
     assert created.json()["expiryDeadline"] == body["expiryDeadline"]
     path = created.headers["location"].removeprefix("http://testserver")
     assert client.get(path, headers=READER).status_code == 200
-    finish = time.monotonic() + 5.0
+    finish = time.monotonic() + 10.0
     while client.get(path, headers=READER).status_code == 200 and time.monotonic() < finish:
         time.sleep(0.05)
     assert time.time() >= deadline

@@ -229,3 +229,31 @@ def test_dopplers_consistent_at_reference(orbits: BroadcastOrbits, epochs: list[
     spread = 1.4826 * float(np.median(np.abs(centred)))
     assert spread < 0.4
     assert np.mean(np.abs(centred) < 3.0) > 0.95
+
+
+def test_remembered_selection_is_the_search_at_every_time(orbits: BroadcastOrbits) -> None:
+    """``select`` reuses a satellite's last choice between the points where it may change (validity edges,
+    toe midpoints): at times right at, just inside and just outside every such point, visited forwards and
+    backwards on one object and on a fresh one each time, it answers what the plain rule does."""
+    records = {(e.system, e.prn) for e in orbits.ephemerides}
+    sats = sorted(records)[::5] + [("G", 99)]
+    toe = np.array([e.toe for e in orbits.ephemerides])
+    points = set()
+    for system, prn in sats:
+        mine = [i for i, e in enumerate(orbits.ephemerides) if (e.system, e.prn) == (system, prn)]
+        points |= {float(toe[i] + sign * orbits._max_age[i]) for i in mine for sign in (-1.0, 1.0)}
+        points |= {0.5 * float(toe[i] + toe[j]) for i in mine for j in mine if toe[i] != toe[j]}
+    times = sorted(p + d for p in points for d in (-2e-3, -5e-4, 0.0, 5e-4, 2e-3, 0.7, 30.0))
+    assert len(times) > 200
+    kept = BroadcastOrbits(orbits.ephemerides)
+    for t in times + times[::-1]:
+        remembered = kept.select([s for s, _ in sats], [p for _, p in sats], t)
+        fresh = BroadcastOrbits(orbits.ephemerides).select([s for s, _ in sats], [p for _, p in sats], t)
+        for (system, prn), index, again in zip(sats, remembered, fresh, strict=True):
+            valid = [
+                i
+                for i, e in enumerate(orbits.ephemerides)
+                if (e.system, e.prn) == (system, prn) and abs(t - toe[i]) <= orbits._max_age[i]
+            ]
+            expected = min(valid, key=lambda i: (abs(t - toe[i]), -i)) if valid else -1
+            assert index == again == expected, (system, prn, t)

@@ -10,13 +10,17 @@ import dataclasses
 
 import numpy as np
 import pytest
+from edgepos.core import state as state_format
 from edgepos.core.integrity import _radial_factors, radial_factor_table
+from edgepos.core.motion import riss as layout
 from edgepos.core.observations import PseudorangeObservation
+from edgepos.core.particles.base import weighted_moments
 from edgepos.gnss.raim import Separations
 from edgepos.pipelines import gnss_tight
 from edgepos.pipelines.base import Fix, MeasurementUse, StaticEnvironment
 from edgepos.pipelines.gnss_integrity import EXCLUDED, WARM_HYPOTHESES, warm_up_gnss_tables
 from edgepos.pipelines.gnss_screening import left_out, median
+from edgepos.pipelines.gnss_session import cloud_moments, decode_session
 from gnssrecording import recording_epochs
 
 EPOCHS = 45
@@ -156,3 +160,35 @@ def test_reports_are_copied_as_dataclasses_replace_would(cls: type) -> None:
     assert type(copied) is cls and original.__dict__ == before  # the original unchanged
     with pytest.raises(dataclasses.FrozenInstanceError):
         copied.index = 1  # type: ignore[misc]  # still frozen
+
+
+def test_the_upf_state_carries_its_clouds_moments(recording) -> None:  # type: ignore[no-untyped-def]
+    """The UPF's step knows its new cloud's weighted moments; the state stores them beside the particles
+    (not after a resampling, which makes a new cloud), and the next epoch reads them instead of computing
+    them: they are the weighted moments of the stored particles (to the compiled loop's rounding). A state
+    without them (written before) still decodes and computes them; corrupt ones are refused."""
+    epochs, environment = recording
+    pipeline = gnss_tight.GnssTightPipeline()
+    state = pipeline.create(pipeline.resolve_options({"seed": 3, "filter": "upf", "particles": 200}), None)
+    carried = 0
+    for epoch in epochs[:25]:
+        _, state = pipeline.process(state, epoch, environment)
+        meta, arrays = state_format.unpack(state)
+        if "moments_mean" not in arrays:
+            continue
+        carried += 1
+        mean, cov = weighted_moments(arrays["particles"], np.exp(arrays["log_weights"]), layout.ANGLES)
+        np.testing.assert_allclose(arrays["moments_mean"], mean, rtol=0.0, atol=1e-9)
+        np.testing.assert_allclose(arrays["moments_cov"], cov, rtol=1e-9, atol=1e-12)
+        session = decode_session(state)
+        assert session.cloud.known_moments(layout.ANGLES) is not None
+        np.testing.assert_array_equal(cloud_moments(session)[0], arrays["moments_mean"])
+    assert 0 < carried < 25  # carried, and not after the epochs that resampled
+    meta, arrays = state_format.unpack(state)
+    arrays.pop("moments_mean", None), arrays.pop("moments_cov", None)
+    older = decode_session(state_format.pack(meta, arrays))
+    assert older.cloud.known_moments(layout.ANGLES) is None
+    pipeline.process(state_format.pack(meta, arrays), epochs[25], environment)
+    arrays["moments_mean"], arrays["moments_cov"] = np.zeros(3), np.zeros((3, 3))
+    with pytest.raises(state_format.StateFormatError, match="moments"):
+        decode_session(state_format.pack(meta, arrays))

@@ -12,8 +12,10 @@ import dataclasses
 
 import numpy as np
 import pytest
+from edgepos.core.compiled import BankStepper, CompiledBankStepper
 from edgepos.pipelines import rsu_imu
 from edgepos.pipelines.base import InitialState, StaticEnvironment
+from edgepos.pipelines.integrity import EXCLUDED
 from edgepos.pipelines.registry import get_pipeline
 from edgepos.sim.scenarios import rsu_imu_paper_scenario
 from edgepos.sim.sensors import rsu_imu_epochs
@@ -111,3 +113,58 @@ def test_compiled_pipeline_equals_the_numpy_reference(scenario, observations, op
         np.testing.assert_allclose(
             list(a.model_probabilities.values()), list(b.model_probabilities.values()), atol=TOLERANCE
         )
+
+
+@pytest.mark.parametrize(
+    "options",
+    [{}, {"integrity": False}, {"filter": "ekf", "rsu_handling": "average"}, {"fault_exclusion": False}],
+    ids=["default", "no-monitor", "ekf-avg", "no-exclusion"],
+)
+def test_the_one_call_epoch_gives_the_per_call_paths_fixes_and_states(scenario, options, monkeypatch) -> None:
+    """``CompiledBankStepper.step`` (prediction, gate and correction in one compiled call) against the
+    per-call path (its ``step`` replaced by the reference stepper's, which only predicts): the same fixes
+    and states, bit for bit. The observations carry gross outliers for the gate and, from epoch 300, a
+    range bias of 2 m on one RSU that the monitor excludes; the one call decides the other epochs."""
+    epochs = rsu_imu_epochs(scenario, np.random.default_rng(4))[:400]
+    observations = []
+    for k, epoch in enumerate(epochs):
+        first = epoch[0]
+        if k % 97 == 50:
+            epoch = [dataclasses.replace(first, range=first.range + 40.0), *epoch[1:]]
+        elif k >= 300 and first.kind == "rsu":
+            epoch = [dataclasses.replace(first, range=first.range + 2.0), *epoch[1:]]
+        observations.extend(epoch)
+    decided = []
+    one_call = CompiledBankStepper.step
+
+    def counted(self, *arguments):
+        prediction, result = one_call(self, *arguments)
+        decided.append(result is not None)
+        return prediction, result
+
+    rsu_imu._stepper.cache_clear()
+    monkeypatch.setattr(CompiledBankStepper, "step", counted)
+    fast = run_states(scenario, observations, options)
+    monkeypatch.setattr(CompiledBankStepper, "step", BankStepper.step)
+    slow = run_states(scenario, observations, options)
+    rsu_imu._stepper.cache_clear()
+    assert fast == slow
+    assert sum(decided[:300]) >= 300 - 4 and not all(decided)  # before the bias: all but the outliers' epochs
+    reasons = [use.reason or "" for fixes, _ in slow for fix in fixes for use in fix.measurements]
+    assert any("failed the gate" in reason for reason in reasons)
+    assert any(reason.startswith(EXCLUDED) for reason in reasons) == (
+        options.get("integrity", True) and options.get("fault_exclusion", True)
+    )
+
+
+def run_states(scenario, observations, options) -> list[tuple[list, bytes]]:
+    """Every batch's fixes and state (batches of 20 epochs, from the scenario's initial state)."""
+    pipeline = get_pipeline("rsu_imu")
+    env = StaticEnvironment({rsu.id: rsu for rsu in scenario.rsus})
+    x0 = scenario.initial_state
+    state = pipeline.create(pipeline.resolve_options(options), InitialState(x0[0], x0[3], x0[1], x0[4]))
+    batches = []
+    for first in range(0, len(observations), 100):
+        fixes, state = pipeline.process(state, observations[first : first + 100], env)
+        batches.append((fixes, state))
+    return batches

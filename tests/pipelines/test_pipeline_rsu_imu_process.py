@@ -11,9 +11,18 @@ import pytest
 from edgepos.core import state as state_format
 from edgepos.core.observations import GyroObservation, Observation, RsuObservation
 from edgepos.pipelines import lag
-from edgepos.pipelines.base import Fix, InitialState, PipelineInputError, Rsu, StaticEnvironment
+from edgepos.pipelines.base import (
+    Fix,
+    InitialState,
+    MeasurementUse,
+    PipelineInputError,
+    Rsu,
+    StaticEnvironment,
+)
+from edgepos.pipelines.epochs import group_by_time
 from edgepos.pipelines.registry import get_pipeline
 from edgepos.pipelines.rsu_imu import _decode
+from edgepos.pipelines.rsu_imu_batch import batch_epochs, epoch_measurements, epoch_parts, read_batch
 
 RSUS = (
     Rsu("S000", 0.0, -4.0),
@@ -249,6 +258,37 @@ def test_rsus_beyond_the_radius_and_beyond_max_rsus_are_reported_unused(pipeline
     gyro_index = len(batch) - 1
     assert uses[gyro_index].used and uses[gyro_index].kind == "gyro"
     assert fixes[0].nis_dof == 2 * 3 + 1
+
+
+def test_a_batchs_epochs_take_the_arrays_epoch_by_epoch_selection_gives(pipeline) -> None:
+    """``batch_epochs`` (every epoch's rows taken at once, each epoch's arrays slices of them) gives each
+    epoch the RSUs, gyros, records and arrays of ``epoch_parts`` and ``epoch_measurements``, in the
+    layout the kernels take (contiguous float64)."""
+    options = pipeline.inner.inner.resolve_options({"max_rsus": 3, "rsu_handling": "average"})
+    rng = np.random.default_rng(12)
+    batch_observations = [o for k in range(1, 6) for o in epoch(k * DT, rng, gyro=k != 3)]
+    batch = read_batch(options, None, batch_observations, ENV)
+    parts = batch_epochs(batch_observations, batch, options)
+    assert [p.indices for p in parts] == group_by_time(batch_observations)
+    for k, part in enumerate(parts):
+        uses: dict[int, MeasurementUse] = {}
+        candidates, gyros = epoch_parts(part.indices, batch, options, uses)
+        assert (part.candidates, part.gyros, part.uses) == (candidates, gyros, uses)
+        assert len(candidates) == 3 and len(uses) == 4 and len(gyros) == (k != 2)
+        expected = epoch_measurements(candidates, gyros, batch, options)
+        for name in (
+            "positions",
+            "observed",
+            "range_std",
+            "bearing_std",
+            "yaw_rates",
+            "gyro_std",
+            "averaged",
+        ):
+            assert np.array_equal(getattr(part.measured, name), getattr(expected, name)), name
+        for got, want in zip(part.measured.kernel_arrays, expected.kernel_arrays, strict=True):
+            assert np.array_equal(got, want)
+            assert type(got) is float or (got.dtype == np.float64 and got.flags.c_contiguous)
 
 
 def test_gross_outlier_range_fails_the_gate(pipeline) -> None:

@@ -12,6 +12,8 @@ about bad numbers on its own. The models' F and Q for each interval are computed
 compiled call (``core.kernels_motion``), so timestamps that jitter, which make every interval new, stay
 cheap. Each call writes its results into one array allocated per call; a compiled Prediction's arrays
 are views of it, made when read (the gate and the correction take the array itself).
+``CompiledBankStepper.step`` runs the usual epoch (prediction, gate, correction with every
+measurement) in one compiled call (``core.kernels_epoch``) and leaves the rest to the calls above.
 
 Set ``EDGEPOS_NUMBA=0`` to run everything on the numpy reference.
 """
@@ -78,6 +80,20 @@ class BankStepper:
     def gate_distances(self, prior: Gaussian, epoch: RsuGyroEpoch) -> tuple[np.ndarray, np.ndarray]:
         """Squared Mahalanobis distances of each RSU pair and gyro reading from ``prior``."""
         return gate_distances(prior, epoch)
+
+    def step(
+        self,
+        means: np.ndarray,
+        covs: np.ndarray,
+        probabilities: np.ndarray,
+        dt: float | None,
+        epoch: RsuGyroEpoch,
+        thresholds: tuple[float, float],
+    ) -> tuple[Prediction, StepResult | None]:
+        """The epoch's prediction and, where one call decides it, its correction with every measurement
+        of ``epoch`` past the gate at ``thresholds``; here only the prediction (the caller gates and
+        corrects: ``CompiledBankStepper.step`` does all three in one compiled call)."""
+        return self.predict(means, covs, probabilities, dt), None
 
 
 def _filter_kind(filt: GaussianFilter) -> int | None:
@@ -179,6 +195,10 @@ class CompiledBankStepper(BankStepper):
         self._sizes = (count, len(bank.common))
         self._prediction_size = kernels.prediction_size(*self._sizes)
         self._correction_size = kernels.correction_size(*self._sizes)
+        from edgepos.core import kernels_epoch
+
+        self._epoch_kernels = kernels_epoch
+        self._epoch_size = self._prediction_size + self._correction_size
 
     @functools.lru_cache(maxsize=64)  # noqa: B019 (steppers live as long as their cached bank)
     def _step_matrices(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -231,6 +251,69 @@ class CompiledBankStepper(BankStepper):
             return super().predict(means, covs, probabilities, dt)  # repairs, or raises NumericalError
         return _packed_prediction(out, self._sizes, self.bank.common)
 
+    def step(
+        self,
+        means: np.ndarray,
+        covs: np.ndarray,
+        probabilities: np.ndarray,
+        dt: float | None,
+        epoch: RsuGyroEpoch,
+        thresholds: tuple[float, float],
+    ) -> tuple[Prediction, StepResult | None]:
+        """The epoch in one compiled call when it can (``core.kernels_epoch``): the prediction, and the
+        correction with every measurement of ``epoch`` when the gate at ``thresholds`` (RSU pairs, gyro
+        readings; negative: not gated) would keep them all; else the correction is None and the caller gates and
+        corrects on the per-call path. A failed prediction or correction is done on the numpy reference,
+        as ``predict`` and ``correct`` do."""
+        if self._uncovered or (epoch.rsu_count == 0 and epoch.yaw_rates.size == 0):
+            return self.predict(means, covs, probabilities, dt), None
+        positions, observed, yaw_rates, range_variances, bearing_variances, gyro_variance = (
+            epoch.kernel_arrays
+        )
+        out = np.empty(self._epoch_size + positions.shape[0] + yaw_rates.shape[0])  # fresh per call
+        means = np.ascontiguousarray(means, dtype=float)
+        covs = np.ascontiguousarray(covs, dtype=float)
+        probabilities = np.ascontiguousarray(probabilities, dtype=float)
+        status = self._epoch_kernels.epoch_step(
+            means,
+            covs,
+            probabilities,
+            self._transition,
+            self._active,
+            self._common,
+            self._phi_slot,
+            float(dt) if dt else 0.0,
+            dt_key(dt) if dt else 0.0,  # the reference's rounding of dt for F and Q
+            self._motion_kinds,
+            self._motion_params,
+            self._kinds,
+            self._priority,
+            self._others,
+            positions,
+            observed,
+            yaw_rates,
+            range_variances,
+            bearing_variances,
+            gyro_variance,
+            epoch.gyro_min_speed**2,
+            bool(epoch.averaged),
+            thresholds[0],
+            thresholds[1],
+            self._filter_kind,
+            self._weights,
+            self._has_centre,
+            out,
+        )
+        if status == self._ok:
+            prediction = _packed_prediction(out[: self._prediction_size], self._sizes, self.bank.common)
+            return prediction, self._step_result(out[self._prediction_size :])
+        if status == self._epoch_kernels.GATED:
+            return _packed_prediction(out[: self._prediction_size], self._sizes, self.bank.common), None
+        if status == self._epoch_kernels.CORRECTION_FAILED:
+            prediction = _packed_prediction(out[: self._prediction_size], self._sizes, self.bank.common)
+            return prediction, super().correct(prediction, epoch)  # repairs, or raises NumericalError
+        return super().predict(means, covs, probabilities, dt), None  # repairs, or raises NumericalError
+
     def _packed(self, prediction: Prediction) -> np.ndarray:
         """``prediction`` as ``predict_step``'s output array (one the reference made is packed here)."""
         packed = getattr(prediction, "packed", None)
@@ -268,6 +351,10 @@ class CompiledBankStepper(BankStepper):
         )
         if status != self._ok:
             return super().correct(prediction, epoch)  # repairs, or raises NumericalError
+        return self._step_result(out)
+
+    def _step_result(self, out: np.ndarray) -> StepResult:
+        """The StepResult over ``correct_step``'s output array ``out`` (views of it)."""
         means, covs, probabilities, mean, cov = self._kernels.prediction_views(out, *self._sizes)
         tail = self._prediction_size
         count = self._sizes[0]
@@ -386,11 +473,14 @@ _KERNEL_MODULES = (
     "kernels_motion",
     "kernels_turn",
     "kernels_integrity",
+    "kernels_epoch",
     "measurements.gnss_kernel",
     "measurements.gnss_geometry",
     "measurements.gnss_raim_kernel",
     "measurements.gnss_noise_kernel",
     "particles.upf_kernel",
+    "particles.upf_step_kernel",
+    "particles.upf_resample_kernel",
 )
 
 
@@ -439,12 +529,14 @@ def kernels_compiled() -> int:
 def warm_up() -> float:
     """Compile (or load from the on-disk cache) every kernel signature the service uses, so that no
     request pays it; returns the seconds it took. Runs one epoch of each covered filter kind, with
-    the paper's 2IMM-CKF bank, joint and averaged, and the gate; the predictions also compile the
+    the paper's 2IMM-CKF bank, joint and averaged, and the gate, and the fused epoch
+    (``core.kernels_epoch``); the predictions also compile the
     F and Q kernel (``core.kernels_motion``, one signature for every bank); then the integrity bank's
     kernels, gnss_tight's range kernel (``core.measurements.gnss_kernel``), its satellite geometry
     (``core.measurements.gnss_geometry``), RAIM and noise level
-    (``core.measurements.gnss_raim_kernel``, ``gnss_noise_kernel``) and the UPF's weights
-    (``core.particles.upf_kernel``)."""
+    (``core.measurements.gnss_raim_kernel``, ``gnss_noise_kernel``), the UPF's weights
+    (``core.particles.upf_kernel``), its GNSS-only step (``core.particles.upf_step_kernel``) and its
+    resampling (``core.particles.upf_resample_kernel``)."""
     started = time.perf_counter()
     if not compiled_enabled():
         return 0.0
@@ -470,6 +562,7 @@ def warm_up() -> float:
         stepper.gate_distances(prediction.output, epoch)
         for averaged in (False, True):
             stepper.correct(prediction, dataclasses.replace(epoch, averaged=averaged))
+        stepper.step(means, covs, np.full(3, 1.0 / 3.0), 0.05, epoch, (5.99, 3.84))  # core.kernels_epoch
     from edgepos.core import kernels_integrity
 
     kernels_integrity.warm_up()  # the integrity bank's kernels (core.integrity_bank)
@@ -488,4 +581,10 @@ def warm_up() -> float:
     from edgepos.core.particles import upf_kernel
 
     upf_kernel.warm_up()  # the UPF's importance weights
+    from edgepos.core.particles import upf_step_kernel
+
+    upf_step_kernel.warm_up()  # the UPF's time update, shared update and draws with the GNSS-only model
+    from edgepos.core.particles import upf_resample_kernel
+
+    upf_resample_kernel.warm_up()  # the UPF's regularised resampling
     return time.perf_counter() - started

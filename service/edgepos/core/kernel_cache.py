@@ -33,11 +33,14 @@ KERNEL_FILES = tuple(
         "kernels_motion.py",
         "kernels_turn.py",
         "kernels_integrity.py",
+        "kernels_epoch.py",
         "measurements/gnss_kernel.py",
         "measurements/gnss_geometry.py",
         "measurements/gnss_raim_kernel.py",
         "measurements/gnss_noise_kernel.py",
         "particles/upf_kernel.py",
+        "particles/upf_step_kernel.py",
+        "particles/upf_resample_kernel.py",
     )
 )
 #: The modules whose globals the kernels read (numba freezes a global into the machine code) or whose

@@ -35,6 +35,16 @@ from edgepos.core.numerics import FloatArray
 
 # -- measurements and the correction -------------------------------------------------------------
 @_jit
+def _wrap_near(angle: float) -> float:
+    """``wrap`` for an angle that is nearly always in range already (a sigma point's bearing about the
+    predicted one): returned as it is then, which skips the floored modulo (a third of the points' cost
+    besides atan2) and its rounding of angle + pi - pi, an ulp of pi at most."""
+    if -math.pi <= angle < math.pi:
+        return angle
+    return wrap(angle)
+
+
+@_jit
 def _measure(
     state: FloatArray, positions: FloatArray, rsus: IntArray, gyros: int, min_speed_sq: float, out: FloatArray
 ) -> None:
@@ -42,13 +52,38 @@ def _measure(
     for r in range(rsus.shape[0]):
         dx = state[_XP] - positions[rsus[r], 0]
         dy = state[_YP] - positions[rsus[r], 1]
-        out[2 * r] = math.hypot(dx, dy)
+        out[2 * r] = math.sqrt(dx * dx + dy * dy)  # hypot's care for overflow costs 5x, and ranges are metres
         out[2 * r + 1] = math.atan2(dy, dx)
+    _measure_gyros(state, gyros, min_speed_sq, 2 * rsus.shape[0], out)
+
+
+@_jit
+def _measure_rsus(state: FloatArray, positions: FloatArray, rsus: IntArray, out: FloatArray) -> None:
+    """Per RSU of ``rsus``: the range and bearing ``_measure`` gives, then the unit vector from the RSU
+    (zero at zero range), as the sigma-point moments use it."""
+    for r in range(rsus.shape[0]):
+        dx = state[_XP] - positions[rsus[r], 0]
+        dy = state[_YP] - positions[rsus[r], 1]
+        distance = math.sqrt(dx * dx + dy * dy)
+        out[r, 0] = distance
+        out[r, 1] = math.atan2(dy, dx)
+        if distance > 0.0:
+            inverse = 1.0 / distance
+            out[r, 2] = dx * inverse
+            out[r, 3] = dy * inverse
+        else:
+            out[r, 2] = 0.0
+            out[r, 3] = 0.0
+
+
+@_jit
+def _measure_gyros(state: FloatArray, gyros: int, min_speed_sq: float, first: int, out: FloatArray) -> None:
+    """The yaw-rate rows of ``_measure``, written from ``out[first]`` on."""
     if gyros > 0:
         xv, xa, yv, ya = state[_XV], state[_XA], state[_YV], state[_YA]
         rate = (xv * ya - xa * yv) / max(xv * xv + yv * yv, min_speed_sq)
         for g in range(gyros):
-            out[2 * rsus.shape[0] + g] = rate
+            out[first + g] = rate
 
 
 @_jit
@@ -158,42 +193,69 @@ def _moments(
         point = np.empty(8)
         sin_sums = np.zeros(rsus.shape[0])
         cos_sums = np.zeros(rsus.shape[0])
+        # A point whose offset leaves x and y as they are (the factor's columns past y's: half of an
+        # 8-component model's points) sees the RSUs exactly as the mean does: their ranges, bearings and
+        # unit vectors are measured once, at the mean, and copied (the same numbers, without the atan2s).
+        at_mean = np.empty((rsus.shape[0], 4))  # range, bearing, unit vector x, y
+        at_mean_measured = False
         for p in range(count):
             for k in range(8):
                 point[k] = mean[k] + offsets[p, k]
+            if offsets[p, _XP] == 0.0 and offsets[p, _YP] == 0.0:
+                if not at_mean_measured:
+                    _measure_rsus(point, positions, rsus, at_mean)
+                    at_mean_measured = True
+                for j in range(rsus.shape[0]):
+                    z[p, 2 * j] = at_mean[j, 0]
+                    z[p, 2 * j + 1] = at_mean[j, 1]
+                _measure_gyros(point, gyros, min_speed_sq, 2 * rsus.shape[0], z[p])
+                for j in range(rsus.shape[0]):
+                    if at_mean[j, 0] > 0.0:
+                        cos_sums[j] += weights[p] * at_mean[j, 2]
+                        sin_sums[j] += weights[p] * at_mean[j, 3]
+                    else:
+                        cos_sums[j] += weights[p]
+                continue
             _measure(point, positions, rsus, gyros, min_speed_sq, z[p])
             for j in range(rsus.shape[0]):
                 distance = z[p, 2 * j]
                 if distance > 0.0:
-                    cos_sums[j] += weights[p] * ((point[_XP] - positions[rsus[j], 0]) / distance)
-                    sin_sums[j] += weights[p] * ((point[_YP] - positions[rsus[j], 1]) / distance)
+                    inverse = 1.0 / distance
+                    cos_sums[j] += weights[p] * ((point[_XP] - positions[rsus[j], 0]) * inverse)
+                    sin_sums[j] += weights[p] * ((point[_YP] - positions[rsus[j], 1]) * inverse)
                 else:
                     cos_sums[j] += weights[p]
-        for r in range(size):
-            total = 0.0
-            for p in range(count):
-                total += weights[p] * z[p, r]
-            predicted[r] = total
+        # The sums below run point by point in the outer loop: each element still adds its terms in
+        # point order (the same numbers to the last bit as a sum per element), but the inner loops'
+        # additions are independent of one another, where a sum per element waits on its previous add.
+        predicted[:size] = 0.0
+        for p in range(count):
+            weight = weights[p]
+            for r in range(size):
+                predicted[r] += weight * z[p, r]
         for j in range(rsus.shape[0]):
             predicted[2 * j + 1] = math.atan2(sin_sums[j], cos_sums[j])
         for p in range(count):
             for r in range(size):
                 z[p, r] -= predicted[r]
             for r in range(1, angle_rows, 2):
-                z[p, r] = wrap(z[p, r])
-        for r in range(size):
-            for s in range(r, size):
-                total = 0.0
-                for p in range(count):
-                    total += z[p, r] * cov_weights[p] * z[p, s]
-                innovation_cov[r, s] = total
-                innovation_cov[s, r] = total
-        for k in range(8):
+                z[p, r] = _wrap_near(z[p, r])
+        innovation_cov[:, :] = 0.0
+        cross_cov[:, :] = 0.0
+        weighted = np.empty(size)
+        for p in range(count):
             for r in range(size):
-                total = 0.0
-                for p in range(count):
-                    total += offsets[p, k] * (z[p, r] * cov_weights[p])
-                cross_cov[k, r] = total
+                weighted[r] = z[p, r] * cov_weights[p]
+            for r in range(size):
+                for s in range(r, size):
+                    innovation_cov[r, s] += weighted[r] * z[p, s]
+            for k in range(8):
+                offset = offsets[p, k]
+                for r in range(size):
+                    cross_cov[k, r] += offset * weighted[r]
+        for r in range(size):
+            for s in range(r + 1, size):
+                innovation_cov[s, r] = innovation_cov[r, s]
     for r in range(size):
         innovation_cov[r, r] += variances[r]
     _symmetrize(innovation_cov, size)
@@ -259,29 +321,34 @@ def _correct_one(
         if r < 2 * rsus.shape[0] and r % 2 == 1:
             residual = wrap(residual)
         rhs[r, 8] = residual
-    for r in range(size):
+    for r in range(size):  # row by row, each element's terms subtracted in the same order as a sum
+        for k in range(r):
+            coefficient = factor[r, k]
+            for c in range(9):
+                rhs[r, c] -= coefficient * rhs[k, c]
+        diagonal = factor[r, r]
         for c in range(9):
-            total = rhs[r, c]
-            for k in range(r):
-                total -= factor[r, k] * rhs[k, c]
-            rhs[r, c] = total / factor[r, r]
+            rhs[r, c] = rhs[r, c] / diagonal
     nis = 0.0
     log_det = 0.0
     for r in range(size):
         nis += rhs[r, 8] * rhs[r, 8]
         log_det += math.log(factor[r, r])
+    gain = np.zeros(8)  # K r, and below K S K^T, each element summed over r in order
+    reduction = np.zeros((8, 8))
+    for r in range(size):
+        for k in range(8):
+            gain[k] += rhs[r, k] * rhs[r, 8]
+        for i in range(8):
+            left = rhs[r, i]
+            for j in range(8):
+                reduction[i, j] += left * rhs[r, j]
     for k in range(8):
-        total = 0.0
-        for r in range(size):
-            total += rhs[r, k] * rhs[r, 8]
-        out_mean[k] = mean[k] + total
+        out_mean[k] = mean[k] + gain[k]
     out_mean[_PHI] = wrap(out_mean[_PHI])
     for i in range(8):
         for j in range(8):
-            total = 0.0
-            for r in range(size):
-                total += rhs[r, i] * rhs[r, j]
-            out_cov[i, j] = cov[i, j] - total
+            out_cov[i, j] = cov[i, j] - reduction[i, j]
     _symmetrize(out_cov, 8)
     stats[0] = nis
     stats[1] = -0.5 * (nis + 2.0 * log_det + size * _LOG_TWO_PI)

@@ -108,15 +108,19 @@ def hatch_update(
     smoothed = np.array(pseudorange_m, dtype=float, copy=True)
     count = np.zeros(n)
     reset: list[str | None] = [None] * n
+    # the rows as Python numbers, read once (the same values as float() / int() of each element)
+    all_cycles, codes = np.asarray(carrier_cycles, float).tolist(), np.asarray(pseudorange_m, float).tolist()
+    wavelengths, dopplers = np.asarray(wavelength_m, float).tolist(), np.asarray(doppler_hz, float).tolist()
+    flags = [int(v) for v in np.asarray(lli).tolist()]
     for row in range(n):
-        cycles = float(carrier_cycles[row])
+        cycles = all_cycles[row]
         if not math.isfinite(cycles):
             continue
-        code = float(pseudorange_m[row])
-        lam = float(wavelength_m[row])
-        doppler = float(doppler_hz[row]) if math.isfinite(doppler_hz[row]) else None
+        code = codes[row]
+        lam = wavelengths[row]
+        doppler = dopplers[row] if math.isfinite(dopplers[row]) else None
         track = tracks.get(sats[row])
-        why = _slip(track, t, code, cycles, lam, doppler, int(lli[row]), config)
+        why = _slip(track, t, code, cycles, lam, doppler, flags[row], config)
         if why is not None or track is None:
             value, used = code, 1.0
             reset[row] = why
@@ -166,19 +170,18 @@ def _slip(
 def tracks_to_arrays(tracks: dict[str, CarrierTrack]) -> tuple[list[str], np.ndarray]:
     """The tracks as satellite ids and a (k, 6) float table, for the session's exact byte form."""
     sats = sorted(tracks)
-    table = np.zeros((len(sats), _COLUMNS))
-    for row, sat in enumerate(sats):
-        track = tracks[sat]
-        has = track.doppler_hz is not None
-        table[row] = (
+    rows = [
+        (
             track.t,
             track.count,
             track.smoothed_m,
             track.phase_cycles,
-            track.doppler_hz if has else 0.0,
-            float(has),
+            0.0 if track.doppler_hz is None else track.doppler_hz,
+            float(track.doppler_hz is not None),
         )
-    return sats, table
+        for track in (tracks[sat] for sat in sats)
+    ]
+    return sats, np.array(rows, dtype=float).reshape(len(sats), _COLUMNS)
 
 
 def tracks_from_arrays(sats: Sequence[str], table: np.ndarray) -> dict[str, CarrierTrack]:

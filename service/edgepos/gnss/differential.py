@@ -28,6 +28,7 @@ rover's, since a correction removes the error of one particular orbit and clock 
 from __future__ import annotations
 
 import dataclasses
+import weakref
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
@@ -52,9 +53,15 @@ ISSUE_MISMATCH = "ephemeris issue mismatch"
 
 def ephemeris_issues(orbits: BroadcastOrbits, index: np.ndarray) -> list[Issue | None]:
     """The issue key of each selected ephemeris index (None where the index is -1)."""
-    return [
-        None if i < 0 else (int(orbits.ephemerides[i].iode), float(orbits.ephemerides[i].toe)) for i in index
-    ]
+    table = _ISSUES.get(orbits)
+    if table is None:  # once per set of ephemerides (their tuple never changes), not per row and epoch
+        table = [(int(e.iode), float(e.toe)) for e in orbits.ephemerides]
+        _ISSUES[orbits] = table
+    return [None if i < 0 else table[i] for i in np.asarray(index).tolist()]
+
+
+_ISSUES: weakref.WeakKeyDictionary[BroadcastOrbits, list[Issue]] = weakref.WeakKeyDictionary()
+"""Per set of broadcast orbits (while it lives), every record's issue key in record order."""
 
 
 def base_position(header: ObservationHeader) -> np.ndarray:

@@ -10,6 +10,7 @@ Times are continuous GPS seconds; BeiDou's 14 s offset is already folded into ``
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -127,6 +128,9 @@ class BroadcastOrbits:
                 (float(self._a["toe"][index]), float(self._max_age[index]), index)
             )
 
+        self._chosen: dict[tuple[str, int], tuple[float, float, int]] = {}
+        """Per satellite, its last choice in ``select`` and the open time interval it holds in."""
+
     def __len__(self) -> int:
         return len(self.ephemerides)
 
@@ -142,18 +146,31 @@ class BroadcastOrbits:
 
     def select(self, systems: Sequence[str], prns: Sequence[int] | np.ndarray, t: float) -> np.ndarray:
         """Per satellite, the index of the healthy ephemeris whose toe is nearest to ``t`` (GPS s) among those
-        within their validity (|t - toe| <= fit interval / 2, or the system's maximum age); -1 if none."""
+        within their validity (|t - toe| <= fit interval / 2, or the system's maximum age); -1 if none.
+
+        The choice only changes where a record's validity starts or ends (toe -+ its maximum age) or where
+        two toes are equally near (their midpoint); each satellite's last choice is remembered with the
+        open interval between those points around the time it was made (less a millisecond each side,
+        far beyond the rounding of the ages), and reused for any time inside it: every epoch between two
+        such points searches nothing."""
         out = np.full(len(systems), -1, dtype=int)
         t = float(t)
         for row, (system, prn) in enumerate(zip(systems, prns)):
+            key = (system, int(prn))
+            known = self._chosen.get(key)
+            if known is not None and known[0] < t < known[1]:
+                out[row] = known[2]
+                continue
+            records = self._by_sat.get(key, ())
             best: tuple[float, int] | None = None
-            for toe, max_age, index in self._by_sat.get((system, int(prn)), ()):
+            for toe, max_age, index in records:
                 age = abs(t - toe)
                 # Nearest toe; among equal toes the later record in the file (newest upload) wins.
                 if age <= max_age and (best is None or (age, -index) < (best[0], -best[1])):
                     best = (age, index)
-            if best is not None:
-                out[row] = best[1]
+            choice = -1 if best is None else best[1]
+            self._chosen[key] = (*_stable_interval(records, t), choice)
+            out[row] = choice
         return out
 
     def clock_polynomial(self, index: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -292,3 +309,18 @@ def sagnac_range_rate(
     )
     result: np.ndarray = geometric + sagnac / SPEED_OF_LIGHT
     return result
+
+
+_CHOICE_MARGIN_S = 1e-3
+"""How far inside the points where a satellite's ephemeris choice may change ``select`` reuses it (s)."""
+
+
+def _stable_interval(records: Sequence[tuple[float, float, int]], t: float) -> tuple[float, float]:
+    """The open interval around ``t`` in which ``select``'s choice among ``records`` (toe, maximum age,
+    index) cannot change: between the nearest of the records' validity edges and toe midpoints on either
+    side, each less ``_CHOICE_MARGIN_S``; empty (t, t) when ``t`` is that close to one."""
+    points = [toe + sign * max_age for toe, max_age, _ in records for sign in (-1.0, 1.0)]
+    points += [0.5 * (a[0] + b[0]) for k, a in enumerate(records) for b in records[k + 1 :] if a[0] != b[0]]
+    below = max((p for p in points if p <= t), default=-math.inf) + _CHOICE_MARGIN_S
+    above = min((p for p in points if p >= t), default=math.inf) - _CHOICE_MARGIN_S
+    return (below, above) if below < t < above else (t, t)

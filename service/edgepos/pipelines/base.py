@@ -325,6 +325,9 @@ class Pipeline(ABC):
 
 
 def is_finite_number(value: Any) -> bool:
+    """A finite int or float, not a bool (a plain float answered first: the validations' common case)."""
+    if type(value) is float:
+        return math.isfinite(value)
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 

@@ -98,35 +98,43 @@ CALIBRATION: dict[str, dict[str, float]] = {
         "integrity.rsu3": 0.0 * _US,
     },
     "gnss_tight": {
-        # Refitted on 2026-11-27 after the epoch's third round (compiled satellite geometry, RAIM, noise
-        # model, snapshot test and UPF weights; the old constants predicted a median 2.8 times the measured
-        # CPU): bench/batch_cost.py --only gnss_tight --json (three runs, load 4.8-5.4 on the 2-core box)
-        # then --from-json, 127 rows at their median, envelope / measured 1.00-2.72 (median 1.49).
-        "ukf.epoch": 314 * _US,
-        "ukf.update": 293 * _US,
-        "ukf.pseudorange": 136 * _US,
-        "pf.epoch": 319 * _US,
-        "pf.update": 5.01e03 * _US,
+        # Refitted on 2026-11-27 after the epoch's fourth round (the UPF's step in compiled loops, its moments
+        # carried in the state; the third round's constants predicted 7 times the measured CPU of a UPF epoch
+        # of 40 pseudoranges with Doppler), with every case of the grid also timed with Doppler:
+        # bench/batch_cost.py --only gnss_tight --json (three runs, load 4.8-5.5 on the 2-core box) then
+        # --from-json, 203 rows at their median, envelope / measured 1.00-3.66 (median 1.51). The envelope
+        # puts nothing on a Doppler row of its own (the per-pseudorange constants cover the epochs with and
+        # without Doppler alike); the Doppler constants are instead the measured increment, the median over
+        # the grid's paired cases of (CPU with the Dopplers - without) / Dopplers (UKF 12, PF 32, UPF 32
+        # pairs), added on top, so that a client's Dopplers count at admission.
+        "ukf.epoch": 237 * _US,
+        "ukf.update": 246 * _US,
+        "ukf.pseudorange": 114 * _US,
+        "ukf.doppler": 8.6 * _US,
+        "pf.epoch": 368 * _US,
+        "pf.update": 4.33e03 * _US,
         "pf.pseudorange": 0 * _US,
-        "upf.epoch": 476 * _US,
-        "upf.update": 572 * _US,
-        "upf.pseudorange": 114 * _US,
+        "pf.doppler": 216 * _US,
+        "upf.epoch": 383 * _US,
+        "upf.update": 0 * _US,
+        "upf.pseudorange": 122 * _US,
+        "upf.doppler": 19.1 * _US,
         "pf.particle": 0 * _US,
-        "pf.particle_update": 7.18 * _US,
-        "pf.particle_pseudorange": 0.245 * _US,
-        "upf.particle": 0.824 * _US,
-        "upf.particle_update": 0.617 * _US,
+        "pf.particle_update": 7.68 * _US,
+        "pf.particle_pseudorange": 0.22 * _US,
+        "upf.particle": 0.502 * _US,
+        "upf.particle_update": 0.429 * _US,
         "upf.particle_pseudorange": 0 * _US,
-        "exclusion_pseudorange": 0.331 * _US,
-        "observation": 0 * _US,
-        "batch": 404 * _US,
-        "batch_particle": 0 * _US,
+        "exclusion_pseudorange": 0.427 * _US,
+        "observation": 13.7 * _US,
+        "batch": 278 * _US,
+        "batch_particle": 0.0241 * _US,
         # options.integrity (pipelines/gnss_integrity.py): the separations at the prediction and the fix's
         # protection level. The monitor is on in every row of the fit; it put the monitor's share on the
         # pseudoranges (integrity.pseudorange and the filters' own), which a session with the monitor off
         # is over-predicted by, never under-predicted.
-        "integrity.epoch": 0 * _US,
-        "integrity.pseudorange": 15.7 * _US,
+        "integrity.epoch": 28 * _US,
+        "integrity.pseudorange": 0 * _US,
     },
     "v2v_coop": {
         "gps.epoch": 314
@@ -297,13 +305,17 @@ class GnssTightCost(CostModel):
     particle, and per particle and pseudorange at an update (the UPF runs a UKF update per particle); the
     PF's progressive correction is taken at its worst, eight likelihood stages. RISS-only epochs
     propagate the particles. Per batch: decoding and encoding the cloud. A Doppler (with options.use_doppler)
-    is one more row of the same stacked update and is counted as a pseudorange row there (the constants
-    were fitted without Doppler; tests/pipelines/test_cost_model.py holds the Doppler epochs to them too);
-    the snapshot test's exclusions see only the pseudoranges."""
+    is one more row of the same stacked update, with a cost of its own per filter (``doppler``: a range
+    rate's row costs less than a pseudorange's, which also goes through the screens and RAIM), and counts
+    as a row in the particles' per-row cost; the snapshot test's exclusions see only the pseudoranges."""
 
     pipeline = "gnss_tight"
     features = (
-        tuple(f"{f}.{name}" for f in ("ukf", "pf", "upf") for name in ("epoch", "update", "pseudorange"))
+        tuple(
+            f"{f}.{name}"
+            for f in ("ukf", "pf", "upf")
+            for name in ("epoch", "update", "pseudorange", "doppler")
+        )
         + tuple(
             f"{f}.{name}"
             for f in ("pf", "upf")
@@ -320,11 +332,13 @@ class GnssTightCost(CostModel):
     def epoch_features(self, options: Mapping[str, Any], counts: Mapping[str, int]) -> dict[str, float]:
         name = options["filter"]
         pseudoranges = counts.get("pseudorange", 0)
-        rows = pseudoranges + (counts.get(DOPPLER, 0) if options.get("use_doppler", True) else 0)
+        dopplers = counts.get(DOPPLER, 0) if options.get("use_doppler", True) else 0
+        rows = pseudoranges + dopplers
         features = {
             f"{name}.epoch": 1.0,
             f"{name}.update": 1.0 if rows else 0.0,
-            f"{name}.pseudorange": rows,
+            f"{name}.pseudorange": pseudoranges,
+            f"{name}.doppler": dopplers,
             "exclusion_pseudorange": int(options["max_exclusions"]) * pseudoranges,
             "observation": _observations(counts),
         }

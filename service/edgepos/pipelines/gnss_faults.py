@@ -93,9 +93,11 @@ def judge(
                 )
                 state[3] = t
         return FaultVerdict(excluded, inflation, reasons)
+    flagged: list[bool] = suspect.tolist()  # Python values: indexing numpy per row costs more than the row
+    values: list[float] = scores.tolist()
     for row, key in enumerate(keys):
         state = history.setdefault(key, [0.0, 0.0, 0.0, t])
-        if suspect[row]:
+        if flagged[row]:
             state[0] += 1.0
             state[1] = 0.0
         else:
@@ -106,10 +108,10 @@ def judge(
             state[2] = 1.0
         elif state[2] and state[1] >= recovery:
             state[2] = 0.0
-        score = float(scores[row])
+        score = values[row]
         if state[2]:
             excluded[row] = True
-            if suspect[row]:
+            if flagged[row]:
                 reasons[row] = (
                     f"excluded over time: its {unit} innovation has been beyond the {probability:g} gate "
                     f"({score:.1f} > {threshold:.1f}) for {int(state[0])} epochs in a row; it returns after "
@@ -120,7 +122,7 @@ def judge(
                     f"excluded over time: its {unit} innovation agrees again ({score:.1f} <= "
                     f"{threshold:.1f}) for {int(state[1])} of the {recovery} epochs it must before it returns"
                 )
-        elif suspect[row]:
+        elif flagged[row]:
             inflation[row] = float(np.sqrt(score / threshold))
             reasons[row] = (
                 f"{unit} innovation beyond the {probability:g} gate ({score:.1f} > {threshold:.1f}) for "

@@ -5,6 +5,7 @@ reports."""
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -295,8 +296,8 @@ def session_fix(
     assert anchor is not None
     lat, lon, height = (float(v) for v in anchor.geodetic(mean))
     position = geodetic_to_ecef(lat, lon, height)
-    anchor_ecef = geodetic_to_ecef(anchor.lat, anchor.lon, anchor.height)
-    east, north, _ = enu_rotation(anchor.lat, anchor.lon) @ (position - anchor_ecef)
+    anchor_ecef, rotation = _anchor_frame(anchor.lat, anchor.lon, anchor.height)
+    east, north, _ = rotation @ (position - anchor_ecef)
     ve, vn = float(mean[layout.VE]), float(mean[layout.VN])
     riss = session.riss
     yaw_rate = (
@@ -326,3 +327,14 @@ def session_fix(
         longitude=lon,
         height=height,
     )
+
+
+@functools.lru_cache(maxsize=256)
+def _anchor_frame(lat: float, lon: float, height: float) -> tuple[np.ndarray, np.ndarray]:
+    """The anchor's ECEF position and east-north-up rotation (read-only), the same every epoch of a
+    session: computed once per anchor instead of at every fix."""
+    ecef = geodetic_to_ecef(lat, lon, height)
+    rotation = enu_rotation(lat, lon)
+    ecef.flags.writeable = False
+    rotation.flags.writeable = False
+    return ecef, rotation

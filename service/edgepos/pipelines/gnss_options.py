@@ -83,7 +83,7 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "Particles of the pf and upf filters (ignored by ukf). The maximum bounds the session state, stored "
         "with every batch (about 290 kB at 700 particles with the default lag window); one epoch of the most "
         "pseudoranges accepted (40) then fits the default CPU budget per batch (EDGEPOS_BATCH_CPU_BUDGET_MS, "
-        "50 ms) with either filter (the cost model allows about 1,000 pf or 9,600 upf particles there). A "
+        "50 ms) with either filter (the cost model allows about 1,700 pf or 28,000 upf particles there). A "
         "session whose options would not fit one such epoch in the server's budget (a smaller "
         "EDGEPOS_BATCH_CPU_BUDGET_MS) is refused with 422 saying how many fit.",
         10,

@@ -69,6 +69,7 @@ def epoch_satellites(
     use_doppler = bool(options.get("use_doppler", True))
     doppler_reasons: dict[int, str] = {}
     nan3 = np.full(3, np.nan)
+    orbit_rows: _Columns | None = None
     for i in epoch:
         observation = observations[i]
         if not isinstance(observation, PseudorangeObservation):
@@ -134,63 +135,116 @@ def epoch_satellites(
                     f"second {gpst % SECONDS_PER_WEEK:.1f}",
                 )
             if have.size:
-                factors = np.array([_DELAY_FACTORS[systems[r]] for r in have])
-                picked = [observed[r] for r in have]
-                pseudoranges = np.array([o.pseudorange for o in picked])
-                states = transmit_states(
-                    ephemerides.orbits, ephemeris_index[have], gpst, pseudoranges, factors
+                orbit_rows = _orbit_rows(
+                    ephemerides,
+                    observed,
+                    systems,
+                    need_orbit,
+                    ephemeris_index,
+                    issues,
+                    have,
+                    gpst,
+                    use_doppler,
                 )
-                frequencies = [_FREQUENCY[o.system] for o in picked]
-                # one vectorised conversion (element-wise, so each row's value is as if alone)
-                rates = doppler_to_range_rate(
-                    np.array(
-                        [
-                            o.doppler_hz if (o.doppler_hz is not None and use_doppler) else math.nan
-                            for o in picked
-                        ]
-                    ),
-                    np.array(frequencies),
-                ).tolist()
-                clock_s = states.clock_s.tolist()
-                clock_drift = states.clock_drift.tolist()
-                for k, (r, o) in enumerate(zip(have.tolist(), picked)):
-                    position = (
-                        states.position[k] if o.sat_position is None else np.asarray(o.sat_position, float)
-                    )
-                    rows.append(
-                        (
-                            need_orbit[r],
-                            o.system,
-                            o.prn,
-                            o.pseudorange,
-                            o.cn0,
-                            position,
-                            clock_s[k],
-                            frequencies[k],
-                            rates[k],
-                            states.velocity[k],
-                            clock_drift[k],
-                            None if o.sat_position is not None else issues[r],
-                        )
-                    )
-    rows.sort(key=lambda row: row[0])
-    count = len(rows)
-    range_rate = np.array([r[8] for r in rows], dtype=float)
+    columns = _client_rows(rows)
+    if orbit_rows is not None:
+        columns = [
+            np.concatenate([mine, theirs]) if isinstance(mine, np.ndarray) else mine + theirs
+            for mine, theirs in zip(columns, orbit_rows, strict=True)
+        ]
+    take = np.argsort(columns[0], kind="stable")  # by observation index, as the epoch lists them
+    order: list[int] = take.tolist()
+    arrays: list[np.ndarray] = [columns[c][take] for c in _ARRAY_COLUMNS]
+    prn, pseudorange, cn0, position, clock, carrier, range_rate, velocity, drift = arrays
     doppler = bool(np.isfinite(range_rate).any())
     prs = PseudorangeSet(
         gpst,
-        tuple(r[1] for r in rows),
+        tuple(columns[1][k] for k in order),
+        prn,
+        pseudorange,
+        cn0,
+        position,
+        clock,
+        carrier,
+        range_rate if doppler else None,
+        velocity if doppler else None,
+        drift if doppler else None,
+    )
+    indices: list[int] = columns[0][take].tolist()
+    return EpochSatellites(prs, indices, doppler_reasons, [columns[11][k] for k in order])
+
+
+_Columns = list[Any]
+"""An epoch's satellite rows as columns: observation index (int), system (list), PRN (int), pseudorange, C/N0,
+position (n, 3), clock (s), carrier (Hz), range rate, velocity (n, 3), clock drift, ephemeris issue (list)."""
+_ARRAY_COLUMNS = (2, 3, 4, 5, 6, 7, 8, 9, 10)
+"""The columns from the PRN to the clock drift, numpy arrays."""
+
+
+def _client_rows(rows: list[tuple[Any, ...]]) -> _Columns:
+    """The columns of the rows whose satellite state the client sent (tuples in the columns' order)."""
+    count = len(rows)
+    return [
+        np.array([r[0] for r in rows], dtype=int),
+        [r[1] for r in rows],
         np.array([r[2] for r in rows], dtype=int),
         np.array([r[3] for r in rows], dtype=float),
         np.array([r[4] for r in rows], dtype=float),
         np.array([r[5] for r in rows], dtype=float).reshape(count, 3),
         np.array([r[6] for r in rows], dtype=float),
         np.array([r[7] for r in rows], dtype=float),
-        range_rate if doppler else None,
-        np.array([r[9] for r in rows], dtype=float).reshape(count, 3) if doppler else None,
-        np.array([r[10] for r in rows], dtype=float) if doppler else None,
+        np.array([r[8] for r in rows], dtype=float),
+        np.array([r[9] for r in rows], dtype=float).reshape(count, 3),
+        np.array([r[10] for r in rows], dtype=float),
+        [r[11] for r in rows],
+    ]
+
+
+def _orbit_rows(
+    ephemerides: Ephemerides,
+    observed: list[PseudorangeObservation],
+    systems: list[str],
+    need_orbit: list[int],
+    ephemeris_index: np.ndarray,
+    issues: list[Issue | None],
+    have: np.ndarray,
+    gpst: float,
+    use_doppler: bool,
+) -> _Columns:
+    """The columns of the rows ``have`` (of ``observed``, those with an ephemeris): their satellites' states
+    at transmit time from the broadcast orbits, in one vectorised evaluation; a position the client sent
+    without its clock replaces the orbit's."""
+    factors = np.array([_DELAY_FACTORS[systems[r]] for r in have])
+    picked = [observed[r] for r in have]
+    pseudoranges = np.array([o.pseudorange for o in picked])
+    states = transmit_states(ephemerides.orbits, ephemeris_index[have], gpst, pseudoranges, factors)
+    frequencies = np.array([_FREQUENCY[o.system] for o in picked])
+    # one vectorised conversion (element-wise, so each row's value is as if alone)
+    rates = doppler_to_range_rate(
+        np.array([o.doppler_hz if (o.doppler_hz is not None and use_doppler) else math.nan for o in picked]),
+        frequencies,
     )
-    return EpochSatellites(prs, [r[0] for r in rows], doppler_reasons, [r[11] for r in rows])
+    position = np.array(states.position, dtype=float)
+    for k, o in enumerate(picked):
+        if o.sat_position is not None:
+            position[k] = np.asarray(o.sat_position, float)
+    return [
+        np.array([need_orbit[r] for r in have.tolist()], dtype=int),
+        [o.system for o in picked],
+        np.array([o.prn for o in picked], dtype=int),
+        pseudoranges.astype(float),
+        np.array([o.cn0 for o in picked], dtype=float),
+        position,
+        np.array(states.clock_s, dtype=float),
+        frequencies.astype(float),
+        np.array(rates, dtype=float),
+        np.array(states.velocity, dtype=float),
+        np.array(states.clock_drift, dtype=float),
+        [
+            None if o.sat_position is not None else issues[r]
+            for r, o in zip(have.tolist(), picked, strict=True)
+        ],
+    ]
 
 
 CLIENT_STATE = "satellite position sent by the client: its ephemeris issue is unknown"

@@ -111,7 +111,7 @@ def snapshot_std(elevation: np.ndarray, corrected: np.ndarray | None = None) -> 
 
 def snapshot_test(
     session: GnssSession,
-    centre: np.ndarray,
+    receiver: np.ndarray,
     prs: PseudorangeSet,
     known: np.ndarray,
     std: np.ndarray,
@@ -125,13 +125,11 @@ def snapshot_test(
     per constellation; while the chi-square test of the weighted post-fit residuals fails, the pseudorange
     with the largest standardised residual (divided by sqrt(1 - leverage)) is excluded. Unlike a gate centred
     on the prediction it does not depend on the filter's history, so a persistent NLOS bias the filter has
-    already followed is still found. Returns the rows kept."""
+    already followed is still found. ``receiver``: the predicted position (ECEF). Returns the rows kept."""
     options = session.options
     probability = options["fde_probability"]
     if probability <= 0.0 or options["max_exclusions"] <= 0 or rows.size == 0:
         return rows
-    assert session.anchor is not None
-    receiver = session.anchor.ecef(centre)
     fit = _SnapshotFit(receiver, prs, known, std)
     keep = rows.copy()
     for _ in range(options["max_exclusions"]):

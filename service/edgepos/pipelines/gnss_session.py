@@ -33,6 +33,9 @@ class GnssSession:
     riss: dict[str, float] | None
     clock_seen: dict[str, float]
     cloud: Cloud
+    """The filter's cloud. When its weighted moments are known (the UPF's step computes them for the cloud it
+    returns, unless it resampled) they are stored beside it as ``moments_mean`` and ``moments_cov``, exactly
+    ``Cloud.moments`` of the stored particles, so the next epoch does not compute them again."""
     heading_known: bool = False
     """Whether the RISS model may run: until the GNSS-only model's velocity gives the azimuth, the RISS
     input is held back (a wrong initial azimuth is not recoverable once the model integrates the gyro)."""
@@ -80,6 +83,9 @@ class GnssSession:
                 len(self.faults), _FAULT_FIELDS
             ),
         }
+        known = self.cloud.known_moments(layout.ANGLES)
+        if known is not None:  # the UPF's step computed them: the next epoch starts from them
+            arrays["moments_mean"], arrays["moments_cov"] = known
         return state_format.pack(meta, arrays)
 
 
@@ -94,6 +100,13 @@ def decode_session(blob: bytes) -> GnssSession:
             f"gnss_tight state has {arrays['particles'].shape[-1]} components; this version uses {layout.DIM}"
         )
     cloud = Cloud(arrays["particles"], arrays["log_weights"], arrays["cov"])
+    if "moments_mean" in arrays:
+        mean, cov = arrays["moments_mean"], arrays.get("moments_cov", np.zeros(0))
+        if mean.shape != (layout.DIM,) or cov.shape != (layout.DIM, layout.DIM):
+            raise state_format.StateFormatError(
+                f"gnss_tight state's cloud moments are corrupt: mean {mean.shape}, covariance {cov.shape}"
+            )
+        cloud.remember_moments(layout.ANGLES, mean, cov)
     try:
         carrier = tracks_from_arrays(meta.get("carrier_sats", []), arrays.get("carrier", np.zeros((0, 6))))
     except (ValueError, TypeError) as error:

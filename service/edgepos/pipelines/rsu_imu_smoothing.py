@@ -28,9 +28,8 @@ from edgepos.core.imm import InteractingMultipleModel
 from edgepos.core.observations import Observation
 from edgepos.core.smoothing import bank_pair_predictions, imm_smooth, lag_ends
 from edgepos.pipelines.base import Environment, Fix, PipelineInputError, Problem, ensure_finite_fixes
-from edgepos.pipelines.epochs import group_by_time
 from edgepos.pipelines.rsu_imu import _bank, _decode, _fix, _options_key, _SessionState, _step
-from edgepos.pipelines.rsu_imu_batch import Batch, read_batch
+from edgepos.pipelines.rsu_imu_batch import Batch, batch_epochs, read_batch
 
 
 @dataclass
@@ -66,8 +65,8 @@ def filter_run(
     """Filter a validated batch from ``session`` (advanced in place) exactly as process() does,
     keeping each epoch's bank."""
     run = FilteredRun([], [], [], [])
-    for epoch in group_by_time(observations):
-        fix = _step(session, bank, epoch, observations, batch)
+    for parts in batch_epochs(observations, batch, session.options):
+        fix = _step(session, bank, parts, observations, batch)
         kept = fix.status != "uninitialised"
         run.fixes.append(fix)
         run.means.append(session.means.copy() if kept else None)

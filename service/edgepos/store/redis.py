@@ -56,6 +56,7 @@ from edgepos.store.fixlog import FixLog
 from edgepos.store.ratelimit import SLACK_S, RateLimit, gcra
 from edgepos.store.redis_base import RedisBaseStations
 from edgepos.store.redis_cache import DEFAULT_RECORD_CACHE, RSUS_USED, RecordCache, RsuSnapshot
+from edgepos.store.redis_packing import PACKED
 from edgepos.store.redis_records import (
     RECORD_FIELDS,
     SUMMARY_FIELDS,
@@ -236,6 +237,8 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
         pool = BlockingConnectionPool.from_url(
             self.url, retry=Retry(ExponentialBackoff(cap=0.2, base=0.05), retries=1)
         )
+        # the class the URL's scheme chose, packing commands in C (store.redis_packing)
+        pool.connection_class = PACKED.get(pool.connection_class, pool.connection_class)
         return Redis.from_pool(pool)  # closing the client closes its pool
 
     @staticmethod

@@ -74,10 +74,15 @@ _OPTIONS = {"prefix", "record_cache", "socket_timeout", "socket_connect_timeout"
 def parse_cluster_url(url: str) -> dict[str, Any]:
     """``redis-cluster://[user:password@]host:port[,host:port...][?prefix=..&socket_timeout=..]`` as
     the store's settings: ``nodes`` (startup nodes), ``prefix`` and the client's keyword arguments."""
-    parts = urlsplit(url)
-    if parts.scheme != SCHEME:
+    # The host list is split off by hand: urlsplit checks a netloc as one host, and some builds (Debian's
+    # 3.11.2, seen) refuse a list whose later entry is a bracketed IPv6 address ("Invalid IPv6 URL").
+    scheme, separator, rest = url.partition("://")
+    if scheme.lower() != SCHEME or not separator:
         raise ValueError(f"not a Redis Cluster URL (want {SCHEME}://host:port[,host:port...]): {url!r}")
-    userinfo, _, hosts = parts.netloc.rpartition("@")
+    ends = [index for index in (rest.find(mark) for mark in "/?#") if index >= 0]
+    netloc, tail = rest[: min(ends, default=len(rest))], rest[min(ends, default=len(rest)) :]
+    parts = urlsplit(f"{SCHEME}://host{tail}")  # the path, query and fragment after the host list
+    userinfo, _, hosts = netloc.rpartition("@")
     nodes: list[tuple[str, int]] = []
     for item in hosts.split(","):
         host, _, port = item.strip().rpartition(":")

@@ -17,6 +17,7 @@ Models propagate batches of states (any leading axes) and report which component
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -235,20 +236,10 @@ class GnssOnlyModel:
         return self.complete(out)
 
     def process_noise(self, dt: float) -> np.ndarray:
-        q = np.zeros((DIM, DIM))
-        for pos, vel, std in (
-            (NORTH, VN, self.accel_std),
-            (EAST, VE, self.accel_std),
-            (UP, VU, self.vertical_accel_std),
-        ):
-            psd = std * std
-            q[pos, pos] = psd * dt**3 / 3.0 + 1e-6
-            q[pos, vel] = q[vel, pos] = psd * dt**2 / 2.0
-            q[vel, vel] = psd * dt + 1e-8
-        _clock_noise(q, dt, self.clock_bias_psd, self.clock_drift_psd)
-        for index in (PITCH, ROLL, AZIMUTH):
-            q[index, index] = 1e-8
-        q[GYRO_BIAS, GYRO_BIAS] = q[WHEEL_SCALE, WHEEL_SCALE] = 1e-14
+        """Q over ``dt``: the same few matrices every epoch (dt is the receiver's interval), built once each."""
+        q: np.ndarray = _gnss_only_noise(
+            self.accel_std, self.vertical_accel_std, self.clock_bias_psd, self.clock_drift_psd, dt
+        ).copy()
         return q
 
     @staticmethod
@@ -261,3 +252,27 @@ class GnssOnlyModel:
         )
         states[..., PITCH] = np.where(moving, np.arctan2(states[..., VU], horizontal), states[..., PITCH])
         return states
+
+
+@functools.lru_cache(maxsize=64)
+def _gnss_only_noise(
+    accel_std: float, vertical_accel_std: float, clock_bias_psd: float, clock_drift_psd: float, dt: float
+) -> np.ndarray:
+    """``GnssOnlyModel.process_noise``'s matrix (read-only): white-noise acceleration per axis, the clocks'
+    integrated random walk, and a floor on the held components."""
+    q = np.zeros((DIM, DIM))
+    for pos, vel, std in (
+        (NORTH, VN, accel_std),
+        (EAST, VE, accel_std),
+        (UP, VU, vertical_accel_std),
+    ):
+        psd = std * std
+        q[pos, pos] = psd * dt**3 / 3.0 + 1e-6
+        q[pos, vel] = q[vel, pos] = psd * dt**2 / 2.0
+        q[vel, vel] = psd * dt + 1e-8
+    _clock_noise(q, dt, clock_bias_psd, clock_drift_psd)
+    for index in (PITCH, ROLL, AZIMUTH):
+        q[index, index] = 1e-8
+    q[GYRO_BIAS, GYRO_BIAS] = q[WHEEL_SCALE, WHEEL_SCALE] = 1e-14
+    q.flags.writeable = False
+    return q

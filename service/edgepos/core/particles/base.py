@@ -106,16 +106,34 @@ class Cloud:
         pipeline's prediction and the UPF's time update both start from them. Remembered with the arrays
         and ``angles`` they came from (a cloud given new arrays computes them again) and returned read-only,
         as the arrays of a cloud are never changed in place (each step makes a new cloud)."""
+        known = self.known_moments(angles)
+        if known is not None:
+            return known
+        mean, cov = weighted_moments(self.particles, self.weights, angles)
+        return self.remember_moments(angles, mean, cov)
+
+    def known_moments(self, angles: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """:meth:`moments` when they are already known for the cloud's arrays and ``angles``, else None
+        (nothing is computed)."""
         cached = self.__dict__.get("_moments")
         if (
-            cached is not None
-            and cached[0] is self.particles
-            and cached[1] is self.log_weights
-            and cached[2] is angles
+            cached is None
+            or cached[0] is not self.particles
+            or cached[1] is not self.log_weights
+            or cached[2] is not angles
         ):
-            result: tuple[np.ndarray, np.ndarray] = cached[3]
-            return result
-        mean, cov = weighted_moments(self.particles, self.weights, angles)
+            return None
+        known: tuple[np.ndarray, np.ndarray] = cached[3]
+        return known
+
+    def remember_moments(
+        self, angles: np.ndarray, mean: np.ndarray, cov: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Take (read-only copies of) ``mean`` and ``cov`` as :meth:`moments` for the cloud's arrays and
+        ``angles``: for a caller that has just computed ``weighted_moments`` of exactly these particles with
+        exp(log_weights) (a filter step; or its compiled equivalent, ``upf_step_kernel.weigh_kernel``, equal
+        to rounding), or read them back with the cloud's state. Returns the copies."""
+        mean, cov = np.array(mean, dtype=float), np.array(cov, dtype=float)
         mean.flags.writeable = False
         cov.flags.writeable = False
         self.__dict__["_moments"] = (self.particles, self.log_weights, angles, (mean, cov))

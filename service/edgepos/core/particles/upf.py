@@ -33,6 +33,11 @@ predicted measurement is h at its own centre plus the second-order sigma-point t
 instead of N (2k + 1), one (m, m) solve instead of N. The per-particle update stays as the reference it is
 tested against (tests/core/test_core_upf_shared.py: the same particles to a millimetre, weights to 1 %,
 estimate to 0.1 mm, on the pipeline's range models).
+
+With the GNSS-only motion model the step runs in compiled loops (``upf_step_kernel``: the time update, the
+shared update and the draws, then the weights, NIS and moments; ``upf_resample_kernel``: the resampling),
+around the measurement's own prediction; the numpy step here stays their reference and runs wherever they
+decline or the kernels are off (``EDGEPOS_NUMBA=0``).
 """
 
 from __future__ import annotations
@@ -63,6 +68,8 @@ from edgepos.core.particles.base import (
     wrap,
 )
 from edgepos.core.particles.upf_kernel import log_weights as compiled_log_weights
+from edgepos.core.particles.upf_resample_kernel import compiled_resample
+from edgepos.core.particles.upf_step_kernel import Proposal, Weighed, compiled_proposal, compiled_weights
 
 
 def predicted_own_covariance(cloud: Cloud, model: ParticleModel, dt: float, active: np.ndarray) -> np.ndarray:
@@ -112,9 +119,10 @@ class UnscentedParticleFilter:
         measurement: Measurement | None,
         rng: np.random.Generator,
     ) -> StepResult:
-        index = np.flatnonzero(active)
-        count = len(cloud.particles)
-        angles = ANGLES[index]
+        if measurement is not None and self.shared_linearisation:
+            compiled = compiled_proposal(cloud, model, dt, active, measurement, rng, self.spread_fraction)
+            if compiled is not None:
+                return self._weigh(cloud, model, active, measurement, rng, compiled)
         reference, predicted_cov = _own_prediction(cloud, model, dt, active)
         centres = model.complete(wrap(model.propagate(cloud.particles, dt), ANGLES))
         if measurement is None:
@@ -122,7 +130,25 @@ class UnscentedParticleFilter:
             mean, spread = weighted_moments(centres, cloud.weights, ANGLES)
             ess = effective_sample_size(cloud.log_weights)
             return StepResult(Cloud(centres, cloud.log_weights, own), mean, spread + own, None, ess, False)
+        proposal = self._proposal(cloud, model, active, measurement, rng, centres, reference, predicted_cov)
+        return self._weigh(cloud, model, active, measurement, rng, proposal)
 
+    def _proposal(
+        self,
+        cloud: Cloud,
+        model: ParticleModel,
+        active: np.ndarray,
+        measurement: Measurement,
+        rng: np.random.Generator,
+        centres: np.ndarray,
+        reference: np.ndarray,
+        predicted_cov: np.ndarray,
+    ) -> Proposal:
+        """Each particle's UKF update of N(centre, predicted_cov) (shared or per particle), a draw from it,
+        and the particle kept: the numpy step (``upf_step_kernel`` is held to it)."""
+        index = np.flatnonzero(active)
+        count = len(cloud.particles)
+        angles = ANGLES[index]
         gaussian = replace(measurement, outlier_probability=0.0, outlier_variance=0.0)
         if self.shared_linearisation:
             update = shared_unscented_update(
@@ -139,46 +165,93 @@ class UnscentedParticleFilter:
         sampled = update.posterior.copy()
         sampled[:, index] += deviation
         sampled = model.complete(wrap(sampled, ANGLES))
+        # Keep sqrt(f) of each sample's deviation as spread and (1 - f) of the proposal covariance as the
+        # particles' own (``_weigh``): the cloud's mean and covariance are the weighted proposals' mixture.
+        particles = update.posterior.copy()
+        particles[:, index] += math.sqrt(self.spread_fraction) * deviation
+        particles = model.complete(wrap(particles, ANGLES))
+        return Proposal(
+            centres,
+            update.posterior_cov,
+            proposal_chol,
+            batched_cholesky(predicted_cov),
+            update.z_hat,
+            update.z_cov,
+            sampled,
+            particles,
+            wrap(sampled[:, index] - centres[:, index], angles),
+            wrap(sampled[:, index] - update.posterior[:, index], angles),
+        )
 
-        residual = measurement.z - measurement.predict(sampled)
-        prior_chol = batched_cholesky(predicted_cov)
-        prior_deviation = wrap(sampled[:, index] - centres[:, index], angles)
-        proposal_deviation = wrap(sampled[:, index] - update.posterior[:, index], angles)
+    def _weigh(
+        self,
+        cloud: Cloud,
+        model: ParticleModel,
+        active: np.ndarray,
+        measurement: Measurement,
+        rng: np.random.Generator,
+        proposal: Proposal,
+    ) -> StepResult:
+        """Importance weights of the samples (likelihood x prior / proposal), the new cloud and estimate,
+        and resampling when the effective sample size is low."""
+        count = len(cloud.particles)
+        residual = measurement.z - measurement.predict(proposal.sampled)
+        fraction = self.spread_fraction
+        particles = proposal.particles
+        weighed = compiled_weights(
+            cloud.log_weights, measurement, residual, proposal, cloud.cov, active, fraction
+        )
+        if weighed is None:  # the reference: numpy, and particles with covariances of their own
+            weighed = self._numpy_weights(cloud, measurement, residual, proposal, active)
+        elif math.isnan(weighed.score):  # the kernel found no Cholesky factor: numpy's solve decides
+            score = _innovation_score(measurement, cloud.weights, proposal.z_hat, proposal.z_cov)
+            weighed = weighed._replace(score=score)
+        log_weights, mean, spread, own = weighed.log_weights, weighed.mean, weighed.spread, weighed.own
+        resampled = weighed.ess < self.resample_threshold * count
+        if resampled:
+            drawn = compiled_resample(particles, log_weights, mean, spread, active, ANGLES, rng)
+            if drawn is None:  # the reference, and wherever the kernel declines
+                drawn = regularised_resample(particles, log_weights, active, ANGLES, rng)
+            particles = model.complete(drawn)
+            log_weights = np.full(count, -math.log(count))
+        new = Cloud(particles, log_weights, own)
+        if not resampled:  # the next step and the pipeline's prediction start from these very moments
+            new.remember_moments(ANGLES, mean, spread)
+        return StepResult(new, mean, spread + own, weighed.score, weighed.ess, bool(resampled))
+
+    def _numpy_weights(
+        self,
+        cloud: Cloud,
+        measurement: Measurement,
+        residual: np.ndarray,
+        proposal: Proposal,
+        active: np.ndarray,
+    ) -> Weighed:
+        """The importance weights (likelihood x prior / proposal), the innovation's NIS, the particles' own
+        covariance and the new cloud's moments, in numpy (``upf_step_kernel.weigh_kernel`` is held to it)."""
         log_weights = compiled_log_weights(
             cloud.log_weights,
             measurement,
             residual,
-            prior_deviation,
-            prior_chol,
-            proposal_deviation,
-            proposal_chol,
+            proposal.prior_deviation,
+            proposal.prior_chol,
+            proposal.proposal_deviation,
+            proposal.proposal_chol,
         )
-        if log_weights is None:  # the reference: numpy, and particles with covariances of their own
+        if log_weights is None:
             likelihood = measurement.log_likelihood(residual)
-            prior = gaussian_logpdf(prior_deviation, prior_chol)
-            proposal = gaussian_logpdf(proposal_deviation, proposal_chol)
-            log_weights = normalise(cloud.log_weights + likelihood + prior - proposal)
-        score = _innovation_score(measurement, cloud.weights, update.z_hat, update.z_cov)
-
-        # Keep sqrt(f) of each sample's deviation as spread and (1 - f) of the proposal covariance as the
-        # particles' own: the cloud's mean and covariance are the weighted proposals' mixture.
+            prior = gaussian_logpdf(proposal.prior_deviation, proposal.prior_chol)
+            density = gaussian_logpdf(proposal.proposal_deviation, proposal.proposal_chol)
+            log_weights = normalise(cloud.log_weights + likelihood + prior - density)
+        score = _innovation_score(measurement, cloud.weights, proposal.z_hat, proposal.z_cov)
         weights = np.exp(log_weights)
-        fraction = self.spread_fraction
-        particles = update.posterior.copy()
-        particles[:, index] += math.sqrt(fraction) * deviation
-        particles = model.complete(wrap(particles, ANGLES))
-        if update.posterior_cov.ndim == 2:
-            posterior_cov = update.posterior_cov  # shared: the weighted average of one matrix
+        if proposal.posterior_cov.ndim == 2:
+            posterior_cov = proposal.posterior_cov  # shared: the weighted average of one matrix
         else:
-            posterior_cov = np.tensordot(weights, update.posterior_cov, axes=1)
-        own = embed(cloud.cov, (1.0 - fraction) * posterior_cov, active)
-        mean, spread = weighted_moments(particles, weights, ANGLES)
-        ess = effective_sample_size(log_weights)
-        resampled = ess < self.resample_threshold * count
-        if resampled:
-            particles = model.complete(regularised_resample(particles, log_weights, active, ANGLES, rng))
-            log_weights = np.full(count, -math.log(count))
-        return StepResult(Cloud(particles, log_weights, own), mean, spread + own, score, ess, bool(resampled))
+            posterior_cov = np.tensordot(weights, proposal.posterior_cov, axes=1)
+        own = embed(cloud.cov, (1.0 - self.spread_fraction) * posterior_cov, active)
+        mean, spread = weighted_moments(proposal.particles, weights, ANGLES)
+        return Weighed(log_weights, score, own, mean, spread, effective_sample_size(log_weights))
 
 
 def _innovation_score(

@@ -1,0 +1,228 @@
+"""The UPF's regularised resampling in one compiled loop (numba): ``base.regularised_resample`` with the
+Liu-West kernel, for a cloud whose weighted moments the step already has.
+
+The numpy form is some forty calls on (200, 15) arrays, three weighted-moment passes among them, and runs
+at about a quarter of the recording's epochs (at an effective sample size below half the particles), where
+it took about 0.4 ms. Here it is one loop over the same steps, fed the step's own moments and the random
+numbers the numpy form draws, in its order (the systematic draw, then the kernel's normals): the same
+particles to rounding (tests/core/test_core_upf_step_kernel.py). The numpy form stays the reference; it runs
+with ``EDGEPOS_NUMBA=0``, for the PF, and wherever the kernel declines (the kernel's covariance without a
+Cholesky factor: the numpy form repairs or raises), on the generator as it was.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from edgepos.core.compiled import compiled_enabled
+from edgepos.core.kernels_base import FAILED, OK, _jit, cholesky
+from edgepos.core.numerics import FloatArray
+from edgepos.core.particles.base import kernel_bandwidth
+
+
+@_jit
+def _wrap(value: float) -> float:
+    """``base.wrap`` of one angle difference: [-pi, pi) by the floored modulo."""
+    return (value + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@_jit
+def _uniform_moments(points: FloatArray, weight: float, angles: np.ndarray, mean: FloatArray) -> FloatArray:
+    """``base.weighted_moments`` of ``points`` (N, D) with every weight ``weight``: ``mean`` filled, the
+    covariance returned."""
+    count, dim = points.shape
+    for c in range(dim):
+        total = 0.0
+        if angles[c]:
+            sines = 0.0
+            for i in range(count):
+                sines += weight * math.sin(points[i, c])
+                total += weight * math.cos(points[i, c])
+            mean[c] = math.atan2(sines, total)
+        else:
+            for i in range(count):
+                total += weight * points[i, c]
+            mean[c] = total
+    offsets = np.empty((count, dim))
+    scaled = np.empty((count, dim))
+    for i in range(count):
+        for c in range(dim):
+            value = points[i, c] - mean[c]
+            offsets[i, c] = _wrap(value) if angles[c] else value
+            scaled[i, c] = offsets[i, c] * weight
+    product = np.dot(scaled.T, offsets)
+    cov = np.empty((dim, dim))
+    for a in range(dim):
+        for b in range(dim):
+            cov[a, b] = 0.5 * (product[a, b] + product[b, a])
+    return cov
+
+
+@_jit
+def resample_kernel(
+    particles: FloatArray,
+    log_weights: FloatArray,
+    mean: FloatArray,
+    cov: FloatArray,
+    index: np.ndarray,
+    angles: np.ndarray,
+    uniform_draw: float,
+    normals: FloatArray,
+    bandwidth: float,
+    out: FloatArray,
+) -> int:
+    """``base.regularised_resample(particles, log_weights, active, angles, rng)`` into ``out`` (N, D), given
+    the weighted ``mean`` and ``cov`` of the cloud and the draws: ``uniform_draw`` (the systematic
+    resampling's ``rng.random()``) and ``normals`` (N, k, the kernel's ``rng.standard_normal``). OK, or
+    FAILED when the kernel's covariance has no Cholesky factor."""
+    count, dim = particles.shape
+    k = index.size
+    weight = math.exp(-math.log(count))
+    squares = 0.0
+    cumulative = np.empty(count)
+    total = 0.0
+    for i in range(count):
+        value = math.exp(log_weights[i])
+        squares += value * value
+        total += value
+        cumulative[i] = total
+    cumulative[count - 1] = 1.0
+    unbiased = 1.0 - squares
+    resampled = np.empty((count, dim))
+    chosen = 0
+    for i in range(count):  # systematic: the first particle whose cumulative weight reaches the position
+        position = (uniform_draw + i) / count
+        while chosen < count - 1 and cumulative[chosen] < position:
+            chosen += 1
+        if not cumulative[chosen] >= position:  # past the end (non-finite weights): numpy decides
+            return FAILED
+        resampled[i, :] = particles[chosen]
+    # the Liu-West kernel: centres shrunk towards the mean, then its Gaussian of h^2 times the spread
+    centre = np.empty(dim)
+    spread = _uniform_moments(resampled, weight, angles, centre)
+    shrink = math.sqrt(1.0 - bandwidth * bandwidth)
+    block = np.empty((k, k))
+    for a in range(k):
+        for b in range(k):
+            block[a, b] = bandwidth * bandwidth * spread[index[a], index[b]]
+    factor = np.empty((k, k))
+    if not cholesky(block, k, factor):
+        return FAILED
+    for i in range(count):
+        for a in range(k):
+            c = index[a]
+            deviation = resampled[i, c] - centre[c]
+            if angles[c]:
+                deviation = _wrap(deviation)
+            value = centre[c] + shrink * deviation
+            resampled[i, c] = _wrap(value) if angles[c] else value
+    draws = np.dot(normals, factor.T)
+    for i in range(count):
+        for a in range(k):
+            resampled[i, index[a]] += draws[i, a]
+        for c in range(dim):
+            if angles[c]:
+                resampled[i, c] = _wrap(resampled[i, c])
+    out[:, :] = resampled
+    if count < 2 or unbiased <= 0.0:
+        return OK
+    # the affine map onto the weighted cloud's mean and unbiased covariance, on the components with spread
+    new_mean = np.empty(dim)
+    new_cov = _uniform_moments(resampled, weight, angles, new_mean)
+    spread_rows = np.empty(k, dtype=np.int64)
+    m = 0
+    for a in range(k):
+        c = index[a]
+        if cov[c, c] > 0.0 and new_cov[c, c] > 0.0:
+            spread_rows[m] = c
+            m += 1
+    if m == 0:
+        return OK
+    source_block = np.empty((m, m))
+    target_block = np.empty((m, m))
+    for a in range(m):
+        for b in range(m):
+            source_block[a, b] = new_cov[spread_rows[a], spread_rows[b]]
+            target_block[a, b] = cov[spread_rows[a], spread_rows[b]] / unbiased
+    source = np.empty((m, m))
+    target = np.empty((m, m))
+    if not (cholesky(source_block, m, source) and cholesky(target_block, m, target)):
+        return OK  # too few distinct particles to map: kept as drawn
+    work = np.empty(m)
+    for i in range(count):
+        for a in range(m):  # source^-1 (x - new mean) by forward substitution
+            c = spread_rows[a]
+            value = resampled[i, c] - new_mean[c]
+            if angles[c]:
+                value = _wrap(value)
+            for b in range(a):
+                value -= source[a, b] * work[b]
+            work[a] = value / source[a, a]
+        for a in range(m):
+            c = spread_rows[a]
+            value = 0.0
+            for b in range(a + 1):
+                value += target[a, b] * work[b]
+            out[i, c] = mean[c] + value
+        for c in range(dim):
+            if angles[c]:
+                out[i, c] = _wrap(out[i, c])
+    return OK
+
+
+def compiled_resample(
+    particles: np.ndarray,
+    log_weights: np.ndarray,
+    mean: np.ndarray,
+    cov: np.ndarray,
+    active: np.ndarray,
+    angles: np.ndarray,
+    rng: np.random.Generator,
+) -> np.ndarray | None:
+    """``base.regularised_resample`` of a cloud with weighted moments ``mean`` and ``cov`` by the kernel,
+    drawing from ``rng`` as the numpy form does; None (``rng`` as it was) when the kernels are off, the
+    cloud has fewer than two particles or the kernel declines."""
+    count = len(particles)
+    if count < 2 or not compiled_enabled():
+        return None
+    index = np.flatnonzero(active)
+    before = rng.bit_generator.state
+    uniform_draw = rng.random()
+    normals = rng.standard_normal((count, len(index)))
+    out = np.empty_like(particles, dtype=float)
+    status = resample_kernel(
+        np.ascontiguousarray(particles, dtype=float),
+        np.ascontiguousarray(log_weights, dtype=float),
+        np.array(mean, dtype=float),
+        np.array(cov, dtype=float),
+        index,
+        np.ascontiguousarray(angles, dtype=bool),
+        float(uniform_draw),
+        normals,
+        kernel_bandwidth(count, len(index)),
+        out,
+    )
+    if status == FAILED:
+        rng.bit_generator.state = before
+        return None
+    return out
+
+
+def warm_up() -> float:
+    """Compile (or load from numba's on-disk cache) the kernel's one signature; returns the seconds."""
+    started = time.perf_counter()
+    particles = np.random.default_rng(0).normal(size=(4, 3))
+    angles = np.array([False, False, True])
+    compiled_resample(
+        particles,
+        np.full(4, -math.log(4.0)),
+        np.zeros(3),
+        np.eye(3),
+        np.ones(3, dtype=bool),
+        angles,
+        np.random.default_rng(1),
+    )
+    return time.perf_counter() - started
