@@ -19,45 +19,18 @@ import numpy as np
 
 from edgepos.core.compiled import compiled_enabled
 from edgepos.core.kernels_base import FAILED, OK, _jit, cholesky
+from edgepos.core.kernels_base import wrap as _wrap
 from edgepos.core.numerics import FloatArray
 from edgepos.core.particles.base import kernel_bandwidth
-
-
-@_jit
-def _wrap(value: float) -> float:
-    """``base.wrap`` of one angle difference: [-pi, pi) by the floored modulo."""
-    return (value + math.pi) % (2.0 * math.pi) - math.pi
+from edgepos.core.particles.upf_step_kernel import weighted_moments_into
 
 
 @_jit
 def _uniform_moments(points: FloatArray, weight: float, angles: np.ndarray, mean: FloatArray) -> FloatArray:
     """``base.weighted_moments`` of ``points`` (N, D) with every weight ``weight``: ``mean`` filled, the
     covariance returned."""
-    count, dim = points.shape
-    for c in range(dim):
-        total = 0.0
-        if angles[c]:
-            sines = 0.0
-            for i in range(count):
-                sines += weight * math.sin(points[i, c])
-                total += weight * math.cos(points[i, c])
-            mean[c] = math.atan2(sines, total)
-        else:
-            for i in range(count):
-                total += weight * points[i, c]
-            mean[c] = total
-    offsets = np.empty((count, dim))
-    scaled = np.empty((count, dim))
-    for i in range(count):
-        for c in range(dim):
-            value = points[i, c] - mean[c]
-            offsets[i, c] = _wrap(value) if angles[c] else value
-            scaled[i, c] = offsets[i, c] * weight
-    product = np.dot(scaled.T, offsets)
-    cov = np.empty((dim, dim))
-    for a in range(dim):
-        for b in range(dim):
-            cov[a, b] = 0.5 * (product[a, b] + product[b, a])
+    cov = np.empty((points.shape[1], points.shape[1]))
+    weighted_moments_into(points, np.full(points.shape[0], weight), angles, mean, cov)
     return cov
 
 

@@ -33,6 +33,7 @@ import numpy as np
 from edgepos.core.compiled import compiled_enabled
 from edgepos.core.errors import NumericalError
 from edgepos.core.kernels_base import FAILED, OK, _jit, cholesky
+from edgepos.core.kernels_base import wrap as _wrap
 from edgepos.core.measurements.gnss_kernel import anchor_array
 from edgepos.core.motion.riss import (
     ANGLES,
@@ -60,15 +61,40 @@ from edgepos.gnss.geodesy import WGS84_A, WGS84_E2
 POINT = 2
 """:func:`time_update_kernel`'s status when the cloud has no covariance of its own (the numpy step's point
 prior)."""
-_TWO_PI = 2.0 * math.pi
 _CLOCKS = tuple(CLOCK.values())  # the constellations' clock biases, each integrating the drift
 _MOVING_MPS = 0.5  # as GnssOnlyModel.complete
 
 
 @_jit
-def _wrap(value: float) -> float:
-    """``base.wrap`` of one angle difference: [-pi, pi) by the floored modulo."""
-    return (value + math.pi) % _TWO_PI - math.pi
+def weighted_moments_into(
+    points: FloatArray, weights: FloatArray, angles: np.ndarray, mean: FloatArray, cov: FloatArray
+) -> None:
+    """``base.weighted_moments`` of ``points`` (N, D) with ``weights`` (N,, summing to 1) into ``mean`` (D,)
+    and ``cov`` (D, D, symmetrised): angles by their circular mean, their deviations wrapped."""
+    count, dim = points.shape
+    for c in range(dim):
+        total = 0.0
+        if angles[c]:
+            sines = 0.0
+            for i in range(count):
+                sines += weights[i] * math.sin(points[i, c])
+                total += weights[i] * math.cos(points[i, c])
+            mean[c] = math.atan2(sines, total)
+        else:
+            for i in range(count):
+                total += weights[i] * points[i, c]
+            mean[c] = total
+    offsets = np.empty((count, dim))
+    scaled = np.empty((count, dim))
+    for i in range(count):
+        for c in range(dim):
+            value = points[i, c] - mean[c]
+            offsets[i, c] = _wrap(value) if angles[c] else value
+            scaled[i, c] = offsets[i, c] * weights[i]
+    product = np.dot(scaled.T, offsets)
+    for a in range(dim):
+        for b in range(dim):
+            cov[a, b] = 0.5 * (product[a, b] + product[b, a])
 
 
 @_jit
@@ -410,29 +436,7 @@ def weigh_kernel(
     for i in range(count):
         weights[i] = math.exp(log_weights[i])
         squares += math.exp(2.0 * log_weights[i])
-    for c in range(dim):
-        total = 0.0
-        if angles[c]:
-            sines = 0.0
-            for i in range(count):
-                sines += weights[i] * math.sin(particles[i, c])
-                total += weights[i] * math.cos(particles[i, c])
-            mean[c] = math.atan2(sines, total)
-        else:
-            for i in range(count):
-                total += weights[i] * particles[i, c]
-            mean[c] = total
-    offsets = np.empty((count, dim))
-    scaled = np.empty((count, dim))
-    for i in range(count):
-        for c in range(dim):
-            value = particles[i, c] - mean[c]
-            offsets[i, c] = _wrap(value) if angles[c] else value
-            scaled[i, c] = offsets[i, c] * weights[i]
-    product = np.dot(scaled.T, offsets)
-    for a in range(dim):
-        for b in range(dim):
-            spread[a, b] = 0.5 * (product[a, b] + product[b, a])
+    weighted_moments_into(particles, weights, angles, mean, spread)
     own[:, :] = cloud_cov
     k = index.size
     for a in range(k):
