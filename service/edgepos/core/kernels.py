@@ -44,6 +44,7 @@ from edgepos.core.kernels_base import (
     _jit,
     _symmetrize,
     cholesky,
+    cholesky_solve,
     wrap,
 )
 from edgepos.core.kernels_correct import (
@@ -120,19 +121,11 @@ def _carry_extras(
         return False
     regression = np.empty((ne, nc))  # rows: B = P_ec P_cc^-1, solved as P_cc B^T = P_ce
     column = np.empty(nc)
+    work = np.empty(nc)
     for e in range(ne):
         for a in range(nc):
-            total = old_cov[common[a], extra[e]]
-            for k in range(a):
-                total -= factor[a, k] * column[k]
-            column[a] = total / factor[a, a]
-        for a in range(nc - 1, -1, -1):
-            total = column[a]
-            for k in range(a + 1, nc):
-                total -= factor[k, a] * column[k]
-            column[a] = total / factor[a, a]
-        for a in range(nc):
-            regression[e, a] = column[a]
+            column[a] = old_cov[common[a], extra[e]]
+        cholesky_solve(factor, nc, column, work, regression[e])
     shift = np.empty(nc)
     for a in range(nc):
         shift[a] = new_mean[common[a]] - old_mean[common[a]]

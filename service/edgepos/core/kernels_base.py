@@ -85,6 +85,22 @@ def cholesky(matrix: FloatArray, n: int, out: FloatArray) -> bool:
 
 
 @_jit
+def cholesky_solve(factor: FloatArray, n: int, rhs: FloatArray, work: FloatArray, out: FloatArray) -> None:
+    """x with (L L^T) x = rhs for the lower factor L = factor[:n, :n], into out[:n]: forward substitution
+    into work[:n], then back substitution (out may be rhs, not work)."""
+    for j in range(n):
+        value = rhs[j]
+        for col in range(j):
+            value -= factor[j, col] * work[col]
+        work[j] = value / factor[j, j]
+    for j in range(n - 1, -1, -1):
+        value = work[j]
+        for col in range(j + 1, n):
+            value -= factor[col, j] * out[col]
+        out[j] = value / factor[j, j]
+
+
+@_jit
 def _symmetrize(matrix: FloatArray, n: int) -> None:
     for i in range(n):
         for j in range(i + 1, n):

@@ -32,7 +32,7 @@ import numpy as np
 
 from edgepos.core.compiled import compiled_enabled
 from edgepos.core.errors import NumericalError
-from edgepos.core.kernels_base import FAILED, OK, _jit, cholesky
+from edgepos.core.kernels_base import FAILED, OK, _jit, cholesky, cholesky_solve
 from edgepos.core.kernels_base import wrap as _wrap
 from edgepos.core.measurements.gnss_kernel import anchor_array
 from edgepos.core.motion.riss import (
@@ -296,16 +296,7 @@ def update_kernel(
     gain = np.empty((k, m))  # cross z_cov^-1, row by row: z_cov g = cross[a] by the two triangular solves
     work = np.empty(m)
     for a in range(k):
-        for j in range(m):
-            value = cross[a, j]
-            for col in range(j):
-                value -= root[j, col] * work[col]
-            work[j] = value / root[j, j]
-        for j in range(m - 1, -1, -1):
-            value = work[j]
-            for col in range(j + 1, m):
-                value -= root[col, j] * gain[a, col]
-            gain[a, j] = value / root[j, j]
+        cholesky_solve(root, m, cross[a], work, gain[a])
     for a in range(k):
         for b in range(k):
             total = 0.0
