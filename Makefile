@@ -8,10 +8,11 @@
 #   make docs    build the docs site into site/ (strict: a broken link or an unlisted page fails)
 
 # The interpreter the venv is built on: the distribution's /usr/bin/python3 when it is 3.11 or newer and can
-# make a venv, else the first python3 on PATH (PYTHON=... overrides). Distributions build CPython with
-# profile-guided and link-time optimisation and link libpython into the executable; pyenv's default build
-# (--enable-shared, no PGO) took 1.17x the CPU time on a pure-Python loop and 1.12x on the rsu_imu pipeline
-# (bench/interpreter_ab.py, docs/benchmarks.md "The interpreter"). Docker's python:3.11-slim is optimised too.
+# make a venv, else the first python3 on PATH (PYTHON=... overrides). Debian links libpython into the
+# executable and builds it with profile-guided optimisation (its packaging; here only the speed was checked);
+# pyenv's default build (--enable-shared, no --enable-optimizations) took 1.17x the CPU time on a pure-Python
+# loop and 1.12x on the rsu_imu pipeline (bench/interpreter_ab.py, docs/benchmarks.md "The interpreter").
+# Docker's python:3.11-slim is optimised too.
 SYSTEM_PYTHON := /usr/bin/python3
 PYTHON ?= $(shell $(SYSTEM_PYTHON) -c 'import sys, venv, ensurepip; sys.exit(sys.version_info < (3, 11))' \
 	2>/dev/null && echo $(SYSTEM_PYTHON) || echo python3)
