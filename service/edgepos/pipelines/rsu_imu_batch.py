@@ -6,6 +6,7 @@ makes an epoch's arrays a few index operations instead of arrays built from Pyth
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -40,15 +41,24 @@ class Batch:
     def __init__(self, rsus: list[Rsu | None], rows: list[float], ranges: list[float]) -> None:
         self.rsus = rsus
         table = np.array(rows, dtype=float).reshape(len(rsus), 8)  # a flat list: half the time of tuples
-        self.positions = np.ascontiguousarray(table[:, 0:2])
-        self.observed = np.ascontiguousarray(table[:, 2:4])
-        self.range_std = np.ascontiguousarray(table[:, 4])
-        self.bearing_std = np.ascontiguousarray(table[:, 5])
-        self.range_variances = np.square(self.range_std)  # as RsuGyroEpoch.variances squares them
-        self.bearing_variances = np.square(self.bearing_std)
-        self.yaw_rates = np.ascontiguousarray(table[:, 6])
+        # columns as views of the table: every use takes rows of them (``take``), which makes new
+        # C-contiguous arrays for the kernels, so copying each column first only cost time
+        self.positions = table[:, 0:2]
+        self.observed = table[:, 2:4]
+        self.range_std = table[:, 4]
+        self.bearing_std = table[:, 5]
+        variances = np.square(table[:, 4:6])  # as RsuGyroEpoch.variances squares them
+        self.range_variances = variances[:, 0]
+        self.bearing_variances = variances[:, 1]
+        self.yaw_rates = table[:, 6]
         self.radii: list[float] = table[:, 7].tolist()
         self.ranges = ranges  # each observation's measured range, -1 for a gyro (ranges are >= 0)
+
+
+#: The largest finite float: ``lo <= v <= _MAX`` holds for a finite ``v >= lo`` and fails for NaN and infinity.
+_MAX = sys.float_info.max
+#: Bearings beyond +-(pi + 1e-9) rad are refused.
+_BEARING_EDGE = math.pi + 1e-9
 
 
 def read_batch(
@@ -58,7 +68,60 @@ def read_batch(
     environment: Environment,
 ) -> Batch:
     """Check the whole batch before touching the filter (every observation finite, none older than the
-    session's last epoch ``last_t``, every RSU known); return its observations' stations and arrays."""
+    session's last epoch ``last_t``, every RSU known); return its observations' stations and arrays.
+
+    A batch that passes every check (the usual one) is read in one pass of chained comparisons, each
+    refusing NaN and infinity as ``math.isfinite`` does; at the first observation that fails one, the
+    batch is read again by ``_checked_batch``, which lists every problem with its field and reason."""
+    rsus: list[Rsu | None] = []
+    rows: list[float] = []  # eight numbers per observation, see Batch
+    ranges: list[float] = []
+    default_range, default_bearing = options["range_std"], options["bearing_std"]
+    default_radius = options["comm_radius"]
+    earliest = -_MAX if last_t is None else last_t
+    find = environment.rsu
+    for observation in observations:
+        if not earliest <= observation.t <= _MAX:
+            return _checked_batch(options, last_t, observations, environment)
+        if type(observation) is RsuObservation:
+            rsu = find(observation.rsu_id)
+            measured, bearing = observation.range, observation.bearing
+            if rsu is None or not 0.0 <= measured <= _MAX or not -_BEARING_EDGE <= bearing <= _BEARING_EDGE:
+                return _checked_batch(options, last_t, observations, environment)
+            ranges.append(measured)
+            rows.extend(
+                (
+                    rsu.x,
+                    rsu.y,
+                    measured,
+                    bearing,
+                    rsu.range_std or default_range,
+                    rsu.bearing_std or default_bearing,
+                    0.0,
+                    rsu.radius or default_radius,
+                )
+            )
+        elif type(observation) is GyroObservation:
+            yaw_rate = observation.yaw_rate
+            if not -_MAX <= yaw_rate <= _MAX:
+                return _checked_batch(options, last_t, observations, environment)
+            rsu = None
+            ranges.append(-1.0)
+            rows.extend((0.0, 0.0, 0.0, 0.0, 0.0, 0.0, yaw_rate, 0.0))
+        else:  # another type (or a subclass): the checked reading decides
+            return _checked_batch(options, last_t, observations, environment)
+        rsus.append(rsu)
+    return Batch(rsus, rows, ranges)
+
+
+def _checked_batch(
+    options: Mapping[str, Any],
+    last_t: float | None,
+    observations: Sequence[Observation],
+    environment: Environment,
+) -> Batch:
+    """``read_batch`` observation by observation, collecting every problem: raises
+    ``PipelineInputError`` with all of them, or returns the batch when there are none."""
     problems = []
     rsus: list[Rsu | None] = []
     rows: list[float] = []  # eight numbers per observation, see Batch
