@@ -215,12 +215,37 @@ def epoch_measurements(
     )
 
 
+class EpochRows:
+    """The measurement rows of every epoch of a batch, epoch after epoch (each epoch's RSU pairs and gyro
+    readings contiguous): what ``EpochParts.measured`` slices, and what a run of epochs hands the
+    compiled kernels in one call (``pipelines.rsu_imu_run``)."""
+
+    __slots__ = (
+        "bearing_std",
+        "bearing_variances",
+        "observed",
+        "positions",
+        "range_std",
+        "range_variances",
+        "yaw_rates",
+    )
+
+    def __init__(self, batch: Batch, rows: list[int], gyro_rows: list[int]) -> None:
+        index = np.array(rows, dtype=np.intp)
+        self.positions, self.observed = batch.positions.take(index, 0), batch.observed.take(index, 0)
+        self.range_std, self.bearing_std = batch.range_std.take(index), batch.bearing_std.take(index)
+        self.range_variances = batch.range_variances.take(index)
+        self.bearing_variances = batch.bearing_variances.take(index)
+        self.yaw_rates = batch.yaw_rates.take(np.array(gyro_rows, dtype=np.intp))
+
+
 class EpochParts:
     """One epoch of a batch as the pipeline's step takes it: its observations (indices into the batch),
     the RSUs in view it uses (nearest first) and its gyros, the records of the RSUs it leaves out
-    (``epoch_parts``; the step adds its own) and the measurement arrays of those it uses."""
+    (``epoch_parts``; the step adds its own) and the measurement arrays of those it uses, which are
+    rows ``start`` .. and ``gyro_start`` .. of the batch's ``rows``."""
 
-    __slots__ = ("candidates", "gyros", "indices", "measured", "uses")
+    __slots__ = ("candidates", "gyro_start", "gyros", "indices", "measured", "rows", "start", "uses")
 
     def __init__(
         self,
@@ -229,12 +254,18 @@ class EpochParts:
         gyros: list[int],
         uses: dict[int, MeasurementUse],
         measured: RsuGyroEpoch,
+        rows: EpochRows,
+        start: int,
+        gyro_start: int,
     ) -> None:
         self.indices = indices
         self.candidates = candidates
         self.gyros = gyros
         self.uses = uses
         self.measured = measured
+        self.rows = rows
+        self.start = start
+        self.gyro_start = gyro_start
 
 
 def batch_epochs(
@@ -253,14 +284,11 @@ def batch_epochs(
         selected.append((epoch, candidates, gyros, uses, len(rows), len(gyro_rows)))
         rows += candidates
         gyro_rows += gyros
-    index = np.array(rows, dtype=np.intp)
-    positions, observed = batch.positions.take(index, 0), batch.observed.take(index, 0)
-    range_std, bearing_std = batch.range_std.take(index), batch.bearing_std.take(index)
-    range_variances, bearing_variances = (
-        batch.range_variances.take(index),
-        batch.bearing_variances.take(index),
-    )
-    yaw_rates = batch.yaw_rates.take(np.array(gyro_rows, dtype=np.intp))
+    taken = EpochRows(batch, rows, gyro_rows)
+    positions, observed = taken.positions, taken.observed
+    range_std, bearing_std = taken.range_std, taken.bearing_std
+    range_variances, bearing_variances = taken.range_variances, taken.bearing_variances
+    yaw_rates = taken.yaw_rates
     gyro_std, averaged = options["gyro_std"], options["rsu_handling"] == "average"
     parts = []
     for epoch, candidates, gyros, uses, start, gyro_start in selected:
@@ -276,5 +304,5 @@ def batch_epochs(
             range_variances[start:end],
             bearing_variances[start:end],
         )
-        parts.append(EpochParts(epoch, candidates, gyros, uses, measured))
+        parts.append(EpochParts(epoch, candidates, gyros, uses, measured, taken, start, gyro_start))
     return parts
