@@ -218,11 +218,14 @@ def epoch_measurements(
 class EpochRows:
     """The measurement rows of every epoch of a batch, epoch after epoch (each epoch's RSU pairs and gyro
     readings contiguous): what ``EpochParts.measured`` slices, and what a run of epochs hands the
-    compiled kernels in one call (``pipelines.rsu_imu_run``)."""
+    compiled kernels in one call (``pipelines.rsu_imu_run``); with the options' gyro noise and RSU
+    handling, which every epoch's measurements share."""
 
     __slots__ = (
+        "averaged",
         "bearing_std",
         "bearing_variances",
+        "gyro_std",
         "observed",
         "positions",
         "range_std",
@@ -230,22 +233,27 @@ class EpochRows:
         "yaw_rates",
     )
 
-    def __init__(self, batch: Batch, rows: list[int], gyro_rows: list[int]) -> None:
+    def __init__(
+        self, batch: Batch, rows: list[int], gyro_rows: list[int], options: Mapping[str, Any]
+    ) -> None:
         index = np.array(rows, dtype=np.intp)
         self.positions, self.observed = batch.positions.take(index, 0), batch.observed.take(index, 0)
         self.range_std, self.bearing_std = batch.range_std.take(index), batch.bearing_std.take(index)
         self.range_variances = batch.range_variances.take(index)
         self.bearing_variances = batch.bearing_variances.take(index)
         self.yaw_rates = batch.yaw_rates.take(np.array(gyro_rows, dtype=np.intp))
+        self.gyro_std: float = options["gyro_std"]
+        self.averaged: bool = options["rsu_handling"] == "average"
 
 
 class EpochParts:
     """One epoch of a batch as the pipeline's step takes it: its observations (indices into the batch),
     the RSUs in view it uses (nearest first) and its gyros, the records of the RSUs it leaves out
-    (``epoch_parts``; the step adds its own) and the measurement arrays of those it uses, which are
-    rows ``start`` .. and ``gyro_start`` .. of the batch's ``rows``."""
+    (``epoch_parts``; the step adds its own), and where its measurements are in the batch's ``rows``
+    (from ``start`` and ``gyro_start``): ``measured`` slices them when first read, which an epoch that
+    goes in a run of epochs (``pipelines.rsu_imu_run``) never does."""
 
-    __slots__ = ("candidates", "gyro_start", "gyros", "indices", "measured", "rows", "start", "uses")
+    __slots__ = ("_measured", "candidates", "gyro_start", "gyros", "indices", "rows", "start", "uses")
 
     def __init__(
         self,
@@ -253,7 +261,6 @@ class EpochParts:
         candidates: list[int],
         gyros: list[int],
         uses: dict[int, MeasurementUse],
-        measured: RsuGyroEpoch,
         rows: EpochRows,
         start: int,
         gyro_start: int,
@@ -262,19 +269,37 @@ class EpochParts:
         self.candidates = candidates
         self.gyros = gyros
         self.uses = uses
-        self.measured = measured
         self.rows = rows
         self.start = start
         self.gyro_start = gyro_start
+        self._measured: RsuGyroEpoch | None = None
+
+    @property
+    def measured(self) -> RsuGyroEpoch:
+        """The measurement arrays of the RSUs and gyros the epoch uses (slices of the batch's rows)."""
+        if self._measured is None:
+            rows, start, gyro_start = self.rows, self.start, self.gyro_start
+            end = start + len(self.candidates)
+            self._measured = new_epoch(
+                rows.positions[start:end],
+                rows.observed[start:end],
+                rows.range_std[start:end],
+                rows.bearing_std[start:end],
+                rows.yaw_rates[gyro_start : gyro_start + len(self.gyros)],
+                rows.gyro_std,
+                rows.averaged,
+                rows.range_variances[start:end],
+                rows.bearing_variances[start:end],
+            )
+        return self._measured
 
 
 def batch_epochs(
     observations: Sequence[Observation], batch: Batch, options: Mapping[str, Any]
 ) -> list[EpochParts]:
-    """The batch's epochs in time order (``group_by_time``), each with ``epoch_parts`` and the arrays
-    ``epoch_measurements`` gives: every epoch's rows taken in one ``take`` per array for the whole batch
-    and each epoch's arrays slices of those (contiguous rows: the same arrays to the kernels), 2.7 us an
-    epoch where taking them epoch by epoch cost 4.2."""
+    """The batch's epochs in time order (``group_by_time``), each with ``epoch_parts`` and where its rows
+    are: every epoch's rows taken in one ``take`` per array for the whole batch (``EpochRows``), each
+    epoch's arrays slices of those (contiguous rows: the same arrays to the kernels)."""
     selected = []
     rows: list[int] = []
     gyro_rows: list[int] = []
@@ -284,25 +309,8 @@ def batch_epochs(
         selected.append((epoch, candidates, gyros, uses, len(rows), len(gyro_rows)))
         rows += candidates
         gyro_rows += gyros
-    taken = EpochRows(batch, rows, gyro_rows)
-    positions, observed = taken.positions, taken.observed
-    range_std, bearing_std = taken.range_std, taken.bearing_std
-    range_variances, bearing_variances = taken.range_variances, taken.bearing_variances
-    yaw_rates = taken.yaw_rates
-    gyro_std, averaged = options["gyro_std"], options["rsu_handling"] == "average"
-    parts = []
-    for epoch, candidates, gyros, uses, start, gyro_start in selected:
-        end = start + len(candidates)
-        measured = new_epoch(
-            positions[start:end],
-            observed[start:end],
-            range_std[start:end],
-            bearing_std[start:end],
-            yaw_rates[gyro_start : gyro_start + len(gyros)],
-            gyro_std,
-            averaged,
-            range_variances[start:end],
-            bearing_variances[start:end],
-        )
-        parts.append(EpochParts(epoch, candidates, gyros, uses, measured, taken, start, gyro_start))
-    return parts
+    taken = EpochRows(batch, rows, gyro_rows, options)
+    return [
+        EpochParts(epoch, candidates, gyros, uses, taken, start, gyro_start)
+        for epoch, candidates, gyros, uses, start, gyro_start in selected
+    ]

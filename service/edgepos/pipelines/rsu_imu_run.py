@@ -26,6 +26,7 @@ from edgepos.core.compiled_run import RunMonitor, RunRows, posterior, run_epochs
 from edgepos.core.imm import InteractingMultipleModel
 from edgepos.core.integrity import OK, new_protection
 from edgepos.core.observations import Observation, RsuObservation
+from edgepos.core.updates import measurement_dim
 from edgepos.pipelines.base import Fix, MeasurementUse
 from edgepos.pipelines.integrity import _monitor_of, _position_index
 from edgepos.pipelines.rsu_imu_batch import EpochParts
@@ -179,7 +180,7 @@ def run_fixes(
                 dict(zip(models, weights)),
                 uses,
                 weighted,
-                parts.measured.dim,
+                measurement_dim(len(parts.candidates), len(parts.gyros), rows.averaged),
                 protection,
                 None,  # the run's outputs have both accelerations (checked above): no carried turn rate
             )
