@@ -714,7 +714,7 @@ def test_judging_a_fix_at_once_agrees_with_the_check_and_the_kept_point(now, bef
 
     last = None if before is None else plausibility._point(fix_of(0.0, before))
     fix = fix_of(0.05, now)
-    assert plausibility._judged(fix, last, OPTIONS) == (
+    assert plausibility._judged(fix, last, plausibility._bounds(OPTIONS)) == (
         implausibility(fix, last, OPTIONS),
         plausibility._point(fix),
     )
