@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import bisect
 import dataclasses
-import itertools
 import math
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -73,9 +72,6 @@ from edgepos.pipelines.wrapping import WrappingPipeline
 
 IN_ORDER_PATH = True
 """Whether a batch in time order takes ``LagWindow._in_order`` (the tests switch it off to compare)."""
-
-_FLOAT_ONLY = frozenset({float})
-"""The types of a batch's times that the in-order path takes (JSON numbers arrive as floats)."""
 
 CHECKPOINTS_PER_WINDOW = 8
 """A new checkpoint is kept only when it is at least ``max_delay_s / CHECKPOINTS_PER_WINDOW`` after the
@@ -211,25 +207,24 @@ class LagWindow(WrappingPipeline):
         if spans is None or spans.newest is None or not observations:
             return None
         delay, limit, lead = spans.options
-        # Whole-batch tests instead of one per observation: every time a float (no int or bool, which the
-        # general path weighs one by one), all finite (NaN and infinities carry through a sum), in time
-        # order and after the newest epoch.
-        batch = list(observations)
-        every_t = [observation.t for observation in batch]
-        if (
-            set(map(type, every_t)) != _FLOAT_ONLY
-            or not math.isfinite(sum(every_t))
-            or not every_t[0] > spans.newest
-            or every_t != sorted(every_t)
-        ):
-            return None  # late, out of order within the batch, or a time the general path must weigh
-        times = list(dict.fromkeys(every_t))  # the batch's epochs, in time order
+        previous = spans.newest
+        times: list[float] = []
+        epochs: list[list[Observation]] = []
+        for observation in observations:
+            t = observation.t
+            if not _finite(t):
+                return None
+            if t > previous:
+                times.append(t)
+                epochs.append([observation])
+                previous = t
+            elif t == previous and epochs:
+                epochs[-1].append(observation)
+            else:
+                return None  # late, or out of order within the batch
         if len(times) > limit or (len(times) > 1 and times[-1] - times[-2] > lead):
             return None
         fixes, current = self.inner.process(bytes(spans.current), observations, environment)
-        starts = [bisect.bisect_left(every_t, t) for t in times]  # where each epoch's observations begin
-        starts.append(len(batch))
-        records = [encode_epoch(batch[start:end]) for start, end in itertools.pairwise(starts)]
         newest = spans.newest
         checkpoint_times = spans.checkpoint_times
         checkpoint_states: list[bytes | memoryview] = list(spans.checkpoint_states)
@@ -237,6 +232,7 @@ class LagWindow(WrappingPipeline):
         if last is None or newest - last >= delay / CHECKPOINTS_PER_WINDOW:  # as _maybe_checkpoint
             checkpoint_times = [*checkpoint_times, newest]
             checkpoint_states.append(spans.current)
+        records = [encode_epoch(epoch) for epoch in epochs]
         all_times = spans.times + times
         keep, start = _pruning(times[-1], delay, limit, checkpoint_times, all_times)
         if keep is None:
