@@ -506,23 +506,27 @@ def _beyond_bounds(
                 f"speed {speed:.4g} m/s exceeds max_speed_mps {max_speed:g} m/s (beyond the "
                 "filter's own velocity uncertainty)"
             )
-    if last is None or fix.status == "initialised" or not fix.t > last.t:
+    if last is None or fix.status == "initialised":
         return None  # a new track (or the first fix): nothing to compare with
-    dt = fix.t - last.t
-    velocity_var = velocity_var + last.velocity_var
-    if vx is not None and vy is not None and last.vx is not None and last.vy is not None:
-        change = math.hypot(vx - last.vx, vy - last.vy)
+    last_t, last_x, last_y, last_vx, last_vy, last_position_var, last_velocity_var = last  # read once
+    t = fix.t
+    if not t > last_t:
+        return None
+    dt = t - last_t
+    velocity_var = velocity_var + last_velocity_var
+    if vx is not None and vy is not None and last_vx is not None and last_vy is not None:
+        change = math.hypot(vx - last_vx, vy - last_vy)
         if change > accel * dt + SIGMA_ALLOWANCE * math.sqrt(velocity_var):
             return (
                 f"acceleration {change / dt:.4g} m/s^2 over {dt:.4g} s exceeds max_acceleration_mps2 {accel:g} "
                 "m/s^2 (beyond the filter's own velocity uncertainty)"
             )
-        carried_x = last.x + 0.5 * (last.vx + vx) * dt
-        carried_y = last.y + 0.5 * (last.vy + vy) * dt
+        carried_x = last_x + 0.5 * (last_vx + vx) * dt
+        carried_y = last_y + 0.5 * (last_vy + vy) * dt
     else:
-        carried_x, carried_y = last.x, last.y
+        carried_x, carried_y = last_x, last_y
     miss = math.hypot(x - carried_x, y - carried_y)
-    spread = position_var + last.position_var + 0.25 * velocity_var * dt * dt
+    spread = position_var + last_position_var + 0.25 * velocity_var * dt * dt
     if miss > max_speed * dt + 0.5 * accel * dt * dt + SIGMA_ALLOWANCE * math.sqrt(max(spread, 0.0)):
         return (
             f"position jumped {miss:.4g} m in {dt:.4g} s away from where the velocities carry the previous fix "
