@@ -434,7 +434,9 @@ def _point_of(fix: Fix, x: float, y: float, position_var: float, velocity_var: f
         total += fix.vy
     if not math.isfinite(total) and not _finite(fix.t, x, y, fix.vx, fix.vy, position_var, velocity_var):
         return None
-    return _new_point(_Point, (fix.t, x, y, fix.vx, fix.vy, max(position_var, 0.0), max(velocity_var, 0.0)))
+    if position_var < 0.0 or velocity_var < 0.0:  # round-off below zero kept as 0 (two max() calls a fix)
+        position_var, velocity_var = max(position_var, 0.0), max(velocity_var, 0.0)
+    return _new_point(_Point, (fix.t, x, y, fix.vx, fix.vy, position_var, velocity_var))
 
 
 def implausibility(fix: Fix, last: _Point | None, options: Mapping[str, Any]) -> str | None:
