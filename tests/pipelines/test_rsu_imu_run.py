@@ -26,7 +26,9 @@ def observations(seed: int, faults: RsuFaults | None = None) -> list:
     return run if faults is None else inject(run, faults, np.random.default_rng([seed, 2]))[0]
 
 
-def filtered(monkeypatch, runs: bool, observed: list, batch_epochs: int, options: dict) -> tuple[list, bytes, int]:
+def filtered(
+    monkeypatch, runs: bool, observed: list, batch_epochs: int, options: dict
+) -> tuple[list, bytes, int]:
     """The fixes and final state of ``observed`` sent in batches of ``batch_epochs`` epochs (20 Hz), with
     runs on or off; and how many epochs the runs did."""
     monkeypatch.setattr(rsu_imu_run, "MIN_RUN", 2 if runs else 10**9)
@@ -77,7 +79,9 @@ def test_runs_give_the_per_epoch_paths_fixes_and_state_bit_for_bit(monkeypatch, 
     options, faults = CASES[case]
     observed = observations(14, faults)
     fixes, state, done = filtered(monkeypatch, True, observed, batch_epochs, options)
-    reference_fixes, reference_state, reference_done = filtered(monkeypatch, False, observed, batch_epochs, options)
+    reference_fixes, reference_state, reference_done = filtered(
+        monkeypatch, False, observed, batch_epochs, options
+    )
     assert reference_done == 0
     assert done > len(fixes) // 2, "most epochs should go in runs"
     assert state == reference_state
