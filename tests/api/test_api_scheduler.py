@@ -8,13 +8,14 @@ on an event the test sets."""
 from __future__ import annotations
 
 import asyncio
+import functools
 import os
 import threading
 
 import pytest
 from edgepos.api.errors import ApiError
 from edgepos.api.metrics import Metrics
-from edgepos.api.scheduler import FairScheduler, LightLane
+from edgepos.api.scheduler import FairScheduler, LightLane, _Job, _RoundRobin, _timed
 
 
 def _record(order: list[str], name: str, gate: threading.Event | None = None) -> str:
@@ -275,3 +276,31 @@ def test_a_heavy_worker_does_not_outlive_a_killed_service() -> None:
         time.sleep(0.2)
     os.kill(worker, 9)
     raise AssertionError(f"heavy worker {worker} outlived its service by 60 s")
+
+
+def test_the_lines_depth_counts_the_jobs_waiting_as_they_come_and_go() -> None:
+    """``depth()`` (a count kept by push, pop and drain) is the number of jobs waiting in every key's line."""
+
+    async def scenario() -> None:
+        loop = asyncio.get_running_loop()
+        line = _RoundRobin()
+
+        def job(key: str) -> _Job:
+            return _Job(key, "test", functools.partial(_timed, int), loop.create_future(), loop, 0.0)
+
+        def waiting() -> int:
+            return sum(len(jobs) for jobs in line.waiting.values())
+
+        for key in ("A", "B", "A", "C", "A", "B"):
+            line.push(job(key))
+            assert line.depth() == waiting()
+        assert line.depth() == 6
+        for _ in range(4):
+            assert line.pop() is not None
+            assert line.depth() == waiting()
+        line.push(job("D"))
+        assert line.depth() == waiting() == 3
+        assert len(line.drain()) == 3 and line.depth() == 0
+        assert line.pop() is None and line.depth() == 0
+
+    asyncio.run(scenario())

@@ -837,6 +837,28 @@ def test_the_in_order_path_gives_the_general_paths_fixes_and_bytes(
         feed_both(batches, rsu_session(**options), monkeypatch)
 
 
+@pytest.mark.parametrize(
+    "odd_t",
+    [
+        lambda t: int(t) + 1,  # an int after the window: accepted as a number
+        lambda t: True,  # a bool: refused, as a number it is not
+        lambda t: math.nan,
+        lambda t: math.inf,
+        lambda t: t,  # a duplicate of its epoch's time, as an int when it is whole
+    ],
+)
+def test_batches_with_times_the_in_order_path_leaves_alone_answer_as_the_general_path(odd_t, monkeypatch):
+    """The in-order path tests a batch's times as a whole (floats, finite, in order): a batch with an int,
+    a bool, NaN or an infinity among them goes to the general path, with the same answer either way."""
+    batches = [[o for e in RSU_EPOCHS[k : k + 5] for o in e] for k in range(0, 20, 5)]
+    last = batches[-1]
+    last[-1] = dataclasses.replace(last[-1], t=odd_t(last[-1].t))
+    whole = [dataclasses.replace(o, t=float(round(o.t))) for o in RSU_EPOCHS[20]]
+    feed_both(
+        [*batches, whole, [dataclasses.replace(whole[0], t=int(whole[0].t))]], rsu_session(), monkeypatch
+    )
+
+
 def test_an_in_order_batch_after_a_late_one_still_replays_correctly(monkeypatch):
     """Late data, then batches in time order (the in-order path), then late data again reaching back
     before them: the result is time order's, and the in-order batches never decoded the window."""

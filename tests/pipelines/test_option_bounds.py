@@ -152,7 +152,7 @@ def test_six_model_bank_with_a_loose_start_answers_finite_fixes() -> None:
 @pytest.mark.parametrize(
     ("module", "builder", "pipeline", "observations"),
     [
-        (rsu_imu, "_fix", "rsu_imu", lambda: batch_observations(0, 2)),
+        (rsu_imu, "epoch_fix", "rsu_imu", lambda: batch_observations(0, 2)),
         (
             v2x_federated,
             "kinematic_fix",

@@ -13,7 +13,7 @@ import dataclasses
 import numpy as np
 import pytest
 from edgepos.core.compiled import BankStepper, CompiledBankStepper
-from edgepos.pipelines import rsu_imu
+from edgepos.pipelines import rsu_imu, rsu_imu_run
 from edgepos.pipelines.base import InitialState, StaticEnvironment
 from edgepos.pipelines.integrity import EXCLUDED
 from edgepos.pipelines.registry import get_pipeline
@@ -143,6 +143,7 @@ def test_the_one_call_epoch_gives_the_per_call_paths_fixes_and_states(scenario, 
         return prediction, result
 
     rsu_imu._stepper.cache_clear()
+    monkeypatch.setattr(rsu_imu_run, "MIN_RUN", 10**9)  # every epoch on its own (runs: test_rsu_imu_run.py)
     monkeypatch.setattr(CompiledBankStepper, "step", counted)
     fast = run_states(scenario, observations, options)
     monkeypatch.setattr(CompiledBankStepper, "step", BankStepper.step)

@@ -691,6 +691,29 @@ def test_a_fix_with_anything_not_finite_is_not_kept_for_the_next_check(field: st
     assert plausibility._point(huge) is not None
 
 
+@pytest.mark.parametrize(
+    ("position", "velocity"), [(-1e-12, 0.5), (0.25, -3e-15), (-1e-9, -2e-9), (0.0, -0.0)]
+)
+def test_a_negative_variance_is_kept_as_zero_and_the_other_as_it_is(position: float, velocity: float) -> None:
+    """Round-off can leave a covariance's trace a hair below zero: the kept point holds max(variance, 0)
+    of each (a negative zero stays as max leaves it)."""
+    fix = Fix(
+        t=1.0,
+        status="tracking",
+        x=2.0,
+        y=3.0,
+        vx=4.0,
+        vy=5.0,
+        position_cov=[[position, 0.0], [0.0, 0.0]],
+        kinematic_cov=[[0.0] * 4, [0.0] * 4, [0.0, 0.0, velocity, 0.0], [0.0] * 4],
+    )
+    point = plausibility._point(fix)
+    assert point is not None
+    for kept, trace in ((point.position_var, position + 0.0), (point.velocity_var, velocity + 0.0)):
+        want = max(trace, 0.0)
+        assert kept == want and math.copysign(1.0, kept) == math.copysign(1.0, want)
+
+
 NUMBERS = st.one_of(st.floats(-300.0, 300.0), st.sampled_from([math.nan, math.inf, 1e6, 0.0]))
 
 
@@ -714,7 +737,7 @@ def test_judging_a_fix_at_once_agrees_with_the_check_and_the_kept_point(now, bef
 
     last = None if before is None else plausibility._point(fix_of(0.0, before))
     fix = fix_of(0.05, now)
-    assert plausibility._judged(fix, last, OPTIONS) == (
+    assert plausibility._judged(fix, last, plausibility._bounds(OPTIONS)) == (
         implausibility(fix, last, OPTIONS),
         plausibility._point(fix),
     )

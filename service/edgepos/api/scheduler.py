@@ -45,6 +45,8 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from typing import Any, Literal, TypeVar
 
+from prometheus_client import Counter
+
 from edgepos.api.errors import ApiError
 from edgepos.api.metrics import Metrics
 
@@ -87,6 +89,21 @@ def _warm_worker(parent: int) -> None:
     warm_up()
 
 
+class _PipelineCpu:
+    """The pipeline CPU counter's child of each label, looked up once: ``labels()`` takes the metric's
+    lock and checks its values on every call, once per batch in every lane."""
+
+    def __init__(self, metrics: Metrics) -> None:
+        self._counter = metrics.pipeline_cpu
+        self._children: dict[str, Counter] = {}
+
+    def add(self, label: str, cpu_s: float) -> None:
+        child = self._children.get(label)
+        if child is None:  # two threads may both look it up: labels() gives both the same child
+            child = self._children[label] = self._counter.labels(label)
+        child.inc(cpu_s)
+
+
 @dataclass
 class _Job:
     key: str
@@ -105,10 +122,12 @@ class _RoundRobin:
 
     waiting: dict[str, collections.deque[_Job]] = field(default_factory=dict)
     turns: collections.OrderedDict[str, None] = field(default_factory=collections.OrderedDict)
+    count: int = 0  # jobs waiting, kept as they come and go: read twice per job, summed it cost O(keys)
 
     def push(self, job: _Job) -> None:
         self.waiting.setdefault(job.key, collections.deque()).append(job)
         self.turns.setdefault(job.key, None)
+        self.count += 1
 
     def pop(self) -> _Job | None:
         """The next job in turn, or None when nothing waits."""
@@ -121,15 +140,17 @@ class _RoundRobin:
             self.turns[key] = None  # its next job waits for everyone else's turn
         else:
             del self.waiting[key]
+        self.count -= 1
         return job
 
     def depth(self) -> int:
-        return sum(len(jobs) for jobs in self.waiting.values())
+        return self.count
 
     def drain(self) -> list[_Job]:
         jobs = [job for line in self.waiting.values() for job in line]
         self.waiting.clear()
         self.turns.clear()
+        self.count = 0
         return jobs
 
 
@@ -162,6 +183,7 @@ class _ThreadLane:
         self._stopping = False
         self._depth = metrics.queue_depth.labels(name)  # labelled once: labels() takes a lock each call
         self._wait = metrics.queue_wait.labels(name)
+        self._cpu = _PipelineCpu(metrics)
 
     def submit(self, job: _Job) -> None:
         with self._ready:
@@ -192,7 +214,7 @@ class _ThreadLane:
             except BaseException as error:  # noqa: BLE001  # every error goes back to the request that waits for it
                 outcome: tuple[Any, BaseException | None] = (None, error)
             else:
-                self.metrics.pipeline_cpu.labels(job.label).inc(cpu_s)
+                self._cpu.add(job.label, cpu_s)
                 outcome = (result, None)
             try:
                 job.loop.call_soon_threadsafe(_settle, job, *outcome)
@@ -224,6 +246,7 @@ class _LoopLane:
         self._serving: asyncio.Task[None] | None = None
         self._depth = metrics.queue_depth.labels(name)
         self._wait = metrics.queue_wait.labels(name)
+        self._cpu = _PipelineCpu(metrics)
 
     def submit(self, job: _Job) -> None:
         self._line.push(job)
@@ -246,7 +269,7 @@ class _LoopLane:
                     job.future.cancel()  # KeyboardInterrupt, SystemExit: free the request, then stop the loop
                     raise
                 else:
-                    self.metrics.pipeline_cpu.labels(job.label).inc(cpu_s)
+                    self._cpu.add(job.label, cpu_s)
                     job.future.set_result(result)
                 await asyncio.sleep(0)  # the loop's sockets and callbacks before the next job
         finally:
@@ -273,6 +296,7 @@ class _PoolLane:
         self.executor: Executor | None = None
         self._line = _RoundRobin()
         self.running = 0
+        self._cpu = _PipelineCpu(metrics)
 
     def get_executor(self) -> Executor:
         if self.executor is None:
@@ -318,7 +342,7 @@ class _PoolLane:
             error = running.exception()
             if error is None:
                 result, cpu_s = running.result()
-                self.metrics.pipeline_cpu.labels(job.label).inc(cpu_s)
+                self._cpu.add(job.label, cpu_s)
                 job.future.set_result(result)
             elif isinstance(error, BrokenProcessPool):
                 self._retire(job.executor)

@@ -60,6 +60,7 @@ class BankStepper:
     """The numpy reference: a bank's prediction, correction and gate distances for one epoch."""
 
     compiled = False
+    runs = False  # whether core.compiled_run steps a run of its epochs in one call
 
     def __init__(self, bank: InteractingMultipleModel) -> None:
         self.bank = bank
@@ -199,6 +200,7 @@ class CompiledBankStepper(BankStepper):
 
         self._epoch_kernels = kernels_epoch
         self._epoch_size = self._prediction_size + self._correction_size
+        self.runs = not self._uncovered
 
     @functools.lru_cache(maxsize=64)  # noqa: B019 (steppers live as long as their cached bank)
     def _step_matrices(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -474,6 +476,7 @@ _KERNEL_MODULES = (
     "kernels_turn",
     "kernels_integrity",
     "kernels_epoch",
+    "kernels_run",
     "measurements.gnss_kernel",
     "measurements.gnss_geometry",
     "measurements.gnss_raim_kernel",
@@ -529,8 +532,8 @@ def kernels_compiled() -> int:
 def warm_up() -> float:
     """Compile (or load from the on-disk cache) every kernel signature the service uses, so that no
     request pays it; returns the seconds it took. Runs one epoch of each covered filter kind, with
-    the paper's 2IMM-CKF bank, joint and averaged, and the gate, and the fused epoch
-    (``core.kernels_epoch``); the predictions also compile the
+    the paper's 2IMM-CKF bank, joint and averaged, and the gate, the fused epoch
+    (``core.kernels_epoch``) and a run of epochs (``core.kernels_run``); the predictions also compile the
     F and Q kernel (``core.kernels_motion``, one signature for every bank); then the integrity bank's
     kernels, gnss_tight's range kernel (``core.measurements.gnss_kernel``), its satellite geometry
     (``core.measurements.gnss_geometry``), RAIM and noise level
@@ -563,6 +566,10 @@ def warm_up() -> float:
         for averaged in (False, True):
             stepper.correct(prediction, dataclasses.replace(epoch, averaged=averaged))
         stepper.step(means, covs, np.full(3, 1.0 / 3.0), 0.05, epoch, (5.99, 3.84))  # core.kernels_epoch
+        if filter_name == "ckf":  # core.kernels_run: one signature serves every bank, monitored or not
+            from edgepos.core.compiled_run import warm_up_run
+
+            warm_up_run(stepper, epoch, means, covs)
     from edgepos.core import kernels_integrity
 
     kernels_integrity.warm_up()  # the integrity bank's kernels (core.integrity_bank)

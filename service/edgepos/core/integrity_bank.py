@@ -321,16 +321,8 @@ class SeparationBank:
         use, the sub-filters, the exclusions or the options kept from the epoch before (``_Plan``); else
         the numpy steps. ``prune``: when no test failed (no RSU to exclude), :meth:`prune` for ``rsu_ids``
         too, after the outcome (the kernel counts what it would drop, so the usual epoch skips it)."""
-        plan = self._plan
-        if (  # the plan of the epoch before serves (inline: this runs every epoch of every session)
-            plan is None
-            or plan.ids is not self.ids
-            or plan.rsu_ids != rsu_ids
-            or plan.budget is not budget
-            or plan.jerk_density != jerk_density
-            or plan.position != position
-            or ((plan.excluded or self.excluded) and plan.excluded != self.excluded.keys())
-        ):
+        plan = self.plan_for(rsu_ids, jerk_density, budget, position)
+        if plan is None:
             if not _compiled():  # (a plan exists only when the kernels are enabled)
                 x, y = position
                 fix = (float(mean[x]), float(mean[y]), float(cov[x, x]), float(cov[x, y]), float(cov[y, y]))
@@ -358,6 +350,36 @@ class SeparationBank:
             fix = (float(mean[x]), float(mean[y]), float(cov[x, x]), float(cov[x, y]), float(cov[y, y]))
             return self._pruned(self.protect_fix(fix, budget), rsu_ids, prune)
         return self._pruned(self._protection(scalars, budget), rsu_ids, prune)
+
+    def plan_for(
+        self, rsu_ids: Sequence[str], jerk_density: float, budget: IntegrityBudget, position: tuple[int, int]
+    ) -> _Plan | None:
+        """The plan of the epoch before when it serves an epoch with these RSUs in use and options (the same
+        sub-filters, exclusions, budget, jerk density and fix layout), else None (:meth:`epoch` makes one)."""
+        plan = self._plan
+        if (
+            plan is None
+            or plan.ids is not self.ids
+            or plan.rsu_ids != rsu_ids
+            or plan.budget is not budget
+            or plan.jerk_density != jerk_density
+            or plan.position != position
+            or ((plan.excluded or self.excluded) and plan.excluded != self.excluded.keys())
+        ):
+            return None
+        return plan
+
+    def run_plan(
+        self, rsu_ids: Sequence[str], jerk_density: float, budget: IntegrityBudget, position: tuple[int, int]
+    ) -> _Plan | None:
+        """:meth:`plan_for`, or a new plan when every RSU of ``rsu_ids`` has its sub-filter already (then
+        :meth:`epoch` would make the very same one, with nothing to spawn); None when a sub-filter is
+        missing. For a run of epochs on the compiled kernels (``pipelines.rsu_imu_run``), which starts
+        with a plan."""
+        plan = self.plan_for(rsu_ids, jerk_density, budget, position)
+        if plan is None and _compiled() and set(rsu_ids).issubset(self.ids[1:]):
+            plan = self._plan = _Plan.make(self, rsu_ids, jerk_density, budget, position)
+        return plan
 
     def _pruned(
         self, outcome: tuple[Protection, str | None], rsu_ids: Sequence[str], prune: bool

@@ -34,6 +34,7 @@ KERNEL_FILES = tuple(
         "kernels_turn.py",
         "kernels_integrity.py",
         "kernels_epoch.py",
+        "kernels_run.py",
         "measurements/gnss_kernel.py",
         "measurements/gnss_geometry.py",
         "measurements/gnss_raim_kernel.py",

@@ -116,8 +116,7 @@ class RsuGyroEpoch:
     @property
     def dim(self) -> int:
         """Measurement dimension of one update: every pair stacked, or one pair when averaged."""
-        pairs = 1 if self.averaged and self.rsu_count > 1 else self.rsu_count
-        return 2 * pairs + int(self.yaw_rates.size)
+        return measurement_dim(self.rsu_count, int(self.yaw_rates.size), self.averaged)
 
     def measurement(
         self, rsus: Sequence[int] | None = None
@@ -151,6 +150,12 @@ class RsuGyroEpoch:
             return AveragedCorrection(corrections)
         model, observed = self.measurement()
         return None if model is None or observed is None else JointCorrection(model, observed)
+
+
+def measurement_dim(rsus: int, gyros: int, averaged: bool) -> int:
+    """The measurement dimension of an epoch's update with ``rsus`` RSU pairs and ``gyros`` gyro readings:
+    every pair stacked, or one pair when the pairs' updates are averaged."""
+    return 2 * (1 if averaged and rsus > 1 else rsus) + gyros
 
 
 def new_epoch(

@@ -70,6 +70,8 @@ from edgepos.pipelines.lag_state import (  # noqa: F401  # re-exported: tests an
 )
 from edgepos.pipelines.wrapping import WrappingPipeline
 
+_INF = math.inf
+
 IN_ORDER_PATH = True
 """Whether a batch in time order takes ``LagWindow._in_order`` (the tests switch it off to compare)."""
 
@@ -212,7 +214,7 @@ class LagWindow(WrappingPipeline):
         epochs: list[list[Observation]] = []
         for observation in observations:
             t = observation.t
-            if not _finite(t):
+            if not (type(t) is float and -_INF < t < _INF) and not _finite(t):  # _finite's test, inline first
                 return None
             if t > previous:
                 times.append(t)

@@ -155,6 +155,10 @@ class _Point(typing.NamedTuple):
     velocity_var: float
 
 
+_new_point = tuple.__new__
+"""``_new_point(_Point, values)``: a ``_Point`` without the Python frame of its generated ``__new__``."""
+
+
 @dataclasses.dataclass
 class _Envelope:
     options: dict[str, Any]
@@ -430,26 +434,40 @@ def _point_of(fix: Fix, x: float, y: float, position_var: float, velocity_var: f
         total += fix.vy
     if not math.isfinite(total) and not _finite(fix.t, x, y, fix.vx, fix.vy, position_var, velocity_var):
         return None
-    return _Point(fix.t, x, y, fix.vx, fix.vy, max(position_var, 0.0), max(velocity_var, 0.0))
+    if position_var < 0.0 or velocity_var < 0.0:  # round-off below zero kept as 0 (two max() calls a fix)
+        position_var, velocity_var = max(position_var, 0.0), max(velocity_var, 0.0)
+    return _new_point(_Point, (fix.t, x, y, fix.vx, fix.vy, position_var, velocity_var))
 
 
 def implausibility(fix: Fix, last: _Point | None, options: Mapping[str, Any]) -> str | None:
     """Why ``fix`` is physically implausible after ``last`` (the previous judged fix), or None."""
     if fix.x is None or fix.y is None:
         return None  # no estimate (uninitialised): nothing to judge
-    return _implausibility(fix, fix.x, fix.y, last, options, _position_variance(fix), _velocity_variance(fix))
+    return _implausibility(
+        fix, fix.x, fix.y, last, _bounds(options), _position_variance(fix), _velocity_variance(fix)
+    )
 
 
-def _judged(fix: Fix, last: _Point | None, options: Mapping[str, Any]) -> tuple[str | None, _Point | None]:
-    """``implausibility(fix, last, options)`` and ``_point(fix)`` together, the fix's variances read once
-    (what ``_Judge`` asks of every fix)."""
-    if fix.x is None or fix.y is None:
+def _bounds(options: Mapping[str, Any]) -> tuple[float, float, float]:
+    """The bounds a fix is judged against: max_speed_mps, max_acceleration_mps2 and site_radius_m (read
+    from the options once per batch, not once per fix)."""
+    return options["max_speed_mps"], options["max_acceleration_mps2"], options["site_radius_m"]
+
+
+def _judged(
+    fix: Fix, last: _Point | None, bounds: tuple[float, float, float]
+) -> tuple[str | None, _Point | None]:
+    """``implausibility`` and ``_point`` of ``fix`` together (what ``_Judge`` asks of every fix), the fix's
+    variances read once; ``bounds`` from ``_bounds``."""
+    x, y = fix.x, fix.y
+    if x is None or y is None:
         return None, None
     position_var, velocity_var = _position_variance(fix), _velocity_variance(fix)
-    return (
-        _implausibility(fix, fix.x, fix.y, last, options, position_var, velocity_var),
-        _point_of(fix, fix.x, fix.y, position_var, velocity_var),
-    )
+    point = _point_of(fix, x, y, position_var, velocity_var)
+    if point is None:  # something is not finite: the check looks at each value
+        return _implausibility(fix, x, y, last, bounds, position_var, velocity_var), None
+    # a point is kept only when its position and velocity are finite, as the check's first test asks
+    return _beyond_bounds(fix, x, y, last, bounds, position_var, velocity_var), point
 
 
 def _implausibility(
@@ -457,7 +475,7 @@ def _implausibility(
     x: float,
     y: float,
     last: _Point | None,
-    options: Mapping[str, Any],
+    bounds: tuple[float, float, float],
     position_var: float,
     velocity_var: float,
 ) -> str | None:
@@ -465,40 +483,56 @@ def _implausibility(
     position and velocity variances given."""
     if not _finite(x, y, fix.vx, fix.vy):
         return "the estimate is not finite"
+    return _beyond_bounds(fix, x, y, last, bounds, position_var, velocity_var)
+
+
+def _beyond_bounds(
+    fix: Fix,
+    x: float,
+    y: float,
+    last: _Point | None,
+    bounds: tuple[float, float, float],
+    position_var: float,
+    velocity_var: float,
+) -> str | None:
+    """``_implausibility`` of a fix whose position and velocity are known finite."""
+    max_speed, accel, radius = bounds
     distance = math.hypot(x, y)
-    radius = options["site_radius_m"]
     if distance > radius:
         return f"position {distance:.4g} m from the site origin is beyond site_radius_m {radius:g} m"
-    if fix.vx is not None and fix.vy is not None:
-        speed = math.hypot(fix.vx, fix.vy)
-        if speed > options["max_speed_mps"] + SIGMA_ALLOWANCE * math.sqrt(velocity_var):
+    vx, vy = fix.vx, fix.vy
+    if vx is not None and vy is not None:
+        speed = math.hypot(vx, vy)
+        if speed > max_speed + SIGMA_ALLOWANCE * math.sqrt(velocity_var):
             return (
-                f"speed {speed:.4g} m/s exceeds max_speed_mps {options['max_speed_mps']:g} m/s (beyond the "
+                f"speed {speed:.4g} m/s exceeds max_speed_mps {max_speed:g} m/s (beyond the "
                 "filter's own velocity uncertainty)"
             )
-    if last is None or fix.status == "initialised" or not fix.t > last.t:
+    if last is None or fix.status == "initialised":
         return None  # a new track (or the first fix): nothing to compare with
-    dt = fix.t - last.t
-    accel = options["max_acceleration_mps2"]
-    velocity_var = velocity_var + last.velocity_var
-    if fix.vx is not None and fix.vy is not None and last.vx is not None and last.vy is not None:
-        change = math.hypot(fix.vx - last.vx, fix.vy - last.vy)
+    last_t, last_x, last_y, last_vx, last_vy, last_position_var, last_velocity_var = last  # read once
+    t = fix.t
+    if not t > last_t:
+        return None
+    dt = t - last_t
+    velocity_var = velocity_var + last_velocity_var
+    if vx is not None and vy is not None and last_vx is not None and last_vy is not None:
+        change = math.hypot(vx - last_vx, vy - last_vy)
         if change > accel * dt + SIGMA_ALLOWANCE * math.sqrt(velocity_var):
             return (
                 f"acceleration {change / dt:.4g} m/s^2 over {dt:.4g} s exceeds max_acceleration_mps2 {accel:g} "
                 "m/s^2 (beyond the filter's own velocity uncertainty)"
             )
-        carried_x = last.x + 0.5 * (last.vx + fix.vx) * dt
-        carried_y = last.y + 0.5 * (last.vy + fix.vy) * dt
+        carried_x = last_x + 0.5 * (last_vx + vx) * dt
+        carried_y = last_y + 0.5 * (last_vy + vy) * dt
     else:
-        carried_x, carried_y = last.x, last.y
+        carried_x, carried_y = last_x, last_y
     miss = math.hypot(x - carried_x, y - carried_y)
-    spread = position_var + last.position_var + 0.25 * velocity_var * dt * dt
-    speed = options["max_speed_mps"]
-    if miss > speed * dt + 0.5 * accel * dt * dt + SIGMA_ALLOWANCE * math.sqrt(max(spread, 0.0)):
+    spread = position_var + last_position_var + 0.25 * velocity_var * dt * dt
+    if miss > max_speed * dt + 0.5 * accel * dt * dt + SIGMA_ALLOWANCE * math.sqrt(max(spread, 0.0)):
         return (
             f"position jumped {miss:.4g} m in {dt:.4g} s away from where the velocities carry the previous fix "
-            f"(a displacement at {miss / dt:.4g} m/s beyond max_speed_mps {speed:g} m/s, and beyond the filter's "
+            f"(a displacement at {miss / dt:.4g} m/s beyond max_speed_mps {max_speed:g} m/s, and beyond the filter's "
             "own uncertainty)"
         )
     return None
@@ -524,6 +558,7 @@ class _Judge:
         self.inner = inner
         self.envelope = envelope
         self.options = envelope.options
+        self.bounds = _bounds(envelope.options)
         self.observations = observations
         self.environment = environment
 
@@ -561,7 +596,7 @@ class _Judge:
                 chunk = None if chunk is None else 2 * chunk
                 continue
             fix = queue.popleft()
-            reason, point = _judged(fix, envelope.last, self.options)
+            reason, point = _judged(fix, envelope.last, self.bounds)
             if reason is None:
                 envelope.last = point or envelope.last
                 judged.append(fix)

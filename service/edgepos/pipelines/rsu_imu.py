@@ -15,7 +15,6 @@ else on the numpy reference; both give the same fixes to rounding.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import json
 import math
@@ -25,16 +24,14 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, cast
 
 import numpy as np
-from scipy.stats import chi2
 
 from edgepos.core import layout
 from edgepos.core import state as state_format
 from edgepos.core.compiled import BankStepper, stepper_for
-from edgepos.core.errors import NumericalError
 from edgepos.core.filters import GaussianFilter, make_filter
 from edgepos.core.filters.sigma_points import SigmaPointFilter
 from edgepos.core.imm import Gaussian, InteractingMultipleModel, Prediction, StepResult
-from edgepos.core.integrity import UNAVAILABLE, Protection
+from edgepos.core.integrity import Protection
 from edgepos.core.integrity_bank import SeparationBank
 from edgepos.core.motion import MotionModel, make_motion_model
 from edgepos.core.observations import GyroObservation, Observation, RsuObservation
@@ -54,7 +51,9 @@ from edgepos.pipelines.base import (
 from edgepos.pipelines.integrity import bank_from_tail, monitored_update
 from edgepos.pipelines.options import resolve_options
 from edgepos.pipelines.rsu_imu_batch import Batch, EpochParts, batch_epochs, epoch_measurements, read_batch
+from edgepos.pipelines.rsu_imu_fix import epoch_fix
 from edgepos.pipelines.rsu_imu_options import OPTION_SPECS, cross_check, parameter_problems
+from edgepos.pipelines.rsu_imu_run import UNGATED, gate_threshold, gate_thresholds, run_fixes, used
 
 #: Standard deviations of the components an initial state does not give (acceleration m/s^2,
 #: heading rad, turn rate rad/s).
@@ -192,9 +191,18 @@ class RsuImuPipeline(Pipeline):
         session = _decode(state)
         batch = read_batch(session.options, session.t, observations, environment)
         bank = _bank(session.options_key)
-        fixes = []
-        for parts in batch_epochs(observations, batch, session.options):
-            fixes.append(_step(session, bank, parts, observations, batch))
+        stepper = _stepper(bank)
+        epochs = batch_epochs(observations, batch, session.options)
+        fixes: list[Fix] = []
+        k = 0
+        while k < len(epochs):  # runs of usual epochs in one compiled call, the others one by one
+            run = run_fixes(session, bank, stepper, epochs, k, observations)
+            if run:
+                fixes += run
+                k += len(run)
+            else:
+                fixes.append(_step(session, bank, epochs[k], observations, batch))
+                k += 1
         return ensure_finite_fixes(fixes), session.to_bytes()
 
     smoother: ClassVar[bool] = True
@@ -376,9 +384,9 @@ def _step(
         _initialise(session, bank, candidates, gyros, observations, batch.rsus)
         session.integrity_bank = None
         for i in candidates + gyros:
-            uses[i] = _used(i, observations[i].kind)
+            uses[i] = used(i, observations[i].kind)
         output = bank.combine(session.means, session.covs, session.probabilities)
-        return _fix(t, "initialised", output, session, bank, uses, nis=None, dof=0)
+        return epoch_fix(t, "initialised", output, session, bank, uses, nis=None, dof=0)
 
     dt = None if session.filter_t is None else t - session.filter_t
     stepper = _stepper(bank)
@@ -389,7 +397,7 @@ def _step(
         # the monitor leaves one of them out (monitored_update): the per-call path below
         prediction, fused = stepper.predict(session.means, session.covs, session.probabilities, dt), None
     else:  # in one compiled call when the gate keeps every measurement (fused None: it would not)
-        thresholds = _gate_thresholds(gate, bank.common) if gated else _UNGATED
+        thresholds = gate_thresholds(gate, bank.common) if gated else UNGATED
         prediction, fused = stepper.step(
             session.means, session.covs, session.probabilities, dt, measured, thresholds
         )
@@ -417,7 +425,7 @@ def _step(
     else:
         result = fused if fused is not None else stepper.correct(prediction, measured)
     for i in candidates + gyros:
-        uses[i] = _used(i, observations[i].kind)
+        uses[i] = used(i, observations[i].kind)
     coasting = not (candidates or gyros)
     session.means, session.covs = result.means, result.covs
     session.probabilities = result.probabilities
@@ -426,7 +434,7 @@ def _step(
     nis = None if coasting else float(result.probabilities.dot(result.nis))
     dof = 0 if coasting else measured.dim
     status = "predicted" if coasting else "tracking"
-    return _fix(t, status, result.output, session, bank, uses, nis, dof, protection)
+    return epoch_fix(t, status, result.output, session, bank, uses, nis, dof, protection)
 
 
 def _correct(
@@ -454,30 +462,6 @@ def _held_out(
     return any(cast(RsuObservation, observations[i]).rsu_id in held for i in candidates)
 
 
-#: ``BankStepper.step``'s thresholds when nothing is gated.
-_UNGATED = (-1.0, -1.0)
-
-
-@functools.lru_cache(maxsize=64)
-def _gate_thresholds(probability: float, components: tuple[int, ...]) -> tuple[float, float]:
-    """The gate's thresholds of an RSU pair and of a gyro reading (-1: gyros not gated, as ``_gate``
-    leaves them when the output lacks an acceleration) for ``BankStepper.step``."""
-    gyros = layout.XA in components and layout.YA in components
-    return _gate_threshold(probability, 2), _gate_threshold(probability, 1) if gyros else -1.0
-
-
-@functools.lru_cache(maxsize=4096)
-def _used(index: int, kind: str) -> MeasurementUse:
-    """The record of a measurement that entered the filter (immutable, so one instance serves every fix)."""
-    return MeasurementUse(index, kind, True)
-
-
-@functools.lru_cache(maxsize=64)
-def _gate_threshold(probability: float, dof: int) -> float:
-    """The chi-square quantile a squared Mahalanobis distance is gated at."""
-    return float(chi2.ppf(probability, dof))
-
-
 def _gate(
     candidates: list[int],
     gyros: list[int],
@@ -498,7 +482,7 @@ def _gate(
     rsu_array, gyro_array = stepper.gate_distances(prior, measured)
     rsu_distance, gyro_distance = rsu_array.tolist(), gyro_array.tolist()  # a handful: cheaper as floats
     kept_rsus = candidates
-    threshold = _gate_threshold(probability, 2)
+    threshold = gate_threshold(probability, 2)
     failed = [distance > threshold for distance in rsu_distance]
     failures = sum(failed)
     if failures and failures * 2 <= len(candidates):
@@ -510,7 +494,7 @@ def _gate(
                 )
     if not gyros or layout.XA not in prior.components or layout.YA not in prior.components:
         return kept_rsus, gyros
-    threshold = _gate_threshold(probability, 1)
+    threshold = gate_threshold(probability, 1)
     kept_gyros = []
     for i, distance in zip(gyros, gyro_distance):
         if distance > threshold:
@@ -564,98 +548,3 @@ def _initialise(
     session.means, session.covs = bank.initial(mean, np.diag(variances8))
     session.initialised = True
     session.filter_t = observations[candidates[0]].t
-
-
-@functools.lru_cache(maxsize=64)
-def _fix_layout(components: tuple[int, ...]) -> tuple[tuple[int, ...], int, int, tuple[str, ...]]:
-    """For an output over ``components``: the indices of x, y, vx and vy (the kinematic block's order),
-    of ax and ay (-1 when the output lacks them), and the components' names."""
-    order = list(components)
-    kinematic = tuple(order.index(c) for c in (layout.XP, layout.YP, layout.XV, layout.YV))
-    ax = order.index(layout.XA) if layout.XA in order else -1
-    ay = order.index(layout.YA) if layout.YA in order else -1
-    return kinematic, ax, ay, tuple(layout.NAMES[c] for c in order)
-
-
-#: Every field of a Fix in its order, with its default (None for those ``_new_fix`` is always given).
-_FIX_DEFAULTS = {
-    f.name: None if f.default is dataclasses.MISSING else f.default for f in dataclasses.fields(Fix)
-}
-
-
-def _new_fix(values: dict[str, Any]) -> Fix:
-    """A ``Fix`` of ``values`` (every field without a default among them) without its generated
-    ``__init__``: being frozen, that sets each of its 27 fields through ``object.__setattr__``, about
-    3 us a fix, a tenth of the Python around an epoch's filter step. The same object otherwise (equal,
-    pickled and serialised alike; tests/pipelines/test_pipeline_rsu_imu_process.py compares)."""
-    fix = object.__new__(Fix)
-    fields = fix.__dict__
-    fields.update(_FIX_DEFAULTS)
-    fields.update(values)
-    return fix
-
-
-def _fix(
-    t: float,
-    status: str,
-    output: Gaussian,
-    session: _SessionState,
-    bank: InteractingMultipleModel,
-    uses: dict[int, MeasurementUse],
-    nis: float | None,
-    dof: int,
-    protection: Protection | None = None,
-) -> Fix:
-    kinematic, ax, ay, names = _fix_layout(tuple(output.components))
-    state = output.mean.tolist()
-    state_cov = output.cov.tolist()
-    i_x, i_y, i_vx, i_vy = kinematic
-    vx, vy = state[i_vx], state[i_vy]
-    yaw_rate: float | None
-    if ax >= 0 and ay >= 0:  # the turn rate of the velocity vector from the fused kinematics
-        yaw_rate = float((vx * state[ay] - state[ax] * vy) / max(vx * vx + vy * vy, 0.01))
-    else:
-        yaw_rate = _carried_yaw_rate(session, bank)
-    rows = [state_cov[i] for i in kinematic]
-    return _new_fix(
-        {
-            "t": t,
-            "status": status,
-            "x": state[i_x],
-            "y": state[i_y],
-            "vx": vx,
-            "vy": vy,
-            "speed": math.hypot(vx, vy),
-            "heading": math.atan2(vy, vx),
-            "yaw_rate": yaw_rate,
-            "position_cov": [[rows[0][i_x], rows[0][i_y]], [rows[1][i_x], rows[1][i_y]]],
-            "kinematic_cov": [[row[i_x], row[i_y], row[i_vx], row[i_vy]] for row in rows],
-            "state_components": names,
-            "state": state,
-            "state_cov": state_cov,
-            "model_probabilities": dict(zip(session.options["models"], session.probabilities.tolist())),
-            "nis": nis,
-            "nis_dof": dof,
-            "measurements": [uses[i] for i in sorted(uses)],
-            "protection_level": None if protection is None else protection.level,
-            "integrity": UNAVAILABLE if protection is None else protection.state,
-        }
-    )
-
-
-def _carried_yaw_rate(session: _SessionState, bank: InteractingMultipleModel) -> float | None:
-    """The turn rate from the models that carry omega, when the fused output has no acceleration.
-
-    None when no model carries omega, or when those that do have no probability left: their
-    probabilities can underflow to exactly 0 when the others explain the measurements far better
-    (measured: all six models and a 1e4 m initial position std), and 0/0 is no turn rate."""
-    carriers = [j for j, m in enumerate(bank.models) if layout.OMEGA in m.components]
-    if not carriers:
-        return None
-    weights = session.probabilities[carriers]
-    total = float(weights.sum())
-    if not math.isfinite(total):
-        raise NumericalError("model probabilities are not finite")
-    if total <= 0.0:
-        return None
-    return float(np.dot(weights, session.means[carriers, layout.OMEGA]) / total)

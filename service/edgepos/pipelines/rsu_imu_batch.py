@@ -6,6 +6,7 @@ makes an epoch's arrays a few index operations instead of arrays built from Pyth
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -40,15 +41,24 @@ class Batch:
     def __init__(self, rsus: list[Rsu | None], rows: list[float], ranges: list[float]) -> None:
         self.rsus = rsus
         table = np.array(rows, dtype=float).reshape(len(rsus), 8)  # a flat list: half the time of tuples
-        self.positions = np.ascontiguousarray(table[:, 0:2])
-        self.observed = np.ascontiguousarray(table[:, 2:4])
-        self.range_std = np.ascontiguousarray(table[:, 4])
-        self.bearing_std = np.ascontiguousarray(table[:, 5])
-        self.range_variances = np.square(self.range_std)  # as RsuGyroEpoch.variances squares them
-        self.bearing_variances = np.square(self.bearing_std)
-        self.yaw_rates = np.ascontiguousarray(table[:, 6])
+        # columns as views of the table: every use takes rows of them (``take``), which makes new
+        # C-contiguous arrays for the kernels, so copying each column first only cost time
+        self.positions = table[:, 0:2]
+        self.observed = table[:, 2:4]
+        self.range_std = table[:, 4]
+        self.bearing_std = table[:, 5]
+        variances = np.square(table[:, 4:6])  # as RsuGyroEpoch.variances squares them
+        self.range_variances = variances[:, 0]
+        self.bearing_variances = variances[:, 1]
+        self.yaw_rates = table[:, 6]
         self.radii: list[float] = table[:, 7].tolist()
         self.ranges = ranges  # each observation's measured range, -1 for a gyro (ranges are >= 0)
+
+
+#: The largest finite float: ``lo <= v <= _MAX`` holds for a finite ``v >= lo`` and fails for NaN and infinity.
+_MAX = sys.float_info.max
+#: Bearings beyond +-(pi + 1e-9) rad are refused.
+_BEARING_EDGE = math.pi + 1e-9
 
 
 def read_batch(
@@ -58,7 +68,60 @@ def read_batch(
     environment: Environment,
 ) -> Batch:
     """Check the whole batch before touching the filter (every observation finite, none older than the
-    session's last epoch ``last_t``, every RSU known); return its observations' stations and arrays."""
+    session's last epoch ``last_t``, every RSU known); return its observations' stations and arrays.
+
+    A batch that passes every check (the usual one) is read in one pass of chained comparisons, each
+    refusing NaN and infinity as ``math.isfinite`` does; at the first observation that fails one, the
+    batch is read again by ``_checked_batch``, which lists every problem with its field and reason."""
+    rsus: list[Rsu | None] = []
+    rows: list[float] = []  # eight numbers per observation, see Batch
+    ranges: list[float] = []
+    default_range, default_bearing = options["range_std"], options["bearing_std"]
+    default_radius = options["comm_radius"]
+    earliest = -_MAX if last_t is None else last_t
+    find = environment.rsu
+    for observation in observations:
+        if not earliest <= observation.t <= _MAX:
+            return _checked_batch(options, last_t, observations, environment)
+        if type(observation) is RsuObservation:
+            rsu = find(observation.rsu_id)
+            measured, bearing = observation.range, observation.bearing
+            if rsu is None or not 0.0 <= measured <= _MAX or not -_BEARING_EDGE <= bearing <= _BEARING_EDGE:
+                return _checked_batch(options, last_t, observations, environment)
+            ranges.append(measured)
+            rows.extend(
+                (
+                    rsu.x,
+                    rsu.y,
+                    measured,
+                    bearing,
+                    rsu.range_std or default_range,
+                    rsu.bearing_std or default_bearing,
+                    0.0,
+                    rsu.radius or default_radius,
+                )
+            )
+        elif type(observation) is GyroObservation:
+            yaw_rate = observation.yaw_rate
+            if not -_MAX <= yaw_rate <= _MAX:
+                return _checked_batch(options, last_t, observations, environment)
+            rsu = None
+            ranges.append(-1.0)
+            rows.extend((0.0, 0.0, 0.0, 0.0, 0.0, 0.0, yaw_rate, 0.0))
+        else:  # another type (or a subclass): the checked reading decides
+            return _checked_batch(options, last_t, observations, environment)
+        rsus.append(rsu)
+    return Batch(rsus, rows, ranges)
+
+
+def _checked_batch(
+    options: Mapping[str, Any],
+    last_t: float | None,
+    observations: Sequence[Observation],
+    environment: Environment,
+) -> Batch:
+    """``read_batch`` observation by observation, collecting every problem: raises
+    ``PipelineInputError`` with all of them, or returns the batch when there are none."""
     problems = []
     rsus: list[Rsu | None] = []
     rows: list[float] = []  # eight numbers per observation, see Batch
@@ -152,12 +215,45 @@ def epoch_measurements(
     )
 
 
+class EpochRows:
+    """The measurement rows of every epoch of a batch, epoch after epoch (each epoch's RSU pairs and gyro
+    readings contiguous): what ``EpochParts.measured`` slices, and what a run of epochs hands the
+    compiled kernels in one call (``pipelines.rsu_imu_run``); with the options' gyro noise and RSU
+    handling, which every epoch's measurements share."""
+
+    __slots__ = (
+        "averaged",
+        "bearing_std",
+        "bearing_variances",
+        "gyro_std",
+        "observed",
+        "positions",
+        "range_std",
+        "range_variances",
+        "yaw_rates",
+    )
+
+    def __init__(
+        self, batch: Batch, rows: list[int], gyro_rows: list[int], options: Mapping[str, Any]
+    ) -> None:
+        index = np.array(rows, dtype=np.intp)
+        self.positions, self.observed = batch.positions.take(index, 0), batch.observed.take(index, 0)
+        self.range_std, self.bearing_std = batch.range_std.take(index), batch.bearing_std.take(index)
+        self.range_variances = batch.range_variances.take(index)
+        self.bearing_variances = batch.bearing_variances.take(index)
+        self.yaw_rates = batch.yaw_rates.take(np.array(gyro_rows, dtype=np.intp))
+        self.gyro_std: float = options["gyro_std"]
+        self.averaged: bool = options["rsu_handling"] == "average"
+
+
 class EpochParts:
     """One epoch of a batch as the pipeline's step takes it: its observations (indices into the batch),
     the RSUs in view it uses (nearest first) and its gyros, the records of the RSUs it leaves out
-    (``epoch_parts``; the step adds its own) and the measurement arrays of those it uses."""
+    (``epoch_parts``; the step adds its own), and where its measurements are in the batch's ``rows``
+    (from ``start`` and ``gyro_start``): ``measured`` slices them when first read, which an epoch that
+    goes in a run of epochs (``pipelines.rsu_imu_run``) never does."""
 
-    __slots__ = ("candidates", "gyros", "indices", "measured", "uses")
+    __slots__ = ("_measured", "candidates", "gyro_start", "gyros", "indices", "rows", "start", "uses")
 
     def __init__(
         self,
@@ -165,22 +261,45 @@ class EpochParts:
         candidates: list[int],
         gyros: list[int],
         uses: dict[int, MeasurementUse],
-        measured: RsuGyroEpoch,
+        rows: EpochRows,
+        start: int,
+        gyro_start: int,
     ) -> None:
         self.indices = indices
         self.candidates = candidates
         self.gyros = gyros
         self.uses = uses
-        self.measured = measured
+        self.rows = rows
+        self.start = start
+        self.gyro_start = gyro_start
+        self._measured: RsuGyroEpoch | None = None
+
+    @property
+    def measured(self) -> RsuGyroEpoch:
+        """The measurement arrays of the RSUs and gyros the epoch uses (slices of the batch's rows)."""
+        if self._measured is None:
+            rows, start, gyro_start = self.rows, self.start, self.gyro_start
+            end = start + len(self.candidates)
+            self._measured = new_epoch(
+                rows.positions[start:end],
+                rows.observed[start:end],
+                rows.range_std[start:end],
+                rows.bearing_std[start:end],
+                rows.yaw_rates[gyro_start : gyro_start + len(self.gyros)],
+                rows.gyro_std,
+                rows.averaged,
+                rows.range_variances[start:end],
+                rows.bearing_variances[start:end],
+            )
+        return self._measured
 
 
 def batch_epochs(
     observations: Sequence[Observation], batch: Batch, options: Mapping[str, Any]
 ) -> list[EpochParts]:
-    """The batch's epochs in time order (``group_by_time``), each with ``epoch_parts`` and the arrays
-    ``epoch_measurements`` gives: every epoch's rows taken in one ``take`` per array for the whole batch
-    and each epoch's arrays slices of those (contiguous rows: the same arrays to the kernels), 2.7 us an
-    epoch where taking them epoch by epoch cost 4.2."""
+    """The batch's epochs in time order (``group_by_time``), each with ``epoch_parts`` and where its rows
+    are: every epoch's rows taken in one ``take`` per array for the whole batch (``EpochRows``), each
+    epoch's arrays slices of those (contiguous rows: the same arrays to the kernels)."""
     selected = []
     rows: list[int] = []
     gyro_rows: list[int] = []
@@ -190,28 +309,8 @@ def batch_epochs(
         selected.append((epoch, candidates, gyros, uses, len(rows), len(gyro_rows)))
         rows += candidates
         gyro_rows += gyros
-    index = np.array(rows, dtype=np.intp)
-    positions, observed = batch.positions.take(index, 0), batch.observed.take(index, 0)
-    range_std, bearing_std = batch.range_std.take(index), batch.bearing_std.take(index)
-    range_variances, bearing_variances = (
-        batch.range_variances.take(index),
-        batch.bearing_variances.take(index),
-    )
-    yaw_rates = batch.yaw_rates.take(np.array(gyro_rows, dtype=np.intp))
-    gyro_std, averaged = options["gyro_std"], options["rsu_handling"] == "average"
-    parts = []
-    for epoch, candidates, gyros, uses, start, gyro_start in selected:
-        end = start + len(candidates)
-        measured = new_epoch(
-            positions[start:end],
-            observed[start:end],
-            range_std[start:end],
-            bearing_std[start:end],
-            yaw_rates[gyro_start : gyro_start + len(gyros)],
-            gyro_std,
-            averaged,
-            range_variances[start:end],
-            bearing_variances[start:end],
-        )
-        parts.append(EpochParts(epoch, candidates, gyros, uses, measured))
-    return parts
+    taken = EpochRows(batch, rows, gyro_rows, options)
+    return [
+        EpochParts(epoch, candidates, gyros, uses, taken, start, gyro_start)
+        for epoch, candidates, gyros, uses, start, gyro_start in selected
+    ]

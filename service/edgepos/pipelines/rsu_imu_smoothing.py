@@ -28,8 +28,9 @@ from edgepos.core.imm import InteractingMultipleModel
 from edgepos.core.observations import Observation
 from edgepos.core.smoothing import bank_pair_predictions, imm_smooth, lag_ends
 from edgepos.pipelines.base import Environment, Fix, PipelineInputError, Problem, ensure_finite_fixes
-from edgepos.pipelines.rsu_imu import _bank, _decode, _fix, _options_key, _SessionState, _step
+from edgepos.pipelines.rsu_imu import _bank, _decode, _options_key, _SessionState, _step
 from edgepos.pipelines.rsu_imu_batch import Batch, batch_epochs, read_batch
+from edgepos.pipelines.rsu_imu_fix import epoch_fix
 
 
 @dataclass
@@ -129,5 +130,5 @@ def _smoothed_fix(
     components, yaw rate, covariances); t, status, NIS and measurements are the filtered fix's."""
     view = dataclasses.replace(session, means=means, covs=covs, probabilities=probabilities)
     output = bank.combine(means, covs, probabilities)
-    fix = _fix(filtered.t, filtered.status, output, view, bank, {}, filtered.nis, filtered.nis_dof)
+    fix = epoch_fix(filtered.t, filtered.status, output, view, bank, {}, filtered.nis, filtered.nis_dof)
     return dataclasses.replace(fix, measurements=list(filtered.measurements))

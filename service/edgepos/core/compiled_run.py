@@ -1,0 +1,168 @@
+"""A run of usual epochs of an IMM/2IMM bank in one compiled call (``core.kernels_run``): its inputs and
+the call on a ``CompiledBankStepper``'s constant arrays.
+
+The per-epoch path (``CompiledBankStepper.step``, then the integrity bank's ``SeparationBank.epoch``)
+costs two kernel calls an epoch and the Python around them; a run of epochs that need neither the
+gate's nor the monitor's Python (``pipelines.rsu_imu_run`` decides which) costs one call for all, with
+the same kernels in the same order, so the same results to the last bit."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from edgepos.core.compiled import CompiledBankStepper
+from edgepos.core.imm import StepResult
+from edgepos.core.motion.base import dt_key
+from edgepos.core.updates import RsuGyroEpoch
+
+
+class RunRows(NamedTuple):
+    """A run's measurement rows, epoch after epoch, in ``kernels_run.run_epochs``'s order."""
+
+    positions: np.ndarray
+    observed: np.ndarray
+    yaw_rates: np.ndarray
+    range_variances: np.ndarray
+    bearing_variances: np.ndarray
+    range_std: np.ndarray
+    bearing_std: np.ndarray
+
+
+class RunMonitor(NamedTuple):
+    """The integrity bank a run steps after each epoch (``SeparationBank.epoch``'s arrays and plan):
+    its clock and a flag (0; 1 when the run ended on an epoch after which sub-filters are to be pruned)
+    as a two-element array (written back), the sub-filters' means and covariances (written in
+    place), the plan's work vector, the alert limit, and whether every sub-filter's RSU is in use."""
+
+    clock: np.ndarray
+    means: np.ndarray
+    covs: np.ndarray
+    work: np.ndarray
+    alert_limit: float
+    covered: bool
+
+
+#: A run without the monitor: arrays of the monitor's types (one compiled signature serves both).
+_NO_MONITOR = RunMonitor(np.zeros(2), np.zeros((0, 6)), np.zeros((0, 6, 6)), np.zeros(1), 0.0, True)
+
+
+def run_epochs(
+    stepper: CompiledBankStepper,
+    means: np.ndarray,
+    covs: np.ndarray,
+    probabilities: np.ndarray,
+    times: list[float],
+    dts: list[float],
+    rsu_bounds: list[int],
+    gyro_bounds: list[int],
+    rows: RunRows,
+    gyro_variance: float,
+    min_speed: float,
+    averaged: bool,
+    thresholds: tuple[float, float],
+    monitor: RunMonitor | None,
+) -> tuple[int, np.ndarray, np.ndarray]:
+    """A run of usual epochs from ``means``, ``covs``, ``probabilities`` (only when ``stepper.runs``):
+    epoch ``j`` at ``times[j]``, ``dts[j]`` after the one before, its measurements rows ``rsu_bounds[j]``
+    .. and ``gyro_bounds[j]`` .. of ``rows`` (the gyro's variance and the speed below which it is not used
+    as every epoch's ``RsuGyroEpoch`` has them), the gate at ``thresholds`` as ``stepper.step`` takes
+    them, and with a ``monitor`` the integrity bank stepped after each. Returns how many epochs were done
+    (the run stops before the first that needs the per-epoch path), every epoch's output
+    (``epoch_step``'s, a row each: read them with :func:`run_outputs` and :func:`posterior`) and
+    protection level (with a monitor; those of the epochs done)."""
+    from edgepos.core import kernels_run
+
+    count, nc = stepper._sizes
+    # a row wide enough for every epoch: the run's RSU pairs and gyro readings, all of them (no epoch has more)
+    outs = np.empty((len(dts), kernels_run.output_width(count, nc, len(rows.positions), len(rows.yaw_rates))))
+    levels = np.empty(len(dts))
+    step_dts = [dt_key(dt) if dt else 0.0 for dt in dts]  # the reference's rounding of dt for F and Q
+    done = kernels_run.run_epochs(
+        np.ascontiguousarray(means, dtype=float),
+        np.ascontiguousarray(covs, dtype=float),
+        np.ascontiguousarray(probabilities, dtype=float),
+        stepper._transition,
+        stepper._active,
+        stepper._common,
+        stepper._phi_slot,
+        stepper._motion_kinds,
+        stepper._motion_params,
+        stepper._kinds,
+        stepper._priority,
+        stepper._others,
+        stepper._filter_kind,
+        stepper._weights,
+        stepper._has_centre,
+        np.array(dts),
+        np.array(step_dts),
+        np.array(rsu_bounds),
+        np.array(gyro_bounds),
+        *rows,
+        gyro_variance,
+        min_speed**2,
+        averaged,
+        thresholds[0],
+        thresholds[1],
+        monitor is not None,
+        np.array(times),
+        *(monitor or _NO_MONITOR),
+        outs,
+        levels,
+    )
+    return done, outs, levels
+
+
+def run_outputs(
+    stepper: CompiledBankStepper, outs: np.ndarray, done: int
+) -> tuple[list[list[float]], list[list[float]], list[float]]:
+    """Per epoch done, from :func:`run_epochs`'s outputs: the fused mean followed by its covariance row
+    after row (one list), the model probabilities, and the models' NIS weighted by them. Read for all
+    epochs at once, where a ``StepResult`` per epoch made five views and two objects each."""
+    count, nc = stepper._sizes
+    size = stepper._prediction_size  # each output: the prediction's part, then the correction's
+    fused_at = size + 73 * count  # in the correction's: means, covs, probabilities, the fused mean and cov
+    block = outs[:done]
+    probabilities = block[:, fused_at - count : fused_at]
+    nis = block[:, 2 * size + count : 2 * size + 2 * count]  # the tail: log-likelihoods, then NIS
+    weighted = [float(p.dot(n)) for p, n in zip(probabilities, nis)]  # as rsu_imu._step: the same dot
+    return block[:, fused_at : fused_at + nc * (1 + nc)].tolist(), probabilities.tolist(), weighted
+
+
+def posterior(stepper: CompiledBankStepper, outs: np.ndarray, epoch: int) -> StepResult:
+    """Epoch ``epoch``'s correction from :func:`run_epochs`'s outputs (views of them)."""
+    return stepper._step_result(outs[epoch, stepper._prediction_size :])
+
+
+def warm_up_run(
+    stepper: CompiledBankStepper, epoch: RsuGyroEpoch, means: np.ndarray, covs: np.ndarray
+) -> None:
+    """Compile (or load) ``kernels_run.run_epochs``: a run of two epochs of ``epoch``'s measurements."""
+    positions, observed, yaw_rates, range_variances, bearing_variances, gyro_variance = epoch.kernel_arrays
+    arrays = (
+        positions,
+        observed,
+        yaw_rates,
+        range_variances,
+        bearing_variances,
+        epoch.range_std,
+        epoch.bearing_std,
+    )
+    rsus, gyros = positions.shape[0], yaw_rates.shape[0]
+    run_epochs(
+        stepper,
+        means,
+        covs,
+        np.full(means.shape[0], 1.0 / means.shape[0]),
+        [0.05, 0.1],
+        [0.05, 0.05],
+        [0, rsus, 2 * rsus],
+        [0, gyros, 2 * gyros],
+        RunRows(*(np.ascontiguousarray(np.concatenate([a, a]), dtype=float) for a in arrays)),
+        gyro_variance,
+        epoch.gyro_min_speed,
+        False,
+        (5.99, 3.84),
+        None,
+    )

@@ -1,0 +1,196 @@
+"""Runs of usual ``rsu_imu`` epochs in one compiled call, and the gate's and records' small caches the
+per-epoch step shares.
+
+An epoch is usual when the filter is initialised and steps on the compiled kernels, it has an RSU in
+view, it comes within ``max_gap`` of the one before and, with the integrity monitor on, the monitor
+holds no RSU out and its plan of the epoch before serves this epoch's RSUs (the same RSUs in use, in the
+same order). ``run_fixes`` hands a run of such epochs to ``core.compiled_run.run_epochs`` (``core.kernels_run``),
+which steps them with the same kernels as the per-epoch path (``rsu_imu._step``) and stops before the
+first that needs that path (a measurement the gate leaves out, a failed step, a failed integrity test,
+an alarm, sub-filters to prune); then makes their fixes as ``_step`` does. The fixes and the state are
+the per-epoch path's bit for bit (tests/pipelines/test_rsu_imu_run.py compares).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, cast
+
+import numpy as np
+from scipy.stats import chi2
+
+from edgepos.core import layout
+from edgepos.core.compiled import BankStepper, CompiledBankStepper
+from edgepos.core.compiled_run import RunMonitor, RunRows, posterior, run_epochs, run_outputs
+from edgepos.core.imm import InteractingMultipleModel
+from edgepos.core.integrity import OK, new_protection
+from edgepos.core.observations import Observation, RsuObservation
+from edgepos.core.updates import measurement_dim
+from edgepos.pipelines.base import Fix, MeasurementUse
+from edgepos.pipelines.integrity import _monitor_of, _position_index
+from edgepos.pipelines.rsu_imu_batch import EpochParts
+from edgepos.pipelines.rsu_imu_fix import has_acceleration, listed_fix
+
+if TYPE_CHECKING:  # the session type only: rsu_imu imports this module
+    from edgepos.pipelines.rsu_imu import _SessionState
+
+#: Runs shorter than this go the per-epoch path: one epoch gains less than the run's call costs.
+MIN_RUN = 2
+
+#: ``BankStepper.step``'s thresholds when nothing is gated.
+UNGATED = (-1.0, -1.0)
+
+
+@functools.lru_cache(maxsize=64)
+def gate_threshold(probability: float, dof: int) -> float:
+    """The chi-square quantile a squared Mahalanobis distance is gated at."""
+    return float(chi2.ppf(probability, dof))
+
+
+@functools.lru_cache(maxsize=64)
+def gate_thresholds(probability: float, components: tuple[int, ...]) -> tuple[float, float]:
+    """The gate's thresholds of an RSU pair and of a gyro reading (-1: gyros not gated, as ``_gate``
+    leaves them when the output lacks an acceleration) for ``BankStepper.step``."""
+    gyros = layout.XA in components and layout.YA in components
+    return gate_threshold(probability, 2), gate_threshold(probability, 1) if gyros else -1.0
+
+
+@functools.lru_cache(maxsize=4096)
+def used(index: int, kind: str) -> MeasurementUse:
+    """The record of a measurement that entered the filter (immutable, so one instance serves every fix)."""
+    return MeasurementUse(index, kind, True)
+
+
+def run_fixes(
+    session: _SessionState,
+    bank: InteractingMultipleModel,
+    stepper: BankStepper,
+    epochs: Sequence[EpochParts],
+    first: int,
+    observations: Sequence[Observation],
+) -> list[Fix]:
+    """The fixes of the usual epochs from ``epochs[first]`` on, stepped in one compiled call, with the
+    session (and its integrity bank) advanced past them; none when fewer than ``MIN_RUN`` qualify."""
+    options = session.options
+    if not (stepper.runs and session.initialised and session.filter_t is not None):
+        return []
+    if not has_acceleration(bank.common):  # the turn rate then comes from the models' states: per epoch
+        return []
+    monitored = bool(options["integrity"])
+    integrity_bank = session.integrity_bank
+    if monitored and (integrity_bank is None or integrity_bank.excluded):
+        return []
+    monitor, jerk_density = _monitor_of(options)
+    position = _position_index(bank.common)
+    max_gap = options["max_gap"]
+    last_t: float = session.filter_t
+    times: list[float] = []
+    in_use: list[str] | None = None
+    plan = None
+    for parts in epochs[first:]:
+        t = observations[parts.indices[0]].t
+        if not parts.candidates or t - last_t > max_gap:
+            break
+        if integrity_bank is not None and monitored:
+            ids = [cast(RsuObservation, observations[i]).rsu_id for i in parts.candidates]
+            if in_use is None:
+                plan = integrity_bank.run_plan(ids, jerk_density, monitor.budget, position)
+                if plan is None:
+                    break
+                in_use = ids
+            elif ids != in_use:
+                break
+        times.append(t)
+        last_t = t
+    if len(times) < MIN_RUN:
+        return []
+    run = epochs[first : first + len(times)]
+    rsu_base, gyro_base = run[0].start, run[0].gyro_start
+    rsu_bounds = [p.start - rsu_base for p in run] + [run[-1].start + len(run[-1].candidates) - rsu_base]
+    gyro_bounds = [p.gyro_start - gyro_base for p in run] + [
+        run[-1].gyro_start + len(run[-1].gyros) - gyro_base
+    ]
+    rows = run[0].rows
+    rsu_rows, gyro_rows = (
+        slice(rsu_base, rsu_base + rsu_bounds[-1]),
+        slice(gyro_base, gyro_base + gyro_bounds[-1]),
+    )
+    measured = run[0].measured
+    gate = options["gate_probability"]
+    run_monitor = None
+    if integrity_bank is not None and monitored and plan is not None:
+        run_monitor = RunMonitor(
+            np.array([integrity_bank.t, 0.0]),
+            integrity_bank.means,
+            integrity_bank.covs,
+            plan.scalars,
+            monitor.budget.alert_limit,
+            plan.covered,
+        )
+    compiled = cast(CompiledBankStepper, stepper)
+    done, outs, levels = run_epochs(
+        compiled,
+        session.means,
+        session.covs,
+        session.probabilities,
+        times,
+        [t - before for before, t in zip([session.filter_t, *times], times)],  # as _step's t - filter_t
+        rsu_bounds,
+        gyro_bounds,
+        RunRows(
+            rows.positions[rsu_rows],
+            rows.observed[rsu_rows],
+            rows.yaw_rates[gyro_rows],
+            rows.range_variances[rsu_rows],
+            rows.bearing_variances[rsu_rows],
+            rows.range_std[rsu_rows],
+            rows.bearing_std[rsu_rows],
+        ),
+        measured.kernel_arrays[5],
+        measured.gyro_min_speed,
+        bool(measured.averaged),
+        gate_thresholds(gate, bank.common) if gate > 0.0 else UNGATED,
+        run_monitor,
+    )
+    if not done:
+        return []
+    fused, probabilities, nis = run_outputs(compiled, outs, done)
+    components = bank.common
+    nc = len(components)
+    models = options["models"]
+    fixes = []
+    for parts, t, row, weights, weighted, level in zip(
+        run, times, fused, probabilities, nis, levels.tolist()
+    ):
+        uses = parts.uses
+        for i in parts.candidates:
+            uses[i] = used(i, "rsu")
+        for i in parts.gyros:
+            uses[i] = used(i, "gyro")
+        state_cov = [row[start : start + nc] for start in range(nc, nc * (1 + nc), nc)]
+        protection = new_protection(level, OK) if run_monitor is not None else None
+        fixes.append(
+            listed_fix(
+                t,
+                "tracking",
+                components,
+                row[:nc],
+                state_cov,
+                dict(zip(models, weights)),
+                uses,
+                weighted,
+                measurement_dim(len(parts.candidates), len(parts.gyros), rows.averaged),
+                protection,
+                None,  # the run's outputs have both accelerations (checked above): no carried turn rate
+            )
+        )
+    last = posterior(compiled, outs, done - 1)
+    session.means, session.covs, session.probabilities = last.means, last.covs, last.probabilities
+    session.t = session.filter_t = times[done - 1]
+    session.epochs += done
+    if integrity_bank is not None and run_monitor is not None:
+        integrity_bank.t = float(run_monitor.clock[0])
+        if run_monitor.clock[1] and in_use is not None:  # as SeparationBank.epoch after such an epoch
+            integrity_bank.prune(in_use)
+    return fixes

@@ -1,0 +1,95 @@
+"""Runs of usual rsu_imu epochs in one compiled call (pipelines/rsu_imu_run.py) against the per-epoch path:
+the same fixes and the same state bytes, to the last bit, through faults the monitor detects and
+excludes, a range step the gate refuses, RSUs entering and leaving view, and batches of every size."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from edgepos.core import compiled_run
+from edgepos.core.compiled import compiled_enabled
+from edgepos.eval.rsu_imu_montecarlo import initial_state
+from edgepos.pipelines import rsu_imu_run
+from edgepos.pipelines.registry import get_pipeline
+from edgepos.sim.faults import RsuFaults, inject
+from edgepos.sim.scenarios import rsu_imu_paper_scenario
+from edgepos.sim.sensors import environment, rsu_imu_epochs
+
+pytestmark = pytest.mark.skipif(not compiled_enabled(), reason="runs step on the compiled kernels only")
+
+SCENARIO = rsu_imu_paper_scenario()
+ENV = environment(SCENARIO)
+
+
+def observations(seed: int, faults: RsuFaults | None = None) -> list:
+    run = [o for epoch in rsu_imu_epochs(SCENARIO, np.random.default_rng(seed)) for o in epoch]
+    return run if faults is None else inject(run, faults, np.random.default_rng([seed, 2]))[0]
+
+
+def filtered(
+    monkeypatch, runs: bool, observed: list, batch_epochs: int, options: dict
+) -> tuple[list, bytes, int]:
+    """The fixes and final state of ``observed`` sent in batches of ``batch_epochs`` epochs (20 Hz), with
+    runs on or off; and how many epochs the runs did."""
+    monkeypatch.setattr(rsu_imu_run, "MIN_RUN", 2 if runs else 10**9)
+    done = 0
+    original = compiled_run.run_epochs
+
+    def counted(*args, **kwargs):
+        nonlocal done
+        result = original(*args, **kwargs)
+        done += result[0]
+        return result
+
+    monkeypatch.setattr(rsu_imu_run, "run_epochs", counted)
+    pipeline = get_pipeline("rsu_imu")
+    state = pipeline.create(pipeline.resolve_options(options), initial_state(SCENARIO))
+    fixes = []
+    times = sorted({o.t for o in observed})
+    for first in range(0, len(times), batch_epochs):
+        chosen = set(times[first : first + batch_epochs])
+        fixes_now, state = pipeline.process(state, [o for o in observed if o.t in chosen], ENV)
+        fixes += fixes_now
+    return fixes, state, done
+
+
+CASES = {
+    "defaults": ({}, None),
+    "monitor off": ({"integrity": False}, None),
+    "gate off": ({"gate_probability": 0.0}, None),
+    "averaged updates": ({"rsu_handling": "average"}, None),
+    "a bearing fault the monitor excludes": (
+        {},
+        RsuFaults(run_fraction=1.0, range_bias_m=0.0, bearing_offset_rad=0.05, duration_s=10.0),
+    ),
+    "a bearing fault raising the alarm": (
+        {"fault_exclusion": False},
+        RsuFaults(run_fraction=1.0, range_bias_m=0.0, bearing_offset_rad=0.05, duration_s=10.0),
+    ),
+    "a range step the gate refuses": (
+        {},
+        RsuFaults(run_fraction=1.0, range_bias_m=5.0, bearing_offset_rad=0.0, duration_s=10.0),
+    ),
+}
+
+
+@pytest.mark.parametrize("batch_epochs", [20, 7])
+@pytest.mark.parametrize("case", list(CASES))
+def test_runs_give_the_per_epoch_paths_fixes_and_state_bit_for_bit(monkeypatch, case, batch_epochs) -> None:
+    options, faults = CASES[case]
+    observed = observations(14, faults)
+    fixes, state, done = filtered(monkeypatch, True, observed, batch_epochs, options)
+    reference_fixes, reference_state, reference_done = filtered(
+        monkeypatch, False, observed, batch_epochs, options
+    )
+    assert reference_done == 0
+    assert done > len(fixes) // 2, "most epochs should go in runs"
+    assert state == reference_state
+    assert len(fixes) == len(reference_fixes)
+    for fix, reference in zip(fixes, reference_fixes):
+        assert fix == reference, fix.t
+
+
+def test_one_epoch_batches_never_run(monkeypatch) -> None:
+    fixes, _, done = filtered(monkeypatch, True, observations(3)[:200], 1, {})
+    assert fixes and done == 0
