@@ -255,3 +255,22 @@ def test_the_state_keeps_its_options_as_text(recording) -> None:  # type: ignore
     for corrupt in ("{not json", "[1, 2]", 5):
         with pytest.raises(state_format.StateFormatError, match="options"):
             decode_session(state_format.pack({**meta, "options_json": corrupt}, arrays))
+
+
+def test_the_scores_medians_are_per_group() -> None:
+    """``normalised_scores`` removes each group's median (three rows or more) from its rows only: the
+    boolean-mask form it replaced, bit for bit, on groups interleaved as an epoch's constellations are."""
+    from edgepos.pipelines.gnss_faults import normalised_scores
+
+    rng = np.random.default_rng(11)
+    for count in (1, 2, 5, 9, 20, 31):
+        residual = rng.normal(0.0, 5.0, count)
+        variance = rng.uniform(1.0, 9.0, count)
+        groups = [("G", "C", "E", "R")[k] for k in rng.integers(0, 4, count)]
+        centred = residual.copy()
+        labels = np.array(groups)
+        for group in set(groups):
+            members = labels == group
+            if members.sum() >= 3:
+                centred[members] -= np.median(centred[members])
+        np.testing.assert_array_equal(normalised_scores(residual, variance, groups), centred**2 / variance)

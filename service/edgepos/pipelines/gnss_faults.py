@@ -51,10 +51,9 @@ def normalised_scores(residual: np.ndarray, variance: np.ndarray, groups: Sequen
     """residual^2 / variance with each group's median removed when it has three or more rows (a receiver
     clock, or clock drift, moves a group alike)."""
     centred = np.array(residual, dtype=float)
-    labels = np.array(groups)
     for group in set(groups):
-        members = labels == group
-        if members.sum() >= 3:
+        members = [row for row, label in enumerate(groups) if label == group]
+        if len(members) >= 3:
             centred[members] -= median(centred[members])
     scores: np.ndarray = centred**2 / variance
     return scores
@@ -201,7 +200,7 @@ def screen(
     multiplier (aligned with the kept rows), and per row (excluded or down-weighted) the reason."""
     probability, persistence, recovery = fault_settings(session.options)
     verdict = judge(session.faults, keys, scores, t, probability, persistence, recovery, unit)
-    reasons = {int(r): why for r, why in zip(rows, verdict.reasons) if why is not None}
+    reasons = {r: why for r, why in zip(rows.tolist(), verdict.reasons) if why is not None}
     keep = ~verdict.excluded
     return rows[keep], verdict.inflation[keep], reasons
 

@@ -593,9 +593,9 @@ def _filter_epoch(
     filt = filter_for(options)
     result = filt.step(session.cloud, model, dt, active, measurement, rng)
     if not (
-        np.all(np.isfinite(result.mean))
-        and np.all(np.isfinite(result.cov))
-        and np.all(np.isfinite(result.cloud.particles))
+        np.isfinite(result.mean).all()
+        and np.isfinite(result.cov).all()
+        and np.isfinite(result.cloud.particles).all()
     ):
         raise NumericalError("the filter step gave a non-finite state")
     session.cloud = result.cloud
