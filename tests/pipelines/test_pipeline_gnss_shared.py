@@ -274,3 +274,19 @@ def test_the_scores_medians_are_per_group() -> None:
             if members.sum() >= 3:
                 centred[members] -= np.median(centred[members])
         np.testing.assert_array_equal(normalised_scores(residual, variance, groups), centred**2 / variance)
+
+
+def test_the_jacobian_has_one_clock_column_per_constellation() -> None:
+    """``jacobian``: the ranges' derivatives by north, east and up, then a 1 in the column of each row's
+    constellation (sorted by name), as a row-by-row loop over ``groups.index`` gives."""
+    from edgepos.pipelines.gnss_integrity import jacobian
+
+    rng = np.random.default_rng(4)
+    for systems in (["G"] * 6, ["G", "E", "C", "G", "C", "E", "E"], ["E", "C", "C", "C", "C"]):
+        ranges = rng.normal(size=(4, len(systems)))
+        groups = sorted(set(systems))
+        expected = np.zeros((len(systems), 3 + len(groups)))
+        expected[:, :3] = ranges[1:].T
+        for row, system in enumerate(systems):
+            expected[row, 3 + groups.index(system)] = 1.0
+        np.testing.assert_array_equal(jacobian(ranges, systems), expected)

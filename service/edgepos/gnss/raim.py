@@ -27,6 +27,7 @@ The hypotheses are computed by a compiled kernel (core/measurements/gnss_raim_ke
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -75,7 +76,17 @@ class Separations:
         """The failed hypothesis to exclude first (its index and sqrt(q)), None when every test passes: the
         satellite whose test fails most, or, when no satellite's fails, the constellation's (a satellite's
         fault also fails its constellation's test, by more). ``size`` 1: satellites only; >1: only
-        constellations."""
+        constellations. Over all hypotheses it is found once per epoch's separations (the exclusion and the
+        protection level both ask)."""
+        if size is None:
+            return self._worst_of_all
+        return self._worst(size)
+
+    @functools.cached_property
+    def _worst_of_all(self) -> tuple[int, float] | None:
+        return self._worst(None)
+
+    def _worst(self, size: int | None) -> tuple[int, float] | None:
         best: tuple[int, float, int] | None = None
         for index, hypothesis in enumerate(self.hypotheses):
             statistic = hypothesis[3]
@@ -282,7 +293,8 @@ def _compiled_separations(
     hypotheses in the same order; None when the kernel declines (a normal matrix not positive definite, a
     solution not finite), and the numpy form decides."""
     number = {system: k for k, system in enumerate(groups)}
-    group = np.array([number[s] for s in systems], dtype=np.int64)
+    numbers = [number[s] for s in systems]
+    group = np.array(numbers, dtype=np.int64)
     solved = kernel_separations(h, group, len(groups), z, w, prior)
     if solved is None:
         return None
@@ -296,7 +308,7 @@ def _compiled_separations(
     ]
     if len(groups) > 1:
         for k in range(len(groups)):
-            rows = tuple(np.flatnonzero(group == k).tolist())
+            rows = tuple(j for j, g in enumerate(numbers) if g == k)
             hypotheses.append(
                 (
                     rows,

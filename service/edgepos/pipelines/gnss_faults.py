@@ -26,7 +26,7 @@ from edgepos.core.measurements.gnss_kernel import range_rates_at
 from edgepos.core.measurements.range_rate import RangeRateModel
 from edgepos.core.motion import riss as layout
 from edgepos.gnss.measurements import PseudorangeSet
-from edgepos.pipelines.gnss_screening import chi2_threshold, median, range_residuals
+from edgepos.pipelines.gnss_screening import VELOCITY_BLOCK, chi2_threshold, median, range_residuals
 from edgepos.pipelines.gnss_session import GnssSession
 
 History = dict[str, list[float]]
@@ -181,8 +181,7 @@ def rate_innovations(
     if predicted is None:
         predicted = centre_rates(session.anchor, centre, prs, rows)
     residual = prs.range_rate_mps[rows] - predicted[rows]
-    velocity = [layout.VE, layout.VN, layout.VU]
-    variance = std[rows] ** 2 + float(np.trace(predicted_cov[np.ix_(velocity, velocity)]))
+    variance = std[rows] ** 2 + float(np.trace(predicted_cov[VELOCITY_BLOCK]))
     if rows.size < 3:
         variance = variance + predicted_cov[layout.DRIFT, layout.DRIFT]
     return normalised_scores(residual, variance, ["drift"] * rows.size)

@@ -29,6 +29,9 @@ from edgepos.pipelines.gnss_session import GnssSession, session_covariance
 DopplerUses = dict[int, tuple[bool, str | None]]
 """Per observation index, whether its Doppler entered the update and, if not, why."""
 
+VELOCITY_BLOCK = np.ix_([layout.VE, layout.VN, layout.VU], [layout.VE, layout.VN, layout.VU])
+"""The velocity block's index arrays, built once (``np.ix_`` costs more than the indexing it serves)."""
+
 
 def range_rate_test(
     session: GnssSession,
@@ -76,8 +79,7 @@ def range_rate_test(
         residual = prs.range_rate_mps[rows] - predicted[rows]
     if predicted_cov is None:
         predicted_cov = session_covariance(session) + model.process_noise(dt)
-    velocity = [layout.VE, layout.VN, layout.VU]
-    variance = std[rows] ** 2 + float(np.trace(predicted_cov[np.ix_(velocity, velocity)]))
+    variance = std[rows] ** 2 + float(np.trace(predicted_cov[VELOCITY_BLOCK]))
     if rows.size >= 3:
         residual = residual - median(residual)
     else:
