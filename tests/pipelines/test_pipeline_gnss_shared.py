@@ -22,7 +22,7 @@ from edgepos.pipelines import gnss_tight
 from edgepos.pipelines.base import Fix, MeasurementUse, StaticEnvironment
 from edgepos.pipelines.gnss_integrity import EXCLUDED, WARM_HYPOTHESES, warm_up_gnss_tables
 from edgepos.pipelines.gnss_satellites import EpochSatellites, replaced
-from edgepos.pipelines.gnss_screening import left_out, median
+from edgepos.pipelines.gnss_screening import group_rows, left_out, median
 from edgepos.pipelines.gnss_session import cloud_moments, decode_session
 from gnssrecording import recording_epochs
 
@@ -274,6 +274,10 @@ def test_the_scores_medians_are_per_group() -> None:
             if members.sum() >= 3:
                 centred[members] -= np.median(centred[members])
         np.testing.assert_array_equal(normalised_scores(residual, variance, groups), centred**2 / variance)
+        members = group_rows(groups)
+        assert sorted(members) == sorted(set(groups))
+        for group, rows in members.items():
+            assert rows == np.flatnonzero(labels == group).tolist()
 
 
 def test_the_jacobian_has_one_clock_column_per_constellation() -> None:

@@ -111,7 +111,7 @@ def honesty(
         value: np.ndarray = scale * averaged_variance(count, memory, model, dt)[0]
         return value
 
-    h = jacobian(ranges[:, rows], [systems[r] for r in rows])
+    h = jacobian(ranges[:, rows], [systems[r] for r in rows.tolist()])
     if compiled_enabled():
         if h.shape[0] <= h.shape[1] or float(np.trace(predicted_horizontal)) <= 0.0:
             return Honesty()  # honest_factor's None: the rows alone do not fix the position
@@ -156,7 +156,7 @@ def level_inputs(
     model = model_of(options)
     if model is not None and dt > 0.0:
         variance = variance / smoothing[rows] ** 2 * model.smoothed_variance(count[rows], dt)
-    h = jacobian(ranges[:, rows], [systems[r] for r in rows])
+    h = jacobian(ranges[:, rows], [systems[r] for r in rows.tolist()])
     return h, pseudorange[rows] - ranges[0, rows], variance
 
 

@@ -26,7 +26,13 @@ from edgepos.core.measurements.gnss_kernel import range_rates_at
 from edgepos.core.measurements.range_rate import RangeRateModel
 from edgepos.core.motion import riss as layout
 from edgepos.gnss.measurements import PseudorangeSet
-from edgepos.pipelines.gnss_screening import VELOCITY_BLOCK, chi2_threshold, median, range_residuals
+from edgepos.pipelines.gnss_screening import (
+    VELOCITY_BLOCK,
+    chi2_threshold,
+    group_rows,
+    median,
+    range_residuals,
+)
 from edgepos.pipelines.gnss_session import GnssSession
 
 History = dict[str, list[float]]
@@ -51,8 +57,7 @@ def normalised_scores(residual: np.ndarray, variance: np.ndarray, groups: Sequen
     """residual^2 / variance with each group's median removed when it has three or more rows (a receiver
     clock, or clock drift, moves a group alike)."""
     centred = np.array(residual, dtype=float)
-    for group in set(groups):
-        members = [row for row, label in enumerate(groups) if label == group]
+    for members in group_rows(groups).values():
         if len(members) >= 3:
             centred[members] -= median(centred[members])
     scores: np.ndarray = centred**2 / variance
@@ -157,9 +162,8 @@ def range_innovations(
     pseudorange predicted at ``centre`` when the caller has it (one prediction serves the epoch's tests)."""
     residual, systems = range_residuals(session, centre, prs, known, std, rows, predicted)
     variance = std[rows] ** 2 + float(np.trace(predicted_cov[:3, :3]))
-    for system in set(systems):
-        members = np.array([s == system for s in systems])
-        if members.sum() < 3:
+    for system, members in group_rows(systems).items():
+        if len(members) < 3:
             clock = layout.CLOCK[system]
             variance[members] += predicted_cov[clock, clock] if system in session.clock_seen else 1e12
     return normalised_scores(residual, variance, systems)
