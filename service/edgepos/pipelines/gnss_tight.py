@@ -76,6 +76,7 @@ from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GnssOnlyModel
 from edgepos.core.observations import Observation, PseudorangeObservation, RissObservation
 from edgepos.core.particles import Measurement
+from edgepos.core.particles.upf_resample_kernel import epoch_generator
 from edgepos.gnss.differential import CorrectionTable
 from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.measurements import PseudorangeSet
@@ -399,7 +400,7 @@ def _filter_epoch(
         satellites = apply_corrections(
             satellites, corrections, options, atmosphere.klobuchar is not None, corrected
         )
-    rng = np.random.default_rng([session.seed, session.epochs])
+    rng = epoch_generator(session.seed, session.epochs)  # default_rng([seed, epochs])'s generator
 
     if session.initialised and session.filter_t is not None and t - session.filter_t > options["max_gap"]:
         session.initialised = False
