@@ -122,11 +122,11 @@ def hatch_update(
     loss-of-lock indicator (0 when not sent). Tracks older than ``max_gap_s`` are dropped, so the state
     holds at most the satellites of the last few seconds."""
     n = len(sats)
-    smoothed = np.array(pseudorange_m, dtype=float, copy=True)
-    count = np.zeros(n)
     reset: list[str | None] = [None] * n
-    # the rows as Python numbers, read once (the same values as float() / int() of each element)
+    # the rows as Python numbers, read once (the same values as float() / int() of each element), and the
+    # results as lists made arrays once (a numpy element written per row costs more)
     all_cycles, codes = np.asarray(carrier_cycles, float).tolist(), np.asarray(pseudorange_m, float).tolist()
+    smoothed, count = list(codes), [0.0] * n
     wavelengths, dopplers = np.asarray(wavelength_m, float).tolist(), np.asarray(doppler_hz, float).tolist()
     flags = [int(v) for v in np.asarray(lli).tolist()]
     for row in range(n):
@@ -151,7 +151,7 @@ def hatch_update(
         count[row] = used
     for sat in [s for s, track in tracks.items() if t - track.t > config.max_gap_s]:
         del tracks[sat]
-    return HatchResult(smoothed, count, reset)
+    return HatchResult(np.array(smoothed, dtype=float), np.array(count, dtype=float), reset)
 
 
 def _slip(
