@@ -225,10 +225,17 @@ def create_app(
         docs.router,
         operator_map.router,
     )
-    for router in routers:
+    # ``routers`` is the API's order in its documentation. Requests are matched router by router, so the
+    # sessions router, whose batch route takes nearly every request, goes first (no other router's paths
+    # start with /v1/sessions, so no request is matched differently): 3-4 us less CPU per epoch of a
+    # 20-epoch batch than behind four routers (docs/benchmarks.md, "The batch request's HTTP path").
+    for router in (sessions.router, *(router for router in routers if router is not sessions.router)):
         app.include_router(router)
+    documented: dict[str, int] = {}
+    for router in routers:
         for route in router.routes:
             if isinstance(route, APIRoute):
+                documented.setdefault(route.path_format, len(documented))
                 allowed_methods.setdefault(route.path, set()).update(route.methods or ())
     app.state.allowed_methods = allowed_methods
     default_openapi = app.openapi
@@ -236,6 +243,7 @@ def create_app(
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
             document = default_openapi()
+            document["paths"] = dict(sorted(document["paths"].items(), key=lambda item: documented[item[0]]))
             streams.add_event_schemas(document)
             location.add_problem_schema(document)
             add_pipeline_enum(document, sorted(context.pipelines))
