@@ -14,8 +14,6 @@ and whether the two give the same numbers.
 from __future__ import annotations
 
 import argparse
-import importlib
-import subprocess
 import sys
 import tempfile
 import timeit
@@ -29,6 +27,7 @@ from edgepos.pipelines.registry import get_pipeline
 from edgepos.pipelines.rsu_imu import _bank, _options_key
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from revision_modules import load_revision_modules
 from stepper_ab import example_epoch, example_state
 
 FILES = ("kernels", "kernels_correct")
@@ -36,19 +35,7 @@ FILES = ("kernels", "kernels_correct")
 
 def load_revision(revision: str, tag: str, directory: Path) -> ModuleType:
     """The revision's kernels as module ``kernels_<tag>`` (its correction as ``kernels_correct_<tag>``)."""
-    root = Path(__file__).resolve().parent.parent
-    for name in FILES:
-        source = subprocess.run(
-            ["git", "-C", str(root), "show", f"{revision}:service/edgepos/core/{name}.py"],
-            check=True,
-            capture_output=True,
-            text=True,
-        ).stdout
-        source = source.replace(
-            "from edgepos.core.kernels_correct import", f"from kernels_correct_{tag} import"
-        )
-        (directory / f"{name}_{tag}.py").write_text(source)
-    return importlib.import_module(f"kernels_{tag}")
+    return load_revision_modules(revision, "edgepos.core", FILES, tag, directory)["kernels"]
 
 
 def main() -> int:

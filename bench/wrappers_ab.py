@@ -16,10 +16,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib
 import os
 import pickle
-import subprocess
 import sys
 import tempfile
 import time
@@ -34,24 +32,16 @@ from edgepos.pipelines.rsu_imu import RsuImuPipeline
 from edgepos.sim.scenarios import rsu_imu_paper_scenario
 from edgepos.sim.sensors import environment, rsu_imu_epochs
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from revision_modules import load_revision_modules
+
 FILES = ("lag", "lag_state", "plausibility")
 BATCH = 20
 
 
 def load_revision(revision: str, tag: str, directory: Path) -> dict[str, ModuleType]:
     """The revision's wrapper modules as ``<name>_<tag>``."""
-    root = Path(__file__).resolve().parent.parent
-    for name in FILES:
-        source = subprocess.run(
-            ["git", "-C", str(root), "show", f"{revision}:service/edgepos/pipelines/{name}.py"],
-            check=True,
-            capture_output=True,
-            text=True,
-        ).stdout
-        for other in FILES:
-            source = source.replace(f"from edgepos.pipelines.{other} import", f"from {other}_{tag} import")
-        (directory / f"{name}_{tag}.py").write_text(source)
-    return {name: importlib.import_module(f"{name}_{tag}") for name in FILES}
+    return load_revision_modules(revision, "edgepos.pipelines", FILES, tag, directory)
 
 
 def main() -> int:

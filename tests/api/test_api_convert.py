@@ -10,7 +10,7 @@ import pytest
 from apihelp import epochs, scenario
 from edgepos.api.convert import fix_to_json, joined_batch_body, to_json
 from edgepos.api.schemas import BatchOut, FixEventOut, FixOut
-from edgepos.api.streams import fix_event_data
+from edgepos.api.streams import fix_event_data, fix_event_prefix
 from edgepos.geo import GeodeticOrigin
 from edgepos.pipelines.base import Fix, MeasurementUse, StaticEnvironment
 from edgepos.pipelines.registry import get_pipeline
@@ -30,7 +30,8 @@ def _fixes() -> list[Fix]:
         status="diverged",
         divergence="speed 3.4e+04 m/s exceeds max_speed_mps 150 m/s; reset",
     )
-    return [*fixes, diverged, Fix(t=1.5, status="uninitialised", measurements=[waiting])]
+    foreign = MeasurementUse(1, "rsu", False, "RSU « Nord-Ost » außer Reichweite ✓")
+    return [*fixes, diverged, Fix(t=1.5, status="uninitialised", measurements=[waiting, foreign])]
 
 
 @pytest.mark.parametrize("include_state", [False, True])
@@ -49,7 +50,7 @@ def test_batch_body_is_what_the_response_models_write(
 
 def test_a_fix_event_is_the_json_of_the_whole_event_around_the_fix_written_once() -> None:
     for fix in (fix_to_json(fix, False, None) for fix in _fixes()):
-        event = fix_event_data("s-1", 'car "7"', "rsu_imu", 12, to_json(fix))
+        event = fix_event_data(fix_event_prefix("s-1", 'car "7"', "rsu_imu", 12), to_json(fix))
         whole = {"session_id": "s-1", "vehicle_id": 'car "7"', "pipeline": "rsu_imu", "seq": 12, "fix": fix}
         assert event == to_json(whole)
         assert FixEventOut.model_validate_json(event).model_dump(mode="json") == whole
@@ -60,3 +61,8 @@ def test_non_finite_numbers_are_refused(value: float) -> None:
     fix = dataclasses.replace(_fixes()[-2], nis=value)
     with pytest.raises(ValueError, match="non-finite"):
         to_json(fix_to_json(fix, False, None))
+
+
+def test_a_text_that_spells_nan_or_infinity_is_not_a_non_finite_number() -> None:
+    fix = dataclasses.replace(_fixes()[-2], divergence="NaN or Infinity in the input; reset")
+    assert b'"divergence":"NaN or Infinity in the input; reset"' in to_json(fix_to_json(fix, False, None))

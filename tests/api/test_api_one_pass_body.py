@@ -30,7 +30,7 @@ def _two_pass(document: bytes) -> BatchIn:
 def test_the_batch_route_and_session_creation_take_their_model_in_one_pass() -> None:
     models = {
         (route.path, method): one_pass_model(route)
-        for route in sessions.router.routes
+        for route in (*sessions.router.routes, *sessions.batch_router.routes)
         if isinstance(route, OnePassBodyRoute)
         for method in route.methods
     }

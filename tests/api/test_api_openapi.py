@@ -88,3 +88,15 @@ def test_every_schema_field_is_described():
         if not spec.get("description") and "$ref" not in spec
     ]
     assert missing == []
+
+
+def test_the_paths_are_listed_in_the_routers_order_not_in_the_order_requests_are_matched():
+    """The batch route and the sessions router are matched first (the batch route takes most requests); the
+    served document keeps the API's order, the registries first, the batches after the session's track
+    (openapi.json sorts its keys, so only the served one shows it)."""
+    paths = list(schema()["paths"])
+    assert paths[:3] == ["/v1/rsus", "/v1/rsus/{rsu_id}", "/v1/ephemerides"]
+    assert paths.index("/v1/pipelines") + 1 == paths.index("/v1/sessions")
+    assert paths.index("/v1/sessions/{session_id}/track") + 1 == paths.index(
+        "/v1/sessions/{session_id}/batches"
+    )

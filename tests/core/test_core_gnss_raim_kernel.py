@@ -1,5 +1,6 @@
 """gnss_tight's compiled RAIM hypotheses (core/measurements/gnss_raim_kernel.py) against the numpy form of
-gnss/raim.py ``separations`` they replace, and the kernel declining to the numpy form."""
+gnss/raim.py ``separations`` they replace, and the kernel declining to the numpy form; the protection
+level's compiled per-hypothesis bounds against ``raim._hypothesis_bound``'s numpy form, bit for bit."""
 
 from __future__ import annotations
 
@@ -7,7 +8,8 @@ import numpy as np
 import pytest
 from edgepos.core import compiled
 from edgepos.core.measurements import gnss_raim_kernel
-from edgepos.gnss.raim import RaimBudget, separations
+from edgepos.gnss import raim
+from edgepos.gnss.raim import RaimBudget, protection, separations
 
 pytestmark = pytest.mark.skipif(
     not compiled.compiled_enabled(), reason="the kernels are off (EDGEPOS_NUMBA=0)"
@@ -90,6 +92,75 @@ def test_the_kernel_declines_and_the_numpy_form_decides(monkeypatch) -> None:  #
     for a, b in zip(got.hypotheses, want.hypotheses, strict=True):
         assert a[0] == b[0] and a[3] == b[3]
         np.testing.assert_array_equal(a[1], b[1])
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize(
+    ("count", "systems", "lone"), [(8, "G", False), (20, "GCE", False), (17, "GC", True)]
+)
+@pytest.mark.parametrize("constellation_probability", [1e-4, 1e-3, 1.0])
+def test_compiled_protection_level_is_the_numpy_forms_bit_for_bit(
+    seed: int, count: int, systems: str, lone: bool, constellation_probability: float, monkeypatch
+) -> None:  # type: ignore[no-untyped-def]
+    """The same protection level to the last bit, with one or two prior fault probabilities (one of them 1:
+    an all-zero table), round and elongated fix covariances, and hypotheses whose bound is the largest."""
+    h, names, z, std, prior = _epoch(seed, count, systems, lone)
+    budget = RaimBudget(1e-5, 1e-4, 1e-4, constellation_probability, 10.0, 5.0)
+    monkeypatch.setenv("EDGEPOS_NUMBA", "0")
+    result = separations(h, names, z, std, prior, budget)  # the same hypotheses for both forms
+    rng = np.random.default_rng(seed)
+    for fix_cov in (np.eye(2), np.diag([0.04, 9.0]), _spd2(rng), _spd2(rng) * 1e-4):
+        monkeypatch.setenv("EDGEPOS_NUMBA", "0")
+        want = protection(result, fix_cov, budget)
+        monkeypatch.setenv("EDGEPOS_NUMBA", "1")
+        got = protection(result, fix_cov, budget)
+        assert got.level == want.level and got.state == want.state
+    covariance = np.eye(2)
+    monkeypatch.setenv("EDGEPOS_NUMBA", "0")
+    want_bound = raim._hypothesis_bound(result.hypotheses, covariance, 5e-6, result.threshold)
+    monkeypatch.setenv("EDGEPOS_NUMBA", "1")
+    assert raim._hypothesis_bound(result.hypotheses, covariance, 5e-6, result.threshold) == want_bound
+
+
+def _spd2(rng: np.random.Generator) -> np.ndarray:
+    a = rng.normal(size=(2, 2))
+    spd: np.ndarray = a @ a.T + 0.01 * np.eye(2)
+    return spd
+
+
+def test_the_bound_kernel_declines_a_value_that_is_not_finite(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """A hypothesis covariance with NaN or infinity: the kernel returns NaN and the numpy form decides (a NaN
+    bound it skips: the same answer either way)."""
+    h, names, z, std, prior = _epoch(2, 12, "GC", False)
+    result = separations(h, names, z, std, prior, BUDGET)
+    for bad in (np.nan, np.inf):
+        broken = list(result.hypotheses)
+        rows, separation, covariance, statistic, probability = broken[3]
+        broken[3] = (
+            rows,
+            separation,
+            covariance + np.array([[bad, 0.0], [0.0, 0.0]]),
+            statistic,
+            probability,
+        )
+        separation_cov = np.array([hypothesis[2] for hypothesis in broken])
+        assert np.isnan(
+            raim._compiled_hypothesis_bound(broken, separation_cov, np.eye(2), 5e-6, result.threshold)
+        )
+    got = raim._hypothesis_bound(
+        broken[:3] + [(rows, separation, covariance * np.nan, statistic, probability)],
+        np.eye(2),
+        5e-6,
+        result.threshold,
+    )
+    monkeypatch.setenv("EDGEPOS_NUMBA", "0")
+    want = raim._hypothesis_bound(
+        broken[:3] + [(rows, separation, covariance * np.nan, statistic, probability)],
+        np.eye(2),
+        5e-6,
+        result.threshold,
+    )
+    assert got == want and np.isfinite(got)
 
 
 def _snapshot_inputs(seed: int, count: int, fault: float):  # type: ignore[no-untyped-def]

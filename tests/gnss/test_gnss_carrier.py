@@ -3,12 +3,15 @@ restarting only the satellite it concerns, and the tracks' exact serialisation."
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from edgepos.gnss.carrier import (
     CarrierTrack,
     HatchConfig,
     hatch_update,
+    new_track,
     tracks_from_arrays,
     tracks_to_arrays,
 )
@@ -154,3 +157,15 @@ def test_tracks_round_trip_exactly():
     again = tracks_from_arrays(sats, table)
     assert again == tracks and again["E11"].doppler_hz is None
     assert tracks_to_arrays(again)[1].tobytes() == table.tobytes()
+
+
+def test_new_track_is_the_constructors() -> None:
+    """``new_track`` builds a track without the frozen ``__init__``: valid only while CarrierTrack has no
+    ``__post_init__`` and no slots; the same fields, equal to the constructor's, still frozen."""
+    assert not hasattr(CarrierTrack, "__post_init__") and not hasattr(CarrierTrack, "__slots__")
+    for doppler in (None, -1234.5):
+        made = new_track(12.5, 3.0, 2.2e7, 1.1e8, doppler)
+        assert made == CarrierTrack(12.5, 3.0, 2.2e7, 1.1e8, doppler) and type(made) is CarrierTrack
+        assert dataclasses.asdict(made) == dataclasses.asdict(CarrierTrack(12.5, 3.0, 2.2e7, 1.1e8, doppler))
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            made.count = 4.0  # type: ignore[misc]

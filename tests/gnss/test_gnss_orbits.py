@@ -257,3 +257,23 @@ def test_remembered_selection_is_the_search_at_every_time(orbits: BroadcastOrbit
             ]
             expected = min(valid, key=lambda i: (abs(t - toe[i]), -i)) if valid else -1
             assert index == again == expected, (system, prn, t)
+
+
+def test_the_ephemerides_week_is_numpys_rounding(nav: NavigationData) -> None:
+    """``Ephemerides.gpst`` rounds the week with Python's ``round`` (half to even), as ``np.round`` did: the
+    same continuous second for times of week all over the week and at the exact half-week ties."""
+    from edgepos.gnss.ephemerides import Ephemerides
+    from edgepos.gnss.timesys import SECONDS_PER_WEEK
+
+    ephemerides = Ephemerides.from_navigation(nav)
+    window = ephemerides.validity()
+    assert window is not None
+    middle = 0.5 * (window[0] + window[1])
+    k = math.floor(middle / SECONDS_PER_WEEK - 0.5)
+    tie = middle - (k + 0.5) * SECONDS_PER_WEEK  # a time of week half a week from the middle
+    assert 0.0 <= tie < SECONDS_PER_WEEK and (middle - tie) / SECONDS_PER_WEEK == k + 0.5
+    times = [tie, math.nextafter(tie, 0.0), math.nextafter(tie, 1e9)]
+    times += np.linspace(0.0, SECONDS_PER_WEEK, 997).tolist()
+    for t in times:
+        week = np.round((middle - t) / SECONDS_PER_WEEK)
+        assert ephemerides.gpst(t) == float(week * SECONDS_PER_WEEK + t)

@@ -97,6 +97,8 @@ def test_a_biased_satellite_fails_its_test_and_only_it() -> None:
     worst = faulty.worst()
     assert worst is not None and faulty.hypotheses[worst[0]][0] == (4,)
     assert protection(faulty, np.eye(2), BUDGET).state == ALARM
+    # found once per separations (the exclusion and the protection level both ask), the same each time
+    assert faulty.worst() is worst and faulty.worst(size=1) == worst
 
 
 def test_a_constellation_fault_points_at_the_constellation() -> None:

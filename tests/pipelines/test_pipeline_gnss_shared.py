@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -15,11 +16,13 @@ from edgepos.core.integrity import _radial_factors, radial_factor_table
 from edgepos.core.motion import riss as layout
 from edgepos.core.observations import PseudorangeObservation
 from edgepos.core.particles.base import weighted_moments
+from edgepos.gnss.measurements import PseudorangeSet
 from edgepos.gnss.raim import Separations
 from edgepos.pipelines import gnss_tight
 from edgepos.pipelines.base import Fix, MeasurementUse, StaticEnvironment
 from edgepos.pipelines.gnss_integrity import EXCLUDED, WARM_HYPOTHESES, warm_up_gnss_tables
-from edgepos.pipelines.gnss_screening import left_out, median
+from edgepos.pipelines.gnss_satellites import EpochSatellites, replaced
+from edgepos.pipelines.gnss_screening import group_rows, left_out, median
 from edgepos.pipelines.gnss_session import cloud_moments, decode_session
 from gnssrecording import recording_epochs
 
@@ -162,6 +165,38 @@ def test_reports_are_copied_as_dataclasses_replace_would(cls: type) -> None:
         copied.index = 1  # type: ignore[misc]  # still frozen
 
 
+def test_satellites_are_copied_as_dataclasses_replace_would() -> None:
+    """gnss_satellites' ``replaced`` copies an epoch's pseudorange set or satellites without ``__init__``
+    (both classes without ``__post_init__`` and slots), the set keeping its formatted satellite names; the
+    same fields as replace's, and the names may not be changed through it."""
+    for cls in (PseudorangeSet, EpochSatellites):
+        assert not hasattr(cls, "__post_init__") and not hasattr(cls, "__slots__")
+    prs = PseudorangeSet(
+        1.0e5,
+        ("G", "E"),
+        np.array([3, 11]),
+        np.array([2.1e7, 2.3e7]),
+        np.array([40.0, 35.0]),
+        np.ones((2, 3)),
+        np.zeros(2),
+        np.full(2, 1575.42e6),
+    )
+    assert prs.sats == ("G03", "E11")
+    copied = replaced(prs, pseudorange_m=np.array([1.0, 2.0]))
+    reference = dataclasses.replace(prs, pseudorange_m=np.array([1.0, 2.0]))
+    for field in dataclasses.fields(PseudorangeSet):
+        np.testing.assert_array_equal(getattr(copied, field.name), getattr(reference, field.name))
+    assert copied.sats == reference.sats and prs.pseudorange_m[0] == 2.1e7
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        copied.gpst = 0.0  # type: ignore[misc]
+    with pytest.raises(ValueError, match="names"):
+        replaced(prs, prns=np.array([4, 12]))
+    satellites = EpochSatellites(prs, [0, 1], {})
+    moved = replaced(satellites, prs=copied, corrected=np.array([True, False]))
+    assert moved.prs is copied and moved.indices == [0, 1] and satellites.corrected is None
+    assert type(moved) is EpochSatellites and moved.corrected is not None
+
+
 def test_the_upf_state_carries_its_clouds_moments(recording) -> None:  # type: ignore[no-untyped-def]
     """The UPF's step knows its new cloud's weighted moments; the state stores them beside the particles
     (not after a resampling, which makes a new cloud), and the next epoch reads them instead of computing
@@ -192,3 +227,70 @@ def test_the_upf_state_carries_its_clouds_moments(recording) -> None:  # type: i
     arrays["moments_mean"], arrays["moments_cov"] = np.zeros(3), np.zeros((3, 3))
     with pytest.raises(state_format.StateFormatError, match="moments"):
         decode_session(state_format.pack(meta, arrays))
+
+
+def test_the_state_keeps_its_options_as_text(recording) -> None:  # type: ignore[no-untyped-def]
+    """The options travel as their JSON text (``options_json``), parsed once per distinct text: each epoch
+    writes back the text it read, the same fixes come from a state holding the options themselves (written
+    before the text), options changed after decoding are written anew, and a corrupt text is refused."""
+    epochs, environment = recording
+    pipeline = gnss_tight.GnssTightPipeline()
+    options = pipeline.resolve_options({"seed": 3, "filter": "ukf"})
+    state = pipeline.create(options, None)
+    meta, arrays = state_format.unpack(state)
+    assert "options" not in meta and json.loads(meta["options_json"]) == options
+    old_meta = {key: value for key, value in meta.items() if key != "options_json"}
+    old = state_format.pack({**old_meta, "options": options}, arrays)
+    for epoch in epochs[:5]:
+        (fix,), state = pipeline.process(state, epoch, environment)
+        (old_fix,), old = pipeline.process(old, epoch, environment)
+        assert fix == old_fix and state == old
+        assert state_format.unpack(state)[0]["options_json"] == meta["options_json"]
+    session = decode_session(state)
+    assert session.options == options and session.options is not decode_session(state).options
+    session.options["elevation_mask"] = 0.2
+    assert json.loads(state_format.unpack(session.to_bytes())[0]["options_json"])["elevation_mask"] == 0.2
+    assert decode_session(state).options == options  # the parse of the original text is not touched
+    meta, arrays = state_format.unpack(state)
+    for corrupt in ("{not json", "[1, 2]", 5):
+        with pytest.raises(state_format.StateFormatError, match="options"):
+            decode_session(state_format.pack({**meta, "options_json": corrupt}, arrays))
+
+
+def test_the_scores_medians_are_per_group() -> None:
+    """``normalised_scores`` removes each group's median (three rows or more) from its rows only: the
+    boolean-mask form it replaced, bit for bit, on groups interleaved as an epoch's constellations are."""
+    from edgepos.pipelines.gnss_faults import normalised_scores
+
+    rng = np.random.default_rng(11)
+    for count in (1, 2, 5, 9, 20, 31):
+        residual = rng.normal(0.0, 5.0, count)
+        variance = rng.uniform(1.0, 9.0, count)
+        groups = [("G", "C", "E", "R")[k] for k in rng.integers(0, 4, count)]
+        centred = residual.copy()
+        labels = np.array(groups)
+        for group in set(groups):
+            members = labels == group
+            if members.sum() >= 3:
+                centred[members] -= np.median(centred[members])
+        np.testing.assert_array_equal(normalised_scores(residual, variance, groups), centred**2 / variance)
+        members = group_rows(groups)
+        assert sorted(members) == sorted(set(groups))
+        for group, rows in members.items():
+            assert rows == np.flatnonzero(labels == group).tolist()
+
+
+def test_the_jacobian_has_one_clock_column_per_constellation() -> None:
+    """``jacobian``: the ranges' derivatives by north, east and up, then a 1 in the column of each row's
+    constellation (sorted by name), as a row-by-row loop over ``groups.index`` gives."""
+    from edgepos.pipelines.gnss_integrity import jacobian
+
+    rng = np.random.default_rng(4)
+    for systems in (["G"] * 6, ["G", "E", "C", "G", "C", "E", "E"], ["E", "C", "C", "C", "C"]):
+        ranges = rng.normal(size=(4, len(systems)))
+        groups = sorted(set(systems))
+        expected = np.zeros((len(systems), 3 + len(groups)))
+        expected[:, :3] = ranges[1:].T
+        for row, system in enumerate(systems):
+            expected[row, 3 + groups.index(system)] = 1.0
+        np.testing.assert_array_equal(jacobian(ranges, systems), expected)

@@ -216,6 +216,7 @@ def create_app(
         base_stations.router,
         pipeline_routes.router,
         sessions.router,
+        sessions.batch_router,
         streams.router,
         vehicles.router,
         zones.router,
@@ -225,10 +226,19 @@ def create_app(
         docs.router,
         operator_map.router,
     )
-    for router in routers:
+    # ``routers`` is the API's order in its documentation. Requests are matched route by route, so the batch
+    # route, which takes nearly every request, goes first, then the rest of the sessions router (no other
+    # router's paths start with /v1/sessions, and no other sessions route's path matches a batch's, so no
+    # request is matched differently): 5-6 us less CPU per epoch of a 20-epoch batch than behind the four
+    # routers and five routes before it (docs/benchmarks.md, "The batch request's HTTP path").
+    first = (sessions.batch_router, sessions.router)
+    for router in (*first, *(router for router in routers if router not in first)):
         app.include_router(router)
+    documented: dict[str, int] = {}
+    for router in routers:
         for route in router.routes:
             if isinstance(route, APIRoute):
+                documented.setdefault(route.path_format, len(documented))
                 allowed_methods.setdefault(route.path, set()).update(route.methods or ())
     app.state.allowed_methods = allowed_methods
     default_openapi = app.openapi
@@ -236,6 +246,7 @@ def create_app(
     def openapi() -> dict[str, Any]:
         if app.openapi_schema is None:
             document = default_openapi()
+            document["paths"] = dict(sorted(document["paths"].items(), key=lambda item: documented[item[0]]))
             streams.add_event_schemas(document)
             location.add_problem_schema(document)
             add_pipeline_enum(document, sorted(context.pipelines))

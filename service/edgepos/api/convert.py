@@ -111,8 +111,13 @@ def to_json(value: Any) -> bytes:
     """Compact JSON of plain values (``fix_to_json``'s); ValueError on NaN or infinity, which the
     response models refuse as well (``ResponseModel``: floats are always finite)."""
     body = pydantic_core.to_json(value, inf_nan_mode="constants")
-    # The plain substring tests are ~20 times faster than the pattern, which only confirms a hit.
-    if (b"NaN" in body or b"Infinity" in body) and _NON_FINITE.search(body):
+    # Cheapest first: a byte search for the capitals of NaN and Infinity (memchr; a fix's JSON seldom has
+    # either), then the substrings (a tenth of the time of the pattern), then the pattern, which confirms.
+    if (
+        (b"N" in body or b"I" in body)
+        and (b"NaN" in body or b"Infinity" in body)
+        and _NON_FINITE.search(body)
+    ):
         raise ValueError("a fix holds a non-finite number")
     return body
 

@@ -219,6 +219,8 @@ class Admission:
     async def acquire(self) -> bool:
         """Wait for a slot: True once holding one (give it back with :meth:`release`), False when the
         wait timed out."""
+        if not self.slots.locked():  # a slot free and nobody in line: taken now, no timed wait (a task)
+            return await self.slots.acquire()
         self.metrics.waiting.inc()
         try:
             await asyncio.wait_for(self.slots.acquire(), self.queue_timeout_s)

@@ -35,7 +35,7 @@ from edgepos.api.schemas import (
     SessionOut,
     TrackOut,
 )
-from edgepos.api.streams import fix_event_data
+from edgepos.api.streams import fix_event_data, fix_event_prefix
 from edgepos.core.errors import EstimationError
 from edgepos.core.observations import (
     PseudorangeObservation,
@@ -493,15 +493,11 @@ def _publish_fixes(
 ) -> None:
     """Hand the applied batch's fixes (and their JSON with a null state) to the fix stream: queued for this
     worker's publisher, so the answer never waits for the stream (see api.streams)."""
+    session_id, vehicle_id, pipeline = record.session_id, record.vehicle_id, record.pipeline
+    prefix = fix_event_prefix(session_id, vehicle_id, pipeline, seq)
     context.streams.publish(
         [
-            NewFix(
-                record.session_id,
-                record.vehicle_id,
-                record.pipeline,
-                float(fix["t"]),
-                fix_event_data(record.session_id, record.vehicle_id, record.pipeline, seq, written),
-            )
+            NewFix(session_id, vehicle_id, pipeline, float(fix["t"]), fix_event_data(prefix, written))
             for fix, written in zip(wire_fixes, stateless_json, strict=True)
         ]
     )

@@ -41,11 +41,18 @@ SEND_CHUNK = 256
 _TOLERANCE_S = 1e-6
 
 
-def fix_event_data(session_id: str, vehicle_id: str, pipeline: str, seq: int, fix_json: bytes) -> bytes:
-    """The JSON of a ``fix`` event (:class:`FixEventOut`) around a wire fix's compact JSON with a null
-    ``state`` (already written for the batch's answer): the bytes of ``to_json`` of the whole event."""
+def fix_event_prefix(session_id: str, vehicle_id: str, pipeline: str, seq: int) -> bytes:
+    """The JSON of a ``fix`` event (:class:`FixEventOut`) up to its fix: the same for every fix of a batch,
+    so written once per batch (:func:`fix_event_data`)."""
     head = to_json({"session_id": session_id, "vehicle_id": vehicle_id, "pipeline": pipeline, "seq": seq})
-    return head[:-1] + b',"fix":' + fix_json + b"}"
+    return head[:-1] + b',"fix":'
+
+
+def fix_event_data(prefix: bytes, fix_json: bytes) -> bytes:
+    """The JSON of a ``fix`` event around a wire fix's compact JSON with a null ``state`` (already written for
+    the batch's answer), after the batch's :func:`fix_event_prefix`: the bytes of ``to_json`` of the whole
+    event."""
+    return prefix + fix_json + b"}"
 
 
 def sse(event: str, data: bytes, event_id: int | None = None) -> bytes:

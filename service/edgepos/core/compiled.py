@@ -450,9 +450,23 @@ def _packed_prediction(out: np.ndarray, sizes: tuple[int, int], common: tuple[in
 
 
 def compiled_enabled() -> bool:
-    """False when ``EDGEPOS_NUMBA=0`` asks for the numpy reference, or numba cannot be imported."""
-    if os.environ.get("EDGEPOS_NUMBA", "1").strip().lower() in ("0", "false", "no", "off"):
-        return False
+    """False when ``EDGEPOS_NUMBA=0`` asks for the numpy reference, or numba cannot be imported. Asked
+    many times an epoch (about fifteen in a ``gnss_tight`` one): the answer is kept for the setting's
+    value, so a call costs one environment read (a change of the variable, as tests make, is seen)."""
+    global _enabled
+    setting = os.environ.get("EDGEPOS_NUMBA", "1")
+    last_setting, last_answer = _enabled
+    if setting == last_setting:
+        return last_answer
+    enabled = setting.strip().lower() not in ("0", "false", "no", "off") and _numba_imports()
+    _enabled = (setting, enabled)
+    return enabled
+
+
+_enabled: tuple[str | None, bool] = (None, False)  # the EDGEPOS_NUMBA value last answered for, its answer
+
+
+def _numba_imports() -> bool:
     try:
         from edgepos.core import kernels  # noqa: F401  # imported only to learn whether numba imports
     except ImportError as error:  # pragma: no cover - numba is a dependency; this is a safety net

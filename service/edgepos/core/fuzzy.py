@@ -10,9 +10,13 @@ the breakpoints below are this project's choice and are parameters.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
+
+from edgepos.core.compiled import compiled_enabled
+from edgepos.core.measurements.gnss_noise_kernel import fuzzy_factor_kernel
 
 ELEVATION_SETS = ("low", "mid", "high")
 CN0_SETS = ("small", "large")
@@ -66,7 +70,27 @@ class FuzzyNoise:
         return {"low": low, "mid": mid, "high": high}, {"small": 1.0 - large, "large": large}
 
     def factor(self, elevation: np.ndarray, cn0: np.ndarray) -> np.ndarray:
-        """mu per satellite: the scale of R0 (>= ``good``, <= ``bad``)."""
+        """mu per satellite: the scale of R0 (>= ``good``, <= ``bad``). One-dimensional inputs of one length
+        go through the compiled loop (``gnss_noise_kernel.fuzzy_factor_kernel``: the same bits, some thirty
+        numpy calls fewer) unless ``EDGEPOS_NUMBA=0`` or a value is not finite; the numpy form here is its
+        reference."""
+        el, c = np.asarray(elevation), np.asarray(cn0)
+        if el.ndim == 1 and c.shape == el.shape and compiled_enabled():
+            out = np.empty(el.shape)
+            breakpoints, rules, outputs = _tables(self)
+            if fuzzy_factor_kernel(
+                np.ascontiguousarray(el, dtype=float),
+                np.ascontiguousarray(c, dtype=float),
+                breakpoints,
+                rules,
+                outputs,
+                out,
+            ):
+                return out
+        return self.numpy_factor(elevation, cn0)
+
+    def numpy_factor(self, elevation: np.ndarray, cn0: np.ndarray) -> np.ndarray:
+        """:meth:`factor` in numpy (the compiled loop's reference)."""
         elevation_degrees, cn0_degrees = self.memberships(elevation, cn0)
         singleton = {"good": self.good, "normal": self.normal, "bad": self.bad}
         numerator = np.zeros(np.broadcast(np.asarray(elevation), np.asarray(cn0)).shape)
@@ -76,3 +100,25 @@ class FuzzyNoise:
             numerator = numerator + strength * singleton[output]
             denominator = denominator + strength
         return numerator / np.maximum(denominator, 1e-12)
+
+
+@functools.lru_cache(maxsize=16)
+def _tables(noise: FuzzyNoise) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The kernel's breakpoints, rules (C/N0 set, elevation set) and singletons, in ``RULES``' order, built
+    once per set of breakpoints (shared: nothing writes to them)."""
+    singleton = {"good": noise.good, "normal": noise.normal, "bad": noise.bad}
+    breakpoints = np.array(
+        [
+            noise.elevation_low_rad,
+            noise.elevation_mid_rad,
+            noise.elevation_high_rad,
+            noise.cn0_small_dbhz,
+            noise.cn0_large_dbhz,
+        ],
+        dtype=float,
+    )
+    rules = np.array(
+        [[CN0_SETS.index(c), ELEVATION_SETS.index(e)] for c, e in RULES], dtype=np.int64
+    ).reshape(len(RULES), 2)
+    outputs = np.array([singleton[output] for output in RULES.values()], dtype=float)
+    return breakpoints, rules, outputs  # writable: the kernel's one signature (it only reads them)

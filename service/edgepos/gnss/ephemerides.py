@@ -12,8 +12,6 @@ import hashlib
 from collections import Counter
 from dataclasses import dataclass
 
-import numpy as np
-
 from edgepos.gnss.measurements import Atmosphere
 from edgepos.gnss.orbits import MAX_AGE_S, BroadcastOrbits
 from edgepos.gnss.rinex_nav import NavigationData, parse_navigation
@@ -64,7 +62,7 @@ class Ephemerides:
         if window is None:
             return time_of_week
         middle = 0.5 * (window[0] + window[1])
-        week = np.round((middle - time_of_week) / SECONDS_PER_WEEK)
+        week = round((middle - time_of_week) / SECONDS_PER_WEEK)  # half to even, as np.round: the same
         return float(week * SECONDS_PER_WEEK + time_of_week)
 
     def satellites(self) -> list[str]:

@@ -153,13 +153,14 @@ class BroadcastOrbits:
         open interval between those points around the time it was made (less a millisecond each side,
         far beyond the rounding of the ages), and reused for any time inside it: every epoch between two
         such points searches nothing."""
-        out = np.full(len(systems), -1, dtype=int)
+        out: list[int] = []  # a list, then one array: a numpy element written per satellite costs more
         t = float(t)
-        for row, (system, prn) in enumerate(zip(systems, prns)):
+        numbers = prns.tolist() if isinstance(prns, np.ndarray) else prns
+        for system, prn in zip(systems, numbers, strict=True):
             key = (system, int(prn))
             known = self._chosen.get(key)
             if known is not None and known[0] < t < known[1]:
-                out[row] = known[2]
+                out.append(known[2])
                 continue
             records = self._by_sat.get(key, ())
             best: tuple[float, int] | None = None
@@ -170,8 +171,8 @@ class BroadcastOrbits:
                     best = (age, index)
             choice = -1 if best is None else best[1]
             self._chosen[key] = (*_stable_interval(records, t), choice)
-            out[row] = choice
-        return out
+            out.append(choice)
+        return np.array(out, dtype=int).reshape(len(out))
 
     def clock_polynomial(self, index: np.ndarray, t: np.ndarray) -> np.ndarray:
         """af0 + af1 dt + af2 dt^2 with dt = t - toc (s), without relativity or group delay."""

@@ -27,6 +27,7 @@ The hypotheses are computed by a compiled kernel (core/measurements/gnss_raim_ke
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -43,6 +44,7 @@ from edgepos.core.integrity import (
     radial_factor_table,
     test_threshold,
 )
+from edgepos.core.measurements.gnss_raim_kernel import hypothesis_bound_kernel
 from edgepos.core.measurements.gnss_raim_kernel import separations as kernel_separations
 
 
@@ -74,7 +76,17 @@ class Separations:
         """The failed hypothesis to exclude first (its index and sqrt(q)), None when every test passes: the
         satellite whose test fails most, or, when no satellite's fails, the constellation's (a satellite's
         fault also fails its constellation's test, by more). ``size`` 1: satellites only; >1: only
-        constellations."""
+        constellations. Over all hypotheses it is found once per epoch's separations (the exclusion and the
+        protection level both ask)."""
+        if size is None:
+            return self._worst_of_all
+        return self._worst(size)
+
+    @functools.cached_property
+    def _worst_of_all(self) -> tuple[int, float] | None:
+        return self._worst(None)
+
+    def _worst(self, size: int | None) -> tuple[int, float] | None:
         best: tuple[int, float, int] | None = None
         for index, hypothesis in enumerate(self.hypotheses):
             statistic = hypothesis[3]
@@ -281,7 +293,8 @@ def _compiled_separations(
     hypotheses in the same order; None when the kernel declines (a normal matrix not positive definite, a
     solution not finite), and the numpy form decides."""
     number = {system: k for k, system in enumerate(groups)}
-    group = np.array([number[s] for s in systems], dtype=np.int64)
+    numbers = [number[s] for s in systems]
+    group = np.array(numbers, dtype=np.int64)
     solved = kernel_separations(h, group, len(groups), z, w, prior)
     if solved is None:
         return None
@@ -295,7 +308,7 @@ def _compiled_separations(
     ]
     if len(groups) > 1:
         for k in range(len(groups)):
-            rows = tuple(np.flatnonzero(group == k).tolist())
+            rows = tuple(j for j, g in enumerate(numbers) if g == k)
             hypotheses.append(
                 (
                     rows,
@@ -336,8 +349,14 @@ def _hypothesis_bound(
 ) -> float:
     """The largest over the hypotheses of T sqrt(lmax(S_j)) + R(k C + S_j, risk / 2 / N / p_j), all at once:
     :func:`core.integrity.radial_bound`'s formula on arrays, with its tables (``radial_factor_table``) per
-    prior fault probability. NaN bounds are skipped, as the one-by-one maximum did."""
+    prior fault probability. NaN bounds are skipped, as the one-by-one maximum did. Computed by the compiled
+    loop (``gnss_raim_kernel.hypothesis_bound_kernel``, the same bits) unless ``EDGEPOS_NUMBA=0`` or a
+    value is not finite; the numpy form here is its reference."""
     separation_cov = np.array([hypothesis[2] for hypothesis in hypotheses])
+    if compiled_enabled():
+        bound = _compiled_hypothesis_bound(hypotheses, separation_cov, covariance, fault_free, threshold)
+        if not math.isnan(bound):
+            return bound
     a, b, d = separation_cov[:, 0, 0], separation_cov[:, 0, 1], separation_cov[:, 1, 1]
     largest = 0.5 * (a + d) + np.array(
         [math.hypot(x, y) for x, y in zip((0.5 * (a - d)).tolist(), b.tolist())]
@@ -363,6 +382,37 @@ def _hypothesis_bound(
     bounds = bounds + radial
     bounds = bounds[~np.isnan(bounds)]
     return float(bounds.max()) if bounds.size else -math.inf
+
+
+def _compiled_hypothesis_bound(
+    hypotheses: Sequence[tuple[tuple[int, ...], np.ndarray, np.ndarray, float, float]],
+    separation_cov: np.ndarray,
+    covariance: np.ndarray,
+    fault_free: float,
+    threshold: float,
+) -> float:
+    """:func:`_hypothesis_bound` by the kernel: lmax(S_j) with Python's ``math.hypot`` as the numpy form takes
+    it, one radial factor table per prior fault probability; NaN when the kernel declines."""
+    largest = np.array(
+        [
+            0.5 * (a + d) + math.hypot(0.5 * (a - d), b)
+            for a, b, _, d in separation_cov.reshape(-1, 4).tolist()
+        ]
+    )
+    per_hypothesis = fault_free / len(hypotheses)
+    slots: dict[float, int] = {}
+    table_of = np.array([slots.setdefault(h[4], len(slots)) for h in hypotheses], dtype=np.int64)
+    tables = np.array([radial_factor_table(per_hypothesis / probability) for probability in slots])
+    return float(
+        hypothesis_bound_kernel(
+            np.ascontiguousarray(separation_cov, dtype=float),
+            largest,
+            np.ascontiguousarray(covariance, dtype=float),
+            float(threshold),
+            table_of,
+            tables,
+        )
+    )
 
 
 def _matrix(m: np.ndarray) -> tuple[float, float, float]:

@@ -19,6 +19,8 @@ from edgepos.gnss.noise_level import NoiseLevel, epoch_scale
 from edgepos.pipelines.gnss_integrity import jacobian
 
 _POSITION = np.array([layout.NORTH, layout.EAST, layout.UP])
+_HORIZONTAL = np.ix_(_POSITION[:2], _POSITION[:2])
+"""The north-east block's index arrays (built once: ``np.ix_`` costs more than the indexing)."""
 
 
 def model_of(options: Mapping[str, Any]) -> ErrorCorrelation | None:
@@ -51,7 +53,7 @@ class Honesty:
         least ``bound`` (times s, the smallest with s C >= bound: the largest eigenvalue of C^-1 bound)."""
         if self.bound is None:
             return self
-        block = cov[np.ix_(_POSITION[:2], _POSITION[:2])]
+        block = cov[_HORIZONTAL]
         try:
             ratio = float(np.max(np.linalg.eigvals(np.linalg.solve(block, self.bound)).real))
         except np.linalg.LinAlgError:
@@ -101,7 +103,7 @@ def honesty(
     if model is None or rows.size == 0 or dt <= 0.0:
         return Honesty()
     std, smoothing, count = std[rows], smoothing[rows], count[rows]
-    predicted_horizontal = predicted_cov[np.ix_(_POSITION[:2], _POSITION[:2])]
+    predicted_horizontal = predicted_cov[_HORIZONTAL]
     variance = std**2
     scale = variance / smoothing**2  # each row's raw-code variance as the filter's noise model has it
 
@@ -109,7 +111,7 @@ def honesty(
         value: np.ndarray = scale * averaged_variance(count, memory, model, dt)[0]
         return value
 
-    h = jacobian(ranges[:, rows], [systems[r] for r in rows])
+    h = jacobian(ranges[:, rows], [systems[r] for r in rows.tolist()])
     if compiled_enabled():
         if h.shape[0] <= h.shape[1] or float(np.trace(predicted_horizontal)) <= 0.0:
             return Honesty()  # honest_factor's None: the rows alone do not fix the position
@@ -154,7 +156,7 @@ def level_inputs(
     model = model_of(options)
     if model is not None and dt > 0.0:
         variance = variance / smoothing[rows] ** 2 * model.smoothed_variance(count[rows], dt)
-    h = jacobian(ranges[:, rows], [systems[r] for r in rows])
+    h = jacobian(ranges[:, rows], [systems[r] for r in rows.tolist()])
     return h, pseudorange[rows] - ranges[0, rows], variance
 
 

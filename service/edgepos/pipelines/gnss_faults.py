@@ -26,7 +26,13 @@ from edgepos.core.measurements.gnss_kernel import range_rates_at
 from edgepos.core.measurements.range_rate import RangeRateModel
 from edgepos.core.motion import riss as layout
 from edgepos.gnss.measurements import PseudorangeSet
-from edgepos.pipelines.gnss_screening import chi2_threshold, median, range_residuals
+from edgepos.pipelines.gnss_screening import (
+    VELOCITY_BLOCK,
+    chi2_threshold,
+    group_rows,
+    median,
+    range_residuals,
+)
 from edgepos.pipelines.gnss_session import GnssSession
 
 History = dict[str, list[float]]
@@ -51,10 +57,8 @@ def normalised_scores(residual: np.ndarray, variance: np.ndarray, groups: Sequen
     """residual^2 / variance with each group's median removed when it has three or more rows (a receiver
     clock, or clock drift, moves a group alike)."""
     centred = np.array(residual, dtype=float)
-    labels = np.array(groups)
-    for group in set(groups):
-        members = labels == group
-        if members.sum() >= 3:
+    for members in group_rows(groups).values():
+        if len(members) >= 3:
             centred[members] -= median(centred[members])
     scores: np.ndarray = centred**2 / variance
     return scores
@@ -158,9 +162,8 @@ def range_innovations(
     pseudorange predicted at ``centre`` when the caller has it (one prediction serves the epoch's tests)."""
     residual, systems = range_residuals(session, centre, prs, known, std, rows, predicted)
     variance = std[rows] ** 2 + float(np.trace(predicted_cov[:3, :3]))
-    for system in set(systems):
-        members = np.array([s == system for s in systems])
-        if members.sum() < 3:
+    for system, members in group_rows(systems).items():
+        if len(members) < 3:
             clock = layout.CLOCK[system]
             variance[members] += predicted_cov[clock, clock] if system in session.clock_seen else 1e12
     return normalised_scores(residual, variance, systems)
@@ -182,8 +185,7 @@ def rate_innovations(
     if predicted is None:
         predicted = centre_rates(session.anchor, centre, prs, rows)
     residual = prs.range_rate_mps[rows] - predicted[rows]
-    velocity = [layout.VE, layout.VN, layout.VU]
-    variance = std[rows] ** 2 + float(np.trace(predicted_cov[np.ix_(velocity, velocity)]))
+    variance = std[rows] ** 2 + float(np.trace(predicted_cov[VELOCITY_BLOCK]))
     if rows.size < 3:
         variance = variance + predicted_cov[layout.DRIFT, layout.DRIFT]
     return normalised_scores(residual, variance, ["drift"] * rows.size)
@@ -201,7 +203,7 @@ def screen(
     multiplier (aligned with the kept rows), and per row (excluded or down-weighted) the reason."""
     probability, persistence, recovery = fault_settings(session.options)
     verdict = judge(session.faults, keys, scores, t, probability, persistence, recovery, unit)
-    reasons = {int(r): why for r, why in zip(rows, verdict.reasons) if why is not None}
+    reasons = {r: why for r, why in zip(rows.tolist(), verdict.reasons) if why is not None}
     keep = ~verdict.excluded
     return rows[keep], verdict.inflation[keep], reasons
 

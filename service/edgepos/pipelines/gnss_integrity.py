@@ -86,6 +86,8 @@ INTEGRITY_SPECS: tuple[OptionSpec, ...] = (
 )
 
 _DEFAULTS = {spec.name: spec.default for spec in INTEGRITY_SPECS}
+_POSITION_BLOCK = np.ix_([layout.NORTH, layout.EAST, layout.UP], [layout.NORTH, layout.EAST, layout.UP])
+"""The position block's index arrays, built once (``np.ix_`` costs more than the indexing it serves)."""
 
 
 def _option(options: Mapping[str, Any], name: str) -> Any:
@@ -158,11 +160,10 @@ def linearisation_ranges(
 def jacobian(ranges: np.ndarray, systems: Sequence[str]) -> np.ndarray:
     """d pseudorange / d (north, east, up, clock per constellation in ``groups`` order) from the rows'
     :func:`linearisation_ranges`."""
-    groups = sorted(set(systems))
-    h = np.zeros((len(systems), 3 + len(groups)))
+    column = {system: 3 + k for k, system in enumerate(sorted(set(systems)))}
+    h = np.zeros((len(systems), 3 + len(column)))
     h[:, :3] = ranges[1:].T
-    for row, system in enumerate(systems):
-        h[row, 3 + groups.index(system)] = 1.0
+    h[np.arange(len(systems)), [column[system] for system in systems]] = 1.0
     return h
 
 
@@ -187,8 +188,7 @@ def detect_and_exclude(
     and test again. Returns the rows to update with and their separations (a test that still fails puts
     the fix in alarm). ``ranges``: :func:`linearisation_ranges` of every row when the caller has them."""
     budget = budget_of(options)
-    position = [layout.NORTH, layout.EAST, layout.UP]
-    prior = predicted_cov[np.ix_(position, position)]
+    prior = predicted_cov[_POSITION_BLOCK]
     if ranges is None:
         ranges = linearisation_ranges(anchor, centre, sat_position, system_of_row, known)
 

@@ -6,6 +6,7 @@ predicted state, and the same for range rates. Each exclusion is reported with i
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from scipy.stats import chi2
@@ -28,6 +29,9 @@ from edgepos.pipelines.gnss_session import GnssSession, session_covariance
 
 DopplerUses = dict[int, tuple[bool, str | None]]
 """Per observation index, whether its Doppler entered the update and, if not, why."""
+
+VELOCITY_BLOCK = np.ix_([layout.VE, layout.VN, layout.VU], [layout.VE, layout.VN, layout.VU])
+"""The velocity block's index arrays, built once (``np.ix_`` costs more than the indexing it serves)."""
 
 
 def range_rate_test(
@@ -76,8 +80,7 @@ def range_rate_test(
         residual = prs.range_rate_mps[rows] - predicted[rows]
     if predicted_cov is None:
         predicted_cov = session_covariance(session) + model.process_noise(dt)
-    velocity = [layout.VE, layout.VN, layout.VU]
-    variance = std[rows] ** 2 + float(np.trace(predicted_cov[np.ix_(velocity, velocity)]))
+    variance = std[rows] ** 2 + float(np.trace(predicted_cov[VELOCITY_BLOCK]))
     if rows.size >= 3:
         residual = residual - median(residual)
     else:
@@ -221,7 +224,7 @@ def range_residuals(
     ``predicted``: every row's pseudorange at ``centre`` when the caller has it (one prediction per epoch
     serves the residual test and the fault test over time), else predicted here."""
     assert session.anchor is not None
-    systems = [prs.systems[r] for r in rows]
+    systems = [prs.systems[r] for r in rows.tolist()]
     if predicted is None:
         compiled = pseudoranges_at(
             session.anchor, centre[None, :], prs.sat_position[rows], systems, known[rows]
@@ -263,9 +266,8 @@ def residual_test(
     if predicted_cov is None:
         predicted_cov = session_covariance(session) + model.process_noise(dt)
     variance = std[rows] ** 2 + float(np.trace(predicted_cov[:3, :3]))
-    for system in set(systems):
-        members = np.array([s == system for s in systems])
-        if members.sum() >= 3:
+    for system, members in group_rows(systems).items():
+        if len(members) >= 3:
             residual[members] -= median(residual[members])
         else:
             clock = layout.CLOCK[system]
@@ -287,6 +289,15 @@ def residual_test(
 
 
 _THRESHOLDS: dict[tuple[float, int], float] = {}
+
+
+def group_rows(groups: Sequence[str]) -> dict[str, list[int]]:
+    """The positions of each group's rows, in order (what a boolean mask ``labels == group`` selects, and
+    indexes an array the same way), found in one pass instead of a mask per group."""
+    members: dict[str, list[int]] = {}
+    for row, group in enumerate(groups):
+        members.setdefault(group, []).append(row)
+    return members
 
 
 def median(values: np.ndarray) -> float:

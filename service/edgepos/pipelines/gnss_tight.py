@@ -76,6 +76,7 @@ from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GnssOnlyModel
 from edgepos.core.observations import Observation, PseudorangeObservation, RissObservation
 from edgepos.core.particles import Measurement
+from edgepos.core.particles.upf_resample_kernel import epoch_generator
 from edgepos.gnss.differential import CorrectionTable
 from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.measurements import PseudorangeSet
@@ -160,6 +161,8 @@ _SAT_RADIUS_M = (1.0e7, 5.0e7)
 """Geocentric distances a client-sent satellite position must lie between (MEO to GEO/IGSO)."""
 
 
+_FUZZY = FuzzyNoise()
+"""Table 1's memberships and singletons (one instance: its compiled tables are built once)."""
 _INITIAL_CLOCK_DRIFT_STD = 5.0
 _INITIAL_DOPPLER_VELOCITY_STD = 1.0
 """Velocity and drift std (m/s) when initialising from a least-squares Doppler velocity: the baseline's
@@ -397,7 +400,7 @@ def _filter_epoch(
         satellites = apply_corrections(
             satellites, corrections, options, atmosphere.klobuchar is not None, corrected
         )
-    rng = np.random.default_rng([session.seed, session.epochs])
+    rng = epoch_generator(session.seed, session.epochs)  # default_rng([seed, epochs])'s generator
 
     if session.initialised and session.filter_t is not None and t - session.filter_t > options["max_gap"]:
         session.initialised = False
@@ -442,7 +445,7 @@ def _filter_epoch(
         if prs.range_rate_mps is not None and prs.sat_clock_drift is not None:
             rate_rows = rows[np.isfinite(prs.range_rate_mps[rows]) & np.isfinite(prs.sat_clock_drift[rows])]
         known = iono + tropo - SPEED_OF_LIGHT * prs.sat_clock_s
-        factor = FuzzyNoise().factor(elevation, prs.cn0_dbhz) if options["fuzzy"] else np.ones(len(prs))
+        factor = _FUZZY.factor(elevation, prs.cn0_dbhz) if options["fuzzy"] else np.ones(len(prs))
         base_std, model_name = _pseudorange_noise(options, elevation, prs.cn0_dbhz, factor)
         std = base_std * smoothing
         if options.get("mixed_corrections", "use") == "exclude":  # sessions stored before it: use
@@ -455,7 +458,7 @@ def _filter_epoch(
         if rows.size and fault_settings(options)[0] > 0.0:
             scores = range_innovations(session, centre, prs, known, std, rows, predicted_cov, ranges[0])
             kept, inflation, fault_reasons = screen(
-                session, t, [prs.sats[r] for r in rows], scores, rows, "range"
+                session, t, [prs.sats[r] for r in rows.tolist()], scores, rows, "range"
             )
             for r in left_out(rows, kept):
                 i = satellites.indices[r]
@@ -534,7 +537,12 @@ def _filter_epoch(
         if rate_rows.size and fault_settings(options)[0] > 0.0:
             scores = rate_innovations(session, centre, prs, rate_std, rate_rows, predicted_cov, rates)
             kept, inflation, rate_reasons = screen(
-                session, t, [prs.sats[r] + "/rate" for r in rate_rows], scores, rate_rows, "range rate"
+                session,
+                t,
+                [prs.sats[r] + "/rate" for r in rate_rows.tolist()],
+                scores,
+                rate_rows,
+                "range rate",
             )
             for r in left_out(rate_rows, kept):
                 doppler[satellites.indices[r]] = (False, rate_reasons[int(r)])
@@ -565,7 +573,7 @@ def _filter_epoch(
                 rate_std[rate_rows],
             )
         if rows.size or rate_model is not None:
-            systems = [prs.systems[r] for r in rows]
+            systems = [prs.systems[r] for r in rows.tolist()]
             if rows.size:
                 reset_unseen_clocks(session, t, systems, centre, prs, known, rows, rng)
             for system in set(systems):
@@ -593,9 +601,9 @@ def _filter_epoch(
     filt = filter_for(options)
     result = filt.step(session.cloud, model, dt, active, measurement, rng)
     if not (
-        np.all(np.isfinite(result.mean))
-        and np.all(np.isfinite(result.cov))
-        and np.all(np.isfinite(result.cloud.particles))
+        np.isfinite(result.mean).all()
+        and np.isfinite(result.cov).all()
+        and np.isfinite(result.cloud.particles).all()
     ):
         raise NumericalError("the filter step gave a non-finite state")
     session.cloud = result.cloud
@@ -611,7 +619,7 @@ def _filter_epoch(
             noise_std=None if noted is None else noted[0],
             noise_reason=None if noted is None else noted[1],
         )
-    for r in rate_rows:
+    for r in rate_rows.tolist():
         doppler[satellites.indices[r]] = (True, None)
     if options["filter"] == "pf":  # its particles' covariance collapses (pipelines/gnss_correlation.py)
         honest = honest.floored(result.cov)

@@ -11,15 +11,16 @@ from edgepos.api import session_service
 from edgepos.api.auth import (
     Principal,
     authorise_session_creation,
+    bearer_scheme,
     require_admin,
     require_batch_session,
     require_session,
     require_vehicle,
 )
 from edgepos.api.batch_socket import BatchSocket
-from edgepos.api.context import AppContext, Context
+from edgepos.api.context import AppContext, Context, get_context
 from edgepos.api.measurement_schemas import BatchIn
-from edgepos.api.one_pass_body import OnePassBodyRoute
+from edgepos.api.one_pass_body import OnePassBodyRoute, direct_route
 from edgepos.api.routes import errors, json_body, known_query_parameters
 from edgepos.api.schemas import (
     PIPELINE_NAME_PATTERN,
@@ -33,6 +34,9 @@ from edgepos.api.schemas import (
 )
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"], route_class=OnePassBodyRoute)
+batch_router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
+"""The batch route alone: the app matches it before every other route (it takes nearly every request), and
+documents it after :data:`router`'s."""
 
 # OpenAPI links: how a client (and schemathesis' stateful tests) goes from one call to the next.
 _READ, _SEND, _DELETE = (
@@ -171,16 +175,6 @@ async def delete_session(session_id: str, context: Context) -> Response:
     return Response(status_code=204)
 
 
-@router.post(
-    "/{session_id}/batches",
-    response_model=BatchOut,
-    summary="Send a batch of measurements",
-    dependencies=[Depends(require_batch_session), Depends(json_body)],
-    responses={
-        **errors(401, 403, 404, 409, 413, 415, 422, 429, 503),
-        200: {"links": _links(_FROM_PATH, _READ_IT, _SEND_TO_IT, _DELETE_IT)},
-    },
-)
 async def post_batch(session_id: str, body: BatchIn, context: Context, request: Request) -> Response:
     """Filter the batch and return one fix per epoch (measurements sharing t), in time order.
 
@@ -196,6 +190,34 @@ async def post_batch(session_id: str, body: BatchIn, context: Context, request: 
     prefetched = getattr(request.state, "session_record", None)  # read by the token check
     body_bytes = await session_service.apply_batch(context, session_id, body, prefetched)
     return Response(body_bytes, media_type="application/json")
+
+
+async def _post_batch_direct(request: Request, body: BatchIn) -> Response:
+    """:func:`post_batch` with its dependencies called as FastAPI solves them (``one_pass_body.direct_route``):
+    the context, the bearer credential, the session's check, the JSON content type, then the endpoint."""
+    context = await get_context(request)
+    credentials = await bearer_scheme(request)
+    session_id: str = request.path_params["session_id"]
+    await require_batch_session(request, session_id, context, credentials)
+    await json_body(request)
+    return await post_batch(session_id, body, context, request)
+
+
+batch_router.add_api_route(
+    "/{session_id}/batches",
+    post_batch,
+    methods=["POST"],
+    response_model=BatchOut,
+    summary="Send a batch of measurements",
+    dependencies=[Depends(require_batch_session), Depends(json_body)],
+    responses={
+        **errors(401, 403, 404, 409, 413, 415, 422, 429, 503),
+        200: {"links": _links(_FROM_PATH, _READ_IT, _SEND_TO_IT, _DELETE_IT)},
+    },
+    route_class_override=direct_route(
+        _post_batch_direct, (get_context, bearer_scheme, require_batch_session, json_body, get_context)
+    ),
+)
 
 
 @router.websocket("/{session_id}/ws")

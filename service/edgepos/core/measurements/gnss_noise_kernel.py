@@ -6,7 +6,10 @@
 * the correlation factor (``honesty_kernel``): ``pipelines.gnss_correlation.honesty``'s consider
   covariance of the epoch's weighted solution under the Gauss-Markov error model
   (``gnss.error_correlation``: ``honest_factor``, ``averaged_variance``, ``mean_variance``) and the
-  Gaussian-update bound.
+  Gaussian-update bound;
+* the fuzzy noise factor (``fuzzy_factor_kernel``, for ``core.fuzzy.FuzzyNoise.factor``): memberships,
+  Table 1's rules and the weighted mean per satellite, only minima, maxima, sums, products and quotients in
+  the numpy form's order, so the same bits (tested).
 
 The same equations as the numpy forms (they stay the reference the kernels are tested against, run when
 ``EDGEPOS_NUMBA=0``, and take every epoch a kernel declines); some forty numpy calls on (n, 4-7) arrays
@@ -240,6 +243,54 @@ def epoch_medians(
     return float(out[0]), int(out[1]), float(out[2]), int(out[3]), float(out[4])
 
 
+@_jit
+def _clip01(value: float) -> float:
+    """np.clip(value, 0, 1) of a finite value."""
+    return min(max(value, 0.0), 1.0)
+
+
+@_jit
+def fuzzy_factor_kernel(
+    elevation: FloatArray,
+    cn0: FloatArray,
+    breakpoints: FloatArray,
+    rules: np.ndarray,
+    outputs: FloatArray,
+    out: FloatArray,
+) -> bool:
+    """``out`` (n,): ``FuzzyNoise.factor`` per satellite. ``breakpoints``: elevation low, mid, high (rad),
+    C/N0 small, large (dB-Hz); ``rules`` (r, 2): each rule's C/N0 set (0 small, 1 large) and elevation set
+    (0 low, 1 mid, 2 high), ``outputs`` (r,) its singleton, in ``fuzzy.RULES``' order (the sums' order).
+    False (``out`` incomplete) when an input is not finite: the numpy form decides."""
+    low, mid, high, small, large = (
+        breakpoints[0],
+        breakpoints[1],
+        breakpoints[2],
+        breakpoints[3],
+        breakpoints[4],
+    )
+    degrees = np.empty(5)
+    for i in range(elevation.shape[0]):
+        el, c = elevation[i], cn0[i]
+        if not (math.isfinite(el) and math.isfinite(c)):
+            return False
+        rising = _clip01((el - low) / (mid - low))
+        upper = _clip01((el - mid) / (high - mid))
+        degrees[2] = 1.0 - rising
+        degrees[3] = min(rising, 1.0 - upper)
+        degrees[4] = upper
+        degrees[1] = _clip01((c - small) / (large - small))
+        degrees[0] = 1.0 - degrees[1]
+        numerator = 0.0
+        denominator = 0.0
+        for r in range(rules.shape[0]):
+            strength = min(degrees[rules[r, 0]], degrees[2 + rules[r, 1]])
+            numerator = numerator + strength * outputs[r]
+            denominator = denominator + strength
+        out[i] = numerator / max(denominator, 1e-12)
+    return True
+
+
 def warm_up() -> float:
     """Compile (or load from numba's on-disk cache) the kernels' one signature each; returns the seconds."""
     started = time.perf_counter()
@@ -248,4 +299,12 @@ def warm_up() -> float:
     )
     epoch_medians(jacobian, np.arange(5.0), np.ones(5))
     honesty_numbers(jacobian, np.ones(5), np.ones(5), np.ones(5), np.eye(2), 58.0, 0.5, 1.0)
+    fuzzy_factor_kernel(
+        np.full(2, 0.5),
+        np.full(2, 40.0),
+        np.arange(5.0),
+        np.zeros((1, 2), dtype=np.int64),
+        np.ones(1),
+        np.empty(2),
+    )
     return time.perf_counter() - started

@@ -2,7 +2,9 @@
 satellite's leave-one-out downdate, a constellation's lone satellite and every constellation solved again
 without their rows, and each hypothesis' test statistic, for ``gnss.raim.separations``; and one round of
 the snapshot test's least-squares fit (``snapshot_kernel``, for ``pipelines.gnss_screening.snapshot_test``,
-whose numpy round stays its reference the same way).
+whose numpy round stays its reference the same way); and the protection level's per-hypothesis bounds
+(``hypothesis_bound_kernel``, for ``gnss.raim._hypothesis_bound``: the same operations in the same order, so
+bit for bit, tested).
 
 The same equations as ``gnss.raim`` (see its docstring; it stays the reference the kernel is tested against,
 runs when ``EDGEPOS_NUMBA=0``, and takes every epoch the kernel declines). The numpy form costs some hundred
@@ -343,6 +345,45 @@ def snapshot_kernel(
     return OK
 
 
+@_jit
+def hypothesis_bound_kernel(
+    separation_cov: FloatArray,
+    largest: FloatArray,
+    covariance: FloatArray,
+    threshold: float,
+    table_of: np.ndarray,
+    tables: FloatArray,
+) -> float:
+    """The largest over the hypotheses of T sqrt(lmax(S_j)) + R(C + S_j, p_j), ``gnss.raim._hypothesis_bound``
+    element by element: ``separation_cov`` (n, 2, 2) the S_j, ``largest`` (n,) their lmax (Python's
+    ``math.hypot`` in it, computed by the caller: the C library's differs in the last bit), ``covariance``
+    (2, 2) C, ``tables`` (t, L) the radial factor tables and ``table_of`` (n,) each hypothesis' table. Only
+    additions, products, divisions and square roots, in the numpy form's order: the same bits. NaN (the
+    caller then takes the numpy form) when any input or bound is not finite."""
+    last = tables.shape[1] - 1
+    best = -math.inf
+    for j in range(separation_cov.shape[0]):
+        if not math.isfinite(largest[j]):
+            return math.nan
+        bound = threshold * math.sqrt(max(largest[j], 0.0))
+        a = covariance[0, 0] + separation_cov[j, 0, 0]
+        b = covariance[0, 1] + separation_cov[j, 0, 1]
+        d = covariance[1, 1] + separation_cov[j, 1, 1]
+        half = 0.5 * (a - d)
+        spread = math.sqrt(half * half + b * b)
+        top = 0.5 * (a + d) + spread
+        if not math.isfinite(top):
+            return math.nan
+        if top > 0.0:
+            ratio = min(max((0.5 * (a + d) - spread) / top, 0.0), 1.0)
+            slot = math.ceil(ratio * last - 1e-12)
+            bound = bound + tables[table_of[j], slot] * math.sqrt(top)
+        if not math.isfinite(bound):
+            return math.nan
+        best = max(best, bound)
+    return best
+
+
 def snapshot_round(
     receiver: np.ndarray,
     satellites: np.ndarray,
@@ -405,5 +446,8 @@ def warm_up() -> float:
         np.ones(9),
         np.zeros(9, dtype=np.int64),
         np.arange(9),
+    )
+    hypothesis_bound_kernel(
+        np.ones((2, 2, 2)), np.ones(2), np.eye(2), 1.0, np.zeros(2, dtype=np.int64), np.ones((1, 3))
     )
     return time.perf_counter() - started
