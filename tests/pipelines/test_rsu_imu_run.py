@@ -4,12 +4,14 @@ excludes, a range step the gate refuses, RSUs entering and leaving view, and bat
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from edgepos.core import compiled_run
 from edgepos.core.compiled import compiled_enabled
 from edgepos.eval.rsu_imu_montecarlo import initial_state
-from edgepos.pipelines import rsu_imu_run
+from edgepos.pipelines import rsu_imu, rsu_imu_run
 from edgepos.pipelines.registry import get_pipeline
 from edgepos.sim.faults import RsuFaults, inject
 from edgepos.sim.scenarios import rsu_imu_paper_scenario
@@ -26,12 +28,26 @@ def observations(seed: int, faults: RsuFaults | None = None) -> list:
     return run if faults is None else inject(run, faults, np.random.default_rng([seed, 2]))[0]
 
 
+def first_ranges_off(observed: list) -> list:
+    """``observed`` with each RSU's first range 40 m off: the gate refuses an RSU at the very epoch the
+    monitor's bank would spawn its sub-filter."""
+    seen: set[str] = set()
+    out = []
+    for o in observed:
+        if o.kind == "rsu" and o.rsu_id not in seen:
+            seen.add(o.rsu_id)
+            o = dataclasses.replace(o, range=o.range + 40.0)
+        out.append(o)
+    return out
+
+
 def filtered(
     monkeypatch, runs: bool, observed: list, batch_epochs: int, options: dict
 ) -> tuple[list, bytes, int]:
     """The fixes and final state of ``observed`` sent in batches of ``batch_epochs`` epochs (20 Hz), with
     runs on or off; and how many epochs the runs did."""
-    monkeypatch.setattr(rsu_imu_run, "MIN_RUN", 2 if runs else 10**9)
+    if not runs:  # the per-epoch path alone: run_fixes not even looked at (its scan makes the bank's plans)
+        monkeypatch.setattr(rsu_imu, "run_fixes", lambda *arguments: [])
     done = 0
     original = compiled_run.run_epochs
 
@@ -74,10 +90,13 @@ CASES = {
 
 
 @pytest.mark.parametrize("batch_epochs", [20, 7])
-@pytest.mark.parametrize("case", list(CASES))
+@pytest.mark.parametrize("case", [*CASES, "a new RSU's first range refused by the gate"])
 def test_runs_give_the_per_epoch_paths_fixes_and_state_bit_for_bit(monkeypatch, case, batch_epochs) -> None:
-    options, faults = CASES[case]
-    observed = observations(14, faults)
+    if case in CASES:
+        options, faults = CASES[case]
+        observed = observations(14, faults)
+    else:
+        options, observed = {}, first_ranges_off(observations(14))
     fixes, state, done = filtered(monkeypatch, True, observed, batch_epochs, options)
     reference_fixes, reference_state, reference_done = filtered(
         monkeypatch, False, observed, batch_epochs, options

@@ -67,7 +67,8 @@ class AveragedCorrection(Correction):
         )
 
 
-_GYRO_MIN_SPEED = 0.1
+#: The speed (m/s) at which the gyro model's squared speed is floored (its turn rate is undefined at rest).
+GYRO_MIN_SPEED = 0.1
 
 
 @dataclass(frozen=True)
@@ -87,7 +88,7 @@ class RsuGyroEpoch:
     yaw_rates: np.ndarray
     gyro_std: float
     averaged: bool = False
-    gyro_min_speed: float = _GYRO_MIN_SPEED
+    gyro_min_speed: float = GYRO_MIN_SPEED
 
     @functools.cached_property
     def variances(self) -> tuple[np.ndarray, np.ndarray, float]:
@@ -183,7 +184,7 @@ def new_epoch(
         yaw_rates=yaw_rates,
         gyro_std=gyro_std,
         averaged=averaged,
-        gyro_min_speed=_GYRO_MIN_SPEED,
+        gyro_min_speed=GYRO_MIN_SPEED,
         variances=(range_variances, bearing_variances, gyro_variance),
         kernel_arrays=(
             positions,

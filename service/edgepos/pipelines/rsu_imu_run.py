@@ -26,7 +26,7 @@ from edgepos.core.compiled_run import RunMonitor, RunRows, posterior, run_epochs
 from edgepos.core.imm import InteractingMultipleModel
 from edgepos.core.integrity import OK, new_protection
 from edgepos.core.observations import Observation, RsuObservation
-from edgepos.core.updates import measurement_dim
+from edgepos.core.updates import GYRO_MIN_SPEED, measurement_dim
 from edgepos.pipelines.base import Fix, MeasurementUse
 from edgepos.pipelines.integrity import _monitor_of, _position_index
 from edgepos.pipelines.rsu_imu_batch import EpochParts
@@ -116,7 +116,6 @@ def run_fixes(
         slice(rsu_base, rsu_base + rsu_bounds[-1]),
         slice(gyro_base, gyro_base + gyro_bounds[-1]),
     )
-    measured = run[0].measured
     gate = options["gate_probability"]
     run_monitor = None
     if integrity_bank is not None and monitored and plan is not None:
@@ -147,9 +146,9 @@ def run_fixes(
             rows.range_std[rsu_rows],
             rows.bearing_std[rsu_rows],
         ),
-        measured.kernel_arrays[5],
-        measured.gyro_min_speed,
-        bool(measured.averaged),
+        float(rows.gyro_std**2),  # as every epoch's RsuGyroEpoch has it (core.updates.new_epoch)
+        GYRO_MIN_SPEED,
+        rows.averaged,
         gate_thresholds(gate, bank.common) if gate > 0.0 else UNGATED,
         run_monitor,
     )
