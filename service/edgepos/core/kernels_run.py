@@ -6,7 +6,7 @@ per-epoch path does with the same kernels on the same arrays (so its results are
 bit), and stops before the first epoch that needs Python: a measurement the gate would leave out, a
 prediction or correction that failed (the numpy reference repairs or raises), and with the monitor a
 test that failed or a fix without a bound or beyond the alert limit. That epoch leaves no trace: the
-integrity bank's arrays and clock are as before it. An epoch after which the bank has sub-filters to
+integrity bank's arrays, its clock and its plan's work vector are as before it. An epoch after which the bank has sub-filters to
 prune ends the run after it, with ``bank_clock[1]`` set: the caller prunes, as ``SeparationBank.epoch``
 does after such an epoch. The caller
 (``pipelines.rsu_imu_run``) makes the fixes of the epochs done and finishes the rest on the per-epoch
@@ -83,6 +83,7 @@ def run_epochs(
     size = 73 * count + nc * (1 + nc)  # the prediction's part of an output, then the correction's
     saved_means = bank_means.copy()
     saved_covs = bank_covs.copy()
+    saved_work = work.copy()  # the plan's vector: its outcome and scratch, as the call before left them
     for j in range(dts.shape[0]):
         first, last = rsu_bounds[j], rsu_bounds[j + 1]
         out = outs[j]
@@ -125,6 +126,7 @@ def run_epochs(
         if monitored:
             saved_means[:] = bank_means
             saved_covs[:] = bank_covs
+            saved_work[:] = work
             t = times[j]
             level = bank_epoch(
                 bank_means,
@@ -141,6 +143,7 @@ def run_epochs(
             if not 0.0 <= level <= alert_limit:
                 bank_means[:] = saved_means
                 bank_covs[:] = saved_covs
+                work[:] = saved_work
                 return j
             if not bank_clock[0] > t:
                 bank_clock[0] = t

@@ -88,6 +88,7 @@ def run_fixes(
     times: list[float] = []
     in_use: list[str] | None = None
     plan = None
+    undo = None  # puts the bank back when the run's plan spawned sub-filters and the run does nothing
     for parts in epochs[first:]:
         t = observations[parts.indices[0]].t
         if not parts.candidates or t - last_t > max_gap:
@@ -95,7 +96,7 @@ def run_fixes(
         if integrity_bank is not None and monitored:
             ids = [cast(RsuObservation, observations[i]).rsu_id for i in parts.candidates]
             if in_use is None:
-                plan = integrity_bank.run_plan(ids, jerk_density, monitor.budget, position)
+                plan, undo = integrity_bank.run_plan(ids, jerk_density, monitor.budget, position)
                 if plan is None:
                     break
                 in_use = ids
@@ -104,6 +105,8 @@ def run_fixes(
         times.append(t)
         last_t = t
     if len(times) < MIN_RUN:
+        if undo is not None:
+            undo()
         return []
     run = epochs[first : first + len(times)]
     rsu_base, gyro_base = run[0].start, run[0].gyro_start
@@ -152,7 +155,9 @@ def run_fixes(
         gate_thresholds(gate, bank.common) if gate > 0.0 else UNGATED,
         run_monitor,
     )
-    if not done:
+    if not done:  # the first epoch needs the per-epoch path, which spawns what it uses itself
+        if undo is not None:
+            undo()
         return []
     fused, probabilities, nis = run_outputs(compiled, outs, done)
     components = bank.common
