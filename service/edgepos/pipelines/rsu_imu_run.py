@@ -3,12 +3,15 @@ per-epoch step shares.
 
 An epoch is usual when the filter is initialised and steps on the compiled kernels, it has an RSU in
 view, it comes within ``max_gap`` of the one before and, with the integrity monitor on, the monitor
-holds no RSU out and its plan of the epoch before serves this epoch's RSUs (the same RSUs in use, in the
-same order). ``run_fixes`` hands a run of such epochs to ``core.compiled_run.run_epochs`` (``core.kernels_run``),
+holds no RSU out and the run's epochs use the same RSUs in the same order, so that one plan of the
+monitor's bank serves them all (``SeparationBank.run_plan``: the plan of the epoch before, or a new one
+with the sub-filters of RSUs coming into use spawned, undone if the run does not do its first epoch).
+``run_fixes`` hands a run of such epochs to ``core.compiled_run.run_epochs`` (``core.kernels_run``),
 which steps them with the same kernels as the per-epoch path (``rsu_imu._step``) and stops before the
 first that needs that path (a measurement the gate leaves out, a failed step, a failed integrity test,
-an alarm, sub-filters to prune); then makes their fixes as ``_step`` does. The fixes and the state are
-the per-epoch path's bit for bit (tests/pipelines/test_rsu_imu_run.py compares).
+an alarm) or after an epoch whose bank has sub-filters to prune; then makes their fixes as ``_step``
+does. The fixes and the state are the per-epoch path's bit for bit (tests/pipelines/test_rsu_imu_run.py
+compares, and bench/rsu_imu_digest.py).
 """
 
 from __future__ import annotations
