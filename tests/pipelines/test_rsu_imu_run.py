@@ -112,3 +112,24 @@ def test_runs_give_the_per_epoch_paths_fixes_and_state_bit_for_bit(monkeypatch, 
 def test_one_epoch_batches_never_run(monkeypatch) -> None:
     fixes, _, done = filtered(monkeypatch, True, observations(3)[:200], 1, {})
     assert fixes and done == 0
+
+
+def test_a_run_goes_on_where_rsus_come_into_use_change_order_or_are_pruned(monkeypatch) -> None:
+    """The monitor's bank spawns, re-plans and prunes inside a run (core.integrity_run), so a batch is
+    not cut into several runs there; the bit-for-bit test above holds what it computes."""
+    changes = {"spawned": 0, "pruned": 0, "runs": 0}
+    original = rsu_imu_run.integrity_run.after_run
+
+    def watched(bank, monitor, names):
+        before = list(bank.ids)
+        original(bank, monitor, names)
+        changes["runs"] += 1
+        changes["spawned"] += bool(set(bank.ids) - set(before))
+        changes["pruned"] += bool(set(before) - set(bank.ids))
+
+    monkeypatch.setattr(rsu_imu_run.integrity_run, "after_run", watched)
+    fixes, _, done = filtered(monkeypatch, True, observations(14), 20, {})
+    assert changes["spawned"] > 0 and changes["pruned"] > 0
+    batches = len(fixes) // 20
+    assert changes["runs"] <= batches + batches // 4, "a run per batch, or about"
+    assert done > 0.9 * len(fixes)
