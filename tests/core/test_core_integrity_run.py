@@ -60,3 +60,36 @@ def test_the_bank_keeps_its_ids_list_when_a_run_changes_none() -> None:
     assert monitor.means is bank.means  # nothing to spawn: the bank's own arrays, stepped in place
     after_run(bank, monitor, names)
     assert bank.ids is ids
+
+
+def test_a_monitored_run_calls_the_kernel_with_the_types_the_warm_up_compiles(monkeypatch) -> None:
+    """A type the warm-up does not give (a read-only table, an int32 code) would compile (or load) a
+    second signature in every worker at its first monitored batch."""
+    import numba
+    from edgepos.core.compiled import warm_up
+    from edgepos.pipelines.base import InitialState
+    from edgepos.pipelines.registry import get_pipeline
+    from edgepos.sim.scenarios import rsu_imu_paper_scenario
+    from edgepos.sim.sensors import environment, rsu_imu_epochs
+
+    calls: list[tuple] = []
+    kernel = kernels_run.run_epochs
+
+    def recorded(*args):
+        calls.append(tuple(numba.typeof(a) for a in args))
+        return kernel(*args)
+
+    monkeypatch.setattr(kernels_run, "run_epochs", recorded)
+    warm_up()  # its run of epochs comes first
+    assert len(calls) == 1
+    scenario = rsu_imu_paper_scenario()
+    pipeline = get_pipeline("rsu_imu")
+    x0 = scenario.initial_state
+    state = pipeline.create(pipeline.resolve_options({}), InitialState(x0[0], x0[3], x0[1], x0[4]))
+    epochs = rsu_imu_epochs(scenario, np.random.default_rng(5))
+    for first in range(0, 100, 20):
+        _, state = pipeline.process(
+            state, [o for e in epochs[first : first + 20] for o in e], environment(scenario)
+        )
+    assert len(calls) > 2
+    assert set(calls[1:]) == {calls[0]}

@@ -50,15 +50,21 @@ class RunMonitor(NamedTuple):
     alert_limit: float
 
 
-#: A run without the monitor: arrays of the monitor's types (one compiled signature serves both).
+def _read_only(array: np.ndarray) -> np.ndarray:
+    array.flags.writeable = False
+    return array
+
+
+#: A run without the monitor: arrays of the monitor's types (one compiled signature serves both: the
+#: tables and thresholds read only, as ``core.integrity_run`` shares them between runs).
 _NO_MONITOR = RunMonitor(
     np.zeros(1),
     np.zeros(2, dtype=np.int64),
     np.zeros((0, 6)),
     np.zeros((0, 6, 6)),
     np.zeros(0, dtype=np.int64),
-    np.zeros((1, 2, 1)),
-    np.zeros(1),
+    _read_only(np.zeros((1, 2, 1))),
+    _read_only(np.zeros(1)),
     0.0,
     np.zeros(2, dtype=np.int64),
     0.0,
