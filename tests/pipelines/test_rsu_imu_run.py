@@ -133,3 +133,15 @@ def test_a_run_goes_on_where_rsus_come_into_use_change_order_or_are_pruned(monke
     batches = len(fixes) // 20
     assert changes["runs"] <= batches + batches // 4, "a run per batch, or about"
     assert done > 0.9 * len(fixes)
+
+
+def test_the_warm_up_tabulates_every_bound_a_monitored_run_uses(monkeypatch) -> None:
+    from edgepos.core.integrity_bank import budget_tables
+    from edgepos.core.integrity_run import stacked_tables
+    from edgepos.pipelines.integrity import warm_up_tables
+
+    warm_up_tables()
+    misses = budget_tables.cache_info().misses, stacked_tables.cache_info().misses
+    fixes, _, done = filtered(monkeypatch, True, observations(14)[:1000], 20, {})
+    assert done > 0 and fixes[-1].protection_level is not None
+    assert (budget_tables.cache_info().misses, stacked_tables.cache_info().misses) == misses
