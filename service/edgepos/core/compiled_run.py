@@ -101,8 +101,8 @@ def run_epochs(
     # a row wide enough for every epoch: the run's RSU pairs and gyro readings, all of them (no epoch has more)
     outs = np.empty((len(dts), kernels_run.output_width(count, nc, len(rows.positions), len(rows.yaw_rates))))
     levels = np.empty(len(dts))
-    step_dts = [dt_key(dt) if dt else 0.0 for dt in dts]
-    bank = monitor or _NO_MONITOR  # the reference's rounding of dt for F and Q
+    step_dts = [dt_key(dt) if dt else 0.0 for dt in dts]  # the reference's rounding of dt for F and Q
+    bank = monitor or _NO_MONITOR
     done = kernels_run.run_epochs(
         np.ascontiguousarray(means, dtype=float),
         np.ascontiguousarray(covs, dtype=float),
