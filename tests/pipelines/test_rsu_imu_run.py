@@ -16,6 +16,8 @@ from edgepos.pipelines.registry import get_pipeline
 from edgepos.sim.faults import RsuFaults, inject
 from edgepos.sim.scenarios import rsu_imu_paper_scenario
 from edgepos.sim.sensors import environment, rsu_imu_epochs
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 pytestmark = pytest.mark.skipif(not compiled_enabled(), reason="runs step on the compiled kernels only")
 
@@ -112,3 +114,87 @@ def test_runs_give_the_per_epoch_paths_fixes_and_state_bit_for_bit(monkeypatch, 
 def test_one_epoch_batches_never_run(monkeypatch) -> None:
     fixes, _, done = filtered(monkeypatch, True, observations(3)[:200], 1, {})
     assert fixes and done == 0
+
+
+def test_a_run_goes_on_where_rsus_come_into_use_change_order_or_are_pruned(monkeypatch) -> None:
+    """The monitor's bank spawns, re-plans and prunes inside a run (core.integrity_run), so a batch is
+    not cut into several runs there; the bit-for-bit test above holds what it computes."""
+    changes = {"spawned": 0, "pruned": 0, "runs": 0}
+    original = rsu_imu_run.integrity_run.after_run
+
+    def watched(bank, monitor, names):
+        before = list(bank.ids)
+        original(bank, monitor, names)
+        changes["runs"] += 1
+        changes["spawned"] += bool(set(bank.ids) - set(before))
+        changes["pruned"] += bool(set(before) - set(bank.ids))
+
+    monkeypatch.setattr(rsu_imu_run.integrity_run, "after_run", watched)
+    fixes, _, done = filtered(monkeypatch, True, observations(14), 20, {})
+    assert changes["spawned"] > 0 and changes["pruned"] > 0
+    batches = len(fixes) // 20
+    assert changes["runs"] <= batches + batches // 4, "a run per batch, or about"
+    assert done > 0.9 * len(fixes)
+
+
+def test_the_warm_up_tabulates_every_bound_a_monitored_run_uses(monkeypatch) -> None:
+    from edgepos.core.integrity_bank import budget_tables
+    from edgepos.core.integrity_run import stacked_tables
+    from edgepos.pipelines.integrity import warm_up_tables
+
+    warm_up_tables()
+    misses = budget_tables.cache_info().misses, stacked_tables.cache_info().misses
+    fixes, _, done = filtered(monkeypatch, True, observations(14)[:1000], 20, {})
+    assert done > 0 and fixes[-1].protection_level is not None
+    assert (budget_tables.cache_info().misses, stacked_tables.cache_info().misses) == misses
+
+
+def perturbed(seed: int, epochs: int, dropout: float, jitter: float, gap: tuple[float, float]) -> list:
+    """The first ``epochs`` epochs of a run of the paper's scene, each RSU observation dropped with
+    probability ``dropout``, every epoch's time moved by up to ``jitter`` s, none in the ``gap``
+    (start, length in s): RSUs leave and return, runs meet gaps and re-initialisations."""
+    rng = np.random.default_rng([seed, 9])
+    kept = []
+    start, length = gap
+    for epoch in rsu_imu_epochs(SCENARIO, np.random.default_rng(seed))[:epochs]:
+        shift = float(rng.uniform(-jitter, jitter))
+        for o in epoch:
+            if start <= o.t < start + length or (o.kind == "rsu" and rng.random() < dropout):
+                continue
+            kept.append(dataclasses.replace(o, t=o.t + shift))
+    return kept
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    seed=st.integers(0, 10_000),
+    batch_epochs=st.integers(2, 30),
+    dropout=st.sampled_from([0.0, 0.1, 0.4]),
+    jitter=st.sampled_from([0.0, 0.002]),
+    gap=st.tuples(st.floats(2.0, 12.0), st.sampled_from([0.0, 0.3, 1.5])),
+    options=st.fixed_dictionaries(
+        {
+            "integrity": st.booleans(),
+            "gate_probability": st.sampled_from([0.0, 0.99]),
+            "rsu_handling": st.sampled_from(["joint", "average"]),
+            "fault_exclusion": st.booleans(),
+        }
+    ),
+    fault=st.sampled_from([None, (5.0, 0.0), (0.0, 0.05)]),
+)
+def test_runs_give_the_per_epoch_paths_fixes_on_any_batching_and_losses(
+    seed, batch_epochs, dropout, jitter, gap, options, fault
+) -> None:
+    observed = perturbed(seed, 300, dropout, jitter, gap)
+    if fault is not None:
+        faults = RsuFaults(
+            run_fraction=1.0, range_bias_m=fault[0], bearing_offset_rad=fault[1], duration_s=5.0
+        )
+        observed = inject(observed, faults, np.random.default_rng([seed, 2]))[0]
+    with pytest.MonkeyPatch.context() as patch:
+        fixes, state, done = filtered(patch, True, observed, batch_epochs, options)
+    with pytest.MonkeyPatch.context() as patch:
+        reference_fixes, reference_state, _ = filtered(patch, False, observed, batch_epochs, options)
+    assert done > 0
+    assert state == reference_state
+    assert fixes == reference_fixes

@@ -31,21 +31,44 @@ class RunRows(NamedTuple):
 
 
 class RunMonitor(NamedTuple):
-    """The integrity bank a run steps after each epoch (``SeparationBank.epoch``'s arrays and plan):
-    its clock and a flag (0; 1 when the run ended on an epoch after which sub-filters are to be pruned)
-    as a two-element array (written back), the sub-filters' means and covariances (written in
-    place), the plan's work vector, the alert limit, and whether every sub-filter's RSU is in use."""
+    """The integrity bank a run steps after each epoch (``core.integrity_run`` makes it from a
+    ``SeparationBank`` and reads it back): its clock (one element, written back), its filters' count
+    and RSU codes (``[K, 0, code_1, ..]``, written back), their means and covariances in the leading rows
+    (room for the sub-filters the run may spawn; written in place), each measurement row's RSU code, the
+    radial factor tables and test thresholds of a bank of 0, 1, .. sub-filters, the jerk density, where
+    x and y are in the fused mean, and the alert limit."""
 
     clock: np.ndarray
+    filters: np.ndarray
     means: np.ndarray
     covs: np.ndarray
-    work: np.ndarray
+    rsu_codes: np.ndarray
+    tables: np.ndarray
+    thresholds: np.ndarray
+    jerk_density: float
+    fix_index: np.ndarray
     alert_limit: float
-    covered: bool
 
 
-#: A run without the monitor: arrays of the monitor's types (one compiled signature serves both).
-_NO_MONITOR = RunMonitor(np.zeros(2), np.zeros((0, 6)), np.zeros((0, 6, 6)), np.zeros(1), 0.0, True)
+def _read_only(array: np.ndarray) -> np.ndarray:
+    array.flags.writeable = False
+    return array
+
+
+#: A run without the monitor: arrays of the monitor's types (one compiled signature serves both: the
+#: tables and thresholds read only, as ``core.integrity_run`` shares them between runs).
+_NO_MONITOR = RunMonitor(
+    np.zeros(1),
+    np.zeros(2, dtype=np.int64),
+    np.zeros((0, 6)),
+    np.zeros((0, 6, 6)),
+    np.zeros(0, dtype=np.int64),
+    _read_only(np.zeros((1, 2, 1))),
+    _read_only(np.zeros(1)),
+    0.0,
+    np.zeros(2, dtype=np.int64),
+    0.0,
+)
 
 
 def run_epochs(
@@ -79,6 +102,7 @@ def run_epochs(
     outs = np.empty((len(dts), kernels_run.output_width(count, nc, len(rows.positions), len(rows.yaw_rates))))
     levels = np.empty(len(dts))
     step_dts = [dt_key(dt) if dt else 0.0 for dt in dts]  # the reference's rounding of dt for F and Q
+    bank = monitor or _NO_MONITOR
     done = kernels_run.run_epochs(
         np.ascontiguousarray(means, dtype=float),
         np.ascontiguousarray(covs, dtype=float),
@@ -107,7 +131,16 @@ def run_epochs(
         thresholds[1],
         monitor is not None,
         np.array(times),
-        *(monitor or _NO_MONITOR),
+        bank.clock,
+        bank.filters,
+        bank.means,
+        bank.covs,
+        bank.rsu_codes,
+        bank.tables,
+        bank.thresholds,
+        bank.jerk_density,
+        bank.fix_index,
+        bank.alert_limit,
         outs,
         levels,
     )

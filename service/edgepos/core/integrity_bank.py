@@ -369,28 +369,6 @@ class SeparationBank:
             return None
         return plan
 
-    def run_plan(
-        self, rsu_ids: Sequence[str], jerk_density: float, budget: IntegrityBudget, position: tuple[int, int]
-    ) -> tuple[_Plan | None, Callable[[], None] | None]:
-        """:meth:`plan_for`, or the plan :meth:`epoch` would make for these RSUs, their sub-filters spawned
-        first as there, for a run of epochs on the compiled kernels (``pipelines.rsu_imu_run``), which
-        starts with a plan (None when the kernels are off). With it, when something was spawned, a call that
-        puts the bank back as it was: for a run that does not do its first epoch, whose per-epoch step may
-        then use fewer RSUs (a measurement the gate leaves out), and a sub-filter too many would change the
-        protection level's hypotheses."""
-        plan = self.plan_for(rsu_ids, jerk_density, budget, position)
-        if plan is not None or not _compiled():
-            return plan, None
-        ids, means, covs, before = self.ids, self.means, self.covs, self._plan
-
-        def undo() -> None:
-            self.ids, self.means, self.covs, self._plan = ids, means, covs, before
-
-        self.spawn(rsu_ids)
-        spawned = self.ids is not ids
-        plan = self._plan = _Plan.make(self, rsu_ids, jerk_density, budget, position)
-        return plan, undo if spawned else None
-
     def _pruned(
         self, outcome: tuple[Protection, str | None], rsu_ids: Sequence[str], prune: bool
     ) -> tuple[Protection, str | None]:

@@ -315,9 +315,10 @@ def all_finite(values: FloatArray) -> bool:
     return True
 
 
+@_jit
 def work_size(measurements: int, filters: int, table: int) -> int:
     """Length of ``bank_epoch``'s ``work`` vector for ``measurements`` RSUs, ``filters`` filters and
-    radial factor tables of ``table`` entries."""
+    radial factor tables of ``table`` entries (compiled: a run's kernel makes its plans too)."""
     return (
         SCALARS + 2 * table + measurements + filters + 2 + _PREDICT_SCRATCH + 5 * measurements + 42 * filters
     )

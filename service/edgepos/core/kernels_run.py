@@ -6,9 +6,10 @@ per-epoch path does with the same kernels on the same arrays (so its results are
 bit), and stops before the first epoch that needs Python: a measurement the gate would leave out, a
 prediction or correction that failed (the numpy reference repairs or raises), and with the monitor a
 test that failed or a fix without a bound or beyond the alert limit. That epoch leaves no trace: the
-integrity bank's arrays, its clock and its plan's work vector are as before it. An epoch after which the bank has sub-filters to
-prune ends the run after it, with ``bank_clock[1]`` set: the caller prunes, as ``SeparationBank.epoch``
-does after such an epoch. The caller
+integrity bank's filters, their codes and its clock are as before it. The bank's own steps around the
+epoch (``SeparationBank.epoch`` with ``prune``) are here on RSU codes (``core.integrity_run``): a
+sub-filter spawned for an RSU coming into use, a new plan (the work vector of ``bank_epoch``) when the
+filters or the RSUs in use change, and the converged sub-filters of RSUs out of use pruned. The caller
 (``pipelines.rsu_imu_run``) makes the fixes of the epochs done and finishes the rest on the per-epoch
 path. One call for a batch's run saves per epoch the Python around two calls (their arguments, their
 result objects, the monitor's bookkeeping).
@@ -21,11 +22,13 @@ its protection level.
 
 from __future__ import annotations
 
-from edgepos.core.integrity_bank import DROPPABLE
+import numpy as np
+
+from edgepos.core.integrity_bank import CONVERGED, DROPPABLE, JERK, SCALARS, TABLE, THRESHOLD
 from edgepos.core.kernels import _prediction_parts
 from edgepos.core.kernels_base import OK, BoolArray, IntArray, _jit
 from edgepos.core.kernels_epoch import epoch_step
-from edgepos.core.kernels_integrity import bank_epoch
+from edgepos.core.kernels_integrity import bank_epoch, work_size
 from edgepos.core.numerics import FloatArray
 
 
@@ -65,25 +68,36 @@ def run_epochs(
     monitored: bool,
     times: FloatArray,
     bank_clock: FloatArray,
+    bank_filters: IntArray,
     bank_means: FloatArray,
     bank_covs: FloatArray,
-    work: FloatArray,
+    rsu_codes: IntArray,
+    tables: FloatArray,
+    thresholds: FloatArray,
+    jerk_density: float,
+    fix_index: IntArray,
     alert_limit: float,
-    covered: bool,
     outs: FloatArray,
     levels: FloatArray,
 ) -> int:
     """Step the run's epochs from ``means``, ``covs``, ``probabilities`` (see the module docstring);
     ``dts[j]`` and ``step_dts[j]`` are epoch ``j``'s interval and its rounding for F and Q, as
-    ``epoch_step`` takes them. With ``monitored``, the bank (``bank_means``, ``bank_covs``, its clock
-    ``bank_clock[0]``, the prune flag ``bank_clock[1]`` and its plan's ``work``) steps after each epoch as ``SeparationBank.epoch`` would.
+    ``epoch_step`` takes them. With ``monitored``, the integrity bank steps after each epoch as
+    ``SeparationBank.epoch`` (with ``prune``) would: its clock ``bank_clock[0]``, its filters'
+    count ``bank_filters[0]`` and RSU codes ``bank_filters[1:]`` (0: the reference), their means and
+    covariances in the leading rows of ``bank_means`` and ``bank_covs`` (room for a sub-filter per RSU
+    the run may bring into use), all written back. ``rsu_codes`` gives each measurement row's RSU
+    code, ``tables[h]`` and ``thresholds[h]`` a bank of ``h`` sub-filters' radial factor tables and
+    test threshold, ``fix_index`` where x and y are in the fused mean.
     Returns the number of epochs done: those before the first that needs Python."""
     count = means.shape[0]
     nc = common.shape[0]
     size = 73 * count + nc * (1 + nc)  # the prediction's part of an output, then the correction's
     saved_means = bank_means.copy()
     saved_covs = bank_covs.copy()
-    saved_work = work.copy()  # the plan's vector: its outcome and scratch, as the call before left them
+    saved_filters = bank_filters.copy()
+    work = np.zeros(1)
+    planned = -1  # the epoch whose RSUs ``work`` was made for (-1: none yet)
     for j in range(dts.shape[0]):
         first, last = rsu_bounds[j], rsu_bounds[j + 1]
         out = outs[j]
@@ -124,13 +138,21 @@ def run_epochs(
             posterior, count, nc
         )
         if monitored:
-            saved_means[:] = bank_means
-            saved_covs[:] = bank_covs
-            saved_work[:] = work
+            filters = bank_filters[0]
+            saved_means[:filters] = bank_means[:filters]
+            saved_covs[:filters] = bank_covs[:filters]
+            saved_filters[:] = bank_filters
+            codes = rsu_codes[first:last]
+            if _spawn(bank_means, bank_covs, bank_filters, codes) or not _same_codes(
+                rsu_codes, rsu_bounds, planned, j
+            ):
+                work = _plan_work(bank_filters, codes, tables, thresholds, jerk_density, fix_index)
+                planned = j
+            filters = bank_filters[0]
             t = times[j]
             level = bank_epoch(
-                bank_means,
-                bank_covs,
+                bank_means[:filters],
+                bank_covs[:filters],
                 work,
                 t - bank_clock[0],
                 positions[first:last],
@@ -141,20 +163,130 @@ def run_epochs(
                 fused_cov,
             )
             if not 0.0 <= level <= alert_limit:
-                bank_means[:] = saved_means
-                bank_covs[:] = saved_covs
-                work[:] = saved_work
+                filters = saved_filters[0]
+                bank_means[:filters] = saved_means[:filters]
+                bank_covs[:filters] = saved_covs[:filters]
+                bank_filters[:] = saved_filters
                 return j
             if not bank_clock[0] > t:
                 bank_clock[0] = t
             levels[j] = level
-            if not covered and work[DROPPABLE] != 0.0:
-                bank_clock[1] = (
-                    1.0  # sub-filters to prune after this epoch: the caller's, as SeparationBank.epoch
-                )
-                return j + 1
+            if (
+                work[DROPPABLE] != 0.0
+                and not _covered(bank_filters, codes)
+                and _prune(bank_means, bank_covs, bank_filters, codes)
+            ):
+                planned = -1  # the filters moved: the next epoch's owners and tables are new
         means, covs, probabilities = next_means, next_covs, next_probabilities
     return int(dts.shape[0])
+
+
+@_jit
+def _has(bank_filters: IntArray, code: int) -> bool:
+    """Whether a sub-filter leaves out the RSU of ``code``."""
+    for k in range(1, bank_filters[0]):
+        if bank_filters[1 + k] == code:
+            return True
+    return False
+
+
+@_jit
+def _spawn(bank_means: FloatArray, bank_covs: FloatArray, bank_filters: IntArray, codes: IntArray) -> bool:
+    """``SeparationBank.spawn``: a copy of the reference for each RSU of ``codes`` without a sub-filter,
+    in their order; whether any was made."""
+    made = False
+    for code in codes:
+        if not _has(bank_filters, code):
+            filters = bank_filters[0]
+            bank_means[filters] = bank_means[0]
+            bank_covs[filters] = bank_covs[0]
+            bank_filters[1 + filters] = code
+            bank_filters[0] = filters + 1
+            made = True
+    return made
+
+
+@_jit
+def _same_codes(rsu_codes: IntArray, rsu_bounds: IntArray, planned: int, j: int) -> bool:
+    """Whether epoch ``j`` measures the RSUs of epoch ``planned`` in the same order (-1: none)."""
+    if planned < 0:
+        return False
+    first, last = rsu_bounds[j], rsu_bounds[j + 1]
+    before = rsu_bounds[planned]
+    if last - first != rsu_bounds[planned + 1] - before:
+        return False
+    for i in range(last - first):
+        if rsu_codes[first + i] != rsu_codes[before + i]:
+            return False
+    return True
+
+
+@_jit
+def _covered(bank_filters: IntArray, codes: IntArray) -> bool:
+    """Whether every sub-filter's RSU is among ``codes`` (``integrity_bank._covered``)."""
+    for k in range(1, bank_filters[0]):
+        found = False
+        for code in codes:
+            if code == bank_filters[1 + k]:
+                found = True
+        if not found:
+            return False
+    return True
+
+
+@_jit
+def _plan_work(
+    bank_filters: IntArray,
+    codes: IntArray,
+    tables: FloatArray,
+    thresholds: FloatArray,
+    jerk_density: float,
+    fix_index: IntArray,
+) -> FloatArray:
+    """``bank_epoch``'s work vector for the bank's filters and these RSUs in use, as
+    ``integrity_bank._plan_work`` makes it (no RSU excluded: a run has none)."""
+    filters = bank_filters[0]
+    n = codes.shape[0]
+    table = tables.shape[2]
+    work = np.zeros(work_size(n, filters, table))
+    work[JERK], work[THRESHOLD], work[TABLE] = jerk_density, thresholds[filters - 1], table
+    work[SCALARS : SCALARS + table] = tables[filters - 1, 0]
+    work[SCALARS + table : SCALARS + 2 * table] = tables[filters - 1, 1]
+    start = SCALARS + 2 * table
+    for i in range(n):
+        owner = -1
+        for k in range(1, filters):
+            if bank_filters[1 + k] == codes[i]:
+                owner = k
+        work[start + i] = owner
+    work[start + n + filters] = fix_index[0]
+    work[start + n + filters + 1] = fix_index[1]
+    return work
+
+
+@_jit
+def _prune(bank_means: FloatArray, bank_covs: FloatArray, bank_filters: IntArray, codes: IntArray) -> bool:
+    """``SeparationBank.prune`` for the RSUs of ``codes``: drop the sub-filters whose RSU is not in use
+    and whose position covariance (trace) exceeds the reference's by no more than ``CONVERGED`` of it,
+    the rest moved up in order; whether any was dropped."""
+    reference = bank_covs[0, 0, 0] + bank_covs[0, 3, 3]
+    bound = CONVERGED * reference
+    kept = 1
+    for k in range(1, bank_filters[0]):
+        code = bank_filters[1 + k]
+        in_use = False
+        for used in codes:
+            if used == code:
+                in_use = True
+        if in_use or (bank_covs[k, 0, 0] + bank_covs[k, 3, 3]) - reference > bound:
+            if kept != k:
+                bank_means[kept] = bank_means[k]
+                bank_covs[kept] = bank_covs[k]
+                bank_filters[1 + kept] = code
+            kept += 1
+    dropped = bool(kept < bank_filters[0])
+    bank_filters[0] = kept
+    return dropped
 
 
 def output_width(count: int, nc: int, rsus: int, gyros: int) -> int:

@@ -24,6 +24,7 @@ from edgepos.core.integrity import (
     Protection,
 )
 from edgepos.core.integrity_bank import SeparationBank, budget_tables
+from edgepos.core.integrity_run import stacked_tables
 from edgepos.core.observations import Observation, RsuObservation
 from edgepos.core.updates import RsuGyroEpoch
 from edgepos.pipelines.base import MeasurementUse, OptionSpec
@@ -153,13 +154,15 @@ def _monitor(
 
 
 def warm_up_tables(max_hypotheses: int = 8) -> None:
-    """Tabulate the radial bounds and test thresholds of the default options' budget for 1 to
-    ``max_hypotheses`` sub-filters now (about 30 ms each, by quadrature), so that the first vehicles'
-    epochs do not stall the filter thread computing them (the tables are cached per process)."""
+    """Tabulate the radial bounds and test thresholds of the default options' budget for 0 to
+    ``max_hypotheses`` sub-filters now (about 30 ms each, by quadrature), and their stacks for a run of
+    epochs (``core.integrity_run.stacked_tables``), so that the first vehicles' epochs do not stall the
+    filter thread computing them (the tables are cached per process)."""
     defaults = {spec.name: spec.default for spec in INTEGRITY_SPECS}
     budget = RsuIntegrity.of(defaults).budget
-    for hypotheses in range(1, max_hypotheses + 1):
+    for hypotheses in range(max_hypotheses + 1):
         budget_tables(budget, hypotheses)
+        stacked_tables(budget, hypotheses + 1)
 
 
 EXCLUDED = "excluded by fault detection"

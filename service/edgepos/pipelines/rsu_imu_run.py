@@ -3,15 +3,14 @@ per-epoch step shares.
 
 An epoch is usual when the filter is initialised and steps on the compiled kernels, it has an RSU in
 view, it comes within ``max_gap`` of the one before and, with the integrity monitor on, the monitor
-holds no RSU out and the run's epochs use the same RSUs in the same order, so that one plan of the
-monitor's bank serves them all (``SeparationBank.run_plan``: the plan of the epoch before, or a new one
-with the sub-filters of RSUs coming into use spawned, undone if the run does not do its first epoch).
-``run_fixes`` hands a run of such epochs to ``core.compiled_run.run_epochs`` (``core.kernels_run``),
-which steps them with the same kernels as the per-epoch path (``rsu_imu._step``) and stops before the
-first that needs that path (a measurement the gate leaves out, a failed step, a failed integrity test,
-an alarm) or after an epoch whose bank has sub-filters to prune; then makes their fixes as ``_step``
-does. The fixes and the state are the per-epoch path's bit for bit (tests/pipelines/test_rsu_imu_run.py
-compares, and bench/rsu_imu_digest.py).
+holds no RSU out. ``run_fixes`` hands a run of such epochs to ``core.compiled_run.run_epochs``
+(``core.kernels_run``), which steps them with the same kernels as the per-epoch path
+(``rsu_imu._step``), the monitor's bank with them (``core.integrity_run``: the kernel spawns a
+sub-filter where an RSU comes into use, prunes and makes a new plan where ``SeparationBank.epoch``
+would), and stops before the first epoch that needs that path (a measurement the gate leaves out, a
+failed step, a failed integrity test, an alarm); then makes their fixes as ``_step`` does. The fixes
+and the state are the per-epoch path's bit for bit (tests/pipelines/test_rsu_imu_run.py compares, and
+bench/rsu_imu_digest.py).
 """
 
 from __future__ import annotations
@@ -20,12 +19,11 @@ import functools
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, cast
 
-import numpy as np
 from scipy.stats import chi2
 
-from edgepos.core import layout
+from edgepos.core import integrity_run, layout
 from edgepos.core.compiled import BankStepper, CompiledBankStepper
-from edgepos.core.compiled_run import RunMonitor, RunRows, posterior, run_epochs, run_outputs
+from edgepos.core.compiled_run import RunRows, posterior, run_epochs, run_outputs
 from edgepos.core.imm import InteractingMultipleModel
 from edgepos.core.integrity import OK, new_protection
 from edgepos.core.observations import Observation, RsuObservation
@@ -84,32 +82,19 @@ def run_fixes(
     integrity_bank = session.integrity_bank
     if monitored and (integrity_bank is None or integrity_bank.excluded):
         return []
-    monitor, jerk_density = _monitor_of(options)
-    position = _position_index(bank.common)
     max_gap = options["max_gap"]
     last_t: float = session.filter_t
     times: list[float] = []
-    in_use: list[str] | None = None
-    plan = None
-    undo = None  # puts the bank back when the run's plan spawned sub-filters and the run does nothing
+    run_ids: list[str] = []  # with the monitor: each measurement row's RSU, epoch after epoch
     for parts in epochs[first:]:
         t = observations[parts.indices[0]].t
         if not parts.candidates or t - last_t > max_gap:
             break
-        if integrity_bank is not None and monitored:
-            ids = [cast(RsuObservation, observations[i]).rsu_id for i in parts.candidates]
-            if in_use is None:
-                plan, undo = integrity_bank.run_plan(ids, jerk_density, monitor.budget, position)
-                if plan is None:
-                    break
-                in_use = ids
-            elif ids != in_use:
-                break
+        if monitored:
+            run_ids += [cast(RsuObservation, observations[i]).rsu_id for i in parts.candidates]
         times.append(t)
         last_t = t
     if len(times) < MIN_RUN:
-        if undo is not None:
-            undo()
         return []
     run = epochs[first : first + len(times)]
     rsu_base, gyro_base = run[0].start, run[0].gyro_start
@@ -123,15 +108,11 @@ def run_fixes(
         slice(gyro_base, gyro_base + gyro_bounds[-1]),
     )
     gate = options["gate_probability"]
-    run_monitor = None
-    if integrity_bank is not None and monitored and plan is not None:
-        run_monitor = RunMonitor(
-            np.array([integrity_bank.t, 0.0]),
-            integrity_bank.means,
-            integrity_bank.covs,
-            plan.scalars,
-            monitor.budget.alert_limit,
-            plan.covered,
+    run_monitor = names = None
+    if integrity_bank is not None and monitored:
+        monitor, jerk_density = _monitor_of(options)
+        run_monitor, names = integrity_run.run_monitor(
+            integrity_bank, run_ids, monitor.budget, jerk_density, _position_index(bank.common)
         )
     compiled = cast(CompiledBankStepper, stepper)
     done, outs, levels = run_epochs(
@@ -158,9 +139,7 @@ def run_fixes(
         gate_thresholds(gate, bank.common) if gate > 0.0 else UNGATED,
         run_monitor,
     )
-    if not done:  # the first epoch needs the per-epoch path, which spawns what it uses itself
-        if undo is not None:
-            undo()
+    if not done:  # the first epoch needs the per-epoch path (the bank is as it was)
         return []
     fused, probabilities, nis = run_outputs(compiled, outs, done)
     components = bank.common
@@ -196,8 +175,6 @@ def run_fixes(
     session.means, session.covs, session.probabilities = last.means, last.covs, last.probabilities
     session.t = session.filter_t = times[done - 1]
     session.epochs += done
-    if integrity_bank is not None and run_monitor is not None:
-        integrity_bank.t = float(run_monitor.clock[0])
-        if run_monitor.clock[1] and in_use is not None:  # as SeparationBank.epoch after such an epoch
-            integrity_bank.prune(in_use)
+    if integrity_bank is not None and run_monitor is not None and names is not None:
+        integrity_run.after_run(integrity_bank, run_monitor, names)
     return fixes

@@ -1,0 +1,86 @@
+"""The integrity bank (``core.integrity_bank``) stepped in a run of epochs (``core.kernels_run``): the
+bank's arrays as the run's kernel takes them, and the bank brought up to date from them after the run.
+
+In the kernel an RSU is a small integer code: 0 the reference, ``k`` the RSU of the bank's sub-filter
+``k`` as the run starts, then one code per RSU the run measures that has no sub-filter yet. The kernel
+spawns, prunes and re-plans with codes (as ``SeparationBank.epoch`` does with ids), so a run goes on
+where an RSU comes into use, the RSUs change order, or a sub-filter is dropped.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+
+import numpy as np
+
+from edgepos.core.compiled_run import RunMonitor
+from edgepos.core.integrity import IntegrityBudget
+from edgepos.core.integrity_bank import DIM, SeparationBank, budget_tables
+
+
+@functools.lru_cache(maxsize=64)
+def stacked_tables(budget: IntegrityBudget, filters: int) -> tuple[np.ndarray, np.ndarray]:
+    """``budget_tables`` of a bank of 0, 1, .. ``filters - 1`` sub-filters, stacked (read only): the
+    radial factor tables ``[h]`` and test thresholds ``[h]`` of ``h`` sub-filters."""
+    pairs = [budget_tables(budget, hypotheses) for hypotheses in range(filters)]
+    tables = np.stack([tables for tables, _ in pairs])
+    thresholds = np.array([threshold for _, threshold in pairs])
+    tables.flags.writeable = thresholds.flags.writeable = False
+    return tables, thresholds
+
+
+def run_monitor(
+    bank: SeparationBank,
+    rsu_ids: Sequence[str],
+    budget: IntegrityBudget,
+    jerk_density: float,
+    position: tuple[int, int],
+) -> tuple[RunMonitor, list[str]]:
+    """The run's monitor for ``bank`` and the RSU ids of the run's measurement rows, in order; and the
+    id of each code. The bank's own arrays are stepped in place when the run can spawn nothing, else
+    copies with room for what it may spawn (:func:`after_run` takes them over)."""
+    codes = {rsu: k for k, rsu in enumerate(bank.ids)}  # "" (the reference) is 0
+    names = list(bank.ids)
+    rows = []
+    for rsu in rsu_ids:
+        code = codes.get(rsu)
+        if code is None:
+            code = codes[rsu] = len(names)
+            names.append(rsu)
+        rows.append(code)
+    count, capacity = len(bank.ids), len(names)
+    filters = np.zeros(capacity + 1, dtype=np.int64)
+    filters[0] = count
+    filters[1 : count + 1] = np.arange(count)
+    if capacity == count:
+        means, covs = bank.means, bank.covs
+    else:
+        means, covs = np.empty((capacity, DIM)), np.empty((capacity, DIM, DIM))
+        means[:count], covs[:count] = bank.means, bank.covs
+    tables, thresholds = stacked_tables(budget, capacity)
+    monitor = RunMonitor(
+        np.array([bank.t]),
+        filters,
+        means,
+        covs,
+        np.array(rows, dtype=np.int64),
+        tables,
+        thresholds,
+        jerk_density,
+        np.array(position, dtype=np.int64),
+        budget.alert_limit,
+    )
+    return monitor, names
+
+
+def after_run(bank: SeparationBank, monitor: RunMonitor, names: Sequence[str]) -> None:
+    """Bring ``bank`` up to date with a run's ``monitor`` (:func:`run_monitor`'s, ``names`` its ids): its
+    clock, its filters' arrays, and its ids when the run spawned or pruned (a new list, so that the
+    bank's kept plan no longer applies)."""
+    bank.t = float(monitor.clock[0])
+    count = int(monitor.filters[0])
+    bank.means, bank.covs = monitor.means[:count], monitor.covs[:count]
+    codes = monitor.filters[1 : count + 1].tolist()
+    if codes != list(range(len(bank.ids))):
+        bank.ids = [names[code] for code in codes]
