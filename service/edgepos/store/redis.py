@@ -107,7 +107,7 @@ def _leaked_transport_error(error: BaseException) -> bool:
     frame = error.__traceback__
     while frame is not None:
         if frame.tb_frame.f_code.co_filename.endswith(
-            ("redis/asyncio/connection.py", "redis/asyncio/cluster.py")
+            ("redis/asyncio/connection.py", "redis/asyncio/cluster.py", "edgepos/store/redis_packing.py")
         ):
             return True
         frame = frame.tb_next
