@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import asyncio
 import math
+import os
+import signal
+from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -19,6 +22,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from redis.asyncio.connection import Connection
 from redis.exceptions import DataError
+from redis.exceptions import TimeoutError as RedisTimeoutError
 
 RedisServer = Any  # tests/store/conftest.py's RedisServer
 
@@ -92,3 +96,50 @@ def test_values_round_trip_through_a_real_server(redis_server: RedisServer) -> N
         b"float": b"0.1",
         b"int": str(-(2**40)).encode(),
     }
+
+
+def test_a_write_is_not_a_task_of_its_own(redis_server: RedisServer, monkeypatch: pytest.MonkeyPatch) -> None:
+    """redis-py bounds a write with ``asyncio.wait_for`` (on Python 3.11 a task per command); these connections
+    bound it with a timeout context in the caller's task."""
+
+    def no_wait_for(*args: Any, **kwargs: Any) -> Any:
+        raise AssertionError("asyncio.wait_for called")
+
+    async def commands() -> tuple[bool, bytes | None]:
+        store = RedisStore(redis_server.url("packing:"), 60.0)
+        client = await store._redis()
+        monkeypatch.setattr(asyncio, "wait_for", no_wait_for)
+        written = await client.set("packing:k", b"v")
+        value = await client.get("packing:k")
+        monkeypatch.undo()
+        await store.close()
+        return written, value
+
+    assert asyncio.run(commands()) == (True, b"v")
+
+
+def test_a_write_a_frozen_server_does_not_take_times_out_and_disconnects(
+    redis_factory: Callable[..., RedisServer],
+) -> None:
+    """A server that stops reading (SIGSTOP): the write fills the socket's buffers and gives up after
+    socket_timeout with redis-py's error, leaving the connection closed (its stream state is unknown)."""
+    server = redis_factory("--save", "", "--appendonly", "no")
+    server.start()
+
+    async def stalled() -> tuple[str, bool, float]:
+        connection = PackedConnection(host="127.0.0.1", port=server.port, socket_timeout=0.3)
+        await connection.connect()
+        os.kill(server.process.pid, signal.SIGSTOP)
+        loop = asyncio.get_running_loop()
+        started = loop.time()
+        try:
+            with pytest.raises(RedisTimeoutError) as raised:
+                await connection.send_packed_command([b"x" * (64 << 20)])
+        finally:
+            os.kill(server.process.pid, signal.SIGCONT)
+        return str(raised.value), connection.is_connected, loop.time() - started
+
+    message, connected, elapsed = asyncio.run(stalled())
+    assert message == "Timeout writing to socket"
+    assert not connected
+    assert 0.25 < elapsed < 5.0

@@ -66,6 +66,7 @@ from edgepos.store.redis_records import (
     summary_from_fields,
 )
 from edgepos.store.redis_registry import RedisRegistry
+from edgepos.store.redis_round_trip import Command, evalsha, round_trip
 
 DEFAULT_PREFIX = "edgepos:"
 DEFAULT_CONNECT_TIMEOUT_S = 0.5
@@ -107,7 +108,7 @@ def _leaked_transport_error(error: BaseException) -> bool:
     frame = error.__traceback__
     while frame is not None:
         if frame.tb_frame.f_code.co_filename.endswith(
-            ("redis/asyncio/connection.py", "redis/asyncio/cluster.py")
+            ("redis/asyncio/connection.py", "redis/asyncio/cluster.py", "edgepos/store/redis_packing.py")
         ):
             return True
         frame = frame.tb_next
@@ -511,15 +512,15 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
         (redis-py's pipelined scripts would ask SCRIPT EXISTS first: a second round trip per batch) and
         loaded again only if the server lost it (restart, SCRIPT FLUSH)."""
         script = self._scripts["cas"]
+        commands: list[Command] = [
+            ("HSET", keys[3], *fields),
+            ("PEXPIRE", keys[3], STAGED_TTL_MS),
+            ("EVALSHA", script.sha, len(keys), *keys, *args),
+        ]
+        if wait:
+            commands.append(("WAIT", self.wait_replicas, self.wait_timeout_ms))
         for _attempt in range(2):
-            pipe = client.pipeline(transaction=False)
-            pipe.hset(keys[3], items=fields)
-            pipe.pexpire(keys[3], STAGED_TTL_MS)
-            # by name: a cluster pipeline blocks its evalsha method, not the command
-            pipe.execute_command("EVALSHA", script.sha, len(keys), *keys, *args)
-            if wait:
-                pipe.execute_command("WAIT", self.wait_replicas, self.wait_timeout_ms)
-            replies = list(await pipe.execute(raise_on_error=False))
+            replies = await self._round_trip(client, commands)
             if isinstance(replies[2], redis_errors.NoScriptError):
                 await client.script_load(script.script)
                 continue
@@ -528,6 +529,16 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
                     raise reply
             return replies
         raise StoreUnavailable("Redis kept losing the compare-and-set script; send the same batch again")
+
+    async def _round_trip(self, client: Any, commands: list[Command]) -> list[Any]:
+        """``commands`` in one write on one pooled connection, their replies (an error reply in its place)."""
+        return await round_trip(client, commands)
+
+    async def _evalsha(self, client: Any, name: str, keys: list[str], args: list[Any]) -> Any:
+        """The reply of the script ``name`` (for the calls of every batch: the fix stream's append, the rate
+        limit's budget), in one round trip of store.redis_round_trip."""
+        script = self._scripts[name]
+        return await evalsha(client, script.sha, script.script, keys, args)
 
     async def make_durable(self, session_id: str) -> None:
         """A write of this connection's own, then WAIT: the replication stream is ordered, so once the
@@ -644,15 +655,11 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
     async def take_request(self, key: str, limit: RateLimit) -> float:
         async with self._guard():
             client = await self._redis()
-            wait = await self._scripts["take"](
-                keys=[f"{self.rate_prefix}{key}"],
-                args=[
-                    repr(float(self.clock())),
-                    repr(limit.interval_s),
-                    repr(limit.tolerance_s),
-                    repr(SLACK_S),
-                ],
-                client=client,
+            wait = await self._evalsha(
+                client,
+                "take",
+                [f"{self.rate_prefix}{key}"],
+                [repr(float(self.clock())), repr(limit.interval_s), repr(limit.tolerance_s), repr(SLACK_S)],
             )
         return float(wait)
 

@@ -55,6 +55,7 @@ from edgepos.store.redis import (
     DEFAULT_SOCKET_TIMEOUT_S,
     RedisStore,
 )
+from edgepos.store.redis_round_trip import Command
 
 SCHEME = "redis-cluster"
 SHARDS = 256
@@ -325,6 +326,17 @@ class RedisClusterStore(RedisStore):
         session_id = str(args[3])
         replicas = await self._wait_on_shard(session_id) if applied == 1 and self.wait_replicas else 0
         return applied, replicas
+
+    async def _round_trip(self, client: Any, commands: list[Command]) -> list[Any]:
+        """A cluster pipeline: it sends each command to the primary of its slot (one here: the session's)."""
+        pipe = client.pipeline(transaction=False)
+        for command in commands:
+            pipe.execute_command(*command)
+        return list(await pipe.execute(raise_on_error=False))
+
+    async def _evalsha(self, client: Any, name: str, keys: list[str], args: list[Any]) -> Any:
+        """redis-py's script object, which the cluster client routes to the keys' slot."""
+        return await self._scripts[name](keys=keys, args=args, client=client)
 
     async def make_durable(self, session_id: str) -> None:
         if not self.wait_replicas:

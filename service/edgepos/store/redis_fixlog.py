@@ -46,9 +46,7 @@ class RedisFixLog(FixLog):
         store = self.store
         async with store._guard():
             client = await store._redis()
-            await store._scripts["publish_fixes"](
-                keys=[store.fixes_key, store.fixes_seq_key], args=args, client=client
-            )
+            await store._evalsha(client, "publish_fixes", [store.fixes_key, store.fixes_seq_key], args)
 
     async def newest(self) -> int:
         async with self.store._guard():

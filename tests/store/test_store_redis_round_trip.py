@@ -1,0 +1,83 @@
+"""One round trip without redis-py's pipeline object (store.redis_round_trip), against a real redis-server:
+the replies in order with an error reply in its place, the connection back in the pool and still in step
+after an error, a script the server lost loaded again, and a connection the server dropped replaced."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+import pytest
+from edgepos.store.redis import RedisStore
+from edgepos.store.redis_round_trip import evalsha, round_trip
+from redis.exceptions import ResponseError
+
+RedisServer = Any  # tests/store/conftest.py's RedisServer
+
+SCRIPT = "return redis.call('INCRBY', KEYS[1], ARGV[1])"
+
+
+def run(server: RedisServer, body: Any) -> Any:
+    async def main() -> Any:
+        store = RedisStore(server.url("rt:"), 60.0)
+        client = await store._redis()
+        try:
+            return await body(client)
+        finally:
+            await store.close()
+
+    return asyncio.run(main())
+
+
+def test_replies_in_order_with_an_error_in_its_place(redis_server: RedisServer) -> None:
+    async def body(client: Any) -> tuple[list[Any], list[Any], int]:
+        await client.delete("rt:h", "rt:s")
+        replies = await round_trip(
+            client,
+            [
+                ("HSET", "rt:h", "a", b"\x00\xff", "b", 2),
+                ("SET", "rt:s", "text"),
+                ("HINCRBY", "rt:s", "f", 1),  # wrong type: an error reply
+                ("HGET", "rt:h", "a"),
+            ],
+        )
+        after = await round_trip(client, [("GET", "rt:s")])  # the connection is still in step
+        return replies, after, len(client.connection_pool._in_use_connections)
+
+    replies, after, in_use = run(redis_server, body)
+    assert replies[:2] == [2, b"OK"]
+    assert isinstance(replies[2], ResponseError) and "WRONGTYPE" in str(replies[2])
+    assert replies[3] == b"\x00\xff"
+    assert after == [b"text"]
+    assert in_use == 0
+
+
+def test_a_script_the_server_lost_is_loaded_again(redis_server: RedisServer) -> None:
+    async def body(client: Any) -> list[Any]:
+        script = client.register_script(SCRIPT)
+        await client.delete("rt:n")
+        first = await evalsha(client, script.sha, SCRIPT, ["rt:n"], [2])
+        await client.script_flush()
+        second = await evalsha(client, script.sha, SCRIPT, ["rt:n"], [3])
+        return [first, second]
+
+    assert run(redis_server, body) == [2, 5]
+
+
+def test_a_script_error_is_raised(redis_server: RedisServer) -> None:
+    async def body(client: Any) -> Any:
+        script = client.register_script(SCRIPT)
+        await client.set("rt:n", "not a number")
+        return await evalsha(client, script.sha, SCRIPT, ["rt:n"], [1])
+
+    with pytest.raises(ResponseError, match="not an integer"):
+        run(redis_server, body)
+
+
+def test_a_connection_the_server_dropped_is_replaced(redis_server: RedisServer) -> None:
+    async def body(client: Any) -> list[Any]:
+        await round_trip(client, [("SET", "rt:k", "1")])
+        await client.execute_command("CLIENT", "KILL", "TYPE", "normal", "SKIPME", "no")
+        return await round_trip(client, [("INCR", "rt:k"), ("GET", "rt:k")])
+
+    assert run(redis_server, body) == [2, b"2"]
