@@ -162,8 +162,6 @@ def run(args: argparse.Namespace) -> int:
     os.environ["EDGEPOS_LAB"] = "true" if settings.lab else "false"
     configure_logging(settings.log_level, secrets=[admin_key])
     warm_up_kernels(sys.stderr)
-    from edgepos.api.http_protocol import OneWriteHttpToolsProtocol
-
     uvicorn.run(
         APP_FACTORY,
         factory=True,
@@ -174,8 +172,6 @@ def run(args: argparse.Namespace) -> int:
         log_level=settings.log_level,
         access_log=False,
         server_header=False,
-        # uvicorn's httptools protocol, a complete answer's head and body in one socket write.
-        http=OneWriteHttpToolsProtocol,
         # Longer than any client's idle-connection expiry (httpx: 5 s), so that a vehicle never sends
         # a batch on a connection the server is closing at that moment (a reset, not an answer).
         timeout_keep_alive=KEEP_ALIVE_S,
