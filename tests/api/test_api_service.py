@@ -110,6 +110,7 @@ def test_metrics_count_requests_epochs_and_sessions(client):
     assert "edgepos_epochs_processed_total 6.0" in text
     assert "edgepos_filter_step_seconds_count 1.0" in text
     assert 'edgepos_batches_total{outcome="replayed"} 1.0' in text
+    assert 'edgepos_batches_total{outcome="applied"} 1.0' in text
     assert session_id not in text
 
 
