@@ -15,6 +15,12 @@ filter thread under one GIL, and under saturating load it holds the GIL nearly a
 shares are those of the worker's CPU, the figure that bounds its throughput; the samples' total over
 the most it could be (seconds x 200) is printed as the GIL's busy share.
 
+py-spy samples by the wall clock, and lines that make a system call get far more samples than the CPU
+they use: uvicorn's socket writes 11-16 % of the samples and the scheduler's second ``time.thread_time()``
+19-24 % (a 0.56 us call), while ``perf record`` on a worker under the same load puts 3.7-4.4 % of its CPU
+in the kernel altogether (docs/benchmarks.md, "svcwrite: the worker's CPU outside the filter, round
+two"). Check a system call's share with perf or a thread-CPU A/B before chasing it.
+
     python bench/profile_service.py [--store memory|redis] [--seconds S] [--raw FILE] [--gil]
 """
 

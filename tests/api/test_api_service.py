@@ -20,7 +20,7 @@ from apihelp import (
     open_session,
     rsu_payload,
 )
-from edgepos.api.app import create_app
+from edgepos.api.app import YOUNG_GC_THRESHOLD, create_app
 from edgepos.api.settings import Settings
 from edgepos.store import MemoryStore
 from fastapi.testclient import TestClient
@@ -110,6 +110,7 @@ def test_metrics_count_requests_epochs_and_sessions(client):
     assert "edgepos_epochs_processed_total 6.0" in text
     assert "edgepos_filter_step_seconds_count 1.0" in text
     assert 'edgepos_batches_total{outcome="replayed"} 1.0' in text
+    assert 'edgepos_batches_total{outcome="applied"} 1.0' in text
     assert session_id not in text
 
 
@@ -189,3 +190,13 @@ def test_startup_freezes_the_long_lived_heap(tmp_path):
     with TestClient(create_app(make_settings(tmp_path))) as client:
         assert client.get("/healthz").status_code == 200
         assert gc.get_freeze_count() > 10_000
+
+
+def test_young_collections_are_rarer_while_serving(tmp_path):
+    """A batch's short-lived objects do not set off a collection each (YOUNG_GC_THRESHOLD); the thresholds
+    are the process's own again once the app stops."""
+    before = gc.get_threshold()
+    with TestClient(create_app(make_settings(tmp_path))) as client:
+        assert client.get("/healthz").status_code == 200
+        assert gc.get_threshold() == (YOUNG_GC_THRESHOLD, *before[1:])
+    assert gc.get_threshold() == before

@@ -58,6 +58,16 @@ from edgepos.store.base import StoreUnavailable
 
 logger = logging.getLogger("edgepos.api")
 
+YOUNG_GC_THRESHOLD = 10_000
+"""Net allocations of container objects between two young-generation collections while the app serves
+(Python's default: 700). A 20-epoch batch holds more than 700 new objects at its peak (its measurements,
+observations, fixes and their JSON), so at the default nearly every batch ran a young collection (median
+100 us), every tenth a middle one and every 150th a full one (5-6 ms): 150-157 us of collection per batch,
+6-7 % of the worker's CPU, and not one object collected in 3,000 batches (they die by reference count).
+At 10,000, two young collections in 3,000 batches (2.8 ms each). Objects that do not go away, cyclic
+garbage among them, still trigger a collection every 10,000, so little can pile up (docs/benchmarks.md,
+"svcwrite: the worker's CPU outside the filter, round two")."""
+
 DESCRIPTION = """\
 Edge positioning service: vehicles open a session, send batches of measurements (roadside-unit (RSU)
 range/bearing and gyro; GNSS pseudoranges and reduced inertial samples) and get one position fix per
@@ -179,6 +189,8 @@ def create_app(
         # request for 50-100 ms (measured: the p99 latency at 100 vehicles x 20 Hz was those pauses).
         gc.collect()
         gc.freeze()
+        thresholds = gc.get_threshold()
+        gc.set_threshold(YOUNG_GC_THRESHOLD, *thresholds[1:])
         sweep_period = min(60.0, max(0.5, settings.session_ttl_s / 4.0))
         sweeper = asyncio.create_task(_expire_periodically(context.store, sweep_period))
         notifier = asyncio.create_task(LocationNotifier(context.store, settings, context.origin).run())
@@ -197,6 +209,7 @@ def create_app(
             await context.close_streams()
             await context.store.close()
             context.stop_filter_thread()
+            gc.set_threshold(*thresholds)
 
     app = FastAPI(
         title="edgepos",

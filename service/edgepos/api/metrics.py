@@ -146,16 +146,27 @@ class Metrics:
             ["reason"],
             registry=self.registry,
         )
+        # labels() takes a lock and checks its arguments on every call (1.4 us each, three a batch): the
+        # children of the labels every request and batch uses are looked up once
+        self._request_children: dict[tuple[str, str, int], tuple[Counter, Histogram]] = {}
+        self._applied = self.batches.labels("applied")
 
     def observe_request(self, method: str, route: str, status: int, seconds: float) -> None:
-        labels = (method, route, str(status))
-        self.requests.labels(*labels).inc()
-        self.latency.labels(*labels).observe(seconds)
+        key = (method, route, status)
+        children = self._request_children.get(key)
+        if children is None:
+            labels = (method, route, str(status))
+            children = self._request_children[key] = (
+                self.requests.labels(*labels),
+                self.latency.labels(*labels),
+            )
+        children[0].inc()
+        children[1].observe(seconds)
         if route == BATCH_ROUTE and method == "POST":
             self.recent.add_latency(seconds)
 
     def observe_batch(self, epochs: int, seconds: float) -> None:
-        self.batches.labels("applied").inc()
+        self._applied.inc()
         self.epochs.inc(epochs)
         self.recent.add_batch(epochs)
         self.pipeline_batch.observe(seconds)
