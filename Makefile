@@ -22,8 +22,10 @@ STAMP  := $(VENV)/.installed
 
 .PHONY: serve test lint test-under-load bench openapi docs clean redis-server chromium wrk
 
+# --clear: a .venv left by another interpreter (an older checkout built it on pyenv's python3) is made
+# anew; over it, venv keeps the old links and its pip bootstrap fails (seen on 2026-11-27).
 $(STAMP): pyproject.toml client/pyproject.toml
-	$(PYTHON) -m venv $(VENV)
+	$(PYTHON) -m venv --clear $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e ./client -e '.[dev]'
 	touch $(STAMP)
