@@ -48,7 +48,7 @@ def test_a_batch_the_replica_missed_is_a_503_and_its_retry_is_answered_once_repl
             tmp_path,
             store=primary.url("api:"),
             redis_wait_replicas=1,
-            redis_wait_timeout_ms=300,
+            redis_wait_timeout_ms=1500,  # the first batch's acknowledgement missed 300 ms once at load 4.7
             rate_limit_per_s=0,
         )
         with TestClient(create_app(settings)) as client:

@@ -81,3 +81,22 @@ def test_a_connection_the_server_dropped_is_replaced(redis_server: RedisServer) 
         return await round_trip(client, [("INCR", "rt:k"), ("GET", "rt:k")])
 
     assert run(redis_server, body) == [2, b"2"]
+
+
+def test_a_wait_for_replicas_lengthens_the_socket_timeout_by_its_own() -> None:
+    from edgepos.store.redis_cluster import RedisClusterStore
+    from edgepos.store.redis_round_trip import allow_for_wait
+
+    kwargs = {"socket_timeout": 1.0}
+    allow_for_wait(kwargs, 1500)
+    assert kwargs == {"socket_timeout": 2.5}
+    allow_for_wait(kwargs, 0)  # no replicas waited for
+    assert kwargs == {"socket_timeout": 2.5}
+    unbounded: dict = {"socket_timeout": None}
+    allow_for_wait(unbounded, 1500)  # no socket timeout: nothing to lengthen
+    assert unbounded == {"socket_timeout": None}
+    url = "redis-cluster://127.0.0.1:7000?socket_timeout=1"
+    assert RedisClusterStore(url, 60.0, wait_replicas=1, wait_timeout_ms=1500).settings["client"][
+        "socket_timeout"
+    ] == pytest.approx(2.5)
+    assert RedisClusterStore(url, 60.0).settings["client"]["socket_timeout"] == pytest.approx(1.0)

@@ -66,7 +66,7 @@ from edgepos.store.redis_records import (
     summary_from_fields,
 )
 from edgepos.store.redis_registry import RedisRegistry
-from edgepos.store.redis_round_trip import Command, evalsha, round_trip
+from edgepos.store.redis_round_trip import Command, allow_for_wait, evalsha, round_trip
 
 DEFAULT_PREFIX = "edgepos:"
 DEFAULT_CONNECT_TIMEOUT_S = 0.5
@@ -238,6 +238,7 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
         pool = BlockingConnectionPool.from_url(
             self.url, retry=Retry(ExponentialBackoff(cap=0.2, base=0.05), retries=1)
         )
+        allow_for_wait(pool.connection_kwargs, self.wait_timeout_ms if self.wait_replicas else 0)
         # the class the URL's scheme chose, packing commands in C (store.redis_packing)
         pool.connection_class = PACKED.get(pool.connection_class, pool.connection_class)
         return Redis.from_pool(pool)  # closing the client closes its pool

@@ -55,7 +55,7 @@ from edgepos.store.redis import (
     DEFAULT_SOCKET_TIMEOUT_S,
     RedisStore,
 )
-from edgepos.store.redis_round_trip import Command
+from edgepos.store.redis_round_trip import Command, allow_for_wait
 
 SCHEME = "redis-cluster"
 SHARDS = 256
@@ -161,6 +161,7 @@ class RedisClusterStore(RedisStore):
     ) -> None:
         self.settings = parse_cluster_url(url)
         super().__init__(url, ttl_s, clock, wait_replicas=wait_replicas, wait_timeout_ms=wait_timeout_ms)
+        allow_for_wait(self.settings["client"], wait_timeout_ms if wait_replicas else 0)
         tags = shard_tags()
         self._shard_prefixes = tuple(f"{self.prefix}{{{tag}}}:" for tag in tags)
         self.vehicles_key = f"{self.prefix}{{registry}}:vehicles"

@@ -62,3 +62,12 @@ async def evalsha(
             raise reply
         return reply
     raise NoScriptError("Redis kept losing the script")
+
+
+def allow_for_wait(connection_kwargs: dict[str, Any], wait_timeout_ms: int) -> None:
+    """Lengthen a pool's socket timeout by ``wait_timeout_ms``: a batch's write ends with WAIT, which answers
+    only after that long when a replica is missing, and a shorter socket timeout would cut it off as a
+    server that does not answer (a 503 that blames the store instead of the replica, and a retry)."""
+    timeout = connection_kwargs.get("socket_timeout")
+    if wait_timeout_ms > 0 and timeout is not None:
+        connection_kwargs["socket_timeout"] = float(timeout) + wait_timeout_ms / 1000.0
