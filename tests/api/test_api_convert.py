@@ -8,7 +8,8 @@ import math
 
 import pytest
 from apihelp import epochs, scenario
-from edgepos.api.convert import fix_to_json, joined_batch_body, to_json
+from edgepos.api import convert
+from edgepos.api.convert import fix_bytes, fix_to_json, joined_batch_body, to_json
 from edgepos.api.schemas import BatchOut, FixEventOut, FixOut
 from edgepos.api.streams import fix_event_data, fix_event_prefix
 from edgepos.geo import GeodeticOrigin
@@ -66,3 +67,36 @@ def test_non_finite_numbers_are_refused(value: float) -> None:
 def test_a_text_that_spells_nan_or_infinity_is_not_a_non_finite_number() -> None:
     fix = dataclasses.replace(_fixes()[-2], divergence="NaN or Infinity in the input; reset")
     assert b'"divergence":"NaN or Infinity in the input; reset"' in to_json(fix_to_json(fix, False, None))
+
+
+@pytest.mark.parametrize("include_state", [False, True])
+@pytest.mark.parametrize("origin", [None, GeodeticOrigin(math.radians(48.1), math.radians(11.6), 520.0)])
+def test_a_fix_written_with_its_uses_written_once_is_the_same_bytes(
+    include_state: bool, origin: GeodeticOrigin | None
+) -> None:
+    fixes = _fixes()
+    for _ in range(2):  # the second time every use's JSON comes from the table
+        for fix in fixes:
+            assert fix_bytes(fix, include_state, origin) == to_json(fix_to_json(fix, include_state, origin))
+    noisy = MeasurementUse(2, "pseudorange", True, None, True, None, True, None, 0.75, "C/N0 31 dB-Hz")
+    changed = dataclasses.replace(fixes[-1], measurements=[noisy, *fixes[-1].measurements])
+    assert fix_bytes(changed, False, None) == to_json(fix_to_json(changed, False, None))
+    assert b'"noise_std":0.75' in fix_bytes(changed, False, None)
+
+
+def test_the_use_table_keeps_what_it_keys_and_starts_afresh_when_full(monkeypatch) -> None:
+    monkeypatch.setattr(convert, "_USE_BYTES", {})
+    monkeypatch.setattr(convert, "_USE_BYTES_LIMIT", 3)
+    uses = [MeasurementUse(i, "rsu", True) for i in range(5)]
+    written = [convert._use_bytes(use) for use in uses]
+    assert written == [to_json(convert._use_to_json(use)) for use in uses]
+    assert len(convert._USE_BYTES) <= 3
+    assert all(entry[0] is uses[key_index] for key_index, entry in _by_position(uses, convert._USE_BYTES))
+    with pytest.raises(ValueError, match="non-finite"):
+        convert._use_bytes(MeasurementUse(9, "pseudorange", True, noise_std=math.nan))
+
+
+def _by_position(uses: list[MeasurementUse], table: dict) -> list[tuple[int, tuple]]:
+    """The table's entries with the position in ``uses`` of the object their key names."""
+    positions = {id(use): k for k, use in enumerate(uses)}
+    return [(positions[key], entry) for key, entry in table.items()]

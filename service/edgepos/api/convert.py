@@ -53,6 +53,22 @@ def fix_to_json(fix: Fix, include_state: bool, origin: GeodeticOrigin | None) ->
     (gnss_tight); otherwise latitude/longitude of (x, y) on the site's tangent plane when an origin is
     configured. Plain values rather than the response models: building and validating a FixOut and its
     measurement uses cost three times the JSON writing itself (a test checks the shape against FixOut)."""
+    return {
+        **_fix_fields(fix, include_state, origin),
+        "measurements": [_use_to_json(u) for u in fix.measurements],
+    }
+
+
+def fix_bytes(fix: Fix, include_state: bool, origin: GeodeticOrigin | None) -> bytes:
+    """``to_json(fix_to_json(fix, include_state, origin))``, the very bytes, with each measurement use's
+    JSON written once per use object (``_use_bytes``): a batch's uses are mostly the same few immutable
+    records (``pipelines.rsu_imu_run.used``), and writing them was half of a fix's JSON."""
+    head = to_json(_fix_fields(fix, include_state, origin))  # "measurements" comes last: spliced in
+    return b'%b,"measurements":[%b]}' % (head[:-1], b",".join([_use_bytes(u) for u in fix.measurements]))
+
+
+def _fix_fields(fix: Fix, include_state: bool, origin: GeodeticOrigin | None) -> dict[str, Any]:
+    """:func:`fix_to_json` without its last field, the measurement uses."""
     latitude, longitude, height = fix.latitude, fix.longitude, fix.height
     if latitude is None and origin is not None and fix.x is not None and fix.y is not None:
         latitude, longitude, _ = origin.enu_to_geodetic(fix.x, fix.y, 0.0)
@@ -82,8 +98,24 @@ def fix_to_json(fix: Fix, include_state: bool, origin: GeodeticOrigin | None) ->
         "constraints": None if fix.constraints is None else list(fix.constraints),
         "protection_level_m": fix.protection_level,
         "integrity": fix.integrity,
-        "measurements": [_use_to_json(use) for use in fix.measurements],
     }
+
+
+#: Measurement uses' JSON by the use object's id, with the object (kept alive, so its id is not reused).
+_USE_BYTES: dict[int, tuple[MeasurementUse, bytes]] = {}
+_USE_BYTES_LIMIT = 4096  # then the table starts afresh: uses made per fix (gnss_tight's) only pass through
+
+
+def _use_bytes(use: MeasurementUse) -> bytes:
+    """``to_json(_use_to_json(use))``, written once per use object (uses are frozen)."""
+    entry = _USE_BYTES.get(id(use))
+    if entry is not None and entry[0] is use:
+        return entry[1]
+    written = to_json(_use_to_json(use))
+    if len(_USE_BYTES) >= _USE_BYTES_LIMIT:
+        _USE_BYTES.clear()
+    _USE_BYTES[id(use)] = (use, written)
+    return written
 
 
 def _use_to_json(use: MeasurementUse) -> dict[str, Any]:

@@ -21,7 +21,7 @@ from edgepos.api.admission import admit_batch, too_heavy_options
 from edgepos.api.auth import INVALID_CREDENTIAL, hash_token, new_session_token, superseded_error
 from edgepos.api.base_stations import batch_corrections, check_base_station
 from edgepos.api.context import AppContext
-from edgepos.api.convert import fix_to_json, joined_batch_body, to_json
+from edgepos.api.convert import fix_bytes, fix_to_json, joined_batch_body
 from edgepos.api.ephemerides import LoadedEphemerides, satellite_problems
 from edgepos.api.errors import ApiError, pipeline_problems
 from edgepos.api.measurement_schemas import BatchIn
@@ -455,11 +455,10 @@ async def _apply_in_turn(
                     f"the filter could not process this batch: {error}; the session is unchanged",
                 ) from None
             elapsed = time.perf_counter() - started
-            wire_fixes = [fix_to_json(fix, batch.include_state, context.origin) for fix in fixes]
             # each fix written once: the answer, the fix events and the last fix are joined from these
-            fix_json = [to_json(fix) for fix in wire_fixes]
+            fix_json = [fix_bytes(fix, batch.include_state, context.origin) for fix in fixes]
             stateless = (
-                [to_json({**fix, "state": None}) for fix in wire_fixes] if batch.include_state else fix_json
+                [fix_bytes(fix, False, context.origin) for fix in fixes] if batch.include_state else fix_json
             )
             body = joined_batch_body(batch.seq, fix_json)
             last_fix = stateless[-1].decode() if stateless else record.last_fix
@@ -476,7 +475,7 @@ async def _apply_in_turn(
             )
             if await context.store.compare_and_set(updated, record.version):
                 metrics.observe_batch(len(fixes), elapsed)
-                _publish_fixes(context, record, batch.seq, wire_fixes, stateless)
+                _publish_fixes(context, record, batch.seq, fixes, stateless)
                 if pipeline.publishes_track:
                     await _publish_track(context, record, published.get(record.vehicle_id), fixes)
                 return body
@@ -488,7 +487,7 @@ def _publish_fixes(
     context: AppContext,
     record: SessionRecord,
     seq: int,
-    wire_fixes: list[dict[str, Any]],
+    fixes: list[Fix],
     stateless_json: list[bytes],
 ) -> None:
     """Hand the applied batch's fixes (and their JSON with a null state) to the fix stream: queued for this
@@ -497,8 +496,8 @@ def _publish_fixes(
     prefix = fix_event_prefix(session_id, vehicle_id, pipeline, seq)
     context.streams.publish(
         [
-            NewFix(session_id, vehicle_id, pipeline, float(fix["t"]), fix_event_data(prefix, written))
-            for fix, written in zip(wire_fixes, stateless_json, strict=True)
+            NewFix(session_id, vehicle_id, pipeline, float(fix.t), fix_event_data(prefix, written))
+            for fix, written in zip(fixes, stateless_json, strict=True)
         ]
     )
 
