@@ -56,17 +56,17 @@ def measure(integrity: bool, repeats: int) -> dict[str, float]:
         for o in epoch
     ]
     captured: list[list[Any]] = []
-    kernel = kernels_run.run_epochs
+    kernel: Any = kernels_run.run_epochs  # a numba dispatcher: its .py_func names the arguments
 
     def watched(*arguments: Any) -> int:
         captured.append([a.copy() if isinstance(a, np.ndarray) else a for a in arguments])
         return int(kernel(*arguments))
 
-    kernels_run.run_epochs = watched
+    vars(kernels_run)["run_epochs"] = watched  # the module attribute compiled_run calls through
     try:
         pipeline.process(state, batch, env)
     finally:
-        kernels_run.run_epochs = kernel
+        vars(kernels_run)["run_epochs"] = kernel
     if len(captured) != 1:
         raise SystemExit(f"expected the batch to make one run, it made {len(captured)}")
     code = kernel.py_func.__code__
