@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from edgepos.core import compiled_run
 from edgepos.core.compiled import compiled_enabled
+from edgepos.core.errors import NumericalError
 from edgepos.eval.rsu_imu_montecarlo import initial_state
 from edgepos.pipelines import rsu_imu, rsu_imu_run
 from edgepos.pipelines.registry import get_pipeline
@@ -198,3 +199,62 @@ def test_runs_give_the_per_epoch_paths_fixes_on_any_batching_and_losses(
     assert done > 0
     assert state == reference_state
     assert fixes == reference_fixes
+
+
+def tracking_state_and_batch() -> tuple[bytes, list]:
+    """The bare pipeline's state after 40 epochs of the paper scene (tracking, on the runs' path), and its
+    next 20 epochs. (The registry's plausibility wrapper filters a batch that fails again in smaller
+    parts, and a lone epoch takes the per-epoch path.)"""
+    pipeline = rsu_imu.RsuImuPipeline()
+    state = pipeline.create(pipeline.resolve_options({}), initial_state(SCENARIO))
+    observed = observations(3)
+    times = sorted({o.t for o in observed})
+    for first in (0, 20):
+        chosen = set(times[first : first + 20])
+        _, state = pipeline.process(state, [o for o in observed if o.t in chosen], ENV)
+    chosen = set(times[40:60])
+    return state, [o for o in observed if o.t in chosen]
+
+
+@pytest.mark.parametrize(
+    ("column", "value", "field"),
+    [
+        ("fused", float("nan"), "x"),  # the fused mean's first component: x
+        ("fused", float("inf"), "x"),
+        ("probability", float("nan"), "nis"),  # the weighted NIS, the first field made of it
+    ],
+)
+def test_a_run_with_a_non_finite_output_is_refused(monkeypatch, column, value, field):
+    """The run's fixes are checked finite for the whole run at once (``compiled_run.run_bounded``): a
+    non-finite number in its outputs refuses the batch naming the field, as the per-fix check did."""
+    stepped = []
+    original = compiled_run.run_epochs
+
+    def spoiled(stepper, *args, **kwargs):
+        done, outs, levels = original(stepper, *args, **kwargs)
+        count, _ = stepper._sizes
+        fused_at = stepper._prediction_size + 73 * count
+        outs[done - 1, fused_at if column == "fused" else fused_at - 1] = value
+        stepped.append(done)
+        return done, outs, levels
+
+    state, batch = tracking_state_and_batch()
+    monkeypatch.setattr(rsu_imu_run, "run_epochs", spoiled)
+    with pytest.raises(NumericalError, match=f"non-finite {field}"):
+        rsu_imu.RsuImuPipeline().process(state, batch, ENV)
+    assert stepped and stepped[0] >= rsu_imu_run.MIN_RUN
+
+
+def test_run_bounded_takes_large_finite_outputs_to_the_per_fix_check(monkeypatch):
+    """A finite number beyond ``FIX_INPUT_BOUND`` fails the run's one-pass test, so the fixes are checked
+    number by number, and finite fixes pass."""
+    checked = []
+    original = rsu_imu_run.ensure_finite_fixes
+    monkeypatch.setattr(
+        rsu_imu_run, "ensure_finite_fixes", lambda fixes: checked.append(len(fixes)) or original(fixes)
+    )
+    state, batch = tracking_state_and_batch()
+    expected, _ = rsu_imu.RsuImuPipeline().process(state, batch, ENV)
+    monkeypatch.setattr(compiled_run, "FIX_INPUT_BOUND", 1e-3)  # every output is "large"
+    fixes, _ = rsu_imu.RsuImuPipeline().process(state, batch, ENV)
+    assert fixes == expected and checked and sum(checked) >= rsu_imu_run.MIN_RUN

@@ -163,6 +163,30 @@ def run_outputs(
     return block[:, fused_at : fused_at + nc * (1 + nc)].tolist(), probabilities.tolist(), weighted
 
 
+#: Magnitude below which every number a run's fix is made of keeps its fix finite: the fix's products
+#: (the turn rate's vx * ay, over at least 0.01) and sums (speed, the weighted NIS) of such numbers stay
+#: far below the largest float.
+FIX_INPUT_BOUND = 1e150
+
+
+def run_bounded(stepper: CompiledBankStepper, outs: np.ndarray, done: int, levels: np.ndarray | None) -> bool:
+    """Whether every number the fixes of a run's first ``done`` epochs are made of (the fused mean and
+    covariance, the model probabilities and NIS, and the protection ``levels`` of a monitored run) is
+    below ``FIX_INPUT_BOUND`` in magnitude: then no fix holds NaN or infinity (NaN fails the test),
+    checked in one pass over the run instead of number by number in each fix."""
+    count, nc = stepper._sizes
+    size = stepper._prediction_size
+    fused_at = size + 73 * count
+    block = outs[:done]
+    parts = [
+        block[:, fused_at - count : fused_at + nc * (1 + nc)],
+        block[:, 2 * size + count : 2 * size + 2 * count],
+    ]
+    if levels is not None:
+        parts.append(levels[:done])
+    return all(bool((np.abs(part) < FIX_INPUT_BOUND).all()) for part in parts)
+
+
 def posterior(stepper: CompiledBankStepper, outs: np.ndarray, epoch: int) -> StepResult:
     """Epoch ``epoch``'s correction from :func:`run_epochs`'s outputs (views of them)."""
     return stepper._step_result(outs[epoch, stepper._prediction_size :])

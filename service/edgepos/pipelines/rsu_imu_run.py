@@ -23,12 +23,12 @@ from scipy.stats import chi2
 
 from edgepos.core import integrity_run, layout
 from edgepos.core.compiled import BankStepper, CompiledBankStepper
-from edgepos.core.compiled_run import RunRows, posterior, run_epochs, run_outputs
+from edgepos.core.compiled_run import RunRows, posterior, run_bounded, run_epochs, run_outputs
 from edgepos.core.imm import InteractingMultipleModel
 from edgepos.core.integrity import OK, new_protection
 from edgepos.core.observations import Observation, RsuObservation
 from edgepos.core.updates import GYRO_MIN_SPEED, measurement_dim
-from edgepos.pipelines.base import Fix, MeasurementUse
+from edgepos.pipelines.base import Fix, MeasurementUse, ensure_finite_fixes
 from edgepos.pipelines.integrity import _monitor_of, _position_index
 from edgepos.pipelines.rsu_imu_batch import EpochParts
 from edgepos.pipelines.rsu_imu_fix import has_acceleration, listed_fix
@@ -72,7 +72,8 @@ def run_fixes(
     observations: Sequence[Observation],
 ) -> list[Fix]:
     """The fixes of the usual epochs from ``epochs[first]`` on, stepped in one compiled call, with the
-    session (and its integrity bank) advanced past them; none when fewer than ``MIN_RUN`` qualify."""
+    session (and its integrity bank) advanced past them; none when fewer than ``MIN_RUN`` qualify. The
+    fixes are checked finite (``ensure_finite_fixes``'s guarantee, for the whole run at once)."""
     options = session.options
     if not (stepper.runs and session.initialised and session.filter_t is not None):
         return []
@@ -171,6 +172,8 @@ def run_fixes(
                 None,  # the run's outputs have both accelerations (checked above): no carried turn rate
             )
         )
+    if not run_bounded(compiled, outs, done, levels if run_monitor is not None else None):
+        ensure_finite_fixes(fixes)  # number by number: raises naming the epoch and field of a non-finite one
     last = posterior(compiled, outs, done - 1)
     session.means, session.covs, session.probabilities = last.means, last.covs, last.probabilities
     session.t = session.filter_t = times[done - 1]
