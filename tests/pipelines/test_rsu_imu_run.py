@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 from edgepos.core import compiled_run
 from edgepos.core.compiled import compiled_enabled
-from edgepos.core.errors import NumericalError
 from edgepos.eval.rsu_imu_montecarlo import initial_state
 from edgepos.pipelines import rsu_imu, rsu_imu_run
 from edgepos.pipelines.registry import get_pipeline
@@ -217,44 +216,40 @@ def tracking_state_and_batch() -> tuple[bytes, list]:
 
 
 @pytest.mark.parametrize(
-    ("column", "value", "field"),
+    ("values", "bounded"),
     [
-        ("fused", float("nan"), "x"),  # the fused mean's first component: x
-        ("fused", float("inf"), "x"),
-        ("probability", float("nan"), "nis"),  # the weighted NIS, the first field made of it
+        ([0.0, -3.5, 1e149], True),
+        ([0.0, float("nan")], False),
+        ([float("-inf"), 1.0], False),
+        ([1e150, 0.0], False),  # at the bound: out
+        ([-2e150], False),
     ],
 )
-def test_a_run_with_a_non_finite_output_is_refused(monkeypatch, column, value, field):
-    """The run's fixes are checked finite for the whole run at once (``compiled_run.run_bounded``): a
-    non-finite number in its outputs refuses the batch naming the field, as the per-fix check did."""
-    stepped = []
+def test_the_runs_bound_test(values, bounded):
+    """``kernels_run._bounded``: what a run's epoch must pass for its fix to be made in the run."""
+    from edgepos.core import kernels_run
+
+    assert kernels_run._bounded(np.array(values), compiled_run.FIX_INPUT_BOUND) is bounded
+
+
+def test_an_epoch_beyond_the_bound_goes_the_per_epoch_path(monkeypatch):
+    """A run stops before an epoch whose fix would be made of a number beyond ``FIX_INPUT_BOUND`` (NaN
+    included), and the per-epoch path, which checks every fix number by number, makes it: with the bound
+    forced below every output no run does an epoch, and the fixes and state are the same."""
+    state, batch = tracking_state_and_batch()
+    expected = rsu_imu.RsuImuPipeline().process(state, batch, ENV)
+    done = []
     original = compiled_run.run_epochs
 
-    def spoiled(stepper, *args, **kwargs):
-        done, outs, levels = original(stepper, *args, **kwargs)
-        count, _ = stepper._sizes
-        fused_at = stepper._prediction_size + 73 * count
-        outs[done - 1, fused_at if column == "fused" else fused_at - 1] = value
-        stepped.append(done)
-        return done, outs, levels
+    def counted(*args, **kwargs):
+        result = original(*args, **kwargs)
+        done.append(result[0])
+        return result
 
-    state, batch = tracking_state_and_batch()
-    monkeypatch.setattr(rsu_imu_run, "run_epochs", spoiled)
-    with pytest.raises(NumericalError, match=f"non-finite {field}"):
-        rsu_imu.RsuImuPipeline().process(state, batch, ENV)
-    assert stepped and stepped[0] >= rsu_imu_run.MIN_RUN
-
-
-def test_run_bounded_takes_large_finite_outputs_to_the_per_fix_check(monkeypatch):
-    """A finite number beyond ``FIX_INPUT_BOUND`` fails the run's one-pass test, so the fixes are checked
-    number by number, and finite fixes pass."""
-    checked = []
-    original = rsu_imu_run.ensure_finite_fixes
-    monkeypatch.setattr(
-        rsu_imu_run, "ensure_finite_fixes", lambda fixes: checked.append(len(fixes)) or original(fixes)
-    )
-    state, batch = tracking_state_and_batch()
-    expected, _ = rsu_imu.RsuImuPipeline().process(state, batch, ENV)
-    monkeypatch.setattr(compiled_run, "FIX_INPUT_BOUND", 1e-3)  # every output is "large"
-    fixes, _ = rsu_imu.RsuImuPipeline().process(state, batch, ENV)
-    assert fixes == expected and checked and sum(checked) >= rsu_imu_run.MIN_RUN
+    monkeypatch.setattr(rsu_imu_run, "run_epochs", counted)
+    assert rsu_imu.RsuImuPipeline().process(state, batch, ENV) == expected
+    assert done and sum(done) >= rsu_imu_run.MIN_RUN  # the runs' path is taken...
+    done.clear()
+    monkeypatch.setattr(compiled_run, "FIX_INPUT_BOUND", 1e-3)
+    assert rsu_imu.RsuImuPipeline().process(state, batch, ENV) == expected
+    assert done and sum(done) == 0  # ...and with the bound below every output, no run does an epoch

@@ -71,6 +71,12 @@ _NO_MONITOR = RunMonitor(
 )
 
 
+#: Magnitude below which every number a run's fix is made of keeps its fix finite: the fix's products
+#: (the turn rate's vx * ay, over at least 0.01) and sums (speed, the weighted NIS) of such numbers stay
+#: far below the largest float. A run stops before an epoch with a number beyond it (``kernels_run``).
+FIX_INPUT_BOUND = 1e150
+
+
 def run_epochs(
     stepper: CompiledBankStepper,
     means: np.ndarray,
@@ -141,6 +147,7 @@ def run_epochs(
         bank.jerk_density,
         bank.fix_index,
         bank.alert_limit,
+        FIX_INPUT_BOUND,
         outs,
         levels,
     )
@@ -163,30 +170,6 @@ def run_outputs(
     means = block[:, fused_at : fused_at + nc]
     covs = block[:, fused_at + nc : fused_at + nc * (1 + nc)].reshape(done, nc, nc)
     return means, covs, probabilities.tolist(), weighted
-
-
-#: Magnitude below which every number a run's fix is made of keeps its fix finite: the fix's products
-#: (the turn rate's vx * ay, over at least 0.01) and sums (speed, the weighted NIS) of such numbers stay
-#: far below the largest float.
-FIX_INPUT_BOUND = 1e150
-
-
-def run_bounded(stepper: CompiledBankStepper, outs: np.ndarray, done: int, levels: np.ndarray | None) -> bool:
-    """Whether every number the fixes of a run's first ``done`` epochs are made of (the fused mean and
-    covariance, the model probabilities and NIS, and the protection ``levels`` of a monitored run) is
-    below ``FIX_INPUT_BOUND`` in magnitude: then no fix holds NaN or infinity (NaN fails the test),
-    checked in one pass over the run instead of number by number in each fix."""
-    count, nc = stepper._sizes
-    size = stepper._prediction_size
-    fused_at = size + 73 * count
-    block = outs[:done]
-    parts = [
-        block[:, fused_at - count : fused_at + nc * (1 + nc)],
-        block[:, 2 * size + count : 2 * size + 2 * count],
-    ]
-    if levels is not None:
-        parts.append(levels[:done])
-    return all(bool((np.abs(part) < FIX_INPUT_BOUND).all()) for part in parts)
 
 
 def posterior(stepper: CompiledBankStepper, outs: np.ndarray, epoch: int) -> StepResult:

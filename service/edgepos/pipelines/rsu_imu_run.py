@@ -23,12 +23,12 @@ from scipy.stats import chi2
 
 from edgepos.core import integrity_run, layout
 from edgepos.core.compiled import BankStepper, CompiledBankStepper
-from edgepos.core.compiled_run import RunRows, posterior, run_bounded, run_epochs, run_outputs
+from edgepos.core.compiled_run import RunRows, posterior, run_epochs, run_outputs
 from edgepos.core.imm import InteractingMultipleModel
 from edgepos.core.integrity import OK, new_protection
 from edgepos.core.observations import Observation, RsuObservation
 from edgepos.core.updates import GYRO_MIN_SPEED, measurement_dim
-from edgepos.pipelines.base import Fix, MeasurementUse, ensure_finite_fixes
+from edgepos.pipelines.base import Fix, MeasurementUse
 from edgepos.pipelines.integrity import _monitor_of, _position_index
 from edgepos.pipelines.rsu_imu_batch import EpochParts
 from edgepos.pipelines.rsu_imu_fix import fix_layout, has_acceleration, listed_fix
@@ -73,7 +73,8 @@ def run_fixes(
 ) -> list[Fix]:
     """The fixes of the usual epochs from ``epochs[first]`` on, stepped in one compiled call, with the
     session (and its integrity bank) advanced past them; none when fewer than ``MIN_RUN`` qualify. The
-    fixes are checked finite (``ensure_finite_fixes``'s guarantee, for the whole run at once)."""
+    fixes are finite: the run stops before an epoch whose fix could hold NaN or infinity
+    (``compiled_run.FIX_INPUT_BOUND``), which the per-epoch path checks."""
     options = session.options
     if not (stepper.runs and session.initialised and session.filter_t is not None):
         return []
@@ -182,8 +183,6 @@ def run_fixes(
                 (kinematic_cov, position_cov),
             )
         )
-    if not run_bounded(compiled, outs, done, levels if run_monitor is not None else None):
-        ensure_finite_fixes(fixes)  # number by number: raises naming the epoch and field of a non-finite one
     last = posterior(compiled, outs, done - 1)
     session.means, session.covs, session.probabilities = last.means, last.covs, last.probabilities
     session.t = session.filter_t = times[done - 1]
