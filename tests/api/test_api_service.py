@@ -114,6 +114,19 @@ def test_metrics_count_requests_epochs_and_sessions(client):
     assert session_id not in text
 
 
+def test_metrics_method_label_is_bounded(client):
+    """The method label comes from the client: methods outside the usual few share one label value, so
+    a client cannot add time series without end."""
+    for method in ("PROPFIND", "MKCALENDAR", "PURGE"):
+        assert client.request(method, "/healthz").status_code == 405
+    client.request("OPTIONS", "/healthz")
+    text = client.get("/metrics").text
+    assert 'edgepos_http_requests_total{method="other",route="/healthz",status="405"} 3.0' in text
+    assert 'method="OPTIONS",route="/healthz"' in text
+    for method in ("PROPFIND", "MKCALENDAR", "PURGE"):
+        assert f'method="{method}"' not in text
+
+
 def test_health_and_readiness(client):
     assert client.get("/healthz").json() == {"status": "ok"}
     assert client.get("/readyz").json() == {"status": "ready"}

@@ -198,3 +198,58 @@ def test_runs_give_the_per_epoch_paths_fixes_on_any_batching_and_losses(
     assert done > 0
     assert state == reference_state
     assert fixes == reference_fixes
+
+
+def tracking_state_and_batch() -> tuple[bytes, list]:
+    """The bare pipeline's state after 40 epochs of the paper scene (tracking, on the runs' path), and its
+    next 20 epochs. (The registry's plausibility wrapper filters a batch that fails again in smaller
+    parts, and a lone epoch takes the per-epoch path.)"""
+    pipeline = rsu_imu.RsuImuPipeline()
+    state = pipeline.create(pipeline.resolve_options({}), initial_state(SCENARIO))
+    observed = observations(3)
+    times = sorted({o.t for o in observed})
+    for first in (0, 20):
+        chosen = set(times[first : first + 20])
+        _, state = pipeline.process(state, [o for o in observed if o.t in chosen], ENV)
+    chosen = set(times[40:60])
+    return state, [o for o in observed if o.t in chosen]
+
+
+@pytest.mark.parametrize(
+    ("values", "bounded"),
+    [
+        ([0.0, -3.5, 1e149], True),
+        ([0.0, float("nan")], False),
+        ([float("-inf"), 1.0], False),
+        ([1e150, 0.0], False),  # at the bound: out
+        ([-2e150], False),
+    ],
+)
+def test_the_runs_bound_test(values, bounded):
+    """``kernels_run._bounded``: what a run's epoch must pass for its fix to be made in the run."""
+    from edgepos.core import kernels_run
+
+    assert kernels_run._bounded(np.array(values), compiled_run.FIX_INPUT_BOUND) is bounded
+
+
+def test_an_epoch_beyond_the_bound_goes_the_per_epoch_path(monkeypatch):
+    """A run stops before an epoch whose fix would be made of a number beyond ``FIX_INPUT_BOUND`` (NaN
+    included), and the per-epoch path, which checks every fix number by number, makes it: with the bound
+    forced below every output no run does an epoch, and the fixes and state are the same."""
+    state, batch = tracking_state_and_batch()
+    expected = rsu_imu.RsuImuPipeline().process(state, batch, ENV)
+    done = []
+    original = compiled_run.run_epochs
+
+    def counted(*args, **kwargs):
+        result = original(*args, **kwargs)
+        done.append(result[0])
+        return result
+
+    monkeypatch.setattr(rsu_imu_run, "run_epochs", counted)
+    assert rsu_imu.RsuImuPipeline().process(state, batch, ENV) == expected
+    assert done and sum(done) >= rsu_imu_run.MIN_RUN  # the runs' path is taken...
+    done.clear()
+    monkeypatch.setattr(compiled_run, "FIX_INPUT_BOUND", 1e-3)
+    assert rsu_imu.RsuImuPipeline().process(state, batch, ENV) == expected
+    assert done and sum(done) == 0  # ...and with the bound below every output, no run does an epoch

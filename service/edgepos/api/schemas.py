@@ -423,8 +423,9 @@ class MeasurementUseOut(ResponseModel):
         None,
         description="Why no correction was added, when correction_applied is false: 'no base data: ...', 'no "
         "correction for this satellite' (the base does not track it), 'correction too old: ...' (older than "
-        "max_correction_age_s), 'ephemeris issue mismatch: ...' (base and rover used different IODE/toe), or "
-        "that the client sent the satellite's position; else null.",
+        "max_correction_age_s), 'ephemeris issue mismatch: ...' (base and rover used different IODE/toe), "
+        "that its constellation is not among the session's correction_systems, or that the client sent the "
+        "satellite's position; else null.",
     )
     noise_std: float | None = Field(
         None,

@@ -71,6 +71,12 @@ _NO_MONITOR = RunMonitor(
 )
 
 
+#: Magnitude below which every number a run's fix is made of keeps its fix finite: the fix's products
+#: (the turn rate's vx * ay, over at least 0.01) and sums (speed, the weighted NIS) of such numbers stay
+#: far below the largest float. A run stops before an epoch with a number beyond it (``kernels_run``).
+FIX_INPUT_BOUND = 1e150
+
+
 def run_epochs(
     stepper: CompiledBankStepper,
     means: np.ndarray,
@@ -141,6 +147,7 @@ def run_epochs(
         bank.jerk_density,
         bank.fix_index,
         bank.alert_limit,
+        FIX_INPUT_BOUND,
         outs,
         levels,
     )
@@ -149,9 +156,9 @@ def run_epochs(
 
 def run_outputs(
     stepper: CompiledBankStepper, outs: np.ndarray, done: int
-) -> tuple[list[list[float]], list[list[float]], list[float]]:
-    """Per epoch done, from :func:`run_epochs`'s outputs: the fused mean followed by its covariance row
-    after row (one list), the model probabilities, and the models' NIS weighted by them. Read for all
+) -> tuple[np.ndarray, np.ndarray, list[list[float]], list[float]]:
+    """Per epoch done, from :func:`run_epochs`'s outputs: the fused means (done, nc) and covariances
+    (done, nc, nc) (views), the model probabilities, and the models' NIS weighted by them. Read for all
     epochs at once, where a ``StepResult`` per epoch made five views and two objects each."""
     count, nc = stepper._sizes
     size = stepper._prediction_size  # each output: the prediction's part, then the correction's
@@ -160,7 +167,9 @@ def run_outputs(
     probabilities = block[:, fused_at - count : fused_at]
     nis = block[:, 2 * size + count : 2 * size + 2 * count]  # the tail: log-likelihoods, then NIS
     weighted = [float(p.dot(n)) for p, n in zip(probabilities, nis)]  # as rsu_imu._step: the same dot
-    return block[:, fused_at : fused_at + nc * (1 + nc)].tolist(), probabilities.tolist(), weighted
+    means = block[:, fused_at : fused_at + nc]
+    covs = block[:, fused_at + nc : fused_at + nc * (1 + nc)].reshape(done, nc, nc)
+    return means, covs, probabilities.tolist(), weighted
 
 
 def posterior(stepper: CompiledBankStepper, outs: np.ndarray, epoch: int) -> StepResult:

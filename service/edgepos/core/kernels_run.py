@@ -77,6 +77,7 @@ def run_epochs(
     jerk_density: float,
     fix_index: IntArray,
     alert_limit: float,
+    fix_bound: float,
     outs: FloatArray,
     levels: FloatArray,
 ) -> int:
@@ -88,7 +89,10 @@ def run_epochs(
     covariances in the leading rows of ``bank_means`` and ``bank_covs`` (room for a sub-filter per RSU
     the run may bring into use), all written back. ``rsu_codes`` gives each measurement row's RSU
     code, ``tables[h]`` and ``thresholds[h]`` a bank of ``h`` sub-filters' radial factor tables and
-    test threshold, ``fix_index`` where x and y are in the fused mean.
+    test threshold, ``fix_index`` where x and y are in the fused mean. An epoch whose fix would be made of
+    a number of ``fix_bound`` or more in magnitude (its model probabilities, fused mean and covariance,
+    log-likelihoods and NIS; NaN included) needs Python too: the per-epoch path checks its fix number by
+    number, so a run's fixes need no such check (their products and sums cannot overflow).
     Returns the number of epochs done: those before the first that needs Python."""
     count = means.shape[0]
     nc = common.shape[0]
@@ -131,7 +135,7 @@ def run_epochs(
             has_centre,
             out,
         )
-        if status != OK:
+        if status != OK or not _bounded(out[size + 72 * count : 2 * size + 2 * count], fix_bound):
             return j
         posterior = out[size : 2 * size + 2 * count]
         next_means, next_covs, next_probabilities, fused_mean, fused_cov = _prediction_parts(
@@ -179,6 +183,15 @@ def run_epochs(
                 planned = -1  # the filters moved: the next epoch's owners and tables are new
         means, covs, probabilities = next_means, next_covs, next_probabilities
     return int(dts.shape[0])
+
+
+@_jit
+def _bounded(values: FloatArray, bound: float) -> bool:
+    """Whether every value is below ``bound`` in magnitude (False for NaN)."""
+    for value in values:
+        if not abs(value) < bound:
+            return False
+    return True
 
 
 @_jit

@@ -280,7 +280,9 @@ def evaluate(
         prs, _ = prepare_epoch(epoch, ephemerides.orbits, codes)
         corrected = None
         if table is not None:
-            prs, corrected, _ = correct_set(prs, ephemerides.orbits, table, table.max_age_s)
+            prs, corrected, _ = correct_set(
+                prs, ephemerides.orbits, table, table.max_age_s, systems=resolved["correction_systems"]
+            )
         if not use_doppler:
             prs = dataclasses.replace(prs, range_rate_mps=None, sat_velocity=None, sat_clock_drift=None)
         try:

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import weakref
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,6 +49,7 @@ issue number for BeiDou (AODE is an age), so the toe is part of the key."""
 NO_CORRECTION = "no correction for this satellite"
 TOO_OLD = "correction too old"
 ISSUE_MISMATCH = "ephemeris issue mismatch"
+SYSTEM_NOT_CORRECTED = "its constellation is not among the session's correction_systems"
 
 
 def ephemeris_issues(orbits: BroadcastOrbits, index: np.ndarray) -> list[Issue | None]:
@@ -269,14 +270,21 @@ def correct_set(
     max_age_s: float,
     ionosphere_modelled: bool = True,
     troposphere_modelled: bool = True,
+    systems: Collection[str] | None = None,
 ) -> tuple[PseudorangeSet, np.ndarray, list[str | None]]:
     """A rover epoch's pseudoranges with the corrections added where one applies (the others unchanged),
     the boolean mask of corrected rows and, per row, why no correction applies (None where one does). The
-    ephemeris issue of each row is the one ``orbits.select`` picks, as ``prepare_epoch`` did."""
+    ephemeris issue of each row is the one ``orbits.select`` picks, as ``prepare_epoch`` did. With
+    ``systems``, only those constellations' rows are corrected (a gnss_tight session's
+    ``correction_systems``)."""
     issues = ephemeris_issues(orbits, orbits.select(prs.systems, prs.prns, prs.gpst))
     delta, reasons = apply_corrections(
         table, prs.sats, issues, prs.gpst, max_age_s, ionosphere_modelled, troposphere_modelled
     )
+    if systems is not None:
+        for row, system in enumerate(prs.systems):
+            if system not in systems:
+                delta[row], reasons[row] = np.nan, SYSTEM_NOT_CORRECTED
     applied = np.isfinite(delta)
     corrected = prs.pseudorange_m + np.where(applied, delta, 0.0)
     return dataclasses.replace(prs, pseudorange_m=corrected), applied, reasons

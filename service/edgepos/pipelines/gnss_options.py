@@ -551,6 +551,17 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         MAX_AGE_BOUNDS_S[1],
     ),
     OptionSpec(
+        "correction_systems",
+        "string[]",
+        list(SYSTEMS),
+        "With base_station: the constellations whose pseudoranges take the station's corrections (RINEX "
+        "letters); the others are used uncorrected and say so. A code correction carries the base "
+        "receiver's own biases: on tests/data/gnss-rover the station's Galileo corrections are off by up to "
+        "3 m per satellite from what the rover's receiver sees, while its GPS and BeiDou ones remove the "
+        "rover's errors (docs/gnss.md). All by default.",
+        choices=SYSTEMS,
+    ),
+    OptionSpec(
         "mixed_corrections",
         "string",
         DEFAULT_MIXED_CORRECTIONS,

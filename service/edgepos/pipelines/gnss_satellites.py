@@ -17,7 +17,7 @@ from edgepos.core.measurements.gnss_geometry import transmit_states
 from edgepos.core.observations import Observation, PseudorangeObservation
 from edgepos.gnss.carrier import HatchConfig, hatch_update
 from edgepos.gnss.corrections import carrier_frequency
-from edgepos.gnss.differential import CorrectionTable, Issue, ephemeris_issues
+from edgepos.gnss.differential import SYSTEM_NOT_CORRECTED, CorrectionTable, Issue, ephemeris_issues
 from edgepos.gnss.ephemerides import DEFAULT_SIGNAL, Ephemerides
 from edgepos.gnss.measurements import Atmosphere, PseudorangeSet, doppler_to_range_rate
 from edgepos.gnss.orbits import SPEED_OF_LIGHT, group_delay_factors
@@ -272,8 +272,12 @@ def apply_corrections(
     prs = satellites.prs
     max_age = corrections.max_age_s
     delta = np.full(len(prs), np.nan)
+    systems = options.get("correction_systems")  # None: a session stored before the option (all)
     for row, (sat, issue) in enumerate(zip(prs.sats, satellites.issues)):
         i = satellites.indices[row]
+        if systems is not None and sat[0] not in systems:
+            reported[i] = (False, SYSTEM_NOT_CORRECTED)
+            continue
         if issue is None:
             reported[i] = (False, CLIENT_STATE)
             continue

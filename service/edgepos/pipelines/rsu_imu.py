@@ -196,14 +196,14 @@ class RsuImuPipeline(Pipeline):
         fixes: list[Fix] = []
         k = 0
         while k < len(epochs):  # runs of usual epochs in one compiled call, the others one by one
-            run = run_fixes(session, bank, stepper, epochs, k, observations)
+            run = run_fixes(session, bank, stepper, epochs, k, observations)  # checked finite
             if run:
                 fixes += run
                 k += len(run)
             else:
-                fixes.append(_step(session, bank, epochs[k], observations, batch))
+                fixes += ensure_finite_fixes([_step(session, bank, epochs[k], observations, batch)])
                 k += 1
-        return ensure_finite_fixes(fixes), session.to_bytes()
+        return fixes, session.to_bytes()
 
     smoother: ClassVar[bool] = True
 

@@ -22,7 +22,7 @@ if TYPE_CHECKING:  # the session type only: rsu_imu imports this module
 
 
 @functools.lru_cache(maxsize=64)
-def _fix_layout(components: tuple[int, ...]) -> tuple[tuple[int, ...], int, int, tuple[str, ...]]:
+def fix_layout(components: tuple[int, ...]) -> tuple[tuple[int, ...], int, int, tuple[str, ...]]:
     """For an output over ``components``: the indices of x, y, vx and vy (the kinematic block's order),
     of ax and ay (-1 when the output lacks them), and the components' names."""
     order = list(components)
@@ -75,7 +75,7 @@ def epoch_fix(
 
 def has_acceleration(components: tuple[int, ...]) -> bool:
     """Whether an output over ``components`` gives the turn rate itself (it has both accelerations)."""
-    _, ax, ay, _ = _fix_layout(components)
+    _, ax, ay, _ = fix_layout(components)
     return ax >= 0 and ay >= 0
 
 
@@ -91,17 +91,24 @@ def listed_fix(
     dof: int,
     protection: Protection | None,
     carried_yaw: float | None,
+    blocks: tuple[list[list[float]], list[list[float]]] | None = None,
 ) -> Fix:
     """The fix of a fused estimate over ``components`` given as Python lists (its mean and its covariance's
     rows) with the model probabilities; ``carried_yaw`` is the turn rate when the estimate has no
-    acceleration to give it (``carried_yaw_rate``)."""
-    kinematic, ax, ay, names = _fix_layout(components)
+    acceleration to give it (``carried_yaw_rate``). ``blocks``: the covariance's kinematic (x, y, vx, vy)
+    and position blocks as lists when the caller has them already (a run makes every epoch's at once)."""
+    kinematic, ax, ay, names = fix_layout(components)
     i_x, i_y, i_vx, i_vy = kinematic
     vx, vy = state[i_vx], state[i_vy]
     yaw_rate = carried_yaw
     if ax >= 0 and ay >= 0:  # the turn rate of the velocity vector from the fused kinematics
         yaw_rate = float((vx * state[ay] - state[ax] * vy) / max(vx * vx + vy * vy, 0.01))
-    rows = [state_cov[i] for i in kinematic]
+    if blocks is None:
+        rows = [state_cov[i] for i in kinematic]
+        blocks = (
+            [[row[i_x], row[i_y], row[i_vx], row[i_vy]] for row in rows],
+            [[rows[0][i_x], rows[0][i_y]], [rows[1][i_x], rows[1][i_y]]],
+        )
     return new_fix(
         {
             "t": t,
@@ -113,8 +120,8 @@ def listed_fix(
             "speed": math.hypot(vx, vy),
             "heading": math.atan2(vy, vx),
             "yaw_rate": yaw_rate,
-            "position_cov": [[rows[0][i_x], rows[0][i_y]], [rows[1][i_x], rows[1][i_y]]],
-            "kinematic_cov": [[row[i_x], row[i_y], row[i_vx], row[i_vy]] for row in rows],
+            "position_cov": blocks[1],
+            "kinematic_cov": blocks[0],
             "state_components": names,
             "state": state,
             "state_cov": state_cov,

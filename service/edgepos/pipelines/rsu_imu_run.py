@@ -31,7 +31,7 @@ from edgepos.core.updates import GYRO_MIN_SPEED, measurement_dim
 from edgepos.pipelines.base import Fix, MeasurementUse
 from edgepos.pipelines.integrity import _monitor_of, _position_index
 from edgepos.pipelines.rsu_imu_batch import EpochParts
-from edgepos.pipelines.rsu_imu_fix import has_acceleration, listed_fix
+from edgepos.pipelines.rsu_imu_fix import fix_layout, has_acceleration, listed_fix
 
 if TYPE_CHECKING:  # the session type only: rsu_imu imports this module
     from edgepos.pipelines.rsu_imu import _SessionState
@@ -72,7 +72,9 @@ def run_fixes(
     observations: Sequence[Observation],
 ) -> list[Fix]:
     """The fixes of the usual epochs from ``epochs[first]`` on, stepped in one compiled call, with the
-    session (and its integrity bank) advanced past them; none when fewer than ``MIN_RUN`` qualify."""
+    session (and its integrity bank) advanced past them; none when fewer than ``MIN_RUN`` qualify. The
+    fixes are finite: the run stops before an epoch whose fix could hold NaN or infinity
+    (``compiled_run.FIX_INPUT_BOUND``), which the per-epoch path checks."""
     options = session.options
     if not (stepper.runs and session.initialised and session.filter_t is not None):
         return []
@@ -141,27 +143,36 @@ def run_fixes(
     )
     if not done:  # the first epoch needs the per-epoch path (the bank is as it was)
         return []
-    fused, probabilities, nis = run_outputs(compiled, outs, done)
+    means, covs, probabilities, nis = run_outputs(compiled, outs, done)
     components = bank.common
-    nc = len(components)
     models = options["models"]
+    # every epoch's lists at once: the covariance's rows, and its kinematic and position blocks
+    kinematic = list(fix_layout(components)[0])
+    kinematic_covs = covs[:, kinematic][:, :, kinematic]
     fixes = []
-    for parts, t, row, weights, weighted, level in zip(
-        run, times, fused, probabilities, nis, levels.tolist()
+    for parts, t, mean, state_cov, kinematic_cov, position_cov, weights, weighted, level in zip(
+        run,
+        times,
+        means.tolist(),
+        covs.tolist(),
+        kinematic_covs.tolist(),
+        kinematic_covs[:, :2, :2].tolist(),
+        probabilities,
+        nis,
+        levels.tolist(),
     ):
         uses = parts.uses
         for i in parts.candidates:
             uses[i] = used(i, "rsu")
         for i in parts.gyros:
             uses[i] = used(i, "gyro")
-        state_cov = [row[start : start + nc] for start in range(nc, nc * (1 + nc), nc)]
         protection = new_protection(level, OK) if run_monitor is not None else None
         fixes.append(
             listed_fix(
                 t,
                 "tracking",
                 components,
-                row[:nc],
+                mean,
                 state_cov,
                 dict(zip(models, weights)),
                 uses,
@@ -169,6 +180,7 @@ def run_fixes(
                 measurement_dim(len(parts.candidates), len(parts.gyros), rows.averaged),
                 protection,
                 None,  # the run's outputs have both accelerations (checked above): no carried turn rate
+                (kinematic_cov, position_cov),
             )
         )
     last = posterior(compiled, outs, done - 1)
