@@ -17,6 +17,8 @@ import logging
 import time
 from typing import Any
 
+import pydantic_core
+
 from edgepos.api.admission import admit_batch, too_heavy_options
 from edgepos.api.auth import INVALID_CREDENTIAL, hash_token, new_session_token, superseded_error
 from edgepos.api.base_stations import batch_corrections, check_base_station
@@ -274,10 +276,13 @@ async def delete_session(context: AppContext, session_id: str) -> None:
 def batch_hash(batch: BatchIn) -> str:
     """Digest of the batch's content (not its bytes): a retry with other whitespace still matches.
 
-    The content is the model's JSON. Serialised "as any", each measurement is written by its own class's
-    serialiser instead of being matched against the measurement union first: the same bytes (a test
-    holds them to ``model_dump_json()``, so stored digests keep matching) in about 60 % of the time."""
-    return hashlib.sha256(batch.model_dump_json(serialize_as_any=True).encode()).hexdigest()
+    The content is the model's JSON, ``batch.model_dump_json()``'s very bytes (a test holds them to it, so
+    stored digests keep matching across versions), written from the models' field dicts: the batch and
+    measurement models have no serialisers, aliases or computed fields, and their ``__dict__`` holds their
+    fields in declaration order, so pydantic-core writes the same JSON from the plain values, in about
+    three quarters of the time the models' serialiser takes."""
+    content = {**batch.__dict__, "measurements": [measurement.__dict__ for measurement in batch.measurements]}
+    return hashlib.sha256(pydantic_core.to_json(content)).hexdigest()
 
 
 def _replay_or_refuse(record: SessionRecord, batch: BatchIn, digest: str) -> bytes | None:
