@@ -23,7 +23,7 @@ from edgepos.api.admission import admit_batch, too_heavy_options
 from edgepos.api.auth import INVALID_CREDENTIAL, hash_token, new_session_token, superseded_error
 from edgepos.api.base_stations import batch_corrections, check_base_station
 from edgepos.api.context import AppContext
-from edgepos.api.convert import fix_bytes, fix_to_json, joined_batch_body
+from edgepos.api.convert import fix_to_json, fixes_bytes, joined_batch_body
 from edgepos.api.ephemerides import LoadedEphemerides, satellite_problems
 from edgepos.api.errors import ApiError, pipeline_problems
 from edgepos.api.measurement_schemas import BatchIn
@@ -461,10 +461,8 @@ async def _apply_in_turn(
                 ) from None
             elapsed = time.perf_counter() - started
             # each fix written once: the answer, the fix events and the last fix are joined from these
-            fix_json = [fix_bytes(fix, batch.include_state, context.origin) for fix in fixes]
-            stateless = (
-                [fix_bytes(fix, False, context.origin) for fix in fixes] if batch.include_state else fix_json
-            )
+            fix_json = fixes_bytes(fixes, batch.include_state, context.origin)
+            stateless = fixes_bytes(fixes, False, context.origin) if batch.include_state else fix_json
             body = joined_batch_body(batch.seq, fix_json)
             last_fix = stateless[-1].decode() if stateless else record.last_fix
             updated = dataclasses.replace(
