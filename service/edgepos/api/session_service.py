@@ -303,7 +303,10 @@ def _replay_or_refuse(record: SessionRecord, batch: BatchIn, digest: str) -> byt
     raise ApiError("conflict", reason, [ProblemModel(index=None, field="seq", reason=reason)])
 
 
-def _check_types(pipeline: Pipeline, batch: BatchIn) -> None:
+def _check_types(pipeline: Pipeline, batch: BatchIn, kinds: set[str]) -> None:
+    """422 naming each measurement of a type the pipeline does not use (``kinds``: the types the batch has)."""
+    if kinds.issubset(pipeline.measurement_kinds):
+        return
     problems = [
         ProblemModel(
             index=index,
@@ -333,14 +336,26 @@ async def apply_batch(
         raise ApiError("invalid_request", "the batch is too large", [problem])
     digest = batch_hash(batch)
     observations = [measurement.to_observation() for measurement in batch.measurements]
-    rsu_ids = _rsu_ids(observations)
-    peer_ids = _peer_ids(observations)
-    has_pseudoranges = any(isinstance(o, PseudorangeObservation) for o in observations)
+    # The kinds present first (one pass): most batches carry two or three, and the passes below are skipped
+    # for the kinds they do not carry.
+    kinds = {o.kind for o in observations}
+    rsu_ids = _rsu_ids(observations) if not kinds.isdisjoint(_RSU_KINDS) else set()
+    peer_ids = _peer_ids(observations) if V2vRangeObservation.kind in kinds else set()
+    has_pseudoranges = PseudorangeObservation.kind in kinds
     # One place in the vehicle's line for the whole request: a vehicle that sends batches in parallel
     # gets 429 instead of holding the worker's admission slots while it waits for its own session.
     async with context.scheduler.hold(f"session:{session_id}"):
         return await _apply_in_turn(
-            context, session_id, batch, digest, observations, rsu_ids, peer_ids, has_pseudoranges, prefetched
+            context,
+            session_id,
+            batch,
+            digest,
+            observations,
+            kinds,
+            rsu_ids,
+            peer_ids,
+            has_pseudoranges,
+            prefetched,
         )
 
 
@@ -350,6 +365,7 @@ async def _apply_in_turn(
     batch: BatchIn,
     digest: str,
     observations: list[Any],
+    kinds: set[str],
     rsu_ids: set[str],
     peer_ids: set[str],
     has_pseudoranges: bool,
@@ -380,7 +396,7 @@ async def _apply_in_turn(
                 metrics.batches.labels("replayed").inc()
                 return replay
             pipeline = _pipeline(context, record.pipeline)
-            _check_types(pipeline, batch)
+            _check_types(pipeline, batch, kinds)
             try:
                 # Late measurements make the lag window filter some stored ones again: their RSUs and
                 # neighbours are looked up too, and their cost counts against the budget.
@@ -503,6 +519,9 @@ def _publish_fixes(
             for fix, written in zip(fixes, stateless_json, strict=True)
         ]
     )
+
+
+_RSU_KINDS = frozenset({RsuObservation.kind, RsuRangeObservation.kind})
 
 
 def _rsu_ids(observations: list[Any]) -> set[str]:
