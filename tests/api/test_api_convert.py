@@ -9,7 +9,7 @@ import math
 import pytest
 from apihelp import epochs, scenario
 from edgepos.api import convert
-from edgepos.api.convert import fix_bytes, fix_to_json, joined_batch_body, to_json
+from edgepos.api.convert import fix_bytes, fix_to_json, fixes_bytes, joined_batch_body, to_json
 from edgepos.api.schemas import BatchOut, FixEventOut, FixOut
 from edgepos.api.streams import fix_event_data, fix_event_prefix
 from edgepos.geo import GeodeticOrigin
@@ -82,6 +82,30 @@ def test_a_fix_written_with_its_uses_written_once_is_the_same_bytes(
     changed = dataclasses.replace(fixes[-1], measurements=[noisy, *fixes[-1].measurements])
     assert fix_bytes(changed, False, None) == to_json(fix_to_json(changed, False, None))
     assert b'"noise_std":0.75' in fix_bytes(changed, False, None)
+
+
+@pytest.mark.parametrize("include_state", [False, True])
+@pytest.mark.parametrize("origin", [None, GeodeticOrigin(math.radians(48.1), math.radians(11.6), 520.0)])
+def test_a_batch_of_fixes_written_at_once_is_each_fix_written_alone(
+    include_state: bool, origin: GeodeticOrigin | None
+) -> None:
+    fixes = _fixes()
+    alone = [fix_bytes(fix, include_state, origin) for fix in fixes]
+    assert fixes_bytes(fixes, include_state, origin) == alone
+    assert fixes_bytes(fixes[2:3], include_state, origin) == alone[2:3]
+    assert fixes_bytes([], include_state, origin) == []
+
+
+def test_fixes_whose_json_does_not_cut_one_per_fix_are_written_one_by_one(monkeypatch) -> None:
+    """No field of a fix can hold '},{"t":' today (a string's quotes are escaped, no nested object has a "t"
+    key); with a cut that comes more often than once between fixes, each fix is written alone."""
+    fixes = _fixes()
+    quoted = dataclasses.replace(fixes[1], divergence='"},{"t":1}')
+    batch = [fixes[0], quoted, fixes[2]]
+    assert fixes_bytes(batch, False, None) == [fix_bytes(fix, False, None) for fix in batch]
+    monkeypatch.setattr(convert, "_NEXT_FIX", b",")
+    monkeypatch.setattr(convert, "fix_bytes", lambda fix, *_: b"alone %d" % batch.index(fix))
+    assert fixes_bytes(batch, False, None) == [b"alone 0", b"alone 1", b"alone 2"]
 
 
 def test_the_use_table_keeps_what_it_keys_and_starts_afresh_when_full(monkeypatch) -> None:

@@ -172,6 +172,47 @@ def test_the_batch_digest_hashes_the_same_bytes_as_the_models_json(include_state
     assert batch_hash(batch) == hashlib.sha256(batch.model_dump_json().encode()).hexdigest()
 
 
+_OPTIONAL = {"sat_position", "sat_clock", "doppler_hz", "carrier_cycles", "lli", "std", "distance", "speed"}
+
+
+@st.composite
+def _valid_measurement(draw: st.DrawFn) -> dict[str, Any]:
+    """One of EVERY_TYPE with its numbers redrawn (down to half, within the schema's bounds; -0.0; integers
+    where floats go), its optional fields now and then null, and its keys in a random order."""
+    item = dict(draw(st.sampled_from(EVERY_TYPE)))
+    if item["type"] == "pseudorange" and draw(st.booleans()):
+        item.update(sat_position=[2.0e7, -1.5e7, 0.5e7], sat_clock=1e-4)
+    for name, value in list(item.items()):
+        if isinstance(value, float) and draw(st.booleans()):
+            item[name] = draw(
+                st.one_of(
+                    st.floats(0.5 * value, value) if value > 0 else st.floats(value, 0.5 * value),
+                    st.just(round(value)) if round(value) == value else st.just(value),
+                    st.just(-0.0) if value == 0.0 else st.just(value),
+                )
+            )
+        if name in _OPTIONAL and name not in ("distance", "speed") and draw(st.integers(0, 3)) == 0:
+            item[name] = None
+    if item["type"] == "odometer" and draw(st.booleans()):
+        item["distance" if "distance" not in item else "speed"] = None
+    keys = draw(st.permutations(list(item)))
+    return {key: item[key] for key in keys}
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(_valid_measurement(), min_size=1, max_size=12), st.booleans(), st.booleans())
+def test_the_batch_digest_of_json_bodies_hashes_the_models_json(
+    measurements: list[dict[str, Any]], include_state: bool, given_state: bool
+) -> None:
+    """The same on bodies validated from their bytes, as the route does: every measurement type, any
+    order of keys, optional fields missing or null, integers in float fields, -0.0."""
+    body: dict[str, Any] = {"measurements": measurements, "seq": 7}
+    if given_state:
+        body["include_state"] = include_state
+    batch = BatchIn.model_validate_json(json.dumps(body))
+    assert batch_hash(batch) == hashlib.sha256(batch.model_dump_json().encode()).hexdigest()
+
+
 @pytest.mark.parametrize(
     "document",
     [

@@ -67,6 +67,28 @@ def fix_bytes(fix: Fix, include_state: bool, origin: GeodeticOrigin | None) -> b
     return b'%b,"measurements":[%b]}' % (head[:-1], b",".join([_use_bytes(u) for u in fix.measurements]))
 
 
+_NEXT_FIX = b'},{"t":'
+"""Where one fix's fields end and the next one's begin in the JSON of a list of them: ``t`` comes first."""
+
+
+def fixes_bytes(fixes: Sequence[Fix], include_state: bool, origin: GeodeticOrigin | None) -> list[bytes]:
+    """``[fix_bytes(fix, include_state, origin) for fix in fixes]``, the very bytes, with every fix's fields
+    written in one ``to_json`` call (a call per fix cost a tenth of the batch's JSON). The list's JSON is cut
+    where one fix ends and the next begins; should a fix hold that sequence of bytes elsewhere (no field does
+    today), the cuts do not come out one per fix and each fix is written on its own."""
+    if not fixes:
+        return []
+    heads = to_json([_fix_fields(fix, include_state, origin) for fix in fixes])
+    cut = heads[1:-2].split(_NEXT_FIX)  # without the list's brackets and the last fix's closing brace
+    if len(cut) != len(fixes):
+        return [fix_bytes(fix, include_state, origin) for fix in fixes]
+    cut[1:] = [b'{"t":' + part for part in cut[1:]]
+    return [
+        b'%b,"measurements":[%b]}' % (head, b",".join([_use_bytes(u) for u in fix.measurements]))
+        for head, fix in zip(cut, fixes, strict=True)
+    ]
+
+
 def _fix_fields(fix: Fix, include_state: bool, origin: GeodeticOrigin | None) -> dict[str, Any]:
     """:func:`fix_to_json` without its last field, the measurement uses."""
     latitude, longitude, height = fix.latitude, fix.longitude, fix.height
