@@ -22,10 +22,11 @@ _STEP_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.0
 
 CONTENT_TYPE = CONTENT_TYPE_LATEST
 
-#: The request methods the ``method`` label keeps; any other is counted as ``other``. The method comes from
-#: the client: uvicorn's httptools parser accepts some thirty, h11 (its fallback) any token, and every
-#: distinct label value is a new time series kept for the life of the process.
-LABELLED_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
+#: The request methods the ``method`` label keeps (and ``WS``, a batch's frame on the WebSocket); any other
+#: is counted as ``other``. The method comes from the client: uvicorn's httptools parser accepts some thirty,
+#: h11 (its fallback) any token, and every distinct label value is a new time series kept for the life of
+#: the process.
+LABELLED_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS", "WS"})
 
 BATCH_ROUTE = "/v1/sessions/{session_id}/batches"
 """The route whose latency the operator map's header shows (GET /v1/status)."""
