@@ -19,7 +19,7 @@ the few session creations (one per 40 batches per vehicle). wrk is Debian's pack
 installs it).
 
 With ``--light-lane loop,thread`` each store's service is measured with the light lane on the event loop
-(the default) and on the filter thread (``EDGEPOS_LIGHT_LANE``), and thread ÷ loop printed per round.
+and on the filter thread (``EDGEPOS_LIGHT_LANE``; the service's default), and thread ÷ loop printed per round.
 
     python bench/wrk_load.py [--workers 1] [--store memory|redis|memory,redis] [--light-lane loop|thread|loop,thread]
         [--vehicles 16] [--duration 10] [--rounds 3] [--batch 20] [--jitter-ms 3] [--json FILE]
@@ -128,8 +128,8 @@ def main() -> int:
     parser.add_argument(
         "--light-lane",
         type=_choices(LANES, "light lanes"),
-        default=("loop",),
-        help="loop (the default), thread, or both comma-separated (EDGEPOS_LIGHT_LANE; each measured in every round)",
+        default=("thread",),
+        help="thread (the service's default), loop, or both comma-separated (EDGEPOS_LIGHT_LANE; each measured in every round)",
     )
     parser.add_argument("--vehicles", type=int, default=16)
     parser.add_argument("--duration", type=float, default=10.0, help="seconds per run")

@@ -4,9 +4,9 @@ Each job carries the vehicle it is for and its predicted CPU cost (``pipelines.c
 of two lanes:
 
 - the **light lane** takes jobs predicted to fit a slice (EDGEPOS_SCHEDULER_SLICE_MS): almost every
-  batch. By default (EDGEPOS_LIGHT_LANE=loop) it runs them on the event loop's own thread, one job per
-  turn, the loop serving its sockets between two jobs; with ``thread`` on one filter thread of this
-  process;
+  batch. By default (EDGEPOS_LIGHT_LANE=thread) it runs them on one filter thread of this process; with
+  ``loop`` on the event loop's own thread, one job per turn, the loop serving its sockets between two
+  jobs;
 - the **heavy lane**, a pool of worker processes (EDGEPOS_HEAVY_WORKERS), takes the rest, so that a
   batch of thousands of particles runs where it cannot hold this process's interpreter lock against
   the light lane. With no heavy workers the heavy lane is a second thread (the lock is then shared).
@@ -18,14 +18,15 @@ Retry-After. Why processes and not sub-interpreters: on CPython 3.11, which this
 sub-interpreters share one interpreter lock (a lock per interpreter came with 3.12), so they could not
 keep a heavy batch from holding the light lane's lock; processes can.
 
-Why the light lane runs on the event loop by default: a thread gains no parallelism under the one
-interpreter lock, and the loop and a busy filter thread hand the lock back and forth (the loop asks for
-it whenever a socket is ready; the thread gives it up every switch interval and in every release by a
-C call), which costs more than it hides: under a saturating load one worker spent 24-53 % more CPU per
-epoch and served 19-33 % fewer epochs with the thread, two workers 7-8 % more CPU and 9 % fewer epochs
-(docs/benchmarks.md). A light job holds the loop for at most about a slice; the thread lane stays for
-deployments that would rather keep the loop free. The site's own work (kernel warm-up, parsing uploaded
-files) has no predicted cost and always runs on a thread, never on the loop.
+Why the light lane runs on a thread by default: a batch's run of epochs is one compiled call that releases
+the interpreter lock (``core.kernels_base._jit_nogil``), some 400 us for 20 epochs, during which the event
+loop reads, validates and answers other requests on the other core. Before the run was one call, the
+kernels ran three times an epoch holding the lock, and the thread only took turns with the loop: one
+worker then spent 24-53 % more CPU per epoch and served 19-33 % fewer epochs with the thread, so the loop
+was the default. Now, one worker under wrk serves 1.06-1.36 times the epochs/s on the thread, two workers
+about the same with a shorter p99 (docs/benchmarks.md). ``loop`` stays for deployments that would rather
+not have the thread. The site's own work (kernel warm-up, parsing uploaded files) has no predicted cost
+and always runs on a thread, never on the loop.
 """
 
 from __future__ import annotations
@@ -373,7 +374,7 @@ class FairScheduler:
         slice_s: float = 0.010,
         heavy_workers: int = 1,
         max_queued_per_key: int = 4,
-        light_lane: LightLane = "loop",
+        light_lane: LightLane = "thread",
     ) -> None:
         self.metrics = metrics
         self.slice_s = slice_s

@@ -177,11 +177,13 @@ class Settings(BaseSettings):
         "processes), the rest in the light lane (EDGEPOS_LIGHT_LANE), so a heavy batch never delays a light one.",
     )
     light_lane: Literal["loop", "thread"] = Field(
-        "loop",
-        description="Where the light lane filters its batches: 'loop', on the event loop's own thread between "
-        "two reads of its sockets (a batch holds the loop for at most about the slice); 'thread', on one filter "
-        "thread of this process, which keeps the loop free but contends with it for the interpreter lock "
-        "(measured: 24-53 % more CPU per epoch for one worker under a saturating load, docs/benchmarks.md).",
+        "thread",
+        description="Where the light lane filters its batches: 'thread', on one filter thread of this process, "
+        "which releases the interpreter lock while a batch's run of epochs is in compiled code, so that the "
+        "event loop serves other requests meanwhile (measured: 1.06-1.36 times the epochs/s of 'loop' for one "
+        "worker under a saturating load, about the same for two, docs/benchmarks.md); 'loop', on the event "
+        "loop's own thread between two reads of its sockets (a batch holds the loop for at most about the "
+        "slice).",
     )
     heavy_workers: int = Field(
         1,

@@ -47,13 +47,27 @@ def _jit(function: _Function) -> _Function:
     thread then waiting up to a switch interval to get it back. Kept, a 20-epoch batch takes one
     hand-off instead of up to sixty; the event loop still preempts the filter thread every switch
     interval (5 ms). Measured: +8 % and +14 % closed-loop epochs/s of a 1-worker service, p99 at 100
-    vehicles unchanged."""
+    vehicles unchanged. The one exception is a run of epochs (``_jit_nogil``)."""
     # numba ships no types: its dispatcher is called as the function it compiles, so it keeps that
     # function's signature for the type checker.
+    return _compiled(function, nogil=False)
+
+
+def _jit_nogil(function: _Function) -> _Function:
+    """``_jit`` releasing the GIL, for ``kernels_run.run_epochs``: one call per batch for a whole run of
+    epochs (some 400 us for 20), so one hand-off per batch, while the service's event loop reads,
+    validates and answers other requests on the other core. Measured with the light lane on its
+    thread: 1.06-1.36 times the epochs/s of the lane on the loop, one worker under wrk
+    (docs/benchmarks.md)."""
+    return _compiled(function, nogil=True)
+
+
+def _compiled(function: _Function, nogil: bool) -> _Function:
+    """numba's njit of ``function``, cached on disk where numba finds a writable place."""
     try:
-        return cast(_Function, numba.njit(cache=True, error_model="numpy")(function))
+        return cast(_Function, numba.njit(cache=True, error_model="numpy", nogil=nogil)(function))
     except RuntimeError:  # "no locator available": nowhere to write the cache
-        return cast(_Function, numba.njit(error_model="numpy")(function))
+        return cast(_Function, numba.njit(error_model="numpy", nogil=nogil)(function))
 
 
 # -- small dense helpers -------------------------------------------------------------------------

@@ -26,13 +26,13 @@ import numpy as np
 
 from edgepos.core.integrity_bank import CONVERGED, DROPPABLE, JERK, SCALARS, TABLE, THRESHOLD
 from edgepos.core.kernels import _prediction_parts
-from edgepos.core.kernels_base import OK, BoolArray, IntArray, _jit
+from edgepos.core.kernels_base import OK, BoolArray, IntArray, _jit, _jit_nogil
 from edgepos.core.kernels_epoch import epoch_step
 from edgepos.core.kernels_integrity import bank_epoch, work_size
 from edgepos.core.numerics import FloatArray
 
 
-@_jit
+@_jit_nogil
 def run_epochs(
     means: FloatArray,
     covs: FloatArray,
