@@ -196,7 +196,7 @@ class RsuImuPipeline(Pipeline):
         fixes: list[Fix] = []
         k = 0
         while k < len(epochs):  # runs of usual epochs in one compiled call, the others one by one
-            run = run_fixes(session, bank, stepper, epochs, k, observations)  # checked finite
+            run = run_fixes(session, bank, stepper, epochs, k, observations)  # finite: bounded in the run
             if run:
                 fixes += run
                 k += len(run)
