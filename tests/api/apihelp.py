@@ -107,3 +107,33 @@ def assert_error(response: Any, status: int, code: str) -> dict[str, Any]:
     for problem in error["problems"]:
         assert set(problem) == {"index", "field", "reason"}
     return error
+
+
+EVERY_MEASUREMENT: list[dict[str, Any]] = [
+    {"type": "rsu", "t": 0.5, "rsu_id": "S+000", "range": 8.875, "bearing": 1.5708},
+    {"type": "gyro", "t": 0.5, "yaw_rate": -0.01},
+    {"type": "rsu_range", "t": 0.5, "rsu_id": "S+000", "range": 8.0},
+    {"type": "gnss_fix", "t": 0.5, "x": 1.0, "y": -2.0, "std": 3.0},
+    {"type": "gnss_fix", "t": 0.5, "x": 1.0, "y": -2.0},
+    {"type": "odometer", "t": 0.5, "distance": 3.0},
+    {"type": "odometer", "t": 0.5, "speed": 15.0},
+    {"type": "v2v_range", "t": 0.5, "peer_vehicle_id": "car-2", "range": 120.0},
+    {"type": "v2v_range", "t": 0.5, "peer_vehicle_id": "car-2", "toa": 4.0e-7},
+    {"type": "pseudorange", "t": 1.0, "system": "G", "prn": 5, "pseudorange_m": 2.1e7, "cn0_dbhz": 40.0},
+    {
+        "type": "pseudorange",
+        "t": 1.0,
+        "system": "E",
+        "prn": 12,
+        "pseudorange_m": 2.4e7,
+        "cn0_dbhz": 35.5,
+        "sat_position": [2.0e7, -1.5e7, 0.5e7],
+        "sat_clock": 1e-4,
+        "doppler_hz": -1200.5,
+        "carrier_cycles": 1.26e8,
+        "lli": 1,
+    },
+    {"type": "riss", "t": 1.0, "wheel_speed": 10.0, "accel_x": 0.1, "accel_y": -0.2, "gyro_z": 0.01},
+]
+"""One wire measurement of every type with every field given (each number one no other field of its
+measurement has), and some that leave optional fields out."""

@@ -9,7 +9,7 @@ import math
 from typing import Any
 
 import pytest
-from apihelp import ADMIN, assert_error, batch_body, open_session, rsu_payload
+from apihelp import ADMIN, EVERY_MEASUREMENT, assert_error, batch_body, open_session, rsu_payload
 from edgepos.api import one_pass_body
 from edgepos.api.measurement_schemas import BatchIn
 from edgepos.api.one_pass_body import OnePassBodyRoute, one_pass_model
@@ -138,37 +138,13 @@ def test_floats_come_out_bit_for_bit_as_the_standard_library_reads_them(values: 
         ]
 
 
-EVERY_TYPE = [
-    {"type": "rsu", "t": 0.5, "rsu_id": "S+000", "range": 8.875, "bearing": 1.5708},
-    {"type": "gyro", "t": 0.5, "yaw_rate": -0.01},
-    {"type": "rsu_range", "t": 0.5, "rsu_id": "S+000", "range": 8.0},
-    {"type": "gnss_fix", "t": 0.5, "x": 1.0, "y": -2.0, "std": 3.0},
-    {"type": "gnss_fix", "t": 0.5, "x": 1.0, "y": -2.0},
-    {"type": "odometer", "t": 0.5, "speed": 15.0},
-    {"type": "odometer", "t": 0.5, "distance": 3.0},
-    {"type": "v2v_range", "t": 0.5, "peer_vehicle_id": "car-2", "range": 120.0},
-    {"type": "v2v_range", "t": 0.5, "peer_vehicle_id": "car-2", "toa": 4.0e-7},
-    {"type": "pseudorange", "t": 1.0, "system": "G", "prn": 5, "pseudorange_m": 2.1e7, "cn0_dbhz": 40.0},
-    {
-        "type": "pseudorange",
-        "t": 1.0,
-        "system": "E",
-        "prn": 12,
-        "pseudorange_m": 2.4e7,
-        "cn0_dbhz": 35.5,
-        "doppler_hz": -1200.5,
-        "carrier_cycles": 1.26e8,
-        "lli": 1,
-    },
-    {"type": "riss", "t": 1.0, "wheel_speed": 10.0, "accel_x": 0.1, "accel_y": -0.2, "gyro_z": 0.01},
-]
-
-
 @pytest.mark.parametrize("include_state", [False, True])
 def test_the_batch_digest_hashes_the_same_bytes_as_the_models_json(include_state: bool) -> None:
     """Stored digests stay valid: the faster serialisation writes what model_dump_json() writes."""
-    batch = BatchIn.model_validate({"seq": 3, "measurements": EVERY_TYPE, "include_state": include_state})
-    assert {m.type for m in batch.measurements} == {m["type"] for m in EVERY_TYPE}
+    batch = BatchIn.model_validate(
+        {"seq": 3, "measurements": EVERY_MEASUREMENT, "include_state": include_state}
+    )
+    assert {m.type for m in batch.measurements} == {m["type"] for m in EVERY_MEASUREMENT}
     assert batch_hash(batch) == hashlib.sha256(batch.model_dump_json().encode()).hexdigest()
 
 
@@ -177,9 +153,9 @@ _OPTIONAL = {"sat_position", "sat_clock", "doppler_hz", "carrier_cycles", "lli",
 
 @st.composite
 def _valid_measurement(draw: st.DrawFn) -> dict[str, Any]:
-    """One of EVERY_TYPE with its numbers redrawn (down to half, within the schema's bounds; -0.0; integers
+    """One of EVERY_MEASUREMENT with its numbers redrawn (down to half, within the schema's bounds; -0.0; integers
     where floats go), its optional fields now and then null, and its keys in a random order."""
-    item = dict(draw(st.sampled_from(EVERY_TYPE)))
+    item = dict(draw(st.sampled_from(EVERY_MEASUREMENT)))
     if item["type"] == "pseudorange" and draw(st.booleans()):
         item.update(sat_position=[2.0e7, -1.5e7, 0.5e7], sat_clock=1e-4)
     for name, value in list(item.items()):
