@@ -28,7 +28,13 @@ from scipy.stats import chi2
 
 from edgepos.core.errors import EstimationError
 from edgepos.gnss.geodesy import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
-from edgepos.gnss.measurements import Atmosphere, PseudorangeSet, prepare_epoch
+from edgepos.gnss.measurements import (
+    DEFAULT_GALILEO_GROUP_DELAY,
+    GALILEO_GROUP_DELAYS,
+    Atmosphere,
+    PseudorangeSet,
+    prepare_epoch,
+)
 from edgepos.gnss.orbits import OMEGA_EARTH, SPEED_OF_LIGHT, BroadcastOrbits, sagnac_range, sagnac_range_rate
 from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import (
@@ -462,6 +468,13 @@ def residual_tool_parser(prog: str, description: str) -> argparse.ArgumentParser
     )
     parser.add_argument("--epochs", default="0:1000000", help="epochs A:B (0-based, B excluded)")
     parser.add_argument("--systems", default=ALL_SYSTEMS, help=f"constellations (default {ALL_SYSTEMS})")
+    parser.add_argument(
+        "--galileo-group-delay",
+        choices=GALILEO_GROUP_DELAYS,
+        default=DEFAULT_GALILEO_GROUP_DELAY,
+        help="what the receiver's Galileo code carries of the satellite group delay (gnss_tight's "
+        f"galileo_group_delay; default {DEFAULT_GALILEO_GROUP_DELAY})",
+    )
     return parser
 
 
