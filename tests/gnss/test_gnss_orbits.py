@@ -7,12 +7,14 @@ import math
 import numpy as np
 import pytest
 from edgepos.gnss.geodesy import ecef_to_geodetic, geodetic_to_ecef
-from edgepos.gnss.measurements import Atmosphere, prepare_epoch
+from edgepos.gnss.measurements import Atmosphere, prepare_epoch, without_group_delay
 from edgepos.gnss.orbits import (
+    GALILEO_E5A_CLOCK,
     OMEGA_EARTH,
     SPEED_OF_LIGHT,
     BroadcastOrbits,
     earth_rotation,
+    group_delay_factors,
     sagnac_range,
 )
 from edgepos.gnss.rinex_nav import NavigationData
@@ -277,3 +279,67 @@ def test_the_ephemerides_week_is_numpys_rounding(nav: NavigationData) -> None:
     for t in times:
         week = np.round((middle - t) / SECONDS_PER_WEEK)
         assert ephemerides.gpst(t) == float(week * SECONDS_PER_WEEK + t)
+
+
+def _galileo_e1_clocks(orbits: BroadcastOrbits, sat: str, t: float) -> dict[int, float]:
+    """Per record of ``sat`` (index), its E1 clock at ``t`` (m): the clock polynomial less the group delay
+    the factors of a C1C pseudorange take from it."""
+    factors = np.array([group_delay_factors("E", "C1C")])
+    clocks = {}
+    for index, e in enumerate(orbits.ephemerides):
+        if e.sat == sat and abs(t - e.toe) <= 4 * 3600.0:
+            rows = np.array([index])
+            clock = orbits.clock_polynomial(rows, np.array([t])) - orbits.group_delay(rows, factors)
+            clocks[index] = float(clock[0]) * SPEED_OF_LIGHT
+    return clocks
+
+
+@pytest.mark.parametrize("sat", ["E12", "E07", "E21", "E33"])
+def test_galileo_inav_and_fnav_records_give_one_e1_clock(orbits: BroadcastOrbits, sat: str) -> None:
+    """An I/NAV record's clock is the E1/E5b pair's, an F/NAV record's the E1/E5a pair's; each less its own
+    pair's BGD is the E1 clock (Galileo OS SIS ICD 5.1.5), the same to decimetres. Taking BGD(E1, E5b) from
+    an F/NAV record, which does not broadcast it (blank: 0), put them |BGD(E1, E5a)| apart: 3.1 m for E12."""
+    clocks = _galileo_e1_clocks(orbits, sat, T0)
+    sources = {orbits.ephemerides[i].data_sources & GALILEO_E5A_CLOCK for i in clocks}
+    assert sources == {0, GALILEO_E5A_CLOCK}  # both kinds of record in the file
+    assert max(clocks.values()) - min(clocks.values()) < 0.3
+    if sat == "E12":
+        fnav = next(i for i in clocks if orbits.ephemerides[i].data_sources & GALILEO_E5A_CLOCK)
+        assert abs(orbits.ephemerides[fnav].tgd2 * SPEED_OF_LIGHT) > 3.0  # the delay that was left out
+
+
+def test_an_e5b_code_needs_an_inav_record(orbits: BroadcastOrbits) -> None:
+    """BGD(E1, E5b) comes only with I/NAV records: an E5b pseudorange is not given an F/NAV record's clock."""
+    fnav = next(
+        i for i, e in enumerate(orbits.ephemerides) if e.system == "E" and e.data_sources & GALILEO_E5A_CLOCK
+    )
+    inav = next(
+        i
+        for i, e in enumerate(orbits.ephemerides)
+        if e.system == "E" and not e.data_sources & GALILEO_E5A_CLOCK
+    )
+    assert not orbits.signal_usable(fnav, "E", "C7Q")
+    assert orbits.signal_usable(inav, "E", "C7Q")
+    assert orbits.signal_usable(fnav, "E", "C1C") and orbits.signal_usable(fnav, "E", "C5Q")
+    assert orbits.signal_usable(fnav, "G", "C1C")
+
+
+def test_a_receiver_without_the_galileo_group_delay_moves_galileo_clocks_only(
+    orbits: BroadcastOrbits, epochs: list[ObservationEpoch]
+) -> None:
+    """``galileo_group_delay`` none gives each Galileo satellite its clock without the record's BGD, by exactly
+    that BGD, and leaves GPS and BeiDou as they are."""
+    epoch = epochs[30]
+    broadcast, _ = prepare_epoch(epoch, orbits)
+    none, _ = prepare_epoch(epoch, orbits, no_group_delay=without_group_delay("none"))
+    assert broadcast.sats == none.sats and "E12" in broadcast.sats
+    chosen = orbits.select(broadcast.systems, broadcast.prns, epoch.gpst)
+    factors = np.array([group_delay_factors(s, "C1C" if s != "C" else "C2I") for s in broadcast.systems])
+    delay = orbits.group_delay(chosen, factors)
+    galileo = np.array(broadcast.systems) == "E"
+    shift = none.sat_clock_s - broadcast.sat_clock_s
+    assert np.allclose(shift[galileo], delay[galileo], rtol=0.0, atol=1e-15)
+    assert np.all(shift[~galileo] == 0.0)
+    assert np.any(np.abs(delay[galileo]) * SPEED_OF_LIGHT > 1.0)
+    with pytest.raises(ValueError, match="galileo group delay"):
+        without_group_delay("ICD")

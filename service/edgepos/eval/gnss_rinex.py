@@ -45,7 +45,7 @@ from edgepos.gnss.differential import DEFAULT_MAX_AGE_S, correct_set, correction
 from edgepos.gnss.differential import base_position as header_base_position
 from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.geodesy import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
-from edgepos.gnss.measurements import prepare_epoch
+from edgepos.gnss.measurements import prepare_epoch, without_group_delay
 from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import ALL_SYSTEMS, DEFAULT_CODES, parse_systems, read_epochs, read_header
 from edgepos.gnss.spp import SppConfig, SppError, read_reference, reference_velocity, solve_epoch
@@ -277,7 +277,9 @@ def evaluate(
             fix_velocities.append(np.array([fix.vx, fix.vy]))
         else:
             fix_velocities.append(None)
-        prs, _ = prepare_epoch(epoch, ephemerides.orbits, codes)
+        prs, _ = prepare_epoch(
+            epoch, ephemerides.orbits, codes, without_group_delay(resolved["galileo_group_delay"])
+        )
         corrected = None
         if table is not None:
             prs, corrected, _ = correct_set(

@@ -20,6 +20,24 @@ from edgepos.gnss.orbits import SPEED_OF_LIGHT, BroadcastOrbits, group_delay_fac
 from edgepos.gnss.rinex_nav import NavigationData
 from edgepos.gnss.rinex_obs import DEFAULT_CODES, ObservationEpoch
 
+GALILEO_GROUP_DELAYS = ("broadcast", "none")
+"""What a receiver's Galileo code carries of the satellite's group delay. broadcast: the Galileo ICD's model,
+the clock less the BGD of the record's clock pair (``BroadcastOrbits``); none: the clock without it, for
+receivers whose Galileo code measures as if the satellite had none."""
+DEFAULT_GALILEO_GROUP_DELAY = "none"
+"""The vehicle's receiver, chosen on the first half of tests/data/gnss-rover (a Septentrio mosaic-X5): its
+Galileo residuals at the reference are smaller without the BGD (docs/gnss.md, "The receiver's Galileo group
+delay"). Reference stations are taken as the ICD's (the recording's Leica GR50 fits broadcast)."""
+
+
+def without_group_delay(galileo_group_delay: str) -> frozenset[str]:
+    """The systems whose receiver code is modelled without the satellite group delay."""
+    if galileo_group_delay not in GALILEO_GROUP_DELAYS:
+        raise ValueError(
+            f"galileo group delay must be one of {GALILEO_GROUP_DELAYS}, not {galileo_group_delay!r}"
+        )
+    return frozenset({"E"}) if galileo_group_delay == "none" else frozenset()
+
 
 @dataclass(frozen=True)
 class PseudorangeSet:
@@ -85,11 +103,15 @@ def doppler_to_range_rate(doppler_hz: np.ndarray, frequency_hz: np.ndarray) -> n
 
 
 def prepare_epoch(
-    epoch: ObservationEpoch, orbits: BroadcastOrbits, codes: Mapping[str, tuple[str, str]] | None = None
+    epoch: ObservationEpoch,
+    orbits: BroadcastOrbits,
+    codes: Mapping[str, tuple[str, str]] | None = None,
+    no_group_delay: frozenset[str] = frozenset(),
 ) -> tuple[PseudorangeSet, tuple[str, ...]]:
     """Compute satellite states for an epoch's pseudoranges; return the set and the satellites dropped for
-    lack of a valid ephemeris, of a group-delay rule for their signal, or because ``codes`` omits their
-    system."""
+    lack of a valid ephemeris, of a group-delay rule for their signal (or for their signal with the chosen
+    record: ``BroadcastOrbits.signal_usable``), or because ``codes`` omits their system. The systems of
+    ``no_group_delay`` (:func:`without_group_delay`) get their clocks without the broadcast group delay."""
     chosen = dict(DEFAULT_CODES if codes is None else codes)
     index = orbits.select(epoch.systems, epoch.prns, epoch.gpst)
     factors = np.zeros((len(epoch), 2))
@@ -101,9 +123,15 @@ def prepare_epoch(
             continue
         code = chosen[system][0]
         try:
-            factors[row] = group_delay_factors(system, code)
+            delay = group_delay_factors(system, code)
             frequency[row] = carrier_frequency(system, code)
         except KeyError:
+            usable[row] = False
+            continue
+        if system in no_group_delay:
+            continue  # factors stay zero
+        factors[row] = delay
+        if usable[row] and not orbits.signal_usable(int(index[row]), system, code):
             usable[row] = False
     dropped = tuple(s for s, ok in zip(epoch.sats, usable) if not ok)
     rows = np.flatnonzero(usable)

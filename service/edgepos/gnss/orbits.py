@@ -68,11 +68,17 @@ GROUP_DELAY_FACTORS: dict[tuple[str, str], tuple[float, float]] = {
     ("C", "2"): (1.0, 0.0),  # B1I: TGD1
     ("C", "7"): (0.0, 1.0),  # B2I: TGD2
     ("C", "6"): (0.0, 0.0),  # B3I: the broadcast clock's reference signal
-    ("E", "1"): (1.0, 0.0),  # E1 with I/NAV: BGD(E1, E5b)
-    ("E", "7"): ((_F_GAL_E1 / _F_GAL_E5B) ** 2, 0.0),
+    ("E", "1"): (1.0, 0.0),  # E1: the BGD of the record's own clock pair (see BroadcastOrbits)
+    ("E", "7"): ((_F_GAL_E1 / _F_GAL_E5B) ** 2, 0.0),  # E5b: I/NAV records only (``signal_usable``)
     ("E", "5"): (0.0, (_F_GAL_E1 / _F_GAL_E5A) ** 2),
 }
-"""(system, RINEX band digit) -> (factor on tgd1, factor on tgd2): seconds subtracted from the clock."""
+"""(system, RINEX band digit) -> (factor on tgd1, factor on tgd2): seconds subtracted from the clock. For
+Galileo, ``BroadcastOrbits`` holds as tgd1 the BGD of each record's own clock pair (I/NAV: E1/E5b, F/NAV:
+E1/E5a) and as tgd2 BGD(E1, E5a)."""
+
+GALILEO_E5A_CLOCK = 1 << 8
+"""RINEX 3 Galileo "data sources" bit 8: the record's clock (af0-af2) is for the E5a/E1 pair (F/NAV);
+bit 9 (or neither, in files that leave the field blank) for E5b/E1 (I/NAV)."""
 
 
 def group_delay_factors(system: str, code: str) -> tuple[float, float]:
@@ -107,6 +113,15 @@ class BroadcastOrbits:
         self.ephemerides: tuple[KeplerEphemeris, ...] = tuple(kept)
         names = ("toc", "af0", "af1", "af2", *_ORBIT_FIELDS, "tgd1", "tgd2")
         self._a = {n: np.array([getattr(e, n) for e in kept], dtype=float) for n in names}
+        # A Galileo record's clock is that of a signal pair, and a single-frequency E1 user subtracts that
+        # pair's BGD (Galileo OS SIS ICD 5.1.5): BGD(E1, E5b) with an I/NAV clock, BGD(E1, E5a) with an
+        # F/NAV one. F/NAV records broadcast no BGD(E1, E5b) (RINEX leaves it blank, read as 0): taking
+        # it for E1 left out up to 3 m of group delay per satellite whenever the nearest record was
+        # F/NAV's. tgd1 is therefore the record's own pair's BGD; an E5b user needs an I/NAV record.
+        self._e5a_clock = np.array(
+            [e.system == "E" and bool(e.data_sources & GALILEO_E5A_CLOCK) for e in kept], dtype=bool
+        )
+        self._a["tgd1"] = np.where(self._e5a_clock, self._a["tgd2"], self._a["tgd1"])
         # the orbit formulas' fields as rows of one matrix: position() gathers a batch's records with one
         # fancy index instead of one per field
         self._orbit_table = np.array([self._a[n] for n in _ORBIT_FIELDS]).reshape(
@@ -223,6 +238,12 @@ class BroadcastOrbits:
             x, y, z = np.where(geo, x_geo, x), np.where(geo, y_geo, y), np.where(geo, z1, z)
         relativistic = -2.0 * np.sqrt(gm) / SPEED_OF_LIGHT**2 * ecc * a["sqrt_a"] * sin_e
         return np.stack([x, y, z], axis=-1), relativistic
+
+    def signal_usable(self, index: int, system: str, code: str) -> bool:
+        """Whether record ``index`` gives the clock of ``system``'s signal ``code``: a Galileo E5b code
+        (band 7) needs the BGD(E1, E5b) that only an I/NAV record broadcasts; every other signal with a
+        group-delay rule any record of its system."""
+        return not (system == "E" and code[1] == "7" and bool(self._e5a_clock[index]))
 
     def group_delay(self, index: np.ndarray, factors: np.ndarray) -> np.ndarray:
         """Broadcast group delay (s) per row, from (n, 2) factors on (tgd1, tgd2)."""

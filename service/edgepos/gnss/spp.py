@@ -28,7 +28,14 @@ from scipy.stats import chi2
 
 from edgepos.core.errors import EstimationError
 from edgepos.gnss.geodesy import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
-from edgepos.gnss.measurements import Atmosphere, PseudorangeSet, prepare_epoch
+from edgepos.gnss.measurements import (
+    DEFAULT_GALILEO_GROUP_DELAY,
+    GALILEO_GROUP_DELAYS,
+    Atmosphere,
+    PseudorangeSet,
+    prepare_epoch,
+    without_group_delay,
+)
 from edgepos.gnss.orbits import OMEGA_EARTH, SPEED_OF_LIGHT, BroadcastOrbits, sagnac_range, sagnac_range_rate
 from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import (
@@ -350,8 +357,10 @@ def solve_recording(
     nav_path: str,
     config: SppConfig = SppConfig(),
     codes: Mapping[str, tuple[str, str]] | None = None,
+    galileo_group_delay: str = DEFAULT_GALILEO_GROUP_DELAY,
 ) -> list[tuple[float, SppSolution | None, str]]:
-    """Solve every epoch of a RINEX observation file: (GPS time, solution or None, reason when None).
+    """Solve every epoch of a RINEX observation file: (GPS time, solution or None, reason when None). The
+    receiver's Galileo clocks follow ``galileo_group_delay`` (``gnss.measurements``).
 
     Each epoch starts from the previous solution (the header's approximate position, else the Earth's
     centre, for the first); a failed epoch restarts from there, so one bad epoch cannot poison the next.
@@ -365,8 +374,9 @@ def solve_recording(
         fallback = np.zeros(3)
     previous: np.ndarray | None = None
     results: list[tuple[float, SppSolution | None, str]] = []
+    no_group_delay = without_group_delay(galileo_group_delay)
     for epoch in read_epochs(obs_path, codes):
-        prs, _ = prepare_epoch(epoch, orbits, codes)
+        prs, _ = prepare_epoch(epoch, orbits, codes, no_group_delay)
         try:
             solution = solve_epoch(prs, atmosphere, config, previous if previous is not None else fallback)
         except SppError as error:
@@ -462,6 +472,13 @@ def residual_tool_parser(prog: str, description: str) -> argparse.ArgumentParser
     )
     parser.add_argument("--epochs", default="0:1000000", help="epochs A:B (0-based, B excluded)")
     parser.add_argument("--systems", default=ALL_SYSTEMS, help=f"constellations (default {ALL_SYSTEMS})")
+    parser.add_argument(
+        "--galileo-group-delay",
+        choices=GALILEO_GROUP_DELAYS,
+        default=DEFAULT_GALILEO_GROUP_DELAY,
+        help="what the receiver's Galileo code carries of the satellite group delay (gnss_tight's "
+        f"galileo_group_delay; default {DEFAULT_GALILEO_GROUP_DELAY})",
+    )
     return parser
 
 
@@ -486,6 +503,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("--mask-deg", type=float, default=10.0, help="elevation mask (degrees)")
     parser.add_argument(
+        "--galileo-group-delay",
+        choices=GALILEO_GROUP_DELAYS,
+        default=DEFAULT_GALILEO_GROUP_DELAY,
+        help="what the receiver's Galileo code carries of the satellite group delay (gnss_tight's "
+        f"galileo_group_delay; default {DEFAULT_GALILEO_GROUP_DELAY})",
+    )
+    parser.add_argument(
         "--max-exclusions",
         type=int,
         default=SppConfig.max_exclusions,
@@ -498,7 +522,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as error:
         parser.error(str(error))
     config = SppConfig(elevation_mask_rad=math.radians(args.mask_deg), max_exclusions=args.max_exclusions)
-    results = solve_recording(args.obs, args.nav, config, codes)
+    results = solve_recording(args.obs, args.nav, config, codes, args.galileo_group_delay)
     report: dict[str, object] = {"epochs": len(results), "fixes": sum(s is not None for _, s, _ in results)}
     if args.reference:
         ref_time, ref_ecef = read_reference(args.reference)

@@ -19,7 +19,7 @@ from edgepos.gnss.carrier import HatchConfig, hatch_update
 from edgepos.gnss.corrections import carrier_frequency
 from edgepos.gnss.differential import SYSTEM_NOT_CORRECTED, CorrectionTable, Issue, ephemeris_issues
 from edgepos.gnss.ephemerides import DEFAULT_SIGNAL, Ephemerides
-from edgepos.gnss.measurements import Atmosphere, PseudorangeSet, doppler_to_range_rate
+from edgepos.gnss.measurements import Atmosphere, PseudorangeSet, doppler_to_range_rate, without_group_delay
 from edgepos.gnss.orbits import SPEED_OF_LIGHT, group_delay_factors
 from edgepos.gnss.timesys import SECONDS_PER_WEEK
 from edgepos.pipelines.base import MeasurementUse
@@ -47,6 +47,7 @@ class EpochSatellites:
 _FREQUENCY = {system: carrier_frequency(system, code) for system, code in DEFAULT_SIGNAL.items()}
 _DELAY_FACTORS = {system: group_delay_factors(system, code) for system, code in DEFAULT_SIGNAL.items()}
 """Per system, the carrier (Hz) and group-delay factors of its default signal, looked up once."""
+_NO_DELAY = (0.0, 0.0)
 
 NO_SAT_VELOCITY = (
     "no satellite velocity: with sat_position and sat_clock sent the service computes no orbit, and the "
@@ -145,6 +146,7 @@ def epoch_satellites(
                     have,
                     gpst,
                     use_doppler,
+                    without_group_delay(options.get("galileo_group_delay", "broadcast")),
                 )
     if orbit_rows is not None and not rows:  # every satellite from the orbits: nothing to merge
         columns = orbit_rows
@@ -219,11 +221,15 @@ def _orbit_rows(
     have: np.ndarray,
     gpst: float,
     use_doppler: bool,
+    no_group_delay: frozenset[str],
 ) -> _Columns:
     """The columns of the rows ``have`` (of ``observed``, those with an ephemeris): their satellites' states
     at transmit time from the broadcast orbits, in one vectorised evaluation; a position the client sent
-    without its clock replaces the orbit's."""
-    factors = np.array([_DELAY_FACTORS[systems[r]] for r in have])
+    without its clock replaces the orbit's. The systems of ``no_group_delay`` get their clocks without the
+    broadcast group delay (the session's ``galileo_group_delay``)."""
+    factors = np.array(
+        [_NO_DELAY if systems[r] in no_group_delay else _DELAY_FACTORS[systems[r]] for r in have]
+    )
     picked = [observed[r] for r in have]
     pseudoranges = np.array([o.pseudorange for o in picked])
     states = transmit_states(ephemerides.orbits, ephemeris_index[have], gpst, pseudoranges, factors)
