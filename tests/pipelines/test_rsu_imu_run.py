@@ -253,3 +253,20 @@ def test_an_epoch_beyond_the_bound_goes_the_per_epoch_path(monkeypatch):
     monkeypatch.setattr(compiled_run, "FIX_INPUT_BOUND", 1e-3)
     assert rsu_imu.RsuImuPipeline().process(state, batch, ENV) == expected
     assert done and sum(done) == 0  # ...and with the bound below every output, no run does an epoch
+
+
+def test_the_used_records_are_kept_by_index(monkeypatch):
+    """``used_records`` holds record ``i`` at index ``i`` of each kind, grows with the count asked for up to
+    ``USED_KEPT``, and ``used`` gives the very same records there and new equal ones beyond."""
+    monkeypatch.setattr(rsu_imu_run, "_USED", {})
+    monkeypatch.setattr(rsu_imu_run, "USED_KEPT", 6)
+    short = rsu_imu_run.used_records("rsu", 3)
+    assert [(u.index, u.kind, u.used) for u in short] == [(i, "rsu", True) for i in range(3)]
+    longer = rsu_imu_run.used_records("rsu", 100)
+    assert len(longer) == 6 and longer[:3] == short and all(a is b for a, b in zip(short, longer))
+    assert [u.index for u in rsu_imu_run.used_records("gyro", 2)] == [0, 1]
+    assert rsu_imu_run.used(4, "rsu") is longer[4] and rsu_imu_run.used(1, "gyro").kind == "gyro"
+    beyond = rsu_imu_run.used(9, "rsu")
+    assert (beyond.index, beyond.kind, beyond.used) == (9, "rsu", True) and len(
+        rsu_imu_run.used_records("rsu", 9)
+    ) == 6
