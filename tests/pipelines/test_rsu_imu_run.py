@@ -270,3 +270,23 @@ def test_the_used_records_are_kept_by_index(monkeypatch):
     assert (beyond.index, beyond.kind, beyond.used) == (9, "rsu", True) and len(
         rsu_imu_run.used_records("rsu", 9)
     ) == 6
+
+
+@pytest.mark.parametrize("count", [1, 2, 3, 4, 6])
+def test_the_runs_weighted_nis_is_the_per_epoch_dot(count):
+    """``run_outputs``' NIS weighted by the model probabilities, every epoch in one matmul, is bit for bit
+    ``probabilities.dot(nis)`` per epoch (``rsu_imu._step``'s), over magnitudes 1e-8 .. 1e8 of both signs."""
+    import types
+
+    rng = np.random.default_rng(count)
+    nc, size = 8, 40
+    stepper = types.SimpleNamespace(_sizes=(count, nc), _prediction_size=size)
+    width = 2 * size + 73 * count + nc * (1 + nc)  # past the fused covariance and the NIS
+    for _ in range(50):
+        outs = rng.standard_normal((20, width)) * 10.0 ** rng.integers(-8, 9, (20, width))
+        done = int(rng.integers(1, 21))
+        _, _, probabilities, weighted = compiled_run.run_outputs(stepper, outs, done)
+        nis = outs[:done, 2 * size + count : 2 * size + 2 * count]
+        expected = [float(np.array(p).dot(n)) for p, n in zip(probabilities, nis)]
+        assert len(weighted) == done and all(type(w) is float for w in weighted)
+        assert np.array(weighted).tobytes() == np.array(expected).tobytes()
