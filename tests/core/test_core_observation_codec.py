@@ -16,6 +16,7 @@ from edgepos.core.observation_codec import (
     _KindCodec,
     decode_legacy_observations,
     decode_observations,
+    encode_each,
     encode_observations,
 )
 from edgepos.core.observations import (
@@ -185,3 +186,25 @@ def test_carrier_phase_round_trips_and_plain_pseudoranges_keep_the_stored_layout
     assert decoded == [plain, carrying, phase_only]
     assert all(type(o) is PseudorangeObservation for o in decoded)
     assert decoded[1].lli == 1 and decoded[2].lli is None
+
+
+@pytest.mark.parametrize("kept", [0, 4096])
+def test_a_text_is_written_alike_from_the_table_of_texts_or_not(monkeypatch, kept):
+    """An id's bytes (16-bit length, UTF-8) are the same the first time, from ``_TEXTS`` after, and with the
+    table full (``TEXTS_KEPT``: nothing kept); ``encode_each`` gives each observation's part of the record."""
+    from edgepos.core import observation_codec
+
+    monkeypatch.setattr(observation_codec, "_TEXTS", {})
+    monkeypatch.setattr(observation_codec, "TEXTS_KEPT", kept)
+    epoch = [
+        RsuObservation(1.5, "rsu-ü", 12.0, -0.5),
+        GyroObservation(1.5, 0.01),
+        RsuObservation(1.5, "rsu-ü", 3.0, 0.0),
+    ]
+    raw = "rsu-ü".encode()
+    expected = b"\x03rsu" + struct.pack("<ddd", 1.5, 12.0, -0.5) + struct.pack("<H", len(raw)) + raw
+    first, second = encode_observations(epoch), encode_observations(epoch)
+    assert first == second and first.startswith(expected)
+    assert len(observation_codec._TEXTS) == min(kept, 1)
+    assert b"".join(encode_each(epoch)) == first and encode_each(epoch)[0] == expected
+    assert _same(decode_observations(first), epoch)

@@ -1013,3 +1013,21 @@ def test_replayed_observations_name_what_a_late_batch_filters_again():
     assert RSU_IMU.replayed_observations(state, [nan_time]) == []  # not late: the inner pipeline refuses it
     assert lag_state.newest_epoch(state) == RSU_EPOCHS[9][0].t
     assert lag_state.newest_epoch(rsu_session()) is None
+
+
+@given(st.lists(st.integers(1, 4), max_size=8), st.randoms(use_true_random=False))
+def test_a_batchs_records_are_each_epochs_encoding(counts, rng):
+    """``lag_state.encode_epochs`` (the in-order path's records from one pass) gives each epoch's
+    ``encode_epoch``, for epochs of one to four observations of mixed kinds."""
+    observations: list[Observation] = []
+    epochs = []
+    for k, count in enumerate(counts):
+        epoch: list[Observation] = [
+            RsuObservation(0.1 * k, f"R{rng.randrange(3)}", rng.uniform(0, 90), 0.1)
+            if rng.random() < 0.7
+            else GyroObservation(0.1 * k, rng.uniform(-1, 1))
+            for _ in range(count)
+        ]
+        epochs.append(epoch)
+        observations += epoch
+    assert lag_state.encode_epochs(observations, counts) == [lag_state.encode_epoch(e) for e in epochs]

@@ -253,3 +253,40 @@ def test_an_epoch_beyond_the_bound_goes_the_per_epoch_path(monkeypatch):
     monkeypatch.setattr(compiled_run, "FIX_INPUT_BOUND", 1e-3)
     assert rsu_imu.RsuImuPipeline().process(state, batch, ENV) == expected
     assert done and sum(done) == 0  # ...and with the bound below every output, no run does an epoch
+
+
+def test_the_used_records_are_kept_by_index(monkeypatch):
+    """``used_records`` holds record ``i`` at index ``i`` of each kind, grows with the count asked for up to
+    ``USED_KEPT``, and ``used`` gives the very same records there and new equal ones beyond."""
+    monkeypatch.setattr(rsu_imu_run, "_USED", {})
+    monkeypatch.setattr(rsu_imu_run, "USED_KEPT", 6)
+    short = rsu_imu_run.used_records("rsu", 3)
+    assert [(u.index, u.kind, u.used) for u in short] == [(i, "rsu", True) for i in range(3)]
+    longer = rsu_imu_run.used_records("rsu", 100)
+    assert len(longer) == 6 and longer[:3] == short and all(a is b for a, b in zip(short, longer))
+    assert [u.index for u in rsu_imu_run.used_records("gyro", 2)] == [0, 1]
+    assert rsu_imu_run.used(4, "rsu") is longer[4] and rsu_imu_run.used(1, "gyro").kind == "gyro"
+    beyond = rsu_imu_run.used(9, "rsu")
+    assert (beyond.index, beyond.kind, beyond.used) == (9, "rsu", True) and len(
+        rsu_imu_run.used_records("rsu", 9)
+    ) == 6
+
+
+@pytest.mark.parametrize("count", [1, 2, 3, 4, 6])
+def test_the_runs_weighted_nis_is_the_per_epoch_dot(count):
+    """``run_outputs``' NIS weighted by the model probabilities, every epoch in one matmul, is bit for bit
+    ``probabilities.dot(nis)`` per epoch (``rsu_imu._step``'s), over magnitudes 1e-8 .. 1e8 of both signs."""
+    import types
+
+    rng = np.random.default_rng(count)
+    nc, size = 8, 40
+    stepper = types.SimpleNamespace(_sizes=(count, nc), _prediction_size=size)
+    width = 2 * size + 73 * count + nc * (1 + nc)  # past the fused covariance and the NIS
+    for _ in range(50):
+        outs = rng.standard_normal((20, width)) * 10.0 ** rng.integers(-8, 9, (20, width))
+        done = int(rng.integers(1, 21))
+        _, _, probabilities, weighted = compiled_run.run_outputs(stepper, outs, done)
+        nis = outs[:done, 2 * size + count : 2 * size + 2 * count]
+        expected = [float(np.array(p).dot(n)) for p, n in zip(probabilities, nis)]
+        assert len(weighted) == done and all(type(w) is float for w in weighted)
+        assert np.array(weighted).tobytes() == np.array(expected).tobytes()

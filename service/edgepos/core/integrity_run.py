@@ -42,13 +42,11 @@ def run_monitor(
     copies with room for what it may spawn (:func:`after_run` takes them over)."""
     codes = {rsu: k for k, rsu in enumerate(bank.ids)}  # "" (the reference) is 0
     names = list(bank.ids)
-    rows = []
-    for rsu in rsu_ids:
-        code = codes.get(rsu)
-        if code is None:
-            code = codes[rsu] = len(names)
+    for rsu in dict.fromkeys(rsu_ids):  # each id once, in the order the rows first name it
+        if rsu not in codes:
+            codes[rsu] = len(names)
             names.append(rsu)
-        rows.append(code)
+    rows = np.fromiter(map(codes.__getitem__, rsu_ids), dtype=np.int64, count=len(rsu_ids))
     count, capacity = len(bank.ids), len(names)
     filters = np.zeros(capacity + 1, dtype=np.int64)
     filters[0] = count
@@ -64,7 +62,7 @@ def run_monitor(
         filters,
         means,
         covs,
-        np.array(rows, dtype=np.int64),
+        rows,
         tables,
         thresholds,
         jerk_density,

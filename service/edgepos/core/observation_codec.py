@@ -78,6 +78,21 @@ def _fields(cls: type) -> list[_Field]:
     return [_Field(f.name, *_field_form(hints[f.name])) for f in dataclasses.fields(cls)]
 
 
+#: Texts (RSU, satellite, vehicle ids: few, and in every batch) as written, their length and UTF-8.
+_TEXTS: dict[str, bytes] = {}
+#: The most texts ``_TEXTS`` keeps (later ones are written each time).
+TEXTS_KEPT = 4096
+
+
+def _text(value: str) -> bytes:
+    """A text field's bytes, a 16-bit length and UTF-8, kept in ``_TEXTS`` while it has room."""
+    raw = value.encode()
+    written = _LENGTH.pack(len(raw)) + raw
+    if len(_TEXTS) < TEXTS_KEPT:
+        _TEXTS[value] = written
+    return written
+
+
 class _KindCodec:
     """The generated encoder and decoder of one observation kind."""
 
@@ -122,6 +137,12 @@ class _KindCodec:
         parts = ["NAME", "pack(" + ", ".join((["mask"] if has_mask else []) + packed) + ")"]
         for f in texts:
             raw = f"v_{f.name}.encode()" if f.form == "s" else f"dumps(v_{f.name}).encode()"
+            if f.form == "s" and not f.optional:  # its length and UTF-8 from the table of texts seen
+                lines.append(f"    t_{f.name} = texts.get(v_{f.name})")
+                lines.append(f"    if t_{f.name} is None:")
+                lines.append(f"        t_{f.name} = text(v_{f.name})")
+                parts.append(f"t_{f.name}")
+                continue
             if f.optional:
                 lines.append(f"    if v_{f.name} is None:")
                 lines.append(f"        mask |= {bit[f.name]}")
@@ -137,6 +158,8 @@ class _KindCodec:
             "pack": self.numbers.pack,
             "length": _LENGTH.pack,
             "dumps": _JSON.encode,
+            "texts": _TEXTS,
+            "text": _text,
         }
         exec("\n".join(lines), namespace)  # noqa: S102  # generated from the dataclass's own fields, as dataclasses does
         encode: Callable[[Any], bytes] = namespace["encode"]  # the function exec just defined
@@ -250,9 +273,20 @@ def decode_legacy_observations(record: bytes, version: int) -> list[Observation]
     return [o.current() if isinstance(o, PseudorangeObservationV2) else o for o in _decode(record, codecs)]
 
 
+#: Each observation class's encoder.
+_ENCODERS: dict[type, Callable[[Any], bytes]] = {cls: codec.encode for cls, codec in _BY_CLASS.items()}
+
+
 def encode_observations(observations: Sequence[Observation]) -> bytes:
     """``observations`` back to back in the binary form (see the module docstring)."""
-    return b"".join([_BY_CLASS[type(o)].encode(o) for o in observations])
+    return b"".join([_ENCODERS[type(o)](o) for o in observations])
+
+
+def encode_each(observations: Sequence[Observation]) -> list[bytes]:
+    """Each of ``observations`` in the binary form (``encode_observations`` joins them): a batch's
+    records, one or more observations each, from one pass over it."""
+    encoders = _ENCODERS
+    return [encoders[type(o)](o) for o in observations]
 
 
 def decode_observations(record: bytes) -> list[Observation]:

@@ -66,6 +66,7 @@ from edgepos.pipelines.lag_state import (  # noqa: F401  # re-exported: tests an
     _Window,
     decode_epoch,
     encode_epoch,
+    encode_epochs,
     newest_epoch,
 )
 from edgepos.pipelines.wrapping import WrappingPipeline
@@ -211,17 +212,17 @@ class LagWindow(WrappingPipeline):
         delay, limit, lead = spans.options
         previous = spans.newest
         times: list[float] = []
-        epochs: list[list[Observation]] = []
+        counts: list[int] = []  # each epoch's observations
         for observation in observations:
             t = observation.t
             if not (type(t) is float and -_INF < t < _INF) and not _finite(t):  # _finite's test, inline first
                 return None
             if t > previous:
                 times.append(t)
-                epochs.append([observation])
+                counts.append(1)
                 previous = t
-            elif t == previous and epochs:
-                epochs[-1].append(observation)
+            elif t == previous and counts:
+                counts[-1] += 1
             else:
                 return None  # late, or out of order within the batch
         if len(times) > limit or (len(times) > 1 and times[-1] - times[-2] > lead):
@@ -234,7 +235,7 @@ class LagWindow(WrappingPipeline):
         if last is None or newest - last >= delay / CHECKPOINTS_PER_WINDOW:  # as _maybe_checkpoint
             checkpoint_times = [*checkpoint_times, newest]
             checkpoint_states.append(spans.current)
-        records = [encode_epoch(epoch) for epoch in epochs]
+        records = encode_epochs(observations, counts)
         all_times = spans.times + times
         keep, start = _pruning(times[-1], delay, limit, checkpoint_times, all_times)
         if keep is None:

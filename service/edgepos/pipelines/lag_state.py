@@ -22,6 +22,7 @@ from edgepos.core.observation_codec import (
     ObservationCodecError,
     decode_legacy_observations,
     decode_observations,
+    encode_each,
     encode_observations,
 )
 from edgepos.core.observations import Observation
@@ -43,6 +44,18 @@ _NAN = math.nan
 def encode_epoch(observations: Sequence[Observation]) -> bytes:
     """An epoch's observations as one record (``core.observation_codec``: exact, compact binary)."""
     return encode_observations(observations)
+
+
+def encode_epochs(observations: Sequence[Observation], counts: Sequence[int]) -> list[bytes]:
+    """The records of consecutive epochs of ``observations``, ``counts[k]`` observations in epoch ``k``
+    (``encode_epoch`` of each, from one pass over the observations)."""
+    each = encode_each(observations)
+    records = []
+    start = 0
+    for count in counts:
+        records.append(each[start] if count == 1 else b"".join(each[start : start + count]))
+        start += count
+    return records
 
 
 def decode_epoch(record: bytes) -> list[Observation]:

@@ -462,7 +462,13 @@ def _judged(
     x, y = fix.x, fix.y
     if x is None or y is None:
         return None, None
-    position_var, velocity_var = _position_variance(fix), _velocity_variance(fix)
+    # _position_variance and _velocity_variance, the usual fix's (both blocks given) read here
+    position_cov, kinematic_cov = fix.position_cov, fix.kinematic_cov
+    position_var = 0.0 if position_cov is None else float(position_cov[0][0] + position_cov[1][1])
+    if kinematic_cov is None:
+        velocity_var = _velocity_variance(fix)
+    else:
+        velocity_var = float(kinematic_cov[2][2] + kinematic_cov[3][3])
     point = _point_of(fix, x, y, position_var, velocity_var)
     if point is None:  # something is not finite: the check looks at each value
         return _implausibility(fix, x, y, last, bounds, position_var, velocity_var), None

@@ -23,36 +23,60 @@ class Batch:
     observation its row of the measurement arrays (station position, range and bearing, their noise
     standard deviations with the options' defaults filled in, the communication radius; zeros for a
     gyro) and the gyro's yaw rate. Read once per batch (``read_batch``), so that an epoch's measurement
-    arrays are a few index operations instead of array building from Python lists."""
+    arrays are a few index operations instead of array building from Python lists.
+
+    Made of the batch's stations (``stations[0]`` None, a gyro's; five numbers each in
+    ``station_rows``: x, y, range and bearing standard deviations, radius), each observation's station
+    (``codes``) and its three measured numbers (``rows``: range, bearing, yaw rate): a station's numbers
+    are listed once per batch, not once per observation, and taken per observation in one ``take``."""
 
     __slots__ = (
         "bearing_std",
         "bearing_variances",
+        "codes",
         "observed",
         "positions",
         "radii",
         "range_std",
         "range_variances",
         "ranges",
-        "rsus",
+        "stations",
         "yaw_rates",
     )
 
-    def __init__(self, rsus: list[Rsu | None], rows: list[float], ranges: list[float]) -> None:
-        self.rsus = rsus
-        table = np.array(rows, dtype=float).reshape(len(rsus), 8)  # a flat list: half the time of tuples
-        # columns as views of the table: every use takes rows of them (``take``), which makes new
-        # C-contiguous arrays for the kernels, so copying each column first only cost time
-        self.positions = table[:, 0:2]
-        self.observed = table[:, 2:4]
-        self.range_std = table[:, 4]
-        self.bearing_std = table[:, 5]
-        variances = np.square(table[:, 4:6])  # as RsuGyroEpoch.variances squares them
+    def __init__(
+        self,
+        stations: list[Rsu | None],
+        station_rows: list[float],
+        codes: list[int],
+        rows: list[float],
+        ranges: list[float],
+    ) -> None:
+        self.stations, self.codes = stations, codes
+        count = len(codes)
+        # flat lists: half the time of tuples; columns as views of the tables: every use takes rows of
+        # them (``take``), which makes new C-contiguous arrays for the kernels, so copying each column
+        # first only cost time
+        table = np.array(rows, dtype=float).reshape(count, 3)
+        station = (
+            np.array(station_rows, dtype=float).reshape(len(stations), 5).take(np.array(codes, np.intp), 0)
+        )
+        self.positions = station[:, 0:2]
+        self.observed = table[:, 0:2]
+        self.range_std = station[:, 2]
+        self.bearing_std = station[:, 3]
+        variances = np.square(station[:, 2:4])  # as RsuGyroEpoch.variances squares them
         self.range_variances = variances[:, 0]
         self.bearing_variances = variances[:, 1]
-        self.yaw_rates = table[:, 6]
-        self.radii: list[float] = table[:, 7].tolist()
+        self.yaw_rates = table[:, 2]
+        self.radii: list[float] = station[:, 4].tolist()
         self.ranges = ranges  # each observation's measured range, -1 for a gyro (ranges are >= 0)
+
+    @property
+    def rsus(self) -> list[Rsu | None]:
+        """Each observation's RSU (None for a gyro)."""
+        stations = self.stations
+        return [stations[code] for code in self.codes]
 
 
 #: The largest finite float: ``lo <= v <= _MAX`` holds for a finite ``v >= lo`` and fails for NaN and infinity.
@@ -73,45 +97,49 @@ def read_batch(
     A batch that passes every check (the usual one) is read in one pass of chained comparisons, each
     refusing NaN and infinity as ``math.isfinite`` does; at the first observation that fails one, the
     batch is read again by ``_checked_batch``, which lists every problem with its field and reason."""
-    rsus: list[Rsu | None] = []
-    rows: list[float] = []  # eight numbers per observation, see Batch
+    stations: list[Rsu | None] = [None]  # see Batch
+    station_rows = [0.0] * 5
+    known: dict[str, int] = {}  # each RSU id's station
+    codes: list[int] = []
+    rows: list[float] = []  # three numbers per observation, see Batch
     ranges: list[float] = []
     default_range, default_bearing = options["range_std"], options["bearing_std"]
     default_radius = options["comm_radius"]
     earliest = -_MAX if last_t is None else last_t
-    find = environment.rsu
     for observation in observations:
         if not earliest <= observation.t <= _MAX:
             return _checked_batch(options, last_t, observations, environment)
         if type(observation) is RsuObservation:
-            rsu = find(observation.rsu_id)
             measured, bearing = observation.range, observation.bearing
-            if rsu is None or not 0.0 <= measured <= _MAX or not -_BEARING_EDGE <= bearing <= _BEARING_EDGE:
+            if not 0.0 <= measured <= _MAX or not -_BEARING_EDGE <= bearing <= _BEARING_EDGE:
                 return _checked_batch(options, last_t, observations, environment)
-            ranges.append(measured)
-            rows.extend(
-                (
+            code = known.get(observation.rsu_id)
+            if code is None:
+                rsu = environment.rsu(observation.rsu_id)
+                if rsu is None:
+                    return _checked_batch(options, last_t, observations, environment)
+                code = known[observation.rsu_id] = len(stations)
+                stations.append(rsu)
+                station_rows += (
                     rsu.x,
                     rsu.y,
-                    measured,
-                    bearing,
                     rsu.range_std or default_range,
                     rsu.bearing_std or default_bearing,
-                    0.0,
                     rsu.radius or default_radius,
                 )
-            )
+            ranges.append(measured)
+            rows += (measured, bearing, 0.0)
         elif type(observation) is GyroObservation:
             yaw_rate = observation.yaw_rate
             if not -_MAX <= yaw_rate <= _MAX:
                 return _checked_batch(options, last_t, observations, environment)
-            rsu = None
+            code = 0
             ranges.append(-1.0)
-            rows.extend((0.0, 0.0, 0.0, 0.0, 0.0, 0.0, yaw_rate, 0.0))
+            rows += (0.0, 0.0, yaw_rate)
         else:  # another type (or a subclass): the checked reading decides
             return _checked_batch(options, last_t, observations, environment)
-        rsus.append(rsu)
-    return Batch(rsus, rows, ranges)
+        codes.append(code)
+    return Batch(stations, station_rows, codes, rows, ranges)
 
 
 def _checked_batch(
@@ -123,13 +151,14 @@ def _checked_batch(
     """``read_batch`` observation by observation, collecting every problem: raises
     ``PipelineInputError`` with all of them, or returns the batch when there are none."""
     problems = []
-    rsus: list[Rsu | None] = []
-    rows: list[float] = []  # eight numbers per observation, see Batch
+    stations: list[Rsu | None] = [None]  # see Batch: here a station per RSU observation
+    station_rows = [0.0] * 5
+    codes: list[int] = []
+    rows: list[float] = []
     ranges: list[float] = []
     default_range, default_bearing = options["range_std"], options["bearing_std"]
     default_radius = options["comm_radius"]
     for index, observation in enumerate(observations):
-        rsu = None
         if not math.isfinite(observation.t):
             problems.append(Problem(index, "t", "must be finite"))
         elif last_t is not None and observation.t < last_t:
@@ -141,19 +170,19 @@ def _checked_batch(
             if rsu is None:
                 problems.append(Problem(index, "rsu_id", f"unknown RSU {observation.rsu_id!r}"))
             else:
-                ranges.append(observation.range)
-                rows.extend(
+                codes.append(len(stations))
+                stations.append(rsu)
+                station_rows.extend(
                     (
                         rsu.x,
                         rsu.y,
-                        observation.range,
-                        observation.bearing,
                         rsu.range_std or default_range,
                         rsu.bearing_std or default_bearing,
-                        0.0,
                         rsu.radius or default_radius,
                     )
                 )
+                ranges.append(observation.range)
+                rows.extend((observation.range, observation.bearing, 0.0))
             if not (math.isfinite(observation.range) and observation.range >= 0.0):
                 problems.append(Problem(index, "range", "must be a finite distance >= 0 m"))
             if not (math.isfinite(observation.bearing) and abs(observation.bearing) <= math.pi + 1e-9):
@@ -161,16 +190,16 @@ def _checked_batch(
         elif isinstance(observation, GyroObservation):
             if not math.isfinite(observation.yaw_rate):
                 problems.append(Problem(index, "yaw_rate", "must be finite"))
+            codes.append(0)
             ranges.append(-1.0)
-            rows.extend((0.0, 0.0, 0.0, 0.0, 0.0, 0.0, observation.yaw_rate, 0.0))
+            rows.extend((0.0, 0.0, observation.yaw_rate))
         else:
             problems.append(
                 Problem(index, "type", f"{observation.kind!r} is not used by the rsu_imu pipeline")
             )
-        rsus.append(rsu)
     if problems:
         raise PipelineInputError(problems)
-    return Batch(rsus, rows, ranges)
+    return Batch(stations, station_rows, codes, rows, ranges)
 
 
 def epoch_parts(
@@ -191,7 +220,7 @@ def epoch_parts(
             in_radius.append(i)
     limit = options["max_rsus"]
     if len(in_radius) > 1:
-        in_radius.sort(key=lambda i: ranges[i])
+        in_radius.sort(key=ranges.__getitem__)
         for i in in_radius[limit:]:
             uses[i] = MeasurementUse(i, "rsu", False, f"not among the nearest {limit} RSUs")
     return in_radius[:limit], gyros

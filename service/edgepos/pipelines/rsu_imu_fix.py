@@ -32,22 +32,17 @@ def fix_layout(components: tuple[int, ...]) -> tuple[tuple[int, ...], int, int, 
     return kinematic, ax, ay, tuple(layout.NAMES[c] for c in order)
 
 
-#: Every field of a Fix in its order, with its default (None for those ``new_fix`` is always given).
+#: Every field of a Fix in its order, with its default (None for those ``listed_fix`` always sets).
 _FIX_DEFAULTS = {
     f.name: None if f.default is dataclasses.MISSING else f.default for f in dataclasses.fields(Fix)
 }
 
 
-def new_fix(values: dict[str, Any]) -> Fix:
-    """A ``Fix`` of ``values`` (every field without a default among them) without its generated
-    ``__init__``: being frozen, that sets each of its 27 fields through ``object.__setattr__``, about
-    3 us a fix, a tenth of the Python around an epoch's filter step. The same object otherwise (equal,
-    pickled and serialised alike; tests/pipelines/test_pipeline_rsu_imu_process.py compares)."""
-    fix = object.__new__(Fix)
-    fields = fix.__dict__
-    fields.update(_FIX_DEFAULTS)
-    fields.update(values)
-    return fix
+@functools.lru_cache(maxsize=64)
+def _fix_fields(components: tuple[int, ...]) -> dict[str, Any]:
+    """Every field of a Fix in its order with its default, and the names of an output over
+    ``components``: what ``listed_fix`` copies and fills in (never changed itself)."""
+    return {**_FIX_DEFAULTS, "state_components": fix_layout(components)[3]}
 
 
 def epoch_fix(
@@ -97,7 +92,7 @@ def listed_fix(
     rows) with the model probabilities; ``carried_yaw`` is the turn rate when the estimate has no
     acceleration to give it (``carried_yaw_rate``). ``blocks``: the covariance's kinematic (x, y, vx, vy)
     and position blocks as lists when the caller has them already (a run makes every epoch's at once)."""
-    kinematic, ax, ay, names = fix_layout(components)
+    kinematic, ax, ay, _ = fix_layout(components)
     i_x, i_y, i_vx, i_vy = kinematic
     vx, vy = state[i_vx], state[i_vy]
     yaw_rate = carried_yaw
@@ -109,30 +104,35 @@ def listed_fix(
             [[row[i_x], row[i_y], row[i_vx], row[i_vy]] for row in rows],
             [[rows[0][i_x], rows[0][i_y]], [rows[1][i_x], rows[1][i_y]]],
         )
-    return new_fix(
-        {
-            "t": t,
-            "status": status,
-            "x": state[i_x],
-            "y": state[i_y],
-            "vx": vx,
-            "vy": vy,
-            "speed": math.hypot(vx, vy),
-            "heading": math.atan2(vy, vx),
-            "yaw_rate": yaw_rate,
-            "position_cov": blocks[1],
-            "kinematic_cov": blocks[0],
-            "state_components": names,
-            "state": state,
-            "state_cov": state_cov,
-            "model_probabilities": probabilities,
-            "nis": nis,
-            "nis_dof": dof,
-            "measurements": [uses[i] for i in sorted(uses)],
-            "protection_level": None if protection is None else protection.level,
-            "integrity": UNAVAILABLE if protection is None else protection.state,
-        }
-    )
+    # the Fix without its generated __init__: being frozen, that sets each of its 27 fields through
+    # object.__setattr__ (about 3 us a fix); its fields set in a copy of their defaults, then given to the
+    # object whole. The same object otherwise (equal, its fields in their order, pickled and serialised
+    # alike: tests/pipelines/test_pipeline_rsu_imu_process.py compares)
+    fields = _fix_fields(components).copy()
+    fields["t"] = t
+    fields["status"] = status
+    fields["x"] = state[i_x]
+    fields["y"] = state[i_y]
+    fields["vx"] = vx
+    fields["vy"] = vy
+    fields["speed"] = math.hypot(vx, vy)
+    fields["heading"] = math.atan2(vy, vx)
+    fields["yaw_rate"] = yaw_rate
+    fields["position_cov"] = blocks[1]
+    fields["kinematic_cov"] = blocks[0]
+    fields["state"] = state
+    fields["state_cov"] = state_cov
+    fields["model_probabilities"] = probabilities
+    fields["nis"] = nis
+    fields["nis_dof"] = dof
+    fields["measurements"] = [uses[i] for i in sorted(uses)]
+    if protection is None:
+        fields["integrity"] = UNAVAILABLE
+    else:
+        fields["protection_level"], fields["integrity"] = protection.level, protection.state
+    fix = object.__new__(Fix)
+    object.__setattr__(fix, "__dict__", fields)
+    return fix
 
 
 def carried_yaw_rate(session: _SessionState, bank: InteractingMultipleModel) -> float | None:

@@ -19,6 +19,7 @@ import functools
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, cast
 
+import numpy as np
 from scipy.stats import chi2
 
 from edgepos.core import integrity_run, layout
@@ -57,10 +58,40 @@ def gate_thresholds(probability: float, components: tuple[int, ...]) -> tuple[fl
     return gate_threshold(probability, 2), gate_threshold(probability, 1) if gyros else -1.0
 
 
-@functools.lru_cache(maxsize=4096)
+#: The most measurement indices whose records ``used`` keeps per kind (beyond, each call makes one).
+USED_KEPT = 4096
+
+_USED: dict[str, list[MeasurementUse]] = {}
+
+
+def used_records(kind: str, count: int) -> list[MeasurementUse]:
+    """The records of measurements ``0 .. count - 1`` of ``kind`` that entered the filter, by index (at
+    least ``min(count, USED_KEPT)`` of them): a run's epochs index this list instead of calling ``used``
+    per measurement."""
+    records = _USED.get(kind, [])
+    wanted = min(count, USED_KEPT)
+    if len(records) < wanted:  # a longer list in place of the old (threads racing here each get a whole one)
+        records = _USED[kind] = records + [MeasurementUse(i, kind, True) for i in range(len(records), wanted)]
+    return records
+
+
 def used(index: int, kind: str) -> MeasurementUse:
     """The record of a measurement that entered the filter (immutable, so one instance serves every fix)."""
+    if index < USED_KEPT:
+        return used_records(kind, index + 1)[index]
     return MeasurementUse(index, kind, True)
+
+
+@functools.lru_cache(maxsize=64)
+def kinematic_entries(components: tuple[int, ...]) -> np.ndarray:
+    """Where the kinematic block (x, y, vx, vy: ``fix_layout``'s order) of a covariance over
+    ``components`` lies in the covariance's flattened rows, row by row: one ``take`` gives every
+    epoch's block (read only: the cache shares it)."""
+    kinematic = fix_layout(components)[0]
+    size = len(components)
+    entries = np.array([i * size + j for i in kinematic for j in kinematic], dtype=np.intp)
+    entries.flags.writeable = False
+    return entries
 
 
 def run_fixes(
@@ -88,12 +119,13 @@ def run_fixes(
     last_t: float = session.filter_t
     times: list[float] = []
     run_ids: list[str] = []  # with the monitor: each measurement row's RSU, epoch after epoch
+    rsu_observations = cast(Sequence[RsuObservation], observations)  # as the candidates index them
     for parts in epochs[first:]:
         t = observations[parts.indices[0]].t
         if not parts.candidates or t - last_t > max_gap:
             break
         if monitored:
-            run_ids += [cast(RsuObservation, observations[i]).rsu_id for i in parts.candidates]
+            run_ids += [rsu_observations[i].rsu_id for i in parts.candidates]
         times.append(t)
         last_t = t
     if len(times) < MIN_RUN:
@@ -147,8 +179,8 @@ def run_fixes(
     components = bank.common
     models = options["models"]
     # every epoch's lists at once: the covariance's rows, and its kinematic and position blocks
-    kinematic = list(fix_layout(components)[0])
-    kinematic_covs = covs[:, kinematic][:, :, kinematic]
+    kinematic_covs = covs.reshape(done, -1).take(kinematic_entries(components), 1).reshape(done, 4, 4)
+    rsu_used, gyro_used = used_records("rsu", len(observations)), used_records("gyro", len(observations))
     fixes = []
     for parts, t, mean, state_cov, kinematic_cov, position_cov, weights, weighted, level in zip(
         run,
@@ -163,9 +195,9 @@ def run_fixes(
     ):
         uses = parts.uses
         for i in parts.candidates:
-            uses[i] = used(i, "rsu")
+            uses[i] = rsu_used[i] if i < USED_KEPT else used(i, "rsu")
         for i in parts.gyros:
-            uses[i] = used(i, "gyro")
+            uses[i] = gyro_used[i] if i < USED_KEPT else used(i, "gyro")
         protection = new_protection(level, OK) if run_monitor is not None else None
         fixes.append(
             listed_fix(
