@@ -287,7 +287,9 @@ def _non_decreasing(values: list[float]) -> bool:
 def test_rsu_imu_cost_grows_with_models_and_used_rsus_only() -> None:
     """Never less for more models or more RSUs used; RSUs beyond max_rsus add only their bookkeeping.
     (Non-decreasing rather than growing: the envelope may be flat in a feature whose cost the other
-    features' constants already cover over the accepted range.)"""
+    features' constants already cover over the accepted range. So it is for the models of a compiled
+    averaged bank, where the grid's one-model bank costs more than its larger ones (pipelines/cost.py);
+    every other path grows with its models.)"""
     models = ["cv", "ca", "ct", "at", "singer", "current_statistical"]
     per_observation = cost.MARGIN * cost.CALIBRATION["rsu_imu"]["observation"]
     for filter_name in ("ekf", "ukf", "ckf", "srukf"):
@@ -299,7 +301,9 @@ def test_rsu_imu_cost_grows_with_models_and_used_rsus_only() -> None:
                 )
                 for m in range(1, 6)  # cv..singer: all compiled (srukf: all reference)
             ]
-            assert _non_decreasing(by_models) and by_models[0] < by_models[-1], (filter_name, handling)
+            assert _non_decreasing(by_models), (filter_name, handling)
+            if not (handling == "average" and filter_name != "srukf"):
+                assert by_models[0] < by_models[-1], (filter_name, handling)
             options = {"filter": filter_name, "rsu_handling": handling, "max_rsus": 8}
             by_rsus = [
                 cost.epoch_cost_s("rsu_imu", options, {"rsu": k, "gyro": 1}) for k in (0, 1, 4, 8, 16, 64)
