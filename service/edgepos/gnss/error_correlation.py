@@ -40,7 +40,13 @@ from edgepos.gnss.orbits import SPEED_OF_LIGHT, BroadcastOrbits, sagnac_range
 from edgepos.gnss.pseudorange_noise import FITTED
 from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import DEFAULT_CODES
-from edgepos.gnss.spp import epoch_range, epochs_at_reference, read_reference, residual_tool_parser
+from edgepos.gnss.spp import (
+    epoch_range,
+    epochs_at_reference,
+    read_reference,
+    residual_tool_inputs,
+    residual_tool_parser,
+)
 
 
 def correlation(dt: float | np.ndarray, tau: float) -> np.ndarray:
@@ -270,15 +276,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = residual_tool_parser("python -m edgepos.gnss.error_correlation", __doc__.splitlines()[0])
     args = parser.parse_args(argv)
     first, stop = epoch_range(args.epochs)
-    raw, smoothed = residual_series(
-        args.obs,
-        args.nav,
-        args.reference,
-        first,
-        stop,
-        args.systems,
-        galileo_group_delay=args.galileo_group_delay,
-    )
+    raw, smoothed = residual_series(*residual_tool_inputs(args), galileo_group_delay=args.galileo_group_delay)
     lags = list(range(1, 61))
     acf = pooled_acf(raw, lags)
     fit = fit_gauss_markov(acf, lags)

@@ -36,7 +36,13 @@ from edgepos.gnss.measurements import (
 from edgepos.gnss.orbits import SPEED_OF_LIGHT, BroadcastOrbits, sagnac_range
 from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import ALL_SYSTEMS, DEFAULT_CODES, read_epochs, read_header
-from edgepos.gnss.spp import epoch_range, epochs_at_reference, read_reference, residual_tool_parser
+from edgepos.gnss.spp import (
+    epoch_range,
+    epochs_at_reference,
+    read_reference,
+    residual_tool_inputs,
+    residual_tool_parser,
+)
 
 CN0_REFERENCE_DBHZ = 45.0
 ELEVATION_BINS_DEG = (10.0, 20.0, 35.0, 60.0, 90.0)
@@ -190,14 +196,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     first, stop = epoch_range(args.epochs)
     values, elevation, cn0 = residuals(
-        args.obs,
-        args.nav,
-        args.reference,
-        first,
-        stop,
-        args.systems,
-        base_path=args.base,
-        galileo_group_delay=args.galileo_group_delay,
+        *residual_tool_inputs(args), base_path=args.base, galileo_group_delay=args.galileo_group_delay
     )
     print(
         f"epochs {first}..{stop - 1}: {values.size} residuals, robust std {robust_std(values):.2f} m, "

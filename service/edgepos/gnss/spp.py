@@ -461,6 +461,23 @@ def epochs_at_reference(
             yield epoch, row
 
 
+def add_galileo_group_delay_argument(parser: argparse.ArgumentParser) -> None:
+    """``--galileo-group-delay``: the receiver's Galileo convention (``gnss.measurements``)."""
+    parser.add_argument(
+        "--galileo-group-delay",
+        choices=GALILEO_GROUP_DELAYS,
+        default=DEFAULT_GALILEO_GROUP_DELAY,
+        help="what the receiver's Galileo code carries of the satellite group delay (gnss_tight's "
+        f"galileo_group_delay; default {DEFAULT_GALILEO_GROUP_DELAY})",
+    )
+
+
+def residual_tool_inputs(args: argparse.Namespace) -> tuple[str, str, str, int, int, str]:
+    """The recording, reference, epoch range and constellations of a :func:`residual_tool_parser` line."""
+    first, stop = epoch_range(args.epochs)
+    return args.obs, args.nav, args.reference, first, stop, args.systems
+
+
 def residual_tool_parser(prog: str, description: str) -> argparse.ArgumentParser:
     """The command line the residual analyses at the reference share (``gnss.doppler_residuals``,
     ``gnss.pseudorange_noise``): the recording, its reference, a range of epochs and the constellations."""
@@ -472,13 +489,7 @@ def residual_tool_parser(prog: str, description: str) -> argparse.ArgumentParser
     )
     parser.add_argument("--epochs", default="0:1000000", help="epochs A:B (0-based, B excluded)")
     parser.add_argument("--systems", default=ALL_SYSTEMS, help=f"constellations (default {ALL_SYSTEMS})")
-    parser.add_argument(
-        "--galileo-group-delay",
-        choices=GALILEO_GROUP_DELAYS,
-        default=DEFAULT_GALILEO_GROUP_DELAY,
-        help="what the receiver's Galileo code carries of the satellite group delay (gnss_tight's "
-        f"galileo_group_delay; default {DEFAULT_GALILEO_GROUP_DELAY})",
-    )
+    add_galileo_group_delay_argument(parser)
     return parser
 
 
@@ -502,13 +513,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         help=f"constellations to use (default {ALL_SYSTEMS}, all this project reads; e.g. GC)",
     )
     parser.add_argument("--mask-deg", type=float, default=10.0, help="elevation mask (degrees)")
-    parser.add_argument(
-        "--galileo-group-delay",
-        choices=GALILEO_GROUP_DELAYS,
-        default=DEFAULT_GALILEO_GROUP_DELAY,
-        help="what the receiver's Galileo code carries of the satellite group delay (gnss_tight's "
-        f"galileo_group_delay; default {DEFAULT_GALILEO_GROUP_DELAY})",
-    )
+    add_galileo_group_delay_argument(parser)
     parser.add_argument(
         "--max-exclusions",
         type=int,
