@@ -30,18 +30,19 @@ from edgepos.store.ratelimit import RateLimit, gcra
 _RATE_ENTRIES_BEFORE_PRUNING = 4096
 
 
-_IMMUTABLE = (str, int, float, bool, type(None))
+_IMMUTABLE = frozenset({str, int, float, bool, type(None)})
 
 
 def _copy_options(value: Any) -> Any:
     """A deep copy of a session's options (JSON-like: dicts, lists, numbers, strings), made on every read
     and write of a record so that no caller shares the stored dict; a third of ``copy.deepcopy``'s time,
-    which pays for its memo on every batch. Anything else is handed to ``copy.deepcopy``."""
+    which pays for its memo on every batch. Anything else is handed to ``copy.deepcopy``. A dict's or
+    list's immutable items are kept without a call each (most of an options dict's values are)."""
     kind = type(value)
     if kind is dict:
-        return {key: _copy_options(item) for key, item in value.items()}
+        return {key: item if type(item) in _IMMUTABLE else _copy_options(item) for key, item in value.items()}
     if kind is list:
-        return [_copy_options(item) for item in value]
+        return [item if type(item) in _IMMUTABLE else _copy_options(item) for item in value]
     if kind is tuple:
         return tuple(_copy_options(item) for item in value)
     if kind in _IMMUTABLE:
