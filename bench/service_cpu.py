@@ -8,7 +8,8 @@ redis`` a ``redis-server`` started afresh for each run (append-only file, ``appe
 bench/wrk_load.py's), whose own CPU per epoch is printed too: it shares the machine's cores with the worker.
 
     git worktree add /tmp/base 2a9c7e1
-    python bench/service_cpu.py --tree base=/tmp/base --tree now=. --batch 1 --rounds 3 [--store redis]
+    python bench/service_cpu.py --tree base=/tmp/base --tree now=. --batch 1 --rounds 3 [--store redis] \
+        [--log-level info]
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ def _one(tree: Path, args: argparse.Namespace) -> tuple[float, float, float]:
         environment = clean_environment(
             EDGEPOS_ADMIN_KEY=ADMIN_KEY,
             EDGEPOS_ADMIN_KEY_FILE=f"{tmp}/admin.key",
-            EDGEPOS_LOG_LEVEL="warning",
+            EDGEPOS_LOG_LEVEL=args.log_level,
             EDGEPOS_DEMO_RSUS="true",
         )
         redis_pid = None
@@ -86,11 +87,17 @@ def main() -> int:
     parser.add_argument("--duration", type=float, default=15.0)
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--store", choices=("memory", "redis"), default="memory")
+    parser.add_argument(
+        "--log-level",
+        default="warning",
+        help="the servers' EDGEPOS_LOG_LEVEL: warning (default) writes no access line, info (the service's "
+        "default) one a request, as in production",
+    )
     args = parser.parse_args()
     trees = {name: Path(path).resolve() for name, _, path in (item.partition("=") for item in args.tree)}
     print(
         f"server CPU per epoch, {args.batch}-epoch batches, closed loop of 16 vehicles, {args.duration:g} s per "
-        f"run, 1 worker, {args.store} store; load average {os.getloadavg()[0]:.2f}",
+        f"run, 1 worker, {args.store} store, log level {args.log_level}; load average {os.getloadavg()[0]:.2f}",
         flush=True,
     )
     results: dict[str, list[tuple[float, float, float]]] = {name: [] for name in trees}

@@ -96,3 +96,58 @@ def test_a_request_that_waits_too_long_gets_503_with_retry_after_and_probes_skip
 def test_admission_settings_are_bounded(field: str, value: object):
     with pytest.raises(ValueError, match=field):
         Settings(**{field: value})
+
+
+def test_the_batch_admission_agrees_with_the_cost_model_function_by_function():
+    """``cost.admit`` (one pass, each epoch shape weighed once) gives exactly what it gave as
+    ``batch_cost_from_counts_s`` over ``epoch_counts`` and ``epoch_bound_violations`` (and
+    ``batch_cost_s`` up to the order of its sum) on batches mixing kinds, their order within an epoch, epochs out of
+    time order, Dopplers on some pseudoranges only, and epochs over their bounds."""
+    import random
+
+    from edgepos.core.observations import (
+        GnssFixObservation,
+        GyroObservation,
+        OdometerObservation,
+        PseudorangeObservation,
+        RissObservation,
+        RsuObservation,
+        RsuRangeObservation,
+        V2vRangeObservation,
+    )
+    from edgepos.pipelines import cost
+    from edgepos.pipelines.registry import get_pipeline
+
+    makers = {
+        "rsu": lambda t: RsuObservation(t, "r1", 10.0, 0.1),
+        "rsu_range": lambda t: RsuRangeObservation(t, "r1", 10.0),
+        "gyro": lambda t: GyroObservation(t, 0.0),
+        "gnss_fix": lambda t: GnssFixObservation(t, 1.0, 2.0),
+        "odometer": lambda t: OdometerObservation(t, speed=3.0),
+        "v2v_range": lambda t: V2vRangeObservation(t, "v2", 5.0),
+        "riss": lambda t: RissObservation(t, 1.0, 0.0, 0.0, 0.0),
+        "pseudorange": lambda t: PseudorangeObservation(t, "G", 3, 2.2e7, 45.0),
+        "doppler": lambda t: PseudorangeObservation(t, "G", 4, 2.2e7, 45.0, doppler_hz=-120.0),
+    }
+    rng = random.Random(19)
+    checked_over = 0
+    for pipeline, bounds in cost.MAX_PER_EPOCH.items():
+        options = get_pipeline(pipeline).resolve_options({})
+        kinds = [k for k in makers if (k if k != "doppler" else "pseudorange") in bounds]
+        for _ in range(40):
+            times = [100.0 + rng.choice(range(12)) * 0.05 for _ in range(rng.randint(1, 25))]
+            shapes = [[rng.choice(kinds) for _ in range(rng.randint(1, 4))] for _ in range(3)]
+            batch = [makers[kind](t) for t in times for kind in shapes[int(t * 20) % 3]]
+            if rng.random() < 0.3:  # one epoch over the bound of a kind
+                over = rng.choice(kinds)
+                kind = "pseudorange" if over == "doppler" else over
+                batch += [makers[over](99.0) for _ in range(bounds[kind] + 1)]
+            if rng.random() < 0.5:
+                rng.shuffle(batch)
+            predicted, violations = cost.admit(pipeline, options, batch)
+            counts = cost.epoch_counts(batch)
+            assert predicted == cost.batch_cost_from_counts_s(pipeline, options, counts)
+            assert predicted == pytest.approx(cost.batch_cost_s(pipeline, options, batch))
+            assert violations == cost.epoch_bound_violations(pipeline, batch)
+            checked_over += bool(violations)
+    assert checked_over > 10

@@ -159,6 +159,22 @@ def test_returned_records_are_copies(store):
     asyncio.run(scenario())
 
 
+def test_the_in_process_store_copies_a_record_as_dataclasses_replace_would():
+    """MemoryStore copies a record through its ``__dict__``: the same record as ``dataclasses.replace``
+    only while SessionRecord has no ``__post_init__`` and no field left out of ``__init__``."""
+    assert not hasattr(SessionRecord, "__post_init__")
+    assert all(field.init for field in dataclasses.fields(SessionRecord))
+    original = record(options={"filter": "ckf", "models": ["ca", "at"], "model_params": {"at": {"tau": 2.0}}})
+    copied = MemoryStore._copy(original, 7)
+    assert type(copied) is SessionRecord and copied is not original
+    assert copied == dataclasses.replace(original, version=7)
+    assert copied.options is not original.options
+    assert copied.options["models"] is not original.options["models"]
+    assert MemoryStore._copy(original) == original
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        copied.version = 8
+
+
 def test_delete_and_count(store):
     async def scenario() -> None:
         for name in ("a", "b", "c"):
