@@ -4,6 +4,7 @@ without its corrections; the served fixes must be what `edgepos eval gnss-rinex 
 
 from __future__ import annotations
 
+import asyncio
 import math
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 import rtcmwrite
 from apihelp import ADMIN, assert_error, make_settings, open_session
 from edgepos.api.app import create_app
+from edgepos.api.base_stations import epoch_of
 from edgepos.eval.gnss_rinex import _score, evaluate
 from edgepos.gnss.differential import base_position, corrections_from_epochs
 from edgepos.gnss.ephemerides import parse_ephemerides
@@ -103,6 +105,7 @@ def test_register_list_get_delete(client):
             {**MARE, "position_geodetic": {"latitude": 0.7, "longitude": 0.0, "height": 0.0}},
             "position_geodetic",
         ),
+        ({**MARE, "galileo_group_delay": "icd"}, "galileo_group_delay"),
     ],
 )
 def test_bad_registrations_name_the_field(client, body, field):
@@ -427,3 +430,28 @@ def test_two_workers_share_the_station_through_the_store(tmp_path):
         assert b.get("/v1/base-stations/rt", headers=ADMIN).json()["newest_epoch_satellites"] > 8
         fixes = _run(b, "elsewhere", {**OPTIONS, "base_station": "rt"}, 3, per_batch=3)
         assert all(any(u["correction_applied"] for u in fix["measurements"]) for fix in fixes)
+
+
+def test_a_stations_galileo_group_delay_moves_its_galileo_corrections_only(client):
+    """Registered with galileo_group_delay none, the station's Galileo corrections differ from broadcast's by
+    each satellite's BGD (the record's own clock pair's), its GPS and BeiDou ones not at all; the setting is
+    shown, kept through the store and by default broadcast."""
+    _setup(client)
+    assert client.get("/v1/base-stations/MARE", headers=ADMIN).json()["galileo_group_delay"] == "broadcast"
+    plain = {**MARE, "station_id": "MARE-none", "galileo_group_delay": "none"}
+    response = client.post("/v1/base-stations", json=plain, headers=ADMIN)
+    assert response.status_code == 201 and response.json()["galileo_group_delay"] == "none"
+    response = client.post(
+        "/v1/base-stations/MARE-none/observations", content=BASE.read_bytes(), headers=TEXT
+    )
+    assert response.status_code == 200, response.text
+    listed = {s["station_id"]: s for s in client.get("/v1/base-stations", headers=ADMIN).json()["stations"]}
+    assert listed["MARE-none"]["galileo_group_delay"] == "none"
+    store = client.app.state.context.store
+    windows = [asyncio.run(store.base_window(s, 0.0, 2e9)).epochs for s in ("MARE", "MARE-none")]
+    broadcast, none = (epoch_of(window[-1][1]) for window in windows)
+    assert broadcast.sats == none.sats and broadcast.gpst == none.gpst
+    by_sat = dict(zip(broadcast.sats, none.correction_m - broadcast.correction_m, strict=True))
+    assert all(abs(v) < 1e-9 for sat, v in by_sat.items() if sat[0] != "E")
+    galileo = {sat: v for sat, v in by_sat.items() if sat[0] == "E"}
+    assert len(galileo) >= 4 and max(abs(v) for v in galileo.values()) > 1.0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 from pydantic import ConfigDict, Field
 
@@ -72,6 +73,14 @@ class BaseStationIn(RequestModel):
     antenna_delta: AntennaDeltaIn | None = Field(
         None, description="Antenna reference point offset from the marker."
     )
+    galileo_group_delay: Literal["broadcast", "none"] = Field(
+        "broadcast",
+        description="What the station receiver's Galileo E1 code carries of the satellite's group delay, "
+        "for its corrections' satellite clocks. broadcast: the Galileo ICD's model (the clock less the BGD "
+        "of the navigation record's clock pair); none: the clock without it, for a receiver whose Galileo "
+        "code measures as if the satellite had none (gnss_tight's galileo_group_delay says the same of a "
+        "vehicle's receiver). Applies to the observations uploaded after registration.",
+    )
 
 
 class BaseStationOut(ResponseModel):
@@ -95,6 +104,10 @@ class BaseStationOut(ResponseModel):
     antenna_delta: list[float] | None = Field(description="Antenna delta up, east, north (m), or null.")
     position_source: str | None = Field(
         description="Where the position came from: 'registered', 'rtcm 1005' or 'rtcm 1006'; null without one."
+    )
+    galileo_group_delay: Literal["broadcast", "none"] = Field(
+        description="The station receiver's Galileo group delay, as registered (broadcast for stations "
+        "registered before the field existed)."
     )
     updated_at: float = Field(description="Last change of the registration (Unix s, server clock).")
     newest_epoch: GpsTimeOut | None = Field(

@@ -32,6 +32,7 @@ from edgepos.gnss.differential import (
 )
 from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.geodesy import enu_rotation
+from edgepos.gnss.measurements import STATION_GALILEO_GROUP_DELAY, without_group_delay
 from edgepos.gnss.rinex_nav import RinexError
 from edgepos.gnss.rinex_obs import DEFAULT_CODES, ObservationEpoch, iter_epochs
 from edgepos.gnss.timesys import SECONDS_PER_WEEK
@@ -44,14 +45,17 @@ ELEVATION_MASK_RAD = math.radians(10.0)
 
 @dataclass(frozen=True)
 class Station:
-    """A registration: the marker as surveyed, the antenna delta (up, east, north m) and where the
-    position came from; the corrections use the antenna reference point :attr:`position_ecef`."""
+    """A registration: the marker as surveyed, the antenna delta (up, east, north m), where the position came
+    from and the receiver's Galileo group delay; the corrections use the antenna reference point
+    :attr:`position_ecef`."""
 
     station_id: str
     marker_ecef: tuple[float, float, float] | None
     antenna_delta: tuple[float, float, float] | None
     position_source: str | None
     updated_at: float
+    galileo_group_delay: str = STATION_GALILEO_GROUP_DELAY
+    """What the station receiver's Galileo code carries of the satellite group delay (``gnss.measurements``)."""
 
     @property
     def position_ecef(self) -> np.ndarray | None:
@@ -70,6 +74,7 @@ class Station:
             "marker_ecef": None if self.marker_ecef is None else list(self.marker_ecef),
             "antenna_delta": None if self.antenna_delta is None else list(self.antenna_delta),
             "position_source": self.position_source,
+            "galileo_group_delay": self.galileo_group_delay,
         }
         return StoredBaseStation(self.station_id, json.dumps(document), self.updated_at)
 
@@ -83,6 +88,7 @@ class Station:
             None if delta is None else (float(delta[0]), float(delta[1]), float(delta[2])),
             document.get("position_source"),
             stored.updated_at,
+            document.get("galileo_group_delay", STATION_GALILEO_GROUP_DELAY),  # registered before: broadcast
         )
 
 
@@ -197,13 +203,24 @@ def parse_observations(text: str) -> list[ObservationEpoch]:
 
 
 def corrections_of(
-    epochs: Sequence[ObservationEpoch], position: np.ndarray, ephemerides: Ephemerides
+    epochs: Sequence[ObservationEpoch],
+    position: np.ndarray,
+    ephemerides: Ephemerides,
+    galileo_group_delay: str = STATION_GALILEO_GROUP_DELAY,
 ) -> list[EpochCorrections]:
-    """The corrections of every epoch that has some (others, e.g. outside the ephemerides, are dropped)."""
+    """The corrections of every epoch that has some (others, e.g. outside the ephemerides, are dropped),
+    with the station receiver's Galileo group delay."""
     found = []
+    no_group_delay = without_group_delay(galileo_group_delay)
     for epoch in epochs:
         corrections = epoch_corrections(
-            epoch, position, ephemerides.orbits, ephemerides.atmosphere, DEFAULT_CODES, ELEVATION_MASK_RAD
+            epoch,
+            position,
+            ephemerides.orbits,
+            ephemerides.atmosphere,
+            DEFAULT_CODES,
+            ELEVATION_MASK_RAD,
+            no_group_delay,
         )
         if corrections.sats:
             found.append(corrections)

@@ -45,7 +45,12 @@ from edgepos.gnss.differential import DEFAULT_MAX_AGE_S, correct_set, correction
 from edgepos.gnss.differential import base_position as header_base_position
 from edgepos.gnss.ephemerides import Ephemerides
 from edgepos.gnss.geodesy import ecef_to_geodetic, enu_rotation, geodetic_to_ecef
-from edgepos.gnss.measurements import prepare_epoch, without_group_delay
+from edgepos.gnss.measurements import (
+    GALILEO_GROUP_DELAYS,
+    STATION_GALILEO_GROUP_DELAY,
+    prepare_epoch,
+    without_group_delay,
+)
 from edgepos.gnss.rinex_nav import read_navigation
 from edgepos.gnss.rinex_obs import ALL_SYSTEMS, DEFAULT_CODES, parse_systems, read_epochs, read_header
 from edgepos.gnss.spp import SppConfig, SppError, read_reference, reference_velocity, solve_epoch
@@ -95,6 +100,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
         metavar="S",
         help=f"with --base: corrections older than S seconds are not applied (default {DEFAULT_MAX_AGE_S:g}; "
         "see docs/gnss.md)",
+    )
+    parser.add_argument(
+        "--base-galileo-group-delay",
+        choices=GALILEO_GROUP_DELAYS,
+        default=STATION_GALILEO_GROUP_DELAY,
+        help="what the station receiver's Galileo code carries of the satellite group delay (the vehicle's: "
+        f"--option galileo_group_delay=...; default {STATION_GALILEO_GROUP_DELAY}, as a registered station's)",
     )
     parser.add_argument(
         "--base-position",
@@ -216,6 +228,7 @@ def evaluate(
     max_correction_age_s: float = DEFAULT_MAX_AGE_S,
     carrier: bool = False,
     plots: str | None = None,
+    base_galileo_group_delay: str = STATION_GALILEO_GROUP_DELAY,
 ) -> dict[str, Any]:
     """Run the pipeline and the WLS baseline over a recording; the figures as a dict (of epochs
     ``score_epochs`` = (A, B), A..B-1, when given; the run then stops after epoch B-1). With ``base_path``
@@ -243,6 +256,7 @@ def evaluate(
             codes,
             resolved["elevation_mask"],
             max_correction_age_s,
+            without_group_delay(base_galileo_group_delay),
         )
     environment = StaticEnvironment(navigation=ephemerides, differential=table)
     use_doppler = bool(resolved["use_doppler"])
@@ -378,6 +392,9 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
+    if args.base_galileo_group_delay != STATION_GALILEO_GROUP_DELAY and args.base is None:
+        print("edgepos eval gnss-rinex: error: --base-galileo-group-delay needs --base", file=sys.stderr)
+        return 2
     if args.max_correction_age != DEFAULT_MAX_AGE_S and args.base is None:
         print("edgepos eval gnss-rinex: error: --max-correction-age needs --base", file=sys.stderr)
         return 2
@@ -404,6 +421,7 @@ def run(args: argparse.Namespace) -> int:
             args.max_correction_age,
             args.carrier,
             args.plots,
+            args.base_galileo_group_delay,
         )
     except (OSError, ValueError) as error:  # unreadable or malformed files (RinexError is a ValueError)
         print(f"edgepos eval gnss-rinex: error: {error}", file=sys.stderr)

@@ -108,11 +108,13 @@ def epoch_corrections(
     atmosphere: Atmosphere,
     codes: Mapping[str, tuple[str, str]] | None = None,
     elevation_mask_rad: float = np.radians(10.0),
+    no_group_delay: frozenset[str] = frozenset(),
 ) -> EpochCorrections:
     """Corrections of one base epoch at the base's known ECEF ``position`` (m). Satellites below the mask,
-    without an ephemeris or alone in their system (no clock to remove) get none."""
+    without an ephemeris or alone in their system (no clock to remove) get none. The station receiver's
+    code of the systems in ``no_group_delay`` carries no satellite group delay (``gnss.measurements``)."""
     position = np.asarray(position, dtype=float)
-    prs, _ = prepare_epoch(epoch, orbits, codes)
+    prs, _ = prepare_epoch(epoch, orbits, codes, no_group_delay)
     if len(prs) == 0:
         empty = np.zeros(0)
         return EpochCorrections(epoch.gpst, (), empty, (), empty, empty)
@@ -227,10 +229,14 @@ def corrections_from_epochs(
     codes: Mapping[str, tuple[str, str]] | None = None,
     elevation_mask_rad: float = np.radians(10.0),
     max_age_s: float = DEFAULT_MAX_AGE_S,
+    no_group_delay: frozenset[str] = frozenset(),
 ) -> CorrectionTable:
     """A correction table from a base station's observation epochs at its known ECEF position (m)."""
     return CorrectionTable(
-        (epoch_corrections(e, position, orbits, atmosphere, codes, elevation_mask_rad) for e in epochs),
+        (
+            epoch_corrections(e, position, orbits, atmosphere, codes, elevation_mask_rad, no_group_delay)
+            for e in epochs
+        ),
         max_age_s,
     )
 

@@ -26,8 +26,12 @@ the clock less the BGD of the record's clock pair (``BroadcastOrbits``); none: t
 receivers whose Galileo code measures as if the satellite had none."""
 DEFAULT_GALILEO_GROUP_DELAY = "none"
 """The vehicle's receiver, chosen on the first half of tests/data/gnss-rover (a Septentrio mosaic-X5): its
-Galileo residuals at the reference are smaller without the BGD (docs/gnss.md, "The receiver's Galileo group
-delay"). Reference stations are taken as the ICD's (the recording's Leica GR50 fits broadcast)."""
+Galileo residuals at the reference are smaller without the BGD (docs/gnss.md, "The receivers' Galileo group
+delay")."""
+
+STATION_GALILEO_GROUP_DELAY = "broadcast"
+"""A reference station receiver's unless registered otherwise: the ICD's, as the recording's station (a Leica
+GR50) measures (docs/gnss.md, "The receivers' Galileo group delay")."""
 
 
 def without_group_delay(galileo_group_delay: str) -> frozenset[str]:

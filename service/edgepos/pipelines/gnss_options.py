@@ -579,7 +579,7 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "sign of that satellite's BGD under broadcast). none: chosen on the first half of the recording "
         "(horizontal RMS, UPF with the carrier: 2.12 -> 1.93 m, with the station 2.14 -> 1.82 m; the second "
         "half 3.35 -> 2.58 m and 3.26 -> 2.30 m; docs/gnss.md). Set broadcast for a receiver that follows the "
-        "ICD. Reference stations' corrections are computed with broadcast. Sessions stored before the option "
+        "ICD. A reference station has its own (POST /v1/base-stations, broadcast by default). Sessions stored before the option "
         "keep broadcast.",
         choices=GALILEO_GROUP_DELAYS,
     ),

@@ -92,6 +92,7 @@ def _out(station: Station, newest: EpochCorrections | None) -> BaseStationOut:
         marker_ecef=None if station.marker_ecef is None else list(station.marker_ecef),
         antenna_delta=None if station.antenna_delta is None else list(station.antenna_delta),
         position_source=station.position_source,
+        galileo_group_delay=station.galileo_group_delay,
         updated_at=station.updated_at,
         newest_epoch=None if newest is None else _gps_time(newest.gpst),
         newest_epoch_satellites=None if newest is None else len(newest.sats),
@@ -146,7 +147,12 @@ async def register_base_station(body: BaseStationIn, context: Context) -> BaseSt
         else (body.antenna_delta.up, body.antenna_delta.east, body.antenna_delta.north)
     )
     station = Station(
-        body.station_id, marker, delta, None if marker is None else "registered", context.store.clock()
+        body.station_id,
+        marker,
+        delta,
+        None if marker is None else "registered",
+        context.store.clock(),
+        body.galileo_group_delay,
     )
     if not await context.store.add_base_station(station.stored()):
         raise ApiError(
@@ -217,7 +223,9 @@ async def _store_epochs(
         raise ApiError(
             "invalid_request", reason, [ProblemModel(index=None, field="station_id", reason=reason)]
         )
-    corrections = await context.run_filter(corrections_of, epochs, np.asarray(position), ephemerides)
+    corrections = await context.run_filter(
+        corrections_of, epochs, np.asarray(position), ephemerides, station.galileo_group_delay
+    )
     if not corrections:
         reason = (
             f"none of the {len(epochs)} epochs has corrections: no GPS, BeiDou or Galileo satellites with an "
@@ -334,7 +342,14 @@ async def post_rtcm(station_id: StationId, request: Request, context: Context) -
         if why is not None:
             raise ApiError("invalid_request", f"the RTCM station position {why}")
         kind = "1006" if content.counts.get("1006") else "1005"
-        station = Station(station.station_id, content.position, None, f"rtcm {kind}", context.store.clock())
+        station = Station(
+            station.station_id,
+            content.position,
+            None,
+            f"rtcm {kind}",
+            context.store.clock(),
+            station.galileo_group_delay,
+        )
         position_set = True
     if not content.epochs:
         if not position_set:
