@@ -120,9 +120,9 @@ def test_the_bound_widens_only_the_protection_level_and_grows_with_its_confidenc
 
 
 def test_the_bound_covers_the_misleading_epochs_of_the_estimate() -> None:
-    # The papers' scene and model, a run (seed 1, run 1, ring, augUKF) where a protection level on the
+    # The papers' scene and model, a run (seed 1, run 3, straight, augUKF) where a protection level on the
     # noisy estimate is exceeded while ok: on the upper bound none is.
-    run = sim.make_run(1, 1, "ring")
+    run = sim.make_run(1, 3, "straight")
     pipeline = get_pipeline("v2v_coop")
     options = {**sim.PAPER_OPTIONS, "method": "aug_ukf", "integrity": True, "consistency_scale": True}
 
