@@ -10,8 +10,15 @@ from edgepos.core.observations import GyroObservation, OdometerObservation
 from edgepos.sim import v2v
 
 
-def _readings(run: v2v.V2vRun, vehicle: int, kind: type) -> list:
-    return [o for epoch in run.observations[vehicle] for o in epoch if isinstance(o, kind)]
+def _yaw_rates(run: v2v.V2vRun, vehicle: int) -> np.ndarray:
+    return np.array(
+        [o.yaw_rate for e in run.observations[vehicle] for o in e if isinstance(o, GyroObservation)]
+    )
+
+
+def _distances(run: v2v.V2vRun, vehicle: int) -> np.ndarray:
+    epochs = run.observations[vehicle]
+    return np.array([o.distance for e in epochs for o in e if isinstance(o, OdometerObservation)])
 
 
 def test_the_ring_follows_the_arcs_its_yaw_rates_and_speeds_describe() -> None:
@@ -44,8 +51,7 @@ def test_the_sensors_read_the_path() -> None:
     run = v2v.make_run(0, 0, "ring")
     _, headings, travelled = v2v.track(run.velocities)
     for i in range(v2v.VEHICLES):
-        gyro = np.array([o.yaw_rate for o in _readings(run, i, GyroObservation)])
-        odometer = np.array([o.distance for o in _readings(run, i, OdometerObservation)])
+        gyro, odometer = _yaw_rates(run, i), _distances(run, i)
         truth_rate = np.diff(headings[i]) / v2v.STEP
         assert np.std(gyro[1:] - truth_rate) < 3 * v2v.GYRO_STD
         assert abs(np.mean(gyro[1:] - truth_rate)) < 3 * v2v.GYRO_STD / math.sqrt(len(truth_rate))
