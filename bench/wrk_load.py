@@ -32,6 +32,7 @@ import contextlib
 import json
 import os
 import platform
+import resource
 import shutil
 import statistics
 import subprocess
@@ -41,6 +42,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import redis as redis_client
 from edgepos.loadgen import common
 from edgepos.loadgen.localredis import RedisServer, redis_binary
 from edgepos.loadgen.localserver import (
@@ -89,14 +91,29 @@ def run_wrk(url: str, directory: Path, vehicles: int, duration_s: float) -> dict
         "wrk", "-t", str(vehicles), "-c", str(vehicles), "-d", f"{duration_s:g}s", "--timeout", "10s",
         "-s", str(BENCH_DIR / "wrk_batches.lua"), url, "--", str(directory), ADMIN_KEY,
     ]  # fmt: skip
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     output = subprocess.run(
         command, capture_output=True, text=True, check=True, timeout=duration_s + 60
     ).stdout
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)  # wrk's own, once waited for
     line = next(line for line in output.splitlines() if line.startswith("WRK_RESULT "))
     result: dict[str, Any] = json.loads(line.removeprefix("WRK_RESULT "))
     seconds = result["duration_us"] / 1e6
     result["epochs_per_s"] = result["epochs"] / seconds
+    wrk_cpu_s = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    result["wrk_cpu_us_per_epoch"] = wrk_cpu_s / max(1, result["epochs"]) * 1e6
     return result
+
+
+def redis_cpu_s(url: str) -> float:
+    """CPU seconds redis-server (and its forks: AOF rewrites) has used so far (``INFO cpu``)."""
+    client = redis_client.Redis.from_url(url.split("?", 1)[0])  # the query is the service's key prefix
+    try:
+        info = client.info("cpu")
+    finally:
+        client.close()
+    keys = ("used_cpu_sys", "used_cpu_user", "used_cpu_sys_children", "used_cpu_user_children")
+    return float(sum(info[key] for key in keys))
 
 
 STORES = ("memory", "redis")
@@ -195,18 +212,28 @@ def main() -> int:
                     run_wrk(
                         url, workdir, args.vehicles, min(2.0, args.duration)
                     )  # warm-up (compiles, caches)
-                    cpu_before = service_cpu_s(url) if name != "floor" else 0.0
+                    marker = b"floor_app.py" if name == "floor" else b"serve"
+                    store_url = target_env.get("EDGEPOS_STORE", "")
+                    cpu_before = service_cpu_s(url, marker)
+                    redis_before = redis_cpu_s(store_url) if store_url.startswith("redis") else None
                     result = run_wrk(url, workdir, args.vehicles, args.duration)
-                    if name != "floor":  # the server's own CPU (its workers too): steadier than epochs/s
-                        cpu_s = service_cpu_s(url) - cpu_before
-                        result["server_cpu_us_per_epoch"] = cpu_s / max(1, result["epochs"]) * 1e6
+                    # the server's own CPU (its workers too): steadier than epochs/s
+                    epochs = max(1, result["epochs"])
+                    result["server_cpu_us_per_epoch"] = (
+                        (service_cpu_s(url, marker) - cpu_before) / epochs * 1e6
+                    )
+                    if redis_before is not None:
+                        result["redis_cpu_us_per_epoch"] = (
+                            (redis_cpu_s(store_url) - redis_before) / epochs * 1e6
+                        )
                 results[name].append(result)
-                cpu = result.get("server_cpu_us_per_epoch")
+                redis_cpu = result.get("redis_cpu_us_per_epoch")
                 print(
                     f"  round {round_index + 1} {name:21s} {result['epochs_per_s']:9.0f} epochs/s  "
                     f"p50 {result['p50_us'] / 1e3:6.1f} ms  p99 {result['p99_us'] / 1e3:6.1f} ms  "
-                    f"errors {result['errors'] + result['socket_errors']}"
-                    + (f"  server CPU {cpu:6.1f} us/epoch" if cpu is not None else ""),
+                    f"errors {result['errors'] + result['socket_errors']}  CPU us/epoch: server "
+                    f"{result['server_cpu_us_per_epoch']:6.1f}, wrk {result['wrk_cpu_us_per_epoch']:5.1f}"
+                    + (f", redis-server {redis_cpu:5.1f}" if redis_cpu is not None else ""),
                     flush=True,
                 )
     ratios: dict[str, list[float]] = {}
@@ -242,6 +269,20 @@ def main() -> int:
         print(
             f"server CPU per epoch, thread / loop{suffix} per round: "
             + ", ".join(f"{ratio:.2f}" for ratio in cpu_ratios)
+        )
+    cores = os.cpu_count() or 1
+    print(
+        f"CPU per epoch, medians of rounds (server + wrk + redis-server), and the epochs/s {cores} cores "
+        "would serve if that were all they did:"
+    )
+    for name, runs in results.items():
+        parts = [
+            statistics.median(r.get(key, 0.0) for r in runs)
+            for key in ("server_cpu_us_per_epoch", "wrk_cpu_us_per_epoch", "redis_cpu_us_per_epoch")
+        ]
+        print(
+            f"  {name:21s} {sum(parts):6.1f} us = {parts[0]:.1f} + {parts[1]:.1f} + {parts[2]:.1f}"
+            f"  -> {cores / sum(parts) * 1e6:8.0f} epochs/s"
         )
     print(f"load average {load_before:.2f} before, {os.getloadavg()[0]:.2f} after")
     if args.json:

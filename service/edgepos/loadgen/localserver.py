@@ -90,9 +90,11 @@ def running(
             process.wait()
 
 
-def service_cpu_s(url: str) -> float:
+def service_cpu_s(url: str, marker: bytes = b"serve") -> float:
     """CPU seconds (user + system) used so far by the ``edgepos serve`` process listening at ``url`` and
-    its workers, from /proc (Linux): what a benchmark divides by the batches it sent."""
+    its workers, from /proc (Linux): what a benchmark divides by the batches it sent. ``marker``: an
+    argument of the server's command line, or a file name one ends with (another server, such as a
+    benchmark's floor app, by its script's name)."""
     port = url.rsplit(":", 1)[1]
     stats = {}
     for entry in Path("/proc").iterdir():
@@ -104,7 +106,10 @@ def service_cpu_s(url: str) -> float:
                 continue
             stats[int(entry.name)] = (cmdline, int(fields[1]), int(fields[11]) + int(fields[12]))
     serve = [
-        pid for pid, (cmdline, _, _) in stats.items() if b"serve" in cmdline and port.encode() in cmdline
+        pid
+        for pid, (cmdline, _, _) in stats.items()
+        if any(part == marker or part.endswith(b"/" + marker) for part in cmdline)
+        and port.encode() in cmdline
     ]
     family = set(serve)
     for pid, (_, parent, _) in stats.items():
