@@ -35,8 +35,8 @@ class RunMonitor(NamedTuple):
     ``SeparationBank`` and reads it back): its clock (one element, written back), its filters' count
     and RSU codes (``[K, 0, code_1, ..]``, written back), their means and covariances in the leading rows
     (room for the sub-filters the run may spawn; written in place), each measurement row's RSU code, the
-    radial factor tables and test thresholds of a bank of 0, 1, .. sub-filters, the jerk density, where
-    x and y are in the fused mean, and the alert limit."""
+    radial factor tables and test thresholds of a bank of 0, 1, .. sub-filters, the jerk density, and
+    where x and y are in the fused mean."""
 
     clock: np.ndarray
     filters: np.ndarray
@@ -47,7 +47,6 @@ class RunMonitor(NamedTuple):
     thresholds: np.ndarray
     jerk_density: float
     fix_index: np.ndarray
-    alert_limit: float
 
 
 def _read_only(array: np.ndarray) -> np.ndarray:
@@ -67,7 +66,6 @@ _NO_MONITOR = RunMonitor(
     _read_only(np.zeros(1)),
     0.0,
     np.zeros(2, dtype=np.int64),
-    0.0,
 )
 
 
@@ -146,7 +144,6 @@ def run_epochs(
         bank.thresholds,
         bank.jerk_density,
         bank.fix_index,
-        bank.alert_limit,
         FIX_INPUT_BOUND,
         outs,
         levels,
