@@ -27,7 +27,7 @@ from edgepos.core import integrity_run, layout
 from edgepos.core.compiled import BankStepper, CompiledBankStepper
 from edgepos.core.compiled_run import RunRows, posterior, run_epochs, run_outputs
 from edgepos.core.imm import InteractingMultipleModel
-from edgepos.core.integrity import ALARM, OK, new_protection
+from edgepos.core.integrity import ALARM, OK, UNAVAILABLE
 from edgepos.core.observations import Observation, RsuObservation
 from edgepos.core.updates import GYRO_MIN_SPEED, measurement_dim
 from edgepos.pipelines.base import Fix, MeasurementUse
@@ -201,9 +201,10 @@ def run_fixes(
             uses[i] = rsu_used[i] if i < USED_KEPT else used(i, "rsu")
         for i in parts.gyros:
             uses[i] = gyro_used[i] if i < USED_KEPT else used(i, "gyro")
-        protection = None
-        if run_monitor is not None:  # a level that passed every test, stated as SeparationBank.epoch does
-            protection = new_protection(level, OK if level <= alert_limit else ALARM)
+        if run_monitor is None:
+            protection_level, integrity = None, UNAVAILABLE
+        else:  # a level that passed every test, stated as SeparationBank.epoch's Protection states it
+            protection_level, integrity = level, OK if level <= alert_limit else ALARM
         fixes.append(
             listed_fix(
                 t,
@@ -215,7 +216,8 @@ def run_fixes(
                 uses,
                 weighted,
                 measurement_dim(len(parts.candidates), len(parts.gyros), rows.averaged),
-                protection,
+                protection_level,
+                integrity,
                 None,  # the run's outputs have both accelerations (checked above): no carried turn rate
                 (kinematic_cov, position_cov),
             )
