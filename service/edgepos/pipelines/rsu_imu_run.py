@@ -119,14 +119,10 @@ def run_fixes(
     max_gap = options["max_gap"]
     last_t: float = session.filter_t
     times: list[float] = []
-    run_ids: list[str] = []  # with the monitor: each measurement row's RSU, epoch after epoch
-    rsu_observations = cast(Sequence[RsuObservation], observations)  # as the candidates index them
     for parts in epochs[first:]:
         t = observations[parts.indices[0]].t
         if not parts.candidates or t - last_t > max_gap:
             break
-        if monitored:
-            run_ids += [rsu_observations[i].rsu_id for i in parts.candidates]
         times.append(t)
         last_t = t
     if len(times) < MIN_RUN:
@@ -147,6 +143,8 @@ def run_fixes(
     alert_limit = 0.0
     if integrity_bank is not None and monitored:
         monitor, jerk_density = _monitor_of(options)
+        rsu_observations = cast(Sequence[RsuObservation], observations)  # as the rows index them
+        run_ids = [rsu_observations[i].rsu_id for i in rows.indices[rsu_rows]]  # each row's RSU, in order
         run_monitor, names = integrity_run.run_monitor(
             integrity_bank, run_ids, monitor.budget, jerk_density, _position_index(bank.common)
         )
