@@ -13,7 +13,6 @@ from typing import NamedTuple
 import numpy as np
 
 from edgepos.core.compiled import CompiledBankStepper
-from edgepos.core.imm import StepResult
 from edgepos.core.motion.base import DT_RESOLUTION_DECIMALS
 from edgepos.core.updates import RsuGyroEpoch
 
@@ -172,9 +171,15 @@ def run_outputs(
     return means, covs, probabilities.tolist(), weighted
 
 
-def posterior(stepper: CompiledBankStepper, outs: np.ndarray, epoch: int) -> StepResult:
-    """Epoch ``epoch``'s correction from :func:`run_epochs`'s outputs (views of them)."""
-    return stepper._step_result(outs[epoch, stepper._prediction_size :])
+def posterior(
+    stepper: CompiledBankStepper, outs: np.ndarray, epoch: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Epoch ``epoch``'s corrected model means, covariances and probabilities from :func:`run_epochs`'s
+    outputs (views of them): what the session keeps, without the ``StepResult`` around them."""
+    means, covs, probabilities, _, _ = stepper._kernels.prediction_views(
+        outs[epoch, stepper._prediction_size :], *stepper._sizes
+    )
+    return means, covs, probabilities
 
 
 def warm_up_run(

@@ -220,8 +220,7 @@ def run_fixes(
                 (kinematic_cov, position_cov),
             )
         )
-    last = posterior(compiled, outs, done - 1)
-    session.means, session.covs, session.probabilities = last.means, last.covs, last.probabilities
+    session.means, session.covs, session.probabilities = posterior(compiled, outs, done - 1)
     session.t = session.filter_t = times[done - 1]
     session.epochs += done
     if integrity_bank is not None and run_monitor is not None and names is not None:
