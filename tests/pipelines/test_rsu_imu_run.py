@@ -192,6 +192,7 @@ def perturbed(seed: int, epochs: int, dropout: float, jitter: float, gap: tuple[
             "gate_probability": st.sampled_from([0.0, 0.99]),
             "rsu_handling": st.sampled_from(["joint", "average"]),
             "fault_exclusion": st.booleans(),
+            "alert_limit_m": st.sampled_from([1.5, 0.8]),  # 0.8: half the joint fixes in alarm, all averaged
         }
     ),
     fault=st.sampled_from([None, (5.0, 0.0), (0.0, 0.05)]),
