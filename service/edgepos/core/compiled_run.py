@@ -13,8 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 from edgepos.core.compiled import CompiledBankStepper
-from edgepos.core.imm import StepResult
-from edgepos.core.motion.base import dt_key
+from edgepos.core.motion.base import DT_RESOLUTION_DECIMALS
 from edgepos.core.updates import RsuGyroEpoch
 
 
@@ -35,8 +34,8 @@ class RunMonitor(NamedTuple):
     ``SeparationBank`` and reads it back): its clock (one element, written back), its filters' count
     and RSU codes (``[K, 0, code_1, ..]``, written back), their means and covariances in the leading rows
     (room for the sub-filters the run may spawn; written in place), each measurement row's RSU code, the
-    radial factor tables and test thresholds of a bank of 0, 1, .. sub-filters, the jerk density, where
-    x and y are in the fused mean, and the alert limit."""
+    radial factor tables and test thresholds of a bank of 0, 1, .. sub-filters, the jerk density, and
+    where x and y are in the fused mean."""
 
     clock: np.ndarray
     filters: np.ndarray
@@ -47,7 +46,6 @@ class RunMonitor(NamedTuple):
     thresholds: np.ndarray
     jerk_density: float
     fix_index: np.ndarray
-    alert_limit: float
 
 
 def _read_only(array: np.ndarray) -> np.ndarray:
@@ -67,7 +65,6 @@ _NO_MONITOR = RunMonitor(
     _read_only(np.zeros(1)),
     0.0,
     np.zeros(2, dtype=np.int64),
-    0.0,
 )
 
 
@@ -107,7 +104,8 @@ def run_epochs(
     # a row wide enough for every epoch: the run's RSU pairs and gyro readings, all of them (no epoch has more)
     outs = np.empty((len(dts), kernels_run.output_width(count, nc, len(rows.positions), len(rows.yaw_rates))))
     levels = np.empty(len(dts))
-    step_dts = [dt_key(dt) if dt else 0.0 for dt in dts]  # the reference's rounding of dt for F and Q
+    # the reference's rounding of dt for F and Q (dt_key's, without its call and float() on floats)
+    step_dts = [round(dt, DT_RESOLUTION_DECIMALS) if dt else 0.0 for dt in dts]
     bank = monitor or _NO_MONITOR
     done = kernels_run.run_epochs(
         np.ascontiguousarray(means, dtype=float),
@@ -146,7 +144,6 @@ def run_epochs(
         bank.thresholds,
         bank.jerk_density,
         bank.fix_index,
-        bank.alert_limit,
         FIX_INPUT_BOUND,
         outs,
         levels,
@@ -174,9 +171,15 @@ def run_outputs(
     return means, covs, probabilities.tolist(), weighted
 
 
-def posterior(stepper: CompiledBankStepper, outs: np.ndarray, epoch: int) -> StepResult:
-    """Epoch ``epoch``'s correction from :func:`run_epochs`'s outputs (views of them)."""
-    return stepper._step_result(outs[epoch, stepper._prediction_size :])
+def posterior(
+    stepper: CompiledBankStepper, outs: np.ndarray, epoch: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Epoch ``epoch``'s corrected model means, covariances and probabilities from :func:`run_epochs`'s
+    outputs (views of them): what the session keeps, without the ``StepResult`` around them."""
+    means, covs, probabilities, _, _ = stepper._kernels.prediction_views(
+        outs[epoch, stepper._prediction_size :], *stepper._sizes
+    )
+    return means, covs, probabilities
 
 
 def warm_up_run(

@@ -67,7 +67,6 @@ def run_monitor(
         thresholds,
         jerk_density,
         np.array(position, dtype=np.int64),
-        budget.alert_limit,
     )
     return monitor, names
 

@@ -5,7 +5,8 @@ bank's ``kernels_integrity.bank_epoch`` after it when the monitor is on.
 per-epoch path does with the same kernels on the same arrays (so its results are that path's bit for
 bit), and stops before the first epoch that needs Python: a measurement the gate would leave out, a
 prediction or correction that failed (the numpy reference repairs or raises), and with the monitor a
-test that failed or a fix without a bound or beyond the alert limit. That epoch leaves no trace: the
+test that failed or a fix without a bound. A level beyond the alert limit is not one: the bank steps
+as in any epoch and the caller puts that fix in alarm. The epoch a run stops before leaves no trace: the
 integrity bank's filters, their codes and its clock are as before it. The bank's own steps around the
 epoch (``SeparationBank.epoch`` with ``prune``) are here on RSU codes (``core.integrity_run``): a
 sub-filter spawned for an RSU coming into use, a new plan (the work vector of ``bank_epoch``) when the
@@ -21,6 +22,8 @@ its protection level.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -76,7 +79,6 @@ def run_epochs(
     thresholds: FloatArray,
     jerk_density: float,
     fix_index: IntArray,
-    alert_limit: float,
     fix_bound: float,
     outs: FloatArray,
     levels: FloatArray,
@@ -166,7 +168,8 @@ def run_epochs(
                 fused_mean,
                 fused_cov,
             )
-            if not 0.0 <= level <= alert_limit:
+            # a test failed or the update did (negative codes), or the fix has no bound (NaN, infinite)
+            if not (level >= 0.0 and math.isfinite(level)):
                 filters = saved_filters[0]
                 bank_means[:filters] = saved_means[:filters]
                 bank_covs[:filters] = saved_covs[:filters]

@@ -248,13 +248,15 @@ class EpochRows:
     """The measurement rows of every epoch of a batch, epoch after epoch (each epoch's RSU pairs and gyro
     readings contiguous): what ``EpochParts.measured`` slices, and what a run of epochs hands the
     compiled kernels in one call (``pipelines.rsu_imu_run``); with the options' gyro noise and RSU
-    handling, which every epoch's measurements share."""
+    handling, which every epoch's measurements share, and the observation of each RSU pair (``indices``,
+    the batch's index: a run reads its RSU ids through them in one pass)."""
 
     __slots__ = (
         "averaged",
         "bearing_std",
         "bearing_variances",
         "gyro_std",
+        "indices",
         "observed",
         "positions",
         "range_std",
@@ -265,6 +267,7 @@ class EpochRows:
     def __init__(
         self, batch: Batch, rows: list[int], gyro_rows: list[int], options: Mapping[str, Any]
     ) -> None:
+        self.indices = rows
         index = np.array(rows, dtype=np.intp)
         self.positions, self.observed = batch.positions.take(index, 0), batch.observed.take(index, 0)
         self.range_std, self.bearing_std = batch.range_std.take(index), batch.bearing_std.take(index)

@@ -63,8 +63,20 @@ def epoch_fix(
     if not has_acceleration(components):
         yaw_rate = carried_yaw_rate(session, bank)
     probabilities = dict(zip(session.options["models"], session.probabilities.tolist()))
+    level, integrity = (None, UNAVAILABLE) if protection is None else (protection.level, protection.state)
     return listed_fix(
-        t, status, components, state, output.cov.tolist(), probabilities, uses, nis, dof, protection, yaw_rate
+        t,
+        status,
+        components,
+        state,
+        output.cov.tolist(),
+        probabilities,
+        uses,
+        nis,
+        dof,
+        level,
+        integrity,
+        yaw_rate,
     )
 
 
@@ -84,14 +96,17 @@ def listed_fix(
     uses: dict[int, MeasurementUse],
     nis: float | None,
     dof: int,
-    protection: Protection | None,
+    protection_level: float | None,
+    integrity: str,
     carried_yaw: float | None,
     blocks: tuple[list[list[float]], list[list[float]]] | None = None,
 ) -> Fix:
     """The fix of a fused estimate over ``components`` given as Python lists (its mean and its covariance's
-    rows) with the model probabilities; ``carried_yaw`` is the turn rate when the estimate has no
-    acceleration to give it (``carried_yaw_rate``). ``blocks``: the covariance's kinematic (x, y, vx, vy)
-    and position blocks as lists when the caller has them already (a run makes every epoch's at once)."""
+    rows) with the model probabilities, its protection level and integrity state (a ``Protection``'s, or
+    None and ``UNAVAILABLE`` without the monitor: a run states them without making the object);
+    ``carried_yaw`` is the turn rate when the estimate has no acceleration to give it
+    (``carried_yaw_rate``). ``blocks``: the covariance's kinematic (x, y, vx, vy) and position blocks as
+    lists when the caller has them already (a run makes every epoch's at once)."""
     kinematic, ax, ay, _ = fix_layout(components)
     i_x, i_y, i_vx, i_vy = kinematic
     vx, vy = state[i_vx], state[i_vy]
@@ -126,10 +141,8 @@ def listed_fix(
     fields["nis"] = nis
     fields["nis_dof"] = dof
     fields["measurements"] = [uses[i] for i in sorted(uses)]
-    if protection is None:
-        fields["integrity"] = UNAVAILABLE
-    else:
-        fields["protection_level"], fields["integrity"] = protection.level, protection.state
+    fields["protection_level"] = protection_level
+    fields["integrity"] = integrity
     fix = object.__new__(Fix)
     object.__setattr__(fix, "__dict__", fields)
     return fix

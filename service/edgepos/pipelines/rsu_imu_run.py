@@ -8,9 +8,10 @@ holds no RSU out. ``run_fixes`` hands a run of such epochs to ``core.compiled_ru
 (``rsu_imu._step``), the monitor's bank with them (``core.integrity_run``: the kernel spawns a
 sub-filter where an RSU comes into use, prunes and makes a new plan where ``SeparationBank.epoch``
 would), and stops before the first epoch that needs that path (a measurement the gate leaves out, a
-failed step, a failed integrity test, an alarm); then makes their fixes as ``_step`` does. The fixes
-and the state are the per-epoch path's bit for bit (tests/pipelines/test_rsu_imu_run.py compares, and
-bench/rsu_imu_digest.py).
+failed step, a failed integrity test, a fix without a bound); then makes their fixes as ``_step``
+does, in alarm where the protection level exceeds the alert limit (the bank steps as in any other
+epoch). The fixes and the state are the per-epoch path's bit for bit
+(tests/pipelines/test_rsu_imu_run.py compares, and bench/rsu_imu_digest.py).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from edgepos.core import integrity_run, layout
 from edgepos.core.compiled import BankStepper, CompiledBankStepper
 from edgepos.core.compiled_run import RunRows, posterior, run_epochs, run_outputs
 from edgepos.core.imm import InteractingMultipleModel
-from edgepos.core.integrity import OK, new_protection
+from edgepos.core.integrity import ALARM, OK, UNAVAILABLE
 from edgepos.core.observations import Observation, RsuObservation
 from edgepos.core.updates import GYRO_MIN_SPEED, measurement_dim
 from edgepos.pipelines.base import Fix, MeasurementUse
@@ -118,14 +119,10 @@ def run_fixes(
     max_gap = options["max_gap"]
     last_t: float = session.filter_t
     times: list[float] = []
-    run_ids: list[str] = []  # with the monitor: each measurement row's RSU, epoch after epoch
-    rsu_observations = cast(Sequence[RsuObservation], observations)  # as the candidates index them
     for parts in epochs[first:]:
         t = observations[parts.indices[0]].t
         if not parts.candidates or t - last_t > max_gap:
             break
-        if monitored:
-            run_ids += [rsu_observations[i].rsu_id for i in parts.candidates]
         times.append(t)
         last_t = t
     if len(times) < MIN_RUN:
@@ -143,11 +140,15 @@ def run_fixes(
     )
     gate = options["gate_probability"]
     run_monitor = names = None
+    alert_limit = 0.0
     if integrity_bank is not None and monitored:
         monitor, jerk_density = _monitor_of(options)
+        rsu_observations = cast(Sequence[RsuObservation], observations)  # as the rows index them
+        run_ids = [rsu_observations[i].rsu_id for i in rows.indices[rsu_rows]]  # each row's RSU, in order
         run_monitor, names = integrity_run.run_monitor(
             integrity_bank, run_ids, monitor.budget, jerk_density, _position_index(bank.common)
         )
+        alert_limit = monitor.budget.alert_limit
     compiled = cast(CompiledBankStepper, stepper)
     done, outs, levels = run_epochs(
         compiled,
@@ -198,7 +199,10 @@ def run_fixes(
             uses[i] = rsu_used[i] if i < USED_KEPT else used(i, "rsu")
         for i in parts.gyros:
             uses[i] = gyro_used[i] if i < USED_KEPT else used(i, "gyro")
-        protection = new_protection(level, OK) if run_monitor is not None else None
+        if run_monitor is None:
+            protection_level, integrity = None, UNAVAILABLE
+        else:  # a level that passed every test, stated as SeparationBank.epoch's Protection states it
+            protection_level, integrity = level, OK if level <= alert_limit else ALARM
         fixes.append(
             listed_fix(
                 t,
@@ -210,13 +214,13 @@ def run_fixes(
                 uses,
                 weighted,
                 measurement_dim(len(parts.candidates), len(parts.gyros), rows.averaged),
-                protection,
+                protection_level,
+                integrity,
                 None,  # the run's outputs have both accelerations (checked above): no carried turn rate
                 (kinematic_cov, position_cov),
             )
         )
-    last = posterior(compiled, outs, done - 1)
-    session.means, session.covs, session.probabilities = last.means, last.covs, last.probabilities
+    session.means, session.covs, session.probabilities = posterior(compiled, outs, done - 1)
     session.t = session.filter_t = times[done - 1]
     session.epochs += done
     if integrity_bank is not None and run_monitor is not None and names is not None:
