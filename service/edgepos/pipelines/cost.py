@@ -63,45 +63,43 @@ _US = 1e-6
 # one the same batches take less.
 CALIBRATION: dict[str, dict[str, float]] = {
     "rsu_imu": {
-        # Refitted on 2026-11-27 (evening) after the pipeline's Python around its runs got cheaper (branch
-        # pipepy: the constants before predicted 6.6 times the measured CPU of an EKF bank's averaged batch):
-        # bench/batch_cost.py --only rsu_imu --json (three runs on Debian's Python 3.11.2, load average
-        # 1.1-2.6) then --from-json, 133 rows at their median, envelope / measured 1.00-3.17 (median 1.11).
-        # As before the programme puts nothing on a compiled epoch as such (the monitor's constant carries a
-        # monitored epoch), and now nothing on a compiled model in an averaged bank: the grid's one-model CA
-        # bank costs more than its two- to five-model ones (1.97 against 0.68-1.47 ms a 20-epoch batch, its
-        # runs broken by the monitor), so the per-RSU constant covers every bank size there.
-        "compiled.epoch": 0.0 * _US,
-        "compiled.model": 0.0 * _US,
-        "compiled.joint.rsu": 0.0 * _US,
-        "compiled.joint.rsu_model": 0.0 * _US,
-        "compiled.joint.rsu2_model": 0.0845 * _US,
-        "compiled.average.rsu": 6.11 * _US,
-        "compiled.average.rsu_model": 0.0 * _US,
-        "compiled.gyro_model": 0.0 * _US,
-        "reference.epoch": 218 * _US,
-        "reference.model": 21.2 * _US,
-        "reference.joint.rsu": 0.0 * _US,
+        # Refitted on 2026-11-28 after the one-model averaged bank's batches became one compiled call again
+        # (branch pipefive: an alarm with every test passed no longer ends a run; the constants before predicted
+        # 3.19 ms for its 20-epoch batches, measured 0.60-0.65): bench/batch_cost.py --only rsu_imu --json (three
+        # runs on Debian's Python 3.11.2, load average 2.0-2.8) then --from-json, 133 rows at their median,
+        # envelope / measured 1.00-1.81 (median 1.07). The programme puts nothing on the monitor's own
+        # constants: it adds 0.08-0.17 ms to a 20- or 10-epoch batch of the grid's paired rows (3:ca,at,singer
+        # joint, 4 to 32 RSUs, with and without it), which the filter's constants cover, so an unmonitored
+        # batch is predicted as a monitored one: an upper bound all the same.
+        "compiled.epoch": 0 * _US,
+        "compiled.model": 4.85 * _US,
+        "compiled.joint.rsu": 0 * _US,
+        "compiled.joint.rsu_model": 0.271 * _US,
+        "compiled.joint.rsu2_model": 0.0752 * _US,
+        "compiled.average.rsu": 0 * _US,
+        "compiled.average.rsu_model": 1.54 * _US,
+        "compiled.gyro_model": 5.84 * _US,
+        "reference.epoch": 312 * _US,
+        "reference.model": 31 * _US,
+        "reference.joint.rsu": 0 * _US,
         "reference.joint.rsu_model": 1.48 * _US,
-        "reference.joint.rsu2_model": 0.0499 * _US,
-        "reference.average.rsu": 101 * _US,
-        "reference.average.rsu_model": 4.01 * _US,
-        "reference.gyro_model": 61.5 * _US,
-        "srukf.epoch": 131 * _US,
-        "srukf.model": 131 * _US,
-        "srukf.joint.rsu": 11.2 * _US,
-        "srukf.joint.rsu_model": 12.3 * _US,
-        "srukf.joint.rsu2_model": 0.132 * _US,
-        "srukf.average.rsu": 161 * _US,
-        "srukf.average.rsu_model": 60.4 * _US,
-        "srukf.gyro_model": 53.3 * _US,
-        "observation": 1.16 * _US,
-        "batch": 85.3 * _US,
-        # options.integrity: the monitor's bank (a reference and one sub-filter per RSU used), stepped with the
-        # filter; in this fit it carries most of a monitored compiled epoch (above).
-        "integrity.epoch": 71.8 * _US,
-        "integrity.rsu2": 0.0 * _US,
-        "integrity.rsu3": 0.0 * _US,
+        "reference.joint.rsu2_model": 0.0505 * _US,
+        "reference.average.rsu": 97.3 * _US,
+        "reference.average.rsu_model": 5.73 * _US,
+        "reference.gyro_model": 41.6 * _US,
+        "srukf.epoch": 210 * _US,
+        "srukf.model": 126 * _US,
+        "srukf.joint.rsu": 9.54 * _US,
+        "srukf.joint.rsu_model": 9.68 * _US,
+        "srukf.joint.rsu2_model": 0.172 * _US,
+        "srukf.average.rsu": 155 * _US,
+        "srukf.average.rsu_model": 65 * _US,
+        "srukf.gyro_model": 70.4 * _US,
+        "observation": 2.1 * _US,
+        "batch": 113 * _US,
+        "integrity.epoch": 0 * _US,
+        "integrity.rsu2": 0 * _US,
+        "integrity.rsu3": 0 * _US,
     },
     "gnss_tight": {
         # Refitted on 2026-11-27 evening after the epoch's fifth round (the rest of the epoch's Python; the
