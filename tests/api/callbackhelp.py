@@ -16,6 +16,7 @@ class Receiver:
     def __init__(self) -> None:
         self.bodies: list[dict[str, Any]] = []
         self.times: list[float] = []
+        self.answered: list[int] = []  # the status each body was answered with
         self.status = 204
         self.url = ""
         self._lock = threading.Lock()
@@ -24,11 +25,17 @@ class Receiver:
         with self._lock:
             self.bodies.append(body)
             self.times.append(time.monotonic())
+            self.answered.append(self.status)
             return self.status
 
     def received(self) -> list[dict[str, Any]]:
         with self._lock:
             return list(self.bodies)
+
+    def answered_with(self, status: int) -> list[dict[str, Any]]:
+        """The bodies this receiver answered with ``status``, in the order they came."""
+        with self._lock:
+            return [body for body, answer in zip(self.bodies, self.answered, strict=True) if answer == status]
 
     def wait_for(
         self, check: Callable[[list[dict[str, Any]]], bool], timeout_s: float = 20.0
