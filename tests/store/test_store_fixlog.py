@@ -121,6 +121,31 @@ def test_the_stream_hub_delivers_through_every_store(store: SessionStore):
     assert b'id: 4\nevent: fix\ndata: {"n":0}' in received and b'id: 5\nevent: fix\ndata: {"n":1}' in received
 
 
+def test_the_hub_appends_to_the_in_process_log_as_it_publishes():
+    """No publisher task for the in-process store's log: the fixes are in it, in order, once published."""
+    from edgepos.api.metrics import Metrics
+    from edgepos.api.streams import StreamHub
+    from edgepos.store.memory import MemoryStore
+
+    async def run() -> None:
+        log = MemoryStore(3600.0).fix_log(100)
+        hub = StreamHub(log, Metrics(), queue=10, max_consumers=1, ping_s=1.0)
+        hub.publish(_fixes(3))
+        hub.publish(_fixes(2, "car-2"))
+        assert await log.newest() == 5  # awaiting a call that does not suspend: no other task ran
+        events = await log.read(0, 0.0, 10)
+        assert [(e.id, e.vehicle_id, e.data) for e in events] == [
+            (1, "car-1", b'{"n":0}'),
+            (2, "car-1", b'{"n":1}'),
+            (3, "car-1", b'{"n":2}'),
+            (4, "car-2", b'{"n":0}'),
+            (5, "car-2", b'{"n":1}'),
+        ]
+        await hub.close()
+
+    asyncio.run(run())
+
+
 _OPERATIONS = st.lists(
     st.one_of(
         st.tuples(st.just("append"), st.integers(0, 25)),
