@@ -12,7 +12,10 @@ from pathlib import Path
 import pytest
 from edgepos.store import open_store
 from edgepos.store.base import SessionStore
-from edgepos.store.fixlog import FixLog, NewFix, gap_between, parse_event_id
+from edgepos.store.fixlog import FixLog, MemoryFixLog, NewFix, gap_between, parse_event_id
+from edgepos.store.memory import AppendedFixLog
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 _prefixes = itertools.count()
 
@@ -116,3 +119,64 @@ def test_the_stream_hub_delivers_through_every_store(store: SessionStore):
     received = asyncio.run(run())
     assert received.count(b"event: fix") == 2
     assert b'id: 4\nevent: fix\ndata: {"n":0}' in received and b'id: 5\nevent: fix\ndata: {"n":1}' in received
+
+
+def test_the_hub_appends_to_the_in_process_log_as_it_publishes():
+    """No publisher task for the in-process store's log: the fixes are in it, in order, once published."""
+    from edgepos.api.metrics import Metrics
+    from edgepos.api.streams import StreamHub
+    from edgepos.store.memory import MemoryStore
+
+    async def run() -> None:
+        log = MemoryStore(3600.0).fix_log(100)
+        hub = StreamHub(log, Metrics(), queue=10, max_consumers=1, ping_s=1.0)
+        hub.publish(_fixes(3))
+        hub.publish(_fixes(2, "car-2"))
+        assert await log.newest() == 5  # awaiting a call that does not suspend: no other task ran
+        events = await log.read(0, 0.0, 10)
+        assert [(e.id, e.vehicle_id, e.data) for e in events] == [
+            (1, "car-1", b'{"n":0}'),
+            (2, "car-1", b'{"n":1}'),
+            (3, "car-1", b'{"n":2}'),
+            (4, "car-2", b'{"n":0}'),
+            (5, "car-2", b'{"n":1}'),
+        ]
+        await hub.close()
+
+    asyncio.run(run())
+
+
+_OPERATIONS = st.lists(
+    st.one_of(
+        st.tuples(st.just("append"), st.integers(0, 25)),
+        st.tuples(st.just("read"), st.integers(-2, 80), st.integers(1, 30)),
+        st.tuples(st.just("backlog"), st.integers(-2, 80)),
+        st.tuples(st.just("newest")),
+    ),
+    max_size=40,
+)
+
+
+@settings(max_examples=200, deadline=None)
+@given(buffer=st.integers(1, 12), operations=_OPERATIONS)
+def test_the_in_process_store_log_answers_as_the_memory_log(buffer: int, operations: list[tuple]):
+    """The in-process store's log (fixes held as appended, events made when read) gives the very events,
+    gaps and ids of :class:`MemoryFixLog` after any appends (reads not blocking)."""
+
+    async def answers(log: FixLog) -> list[object]:
+        out: list[object] = []
+        appended = 0
+        for operation in operations:
+            if operation[0] == "append":
+                await log.append(_fixes(operation[1], f"car-{appended}"))
+                appended += 1
+            elif operation[0] == "read":
+                out.append(await log.read(operation[1], 0.0, operation[2]))
+            elif operation[0] == "backlog":
+                out.append(await log.backlog(operation[1]))
+            else:
+                out.append(await log.newest())
+        return out
+
+    expected = asyncio.run(answers(MemoryFixLog(buffer)))
+    assert asyncio.run(answers(AppendedFixLog(buffer))) == expected

@@ -2,9 +2,9 @@
 
 One :class:`StreamHub` per worker. Publishing: an applied batch hands its fixes to :meth:`StreamHub.publish`,
 which only appends them to this worker's outbox and returns; one publisher task writes the outbox to the
-store's fix log (``edgepos.store.fixlog``: a Redis stream, a SQLite table, or this process's memory), so
-the vehicle's answer never waits for the stream and a store that is slow to take the stream writes costs
-fixes on the stream (counted), never batch latency. Consuming: one reader task per worker, running while
+store's fix log (``edgepos.store.fixlog``: a Redis stream or a SQLite table), so the vehicle's answer never
+waits for the stream and a store that is slow to take the stream writes costs fixes on the stream
+(counted), never batch latency. The in-process store's log, in this process's memory, takes them at once. Consuming: one reader task per worker, running while
 the worker has consumers, reads the log (XREAD BLOCK on a connection of its own on Redis) and offers
 each event to every consumer's bounded queue, without ever awaiting a consumer: a consumer whose queue
 is full is dropped with a final ``end`` event (it resumes with ``Last-Event-ID``). Filters apply when an
@@ -24,6 +24,7 @@ from edgepos.api.errors import ApiError
 from edgepos.api.metrics import Metrics
 from edgepos.store.base import StoreUnavailable
 from edgepos.store.fixlog import FixEvent, FixLog, Gap, NewFix
+from edgepos.store.memory import AppendedFixLog
 
 logger = logging.getLogger("edgepos.api")
 
@@ -149,8 +150,12 @@ class StreamHub:
 
     # publishing ---------------------------------------------------------------------------------
     def publish(self, fixes: Sequence[NewFix]) -> None:
-        """Hand the fixes of an applied batch to the publisher; never waits."""
+        """Hand the fixes of an applied batch to the publisher; never waits. The in-process store's log
+        takes them at once (a deque in this process: a publisher task per batch cost more than the append)."""
         if not fixes:
+            return
+        if isinstance(self.log, AppendedFixLog):
+            self.log.append_now(fixes)
             return
         if len(self._outbox) + len(fixes) > OUTBOX_LIMIT:
             self.metrics.stream_events_dropped.labels("publish_backlog").inc(len(fixes))
