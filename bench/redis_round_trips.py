@@ -39,6 +39,7 @@ from edgepos.loadgen.localredis import RedisServer, redis_binary
 from edgepos.pipelines.base import Rsu
 from edgepos.sim.scenarios import rsu_imu_paper_scenario
 from edgepos.sim.sensors import rsu_imu_epochs
+from edgepos.store import redis_round_trip
 from edgepos.store.base import SessionRecord
 from edgepos.store.fixlog import NewFix
 from edgepos.store.redis import RedisStore
@@ -50,7 +51,8 @@ ADMIN = {"Authorization": f"Bearer {ADMIN_KEY}"}
 
 
 class RoundTrips:
-    """Counts the Redis client's round trips by what they carry (patched into redis-py's asyncio client)."""
+    """Counts the Redis client's round trips by what they carry (patched into redis-py's asyncio client and
+    the store's own round trips)."""
 
     def __init__(self) -> None:
         self.counts: Counter[str] = Counter()
@@ -71,8 +73,19 @@ class RoundTrips:
                 counter.counts[f"pipeline[{names}]"] += 1
             return await execute(pipe, *args, **options)
 
+        exchange = redis_round_trip._exchange
+
+        async def counted_exchange(connection: Any, commands: Any) -> Any:
+            # the store's own round trips (store.redis_round_trip: the compare-and-set, the scripts, the
+            # fix log's appends) go to a pooled connection directly, past the client's methods above
+            if counter.counting:
+                names = "+".join(_name(c) for c in commands)
+                counter.counts[f"round_trip[{names}]" if len(commands) > 1 else names] += 1
+            return await exchange(connection, commands)
+
         Redis.execute_command = counted_command  # type: ignore[method-assign]
         Pipeline.execute = counted_execute  # type: ignore[method-assign]
+        redis_round_trip._exchange = counted_exchange  # type: ignore[assignment]
 
 
 _SCRIPTS = {hashlib.sha1(source.encode()).hexdigest(): name for name, source in RedisStore.SCRIPTS.items()}
