@@ -24,7 +24,6 @@ from edgepos.api.errors import ApiError
 from edgepos.api.metrics import Metrics
 from edgepos.store.base import StoreUnavailable
 from edgepos.store.fixlog import FixEvent, FixLog, Gap, NewFix
-from edgepos.store.memory import AppendedFixLog
 
 logger = logging.getLogger("edgepos.api")
 
@@ -154,8 +153,7 @@ class StreamHub:
         takes them at once (a deque in this process: a publisher task per batch cost more than the append)."""
         if not fixes:
             return
-        if isinstance(self.log, AppendedFixLog):
-            self.log.append_now(fixes)
+        if self.log.append_now(fixes):  # a log in this process's memory takes them at once
             return
         if len(self._outbox) + len(fixes) > OUTBOX_LIMIT:
             self.metrics.stream_events_dropped.labels("publish_backlog").inc(len(fixes))

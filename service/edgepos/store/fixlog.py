@@ -113,6 +113,11 @@ class FixLog(ABC):
     async def backlog(self, after: int) -> tuple[list[FixEvent], Gap | None]:
         """Every held event after ``after`` (all held ones when there is a gap), and the gap if any."""
 
+    def append_now(self, fixes: Sequence[NewFix]) -> bool:
+        """Append ``fixes`` at once, if this log can without waiting (one in this process's memory), and
+        say so; False leaves them to :meth:`append`."""
+        return False
+
     async def close(self) -> None:
         return
 

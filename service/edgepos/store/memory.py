@@ -67,13 +67,14 @@ class AppendedFixLog(FixLog):
         self._newest = 0
         self._appended: asyncio.Event | None = None
 
-    def append_now(self, fixes: Sequence[NewFix]) -> None:
+    def append_now(self, fixes: Sequence[NewFix]) -> bool:
         """:meth:`append`, done at once: the log is this process's memory, so appending never waits."""
         self._fixes.extend(fixes)
         self._newest += len(fixes)
         if fixes and self._appended is not None:
             self._appended.set()
             self._appended = None
+        return True
 
     async def append(self, fixes: Sequence[NewFix]) -> None:
         self.append_now(fixes)
