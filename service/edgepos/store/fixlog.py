@@ -3,9 +3,10 @@
 Every applied batch appends its fixes (``GET /v1/stream/fixes`` reads them). Each event gets the next
 decimal integer id of the log (dense: one more than the previous event's), so a consumer that comes
 back with the id of the last event it saw gets exactly the events after it, or, when the log no longer
-holds them all, a :class:`Gap` saying how many it missed. Three implementations, one per kind of store:
+holds them all, a :class:`Gap` saying how many it missed. The implementations, by kind of store:
 
-* :class:`MemoryFixLog`: a ``deque`` in this process (the in-process store: one worker);
+* :class:`MemoryFixLog` and ``AppendedFixLog`` (``edgepos.store.memory``, the in-process store's, which
+  makes an event only when it is read): a ``deque`` in this process, for one worker;
 * :class:`SQLiteFixLog`: a table in a file beside the SQLite store's, shared by the workers of one box;
 * ``RedisFixLog`` (``edgepos.store.redis_fixlog``): a Redis stream, shared by every worker of every replica.
 
@@ -122,33 +123,27 @@ class FixLog(ABC):
         return
 
 
-class MemoryFixLog(FixLog):
-    """The log in this process: right for the in-process store, which serves one worker only."""
+class LocalFixLog(FixLog):
+    """A log in this process's memory: ids counted here, and a blocking read that waits for the next
+    append. Subclasses keep the events and find those after an id (``_after``)."""
 
     def __init__(self, buffer: int = DEFAULT_BUFFER) -> None:
         super().__init__(buffer)
-        self._events: deque[FixEvent] = deque(maxlen=self.buffer)
         self._newest = 0
         self._appended: asyncio.Event | None = None
 
-    async def append(self, fixes: Sequence[NewFix]) -> None:
-        for fix in fixes:
-            self._newest += 1
-            self._events.append(
-                FixEvent(self._newest, fix.session_id, fix.vehicle_id, fix.pipeline, fix.t, fix.data)
-            )
-        if fixes and self._appended is not None:
+    def _appended_now(self) -> None:
+        """Wake the readers waiting for an append."""
+        if self._appended is not None:
             self._appended.set()
             self._appended = None
 
+    @abstractmethod
+    def _after(self, after: int, count: int) -> list[FixEvent]:
+        """Up to ``count`` held events with ids above ``after``, oldest first."""
+
     async def newest(self) -> int:
         return self._newest
-
-    def _after(self, after: int, count: int) -> list[FixEvent]:
-        if not self._events or after >= self._newest:
-            return []
-        start = max(0, after + 1 - self._events[0].id)
-        return [self._events[i] for i in range(start, min(len(self._events), start + count))]
 
     async def read(self, after: int, block_s: float, count: int) -> list[FixEvent]:
         found = self._after(after, count)
@@ -161,6 +156,29 @@ class MemoryFixLog(FixLog):
         except TimeoutError:
             return []
         return self._after(after, count)
+
+
+class MemoryFixLog(LocalFixLog):
+    """The log in this process, an event per fix: right for a store that serves one worker only."""
+
+    def __init__(self, buffer: int = DEFAULT_BUFFER) -> None:
+        super().__init__(buffer)
+        self._events: deque[FixEvent] = deque(maxlen=self.buffer)
+
+    async def append(self, fixes: Sequence[NewFix]) -> None:
+        for fix in fixes:
+            self._newest += 1
+            self._events.append(
+                FixEvent(self._newest, fix.session_id, fix.vehicle_id, fix.pipeline, fix.t, fix.data)
+            )
+        if fixes:
+            self._appended_now()
+
+    def _after(self, after: int, count: int) -> list[FixEvent]:
+        if not self._events or after >= self._newest:
+            return []
+        start = max(0, after + 1 - self._events[0].id)
+        return [self._events[i] for i in range(start, min(len(self._events), start + count))]
 
     async def backlog(self, after: int) -> tuple[list[FixEvent], Gap | None]:
         gap = gap_between(after, self._events[0].id if self._events else None, self._newest)

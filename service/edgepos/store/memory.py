@@ -3,7 +3,6 @@ shared between worker processes (``edgepos serve --workers N`` refuses it for N 
 
 from __future__ import annotations
 
-import asyncio
 import copy
 import dataclasses
 import itertools
@@ -27,7 +26,7 @@ from edgepos.store.base import (
     VehicleNotRegistered,
     VehicleRecord,
 )
-from edgepos.store.fixlog import FixEvent, FixLog, Gap, NewFix, gap_between
+from edgepos.store.fixlog import FixEvent, FixLog, Gap, LocalFixLog, NewFix, gap_between
 from edgepos.store.ratelimit import RateLimit, gcra
 
 #: Past this many rate-limit entries, entries whose budget is full again are dropped.
@@ -54,7 +53,7 @@ def _copy_options(value: Any) -> Any:
     return copy.deepcopy(value)
 
 
-class AppendedFixLog(FixLog):
+class AppendedFixLog(LocalFixLog):
     """The in-process store's fix log: :class:`~edgepos.store.fixlog.MemoryFixLog`'s events, each held as
     the fix that was appended and made a :class:`FixEvent` only when it is read (its id follows from its
     place, the ids being dense). Every applied batch appends its fixes, and most of the time no consumer
@@ -64,23 +63,17 @@ class AppendedFixLog(FixLog):
     def __init__(self, buffer: int) -> None:
         super().__init__(buffer)
         self._fixes: deque[NewFix] = deque(maxlen=self.buffer)
-        self._newest = 0
-        self._appended: asyncio.Event | None = None
 
     def append_now(self, fixes: Sequence[NewFix]) -> bool:
         """:meth:`append`, done at once: the log is this process's memory, so appending never waits."""
         self._fixes.extend(fixes)
         self._newest += len(fixes)
-        if fixes and self._appended is not None:
-            self._appended.set()
-            self._appended = None
+        if fixes:
+            self._appended_now()
         return True
 
     async def append(self, fixes: Sequence[NewFix]) -> None:
         self.append_now(fixes)
-
-    async def newest(self) -> int:
-        return self._newest
 
     def _after(self, after: int, count: int) -> list[FixEvent]:
         fixes = self._fixes
@@ -92,18 +85,6 @@ class AppendedFixLog(FixLog):
             FixEvent(oldest + start + n, fix.session_id, fix.vehicle_id, fix.pipeline, fix.t, fix.data)
             for n, fix in enumerate(itertools.islice(fixes, start, start + count))
         ]
-
-    async def read(self, after: int, block_s: float, count: int) -> list[FixEvent]:
-        found = self._after(after, count)
-        if found or block_s <= 0:
-            return found
-        if self._appended is None:
-            self._appended = asyncio.Event()
-        try:
-            await asyncio.wait_for(self._appended.wait(), block_s)
-        except TimeoutError:
-            return []
-        return self._after(after, count)
 
     async def backlog(self, after: int) -> tuple[list[FixEvent], Gap | None]:
         oldest = self._newest - len(self._fixes) + 1 if self._fixes else None
