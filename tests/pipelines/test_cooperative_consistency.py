@@ -48,14 +48,15 @@ def _figures(fixes: list, truth: list) -> tuple[float, int]:
 
 def test_an_over_confident_filter_reports_a_covariance_its_error_fits() -> None:
     # 0.03 m/s^2 of acceleration change where the ring's turns need several: the filter lags in every
-    # turn while its covariance stays small (mean NEES 35 where 2 is consistent).
+    # turn while its covariance stays small (mean NEES 26 where 2 is consistent; 6.6 with the scale, measured
+    # since dead reckoning waits for a 5-sigma heading, 30 and 4.8 before).
     options = {"method": "gps_dr", **sim.PAPER_OPTIONS, "accel_std": 0.03, "integrity": True}
     before, truth = _drive(options)
     after, _ = _drive({**options, "consistency_scale": True})
     nees_before, misleading_before = _figures(before, truth)
     nees_after, misleading_after = _figures(after, truth)
     assert nees_before > 20.0 and misleading_before > 50
-    assert nees_after < nees_before / 4.0 and misleading_after == 0
+    assert nees_after < nees_before / 3.0 and misleading_after == 0
     assert after[0].integrity == "unavailable"  # nothing bounds the scale before the first fixes
     assert [(f.x, f.y, f.vx, f.vy) for f in after] == [(f.x, f.y, f.vx, f.vy) for f in before]
     # what the vehicle publishes is the filter's own estimate, as without the scale

@@ -524,7 +524,7 @@ def _dr_update(
     """Gyro and odometer once a second fix has given the filter a velocity (``session.dr_started``):
     from a start at rest with none, they pin the speed along an arbitrary axis (measured on the
     correlated-error scene with fixes every second: 11-18 m off for the first 20 s). The stricter rule
-    of ``v2v_coop`` (speed 3 sigma of the velocity, ``kinematic.heading_known``) does not suit this
+    of ``v2v_coop`` (speed 5 sigma of the velocity, ``kinematic.heading_known``) does not suit this
     filter: the feedback's 1/beta widens the DR sub-filter's velocity every epoch, and on the paper's
     scene it hovers at 1.5-2.5 sigma (waiting for 2 sigma cost 0.5 m under multipath there)."""
     if not session.dr_started:
