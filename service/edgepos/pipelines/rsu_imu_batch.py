@@ -40,6 +40,7 @@ class Batch:
         "range_std",
         "range_variances",
         "ranges",
+        "station_codes",
         "stations",
         "yaw_rates",
     )
@@ -58,9 +59,8 @@ class Batch:
         # them (``take``), which makes new C-contiguous arrays for the kernels, so copying each column
         # first only cost time
         table = np.array(rows, dtype=float).reshape(count, 3)
-        station = (
-            np.array(station_rows, dtype=float).reshape(len(stations), 5).take(np.array(codes, np.intp), 0)
-        )
+        self.station_codes = np.array(codes, np.intp)  # ``codes`` as an array: what rows of stations take
+        station = np.array(station_rows, dtype=float).reshape(len(stations), 5).take(self.station_codes, 0)
         self.positions = station[:, 0:2]
         self.observed = table[:, 0:2]
         self.range_std = station[:, 2]
@@ -248,26 +248,27 @@ class EpochRows:
     """The measurement rows of every epoch of a batch, epoch after epoch (each epoch's RSU pairs and gyro
     readings contiguous): what ``EpochParts.measured`` slices, and what a run of epochs hands the
     compiled kernels in one call (``pipelines.rsu_imu_run``); with the options' gyro noise and RSU
-    handling, which every epoch's measurements share, and the observation of each RSU pair (``indices``,
-    the batch's index: a run reads its RSU ids through them in one pass)."""
+    handling, which every epoch's measurements share, and the station of each RSU pair (``stations``:
+    its index in ``station_list``, the batch's stations; a run reads the RSUs' ids through them, a few
+    stations instead of a row each)."""
 
     __slots__ = (
         "averaged",
         "bearing_std",
         "bearing_variances",
         "gyro_std",
-        "indices",
         "observed",
         "positions",
         "range_std",
         "range_variances",
+        "station_list",
+        "stations",
         "yaw_rates",
     )
 
     def __init__(
         self, batch: Batch, rows: list[int], gyro_rows: list[int], options: Mapping[str, Any]
     ) -> None:
-        self.indices = rows
         index = np.array(rows, dtype=np.intp)
         self.positions, self.observed = batch.positions.take(index, 0), batch.observed.take(index, 0)
         self.range_std, self.bearing_std = batch.range_std.take(index), batch.bearing_std.take(index)
@@ -276,6 +277,8 @@ class EpochRows:
         self.yaw_rates = batch.yaw_rates.take(np.array(gyro_rows, dtype=np.intp))
         self.gyro_std: float = options["gyro_std"]
         self.averaged: bool = options["rsu_handling"] == "average"
+        self.stations = batch.station_codes.take(index)
+        self.station_list = batch.stations
 
 
 class EpochParts:

@@ -28,7 +28,7 @@ from edgepos.core.compiled import BankStepper, CompiledBankStepper
 from edgepos.core.compiled_run import RunRows, posterior, run_epochs, run_outputs
 from edgepos.core.imm import InteractingMultipleModel
 from edgepos.core.integrity import ALARM, OK, UNAVAILABLE
-from edgepos.core.observations import Observation, RsuObservation
+from edgepos.core.observations import Observation
 from edgepos.core.updates import GYRO_MIN_SPEED, measurement_dim
 from edgepos.pipelines.base import Fix, MeasurementUse
 from edgepos.pipelines.integrity import _monitor_of, _position_index
@@ -143,10 +143,14 @@ def run_fixes(
     alert_limit = 0.0
     if integrity_bank is not None and monitored:
         monitor, jerk_density = _monitor_of(options)
-        rsu_observations = cast(Sequence[RsuObservation], observations)  # as the rows index them
-        run_ids = [rsu_observations[i].rsu_id for i in rows.indices[rsu_rows]]  # each row's RSU, in order
+        station_ids = [None if station is None else station.id for station in rows.station_list]
         run_monitor, names = integrity_run.run_monitor(
-            integrity_bank, run_ids, monitor.budget, jerk_density, _position_index(bank.common)
+            integrity_bank,
+            station_ids,
+            rows.stations[rsu_rows],
+            monitor.budget,
+            jerk_density,
+            _position_index(bank.common),
         )
         alert_limit = monitor.budget.alert_limit
     compiled = cast(CompiledBankStepper, stepper)
