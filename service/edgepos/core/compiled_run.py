@@ -13,7 +13,6 @@ from typing import NamedTuple
 import numpy as np
 
 from edgepos.core.compiled import CompiledBankStepper
-from edgepos.core.motion.base import DT_RESOLUTION_DECIMALS
 from edgepos.core.updates import RsuGyroEpoch
 
 
@@ -104,8 +103,6 @@ def run_epochs(
     # a row wide enough for every epoch: the run's RSU pairs and gyro readings, all of them (no epoch has more)
     outs = np.empty((len(dts), kernels_run.output_width(count, nc, len(rows.positions), len(rows.yaw_rates))))
     levels = np.empty(len(dts))
-    # the reference's rounding of dt for F and Q (dt_key's, without its call and float() on floats)
-    step_dts = [round(dt, DT_RESOLUTION_DECIMALS) if dt else 0.0 for dt in dts]
     bank = monitor or _NO_MONITOR
     done = kernels_run.run_epochs(
         np.ascontiguousarray(means, dtype=float),
@@ -124,7 +121,6 @@ def run_epochs(
         stepper._weights,
         stepper._has_centre,
         np.array(dts),
-        np.array(step_dts),
         np.array(rsu_bounds),
         np.array(gyro_bounds),
         *rows,
