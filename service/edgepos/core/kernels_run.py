@@ -18,7 +18,7 @@ result objects, the monitor's bookkeeping).
 
 The run's measurement rows are concatenated: epoch ``j``'s RSU pairs are rows ``rsu_bounds[j]`` to
 ``rsu_bounds[j + 1]`` of ``positions`` .. ``bearing_std``, its gyro readings ``yaw_rates[gyro_bounds[j]
-: gyro_bounds[j + 1]]``. ``outs[j]`` receives epoch ``j``'s ``epoch_step`` output (see there), ``levels[j]``
+: gyro_bounds[j + 1]]`` (the rows of a whole batch, whose epochs before and after the run's are not read). ``outs[j]`` receives epoch ``j``'s ``epoch_step`` output (see there), ``levels[j]``
 its protection level.
 """
 
@@ -54,7 +54,7 @@ def run_epochs(
     filter_kind: int,
     weights: FloatArray,
     has_centre: bool,
-    dts: FloatArray,
+    start: float,
     rsu_bounds: IntArray,
     gyro_bounds: IntArray,
     positions: FloatArray,
@@ -85,8 +85,9 @@ def run_epochs(
     levels: FloatArray,
 ) -> int:
     """Step the run's epochs from ``means``, ``covs``, ``probabilities`` (see the module docstring);
-    ``dts[j]`` is epoch ``j``'s interval, which ``epoch_step`` takes with its rounding for F and Q
-    (:func:`rounded_dt`; an epoch whose rounding needs Python's is left to the per-epoch path). With ``monitored``, the integrity bank steps after each epoch as
+    epoch ``j`` is at ``times[j]``, its interval from the epoch before (from ``start``, the time of
+    ``means``, for the first), which ``epoch_step`` takes with its rounding for F and Q (:func:`rounded_dt`;
+    an epoch whose rounding needs Python's is left to the per-epoch path). With ``monitored``, the integrity bank steps after each epoch as
     ``SeparationBank.epoch`` (with ``prune``) would: its clock ``bank_clock[0]``, its filters'
     count ``bank_filters[0]`` and RSU codes ``bank_filters[1:]`` (0: the reference), their means and
     covariances in the leading rows of ``bank_means`` and ``bank_covs`` (room for a sub-filter per RSU
@@ -105,8 +106,9 @@ def run_epochs(
     saved_filters = bank_filters.copy()
     work = np.zeros(1)
     planned = -1  # the epoch whose RSUs ``work`` was made for (-1: none yet)
-    for j in range(dts.shape[0]):
-        step_dt = rounded_dt(dts[j])
+    for j in range(times.shape[0]):
+        dt = times[j] - (times[j - 1] if j > 0 else start)  # as the per-epoch path's t - filter_t
+        step_dt = rounded_dt(dt)
         if math.isnan(step_dt):
             return j
         first, last = rsu_bounds[j], rsu_bounds[j + 1]
@@ -119,7 +121,7 @@ def run_epochs(
             active,
             common,
             phi_slot,
-            dts[j],
+            dt,
             step_dt,
             motion_kinds,
             motion_params,
@@ -189,7 +191,7 @@ def run_epochs(
             ):
                 planned = -1  # the filters moved: the next epoch's owners and tables are new
         means, covs, probabilities = next_means, next_covs, next_probabilities
-    return int(dts.shape[0])
+    return int(times.shape[0])
 
 
 #: The decimals ``rounded_dt`` keeps, and the relative error bound of the product ``dt * 10**9`` it

@@ -248,26 +248,36 @@ class EpochRows:
     """The measurement rows of every epoch of a batch, epoch after epoch (each epoch's RSU pairs and gyro
     readings contiguous): what ``EpochParts.measured`` slices, and what a run of epochs hands the
     compiled kernels in one call (``pipelines.rsu_imu_run``); with the options' gyro noise and RSU
-    handling, which every epoch's measurements share, and the station of each RSU pair (``stations``:
+    handling, which every epoch's measurements share, the station of each RSU pair (``stations``:
     its index in ``station_list``, the batch's stations; a run reads the RSUs' ids through them, a few
-    stations instead of a row each)."""
+    stations instead of a row each), and where each epoch's RSU pairs and gyro readings start
+    (``starts``, ``gyro_starts``: int64, an epoch's rows end where the next one's start, the last
+    epoch's at the last bound), which a run's kernel takes as they are."""
 
     __slots__ = (
         "averaged",
         "bearing_std",
         "bearing_variances",
+        "gyro_starts",
         "gyro_std",
         "observed",
         "positions",
         "range_std",
         "range_variances",
+        "starts",
         "station_list",
         "stations",
         "yaw_rates",
     )
 
     def __init__(
-        self, batch: Batch, rows: list[int], gyro_rows: list[int], options: Mapping[str, Any]
+        self,
+        batch: Batch,
+        rows: list[int],
+        gyro_rows: list[int],
+        starts: list[int],
+        gyro_starts: list[int],
+        options: Mapping[str, Any],
     ) -> None:
         index = np.array(rows, dtype=np.intp)
         self.positions, self.observed = batch.positions.take(index, 0), batch.observed.take(index, 0)
@@ -279,6 +289,8 @@ class EpochRows:
         self.averaged: bool = options["rsu_handling"] == "average"
         self.stations = batch.station_codes.take(index)
         self.station_list = batch.stations
+        self.starts = np.array(starts, dtype=np.int64)
+        self.gyro_starts = np.array(gyro_starts, dtype=np.int64)
 
 
 class EpochParts:
@@ -338,13 +350,20 @@ def batch_epochs(
     selected = []
     rows: list[int] = []
     gyro_rows: list[int] = []
+    starts: list[int] = []
+    gyro_starts: list[int] = []
     for epoch in group_by_time(observations):
         uses: dict[int, MeasurementUse] = {}
         candidates, gyros = epoch_parts(epoch, batch, options, uses)
-        selected.append((epoch, candidates, gyros, uses, len(rows), len(gyro_rows)))
+        start, gyro_start = len(rows), len(gyro_rows)
+        selected.append((epoch, candidates, gyros, uses, start, gyro_start))
+        starts.append(start)
+        gyro_starts.append(gyro_start)
         rows += candidates
         gyro_rows += gyros
-    taken = EpochRows(batch, rows, gyro_rows, options)
+    starts.append(len(rows))
+    gyro_starts.append(len(gyro_rows))
+    taken = EpochRows(batch, rows, gyro_rows, starts, gyro_starts, options)
     return [
         EpochParts(epoch, candidates, gyros, uses, taken, start, gyro_start)
         for epoch, candidates, gyros, uses, start, gyro_start in selected

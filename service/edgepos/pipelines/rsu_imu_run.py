@@ -128,16 +128,7 @@ def run_fixes(
     if len(times) < MIN_RUN:
         return []
     run = epochs[first : first + len(times)]
-    rsu_base, gyro_base = run[0].start, run[0].gyro_start
-    rsu_bounds = [p.start - rsu_base for p in run] + [run[-1].start + len(run[-1].candidates) - rsu_base]
-    gyro_bounds = [p.gyro_start - gyro_base for p in run] + [
-        run[-1].gyro_start + len(run[-1].gyros) - gyro_base
-    ]
-    rows = run[0].rows
-    rsu_rows, gyro_rows = (
-        slice(rsu_base, rsu_base + rsu_bounds[-1]),
-        slice(gyro_base, gyro_base + gyro_bounds[-1]),
-    )
+    rows = run[0].rows  # the batch's: its epochs' rows and where each starts
     gate = options["gate_probability"]
     run_monitor = names = None
     alert_limit = 0.0
@@ -147,7 +138,7 @@ def run_fixes(
         run_monitor, names = integrity_run.run_monitor(
             integrity_bank,
             station_ids,
-            rows.stations[rsu_rows],
+            rows.stations,
             monitor.budget,
             jerk_density,
             _position_index(bank.common),
@@ -159,18 +150,18 @@ def run_fixes(
         session.means,
         session.covs,
         session.probabilities,
+        session.filter_t,
         times,
-        [t - before for before, t in zip([session.filter_t, *times], times)],  # as _step's t - filter_t
-        rsu_bounds,
-        gyro_bounds,
+        rows.starts[first : first + len(times) + 1],
+        rows.gyro_starts[first : first + len(times) + 1],
         RunRows(
-            rows.positions[rsu_rows],
-            rows.observed[rsu_rows],
-            rows.yaw_rates[gyro_rows],
-            rows.range_variances[rsu_rows],
-            rows.bearing_variances[rsu_rows],
-            rows.range_std[rsu_rows],
-            rows.bearing_std[rsu_rows],
+            rows.positions,
+            rows.observed,
+            rows.yaw_rates,
+            rows.range_variances,
+            rows.bearing_variances,
+            rows.range_std,
+            rows.bearing_std,
         ),
         float(rows.gyro_std**2),  # as every epoch's RsuGyroEpoch has it (core.updates.new_epoch)
         GYRO_MIN_SPEED,
