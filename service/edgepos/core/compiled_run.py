@@ -53,7 +53,7 @@ def _read_only(array: np.ndarray) -> np.ndarray:
 
 
 #: A run without the monitor: arrays of the monitor's types (one compiled signature serves both: the
-#: tables and thresholds read only, as ``core.integrity_run`` shares them between runs).
+#: tables, thresholds and fix index read only, as ``core.integrity_run`` shares them between runs).
 _NO_MONITOR = RunMonitor(
     np.zeros(1),
     np.zeros(2, dtype=np.int64),
@@ -63,7 +63,7 @@ _NO_MONITOR = RunMonitor(
     _read_only(np.zeros((1, 2, 1))),
     _read_only(np.zeros(1)),
     0.0,
-    np.zeros(2, dtype=np.int64),
+    _read_only(np.zeros(2, dtype=np.int64)),
 )
 
 

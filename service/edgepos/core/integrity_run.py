@@ -31,6 +31,14 @@ def stacked_tables(budget: IntegrityBudget, filters: int) -> tuple[np.ndarray, n
     return tables, thresholds
 
 
+@functools.lru_cache(maxsize=16)
+def fix_index(position: tuple[int, int]) -> np.ndarray:
+    """Where x and y are in the fused mean, as a run's kernel reads them (read only: the cache shares it)."""
+    index = np.array(position, dtype=np.int64)
+    index.flags.writeable = False
+    return index
+
+
 def run_monitor(
     bank: SeparationBank,
     station_ids: Sequence[str | None],
@@ -60,9 +68,8 @@ def run_monitor(
             station_codes[station] = code
     rows = np.array(station_codes, dtype=np.int64).take(row_stations)
     count, capacity = len(bank.ids), len(names)
-    filters = np.zeros(capacity + 1, dtype=np.int64)
+    filters = np.arange(-1, capacity, dtype=np.int64)  # codes 0 .. count - 1 in use, the rest room
     filters[0] = count
-    filters[1 : count + 1] = np.arange(count)
     if capacity == count:
         means, covs = bank.means, bank.covs
     else:
@@ -78,7 +85,7 @@ def run_monitor(
         tables,
         thresholds,
         jerk_density,
-        np.array(position, dtype=np.int64),
+        fix_index(position),
     )
     return monitor, names
 
