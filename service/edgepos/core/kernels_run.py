@@ -207,7 +207,7 @@ def rounded_dt(dt: float) -> float:
     and reads that decimal back (the double nearest to it). The product ``y = dt * 1e9`` is within
     ``_PRODUCT_ERROR * |y|`` of the exact ``dt * 10**9``; unless that is as near a half between two integers,
     both round to the same integer ``n``, and ``n / 1e9`` (``n`` and ``1e9`` exact doubles, the quotient
-    correctly rounded) is the double nearest to that decimal. NaN for such a near-half (some 1e-8 of
+    correctly rounded) is the double nearest to that decimal. NaN for such a near-half (some 4e-8 of
     intervals of 50 ms), for ``|y|`` of 2**52 or more (whole numbers already) and for a NaN ``dt``."""
     if dt == 0.0:
         return 0.0
