@@ -71,14 +71,12 @@ def measure(integrity: bool, repeats: int) -> dict[str, float]:
         raise SystemExit(f"expected the batch to make one run, it made {len(captured)}")
     code = kernel.py_func.__code__
     arguments = dict(zip(code.co_varnames[: code.co_argcount], captured[0], strict=True))
-    epochs_in_run = len(arguments["dts"])
+    epochs_in_run = len(arguments["times"])
 
     def fresh(epochs_taken: int) -> list[Any]:
         """The run's arguments with their first ``epochs_taken`` epochs, writable arrays copied (the
         kernel writes the bank and its outputs in place)."""
-        cut = dict(
-            arguments, dts=arguments["dts"][:epochs_taken], step_dts=arguments["step_dts"][:epochs_taken]
-        )
+        cut = dict(arguments, times=arguments["times"][:epochs_taken])
         return [v.copy() if isinstance(v, np.ndarray) and v.flags.writeable else v for v in cut.values()]
 
     timings: dict[str, list[float]] = {"call, no epoch": [], "call, whole run": [], "process": []}

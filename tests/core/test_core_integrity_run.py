@@ -33,8 +33,13 @@ def test_spawn_plan_and_prune_on_codes_do_what_the_bank_does(seed: int) -> None:
     in_use = list(rng.choice(RSUS, size=int(rng.integers(1, 5)), replace=False))
     bank = random_bank(rng, ids)
     reference = SeparationBank(list(bank.ids), bank.means.copy(), bank.covs.copy(), bank.t)
-    monitor, names = run_monitor(bank, in_use, BUDGET, 0.3, (0, 3))
+    # the rows' RSUs through a batch's stations: a gyro's (None), theirs in another order, one no row names
+    stations = [None, "z", *rng.permutation(in_use).tolist()]
+    row_stations = np.array([stations.index(rsu) for rsu in in_use])
+    monitor, names = run_monitor(bank, stations, row_stations, BUDGET, 0.3, (0, 3))
+    assert "z" not in names and len(monitor.means) == len(set(ids) | set(in_use)) + 1
     codes = monitor.rsu_codes
+    assert [names[code] for code in codes.tolist()] == in_use
     kernels_run._spawn(monitor.means, monitor.covs, monitor.filters, codes)
     reference.spawn(in_use)
     work = kernels_run._plan_work(
@@ -56,7 +61,7 @@ def test_spawn_plan_and_prune_on_codes_do_what_the_bank_does(seed: int) -> None:
 def test_the_bank_keeps_its_ids_list_when_a_run_changes_none() -> None:
     bank = random_bank(np.random.default_rng(1), ["a", "b"])
     ids = bank.ids
-    monitor, names = run_monitor(bank, ["a", "b", "a", "b"], BUDGET, 0.3, (0, 3))
+    monitor, names = run_monitor(bank, ["a", "b"], np.array([0, 1, 0, 1]), BUDGET, 0.3, (0, 3))
     assert monitor.means is bank.means  # nothing to spawn: the bank's own arrays, stepped in place
     after_run(bank, monitor, names)
     assert bank.ids is ids

@@ -13,7 +13,6 @@ from typing import NamedTuple
 import numpy as np
 
 from edgepos.core.compiled import CompiledBankStepper
-from edgepos.core.motion.base import DT_RESOLUTION_DECIMALS
 from edgepos.core.updates import RsuGyroEpoch
 
 
@@ -54,7 +53,7 @@ def _read_only(array: np.ndarray) -> np.ndarray:
 
 
 #: A run without the monitor: arrays of the monitor's types (one compiled signature serves both: the
-#: tables and thresholds read only, as ``core.integrity_run`` shares them between runs).
+#: tables, thresholds and fix index read only, as ``core.integrity_run`` shares them between runs).
 _NO_MONITOR = RunMonitor(
     np.zeros(1),
     np.zeros(2, dtype=np.int64),
@@ -64,7 +63,7 @@ _NO_MONITOR = RunMonitor(
     _read_only(np.zeros((1, 2, 1))),
     _read_only(np.zeros(1)),
     0.0,
-    np.zeros(2, dtype=np.int64),
+    _read_only(np.zeros(2, dtype=np.int64)),
 )
 
 
@@ -79,10 +78,10 @@ def run_epochs(
     means: np.ndarray,
     covs: np.ndarray,
     probabilities: np.ndarray,
+    start: float,
     times: list[float],
-    dts: list[float],
-    rsu_bounds: list[int],
-    gyro_bounds: list[int],
+    rsu_bounds: np.ndarray,
+    gyro_bounds: np.ndarray,
     rows: RunRows,
     gyro_variance: float,
     min_speed: float,
@@ -90,22 +89,21 @@ def run_epochs(
     thresholds: tuple[float, float],
     monitor: RunMonitor | None,
 ) -> tuple[int, np.ndarray, np.ndarray]:
-    """A run of usual epochs from ``means``, ``covs``, ``probabilities`` (only when ``stepper.runs``):
-    epoch ``j`` at ``times[j]``, ``dts[j]`` after the one before, its measurements rows ``rsu_bounds[j]``
-    .. and ``gyro_bounds[j]`` .. of ``rows`` (the gyro's variance and the speed below which it is not used
-    as every epoch's ``RsuGyroEpoch`` has them), the gate at ``thresholds`` as ``stepper.step`` takes
-    them, and with a ``monitor`` the integrity bank stepped after each. Returns how many epochs were done
-    (the run stops before the first that needs the per-epoch path), every epoch's output
-    (``epoch_step``'s, a row each: read them with :func:`run_outputs` and :func:`posterior`) and
-    protection level (with a monitor; those of the epochs done)."""
+    """A run of usual epochs from ``means``, ``covs``, ``probabilities`` at time ``start`` (only when
+    ``stepper.runs``): epoch ``j`` at ``times[j]``, its measurements rows ``rsu_bounds[j]`` .. and
+    ``gyro_bounds[j]`` .. of ``rows`` (int64 arrays, one bound more than epochs; the gyro's variance and
+    the speed below which it is not used as every epoch's ``RsuGyroEpoch`` has them), the gate at
+    ``thresholds`` as ``stepper.step`` takes them, and with a ``monitor`` the integrity bank stepped after
+    each. Returns how many epochs were done (the run stops before the first that needs the per-epoch
+    path), every epoch's output (``epoch_step``'s, a row each: read them with :func:`run_outputs` and
+    :func:`posterior`) and protection level (with a monitor; those of the epochs done)."""
     from edgepos.core import kernels_run
 
     count, nc = stepper._sizes
     # a row wide enough for every epoch: the run's RSU pairs and gyro readings, all of them (no epoch has more)
-    outs = np.empty((len(dts), kernels_run.output_width(count, nc, len(rows.positions), len(rows.yaw_rates))))
-    levels = np.empty(len(dts))
-    # the reference's rounding of dt for F and Q (dt_key's, without its call and float() on floats)
-    step_dts = [round(dt, DT_RESOLUTION_DECIMALS) if dt else 0.0 for dt in dts]
+    epochs = len(times)
+    outs = np.empty((epochs, kernels_run.output_width(count, nc, len(rows.positions), len(rows.yaw_rates))))
+    levels = np.empty(epochs)
     bank = monitor or _NO_MONITOR
     done = kernels_run.run_epochs(
         np.ascontiguousarray(means, dtype=float),
@@ -123,10 +121,9 @@ def run_epochs(
         stepper._filter_kind,
         stepper._weights,
         stepper._has_centre,
-        np.array(dts),
-        np.array(step_dts),
-        np.array(rsu_bounds),
-        np.array(gyro_bounds),
+        start,
+        rsu_bounds,
+        gyro_bounds,
         *rows,
         gyro_variance,
         min_speed**2,
@@ -202,10 +199,10 @@ def warm_up_run(
         means,
         covs,
         np.full(means.shape[0], 1.0 / means.shape[0]),
+        0.0,
         [0.05, 0.1],
-        [0.05, 0.05],
-        [0, rsus, 2 * rsus],
-        [0, gyros, 2 * gyros],
+        np.array([0, rsus, 2 * rsus], dtype=np.int64),
+        np.array([0, gyros, 2 * gyros], dtype=np.int64),
         RunRows(*(np.ascontiguousarray(np.concatenate([a, a]), dtype=float) for a in arrays)),
         gyro_variance,
         epoch.gyro_min_speed,

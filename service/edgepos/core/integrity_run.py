@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
+from typing import cast
 
 import numpy as np
 
@@ -30,27 +31,45 @@ def stacked_tables(budget: IntegrityBudget, filters: int) -> tuple[np.ndarray, n
     return tables, thresholds
 
 
+@functools.lru_cache(maxsize=16)
+def fix_index(position: tuple[int, int]) -> np.ndarray:
+    """Where x and y are in the fused mean, as a run's kernel reads them (read only: the cache shares it)."""
+    index = np.array(position, dtype=np.int64)
+    index.flags.writeable = False
+    return index
+
+
 def run_monitor(
     bank: SeparationBank,
-    rsu_ids: Sequence[str],
+    station_ids: Sequence[str | None],
+    row_stations: np.ndarray,
     budget: IntegrityBudget,
     jerk_density: float,
     position: tuple[int, int],
 ) -> tuple[RunMonitor, list[str]]:
-    """The run's monitor for ``bank`` and the RSU ids of the run's measurement rows, in order; and the
-    id of each code. The bank's own arrays are stepped in place when the run can spawn nothing, else
-    copies with room for what it may spawn (:func:`after_run` takes them over)."""
+    """The run's monitor for ``bank`` and the run's measurement rows, row ``i`` measuring the RSU
+    ``station_ids[row_stations[i]]`` (a batch's stations: a handful, where the rows are many; an RSU may
+    have several, and the ids of stations no row names are not read); and the id of each code. The
+    bank's own arrays are stepped in place when the run can spawn nothing, else copies with room for
+    what it may spawn (:func:`after_run` takes them over). A new RSU's code follows the stations' order,
+    not the rows': the kernel spawns in the rows' order whatever the codes, which only name the RSUs."""
     codes = {rsu: k for k, rsu in enumerate(bank.ids)}  # "" (the reference) is 0
     names = list(bank.ids)
-    for rsu in dict.fromkeys(rsu_ids):  # each id once, in the order the rows first name it
-        if rsu not in codes:
-            codes[rsu] = len(names)
-            names.append(rsu)
-    rows = np.fromiter(map(codes.__getitem__, rsu_ids), dtype=np.int64, count=len(rsu_ids))
+    named = np.zeros(len(station_ids), dtype=np.int64)
+    named[row_stations] = 1  # the stations some row names
+    station_codes = named.tolist()
+    for station, in_rows in enumerate(station_codes):
+        if in_rows:
+            rsu = cast(str, station_ids[station])  # a station a row names is an RSU's
+            code = codes.get(rsu)
+            if code is None:
+                code = codes[rsu] = len(names)
+                names.append(rsu)
+            station_codes[station] = code
+    rows = np.array(station_codes, dtype=np.int64).take(row_stations)
     count, capacity = len(bank.ids), len(names)
-    filters = np.zeros(capacity + 1, dtype=np.int64)
+    filters = np.arange(-1, capacity, dtype=np.int64)  # codes 0 .. count - 1 in use, the rest room
     filters[0] = count
-    filters[1 : count + 1] = np.arange(count)
     if capacity == count:
         means, covs = bank.means, bank.covs
     else:
@@ -66,7 +85,7 @@ def run_monitor(
         tables,
         thresholds,
         jerk_density,
-        np.array(position, dtype=np.int64),
+        fix_index(position),
     )
     return monitor, names
 

@@ -4,8 +4,9 @@ bank's ``kernels_integrity.bank_epoch`` after it when the monitor is on.
 ``run_epochs`` steps epoch after epoch, each from the posterior the one before wrote, exactly as the
 per-epoch path does with the same kernels on the same arrays (so its results are that path's bit for
 bit), and stops before the first epoch that needs Python: a measurement the gate would leave out, a
-prediction or correction that failed (the numpy reference repairs or raises), and with the monitor a
-test that failed or a fix without a bound. A level beyond the alert limit is not one: the bank steps
+prediction or correction that failed (the numpy reference repairs or raises), an interval whose rounding
+for F and Q only Python's ``round`` can tell (``rounded_dt``), and with the monitor a test that failed or
+a fix without a bound. A level beyond the alert limit is not one: the bank steps
 as in any epoch and the caller puts that fix in alarm. The epoch a run stops before leaves no trace: the
 integrity bank's filters, their codes and its clock are as before it. The bank's own steps around the
 epoch (``SeparationBank.epoch`` with ``prune``) are here on RSU codes (``core.integrity_run``): a
@@ -17,7 +18,7 @@ result objects, the monitor's bookkeeping).
 
 The run's measurement rows are concatenated: epoch ``j``'s RSU pairs are rows ``rsu_bounds[j]`` to
 ``rsu_bounds[j + 1]`` of ``positions`` .. ``bearing_std``, its gyro readings ``yaw_rates[gyro_bounds[j]
-: gyro_bounds[j + 1]]``. ``outs[j]`` receives epoch ``j``'s ``epoch_step`` output (see there), ``levels[j]``
+: gyro_bounds[j + 1]]`` (the rows of a whole batch, whose epochs before and after the run's are not read). ``outs[j]`` receives epoch ``j``'s ``epoch_step`` output (see there), ``levels[j]``
 its protection level.
 """
 
@@ -32,6 +33,7 @@ from edgepos.core.kernels import _prediction_parts
 from edgepos.core.kernels_base import OK, BoolArray, IntArray, _jit, _jit_nogil
 from edgepos.core.kernels_epoch import epoch_step
 from edgepos.core.kernels_integrity import bank_epoch, work_size
+from edgepos.core.motion.base import DT_RESOLUTION_DECIMALS
 from edgepos.core.numerics import FloatArray
 
 
@@ -52,8 +54,7 @@ def run_epochs(
     filter_kind: int,
     weights: FloatArray,
     has_centre: bool,
-    dts: FloatArray,
-    step_dts: FloatArray,
+    start: float,
     rsu_bounds: IntArray,
     gyro_bounds: IntArray,
     positions: FloatArray,
@@ -84,8 +85,9 @@ def run_epochs(
     levels: FloatArray,
 ) -> int:
     """Step the run's epochs from ``means``, ``covs``, ``probabilities`` (see the module docstring);
-    ``dts[j]`` and ``step_dts[j]`` are epoch ``j``'s interval and its rounding for F and Q, as
-    ``epoch_step`` takes them. With ``monitored``, the integrity bank steps after each epoch as
+    epoch ``j`` is at ``times[j]``, its interval from the epoch before (from ``start``, the time of
+    ``means``, for the first), which ``epoch_step`` takes with its rounding for F and Q (:func:`rounded_dt`;
+    an epoch whose rounding needs Python's is left to the per-epoch path). With ``monitored``, the integrity bank steps after each epoch as
     ``SeparationBank.epoch`` (with ``prune``) would: its clock ``bank_clock[0]``, its filters'
     count ``bank_filters[0]`` and RSU codes ``bank_filters[1:]`` (0: the reference), their means and
     covariances in the leading rows of ``bank_means`` and ``bank_covs`` (room for a sub-filter per RSU
@@ -104,7 +106,11 @@ def run_epochs(
     saved_filters = bank_filters.copy()
     work = np.zeros(1)
     planned = -1  # the epoch whose RSUs ``work`` was made for (-1: none yet)
-    for j in range(dts.shape[0]):
+    for j in range(times.shape[0]):
+        dt = times[j] - (times[j - 1] if j > 0 else start)  # as the per-epoch path's t - filter_t
+        step_dt = rounded_dt(dt)
+        if math.isnan(step_dt):
+            return j
         first, last = rsu_bounds[j], rsu_bounds[j + 1]
         out = outs[j]
         status = epoch_step(
@@ -115,8 +121,8 @@ def run_epochs(
             active,
             common,
             phi_slot,
-            dts[j],
-            step_dts[j],
+            dt,
+            step_dt,
             motion_kinds,
             motion_params,
             kinds,
@@ -185,7 +191,33 @@ def run_epochs(
             ):
                 planned = -1  # the filters moved: the next epoch's owners and tables are new
         means, covs, probabilities = next_means, next_covs, next_probabilities
-    return int(dts.shape[0])
+    return int(times.shape[0])
+
+
+#: The decimals ``rounded_dt`` keeps, and the relative error bound of the product ``dt * 10**9`` it
+#: rounds (half an ulp is 2**-53 of it; four times that, to be clear of it).
+_NS_PER_S = 10.0**DT_RESOLUTION_DECIMALS
+_PRODUCT_ERROR = 4.0 * 2.0**-53
+
+
+@_jit
+def rounded_dt(dt: float) -> float:
+    """``motion.base.dt_key``'s rounding (Python's ``round(dt, 9)``, 0 for 0) to the bit, or NaN where
+    only Python's can tell. Python rounds the exact decimal value of ``dt`` to 9 decimals, half to even,
+    and reads that decimal back (the double nearest to it). The product ``y = dt * 1e9`` is within
+    ``_PRODUCT_ERROR * |y|`` of the exact ``dt * 10**9``; unless that is as near a half between two integers,
+    both round to the same integer ``n``, and ``n / 1e9`` (``n`` and ``1e9`` exact doubles, the quotient
+    correctly rounded) is the double nearest to that decimal. NaN for such a near-half (some 4e-8 of
+    intervals of 50 ms), for ``|y|`` of 2**52 or more (whole numbers already) and for a NaN ``dt``."""
+    if dt == 0.0:
+        return 0.0
+    y = dt * _NS_PER_S
+    if not abs(y) < 2.0**52:
+        return math.nan
+    n = float(np.rint(y))
+    if not abs(abs(y - n) - 0.5) > _PRODUCT_ERROR * abs(y):
+        return math.nan
+    return n / _NS_PER_S
 
 
 @_jit

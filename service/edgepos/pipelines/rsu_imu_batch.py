@@ -40,6 +40,7 @@ class Batch:
         "range_std",
         "range_variances",
         "ranges",
+        "station_codes",
         "stations",
         "yaw_rates",
     )
@@ -58,9 +59,8 @@ class Batch:
         # them (``take``), which makes new C-contiguous arrays for the kernels, so copying each column
         # first only cost time
         table = np.array(rows, dtype=float).reshape(count, 3)
-        station = (
-            np.array(station_rows, dtype=float).reshape(len(stations), 5).take(np.array(codes, np.intp), 0)
-        )
+        self.station_codes = np.array(codes, np.intp)  # ``codes`` as an array: what rows of stations take
+        station = np.array(station_rows, dtype=float).reshape(len(stations), 5).take(self.station_codes, 0)
         self.positions = station[:, 0:2]
         self.observed = table[:, 0:2]
         self.range_std = station[:, 2]
@@ -248,26 +248,37 @@ class EpochRows:
     """The measurement rows of every epoch of a batch, epoch after epoch (each epoch's RSU pairs and gyro
     readings contiguous): what ``EpochParts.measured`` slices, and what a run of epochs hands the
     compiled kernels in one call (``pipelines.rsu_imu_run``); with the options' gyro noise and RSU
-    handling, which every epoch's measurements share, and the observation of each RSU pair (``indices``,
-    the batch's index: a run reads its RSU ids through them in one pass)."""
+    handling, which every epoch's measurements share, the station of each RSU pair (``stations``:
+    its index in ``station_list``, the batch's stations; a run reads the RSUs' ids through them, a few
+    stations instead of a row each), and where each epoch's RSU pairs and gyro readings start
+    (``starts``, ``gyro_starts``: int64, an epoch's rows end where the next one's start, the last
+    epoch's at the last bound), which a run's kernel takes as they are."""
 
     __slots__ = (
         "averaged",
         "bearing_std",
         "bearing_variances",
+        "gyro_starts",
         "gyro_std",
-        "indices",
         "observed",
         "positions",
         "range_std",
         "range_variances",
+        "starts",
+        "station_list",
+        "stations",
         "yaw_rates",
     )
 
     def __init__(
-        self, batch: Batch, rows: list[int], gyro_rows: list[int], options: Mapping[str, Any]
+        self,
+        batch: Batch,
+        rows: list[int],
+        gyro_rows: list[int],
+        starts: list[int],
+        gyro_starts: list[int],
+        options: Mapping[str, Any],
     ) -> None:
-        self.indices = rows
         index = np.array(rows, dtype=np.intp)
         self.positions, self.observed = batch.positions.take(index, 0), batch.observed.take(index, 0)
         self.range_std, self.bearing_std = batch.range_std.take(index), batch.bearing_std.take(index)
@@ -276,6 +287,10 @@ class EpochRows:
         self.yaw_rates = batch.yaw_rates.take(np.array(gyro_rows, dtype=np.intp))
         self.gyro_std: float = options["gyro_std"]
         self.averaged: bool = options["rsu_handling"] == "average"
+        self.stations = batch.station_codes.take(index)
+        self.station_list = batch.stations
+        self.starts = np.array(starts, dtype=np.int64)
+        self.gyro_starts = np.array(gyro_starts, dtype=np.int64)
 
 
 class EpochParts:
@@ -335,13 +350,20 @@ def batch_epochs(
     selected = []
     rows: list[int] = []
     gyro_rows: list[int] = []
+    starts: list[int] = []
+    gyro_starts: list[int] = []
     for epoch in group_by_time(observations):
         uses: dict[int, MeasurementUse] = {}
         candidates, gyros = epoch_parts(epoch, batch, options, uses)
-        selected.append((epoch, candidates, gyros, uses, len(rows), len(gyro_rows)))
+        start, gyro_start = len(rows), len(gyro_rows)
+        selected.append((epoch, candidates, gyros, uses, start, gyro_start))
+        starts.append(start)
+        gyro_starts.append(gyro_start)
         rows += candidates
         gyro_rows += gyros
-    taken = EpochRows(batch, rows, gyro_rows, options)
+    starts.append(len(rows))
+    gyro_starts.append(len(gyro_rows))
+    taken = EpochRows(batch, rows, gyro_rows, starts, gyro_starts, options)
     return [
         EpochParts(epoch, candidates, gyros, uses, taken, start, gyro_start)
         for epoch, candidates, gyros, uses, start, gyro_start in selected

@@ -28,7 +28,7 @@ from edgepos.core.compiled import BankStepper, CompiledBankStepper
 from edgepos.core.compiled_run import RunRows, posterior, run_epochs, run_outputs
 from edgepos.core.imm import InteractingMultipleModel
 from edgepos.core.integrity import ALARM, OK, UNAVAILABLE
-from edgepos.core.observations import Observation, RsuObservation
+from edgepos.core.observations import Observation
 from edgepos.core.updates import GYRO_MIN_SPEED, measurement_dim
 from edgepos.pipelines.base import Fix, MeasurementUse
 from edgepos.pipelines.integrity import _monitor_of, _position_index
@@ -128,25 +128,20 @@ def run_fixes(
     if len(times) < MIN_RUN:
         return []
     run = epochs[first : first + len(times)]
-    rsu_base, gyro_base = run[0].start, run[0].gyro_start
-    rsu_bounds = [p.start - rsu_base for p in run] + [run[-1].start + len(run[-1].candidates) - rsu_base]
-    gyro_bounds = [p.gyro_start - gyro_base for p in run] + [
-        run[-1].gyro_start + len(run[-1].gyros) - gyro_base
-    ]
-    rows = run[0].rows
-    rsu_rows, gyro_rows = (
-        slice(rsu_base, rsu_base + rsu_bounds[-1]),
-        slice(gyro_base, gyro_base + gyro_bounds[-1]),
-    )
+    rows = run[0].rows  # the batch's: its epochs' rows and where each starts
     gate = options["gate_probability"]
     run_monitor = names = None
     alert_limit = 0.0
     if integrity_bank is not None and monitored:
         monitor, jerk_density = _monitor_of(options)
-        rsu_observations = cast(Sequence[RsuObservation], observations)  # as the rows index them
-        run_ids = [rsu_observations[i].rsu_id for i in rows.indices[rsu_rows]]  # each row's RSU, in order
+        station_ids = [None if station is None else station.id for station in rows.station_list]
         run_monitor, names = integrity_run.run_monitor(
-            integrity_bank, run_ids, monitor.budget, jerk_density, _position_index(bank.common)
+            integrity_bank,
+            station_ids,
+            rows.stations,
+            monitor.budget,
+            jerk_density,
+            _position_index(bank.common),
         )
         alert_limit = monitor.budget.alert_limit
     compiled = cast(CompiledBankStepper, stepper)
@@ -155,18 +150,18 @@ def run_fixes(
         session.means,
         session.covs,
         session.probabilities,
+        session.filter_t,
         times,
-        [t - before for before, t in zip([session.filter_t, *times], times)],  # as _step's t - filter_t
-        rsu_bounds,
-        gyro_bounds,
+        rows.starts[first : first + len(times) + 1],
+        rows.gyro_starts[first : first + len(times) + 1],
         RunRows(
-            rows.positions[rsu_rows],
-            rows.observed[rsu_rows],
-            rows.yaw_rates[gyro_rows],
-            rows.range_variances[rsu_rows],
-            rows.bearing_variances[rsu_rows],
-            rows.range_std[rsu_rows],
-            rows.bearing_std[rsu_rows],
+            rows.positions,
+            rows.observed,
+            rows.yaw_rates,
+            rows.range_variances,
+            rows.bearing_variances,
+            rows.range_std,
+            rows.bearing_std,
         ),
         float(rows.gyro_std**2),  # as every epoch's RsuGyroEpoch has it (core.updates.new_epoch)
         GYRO_MIN_SPEED,
