@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass, field
 
 from edgepos.sim.constellation import Constellation, gps_bds_constellation
+from edgepos.sim.gnss_carrier import CarrierModel
 from edgepos.sim.trajectory import Segment, Truth
 from edgepos.sim.urban import CityParameters, StreetView, drive, nanjing_route, short_route, street_view
 
@@ -122,6 +123,8 @@ class GnssScenario:
     receiver: ReceiverModel = field(default_factory=ReceiverModel)
     riss: RissGrade = field(default_factory=RissGrade)
     urban: bool = True
+    carrier: CarrierModel | None = field(default_factory=CarrierModel)
+    """The carrier phase's lock, slips and errors (sim.gnss_carrier); None: pseudoranges without phase."""
 
     @property
     def riss_period(self) -> float:

@@ -11,7 +11,8 @@ of the constellation (GPS bias + inter-system bias for BeiDou; integrated random
 dts_j the satellite clock (sent as ``sat_clock``, with ``sat_position`` = s_j), I the ionosphere left after
 a broadcast correction, T the true troposphere (Saastamoinen x a per-run factor), e_sisre the broadcast
 orbit/clock error, m the LOS multipath (Gauss-Markov, larger at low elevation), n the code noise (from
-C/N0) and nlos the extra path of a reflected signal. A satellite is tracked when it is above the horizon
+C/N0) and nlos the extra path of a reflected signal. The carrier phase of a signal the carrier loop
+holds in lock (``sim.gnss_carrier``: lock and slips at the rates of the real recording) goes with it. A satellite is tracked when it is above the horizon
 mask and either above the street-canyon cut-off (LOS) or received by reflection (NLOS), and its C/N0 is
 above the tracking threshold.
 
@@ -34,6 +35,7 @@ from edgepos.core.observations import Observation, PseudorangeObservation, RissO
 from edgepos.gnss.corrections import saastamoinen_delay
 from edgepos.gnss.geodesy import enu_rotation, geodetic_to_ecef
 from edgepos.gnss.orbits import OMEGA_EARTH, SPEED_OF_LIGHT
+from edgepos.sim.gnss_carrier import carrier_phase, draw
 from edgepos.sim.gnss_scenario import GnssScenario, ReceiverModel
 from edgepos.sim.urban import ANTENNA_HEIGHT_M, StreetView
 
@@ -118,6 +120,7 @@ def simulate(scenario: GnssScenario, rng: np.random.Generator) -> GnssRun:
     gyro_bias = rng.normal(0.0, grade.gyro_bias_rad_s)
     riss_noise = rng.standard_normal((samples, 4))
     gyro_instability = rng.standard_normal(samples)
+    carrier_draws = None if scenario.carrier is None else draw(rng, (epochs_count, sats), scenario.carrier)
 
     # -- receiver positions and satellite geometry --------------------------------------------------
     lat0, lon0, h0 = scenario.site
@@ -163,7 +166,8 @@ def simulate(scenario: GnssScenario, rng: np.random.Generator) -> GnssRun:
     multipath_std = signal.multipath_floor_m + signal.multipath_low_m * np.exp(
         -np.maximum(elevation, 0.0) / signal.multipath_scale_rad
     )
-    multipath = multipath_std * _gauss_markov(multipath_innovations, gnss_step, signal.multipath_tau_s)
+    multipath_unit = _gauss_markov(multipath_innovations, gnss_step, signal.multipath_tau_s)
+    multipath = multipath_std * multipath_unit
     noise = signal.code_noise_m * 10.0 ** ((45.0 - cn0) / 20.0) * code_noise
     reflector = street_rows.facade_distance_opposite(azimuth)
     relative = azimuth - street_rows.axis[:, None]
@@ -194,6 +198,12 @@ def simulate(scenario: GnssScenario, rng: np.random.Generator) -> GnssRun:
         + noise
         + extra
     )
+    phase = None
+    if scenario.carrier is not None and carrier_draws is not None:
+        phase_path = geometric + receiver_bias - SPEED_OF_LIGHT * sat_clock - iono + tropo + sisre + extra
+        phase = carrier_phase(
+            carrier_draws, scenario.carrier, tracked, cn0, phase_path, multipath_unit, frequency
+        )
 
     # -- RISS ---------------------------------------------------------------------------------------
     dt = scenario.riss_period
@@ -242,6 +252,8 @@ def simulate(scenario: GnssScenario, rng: np.random.Generator) -> GnssRun:
                             float(transmit[k, j, 2]),
                         ),
                         sat_clock=float(sat_clock[k, j]),
+                        carrier_cycles=None if phase is None else _finite_or_none(phase.cycles[k, j]),
+                        lli=None if phase is None or math.isnan(phase.cycles[k, j]) else int(phase.lli[k, j]),
                     )
                 )
         epochs.append(epoch)
@@ -258,6 +270,10 @@ def simulate(scenario: GnssScenario, rng: np.random.Generator) -> GnssRun:
         cn0=cn0,
         error=np.where(tracked, error, np.nan),
     )
+
+
+def _finite_or_none(value: float) -> float | None:
+    return None if math.isnan(value) else float(value)
 
 
 def _rotate(position: np.ndarray, travel_time: np.ndarray) -> np.ndarray:
