@@ -49,7 +49,15 @@ def urban_document(tmp_path_factory: pytest.TempPathFactory) -> dict:
 def test_json_shape(urban_document: dict) -> None:
     assert urban_document["scenario"] == "urban-nanjing-short"
     assert urban_document["runs"] == 1 and urban_document["seed"] == 3 and urban_document["particles"] == 20
-    assert set(urban_document["algorithms"]) == {"PF", "UPF", "UPF+fuzzy", "UKF", "UKF-equal", "WLS"}
+    assert set(urban_document["algorithms"]) == {
+        "PF",
+        "UPF",
+        "UPF+fuzzy",
+        "UKF",
+        "UKF-equal",
+        "UPF-default",
+        "WLS",
+    }
     for name, figures in urban_document["algorithms"].items():
         for key in ("horizontal_rms_m", "horizontal_max_m", "epoch_ms"):
             assert isinstance(figures[key], float) and math.isfinite(figures[key]), (name, key)
