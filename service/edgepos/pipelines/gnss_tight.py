@@ -155,6 +155,9 @@ from edgepos.pipelines.gnss_session import (
     empty_cloud,
     filter_for,
 )
+from edgepos.pipelines.gnss_tdcp import TdcpStep, predict_with_displacement, remember_phases
+from edgepos.pipelines.gnss_tdcp import enabled as tdcp_enabled
+from edgepos.pipelines.gnss_tdcp import report as tdcp_report
 from edgepos.pipelines.options import resolve_options
 
 _SAT_RADIUS_M = (1.0e7, 5.0e7)
@@ -432,9 +435,18 @@ def _filter_epoch(
     rate_rows: np.ndarray = np.zeros(0, dtype=int)
     separated: Separations | None = None
     honest = Honesty()
+    tdcp, iono, tropo = TdcpStep(None, {}), None, None
     if len(satellites.prs):
         receiver = session.anchor.ecef(centre)
         iono, tropo, elevation, _ = epoch_delays(atmosphere, receiver, satellites.prs)
+        if tdcp_enabled(options):  # the phase differences' displacement as the motion (gnss_tdcp.py)
+            tdcp = predict_with_displacement(
+                session, t, dt, model, satellites, observations, iono, tropo, elevation
+            )
+            if tdcp.model is not None:
+                model, (mean, cloud_cov) = tdcp.model, cloud_moments(session)
+                centre = model.propagate(mean[None, :], dt)[0]
+                receiver = session.anchor.ecef(centre)
         rows = np.flatnonzero(elevation >= options["elevation_mask"])
         for row in np.flatnonzero(elevation < options["elevation_mask"]):
             i = satellites.indices[row]
@@ -621,6 +633,9 @@ def _filter_epoch(
         )
     for r in rate_rows.tolist():
         doppler[satellites.indices[r]] = (True, None)
+    if tdcp_enabled(options):
+        remember_phases(session, t, satellites, observations, iono, tropo, result.mean)
+        tdcp_report(uses, satellites.indices, tdcp)
     if options["filter"] == "pf":  # its particles' covariance collapses (pipelines/gnss_correlation.py)
         honest = honest.floored(result.cov)
     honest = honest.times(session.noise.scale if rows.size else 1.0)
