@@ -29,8 +29,9 @@ indicator, the Doppler-predicted phase change (``gnss/carrier.py``'s test) and t
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -43,6 +44,9 @@ DEFAULT_PHASE_STD_M = 0.05
 DEFAULT_GATE_PROBABILITY = 0.999
 DEFAULT_MIN_SATELLITES = 5
 _UNKNOWNS = 4
+MAX_CONDITION = 1e12
+"""Largest condition number (infinity norm) of the fit's normal matrix: beyond it the satellites' geometry
+does not fix the displacement (an exactly singular matrix inverts to rounding noise of 1e16 and more)."""
 _MIN_SIN_ELEVATION = math.sin(math.radians(10.0))
 
 
@@ -103,6 +107,11 @@ class Displacement:
     why: str | None
 
 
+Fit = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str | None], TdcpConfig], Displacement]
+"""The least-squares fit :func:`displacement` runs: :func:`fit_rows`, or the compiled form
+(pipelines/gnss_tdcp_kernel.py) the pipeline passes."""
+
+
 def model_terms(
     receiver: np.ndarray,
     sat_position: np.ndarray,
@@ -156,39 +165,45 @@ def displacement(
     doppler_hz: np.ndarray,
     lli: np.ndarray,
     config: TdcpConfig,
+    fit: Fit | None = None,
 ) -> Displacement:
     """Fit the displacement since ``history``'s epoch from the rows with finite ``cycles``; ``terms_now`` is
     :func:`model_terms` of this epoch at ``history.receiver`` (the previous position), ``elevation`` (rad)
-    sets each difference's std, ``phase_std_m`` / sin(elevation) (floored at 10 deg)."""
+    sets each difference's std, ``phase_std_m`` / sin(elevation) (floored at 10 deg). ``fit``: the least
+    squares to run (default :func:`fit_rows`, numpy)."""
     n = len(sats)
     reasons: list[str | None] = ["no carrier phase"] * n
     if history.receiver is None:
         return Displacement(None, None, 0.0, reasons, "no previous epoch with carrier phase")
     rows: list[int] = []
+    before: list[tuple[float, float]] = []
+    # the rows as Python numbers, read once (an element read from numpy costs more than the test)
+    all_cycles, dopplers, flags = cycles.tolist(), doppler_hz.tolist(), lli.tolist()
     for row in range(n):
-        if not math.isfinite(float(cycles[row])):
+        value = all_cycles[row]
+        if not math.isfinite(value):
             continue
-        why = slip_reason(
-            history, t, sats[row], float(cycles[row]), float(doppler_hz[row]), int(lli[row]), config
-        )
+        why = slip_reason(history, t, sats[row], value, dopplers[row], int(flags[row]), config)
         reasons[row] = why
         if why is None:
             rows.append(row)
+            before.append(history.phases[sats[row]])
     if len(rows) < config.min_satellites:
         for row in rows:
             reasons[row] = f"{len(rows)} continuous phases, fewer than {config.min_satellites}"
         return Displacement(None, None, 0.0, reasons, f"{len(rows)} continuous carrier phases")
     index = np.array(rows)
-    previous = np.array([history.phases[sats[r]] for r in rows])
+    previous = np.array(before)
     y = wavelength_m[index] * (cycles[index] - previous[:, 0]) - terms_now[index] + previous[:, 1]
+    design = np.empty((len(rows), _UNKNOWNS))
     towards = sat_position[index] - np.array(history.receiver)
-    towards /= np.linalg.norm(towards, axis=1)[:, None]
-    design = np.hstack([-towards, np.ones((len(rows), 1))])
+    design[:, :3] = towards / -np.sqrt(np.einsum("ij,ij->i", towards, towards))[:, None]
+    design[:, 3] = 1.0
     std = config.phase_std_m / np.maximum(np.sin(elevation[index]), _MIN_SIN_ELEVATION)
-    return _fit(index, y, design, std, reasons, config)
+    return (fit or fit_rows)(index, y, design, std, reasons, config)
 
 
-def _fit(
+def fit_rows(
     index: np.ndarray,
     y: np.ndarray,
     design: np.ndarray,
@@ -198,37 +213,47 @@ def _fit(
 ) -> Displacement:
     """Weighted least squares of [d, clock change] with the chi-square test of its residuals; while it fails,
     the row with the largest standardised residual is left out (its reason says by how much)."""
-    keep = np.ones(len(index), dtype=bool)
+    keep = np.arange(len(index))
     while True:
-        rows = np.flatnonzero(keep)
-        weights = 1.0 / std[rows] ** 2
-        a = design[rows] * np.sqrt(weights)[:, None]
+        root = 1.0 / std[keep]  # square roots of the weights
+        a = design[keep] * root[:, None]
+        b = y[keep] * root
         normal = a.T @ a
         try:
             cov = np.linalg.inv(normal)
         except np.linalg.LinAlgError:
             cov = None
-        if cov is None or not np.all(np.isfinite(cov)):
-            for r in rows.tolist():
+        if cov is None or not np.isfinite(cov).all() or _condition(normal, cov) > MAX_CONDITION:
+            for r in keep.tolist():
                 reasons[int(index[r])] = "the satellites' geometry does not fix a displacement"
             return Displacement(None, None, 0.0, reasons, "singular geometry")
-        solution = cov @ (a.T @ (y[rows] * np.sqrt(weights)))
-        residual = y[rows] - design[rows] @ solution
-        leverage = np.einsum("ij,jk,ik->i", a, cov, a)
-        dof = len(rows) - _UNKNOWNS
-        statistic = float(np.sum(residual**2 * weights))
-        if statistic <= float(chi2.ppf(config.gate_probability, dof)):
-            for r in rows.tolist():
+        solution = cov @ (a.T @ b)
+        weighted = b - a @ solution  # residuals over their std
+        if float(weighted @ weighted) <= bound(config.gate_probability, len(keep) - _UNKNOWNS):
+            for r in keep.tolist():
                 reasons[int(index[r])] = None
             return Displacement(solution[:3], cov[:3, :3], float(solution[3]), reasons, None)
-        standardised = np.abs(residual) / (std[rows] * np.sqrt(np.maximum(1.0 - leverage, 1e-9)))
+        leverage = np.einsum("ij,jk,ik->i", a, cov, a)
+        standardised = np.abs(weighted) / np.sqrt(np.maximum(1.0 - leverage, 1e-9))
         worst = int(np.argmax(standardised))
-        reasons[int(index[rows[worst]])] = (
-            f"phase difference {residual[worst]:+.2f} m off the displacement fit "
+        reasons[int(index[keep[worst]])] = (
+            f"phase difference {weighted[worst] * std[keep[worst]]:+.2f} m off the displacement fit "
             f"({standardised[worst]:.1f} sigma; a slip or a reflection)"
         )
-        keep[rows[worst]] = False
-        if len(rows) - 1 < config.min_satellites:
-            for r in np.flatnonzero(keep).tolist():
+        keep = np.delete(keep, worst)
+        if len(keep) < config.min_satellites:
+            for r in keep.tolist():
                 reasons[int(index[r])] = "the epoch's phase differences are inconsistent (chi-square test)"
             return Displacement(None, None, 0.0, reasons, "inconsistent phase differences")
+
+
+def _condition(normal: np.ndarray, inverse: np.ndarray) -> float:
+    """The infinity-norm condition number of ``normal``, from its inverse."""
+    return float(np.abs(normal).sum(axis=1).max() * np.abs(inverse).sum(axis=1).max())
+
+
+@functools.lru_cache(maxsize=256)
+def bound(probability: float, dof: int) -> float:
+    """The chi-square quantile, computed once per (probability, degrees of freedom): scipy's ppf costs tens
+    of microseconds, a tenth of the epoch's displacement fit."""
+    return float(chi2.ppf(probability, dof)) if dof > 0 else 0.0

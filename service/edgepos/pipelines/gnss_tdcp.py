@@ -22,29 +22,43 @@ radius: a 20 m step 30 m above the anchor, 0.1 mm).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import cast
 
 import numpy as np
 
+from edgepos.core.compiled import compiled_enabled
+from edgepos.core.kernels_base import FAILED, OK
 from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GnssOnlyModel
 from edgepos.core.observations import Observation, PseudorangeObservation
 from edgepos.core.particles import Cloud
-from edgepos.gnss.geodesy import ecef_to_geodetic
 from edgepos.gnss.orbits import SPEED_OF_LIGHT
-from edgepos.gnss.tdcp import DEFAULT_GATE_PROBABILITY, PhaseHistory, TdcpConfig, displacement, model_terms
+from edgepos.gnss.tdcp import (
+    DEFAULT_GATE_PROBABILITY,
+    MAX_CONDITION,
+    Displacement,
+    PhaseHistory,
+    TdcpConfig,
+    bound,
+    displacement,
+    fit_rows,
+    model_terms,
+)
 from edgepos.pipelines.base import MeasurementUse
 from edgepos.pipelines.gnss_satellites import EpochSatellites
 from edgepos.pipelines.gnss_session import GnssSession
+from edgepos.pipelines.gnss_tdcp_kernel import fit_kernel
 
 TDCP_MODES = ("tdcp", "hatch+tdcp")
 """``carrier_smoothing`` values that use the phase differences as the filters' motion."""
 
-_POSITION = (layout.NORTH, layout.EAST, layout.UP)
-_VELOCITY = (layout.VN, layout.VE, layout.VU)
+_POSITION = [layout.NORTH, layout.EAST, layout.UP]
+_VELOCITY = [layout.VN, layout.VE, layout.VU]
+_BLOCK = np.ix_(_POSITION, _POSITION)
 _POSITION_FLOOR_M2 = 1e-6
 """The constant-velocity model's floor on each position variance, kept (a millimetre)."""
 
@@ -56,14 +70,19 @@ class DisplacementModel(GnssOnlyModel):
     up; row-major 3 x 3) on the position and no position-velocity cross terms."""
 
     displacement_cov: tuple[float, ...] = (0.0,) * 9
+    _noise: dict[float, np.ndarray] = field(default_factory=dict, compare=False, repr=False)
+    """Q per dt, built once (the pipeline's screens and the filter step each ask for it)."""
 
     def process_noise(self, dt: float) -> np.ndarray:
-        q = super().process_noise(dt)
-        for pos, vel in zip(_POSITION, _VELOCITY, strict=True):
-            q[pos, vel] = q[vel, pos] = 0.0
-        block = np.array(self.displacement_cov).reshape(3, 3) + _POSITION_FLOOR_M2 * np.eye(3)
-        q[np.ix_(_POSITION, _POSITION)] = block
-        return q
+        q = self._noise.get(dt)
+        if q is None:
+            q = super().process_noise(dt)
+            for pos, vel in zip(_POSITION, _VELOCITY, strict=True):
+                q[pos, vel] = q[vel, pos] = 0.0
+            q[_BLOCK] = np.array(self.displacement_cov).reshape(3, 3) + _POSITION_FLOOR_M2 * np.eye(3)
+            self._noise[dt] = q
+        copy: np.ndarray = q.copy()
+        return copy
 
 
 @dataclass(frozen=True)
@@ -74,6 +93,8 @@ class TdcpStep:
 
     model: DisplacementModel | None
     reasons: dict[int, str | None]
+    phases: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    """The rows' carrier phase, Doppler and LLI (:func:`_phases`), read once for the epoch."""
 
 
 def enabled(options: dict[str, object]) -> bool:
@@ -86,25 +107,27 @@ def predict_with_displacement(
     t: float,
     dt: float,
     model: object,
+    mean: np.ndarray,
     satellites: EpochSatellites,
     observations: Sequence[Observation],
-    ionosphere_m: np.ndarray,
-    troposphere_m: np.ndarray,
-    elevation: np.ndarray,
+    delays: tuple[np.ndarray, np.ndarray, np.ndarray],
 ) -> TdcpStep:
-    """Fit the displacement since the filter's previous epoch; when there is one (GNSS-only model, the phase
-    history from that epoch), move ``session.cloud`` for it and return the model to predict with."""
+    """Fit the displacement since the filter's previous epoch (``mean``: the cloud's mean there; ``delays``:
+    the rows' ionosphere, troposphere and elevation); when there is one (GNSS-only model, the phase history
+    from that epoch), move ``session.cloud`` for it and return the model to predict with."""
+    ionosphere_m, troposphere_m, elevation = delays
+    phases = _phases(satellites, observations, session.options)
     if not isinstance(model, GnssOnlyModel) or session.anchor is None:
-        return TdcpStep(None, {})
+        return TdcpStep(None, {}, phases)
     history = session.tdcp
-    cycles, doppler, lli = _phases(satellites, observations, session.options)
+    cycles, doppler, lli = phases
     prs = satellites.prs
+    carrying = np.flatnonzero(np.isfinite(cycles)).tolist()
     if history.receiver is None or history.t != session.filter_t:
-        reasons: dict[int, str | None] = {
-            r: "no carrier phase history at the filter's previous epoch"
-            for r in np.flatnonzero(np.isfinite(cycles)).tolist()
-        }
-        return TdcpStep(None, reasons)
+        reasons: dict[int, str | None] = dict.fromkeys(
+            carrying, "no carrier phase history at the filter's previous epoch"
+        )
+        return TdcpStep(None, reasons, phases)
     terms = model_terms(
         np.array(history.receiver),
         prs.sat_position,
@@ -124,15 +147,20 @@ def predict_with_displacement(
         elevation,
         doppler,
         lli,
-        _config(session.options),
+        _config(
+            session.options["tdcp_phase_std_m"],
+            session.options["carrier_slip_cycles_per_s"],
+            session.options["carrier_max_gap_s"],
+        ),
+        compiled_fit,
     )
-    reasons = {r: fit.reasons[r] for r in np.flatnonzero(np.isfinite(cycles)).tolist()}
+    reasons = {r: fit.reasons[r] for r in carrying}
     if fit.d is None or fit.cov is None:
-        return TdcpStep(None, reasons)
-    rotation = _north_east_up(np.array(history.receiver))
+        return TdcpStep(None, reasons, phases)
+    lat, lon, _ = session.anchor.geodetic(mean)
+    rotation = _north_east_up(float(lat), float(lon))
     step = rotation @ fit.d
     cov = rotation @ fit.cov @ rotation.T
-    cov = 0.5 * (cov + cov.T)
     session.cloud = shift_cloud(session.cloud, step, dt)
     moved = DisplacementModel(
         model.anchor,
@@ -140,37 +168,112 @@ def predict_with_displacement(
         model.vertical_accel_std,
         model.clock_bias_psd,
         model.clock_drift_psd,
-        tuple(float(v) for v in cov.ravel()),
+        tuple((0.5 * (cov + cov.T)).ravel().tolist()),
     )
-    return TdcpStep(moved, reasons)
+    return TdcpStep(moved, reasons, phases)
+
+
+def compiled_fit(
+    index: np.ndarray,
+    y: np.ndarray,
+    design: np.ndarray,
+    std: np.ndarray,
+    reasons: list[str | None],
+    config: TdcpConfig,
+) -> Displacement:
+    """``gnss.tdcp.fit_rows`` by the kernel (pipelines/gnss_tdcp_kernel.py), the numpy form when the kernels
+    are off: the same rows left out, the same reasons, the numbers to about 1e-12."""
+    if not compiled_enabled():
+        return fit_rows(index, y, design, std, reasons, config)
+    n = len(index)
+    keep = np.ones(n, dtype=np.bool_)
+    solution, cov, left_out = np.empty(4), np.empty((4, 4)), np.zeros((n, 2))
+    bounds = _bounds(config.gate_probability, n)
+    status = fit_kernel(
+        y, design, std, bounds, config.min_satellites, MAX_CONDITION, keep, solution, cov, left_out
+    )
+    rows, kept = index.tolist(), keep.tolist()
+    for r in np.flatnonzero(~keep).tolist():
+        reasons[rows[r]] = (
+            f"phase difference {left_out[r, 0]:+.2f} m off the displacement fit "
+            f"({left_out[r, 1]:.1f} sigma; a slip or a reflection)"
+        )
+    if status == OK:
+        for r, used in zip(rows, kept, strict=True):
+            if used:
+                reasons[r] = None
+        return Displacement(solution[:3].copy(), cov[:3, :3].copy(), float(solution[3]), reasons, None)
+    why, text = (
+        ("singular geometry", "the satellites' geometry does not fix a displacement")
+        if status == FAILED
+        else (
+            "inconsistent phase differences",
+            "the epoch's phase differences are inconsistent (chi-square test)",
+        )
+    )
+    for r, used in zip(rows, kept, strict=True):
+        if used:
+            reasons[r] = text
+    return Displacement(None, None, 0.0, reasons, why)
+
+
+@functools.lru_cache(maxsize=64)
+def _bounds(probability: float, rows: int) -> np.ndarray:
+    """The chi-square quantiles by degrees of freedom 0..rows (read-only), for the kernel."""
+    table = np.array([bound(probability, dof) for dof in range(rows + 1)])
+    table.flags.writeable = False
+    return table
 
 
 def shift_cloud(cloud: Cloud, step: np.ndarray, dt: float) -> Cloud:
     """The cloud moved by x -> x + step - v dt (position north/east/up, their velocities), its covariance
     by the same map, so that the constant-velocity step then gives x + step."""
     particles = cloud.particles.copy()
-    particles[:, _POSITION] += step[None, :] - particles[:, _VELOCITY] * dt
+    # north, east, up are columns 0-2; their velocities v_north (4), v_east (3), v_up (5)
+    particles[:, : layout.UP + 1] += step
+    particles[:, : layout.EAST + 1] -= particles[:, layout.VN : layout.VE - 1 : -1] * dt
+    particles[:, layout.UP] -= particles[:, layout.VU] * dt
+    moved = Cloud(particles, cloud.log_weights, _mapped(cloud.cov, dt))
+    known = cloud.known_moments(layout.ANGLES)
+    if known is not None:  # the weighted moments of the moved particles, by the same linear map
+        mean = known[0].copy()
+        mean[_POSITION] += step - mean[_VELOCITY] * dt
+        moved.remember_moments(layout.ANGLES, mean, _mapped(known[1], dt))
+    return moved
+
+
+def _mapped(cov: np.ndarray, dt: float) -> np.ndarray:
+    """T C T^T for T = I with -dt from each velocity to its position, symmetric to the last bit."""
+    transform = _transform(dt)
+    out = transform @ cov @ transform.T
+    symmetric: np.ndarray = 0.5 * (out + out.T)
+    return symmetric
+
+
+@functools.lru_cache(maxsize=16)
+def _transform(dt: float) -> np.ndarray:
+    """The map's matrix for an interval (read-only; built once per interval, the receiver's)."""
     transform = np.eye(layout.DIM)
     transform[_POSITION, _VELOCITY] = -dt
-    cov = transform @ cloud.cov @ transform.T
-    return Cloud(particles, cloud.log_weights, 0.5 * (cov + cov.T))
+    transform.flags.writeable = False
+    return transform
 
 
 def remember_phases(
     session: GnssSession,
     t: float,
-    satellites: EpochSatellites | None,
-    observations: Sequence[Observation],
-    ionosphere_m: np.ndarray | None,
-    troposphere_m: np.ndarray | None,
+    satellites: EpochSatellites,
+    step: TdcpStep,
+    delays: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
     posterior: np.ndarray,
 ) -> None:
-    """Keep this epoch's phases and model terms at the filter's posterior position for the next epoch's
-    differences (none when the epoch had no pseudorange with carrier phase)."""
-    if session.anchor is None or satellites is None or ionosphere_m is None or troposphere_m is None:
+    """Keep this epoch's phases (``step.phases``) and model terms at the filter's posterior position for the
+    next epoch's differences (none when the epoch had no pseudorange with carrier phase)."""
+    if session.anchor is None or delays is None or step.phases is None:
         session.tdcp = PhaseHistory()
         return
-    cycles, _, _ = _phases(satellites, observations, session.options)
+    ionosphere_m, troposphere_m, _ = delays
+    cycles = step.phases[0]
     rows = np.flatnonzero(np.isfinite(cycles))
     if not rows.size:
         session.tdcp = PhaseHistory()
@@ -228,17 +331,19 @@ def _phases(
     return cycles, doppler, lli
 
 
-def _config(options: dict[str, object]) -> TdcpConfig:
+@functools.lru_cache(maxsize=64)
+def _config(phase_std_m: float, slip_cycles_per_s: float, max_gap_s: float) -> TdcpConfig:
+    """The fit's settings from the session's options (built once per distinct set)."""
     return TdcpConfig(
-        float(cast(float, options["tdcp_phase_std_m"])),
+        float(phase_std_m),
         DEFAULT_GATE_PROBABILITY,
-        slip_cycles_per_s=float(cast(float, options["carrier_slip_cycles_per_s"])),
-        max_gap_s=float(cast(float, options["carrier_max_gap_s"])),
+        slip_cycles_per_s=float(slip_cycles_per_s),
+        max_gap_s=float(max_gap_s),
     )
 
 
-def _north_east_up(receiver: np.ndarray) -> np.ndarray:
-    """Rows: the local north, east and up unit vectors at an ECEF position (the state's position order)."""
-    lat, lon, _ = (float(v) for v in ecef_to_geodetic(receiver))
+def _north_east_up(lat: float, lon: float) -> np.ndarray:
+    """Rows: the local north, east and up unit vectors (ECEF) at a latitude and longitude (rad), the state's
+    position order."""
     sl, cl, so, co = math.sin(lat), math.cos(lat), math.sin(lon), math.cos(lon)
     return np.array([[-sl * co, -sl * so, cl], [-so, co, 0.0], [cl * co, cl * so, sl]])

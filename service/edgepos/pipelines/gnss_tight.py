@@ -435,14 +435,13 @@ def _filter_epoch(
     rate_rows: np.ndarray = np.zeros(0, dtype=int)
     separated: Separations | None = None
     honest = Honesty()
-    tdcp, iono, tropo = TdcpStep(None, {}), None, None
+    tdcp, delays = TdcpStep(None, {}), None
     if len(satellites.prs):
         receiver = session.anchor.ecef(centre)
         iono, tropo, elevation, _ = epoch_delays(atmosphere, receiver, satellites.prs)
         if tdcp_enabled(options):  # the phase differences' displacement as the motion (gnss_tdcp.py)
-            tdcp = predict_with_displacement(
-                session, t, dt, model, satellites, observations, iono, tropo, elevation
-            )
+            delays = (iono, tropo, elevation)
+            tdcp = predict_with_displacement(session, t, dt, model, mean, satellites, observations, delays)
             if tdcp.model is not None:
                 model, (mean, cloud_cov) = tdcp.model, cloud_moments(session)
                 centre = model.propagate(mean[None, :], dt)[0]
@@ -634,7 +633,7 @@ def _filter_epoch(
     for r in rate_rows.tolist():
         doppler[satellites.indices[r]] = (True, None)
     if tdcp_enabled(options):
-        remember_phases(session, t, satellites, observations, iono, tropo, result.mean)
+        remember_phases(session, t, satellites, tdcp, delays, result.mean)
         tdcp_report(uses, satellites.indices, tdcp)
     if options["filter"] == "pf":  # its particles' covariance collapses (pipelines/gnss_correlation.py)
         honest = honest.floored(result.cov)
