@@ -97,10 +97,8 @@ class GnssSession:
                 len(self.faults), _FAULT_FIELDS
             ),
         }
-        head, tdcp_sats, tdcp_table = self.tdcp.to_parts()
-        if head is not None:  # only sessions using the phase differences: other states keep their layout
-            meta["tdcp_head"], meta["tdcp_sats"] = head, tdcp_sats
-            arrays["tdcp"] = tdcp_table
+        if self.tdcp.receiver is not None:  # only sessions using phase differences: others keep their layout
+            meta["tdcp_head"], meta["tdcp_sats"], arrays["tdcp"] = self.tdcp.to_parts()
         known = self.cloud.known_moments(layout.ANGLES)
         if known is not None:  # the UPF's step computed them: the next epoch starts from them
             arrays["moments_mean"], arrays["moments_cov"] = known
@@ -132,12 +130,16 @@ def decode_session(blob: bytes) -> GnssSession:
             f"gnss_tight state's carrier tracks are corrupt: {error}"
         ) from None
     options, text = _options(meta)
-    try:
-        tdcp = PhaseHistory.from_parts(
-            meta.get("tdcp_head"), meta.get("tdcp_sats", []), arrays.get("tdcp", np.zeros((0, 2)))
-        )
-    except (ValueError, TypeError) as error:
-        raise state_format.StateFormatError(f"gnss_tight state's phase history is corrupt: {error}") from None
+    tdcp = PhaseHistory()
+    if "tdcp_head" in meta:
+        try:
+            tdcp = PhaseHistory.from_parts(
+                meta["tdcp_head"], meta.get("tdcp_sats", []), arrays.get("tdcp", np.zeros((0, 2)))
+            )
+        except (ValueError, TypeError) as error:
+            raise state_format.StateFormatError(
+                f"gnss_tight state's phase history is corrupt: {error}"
+            ) from None
     return GnssSession(
         options,
         int(meta["seed"]),
