@@ -117,12 +117,12 @@ def predict_with_displacement(
     from that epoch), move ``session.cloud`` for it and return the model to predict with."""
     ionosphere_m, troposphere_m, elevation = delays
     phases = _phases(satellites, observations, session.options)
-    if not isinstance(model, GnssOnlyModel) or session.anchor is None:
-        return TdcpStep(None, {}, phases)
-    history = session.tdcp
     cycles, doppler, lli = phases
-    prs = satellites.prs
     carrying = np.flatnonzero(np.isfinite(cycles)).tolist()
+    if not isinstance(model, GnssOnlyModel) or session.anchor is None:
+        return TdcpStep(None, dict.fromkeys(carrying, "the RISS input drives the motion this epoch"), phases)
+    history = session.tdcp
+    prs = satellites.prs
     if history.receiver is None or history.t != session.filter_t:
         reasons: dict[int, str | None] = dict.fromkeys(
             carrying, "no carrier phase history at the filter's previous epoch"
@@ -307,7 +307,7 @@ def report(uses: dict[int, MeasurementUse], indices: Sequence[int], step: TdcpSt
             text = note if use.noise_reason is None else f"{use.noise_reason}; {note}"
             uses[i] = _replace(use, noise_reason=text)
         else:
-            uses[i] = _replace(use, reason=f"{use.reason}; {note}")
+            uses[i] = _replace(use, reason=note if use.reason is None else f"{use.reason}; {note}")
 
 
 def _replace(use: MeasurementUse, **changes: object) -> MeasurementUse:
