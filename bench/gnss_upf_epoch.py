@@ -16,7 +16,8 @@ hyperthreads still slow it).
 
 Without ``--before`` only this checkout runs. ``--now-option NAME=JSON`` (repeatable) sets a session option
 for this checkout's runs only, so ``--before`` of this same checkout's service/ compares an option with the
-defaults, e.g. ``--before service --now-option 'carrier_smoothing="hatch+tdcp"'``.
+defaults, e.g. ``--before service --now-option 'carrier_smoothing="hatch+tdcp"'``; ``--before-option``
+likewise for the "before" runs (the same option on both sides compares two versions of its code).
 """
 
 from __future__ import annotations
@@ -92,6 +93,7 @@ def main() -> None:
     parser.add_argument("--filters", default="upf,pf,ukf")
     parser.add_argument("--particles", type=int, default=200)
     parser.add_argument("--now-option", action="append", default=[], metavar="NAME=JSON")
+    parser.add_argument("--before-option", action="append", default=[], metavar="NAME=JSON")
     parser.add_argument("--child", help=argparse.SUPPRESS)
     parser.add_argument("--child-options", default="{}", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -99,6 +101,7 @@ def main() -> None:
         child(args.child, args.particles, args.epochs, json.loads(args.child_options))
         return
     now_options = {k: json.loads(v) for k, v in (o.split("=", 1) for o in args.now_option)}
+    before_options = {k: json.loads(v) for k, v in (o.split("=", 1) for o in args.before_option)}
     codes = {"now": SERVICE}
     if args.before is not None:
         codes = {"before": args.before.resolve(), **codes}
@@ -109,7 +112,7 @@ def main() -> None:
     for _ in range(args.reps):
         for filter_name in filters:
             for code, service in codes.items():
-                extra = now_options if code == "now" else {}
+                extra = now_options if code == "now" else before_options
                 times = run(service, filter_name, args.particles, args.epochs, extra)
                 key = (filter_name, code)
                 bucket = results.setdefault(key, {name: [] for name in times})

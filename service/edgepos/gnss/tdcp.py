@@ -47,7 +47,12 @@ _UNKNOWNS = 4
 MAX_CONDITION = 1e12
 """Largest condition number (infinity norm) of the fit's normal matrix: beyond it the satellites' geometry
 does not fix the displacement (an exactly singular matrix inverts to rounding noise of 1e16 and more)."""
-_MIN_SIN_ELEVATION = math.sin(math.radians(10.0))
+MIN_SIN_ELEVATION = math.sin(math.radians(10.0))
+"""The differences' std is ``phase_std_m`` / sin(elevation) with the elevation floored at 10 deg."""
+
+DIFFERENCED, NO_PREVIOUS, LOSS_OF_LOCK, GAP, SLIP, NO_PHASE = range(6)
+"""Why a row's phase was or was not differenced (:func:`slip_code`'s order, then no phase this epoch): the
+codes the compiled form (pipelines/gnss_tdcp_kernel.py) returns, worded by :func:`slip_text`."""
 
 
 @dataclass(frozen=True)
@@ -140,17 +145,32 @@ def slip_reason(
     """Why this satellite's phase cannot be differenced with the previous epoch's (None: it can)."""
     previous = history.phases.get(sat)
     if previous is None or history.t is None:
-        return "no carrier phase at the previous epoch"
-    if lli & 1:
-        return "loss of lock (lli bit 0)"
+        return slip_text(NO_PREVIOUS, 0.0, 0.0, config)
     dt = t - history.t
+    if lli & 1:
+        return slip_text(LOSS_OF_LOCK, dt, 0.0, config)
     if not 0.0 < dt <= config.max_gap_s:
-        return f"{dt:g} s since the previous epoch (max gap {config.max_gap_s:g} s)"
+        return slip_text(GAP, dt, 0.0, config)
     if math.isfinite(doppler_hz):
         off = cycles - previous[0] + doppler_hz * dt
         if abs(off) > config.slip_cycles_per_s * dt:
-            return f"phase change {off:+.1f} cycles off the Doppler's over {dt:g} s"
+            return slip_text(SLIP, dt, off, config)
     return None
+
+
+def slip_text(code: int, dt: float, off: float, config: TdcpConfig) -> str | None:
+    """A row's reason from its code (None: differenced), ``off`` the cycles off the Doppler for SLIP."""
+    if code == DIFFERENCED:
+        return None
+    if code == NO_PREVIOUS:
+        return "no carrier phase at the previous epoch"
+    if code == LOSS_OF_LOCK:
+        return "loss of lock (lli bit 0)"
+    if code == GAP:
+        return f"{dt:g} s since the previous epoch (max gap {config.max_gap_s:g} s)"
+    if code == SLIP:
+        return f"phase change {off:+.1f} cycles off the Doppler's over {dt:g} s"
+    return "no carrier phase"
 
 
 def displacement(
@@ -172,7 +192,7 @@ def displacement(
     sets each difference's std, ``phase_std_m`` / sin(elevation) (floored at 10 deg). ``fit``: the least
     squares to run (default :func:`fit_rows`, numpy)."""
     n = len(sats)
-    reasons: list[str | None] = ["no carrier phase"] * n
+    reasons: list[str | None] = [slip_text(NO_PHASE, 0.0, 0.0, config)] * n
     if history.receiver is None:
         return Displacement(None, None, 0.0, reasons, "no previous epoch with carrier phase")
     rows: list[int] = []
@@ -189,9 +209,7 @@ def displacement(
             rows.append(row)
             before.append(history.phases[sats[row]])
     if len(rows) < config.min_satellites:
-        for row in rows:
-            reasons[row] = f"{len(rows)} continuous phases, fewer than {config.min_satellites}"
-        return Displacement(None, None, 0.0, reasons, f"{len(rows)} continuous carrier phases")
+        return too_few(rows, reasons, config)
     index = np.array(rows)
     previous = np.array(before)
     y = wavelength_m[index] * (cycles[index] - previous[:, 0]) - terms_now[index] + previous[:, 1]
@@ -199,8 +217,15 @@ def displacement(
     towards = sat_position[index] - np.array(history.receiver)
     design[:, :3] = towards / -np.sqrt(np.einsum("ij,ij->i", towards, towards))[:, None]
     design[:, 3] = 1.0
-    std = config.phase_std_m / np.maximum(np.sin(elevation[index]), _MIN_SIN_ELEVATION)
+    std = config.phase_std_m / np.maximum(np.sin(elevation[index]), MIN_SIN_ELEVATION)
     return (fit or fit_rows)(index, y, design, std, reasons, config)
+
+
+def too_few(rows: Sequence[int], reasons: list[str | None], config: TdcpConfig) -> Displacement:
+    """No displacement: fewer differenced ``rows`` than the fit needs (each says so)."""
+    for row in rows:
+        reasons[row] = f"{len(rows)} continuous phases, fewer than {config.min_satellites}"
+    return Displacement(None, None, 0.0, reasons, f"{len(rows)} continuous carrier phases")
 
 
 def fit_rows(

@@ -32,14 +32,17 @@ import numpy as np
 
 from edgepos.core.compiled import compiled_enabled
 from edgepos.core.kernels_base import FAILED, OK
+from edgepos.core.measurements.gnss_geometry import delays as epoch_delays
 from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GnssOnlyModel
 from edgepos.core.observations import Observation, PseudorangeObservation
 from edgepos.core.particles import Cloud
-from edgepos.gnss.orbits import SPEED_OF_LIGHT
+from edgepos.gnss.measurements import Atmosphere, PseudorangeSet
+from edgepos.gnss.orbits import OMEGA_EARTH, SPEED_OF_LIGHT
 from edgepos.gnss.tdcp import (
     DEFAULT_GATE_PROBABILITY,
     MAX_CONDITION,
+    MIN_SIN_ELEVATION,
     Displacement,
     PhaseHistory,
     TdcpConfig,
@@ -47,11 +50,19 @@ from edgepos.gnss.tdcp import (
     displacement,
     fit_rows,
     model_terms,
+    slip_text,
+    too_few,
 )
 from edgepos.pipelines.base import MeasurementUse
 from edgepos.pipelines.gnss_satellites import EpochSatellites
 from edgepos.pipelines.gnss_session import GnssSession
-from edgepos.pipelines.gnss_tdcp_kernel import fit_kernel
+from edgepos.pipelines.gnss_tdcp_kernel import (
+    differences_kernel,
+    fit_kernel,
+    map_kernel,
+    shift_kernel,
+    terms_kernel,
+)
 
 TDCP_MODES = ("tdcp", "hatch+tdcp")
 """``carrier_smoothing`` values that use the phase differences as the filters' motion."""
@@ -110,50 +121,32 @@ def predict_with_displacement(
     mean: np.ndarray,
     satellites: EpochSatellites,
     observations: Sequence[Observation],
-    delays: tuple[np.ndarray, np.ndarray, np.ndarray],
+    atmosphere: Atmosphere,
 ) -> TdcpStep:
-    """Fit the displacement since the filter's previous epoch (``mean``: the cloud's mean there; ``delays``:
-    the rows' ionosphere, troposphere and elevation); when there is one (GNSS-only model, the phase history
-    from that epoch), move ``session.cloud`` for it and return the model to predict with."""
-    ionosphere_m, troposphere_m, elevation = delays
+    """Fit the displacement since the filter's previous epoch (``mean``: the cloud's mean there); when there
+    is one (GNSS-only model, the phase history from that epoch), move ``session.cloud`` for it and return
+    the model to predict with. The satellites' delays and elevations for the fit are taken at the previous
+    fix, where the fit's model terms are (and not at the constant-velocity prediction, which the moved cloud
+    replaces: so the epoch propagates its centre once; over one epoch's motion the delays change by
+    fractions of a millimetre)."""
     phases = _phases(satellites, observations, session.options)
-    cycles, doppler, lli = phases
-    carrying = np.flatnonzero(np.isfinite(cycles)).tolist()
+    carrying = np.flatnonzero(np.isfinite(phases[0])).tolist()
     if not isinstance(model, GnssOnlyModel) or session.anchor is None:
         return TdcpStep(None, dict.fromkeys(carrying, "the RISS input drives the motion this epoch"), phases)
     history = session.tdcp
-    prs = satellites.prs
     if history.receiver is None or history.t != session.filter_t:
         reasons: dict[int, str | None] = dict.fromkeys(
             carrying, "no carrier phase history at the filter's previous epoch"
         )
         return TdcpStep(None, reasons, phases)
-    terms = model_terms(
-        np.array(history.receiver),
-        prs.sat_position,
-        prs.sat_clock_s,
-        troposphere_m,
-        ionosphere_m,
-        SPEED_OF_LIGHT,
+    config = _config(
+        session.options["tdcp_phase_std_m"],
+        session.options["carrier_slip_cycles_per_s"],
+        session.options["carrier_max_gap_s"],
     )
-    fit = displacement(
-        history,
-        t,
-        prs.sats,
-        cycles,
-        SPEED_OF_LIGHT / prs.frequency_hz,
-        prs.sat_position,
-        terms,
-        elevation,
-        doppler,
-        lli,
-        _config(
-            session.options["tdcp_phase_std_m"],
-            session.options["carrier_slip_cycles_per_s"],
-            session.options["carrier_max_gap_s"],
-        ),
-        compiled_fit,
-    )
+    prs = satellites.prs
+    ionosphere_m, troposphere_m, elevation, _ = epoch_delays(atmosphere, np.array(history.receiver), prs)
+    fit = epoch_displacement(history, t, prs, phases, (ionosphere_m, troposphere_m, elevation), config)
     reasons = {r: fit.reasons[r] for r in carrying}
     if fit.d is None or fit.cov is None:
         return TdcpStep(None, reasons, phases)
@@ -171,6 +164,81 @@ def predict_with_displacement(
         tuple((0.5 * (cov + cov.T)).ravel().tolist()),
     )
     return TdcpStep(moved, reasons, phases)
+
+
+def epoch_displacement(
+    history: PhaseHistory,
+    t: float,
+    prs: PseudorangeSet,
+    phases: tuple[np.ndarray, np.ndarray, np.ndarray],
+    delays: tuple[np.ndarray, np.ndarray, np.ndarray],
+    config: TdcpConfig,
+) -> Displacement:
+    """``gnss.tdcp.displacement`` of the epoch's rows (``phases``: carrier, Doppler, LLI; ``delays``:
+    ionosphere, troposphere, elevation) since ``history``'s epoch, whose position must be known. By the
+    kernels (pipelines/gnss_tdcp_kernel.py), the numpy form when they are off: the same rows and reasons,
+    the same differences to the bit, the fit's numbers to about 1e-12."""
+    ionosphere_m, troposphere_m, elevation = delays
+    cycles, doppler, lli = phases
+    assert history.receiver is not None and history.t is not None
+    receiver = np.array(history.receiver)
+    wavelength = SPEED_OF_LIGHT / prs.frequency_hz
+    if not compiled_enabled():
+        terms = model_terms(
+            receiver, prs.sat_position, prs.sat_clock_s, troposphere_m, ionosphere_m, SPEED_OF_LIGHT
+        )
+        return displacement(
+            history, t, prs.sats, cycles, wavelength, prs.sat_position, terms, elevation, doppler, lli, config
+        )
+    n = len(cycles)
+    terms = np.empty(n)
+    terms_kernel(
+        receiver,
+        prs.sat_position,
+        prs.sat_clock_s,
+        troposphere_m,
+        ionosphere_m,
+        OMEGA_EARTH,
+        SPEED_OF_LIGHT,
+        terms,
+    )
+    known = history.phases
+    before = np.array([known.get(sat, _NO_PHASE) for sat in prs.sats], dtype=float).reshape(n, 2)
+    std_all = config.phase_std_m / np.maximum(np.sin(elevation), MIN_SIN_ELEVATION)
+    status, off, index = np.empty(n, dtype=np.int64), np.zeros(n), np.empty(n, dtype=np.int64)
+    y, design, std = np.empty(n), np.empty((n, 4)), np.empty(n)
+    dt = t - history.t
+    count = differences_kernel(
+        cycles,
+        before,
+        dt,
+        config.max_gap_s,
+        config.slip_cycles_per_s,
+        doppler,
+        lli,
+        wavelength,
+        prs.sat_position,
+        receiver,
+        terms,
+        std_all,
+        status,
+        off,
+        index,
+        y,
+        design,
+        std,
+    )
+    reasons = [
+        slip_text(code, dt, change, config)
+        for code, change in zip(status.tolist(), off.tolist(), strict=True)
+    ]
+    if count < config.min_satellites:
+        return too_few(index[:count].tolist(), reasons, config)
+    return compiled_fit(index[:count], y[:count], design[:count], std[:count], reasons, config)
+
+
+_NO_PHASE = (math.nan, math.nan)
+"""``epoch_displacement``'s previous [cycles, term] of a satellite without a phase at the previous epoch."""
 
 
 def compiled_fit(
@@ -228,11 +296,15 @@ def _bounds(probability: float, rows: int) -> np.ndarray:
 def shift_cloud(cloud: Cloud, step: np.ndarray, dt: float) -> Cloud:
     """The cloud moved by x -> x + step - v dt (position north/east/up, their velocities), its covariance
     by the same map, so that the constant-velocity step then gives x + step."""
-    particles = cloud.particles.copy()
-    # north, east, up are columns 0-2; their velocities v_north (4), v_east (3), v_up (5)
-    particles[:, : layout.UP + 1] += step
-    particles[:, : layout.EAST + 1] -= particles[:, layout.VN : layout.VE - 1 : -1] * dt
-    particles[:, layout.UP] -= particles[:, layout.VU] * dt
+    if compiled_enabled():
+        particles = np.empty_like(cloud.particles)
+        shift_kernel(cloud.particles, step, dt, particles)
+    else:
+        particles = cloud.particles.copy()
+        # north, east, up are columns 0-2; their velocities v_north (4), v_east (3), v_up (5)
+        particles[:, : layout.UP + 1] += step
+        particles[:, : layout.EAST + 1] -= particles[:, layout.VN : layout.VE - 1 : -1] * dt
+        particles[:, layout.UP] -= particles[:, layout.VU] * dt
     moved = Cloud(particles, cloud.log_weights, _mapped(cloud.cov, dt))
     known = cloud.known_moments(layout.ANGLES)
     if known is not None:  # the weighted moments of the moved particles, by the same linear map
@@ -243,20 +315,18 @@ def shift_cloud(cloud: Cloud, step: np.ndarray, dt: float) -> Cloud:
 
 
 def _mapped(cov: np.ndarray, dt: float) -> np.ndarray:
-    """T C T^T for T = I with -dt from each velocity to its position, symmetric to the last bit."""
-    transform = _transform(dt)
-    out = transform @ cov @ transform.T
+    """T C T^T for T = I with -dt from each velocity to its position, symmetric to the last bit: the
+    position rows less dt times their velocity rows, then the same for the columns (``map_kernel`` when
+    the kernels are on, the same bits)."""
+    out = np.empty_like(cov)
+    if compiled_enabled():
+        map_kernel(cov, dt, out)
+        return out
+    out[...] = cov
+    out[_POSITION, :] -= dt * cov[_VELOCITY, :]
+    out[:, _POSITION] -= dt * out[:, _VELOCITY]
     symmetric: np.ndarray = 0.5 * (out + out.T)
     return symmetric
-
-
-@functools.lru_cache(maxsize=16)
-def _transform(dt: float) -> np.ndarray:
-    """The map's matrix for an interval (read-only; built once per interval, the receiver's)."""
-    transform = np.eye(layout.DIM)
-    transform[_POSITION, _VELOCITY] = -dt
-    transform.flags.writeable = False
-    return transform
 
 
 def remember_phases(
@@ -280,9 +350,22 @@ def remember_phases(
         return
     receiver = session.anchor.ecef(posterior)
     prs = satellites.prs
-    terms = model_terms(
-        receiver, prs.sat_position, prs.sat_clock_s, troposphere_m, ionosphere_m, SPEED_OF_LIGHT
-    )
+    if compiled_enabled():
+        terms = np.empty(len(cycles))
+        terms_kernel(
+            receiver,
+            prs.sat_position,
+            prs.sat_clock_s,
+            troposphere_m,
+            ionosphere_m,
+            OMEGA_EARTH,
+            SPEED_OF_LIGHT,
+            terms,
+        )
+    else:
+        terms = model_terms(
+            receiver, prs.sat_position, prs.sat_clock_s, troposphere_m, ionosphere_m, SPEED_OF_LIGHT
+        )
     x, y, z = (float(v) for v in receiver)
     session.tdcp = PhaseHistory(
         t, (x, y, z), {prs.sats[r]: (float(cycles[r]), float(terms[r])) for r in rows.tolist()}

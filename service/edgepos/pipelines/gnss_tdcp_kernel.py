@@ -1,9 +1,13 @@
-"""The phase differences' displacement fit in a compiled loop (numba): ``fit_kernel``, for ``gnss.tdcp``'s
-``_fit`` (weighted least squares with the chi-square exclusions), some twenty numpy calls on (n, 4) arrays
-there, each a microsecond or two.
+"""The phase differences' per-epoch loops compiled (numba): ``fit_kernel``, for ``gnss.tdcp``'s ``fit_rows``
+(weighted least squares with the chi-square exclusions), some twenty numpy calls on (n, 4) arrays there,
+each a microsecond or two; ``terms_kernel`` and ``differences_kernel`` for its ``model_terms`` and the slip
+tests and rows of ``displacement`` (a Python loop over the satellites and a dozen small numpy calls there);
+``shift_kernel`` for the particles' move in ``gnss_tdcp.shift_cloud``. Together they took the UPF epoch's
+phase differences from about 0.3 ms to a tenth of that (docs/gnss.md).
 
 The numpy forms stay the reference (run when ``EDGEPOS_NUMBA=0``; tests hold the kernels to them). The
-normal matrix is inverted by Gauss-Jordan elimination with partial pivoting where numpy inverts by LAPACK's
+terms, slip tests, differences and the particles' move follow numpy's operations one by one and give the
+same bits; in the fit the normal matrix is inverted by Gauss-Jordan elimination with partial pivoting where numpy inverts by LAPACK's
 LU and sums run in index order: the numbers agree to about 1e-12 relative (tested) and the rows left out
 are the same, but for a tie: with one degree of freedom left every standardised residual is the same, and
 rounding picks the row (the epoch then has too few rows either way: no displacement).
@@ -16,7 +20,9 @@ import math
 import numpy as np
 
 from edgepos.core.kernels_base import FAILED, OK, _jit
+from edgepos.core.motion import riss as layout
 from edgepos.core.numerics import FloatArray
+from edgepos.gnss.tdcp import DIFFERENCED, GAP, LOSS_OF_LOCK, NO_PHASE, NO_PREVIOUS, SLIP
 
 INCONSISTENT = 2
 """``fit_kernel``: fewer than the minimum rows left consistent."""
@@ -139,3 +145,120 @@ def fit_kernel(
         count -= 1
         if count < min_rows:
             return INCONSISTENT
+
+
+@_jit
+def terms_kernel(
+    receiver: FloatArray,
+    sat_position: FloatArray,
+    sat_clock_s: FloatArray,
+    troposphere_m: FloatArray,
+    ionosphere_m: FloatArray,
+    omega_earth: float,
+    speed_of_light: float,
+    out: FloatArray,
+) -> None:
+    """``gnss.tdcp.model_terms`` row by row (the Sagnac range, then the clock and the delays, in its order of
+    operations: the same bits)."""
+    rx, ry, rz = receiver[0], receiver[1], receiver[2]
+    for i in range(sat_position.shape[0]):
+        sx, sy, sz = sat_position[i, 0], sat_position[i, 1], sat_position[i, 2]
+        dx, dy, dz = sx - rx, sy - ry, sz - rz
+        geometric = math.sqrt(dx * dx + dy * dy + dz * dz)
+        sagnac = omega_earth * (sx * ry - sy * rx)
+        value = geometric + sagnac / speed_of_light - speed_of_light * sat_clock_s[i]
+        out[i] = value + troposphere_m[i] - ionosphere_m[i]
+
+
+@_jit
+def differences_kernel(
+    cycles: FloatArray,
+    before: FloatArray,
+    dt: float,
+    max_gap_s: float,
+    slip_cycles_per_s: float,
+    doppler_hz: FloatArray,
+    lli: np.ndarray,
+    wavelength_m: FloatArray,
+    sat_position: FloatArray,
+    receiver: FloatArray,
+    terms_now: FloatArray,
+    std_all: FloatArray,
+    status: np.ndarray,
+    off: FloatArray,
+    index: np.ndarray,
+    y: FloatArray,
+    design: FloatArray,
+    std: FloatArray,
+) -> int:
+    """``gnss.tdcp.displacement`` before its fit: per row its ``gnss.tdcp`` code (``status``; ``off`` the cycles off the
+    Doppler for SLIP), and the differenced rows' index, difference ``y``, design row and std, packed at the
+    front; returns how many. ``before``: per row the previous epoch's [cycles, model term] (NaN: none)."""
+    count = 0
+    for row in range(cycles.shape[0]):
+        value = cycles[row]
+        if not math.isfinite(value):
+            status[row] = NO_PHASE
+            continue
+        if not math.isfinite(before[row, 0]):
+            status[row] = NO_PREVIOUS
+            continue
+        if lli[row] & 1:
+            status[row] = LOSS_OF_LOCK
+            continue
+        if not 0.0 < dt <= max_gap_s:
+            status[row] = GAP
+            continue
+        if math.isfinite(doppler_hz[row]):
+            change = value - before[row, 0] + doppler_hz[row] * dt
+            if abs(change) > slip_cycles_per_s * dt:
+                status[row] = SLIP
+                off[row] = change
+                continue
+        status[row] = DIFFERENCED
+        index[count] = row
+        y[count] = wavelength_m[row] * (value - before[row, 0]) - terms_now[row] + before[row, 1]
+        tx = sat_position[row, 0] - receiver[0]
+        ty = sat_position[row, 1] - receiver[1]
+        tz = sat_position[row, 2] - receiver[2]
+        norm = -math.sqrt(tx * tx + ty * ty + tz * tz)
+        design[count, 0], design[count, 1], design[count, 2] = tx / norm, ty / norm, tz / norm
+        design[count, 3] = 1.0
+        std[count] = std_all[row]
+        count += 1
+    return count
+
+
+@_jit
+def shift_kernel(particles: FloatArray, step: FloatArray, dt: float, out: FloatArray) -> None:
+    """``gnss_tdcp.shift_cloud``'s particles: ``out`` = ``particles`` with each position (north, east, up)
+    moved by ``step`` less its velocity times ``dt``, in the numpy form's order of operations (the same
+    bits)."""
+    for i in range(particles.shape[0]):
+        for j in range(particles.shape[1]):
+            out[i, j] = particles[i, j]
+        out[i, layout.NORTH] = (particles[i, layout.NORTH] + step[0]) - particles[i, layout.VN] * dt
+        out[i, layout.EAST] = (particles[i, layout.EAST] + step[1]) - particles[i, layout.VE] * dt
+        out[i, layout.UP] = (particles[i, layout.UP] + step[2]) - particles[i, layout.VU] * dt
+
+
+@_jit
+def map_kernel(cov: FloatArray, dt: float, out: FloatArray) -> None:
+    """``gnss_tdcp._mapped``: ``out`` = T C T^T, T the identity with -dt from each velocity to its position,
+    made symmetric as there; row and column operations where numpy multiplies the full matrices (the same
+    numbers but for the last bit of the position rows and columns)."""
+    n = cov.shape[0]
+    for i in range(n):
+        for j in range(n):
+            out[i, j] = cov[i, j]
+    for position, velocity in ((layout.NORTH, layout.VN), (layout.EAST, layout.VE), (layout.UP, layout.VU)):
+        for j in range(n):
+            out[position, j] = cov[position, j] - dt * cov[velocity, j]
+    for position, velocity in ((layout.NORTH, layout.VN), (layout.EAST, layout.VE), (layout.UP, layout.VU)):
+        for i in range(n):
+            out[i, position] = out[i, position] - dt * out[i, velocity]
+    for i in range(n):
+        for j in range(i + 1, n):
+            mean = 0.5 * (out[i, j] + out[j, i])
+            out[i, j] = mean
+            out[j, i] = mean

@@ -424,6 +424,11 @@ def _filter_epoch(
     dt = t - session.filter_t if session.filter_t is not None else 0.0
     model = motion_model(session, t)
     mean, cloud_cov = cloud_moments(session)
+    tdcp, delays = TdcpStep(None, {}), None
+    if len(satellites.prs) and tdcp_enabled(options):  # the phases' displacement as the motion (gnss_tdcp.py)
+        tdcp = predict_with_displacement(session, t, dt, model, mean, satellites, observations, atmosphere)
+        if tdcp.model is not None:
+            model, (mean, cloud_cov) = tdcp.model, cloud_moments(session)
     centre = model.propagate(mean[None, :], dt)[0]
     active = model.active.copy()
     for system, index in layout.CLOCK.items():
@@ -435,17 +440,10 @@ def _filter_epoch(
     rate_rows: np.ndarray = np.zeros(0, dtype=int)
     separated: Separations | None = None
     honest = Honesty()
-    tdcp, delays = TdcpStep(None, {}), None
     if len(satellites.prs):
         receiver = session.anchor.ecef(centre)
         iono, tropo, elevation, _ = epoch_delays(atmosphere, receiver, satellites.prs)
-        if tdcp_enabled(options):  # the phase differences' displacement as the motion (gnss_tdcp.py)
-            delays = (iono, tropo, elevation)
-            tdcp = predict_with_displacement(session, t, dt, model, mean, satellites, observations, delays)
-            if tdcp.model is not None:
-                model, (mean, cloud_cov) = tdcp.model, cloud_moments(session)
-                centre = model.propagate(mean[None, :], dt)[0]
-                receiver = session.anchor.ecef(centre)
+        delays = (iono, tropo, elevation)
         rows = np.flatnonzero(elevation >= options["elevation_mask"])
         for row in np.flatnonzero(elevation < options["elevation_mask"]):
             i = satellites.indices[row]
