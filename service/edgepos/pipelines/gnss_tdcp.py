@@ -70,7 +70,9 @@ TDCP_MODES = ("tdcp", "hatch+tdcp")
 _POSITION = [layout.NORTH, layout.EAST, layout.UP]
 _VELOCITY = [layout.VN, layout.VE, layout.VU]
 _BLOCK = np.ix_(_POSITION, _POSITION)
-_POSITION_FLOOR_M2 = 1e-6
+_CROSS = (np.array(_POSITION + _VELOCITY), np.array(_VELOCITY + _POSITION))
+"""The position-velocity cross terms of Q, both triangles."""
+_POSITION_FLOOR = 1e-6 * np.eye(3)
 """The constant-velocity model's floor on each position variance, kept (a millimetre)."""
 
 
@@ -87,13 +89,19 @@ class DisplacementModel(GnssOnlyModel):
     def process_noise(self, dt: float) -> np.ndarray:
         q = self._noise.get(dt)
         if q is None:
-            q = super().process_noise(dt)
-            for pos, vel in zip(_POSITION, _VELOCITY, strict=True):
-                q[pos, vel] = q[vel, pos] = 0.0
-            q[_BLOCK] = np.array(self.displacement_cov).reshape(3, 3) + _POSITION_FLOOR_M2 * np.eye(3)
-            self._noise[dt] = q
+            q = self.remember_noise(
+                dt, super().process_noise(dt), np.array(self.displacement_cov).reshape(3, 3)
+            )
         copy: np.ndarray = q.copy()
         return copy
+
+    def remember_noise(self, dt: float, q: np.ndarray, displacement_cov: np.ndarray) -> np.ndarray:
+        """Q over ``dt`` from the constant-velocity model's ``q`` (changed in place) and the displacement's
+        covariance (the field's matrix: the caller that has it spares its rebuilding from the tuple)."""
+        q[_CROSS] = 0.0
+        q[_BLOCK] = displacement_cov + _POSITION_FLOOR
+        self._noise[dt] = q
+        return q
 
 
 @dataclass(frozen=True)
@@ -155,14 +163,16 @@ def predict_with_displacement(
     step = rotation @ fit.d
     cov = rotation @ fit.cov @ rotation.T
     session.cloud = shift_cloud(session.cloud, step, dt)
+    cov = 0.5 * (cov + cov.T)
     moved = DisplacementModel(
         model.anchor,
         model.accel_std,
         model.vertical_accel_std,
         model.clock_bias_psd,
         model.clock_drift_psd,
-        tuple((0.5 * (cov + cov.T)).ravel().tolist()),
+        tuple(cov.ravel().tolist()),
     )
+    moved.remember_noise(dt, model.process_noise(dt), cov)
     return TdcpStep(moved, reasons, phases)
 
 
@@ -228,10 +238,9 @@ def epoch_displacement(
         design,
         std,
     )
-    reasons = [
-        slip_text(code, dt, change, config)
-        for code, change in zip(status.tolist(), off.tolist(), strict=True)
-    ]
+    reasons: list[str | None] = [None] * n
+    for row in np.flatnonzero(status).tolist():  # the rows not differenced: few (most have no phase)
+        reasons[row] = slip_text(int(status[row]), dt, float(off[row]), config)
     if count < config.min_satellites:
         return too_few(index[:count].tolist(), reasons, config)
     return compiled_fit(index[:count], y[:count], design[:count], std[:count], reasons, config)
@@ -366,9 +375,15 @@ def remember_phases(
         terms = model_terms(
             receiver, prs.sat_position, prs.sat_clock_s, troposphere_m, ionosphere_m, SPEED_OF_LIGHT
         )
-    x, y, z = (float(v) for v in receiver)
+    x, y, z = receiver.tolist()
+    sats = prs.sats
     session.tdcp = PhaseHistory(
-        t, (x, y, z), {prs.sats[r]: (float(cycles[r]), float(terms[r])) for r in rows.tolist()}
+        t,
+        (x, y, z),
+        {
+            sats[r]: (c, m)
+            for r, c, m in zip(rows.tolist(), cycles[rows].tolist(), terms[rows].tolist(), strict=True)
+        },
     )
 
 
