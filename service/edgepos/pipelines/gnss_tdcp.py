@@ -387,13 +387,17 @@ def remember_phases(
     )
 
 
-def report(uses: dict[int, MeasurementUse], indices: Sequence[int], step: TdcpStep) -> None:
-    """Say in each pseudorange's report whether its phase difference entered the displacement."""
+def report(
+    uses: dict[int, MeasurementUse],
+    noise: dict[int, tuple[float, str]],
+    indices: Sequence[int],
+    step: TdcpStep,
+) -> None:
+    """Say in each pseudorange's report whether its phase difference entered the displacement: for a used
+    row in its noise reason (``noise``, before the reports are made from it: no report copied), for a row
+    left out in its report's reason."""
     for row, why in step.reasons.items():
         i = indices[row]
-        use = uses.get(i)
-        if use is None:
-            continue
         note = (
             "phase difference used for the displacement"
             if why is None
@@ -401,10 +405,12 @@ def report(uses: dict[int, MeasurementUse], indices: Sequence[int], step: TdcpSt
         )
         if step.model is None and why is None:
             note = "phase difference not used: the epoch gave no displacement"
-        if use.used:
-            text = note if use.noise_reason is None else f"{use.noise_reason}; {note}"
-            uses[i] = _replace(use, noise_reason=text)
-        else:
+        noted = noise.get(i)
+        if noted is not None:
+            noise[i] = (noted[0], f"{noted[1]}; {note}")
+            continue
+        use = uses.get(i)
+        if use is not None:
             uses[i] = _replace(use, reason=note if use.reason is None else f"{use.reason}; {note}")
 
 

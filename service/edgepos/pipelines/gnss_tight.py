@@ -619,6 +619,9 @@ def _filter_epoch(
     session.filter_t = t
     if measurement is not None and isinstance(model, GnssOnlyModel):
         maybe_start_riss(session, t, result)
+    if tdcp_enabled(options):
+        remember_phases(session, t, satellites, tdcp, delays, result.mean)
+        tdcp_report(uses, noise, satellites.indices, tdcp)
     for r in rows.tolist():
         i = satellites.indices[r]
         noted = noise.get(i)
@@ -630,9 +633,6 @@ def _filter_epoch(
         )
     for r in rate_rows.tolist():
         doppler[satellites.indices[r]] = (True, None)
-    if tdcp_enabled(options):
-        remember_phases(session, t, satellites, tdcp, delays, result.mean)
-        tdcp_report(uses, satellites.indices, tdcp)
     if options["filter"] == "pf":  # its particles' covariance collapses (pipelines/gnss_correlation.py)
         honest = honest.floored(result.cov)
     honest = honest.times(session.noise.scale if rows.size else 1.0)
