@@ -13,7 +13,7 @@ from edgepos.core.observations import PseudorangeObservation
 from edgepos.core.particles import Cloud
 from edgepos.gnss.orbits import OMEGA_EARTH, SPEED_OF_LIGHT
 from edgepos.gnss.tdcp import model_terms
-from edgepos.pipelines import gnss_tdcp
+from edgepos.pipelines import gnss_tdcp, gnss_tight
 from edgepos.pipelines.gnss_tdcp_kernel import terms_kernel
 from edgepos.pipelines.gnss_tight import GnssTightPipeline
 from gnssrecording import recording_epochs
@@ -81,11 +81,33 @@ def test_the_compiled_displacement_matches_the_numpy_one(monkeypatch) -> None:
         return got
 
     monkeypatch.setattr(gnss_tdcp, "epoch_displacement", both)
+    remember = gnss_tdcp.remember_phases
+    remembered = 0
+
+    def both_histories(session, *args):  # type: ignore[no-untyped-def]
+        nonlocal remembered
+        monkeypatch.setenv("EDGEPOS_NUMBA", "0")
+        remember(session, *args)
+        expected = session.tdcp
+        monkeypatch.setenv("EDGEPOS_NUMBA", "1")
+        remember(session, *args)
+        if expected.receiver is None:
+            assert session.tdcp == expected
+            return
+        # the receiver by geodetic_to_ecef's formula (numpy's sin and cos against libm's: the same bits
+        # where they agree, as on the machine this was written on) and the terms there
+        assert session.tdcp.t == expected.t and session.tdcp.phases.keys() == expected.phases.keys()
+        assert np.allclose(session.tdcp.receiver, expected.receiver, rtol=0.0, atol=1e-6)
+        got = np.array([session.tdcp.phases[s] for s in expected.phases])
+        assert np.allclose(got, np.array(list(expected.phases.values())), rtol=0.0, atol=1e-6)
+        remembered += 1
+
+    monkeypatch.setattr(gnss_tight, "remember_phases", both_histories)
     pipeline = GnssTightPipeline()
     state = pipeline.create(pipeline.resolve_options({"filter": "ukf", "carrier_smoothing": "tdcp"}), None)
     for epoch in _with_slips(epochs):
         _, state = pipeline.process(state, epoch, environment)
-    assert fits >= 15
+    assert fits >= 15 and remembered >= 20
     for reason in (
         "loss of lock (lli bit 0)",
         "no carrier phase at the previous epoch",

@@ -33,10 +33,12 @@ import numpy as np
 from edgepos.core.compiled import compiled_enabled
 from edgepos.core.kernels_base import FAILED, OK
 from edgepos.core.measurements.gnss_geometry import delays as epoch_delays
+from edgepos.core.measurements.gnss_kernel import anchor_array
 from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GnssOnlyModel
 from edgepos.core.observations import Observation, PseudorangeObservation
 from edgepos.core.particles import Cloud
+from edgepos.gnss.geodesy import WGS84_A, WGS84_E2
 from edgepos.gnss.measurements import Atmosphere, PseudorangeSet
 from edgepos.gnss.orbits import OMEGA_EARTH, SPEED_OF_LIGHT
 from edgepos.gnss.tdcp import (
@@ -60,6 +62,7 @@ from edgepos.pipelines.gnss_tdcp_kernel import (
     differences_kernel,
     fit_kernel,
     map_kernel,
+    posterior_terms_kernel,
     shift_kernel,
     terms_kernel,
 )
@@ -357,21 +360,25 @@ def remember_phases(
     if not rows.size:
         session.tdcp = PhaseHistory()
         return
-    receiver = session.anchor.ecef(posterior)
     prs = satellites.prs
     if compiled_enabled():
-        terms = np.empty(len(cycles))
-        terms_kernel(
-            receiver,
+        receiver, terms = np.empty(3), np.empty(len(cycles))
+        posterior_terms_kernel(
+            anchor_array(session.anchor),
+            posterior,
+            WGS84_A,
+            WGS84_E2,
             prs.sat_position,
             prs.sat_clock_s,
             troposphere_m,
             ionosphere_m,
             OMEGA_EARTH,
             SPEED_OF_LIGHT,
+            receiver,
             terms,
         )
     else:
+        receiver = session.anchor.ecef(posterior)
         terms = model_terms(
             receiver, prs.sat_position, prs.sat_clock_s, troposphere_m, ionosphere_m, SPEED_OF_LIGHT
         )

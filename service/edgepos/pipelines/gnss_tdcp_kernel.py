@@ -262,3 +262,35 @@ def map_kernel(cov: FloatArray, dt: float, out: FloatArray) -> None:
             mean = 0.5 * (out[i, j] + out[j, i])
             out[i, j] = mean
             out[j, i] = mean
+
+
+@_jit
+def posterior_terms_kernel(
+    anchor: FloatArray,
+    posterior: FloatArray,
+    semi_major_m: float,
+    eccentricity2: float,
+    sat_position: FloatArray,
+    sat_clock_s: FloatArray,
+    troposphere_m: FloatArray,
+    ionosphere_m: FloatArray,
+    omega_earth: float,
+    speed_of_light: float,
+    receiver: FloatArray,
+    terms: FloatArray,
+) -> None:
+    """``gnss_tdcp.remember_phases``'s receiver (``anchor.ecef`` of the posterior state: ``anchor`` as
+    ``gnss_kernel.anchor_array``, then ``geodesy.geodetic_to_ecef``'s formula in its order of operations) and
+    the model terms there (``terms_kernel``)."""
+    lat = anchor[0] + posterior[layout.NORTH] / anchor[3]
+    lon = anchor[1] + posterior[layout.EAST] / anchor[4]
+    height = anchor[2] + posterior[layout.UP]
+    sin_lat = math.sin(lat)
+    prime_vertical = semi_major_m / math.sqrt(1.0 - eccentricity2 * sin_lat * sin_lat)
+    horizontal = (prime_vertical + height) * math.cos(lat)
+    receiver[0] = horizontal * math.cos(lon)
+    receiver[1] = horizontal * math.sin(lon)
+    receiver[2] = (prime_vertical * (1.0 - eccentricity2) + height) * sin_lat
+    terms_kernel(
+        receiver, sat_position, sat_clock_s, troposphere_m, ionosphere_m, omega_earth, speed_of_light, terms
+    )
