@@ -51,7 +51,7 @@ MIN_SIN_ELEVATION = math.sin(math.radians(10.0))
 """The differences' std is ``phase_std_m`` / sin(elevation) with the elevation floored at 10 deg."""
 
 DIFFERENCED, NO_PREVIOUS, LOSS_OF_LOCK, GAP, SLIP, NO_PHASE = range(6)
-"""Why a row's phase was or was not differenced (:func:`slip_code`'s order, then no phase this epoch): the
+"""Why a row's phase was or was not differenced (:func:`slip_reason`'s order, then no phase this epoch): the
 codes the compiled form (pipelines/gnss_tdcp_kernel.py) returns, worded by :func:`slip_text`."""
 
 

@@ -1,13 +1,15 @@
-"""The phase differences' per-epoch loops compiled (numba): ``fit_kernel``, for ``gnss.tdcp``'s ``fit_rows``
-(weighted least squares with the chi-square exclusions), some twenty numpy calls on (n, 4) arrays there,
-each a microsecond or two; ``terms_kernel`` and ``differences_kernel`` for its ``model_terms`` and the slip
-tests and rows of ``displacement`` (a Python loop over the satellites and a dozen small numpy calls there);
-``shift_kernel`` for the particles' move in ``gnss_tdcp.shift_cloud``. Together they took the UPF epoch's
-phase differences from about 0.3 ms to a tenth of that (docs/gnss.md).
+"""The phase differences' per-epoch loops compiled (numba): ``fit_kernel`` for ``gnss.tdcp``'s ``fit_rows``
+(weighted least squares with the chi-square exclusions, some twenty numpy calls on (n, 4) arrays there);
+``terms_kernel`` and ``differences_kernel`` for its ``model_terms`` and the slip tests and rows of
+``displacement`` (a Python loop over the satellites and a dozen small numpy calls there); ``shift_kernel``
+and ``map_kernel`` for the cloud's move in ``gnss_tdcp.shift_cloud``; ``posterior_terms_kernel`` for the
+history's receiver and terms in ``gnss_tdcp.remember_phases``. With them the UPF epoch with ``hatch+tdcp``
+went from 2.14 to 2.00 ms (median thread CPU, docs/gnss.md), still about 0.2 ms over Hatch's.
 
 The numpy forms stay the reference (run when ``EDGEPOS_NUMBA=0``; tests hold the kernels to them). The
-terms, slip tests, differences and the particles' move follow numpy's operations one by one and give the
-same bits; in the fit the normal matrix is inverted by Gauss-Jordan elimination with partial pivoting where numpy inverts by LAPACK's
+terms, slip tests, differences and the cloud's move follow numpy's operations one by one and give the same
+bits (the receiver at the posterior too where numpy's sin and cos are libm's, as here); in the fit the
+normal matrix is inverted by Gauss-Jordan elimination with partial pivoting where numpy inverts by LAPACK's
 LU and sums run in index order: the numbers agree to about 1e-12 relative (tested) and the rows left out
 are the same, but for a tie: with one degree of freedom left every standardised residual is the same, and
 rounding picks the row (the epoch then has too few rows either way: no displacement).
