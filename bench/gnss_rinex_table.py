@@ -24,16 +24,39 @@ HALVES = {"first half (0-149, choose)": (0, 150), "second half (150-299, report)
 VARIANTS: dict[str, dict[str, Any]] = {
     "code only": {"doppler": False, "carrier": False, "base": False},
     "code + Doppler": {"doppler": True, "carrier": False, "base": False},
-    "code + Doppler + phase (the eval's default)": {"doppler": True, "carrier": True, "base": False},
+    "code + Doppler + phase (Hatch, the default)": {"doppler": True, "carrier": True, "base": False},
+    "code + Doppler + phase (Hatch and TDCP)": {
+        "doppler": True,
+        "carrier": True,
+        "base": False,
+        "mode": "hatch+tdcp",
+    },
+    "code + Doppler + phase (TDCP)": {"doppler": True, "carrier": True, "base": False, "mode": "tdcp"},
     "code + Doppler + base": {"doppler": True, "carrier": False, "base": True},
-    "code + Doppler + phase + base": {"doppler": True, "carrier": True, "base": True},
+    "code + Doppler + phase (Hatch) + base": {"doppler": True, "carrier": True, "base": True},
+    "code + Doppler + phase (Hatch and TDCP) + base": {
+        "doppler": True,
+        "carrier": True,
+        "base": True,
+        "mode": "hatch+tdcp",
+    },
+    "code + Doppler + phase (TDCP) + base": {"doppler": True, "carrier": True, "base": True, "mode": "tdcp"},
 }
+"""``mode``: the ``carrier_smoothing`` option when not the default (hatch)."""
+
+
+def _options(filter_name: str, variant: dict[str, Any]) -> dict[str, Any]:
+    options = {**CLI_DEFAULTS, "filter": filter_name, "use_doppler": variant["doppler"]}
+    if "mode" in variant:
+        options["carrier_smoothing"] = variant["mode"]
+    return options
 
 
 def _flags(filter_name: str, variant: dict[str, Any]) -> str:
     flags = [f"--filter {filter_name}"]
     flags += [] if variant["doppler"] else ["--option use_doppler=false"]
     flags += [] if variant["carrier"] else ["--no-carrier"]
+    flags += [f"--option 'carrier_smoothing=\"{variant['mode']}\"'"] if "mode" in variant else []
     flags += ["--base $D/base-0-5min.rnx"] if variant["base"] else []
     return " ".join(flags)
 
@@ -65,7 +88,7 @@ def main() -> None:
         for scored in HALVES.values():
             report = evaluate(
                 *files,
-                options={**CLI_DEFAULTS, "filter": filter_name, "use_doppler": variant["doppler"]},
+                options=_options(filter_name, variant),
                 score_epochs=scored,
                 base_path=base if variant["base"] else None,
                 carrier=variant["carrier"],

@@ -14,7 +14,10 @@ hyperthreads still slow it).
     python bench/gnss_upf_epoch.py --before /tmp/upf-base/service [--epochs 300] [--reps 3] \\
         [--filters upf,pf,ukf] [--particles 200]
 
-Without ``--before`` only this checkout runs.
+Without ``--before`` only this checkout runs. ``--now-option NAME=JSON`` (repeatable) sets a session option
+for this checkout's runs only, so ``--before`` of this same checkout's service/ compares an option with the
+defaults, e.g. ``--before service --now-option 'carrier_smoothing="hatch+tdcp"'``; ``--before-option``
+likewise for the "before" runs (the same option on both sides compares two versions of its code).
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ HERE = Path(__file__).resolve().parent
 SERVICE = HERE.parent / "service"
 
 
-def child(filter_name: str, particles: int, epochs: int) -> None:
+def child(filter_name: str, particles: int, epochs: int, extra: dict[str, object]) -> None:
     """Run the recording through the pipeline in this process; print the per-epoch times as JSON."""
     sys.path.insert(0, str(HERE))
     from edgepos.core.particles import PARTICLE_FILTERS
@@ -55,7 +58,7 @@ def child(filter_name: str, particles: int, epochs: int) -> None:
     cls.step = timed  # type: ignore[method-assign]
     observations, environment = load(epochs)
     pipeline = GnssTightPipeline()
-    options = pipeline.resolve_options({"seed": 1, "filter": filter_name, "particles": particles})
+    options = pipeline.resolve_options({"seed": 1, "filter": filter_name, "particles": particles, **extra})
     state = pipeline.create(options, None)
     epoch_ms, steps, epoch_cpu, steps_cpu = [], [], [], []
     for epoch in observations:
@@ -69,9 +72,12 @@ def child(filter_name: str, particles: int, epochs: int) -> None:
     print(json.dumps({"epoch": epoch_ms, "step": steps, "epoch_cpu": epoch_cpu, "step_cpu": steps_cpu}))
 
 
-def run(service: Path, filter_name: str, particles: int, epochs: int) -> dict[str, list[float]]:
+def run(
+    service: Path, filter_name: str, particles: int, epochs: int, extra: dict[str, object]
+) -> dict[str, list[float]]:
     env = dict(os.environ, PYTHONPATH=f"{service}{os.pathsep}{SERVICE.parent / 'client'}")
     command = [sys.executable, __file__, "--child", filter_name, "--particles", str(particles)]
+    command += ["--child-options", json.dumps(extra)]
     out = subprocess.run(
         [*command, "--epochs", str(epochs)], env=env, check=True, capture_output=True, text=True
     )
@@ -86,11 +92,16 @@ def main() -> None:
     parser.add_argument("--reps", type=int, default=3)
     parser.add_argument("--filters", default="upf,pf,ukf")
     parser.add_argument("--particles", type=int, default=200)
+    parser.add_argument("--now-option", action="append", default=[], metavar="NAME=JSON")
+    parser.add_argument("--before-option", action="append", default=[], metavar="NAME=JSON")
     parser.add_argument("--child", help=argparse.SUPPRESS)
+    parser.add_argument("--child-options", default="{}", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        child(args.child, args.particles, args.epochs)
+        child(args.child, args.particles, args.epochs, json.loads(args.child_options))
         return
+    now_options = {k: json.loads(v) for k, v in (o.split("=", 1) for o in args.now_option)}
+    before_options = {k: json.loads(v) for k, v in (o.split("=", 1) for o in args.before_option)}
     codes = {"now": SERVICE}
     if args.before is not None:
         codes = {"before": args.before.resolve(), **codes}
@@ -101,7 +112,8 @@ def main() -> None:
     for _ in range(args.reps):
         for filter_name in filters:
             for code, service in codes.items():
-                times = run(service, filter_name, args.particles, args.epochs)
+                extra = now_options if code == "now" else before_options
+                times = run(service, filter_name, args.particles, args.epochs, extra)
                 key = (filter_name, code)
                 bucket = results.setdefault(key, {name: [] for name in times})
                 for name, values in times.items():

@@ -15,6 +15,7 @@ from edgepos.gnss.carrier import (
 from edgepos.gnss.differential import DEFAULT_MAX_AGE_S, MAX_AGE_BOUNDS_S
 from edgepos.gnss.error_correlation import FITTED_CORRELATION
 from edgepos.gnss.measurements import DEFAULT_GALILEO_GROUP_DELAY, GALILEO_GROUP_DELAYS
+from edgepos.gnss.tdcp import DEFAULT_PHASE_STD_M
 from edgepos.pipelines.base import (
     OptionSpec,
 )
@@ -35,7 +36,7 @@ MAX_CARRIER_CYCLES = 1.0e10
 there."""
 MAX_LLI = 7
 """RINEX loss-of-lock indicators are three bits."""
-CARRIER_SMOOTHING = ("hatch", "off")
+CARRIER_SMOOTHING = ("hatch", "off", "tdcp", "hatch+tdcp")
 DEFAULT_CARRIER_SMOOTHING = "hatch"
 DEFAULT_HATCH_STD_FLOOR = 0.2
 ERROR_CORRELATIONS = ("gauss_markov", "white")
@@ -183,8 +184,29 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "noise std scaled by max(1/sqrt(epochs averaged), hatch_std_floor) (the fix's covariance then counts "
         "the average's correlated errors: error_correlation); a cycle slip (lli bit 0, phase "
         "change against the integrated Doppler, code-carrier jump, a gap) restarts that satellite's average "
-        "only. off: carrier phase is ignored. Sessions stored before the option existed keep off.",
+        "only. tdcp: time-differenced carrier phase (gnss/tdcp.py, pipelines/gnss_tdcp.py): the phases' "
+        "changes since the previous epoch give the receiver's displacement to centimetres (least squares with "
+        "a chi-square test that leaves out a slipped or reflected satellite's difference), which replaces the "
+        "constant-velocity model's position step (GNSS-only model; the code is used raw). hatch+tdcp: both; "
+        "the best of the four on the first half of tests/data/gnss-rover for the UKF and the UPF, with and "
+        "without the reference station, but about 0.2 ms more per UPF epoch, over the 2 ms budget, so not yet "
+        "the default (docs/gnss.md). "
+        "off: carrier phase is ignored. Sessions stored before the option existed keep off.",
         choices=CARRIER_SMOOTHING,
+    ),
+    OptionSpec(
+        "tdcp_phase_std_m",
+        "number",
+        DEFAULT_PHASE_STD_M,
+        "tdcp: std (m) of a satellite's phase difference between epochs at zenith, divided by sin(elevation) "
+        "(floored at 10 deg); the displacement's covariance is the filter's position process noise, so this "
+        "also sets how many epochs of code the filter averages. Carrier noise is millimetres and multipath on "
+        "the phase centimetres (at 0.02 the fits on the first half of tests/data/gnss-rover have a chi-square "
+        "variance factor of 0.48); 0.05 was chosen on that half as the value within 2 % of the best RMS whose "
+        "mean NEES is nearest 2 (0.02: a longer memory, whose correlated code errors the fix's covariance "
+        "under-counts; docs/gnss.md).",
+        0.001,
+        1.0,
     ),
     OptionSpec(
         "hatch_window_s",

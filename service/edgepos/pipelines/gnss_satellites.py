@@ -374,14 +374,14 @@ def atmosphere_of(options: Mapping[str, Any], ephemerides: Ephemerides | None) -
 def carrier_smoothed(
     session: GnssSession, t: float, satellites: EpochSatellites, observations: Sequence[Observation]
 ) -> tuple[EpochSatellites, np.ndarray, np.ndarray]:
-    """Carrier-smoothed code (``carrier_smoothing`` hatch): each row with carrier_cycles advances its
+    """Carrier-smoothed code (``carrier_smoothing`` hatch or hatch+tdcp): each row with carrier_cycles advances its
     satellite's Hatch filter and gets the smoothed pseudorange; returns the epoch with them and, per row, the
     factor on its noise std (1 for raw code) and the epochs averaged (0 for raw code). Runs before
     differential corrections, which change with the base's epoch and must not be averaged."""
     prs = satellites.prs
     factor = np.ones(len(prs))
     options = session.options
-    if options.get("carrier_smoothing", "off") != "hatch" or not len(prs):
+    if options.get("carrier_smoothing", "off") not in ("hatch", "hatch+tdcp") or not len(prs):
         return satellites, factor, np.zeros(len(prs))
     # satellites.indices are the epoch's pseudoranges (satellite_states keeps no other kind)
     sent = [cast(PseudorangeObservation, observations[i]) for i in satellites.indices]

@@ -17,6 +17,7 @@ from edgepos.core.motion.riss import GeodeticAnchor
 from edgepos.core.particles import PARTICLE_FILTERS, Cloud
 from edgepos.gnss.carrier import CarrierTrack, tracks_from_arrays, tracks_to_arrays
 from edgepos.gnss.noise_level import NoiseLevel
+from edgepos.gnss.tdcp import PhaseHistory
 
 PIPELINE_NAME = "gnss_tight"
 
@@ -58,6 +59,11 @@ class GnssSession:
     """The JSON text ``options`` was decoded from, written back as it is while the options equal its parse
     (``options_json``): encoding and parsing some seventy options took about a fifth of the state's time."""
 
+    tdcp: PhaseHistory = field(default_factory=PhaseHistory)
+    """The previous filter epoch's carrier phases for the next epoch's differences (``carrier_smoothing``
+    tdcp, pipelines/gnss_tdcp.py). Stored as ``tdcp_head`` ([t, x, y, z]) and ``tdcp_sats`` and the ``tdcp``
+    array, only when it holds phases; states written without them start with none."""
+
     def to_bytes(self) -> bytes:
         carrier_sats, carrier_table = tracks_to_arrays(self.carrier)
         text = self.options_text
@@ -91,6 +97,8 @@ class GnssSession:
                 len(self.faults), _FAULT_FIELDS
             ),
         }
+        if self.tdcp.receiver is not None:  # only sessions using phase differences: others keep their layout
+            meta["tdcp_head"], meta["tdcp_sats"], arrays["tdcp"] = self.tdcp.to_parts()
         known = self.cloud.known_moments(layout.ANGLES)
         if known is not None:  # the UPF's step computed them: the next epoch starts from them
             arrays["moments_mean"], arrays["moments_cov"] = known
@@ -122,6 +130,16 @@ def decode_session(blob: bytes) -> GnssSession:
             f"gnss_tight state's carrier tracks are corrupt: {error}"
         ) from None
     options, text = _options(meta)
+    tdcp = PhaseHistory()
+    if "tdcp_head" in meta:
+        try:
+            tdcp = PhaseHistory.from_parts(
+                meta["tdcp_head"], meta.get("tdcp_sats", []), arrays.get("tdcp", np.zeros((0, 2)))
+            )
+        except (ValueError, TypeError) as error:
+            raise state_format.StateFormatError(
+                f"gnss_tight state's phase history is corrupt: {error}"
+            ) from None
     return GnssSession(
         options,
         int(meta["seed"]),
@@ -139,6 +157,7 @@ def decode_session(blob: bytes) -> GnssSession:
         int(meta.get("still_epochs", 0)),
         _noise(meta),
         text,
+        tdcp,
     )
 
 

@@ -155,6 +155,9 @@ from edgepos.pipelines.gnss_session import (
     empty_cloud,
     filter_for,
 )
+from edgepos.pipelines.gnss_tdcp import TdcpStep, predict_with_displacement, remember_phases
+from edgepos.pipelines.gnss_tdcp import enabled as tdcp_enabled
+from edgepos.pipelines.gnss_tdcp import report as tdcp_report
 from edgepos.pipelines.options import resolve_options
 
 _SAT_RADIUS_M = (1.0e7, 5.0e7)
@@ -421,6 +424,11 @@ def _filter_epoch(
     dt = t - session.filter_t if session.filter_t is not None else 0.0
     model = motion_model(session, t)
     mean, cloud_cov = cloud_moments(session)
+    tdcp, delays = TdcpStep(None, {}), None
+    if len(satellites.prs) and tdcp_enabled(options):  # the phases' displacement as the motion (gnss_tdcp.py)
+        tdcp = predict_with_displacement(session, t, dt, model, mean, satellites, observations, atmosphere)
+        if tdcp.model is not None:
+            model, (mean, cloud_cov) = tdcp.model, cloud_moments(session)
     centre = model.propagate(mean[None, :], dt)[0]
     active = model.active.copy()
     for system, index in layout.CLOCK.items():
@@ -435,6 +443,7 @@ def _filter_epoch(
     if len(satellites.prs):
         receiver = session.anchor.ecef(centre)
         iono, tropo, elevation, _ = epoch_delays(atmosphere, receiver, satellites.prs)
+        delays = (iono, tropo, elevation)
         rows = np.flatnonzero(elevation >= options["elevation_mask"])
         for row in np.flatnonzero(elevation < options["elevation_mask"]):
             i = satellites.indices[row]
@@ -610,6 +619,9 @@ def _filter_epoch(
     session.filter_t = t
     if measurement is not None and isinstance(model, GnssOnlyModel):
         maybe_start_riss(session, t, result)
+    if tdcp_enabled(options):
+        remember_phases(session, t, satellites, tdcp, delays, result.mean)
+        tdcp_report(uses, noise, satellites.indices, tdcp)
     for r in rows.tolist():
         i = satellites.indices[r]
         noted = noise.get(i)

@@ -1,0 +1,298 @@
+"""The phase differences' per-epoch loops compiled (numba): ``fit_kernel`` for ``gnss.tdcp``'s ``fit_rows``
+(weighted least squares with the chi-square exclusions, some twenty numpy calls on (n, 4) arrays there);
+``terms_kernel`` and ``differences_kernel`` for its ``model_terms`` and the slip tests and rows of
+``displacement`` (a Python loop over the satellites and a dozen small numpy calls there); ``shift_kernel``
+and ``map_kernel`` for the cloud's move in ``gnss_tdcp.shift_cloud``; ``posterior_terms_kernel`` for the
+history's receiver and terms in ``gnss_tdcp.remember_phases``. With them the UPF epoch with ``hatch+tdcp``
+went from 2.14 to 2.00 ms (median thread CPU, docs/gnss.md), still about 0.2 ms over Hatch's.
+
+The numpy forms stay the reference (run when ``EDGEPOS_NUMBA=0``; tests hold the kernels to them). The
+terms, slip tests, differences and the cloud's move follow numpy's operations one by one and give the same
+bits (the receiver at the posterior too where numpy's sin and cos are libm's, as here); in the fit the
+normal matrix is inverted by Gauss-Jordan elimination with partial pivoting where numpy inverts by LAPACK's
+LU and sums run in index order: the numbers agree to about 1e-12 relative (tested) and the rows left out
+are the same, but for a tie: with one degree of freedom left every standardised residual is the same, and
+rounding picks the row (the epoch then has too few rows either way: no displacement).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from edgepos.core.kernels_base import FAILED, OK, _jit
+from edgepos.core.motion import riss as layout
+from edgepos.core.numerics import FloatArray
+from edgepos.gnss.tdcp import DIFFERENCED, GAP, LOSS_OF_LOCK, NO_PHASE, NO_PREVIOUS, SLIP
+
+INCONSISTENT = 2
+"""``fit_kernel``: fewer than the minimum rows left consistent."""
+_UNKNOWNS = 4
+
+
+@_jit
+def _invert(normal: FloatArray, out: FloatArray, max_condition: float) -> bool:
+    """``out`` = inverse of the 4 x 4 ``normal`` (Gauss-Jordan, partial pivoting); False when singular or its
+    infinity-norm condition number is beyond ``max_condition`` (``gnss.tdcp``'s test)."""
+    work = normal.copy()
+    for i in range(_UNKNOWNS):
+        for j in range(_UNKNOWNS):
+            out[i, j] = 1.0 if i == j else 0.0
+    for column in range(_UNKNOWNS):
+        pivot = column
+        for row in range(column + 1, _UNKNOWNS):
+            if abs(work[row, column]) > abs(work[pivot, column]):
+                pivot = row
+        if work[pivot, column] == 0.0 or not math.isfinite(work[pivot, column]):
+            return False
+        if pivot != column:
+            for j in range(_UNKNOWNS):
+                work[column, j], work[pivot, j] = work[pivot, j], work[column, j]
+                out[column, j], out[pivot, j] = out[pivot, j], out[column, j]
+        scale = 1.0 / work[column, column]
+        for j in range(_UNKNOWNS):
+            work[column, j] *= scale
+            out[column, j] *= scale
+        for row in range(_UNKNOWNS):
+            if row != column:
+                factor = work[row, column]
+                if factor != 0.0:
+                    for j in range(_UNKNOWNS):
+                        work[row, j] -= factor * work[column, j]
+                        out[row, j] -= factor * out[column, j]
+    largest, largest_inverse = 0.0, 0.0
+    for i in range(_UNKNOWNS):
+        total, total_inverse = 0.0, 0.0
+        for j in range(_UNKNOWNS):
+            if not math.isfinite(out[i, j]):
+                return False
+            total += abs(normal[i, j])
+            total_inverse += abs(out[i, j])
+        largest, largest_inverse = max(largest, total), max(largest_inverse, total_inverse)
+    return largest * largest_inverse <= max_condition
+
+
+@_jit
+def fit_kernel(
+    y: FloatArray,
+    design: FloatArray,
+    std: FloatArray,
+    bounds: FloatArray,
+    min_rows: int,
+    max_condition: float,
+    keep: np.ndarray,
+    solution: FloatArray,
+    cov: FloatArray,
+    left_out: FloatArray,
+) -> int:
+    """``gnss.tdcp._fit``'s loop: weighted least squares of the kept rows (``keep``, bool, all true on entry),
+    the chi-square test of the weighted residuals against ``bounds[dof]``, and while it fails the row with the
+    largest standardised residual left out (``left_out[row]`` = its residual in metres and sigmas). Returns
+    OK (``solution``, ``cov`` set), FAILED (singular geometry) or INCONSISTENT (fewer than ``min_rows``
+    left; ``keep`` then holds the rows still in)."""
+    n = y.shape[0]
+    a = np.empty((n, _UNKNOWNS))
+    b = np.empty(n)
+    normal = np.empty((_UNKNOWNS, _UNKNOWNS))
+    rhs = np.empty(_UNKNOWNS)
+    weighted = np.empty(n)
+    count = n
+    while True:
+        for i in range(n):
+            root = 1.0 / std[i]
+            b[i] = y[i] * root
+            for j in range(_UNKNOWNS):
+                a[i, j] = design[i, j] * root
+        for j in range(_UNKNOWNS):
+            rhs[j] = 0.0
+            for k in range(_UNKNOWNS):
+                normal[j, k] = 0.0
+        for i in range(n):
+            if keep[i]:
+                for j in range(_UNKNOWNS):
+                    rhs[j] += a[i, j] * b[i]
+                    for k in range(_UNKNOWNS):
+                        normal[j, k] += a[i, j] * a[i, k]
+        if not _invert(normal, cov, max_condition):
+            return FAILED
+        for j in range(_UNKNOWNS):
+            total = 0.0
+            for k in range(_UNKNOWNS):
+                total += cov[j, k] * rhs[k]
+            solution[j] = total
+        statistic = 0.0
+        for i in range(n):
+            if keep[i]:
+                fitted = 0.0
+                for j in range(_UNKNOWNS):
+                    fitted += a[i, j] * solution[j]
+                weighted[i] = b[i] - fitted
+                statistic += weighted[i] * weighted[i]
+        if statistic <= bounds[count - _UNKNOWNS]:
+            return OK
+        worst, largest = -1, -1.0
+        for i in range(n):
+            if keep[i]:
+                leverage = 0.0
+                for j in range(_UNKNOWNS):
+                    for k in range(_UNKNOWNS):
+                        leverage += a[i, j] * cov[j, k] * a[i, k]
+                standardised = abs(weighted[i]) / math.sqrt(max(1.0 - leverage, 1e-9))
+                if standardised > largest:
+                    worst, largest = i, standardised
+        keep[worst] = False
+        left_out[worst, 0] = weighted[worst] * std[worst]
+        left_out[worst, 1] = largest
+        count -= 1
+        if count < min_rows:
+            return INCONSISTENT
+
+
+@_jit
+def terms_kernel(
+    receiver: FloatArray,
+    sat_position: FloatArray,
+    sat_clock_s: FloatArray,
+    troposphere_m: FloatArray,
+    ionosphere_m: FloatArray,
+    omega_earth: float,
+    speed_of_light: float,
+    out: FloatArray,
+) -> None:
+    """``gnss.tdcp.model_terms`` row by row (the Sagnac range, then the clock and the delays, in its order of
+    operations: the same bits)."""
+    rx, ry, rz = receiver[0], receiver[1], receiver[2]
+    for i in range(sat_position.shape[0]):
+        sx, sy, sz = sat_position[i, 0], sat_position[i, 1], sat_position[i, 2]
+        dx, dy, dz = sx - rx, sy - ry, sz - rz
+        geometric = math.sqrt(dx * dx + dy * dy + dz * dz)
+        sagnac = omega_earth * (sx * ry - sy * rx)
+        value = geometric + sagnac / speed_of_light - speed_of_light * sat_clock_s[i]
+        out[i] = value + troposphere_m[i] - ionosphere_m[i]
+
+
+@_jit
+def differences_kernel(
+    cycles: FloatArray,
+    before: FloatArray,
+    dt: float,
+    max_gap_s: float,
+    slip_cycles_per_s: float,
+    doppler_hz: FloatArray,
+    lli: np.ndarray,
+    wavelength_m: FloatArray,
+    sat_position: FloatArray,
+    receiver: FloatArray,
+    terms_now: FloatArray,
+    std_all: FloatArray,
+    status: np.ndarray,
+    off: FloatArray,
+    index: np.ndarray,
+    y: FloatArray,
+    design: FloatArray,
+    std: FloatArray,
+) -> int:
+    """``gnss.tdcp.displacement`` before its fit: per row its ``gnss.tdcp`` code (``status``; ``off`` the cycles off the
+    Doppler for SLIP), and the differenced rows' index, difference ``y``, design row and std, packed at the
+    front; returns how many. ``before``: per row the previous epoch's [cycles, model term] (NaN: none)."""
+    count = 0
+    for row in range(cycles.shape[0]):
+        value = cycles[row]
+        if not math.isfinite(value):
+            status[row] = NO_PHASE
+            continue
+        if not math.isfinite(before[row, 0]):
+            status[row] = NO_PREVIOUS
+            continue
+        if lli[row] & 1:
+            status[row] = LOSS_OF_LOCK
+            continue
+        if not 0.0 < dt <= max_gap_s:
+            status[row] = GAP
+            continue
+        if math.isfinite(doppler_hz[row]):
+            change = value - before[row, 0] + doppler_hz[row] * dt
+            if abs(change) > slip_cycles_per_s * dt:
+                status[row] = SLIP
+                off[row] = change
+                continue
+        status[row] = DIFFERENCED
+        index[count] = row
+        y[count] = wavelength_m[row] * (value - before[row, 0]) - terms_now[row] + before[row, 1]
+        tx = sat_position[row, 0] - receiver[0]
+        ty = sat_position[row, 1] - receiver[1]
+        tz = sat_position[row, 2] - receiver[2]
+        norm = -math.sqrt(tx * tx + ty * ty + tz * tz)
+        design[count, 0], design[count, 1], design[count, 2] = tx / norm, ty / norm, tz / norm
+        design[count, 3] = 1.0
+        std[count] = std_all[row]
+        count += 1
+    return count
+
+
+@_jit
+def shift_kernel(particles: FloatArray, step: FloatArray, dt: float, out: FloatArray) -> None:
+    """``gnss_tdcp.shift_cloud``'s particles: ``out`` = ``particles`` with each position (north, east, up)
+    moved by ``step`` less its velocity times ``dt``, in the numpy form's order of operations (the same
+    bits)."""
+    for i in range(particles.shape[0]):
+        for j in range(particles.shape[1]):
+            out[i, j] = particles[i, j]
+        out[i, layout.NORTH] = (particles[i, layout.NORTH] + step[0]) - particles[i, layout.VN] * dt
+        out[i, layout.EAST] = (particles[i, layout.EAST] + step[1]) - particles[i, layout.VE] * dt
+        out[i, layout.UP] = (particles[i, layout.UP] + step[2]) - particles[i, layout.VU] * dt
+
+
+@_jit
+def map_kernel(cov: FloatArray, dt: float, out: FloatArray) -> None:
+    """``gnss_tdcp._mapped``: ``out`` = T C T^T, T the identity with -dt from each velocity to its position,
+    made symmetric as there; row and column operations where numpy multiplies the full matrices (the same
+    numbers but for the last bit of the position rows and columns)."""
+    n = cov.shape[0]
+    for i in range(n):
+        for j in range(n):
+            out[i, j] = cov[i, j]
+    for position, velocity in ((layout.NORTH, layout.VN), (layout.EAST, layout.VE), (layout.UP, layout.VU)):
+        for j in range(n):
+            out[position, j] = cov[position, j] - dt * cov[velocity, j]
+    for position, velocity in ((layout.NORTH, layout.VN), (layout.EAST, layout.VE), (layout.UP, layout.VU)):
+        for i in range(n):
+            out[i, position] = out[i, position] - dt * out[i, velocity]
+    for i in range(n):
+        for j in range(i + 1, n):
+            mean = 0.5 * (out[i, j] + out[j, i])
+            out[i, j] = mean
+            out[j, i] = mean
+
+
+@_jit
+def posterior_terms_kernel(
+    anchor: FloatArray,
+    posterior: FloatArray,
+    semi_major_m: float,
+    eccentricity2: float,
+    sat_position: FloatArray,
+    sat_clock_s: FloatArray,
+    troposphere_m: FloatArray,
+    ionosphere_m: FloatArray,
+    omega_earth: float,
+    speed_of_light: float,
+    receiver: FloatArray,
+    terms: FloatArray,
+) -> None:
+    """``gnss_tdcp.remember_phases``'s receiver (``anchor.ecef`` of the posterior state: ``anchor`` as
+    ``gnss_kernel.anchor_array``, then ``geodesy.geodetic_to_ecef``'s formula in its order of operations) and
+    the model terms there (``terms_kernel``)."""
+    lat = anchor[0] + posterior[layout.NORTH] / anchor[3]
+    lon = anchor[1] + posterior[layout.EAST] / anchor[4]
+    height = anchor[2] + posterior[layout.UP]
+    sin_lat = math.sin(lat)
+    prime_vertical = semi_major_m / math.sqrt(1.0 - eccentricity2 * sin_lat * sin_lat)
+    horizontal = (prime_vertical + height) * math.cos(lat)
+    receiver[0] = horizontal * math.cos(lon)
+    receiver[1] = horizontal * math.sin(lon)
+    receiver[2] = (prime_vertical * (1.0 - eccentricity2) + height) * sin_lat
+    terms_kernel(
+        receiver, sat_position, sat_clock_s, troposphere_m, ionosphere_m, omega_earth, speed_of_light, terms
+    )
