@@ -25,23 +25,24 @@ _log = logging.getLogger(__name__)
 _PACKAGE = Path(__file__).resolve().parent.parent
 #: Every module with compiled kernels; a kernel may inline a function of any of them.
 KERNEL_FILES = tuple(
-    _PACKAGE / "core" / name
+    _PACKAGE / name
     for name in (
-        "kernels_base.py",
-        "kernels.py",
-        "kernels_correct.py",
-        "kernels_motion.py",
-        "kernels_turn.py",
-        "kernels_integrity.py",
-        "kernels_epoch.py",
-        "kernels_run.py",
-        "measurements/gnss_kernel.py",
-        "measurements/gnss_geometry.py",
-        "measurements/gnss_raim_kernel.py",
-        "measurements/gnss_noise_kernel.py",
-        "particles/upf_kernel.py",
-        "particles/upf_step_kernel.py",
-        "particles/upf_resample_kernel.py",
+        "core/kernels_base.py",
+        "core/kernels.py",
+        "core/kernels_correct.py",
+        "core/kernels_motion.py",
+        "core/kernels_turn.py",
+        "core/kernels_integrity.py",
+        "core/kernels_epoch.py",
+        "core/kernels_run.py",
+        "core/measurements/gnss_kernel.py",
+        "core/measurements/gnss_geometry.py",
+        "core/measurements/gnss_raim_kernel.py",
+        "core/measurements/gnss_noise_kernel.py",
+        "core/particles/upf_kernel.py",
+        "core/particles/upf_step_kernel.py",
+        "core/particles/upf_resample_kernel.py",
+        "pipelines/gnss_tdcp_kernel.py",
     )
 )
 #: The modules whose globals the kernels read (numba freezes a global into the machine code) or whose
@@ -55,6 +56,7 @@ READ_FILES = tuple(
         "gnss/corrections.py",
         "gnss/geodesy.py",
         "gnss/orbits.py",
+        "gnss/tdcp.py",
     )
 )
 
