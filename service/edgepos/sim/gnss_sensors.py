@@ -11,10 +11,10 @@ of the constellation (GPS bias + inter-system bias for BeiDou; integrated random
 dts_j the satellite clock (sent as ``sat_clock``, with ``sat_position`` = s_j), I the ionosphere left after
 a broadcast correction, T the true troposphere (Saastamoinen x a per-run factor), e_sisre the broadcast
 orbit/clock error, m the LOS multipath (Gauss-Markov, larger at low elevation), n the code noise (from
-C/N0) and nlos the extra path of a reflected signal. The carrier phase of a signal the carrier loop
-holds in lock (``sim.gnss_carrier``: lock and slips at the rates of the real recording) goes with it. A satellite is tracked when it is above the horizon
+C/N0) and nlos the extra path of a reflected signal. A satellite is tracked when it is above the horizon
 mask and either above the street-canyon cut-off (LOS) or received by reflection (NLOS), and its C/N0 is
-above the tracking threshold.
+above the tracking threshold. The carrier phase of a signal the carrier loop holds in lock goes with it
+(``sim.gnss_carrier``: lock and slips at the rates of the real recording).
 
 RISS samples at every truth sample: wheel speed (scale error + noise), forward and lateral specific force
 (bias + noise; the road is level, so they are the longitudinal acceleration and speed x yaw rate), yaw
