@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-from edgepos.core.kernels_base import FAILED, OK, _jit
+from edgepos.core.kernels_base import FAILED, OK, _jit, _symmetrize
 from edgepos.core.motion import riss as layout
 from edgepos.core.numerics import FloatArray
 from edgepos.gnss.tdcp import DIFFERENCED, GAP, LOSS_OF_LOCK, NO_PHASE, NO_PREVIOUS, SLIP
@@ -259,11 +259,7 @@ def map_kernel(cov: FloatArray, dt: float, out: FloatArray) -> None:
     for position, velocity in ((layout.NORTH, layout.VN), (layout.EAST, layout.VE), (layout.UP, layout.VU)):
         for i in range(n):
             out[i, position] = out[i, position] - dt * out[i, velocity]
-    for i in range(n):
-        for j in range(i + 1, n):
-            mean = 0.5 * (out[i, j] + out[j, i])
-            out[i, j] = mean
-            out[j, i] = mean
+    _symmetrize(out, n)
 
 
 @_jit
