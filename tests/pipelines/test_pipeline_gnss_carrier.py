@@ -18,6 +18,7 @@ from edgepos.pipelines.base import PipelineInputError, StaticEnvironment
 from edgepos.pipelines.gnss_recording import epoch_pseudoranges
 from edgepos.pipelines.gnss_session import decode_session
 from edgepos.pipelines.gnss_tight import GnssTightPipeline
+from gnssrecording import run_ukf
 
 DATA = "tests/data/gnss-rover/"
 FILES = (DATA + "rover-0-5min.rnx", DATA + "broadcast-nav.rnx", DATA + "reference-0-5min.csv")
@@ -49,28 +50,18 @@ def recording() -> tuple[list[list[PseudorangeObservation]], StaticEnvironment]:
     return epochs, environment
 
 
-def _run(epochs, environment, options):
-    pipeline = GnssTightPipeline()
-    state = pipeline.create(pipeline.resolve_options({"filter": "ukf", "seed": 1, **options}), None)
-    fixes = []
-    for epoch in epochs:
-        (fix,), state = pipeline.process(state, epoch, environment)
-        fixes.append(fix)
-    return fixes, state
-
-
 def test_the_smoothing_lives_in_the_session_and_round_trips(recording) -> None:
     epochs, environment = recording
-    fixes, state = _run(epochs, environment, {})
+    fixes, state = run_ukf(epochs, environment, {})
     session = decode_session(state)
     carrying = {f"{o.system}{o.prn:02d}" for o in epochs[-1] if o.carrier_cycles is not None}
     assert carrying and set(session.carrier) >= carrying
     assert max(track.count for track in session.carrier.values()) == len(epochs)
     assert session.to_bytes() == state
     # Off: the carrier is ignored (the same fixes as without it) and no track is kept.
-    off, off_state = _run(epochs, environment, {"carrier_smoothing": "off"})
+    off, off_state = run_ukf(epochs, environment, {"carrier_smoothing": "off"})
     stripped = [[dataclasses.replace(o, carrier_cycles=None, lli=None) for o in epoch] for epoch in epochs]
-    plain, _ = _run(stripped, environment, {})
+    plain, _ = run_ukf(stripped, environment, {})
     assert decode_session(off_state).carrier == {}
     assert [(f.x, f.y) for f in off] == [(f.x, f.y) for f in plain]
     assert [(f.x, f.y) for f in fixes] != [(f.x, f.y) for f in plain]
@@ -78,7 +69,7 @@ def test_the_smoothing_lives_in_the_session_and_round_trips(recording) -> None:
 
 def test_states_stored_before_carrier_phase_decode_with_no_tracks(recording) -> None:
     epochs, environment = recording
-    _, state = _run(epochs[:3], environment, {})
+    _, state = run_ukf(epochs[:3], environment, {})
     meta, arrays = state_format.unpack(state)
     del meta["carrier_sats"], arrays["carrier"]
     old = decode_session(state_format.pack(meta, arrays))

@@ -18,8 +18,7 @@ from edgepos.gnss.tdcp import TdcpConfig, fit_rows
 from edgepos.pipelines.base import StaticEnvironment
 from edgepos.pipelines.gnss_session import decode_session
 from edgepos.pipelines.gnss_tdcp import DisplacementModel, compiled_fit, shift_cloud
-from edgepos.pipelines.gnss_tight import GnssTightPipeline
-from gnssrecording import recording_epochs
+from gnssrecording import recording_epochs, run_ukf
 
 DATA = "tests/data/gnss-rover/"
 FILES = (DATA + "rover-0-5min.rnx", DATA + "broadcast-nav.rnx", DATA + "reference-0-5min.csv")
@@ -90,21 +89,10 @@ def recording() -> tuple[list[list[PseudorangeObservation]], StaticEnvironment]:
     return epochs, environment
 
 
-def _run(epochs, environment, options, state=None):
-    pipeline = GnssTightPipeline()
-    if state is None:
-        state = pipeline.create(pipeline.resolve_options({"filter": "ukf", "seed": 1, **options}), None)
-    fixes = []
-    for epoch in epochs:
-        (fix,), state = pipeline.process(state, epoch, environment)
-        fixes.append(fix)
-    return fixes, state
-
-
 @pytest.mark.parametrize("mode", ["tdcp", "hatch+tdcp"])
 def test_the_phase_history_lives_in_the_session_and_each_use_is_reported(recording, mode) -> None:
     epochs, environment = recording
-    fixes, state = _run(epochs, environment, {"carrier_smoothing": mode})
+    fixes, state = run_ukf(epochs, environment, {"carrier_smoothing": mode})
     session = decode_session(state)
     carrying = {f"{o.system}{o.prn:02d}" for o in epochs[-1] if o.carrier_cycles is not None}
     assert session.tdcp.t == epochs[-1][0].t
@@ -122,18 +110,18 @@ def test_the_phase_history_lives_in_the_session_and_each_use_is_reported(recordi
                 notes.append(text)
         moved += any("phase difference used" in text for text in notes)
     assert moved >= len(epochs) - 4
-    plain, _ = _run(epochs, environment, {"carrier_smoothing": "hatch" if mode == "hatch+tdcp" else "off"})
+    plain, _ = run_ukf(epochs, environment, {"carrier_smoothing": "hatch" if mode == "hatch+tdcp" else "off"})
     assert [(f.x, f.y) for f in fixes] != [(f.x, f.y) for f in plain]
 
 
 def test_states_without_a_phase_history_decode_and_continue(recording) -> None:
     epochs, environment = recording
-    _, state = _run(epochs[:5], environment, {"carrier_smoothing": "hatch+tdcp"})
+    _, state = run_ukf(epochs[:5], environment, {"carrier_smoothing": "hatch+tdcp"})
     meta, arrays = state_format.unpack(state)
     del meta["tdcp_head"], meta["tdcp_sats"], arrays["tdcp"]
     old = decode_session(state_format.pack(meta, arrays))
     assert old.tdcp.receiver is None and old.tdcp.phases == {}
-    fixes, _ = _run(epochs[5:8], environment, {}, old.to_bytes())
+    fixes, _ = run_ukf(epochs[5:8], environment, {}, old.to_bytes())
     assert [f.status for f in fixes] == ["tracking"] * 3
     # the first epoch after has no history to difference with, the next ones do
     assert not any("phase difference used" in (u.noise_reason or "") for u in fixes[0].measurements)
@@ -146,7 +134,7 @@ def test_states_without_a_phase_history_decode_and_continue(recording) -> None:
 def test_sessions_without_tdcp_keep_their_byte_layout(recording) -> None:
     epochs, environment = recording
     for mode in ("hatch", "off"):
-        _, state = _run(epochs[:4], environment, {"carrier_smoothing": mode})
+        _, state = run_ukf(epochs[:4], environment, {"carrier_smoothing": mode})
         meta, arrays = state_format.unpack(state)
         assert "tdcp_head" not in meta and "tdcp" not in arrays
 
