@@ -101,6 +101,14 @@ class PseudorangeMeasurement(_Request):
         le=7,
         description="RINEX loss-of-lock indicator of carrier_cycles (bit 0: lock lost since the previous epoch).",
     )
+    sat_velocity: tuple[float, float, float] | None = Field(
+        None,
+        description="Satellite ECEF velocity at transmit time (m/s, rate of sat_position's Earth-fixed "
+        "coordinates); send with sat_position, sat_clock and sat_clock_drift so the server can use doppler_hz.",
+    )
+    sat_clock_drift: float | None = Field(
+        None, ge=-1.0e-6, le=1.0e-6, description="Satellite clock drift (s/s); send with sat_velocity."
+    )
 
 
 class RissMeasurement(_Request):

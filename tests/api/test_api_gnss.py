@@ -32,9 +32,10 @@ def post(client, session_id, token, seq, items, **extra):
     )
 
 
-def _with_satellite_states(items: list[dict]) -> tuple[list[dict], float]:
+def _with_satellite_states(items: list[dict], rates: bool = False) -> tuple[list[dict], float]:
     """The first epoch's measurements with the satellite positions and clocks a client would compute from
-    the same broadcast ephemerides (sat_position, sat_clock), and the epoch's GPS time."""
+    the same broadcast ephemerides (sat_position, sat_clock; with ``rates`` also sat_velocity and
+    sat_clock_drift), and the epoch's GPS time."""
     ephemerides = parse_ephemerides(nav_text())
     gpst = epochs()[0][0]
     systems = [m["system"] for m in items]
@@ -45,6 +46,15 @@ def _with_satellite_states(items: list[dict]) -> tuple[list[dict], float]:
         {**m, "sat_position": [float(v) for v in states.position[k]], "sat_clock": float(states.clock_s[k])}
         for k, m in enumerate(items)
     ]
+    if rates:
+        sent = [
+            {
+                **m,
+                "sat_velocity": [float(v) for v in states.velocity[k]],
+                "sat_clock_drift": float(states.clock_drift[k]),
+            }
+            for k, m in enumerate(sent)
+        ]
     return sent, gpst
 
 
@@ -279,6 +289,9 @@ def test_client_computed_satellite_states_need_no_ephemerides(client):
         ({"lli": -1}, "measurements[0].lli"),
         ({"lli": 1.5}, "measurements[0].lli"),
         ({"lli": True}, "measurements[0].lli"),
+        ({"sat_velocity": [1.0, 2.0]}, "measurements[0].sat_velocity"),
+        ({"sat_velocity": [2.0e4, 0.0, 0.0], "sat_clock_drift": 0.0}, "measurements[0].sat_velocity[0]"),
+        ({"sat_clock_drift": 1.0e-3}, "measurements[0].sat_clock_drift"),
         ({"extra": 1}, "measurements[0].extra"),
     ],
 )
@@ -402,6 +415,52 @@ def test_dopplers_are_used_and_reported(client):
         use["doppler_used"] is False and "no satellite velocity" in use["doppler_reason"]
         for use in fix["measurements"]
     )
+    # with the satellites' velocities and clock drifts sent too, the client's states carry the Dopplers
+    sent, _ = _with_satellite_states(with_doppler(measurements(0, 1)), rates=True)
+    session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
+    (fix,) = post(client, session_id, token, 1, sent).json()["fixes"]
+    assert sum(use["doppler_used"] for use in fix["measurements"]) >= 8
+    assert [use["doppler_used"] for use in fix["measurements"]] == [
+        use["doppler_used"] for use in post_first_epoch(client, with_doppler(measurements(0, 1)))
+    ]
+
+
+def post_first_epoch(client, items: list[dict]) -> list[dict]:
+    """The per-measurement report of the first epoch of a new session (ephemerides loaded)."""
+    session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
+    response = post(client, session_id, token, 1, items)
+    assert response.status_code == 200, response.text
+    (fix,) = response.json()["fixes"]
+    return list(fix["measurements"])
+
+
+@pytest.mark.parametrize(
+    ("change", "field", "words"),
+    [
+        ({"sat_velocity": [100.0, 200.0, 300.0]}, "sat_clock_drift", "go together"),
+        ({"sat_clock_drift": 1.0e-12}, "sat_velocity", "go together"),
+    ],
+)
+def test_a_satellite_velocity_comes_with_its_clock_drift(client, change, field, words):
+    """sat_velocity and sat_clock_drift go together: one without the other is refused naming the missing
+    one, and the session is unchanged."""
+    assert upload(client).status_code == 200
+    session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
+    before = client.get(f"/v1/sessions/{session_id}", headers=token).json()
+    sent, _ = _with_satellite_states(measurements(0, 1))
+    error = assert_error(post(client, session_id, token, 1, [{**sent[0], **change}]), 422, "invalid_request")
+    problems = [p for p in error["problems"] if p["field"] == f"measurements[0].{field}"]
+    assert problems and words in problems[0]["reason"]
+    assert client.get(f"/v1/sessions/{session_id}", headers=token).json() == before
+
+
+def test_a_satellite_velocity_needs_the_satellites_position(client):
+    assert upload(client).status_code == 200
+    session_id, token = open_session(client, pipeline="gnss_tight", options=QUICK)
+    item = {**measurements(0, 1)[0], "sat_velocity": [100.0, 200.0, 300.0], "sat_clock_drift": 0.0}
+    error = assert_error(post(client, session_id, token, 1, [item]), 422, "invalid_request")
+    reasons = {p["field"]: p["reason"] for p in error["problems"]}
+    assert "sat_position and sat_clock" in reasons["measurements[0].sat_velocity"]
 
 
 def test_an_epoch_too_costly_with_its_dopplers_is_refused_saying_what_to_change(tmp_path):

@@ -188,6 +188,40 @@ def test_carrier_phase_round_trips_and_plain_pseudoranges_keep_the_stored_layout
     assert decoded[1].lli == 1 and decoded[2].lli is None
 
 
+def test_a_clients_satellite_velocity_round_trips_and_older_carrier_records_read_unchanged():
+    """sat_velocity / sat_clock_drift were added without a new lag-window version: a pseudorange without them
+    is written as before (plain or ``pseudorange+carrier``), so records stored before read back unchanged; one
+    with them is written whole under its own name."""
+    from edgepos.core.observations import PseudorangeObservationV4
+
+    carrier_before = _KindCodec(PseudorangeObservationV4, name=b"pseudorange+carrier")
+    carrying = PseudorangeObservation(1.5, "G", 7, 2.1e7, 44.5, None, None, 812.25, 1.1e8 + 0.123, 1)
+    assert encode_observations([carrying]) == carrier_before.encode(
+        PseudorangeObservationV4(1.5, "G", 7, 2.1e7, 44.5, None, None, 812.25, 1.1e8 + 0.123, 1)
+    )
+    moving = PseudorangeObservation(
+        1.5,
+        "C",
+        21,
+        2.2e7,
+        40.0,
+        (1.0e7, -2.0e7, 1.5e7),
+        1e-4,
+        -812.5,
+        None,
+        None,
+        (-2231.9, 372.5, -0.0),
+        1.5e-12,
+    )
+    velocity_only_drift = dataclasses.replace(moving, sat_velocity=None)
+    record = encode_observations([carrying, moving, velocity_only_drift])
+    decoded = decode_observations(record)
+    assert decoded == [carrying, moving, velocity_only_drift]
+    assert all(type(o) is PseudorangeObservation for o in decoded)
+    assert math.copysign(1.0, decoded[1].sat_velocity[2]) == -1.0
+    assert b"pseudorange+rate" in record
+
+
 @pytest.mark.parametrize("kept", [0, 4096])
 def test_a_text_is_written_alike_from_the_table_of_texts_or_not(monkeypatch, kept):
     """An id's bytes (16-bit length, UTF-8) are the same the first time, from ``_TEXTS`` after, and with the

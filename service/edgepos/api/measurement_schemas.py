@@ -130,9 +130,9 @@ class PseudorangeMeasurement(RequestModel):
         description="Optional Doppler of the same signal as pseudorange_m (Hz), as the receiver measured it, "
         "RINEX sign convention: positive when the satellite approaches. The service uses the range rate "
         "-doppler_hz x wavelength of the signal's carrier (GPS L1 / Galileo E1 1575.42 MHz, BeiDou B1I "
-        "1561.098 MHz) for velocity and receiver clock drift; it needs the satellite's velocity from the "
-        "loaded ephemerides, so with sat_position and sat_clock sent it is reported unused. Finite, within "
-        "+-20000 Hz.",
+        "1561.098 MHz) for velocity and receiver clock drift; it needs the satellite's velocity and clock "
+        "drift: from the loaded ephemerides, or with sat_position and sat_clock sent, from sat_velocity and "
+        "sat_clock_drift (without them it is reported unused). Finite, within +-20000 Hz.",
     )
     carrier_cycles: float | None = Field(
         None,
@@ -156,10 +156,29 @@ class PseudorangeMeasurement(RequestModel):
         "or null: 0.",
     )
 
+    sat_velocity: list[Annotated[float, Field(ge=-1.0e4, le=1.0e4)]] | None = Field(
+        None,
+        min_length=3,
+        max_length=3,
+        description="Optional satellite velocity at transmit time computed by the client: [vx, vy, vz] (m/s), "
+        "the rate of change of sat_position's Earth-fixed coordinates (ECEF WGS-84, the frame of the "
+        "transmit epoch), each within +-10000 m/s. Send it with sat_position, sat_clock and "
+        "sat_clock_drift; with doppler_hz it lets the service use the Doppler without ephemerides.",
+    )
+    sat_clock_drift: float | None = Field(
+        None,
+        ge=-1.0e-6,
+        le=1.0e-6,
+        description="Optional satellite clock drift at transmit time (s/s), the rate of sat_clock. Send it "
+        "with sat_velocity.",
+    )
+
     def to_observation(self) -> Observation:
-        position = None
+        position = velocity = None
         if self.sat_position is not None:  # three items: the field's schema holds it to exactly three
             position = (self.sat_position[0], self.sat_position[1], self.sat_position[2])
+        if self.sat_velocity is not None:
+            velocity = (self.sat_velocity[0], self.sat_velocity[1], self.sat_velocity[2])
         return PseudorangeObservation(
             self.t,
             self.system,
@@ -171,6 +190,8 @@ class PseudorangeMeasurement(RequestModel):
             self.doppler_hz,
             self.carrier_cycles,
             self.lli,
+            velocity,
+            self.sat_clock_drift,
         )
 
 

@@ -34,6 +34,7 @@ from edgepos.core.observations import (
     PseudorangeObservation,
     PseudorangeObservationV2,
     PseudorangeObservationV3,
+    PseudorangeObservationV4,
 )
 
 _LENGTH = struct.Struct("<H")
@@ -227,23 +228,35 @@ _JSON = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
 
 
 class _PseudorangeCodec:
-    """Pseudoranges without carrier phase keep the version-3 layout under the name ``pseudorange`` (its
-    fields are a prefix of today's, decoded as today's class with no carrier), so lag windows stored before
-    ``carrier_cycles`` and ``lli`` existed read unchanged; those with either are written whole under
-    ``pseudorange+carrier``."""
+    """Pseudoranges are written in the shortest of three layouts whose left-out fields are all None, so
+    lag windows stored before a field existed read unchanged: without carrier phase and satellite velocity
+    the version-3 layout under the name ``pseudorange`` (its fields a prefix of today's, decoded as today's
+    class); with ``carrier_cycles`` or ``lli`` but no client satellite velocity the layout of before
+    ``sat_velocity`` under ``pseudorange+carrier``; with ``sat_velocity`` or ``sat_clock_drift`` whole,
+    under ``pseudorange+rate``."""
 
     def __init__(self) -> None:
         self.plain = _KindCodec(PseudorangeObservationV3, decode_as=PseudorangeObservation)
-        self.carrier = _KindCodec(PseudorangeObservation, name=b"pseudorange+carrier")
+        self.carrier = _KindCodec(
+            PseudorangeObservationV4, name=b"pseudorange+carrier", decode_as=PseudorangeObservation
+        )
+        self.whole = _KindCodec(PseudorangeObservation, name=b"pseudorange+rate")
         self.name = self.plain.name
-        plain_encode, carrier_encode = self.plain.encode, self.carrier.encode
+        plain_encode, carrier_encode, whole_encode = self.plain.encode, self.carrier.encode, self.whole.encode
 
         def encode(o: PseudorangeObservation) -> bytes:
+            if o.sat_velocity is not None or o.sat_clock_drift is not None:
+                return whole_encode(o)
             if o.carrier_cycles is None and o.lli is None:
                 return plain_encode(o)
             return carrier_encode(o)
 
         self.encode = encode
+
+    @property
+    def codecs(self) -> list[_KindCodec]:
+        """Every layout, for reading."""
+        return [self.plain, self.carrier, self.whole]
 
 
 _PSEUDORANGE = _PseudorangeCodec()
@@ -253,8 +266,7 @@ _BY_CLASS: dict[type, Any] = {
 }
 _BY_NAME: dict[bytes, _KindCodec] = {
     **{codec.name: codec for codec in _BY_CLASS.values() if codec is not _PSEUDORANGE},
-    _PSEUDORANGE.plain.name: _PSEUDORANGE.plain,
-    _PSEUDORANGE.carrier.name: _PSEUDORANGE.carrier,
+    **{codec.name: codec for codec in _PSEUDORANGE.codecs},
 }
 
 

@@ -101,7 +101,10 @@ class PseudorangeObservation:
     is -doppler_hz times the carrier's wavelength), None when not sent. ``carrier_cycles`` is the
     receiver's carrier phase of the same signal (cycles, RINEX convention: it grows with the range, so it
     changes by -doppler_hz per second) and ``lli`` its RINEX loss-of-lock indicator bits (bit 0: lock lost
-    since the previous epoch, so the phase may have slipped), None when not sent."""
+    since the previous epoch, so the phase may have slipped), None when not sent. With ``sat_position`` and
+    ``sat_clock`` a client may also send the satellite's ECEF velocity (m/s, the derivative of
+    ``sat_position``'s Earth-fixed coordinates) as ``sat_velocity`` and its clock drift (s/s) as
+    ``sat_clock_drift``: what the range-rate model needs of a satellite to use a Doppler."""
 
     kind: ClassVar[str] = "pseudorange"
     t: float
@@ -114,6 +117,8 @@ class PseudorangeObservation:
     doppler_hz: float | None = None
     carrier_cycles: float | None = None
     lli: int | None = None
+    sat_velocity: tuple[float, float, float] | None = None
+    sat_clock_drift: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -165,6 +170,25 @@ class PseudorangeObservationV3:
     sat_position: tuple[float, float, float] | None = None
     sat_clock: float | None = None
     doppler_hz: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class PseudorangeObservationV4:
+    """The pseudorange observation's fields before ``sat_velocity`` and ``sat_clock_drift``: the layout the
+    lag window stores pseudoranges with carrier phase and without a client's satellite velocity in, so
+    windows stored before those fields existed read unchanged (``core.observation_codec``)."""
+
+    kind: ClassVar[str] = "pseudorange"
+    t: float
+    system: str
+    prn: int
+    pseudorange: float
+    cn0: float
+    sat_position: tuple[float, float, float] | None = None
+    sat_clock: float | None = None
+    doppler_hz: float | None = None
+    carrier_cycles: float | None = None
+    lli: int | None = None
 
 
 Observation = (

@@ -35,10 +35,6 @@ from edgepos.pipelines.gnss_session import (
     GnssSession,
 )
 
-_SAT_RADIUS_M = (1.0e7, 5.0e7)
-"""Geocentric distances a client-sent satellite position must lie between (MEO to GEO/IGSO)."""
-
-
 _INITIAL_CLOCK_DRIFT_STD = 5.0
 _INITIAL_DOPPLER_VELOCITY_STD = 1.0
 """Velocity and drift std (m/s) when initialising from a least-squares Doppler velocity: the baseline's

@@ -51,7 +51,7 @@ _NO_DELAY = (0.0, 0.0)
 
 NO_SAT_VELOCITY = (
     "no satellite velocity: with sat_position and sat_clock sent the service computes no orbit, and the "
-    "range-rate model needs the satellite's velocity and clock drift from the broadcast ephemerides"
+    "range-rate model needs the satellite's velocity and clock drift (send sat_velocity and sat_clock_drift)"
 )
 
 
@@ -89,8 +89,14 @@ def epoch_satellites(
             continue
         if observation.sat_position is not None and observation.sat_clock is not None:
             frequency = carrier_frequency(observation.system, DEFAULT_SIGNAL[observation.system])
+            rate, velocity, drift = math.nan, nan3, math.nan
             if observation.doppler_hz is not None and i not in doppler_reasons:
-                doppler_reasons[i] = NO_SAT_VELOCITY
+                if observation.sat_velocity is None or observation.sat_clock_drift is None:
+                    doppler_reasons[i] = NO_SAT_VELOCITY
+                else:
+                    rate = float(doppler_to_range_rate(np.array([observation.doppler_hz]), frequency)[0])
+                    velocity = np.asarray(observation.sat_velocity, float)
+                    drift = observation.sat_clock_drift
             rows.append(
                 (
                     i,
@@ -101,9 +107,9 @@ def epoch_satellites(
                     np.asarray(observation.sat_position, float),
                     observation.sat_clock,
                     frequency,
-                    math.nan,
-                    nan3,
-                    math.nan,
+                    rate,
+                    velocity,
+                    drift,
                     None,
                 )
             )

@@ -94,7 +94,6 @@ from edgepos.pipelines.base import (
     Problem,
     StateSummary,
     ensure_finite_fixes,
-    is_finite_number,
 )
 from edgepos.pipelines.epochs import group_by_time
 from edgepos.pipelines.gnss_constraints import (
@@ -123,13 +122,8 @@ from edgepos.pipelines.gnss_motion import (
 from edgepos.pipelines.gnss_options import (
     DEFAULT_DOPPLER_OUTLIER_STD_MPS,
     DEFAULT_DOPPLER_STD_MPS,
-    MAX_CARRIER_CYCLES,
-    MAX_DOPPLER_HZ,
-    MAX_LLI,
-    MAX_PRN,
     OPTION_SPECS,
     SECONDS_PER_WEEK,
-    SYSTEMS,
 )
 from edgepos.pipelines.gnss_satellites import (
     CorrectionUses,
@@ -158,11 +152,8 @@ from edgepos.pipelines.gnss_session import (
 from edgepos.pipelines.gnss_tdcp import TdcpStep, predict_with_displacement, remember_phases
 from edgepos.pipelines.gnss_tdcp import enabled as tdcp_enabled
 from edgepos.pipelines.gnss_tdcp import report as tdcp_report
+from edgepos.pipelines.gnss_validation import validate_batch
 from edgepos.pipelines.options import resolve_options
-
-_SAT_RADIUS_M = (1.0e7, 5.0e7)
-"""Geocentric distances a client-sent satellite position must lie between (MEO to GEO/IGSO)."""
-
 
 _FUZZY = FuzzyNoise()
 """Table 1's memberships and singletons (one instance: its compiled tables are built once)."""
@@ -217,7 +208,7 @@ class GnssTightPipeline(Pipeline):
         self, state: bytes, observations: Sequence[Observation], environment: Environment
     ) -> tuple[list[Fix], bytes]:
         session = decode_session(state)
-        _validate(session, observations)
+        validate_batch(session.t, observations)
         ephemerides = environment.ephemerides()
         origin = environment.site_origin()
         corrections = environment.corrections()
@@ -227,84 +218,6 @@ class GnssTightPipeline(Pipeline):
             for epoch in group_by_time(observations)
         ]
         return ensure_finite_fixes(fixes), session.to_bytes()
-
-
-# -- validation -----------------------------------------------------------------------------------
-def _validate(session: GnssSession, observations: Sequence[Observation]) -> None:
-    problems: list[Problem] = []
-    for index, observation in enumerate(observations):
-        if not is_finite_number(observation.t) or not 0.0 <= observation.t < SECONDS_PER_WEEK:
-            problems.append(Problem(index, "t", "must be a GPS time of week in [0, 604800) s"))
-        elif session.t is not None and observation.t < session.t:
-            problems.append(
-                Problem(
-                    index, "t", f"{observation.t!r} is older than the session's last epoch t={session.t!r}"
-                )
-            )
-        if isinstance(observation, PseudorangeObservation):
-            if observation.system not in SYSTEMS:
-                problems.append(Problem(index, "system", f"must be one of {list(SYSTEMS)}"))
-            if not isinstance(observation.prn, int) or not 1 <= observation.prn <= MAX_PRN:
-                problems.append(Problem(index, "prn", f"must be an integer in [1, {MAX_PRN}]"))
-            if not is_finite_number(observation.pseudorange) or not 1.0e6 <= observation.pseudorange <= 1.0e8:
-                problems.append(Problem(index, "pseudorange", "must be a finite range in [1e6, 1e8] m"))
-            if not is_finite_number(observation.cn0) or not 0.0 <= observation.cn0 <= 100.0:
-                problems.append(Problem(index, "cn0", "must be a finite C/N0 in [0, 100] dB-Hz"))
-            if observation.sat_position is not None:
-                position = observation.sat_position
-                if len(position) != 3 or not all(is_finite_number(v) for v in position):
-                    problems.append(
-                        Problem(index, "sat_position", "must be three finite ECEF coordinates (m)")
-                    )
-                elif not _SAT_RADIUS_M[0] <= math.hypot(*position) <= _SAT_RADIUS_M[1]:
-                    problems.append(
-                        Problem(index, "sat_position", "must lie 1e7..5e7 m from the Earth's centre")
-                    )
-            if observation.sat_clock is not None and (
-                not is_finite_number(observation.sat_clock) or abs(observation.sat_clock) > 0.01
-            ):
-                problems.append(Problem(index, "sat_clock", "must be a finite offset within +-0.01 s"))
-            if observation.doppler_hz is not None and (
-                not is_finite_number(observation.doppler_hz) or abs(observation.doppler_hz) > MAX_DOPPLER_HZ
-            ):
-                problems.append(
-                    Problem(index, "doppler_hz", f"must be a finite Doppler within +-{MAX_DOPPLER_HZ:g} Hz")
-                )
-            if observation.carrier_cycles is not None and (
-                not is_finite_number(observation.carrier_cycles)
-                or abs(observation.carrier_cycles) >= MAX_CARRIER_CYCLES
-            ):
-                problems.append(
-                    Problem(
-                        index,
-                        "carrier_cycles",
-                        f"must be a finite phase within +-{MAX_CARRIER_CYCLES:g} cycles",
-                    )
-                )
-            if observation.lli is not None and (
-                isinstance(observation.lli, bool)
-                or not isinstance(observation.lli, int)
-                or not 0 <= observation.lli <= MAX_LLI
-            ):
-                problems.append(
-                    Problem(index, "lli", f"must be an integer in [0, {MAX_LLI}] (RINEX loss-of-lock bits)")
-                )
-        elif isinstance(observation, RissObservation):
-            for name, bound in (
-                ("wheel_speed", 100.0),
-                ("accel_x", 50.0),
-                ("accel_y", 50.0),
-                ("gyro_z", 10.0),
-            ):
-                value = getattr(observation, name)
-                if not is_finite_number(value) or abs(value) > bound:
-                    problems.append(Problem(index, name, f"must be finite and within +-{bound:g}"))
-        else:
-            problems.append(
-                Problem(index, "type", f"{observation.kind!r} is not used by the gnss_tight pipeline")
-            )
-    if problems:
-        raise PipelineInputError(problems)
 
 
 # -- one epoch -----------------------------------------------------------------------------------
