@@ -53,15 +53,15 @@ class Algorithm:
     description: str
 
 
-PAPER_MEASUREMENTS = {"noise_model": "fuzzy", "carrier_smoothing": "off"}
-"""The paper's measurement model: pseudoranges alone, with the equal (eq. 19) or fuzzy (eq. 20) noise; the
-service's defaults since issue 16 (noise fitted on the real recording, carrier-smoothed code) would make
-every paper row the same model."""
+PAPER_MEASUREMENTS = {"noise_model": "fuzzy", "carrier_smoothing": "off", "use_doppler": False}
+"""The paper's measurement model: pseudoranges alone (no carrier phase, no Doppler), with the equal (eq. 19)
+or fuzzy (eq. 20) noise; the service's defaults since issue 16 (noise fitted on the real recording,
+carrier-smoothed code, Doppler) would make every paper row the same model."""
 
 #: The algorithms compared: the paper's PF and improved UPF, the UPF without the fuzzy logic (the
 #: ablation between them), the single UKF baseline with and without the fuzzy logic (all on the
 #: paper's measurement model), the UPF as a session opens it by default (the service's noise model and
-#: the carrier phase), and the project's least squares without any filter.
+#: the carrier phase and Doppler), and the project's least squares without any filter.
 ALGORITHMS: dict[str, Algorithm] = {
     a.name: a
     for a in (
@@ -105,7 +105,8 @@ ALGORITHMS: dict[str, Algorithm] = {
             {"filter": "upf"},
             True,
             None,
-            "the UPF with the service's defaults: noise fitted on the real recording, carrier-smoothed code",
+            "the UPF with the service's defaults: noise fitted on the real recording, carrier-smoothed code, "
+            "Doppler",
         ),
         Algorithm(
             WLS,

@@ -90,6 +90,33 @@ class Constellation:
         cos_t, sin_t = np.cos(theta), np.sin(theta)
         return np.stack([cos_t * x + sin_t * y, -sin_t * x + cos_t * y, z], axis=-1)
 
+    def ecef_velocity_each(self, t: np.ndarray) -> np.ndarray:
+        """Earth-fixed velocities (..., n, 3) (m/s), the time derivatives of :meth:`ecef_each` at the same
+        per-satellite GPS times: the orbital motion rotated into the Earth-fixed frame, less the frame's
+        rotation (omega_e x r)."""
+        t = np.asarray(t, float)
+        u = self.latitude0 + self.mean_motion * t
+        x_plane, y_plane = self.radius * np.cos(u), self.radius * np.sin(u)
+        vx_plane, vy_plane = -self.mean_motion * y_plane, self.mean_motion * x_plane
+        cos_i, sin_i = np.cos(self.inclination), np.sin(self.inclination)
+        cos_o, sin_o = np.cos(self.raan), np.sin(self.raan)
+        x = x_plane * cos_o - y_plane * cos_i * sin_o
+        y = x_plane * sin_o + y_plane * cos_i * cos_o
+        vx = vx_plane * cos_o - vy_plane * cos_i * sin_o
+        vy = vx_plane * sin_o + vy_plane * cos_i * cos_o
+        vz = vy_plane * sin_i
+        theta = OMEGA_EARTH * t
+        cos_t, sin_t = np.cos(theta), np.sin(theta)
+        x_fixed, y_fixed = cos_t * x + sin_t * y, -sin_t * x + cos_t * y
+        return np.stack(
+            [
+                cos_t * vx + sin_t * vy + OMEGA_EARTH * y_fixed,
+                -sin_t * vx + cos_t * vy - OMEGA_EARTH * x_fixed,
+                vz,
+            ],
+            axis=-1,
+        )
+
     def clock(self, t: np.ndarray) -> np.ndarray:
         """Satellite clock offsets (s) at per-satellite GPS times ``t`` (..., n)."""
         return self.clock_offset + self.clock_drift * (np.asarray(t, float) - self.clock_epoch)

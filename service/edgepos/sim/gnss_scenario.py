@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 from edgepos.sim.constellation import Constellation, gps_bds_constellation
 from edgepos.sim.gnss_carrier import CarrierModel
+from edgepos.sim.gnss_doppler import DopplerModel
 from edgepos.sim.trajectory import Segment, Truth
 from edgepos.sim.urban import CityParameters, StreetView, drive, nanjing_route, short_route, street_view
 
@@ -125,6 +126,9 @@ class GnssScenario:
     urban: bool = True
     carrier: CarrierModel | None = field(default_factory=CarrierModel)
     """The carrier phase's lock, slips and errors (sim.gnss_carrier); None: pseudoranges without phase."""
+    doppler: DopplerModel | None = field(default_factory=DopplerModel)
+    """The Doppler's errors (sim.gnss_doppler), sent with the satellite's velocity and clock drift; None:
+    pseudoranges without Doppler."""
 
     @property
     def riss_period(self) -> float:

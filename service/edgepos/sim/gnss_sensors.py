@@ -14,7 +14,8 @@ orbit/clock error, m the LOS multipath (Gauss-Markov, larger at low elevation), 
 C/N0) and nlos the extra path of a reflected signal. A satellite is tracked when it is above the horizon
 mask and either above the street-canyon cut-off (LOS) or received by reflection (NLOS), and its C/N0 is
 above the tracking threshold. The carrier phase of a signal the carrier loop holds in lock goes with it
-(``sim.gnss_carrier``: lock and slips at the rates of the real recording).
+(``sim.gnss_carrier``: lock and slips at the rates of the real recording), and so does its Doppler with
+the satellite's velocity and clock drift (``sim.gnss_doppler``: noise by C/N0 as on the real recording).
 
 RISS samples at every truth sample: wheel speed (scale error + noise), forward and lateral specific force
 (bias + noise; the road is level, so they are the longitudinal acceleration and speed x yaw rate), yaw
@@ -36,6 +37,7 @@ from edgepos.gnss.corrections import saastamoinen_delay
 from edgepos.gnss.geodesy import enu_rotation, geodetic_to_ecef
 from edgepos.gnss.orbits import OMEGA_EARTH, SPEED_OF_LIGHT
 from edgepos.sim.gnss_carrier import carrier_phase, draw
+from edgepos.sim.gnss_doppler import noise_std, path_rate, range_rate
 from edgepos.sim.gnss_scenario import GnssScenario, ReceiverModel
 from edgepos.sim.urban import ANTENNA_HEIGHT_M, StreetView
 
@@ -121,6 +123,7 @@ def simulate(scenario: GnssScenario, rng: np.random.Generator) -> GnssRun:
     riss_noise = rng.standard_normal((samples, 4))
     gyro_instability = rng.standard_normal(samples)
     carrier_draws = None if scenario.carrier is None else draw(rng, (epochs_count, sats), scenario.carrier)
+    doppler_noise = None if scenario.doppler is None else rng.standard_normal((epochs_count, sats))
 
     # -- receiver positions and satellite geometry --------------------------------------------------
     lat0, lon0, h0 = scenario.site
@@ -183,7 +186,7 @@ def simulate(scenario: GnssScenario, rng: np.random.Generator) -> GnssRun:
     tropo = tropo_factor * saastamoinen_delay(lat0, h0 + ANTENNA_HEIGHT_M, elevation)
     error = iono + (tropo_factor - 1.0) / tropo_factor * tropo + sisre + multipath + noise + extra
 
-    bias, _drift = _receiver_clock(clock_bias0, drift0, clock_walk, gnss_step, receiver)
+    bias, drift = _receiver_clock(clock_bias0, drift0, clock_walk, gnss_step, receiver)
     is_beidou = np.array([system == "C" for system in constellation.systems])
     receiver_bias = bias[:, None] + inter_system * is_beidou[None, :]
     sat_clock = constellation.clock(gpst[:, None] - tau)
@@ -204,6 +207,34 @@ def simulate(scenario: GnssScenario, rng: np.random.Generator) -> GnssRun:
         phase = carrier_phase(
             carrier_draws, scenario.carrier, tracked, cn0, phase_path, multipath_unit, frequency
         )
+
+    doppler = sat_velocity = None
+    if scenario.doppler is not None and doppler_noise is not None:
+        sat_velocity = constellation.ecef_velocity_each(gpst[:, None] - tau)
+        heading = truth.heading[rows]
+        enu_velocity = np.stack(
+            [
+                truth.speed[rows] * np.cos(heading),
+                truth.speed[rows] * np.sin(heading),
+                np.zeros(epochs_count),
+            ],
+            axis=-1,
+        )
+        reflected_rate = (
+            np.where(reflected, path_rate(specular, street_rows.place, gnss_step), 0.0)
+            if scenario.doppler.reflected_rate
+            else np.zeros_like(specular)
+        )
+        rate = range_rate(
+            line,
+            _rotate(sat_velocity, tau),
+            enu_velocity @ enu_rotation(lat0, lon0),
+            drift,
+            constellation.clock_drift,
+            reflected_rate,
+        )
+        rate = rate + scenario.doppler.noise_scale * noise_std(cn0) * doppler_noise
+        doppler = -rate * frequency[None, :] / SPEED_OF_LIGHT
 
     # -- RISS ---------------------------------------------------------------------------------------
     dt = scenario.riss_period
@@ -254,6 +285,9 @@ def simulate(scenario: GnssScenario, rng: np.random.Generator) -> GnssRun:
                         sat_clock=float(sat_clock[k, j]),
                         carrier_cycles=None if phase is None else _finite_or_none(phase.cycles[k, j]),
                         lli=None if phase is None or math.isnan(phase.cycles[k, j]) else int(phase.lli[k, j]),
+                        doppler_hz=None if doppler is None else float(doppler[k, j]),
+                        sat_velocity=None if sat_velocity is None else _triple(sat_velocity[k, j]),
+                        sat_clock_drift=None if sat_velocity is None else float(constellation.clock_drift[j]),
                     )
                 )
         epochs.append(epoch)
@@ -270,6 +304,10 @@ def simulate(scenario: GnssScenario, rng: np.random.Generator) -> GnssRun:
         cn0=cn0,
         error=np.where(tracked, error, np.nan),
     )
+
+
+def _triple(vector: np.ndarray) -> tuple[float, float, float]:
+    return (float(vector[0]), float(vector[1]), float(vector[2]))
 
 
 def _finite_or_none(value: float) -> float | None:
