@@ -132,6 +132,8 @@ EVERY_MEASUREMENT: list[dict[str, Any]] = [
         "doppler_hz": -1200.5,
         "carrier_cycles": 1.26e8,
         "lli": 1,
+        "sat_velocity": [-2231.5, 372.25, -1830.75],
+        "sat_clock_drift": 1.5e-12,
     },
     {"type": "riss", "t": 1.0, "wheel_speed": 10.0, "accel_x": 0.1, "accel_y": -0.2, "gyro_z": 0.01},
 ]

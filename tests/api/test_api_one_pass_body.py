@@ -148,7 +148,18 @@ def test_the_batch_digest_hashes_the_same_bytes_as_the_models_json(include_state
     assert batch_hash(batch) == hashlib.sha256(batch.model_dump_json().encode()).hexdigest()
 
 
-_OPTIONAL = {"sat_position", "sat_clock", "doppler_hz", "carrier_cycles", "lli", "std", "distance", "speed"}
+_OPTIONAL = {
+    "sat_position",
+    "sat_clock",
+    "doppler_hz",
+    "carrier_cycles",
+    "lli",
+    "sat_velocity",
+    "sat_clock_drift",
+    "std",
+    "distance",
+    "speed",
+}
 
 
 @st.composite
