@@ -190,6 +190,8 @@ def run_fixes(
         nis,
         levels.tolist(),
     ):
+        # the epoch's records: epoch_parts' of the RSUs it leaves out, and here those of the RSUs and gyros
+        # used, so one for each index of the epoch, which are in ascending order (group_by_time's)
         uses = parts.uses
         for i in parts.candidates:
             uses[i] = rsu_used[i] if i < USED_KEPT else used(i, "rsu")
@@ -206,7 +208,7 @@ def run_fixes(
                 mean,
                 state_cov,
                 dict(zip(models, weights)),
-                [uses[i] for i in sorted(uses)],
+                [uses[i] for i in parts.indices],  # every index's record (see the loop's comment)
                 weighted,
                 measurement_dim(len(parts.candidates), len(parts.gyros), rows.averaged),
                 protection_level,
