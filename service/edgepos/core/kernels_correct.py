@@ -346,8 +346,9 @@ def _correct_one(
             gain[k] += rhs[r, k] * rhs[r, 8]
         for i in range(8):
             left = rhs[r, i]
-            for j in range(8):
-                reduction[i, j] += left * rhs[r, j]
+            if left != 0.0:  # zero in the components the model lacks: exact zeros skipped (see _moments)
+                for j in range(8):
+                    reduction[i, j] += left * rhs[r, j]
     for k in range(8):
         out_mean[k] = mean[k] + gain[k]
     out_mean[_PHI] = wrap(out_mean[_PHI])
