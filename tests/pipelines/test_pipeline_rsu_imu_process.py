@@ -411,7 +411,7 @@ def test_fix_covariances_are_symmetric_positive_definite(pipeline) -> None:
 
 
 def test_fixes_are_the_objects_their_constructor_makes(pipeline) -> None:
-    """rsu_imu builds its fixes without Fix.__init__ (rsu_imu_fix.listed_fix): each must equal the one the
+    """rsu_imu builds its fixes without Fix.__init__ (rsu_imu_fix.FixForm.fix): each must equal the one the
     constructor makes from its fields, with every field set, in the constructor's order, and be read
     from the kinematic block of its own state covariance."""
     fixes, _ = run(pipeline, started(pipeline), 30, seed=23)

@@ -249,10 +249,15 @@ def _moments(
             for r in range(size):
                 for s in range(r, size):
                     innovation_cov[r, s] += weighted[r] * z[p, s]
+            # A point's offset is zero in the components before its own (the factor is lower triangular)
+            # and in those the model lacks: over half of them. Such a row adds exact zeros, which leave
+            # every sum as it is (a sum from +0 never becomes -0), so it is skipped. Only a non-finite
+            # residual would make those zeros NaN, and that fails the update either way.
             for k in range(8):
                 offset = offsets[p, k]
-                for r in range(size):
-                    cross_cov[k, r] += offset * weighted[r]
+                if offset != 0.0:
+                    for r in range(size):
+                        cross_cov[k, r] += offset * weighted[r]
         for r in range(size):
             for s in range(r + 1, size):
                 innovation_cov[s, r] = innovation_cov[r, s]
@@ -341,8 +346,9 @@ def _correct_one(
             gain[k] += rhs[r, k] * rhs[r, 8]
         for i in range(8):
             left = rhs[r, i]
-            for j in range(8):
-                reduction[i, j] += left * rhs[r, j]
+            if left != 0.0:  # zero in the components the model lacks: exact zeros skipped (see _moments)
+                for j in range(8):
+                    reduction[i, j] += left * rhs[r, j]
     for k in range(8):
         out_mean[k] = mean[k] + gain[k]
     out_mean[_PHI] = wrap(out_mean[_PHI])

@@ -21,13 +21,14 @@ from edgepos.pipelines.epochs import group_by_time
 class Batch:
     """A batch's observations as the epochs read them: each RSU observation's station, and per
     observation its row of the measurement arrays (station position, range and bearing, their noise
-    standard deviations with the options' defaults filled in, the communication radius; zeros for a
-    gyro) and the gyro's yaw rate. Read once per batch (``read_batch``), so that an epoch's measurement
+    standard deviations with the options' defaults filled in, the communication radius; a gyro's station
+    numbers are zeros) and the gyro's yaw rate. Read once per batch (``read_batch``), so that an epoch's measurement
     arrays are a few index operations instead of array building from Python lists.
 
     Made of the batch's stations (``stations[0]`` None, a gyro's; five numbers each in
     ``station_rows``: x, y, range and bearing standard deviations, radius), each observation's station
-    (``codes``) and its three measured numbers (``rows``: range, bearing, yaw rate): a station's numbers
+    (``codes``) and its two measured numbers (``rows``: range and bearing, or a gyro's yaw rate and 0; so
+    ``yaw_rates`` is each row's first number, of which only the gyros' are read): a station's numbers
     are listed once per batch, not once per observation, and taken per observation in one ``take``."""
 
     __slots__ = (
@@ -58,17 +59,17 @@ class Batch:
         # flat lists: half the time of tuples; columns as views of the tables: every use takes rows of
         # them (``take``), which makes new C-contiguous arrays for the kernels, so copying each column
         # first only cost time
-        table = np.array(rows, dtype=float).reshape(count, 3)
+        table = np.array(rows, dtype=float).reshape(count, 2)
         self.station_codes = np.array(codes, np.intp)  # ``codes`` as an array: what rows of stations take
         station = np.array(station_rows, dtype=float).reshape(len(stations), 5).take(self.station_codes, 0)
         self.positions = station[:, 0:2]
-        self.observed = table[:, 0:2]
+        self.observed = table
         self.range_std = station[:, 2]
         self.bearing_std = station[:, 3]
         variances = np.square(station[:, 2:4])  # as RsuGyroEpoch.variances squares them
         self.range_variances = variances[:, 0]
         self.bearing_variances = variances[:, 1]
-        self.yaw_rates = table[:, 2]
+        self.yaw_rates = table[:, 0]
         self.radii: list[float] = station[:, 4].tolist()
         self.ranges = ranges  # each observation's measured range, -1 for a gyro (ranges are >= 0)
 
@@ -101,7 +102,7 @@ def read_batch(
     station_rows = [0.0] * 5
     known: dict[str, int] = {}  # each RSU id's station
     codes: list[int] = []
-    rows: list[float] = []  # three numbers per observation, see Batch
+    rows: list[float] = []  # two numbers per observation, see Batch
     ranges: list[float] = []
     default_range, default_bearing = options["range_std"], options["bearing_std"]
     default_radius = options["comm_radius"]
@@ -128,14 +129,14 @@ def read_batch(
                     rsu.radius or default_radius,
                 )
             ranges.append(measured)
-            rows += (measured, bearing, 0.0)
+            rows += (measured, bearing)
         elif type(observation) is GyroObservation:
             yaw_rate = observation.yaw_rate
             if not -_MAX <= yaw_rate <= _MAX:
                 return _checked_batch(options, last_t, observations, environment)
             code = 0
             ranges.append(-1.0)
-            rows += (0.0, 0.0, yaw_rate)
+            rows += (yaw_rate, 0.0)
         else:  # another type (or a subclass): the checked reading decides
             return _checked_batch(options, last_t, observations, environment)
         codes.append(code)
@@ -182,7 +183,7 @@ def _checked_batch(
                     )
                 )
                 ranges.append(observation.range)
-                rows.extend((observation.range, observation.bearing, 0.0))
+                rows.extend((observation.range, observation.bearing))
             if not (math.isfinite(observation.range) and observation.range >= 0.0):
                 problems.append(Problem(index, "range", "must be a finite distance >= 0 m"))
             if not (math.isfinite(observation.bearing) and abs(observation.bearing) <= math.pi + 1e-9):
@@ -192,7 +193,7 @@ def _checked_batch(
                 problems.append(Problem(index, "yaw_rate", "must be finite"))
             codes.append(0)
             ranges.append(-1.0)
-            rows.extend((0.0, 0.0, observation.yaw_rate))
+            rows.extend((observation.yaw_rate, 0.0))
         else:
             problems.append(
                 Problem(index, "type", f"{observation.kind!r} is not used by the rsu_imu pipeline")

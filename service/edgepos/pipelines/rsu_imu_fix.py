@@ -32,7 +32,7 @@ def fix_layout(components: tuple[int, ...]) -> tuple[tuple[int, ...], int, int, 
     return kinematic, ax, ay, tuple(layout.NAMES[c] for c in order)
 
 
-#: Every field of a Fix in its order, with its default (None for those ``listed_fix`` always sets).
+#: Every field of a Fix in its order, with its default (None for those ``FixForm.fix`` always sets).
 _FIX_DEFAULTS = {
     f.name: None if f.default is dataclasses.MISSING else f.default for f in dataclasses.fields(Fix)
 }
@@ -41,7 +41,7 @@ _FIX_DEFAULTS = {
 @functools.lru_cache(maxsize=64)
 def _fix_fields(components: tuple[int, ...]) -> dict[str, Any]:
     """Every field of a Fix in its order with its default, and the names of an output over
-    ``components``: what ``listed_fix`` copies and fills in (never changed itself)."""
+    ``components``: what ``FixForm.fix`` copies and fills in (never changed itself)."""
     return {**_FIX_DEFAULTS, "state_components": fix_layout(components)[3]}
 
 
@@ -58,25 +58,30 @@ def epoch_fix(
 ) -> Fix:
     """The fix of an epoch whose fused estimate is ``output`` and model probabilities the session's."""
     components = tuple(output.components)
+    form = fix_form(components)
     state = output.mean.tolist()
     yaw_rate = None
-    if not has_acceleration(components):
+    if not form.turns:
         yaw_rate = carried_yaw_rate(session, bank)
     probabilities = dict(zip(session.options["models"], session.probabilities.tolist()))
     level, integrity = (None, UNAVAILABLE) if protection is None else (protection.level, protection.state)
-    return listed_fix(
+    state_cov = output.cov.tolist()
+    rows = [state_cov[i] for i in form.kinematic]
+    i_x, i_y, i_vx, i_vy = form.kinematic
+    return form.fix(
         t,
         status,
-        components,
         state,
-        output.cov.tolist(),
+        state_cov,
         probabilities,
-        uses,
+        [uses[i] for i in sorted(uses)],
         nis,
         dof,
         level,
         integrity,
         yaw_rate,
+        [[row[i_x], row[i_y], row[i_vx], row[i_vy]] for row in rows],
+        [[rows[0][i_x], rows[0][i_y]], [rows[1][i_x], rows[1][i_y]]],
     )
 
 
@@ -86,66 +91,79 @@ def has_acceleration(components: tuple[int, ...]) -> bool:
     return ax >= 0 and ay >= 0
 
 
-def listed_fix(
-    t: float,
-    status: str,
-    components: tuple[int, ...],
-    state: list[float],
-    state_cov: list[list[float]],
-    probabilities: dict[str, float],
-    uses: dict[int, MeasurementUse],
-    nis: float | None,
-    dof: int,
-    protection_level: float | None,
-    integrity: str,
-    carried_yaw: float | None,
-    blocks: tuple[list[list[float]], list[list[float]]] | None = None,
-) -> Fix:
-    """The fix of a fused estimate over ``components`` given as Python lists (its mean and its covariance's
-    rows) with the model probabilities, its protection level and integrity state (a ``Protection``'s, or
-    None and ``UNAVAILABLE`` without the monitor: a run states them without making the object);
-    ``carried_yaw`` is the turn rate when the estimate has no acceleration to give it
-    (``carried_yaw_rate``). ``blocks``: the covariance's kinematic (x, y, vx, vy) and position blocks as
-    lists when the caller has them already (a run makes every epoch's at once)."""
-    kinematic, ax, ay, _ = fix_layout(components)
-    i_x, i_y, i_vx, i_vy = kinematic
-    vx, vy = state[i_vx], state[i_vy]
-    yaw_rate = carried_yaw
-    if ax >= 0 and ay >= 0:  # the turn rate of the velocity vector from the fused kinematics
-        yaw_rate = float((vx * state[ay] - state[ax] * vy) / max(vx * vx + vy * vy, 0.01))
-    if blocks is None:
-        rows = [state_cov[i] for i in kinematic]
-        blocks = (
-            [[row[i_x], row[i_y], row[i_vx], row[i_vy]] for row in rows],
-            [[rows[0][i_x], rows[0][i_y]], [rows[1][i_x], rows[1][i_y]]],
-        )
-    # the Fix without its generated __init__: being frozen, that sets each of its 27 fields through
-    # object.__setattr__ (about 3 us a fix); its fields set in a copy of their defaults, then given to the
-    # object whole. The same object otherwise (equal, its fields in their order, pickled and serialised
-    # alike: tests/pipelines/test_pipeline_rsu_imu_process.py compares)
-    fields = _fix_fields(components).copy()
-    fields["t"] = t
-    fields["status"] = status
-    fields["x"] = state[i_x]
-    fields["y"] = state[i_y]
-    fields["vx"] = vx
-    fields["vy"] = vy
-    fields["speed"] = math.hypot(vx, vy)
-    fields["heading"] = math.atan2(vy, vx)
-    fields["yaw_rate"] = yaw_rate
-    fields["position_cov"] = blocks[1]
-    fields["kinematic_cov"] = blocks[0]
-    fields["state"] = state
-    fields["state_cov"] = state_cov
-    fields["model_probabilities"] = probabilities
-    fields["nis"] = nis
-    fields["nis_dof"] = dof
-    fields["measurements"] = [uses[i] for i in sorted(uses)]
-    fields["protection_level"] = protection_level
-    fields["integrity"] = integrity
-    fix = object.__new__(Fix)
-    object.__setattr__(fix, "__dict__", fields)
-    return fix
+class FixForm:
+    """The fixes of fused estimates over one tuple of components: where x, y, vx, vy (``kinematic``) and
+    the accelerations are in the estimate, whether it gives the turn rate (``turns``: both accelerations),
+    and every field of a Fix with its default and the components' names (``fields``, copied per fix, never
+    changed itself). Made once per components (``fix_form``), so that a fix reads them as attributes."""
+
+    __slots__ = ("ax", "ay", "fields", "kinematic", "turns")
+
+    def __init__(self, components: tuple[int, ...]) -> None:
+        self.kinematic, self.ax, self.ay, _ = fix_layout(components)
+        self.turns = self.ax >= 0 and self.ay >= 0
+        self.fields = _fix_fields(components)
+
+    def fix(
+        self,
+        t: float,
+        status: str,
+        state: list[float],
+        state_cov: list[list[float]],
+        probabilities: dict[str, float],
+        measurements: list[MeasurementUse],
+        nis: float | None,
+        dof: int,
+        protection_level: float | None,
+        integrity: str,
+        carried_yaw: float | None,
+        kinematic_cov: list[list[float]],
+        position_cov: list[list[float]],
+    ) -> Fix:
+        """The fix of a fused estimate given as Python lists (its mean ``state``, its covariance's rows and
+        their kinematic (x, y, vx, vy) and position blocks) with the model probabilities, the epoch's
+        measurement records in index order, its protection level and integrity state (a ``Protection``'s,
+        or None and ``UNAVAILABLE`` without the monitor: a run states them without making the object);
+        ``carried_yaw`` is the turn rate when the estimate has no acceleration to give it
+        (``carried_yaw_rate``)."""
+        i_x, i_y, i_vx, i_vy = self.kinematic
+        vx, vy = state[i_vx], state[i_vy]
+        yaw_rate = carried_yaw
+        if self.turns:  # the turn rate of the velocity vector from the fused kinematics
+            yaw_rate = float((vx * state[self.ay] - state[self.ax] * vy) / max(vx * vx + vy * vy, 0.01))
+        # the Fix without its generated __init__: being frozen, that sets each of its 27 fields through
+        # object.__setattr__ (about 3 us a fix); its fields set in a copy of their defaults, then given to
+        # the object whole. The same object otherwise (equal, its fields in their order, pickled and
+        # serialised alike: tests/pipelines/test_pipeline_rsu_imu_process.py compares)
+        fields = self.fields.copy()
+        fields["t"] = t
+        fields["status"] = status
+        fields["x"] = state[i_x]
+        fields["y"] = state[i_y]
+        fields["vx"] = vx
+        fields["vy"] = vy
+        fields["speed"] = math.hypot(vx, vy)
+        fields["heading"] = math.atan2(vy, vx)
+        fields["yaw_rate"] = yaw_rate
+        fields["position_cov"] = position_cov
+        fields["kinematic_cov"] = kinematic_cov
+        fields["state"] = state
+        fields["state_cov"] = state_cov
+        fields["model_probabilities"] = probabilities
+        fields["nis"] = nis
+        fields["nis_dof"] = dof
+        fields["measurements"] = measurements
+        fields["protection_level"] = protection_level
+        fields["integrity"] = integrity
+        fix = object.__new__(Fix)
+        object.__setattr__(fix, "__dict__", fields)
+        return fix
+
+
+@functools.lru_cache(maxsize=64)
+def fix_form(components: tuple[int, ...]) -> FixForm:
+    """The ``FixForm`` of estimates over ``components`` (one per components: a run makes its fixes with it)."""
+    return FixForm(components)
 
 
 def carried_yaw_rate(session: _SessionState, bank: InteractingMultipleModel) -> float | None:

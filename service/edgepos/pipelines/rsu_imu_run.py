@@ -33,7 +33,7 @@ from edgepos.core.updates import GYRO_MIN_SPEED, measurement_dim
 from edgepos.pipelines.base import Fix, MeasurementUse
 from edgepos.pipelines.integrity import _monitor_of, _position_index
 from edgepos.pipelines.rsu_imu_batch import EpochParts
-from edgepos.pipelines.rsu_imu_fix import fix_layout, has_acceleration, listed_fix
+from edgepos.pipelines.rsu_imu_fix import fix_form, fix_layout, has_acceleration
 
 if TYPE_CHECKING:  # the session type only: rsu_imu imports this module
     from edgepos.pipelines.rsu_imu import _SessionState
@@ -177,6 +177,7 @@ def run_fixes(
     # every epoch's lists at once: the covariance's rows, and its kinematic and position blocks
     kinematic_covs = covs.reshape(done, -1).take(kinematic_entries(components), 1).reshape(done, 4, 4)
     rsu_used, gyro_used = used_records("rsu", len(observations)), used_records("gyro", len(observations))
+    form = fix_form(components)
     fixes = []
     for parts, t, mean, state_cov, kinematic_cov, position_cov, weights, weighted, level in zip(
         run,
@@ -189,6 +190,8 @@ def run_fixes(
         nis,
         levels.tolist(),
     ):
+        # the epoch's records: epoch_parts' of the RSUs it leaves out, and here those of the RSUs and gyros
+        # used, so one for each index of the epoch, which are in ascending order (group_by_time's)
         uses = parts.uses
         for i in parts.candidates:
             uses[i] = rsu_used[i] if i < USED_KEPT else used(i, "rsu")
@@ -199,20 +202,20 @@ def run_fixes(
         else:  # a level that passed every test, stated as SeparationBank.epoch's Protection states it
             protection_level, integrity = level, OK if level <= alert_limit else ALARM
         fixes.append(
-            listed_fix(
+            form.fix(
                 t,
                 "tracking",
-                components,
                 mean,
                 state_cov,
                 dict(zip(models, weights)),
-                uses,
+                [uses[i] for i in parts.indices],  # every index's record (see the loop's comment)
                 weighted,
                 measurement_dim(len(parts.candidates), len(parts.gyros), rows.averaged),
                 protection_level,
                 integrity,
                 None,  # the run's outputs have both accelerations (checked above): no carried turn rate
-                (kinematic_cov, position_cov),
+                kinematic_cov,
+                position_cov,
             )
         )
     session.means, session.covs, session.probabilities = posterior(compiled, outs, done - 1)
