@@ -59,12 +59,12 @@ from edgepos.pipelines.base import MeasurementUse
 from edgepos.pipelines.gnss_satellites import EpochSatellites
 from edgepos.pipelines.gnss_session import GnssSession
 from edgepos.pipelines.gnss_tdcp_kernel import (
-    differences_kernel,
+    TOO_FEW,
+    displacement_kernel,
     fit_kernel,
     map_kernel,
     posterior_terms_kernel,
     shift_kernel,
-    terms_kernel,
 )
 
 TDCP_MODES = ("tdcp", "hatch+tdcp")
@@ -204,53 +204,48 @@ def epoch_displacement(
             history, t, prs.sats, cycles, wavelength, prs.sat_position, terms, elevation, doppler, lli, config
         )
     n = len(cycles)
-    terms = np.empty(n)
-    terms_kernel(
+    std_all = config.phase_std_m / np.maximum(np.sin(elevation), MIN_SIN_ELEVATION)
+    status, off, index = np.empty(n, dtype=np.int64), np.zeros(n), np.empty(n, dtype=np.int64)
+    keep, left_out, solution, cov = (
+        np.zeros(n, dtype=np.bool_),
+        np.zeros((n, 2)),
+        np.empty(4),
+        np.empty((4, 4)),
+    )
+    dt = t - history.t
+    constants = np.array(
+        [OMEGA_EARTH, SPEED_OF_LIGHT, dt, config.max_gap_s, config.slip_cycles_per_s, MAX_CONDITION]
+    )
+    count, outcome = displacement_kernel(
         receiver,
         prs.sat_position,
         prs.sat_clock_s,
         troposphere_m,
         ionosphere_m,
-        OMEGA_EARTH,
-        SPEED_OF_LIGHT,
-        terms,
-    )
-    known = history.phases
-    before = np.array([known.get(sat, _NO_PHASE) for sat in prs.sats], dtype=float).reshape(n, 2)
-    std_all = config.phase_std_m / np.maximum(np.sin(elevation), MIN_SIN_ELEVATION)
-    status, off, index = np.empty(n, dtype=np.int64), np.zeros(n), np.empty(n, dtype=np.int64)
-    y, design, std = np.empty(n), np.empty((n, 4)), np.empty(n)
-    dt = t - history.t
-    count = differences_kernel(
+        constants,
         cycles,
-        before,
-        dt,
-        config.max_gap_s,
-        config.slip_cycles_per_s,
+        history.table,
+        history.rows(prs.sats),
         doppler,
         lli,
         wavelength,
-        prs.sat_position,
-        receiver,
-        terms,
         std_all,
+        _bounds(config.gate_probability, n),
+        config.min_satellites,
         status,
         off,
         index,
-        y,
-        design,
-        std,
+        keep,
+        left_out,
+        solution,
+        cov,
     )
     reasons: list[str | None] = [None] * n
     for row in np.flatnonzero(status).tolist():  # the rows not differenced: few (most have no phase)
         reasons[row] = slip_text(int(status[row]), dt, float(off[row]), config)
-    if count < config.min_satellites:
+    if outcome == TOO_FEW:
         return too_few(index[:count].tolist(), reasons, config)
-    return compiled_fit(index[:count], y[:count], design[:count], std[:count], reasons, config)
-
-
-_NO_PHASE = (math.nan, math.nan)
-"""``epoch_displacement``'s previous [cycles, term] of a satellite without a phase at the previous epoch."""
+    return _fit_outcome(index[:count], keep[:count], left_out[:count], outcome, solution, cov, reasons)
 
 
 def compiled_fit(
@@ -272,6 +267,20 @@ def compiled_fit(
     status = fit_kernel(
         y, design, std, bounds, config.min_satellites, MAX_CONDITION, keep, solution, cov, left_out
     )
+    return _fit_outcome(index, keep, left_out, status, solution, cov, reasons)
+
+
+def _fit_outcome(
+    index: np.ndarray,
+    keep: np.ndarray,
+    left_out: np.ndarray,
+    status: int,
+    solution: np.ndarray,
+    cov: np.ndarray,
+    reasons: list[str | None],
+) -> Displacement:
+    """The compiled fit's outputs as ``gnss.tdcp.fit_rows`` gives them: each row left out with its residual,
+    the rows kept with None (a displacement) or why the epoch has none."""
     rows, kept = index.tolist(), keep.tolist()
     for r in np.flatnonzero(~keep).tolist():
         reasons[rows[r]] = (
@@ -384,14 +393,9 @@ def remember_phases(
         )
     x, y, z = receiver.tolist()
     sats = prs.sats
-    session.tdcp = PhaseHistory(
-        t,
-        (x, y, z),
-        {
-            sats[r]: (c, m)
-            for r, c, m in zip(rows.tolist(), cycles[rows].tolist(), terms[rows].tolist(), strict=True)
-        },
-    )
+    table = np.empty((rows.size, 2))
+    table[:, 0], table[:, 1] = cycles[rows], terms[rows]
+    session.tdcp = PhaseHistory(t, (x, y, z), [sats[r] for r in rows.tolist()], table)
 
 
 def report(

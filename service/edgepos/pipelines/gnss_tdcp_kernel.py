@@ -231,6 +231,93 @@ def differences_kernel(
     return count
 
 
+TOO_FEW = 3
+"""``displacement_kernel``: fewer differenced rows than the fit needs (no fit run)."""
+
+
+@_jit
+def displacement_kernel(
+    receiver: FloatArray,
+    sat_position: FloatArray,
+    sat_clock_s: FloatArray,
+    troposphere_m: FloatArray,
+    ionosphere_m: FloatArray,
+    constants: FloatArray,
+    cycles: FloatArray,
+    history: FloatArray,
+    history_row: np.ndarray,
+    doppler_hz: FloatArray,
+    lli: np.ndarray,
+    wavelength_m: FloatArray,
+    std_all: FloatArray,
+    bounds: FloatArray,
+    min_rows: int,
+    status: np.ndarray,
+    off: FloatArray,
+    index: np.ndarray,
+    keep: np.ndarray,
+    left_out: FloatArray,
+    solution: FloatArray,
+    cov: FloatArray,
+) -> tuple[int, int]:
+    """The epoch's whole ``gnss.tdcp.displacement`` in one call: the model terms at the previous ``receiver``
+    (``terms_kernel``), each row's previous [cycles, term] (``history[history_row[row]]``, none where -1),
+    the slip tests and differences (``differences_kernel``) and the fit of the differenced rows
+    (``fit_kernel``). ``constants``: omega_earth, speed of light, dt, max gap (s), slip cycles per second,
+    max condition. Returns (how many rows were differenced, packed at the front of ``index``; the fit's
+    OK, FAILED or INCONSISTENT, or TOO_FEW when fewer than ``min_rows`` were)."""
+    n = cycles.shape[0]
+    terms = np.empty(n)
+    terms_kernel(
+        receiver, sat_position, sat_clock_s, troposphere_m, ionosphere_m, constants[0], constants[1], terms
+    )
+    before = np.empty((n, 2))
+    for row in range(n):
+        k = history_row[row]
+        if k < 0:
+            before[row, 0], before[row, 1] = math.nan, math.nan
+        else:
+            before[row, 0], before[row, 1] = history[k, 0], history[k, 1]
+    y, design, std = np.empty(n), np.empty((n, _UNKNOWNS)), np.empty(n)
+    count = differences_kernel(
+        cycles,
+        before,
+        constants[2],
+        constants[3],
+        constants[4],
+        doppler_hz,
+        lli,
+        wavelength_m,
+        sat_position,
+        receiver,
+        terms,
+        std_all,
+        status,
+        off,
+        index,
+        y,
+        design,
+        std,
+    )
+    if count < min_rows:
+        return count, TOO_FEW
+    for i in range(count):
+        keep[i] = True
+    outcome = fit_kernel(
+        y[:count],
+        design[:count],
+        std[:count],
+        bounds,
+        min_rows,
+        constants[5],
+        keep[:count],
+        solution,
+        cov,
+        left_out[:count],
+    )
+    return count, outcome
+
+
 @_jit
 def shift_kernel(particles: FloatArray, step: FloatArray, dt: float, out: FloatArray) -> None:
     """``gnss_tdcp.shift_cloud``'s particles: ``out`` = ``particles`` with each position (north, east, up)
