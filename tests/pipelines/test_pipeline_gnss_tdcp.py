@@ -14,10 +14,11 @@ from edgepos.core.observations import PseudorangeObservation
 from edgepos.core.particles import Cloud
 from edgepos.core.particles.base import weighted_moments
 from edgepos.eval.gnss_rinex import evaluate
-from edgepos.gnss.tdcp import TdcpConfig, fit_rows
+from edgepos.gnss.tdcp import MAX_CONDITION, Displacement, TdcpConfig, fit_rows
 from edgepos.pipelines.base import StaticEnvironment
 from edgepos.pipelines.gnss_session import decode_session
-from edgepos.pipelines.gnss_tdcp import DisplacementModel, compiled_fit, shift_cloud
+from edgepos.pipelines.gnss_tdcp import DisplacementModel, bounds_table, fit_outcome, shift_cloud
+from edgepos.pipelines.gnss_tdcp_kernel import fit_kernel
 from gnssrecording import recording_epochs, run_ukf
 
 DATA = "tests/data/gnss-rover/"
@@ -166,7 +167,7 @@ def test_the_compiled_fit_matches_the_numpy_one(seed) -> None:
         numpy_reasons: list[str | None] = ["x"] * (2 * n + 1)
         compiled_reasons = list(numpy_reasons)
         reference = fit_rows(index, b, a, std, numpy_reasons, config)
-        compiled = compiled_fit(index, b, a, std, compiled_reasons, config)
+        compiled = _compiled_fit(index, b, a, std, compiled_reasons, config)
         assert compiled_reasons == numpy_reasons
         assert compiled.why == reference.why
         if reference.d is None:
@@ -176,3 +177,22 @@ def test_the_compiled_fit_matches_the_numpy_one(seed) -> None:
         assert np.allclose(compiled.d, reference.d, rtol=1e-12, atol=1e-12)
         assert np.allclose(compiled.cov, reference.cov, rtol=1e-12, atol=1e-15)
         assert compiled.clock_m == pytest.approx(reference.clock_m, rel=1e-12)
+
+
+def _compiled_fit(
+    index: np.ndarray,
+    y: np.ndarray,
+    design: np.ndarray,
+    std: np.ndarray,
+    reasons: list[str | None],
+    config: TdcpConfig,
+) -> Displacement:
+    """fit_kernel's call as gnss_tdcp_kernel.displacement_kernel makes it, read by gnss_tdcp.fit_outcome."""
+    n = len(index)
+    keep = np.ones(n, dtype=np.bool_)
+    solution, cov, left_out = np.empty(4), np.empty((4, 4)), np.zeros((n, 2))
+    bounds = bounds_table(config.gate_probability, n)
+    status = fit_kernel(
+        y, design, std, bounds, config.min_satellites, MAX_CONDITION, keep, solution, cov, left_out
+    )
+    return fit_outcome(index, keep, left_out, status, solution, cov, reasons)

@@ -42,6 +42,9 @@ class EpochSatellites:
     """Per row, the broadcast ephemeris issue its satellite state came from (None: sent by the client)."""
     corrected: np.ndarray | None = None
     """Per row, whether a differential correction was added to its pseudorange (None: no corrections)."""
+    phases: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    """Per row, :func:`epoch_phases` (carrier, Doppler, LLI) when carrier smoothing has read them (None: not
+    read), so that the phase differences (pipelines/gnss_tdcp.py) do not read them again."""
 
 
 _FREQUENCY = {system: carrier_frequency(system, code) for system, code in DEFAULT_SIGNAL.items()}
@@ -383,16 +386,10 @@ def carrier_smoothed(
     options = session.options
     if options.get("carrier_smoothing", "off") not in ("hatch", "hatch+tdcp") or not len(prs):
         return satellites, factor, np.zeros(len(prs))
-    # satellites.indices are the epoch's pseudoranges (satellite_states keeps no other kind)
-    sent = [cast(PseudorangeObservation, observations[i]) for i in satellites.indices]
-    carrier = np.array([np.nan if o.carrier_cycles is None else o.carrier_cycles for o in sent], dtype=float)
+    phases = epoch_phases(satellites, observations, options)
+    carrier, doppler_hz, lli = phases
     if not np.isfinite(carrier).any():
         return satellites, factor, np.zeros(len(prs))
-    use_doppler = bool(options.get("use_doppler", True))
-    doppler_hz = np.array(
-        [o.doppler_hz if (o.doppler_hz is not None and use_doppler) else np.nan for o in sent], dtype=float
-    )
-    lli = np.array([o.lli or 0 for o in sent], dtype=int)
     config = HatchConfig(
         options["hatch_window_s"],
         options["carrier_slip_cycles_per_s"],
@@ -413,7 +410,23 @@ def carrier_smoothed(
     smoothed = result.count >= 1.0
     factor[smoothed] = np.maximum(1.0 / np.sqrt(result.count[smoothed]), options["hatch_std_floor"])
     prs = replaced(prs, pseudorange_m=result.pseudorange_m)
-    return replaced(satellites, prs=prs), factor, result.count
+    return replaced(satellites, prs=prs, phases=phases), factor, result.count
+
+
+def epoch_phases(
+    satellites: EpochSatellites, observations: Sequence[Observation], options: dict[str, Any]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row of the epoch's set: carrier phase (NaN: none), Doppler (NaN: none or unused) and LLI (0: not
+    sent)."""
+    # satellites.indices are the epoch's pseudoranges (satellite_states keeps no other kind)
+    sent = [cast(PseudorangeObservation, observations[i]) for i in satellites.indices]
+    use_doppler = bool(options.get("use_doppler", True))
+    cycles = np.array([math.nan if o.carrier_cycles is None else o.carrier_cycles for o in sent], dtype=float)
+    doppler = np.array(
+        [o.doppler_hz if (o.doppler_hz is not None and use_doppler) else math.nan for o in sent], dtype=float
+    )
+    lli = np.array([o.lli or 0 for o in sent], dtype=int)
+    return cycles, doppler, lli
 
 
 _Frozen = TypeVar("_Frozen", PseudorangeSet, EpochSatellites)

@@ -22,6 +22,7 @@ import math
 import numpy as np
 
 from edgepos.core.kernels_base import FAILED, OK, _jit, _symmetrize
+from edgepos.core.measurements.gnss_geometry import delays_kernel
 from edgepos.core.motion import riss as layout
 from edgepos.core.numerics import FloatArray
 from edgepos.gnss.tdcp import DIFFERENCED, GAP, LOSS_OF_LOCK, NO_PHASE, NO_PREVIOUS, SLIP
@@ -319,6 +320,124 @@ def displacement_kernel(
 
 
 @_jit
+def epoch_kernel(
+    receiver: FloatArray,
+    sat_position: FloatArray,
+    frequency_hz: FloatArray,
+    sat_clock_s: FloatArray,
+    klobuchar: FloatArray,
+    constants: FloatArray,
+    cycles: FloatArray,
+    history: FloatArray,
+    history_row: np.ndarray,
+    doppler_hz: FloatArray,
+    lli: np.ndarray,
+    bounds: FloatArray,
+    anchor: FloatArray,
+    mean: FloatArray,
+    particles: FloatArray,
+    cloud_cov: FloatArray,
+    moments_mean: FloatArray,
+    moments_cov: FloatArray,
+    status: np.ndarray,
+    off: FloatArray,
+    index: np.ndarray,
+    keep: np.ndarray,
+    left_out: FloatArray,
+    solution: FloatArray,
+    fit_cov: FloatArray,
+    noise: FloatArray,
+    out_particles: FloatArray,
+    out_cov: FloatArray,
+    out_mean: FloatArray,
+    out_moments_cov: FloatArray,
+) -> tuple[int, int]:
+    """An epoch's whole displacement step (``gnss_tdcp.predict_with_displacement``) in one call: the delays
+    and elevations at the previous ``receiver`` (``gnss_geometry.delays_kernel``), each difference's std ``phase_std`` / max(sin(elevation), ``min_sin``), the
+    differences and fit (``displacement_kernel``); when the fit gives a displacement, its rotation to the
+    state's north/east/up at ``mean``'s latitude and longitude (``gnss_tdcp.rotated``'s order of
+    operations), the displacement model's position noise (``noise``) and the cloud's move
+    (``move_kernel``: the particles, their covariance and the remembered moments, empty when none, into the
+    ``out_`` arrays).
+    ``constants``: omega_earth, speed of light, dt, max gap, slip cycles per second, max condition,
+    phase_std, min_sin, the GPS seconds of the epoch, min rows, Klobuchar on (1) or off (0), the
+    troposphere on or off. Returns as ``displacement_kernel``."""
+    n = cycles.shape[0]
+    delays = np.empty((4, n))
+    delays_kernel(
+        receiver,
+        sat_position,
+        frequency_hz,
+        klobuchar,
+        constants[10] != 0.0,
+        constants[11] != 0.0,
+        constants[8],
+        delays,
+    )
+    wavelength, std_all = np.empty(n), np.empty(n)
+    for i in range(n):
+        wavelength[i] = constants[1] / frequency_hz[i]
+        std_all[i] = constants[6] / max(math.sin(delays[2, i]), constants[7])
+    count, outcome = displacement_kernel(
+        receiver,
+        sat_position,
+        sat_clock_s,
+        delays[1],
+        delays[0],
+        constants,
+        cycles,
+        history,
+        history_row,
+        doppler_hz,
+        lli,
+        wavelength,
+        std_all,
+        bounds,
+        int(constants[9]),
+        status,
+        off,
+        index,
+        keep,
+        left_out,
+        solution,
+        fit_cov,
+    )
+    if outcome != OK:
+        return count, outcome
+    lat = anchor[0] + mean[layout.NORTH] / anchor[3]
+    lon = anchor[1] + mean[layout.EAST] / anchor[4]
+    sl, cl, so, co = math.sin(lat), math.cos(lat), math.sin(lon), math.cos(lon)
+    rotation = np.array([[-sl * co, -sl * so, cl], [-so, co, 0.0], [cl * co, cl * so, sl]])
+    step = np.empty(3)
+    rotated = np.empty((3, 3))
+    for i in range(3):
+        step[i] = (rotation[i, 0] * solution[0] + rotation[i, 1] * solution[1]) + rotation[i, 2] * solution[2]
+        for j in range(3):
+            rotated[i, j] = (rotation[i, 0] * fit_cov[0, j] + rotation[i, 1] * fit_cov[1, j]) + rotation[
+                i, 2
+            ] * fit_cov[2, j]
+    for i in range(3):
+        for j in range(3):
+            noise[i, j] = (rotated[i, 0] * rotation[j, 0] + rotated[i, 1] * rotation[j, 1]) + rotated[
+                i, 2
+            ] * rotation[j, 2]
+    _symmetrize(noise, 3)
+    move_kernel(
+        particles,
+        cloud_cov,
+        moments_mean,
+        moments_cov,
+        step,
+        constants[2],
+        out_particles,
+        out_cov,
+        out_mean,
+        out_moments_cov,
+    )
+    return count, outcome
+
+
+@_jit
 def shift_kernel(particles: FloatArray, step: FloatArray, dt: float, out: FloatArray) -> None:
     """``gnss_tdcp.shift_cloud``'s particles: ``out`` = ``particles`` with each position (north, east, up)
     moved by ``step`` less its velocity times ``dt``, in the numpy form's order of operations (the same
@@ -347,6 +466,35 @@ def map_kernel(cov: FloatArray, dt: float, out: FloatArray) -> None:
         for i in range(n):
             out[i, position] = out[i, position] - dt * out[i, velocity]
     _symmetrize(out, n)
+
+
+@_jit
+def move_kernel(
+    particles: FloatArray,
+    cov: FloatArray,
+    moments_mean: FloatArray,
+    moments_cov: FloatArray,
+    step: FloatArray,
+    dt: float,
+    out_particles: FloatArray,
+    out_cov: FloatArray,
+    out_mean: FloatArray,
+    out_moments_cov: FloatArray,
+) -> None:
+    """``gnss_tdcp.shift_cloud`` in one call: the particles (``shift_kernel``), their covariance
+    (``map_kernel``) and, when ``moments_mean`` is not empty, the remembered moments: the mean's positions
+    plus (``step`` less their velocities times ``dt``), in the numpy form's order, and the covariance by
+    ``map_kernel`` (the same bits as the numpy form)."""
+    shift_kernel(particles, step, dt, out_particles)
+    map_kernel(cov, dt, out_cov)
+    if moments_mean.shape[0] == 0:
+        return
+    for j in range(moments_mean.shape[0]):
+        out_mean[j] = moments_mean[j]
+    out_mean[layout.NORTH] = moments_mean[layout.NORTH] + (step[0] - moments_mean[layout.VN] * dt)
+    out_mean[layout.EAST] = moments_mean[layout.EAST] + (step[1] - moments_mean[layout.VE] * dt)
+    out_mean[layout.UP] = moments_mean[layout.UP] + (step[2] - moments_mean[layout.VU] * dt)
+    map_kernel(moments_cov, dt, out_moments_cov)
 
 
 @_jit
