@@ -44,13 +44,15 @@ def test_the_compiled_step_matches_the_numpy_one(monkeypatch) -> None:
     seen: list[str] = []
     fits = 0
 
-    def both(history, t, prs, phases, atmosphere, config, anchor, mean, cloud):  # type: ignore[no-untyped-def]
+    def both(history, t, prs, phases, atmosphere, config, anchor, mean, cloud, q):  # type: ignore[no-untyped-def]
         nonlocal fits
         assert history.receiver is not None and history.t is not None
+        given, results = q.copy(), []
         for when in (t, history.t + config.max_gap_s + 1.0):  # this epoch, and one beyond the gap
             args = (history, when, prs, phases, atmosphere, config, anchor, mean, cloud)
             monkeypatch.setenv("EDGEPOS_NUMBA", "0")
-            expected, expected_cloud, expected_noise = gnss_tdcp.reference_step(*args)
+            expected_q = given.copy()
+            expected, expected_cloud, expected_noise = gnss_tdcp.reference_step(*args, expected_q)
             terms = model_terms(
                 np.array(history.receiver),
                 prs.sat_position,
@@ -60,7 +62,8 @@ def test_the_compiled_step_matches_the_numpy_one(monkeypatch) -> None:
                 SPEED_OF_LIGHT,
             )
             monkeypatch.setenv("EDGEPOS_NUMBA", "1")
-            got, got_cloud, got_noise = compiled(*args)
+            got_q = given.copy()
+            got, got_cloud, got_noise = compiled(*args, got_q)
             compiled_terms = np.empty(len(prs))
             terms_kernel(
                 np.array(history.receiver),
@@ -73,10 +76,12 @@ def test_the_compiled_step_matches_the_numpy_one(monkeypatch) -> None:
                 compiled_terms,
             )
             assert np.array_equal(compiled_terms, terms)
+            results.append((got, got_cloud, got_noise, got_q))
             assert got.reasons == expected.reasons and got.why == expected.why
             seen.extend(str(r) for r in expected.reasons)
             if expected.d is None:
                 assert got.d is None and got.cov is None and got_cloud is None and got_noise is None
+                assert np.array_equal(got_q, given) and np.array_equal(expected_q, given)
                 continue
             assert got.d is not None and got.cov is not None and expected.cov is not None
             assert expected_cloud is not None and got_cloud is not None and got_noise is not None
@@ -91,9 +96,12 @@ def test_the_compiled_step_matches_the_numpy_one(monkeypatch) -> None:
             lon = float(anchor[1] + mean[layout.EAST] / anchor[4])
             step, noise = gnss_tdcp.rotated(gnss_tdcp.north_east_up(lat, lon), got.d, got.cov)
             assert np.array_equal(got_noise, noise) and np.array_equal(noise, noise.T)
+            assert np.array_equal(got_q, gnss_tdcp.displacement_noise(given.copy(), noise))
             numpy_cloud = gnss_tdcp.shift_cloud(cloud, step, when - history.t)
             _assert_same_cloud(got_cloud, numpy_cloud)
             fits += 1
+        got, got_cloud, got_noise, got_q = results[0]  # the epoch's own: the pipeline goes on with it
+        q[...] = got_q
         return got, got_cloud, got_noise
 
     monkeypatch.setattr(gnss_tdcp, "compiled_step", both)

@@ -87,19 +87,25 @@ class DisplacementModel(GnssOnlyModel):
     def process_noise(self, dt: float) -> np.ndarray:
         q = self._noise.get(dt)
         if q is None:
-            q = self.remember_noise(
-                dt, super().process_noise(dt), np.array(self.displacement_cov).reshape(3, 3)
-            )
+            cov = np.array(self.displacement_cov).reshape(3, 3)
+            q = self.remember_noise(dt, displacement_noise(super().process_noise(dt), cov))
         copy: np.ndarray = q.copy()
         return copy
 
-    def remember_noise(self, dt: float, q: np.ndarray, displacement_cov: np.ndarray) -> np.ndarray:
-        """Q over ``dt`` from the constant-velocity model's ``q`` (changed in place) and the displacement's
-        covariance (the field's matrix: the caller that has it spares its rebuilding from the tuple)."""
-        q[_CROSS] = 0.0
-        q[_BLOCK] = displacement_cov + _POSITION_FLOOR
+    def remember_noise(self, dt: float, q: np.ndarray) -> np.ndarray:
+        """Keep ``q`` as Q over ``dt`` (:func:`displacement_noise` of this model's covariance: a caller that
+        has it built spares its rebuilding from the tuple)."""
         self._noise[dt] = q
         return q
+
+
+def displacement_noise(q: np.ndarray, displacement_cov: np.ndarray) -> np.ndarray:
+    """:class:`DisplacementModel`'s Q from the constant-velocity model's ``q`` (changed in place) and the
+    displacement's covariance (north, east, up): no position-velocity cross terms, the position block the
+    displacement's with the constant-velocity model's floor."""
+    q[_CROSS] = 0.0
+    q[_BLOCK] = displacement_cov + _POSITION_FLOOR
+    return q
 
 
 @dataclass(frozen=True)
@@ -156,8 +162,9 @@ def predict_with_displacement(
     )
     anchor = anchor_numbers(session.anchor)
     run = compiled_step if compiled_enabled() else reference_step
+    q = model.process_noise(dt)
     fit, cloud, noise = run(
-        history, t, satellites.prs, phases, atmosphere, config, anchor, mean, session.cloud
+        history, t, satellites.prs, phases, atmosphere, config, anchor, mean, session.cloud, q
     )
     reasons = {r: fit.reasons[r] for r in carrying}
     if cloud is None or noise is None:
@@ -171,13 +178,14 @@ def predict_with_displacement(
         model.clock_drift_psd,
         tuple(noise.ravel().tolist()),
     )
-    moved.remember_noise(dt, model.process_noise(dt), noise)
+    moved.remember_noise(dt, q)
     return TdcpStep(moved, reasons, phases, anchor)
 
 
 Moved = tuple[Displacement, Cloud | None, np.ndarray | None]
 """An epoch's displacement step: the fit, and when it gave a displacement the moved cloud and the
-displacement's covariance in north/east/up (the displacement model's position noise); else None, None."""
+displacement's covariance in north/east/up (the displacement model's position noise; the step has then
+made its ``q`` argument :func:`displacement_noise` of it); else None, None."""
 
 
 def reference_step(
@@ -190,6 +198,7 @@ def reference_step(
     anchor: np.ndarray,
     mean: np.ndarray,
     cloud: Cloud,
+    q: np.ndarray,
 ) -> Moved:
     """The displacement step in numpy (``EDGEPOS_NUMBA=0``, and the reference the kernel is held to): the
     delays at the previous fix, ``gnss.tdcp.displacement`` of the epoch's rows (``phases``: carrier,
@@ -211,6 +220,7 @@ def reference_step(
     lat = float(anchor[0] + mean[layout.NORTH] / anchor[3])
     lon = float(anchor[1] + mean[layout.EAST] / anchor[4])
     step, noise = rotated(north_east_up(lat, lon), fit.d, fit.cov)
+    displacement_noise(q, noise)
     return fit, shift_cloud(cloud, step, t - history.t), noise
 
 
@@ -239,6 +249,7 @@ def compiled_step(
     anchor: np.ndarray,
     mean: np.ndarray,
     cloud: Cloud,
+    q: np.ndarray,
 ) -> Moved:
     """:func:`reference_step` by ``epoch_kernel`` (pipelines/gnss_tdcp_kernel.py), one call: the same rows
     and reasons, the differences to the bit, the fit's numbers to about 1e-12 (its rounding), and from the
@@ -264,6 +275,7 @@ def compiled_step(
             config.min_satellites,
             float(atmosphere.klobuchar is not None),
             float(atmosphere.troposphere),
+            _POSITION_FLOOR[0, 0],
         ]
     )
     status, off, index = np.empty(n, dtype=np.int64), np.zeros(n), np.empty(n, dtype=np.int64)
@@ -300,6 +312,7 @@ def compiled_step(
         solution,
         fit_cov,
         noise,
+        q,
         particles,
         cov,
         out_mean,

@@ -347,6 +347,7 @@ def epoch_kernel(
     solution: FloatArray,
     fit_cov: FloatArray,
     noise: FloatArray,
+    process_noise: FloatArray,
     out_particles: FloatArray,
     out_cov: FloatArray,
     out_mean: FloatArray,
@@ -356,12 +357,13 @@ def epoch_kernel(
     and elevations at the previous ``receiver`` (``gnss_geometry.delays_kernel``), each difference's std ``phase_std`` / max(sin(elevation), ``min_sin``), the
     differences and fit (``displacement_kernel``); when the fit gives a displacement, its rotation to the
     state's north/east/up at ``mean``'s latitude and longitude (``gnss_tdcp.rotated``'s order of
-    operations), the displacement model's position noise (``noise``) and the cloud's move
+    operations), the displacement model's position noise (``noise``; in ``process_noise``, the
+    constant-velocity model's Q, as ``gnss_tdcp.DisplacementModel.remember_noise`` puts it) and the cloud's move
     (``move_kernel``: the particles, their covariance and the remembered moments, empty when none, into the
     ``out_`` arrays).
     ``constants``: omega_earth, speed of light, dt, max gap, slip cycles per second, max condition,
     phase_std, min_sin, the GPS seconds of the epoch, min rows, Klobuchar on (1) or off (0), the
-    troposphere on or off. Returns as ``displacement_kernel``."""
+    troposphere on or off, the position variances' floor. Returns as ``displacement_kernel``."""
     n = cycles.shape[0]
     delays = np.empty((4, n))
     delays_kernel(
@@ -422,6 +424,14 @@ def epoch_kernel(
                 i, 2
             ] * rotation[j, 2]
     _symmetrize(noise, 3)
+    positions = (layout.NORTH, layout.EAST, layout.UP)
+    velocities = (layout.VN, layout.VE, layout.VU)
+    for i in range(3):
+        process_noise[positions[i], velocities[i]] = 0.0
+        process_noise[velocities[i], positions[i]] = 0.0
+        for j in range(3):
+            floor = constants[12] if i == j else 0.0
+            process_noise[positions[i], positions[j]] = noise[i, j] + floor
     move_kernel(
         particles,
         cloud_cov,
