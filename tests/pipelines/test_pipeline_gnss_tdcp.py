@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from edgepos.core import state as state_format
+from edgepos.core.kernels_base import OK
 from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GeodeticAnchor, GnssOnlyModel
 from edgepos.core.observations import PseudorangeObservation
@@ -17,8 +18,8 @@ from edgepos.eval.gnss_rinex import evaluate
 from edgepos.gnss.tdcp import MAX_CONDITION, Displacement, TdcpConfig, fit_rows
 from edgepos.pipelines.base import StaticEnvironment
 from edgepos.pipelines.gnss_session import decode_session
-from edgepos.pipelines.gnss_tdcp import DisplacementModel, bounds_table, fit_outcome, shift_cloud
-from edgepos.pipelines.gnss_tdcp_kernel import fit_kernel
+from edgepos.pipelines.gnss_tdcp import DisplacementModel, bounds_table, shift_cloud
+from edgepos.pipelines.gnss_tdcp_kernel import FAILED, fit_kernel
 from gnssrecording import recording_epochs, run_ukf
 
 DATA = "tests/data/gnss-rover/"
@@ -187,7 +188,8 @@ def _compiled_fit(
     reasons: list[str | None],
     config: TdcpConfig,
 ) -> Displacement:
-    """fit_kernel's call as gnss_tdcp_kernel.displacement_kernel makes it, read by gnss_tdcp.fit_outcome."""
+    """fit_kernel's call as gnss_tdcp_kernel.displacement_kernel makes it, its outputs worded as
+    gnss_tdcp.compiled_step words them."""
     n = len(index)
     keep = np.ones(n, dtype=np.bool_)
     solution, cov, left_out = np.empty(4), np.empty((4, 4)), np.zeros((n, 2))
@@ -195,4 +197,25 @@ def _compiled_fit(
     status = fit_kernel(
         y, design, std, bounds, config.min_satellites, MAX_CONDITION, keep, solution, cov, left_out
     )
-    return fit_outcome(index, keep, left_out, status, solution, cov, reasons)
+    rows, kept = index.tolist(), keep.tolist()
+    for r in np.flatnonzero(~keep).tolist():
+        reasons[rows[r]] = (
+            f"phase difference {left_out[r, 0]:+.2f} m off the displacement fit "
+            f"({left_out[r, 1]:.1f} sigma; a slip or a reflection)"
+        )
+    if status == OK:
+        for r, used in zip(rows, kept, strict=True):
+            if used:
+                reasons[r] = None
+        return Displacement(solution[:3], cov[:3, :3], float(solution[3]), reasons, None)
+    if status == FAILED:
+        why, text = "singular geometry", "the satellites' geometry does not fix a displacement"
+    else:
+        why, text = (
+            "inconsistent phase differences",
+            "the epoch's phase differences are inconsistent (chi-square test)",
+        )
+    for r, used in zip(rows, kept, strict=True):
+        if used:
+            reasons[r] = text
+    return Displacement(None, None, 0.0, reasons, why)

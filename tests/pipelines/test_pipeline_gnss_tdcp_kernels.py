@@ -21,7 +21,8 @@ from gnssrecording import recording_epochs
 
 def _with_slips(epochs: list[list[PseudorangeObservation]]) -> list[list[PseudorangeObservation]]:
     """At epoch 8 the first phase loses lock (lli 1), at 12 the second jumps 40 cycles (its Doppler sees it),
-    at 16 the third has no phase (so at 17 it has none at the previous epoch)."""
+    at 16 the third has no phase (so at 17 it has none at the previous epoch), at 18 the last phase jumps 3
+    cycles with no Doppler sent (the fit leaves it out), and at 21 all but four lose lock (too few)."""
     out = [list(epoch) for epoch in epochs]
     carrying = [i for i, o in enumerate(out[8]) if o.carrier_cycles is not None]
     first, second, third = carrying[:3]
@@ -31,6 +32,13 @@ def _with_slips(epochs: list[list[PseudorangeObservation]]) -> list[list[Pseudor
         if cycles is not None:
             epoch[second] = dataclasses.replace(epoch[second], carrier_cycles=cycles + 40.0)
     out[16][third] = dataclasses.replace(out[16][third], carrier_cycles=None)
+    last = max(i for i, o in enumerate(out[18]) if o.carrier_cycles is not None)
+    cycles = out[18][last].carrier_cycles
+    assert cycles is not None
+    out[18][last] = dataclasses.replace(out[18][last], carrier_cycles=cycles + 3.0, doppler_hz=None)
+    phased = [i for i, o in enumerate(out[21]) if o.carrier_cycles is not None]
+    for i in phased[4:]:
+        out[21][i] = dataclasses.replace(out[21][i], lli=1)
     return out
 
 
@@ -137,6 +145,8 @@ def test_the_compiled_step_matches_the_numpy_one(monkeypatch) -> None:
         "no carrier phase at the previous epoch",
         "s since the previous epoch (max gap 5 s)",
         "cycles off the Doppler's over 1 s",
+        "m off the displacement fit",
+        "continuous phases, fewer than 5",
     ):
         assert any(reason in text for text in seen), reason
 

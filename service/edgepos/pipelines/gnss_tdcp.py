@@ -42,8 +42,11 @@ from edgepos.gnss.measurements import Atmosphere, PseudorangeSet
 from edgepos.gnss.orbits import OMEGA_EARTH, SPEED_OF_LIGHT
 from edgepos.gnss.tdcp import (
     DEFAULT_GATE_PROBABILITY,
+    GAP,
     MAX_CONDITION,
     MIN_SIN_ELEVATION,
+    NO_PHASE,
+    SLIP,
     Displacement,
     PhaseHistory,
     TdcpConfig,
@@ -51,12 +54,14 @@ from edgepos.gnss.tdcp import (
     displacement,
     model_terms,
     slip_text,
-    too_few,
 )
 from edgepos.pipelines.base import MeasurementUse
 from edgepos.pipelines.gnss_satellites import EpochSatellites, epoch_phases
 from edgepos.pipelines.gnss_session import GnssSession
 from edgepos.pipelines.gnss_tdcp_kernel import (
+    FEW,
+    INCONSISTENT,
+    LEFT_OUT,
     TOO_FEW,
     epoch_kernel,
     posterior_terms_kernel,
@@ -278,8 +283,7 @@ def compiled_step(
             _POSITION_FLOOR[0, 0],
         ]
     )
-    status, off, index = np.empty(n, dtype=np.int64), np.zeros(n), np.empty(n, dtype=np.int64)
-    keep, left_out = np.zeros(n, dtype=np.bool_), np.zeros((n, 2))
+    status, values = np.empty(n, dtype=np.int64), np.empty((n, 2))
     solution, fit_cov, noise = np.empty(4), np.empty((4, 4)), np.empty((3, 3))
     known = cloud.known_moments(layout.ANGLES)
     moments_mean, moments_cov = _NO_MOMENTS if known is None else known
@@ -305,10 +309,7 @@ def compiled_step(
         moments_mean,
         moments_cov,
         status,
-        off,
-        index,
-        keep,
-        left_out,
+        values,
         solution,
         fit_cov,
         noise,
@@ -318,54 +319,50 @@ def compiled_step(
         out_mean,
         out_moments_cov,
     )
-    reasons: list[str | None] = [None] * n
-    for row in status.nonzero()[0].tolist():  # the rows not differenced: few (most have no phase)
-        reasons[row] = slip_text(int(status[row]), dt, float(off[row]), config)
-    if outcome == TOO_FEW:
-        return too_few(index[:count].tolist(), reasons, config), None, None
-    fit = fit_outcome(index[:count], keep[:count], left_out[:count], outcome, solution, fit_cov, reasons)
-    if fit.d is None:
-        return fit, None, None
+    codes = status.tolist()
+    reasons: list[str | None] = [_ROW_TEXT[code] for code in codes]
+    for row, code in enumerate(codes):
+        if code in _NUMBERED:
+            reasons[row] = _numbered_text(code, values[row], dt, count, config)
+    if outcome != OK:
+        return (
+            Displacement(None, None, 0.0, reasons, _NO_FIT[outcome] or f"{count} continuous carrier phases"),
+            None,
+            None,
+        )
+    fit = Displacement(solution[:3], fit_cov[:3, :3], float(solution[3]), reasons, None)
     moved = Cloud(particles, cloud.log_weights, cov)
     if known is not None:
         moved.remember_moments(layout.ANGLES, out_mean, out_moments_cov)
     return fit, moved, noise
 
 
-def fit_outcome(
-    index: np.ndarray,
-    keep: np.ndarray,
-    left_out: np.ndarray,
-    status: int,
-    solution: np.ndarray,
-    cov: np.ndarray,
-    reasons: list[str | None],
-) -> Displacement:
-    """``fit_kernel``'s outputs (pipelines/gnss_tdcp_kernel.py) as ``gnss.tdcp.fit_rows`` gives them: each row left out with its residual,
-    the rows kept with None (a displacement) or why the epoch has none."""
-    rows, kept = index.tolist(), keep.tolist()
-    for r in (~keep).nonzero()[0].tolist():
-        reasons[rows[r]] = (
-            f"phase difference {left_out[r, 0]:+.2f} m off the displacement fit "
-            f"({left_out[r, 1]:.1f} sigma; a slip or a reflection)"
+_GEOMETRY = "the satellites' geometry does not fix a displacement"
+_INCONSISTENT = "the epoch's phase differences are inconsistent (chi-square test)"
+_ROW_TEXT: tuple[str | None, ...] = (
+    *(slip_text(code, 0.0, 0.0, TdcpConfig()) for code in range(NO_PHASE + 1)),
+    None,
+    _GEOMETRY,
+    _INCONSISTENT,
+    None,
+)
+"""``epoch_kernel``'s row codes worded as ``gnss.tdcp`` words them, where the words carry no number."""
+_NUMBERED = frozenset((GAP, SLIP, LEFT_OUT, FEW))
+_NO_FIT = {FAILED: "singular geometry", INCONSISTENT: "inconsistent phase differences", TOO_FEW: None}
+"""The epoch's ``Displacement.why`` by the kernel's outcome (TOO_FEW: worded with the count)."""
+
+
+def _numbered_text(code: int, values: np.ndarray, dt: float, count: int, config: TdcpConfig) -> str | None:
+    """A row's reason that carries numbers, as ``gnss.tdcp`` words it (``displacement``, ``fit_rows``,
+    ``too_few``)."""
+    if code == LEFT_OUT:
+        return (
+            f"phase difference {values[0]:+.2f} m off the displacement fit "
+            f"({values[1]:.1f} sigma; a slip or a reflection)"
         )
-    if status == OK:
-        for r, used in zip(rows, kept, strict=True):
-            if used:
-                reasons[r] = None
-        return Displacement(solution[:3].copy(), cov[:3, :3].copy(), float(solution[3]), reasons, None)
-    why, text = (
-        ("singular geometry", "the satellites' geometry does not fix a displacement")
-        if status == FAILED
-        else (
-            "inconsistent phase differences",
-            "the epoch's phase differences are inconsistent (chi-square test)",
-        )
-    )
-    for r, used in zip(rows, kept, strict=True):
-        if used:
-            reasons[r] = text
-    return Displacement(None, None, 0.0, reasons, why)
+    if code == FEW:
+        return f"{count} continuous phases, fewer than {config.min_satellites}"
+    return slip_text(code, dt, float(values[0]), config)
 
 
 @functools.lru_cache(maxsize=64)

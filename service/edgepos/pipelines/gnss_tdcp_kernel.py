@@ -234,6 +234,9 @@ def differences_kernel(
 
 TOO_FEW = 3
 """``displacement_kernel``: fewer differenced rows than the fit needs (no fit run)."""
+LEFT_OUT, SINGULAR, INCONSISTENT_ROW, FEW = range(NO_PHASE + 1, NO_PHASE + 5)
+"""``epoch_kernel``'s row codes after ``gnss.tdcp``'s (DIFFERENCED .. NO_PHASE): a differenced row left out
+by the fit, in a singular or an inconsistent fit, or one of too few to fit."""
 
 
 @_jit
@@ -340,10 +343,7 @@ def epoch_kernel(
     moments_mean: FloatArray,
     moments_cov: FloatArray,
     status: np.ndarray,
-    off: FloatArray,
-    index: np.ndarray,
-    keep: np.ndarray,
-    left_out: FloatArray,
+    values: FloatArray,
     solution: FloatArray,
     fit_cov: FloatArray,
     noise: FloatArray,
@@ -363,7 +363,10 @@ def epoch_kernel(
     ``out_`` arrays).
     ``constants``: omega_earth, speed of light, dt, max gap, slip cycles per second, max condition,
     phase_std, min_sin, the GPS seconds of the epoch, min rows, Klobuchar on (1) or off (0), the
-    troposphere on or off, the position variances' floor. Returns as ``displacement_kernel``."""
+    troposphere on or off, the position variances' floor. Per row ``status`` is its code (``gnss.tdcp``'s,
+    or what the fit made of it: LEFT_OUT, SINGULAR, INCONSISTENT_ROW, FEW) and ``values`` its numbers (SLIP:
+    the cycles off the Doppler; LEFT_OUT: the residual in metres and sigmas). Returns as
+    ``displacement_kernel``."""
     n = cycles.shape[0]
     delays = np.empty((4, n))
     delays_kernel(
@@ -380,6 +383,12 @@ def epoch_kernel(
     for i in range(n):
         wavelength[i] = constants[1] / frequency_hz[i]
         std_all[i] = constants[6] / max(math.sin(delays[2, i]), constants[7])
+    off, index, keep, left_out = (
+        np.zeros(n),
+        np.empty(n, dtype=np.int64),
+        np.zeros(n, np.bool_),
+        np.zeros((n, 2)),
+    )
     count, outcome = displacement_kernel(
         receiver,
         sat_position,
@@ -404,6 +413,20 @@ def epoch_kernel(
         solution,
         fit_cov,
     )
+    for row in range(n):
+        values[row, 0] = off[row]
+        values[row, 1] = 0.0
+    for i in range(count):  # the differenced rows: what the fit made of each
+        row = index[i]
+        if outcome == TOO_FEW:
+            status[row] = FEW
+        elif not keep[i]:
+            status[row] = LEFT_OUT
+            values[row, 0], values[row, 1] = left_out[i, 0], left_out[i, 1]
+        elif outcome == FAILED:
+            status[row] = SINGULAR
+        elif outcome == INCONSISTENT:
+            status[row] = INCONSISTENT_ROW
     if outcome != OK:
         return count, outcome
     lat = anchor[0] + mean[layout.NORTH] / anchor[3]
