@@ -417,14 +417,10 @@ def remember_phases(
         return
     ionosphere_m, troposphere_m, _ = delays
     cycles = step.phases[0]
-    rows = np.flatnonzero(np.isfinite(cycles))
-    if not rows.size:
-        session.tdcp = PhaseHistory()
-        return
-    prs = satellites.prs
+    prs, n = satellites.prs, len(cycles)
     if compiled_enabled():
-        receiver, terms = np.empty(3), np.empty(len(cycles))
-        posterior_terms_kernel(
+        receiver, table, index = np.empty(3), np.empty((n, 2)), np.empty(n, dtype=np.int64)
+        count = posterior_terms_kernel(
             anchor_numbers(session.anchor) if step.anchor is None else step.anchor,
             posterior,
             WGS84_A,
@@ -435,19 +431,27 @@ def remember_phases(
             ionosphere_m,
             OMEGA_EARTH,
             SPEED_OF_LIGHT,
+            cycles,
             receiver,
-            terms,
+            table,
+            index,
         )
+        rows: list[int] = index[:count].tolist()
+        table = table[:count]
     else:
         receiver = session.anchor.ecef(posterior)
         terms = model_terms(
             receiver, prs.sat_position, prs.sat_clock_s, troposphere_m, ionosphere_m, SPEED_OF_LIGHT
         )
+        rows = np.flatnonzero(np.isfinite(cycles)).tolist()
+        table = np.empty((len(rows), 2))
+        table[:, 0], table[:, 1] = cycles[rows], terms[rows]
+    if not rows:
+        session.tdcp = PhaseHistory()
+        return
     x, y, z = receiver.tolist()
     sats = prs.sats
-    table = np.empty((rows.size, 2))
-    table[:, 0], table[:, 1] = cycles[rows], terms[rows]
-    session.tdcp = PhaseHistory(t, (x, y, z), [sats[r] for r in rows.tolist()], table)
+    session.tdcp = PhaseHistory(t, (x, y, z), [sats[r] for r in rows], table)
 
 
 def report(

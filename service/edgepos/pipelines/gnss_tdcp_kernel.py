@@ -542,12 +542,15 @@ def posterior_terms_kernel(
     ionosphere_m: FloatArray,
     omega_earth: float,
     speed_of_light: float,
+    cycles: FloatArray,
     receiver: FloatArray,
-    terms: FloatArray,
-) -> None:
+    table: FloatArray,
+    index: np.ndarray,
+) -> int:
     """``gnss_tdcp.remember_phases``'s receiver (``anchor.ecef`` of the posterior state: ``anchor`` as
     ``gnss_kernel.anchor_array``, then ``geodesy.geodetic_to_ecef``'s formula in its order of operations) and
-    the model terms there (``terms_kernel``)."""
+    the model terms there (``terms_kernel``), packed with the rows' ``cycles`` into ``table`` [cycles, term]
+    for the rows with a phase (``index``: their rows); returns how many."""
     lat = anchor[0] + posterior[layout.NORTH] / anchor[3]
     lon = anchor[1] + posterior[layout.EAST] / anchor[4]
     height = anchor[2] + posterior[layout.UP]
@@ -557,6 +560,14 @@ def posterior_terms_kernel(
     receiver[0] = horizontal * math.cos(lon)
     receiver[1] = horizontal * math.sin(lon)
     receiver[2] = (prime_vertical * (1.0 - eccentricity2) + height) * sin_lat
+    terms = np.empty(cycles.shape[0])
     terms_kernel(
         receiver, sat_position, sat_clock_s, troposphere_m, ionosphere_m, omega_earth, speed_of_light, terms
     )
+    count = 0
+    for row in range(cycles.shape[0]):
+        if math.isfinite(cycles[row]):
+            table[count, 0], table[count, 1] = cycles[row], terms[row]
+            index[count] = row
+            count += 1
+    return count
