@@ -2,12 +2,15 @@
 (weighted least squares with the chi-square exclusions, some twenty numpy calls on (n, 4) arrays there);
 ``terms_kernel`` and ``differences_kernel`` for its ``model_terms`` and the slip tests and rows of
 ``displacement`` (a Python loop over the satellites and a dozen small numpy calls there); ``shift_kernel``
-and ``map_kernel`` for the cloud's move in ``gnss_tdcp.shift_cloud``; ``posterior_terms_kernel`` for the
-history's receiver and terms in ``gnss_tdcp.remember_phases``. With them the UPF epoch with ``hatch+tdcp``
-went from 2.14 to 2.00 ms (median thread CPU, docs/gnss.md), still about 0.2 ms over Hatch's.
+and ``map_kernel`` for the cloud's move (``move_kernel``, the numpy form ``gnss_tdcp.shift_cloud``);
+``displacement_kernel`` the terms, differences and fit together, and ``epoch_kernel`` the whole displacement
+step in one call (the numpy form ``gnss_tdcp.reference_step``); ``posterior_terms_kernel`` for the
+history's receiver and terms in ``gnss_tdcp.remember_phases``. With one call per step the UPF epoch with
+``hatch+tdcp`` is 1.85 ms against Hatch's 1.76 ms (median thread CPU, load 1.1, docs/gnss.md).
 
 The numpy forms stay the reference (run when ``EDGEPOS_NUMBA=0``; tests hold the kernels to them). The
-terms, slip tests, differences and the cloud's move follow numpy's operations one by one and give the same
+terms, slip tests, differences, the rotation (its 3 x 3 products in index order in both) and the cloud's
+move follow numpy's operations one by one and give the same
 bits (the receiver at the posterior too where numpy's sin and cos are libm's, as here); in the fit the
 normal matrix is inverted by Gauss-Jordan elimination with partial pivoting where numpy inverts by LAPACK's
 LU and sums run in index order: the numbers agree to about 1e-12 relative (tested) and the rows left out
