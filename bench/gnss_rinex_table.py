@@ -24,25 +24,20 @@ HALVES = {"first half (0-149, choose)": (0, 150), "second half (150-299, report)
 VARIANTS: dict[str, dict[str, Any]] = {
     "code only": {"doppler": False, "carrier": False, "base": False},
     "code + Doppler": {"doppler": True, "carrier": False, "base": False},
-    "code + Doppler + phase (Hatch, the default)": {"doppler": True, "carrier": True, "base": False},
-    "code + Doppler + phase (Hatch and TDCP)": {
-        "doppler": True,
-        "carrier": True,
-        "base": False,
-        "mode": "hatch+tdcp",
-    },
+    "code + Doppler + phase (Hatch)": {"doppler": True, "carrier": True, "base": False, "mode": "hatch"},
+    "code + Doppler + phase (Hatch and TDCP, the default)": {"doppler": True, "carrier": True, "base": False},
     "code + Doppler + phase (TDCP)": {"doppler": True, "carrier": True, "base": False, "mode": "tdcp"},
     "code + Doppler + base": {"doppler": True, "carrier": False, "base": True},
-    "code + Doppler + phase (Hatch) + base": {"doppler": True, "carrier": True, "base": True},
-    "code + Doppler + phase (Hatch and TDCP) + base": {
+    "code + Doppler + phase (Hatch) + base": {
         "doppler": True,
         "carrier": True,
         "base": True,
-        "mode": "hatch+tdcp",
+        "mode": "hatch",
     },
+    "code + Doppler + phase (Hatch and TDCP) + base": {"doppler": True, "carrier": True, "base": True},
     "code + Doppler + phase (TDCP) + base": {"doppler": True, "carrier": True, "base": True, "mode": "tdcp"},
 }
-"""``mode``: the ``carrier_smoothing`` option when not the default (hatch)."""
+"""``mode``: the ``carrier_smoothing`` option when not the default (hatch+tdcp)."""
 
 
 def _options(filter_name: str, variant: dict[str, Any]) -> dict[str, Any]:

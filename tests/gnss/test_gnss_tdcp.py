@@ -59,7 +59,7 @@ def _history(t: float) -> PhaseHistory:
     receiver, positions, clocks, cycles, (tropo, iono) = _epoch(t)
     terms = model_terms(receiver, positions, clocks, tropo, iono, SPEED_OF_LIGHT)
     x, y, z = (float(v) for v in receiver)
-    return PhaseHistory(t, (x, y, z), {s: (float(c), float(m)) for s, c, m in zip(SATS, cycles, terms)})
+    return PhaseHistory(t, (x, y, z), SATS, np.column_stack((cycles, terms)))
 
 
 def _fit(t0: float, t1: float, cycles_change: np.ndarray | None = None, lli: np.ndarray | None = None):

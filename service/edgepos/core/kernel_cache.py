@@ -43,6 +43,7 @@ KERNEL_FILES = tuple(
         "core/particles/upf_step_kernel.py",
         "core/particles/upf_resample_kernel.py",
         "pipelines/gnss_tdcp_kernel.py",
+        "pipelines/gnss_carrier_kernel.py",
     )
 )
 #: The modules whose globals the kernels read (numba freezes a global into the machine code) or whose

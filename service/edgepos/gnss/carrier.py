@@ -184,6 +184,45 @@ def _slip(
     return None
 
 
+class CarrierTable:
+    """Every satellite's smoothing as arrays: the satellite ids and a (k, 6) table of their tracks
+    (:data:`_COLUMNS`'s fields), in the order they were written; the session keeps and stores the arrays as
+    they are (the compiled update, pipelines/gnss_carrier_kernel.py, reads and writes them: no objects per
+    satellite). :meth:`tracks` is the numpy reference's view (:func:`hatch_update` on a dict)."""
+
+    __slots__ = ("sats", "table")
+
+    def __init__(self, sats: Sequence[str] = (), table: np.ndarray | None = None) -> None:
+        self.sats = tuple(sats)
+        self.table: np.ndarray = np.zeros((0, _COLUMNS)) if table is None else table
+        if self.table.shape != (len(self.sats), _COLUMNS):
+            raise ValueError(f"{len(self.sats)} satellites, table {self.table.shape}")
+
+    def __len__(self) -> int:
+        return len(self.sats)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, CarrierTable):
+            return NotImplemented
+        return self.sats == other.sats and np.array_equal(self.table, other.table)
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def tracks(self) -> dict[str, CarrierTrack]:
+        """The tracks by satellite (a new dict)."""
+        return tracks_from_arrays(self.sats, self.table)
+
+    @classmethod
+    def from_tracks(cls, tracks: dict[str, CarrierTrack]) -> CarrierTable:
+        """The table of ``tracks`` (sorted by satellite)."""
+        return cls(*tracks_to_arrays(tracks))
+
+    def rows(self, sats: Sequence[str]) -> np.ndarray:
+        """Per satellite of ``sats``, its row of the table (-1: none)."""
+        where = {s: k for k, s in enumerate(self.sats)}
+        return np.array([where.get(s, -1) for s in sats], dtype=np.int64)
+
+
 def tracks_to_arrays(tracks: dict[str, CarrierTrack]) -> tuple[list[str], np.ndarray]:
     """The tracks as satellite ids and a (k, 6) float table, for the session's exact byte form."""
     sats = sorted(tracks)

@@ -32,7 +32,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.stats import chi2
@@ -68,27 +68,59 @@ class TdcpConfig:
     max_gap_s: float = 5.0
 
 
-@dataclass
 class PhaseHistory:
     """The previous epoch's phases: its time ``t``, the receiver position the terms were evaluated at
-    (ECEF, m), and per satellite [cycles, model term] with the term rho(s, x) - c dts + T - I (m)."""
+    (ECEF, m), the satellites ``sats`` and per satellite a row [cycles, model term] of ``table`` (k, 2), the
+    term rho(s, x) - c dts + T - I (m). Rows in the order they were kept (the epoch's), so the session keeps
+    and stores the arrays as they are: no per-satellite objects, no sorting, between epochs."""
 
-    t: float | None = None
-    receiver: tuple[float, float, float] | None = None
-    phases: dict[str, tuple[float, float]] = field(default_factory=dict)
+    __slots__ = ("receiver", "sats", "t", "table")
+
+    def __init__(
+        self,
+        t: float | None = None,
+        receiver: tuple[float, float, float] | None = None,
+        sats: Sequence[str] = (),
+        table: np.ndarray | None = None,
+    ) -> None:
+        self.t = t
+        self.receiver = receiver
+        self.sats = tuple(sats)
+        self.table: np.ndarray = np.zeros((0, 2)) if table is None else table
+
+    @property
+    def phases(self) -> dict[str, tuple[float, float]]:
+        """Per satellite (cycles, term): the numpy reference's view of the table."""
+        return {s: (row[0], row[1]) for s, row in zip(self.sats, self.table.tolist(), strict=True)}
+
+    def rows(self, sats: Sequence[str]) -> np.ndarray:
+        """Per satellite of ``sats``, its row of the table (-1: none)."""
+        where = {s: k for k, s in enumerate(self.sats)}
+        return np.array([where.get(s, -1) for s in sats], dtype=np.int64)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, PhaseHistory):
+            return NotImplemented
+        return (
+            self.t == other.t
+            and self.receiver == other.receiver
+            and self.sats == other.sats
+            and np.array_equal(self.table, other.table)
+        )
+
+    __hash__ = None  # type: ignore[assignment]
 
     def to_parts(self) -> tuple[list[float] | None, list[str], np.ndarray]:
-        """[t, x, y, z] (None when empty), the satellite ids and a (k, 2) table: the state's byte form."""
-        sats = sorted(self.phases)
-        table = np.array([self.phases[s] for s in sats], dtype=float).reshape(len(sats), 2)
+        """[t, x, y, z] (None when empty), the satellite ids and the (k, 2) table: the state's byte form."""
         if self.t is None or self.receiver is None:
-            return None, sats, table
-        return [self.t, *self.receiver], sats, table
+            return None, list(self.sats), self.table
+        return [self.t, *self.receiver], list(self.sats), self.table
 
     @classmethod
     def from_parts(cls, head: Sequence[float] | None, sats: Sequence[str], table: np.ndarray) -> PhaseHistory:
-        """Inverse of :meth:`to_parts`; raises ValueError when the parts do not fit together."""
-        rows = np.asarray(table, dtype=float).reshape(len(sats), 2).tolist()
+        """Inverse of :meth:`to_parts` (states written with the satellites sorted decode alike); raises
+        ValueError when the parts do not fit together."""
+        rows = np.asarray(table, dtype=float).reshape(len(sats), 2)
         if head is None:
             if sats:
                 raise ValueError("phases without their epoch")
@@ -96,7 +128,7 @@ class PhaseHistory:
         if len(head) != 4:
             raise ValueError(f"expected [t, x, y, z], got {len(head)} numbers")
         t, x, y, z = (float(v) for v in head)
-        return cls(t, (x, y, z), {str(s): (r[0], r[1]) for s, r in zip(sats, rows, strict=True)})
+        return cls(t, (x, y, z), [str(s) for s in sats], rows)
 
 
 @dataclass(frozen=True)
@@ -134,19 +166,17 @@ def model_terms(
 
 
 def slip_reason(
-    history: PhaseHistory,
-    t: float,
-    sat: str,
+    previous: tuple[float, float] | None,
+    dt: float,
     cycles: float,
     doppler_hz: float,
     lli: int,
     config: TdcpConfig,
 ) -> str | None:
-    """Why this satellite's phase cannot be differenced with the previous epoch's (None: it can)."""
-    previous = history.phases.get(sat)
-    if previous is None or history.t is None:
+    """Why a satellite's phase cannot be differenced with its ``previous`` [cycles, term] (None: no phase
+    then) ``dt`` seconds before (None: it can)."""
+    if previous is None:
         return slip_text(NO_PREVIOUS, 0.0, 0.0, config)
-    dt = t - history.t
     if lli & 1:
         return slip_text(LOSS_OF_LOCK, dt, 0.0, config)
     if not 0.0 < dt <= config.max_gap_s:
@@ -193,8 +223,9 @@ def displacement(
     squares to run (default :func:`fit_rows`, numpy)."""
     n = len(sats)
     reasons: list[str | None] = [slip_text(NO_PHASE, 0.0, 0.0, config)] * n
-    if history.receiver is None:
+    if history.receiver is None or history.t is None:
         return Displacement(None, None, 0.0, reasons, "no previous epoch with carrier phase")
+    known = history.phases
     rows: list[int] = []
     before: list[tuple[float, float]] = []
     # the rows as Python numbers, read once (an element read from numpy costs more than the test)
@@ -203,11 +234,12 @@ def displacement(
         value = all_cycles[row]
         if not math.isfinite(value):
             continue
-        why = slip_reason(history, t, sats[row], value, dopplers[row], int(flags[row]), config)
+        kept = known.get(sats[row])
+        why = slip_reason(kept, t - history.t, value, dopplers[row], int(flags[row]), config)
         reasons[row] = why
-        if why is None:
+        if kept is not None and why is None:
             rows.append(row)
-            before.append(history.phases[sats[row]])
+            before.append(kept)
     if len(rows) < config.min_satellites:
         return too_few(rows, reasons, config)
     index = np.array(rows)

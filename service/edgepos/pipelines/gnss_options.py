@@ -37,7 +37,7 @@ there."""
 MAX_LLI = 7
 """RINEX loss-of-lock indicators are three bits."""
 CARRIER_SMOOTHING = ("hatch", "off", "tdcp", "hatch+tdcp")
-DEFAULT_CARRIER_SMOOTHING = "hatch"
+DEFAULT_CARRIER_SMOOTHING = "hatch+tdcp"
 DEFAULT_HATCH_STD_FLOOR = 0.2
 ERROR_CORRELATIONS = ("gauss_markov", "white")
 DEFAULT_ERROR_CORRELATION = "gauss_markov"
@@ -187,10 +187,9 @@ OPTION_SPECS: tuple[OptionSpec, ...] = (
         "only. tdcp: time-differenced carrier phase (gnss/tdcp.py, pipelines/gnss_tdcp.py): the phases' "
         "changes since the previous epoch give the receiver's displacement to centimetres (least squares with "
         "a chi-square test that leaves out a slipped or reflected satellite's difference), which replaces the "
-        "constant-velocity model's position step (GNSS-only model; the code is used raw). hatch+tdcp: both; "
-        "the best of the four on the first half of tests/data/gnss-rover for the UKF and the UPF, with and "
-        "without the reference station, but about 0.2 ms more per UPF epoch, over the 2 ms budget, so not yet "
-        "the default (docs/gnss.md). "
+        "constant-velocity model's position step (GNSS-only model; the code is used raw). hatch+tdcp (the "
+        "default): both; the best of the four on the first half of tests/data/gnss-rover for the UKF and the "
+        "UPF, with and without the reference station (docs/gnss.md). "
         "off: carrier phase is ignored. Sessions stored before the option existed keep off.",
         choices=CARRIER_SMOOTHING,
     ),

@@ -6,6 +6,7 @@ Split from ``gnss_tight`` (the filter step stays there); pure numpy, no web impo
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -13,9 +14,10 @@ from typing import Any, TypeVar, cast
 
 import numpy as np
 
+from edgepos.core.compiled import compiled_enabled
 from edgepos.core.measurements.gnss_geometry import transmit_states
 from edgepos.core.observations import Observation, PseudorangeObservation
-from edgepos.gnss.carrier import HatchConfig, hatch_update
+from edgepos.gnss.carrier import CarrierTable, HatchConfig, hatch_update
 from edgepos.gnss.corrections import carrier_frequency
 from edgepos.gnss.differential import SYSTEM_NOT_CORRECTED, CorrectionTable, Issue, ephemeris_issues
 from edgepos.gnss.ephemerides import DEFAULT_SIGNAL, Ephemerides
@@ -23,6 +25,7 @@ from edgepos.gnss.measurements import Atmosphere, PseudorangeSet, doppler_to_ran
 from edgepos.gnss.orbits import SPEED_OF_LIGHT, group_delay_factors
 from edgepos.gnss.timesys import SECONDS_PER_WEEK
 from edgepos.pipelines.base import MeasurementUse
+from edgepos.pipelines.gnss_carrier_kernel import hatch_kernel
 from edgepos.pipelines.gnss_session import GnssSession
 
 CorrectionUses = dict[int, tuple[bool, str | None]]
@@ -42,6 +45,9 @@ class EpochSatellites:
     """Per row, the broadcast ephemeris issue its satellite state came from (None: sent by the client)."""
     corrected: np.ndarray | None = None
     """Per row, whether a differential correction was added to its pseudorange (None: no corrections)."""
+    phases: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    """Per row, :func:`epoch_phases` (carrier, Doppler, LLI) when carrier smoothing has read them (None: not
+    read), so that the phase differences (pipelines/gnss_tdcp.py) do not read them again."""
 
 
 _FREQUENCY = {system: carrier_frequency(system, code) for system, code in DEFAULT_SIGNAL.items()}
@@ -389,37 +395,100 @@ def carrier_smoothed(
     options = session.options
     if options.get("carrier_smoothing", "off") not in ("hatch", "hatch+tdcp") or not len(prs):
         return satellites, factor, np.zeros(len(prs))
-    # satellites.indices are the epoch's pseudoranges (satellite_states keeps no other kind)
-    sent = [cast(PseudorangeObservation, observations[i]) for i in satellites.indices]
-    carrier = np.array([np.nan if o.carrier_cycles is None else o.carrier_cycles for o in sent], dtype=float)
+    phases = epoch_phases(satellites, observations, options)
+    carrier, doppler_hz, lli = phases
     if not np.isfinite(carrier).any():
         return satellites, factor, np.zeros(len(prs))
-    use_doppler = bool(options.get("use_doppler", True))
-    doppler_hz = np.array(
-        [o.doppler_hz if (o.doppler_hz is not None and use_doppler) else np.nan for o in sent], dtype=float
-    )
-    lli = np.array([o.lli or 0 for o in sent], dtype=int)
-    config = HatchConfig(
+    settings = (
         options["hatch_window_s"],
         options["carrier_slip_cycles_per_s"],
         options["carrier_code_jump_m"],
         options["carrier_max_gap_s"],
     )
-    result = hatch_update(
-        session.carrier,
+    wavelength = SPEED_OF_LIGHT / prs.frequency_hz
+    if compiled_enabled():
+        pseudoranges, count = _compiled_hatch(session, t, prs, phases, wavelength, settings)
+    else:
+        tracks = session.carrier.tracks()
+        result = hatch_update(
+            tracks,
+            t,
+            prs.sats,
+            prs.pseudorange_m,
+            carrier,
+            wavelength,
+            doppler_hz,
+            lli,
+            _hatch_config(*settings),
+        )
+        session.carrier = CarrierTable.from_tracks(tracks)
+        pseudoranges, count = result.pseudorange_m, result.count
+    smoothed = count >= 1.0
+    factor[smoothed] = np.maximum(1.0 / np.sqrt(count[smoothed]), options["hatch_std_floor"])
+    prs = replaced(prs, pseudorange_m=pseudoranges)
+    return replaced(satellites, prs=prs, phases=phases), factor, count
+
+
+@functools.lru_cache(maxsize=64)
+def _hatch_config(
+    window_s: float, slip_cycles_per_s: float, code_jump_m: float, max_gap_s: float
+) -> HatchConfig:
+    """The Hatch filter's settings from the session's options (built once per distinct set)."""
+    return HatchConfig(window_s, slip_cycles_per_s, code_jump_m, max_gap_s)
+
+
+def _compiled_hatch(
+    session: GnssSession,
+    t: float,
+    prs: PseudorangeSet,
+    phases: tuple[np.ndarray, np.ndarray, np.ndarray],
+    wavelength: np.ndarray,
+    settings: tuple[float, float, float, float],
+) -> tuple[np.ndarray, np.ndarray]:
+    """``gnss.carrier.hatch_update`` by ``hatch_kernel`` on the session's track table (the same smoothed
+    ranges and counts to the bit); returns them and leaves the new table in the session."""
+    n = len(prs)
+    old = session.carrier
+    cycles, doppler_hz, lli = phases
+    smoothed, count, reset = np.empty(n), np.empty(n), np.empty(n, dtype=np.int64)
+    table, origin = np.empty((n + len(old), 6)), np.empty(n + len(old), dtype=np.int64)
+    rows = hatch_kernel(
         t,
-        prs.sats,
         prs.pseudorange_m,
-        carrier,
-        SPEED_OF_LIGHT / prs.frequency_hz,
+        cycles,
+        wavelength,
         doppler_hz,
         lli,
-        config,
+        old.rows(prs.sats),
+        old.table,
+        np.array(settings, dtype=float),
+        smoothed,
+        count,
+        reset,
+        table,
+        origin,
     )
-    smoothed = result.count >= 1.0
-    factor[smoothed] = np.maximum(1.0 / np.sqrt(result.count[smoothed]), options["hatch_std_floor"])
-    prs = replaced(prs, pseudorange_m=result.pseudorange_m)
-    return replaced(satellites, prs=prs), factor, result.count
+    sats, known = prs.sats, old.sats
+    session.carrier = CarrierTable(
+        [sats[k] if k >= 0 else known[-1 - k] for k in origin[:rows].tolist()], table[:rows]
+    )
+    return smoothed, count
+
+
+def epoch_phases(
+    satellites: EpochSatellites, observations: Sequence[Observation], options: dict[str, Any]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row of the epoch's set: carrier phase (NaN: none), Doppler (NaN: none or unused) and LLI (0: not
+    sent)."""
+    # satellites.indices are the epoch's pseudoranges (satellite_states keeps no other kind)
+    sent = [cast(PseudorangeObservation, observations[i]) for i in satellites.indices]
+    use_doppler = bool(options.get("use_doppler", True))
+    cycles = np.array([math.nan if o.carrier_cycles is None else o.carrier_cycles for o in sent], dtype=float)
+    doppler = np.array(
+        [o.doppler_hz if (o.doppler_hz is not None and use_doppler) else math.nan for o in sent], dtype=float
+    )
+    lli = np.array([o.lli or 0 for o in sent], dtype=int)
+    return cycles, doppler, lli
 
 
 _Frozen = TypeVar("_Frozen", PseudorangeSet, EpochSatellites)

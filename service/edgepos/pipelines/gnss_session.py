@@ -15,7 +15,7 @@ from edgepos.core import state as state_format
 from edgepos.core.motion import riss as layout
 from edgepos.core.motion.riss import GeodeticAnchor
 from edgepos.core.particles import PARTICLE_FILTERS, Cloud
-from edgepos.gnss.carrier import CarrierTrack, tracks_from_arrays, tracks_to_arrays
+from edgepos.gnss.carrier import CarrierTable
 from edgepos.gnss.noise_level import NoiseLevel
 from edgepos.gnss.tdcp import PhaseHistory
 
@@ -42,10 +42,10 @@ class GnssSession:
     heading_known: bool = False
     """Whether the RISS model may run: until the GNSS-only model's velocity gives the azimuth, the RISS
     input is held back (a wrong initial azimuth is not recoverable once the model integrates the gyro)."""
-    carrier: dict[str, CarrierTrack] = field(default_factory=dict)
+    carrier: CarrierTable = field(default_factory=CarrierTable)
     """Per satellite, its carrier smoothing (gnss.carrier), independent of the filter (kept across a
-    re-initialisation). Stored as the ``carrier_sats`` list and the ``carrier`` array; states written before
-    carrier phase have neither and start with none."""
+    re-initialisation). Stored as the ``carrier_sats`` list and the ``carrier`` array as they are; states
+    written before carrier phase have neither and start with none."""
     faults: dict[str, list[float]] = field(default_factory=dict)
     """Per satellite (and ``<sat>/rate`` for its range rate), the fault test's history over time
     (pipelines/gnss_faults.py); states written before it start with none. Stored as the ``fault_keys`` list
@@ -65,7 +65,6 @@ class GnssSession:
     array, only when it holds phases; states written without them start with none."""
 
     def to_bytes(self) -> bytes:
-        carrier_sats, carrier_table = tracks_to_arrays(self.carrier)
         text = self.options_text
         if text is None or _parsed_options(text) != self.options:
             text = _OPTIONS_JSON.encode(self.options)
@@ -81,7 +80,7 @@ class GnssSession:
             "riss": self.riss,
             "clock_seen": self.clock_seen,
             "heading_known": self.heading_known,
-            "carrier_sats": carrier_sats,
+            "carrier_sats": list(self.carrier.sats),
             "fault_keys": list(self.faults),
             "still_epochs": self.still_epochs,
             "noise_level": self.noise.to_list(),
@@ -90,7 +89,7 @@ class GnssSession:
             "particles": self.cloud.particles,
             "log_weights": self.cloud.log_weights,
             "cov": self.cloud.cov,
-            "carrier": carrier_table,
+            "carrier": self.carrier.table,
             # an array, not JSON: some forty histories of four floats each were a third of the header's
             # encoding and decoding time, every epoch
             "faults": np.array(list(self.faults.values()), dtype=float).reshape(
@@ -124,7 +123,8 @@ def decode_session(blob: bytes) -> GnssSession:
             )
         cloud.remember_moments(layout.ANGLES, mean, cov)
     try:
-        carrier = tracks_from_arrays(meta.get("carrier_sats", []), arrays.get("carrier", np.zeros((0, 6))))
+        sats = [str(sat) for sat in meta.get("carrier_sats", [])]
+        carrier = CarrierTable(sats, np.asarray(arrays.get("carrier", np.zeros((0, 6))), dtype=float))
     except (ValueError, TypeError) as error:
         raise state_format.StateFormatError(
             f"gnss_tight state's carrier tracks are corrupt: {error}"

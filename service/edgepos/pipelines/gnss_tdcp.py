@@ -26,7 +26,6 @@ import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import cast
 
 import numpy as np
 
@@ -35,36 +34,37 @@ from edgepos.core.kernels_base import FAILED, OK
 from edgepos.core.measurements.gnss_geometry import delays as epoch_delays
 from edgepos.core.measurements.gnss_kernel import anchor_array
 from edgepos.core.motion import riss as layout
-from edgepos.core.motion.riss import GnssOnlyModel
-from edgepos.core.observations import Observation, PseudorangeObservation
+from edgepos.core.motion.riss import GeodeticAnchor, GnssOnlyModel
+from edgepos.core.observations import Observation
 from edgepos.core.particles import Cloud
 from edgepos.gnss.geodesy import WGS84_A, WGS84_E2
 from edgepos.gnss.measurements import Atmosphere, PseudorangeSet
 from edgepos.gnss.orbits import OMEGA_EARTH, SPEED_OF_LIGHT
 from edgepos.gnss.tdcp import (
     DEFAULT_GATE_PROBABILITY,
+    GAP,
     MAX_CONDITION,
     MIN_SIN_ELEVATION,
+    NO_PHASE,
+    SLIP,
     Displacement,
     PhaseHistory,
     TdcpConfig,
     bound,
     displacement,
-    fit_rows,
     model_terms,
     slip_text,
-    too_few,
 )
 from edgepos.pipelines.base import MeasurementUse
-from edgepos.pipelines.gnss_satellites import EpochSatellites
+from edgepos.pipelines.gnss_satellites import EpochSatellites, epoch_phases
 from edgepos.pipelines.gnss_session import GnssSession
 from edgepos.pipelines.gnss_tdcp_kernel import (
-    differences_kernel,
-    fit_kernel,
-    map_kernel,
+    FEW,
+    INCONSISTENT,
+    LEFT_OUT,
+    TOO_FEW,
+    epoch_kernel,
     posterior_terms_kernel,
-    shift_kernel,
-    terms_kernel,
 )
 
 TDCP_MODES = ("tdcp", "hatch+tdcp")
@@ -92,19 +92,25 @@ class DisplacementModel(GnssOnlyModel):
     def process_noise(self, dt: float) -> np.ndarray:
         q = self._noise.get(dt)
         if q is None:
-            q = self.remember_noise(
-                dt, super().process_noise(dt), np.array(self.displacement_cov).reshape(3, 3)
-            )
+            cov = np.array(self.displacement_cov).reshape(3, 3)
+            q = self.remember_noise(dt, displacement_noise(super().process_noise(dt), cov))
         copy: np.ndarray = q.copy()
         return copy
 
-    def remember_noise(self, dt: float, q: np.ndarray, displacement_cov: np.ndarray) -> np.ndarray:
-        """Q over ``dt`` from the constant-velocity model's ``q`` (changed in place) and the displacement's
-        covariance (the field's matrix: the caller that has it spares its rebuilding from the tuple)."""
-        q[_CROSS] = 0.0
-        q[_BLOCK] = displacement_cov + _POSITION_FLOOR
+    def remember_noise(self, dt: float, q: np.ndarray) -> np.ndarray:
+        """Keep ``q`` as Q over ``dt`` (:func:`displacement_noise` of this model's covariance: a caller that
+        has it built spares its rebuilding from the tuple)."""
         self._noise[dt] = q
         return q
+
+
+def displacement_noise(q: np.ndarray, displacement_cov: np.ndarray) -> np.ndarray:
+    """:class:`DisplacementModel`'s Q from the constant-velocity model's ``q`` (changed in place) and the
+    displacement's covariance (north, east, up): no position-velocity cross terms, the position block the
+    displacement's with the constant-velocity model's floor."""
+    q[_CROSS] = 0.0
+    q[_BLOCK] = displacement_cov + _POSITION_FLOOR
+    return q
 
 
 @dataclass(frozen=True)
@@ -116,7 +122,9 @@ class TdcpStep:
     model: DisplacementModel | None
     reasons: dict[int, str | None]
     phases: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-    """The rows' carrier phase, Doppler and LLI (:func:`_phases`), read once for the epoch."""
+    """The rows' carrier phase, Doppler and LLI (``gnss_satellites.epoch_phases``), read once for the epoch."""
+    anchor: np.ndarray | None = None
+    """The session's anchor as ``gnss_kernel.anchor_array`` gives it, built once for the epoch."""
 
 
 def enabled(options: dict[str, object]) -> bool:
@@ -139,8 +147,10 @@ def predict_with_displacement(
     the model to predict with. The satellites' delays and elevations for the fit are taken at the previous
     fix, where the fit's model terms are (and not at the constant-velocity prediction, which the moved cloud
     replaces: so the epoch propagates its centre once; over one epoch's motion the delays change by
-    fractions of a millimetre)."""
-    phases = _phases(satellites, observations, session.options)
+    fractions of a millimetre). By one kernel (:func:`compiled_step`), or :func:`reference_step`."""
+    phases = satellites.phases
+    if phases is None:  # carrier smoothing off (tdcp alone) or without phases this epoch
+        phases = epoch_phases(satellites, observations, session.options)
     carrying = np.flatnonzero(np.isfinite(phases[0])).tolist()
     if not isinstance(model, GnssOnlyModel) or session.anchor is None:
         return TdcpStep(None, dict.fromkeys(carrying, "the RISS input drives the motion this epoch"), phases)
@@ -155,150 +165,208 @@ def predict_with_displacement(
         session.options["carrier_slip_cycles_per_s"],
         session.options["carrier_max_gap_s"],
     )
-    prs = satellites.prs
-    ionosphere_m, troposphere_m, elevation, _ = epoch_delays(atmosphere, np.array(history.receiver), prs)
-    fit = epoch_displacement(history, t, prs, phases, (ionosphere_m, troposphere_m, elevation), config)
+    anchor = anchor_numbers(session.anchor)
+    run = compiled_step if compiled_enabled() else reference_step
+    q = model.process_noise(dt)
+    fit, cloud, noise = run(
+        history, t, satellites.prs, phases, atmosphere, config, anchor, mean, session.cloud, q
+    )
     reasons = {r: fit.reasons[r] for r in carrying}
-    if fit.d is None or fit.cov is None:
-        return TdcpStep(None, reasons, phases)
-    lat, lon, _ = session.anchor.geodetic(mean)
-    rotation = _north_east_up(float(lat), float(lon))
-    step = rotation @ fit.d
-    cov = rotation @ fit.cov @ rotation.T
-    session.cloud = shift_cloud(session.cloud, step, dt)
-    cov = 0.5 * (cov + cov.T)
+    if cloud is None or noise is None:
+        return TdcpStep(None, reasons, phases, anchor)
+    session.cloud = cloud
     moved = DisplacementModel(
         model.anchor,
         model.accel_std,
         model.vertical_accel_std,
         model.clock_bias_psd,
         model.clock_drift_psd,
-        tuple(cov.ravel().tolist()),
+        tuple(noise.ravel().tolist()),
     )
-    moved.remember_noise(dt, model.process_noise(dt), cov)
-    return TdcpStep(moved, reasons, phases)
+    moved.remember_noise(dt, q)
+    return TdcpStep(moved, reasons, phases, anchor)
 
 
-def epoch_displacement(
+Moved = tuple[Displacement, Cloud | None, np.ndarray | None]
+"""An epoch's displacement step: the fit, and when it gave a displacement the moved cloud and the
+displacement's covariance in north/east/up (the displacement model's position noise; the step has then
+made its ``q`` argument :func:`displacement_noise` of it); else None, None."""
+
+
+def reference_step(
     history: PhaseHistory,
     t: float,
     prs: PseudorangeSet,
     phases: tuple[np.ndarray, np.ndarray, np.ndarray],
-    delays: tuple[np.ndarray, np.ndarray, np.ndarray],
+    atmosphere: Atmosphere,
     config: TdcpConfig,
-) -> Displacement:
-    """``gnss.tdcp.displacement`` of the epoch's rows (``phases``: carrier, Doppler, LLI; ``delays``:
-    ionosphere, troposphere, elevation) since ``history``'s epoch, whose position must be known. By the
-    kernels (pipelines/gnss_tdcp_kernel.py), the numpy form when they are off: the same rows and reasons,
-    the same differences to the bit, the fit's numbers to about 1e-12."""
-    ionosphere_m, troposphere_m, elevation = delays
-    cycles, doppler, lli = phases
+    anchor: np.ndarray,
+    mean: np.ndarray,
+    cloud: Cloud,
+    q: np.ndarray,
+) -> Moved:
+    """The displacement step in numpy (``EDGEPOS_NUMBA=0``, and the reference the kernel is held to): the
+    delays at the previous fix, ``gnss.tdcp.displacement`` of the epoch's rows (``phases``: carrier,
+    Doppler, LLI), its rotation to north/east/up at ``mean`` (:func:`rotated`) and :func:`shift_cloud`."""
     assert history.receiver is not None and history.t is not None
     receiver = np.array(history.receiver)
-    wavelength = SPEED_OF_LIGHT / prs.frequency_hz
-    if not compiled_enabled():
-        terms = model_terms(
-            receiver, prs.sat_position, prs.sat_clock_s, troposphere_m, ionosphere_m, SPEED_OF_LIGHT
-        )
-        return displacement(
-            history, t, prs.sats, cycles, wavelength, prs.sat_position, terms, elevation, doppler, lli, config
-        )
-    n = len(cycles)
-    terms = np.empty(n)
-    terms_kernel(
-        receiver,
-        prs.sat_position,
-        prs.sat_clock_s,
-        troposphere_m,
-        ionosphere_m,
-        OMEGA_EARTH,
-        SPEED_OF_LIGHT,
-        terms,
+    ionosphere_m, troposphere_m, elevation, _ = epoch_delays(atmosphere, receiver, prs)
+    terms = model_terms(
+        receiver, prs.sat_position, prs.sat_clock_s, troposphere_m, ionosphere_m, SPEED_OF_LIGHT
     )
-    known = history.phases
-    before = np.array([known.get(sat, _NO_PHASE) for sat in prs.sats], dtype=float).reshape(n, 2)
-    std_all = config.phase_std_m / np.maximum(np.sin(elevation), MIN_SIN_ELEVATION)
-    status, off, index = np.empty(n, dtype=np.int64), np.zeros(n), np.empty(n, dtype=np.int64)
-    y, design, std = np.empty(n), np.empty((n, 4)), np.empty(n)
+    cycles, doppler, lli = phases
+    wavelength = SPEED_OF_LIGHT / prs.frequency_hz
+    fit = displacement(
+        history, t, prs.sats, cycles, wavelength, prs.sat_position, terms, elevation, doppler, lli, config
+    )
+    if fit.d is None or fit.cov is None:
+        return fit, None, None
+    # GeodeticAnchor.geodetic of the mean, from the anchor's numbers as the kernels take them
+    lat = float(anchor[0] + mean[layout.NORTH] / anchor[3])
+    lon = float(anchor[1] + mean[layout.EAST] / anchor[4])
+    step, noise = rotated(north_east_up(lat, lon), fit.d, fit.cov)
+    displacement_noise(q, noise)
+    return fit, shift_cloud(cloud, step, t - history.t), noise
+
+
+def rotated(rotation: np.ndarray, d: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``rotation`` @ ``d`` and ``rotation`` @ ``cov`` @ ``rotation``.T made symmetric, each sum over the
+    three terms in index order (BLAS's 3 x 3 products round as its kernel for the CPU does: this order is
+    the kernel's on every machine)."""
+    step = (rotation[:, 0] * d[0] + rotation[:, 1] * d[1]) + rotation[:, 2] * d[2]
+    left = (rotation[:, 0:1] * cov[0] + rotation[:, 1:2] * cov[1]) + rotation[:, 2:3] * cov[2]
+    both = (left[:, 0:1] * rotation[:, 0] + left[:, 1:2] * rotation[:, 1]) + left[:, 2:3] * rotation[:, 2]
+    symmetric: np.ndarray = 0.5 * (both + both.T)
+    return step, symmetric
+
+
+_NO_MOMENTS = (np.zeros(0), np.zeros((0, 0)))
+"""``move_kernel``'s moments for a cloud without remembered ones (it maps none)."""
+
+
+def compiled_step(
+    history: PhaseHistory,
+    t: float,
+    prs: PseudorangeSet,
+    phases: tuple[np.ndarray, np.ndarray, np.ndarray],
+    atmosphere: Atmosphere,
+    config: TdcpConfig,
+    anchor: np.ndarray,
+    mean: np.ndarray,
+    cloud: Cloud,
+    q: np.ndarray,
+) -> Moved:
+    """:func:`reference_step` by ``epoch_kernel`` (pipelines/gnss_tdcp_kernel.py), one call: the same rows
+    and reasons, the differences to the bit, the fit's numbers to about 1e-12 (its rounding), and from the
+    fit on the rotation, noise and move to the bit."""
+    assert history.receiver is not None and history.t is not None
+    n = len(prs)
+    cycles, doppler, lli = phases
+    klobuchar = np.zeros(8)
+    if atmosphere.klobuchar is not None:
+        klobuchar[:4], klobuchar[4:] = atmosphere.klobuchar
     dt = t - history.t
-    count = differences_kernel(
+    constants = np.array(
+        [
+            OMEGA_EARTH,
+            SPEED_OF_LIGHT,
+            dt,
+            config.max_gap_s,
+            config.slip_cycles_per_s,
+            MAX_CONDITION,
+            config.phase_std_m,
+            MIN_SIN_ELEVATION,
+            float(prs.gpst),
+            config.min_satellites,
+            float(atmosphere.klobuchar is not None),
+            float(atmosphere.troposphere),
+            _POSITION_FLOOR[0, 0],
+        ]
+    )
+    status, values = np.empty(n, dtype=np.int64), np.empty((n, 2))
+    solution, fit_cov, noise = np.empty(4), np.empty((4, 4)), np.empty((3, 3))
+    known = cloud.known_moments(layout.ANGLES)
+    moments_mean, moments_cov = _NO_MOMENTS if known is None else known
+    particles, cov = np.empty_like(cloud.particles), np.empty_like(cloud.cov)
+    out_mean, out_moments_cov = np.empty_like(moments_mean), np.empty_like(moments_cov)
+    count, outcome = epoch_kernel(
+        np.array(history.receiver),
+        prs.sat_position,
+        prs.frequency_hz,
+        prs.sat_clock_s,
+        klobuchar,
+        constants,
         cycles,
-        before,
-        dt,
-        config.max_gap_s,
-        config.slip_cycles_per_s,
+        history.table,
+        history.rows(prs.sats),
         doppler,
         lli,
-        wavelength,
-        prs.sat_position,
-        receiver,
-        terms,
-        std_all,
+        bounds_table(config.gate_probability, n),
+        anchor,
+        mean,
+        cloud.particles,
+        cloud.cov,
+        moments_mean,
+        moments_cov,
         status,
-        off,
-        index,
-        y,
-        design,
-        std,
+        values,
+        solution,
+        fit_cov,
+        noise,
+        q,
+        particles,
+        cov,
+        out_mean,
+        out_moments_cov,
     )
-    reasons: list[str | None] = [None] * n
-    for row in np.flatnonzero(status).tolist():  # the rows not differenced: few (most have no phase)
-        reasons[row] = slip_text(int(status[row]), dt, float(off[row]), config)
-    if count < config.min_satellites:
-        return too_few(index[:count].tolist(), reasons, config)
-    return compiled_fit(index[:count], y[:count], design[:count], std[:count], reasons, config)
-
-
-_NO_PHASE = (math.nan, math.nan)
-"""``epoch_displacement``'s previous [cycles, term] of a satellite without a phase at the previous epoch."""
-
-
-def compiled_fit(
-    index: np.ndarray,
-    y: np.ndarray,
-    design: np.ndarray,
-    std: np.ndarray,
-    reasons: list[str | None],
-    config: TdcpConfig,
-) -> Displacement:
-    """``gnss.tdcp.fit_rows`` by the kernel (pipelines/gnss_tdcp_kernel.py), the numpy form when the kernels
-    are off: the same rows left out, the same reasons, the numbers to about 1e-12."""
-    if not compiled_enabled():
-        return fit_rows(index, y, design, std, reasons, config)
-    n = len(index)
-    keep = np.ones(n, dtype=np.bool_)
-    solution, cov, left_out = np.empty(4), np.empty((4, 4)), np.zeros((n, 2))
-    bounds = _bounds(config.gate_probability, n)
-    status = fit_kernel(
-        y, design, std, bounds, config.min_satellites, MAX_CONDITION, keep, solution, cov, left_out
-    )
-    rows, kept = index.tolist(), keep.tolist()
-    for r in np.flatnonzero(~keep).tolist():
-        reasons[rows[r]] = (
-            f"phase difference {left_out[r, 0]:+.2f} m off the displacement fit "
-            f"({left_out[r, 1]:.1f} sigma; a slip or a reflection)"
+    codes = status.tolist()
+    reasons: list[str | None] = [_ROW_TEXT[code] for code in codes]
+    for row, code in enumerate(codes):
+        if code in _NUMBERED:
+            reasons[row] = _numbered_text(code, values[row], dt, count, config)
+    if outcome != OK:
+        return (
+            Displacement(None, None, 0.0, reasons, _NO_FIT[outcome] or f"{count} continuous carrier phases"),
+            None,
+            None,
         )
-    if status == OK:
-        for r, used in zip(rows, kept, strict=True):
-            if used:
-                reasons[r] = None
-        return Displacement(solution[:3].copy(), cov[:3, :3].copy(), float(solution[3]), reasons, None)
-    why, text = (
-        ("singular geometry", "the satellites' geometry does not fix a displacement")
-        if status == FAILED
-        else (
-            "inconsistent phase differences",
-            "the epoch's phase differences are inconsistent (chi-square test)",
+    fit = Displacement(solution[:3], fit_cov[:3, :3], float(solution[3]), reasons, None)
+    moved = Cloud(particles, cloud.log_weights, cov)
+    if known is not None:
+        moved.remember_moments(layout.ANGLES, out_mean, out_moments_cov)
+    return fit, moved, noise
+
+
+_GEOMETRY = "the satellites' geometry does not fix a displacement"
+_INCONSISTENT = "the epoch's phase differences are inconsistent (chi-square test)"
+_ROW_TEXT: tuple[str | None, ...] = (
+    *(slip_text(code, 0.0, 0.0, TdcpConfig()) for code in range(NO_PHASE + 1)),
+    None,
+    _GEOMETRY,
+    _INCONSISTENT,
+    None,
+)
+"""``epoch_kernel``'s row codes worded as ``gnss.tdcp`` words them, where the words carry no number."""
+_NUMBERED = frozenset((GAP, SLIP, LEFT_OUT, FEW))
+_NO_FIT = {FAILED: "singular geometry", INCONSISTENT: "inconsistent phase differences", TOO_FEW: None}
+"""The epoch's ``Displacement.why`` by the kernel's outcome (TOO_FEW: worded with the count)."""
+
+
+def _numbered_text(code: int, values: np.ndarray, dt: float, count: int, config: TdcpConfig) -> str | None:
+    """A row's reason that carries numbers, as ``gnss.tdcp`` words it (``displacement``, ``fit_rows``,
+    ``too_few``)."""
+    if code == LEFT_OUT:
+        return (
+            f"phase difference {values[0]:+.2f} m off the displacement fit "
+            f"({values[1]:.1f} sigma; a slip or a reflection)"
         )
-    )
-    for r, used in zip(rows, kept, strict=True):
-        if used:
-            reasons[r] = text
-    return Displacement(None, None, 0.0, reasons, why)
+    if code == FEW:
+        return f"{count} continuous phases, fewer than {config.min_satellites}"
+    return slip_text(code, dt, float(values[0]), config)
 
 
 @functools.lru_cache(maxsize=64)
-def _bounds(probability: float, rows: int) -> np.ndarray:
+def bounds_table(probability: float, rows: int) -> np.ndarray:
     """The chi-square quantiles by degrees of freedom 0..rows (read-only), for the kernel."""
     table = np.array([bound(probability, dof) for dof in range(rows + 1)])
     table.flags.writeable = False
@@ -307,16 +375,13 @@ def _bounds(probability: float, rows: int) -> np.ndarray:
 
 def shift_cloud(cloud: Cloud, step: np.ndarray, dt: float) -> Cloud:
     """The cloud moved by x -> x + step - v dt (position north/east/up, their velocities), its covariance
-    by the same map, so that the constant-velocity step then gives x + step."""
-    if compiled_enabled():
-        particles = np.empty_like(cloud.particles)
-        shift_kernel(cloud.particles, step, dt, particles)
-    else:
-        particles = cloud.particles.copy()
-        # north, east, up are columns 0-2; their velocities v_north (4), v_east (3), v_up (5)
-        particles[:, : layout.UP + 1] += step
-        particles[:, : layout.EAST + 1] -= particles[:, layout.VN : layout.VE - 1 : -1] * dt
-        particles[:, layout.UP] -= particles[:, layout.VU] * dt
+    by the same map, so that the constant-velocity step then gives x + step (numpy; ``move_kernel`` in
+    :func:`compiled_step`, the same bits)."""
+    particles = cloud.particles.copy()
+    # north, east, up are columns 0-2; their velocities v_north (4), v_east (3), v_up (5)
+    particles[:, : layout.UP + 1] += step
+    particles[:, : layout.EAST + 1] -= particles[:, layout.VN : layout.VE - 1 : -1] * dt
+    particles[:, layout.UP] -= particles[:, layout.VU] * dt
     moved = Cloud(particles, cloud.log_weights, _mapped(cloud.cov, dt))
     known = cloud.known_moments(layout.ANGLES)
     if known is not None:  # the weighted moments of the moved particles, by the same linear map
@@ -328,13 +393,9 @@ def shift_cloud(cloud: Cloud, step: np.ndarray, dt: float) -> Cloud:
 
 def _mapped(cov: np.ndarray, dt: float) -> np.ndarray:
     """T C T^T for T = I with -dt from each velocity to its position, symmetric to the last bit: the
-    position rows less dt times their velocity rows, then the same for the columns (``map_kernel`` when
-    the kernels are on, the same bits)."""
-    out = np.empty_like(cov)
-    if compiled_enabled():
-        map_kernel(cov, dt, out)
-        return out
-    out[...] = cov
+    position rows less dt times their velocity rows, then the same for the columns (the numpy form of
+    ``move_kernel``'s ``map_kernel``, the same bits)."""
+    out = cov.copy()
     out[_POSITION, :] -= dt * cov[_VELOCITY, :]
     out[:, _POSITION] -= dt * out[:, _VELOCITY]
     symmetric: np.ndarray = 0.5 * (out + out.T)
@@ -356,15 +417,11 @@ def remember_phases(
         return
     ionosphere_m, troposphere_m, _ = delays
     cycles = step.phases[0]
-    rows = np.flatnonzero(np.isfinite(cycles))
-    if not rows.size:
-        session.tdcp = PhaseHistory()
-        return
-    prs = satellites.prs
+    prs, n = satellites.prs, len(cycles)
     if compiled_enabled():
-        receiver, terms = np.empty(3), np.empty(len(cycles))
-        posterior_terms_kernel(
-            anchor_array(session.anchor),
+        receiver, table, index = np.empty(3), np.empty((n, 2)), np.empty(n, dtype=np.int64)
+        count = posterior_terms_kernel(
+            anchor_numbers(session.anchor) if step.anchor is None else step.anchor,
             posterior,
             WGS84_A,
             WGS84_E2,
@@ -374,24 +431,27 @@ def remember_phases(
             ionosphere_m,
             OMEGA_EARTH,
             SPEED_OF_LIGHT,
+            cycles,
             receiver,
-            terms,
+            table,
+            index,
         )
+        rows: list[int] = index[:count].tolist()
+        table = table[:count]
     else:
         receiver = session.anchor.ecef(posterior)
         terms = model_terms(
             receiver, prs.sat_position, prs.sat_clock_s, troposphere_m, ionosphere_m, SPEED_OF_LIGHT
         )
+        rows = np.flatnonzero(np.isfinite(cycles)).tolist()
+        table = np.empty((len(rows), 2))
+        table[:, 0], table[:, 1] = cycles[rows], terms[rows]
+    if not rows:
+        session.tdcp = PhaseHistory()
+        return
     x, y, z = receiver.tolist()
     sats = prs.sats
-    session.tdcp = PhaseHistory(
-        t,
-        (x, y, z),
-        {
-            sats[r]: (c, m)
-            for r, c, m in zip(rows.tolist(), cycles[rows].tolist(), terms[rows].tolist(), strict=True)
-        },
-    )
+    session.tdcp = PhaseHistory(t, (x, y, z), [sats[r] for r in rows], table)
 
 
 def report(
@@ -428,20 +488,6 @@ def _replace(use: MeasurementUse, **changes: object) -> MeasurementUse:
     return copy
 
 
-def _phases(
-    satellites: EpochSatellites, observations: Sequence[Observation], options: dict[str, object]
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per row of the epoch's set: carrier phase (NaN: none), Doppler (NaN: none or unused) and LLI."""
-    sent = [cast(PseudorangeObservation, observations[i]) for i in satellites.indices]
-    use_doppler = bool(options.get("use_doppler", True))
-    cycles = np.array([math.nan if o.carrier_cycles is None else o.carrier_cycles for o in sent], dtype=float)
-    doppler = np.array(
-        [o.doppler_hz if (o.doppler_hz is not None and use_doppler) else math.nan for o in sent], dtype=float
-    )
-    lli = np.array([o.lli or 0 for o in sent], dtype=int)
-    return cycles, doppler, lli
-
-
 @functools.lru_cache(maxsize=64)
 def _config(phase_std_m: float, slip_cycles_per_s: float, max_gap_s: float) -> TdcpConfig:
     """The fit's settings from the session's options (built once per distinct set)."""
@@ -453,7 +499,16 @@ def _config(phase_std_m: float, slip_cycles_per_s: float, max_gap_s: float) -> T
     )
 
 
-def _north_east_up(lat: float, lon: float) -> np.ndarray:
+@functools.lru_cache(maxsize=64)
+def anchor_numbers(anchor: GeodeticAnchor) -> np.ndarray:
+    """``gnss_kernel.anchor_array`` of an anchor (read-only), built once per anchor: its radii of curvature
+    cost microseconds, and a session's anchor stays."""
+    numbers = anchor_array(anchor)
+    numbers.flags.writeable = False
+    return numbers
+
+
+def north_east_up(lat: float, lon: float) -> np.ndarray:
     """Rows: the local north, east and up unit vectors (ECEF) at a latitude and longitude (rad), the state's
     position order."""
     sl, cl, so, co = math.sin(lat), math.cos(lat), math.sin(lon), math.cos(lon)

@@ -2,12 +2,15 @@
 (weighted least squares with the chi-square exclusions, some twenty numpy calls on (n, 4) arrays there);
 ``terms_kernel`` and ``differences_kernel`` for its ``model_terms`` and the slip tests and rows of
 ``displacement`` (a Python loop over the satellites and a dozen small numpy calls there); ``shift_kernel``
-and ``map_kernel`` for the cloud's move in ``gnss_tdcp.shift_cloud``; ``posterior_terms_kernel`` for the
-history's receiver and terms in ``gnss_tdcp.remember_phases``. With them the UPF epoch with ``hatch+tdcp``
-went from 2.14 to 2.00 ms (median thread CPU, docs/gnss.md), still about 0.2 ms over Hatch's.
+and ``map_kernel`` for the cloud's move (``move_kernel``, the numpy form ``gnss_tdcp.shift_cloud``);
+``displacement_kernel`` the terms, differences and fit together, and ``epoch_kernel`` the whole displacement
+step in one call (the numpy form ``gnss_tdcp.reference_step``); ``posterior_terms_kernel`` for the
+history's receiver and terms in ``gnss_tdcp.remember_phases``. With one call per step the UPF epoch with
+``hatch+tdcp`` is 1.85 ms against Hatch's 1.76 ms (median thread CPU, load 1.1, docs/gnss.md).
 
 The numpy forms stay the reference (run when ``EDGEPOS_NUMBA=0``; tests hold the kernels to them). The
-terms, slip tests, differences and the cloud's move follow numpy's operations one by one and give the same
+terms, slip tests, differences, the rotation (its 3 x 3 products in index order in both) and the cloud's
+move follow numpy's operations one by one and give the same
 bits (the receiver at the posterior too where numpy's sin and cos are libm's, as here); in the fit the
 normal matrix is inverted by Gauss-Jordan elimination with partial pivoting where numpy inverts by LAPACK's
 LU and sums run in index order: the numbers agree to about 1e-12 relative (tested) and the rows left out
@@ -22,6 +25,7 @@ import math
 import numpy as np
 
 from edgepos.core.kernels_base import FAILED, OK, _jit, _symmetrize
+from edgepos.core.measurements.gnss_geometry import delays_kernel
 from edgepos.core.motion import riss as layout
 from edgepos.core.numerics import FloatArray
 from edgepos.gnss.tdcp import DIFFERENCED, GAP, LOSS_OF_LOCK, NO_PHASE, NO_PREVIOUS, SLIP
@@ -231,6 +235,244 @@ def differences_kernel(
     return count
 
 
+TOO_FEW = 3
+"""``displacement_kernel``: fewer differenced rows than the fit needs (no fit run)."""
+LEFT_OUT, SINGULAR, INCONSISTENT_ROW, FEW = range(NO_PHASE + 1, NO_PHASE + 5)
+"""``epoch_kernel``'s row codes after ``gnss.tdcp``'s (DIFFERENCED .. NO_PHASE): a differenced row left out
+by the fit, in a singular or an inconsistent fit, or one of too few to fit."""
+
+
+@_jit
+def displacement_kernel(
+    receiver: FloatArray,
+    sat_position: FloatArray,
+    sat_clock_s: FloatArray,
+    troposphere_m: FloatArray,
+    ionosphere_m: FloatArray,
+    constants: FloatArray,
+    cycles: FloatArray,
+    history: FloatArray,
+    history_row: np.ndarray,
+    doppler_hz: FloatArray,
+    lli: np.ndarray,
+    wavelength_m: FloatArray,
+    std_all: FloatArray,
+    bounds: FloatArray,
+    min_rows: int,
+    status: np.ndarray,
+    off: FloatArray,
+    index: np.ndarray,
+    keep: np.ndarray,
+    left_out: FloatArray,
+    solution: FloatArray,
+    cov: FloatArray,
+) -> tuple[int, int]:
+    """The epoch's whole ``gnss.tdcp.displacement`` in one call: the model terms at the previous ``receiver``
+    (``terms_kernel``), each row's previous [cycles, term] (``history[history_row[row]]``, none where -1),
+    the slip tests and differences (``differences_kernel``) and the fit of the differenced rows
+    (``fit_kernel``). ``constants``: omega_earth, speed of light, dt, max gap (s), slip cycles per second,
+    max condition. Returns (how many rows were differenced, packed at the front of ``index``; the fit's
+    OK, FAILED or INCONSISTENT, or TOO_FEW when fewer than ``min_rows`` were)."""
+    n = cycles.shape[0]
+    terms = np.empty(n)
+    terms_kernel(
+        receiver, sat_position, sat_clock_s, troposphere_m, ionosphere_m, constants[0], constants[1], terms
+    )
+    before = np.empty((n, 2))
+    for row in range(n):
+        k = history_row[row]
+        if k < 0:
+            before[row, 0], before[row, 1] = math.nan, math.nan
+        else:
+            before[row, 0], before[row, 1] = history[k, 0], history[k, 1]
+    y, design, std = np.empty(n), np.empty((n, _UNKNOWNS)), np.empty(n)
+    count = differences_kernel(
+        cycles,
+        before,
+        constants[2],
+        constants[3],
+        constants[4],
+        doppler_hz,
+        lli,
+        wavelength_m,
+        sat_position,
+        receiver,
+        terms,
+        std_all,
+        status,
+        off,
+        index,
+        y,
+        design,
+        std,
+    )
+    if count < min_rows:
+        return count, TOO_FEW
+    for i in range(count):
+        keep[i] = True
+    outcome = fit_kernel(
+        y[:count],
+        design[:count],
+        std[:count],
+        bounds,
+        min_rows,
+        constants[5],
+        keep[:count],
+        solution,
+        cov,
+        left_out[:count],
+    )
+    return count, outcome
+
+
+@_jit
+def epoch_kernel(
+    receiver: FloatArray,
+    sat_position: FloatArray,
+    frequency_hz: FloatArray,
+    sat_clock_s: FloatArray,
+    klobuchar: FloatArray,
+    constants: FloatArray,
+    cycles: FloatArray,
+    history: FloatArray,
+    history_row: np.ndarray,
+    doppler_hz: FloatArray,
+    lli: np.ndarray,
+    bounds: FloatArray,
+    anchor: FloatArray,
+    mean: FloatArray,
+    particles: FloatArray,
+    cloud_cov: FloatArray,
+    moments_mean: FloatArray,
+    moments_cov: FloatArray,
+    status: np.ndarray,
+    values: FloatArray,
+    solution: FloatArray,
+    fit_cov: FloatArray,
+    noise: FloatArray,
+    process_noise: FloatArray,
+    out_particles: FloatArray,
+    out_cov: FloatArray,
+    out_mean: FloatArray,
+    out_moments_cov: FloatArray,
+) -> tuple[int, int]:
+    """An epoch's whole displacement step (``gnss_tdcp.predict_with_displacement``) in one call: the delays
+    and elevations at the previous ``receiver`` (``gnss_geometry.delays_kernel``), each difference's std ``phase_std`` / max(sin(elevation), ``min_sin``), the
+    differences and fit (``displacement_kernel``); when the fit gives a displacement, its rotation to the
+    state's north/east/up at ``mean``'s latitude and longitude (``gnss_tdcp.rotated``'s order of
+    operations), the displacement model's position noise (``noise``; in ``process_noise``, the
+    constant-velocity model's Q, as ``gnss_tdcp.DisplacementModel.remember_noise`` puts it) and the cloud's move
+    (``move_kernel``: the particles, their covariance and the remembered moments, empty when none, into the
+    ``out_`` arrays).
+    ``constants``: omega_earth, speed of light, dt, max gap, slip cycles per second, max condition,
+    phase_std, min_sin, the GPS seconds of the epoch, min rows, Klobuchar on (1) or off (0), the
+    troposphere on or off, the position variances' floor. Per row ``status`` is its code (``gnss.tdcp``'s,
+    or what the fit made of it: LEFT_OUT, SINGULAR, INCONSISTENT_ROW, FEW) and ``values`` its numbers (SLIP:
+    the cycles off the Doppler; LEFT_OUT: the residual in metres and sigmas). Returns as
+    ``displacement_kernel``."""
+    n = cycles.shape[0]
+    delays = np.empty((4, n))
+    delays_kernel(
+        receiver,
+        sat_position,
+        frequency_hz,
+        klobuchar,
+        constants[10] != 0.0,
+        constants[11] != 0.0,
+        constants[8],
+        delays,
+    )
+    wavelength, std_all = np.empty(n), np.empty(n)
+    for i in range(n):
+        wavelength[i] = constants[1] / frequency_hz[i]
+        std_all[i] = constants[6] / max(math.sin(delays[2, i]), constants[7])
+    off, index, keep, left_out = (
+        np.zeros(n),
+        np.empty(n, dtype=np.int64),
+        np.zeros(n, np.bool_),
+        np.zeros((n, 2)),
+    )
+    count, outcome = displacement_kernel(
+        receiver,
+        sat_position,
+        sat_clock_s,
+        delays[1],
+        delays[0],
+        constants,
+        cycles,
+        history,
+        history_row,
+        doppler_hz,
+        lli,
+        wavelength,
+        std_all,
+        bounds,
+        int(constants[9]),
+        status,
+        off,
+        index,
+        keep,
+        left_out,
+        solution,
+        fit_cov,
+    )
+    for row in range(n):
+        values[row, 0] = off[row]
+        values[row, 1] = 0.0
+    for i in range(count):  # the differenced rows: what the fit made of each
+        row = index[i]
+        if outcome == TOO_FEW:
+            status[row] = FEW
+        elif not keep[i]:
+            status[row] = LEFT_OUT
+            values[row, 0], values[row, 1] = left_out[i, 0], left_out[i, 1]
+        elif outcome == FAILED:
+            status[row] = SINGULAR
+        elif outcome == INCONSISTENT:
+            status[row] = INCONSISTENT_ROW
+    if outcome != OK:
+        return count, outcome
+    lat = anchor[0] + mean[layout.NORTH] / anchor[3]
+    lon = anchor[1] + mean[layout.EAST] / anchor[4]
+    sl, cl, so, co = math.sin(lat), math.cos(lat), math.sin(lon), math.cos(lon)
+    rotation = np.array([[-sl * co, -sl * so, cl], [-so, co, 0.0], [cl * co, cl * so, sl]])
+    step = np.empty(3)
+    rotated = np.empty((3, 3))
+    for i in range(3):
+        step[i] = (rotation[i, 0] * solution[0] + rotation[i, 1] * solution[1]) + rotation[i, 2] * solution[2]
+        for j in range(3):
+            rotated[i, j] = (rotation[i, 0] * fit_cov[0, j] + rotation[i, 1] * fit_cov[1, j]) + rotation[
+                i, 2
+            ] * fit_cov[2, j]
+    for i in range(3):
+        for j in range(3):
+            noise[i, j] = (rotated[i, 0] * rotation[j, 0] + rotated[i, 1] * rotation[j, 1]) + rotated[
+                i, 2
+            ] * rotation[j, 2]
+    _symmetrize(noise, 3)
+    positions = (layout.NORTH, layout.EAST, layout.UP)
+    velocities = (layout.VN, layout.VE, layout.VU)
+    for i in range(3):
+        process_noise[positions[i], velocities[i]] = 0.0
+        process_noise[velocities[i], positions[i]] = 0.0
+        for j in range(3):
+            floor = constants[12] if i == j else 0.0
+            process_noise[positions[i], positions[j]] = noise[i, j] + floor
+    move_kernel(
+        particles,
+        cloud_cov,
+        moments_mean,
+        moments_cov,
+        step,
+        constants[2],
+        out_particles,
+        out_cov,
+        out_mean,
+        out_moments_cov,
+    )
+    return count, outcome
+
+
 @_jit
 def shift_kernel(particles: FloatArray, step: FloatArray, dt: float, out: FloatArray) -> None:
     """``gnss_tdcp.shift_cloud``'s particles: ``out`` = ``particles`` with each position (north, east, up)
@@ -263,6 +505,35 @@ def map_kernel(cov: FloatArray, dt: float, out: FloatArray) -> None:
 
 
 @_jit
+def move_kernel(
+    particles: FloatArray,
+    cov: FloatArray,
+    moments_mean: FloatArray,
+    moments_cov: FloatArray,
+    step: FloatArray,
+    dt: float,
+    out_particles: FloatArray,
+    out_cov: FloatArray,
+    out_mean: FloatArray,
+    out_moments_cov: FloatArray,
+) -> None:
+    """``gnss_tdcp.shift_cloud`` in one call: the particles (``shift_kernel``), their covariance
+    (``map_kernel``) and, when ``moments_mean`` is not empty, the remembered moments: the mean's positions
+    plus (``step`` less their velocities times ``dt``), in the numpy form's order, and the covariance by
+    ``map_kernel`` (the same bits as the numpy form)."""
+    shift_kernel(particles, step, dt, out_particles)
+    map_kernel(cov, dt, out_cov)
+    if moments_mean.shape[0] == 0:
+        return
+    for j in range(moments_mean.shape[0]):
+        out_mean[j] = moments_mean[j]
+    out_mean[layout.NORTH] = moments_mean[layout.NORTH] + (step[0] - moments_mean[layout.VN] * dt)
+    out_mean[layout.EAST] = moments_mean[layout.EAST] + (step[1] - moments_mean[layout.VE] * dt)
+    out_mean[layout.UP] = moments_mean[layout.UP] + (step[2] - moments_mean[layout.VU] * dt)
+    map_kernel(moments_cov, dt, out_moments_cov)
+
+
+@_jit
 def posterior_terms_kernel(
     anchor: FloatArray,
     posterior: FloatArray,
@@ -274,12 +545,15 @@ def posterior_terms_kernel(
     ionosphere_m: FloatArray,
     omega_earth: float,
     speed_of_light: float,
+    cycles: FloatArray,
     receiver: FloatArray,
-    terms: FloatArray,
-) -> None:
+    table: FloatArray,
+    index: np.ndarray,
+) -> int:
     """``gnss_tdcp.remember_phases``'s receiver (``anchor.ecef`` of the posterior state: ``anchor`` as
     ``gnss_kernel.anchor_array``, then ``geodesy.geodetic_to_ecef``'s formula in its order of operations) and
-    the model terms there (``terms_kernel``)."""
+    the model terms there (``terms_kernel``), packed with the rows' ``cycles`` into ``table`` [cycles, term]
+    for the rows with a phase (``index``: their rows); returns how many."""
     lat = anchor[0] + posterior[layout.NORTH] / anchor[3]
     lon = anchor[1] + posterior[layout.EAST] / anchor[4]
     height = anchor[2] + posterior[layout.UP]
@@ -289,6 +563,14 @@ def posterior_terms_kernel(
     receiver[0] = horizontal * math.cos(lon)
     receiver[1] = horizontal * math.sin(lon)
     receiver[2] = (prime_vertical * (1.0 - eccentricity2) + height) * sin_lat
+    terms = np.empty(cycles.shape[0])
     terms_kernel(
         receiver, sat_position, sat_clock_s, troposphere_m, ionosphere_m, omega_earth, speed_of_light, terms
     )
+    count = 0
+    for row in range(cycles.shape[0]):
+        if math.isfinite(cycles[row]):
+            table[count, 0], table[count, 1] = cycles[row], terms[row]
+            index[count] = row
+            count += 1
+    return count
