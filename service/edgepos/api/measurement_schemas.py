@@ -141,9 +141,10 @@ class PseudorangeMeasurement(RequestModel):
         description="Optional carrier phase of the same signal as pseudorange_m (cycles: GPS L1 / Galileo E1 "
         "wavelength 0.1903 m, BeiDou B1I 0.1920 m), as the receiver measured it, RINEX convention: it grows as "
         "the range grows (changes by about -doppler_hz per second) and carries an arbitrary constant per "
-        "continuous lock. With options.carrier_smoothing 'hatch' (the default) the service smooths this "
-        "satellite's pseudorange with it (Hatch filter) while lock holds. Finite, within +-1e10 cycles (the "
-        "RINEX field's range).",
+        "continuous lock. With options.carrier_smoothing 'hatch+tdcp' (the default) the service smooths this "
+        "satellite's pseudorange with it (Hatch filter) while lock holds and, in sessions without RISS "
+        "samples, takes the receiver's displacement between epochs from the phases' changes; 'hatch' smooths "
+        "only. Finite, within +-1e10 cycles (the RINEX field's range).",
     )
     lli: int | None = Field(
         None,
