@@ -95,14 +95,16 @@ def epoch_satellites(
             continue
         if observation.sat_position is not None and observation.sat_clock is not None:
             frequency = carrier_frequency(observation.system, DEFAULT_SIGNAL[observation.system])
-            rate, velocity, drift = math.nan, nan3, math.nan
+            row_rate, row_velocity, row_drift = math.nan, nan3, math.nan
             if observation.doppler_hz is not None and i not in doppler_reasons:
                 if observation.sat_velocity is None or observation.sat_clock_drift is None:
                     doppler_reasons[i] = NO_SAT_VELOCITY
                 else:
-                    rate = float(doppler_to_range_rate(np.array([observation.doppler_hz]), frequency)[0])
-                    velocity = np.asarray(observation.sat_velocity, float)
-                    drift = observation.sat_clock_drift
+                    row_rate = float(
+                        doppler_to_range_rate(np.array([observation.doppler_hz]), np.array([frequency]))[0]
+                    )
+                    row_velocity = np.asarray(observation.sat_velocity, float)
+                    row_drift = observation.sat_clock_drift
             rows.append(
                 (
                     i,
@@ -113,9 +115,9 @@ def epoch_satellites(
                     np.asarray(observation.sat_position, float),
                     observation.sat_clock,
                     frequency,
-                    rate,
-                    velocity,
-                    drift,
+                    row_rate,
+                    row_velocity,
+                    row_drift,
                     None,
                 )
             )
