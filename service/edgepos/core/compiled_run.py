@@ -13,6 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 from edgepos.core.compiled import CompiledBankStepper
+from edgepos.core.kernels_grouping import group_epochs
 from edgepos.core.updates import RsuGyroEpoch
 
 
@@ -182,7 +183,8 @@ def posterior(
 def warm_up_run(
     stepper: CompiledBankStepper, epoch: RsuGyroEpoch, means: np.ndarray, covs: np.ndarray
 ) -> None:
-    """Compile (or load) ``kernels_run.run_epochs``: a run of two epochs of ``epoch``'s measurements."""
+    """Compile (or load) ``kernels_run.run_epochs``: a run of two epochs of ``epoch``'s measurements; and
+    ``kernels_grouping.group_epochs``, which groups a batch's observations into such epochs."""
     positions, observed, yaw_rates, range_variances, bearing_variances, gyro_variance = epoch.kernel_arrays
     arrays = (
         positions,
@@ -209,4 +211,9 @@ def warm_up_run(
         False,
         (5.99, 3.84),
         None,
+    )
+    times = np.array([0.05, 0.05, 0.1])  # two RSU observations and a gyro's, in two epochs
+    stations = np.array([[0.0] * 5, [0.0, 0.0, 0.6, 0.01, 160.0]])
+    group_epochs(
+        times, np.array([[4.0, 1.4], [0.0, 0.0], [5.0, 1.2]]), stations, np.array([1, 0, 1]), 4, 4096
     )

@@ -201,7 +201,7 @@ class RsuImuPipeline(Pipeline):
                 fixes += run
                 k += len(run)
             else:
-                fixes += ensure_finite_fixes([_step(session, bank, epochs[k], observations, batch)])
+                fixes += ensure_finite_fixes([_step(session, bank, epochs.part(k), observations, batch)])
                 k += 1
         return fixes, session.to_bytes()
 
