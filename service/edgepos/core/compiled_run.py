@@ -212,8 +212,6 @@ def warm_up_run(
         (5.99, 3.84),
         None,
     )
-    times = np.array([0.05, 0.05, 0.1])  # two RSU observations and a gyro's, in two epochs
+    table = np.array([[0.05, 1, 4.0, 1.4], [0.05, 0, 0.0, 0.0], [0.1, 1, 5.0, 1.2]])  # 2 RSUs, a gyro
     stations = np.array([[0.0] * 5, [0.0, 0.0, 0.6, 0.01, 160.0]])
-    group_epochs(
-        times, np.array([[4.0, 1.4], [0.0, 0.0], [5.0, 1.2]]), stations, np.array([1, 0, 1]), 4, 4096
-    )
+    group_epochs(table, stations, 4, 4096)

@@ -1,12 +1,13 @@
-"""A batch of RSU and gyro observations grouped into epochs in one compiled call: what
-``pipelines.rsu_imu_batch.batch_epochs`` does with ``pipelines.epochs.group_by_time`` and ``epoch_parts``
-per epoch (the readable reference, which the tests hold this kernel to), without a Python object per
-epoch.
+"""A batch of RSU and gyro observations grouped into epochs, with the measurement rows a run of epochs
+takes, in one compiled call: what ``pipelines.rsu_imu_batch.reference_epochs`` does with
+``pipelines.epochs.group_by_time`` and ``epoch_parts`` per epoch and a ``take`` per array (the readable
+reference, which the tests hold this kernel to), without a Python object per epoch.
 
 ``group_epochs`` sorts the observations by time (stable: an epoch keeps the batch's order), splits them
 where the time changes, and per epoch lists its gyros and its RSU observations inside their radius, the
 nearest ``max_rsus`` of them by measured range (a stable sort, as Python's ``list.sort``), the others
-marked as out of radius or not among the nearest."""
+marked as out of radius or not among the nearest; then copies the rows of the RSUs and gyros in use,
+epoch after epoch, as ``core.kernels_run.run_epochs`` takes them."""
 
 from __future__ import annotations
 
@@ -15,52 +16,70 @@ import numpy as np
 from edgepos.core.kernels_base import IntArray, _jit
 from edgepos.core.numerics import FloatArray
 
-#: ``group_epochs``'s status of an observation: an RSU it uses, a gyro, an RSU beyond its
-#: communication radius, an RSU in it but not among the nearest ``max_rsus``.
-USED_RSU, GYRO, BEYOND_RADIUS, NOT_NEAREST = 0, 1, 2, 3
+#: ``group_epochs``'s slot of an observation it does not use: an index past the kept records, an RSU
+#: beyond its communication radius, an RSU in it but not among the nearest ``max_rsus``.
+PAST_KEPT, BEYOND_RADIUS, NOT_NEAREST = -1, -2, -3
 
 
 @_jit
 def group_epochs(
-    times: FloatArray,
-    observed: FloatArray,
-    station_table: FloatArray,
-    station_codes: IntArray,
-    max_rsus: int,
-    kept: int,
-) -> tuple[IntArray, IntArray, IntArray, IntArray, IntArray, IntArray, IntArray, IntArray]:
-    """The epochs of a batch of ``n`` observations whose times are finite: observation ``i`` at
-    ``times[i]``, its measured range ``observed[i, 0]`` and its station ``station_codes[i]`` (0: a gyro),
-    whose radius is ``station_table[code, 4]``.
+    table: FloatArray, station_table: FloatArray, max_rsus: int, kept: int
+) -> tuple[
+    FloatArray,
+    IntArray,
+    IntArray,
+    IntArray,
+    IntArray,
+    FloatArray,
+    FloatArray,
+    FloatArray,
+    FloatArray,
+    FloatArray,
+    FloatArray,
+    FloatArray,
+]:
+    """The epochs of a batch of ``n`` observations (``pipelines.rsu_imu_batch.Batch``): observation
+    ``i``'s time ``table[i, 0]`` (finite), its station ``table[i, 1]`` (0: a gyro), its two measured
+    numbers ``table[i, 2:4]`` (range and bearing, or yaw rate and 0); station ``c``'s x, y, range and
+    bearing standard deviations and radius ``station_table[c]``.
 
-    Returns ``order`` (the observations in time order), ``bounds`` (epoch ``k`` is ``order[bounds[k] :
-    bounds[k + 1]]``), ``rows`` and ``starts`` (epoch ``k``'s RSUs in use, nearest first, are
-    ``rows[starts[k] : starts[k + 1]]``), ``gyro_rows`` and ``gyro_starts`` (its gyros, likewise),
-    ``status`` (each observation's, by its index: ``USED_RSU`` .. ``NOT_NEAREST``) and ``slots`` (per
-    position of ``order``: ``status * kept + index`` for an observation used, an RSU or a gyro, with an
-    index below ``kept``; -1 for any other)."""
-    n = times.shape[0]
-    order = np.argsort(times, kind="mergesort")  # stable, as sorted() is
-    bounds = np.empty(n + 1, dtype=np.int64)
-    starts = np.empty(n + 1, dtype=np.int64)
-    gyro_starts = np.empty(n + 1, dtype=np.int64)
-    rows = np.empty(n, dtype=np.int64)
+    Returns, of the ``E`` epochs in time order:
+
+    * ``times`` (E): each epoch's time;
+    * ``bounds`` (3, E + 1): epoch ``k``'s observations are ``order[bounds[0, k] : bounds[0, k + 1]]``,
+      its RSUs in use rows ``bounds[1, k]`` to ``bounds[1, k + 1]``, its gyros ``bounds[2, k]`` to
+      ``bounds[2, k + 1]``;
+    * ``order_slots`` (2, n): ``order``, the observations in time order, and per position of it the
+      slot of the observation's record in a run's fix: ``kind * kept + index`` (kind 0 an RSU in use, 1
+      a gyro) when its index is below ``kept``, else ``PAST_KEPT``, ``BEYOND_RADIUS`` or
+      ``NOT_NEAREST``;
+    * ``indices`` (R + G): the observations of the R RSU rows (each epoch's nearest first), then of the
+      G gyro rows; ``stations`` (R): the RSU rows' stations;
+    * the rows: ``positions`` and ``observed`` (R, 2), ``range_std``, ``bearing_std`` and their squares
+      ``range_variances``, ``bearing_variances`` (R), ``yaw_rates`` (G)."""
+    n = table.shape[0]
+    order_slots = np.empty((2, n), dtype=np.int64)
+    order = order_slots[0]
+    order[:] = np.argsort(table[:, 0], kind="mergesort")  # stable, as sorted() is
+    slots = order_slots[1]
+    bounds = np.empty((3, n + 1), dtype=np.int64)
+    epoch_times = np.empty(n)
+    rows = np.empty(n, dtype=np.int64)  # the RSUs in use
     gyro_rows = np.empty(n, dtype=np.int64)
-    status = np.empty(n, dtype=np.int64)
-    slots = np.empty(n, dtype=np.int64)
+    status = np.empty(n, dtype=np.int64)  # by index: 0 in use, 1 a gyro, else a slot of one not used
     candidates = np.empty(n, dtype=np.int64)  # the current epoch's RSUs inside their radius
     epochs = used = gyros = 0
     count = 0
     last = 0.0
     for position in range(n + 1):
         i = order[position] if position < n else -1
-        if position == n or position == 0 or times[i] != last:
+        if position == n or position == 0 or table[i, 0] != last:
             if position > 0:  # the epoch before is complete: its nearest RSUs, stably by range
                 for a in range(1, count):
                     moving = candidates[a]
-                    measured = observed[moving, 0]
+                    measured = table[moving, 2]
                     b = a
-                    while b > 0 and observed[candidates[b - 1], 0] > measured:
+                    while b > 0 and table[candidates[b - 1], 2] > measured:
                         candidates[b] = candidates[b - 1]
                         b -= 1
                     candidates[b] = moving
@@ -73,35 +92,65 @@ def group_epochs(
                 count = 0
             if position == n:
                 break
-            bounds[epochs] = position
-            starts[epochs] = used
-            gyro_starts[epochs] = gyros
+            bounds[0, epochs] = position
+            bounds[1, epochs] = used
+            bounds[2, epochs] = gyros
+            last = epoch_times[epochs] = table[i, 0]
             epochs += 1
-            last = times[i]
-        code = station_codes[i]
+        code = int(table[i, 1])
         if code == 0:
             gyro_rows[gyros] = i
             gyros += 1
-            status[i] = GYRO
-        elif observed[i, 0] > station_table[code, 4]:
+            status[i] = 1
+        elif table[i, 2] > station_table[code, 4]:
             status[i] = BEYOND_RADIUS
         else:
             candidates[count] = i
             count += 1
-            status[i] = USED_RSU
-    bounds[epochs] = n
-    starts[epochs] = used
-    gyro_starts[epochs] = gyros
+            status[i] = 0
+    bounds[0, epochs] = n
+    bounds[1, epochs] = used
+    bounds[2, epochs] = gyros
     for position in range(n):
         i = order[position]
-        slots[position] = status[i] * kept + i if status[i] <= GYRO and i < kept else -1
+        kind = status[i]
+        slots[position] = kind if kind < 0 else (kind * kept + i if i < kept else PAST_KEPT)
+    indices = np.empty(used + gyros, dtype=np.int64)
+    indices[:used] = rows[:used]
+    indices[used:] = gyro_rows[:gyros]
+    stations = np.empty(used, dtype=np.int64)
+    positions = np.empty((used, 2))
+    observed = np.empty((used, 2))
+    range_std = np.empty(used)
+    bearing_std = np.empty(used)
+    range_variances = np.empty(used)
+    bearing_variances = np.empty(used)
+    for row in range(used):
+        i = rows[row]
+        code = int(table[i, 1])
+        stations[row] = code
+        positions[row, 0] = station_table[code, 0]
+        positions[row, 1] = station_table[code, 1]
+        observed[row, 0] = table[i, 2]
+        observed[row, 1] = table[i, 3]
+        range_std[row] = station_table[code, 2]
+        bearing_std[row] = station_table[code, 3]
+        range_variances[row] = range_std[row] * range_std[row]  # np.square's product
+        bearing_variances[row] = bearing_std[row] * bearing_std[row]
+    yaw_rates = np.empty(gyros)
+    for row in range(gyros):
+        yaw_rates[row] = table[gyro_rows[row], 2]
     return (
-        order,
-        bounds[: epochs + 1],
-        rows[:used],
-        starts[: epochs + 1],
-        gyro_rows[:gyros],
-        gyro_starts[: epochs + 1],
-        status,
-        slots,
+        epoch_times[:epochs].copy(),
+        bounds[:, : epochs + 1].copy(),
+        order_slots,
+        indices,
+        stations,
+        positions,
+        observed,
+        range_std,
+        bearing_std,
+        range_variances,
+        bearing_variances,
+        yaw_rates,
     )

@@ -9,6 +9,7 @@ batch: about 1.2 us an epoch less than grouping, selecting and listing epoch by 
 from __future__ import annotations
 
 import math
+import struct
 import sys
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -16,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from edgepos.core.compiled import compiled_enabled
-from edgepos.core.kernels_grouping import BEYOND_RADIUS, GYRO, USED_RSU, group_epochs
+from edgepos.core.kernels_grouping import BEYOND_RADIUS, NOT_NEAREST, PAST_KEPT, group_epochs
 from edgepos.core.observations import GyroObservation, Observation, RsuObservation
 from edgepos.core.updates import RsuGyroEpoch, new_epoch
 from edgepos.pipelines.base import Environment, MeasurementUse, PipelineInputError, Problem, Rsu
@@ -29,66 +30,90 @@ USED_KEPT = 4096
 
 class Batch:
     """A batch's observations as the epochs read them: each RSU observation's station, and per
-    observation its row of the measurement arrays (station position, range and bearing, their noise
-    standard deviations with the options' defaults filled in, the communication radius; a gyro's station
-    numbers are zeros) and the gyro's yaw rate. Read once per batch (``read_batch``), so that an epoch's measurement
-    arrays are a few index operations instead of array building from Python lists.
+    observation its time, its station and its two measured numbers (range and bearing, or a gyro's yaw
+    rate and 0) as one row of ``table``; the stations' numbers (x, y, range and bearing standard
+    deviations with the options' defaults filled in, communication radius) as rows of
+    ``station_table`` (``stations[0]`` None, a gyro's, its numbers zeros). Read once per batch
+    (``read_batch``): a station's numbers are listed once per batch, not once per observation.
 
-    Made of the batch's stations (``stations[0]`` None, a gyro's; five numbers each in
-    ``station_rows``: x, y, range and bearing standard deviations, radius), each observation's station
-    (``codes``) and its two measured numbers (``rows``: range and bearing, or a gyro's yaw rate and 0; so
-    ``yaw_rates`` is each row's first number, of which only the gyros' are read): a station's numbers
-    are listed once per batch (``station_table``), not once per observation, and taken per observation
-    in one ``take``; and each observation's time (``times``), which ``batch_epochs`` groups by."""
+    ``batch_epochs`` makes the rows a run takes from these two tables in one compiled call; the
+    observations' own arrays below (taken per observation, ``take``) serve the per-epoch step's
+    measurements after the gate or the monitor leaves one out, and the reference grouping."""
 
-    __slots__ = (
-        "bearing_std",
-        "bearing_variances",
-        "codes",
-        "observed",
-        "positions",
-        "range_std",
-        "range_variances",
-        "station_codes",
-        "station_table",
-        "stations",
-        "times",
-        "yaw_rates",
-    )
+    __slots__ = ("_station", "station_table", "stations", "table")
 
-    def __init__(
-        self,
-        stations: list[Rsu | None],
-        station_rows: list[float],
-        codes: list[int],
-        rows: list[float],
-        times: list[float],
-    ) -> None:
-        self.stations, self.codes = stations, codes
-        count = len(codes)
-        # flat lists: half the time of tuples; columns as views of the tables: every use takes rows of
-        # them (``take``), which makes new C-contiguous arrays for the kernels, so copying each column
-        # first only cost time
-        table = np.array(rows, dtype=float).reshape(count, 2)
-        self.station_codes = np.array(codes, np.intp)  # ``codes`` as an array: what rows of stations take
+    def __init__(self, stations: list[Rsu | None], station_rows: list[float], values: list[float]) -> None:
+        self.stations = stations
+        count = len(values) // 4
+        # four numbers a row (t, station, and the two measured) packed straight into the table: a
+        # third of the time np.array takes to read a list of floats
+        self.table = np.empty((count, 4))
+        struct.pack_into(f"{4 * count}d", self.table.data, 0, *values)
         self.station_table = np.array(station_rows, dtype=float).reshape(len(stations), 5)
-        station = self.station_table.take(self.station_codes, 0)
-        self.positions = station[:, 0:2]
-        self.observed = table
-        self.range_std = station[:, 2]
-        self.bearing_std = station[:, 3]
-        variances = np.square(station[:, 2:4])  # as RsuGyroEpoch.variances squares them
-        self.range_variances = variances[:, 0]
-        self.bearing_variances = variances[:, 1]
-        self.yaw_rates = table[:, 0]
-        self.times = times  # each observation's time
+        self._station: np.ndarray | None = None
+
+    @property
+    def codes(self) -> list[int]:
+        """Each observation's station (0: a gyro)."""
+        codes: list[int] = self.table[:, 1].astype(np.intp).tolist()
+        return codes
+
+    @property
+    def times(self) -> list[float]:
+        """Each observation's time."""
+        times: list[float] = self.table[:, 0].tolist()
+        return times
+
+    @property
+    def observed(self) -> np.ndarray:
+        """Each observation's two measured numbers (a view of ``table``)."""
+        return self.table[:, 2:4]
+
+    @property
+    def yaw_rates(self) -> np.ndarray:
+        """Each observation's first measured number, a gyro's yaw rate (a view of ``table``)."""
+        return self.table[:, 2]
+
+    @property
+    def station_codes(self) -> np.ndarray:
+        """``codes`` as an array: what rows of stations take."""
+        return self.table[:, 1].astype(np.intp)
+
+    def _stations(self) -> np.ndarray:
+        """Each observation's station row (made when first asked)."""
+        if self._station is None:
+            self._station = self.station_table.take(self.station_codes, 0)
+        return self._station
+
+    @property
+    def positions(self) -> np.ndarray:
+        """Each observation's station position (a gyro's zeros)."""
+        return self._stations()[:, 0:2]
+
+    @property
+    def range_std(self) -> np.ndarray:
+        return self._stations()[:, 2]
+
+    @property
+    def bearing_std(self) -> np.ndarray:
+        return self._stations()[:, 3]
+
+    @property
+    def range_variances(self) -> np.ndarray:
+        """As ``RsuGyroEpoch.variances`` squares the standard deviations."""
+        variances: np.ndarray = np.square(self.range_std)
+        return variances
+
+    @property
+    def bearing_variances(self) -> np.ndarray:
+        variances: np.ndarray = np.square(self.bearing_std)
+        return variances
 
     @property
     def ranges(self) -> list[float]:
         """Each observation's measured range, -1 for a gyro (ranges are >= 0)."""
         return [
-            -1.0 if code == 0 else measured
-            for code, measured in zip(self.codes, self.observed[:, 0].tolist())
+            -1.0 if code == 0 else measured for code, measured in zip(self.codes, self.yaw_rates.tolist())
         ]
 
     @property
@@ -125,9 +150,7 @@ def read_batch(
     stations: list[Rsu | None] = [None]  # see Batch
     station_rows = [0.0] * 5
     known: dict[str, int] = {}  # each RSU id's station
-    codes: list[int] = []
-    rows: list[float] = []  # two numbers per observation, see Batch
-    times: list[float] = []
+    values: list[float] = []  # four numbers per observation, see Batch
     default_range, default_bearing = options["range_std"], options["bearing_std"]
     default_radius = options["comm_radius"]
     earliest = -_MAX if last_t is None else last_t
@@ -135,7 +158,6 @@ def read_batch(
         t = observation.t
         if not earliest <= t <= _MAX:
             return _checked_batch(options, last_t, observations, environment)
-        times.append(t)
         if type(observation) is RsuObservation:
             measured, bearing = observation.range, observation.bearing
             if not 0.0 <= measured <= _MAX or not -_BEARING_EDGE <= bearing <= _BEARING_EDGE:
@@ -154,17 +176,15 @@ def read_batch(
                     rsu.bearing_std or default_bearing,
                     rsu.radius or default_radius,
                 )
-            rows += (measured, bearing)
+            values += (t, code, measured, bearing)
         elif type(observation) is GyroObservation:
             yaw_rate = observation.yaw_rate
             if not -_MAX <= yaw_rate <= _MAX:
                 return _checked_batch(options, last_t, observations, environment)
-            code = 0
-            rows += (yaw_rate, 0.0)
+            values += (t, 0, yaw_rate, 0.0)
         else:  # another type (or a subclass): the checked reading decides
             return _checked_batch(options, last_t, observations, environment)
-        codes.append(code)
-    return Batch(stations, station_rows, codes, rows, times)
+    return Batch(stations, station_rows, values)
 
 
 def _checked_batch(
@@ -178,9 +198,7 @@ def _checked_batch(
     problems = []
     stations: list[Rsu | None] = [None]  # see Batch: here a station per RSU observation
     station_rows = [0.0] * 5
-    codes: list[int] = []
-    rows: list[float] = []
-    times: list[float] = []
+    values: list[float] = []
     default_range, default_bearing = options["range_std"], options["bearing_std"]
     default_radius = options["comm_radius"]
     for index, observation in enumerate(observations):
@@ -195,7 +213,7 @@ def _checked_batch(
             if rsu is None:
                 problems.append(Problem(index, "rsu_id", f"unknown RSU {observation.rsu_id!r}"))
             else:
-                codes.append(len(stations))
+                values.extend((observation.t, len(stations), observation.range, observation.bearing))
                 stations.append(rsu)
                 station_rows.extend(
                     (
@@ -206,8 +224,6 @@ def _checked_batch(
                         rsu.radius or default_radius,
                     )
                 )
-                times.append(observation.t)
-                rows.extend((observation.range, observation.bearing))
             if not (math.isfinite(observation.range) and observation.range >= 0.0):
                 problems.append(Problem(index, "range", "must be a finite distance >= 0 m"))
             if not (math.isfinite(observation.bearing) and abs(observation.bearing) <= math.pi + 1e-9):
@@ -215,16 +231,14 @@ def _checked_batch(
         elif isinstance(observation, GyroObservation):
             if not math.isfinite(observation.yaw_rate):
                 problems.append(Problem(index, "yaw_rate", "must be finite"))
-            codes.append(0)
-            times.append(observation.t)
-            rows.extend((observation.yaw_rate, 0.0))
+            values.extend((observation.t, 0, observation.yaw_rate, 0.0))
         else:
             problems.append(
                 Problem(index, "type", f"{observation.kind!r} is not used by the rsu_imu pipeline")
             )
     if problems:
         raise PipelineInputError(problems)
-    return Batch(stations, station_rows, codes, rows, times)
+    return Batch(stations, station_rows, values)
 
 
 def epoch_parts(
@@ -301,24 +315,29 @@ class EpochRows:
     def __init__(
         self,
         batch: Batch,
-        rows: np.ndarray,
-        gyro_rows: np.ndarray,
-        starts: np.ndarray,
-        gyro_starts: np.ndarray,
+        arrays: tuple[np.ndarray, ...],
+        bounds: np.ndarray,
         options: Mapping[str, Any],
     ) -> None:
-        self.indices, self.gyro_indices = rows, gyro_rows
-        self.positions, self.observed = batch.positions.take(rows, 0), batch.observed.take(rows, 0)
-        self.range_std, self.bearing_std = batch.range_std.take(rows), batch.bearing_std.take(rows)
-        self.range_variances = batch.range_variances.take(rows)
-        self.bearing_variances = batch.bearing_variances.take(rows)
-        self.yaw_rates = batch.yaw_rates.take(gyro_rows)
+        """``arrays``: ``kernels_grouping.group_epochs``'s from ``indices`` on; ``bounds``: its (3, E + 1)
+        bounds (each row of a C-contiguous array: the kernels take them as they are)."""
+        (
+            indices,
+            self.stations,
+            self.positions,
+            self.observed,
+            self.range_std,
+            self.bearing_std,
+            self.range_variances,
+            self.bearing_variances,
+            self.yaw_rates,
+        ) = arrays
+        used = self.range_std.shape[0]
+        self.indices, self.gyro_indices = indices[:used], indices[used:]
+        self.starts, self.gyro_starts = bounds[1], bounds[2]
         self.gyro_std: float = options["gyro_std"]
         self.averaged: bool = options["rsu_handling"] == "average"
-        self.stations = batch.station_codes.take(rows)
         self.station_list = batch.stations
-        self.starts = starts
-        self.gyro_starts = gyro_starts
 
 
 class EpochParts:
@@ -373,26 +392,24 @@ class BatchEpochs:
     time (``times``), its observations (``order[bounds[k] : bounds[k + 1]]``: the batch's indices in time
     order, an epoch's ascending), its RSUs in use, nearest first, and its gyros (the rows of ``rows``
     from ``starts[k]`` and ``gyro_starts[k]``), the records of the RSUs left out (``uses``, by index)
-    and per position of ``order`` the slot of a used observation's record (``slots``: see
-    ``kernels_grouping.group_epochs``; -1 for any other), from which a run of epochs
-    (``pipelines.rsu_imu_run``) takes its fixes' records. ``part(k)`` is epoch ``k`` as the per-epoch
-    step takes it."""
+    and per position of ``order`` the slot of an observation's record in a run's fix (``slots``: see
+    ``kernels_grouping.group_epochs``), from which a run of epochs (``pipelines.rsu_imu_run``) takes
+    its fixes' records. ``part(k)`` is epoch ``k`` as the per-epoch step takes it."""
 
     __slots__ = ("bounds", "gyro_starts", "order", "rows", "slots", "starts", "times", "uses")
 
     def __init__(
         self,
         times: list[float],
-        order: list[int],
-        bounds: list[int],
+        bounds: np.ndarray,
+        order_slots: np.ndarray,
         rows: EpochRows,
         uses: dict[int, MeasurementUse],
-        slots: np.ndarray,
     ) -> None:
-        self.times, self.order, self.bounds, self.rows = times, order, bounds, rows
-        self.starts: list[int] = rows.starts.tolist()
-        self.gyro_starts: list[int] = rows.gyro_starts.tolist()
-        self.uses, self.slots = uses, slots
+        self.times, self.rows, self.uses = times, rows, uses
+        self.bounds, self.starts, self.gyro_starts = bounds.tolist()
+        self.order: list[int] = order_slots[0].tolist()
+        self.slots = order_slots[1]
 
     def __len__(self) -> int:
         return len(self.times)
@@ -417,34 +434,24 @@ class BatchEpochs:
 def batch_epochs(
     observations: Sequence[Observation], batch: Batch, options: Mapping[str, Any]
 ) -> BatchEpochs:
-    """The batch's epochs in time order: in one compiled call (``kernels_grouping.group_epochs``), or
-    with the compiled kernels off by ``reference_epochs``, which gives the same lists and arrays."""
+    """The batch's epochs in time order and their rows: in one compiled call
+    (``kernels_grouping.group_epochs``), or with the compiled kernels off by ``reference_epochs``, which
+    gives the same lists and arrays."""
     if not compiled_enabled():
         return reference_epochs(observations, batch, options)
-    times = batch.times
-    order, bounds, rows, starts, gyro_rows, gyro_starts, status, slots = group_epochs(
-        np.array(times),
-        batch.observed,
-        batch.station_table,
-        batch.station_codes,
-        options["max_rsus"],
-        USED_KEPT,
-    )
-    order_list: list[int] = order.tolist()
-    bound_list: list[int] = bounds.tolist()
+    limit = options["max_rsus"]
+    times, bounds, order_slots, *arrays = group_epochs(batch.table, batch.station_table, limit, USED_KEPT)
+    rows = EpochRows(batch, tuple(arrays), bounds, options)
     uses: dict[int, MeasurementUse] = {}
-    if rows.shape[0] + gyro_rows.shape[0] < len(times):  # an RSU left out: its record
-        radii, limit = batch.station_table[:, 4].tolist(), options["max_rsus"]
-        for i in np.flatnonzero(status >= BEYOND_RADIUS).tolist():
-            uses[i] = _left_out(i, status[i] == BEYOND_RADIUS, radii[batch.codes[i]], limit)
-    return BatchEpochs(
-        [times[order_list[b]] for b in bound_list[:-1]],
-        order_list,
-        bound_list,
-        EpochRows(batch, rows, gyro_rows, starts, gyro_starts, options),
-        uses,
-        slots,
-    )
+    count = batch.table.shape[0]
+    if rows.indices.shape[0] + rows.gyro_indices.shape[0] < count:  # an RSU left out: its record
+        order, slots = order_slots
+        radii = batch.station_table[:, 4].tolist()
+        for position in np.flatnonzero(slots <= BEYOND_RADIUS).tolist():
+            i = int(order[position])
+            radius = radii[int(batch.table[i, 1])]
+            uses[i] = _left_out(i, slots[position] == BEYOND_RADIUS, radius, limit)
+    return BatchEpochs(times.tolist(), bounds, order_slots, rows, uses)
 
 
 def _left_out(index: int, beyond: bool, radius: float, limit: int) -> MeasurementUse:
@@ -457,40 +464,47 @@ def _left_out(index: int, beyond: bool, radius: float, limit: int) -> Measuremen
 def reference_epochs(
     observations: Sequence[Observation], batch: Batch, options: Mapping[str, Any]
 ) -> BatchEpochs:
-    """``batch_epochs`` epoch by epoch in Python (``group_by_time``, ``epoch_parts``): the readable
-    reference the tests hold the compiled grouping to."""
+    """``batch_epochs`` epoch by epoch in Python (``group_by_time``, ``epoch_parts``, a ``take`` of the
+    batch's arrays per array): the readable reference the tests hold the compiled grouping to."""
     order: list[int] = []
-    bounds: list[int] = []
+    bounds: list[list[int]] = [[], [], []]
     rows: list[int] = []
     gyro_rows: list[int] = []
-    starts: list[int] = []
-    gyro_starts: list[int] = []
     uses: dict[int, MeasurementUse] = {}
     for epoch in group_by_time(observations):
-        bounds.append(len(order))
-        starts.append(len(rows))
-        gyro_starts.append(len(gyro_rows))
+        for bound, at in zip(bounds, (len(order), len(rows), len(gyro_rows)), strict=True):
+            bound.append(at)
         candidates, gyros = epoch_parts(epoch, batch, options, uses)
         order += epoch
         rows += candidates
         gyro_rows += gyros
-    bounds.append(len(order))
-    starts.append(len(rows))
-    gyro_starts.append(len(gyro_rows))
-    kind = {i: USED_RSU for i in rows} | {i: GYRO for i in gyro_rows}
-    slots = [kind[i] * USED_KEPT + i if i in kind and i < USED_KEPT else -1 for i in order]
+    for bound, at in zip(bounds, (len(order), len(rows), len(gyro_rows)), strict=True):
+        bound.append(at)
+    kind = {i: 0 for i in rows} | {i: 1 for i in gyro_rows}
+    ranges, radii = batch.ranges, batch.radii
+    slots = [
+        (kind[i] * USED_KEPT + i if i < USED_KEPT else PAST_KEPT)
+        if i in kind
+        else (BEYOND_RADIUS if ranges[i] > radii[i] else NOT_NEAREST)
+        for i in order
+    ]
+    index = np.array(rows, dtype=np.int64)
+    arrays = (
+        np.array(rows + gyro_rows, dtype=np.int64),
+        batch.station_codes.astype(np.int64).take(index),
+        batch.positions.take(index, 0),
+        batch.observed.take(index, 0),
+        batch.range_std.take(index),
+        batch.bearing_std.take(index),
+        batch.range_variances.take(index),
+        batch.bearing_variances.take(index),
+        batch.yaw_rates.take(np.array(gyro_rows, dtype=np.int64)),
+    )
+    times = batch.times
     return BatchEpochs(
-        [batch.times[order[b]] for b in bounds[:-1]],
-        order,
-        bounds,
-        EpochRows(
-            batch,
-            np.array(rows, dtype=np.int64),
-            np.array(gyro_rows, dtype=np.int64),
-            np.array(starts, dtype=np.int64),
-            np.array(gyro_starts, dtype=np.int64),
-            options,
-        ),
+        [times[order[b]] for b in bounds[0][:-1]],
+        np.array(bounds, dtype=np.int64),
+        np.array([order, slots], dtype=np.int64).reshape(2, len(order)),
+        EpochRows(batch, arrays, np.array(bounds, dtype=np.int64), options),
         uses,
-        np.array(slots, dtype=np.int64),
     )
