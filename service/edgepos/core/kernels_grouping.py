@@ -7,11 +7,14 @@ reference, which the tests hold this kernel to), without a Python object per epo
 where the time changes, and per epoch lists its gyros and its RSU observations inside their radius, the
 nearest ``max_rsus`` of them by measured range (a stable sort, as Python's ``list.sort``), the others
 marked as out of radius or not among the nearest; then copies the rows of the RSUs and gyros in use,
-epoch after epoch, as ``core.kernels_run.run_epochs`` takes them."""
+epoch after epoch, as ``core.kernels_run.run_epochs`` takes them. ``write_records`` writes the batch's
+lag-window records from the same table, byte for byte what ``core.observation_codec``'s encoders write
+from the observations (``pipelines.rsu_imu_batch.batch_records`` checks the layout)."""
 
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
 from edgepos.core.kernels_base import IntArray, _jit
 from edgepos.core.numerics import FloatArray
@@ -154,3 +157,48 @@ def group_epochs(
         bearing_variances,
         yaw_rates,
     )
+
+
+@_jit
+def write_records(
+    table: FloatArray,
+    texts: npt.NDArray[np.uint8],
+    text_offsets: IntArray,
+    rsu_head: npt.NDArray[np.uint8],
+    gyro_head: npt.NDArray[np.uint8],
+) -> tuple[npt.NDArray[np.uint8], IntArray]:
+    """The lag window's records of a batch's observations (``table`` as ``group_epochs`` reads it), back
+    to back in the batch's order, in ``core.observation_codec``'s layout: an RSU observation's
+    ``rsu_head``, its time, range and bearing as little-endian float64 and its station's text field
+    (``texts[text_offsets[code] : text_offsets[code + 1]]``); a gyro's ``gyro_head``, its time and yaw
+    rate. Returns the bytes and where each observation's record ends. A little-endian machine's."""
+    n = table.shape[0]
+    ends = np.empty(n, dtype=np.int64)
+    size = 0
+    for i in range(n):
+        code = int(table[i, 1])
+        if code == 0:
+            size += gyro_head.shape[0] + 16
+        else:
+            size += rsu_head.shape[0] + 24 + text_offsets[code + 1] - text_offsets[code]
+        ends[i] = size
+    written = np.empty(size, dtype=np.uint8)
+    number = np.empty(1)
+    raw = number.view(np.uint8)  # the float64's bytes, in the machine's order
+    at = 0
+    for i in range(n):  # byte by byte: a slice's copy costs more than these few bytes
+        code = int(table[i, 1])
+        head = gyro_head if code == 0 else rsu_head
+        for b in range(head.shape[0]):
+            written[at + b] = head[b]
+        at += head.shape[0]
+        for column in range(3 if code else 2):
+            number[0] = table[i, 0 if column == 0 else column + 1]
+            for b in range(8):
+                written[at + b] = raw[b]
+            at += 8
+        if code:
+            for b in range(text_offsets[code], text_offsets[code + 1]):
+                written[at] = texts[b]
+                at += 1
+    return written, ends

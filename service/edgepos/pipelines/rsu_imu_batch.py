@@ -8,6 +8,7 @@ batch: about 1.2 us an epoch less than grouping, selecting and listing epoch by 
 
 from __future__ import annotations
 
+import itertools
 import math
 import struct
 import sys
@@ -17,7 +18,8 @@ from typing import Any
 import numpy as np
 
 from edgepos.core.compiled import compiled_enabled
-from edgepos.core.kernels_grouping import BEYOND_RADIUS, NOT_NEAREST, PAST_KEPT, group_epochs
+from edgepos.core.kernels_grouping import BEYOND_RADIUS, NOT_NEAREST, PAST_KEPT, group_epochs, write_records
+from edgepos.core.observation_codec import flat_layout, text_field
 from edgepos.core.observations import GyroObservation, Observation, RsuObservation
 from edgepos.core.updates import RsuGyroEpoch, new_epoch
 from edgepos.pipelines.base import Environment, MeasurementUse, PipelineInputError, Problem, Rsu
@@ -40,10 +42,18 @@ class Batch:
     observations' own arrays below (taken per observation, ``take``) serve the per-epoch step's
     measurements after the gate or the monitor leaves one out, and the reference grouping."""
 
-    __slots__ = ("_station", "station_table", "stations", "table")
+    __slots__ = ("_station", "ids", "station_table", "stations", "table")
 
-    def __init__(self, stations: list[Rsu | None], station_rows: list[float], values: list[float]) -> None:
-        self.stations = stations
+    def __init__(
+        self,
+        stations: list[Rsu | None],
+        station_rows: list[float],
+        values: list[float],
+        ids: list[str] | None = None,
+    ) -> None:
+        """``ids``: the RSU ids of ``stations[1:]`` as the observations give them, when every observation
+        is an ``RsuObservation`` or a ``GyroObservation`` (``batch_records`` then writes its records)."""
+        self.stations, self.ids = stations, ids
         count = len(values) // 4
         # four numbers a row (t, station, and the two measured) packed straight into the table: a
         # third of the time np.array takes to read a list of floats
@@ -184,7 +194,7 @@ def read_batch(
             values += (t, 0, yaw_rate, 0.0)
         else:  # another type (or a subclass): the checked reading decides
             return _checked_batch(options, last_t, observations, environment)
-    return Batch(stations, station_rows, values)
+    return Batch(stations, station_rows, values, list(known))
 
 
 def _checked_batch(
@@ -508,3 +518,30 @@ def reference_epochs(
         EpochRows(batch, arrays, np.array(bounds, dtype=np.int64), options),
         uses,
     )
+
+
+def _heads() -> tuple[np.ndarray, np.ndarray] | None:
+    """The name bytes of RSU and gyro records when ``core.observation_codec`` lays them out as
+    ``kernels_grouping.write_records`` writes them (and the machine is little-endian); else None."""
+    rsu, gyro = flat_layout(RsuObservation), flat_layout(GyroObservation)
+    if sys.byteorder != "little" or rsu is None or gyro is None:
+        return None
+    if rsu[1:] != (("t", "range", "bearing"), ("rsu_id",)) or gyro[1:] != (("t", "yaw_rate"), ()):
+        return None
+    return np.frombuffer(rsu[0], np.uint8), np.frombuffer(gyro[0], np.uint8)
+
+
+_HEADS = _heads()
+
+
+def batch_records(batch: Batch) -> tuple[np.ndarray, list[int]] | None:
+    """The lag window's records of the batch's observations (``core.observation_codec``'s bytes, which
+    ``lag_state.encode_epochs`` writes from the observations), back to back in the batch's order, and
+    where each observation's ends: written from the batch's table in one compiled call. None when the
+    codec's encoders must write them (a batch read observation by observation, compiled kernels off)."""
+    if batch.ids is None or _HEADS is None or not compiled_enabled():
+        return None
+    texts = [text_field(rsu_id) for rsu_id in batch.ids]
+    offsets = np.array([0, 0, *itertools.accumulate(map(len, texts))], dtype=np.int64)
+    written, ends = write_records(batch.table, np.frombuffer(b"".join(texts), np.uint8), offsets, *_HEADS)
+    return written, ends.tolist()
