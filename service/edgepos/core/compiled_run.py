@@ -218,4 +218,4 @@ def warm_up_run(
     group_epochs(table, stations, 4, 4096)
     heads = (np.frombuffer(b"\x03rsu", np.uint8), np.frombuffer(b"\x04gyro", np.uint8))  # read only, as
     texts = np.frombuffer(b"\x01\x00A", np.uint8)  # pipelines.rsu_imu_batch.batch_records passes them
-    write_records(table, texts, np.array([0, 0, 3], dtype=np.int64), *heads)
+    write_records(table, texts, _read_only(np.array([0, 0, 3], dtype=np.int64)), *heads)

@@ -42,7 +42,7 @@ class Batch:
     observations' own arrays below (taken per observation, ``take``) serve the per-epoch step's
     measurements after the gate or the monitor leaves one out, and the reference grouping."""
 
-    __slots__ = ("_station", "ids", "station_table", "stations", "table")
+    __slots__ = ("_station", "compiled", "ids", "station_table", "stations", "table")
 
     def __init__(
         self,
@@ -54,6 +54,7 @@ class Batch:
         """``ids``: the RSU ids of ``stations[1:]`` as the observations give them, when every observation
         is an ``RsuObservation`` or a ``GyroObservation`` (``batch_records`` then writes its records)."""
         self.stations, self.ids = stations, ids
+        self.compiled = compiled_enabled()  # grouped and its records written by the compiled kernels
         count = len(values) // 4
         # four numbers a row (t, station, and the two measured) packed straight into the table: a
         # third of the time np.array takes to read a list of floats
@@ -447,7 +448,7 @@ def batch_epochs(
     """The batch's epochs in time order and their rows: in one compiled call
     (``kernels_grouping.group_epochs``), or with the compiled kernels off by ``reference_epochs``, which
     gives the same lists and arrays."""
-    if not compiled_enabled():
+    if not batch.compiled:
         return reference_epochs(observations, batch, options)
     limit = options["max_rsus"]
     times, bounds, order_slots, *arrays = group_epochs(batch.table, batch.station_table, limit, USED_KEPT)
@@ -539,9 +540,29 @@ def batch_records(batch: Batch) -> tuple[np.ndarray, list[int]] | None:
     ``lag_state.encode_epochs`` writes from the observations), back to back in the batch's order, and
     where each observation's ends: written from the batch's table in one compiled call. None when the
     codec's encoders must write them (a batch read observation by observation, compiled kernels off)."""
-    if batch.ids is None or _HEADS is None or not compiled_enabled():
+    if batch.ids is None or _HEADS is None or not batch.compiled:
         return None
-    texts = [text_field(rsu_id) for rsu_id in batch.ids]
-    offsets = np.array([0, 0, *itertools.accumulate(map(len, texts))], dtype=np.int64)
-    written, ends = write_records(batch.table, np.frombuffer(b"".join(texts), np.uint8), offsets, *_HEADS)
+    ids = tuple(batch.ids)
+    texts = _STATION_TEXTS.get(ids)
+    if texts is None:
+        texts = _station_texts(ids)
+    written, ends = write_records(batch.table, *texts, *_HEADS)
     return written, ends.tolist()
+
+
+#: ``_station_texts`` by the RSU ids of a batch's stations (few and the same batch after batch), up to
+#: ``STATION_TEXTS_KEPT`` of them (then emptied: a new fleet's stations fill it again).
+_STATION_TEXTS: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray]] = {}
+STATION_TEXTS_KEPT = 1024
+
+
+def _station_texts(ids: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """The text fields of the stations ``ids`` (``stations[1:]``) back to back, and where station
+    ``code``'s starts (the gyro's station 0 has none): what ``write_records`` takes (read only)."""
+    texts = [text_field(rsu_id) for rsu_id in ids]
+    offsets = np.array([0, 0, *itertools.accumulate(map(len, texts))], dtype=np.int64)
+    offsets.flags.writeable = False
+    if len(_STATION_TEXTS) >= STATION_TEXTS_KEPT:
+        _STATION_TEXTS.clear()
+    written = _STATION_TEXTS[ids] = (np.frombuffer(b"".join(texts), np.uint8), offsets)
+    return written
