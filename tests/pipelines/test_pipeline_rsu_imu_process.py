@@ -268,7 +268,8 @@ def test_a_batchs_epochs_take_the_arrays_epoch_by_epoch_selection_gives(pipeline
     rng = np.random.default_rng(12)
     batch_observations = [o for k in range(1, 6) for o in epoch(k * DT, rng, gyro=k != 3)]
     batch = read_batch(options, None, batch_observations, ENV)
-    parts = batch_epochs(batch_observations, batch, options)
+    epochs = batch_epochs(batch_observations, batch, options)
+    parts = [epochs.part(k) for k in range(len(epochs))]
     assert [p.indices for p in parts] == group_by_time(batch_observations)
     for k, part in enumerate(parts):
         uses: dict[int, MeasurementUse] = {}

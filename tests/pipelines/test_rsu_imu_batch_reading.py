@@ -39,6 +39,7 @@ def same_batch(a: Batch, b: Batch) -> bool:
     arrays = ("positions", "observed", "range_std", "bearing_std", "range_variances", "bearing_variances")
     return (
         a.rsus == b.rsus
+        and a.times == b.times
         and a.ranges == b.ranges
         and a.radii == b.radii
         and all(np.array_equal(getattr(a, name), getattr(b, name)) for name in (*arrays, "yaw_rates"))

@@ -13,6 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 from edgepos.core.compiled import CompiledBankStepper
+from edgepos.core.kernels_grouping import group_epochs, write_records
 from edgepos.core.updates import RsuGyroEpoch
 
 
@@ -182,7 +183,9 @@ def posterior(
 def warm_up_run(
     stepper: CompiledBankStepper, epoch: RsuGyroEpoch, means: np.ndarray, covs: np.ndarray
 ) -> None:
-    """Compile (or load) ``kernels_run.run_epochs``: a run of two epochs of ``epoch``'s measurements."""
+    """Compile (or load) ``kernels_run.run_epochs``: a run of two epochs of ``epoch``'s measurements; and
+    ``kernels_grouping``'s ``group_epochs``, which groups a batch's observations into such epochs, and
+    ``write_records``, which writes their lag-window records."""
     positions, observed, yaw_rates, range_variances, bearing_variances, gyro_variance = epoch.kernel_arrays
     arrays = (
         positions,
@@ -210,3 +213,9 @@ def warm_up_run(
         (5.99, 3.84),
         None,
     )
+    table = np.array([[0.05, 1, 4.0, 1.4], [0.05, 0, 0.0, 0.0], [0.1, 1, 5.0, 1.2]])  # 2 RSUs, a gyro
+    stations = np.array([[0.0] * 5, [0.0, 0.0, 0.6, 0.01, 160.0]])
+    group_epochs(table, stations, 4, 4096)
+    heads = (np.frombuffer(b"\x03rsu", np.uint8), np.frombuffer(b"\x04gyro", np.uint8))  # read only, as
+    texts = np.frombuffer(b"\x01\x00A", np.uint8)  # pipelines.rsu_imu_batch.batch_records passes them
+    write_records(table, texts, _read_only(np.array([0, 0, 3], dtype=np.int64)), *heads)

@@ -35,6 +35,7 @@ KERNEL_FILES = tuple(
         "core/kernels_integrity.py",
         "core/kernels_epoch.py",
         "core/kernels_run.py",
+        "core/kernels_grouping.py",
         "core/measurements/gnss_kernel.py",
         "core/measurements/gnss_geometry.py",
         "core/measurements/gnss_raim_kernel.py",

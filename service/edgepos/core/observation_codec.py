@@ -301,6 +301,28 @@ def encode_each(observations: Sequence[Observation]) -> list[bytes]:
     return [encoders[type(o)](o) for o in observations]
 
 
+def text_field(value: str) -> bytes:
+    """A text field as a record holds it: its 16-bit length and UTF-8."""
+    written = _TEXTS.get(value)
+    return _text(value) if written is None else written
+
+
+def flat_layout(cls: type) -> tuple[bytes, tuple[str, ...], tuple[str, ...]] | None:
+    """How a record of ``cls`` is laid out when it is its kind's name, then float fields as float64 and
+    then text fields (no optional field, no other type): the name's bytes (its length byte and ASCII),
+    the float fields and the text fields in the order written. None for any other kind. What a writer
+    of records from arrays (``core.kernels_grouping.write_records``) follows to the byte."""
+    codec = _BY_CLASS.get(cls)
+    if not isinstance(codec, _KindCodec):
+        return None
+    fields = _fields(cls)
+    numbers = tuple(f.name for f in fields if f.form == "d" and not f.optional)
+    texts = tuple(f.name for f in fields if f.form == "s" and not f.optional)
+    if len(numbers) + len(texts) != len(fields) or codec.numbers.format != "<" + "d" * len(numbers):
+        return None
+    return bytes([len(codec.name)]) + codec.name, numbers, texts
+
+
 def decode_observations(record: bytes) -> list[Observation]:
     """Inverse of :func:`encode_observations`; ObservationCodecError for bytes it did not write."""
     return _decode(record, _BY_NAME)

@@ -33,13 +33,15 @@ batch boundaries, the first one the window's *base*), the current inner state, a
 as records. The current state is the base state filtered through every epoch of the window. A batch in
 time order (the usual one) is applied on the window's bytes (``LagWindow._in_order``, ``lag_state._spans``):
 its new records and checkpoint are appended and the pruned ones cut off without decoding or copying the
-stored ones one by one; every other batch goes through the decoded window.
+stored ones one by one (the new records as the inner pipeline wrote them from its arrays when it offers
+``written_records``, the same bytes); every other batch goes through the decoded window.
 """
 
 from __future__ import annotations
 
 import bisect
 import dataclasses
+import itertools
 import math
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -235,7 +237,7 @@ class LagWindow(WrappingPipeline):
         if last is None or newest - last >= delay / CHECKPOINTS_PER_WINDOW:  # as _maybe_checkpoint
             checkpoint_times = [*checkpoint_times, newest]
             checkpoint_states.append(spans.current)
-        records = encode_epochs(observations, counts)
+        pieces, record_ends = self._records(observations, counts)
         all_times = spans.times + times
         keep, start = _pruning(times[-1], delay, limit, checkpoint_times, all_times)
         if keep is None:
@@ -246,9 +248,7 @@ class LagWindow(WrappingPipeline):
         stored_end = ends[-1] if ends else 0
         kept_ends = [end - offset for end in ends[start:]]
         end = stored_end - offset
-        for record in records:
-            end += len(record)
-            kept_ends.append(end)
+        kept_ends += [end + record_end for record_end in record_ends]
         packed = _pack_parts(
             spans.options,
             times[-1],
@@ -256,9 +256,28 @@ class LagWindow(WrappingPipeline):
             current,
             all_times[start:],
             kept_ends,
-            [spans.records[offset:stored_end], *records],
+            [spans.records[offset:stored_end], *pieces],
         )
         return fixes, packed
+
+    def _records(
+        self, observations: Sequence[Observation], counts: list[int]
+    ) -> tuple[list[bytes | memoryview], list[int]]:
+        """The records of a batch in time order whose epochs hold ``counts`` observations each, as pieces
+        of bytes and where each epoch's record ends in them: as the inner pipeline wrote them from its
+        arrays (``written_records``, the same bytes), or else by ``encode_epochs``."""
+        writer = getattr(self.inner, "written_records", None)
+        written = None if writer is None else writer(observations)
+        if written is None:
+            records = encode_epochs(observations, counts)
+            return list(records), list(itertools.accumulate(map(len, records)))
+        data, observation_ends = written
+        record_ends = []
+        last = -1
+        for count in counts:
+            last += count
+            record_ends.append(observation_ends[last])
+        return [memoryview(data)], record_ends
 
     def _append(
         self, window: _Window, observations: Sequence[Observation], fresh: list[int], environment: Environment

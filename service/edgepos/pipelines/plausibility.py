@@ -63,7 +63,9 @@ import math
 import struct
 import typing
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, cast
+
+import numpy as np
 
 from edgepos.core.errors import EstimationError
 from edgepos.core.observations import Observation
@@ -283,6 +285,11 @@ class Plausible(WrappingPipeline):
         """The inner pipeline's smoothed fixes (not judged: a smoother runs over fixes already judged)."""
         _, inner_state = unwrap(state)
         return self.inner.smooth(inner_state, observations, environment, lag_s)
+
+    def written_records(self, observations: Sequence[Observation]) -> tuple[np.ndarray, list[int]] | None:
+        """The inner pipeline's ``written_records`` of ``observations`` (None when it has none)."""
+        writer = getattr(self.inner, "written_records", None)
+        return None if writer is None else cast(tuple[np.ndarray, list[int]] | None, writer(observations))
 
     # -- batches -----------------------------------------------------------------------------------
     def process(

@@ -19,6 +19,7 @@ import functools
 import json
 import math
 import struct
+import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, cast
@@ -50,7 +51,14 @@ from edgepos.pipelines.base import (
 )
 from edgepos.pipelines.integrity import bank_from_tail, monitored_update
 from edgepos.pipelines.options import resolve_options
-from edgepos.pipelines.rsu_imu_batch import Batch, EpochParts, batch_epochs, epoch_measurements, read_batch
+from edgepos.pipelines.rsu_imu_batch import (
+    Batch,
+    EpochParts,
+    batch_epochs,
+    batch_records,
+    epoch_measurements,
+    read_batch,
+)
 from edgepos.pipelines.rsu_imu_fix import epoch_fix
 from edgepos.pipelines.rsu_imu_options import OPTION_SPECS, cross_check, parameter_problems
 from edgepos.pipelines.rsu_imu_run import UNGATED, gate_threshold, gate_thresholds, run_fixes, used
@@ -74,6 +82,10 @@ _INITIALISED, _HAS_T, _HAS_FILTER_T = 1, 2, 4
 _ALL_FLAGS = _INITIALISED | _HAS_T | _HAS_FILTER_T
 _FULL_COV = (layout.FULL_DIM, layout.FULL_DIM)
 _FLOATS_PER_MODEL = 1 + layout.FULL_DIM + layout.FULL_DIM * layout.FULL_DIM
+
+
+#: Per thread, the last batch ``process`` read and the observations it was read from.
+_LAST_READ = threading.local()
 
 
 @dataclass
@@ -190,6 +202,7 @@ class RsuImuPipeline(Pipeline):
     ) -> tuple[list[Fix], bytes]:
         session = _decode(state)
         batch = read_batch(session.options, session.t, observations, environment)
+        _LAST_READ.batch = (observations, batch)  # for written_records
         bank = _bank(session.options_key)
         stepper = _stepper(bank)
         epochs = batch_epochs(observations, batch, session.options)
@@ -201,9 +214,18 @@ class RsuImuPipeline(Pipeline):
                 fixes += run
                 k += len(run)
             else:
-                fixes += ensure_finite_fixes([_step(session, bank, epochs[k], observations, batch)])
+                fixes += ensure_finite_fixes([_step(session, bank, epochs.part(k), observations, batch)])
                 k += 1
         return fixes, session.to_bytes()
+
+    def written_records(self, observations: Sequence[Observation]) -> tuple[np.ndarray, list[int]] | None:
+        """The lag window's records of ``observations`` (``rsu_imu_batch.batch_records``) when the last
+        batch this thread processed was read from that very sequence; else None (the window's codec
+        writes them from the observations). The lag window asks right after ``process``."""
+        last = getattr(_LAST_READ, "batch", None)
+        if last is None or last[0] is not observations:
+            return None
+        return batch_records(last[1])
 
     smoother: ClassVar[bool] = True
 

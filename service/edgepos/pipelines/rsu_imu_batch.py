@@ -1,77 +1,137 @@
 """A batch of ``rsu_imu`` observations as its epochs read them: checked once (``read_batch``), its rows as
 arrays (``Batch``), and per epoch the RSUs in view and the gyros (``epoch_parts``) and their measurement
-arrays (``epoch_measurements``); ``batch_epochs`` gives every epoch's at once. Reading the batch once
-makes an epoch's arrays a few index operations instead of arrays built from Python lists."""
+arrays (``epoch_measurements``); ``batch_epochs`` gives every epoch's at once, as flat lists and arrays
+(``BatchEpochs``) from one compiled call (``core.kernels_grouping``), with ``reference_epochs`` the
+readable reference. Reading the batch once makes an epoch's arrays a few index operations instead of
+arrays built from Python lists; grouping it in one call makes no Python object per epoch (a 20-epoch
+batch: about 1.2 us an epoch less than grouping, selecting and listing epoch by epoch, docs/benchmarks.md)."""
 
 from __future__ import annotations
 
+import itertools
 import math
+import struct
 import sys
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
+from edgepos.core.compiled import compiled_enabled
+from edgepos.core.kernels_grouping import BEYOND_RADIUS, NOT_NEAREST, PAST_KEPT, group_epochs, write_records
+from edgepos.core.observation_codec import flat_layout, text_field
 from edgepos.core.observations import GyroObservation, Observation, RsuObservation
 from edgepos.core.updates import RsuGyroEpoch, new_epoch
 from edgepos.pipelines.base import Environment, MeasurementUse, PipelineInputError, Problem, Rsu
 from edgepos.pipelines.epochs import group_by_time
 
+#: The most measurement indices whose records a run takes by slot (``BatchEpochs.slots``) and
+#: ``rsu_imu_run.used`` keeps per kind.
+USED_KEPT = 4096
+
 
 class Batch:
     """A batch's observations as the epochs read them: each RSU observation's station, and per
-    observation its row of the measurement arrays (station position, range and bearing, their noise
-    standard deviations with the options' defaults filled in, the communication radius; a gyro's station
-    numbers are zeros) and the gyro's yaw rate. Read once per batch (``read_batch``), so that an epoch's measurement
-    arrays are a few index operations instead of array building from Python lists.
+    observation its time, its station and its two measured numbers (range and bearing, or a gyro's yaw
+    rate and 0) as one row of ``table``; the stations' numbers (x, y, range and bearing standard
+    deviations with the options' defaults filled in, communication radius) as rows of
+    ``station_table`` (``stations[0]`` None, a gyro's, its numbers zeros). Read once per batch
+    (``read_batch``): a station's numbers are listed once per batch, not once per observation.
 
-    Made of the batch's stations (``stations[0]`` None, a gyro's; five numbers each in
-    ``station_rows``: x, y, range and bearing standard deviations, radius), each observation's station
-    (``codes``) and its two measured numbers (``rows``: range and bearing, or a gyro's yaw rate and 0; so
-    ``yaw_rates`` is each row's first number, of which only the gyros' are read): a station's numbers
-    are listed once per batch, not once per observation, and taken per observation in one ``take``."""
+    ``batch_epochs`` makes the rows a run takes from these two tables in one compiled call; the
+    observations' own arrays below (taken per observation, ``take``) serve the per-epoch step's
+    measurements after the gate or the monitor leaves one out, and the reference grouping."""
 
-    __slots__ = (
-        "bearing_std",
-        "bearing_variances",
-        "codes",
-        "observed",
-        "positions",
-        "radii",
-        "range_std",
-        "range_variances",
-        "ranges",
-        "station_codes",
-        "stations",
-        "yaw_rates",
-    )
+    __slots__ = ("_station", "compiled", "ids", "station_table", "stations", "table")
 
     def __init__(
         self,
         stations: list[Rsu | None],
         station_rows: list[float],
-        codes: list[int],
-        rows: list[float],
-        ranges: list[float],
+        values: list[float],
+        ids: list[str] | None = None,
     ) -> None:
-        self.stations, self.codes = stations, codes
-        count = len(codes)
-        # flat lists: half the time of tuples; columns as views of the tables: every use takes rows of
-        # them (``take``), which makes new C-contiguous arrays for the kernels, so copying each column
-        # first only cost time
-        table = np.array(rows, dtype=float).reshape(count, 2)
-        self.station_codes = np.array(codes, np.intp)  # ``codes`` as an array: what rows of stations take
-        station = np.array(station_rows, dtype=float).reshape(len(stations), 5).take(self.station_codes, 0)
-        self.positions = station[:, 0:2]
-        self.observed = table
-        self.range_std = station[:, 2]
-        self.bearing_std = station[:, 3]
-        variances = np.square(station[:, 2:4])  # as RsuGyroEpoch.variances squares them
-        self.range_variances = variances[:, 0]
-        self.bearing_variances = variances[:, 1]
-        self.yaw_rates = table[:, 0]
-        self.radii: list[float] = station[:, 4].tolist()
-        self.ranges = ranges  # each observation's measured range, -1 for a gyro (ranges are >= 0)
+        """``ids``: the RSU ids of ``stations[1:]`` as the observations give them, when every observation
+        is an ``RsuObservation`` or a ``GyroObservation`` (``batch_records`` then writes its records)."""
+        self.stations, self.ids = stations, ids
+        self.compiled = compiled_enabled()  # grouped and its records written by the compiled kernels
+        count = len(values) // 4
+        # four numbers a row (t, station, and the two measured) packed straight into the table: a
+        # third of the time np.array takes to read a list of floats
+        self.table = np.empty((count, 4))
+        struct.pack_into(f"{4 * count}d", self.table.data, 0, *values)
+        self.station_table = np.array(station_rows, dtype=float).reshape(len(stations), 5)
+        self._station: np.ndarray | None = None
+
+    @property
+    def codes(self) -> list[int]:
+        """Each observation's station (0: a gyro)."""
+        codes: list[int] = self.table[:, 1].astype(np.intp).tolist()
+        return codes
+
+    @property
+    def times(self) -> list[float]:
+        """Each observation's time."""
+        times: list[float] = self.table[:, 0].tolist()
+        return times
+
+    @property
+    def observed(self) -> np.ndarray:
+        """Each observation's two measured numbers (a view of ``table``)."""
+        return self.table[:, 2:4]
+
+    @property
+    def yaw_rates(self) -> np.ndarray:
+        """Each observation's first measured number, a gyro's yaw rate (a view of ``table``)."""
+        return self.table[:, 2]
+
+    @property
+    def station_codes(self) -> np.ndarray:
+        """``codes`` as an array: what rows of stations take."""
+        return self.table[:, 1].astype(np.intp)
+
+    def _stations(self) -> np.ndarray:
+        """Each observation's station row (made when first asked)."""
+        if self._station is None:
+            self._station = self.station_table.take(self.station_codes, 0)
+        return self._station
+
+    @property
+    def positions(self) -> np.ndarray:
+        """Each observation's station position (a gyro's zeros)."""
+        return self._stations()[:, 0:2]
+
+    @property
+    def range_std(self) -> np.ndarray:
+        return self._stations()[:, 2]
+
+    @property
+    def bearing_std(self) -> np.ndarray:
+        return self._stations()[:, 3]
+
+    @property
+    def range_variances(self) -> np.ndarray:
+        """As ``RsuGyroEpoch.variances`` squares the standard deviations."""
+        variances: np.ndarray = np.square(self.range_std)
+        return variances
+
+    @property
+    def bearing_variances(self) -> np.ndarray:
+        variances: np.ndarray = np.square(self.bearing_std)
+        return variances
+
+    @property
+    def ranges(self) -> list[float]:
+        """Each observation's measured range, -1 for a gyro (ranges are >= 0)."""
+        return [
+            -1.0 if code == 0 else measured for code, measured in zip(self.codes, self.yaw_rates.tolist())
+        ]
+
+    @property
+    def radii(self) -> list[float]:
+        """Each observation's communication radius (a gyro's 0)."""
+        radii: list[float] = self.station_table[:, 4].take(self.station_codes).tolist()
+        return radii
 
     @property
     def rsus(self) -> list[Rsu | None]:
@@ -101,14 +161,13 @@ def read_batch(
     stations: list[Rsu | None] = [None]  # see Batch
     station_rows = [0.0] * 5
     known: dict[str, int] = {}  # each RSU id's station
-    codes: list[int] = []
-    rows: list[float] = []  # two numbers per observation, see Batch
-    ranges: list[float] = []
+    values: list[float] = []  # four numbers per observation, see Batch
     default_range, default_bearing = options["range_std"], options["bearing_std"]
     default_radius = options["comm_radius"]
     earliest = -_MAX if last_t is None else last_t
     for observation in observations:
-        if not earliest <= observation.t <= _MAX:
+        t = observation.t
+        if not earliest <= t <= _MAX:
             return _checked_batch(options, last_t, observations, environment)
         if type(observation) is RsuObservation:
             measured, bearing = observation.range, observation.bearing
@@ -128,19 +187,15 @@ def read_batch(
                     rsu.bearing_std or default_bearing,
                     rsu.radius or default_radius,
                 )
-            ranges.append(measured)
-            rows += (measured, bearing)
+            values += (t, code, measured, bearing)
         elif type(observation) is GyroObservation:
             yaw_rate = observation.yaw_rate
             if not -_MAX <= yaw_rate <= _MAX:
                 return _checked_batch(options, last_t, observations, environment)
-            code = 0
-            ranges.append(-1.0)
-            rows += (yaw_rate, 0.0)
+            values += (t, 0, yaw_rate, 0.0)
         else:  # another type (or a subclass): the checked reading decides
             return _checked_batch(options, last_t, observations, environment)
-        codes.append(code)
-    return Batch(stations, station_rows, codes, rows, ranges)
+    return Batch(stations, station_rows, values, list(known))
 
 
 def _checked_batch(
@@ -154,9 +209,7 @@ def _checked_batch(
     problems = []
     stations: list[Rsu | None] = [None]  # see Batch: here a station per RSU observation
     station_rows = [0.0] * 5
-    codes: list[int] = []
-    rows: list[float] = []
-    ranges: list[float] = []
+    values: list[float] = []
     default_range, default_bearing = options["range_std"], options["bearing_std"]
     default_radius = options["comm_radius"]
     for index, observation in enumerate(observations):
@@ -171,7 +224,7 @@ def _checked_batch(
             if rsu is None:
                 problems.append(Problem(index, "rsu_id", f"unknown RSU {observation.rsu_id!r}"))
             else:
-                codes.append(len(stations))
+                values.extend((observation.t, len(stations), observation.range, observation.bearing))
                 stations.append(rsu)
                 station_rows.extend(
                     (
@@ -182,8 +235,6 @@ def _checked_batch(
                         rsu.radius or default_radius,
                     )
                 )
-                ranges.append(observation.range)
-                rows.extend((observation.range, observation.bearing))
             if not (math.isfinite(observation.range) and observation.range >= 0.0):
                 problems.append(Problem(index, "range", "must be a finite distance >= 0 m"))
             if not (math.isfinite(observation.bearing) and abs(observation.bearing) <= math.pi + 1e-9):
@@ -191,16 +242,14 @@ def _checked_batch(
         elif isinstance(observation, GyroObservation):
             if not math.isfinite(observation.yaw_rate):
                 problems.append(Problem(index, "yaw_rate", "must be finite"))
-            codes.append(0)
-            ranges.append(-1.0)
-            rows.extend((observation.yaw_rate, 0.0))
+            values.extend((observation.t, 0, observation.yaw_rate, 0.0))
         else:
             problems.append(
                 Problem(index, "type", f"{observation.kind!r} is not used by the rsu_imu pipeline")
             )
     if problems:
         raise PipelineInputError(problems)
-    return Batch(stations, station_rows, codes, rows, ranges)
+    return Batch(stations, station_rows, values)
 
 
 def epoch_parts(
@@ -253,14 +302,17 @@ class EpochRows:
     its index in ``station_list``, the batch's stations; a run reads the RSUs' ids through them, a few
     stations instead of a row each), and where each epoch's RSU pairs and gyro readings start
     (``starts``, ``gyro_starts``: int64, an epoch's rows end where the next one's start, the last
-    epoch's at the last bound), which a run's kernel takes as they are."""
+    epoch's at the last bound), which a run's kernel takes as they are. ``indices`` and
+    ``gyro_indices`` are the observations of the rows (int64)."""
 
     __slots__ = (
         "averaged",
         "bearing_std",
         "bearing_variances",
+        "gyro_indices",
         "gyro_starts",
         "gyro_std",
+        "indices",
         "observed",
         "positions",
         "range_std",
@@ -274,32 +326,36 @@ class EpochRows:
     def __init__(
         self,
         batch: Batch,
-        rows: list[int],
-        gyro_rows: list[int],
-        starts: list[int],
-        gyro_starts: list[int],
+        arrays: tuple[np.ndarray, ...],
+        bounds: np.ndarray,
         options: Mapping[str, Any],
     ) -> None:
-        index = np.array(rows, dtype=np.intp)
-        self.positions, self.observed = batch.positions.take(index, 0), batch.observed.take(index, 0)
-        self.range_std, self.bearing_std = batch.range_std.take(index), batch.bearing_std.take(index)
-        self.range_variances = batch.range_variances.take(index)
-        self.bearing_variances = batch.bearing_variances.take(index)
-        self.yaw_rates = batch.yaw_rates.take(np.array(gyro_rows, dtype=np.intp))
+        """``arrays``: ``kernels_grouping.group_epochs``'s from ``indices`` on; ``bounds``: its (3, E + 1)
+        bounds (each row of a C-contiguous array: the kernels take them as they are)."""
+        (
+            indices,
+            self.stations,
+            self.positions,
+            self.observed,
+            self.range_std,
+            self.bearing_std,
+            self.range_variances,
+            self.bearing_variances,
+            self.yaw_rates,
+        ) = arrays
+        used = self.range_std.shape[0]
+        self.indices, self.gyro_indices = indices[:used], indices[used:]
+        self.starts, self.gyro_starts = bounds[1], bounds[2]
         self.gyro_std: float = options["gyro_std"]
         self.averaged: bool = options["rsu_handling"] == "average"
-        self.stations = batch.station_codes.take(index)
         self.station_list = batch.stations
-        self.starts = np.array(starts, dtype=np.int64)
-        self.gyro_starts = np.array(gyro_starts, dtype=np.int64)
 
 
 class EpochParts:
     """One epoch of a batch as the pipeline's step takes it: its observations (indices into the batch),
     the RSUs in view it uses (nearest first) and its gyros, the records of the RSUs it leaves out
     (``epoch_parts``; the step adds its own), and where its measurements are in the batch's ``rows``
-    (from ``start`` and ``gyro_start``): ``measured`` slices them when first read, which an epoch that
-    goes in a run of epochs (``pipelines.rsu_imu_run``) never does."""
+    (from ``start`` and ``gyro_start``): ``measured`` slices them when first read."""
 
     __slots__ = ("_measured", "candidates", "gyro_start", "gyros", "indices", "rows", "start", "uses")
 
@@ -342,30 +398,171 @@ class EpochParts:
         return self._measured
 
 
+class BatchEpochs:
+    """A batch's epochs in time order as flat lists and arrays, with no object per epoch: each epoch's
+    time (``times``), its observations (``order[bounds[k] : bounds[k + 1]]``: the batch's indices in time
+    order, an epoch's ascending), its RSUs in use, nearest first, and its gyros (the rows of ``rows``
+    from ``starts[k]`` and ``gyro_starts[k]``), the records of the RSUs left out (``uses``, by index)
+    and per position of ``order`` the slot of an observation's record in a run's fix (``slots``: see
+    ``kernels_grouping.group_epochs``), from which a run of epochs (``pipelines.rsu_imu_run``) takes
+    its fixes' records. ``part(k)`` is epoch ``k`` as the per-epoch step takes it."""
+
+    __slots__ = ("bounds", "gyro_starts", "order", "rows", "slots", "starts", "times", "uses")
+
+    def __init__(
+        self,
+        times: list[float],
+        bounds: np.ndarray,
+        order_slots: np.ndarray,
+        rows: EpochRows,
+        uses: dict[int, MeasurementUse],
+    ) -> None:
+        self.times, self.rows, self.uses = times, rows, uses
+        self.bounds, self.starts, self.gyro_starts = bounds.tolist()
+        self.order: list[int] = order_slots[0].tolist()
+        self.slots = order_slots[1]
+
+    def __len__(self) -> int:
+        return len(self.times)
+
+    def part(self, k: int) -> EpochParts:
+        """Epoch ``k`` with its own lists and the records of its RSUs left out."""
+        indices = self.order[self.bounds[k] : self.bounds[k + 1]]
+        start, end = self.starts[k], self.starts[k + 1]
+        gyro_start, gyro_end = self.gyro_starts[k], self.gyro_starts[k + 1]
+        uses = self.uses
+        return EpochParts(
+            indices,
+            self.rows.indices[start:end].tolist(),
+            self.rows.gyro_indices[gyro_start:gyro_end].tolist(),
+            {i: uses[i] for i in indices if i in uses} if uses else {},
+            self.rows,
+            start,
+            gyro_start,
+        )
+
+
 def batch_epochs(
     observations: Sequence[Observation], batch: Batch, options: Mapping[str, Any]
-) -> list[EpochParts]:
-    """The batch's epochs in time order (``group_by_time``), each with ``epoch_parts`` and where its rows
-    are: every epoch's rows taken in one ``take`` per array for the whole batch (``EpochRows``), each
-    epoch's arrays slices of those (contiguous rows: the same arrays to the kernels)."""
-    selected = []
+) -> BatchEpochs:
+    """The batch's epochs in time order and their rows: in one compiled call
+    (``kernels_grouping.group_epochs``), or with the compiled kernels off by ``reference_epochs``, which
+    gives the same lists and arrays."""
+    if not batch.compiled:
+        return reference_epochs(observations, batch, options)
+    limit = options["max_rsus"]
+    times, bounds, order_slots, *arrays = group_epochs(batch.table, batch.station_table, limit, USED_KEPT)
+    rows = EpochRows(batch, tuple(arrays), bounds, options)
+    uses: dict[int, MeasurementUse] = {}
+    count = batch.table.shape[0]
+    if rows.indices.shape[0] + rows.gyro_indices.shape[0] < count:  # an RSU left out: its record
+        order, slots = order_slots
+        radii = batch.station_table[:, 4].tolist()
+        for position in np.flatnonzero(slots <= BEYOND_RADIUS).tolist():
+            i = int(order[position])
+            radius = radii[int(batch.table[i, 1])]
+            uses[i] = _left_out(i, slots[position] == BEYOND_RADIUS, radius, limit)
+    return BatchEpochs(times.tolist(), bounds, order_slots, rows, uses)
+
+
+def _left_out(index: int, beyond: bool, radius: float, limit: int) -> MeasurementUse:
+    """The record of an RSU observation an epoch leaves out (as ``epoch_parts`` writes it)."""
+    if beyond:
+        return MeasurementUse(index, "rsu", False, f"range beyond the {radius:g} m communication radius")
+    return MeasurementUse(index, "rsu", False, f"not among the nearest {limit} RSUs")
+
+
+def reference_epochs(
+    observations: Sequence[Observation], batch: Batch, options: Mapping[str, Any]
+) -> BatchEpochs:
+    """``batch_epochs`` epoch by epoch in Python (``group_by_time``, ``epoch_parts``, a ``take`` of the
+    batch's arrays per array): the readable reference the tests hold the compiled grouping to."""
+    order: list[int] = []
+    bounds: list[list[int]] = [[], [], []]
     rows: list[int] = []
     gyro_rows: list[int] = []
-    starts: list[int] = []
-    gyro_starts: list[int] = []
+    uses: dict[int, MeasurementUse] = {}
     for epoch in group_by_time(observations):
-        uses: dict[int, MeasurementUse] = {}
+        for bound, at in zip(bounds, (len(order), len(rows), len(gyro_rows)), strict=True):
+            bound.append(at)
         candidates, gyros = epoch_parts(epoch, batch, options, uses)
-        start, gyro_start = len(rows), len(gyro_rows)
-        selected.append((epoch, candidates, gyros, uses, start, gyro_start))
-        starts.append(start)
-        gyro_starts.append(gyro_start)
+        order += epoch
         rows += candidates
         gyro_rows += gyros
-    starts.append(len(rows))
-    gyro_starts.append(len(gyro_rows))
-    taken = EpochRows(batch, rows, gyro_rows, starts, gyro_starts, options)
-    return [
-        EpochParts(epoch, candidates, gyros, uses, taken, start, gyro_start)
-        for epoch, candidates, gyros, uses, start, gyro_start in selected
+    for bound, at in zip(bounds, (len(order), len(rows), len(gyro_rows)), strict=True):
+        bound.append(at)
+    kind = {i: 0 for i in rows} | {i: 1 for i in gyro_rows}
+    ranges, radii = batch.ranges, batch.radii
+    slots = [
+        (kind[i] * USED_KEPT + i if i < USED_KEPT else PAST_KEPT)
+        if i in kind
+        else (BEYOND_RADIUS if ranges[i] > radii[i] else NOT_NEAREST)
+        for i in order
     ]
+    index = np.array(rows, dtype=np.int64)
+    arrays = (
+        np.array(rows + gyro_rows, dtype=np.int64),
+        batch.station_codes.astype(np.int64).take(index),
+        batch.positions.take(index, 0),
+        batch.observed.take(index, 0),
+        batch.range_std.take(index),
+        batch.bearing_std.take(index),
+        batch.range_variances.take(index),
+        batch.bearing_variances.take(index),
+        batch.yaw_rates.take(np.array(gyro_rows, dtype=np.int64)),
+    )
+    times = batch.times
+    return BatchEpochs(
+        [times[order[b]] for b in bounds[0][:-1]],
+        np.array(bounds, dtype=np.int64),
+        np.array([order, slots], dtype=np.int64).reshape(2, len(order)),
+        EpochRows(batch, arrays, np.array(bounds, dtype=np.int64), options),
+        uses,
+    )
+
+
+def _heads() -> tuple[np.ndarray, np.ndarray] | None:
+    """The name bytes of RSU and gyro records when ``core.observation_codec`` lays them out as
+    ``kernels_grouping.write_records`` writes them (and the machine is little-endian); else None."""
+    rsu, gyro = flat_layout(RsuObservation), flat_layout(GyroObservation)
+    if sys.byteorder != "little" or rsu is None or gyro is None:
+        return None
+    if rsu[1:] != (("t", "range", "bearing"), ("rsu_id",)) or gyro[1:] != (("t", "yaw_rate"), ()):
+        return None
+    return np.frombuffer(rsu[0], np.uint8), np.frombuffer(gyro[0], np.uint8)
+
+
+_HEADS = _heads()
+
+
+def batch_records(batch: Batch) -> tuple[np.ndarray, list[int]] | None:
+    """The lag window's records of the batch's observations (``core.observation_codec``'s bytes, which
+    ``lag_state.encode_epochs`` writes from the observations), back to back in the batch's order, and
+    where each observation's ends: written from the batch's table in one compiled call. None when the
+    codec's encoders must write them (a batch read observation by observation, compiled kernels off)."""
+    if batch.ids is None or _HEADS is None or not batch.compiled:
+        return None
+    ids = tuple(batch.ids)
+    texts = _STATION_TEXTS.get(ids)
+    if texts is None:
+        texts = _station_texts(ids)
+    written, ends = write_records(batch.table, *texts, *_HEADS)
+    return written, ends.tolist()
+
+
+#: ``_station_texts`` by the RSU ids of a batch's stations (few and the same batch after batch), up to
+#: ``STATION_TEXTS_KEPT`` of them (then emptied: a new fleet's stations fill it again).
+_STATION_TEXTS: dict[tuple[str, ...], tuple[np.ndarray, np.ndarray]] = {}
+STATION_TEXTS_KEPT = 1024
+
+
+def _station_texts(ids: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """The text fields of the stations ``ids`` (``stations[1:]``) back to back, and where station
+    ``code``'s starts (the gyro's station 0 has none): what ``write_records`` takes (read only)."""
+    texts = [text_field(rsu_id) for rsu_id in ids]
+    offsets = np.array([0, 0, *itertools.accumulate(map(len, texts))], dtype=np.int64)
+    offsets.flags.writeable = False
+    if len(_STATION_TEXTS) >= STATION_TEXTS_KEPT:
+        _STATION_TEXTS.clear()
+    written = _STATION_TEXTS[ids] = (np.frombuffer(b"".join(texts), np.uint8), offsets)
+    return written

@@ -32,7 +32,7 @@ from edgepos.core.observations import Observation
 from edgepos.core.updates import GYRO_MIN_SPEED, measurement_dim
 from edgepos.pipelines.base import Fix, MeasurementUse
 from edgepos.pipelines.integrity import _monitor_of, _position_index
-from edgepos.pipelines.rsu_imu_batch import EpochParts
+from edgepos.pipelines.rsu_imu_batch import USED_KEPT, BatchEpochs
 from edgepos.pipelines.rsu_imu_fix import fix_form, fix_layout, has_acceleration
 
 if TYPE_CHECKING:  # the session type only: rsu_imu imports this module
@@ -58,9 +58,6 @@ def gate_thresholds(probability: float, components: tuple[int, ...]) -> tuple[fl
     gyros = layout.XA in components and layout.YA in components
     return gate_threshold(probability, 2), gate_threshold(probability, 1) if gyros else -1.0
 
-
-#: The most measurement indices whose records ``used`` keeps per kind (beyond, each call makes one).
-USED_KEPT = 4096
 
 _USED: dict[str, list[MeasurementUse]] = {}
 
@@ -95,15 +92,39 @@ def kinematic_entries(components: tuple[int, ...]) -> np.ndarray:
     return entries
 
 
+@functools.cache
+def _record_table() -> np.ndarray:
+    """``used_records`` of both kinds as one object array, rsu then gyro: what ``BatchEpochs.slots``
+    index (read only: the cache shares it)."""
+    table = np.empty(2 * USED_KEPT, dtype=object)
+    table[:USED_KEPT] = used_records("rsu", USED_KEPT)
+    table[USED_KEPT:] = used_records("gyro", USED_KEPT)
+    table.flags.writeable = False
+    return table
+
+
+def fix_records(epochs: BatchEpochs, observations: Sequence[Observation]) -> list[MeasurementUse]:
+    """The record of each observation of the batch in a run's fix, by position in ``epochs.order``: the
+    used record of each RSU and gyro the epochs use, the own record of each RSU they leave out."""
+    records: list[MeasurementUse] = _record_table().take(epochs.slots).tolist()
+    order = epochs.order
+    if epochs.uses or len(order) > USED_KEPT:  # a slot of -1 (its record taken from the table's end)
+        for position in np.flatnonzero(epochs.slots < 0).tolist():
+            i = order[position]
+            left_out = epochs.uses.get(i)
+            records[position] = used(i, observations[i].kind) if left_out is None else left_out
+    return records
+
+
 def run_fixes(
     session: _SessionState,
     bank: InteractingMultipleModel,
     stepper: BankStepper,
-    epochs: Sequence[EpochParts],
+    epochs: BatchEpochs,
     first: int,
     observations: Sequence[Observation],
 ) -> list[Fix]:
-    """The fixes of the usual epochs from ``epochs[first]`` on, stepped in one compiled call, with the
+    """The fixes of the usual epochs from epoch ``first`` on, stepped in one compiled call, with the
     session (and its integrity bank) advanced past them; none when fewer than ``MIN_RUN`` qualify. The
     fixes are finite: the run stops before an epoch whose fix could hold NaN or infinity
     (``compiled_run.FIX_INPUT_BOUND``), which the per-epoch path checks."""
@@ -118,17 +139,19 @@ def run_fixes(
         return []
     max_gap = options["max_gap"]
     last_t: float = session.filter_t
-    times: list[float] = []
-    for parts in epochs[first:]:
-        t = observations[parts.indices[0]].t
-        if not parts.candidates or t - last_t > max_gap:
+    starts = epochs.starts
+    count = 0
+    for k in range(first, len(epochs)):
+        t = epochs.times[k]
+        if starts[k] == starts[k + 1] or t - last_t > max_gap:  # no RSU in view, or a gap
             break
-        times.append(t)
+        count += 1
         last_t = t
-    if len(times) < MIN_RUN:
+    if count < MIN_RUN:
         return []
-    run = epochs[first : first + len(times)]
-    rows = run[0].rows  # the batch's: its epochs' rows and where each starts
+    end = first + count
+    times = epochs.times[first:end]
+    rows = epochs.rows  # the batch's: its epochs' rows and where each starts
     gate = options["gate_probability"]
     run_monitor = names = None
     alert_limit = 0.0
@@ -152,8 +175,8 @@ def run_fixes(
         session.probabilities,
         session.filter_t,
         times,
-        rows.starts[first : first + len(times) + 1],
-        rows.gyro_starts[first : first + len(times) + 1],
+        rows.starts[first : end + 1],
+        rows.gyro_starts[first : end + 1],
         RunRows(
             rows.positions,
             rows.observed,
@@ -176,11 +199,13 @@ def run_fixes(
     models = options["models"]
     # every epoch's lists at once: the covariance's rows, and its kinematic and position blocks
     kinematic_covs = covs.reshape(done, -1).take(kinematic_entries(components), 1).reshape(done, 4, 4)
-    rsu_used, gyro_used = used_records("rsu", len(observations)), used_records("gyro", len(observations))
+    # the epochs' records: one for each index of an epoch, in ascending order (group_epochs's)
+    records = fix_records(epochs, observations)
+    bounds, gyro_starts = epochs.bounds, epochs.gyro_starts
     form = fix_form(components)
     fixes = []
-    for parts, t, mean, state_cov, kinematic_cov, position_cov, weights, weighted, level in zip(
-        run,
+    for k, t, mean, state_cov, kinematic_cov, position_cov, weights, weighted, level in zip(
+        range(first, end),
         times,
         means.tolist(),
         covs.tolist(),
@@ -190,13 +215,6 @@ def run_fixes(
         nis,
         levels.tolist(),
     ):
-        # the epoch's records: epoch_parts' of the RSUs it leaves out, and here those of the RSUs and gyros
-        # used, so one for each index of the epoch, which are in ascending order (group_by_time's)
-        uses = parts.uses
-        for i in parts.candidates:
-            uses[i] = rsu_used[i] if i < USED_KEPT else used(i, "rsu")
-        for i in parts.gyros:
-            uses[i] = gyro_used[i] if i < USED_KEPT else used(i, "gyro")
         if run_monitor is None:
             protection_level, integrity = None, UNAVAILABLE
         else:  # a level that passed every test, stated as SeparationBank.epoch's Protection states it
@@ -208,9 +226,11 @@ def run_fixes(
                 mean,
                 state_cov,
                 dict(zip(models, weights)),
-                [uses[i] for i in parts.indices],  # every index's record (see the loop's comment)
+                records[bounds[k] : bounds[k + 1]],
                 weighted,
-                measurement_dim(len(parts.candidates), len(parts.gyros), rows.averaged),
+                measurement_dim(
+                    starts[k + 1] - starts[k], gyro_starts[k + 1] - gyro_starts[k], rows.averaged
+                ),
                 protection_level,
                 integrity,
                 None,  # the run's outputs have both accelerations (checked above): no carried turn rate

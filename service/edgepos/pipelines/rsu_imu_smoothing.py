@@ -66,8 +66,9 @@ def filter_run(
     """Filter a validated batch from ``session`` (advanced in place) exactly as process() does,
     keeping each epoch's bank."""
     run = FilteredRun([], [], [], [])
-    for parts in batch_epochs(observations, batch, session.options):
-        fix = _step(session, bank, parts, observations, batch)
+    epochs = batch_epochs(observations, batch, session.options)
+    for k in range(len(epochs)):
+        fix = _step(session, bank, epochs.part(k), observations, batch)
         kept = fix.status != "uninitialised"
         run.fixes.append(fix)
         run.means.append(session.means.copy() if kept else None)
