@@ -259,8 +259,11 @@ class RedisClusterProcesses:
 
     def reshard(self, source: RedisServer, target: RedisServer, slots: int) -> None:
         """Move ``slots`` slots (with their keys, by MIGRATE) from ``source`` to ``target``, as an operator
-        rebalancing the cluster would; clients follow the ASK and MOVED redirections meanwhile."""
-        subprocess.run(
+        rebalancing the cluster would; clients follow the ASK and MOVED redirections meanwhile. redis-cli
+        refuses to start while the nodes' views of the slots still differ (gossip after a create or a
+        failover), so it waits for ``--cluster check`` to pass first."""
+        self.wait_until_consistent(source)
+        moved = subprocess.run(
             [
                 self.cli,
                 "--cluster",
@@ -274,11 +277,33 @@ class RedisClusterProcesses:
                 str(slots),
                 "--cluster-yes",
             ],
-            check=True,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
+            check=False,
+            capture_output=True,
             timeout=120,
         )
+        if moved.returncode != 0:
+            said = (moved.stdout + moved.stderr).decode(errors="replace").strip().splitlines()[-5:]
+            raise RuntimeError(f"redis-cli --cluster reshard failed ({moved.returncode}): {' | '.join(said)}")
+
+    def wait_until_consistent(self, node: RedisServer, timeout_s: float = 30.0) -> None:
+        """Until ``redis-cli --cluster check`` from ``node`` passes: every node agrees on the slots, none
+        is open (migrating or importing) and all 16384 are covered."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            check = subprocess.run(
+                [self.cli, "--cluster", "check", f"127.0.0.1:{node.port}"],
+                check=False,
+                capture_output=True,
+                timeout=30,
+            )
+            if check.returncode == 0:
+                return
+            if time.monotonic() > deadline:
+                said = check.stdout.decode(errors="replace").strip().splitlines()[-3:]
+                raise RuntimeError(
+                    f"the cluster's nodes did not agree within {timeout_s} s: {' | '.join(said)}"
+                )
+            time.sleep(0.2)
 
     def stop(self) -> None:
         for node in self.nodes:
