@@ -1,5 +1,6 @@
-"""The batch route's direct handler (``one_pass_body.direct_route``): a valid JSON batch skips FastAPI's
-dependency solving, and every request answers exactly as FastAPI's own handler answers it."""
+"""The batch route's direct handler (``one_pass_body.direct_route``), which ``api.direct_path`` calls: a valid
+JSON batch skips FastAPI's routing and dependency solving, and every request answers exactly as FastAPI's own
+handler answers it."""
 
 from __future__ import annotations
 
@@ -10,7 +11,9 @@ import pytest
 from apihelp import ADMIN, batch_body, bearer, open_session
 from edgepos.api.one_pass_body import dependency_calls, direct_route
 from edgepos.api.routes import json_body, sessions
+from edgepos.api import session_service
 from fastapi import APIRouter, Depends, Request, Response, routing
+from starlette.middleware.exceptions import ExceptionMiddleware
 
 
 def test_a_valid_batch_is_answered_without_fastapis_dependency_solving(client, monkeypatch) -> None:
@@ -23,6 +26,35 @@ def test_a_valid_batch_is_answered_without_fastapis_dependency_solving(client, m
     response = client.post(f"/v1/sessions/{session_id}/batches", json=batch_body(1, 0, 5), headers=token)
     assert response.status_code == 200, response.text
     assert len(response.json()["fixes"]) == 5
+
+
+def test_a_valid_batch_is_answered_before_fastapis_routing(client, monkeypatch) -> None:
+    session_id, token = open_session(client)
+    client.get("/healthz")  # the middleware stack is built: the refusal below applies to its instances
+
+    async def refuse(*_args: Any, **_kwargs: Any) -> Any:
+        raise AssertionError("the batch went through FastAPI's exception middleware and router")
+
+    monkeypatch.setattr(ExceptionMiddleware, "__call__", refuse)
+    response = client.post(f"/v1/sessions/{session_id}/batches", json=batch_body(1, 0, 5), headers=token)
+    assert response.status_code == 200, response.text
+    assert response.headers["x-request-id"]
+    assert client.get("/healthz").status_code == 500  # the refusal is in place for what FastAPI routes
+
+
+def test_an_exception_no_handler_takes_is_the_generic_500_on_either_path(client, monkeypatch) -> None:
+    async def fail(*_args: Any, **_kwargs: Any) -> Any:
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(session_service, "apply_batch", fail)
+    answers = []
+    for overridden in (False, True):
+        if overridden:
+            client.app.dependency_overrides[json_body] = json_body  # FastAPI's handler
+        session_id, token = open_session(client, vehicle_id=f"car-bug-{overridden}")
+        response = client.post(f"/v1/sessions/{session_id}/batches", json=batch_body(1, 0, 2), headers=token)
+        answers.append((response.status_code, response.json()["error"]["code"]))
+    assert answers == [(500, "internal_error"), (500, "internal_error")]
 
 
 def _requests(session_id: str, token: dict[str, str], other_token: dict[str, str]) -> list[dict[str, Any]]:

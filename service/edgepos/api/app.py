@@ -22,6 +22,7 @@ from fastapi.staticfiles import StaticFiles
 
 from edgepos import __version__
 from edgepos.api.context import AppContext
+from edgepos.api.direct_path import DirectPathMiddleware
 from edgepos.api.errors import install_error_handlers
 from edgepos.api.location.notifier import LocationNotifier
 from edgepos.api.logs import configure_logging
@@ -275,6 +276,10 @@ def create_app(
     static_dir = resources.files("edgepos.api") / "static"
     app.mount(docs.STATIC_PREFIX, StaticFiles(directory=str(static_dir)), name="static")
 
+    # Innermost: the batch route's valid requests go to its direct handler past FastAPI's routing. It is the
+    # first route the router tries (above), so no other route could have taken them.
+    direct_routes = [route for route in sessions.batch_router.routes if isinstance(route, APIRoute)]
+    app.add_middleware(DirectPathMiddleware, fastapi_app=app, routes=direct_routes)
     app.add_middleware(
         BodyLimitMiddleware,
         max_bytes=settings.max_body_bytes,

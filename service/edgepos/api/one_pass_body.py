@@ -9,10 +9,11 @@ takes FastAPI's usual path instead (``json.loads``, then its validation), so eve
 problems and their wording) is exactly what it was; the two validations agree on what they accept
 (``tests/api/test_api_one_pass_body.py`` holds them to it on generated bodies).
 
-:func:`direct_route` goes one step further for the busiest route, the batch: a body that validates in one
-pass and comes as ``application/json`` is handed to a function that calls the route's dependencies itself, in
-the order FastAPI solves them, and then the endpoint, without FastAPI's dependency solving per request.
-Anything else takes FastAPI's handler as above.
+:func:`direct_route` goes one step further for the busiest route, the batch: it gives the route a direct
+handler, a function that calls the route's dependencies itself, in the order FastAPI solves them, and then
+the endpoint, without FastAPI's dependency solving per request. ``api.direct_path`` hands it the requests
+sent as ``application/json`` whose body validates in one pass, before FastAPI's routing; anything else
+takes the route's handler as above.
 """
 
 from __future__ import annotations
@@ -89,34 +90,24 @@ def dependency_calls(dependant: Dependant) -> tuple[Callable[..., Any], ...]:
 
 
 def direct_route(handler: DirectHandler, dependencies: tuple[Callable[..., Any], ...]) -> type[APIRoute]:
-    """A route class whose valid JSON bodies go to ``handler`` directly (see the module's docstring).
+    """A one-pass route class with ``handler`` as its direct handler (see the module's docstring).
 
     ``dependencies`` are the calls ``handler`` makes, in :func:`dependency_calls`' order: a route whose
     declared dependencies are not these is refused when it is built, so that the handler cannot skip one
-    the route gained. With dependency overrides set on the app (tests), FastAPI's handler runs, which
-    honours them."""
+    the route gained."""
 
     class DirectRoute(OnePassBodyRoute):
+        direct_handler = staticmethod(handler)
+
         def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
-            usual = APIRoute.get_route_handler(self)  # given the one-pass request below
-            model = one_pass_model(self)
-            if model is None or dependency_calls(self.dependant) != dependencies:
+            if one_pass_model(self) is None or dependency_calls(self.dependant) != dependencies:
                 raise TypeError(f"{self.path}: its direct handler does not match its body or dependencies")
-
-            async def direct(request: Request) -> Response:
-                request = _OnePassRequest(request, model)
-                if (
-                    request.headers.get("content-type") == "application/json"
-                    and not request.app.dependency_overrides
-                ):
-                    try:
-                        body = model.model_validate_json(await request.body())
-                    except ValueError:  # FastAPI's handler words the refusal
-                        pass
-                    else:
-                        return await handler(request, body)
-                return await usual(request)
-
-            return direct
+            return super().get_route_handler()
 
     return DirectRoute
+
+
+def direct_handler(route: APIRoute) -> DirectHandler | None:
+    """The direct handler of a route made by :func:`direct_route`, else None."""
+    handler: DirectHandler | None = getattr(route, "direct_handler", None)
+    return handler
