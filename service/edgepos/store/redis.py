@@ -66,7 +66,7 @@ from edgepos.store.redis_records import (
     summary_from_fields,
 )
 from edgepos.store.redis_registry import RedisRegistry
-from edgepos.store.redis_round_trip import Command, allow_for_wait, evalsha, round_trip
+from edgepos.store.redis_round_trip import Command, RoundTrips, allow_for_wait
 
 DEFAULT_PREFIX = "edgepos:"
 DEFAULT_CONNECT_TIMEOUT_S = 0.5
@@ -212,6 +212,7 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
         self._client: Any = None  # redis.asyncio.Redis, or RedisCluster in the cluster store
         self._loop: asyncio.AbstractEventLoop | None = None
         self._closer: AsyncGenerator[None, None] | None = None
+        self._trips = RoundTrips()  # on the newest pool's connections, kept between round trips
         self._scripts: dict[str, AsyncScript] = {}
         self._closing: set[asyncio.Task[None]] = set()  # clients discarded, closing after their grace period
 
@@ -239,6 +240,7 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
             self.url, retry=Retry(ExponentialBackoff(cap=0.2, base=0.05), retries=1)
         )
         allow_for_wait(pool.connection_kwargs, self.wait_timeout_ms if self.wait_replicas else 0)
+        self._trips.keep_from(pool)
         # the class the URL's scheme chose, packing commands in C (store.redis_packing)
         pool.connection_class = PACKED.get(pool.connection_class, pool.connection_class)
         return Redis.from_pool(pool)  # closing the client closes its pool
@@ -533,13 +535,13 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
 
     async def _round_trip(self, client: Any, commands: list[Command]) -> list[Any]:
         """``commands`` in one write on one pooled connection, their replies (an error reply in its place)."""
-        return await round_trip(client, commands)
+        return await self._trips.run(client, commands)
 
     async def _evalsha(self, client: Any, name: str, keys: list[str], args: list[Any]) -> Any:
         """The reply of the script ``name`` (for the calls of every batch: the fix stream's append, the rate
         limit's budget), in one round trip of store.redis_round_trip."""
         script = self._scripts[name]
-        return await evalsha(client, script.sha, script.script, keys, args)
+        return await self._trips.evalsha(client, script.sha, script.script, keys, args)
 
     async def make_durable(self, session_id: str) -> None:
         """A write of this connection's own, then WAIT: the replication stream is ordered, so once the
