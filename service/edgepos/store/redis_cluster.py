@@ -48,14 +48,14 @@ from redis.crc import REDIS_CLUSTER_HASH_SLOTS, key_slot
 
 from edgepos.store import redis_scripts as scripts
 from edgepos.store.base import Clock, Revocation, SessionRecord, TooManySessions, VehicleNotRegistered
-from edgepos.store.redis import (
+from edgepos.store.redis import RedisStore
+from edgepos.store.redis_round_trip import Command, allow_for_wait
+from edgepos.store.redis_url import (
     DEFAULT_CONNECT_TIMEOUT_S,
     DEFAULT_MAX_CONNECTIONS,
     DEFAULT_PREFIX,
     DEFAULT_SOCKET_TIMEOUT_S,
-    RedisStore,
 )
-from edgepos.store.redis_round_trip import Command, allow_for_wait
 
 SCHEME = "redis-cluster"
 SHARDS = 256
