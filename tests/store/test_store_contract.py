@@ -24,6 +24,7 @@ from edgepos.store.base import (
     VehicleNotRegistered,
     VehicleRecord,
 )
+from edgepos.store.fixlog import NewFix
 from edgepos.store.ratelimit import RateLimit
 
 
@@ -107,6 +108,36 @@ def test_a_record_read_or_written_shares_nothing_with_the_store(store):
         read.options["filter"] = "ukf"
         again = await store.get("s1")
         assert again.options == {"filter": "ckf", "models": [], "model_params": {"singer": {"sigma": 5.0}}}
+
+    asyncio.run(scenario())
+
+
+def test_a_batchs_fix_events_go_with_its_write_only_where_the_store_takes_them(store):
+    """A store whose compare-and-set takes a batch's fix events (``fixes_in_write``, once its fix log is
+    made) appends them exactly when the write applies, with the log's next ids; any other refuses them and
+    writes nothing."""
+
+    async def scenario() -> None:
+        log = store.fix_log(100)
+        await store.create(record(), max_sessions=10)
+        current = await store.get("s1")
+        applied = dataclasses.replace(current, last_seq=1)
+        events = [NewFix("s1", "v-s1", "rsu_imu", 1.0 + k, b'{"k":%d}' % k) for k in range(3)]
+        if not store.fixes_in_write:
+            with pytest.raises(ValueError, match="apart"):
+                await store.compare_and_set(applied, 0, events)
+            assert (await store.get("s1")).version == 0
+            return
+        newest = await log.newest()
+        assert not await store.compare_and_set(applied, 5, events)  # another version: nothing written
+        assert await log.newest() == newest
+        assert await store.compare_and_set(applied, 0, events)
+        written = await log.read(newest, 0.05, 10)
+        assert [(e.id, e.session_id, e.t, e.data) for e in written] == [
+            (newest + 1 + k, "s1", 1.0 + k, b'{"k":%d}' % k) for k in range(3)
+        ]
+        assert (await store.get("s1")).last_seq == 1
+        await log.close()
 
     asyncio.run(scenario())
 

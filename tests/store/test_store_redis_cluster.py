@@ -74,9 +74,9 @@ class IdMapping:
         got = await self.inner.get(self._in(session_id), with_response=with_response)
         return None if got is None else dataclasses.replace(got, session_id=session_id)
 
-    async def compare_and_set(self, rec: SessionRecord, expected_version: int) -> bool:
+    async def compare_and_set(self, rec: SessionRecord, expected_version: int, fixes: Any = ()) -> bool:
         mapped = dataclasses.replace(rec, session_id=self._in(rec.session_id))
-        return await self.inner.compare_and_set(mapped, expected_version)
+        return await self.inner.compare_and_set(mapped, expected_version, fixes)
 
     async def delete(self, session_id: str) -> bool:
         return await self.inner.delete(self._in(session_id))

@@ -490,9 +490,17 @@ async def _apply_in_turn(
                 last_fix=last_fix,
                 now=context.store.clock(),
             )
-            if await context.store.compare_and_set(updated, record.version):
+            # the fix events go with the write where the store can take them (one round trip), else after it
+            events = _fix_events(record, batch.seq, fixes, stateless)
+            store, in_write = context.store, context.store.fixes_in_write
+            if in_write:
+                applied = await store.compare_and_set(updated, record.version, events)
+            else:
+                applied = await store.compare_and_set(updated, record.version)
+            if applied:
                 metrics.observe_batch(len(fixes), elapsed)
-                _publish_fixes(context, record, batch.seq, fixes, stateless)
+                if not in_write:
+                    context.streams.publish(events)
                 if pipeline.publishes_track:
                     await _publish_track(context, record, published.get(record.vehicle_id), fixes)
                 return body
@@ -533,23 +541,18 @@ def _applied(
     return updated
 
 
-def _publish_fixes(
-    context: AppContext,
-    record: SessionRecord,
-    seq: int,
-    fixes: list[Fix],
-    stateless_json: list[bytes],
-) -> None:
-    """Hand the applied batch's fixes (and their JSON with a null state) to the fix stream: queued for this
-    worker's publisher, so the answer never waits for the stream (see api.streams)."""
+def _fix_events(
+    record: SessionRecord, seq: int, fixes: list[Fix], stateless_json: list[bytes]
+) -> list[NewFix]:
+    """The batch's fixes (and their JSON with a null state) as events of the fix stream: appended with the
+    batch's write by a store that can (``SessionStore.fixes_in_write``), else queued for this worker's
+    publisher once the write applied, so the answer never waits for the stream (see api.streams)."""
     session_id, vehicle_id, pipeline = record.session_id, record.vehicle_id, record.pipeline
     prefix = fix_event_prefix(session_id, vehicle_id, pipeline, seq)
-    context.streams.publish(
-        [
-            NewFix(session_id, vehicle_id, pipeline, float(fix.t), fix_event_data(prefix, written))
-            for fix, written in zip(fixes, stateless_json, strict=True)
-        ]
-    )
+    return [
+        NewFix(session_id, vehicle_id, pipeline, float(fix.t), fix_event_data(prefix, written))
+        for fix, written in zip(fixes, stateless_json, strict=True)
+    ]
 
 
 _RSU_KINDS = frozenset({RsuObservation.kind, RsuRangeObservation.kind})

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from edgepos.pipelines.base import NeighbourTrack, Rsu, TrackPoint
-from edgepos.store.fixlog import FixLog, MemoryFixLog
+from edgepos.store.fixlog import FixLog, MemoryFixLog, NewFix
 from edgepos.store.ratelimit import RateLimit
 
 Clock = Callable[[], float]
@@ -226,9 +226,19 @@ class SessionLocks:
         return len(self._locks)
 
 
+def refuse_fixes_in_write(fixes: Sequence[NewFix]) -> None:
+    """For a store whose compare-and-set cannot append fix events (``SessionStore.fixes_in_write``)."""
+    if fixes:
+        raise ValueError("this store appends fix events to its fix log apart from the session's write")
+
+
 class SessionStore(ABC):
     """Async storage of sessions and RSUs. Sessions idle for more than ``ttl_s`` seconds (no write
     since ``updated_at``) are expired: never returned, not counted, removed by :meth:`expire`."""
+
+    fixes_in_write = False
+    """Whether :meth:`compare_and_set` takes the batch's fix events and appends them to the store's fix log in
+    the same atomic write (the Redis store, once its fix log is made); else they go to the log apart."""
 
     def __init__(self, ttl_s: float, clock: Clock = time.time) -> None:
         if not ttl_s > 0:
@@ -294,9 +304,13 @@ class SessionStore(ABC):
         return await self.get(session_id, with_response=False)
 
     @abstractmethod
-    async def compare_and_set(self, record: SessionRecord, expected_version: int) -> bool:
+    async def compare_and_set(
+        self, record: SessionRecord, expected_version: int, fixes: Sequence[NewFix] = ()
+    ) -> bool:
         """Replace the session if its stored version is still ``expected_version``; the stored
-        copy gets version ``expected_version + 1``. False if it changed or vanished meanwhile."""
+        copy gets version ``expected_version + 1``. False if it changed or vanished meanwhile.
+        ``fixes``: the batch's fix events, appended with the write if and only if it applies; only for a
+        store whose :attr:`fixes_in_write` (ValueError otherwise)."""
 
     @abstractmethod
     async def delete(self, session_id: str) -> bool:

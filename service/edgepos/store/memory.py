@@ -25,6 +25,7 @@ from edgepos.store.base import (
     TooManySessions,
     VehicleNotRegistered,
     VehicleRecord,
+    refuse_fixes_in_write,
 )
 from edgepos.store.fixlog import FixEvent, FixLog, Gap, LocalFixLog, NewFix, gap_between
 from edgepos.store.ratelimit import RateLimit, gcra
@@ -212,7 +213,10 @@ class MemoryStore(SessionStore):
             return None
         return self._copy(record)
 
-    async def compare_and_set(self, record: SessionRecord, expected_version: int) -> bool:
+    async def compare_and_set(
+        self, record: SessionRecord, expected_version: int, fixes: Sequence[NewFix] = ()
+    ) -> bool:
+        refuse_fixes_in_write(fixes)
         current = self._sessions.get(record.session_id)
         if current is None or current.version != expected_version:
             return False

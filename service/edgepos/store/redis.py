@@ -25,7 +25,7 @@ import asyncio
 import math
 import secrets
 import time
-from collections.abc import AsyncGenerator, AsyncIterator, Iterable, Mapping
+from collections.abc import AsyncGenerator, AsyncIterator, Iterable, Mapping, Sequence
 from contextlib import asynccontextmanager
 from typing import Any
 from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
@@ -51,8 +51,9 @@ from edgepos.store.base import (
     VehicleNotRegistered,
     decode_track,
     encode_track,
+    refuse_fixes_in_write,
 )
-from edgepos.store.fixlog import FixLog
+from edgepos.store.fixlog import FixLog, NewFix
 from edgepos.store.ratelimit import SLACK_S, RateLimit, gcra
 from edgepos.store.redis_base import RedisBaseStations
 from edgepos.store.redis_cache import RSUS_USED, RecordCache, RsuSnapshot
@@ -60,6 +61,7 @@ from edgepos.store.redis_packing import PACKED
 from edgepos.store.redis_records import (
     RECORD_FIELDS,
     SUMMARY_FIELDS,
+    fix_arguments,
     record_fields,
     record_from_hash,
     record_pairs,
@@ -112,6 +114,7 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
     SCRIPTS: Mapping[str, str] = {
         "create": scripts.CREATE,
         "cas": scripts.COMPARE_AND_RENAME,
+        "cas_fixes": scripts.COMPARE_AND_RENAME_PUBLISHING,
         "count": scripts.PURGE_AND_COUNT,
         "take": scripts.TAKE_REQUEST,
         "delete": scripts.DELETE,
@@ -165,6 +168,7 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
         self._client: Any = None  # redis.asyncio.Redis, or RedisCluster in the cluster store
         self._loop: asyncio.AbstractEventLoop | None = None
         self._closer: AsyncGenerator[None, None] | None = None
+        self._fix_buffer = 0  # the fix stream's MAXLEN, once its log is made (fix_log)
         self._trips = RoundTrips()  # on the newest pool's connections, kept between round trips
         self._scripts: dict[str, AsyncScript] = {}
         self._closing: set[asyncio.Task[None]] = set()  # clients discarded, closing after their grace period
@@ -412,7 +416,14 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
         self.records.drop(session_id)
         return await self.get(session_id, with_response=False)
 
-    async def compare_and_set(self, record: SessionRecord, expected_version: int) -> bool:
+    APPENDS_FIXES_IN_WRITE = True
+    """The fix stream shares the server with the sessions: a batch's fix events go in its write's script."""
+
+    async def compare_and_set(
+        self, record: SessionRecord, expected_version: int, fixes: Sequence[NewFix] = ()
+    ) -> bool:
+        if fixes and not self.fixes_in_write:
+            refuse_fixes_in_write(fixes)
         # the token of the RSU map this request's batch was computed on, if it used this worker's copy
         rsus_used = RSUS_USED.get()
         RSUS_USED.set(None)
@@ -430,13 +441,19 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
             repr(float(record.updated_at)),
             record.session_id,
         ]
+        script = "cas_fixes" if fixes else "cas"
+        if fixes:  # the stream, its counter, then the token key if any (the script's layout)
+            keys += [self.fixes_key, self.fixes_seq_key]
+            args += [rsus_used or "", self._fix_buffer, *fix_arguments(fixes)]
         if rsus_used is not None:
             keys.append(self.rsu_token_key)
-            args.append(rsus_used)
+            if not fixes:
+                args.append(rsus_used)
         fields = record_fields(record, expected_version + 1)
         try:
             async with self._guard():
-                applied, replicas = await self._staged_write(await self._redis(), keys, args, fields)
+                client = await self._redis()
+                applied, replicas = await self._staged_write(client, keys, args, fields, script)
         except BaseException:
             self.records.drop(record.session_id)  # whether it was written is not known
             raise
@@ -453,21 +470,30 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
         return applied == 1
 
     async def _staged_write(
-        self, client: Any, keys: list[str], args: list[bytes | str | int], fields: list[bytes]
+        self, client: Any, keys: list[str], args: list[bytes | str | int], fields: list[bytes], script: str
     ) -> tuple[int, int]:
-        """The new record as a staged hash, then the compare-and-rename script, in one pipeline (one round
+        """The new record as a staged hash, then the compare-and-rename ``script``, in one pipeline (one round
         trip); with ``wait_replicas``, WAIT on the same connection: (applied, replicas that have it)."""
-        replies = await self._staged_pipeline(client, keys, args, fields, wait=bool(self.wait_replicas))
+        replies = await self._staged_pipeline(
+            client, keys, args, fields, script, wait=bool(self.wait_replicas)
+        )
         return int(replies[2]), int(replies[3]) if self.wait_replicas else 0
 
     async def _staged_pipeline(
-        self, client: Any, keys: list[str], args: list[bytes | str | int], fields: list[bytes], *, wait: bool
+        self,
+        client: Any,
+        keys: list[str],
+        args: list[bytes | str | int],
+        fields: list[bytes],
+        name: str,
+        *,
+        wait: bool,
     ) -> list[Any]:
         """Sends HSET staged, PEXPIRE staged (a staged hash orphaned by a lost connection goes by itself),
         EVALSHA compare-and-rename and, with ``wait``, WAIT; the replies. The script is sent by its digest
         (redis-py's pipelined scripts would ask SCRIPT EXISTS first: a second round trip per batch) and
         loaded again only if the server lost it (restart, SCRIPT FLUSH)."""
-        script = self._scripts["cas"]
+        script = self._scripts[name]
         commands: list[Command] = [
             ("HSET", keys[3], *fields),
             ("PEXPIRE", keys[3], STAGED_TTL_MS),
@@ -628,6 +654,7 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
     def fix_log(self, buffer: int) -> FixLog:
         from edgepos.store.redis_fixlog import RedisFixLog  # it builds on this module
 
+        self._fix_buffer, self.fixes_in_write = buffer, self.APPENDS_FIXES_IN_WRITE
         return RedisFixLog(self, buffer)
 
     def _blocking_client(self, block_s: float) -> Any:

@@ -317,12 +317,14 @@ class RedisClusterStore(RedisStore):
         self._counts = (time.monotonic(), counts)
         return sum(int(gone) for gone, _ in replies), sum(counts)
 
+    APPENDS_FIXES_IN_WRITE = False  # the stream's slot is not the session's: its appends go apart
+
     async def _staged_write(
-        self, client: Any, keys: list[str], args: list[bytes | str | int], fields: list[bytes]
+        self, client: Any, keys: list[str], args: list[bytes | str | int], fields: list[bytes], script: str
     ) -> tuple[int, int]:
         """As the single server's, the three commands to the session's slot in one pipeline; WAIT then goes
         to the primary that holds the slot (a cluster pipeline cannot route WAIT)."""
-        replies = await self._staged_pipeline(client, keys, args, fields, wait=False)
+        replies = await self._staged_pipeline(client, keys, args, fields, script, wait=False)
         applied = int(replies[2])
         session_id = str(args[3])
         replicas = await self._wait_on_shard(session_id) if applied == 1 and self.wait_replicas else 0

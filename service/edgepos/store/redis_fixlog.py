@@ -11,6 +11,7 @@ from typing import Any
 from edgepos.store.base import StoreUnavailable
 from edgepos.store.fixlog import FixEvent, FixLog, Gap, NewFix, gap_between
 from edgepos.store.redis import RedisStore
+from edgepos.store.redis_records import fix_arguments
 
 
 def _entry_event(entry_id: bytes | str, fields: Mapping[bytes, bytes]) -> FixEvent:
@@ -40,9 +41,7 @@ class RedisFixLog(FixLog):
     async def append(self, fixes: Sequence[NewFix]) -> None:
         if not fixes:
             return
-        args: list[str | bytes | int] = [self.buffer]
-        for fix in fixes:
-            args += [fix.session_id, fix.vehicle_id, fix.pipeline, repr(float(fix.t)), fix.data]
+        args: list[str | bytes | int] = [self.buffer, *fix_arguments(fixes)]
         store = self.store
         async with store._guard():
             client = await store._redis()

@@ -75,14 +75,14 @@ return {1, old or ''}
 # whole write (bench/redis_ops.py). Returns 1 if applied, 0 if the version moved (or the session is gone:
 # deleted, superseded, revoked, expired), -1 if the staged hash is missing (its HSET failed: nothing
 # written), -2 if the RSU map changed since the worker cached it (nothing written).
-COMPARE_AND_RENAME = """
+_COMPARE_AND_RENAME_BODY = """
 if redis.call('EXISTS', KEYS[4]) == 0 then return -1 end
 local version = redis.call('HGET', KEYS[1], 'version')
 if (not version) or version ~= ARGV[1] then
   redis.call('DEL', KEYS[4])
   return 0
 end
-if KEYS[5] and (redis.call('GET', KEYS[5]) or '') ~= ARGV[5] then
+if token_key and (redis.call('GET', token_key) or '') ~= ARGV[5] then
   redis.call('DEL', KEYS[4])
   return -2
 end
@@ -90,8 +90,8 @@ redis.call('RENAME', KEYS[4], KEYS[1])
 redis.call('PEXPIRE', KEYS[1], ARGV[2])
 redis.call('ZADD', KEYS[2], ARGV[3], ARGV[4])
 if redis.call('GET', KEYS[3]) == ARGV[4] then redis.call('PEXPIRE', KEYS[3], ARGV[2]) end
-return 1
 """
+COMPARE_AND_RENAME = "local token_key = KEYS[5]" + _COMPARE_AND_RENAME_BODY + "return 1\n"
 
 # KEYS: session hash, index. ARGV: id, live-pointer prefix, track prefix. Removes the session and,
 # when the vehicle's pointer names it, the pointer and the vehicle's track. Returns 1 if it existed.
@@ -250,16 +250,32 @@ return end_live_session(KEYS[1], KEYS[2], KEYS[3], ARGV[1], ARGV[2])
 # ARGV: MAXLEN, then session id, vehicle id, pipeline, t, data of each fix. Gives the fixes the next
 # ids of the counter (dense: a consumer's resume can tell exactly how many events it missed) and
 # appends them, trimming the stream to about MAXLEN entries. Returns the last id given.
-PUBLISH_FIXES = """
-local n = (#ARGV - 1) / 5
-local last = redis.call('INCRBY', KEYS[2], n)
-for i = 0, n - 1 do
-  local b = 2 + i * 5
-  redis.call('XADD', KEYS[1], 'MAXLEN', '~', ARGV[1], string.format('%d-0', last - n + 1 + i),
-    's', ARGV[b], 'v', ARGV[b + 1], 'p', ARGV[b + 2], 't', ARGV[b + 3], 'd', ARGV[b + 4])
+APPEND_FIXES_FN = """
+local function append_fixes(stream, counter, maxlen, first)
+  local n = (#ARGV - first + 1) / 5
+  local last = redis.call('INCRBY', counter, n)
+  for i = 0, n - 1 do
+    local b = first + i * 5
+    redis.call('XADD', stream, 'MAXLEN', '~', maxlen, string.format('%d-0', last - n + 1 + i),
+      's', ARGV[b], 'v', ARGV[b + 1], 'p', ARGV[b + 2], 't', ARGV[b + 3], 'd', ARGV[b + 4])
+  end
+  return last
 end
-return last
 """
+PUBLISH_FIXES = APPEND_FIXES_FN + "return append_fixes(KEYS[1], KEYS[2], ARGV[1], 2)\n"
+
+# A batch's compare-and-rename with its fix events appended to the fix stream in the same script, on a single
+# server, where the session's keys and the stream's share the server (a cluster keeps them in different
+# slots and appends apart). KEYS: as COMPARE_AND_RENAME's first four, the stream, its id counter and,
+# optionally, the cached RSU map's token. ARGV: as COMPARE_AND_RENAME's first four, that map's token (or
+# ''), MAXLEN, then the fixes as PUBLISH_FIXES takes them. The fixes are appended only if the record was
+# applied, so a refused batch publishes nothing and the stream's order is the order of the applied batches.
+COMPARE_AND_RENAME_PUBLISHING = (
+    APPEND_FIXES_FN
+    + "local token_key = KEYS[7]"
+    + _COMPARE_AND_RENAME_BODY
+    + "if #ARGV > 6 then append_fixes(KEYS[5], KEYS[6], ARGV[6], 7) end\nreturn 1\n"
+)
 
 # KEYS: the kind's document hash. ARGV: key, text. Writes only if the key is there; returns 1 if written.
 REPLACE_DOCUMENT = """

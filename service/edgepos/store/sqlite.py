@@ -34,8 +34,9 @@ from edgepos.store.base import (
     VehicleRecord,
     decode_track,
     encode_track,
+    refuse_fixes_in_write,
 )
-from edgepos.store.fixlog import FixLog, SQLiteFixLog, fix_log_path
+from edgepos.store.fixlog import FixLog, NewFix, SQLiteFixLog, fix_log_path
 from edgepos.store.ratelimit import RateLimit, gcra
 from edgepos.store.sqlite_base import SQLiteBaseStations
 from edgepos.store.sqlite_documents import SQLiteDocuments
@@ -348,7 +349,11 @@ class SQLiteStore(SQLiteBaseStations, SQLiteDocuments, SessionStore):
 
         return await self._run(work)
 
-    async def compare_and_set(self, record: SessionRecord, expected_version: int) -> bool:
+    async def compare_and_set(
+        self, record: SessionRecord, expected_version: int, fixes: Sequence[NewFix] = ()
+    ) -> bool:
+        refuse_fixes_in_write(fixes)
+
         def work(db: sqlite3.Connection) -> bool:
             row = self._row(record)
             cursor = db.execute(
