@@ -9,9 +9,9 @@ from typing import Any
 
 import pytest
 from apihelp import ADMIN, batch_body, bearer, open_session
+from edgepos.api import session_service
 from edgepos.api.one_pass_body import dependency_calls, direct_route
 from edgepos.api.routes import json_body, sessions
-from edgepos.api import session_service
 from fastapi import APIRouter, Depends, Request, Response, routing
 from starlette.middleware.exceptions import ExceptionMiddleware
 
