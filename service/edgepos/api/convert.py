@@ -75,10 +75,11 @@ _NEXT_FIX = b'},{"t":'
 def fixes_bytes(fixes: Sequence[Fix], include_state: bool, origin: GeodeticOrigin | None) -> list[bytes]:
     """``[fix_bytes(fix, include_state, origin) for fix in fixes]``, the very bytes, with every fix's fields
     read and written by pydantic-core in one call (:data:`_FIX_HEADS`: no dict per fix, the keys written in
-    Rust; the fields' dicts and their writing were half of the batch's JSON). The list's JSON is cut where
-    one fix ends and the next begins; should a fix hold that sequence of bytes elsewhere (no field does
-    today), the cuts do not come out one per fix and each fix is written on its own. With a site origin
-    and a fix whose latitude comes from it, the fields are the dicts of :func:`_fix_fields`."""
+    Rust; the fields' dicts and their writing were two thirds of the batch's JSON), and each fix's uses
+    joined once per sequence of use objects (:func:`_uses_bytes`). The list's JSON is cut where one fix ends
+    and the next begins; should a fix hold that sequence of bytes elsewhere (no field does today), the cuts
+    do not come out one per fix and each fix is written on its own. With a site origin and a fix whose
+    latitude comes from it, the fields are the dicts of :func:`_fix_fields`."""
     if not fixes:
         return []
     if origin is not None and any(
