@@ -27,7 +27,8 @@ _text = st.text(max_size=12) | st.sampled_from(
     ["tracking", "ok", 'a,"b"', '},{"t":', "ü ✓ %b %s", "NaN", ":NaN"]
 )
 _number = _floats | st.integers(-(2**53), 2**53)
-# x and y within a site (a site origin turns them into a latitude and longitude: the geodesy overflows far out)
+# x and y within a site (a site origin turns them into a latitude and longitude; far out the geodesy
+# overflows)
 _site = st.floats(-1e5, 1e5) | st.sampled_from([0.0, -0.0, 1e-300, 2.0]) | st.integers(-1000, 1000)
 
 
