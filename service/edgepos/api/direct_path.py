@@ -29,7 +29,7 @@ from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException
 from starlette.routing import Match
 
-from edgepos.api.middleware import ASGIApp, Message, Receive, Scope, Send
+from edgepos.api.middleware import ASGIApp, Receive, Scope, Send, replaying
 from edgepos.api.one_pass_body import DirectHandler, direct_handler, one_pass_model
 
 ExceptionHandler = Any
@@ -77,16 +77,16 @@ class DirectPathMiddleware:
         message = await receive()
         body = message.get("body", b"") if message["type"] == "http.request" else None
         if body is None or message.get("more_body", False):  # a streamed body or a client gone: FastAPI's
-            await self.app(scope, _replaying(message, receive), send)
+            await self.app(scope, replaying(message, receive), send)
             return
         try:
             validated = model.model_validate_json(body)
         except ValueError:  # pydantic's ValidationError included: FastAPI words the refusal
-            await self.app(scope, _replaying(message, receive), send)
+            await self.app(scope, replaying(message, receive), send)
             return
         scope.update(child_scope)  # path_params, endpoint and route, as the router sets them
         scope["router"] = self.fastapi_app.router
-        replay = _replaying(message, receive)
+        replay = replaying(message, receive)
         request = Request(scope, replay, send)
         try:
             response = await handler(request, validated)
@@ -110,17 +110,3 @@ class DirectPathMiddleware:
         else:
             response = await run_in_threadpool(handler, request, error)
         return response
-
-
-def _replaying(first: Message, receive: Receive) -> Receive:
-    """``receive`` with ``first`` (already taken from it) handed out again first."""
-    delivered = False
-
-    async def replay() -> Message:
-        nonlocal delivered
-        if not delivered:
-            delivered = True
-            return first
-        return await receive()
-
-    return replay

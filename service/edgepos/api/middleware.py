@@ -177,16 +177,21 @@ class BodyLimitMiddleware:
                 break
         if first is None:
             first = {"type": "http.request", "body": b"".join(chunks), "more_body": False}
-        delivered = False
+        await self.app(scope, replaying(first, receive), send)
 
-        async def replay() -> Message:
-            nonlocal delivered
-            if not delivered:
-                delivered = True
-                return first
-            return await receive()
 
-        await self.app(scope, replay, send)
+def replaying(first: Message, receive: Receive) -> Receive:
+    """``receive`` with ``first`` (already taken from it) handed out again first."""
+    delivered = False
+
+    async def replay() -> Message:
+        nonlocal delivered
+        if not delivered:
+            delivered = True
+            return first
+        return await receive()
+
+    return replay
 
 
 class Admission:
