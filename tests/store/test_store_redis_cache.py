@@ -19,6 +19,7 @@ import redis
 from edgepos.pipelines.base import Rsu
 from edgepos.store import SessionRecord
 from edgepos.store.base import VehicleRecord
+from edgepos.store.fixlog import NewFix
 from edgepos.store.redis import RedisStore
 from edgepos.store.redis_cache import RSUS_USED
 from test_store_contract import Clock, record
@@ -172,6 +173,35 @@ def test_a_batch_on_a_cached_rsu_map_is_refused_once_the_map_changed(workers, cl
     assert run(batch(first, b"d")) == (False, 5.0)  # a deletion changes the token too
     final = run(first.get("s1"))
     assert final is not None and final.state == b"\x00state\xffac"
+
+
+def test_the_fixes_of_a_batch_refused_for_a_changed_rsu_map_are_not_published(workers, clock: Clock):
+    """The fix events that go with the write (``fixes_in_write``) are appended only by the writes that apply:
+    not by the one computed on the old RSU map."""
+    first, second = workers
+    log = first.fix_log(100)
+    run(second.upsert_rsus([Rsu("r1", 0.0, 0.0, 1.0, 0.1, 100.0)]))
+    run(first.create(record("s1"), 10))
+
+    async def batch(tag: bytes) -> bool:
+        current = await first.get_for_batch("s1")
+        assert current is not None
+        await first.get_rsus(["r1"])
+        events = [NewFix("s1", "v-s1", "rsu_imu", 1.0, tag)]
+        return await first.compare_and_set(next_batch(current, clock, tag), current.version, events)
+
+    assert first.fixes_in_write
+    assert run(batch(b"a"))
+    run(second.upsert_rsus([Rsu("r1", 5.0, 0.0, 1.0, 0.1, 100.0)]))
+    assert not run(batch(b"b"))  # computed on the old map: refused, nothing written or published
+    assert run(batch(b"c"))
+
+    async def published() -> list[tuple[int, bytes]]:
+        events = await log.read(0, 0.05, 10)
+        await log.close()
+        return [(event.id, event.data) for event in events]
+
+    assert run(published()) == [(1, b"a"), (2, b"c")]
 
 
 def _increment(url: str, session_id: str, count: int) -> int:

@@ -422,7 +422,7 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
     async def compare_and_set(
         self, record: SessionRecord, expected_version: int, fixes: Sequence[NewFix] = ()
     ) -> bool:
-        if fixes and not self.fixes_in_write:
+        if not self.fixes_in_write:
             refuse_fixes_in_write(fixes)
         # the token of the RSU map this request's batch was computed on, if it used this worker's copy
         rsus_used = RSUS_USED.get()
