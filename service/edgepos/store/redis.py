@@ -57,11 +57,11 @@ from edgepos.store.fixlog import FixLog, NewFix
 from edgepos.store.ratelimit import SLACK_S, RateLimit, gcra
 from edgepos.store.redis_base import RedisBaseStations
 from edgepos.store.redis_cache import RSUS_USED, RecordCache, RsuSnapshot
+from edgepos.store.redis_fix_entries import fix_arguments
 from edgepos.store.redis_packing import PACKED
 from edgepos.store.redis_records import (
     RECORD_FIELDS,
     SUMMARY_FIELDS,
-    fix_arguments,
     record_fields,
     record_from_hash,
     record_pairs,
@@ -162,13 +162,13 @@ class RedisStore(RedisRegistry, RedisBaseStations, SessionStore):
         self.superseded_prefix = f"{self.prefix}superseded:"
         self.track_prefix = f"{self.prefix}track:"
         # the fix stream and its id counter: one hash tag, so one slot on a Redis Cluster
-        self.fixes_key = f"{self.prefix}{{fixes}}:stream"
+        self.fixes_key = f"{self.prefix}{{fixes}}:entries"
         self.fixes_seq_key = f"{self.prefix}{{fixes}}:seq"
         self._ttl_ms = max(1, math.ceil(self.ttl_s * 1000.0))
         self._client: Any = None  # redis.asyncio.Redis, or RedisCluster in the cluster store
         self._loop: asyncio.AbstractEventLoop | None = None
         self._closer: AsyncGenerator[None, None] | None = None
-        self._fix_buffer = 0  # the fix stream's MAXLEN, once its log is made (fix_log)
+        self._fix_buffer = 0  # the fixes the fix stream holds, once its log is made (fix_log)
         self._trips = RoundTrips()  # on the newest pool's connections, kept between round trips
         self._scripts: dict[str, AsyncScript] = {}
         self._closing: set[asyncio.Task[None]] = set()  # clients discarded, closing after their grace period

@@ -11,24 +11,19 @@ from typing import Any
 from edgepos.store.base import StoreUnavailable
 from edgepos.store.fixlog import FixEvent, FixLog, Gap, NewFix, gap_between
 from edgepos.store.redis import RedisStore
-from edgepos.store.redis_records import fix_arguments
+from edgepos.store.redis_fix_entries import entry_events, entry_size, fix_arguments
 
 
-def _entry_event(entry_id: bytes | str, fields: Mapping[bytes, bytes]) -> FixEvent:
+def _first_id(entry_id: bytes | str, fields: Mapping[bytes, bytes]) -> int:
+    """The id of an entry's first fix."""
     text = entry_id.decode() if isinstance(entry_id, bytes) else entry_id
-    return FixEvent(
-        int(text.partition("-")[0]),
-        fields[b"s"].decode(),
-        fields[b"v"].decode(),
-        fields[b"p"].decode(),
-        float(fields[b"t"]),
-        bytes(fields[b"d"]),
-    )
+    return int(text.partition("-")[0]) - entry_size(fields) + 1
 
 
 class RedisFixLog(FixLog):
-    """The fix log as a Redis stream (``P{fixes}:stream``, trimmed to about ``buffer`` entries by every
-    append) with a counter giving dense ids (``P{fixes}:seq``). Appends are one script call on the
+    """The fix log as a Redis stream (``P{fixes}:entries``, one entry per run of a session's fixes:
+    ``store.redis_fix_entries``; trimmed by every append to the entries holding the last ``buffer``
+    fixes) with a counter giving dense ids (``P{fixes}:seq``). Appends are one script call on the
     store's connection pool; blocking reads use a client of their own."""
 
     def __init__(self, store: RedisStore, buffer: int) -> None:
@@ -37,6 +32,7 @@ class RedisFixLog(FixLog):
         self._reader: Any = None
         self._reader_loop: asyncio.AbstractEventLoop | None = None
         self._read_block_s = 0.0
+        self._fixes_per_entry = 1  # in the last entries read: how many entries a read asks for
 
     async def append(self, fixes: Sequence[NewFix]) -> None:
         if not fixes:
@@ -62,7 +58,9 @@ class RedisFixLog(FixLog):
             # the plain store's guard (error translation) without the cluster store's pool permits
             async with RedisStore._guard(self.store):
                 reply = await self._reader.xread(
-                    {self.store.fixes_key: f"{after}-0"}, count=count, block=max(1, int(block_s * 1000))
+                    {self.store.fixes_key: f"{after}-0"},
+                    count=max(1, count // self._fixes_per_entry),
+                    block=max(1, int(block_s * 1000)),
                 )
         except StoreUnavailable:
             await self._close_reader()  # start afresh on a new connection
@@ -70,7 +68,11 @@ class RedisFixLog(FixLog):
         if not reply:
             return []
         streams = reply.items() if isinstance(reply, dict) else reply  # RESP3 answers a map
-        return [_entry_event(entry_id, fields) for _key, entries in streams for entry_id, fields in entries]
+        entries = [entry for _key, stream_entries in streams for entry in stream_entries]
+        self._fixes_per_entry = max(1, sum(entry_size(fields) for _id, fields in entries) // len(entries))
+        # the first entry may hold fixes up to ``after`` (an entry's id is its last fix's)
+        events = [event for entry in entries for event in entry_events(*entry) if event.id > after]
+        return events[:count]
 
     async def backlog(self, after: int) -> tuple[list[FixEvent], Gap | None]:
         store = self.store
@@ -81,11 +83,13 @@ class RedisFixLog(FixLog):
             pipe.xrange(store.fixes_key, "-", "+", count=1)
             newest_raw, first = await pipe.execute()
             newest = 0 if newest_raw is None else int(newest_raw)
-            oldest = _entry_event(*first[0]).id if first else None
+            oldest = _first_id(*first[0]) if first else None
             gap = gap_between(after, oldest, newest)
-            start = "-" if gap is not None else f"{after + 1}-0"
+            start = "-" if gap is not None else f"{after + 1}-0"  # the entry holding after + 1, onwards
             entries = await client.xrange(store.fixes_key, start, "+")  # the stream is bounded already
-        return [_entry_event(entry_id, fields) for entry_id, fields in entries], gap
+        events = [event for entry in entries for event in entry_events(*entry)]
+        # with a gap every held event is given; else from after + 1 (the first entry may hold older ones)
+        return (events if gap is not None else [event for event in events if event.id > after]), gap
 
     async def _close_reader(self) -> None:
         reader, self._reader = self._reader, None

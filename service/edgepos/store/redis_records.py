@@ -7,7 +7,6 @@ import json
 from collections.abc import Mapping, Sequence
 
 from edgepos.store.base import SessionRecord, SessionSummary
-from edgepos.store.fixlog import NewFix
 
 
 def record_pairs(record: SessionRecord, version: int) -> list[tuple[bytes, bytes]]:
@@ -37,14 +36,6 @@ def record_pairs(record: SessionRecord, version: int) -> list[tuple[bytes, bytes
 def record_fields(record: SessionRecord, version: int) -> list[bytes]:
     """The record as a flat field/value list for HSET."""
     return [item for pair in record_pairs(record, version) for item in pair]
-
-
-def fix_arguments(fixes: Sequence[NewFix]) -> list[str | bytes]:
-    """The fix events as the fix stream's scripts take them: session id, vehicle id, pipeline, t, data each."""
-    arguments: list[str | bytes] = []
-    for fix in fixes:
-        arguments += (fix.session_id, fix.vehicle_id, fix.pipeline, repr(float(fix.t)), fix.data)
-    return arguments
 
 
 def record_from_hash(session_id: str, raw: Mapping[bytes, bytes]) -> SessionRecord:

@@ -247,17 +247,21 @@ return end_live_session(KEYS[1], KEYS[2], KEYS[3], ARGV[1], ARGV[2])
 )
 
 # The fix stream (store.redis_fixlog.RedisFixLog). KEYS: the stream, its id counter (one slot: {fixes}).
-# ARGV: MAXLEN, then session id, vehicle id, pipeline, t, data of each fix. Gives the fixes the next
-# ids of the counter (dense: a consumer's resume can tell exactly how many events it missed) and
-# appends them, trimming the stream to about MAXLEN entries. Returns the last id given.
+# ARGV: the buffer, then for each entry session id, vehicle id, pipeline, n, times, lengths and data of its
+# n fixes (store.redis_fix_entries). Gives the fixes the next n ids of the counter (dense: a consumer's
+# resume can tell exactly how many events it missed), appends each entry with its last fix's id, and
+# trims the entries whose fixes are all older than the buffer. Returns the last id given.
 APPEND_FIXES_FN = """
-local function append_fixes(stream, counter, maxlen, first)
-  local n = (#ARGV - first + 1) / 5
-  local last = redis.call('INCRBY', counter, n)
-  for i = 0, n - 1 do
-    local b = first + i * 5
-    redis.call('XADD', stream, 'MAXLEN', '~', maxlen, string.format('%d-0', last - n + 1 + i),
-      's', ARGV[b], 'v', ARGV[b + 1], 'p', ARGV[b + 2], 't', ARGV[b + 3], 'd', ARGV[b + 4])
+local function append_fixes(stream, counter, buffer, first)
+  local total = 0
+  for b = first, #ARGV, 7 do total = total + tonumber(ARGV[b + 3]) end
+  local last = redis.call('INCRBY', counter, total)
+  local oldest = string.format('%d-0', math.max(last - tonumber(buffer) + 1, 0))
+  local id = last - total
+  for b = first, #ARGV, 7 do
+    id = id + tonumber(ARGV[b + 3])
+    redis.call('XADD', stream, 'MINID', oldest, string.format('%d-0', id), 's', ARGV[b], 'v', ARGV[b + 1],
+      'p', ARGV[b + 2], 'n', ARGV[b + 3], 't', ARGV[b + 4], 'l', ARGV[b + 5], 'd', ARGV[b + 6])
   end
   return last
 end
@@ -268,7 +272,7 @@ PUBLISH_FIXES = APPEND_FIXES_FN + "return append_fixes(KEYS[1], KEYS[2], ARGV[1]
 # server, where the session's keys and the stream's share the server (a cluster keeps them in different
 # slots and appends apart). KEYS: as COMPARE_AND_RENAME's first four, the stream, its id counter and,
 # optionally, the cached RSU map's token. ARGV: as COMPARE_AND_RENAME's first four, that map's token (or
-# ''), MAXLEN, then the fixes as PUBLISH_FIXES takes them. The fixes are appended only if the record was
+# ''), the buffer, then the fixes as PUBLISH_FIXES takes them. The fixes are appended only if the record was
 # applied, so a refused batch publishes nothing and the stream's order is the order of the applied batches.
 COMPARE_AND_RENAME_PUBLISHING = (
     APPEND_FIXES_FN
