@@ -22,7 +22,7 @@ With ``--light-lane loop,thread`` each store's service is measured with the ligh
 and on the filter thread (``EDGEPOS_LIGHT_LANE``; the service's default), and thread ÷ loop printed per round.
 
     python bench/wrk_load.py [--workers 1] [--store memory|redis|memory,redis] [--light-lane loop|thread|loop,thread]
-        [--vehicles 16] [--duration 10] [--rounds 3] [--batch 20] [--jitter-ms 3] [--json FILE]
+        [--vehicles 16] [--duration 10] [--rounds 3] [--batch 20] [--jitter-ms 3] [--json FILE] [--budget RATIO]
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+import capacity_budget
 import numpy as np
 import redis as redis_client
 from edgepos.loadgen import common
@@ -154,6 +155,13 @@ def main() -> int:
     parser.add_argument("--batch", type=int, default=20, help="epochs per batch")
     parser.add_argument("--jitter-ms", type=float, default=3.0, help="timestamp jitter, uniform +-")
     parser.add_argument("--json", type=Path)
+    parser.add_argument(
+        "--budget",
+        type=float,
+        metavar="RATIO",
+        help="also print the CPU budget an epoch at RATIO of the floor's epochs/s and what every epoch costs "
+        "whatever the service does (bench/capacity_budget.py)",
+    )
     args = parser.parse_args()
     if shutil.which("wrk") is None:
         print("wrk is not installed: `make wrk` (Debian package) installs it", file=sys.stderr)
@@ -285,6 +293,11 @@ def main() -> int:
             f"  -> {cores / sum(parts) * 1e6:8.0f} epochs/s"
         )
     print(f"load average {load_before:.2f} before, {os.getloadavg()[0]:.2f} after")
+    if args.budget:
+        budget = capacity_budget.print_budget(
+            args.budget, results["floor"], {name: results[name] for name in services.values()}, cores
+        )
+        ratios["budget"] = list(budget.values())
     if args.json:
         args.json.write_text(
             json.dumps(
