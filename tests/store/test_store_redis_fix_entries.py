@@ -101,10 +101,7 @@ def test_the_redis_stream_holds_an_entry_per_run_and_reads_split_them(redis_serv
         assert client.xlen(f"{prefix}{{fixes}}:entries") == 3  # a a | b | a
         events = await log.read(0, 1.0, 10)
         assert [(e.id, e.session_id, e.data) for e in events] == [
-            (1, "a", b"a1"),
-            (2, "a", b"a2"),
-            (3, "b", b"b1"),
-            (4, "a", b"a3"),
+            (n + 1, fix.session_id, fix.data) for n, fix in enumerate(fixes)
         ]
         # a read from inside an entry gives what follows, up to the count
         assert [e.id for e in await log.read(1, 1.0, 2)] == [2, 3]
