@@ -16,8 +16,8 @@ from collections.abc import Mapping, Sequence
 from edgepos.store.fixlog import FixEvent, NewFix
 
 FIXES_PER_ENTRY = 100
-"""The most fixes one entry holds. The stream is trimmed by whole entries, so it keeps up to this many
-fewer than one more fixes than its buffer."""
+"""The most fixes one entry holds. The stream is trimmed by whole entries, so it holds at most this many
+minus one fixes beyond its buffer."""
 
 ARGUMENTS_PER_ENTRY = 7
 """What the scripts take for each entry (``APPEND_FIXES_FN``): session id, vehicle id, pipeline, the

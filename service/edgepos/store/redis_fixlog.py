@@ -32,7 +32,7 @@ class RedisFixLog(FixLog):
         self._reader: Any = None
         self._reader_loop: asyncio.AbstractEventLoop | None = None
         self._read_block_s = 0.0
-        self._fixes_per_entry = 1  # in the last entries read: how many entries a read asks for
+        self._fixes_per_entry = 1  # in the last read: a read asks for about ``count`` fixes' worth of entries
 
     async def append(self, fixes: Sequence[NewFix]) -> None:
         if not fixes:
