@@ -293,11 +293,11 @@ def main() -> int:
             f"  -> {cores / sum(parts) * 1e6:8.0f} epochs/s"
         )
     print(f"load average {load_before:.2f} before, {os.getloadavg()[0]:.2f} after")
+    budget: dict[str, float] = {}
     if args.budget:
         budget = capacity_budget.print_budget(
             args.budget, results["floor"], {name: results[name] for name in services.values()}, cores
         )
-        ratios["budget"] = list(budget.values())
     if args.json:
         args.json.write_text(
             json.dumps(
@@ -310,6 +310,7 @@ def main() -> int:
                     },
                     "results": results,
                     "ratios": ratios,
+                    "budget": budget,
                 },
                 indent=2,
             )
